@@ -1,0 +1,2 @@
+//! Wire formats, as pure parse/emit code: a checked view plus a small value type
+//! per frame, and a stream decoder per format fed `(now, bytes)`.
