@@ -48,8 +48,10 @@ pub struct ConverterParams {
     /// Bleeder resistor switched across the bus by `DES` (Ω): 100 Ω gives
     /// τ = R·C = 0.1 s, a bus discharged in half a second.
     pub bleeder_ohm: f64,
-    /// Bus voltage at power-up (V): the capacitor starts discharged.
-    pub initial_bus_volts: f64,
+    /// The module's precharge circuit has brought the bus up to the battery
+    /// voltage before the pack's contactor closes. Without it, closing onto an
+    /// empty 1000 µF bus draws a ~200 A inrush (and trips a real BMS).
+    pub precharged: bool,
 }
 
 impl Default for ConverterParams {
@@ -62,7 +64,7 @@ impl Default for ConverterParams {
             pass_through_ohm: 0.03,
             bus_capacitance_farad: 1.0e-3,
             bleeder_ohm: 100.0,
-            initial_bus_volts: 0.0,
+            precharged: true,
         }
     }
 }
@@ -123,8 +125,9 @@ impl ExpSegment {
 }
 
 impl Converter {
-    pub fn new(params: &ConverterParams) -> Self {
-        Self { params: params.clone(), bus_volts: params.initial_bus_volts }
+    /// A converter whose bus starts at `initial_bus_volts`.
+    pub fn new(params: &ConverterParams, initial_bus_volts: f64) -> Self {
+        Self { params: params.clone(), bus_volts: initial_bus_volts }
     }
 
     /// Present DC-bus voltage V2 (V).
@@ -250,9 +253,9 @@ mod tests {
 
     #[test]
     fn bleeder_alone_discharges_with_rc_time_constant_and_dissipates_half_cv_squared() {
-        let p = ConverterParams { initial_bus_volts: 40.0, ..Default::default() };
+        let p = ConverterParams::default();
         let tau = p.bleeder_ohm * p.bus_capacitance_farad;
-        let mut conv = Converter::new(&p);
+        let mut conv = Converter::new(&p, 40.0);
         let stored = conv.stored_energy();
         let mut heat = 0.0;
         let h = 1e-3;
@@ -270,7 +273,7 @@ mod tests {
     #[test]
     fn pass_through_settles_at_battery_emf_minus_drop() {
         let p = ConverterParams::default();
-        let mut conv = Converter::new(&p);
+        let mut conv = Converter::new(&p, 0.0);
         let mut last = ConverterStep::default();
         for _ in 0..100 {
             last = conv.step(1e-3, Some((37.0, 0.1)), 5.0, false, false);
@@ -284,7 +287,7 @@ mod tests {
     #[test]
     fn regulated_mode_holds_bus_and_draws_power_over_efficiency() {
         let p = ConverterParams::default();
-        let mut conv = Converter::new(&p);
+        let mut conv = Converter::new(&p, 0.0);
         let mut last = ConverterStep::default();
         for _ in 0..200 {
             last = conv.step(1e-3, Some((36.0, 0.1)), 4.0, true, false);
@@ -300,7 +303,7 @@ mod tests {
     #[test]
     fn bus_energy_balance_closes_in_pass_through() {
         let p = ConverterParams::default();
-        let mut conv = Converter::new(&p);
+        let mut conv = Converter::new(&p, 0.0);
         let (mut battery, mut losses, mut load) = (0.0, 0.0, 0.0);
         for k in 0..500 {
             let i_inv = if k < 250 { 8.0 } else { -2.0 };

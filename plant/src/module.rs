@@ -157,9 +157,11 @@ impl EvModule {
         let ratio = params.gearbox.ratio;
         let reflected = params.motor.rotor_inertia * ratio * ratio;
         let wheel = Wheel::new(&params.wheel, reflected);
+        let battery = Battery::new(&params.battery, &params.bms, &params.charger);
+        let bus = if params.converter.precharged { battery.source_voltage() } else { 0.0 };
         let mut module = Self {
-            battery: Battery::new(&params.battery, &params.bms, &params.charger),
-            converter: Converter::new(&params.converter),
+            converter: Converter::new(&params.converter, bus),
+            battery,
             motor: Motor::new(&params.motor),
             shaft: ShaftSensors::new(params.motor.pole_pairs, params.motor.encoder_pulses_per_turn, 0.0),
             light: LightSensor::new(&params.light, seed),
