@@ -187,6 +187,10 @@ impl PlantParams {
                 return Err((field.into(), format!("must be a positive number, got {value}")));
             }
         }
+        if let Err(e) = self.light.validate() {
+            let message = format!("must be {}, got {}", e.requirement, e.value);
+            return Err((format!("light.{}", e.field), message));
+        }
         if self.converter.efficiency > 1.0 {
             return Err(("converter.efficiency".into(), "must be at most 1".into()));
         }
