@@ -94,7 +94,9 @@ mod tests {
 
     #[test]
     fn bit_times_are_exact_for_lab_baud_rates() {
-        for baud in [9600u32, 19200, 38400, 57600, 115200, 230400, 460800, 921600, 1_000_000] {
+        for baud in [
+            9600u32, 19200, 38400, 57600, 115200, 230400, 460800, 921600, 1_000_000,
+        ] {
             assert_eq!(TICKS_PER_SECOND % baud as u64, 0, "{baud} baud");
         }
         assert_eq!(TICKS_PER_SECOND % 150_000_000, 0);

@@ -114,7 +114,14 @@ impl ExpSegment {
         // `-expm1` keeps precision when h ≪ τ.
         let i1 = tau * -(-h / tau).exp_m1();
         let i2 = 0.5 * tau * -(-2.0 * h / tau).exp_m1();
-        Self { a: asymptote, b, h, i1, i2, end: asymptote + b * decay }
+        Self {
+            a: asymptote,
+            b,
+            h,
+            i1,
+            i2,
+            end: asymptote + b * decay,
+        }
     }
     fn integral(&self) -> f64 {
         self.a * self.h + self.b * self.i1
@@ -127,7 +134,10 @@ impl ExpSegment {
 impl Converter {
     /// A converter whose bus starts at `initial_bus_volts`.
     pub fn new(params: &ConverterParams, initial_bus_volts: f64) -> Self {
-        Self { params: params.clone(), bus_volts: initial_bus_volts }
+        Self {
+            params: params.clone(),
+            bus_volts: initial_bus_volts,
+        }
     }
 
     /// Present DC-bus voltage V2 (V).
@@ -263,11 +273,18 @@ mod tests {
             heat += conv.step(h, None, 0.0, false, true).bleeder_loss;
             if k == 100 {
                 let expected = 40.0 * (-(k as f64) * h / tau).exp();
-                assert!((conv.bus_volts() - expected).abs() < 1e-9, "{}", conv.bus_volts());
+                assert!(
+                    (conv.bus_volts() - expected).abs() < 1e-9,
+                    "{}",
+                    conv.bus_volts()
+                );
             }
         }
         assert!(conv.bus_volts() < 40.0 * (-19.0f64).exp());
-        assert!((heat - stored).abs() < 1e-9 * stored, "heat {heat} vs ½CV² {stored}");
+        assert!(
+            (heat - stored).abs() < 1e-9 * stored,
+            "heat {heat} vs ½CV² {stored}"
+        );
     }
 
     #[test]
@@ -313,6 +330,9 @@ mod tests {
             load += s.inverter_energy;
         }
         let balance = battery - losses - load - conv.stored_energy();
-        assert!(balance.abs() < 1e-9 * battery, "residual {balance} J of {battery} J");
+        assert!(
+            balance.abs() < 1e-9 * battery,
+            "residual {balance} J of {battery} J"
+        );
     }
 }

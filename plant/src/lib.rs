@@ -24,4 +24,4 @@ pub mod shaft;
 pub mod wheel;
 
 pub use module::{Actuators, EnergyLedger, EvModule, Sensors};
-pub use params::{PlantParams, ParamsError};
+pub use params::{ParamsError, PlantParams};

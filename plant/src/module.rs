@@ -158,12 +158,20 @@ impl EvModule {
         let reflected = params.motor.rotor_inertia * ratio * ratio;
         let wheel = Wheel::new(&params.wheel, reflected);
         let battery = Battery::new(&params.battery, &params.bms, &params.charger);
-        let bus = if params.converter.precharged { battery.source_voltage() } else { 0.0 };
+        let bus = if params.converter.precharged {
+            battery.source_voltage()
+        } else {
+            0.0
+        };
         let mut module = Self {
             converter: Converter::new(&params.converter, bus),
             battery,
             motor: Motor::new(&params.motor),
-            shaft: ShaftSensors::new(params.motor.pole_pairs, params.motor.encoder_pulses_per_turn, 0.0),
+            shaft: ShaftSensors::new(
+                params.motor.pole_pairs,
+                params.motor.encoder_pulses_per_turn,
+                0.0,
+            ),
             light: LightSensor::new(&params.light, seed),
             wheel,
             params: params.clone(),
@@ -221,7 +229,9 @@ impl EvModule {
                 self.start_wheel_interval(actuators.brake);
                 continue;
             }
-            let h = (end - self.time).min(interval_end - self.time).min(self.params.electrical_step_s);
+            let h = (end - self.time)
+                .min(interval_end - self.time)
+                .min(self.params.electrical_step_s);
             self.electrical_substep(h, actuators);
             self.time += h;
         }
@@ -252,7 +262,10 @@ impl EvModule {
         let start = self.wheel_interval as f64 * h;
         let f = ((t - start) / h).clamp(0.0, 1.0);
         let lerp = |a: f64, b: f64| a + (b - a) * f;
-        (lerp(self.wheel_from.0, self.wheel_to.0), lerp(self.wheel_from.1, self.wheel_to.1))
+        (
+            lerp(self.wheel_from.0, self.wheel_to.0),
+            lerp(self.wheel_from.1, self.wheel_to.1),
+        )
     }
 
     fn electrical_substep(&mut self, h: f64, act: &Actuators) {
@@ -271,14 +284,19 @@ impl EvModule {
         let m = self.motor.step(h, &drive);
         self.torque_impulse_this_interval += m.torque_impulse * ratio;
 
-        let source = self
-            .battery
-            .output_closed()
-            .then(|| (self.battery.source_voltage(), self.battery.series_resistance()));
-        let c = self.converter.step(h, source, m.bus_current, act.boost, act.discharge);
+        let source = self.battery.output_closed().then(|| {
+            (
+                self.battery.source_voltage(),
+                self.battery.series_resistance(),
+            )
+        });
+        let c = self
+            .converter
+            .step(h, source, m.bus_current, act.boost, act.discharge);
         self.battery.step(h, c.battery_current, act.charger);
 
-        self.shaft.advance(self.time, h, angle_a * ratio, angle_b * ratio);
+        self.shaft
+            .advance(self.time, h, angle_a * ratio, angle_b * ratio);
         self.light.step(self.time, h, angle_a, angle_b);
 
         self.last_bus_current = m.bus_current;

@@ -31,7 +31,11 @@ impl ThrottleMap {
         for w in pts.windows(2) {
             let ([x0, y0], [x1, y1]) = (w[0], w[1]);
             if volts <= x1 {
-                let f = if x1 > x0 { (volts - x0) / (x1 - x0) } else { 1.0 };
+                let f = if x1 > x0 {
+                    (volts - x0) / (x1 - x0)
+                } else {
+                    1.0
+                };
                 return (y0 + f * (y1 - y0)).clamp(0.0, 1.0);
             }
         }
@@ -146,7 +150,12 @@ pub struct Motor {
 
 impl Motor {
     pub fn new(params: &MotorParams) -> Self {
-        Self { params: params.clone(), current: 0.0, over_limit_for: 0.0, tripped: false }
+        Self {
+            params: params.clone(),
+            current: 0.0,
+            over_limit_for: 0.0,
+            tripped: false,
+        }
     }
 
     pub fn params(&self) -> &MotorParams {
@@ -243,7 +252,11 @@ impl Motor {
         let magnetic_change = 0.5 * l * (i1 * i1 - i0 * i0);
         MotorStep {
             mean_current: i_int / h,
-            bus_current: if bus > 0.0 { electrical_energy / (bus * h) } else { 0.0 },
+            bus_current: if bus > 0.0 {
+                electrical_energy / (bus * h)
+            } else {
+                0.0
+            },
             torque_impulse: k * i_int,
             electrical_energy,
             copper_loss,
@@ -258,7 +271,13 @@ mod tests {
     use super::*;
 
     fn drive(duty: f64, speed: f64) -> Drive {
-        Drive { enabled: true, duty, reverse: false, bus_volts: 36.0, shaft_speed: speed }
+        Drive {
+            enabled: true,
+            duty,
+            reverse: false,
+            bus_volts: 36.0,
+            shaft_speed: speed,
+        }
     }
 
     #[test]
@@ -272,7 +291,11 @@ mod tests {
 
     #[test]
     fn winding_current_follows_rl_step_response_at_any_step() {
-        let p = MotorParams { current_limit_amps: 1e9, overcurrent_trip_amps: 1e9, ..Default::default() };
+        let p = MotorParams {
+            current_limit_amps: 1e9,
+            overcurrent_trip_amps: 1e9,
+            ..Default::default()
+        };
         let tau = p.inductance_henry / p.resistance_ohm;
         let final_i = 0.1 * 36.0 / p.resistance_ohm;
         for h in [1e-5_f64, 1e-3] {
@@ -282,7 +305,11 @@ mod tests {
                 m.step(h, &drive(0.1, 0.0));
             }
             let expected = final_i * (1.0 - (-4e-3 / tau).exp());
-            assert!((m.current() - expected).abs() < 1e-9 * expected, "h={h}: {}", m.current());
+            assert!(
+                (m.current() - expected).abs() < 1e-9 * expected,
+                "h={h}: {}",
+                m.current()
+            );
         }
     }
 

@@ -46,7 +46,9 @@ impl SensingParams {
     /// Counts for a pin voltage, clamped to the converter's range.
     pub fn counts(&self, pin_volts: f64) -> u16 {
         let full = f64::from((1u32 << self.adc_bits.min(16)) - 1);
-        (pin_volts / self.adc_reference_volts * full).round().clamp(0.0, full) as u16
+        (pin_volts / self.adc_reference_volts * full)
+            .round()
+            .clamp(0.0, full) as u16
     }
 }
 
@@ -102,7 +104,11 @@ impl PlantParams {
         Self {
             battery: BatteryParams::bench_supply_12v(),
             bms: BmsParams::bench_supply_12v(),
-            converter: ConverterParams { regulated_bus_volts: 12.0, ..Default::default() },
+            charger: ChargerParams::bench_supply_12v(),
+            converter: ConverterParams {
+                regulated_bus_volts: 12.0,
+                ..Default::default()
+            },
             motor: MotorParams::controller_network(),
             gearbox: GearboxParams { ratio: 100.0 },
             wheel: WheelParams::controller_network(),
@@ -152,25 +158,41 @@ impl PlantParams {
             message: e.to_string(),
         })?;
         merge(&mut merged, overrides);
-        let params: Self = toml::Value::Table(merged).try_into().map_err(|e: toml::de::Error| {
-            ParamsError::Syntax { file: file.to_path_buf(), at: None, message: e.to_string() }
-        })?;
-        params.validate().map_err(|(field, message)| ParamsError::Invalid {
-            file: file.to_path_buf(),
-            at: find_field_line(text, &field),
-            field,
-            message,
-        })?;
+        let params: Self =
+            toml::Value::Table(merged)
+                .try_into()
+                .map_err(|e: toml::de::Error| ParamsError::Syntax {
+                    file: file.to_path_buf(),
+                    at: None,
+                    message: e.to_string(),
+                })?;
+        params
+            .validate()
+            .map_err(|(field, message)| ParamsError::Invalid {
+                file: file.to_path_buf(),
+                at: find_field_line(text, &field),
+                field,
+                message,
+            })?;
         Ok(params)
     }
 
     /// Physical sanity: every value a model divides by or takes a log of.
     pub fn validate(&self) -> Result<(), (String, String)> {
         let positive = [
-            ("converter.bus_capacitance_farad", self.converter.bus_capacitance_farad),
+            (
+                "converter.bus_capacitance_farad",
+                self.converter.bus_capacitance_farad,
+            ),
             ("converter.bleeder_ohm", self.converter.bleeder_ohm),
-            ("converter.pass_through_ohm", self.converter.pass_through_ohm),
-            ("converter.regulation_droop_ohm", self.converter.regulation_droop_ohm),
+            (
+                "converter.pass_through_ohm",
+                self.converter.pass_through_ohm,
+            ),
+            (
+                "converter.regulation_droop_ohm",
+                self.converter.regulation_droop_ohm,
+            ),
             ("converter.efficiency", self.converter.efficiency),
             ("motor.resistance_ohm", self.motor.resistance_ohm),
             ("motor.inductance_henry", self.motor.inductance_henry),
@@ -180,11 +202,38 @@ impl PlantParams {
             ("wheel.radius_m", self.wheel.radius_m),
             ("wheel.step_s", self.wheel.step_s),
             ("electrical_step_s", self.electrical_step_s),
-            ("sensing.adc_reference_volts", self.sensing.adc_reference_volts),
+            (
+                "sensing.adc_reference_volts",
+                self.sensing.adc_reference_volts,
+            ),
         ];
         for (field, value) in positive {
             if !(value.is_finite() && value > 0.0) {
-                return Err((field.into(), format!("must be a positive number, got {value}")));
+                return Err((
+                    field.into(),
+                    format!("must be a positive number, got {value}"),
+                ));
+            }
+        }
+        let battery_checks = [
+            ("battery", self.battery.validate()),
+            ("bms", self.bms.validate()),
+            ("charger", self.charger.validate()),
+        ];
+        for (section, check) in battery_checks {
+            if let Err(e) = check {
+                use crate::battery::BatteryConfigError as E;
+                return Err(match e {
+                    E::OutOfRange {
+                        field,
+                        value,
+                        expected,
+                    } => (
+                        format!("{section}.{field}"),
+                        format!("must be {expected}, got {value}"),
+                    ),
+                    other => (section.to_string(), other.to_string()),
+                });
             }
         }
         if let Err(e) = self.light.validate() {
@@ -211,8 +260,10 @@ impl PlantParams {
 
     /// Load a parameter file over `base`.
     pub fn load(path: &Path, base: &Self) -> Result<Self, ParamsError> {
-        let text = std::fs::read_to_string(path)
-            .map_err(|source| ParamsError::Read { file: path.to_path_buf(), source })?;
+        let text = std::fs::read_to_string(path).map_err(|source| ParamsError::Read {
+            file: path.to_path_buf(),
+            source,
+        })?;
         Self::from_toml(&text, path, base)
     }
 }
@@ -221,11 +272,23 @@ impl PlantParams {
 #[derive(Debug, thiserror::Error)]
 pub enum ParamsError {
     #[error("cannot read {}: {source}", file.display())]
-    Read { file: PathBuf, source: std::io::Error },
+    Read {
+        file: PathBuf,
+        source: std::io::Error,
+    },
     #[error("{}{}: {message}", file.display(), fmt_at(*at))]
-    Syntax { file: PathBuf, at: Option<(usize, usize)>, message: String },
+    Syntax {
+        file: PathBuf,
+        at: Option<(usize, usize)>,
+        message: String,
+    },
     #[error("{}{}: field `{field}` {message}", file.display(), fmt_at(*at))]
-    Invalid { file: PathBuf, at: Option<(usize, usize)>, field: String, message: String },
+    Invalid {
+        file: PathBuf,
+        at: Option<(usize, usize)>,
+        field: String,
+        message: String,
+    },
 }
 
 fn fmt_at(at: Option<(usize, usize)>) -> String {
@@ -313,6 +376,9 @@ mod tests {
         let msg = PlantParams::from_toml(text, Path::new("c.toml"), &PlantParams::default())
             .expect_err("negative mass")
             .to_string();
-        assert_eq!(msg, "c.toml:3:1: field `wheel.mass_kg` must be a positive number, got -1");
+        assert_eq!(
+            msg,
+            "c.toml:3:1: field `wheel.mass_kg` must be a positive number, got -1"
+        );
     }
 }

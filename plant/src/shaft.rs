@@ -50,7 +50,11 @@ impl EdgeCounter {
         let boundary = if crossed > 0 { sector } else { sector + 1 };
         let boundary_angle = boundary as f64 * TAU / self.edges_per_turn;
         let span = a1 - a0;
-        let frac = if span != 0.0 { ((boundary_angle - a0) / span).clamp(0.0, 1.0) } else { 1.0 };
+        let frac = if span != 0.0 {
+            ((boundary_angle - a0) / span).clamp(0.0, 1.0)
+        } else {
+            1.0
+        };
         self.last_edge_at = t0 + frac * h;
         self.edges += crossed.unsigned_abs();
         self.net_edges += crossed;
@@ -137,7 +141,11 @@ mod tests {
         let r = s.reading();
         assert_eq!(r.hall_edges, 24);
         // The 24th edge is at exactly one turn.
-        assert!((r.last_hall_edge_at - 1.0).abs() < 1e-9, "{}", r.last_hall_edge_at);
+        assert!(
+            (r.last_hall_edge_at - 1.0).abs() < 1e-9,
+            "{}",
+            r.last_hall_edge_at
+        );
         assert_eq!(r.encoder_count, 7);
     }
 

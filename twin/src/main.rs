@@ -1,1 +1,35 @@
-fn main(){}
+//! `twin`: the digital twin of the EV lab bench.
+
+use clap::{Parser, Subcommand};
+use std::process::ExitCode;
+
+mod commands;
+
+/// Digital twin of the EV lab bench: battery + BMS, buck-boost converter,
+/// inverter + BLDC motor with hall sensors, a wheel and the photoresistor that
+/// watches a paper flag on it. Every run is recorded to MCAP.
+#[derive(Debug, Parser)]
+#[command(name = "twin", version, propagate_version = true, max_term_width = 100)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    Run(commands::run::RunArgs),
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Run(args) => commands::run::execute(&args),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}

@@ -1,0 +1,5 @@
+//! The `twin` binary's library: running the bench and recording it. The
+//! command-line front end in `main.rs` is a thin layer over these modules.
+
+pub mod openloop;
+pub mod record;
