@@ -1,0 +1,186 @@
+//! `twin run` as a user runs it: the real binary, a real MCAP file read back.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn twin(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_twin"))
+        .args(args)
+        .output()
+        .expect("twin runs")
+}
+
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("twin-run-cli-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    dir.join(name)
+}
+
+fn read_messages(path: &Path, topic: &str) -> Vec<(u64, serde_json::Value)> {
+    let bytes = std::fs::read(path).expect("recording exists");
+    mcap::MessageStream::new(&bytes)
+        .expect("valid MCAP")
+        .map(|m| m.expect("valid message"))
+        .filter(|m| m.channel.topic == topic)
+        .map(|m| {
+            (
+                m.log_time,
+                serde_json::from_slice(&m.data).expect("JSON message"),
+            )
+        })
+        .collect()
+}
+
+#[test]
+fn default_run_prints_a_summary_and_records_the_step() {
+    let out = scratch("default.mcap");
+    let o = twin(&["run", "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let text = String::from_utf8_lossy(&o.stdout);
+    for needle in [
+        "wheel speed",
+        "battery V1",
+        "DC bus V2",
+        "inverter I",
+        "state of charge",
+        "energy used",
+    ] {
+        assert!(text.contains(needle), "summary lacks {needle}: {text}");
+    }
+    assert!(
+        text.contains(&format!("recording: {}", out.display())),
+        "{text}"
+    );
+
+    let sensors = read_messages(&out, "/plant/sensors");
+    assert_eq!(sensors.len(), 3001, "1 kHz for 3 s plus the initial state");
+    let (t_last, last) = sensors.last().unwrap();
+    assert_eq!(*t_last, 3_000_000_000, "simulated time is the log time");
+    // Still before the VEL step at 0.5 s, moving well after it.
+    let before = &sensors[400].1;
+    assert_eq!(before["wheel_rpm"].as_f64().unwrap(), 0.0);
+    assert!(last["wheel_rpm"].as_f64().unwrap() > 1000.0, "{last}");
+    let actuators = read_messages(&out, "/plant/actuators");
+    assert_eq!(actuators.len(), 2, "the initial state and the VEL step");
+    assert_eq!(actuators[1].0, 500_000_000);
+    assert_eq!(actuators[1].1["vel_volts"].as_f64().unwrap(), 3.0);
+}
+
+#[test]
+fn the_same_seed_gives_the_same_bytes() {
+    let a = scratch("a.mcap");
+    let b = scratch("b.mcap");
+    for p in [&a, &b] {
+        let o = twin(&[
+            "run",
+            "--duration",
+            "1",
+            "--seed",
+            "9",
+            "--out",
+            p.to_str().unwrap(),
+        ]);
+        assert!(o.status.success());
+    }
+    // Compared with `==`: a failing assert_eq! would print a megabyte of bytes.
+    let same = std::fs::read(&a).unwrap() == std::fs::read(&b).unwrap();
+    assert!(same, "{} and {} differ", a.display(), b.display());
+    let c = scratch("c.mcap");
+    twin(&[
+        "run",
+        "--duration",
+        "1",
+        "--seed",
+        "10",
+        "--out",
+        c.to_str().unwrap(),
+    ]);
+    let differ = std::fs::read(&a).unwrap() != std::fs::read(&c).unwrap();
+    assert!(differ, "sensor noise follows the seed");
+}
+
+#[test]
+fn the_recording_opens_in_the_python_mcap_reader() {
+    let out = scratch("py.mcap");
+    assert!(
+        twin(&["run", "--duration", "0.5", "--out", out.to_str().unwrap()])
+            .status
+            .success()
+    );
+    let script = r#"
+import json, sys
+from mcap.reader import make_reader
+with open(sys.argv[1], "rb") as f:
+    reader = make_reader(f)
+    summary = reader.get_summary()
+    counts = {c.topic: summary.statistics.channel_message_counts[i] for i, c in summary.channels.items()}
+    schemas = sorted({s.encoding for s in summary.schemas.values()})
+    meta = {m.name: m.metadata for m in reader.iter_metadata()}
+print(json.dumps({"counts": counts, "schemas": schemas, "preset": meta["twin.run"]["preset"]}))
+"#;
+    let o = Command::new("python3")
+        .arg("-c")
+        .arg(script)
+        .arg(&out)
+        .output()
+        .expect("python3 runs");
+    assert!(
+        o.status.success(),
+        "the Python `mcap` package must read it (pip install mcap): {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(v["counts"]["/plant/sensors"], 501);
+    assert_eq!(v["schemas"], serde_json::json!(["jsonschema"]));
+    assert_eq!(v["preset"], "vemodule");
+}
+
+#[test]
+fn a_bad_parameter_file_names_file_line_and_field() {
+    let file = scratch("bad.toml");
+    std::fs::write(
+        &file,
+        "[motor]\npole_pairs = 4\n\n[wheel]\nmass_kg = -2.0\n",
+    )
+    .unwrap();
+    let o = twin(&[
+        "run",
+        "--params",
+        file.to_str().unwrap(),
+        "--out",
+        scratch("x.mcap").to_str().unwrap(),
+    ]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains(&format!("{}:5:1", file.display())), "{err}");
+    assert!(err.contains("wheel.mass_kg"), "{err}");
+}
+
+#[test]
+fn an_unknown_preset_lists_the_known_ones() {
+    let o = twin(&["run", "--preset", "tesla"]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("vemodule") && err.contains("controller-network"),
+        "{err}"
+    );
+}
+
+#[test]
+fn the_geared_bench_runs_near_100_wheel_rpm() {
+    let out = scratch("cn.mcap");
+    let o = twin(&[
+        "run",
+        "--preset",
+        "controller-network",
+        "--vel",
+        "1",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success());
+    let last = read_messages(&out, "/plant/sensors").pop().unwrap().1;
+    let rpm = last["wheel_rpm"].as_f64().unwrap();
+    assert!((90.0..125.0).contains(&rpm), "{rpm}");
+}
