@@ -1,0 +1,1 @@
+//! Simulated media: bytes in, timed arrivals out.

@@ -1,0 +1,1 @@
+//! Masters: the supervisor that closes the speed loop over the bus.
