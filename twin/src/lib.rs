@@ -3,3 +3,4 @@
 
 pub mod openloop;
 pub mod record;
+pub mod scenario;
