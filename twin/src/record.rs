@@ -17,7 +17,7 @@ use std::path::{Path, PathBuf};
 pub struct Recorder {
     writer: Writer<BufWriter<File>>,
     path: PathBuf,
-    channels: BTreeMap<&'static str, (u16, u32)>,
+    channels: BTreeMap<String, (u16, u32)>,
     buffer: Vec<u8>,
 }
 
@@ -75,7 +75,7 @@ impl Recorder {
     }
 
     /// Add a channel whose messages look like `sample`.
-    pub fn add_channel<T: Serialize>(&mut self, topic: &'static str, sample: &T) -> Result<()> {
+    pub fn add_channel<T: Serialize>(&mut self, topic: &str, sample: &T) -> Result<()> {
         let schema = schema_of(&serde_json::to_value(sample)?);
         let name = topic.trim_start_matches('/').replace('/', ".");
         let schema_id =
@@ -84,17 +84,17 @@ impl Recorder {
         let id = self
             .writer
             .add_channel(schema_id, topic, "json", &BTreeMap::new())?;
-        self.channels.insert(topic, (id, 0));
+        self.channels.insert(topic.to_string(), (id, 0));
         Ok(())
     }
 
+    /// Whether `topic` has a channel yet.
+    pub fn has_channel(&self, topic: &str) -> bool {
+        self.channels.contains_key(topic)
+    }
+
     /// Write one message at simulated time `time_s`.
-    pub fn write<T: Serialize>(
-        &mut self,
-        topic: &'static str,
-        time_s: f64,
-        message: &T,
-    ) -> Result<()> {
+    pub fn write<T: Serialize>(&mut self, topic: &str, time_s: f64, message: &T) -> Result<()> {
         let Some((channel_id, sequence)) = self.channels.get_mut(topic) else {
             anyhow::bail!("no channel {topic} in the recording");
         };

@@ -318,7 +318,11 @@ impl Scenario {
     /// The plant parameters of a module: its preset with its overrides.
     pub fn module_params(&self, module: &ModuleSpec) -> Result<PlantParams> {
         let Some(base) = PlantParams::preset(&module.preset) else {
-            bail!("module `{}`: unknown preset `{}`", module.name, module.preset);
+            bail!(
+                "module `{}`: unknown preset `{}`",
+                module.name,
+                module.preset
+            );
         };
         let text = toml::to_string(&module.params)?;
         let origin = format!("scenario {}, module `{}` params", self.name, module.name);
@@ -330,7 +334,10 @@ impl Scenario {
             if v.is_finite() && v > 0.0 {
                 Ok(())
             } else {
-                Err((field.to_string(), format!("must be a positive number, got {v}")))
+                Err((
+                    field.to_string(),
+                    format!("must be a positive number, got {v}"),
+                ))
             }
         };
         positive("duration_s", self.duration_s)?;
@@ -342,20 +349,26 @@ impl Scenario {
                 return Err(("name".into(), format!("`{}` names two nodes", n.name())));
             }
             if !self.buses.iter().any(|b| b.name == n.bus()) {
-                return Err(("bus".into(), format!("`{}` of node `{}` is not a declared bus", n.bus(), n.name())));
+                return Err((
+                    "bus".into(),
+                    format!("`{}` of node `{}` is not a declared bus", n.bus(), n.name()),
+                ));
             }
-            if let Some(m) = n.module() {
-                if !self.modules.iter().any(|x| x.name == m) {
-                    return Err((
-                        "module".into(),
-                        format!("`{m}` of node `{}` is not a declared module", n.name()),
-                    ));
-                }
+            if let Some(m) = n.module()
+                && !self.modules.iter().any(|x| x.name == m)
+            {
+                return Err((
+                    "module".into(),
+                    format!("`{m}` of node `{}` is not a declared module", n.name()),
+                ));
             }
         }
         for b in &self.buses {
-            if b.baud == 0 || crate_time_ticks() % u64::from(b.baud) != 0 {
-                return Err(("baud".into(), format!("{} does not divide 72 GHz: use a standard rate", b.baud)));
+            if b.baud == 0 || !crate_time_ticks().is_multiple_of(u64::from(b.baud)) {
+                return Err((
+                    "baud".into(),
+                    format!("{} does not divide 72 GHz: use a standard rate", b.baud),
+                ));
             }
             if !(0.0..0.5).contains(&b.bit_error_rate) {
                 return Err(("bit_error_rate".into(), "must be in 0..0.5".into()));
@@ -363,7 +376,10 @@ impl Scenario {
         }
         for f in &self.faults {
             if !names.contains(f.node.as_str()) {
-                return Err(("node".into(), format!("fault on `{}`, which is not a declared node", f.node)));
+                return Err((
+                    "node".into(),
+                    format!("fault on `{}`, which is not a declared node", f.node),
+                ));
             }
             if f.until_s < f.from_s {
                 return Err(("until_s".into(), "must not be before from_s".into()));
@@ -386,7 +402,9 @@ fn line_col(text: &str, offset: usize) -> (usize, usize) {
 
 /// First line that sets `key = …` (good enough to point a user at the field).
 fn find_line(text: &str, key: &str) -> Option<usize> {
-    text.lines().position(|l| l.split('=').next().is_some_and(|k| k.trim() == key) && l.contains('=')).map(|n| n + 1)
+    text.lines()
+        .position(|l| l.split('=').next().is_some_and(|k| k.trim() == key) && l.contains('='))
+        .map(|n| n + 1)
 }
 
 #[cfg(test)]

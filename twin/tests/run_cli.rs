@@ -32,9 +32,9 @@ fn read_messages(path: &Path, topic: &str) -> Vec<(u64, serde_json::Value)> {
 }
 
 #[test]
-fn default_run_prints_a_summary_and_records_the_step() {
+fn open_loop_run_prints_a_summary_and_records_the_step() {
     let out = scratch("default.mcap");
-    let o = twin(&["run", "--out", out.to_str().unwrap()]);
+    let o = twin(&["run", "--open-loop", "--out", out.to_str().unwrap()]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let text = String::from_utf8_lossy(&o.stdout);
     for needle in [
@@ -73,6 +73,7 @@ fn the_same_seed_gives_the_same_bytes() {
     for p in [&a, &b] {
         let o = twin(&[
             "run",
+            "--open-loop",
             "--duration",
             "1",
             "--seed",
@@ -88,6 +89,7 @@ fn the_same_seed_gives_the_same_bytes() {
     let c = scratch("c.mcap");
     twin(&[
         "run",
+        "--open-loop",
         "--duration",
         "1",
         "--seed",
@@ -103,9 +105,16 @@ fn the_same_seed_gives_the_same_bytes() {
 fn the_recording_opens_in_the_python_mcap_reader() {
     let out = scratch("py.mcap");
     assert!(
-        twin(&["run", "--duration", "0.5", "--out", out.to_str().unwrap()])
-            .status
-            .success()
+        twin(&[
+            "run",
+            "--open-loop",
+            "--duration",
+            "0.5",
+            "--out",
+            out.to_str().unwrap()
+        ])
+        .status
+        .success()
     );
     let script = r#"
 import json, sys
@@ -145,6 +154,7 @@ fn a_bad_parameter_file_names_file_line_and_field() {
     .unwrap();
     let o = twin(&[
         "run",
+        "--open-loop",
         "--params",
         file.to_str().unwrap(),
         "--out",
@@ -158,7 +168,7 @@ fn a_bad_parameter_file_names_file_line_and_field() {
 
 #[test]
 fn an_unknown_preset_lists_the_known_ones() {
-    let o = twin(&["run", "--preset", "tesla"]);
+    let o = twin(&["run", "--open-loop", "--preset", "tesla"]);
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(
@@ -172,6 +182,7 @@ fn the_geared_bench_runs_near_100_wheel_rpm() {
     let out = scratch("cn.mcap");
     let o = twin(&[
         "run",
+        "--open-loop",
         "--preset",
         "controller-network",
         "--vel",

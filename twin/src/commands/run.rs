@@ -8,42 +8,180 @@ use std::io::{IsTerminal, Write};
 use std::path::PathBuf;
 use std::time::Instant;
 use twin::openloop::{self, OpenLoop};
+use twin::scenario::{EMBEDDED, Scenario};
+use twin::virtual_run;
 
-/// Run the bench in simulated time, far faster than real time, and record it.
+/// Run a scenario in simulated time, far faster than real time, and record it.
 ///
-/// The built-in run is open loop: the inverter enabled, the brake released,
-/// VEL stepped to 60 % at 0.5 s, 3 s in all. It prints a summary and the path
-/// of the MCAP recording (Foxglove, `mcap`, and rerun open it).
+/// SCENARIO is the name of an embedded scenario (`twin run --list`) or a
+/// scenario file (TOML); without it, `ev-meb` runs: the EV module's speed loop
+/// closed by a supervisor over MEB. `--open-loop` runs the bench alone instead:
+/// inverter enabled, brake released, VEL stepped to 60 % at 0.5 s, 3 s in all.
+/// Every run prints a summary and the path of its MCAP recording (Foxglove,
+/// `mcap`, and rerun open it).
 #[derive(Debug, Args)]
 pub struct RunArgs {
-    /// Simulated duration in seconds.
-    #[arg(long, default_value_t = 3.0, value_name = "SECONDS")]
-    duration: f64,
-    /// Where to write the recording.
-    #[arg(long, default_value = "twin-run.mcap", value_name = "PATH")]
-    out: PathBuf,
-    /// Bench to simulate: `vemodule` (the EV module of seed 000) or
+    /// Embedded scenario name or scenario file.
+    #[arg(value_name = "SCENARIO", conflicts_with = "open_loop")]
+    scenario: Option<String>,
+    /// List the embedded scenarios and exit.
+    #[arg(long)]
+    list: bool,
+    /// Run the bench alone in open loop (no nodes, no bus).
+    #[arg(long)]
+    open_loop: bool,
+    /// Simulated duration in seconds (default: the scenario's; 3 s open loop).
+    #[arg(long, value_name = "SECONDS")]
+    duration: Option<f64>,
+    /// Where to write the recording [default: SCENARIO.mcap, twin-run.mcap open loop].
+    #[arg(long, value_name = "PATH")]
+    out: Option<PathBuf>,
+    /// Seed of every random draw (noise, bit errors) [default: the scenario's; 1].
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Open loop: bench to simulate, `vemodule` (the EV module of seed 000) or
     /// `controller-network` (the geared motor + light sensor of seed 002).
-    #[arg(long, default_value = "vemodule", value_name = "NAME")]
+    #[arg(
+        long,
+        default_value = "vemodule",
+        value_name = "NAME",
+        requires = "open_loop"
+    )]
     preset: String,
-    /// Plant parameter file (TOML) whose fields override the preset's.
-    #[arg(long, value_name = "FILE")]
+    /// Open loop: plant parameter file (TOML) whose fields override the preset's.
+    #[arg(long, value_name = "FILE", requires = "open_loop")]
     params: Option<PathBuf>,
-    /// Seed of every random draw (sensor noise); same seed, same recording.
-    #[arg(long, default_value_t = 1)]
-    seed: u64,
-    /// VEL level after the step, as a fraction of its 5 V range.
-    #[arg(long, default_value_t = 0.6, value_name = "FRACTION")]
+    /// Open loop: VEL level after the step, as a fraction of its 5 V range.
+    #[arg(
+        long,
+        default_value_t = 0.6,
+        value_name = "FRACTION",
+        requires = "open_loop"
+    )]
     vel: f64,
-    /// Time of the VEL step in seconds.
-    #[arg(long, default_value_t = 0.5, value_name = "SECONDS")]
+    /// Open loop: time of the VEL step in seconds.
+    #[arg(
+        long,
+        default_value_t = 0.5,
+        value_name = "SECONDS",
+        requires = "open_loop"
+    )]
     vel_at: f64,
-    /// Plant state messages recorded per simulated second.
-    #[arg(long, default_value_t = 1000.0, value_name = "HZ")]
+    /// Open loop: plant state messages recorded per simulated second.
+    #[arg(
+        long,
+        default_value_t = 1000.0,
+        value_name = "HZ",
+        requires = "open_loop"
+    )]
     record_hz: f64,
 }
 
 pub fn execute(args: &RunArgs) -> Result<()> {
+    if args.list {
+        for (name, description, _) in EMBEDDED {
+            println!("{name:20} {description}");
+        }
+        return Ok(());
+    }
+    if args.open_loop {
+        return execute_open_loop(args);
+    }
+    let name = args.scenario.as_deref().unwrap_or("ev-meb");
+    let mut scenario = Scenario::load(name)?;
+    if let Some(d) = args.duration {
+        if !(d.is_finite() && d > 0.0) {
+            bail!("--duration must be a positive number of seconds, got {d}");
+        }
+        scenario.duration_s = d;
+    }
+    if let Some(seed) = args.seed {
+        scenario.seed = seed;
+    }
+    let out = args
+        .out
+        .clone()
+        .unwrap_or_else(|| PathBuf::from(format!("{}.mcap", scenario.name)));
+    let started = Instant::now();
+    let mut progress = Progress::new();
+    let outcome = virtual_run::run(&scenario, &out, |done| progress.show(done))
+        .with_context(|| format!("scenario {} failed", scenario.name))?;
+    progress.clear();
+    let wall = started.elapsed().as_secs_f64();
+    println!(
+        "twin run: scenario {}, seed {}, {:.3} s simulated",
+        scenario.name, scenario.seed, outcome.simulated_s
+    );
+    for (module, s) in &outcome.modules {
+        println!(
+            "  module {module}: wheel {:.1} rpm, V1 {:.2} V, V2 {:.2} V, I {:.2} A, SOC {:.2} %",
+            s.wheel_rpm,
+            s.battery_volts,
+            s.bus_volts,
+            s.inverter_current,
+            s.soc * 100.0
+        );
+    }
+    for (node, state) in &outcome.telemetry {
+        println!("  {node}: {state}");
+    }
+    let events: Vec<String> = outcome
+        .events
+        .iter()
+        .map(|(k, n)| format!("{k} {n}"))
+        .collect();
+    println!(
+        "  bus: {} frames; events: {}",
+        outcome.frames,
+        if events.is_empty() {
+            "none".to_string()
+        } else {
+            events.join(", ")
+        }
+    );
+    for line in &outcome.log_tail {
+        println!("  {line}");
+    }
+    println!(
+        "  {:.2} s wall time: {:.0}x real time",
+        wall,
+        outcome.simulated_s / wall.max(1e-9)
+    );
+    println!("recording: {}", outcome.recording.display());
+    Ok(())
+}
+
+/// A progress line on stderr when it is a terminal, at most five times a second.
+struct Progress {
+    enabled: bool,
+    last: Instant,
+    shown: bool,
+}
+
+impl Progress {
+    fn new() -> Self {
+        Self {
+            enabled: std::io::stderr().is_terminal(),
+            last: Instant::now(),
+            shown: false,
+        }
+    }
+    fn show(&mut self, done: f64) {
+        if self.enabled && self.last.elapsed().as_millis() > 200 {
+            eprint!("\r  simulating… {:3.0} %", done * 100.0);
+            let _ = std::io::stderr().flush();
+            self.last = Instant::now();
+            self.shown = true;
+        }
+    }
+    fn clear(&self) {
+        if self.shown {
+            eprint!("\r                        \r");
+        }
+    }
+}
+
+fn execute_open_loop(args: &RunArgs) -> Result<()> {
     let Some(base) = PlantParams::preset(&args.preset) else {
         bail!(
             "unknown preset `{}`: choose one of {}",
@@ -55,11 +193,9 @@ pub fn execute(args: &RunArgs) -> Result<()> {
         Some(file) => PlantParams::load(file, &base)?,
         None => base,
     };
-    if !(args.duration.is_finite() && args.duration > 0.0) {
-        bail!(
-            "--duration must be a positive number of seconds, got {}",
-            args.duration
-        );
+    let duration = args.duration.unwrap_or(3.0);
+    if !(duration.is_finite() && duration > 0.0) {
+        bail!("--duration must be a positive number of seconds, got {duration}");
     }
     if !(0.0..=1.0).contains(&args.vel) {
         bail!(
@@ -71,31 +207,26 @@ pub fn execute(args: &RunArgs) -> Result<()> {
         bail!("--record-hz must be positive, got {}", args.record_hz);
     }
     let mut config = OpenLoop::new(params, &args.preset);
-    config.duration_s = args.duration;
-    config.seed = args.seed;
+    config.duration_s = duration;
+    config.seed = args.seed.unwrap_or(1);
     config.vel_fraction = args.vel;
     config.vel_step_at_s = args.vel_at;
     config.record_hz = args.record_hz;
 
+    let out = args
+        .out
+        .clone()
+        .unwrap_or_else(|| PathBuf::from("twin-run.mcap"));
     let started = Instant::now();
-    let show_progress = std::io::stderr().is_terminal();
-    let mut last_shown = Instant::now();
-    let summary = openloop::run(&config, &args.out, |done| {
-        if show_progress && last_shown.elapsed().as_millis() > 200 {
-            eprint!("\r  simulating… {:3.0} %", done * 100.0);
-            let _ = std::io::stderr().flush();
-            last_shown = Instant::now();
-        }
-    })
-    .with_context(|| format!("run failed; recording at {}", args.out.display()))?;
-    if show_progress {
-        eprint!("\r                        \r");
-    }
+    let mut progress = Progress::new();
+    let summary = openloop::run(&config, &out, |done| progress.show(done))
+        .with_context(|| format!("run failed; recording at {}", out.display()))?;
+    progress.clear();
     let wall = started.elapsed().as_secs_f64();
     let s = &summary.final_state;
     println!(
-        "twin run: {} preset, seed {}, {:.3} s simulated",
-        args.preset, args.seed, s.time_s
+        "twin run --open-loop: {} preset, seed {}, {:.3} s simulated",
+        args.preset, config.seed, s.time_s
     );
     println!(
         "  wheel speed    {:9.1} rpm   (motor {:.0} rpm)",

@@ -1,0 +1,565 @@
+//! A simulated RS-485 bus: half duplex, multi-drop, at a fixed baud.
+//!
+//! Sans-IO like the nodes: [`SimBus::send`] puts a frame on the line, and the
+//! engine drains timed arrivals with [`SimBus::poll_timeout`] /
+//! [`SimBus::poll_event`]. Every byte arrives at the exact instant its stop bit
+//! ends, `start + (i + 1) × bits_per_char / baud`, computed from the frame's
+//! start each time so no rounding accumulates (exact in ticks for every
+//! standard baud, see [`crate::time`]).
+//!
+//! The physics that matter to a master's timing and error handling:
+//! - **Turnaround**: a port's frame starts a fixed delay after the instant it
+//!   is handed to the bus (the firmware's reply latency).
+//! - **Collisions**: RS-485 drivers do not listen before they talk. Bytes whose
+//!   wire time overlaps another port's frame are garbled, the same way for every
+//!   listener, and flagged `corrupted`.
+//! - **Noise**: each data bit flips independently at the configured rate, at
+//!   each receiver (a seeded stream consumed in delivery order).
+//!
+//! Buffers are allocated when ports are added; the pool of in-flight frames
+//! grows only when more frames overlap than ever before, never per byte.
+//! Nothing here panics on any input.
+
+use rand::{RngExt, SeedableRng};
+use rand_pcg::Pcg64;
+use thiserror::Error;
+
+use super::noise::BitNoise;
+use crate::node::MAX_FRAME;
+use crate::time::{SimDuration, SimTime, TICKS_PER_SECOND};
+
+/// Added to the seed for the collision-garbling stream, so noise statistics do
+/// not depend on how many collisions happened.
+const COLLISION_STREAM: u64 = 0x9E37_79B9_7F4A_7C15;
+
+/// A port on the bus: ports are numbered 0, 1, 2… in the order they are added.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub struct PortId(pub u16);
+
+impl PortId {
+    /// The port's position in the order ports were added.
+    pub fn index(self) -> usize {
+        usize::from(self.0)
+    }
+}
+
+/// Who hears whom.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Wiring {
+    /// One pair shared by all: every port hears every other.
+    #[default]
+    MultiDrop,
+    /// The seed-002 network: the master hears every slave, a slave hears only
+    /// the master (slaves never hear each other).
+    MasterSlaves {
+        /// The port of the master.
+        master: PortId,
+    },
+}
+
+impl Wiring {
+    /// Whether `listener` hears what `talker` sends. Nobody hears itself: its
+    /// receiver is off while it drives the line.
+    pub fn hears(self, listener: PortId, talker: PortId) -> bool {
+        listener != talker
+            && match self {
+                Wiring::MultiDrop => true,
+                Wiring::MasterSlaves { master } => listener == master || talker == master,
+            }
+    }
+}
+
+/// Line parameters.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BusConfig {
+    /// Bits per second.
+    pub baud: u32,
+    /// Bit times per character: 10 for 8N1, 11 for 8E1 or 8N2, 12 for 8E2.
+    pub bits_per_char: u32,
+    /// Probability that noise flips one data bit, 0 to 1.
+    pub bit_error_rate: f64,
+    /// Seeds the noise and the collision garbling.
+    pub seed: u64,
+    /// Who hears whom.
+    pub wiring: Wiring,
+}
+
+impl Default for BusConfig {
+    /// The lab's bus: 115200 baud 8N1, no noise, multi-drop.
+    fn default() -> Self {
+        BusConfig {
+            baud: 115_200,
+            bits_per_char: 10,
+            bit_error_rate: 0.0,
+            seed: 0,
+            wiring: Wiring::MultiDrop,
+        }
+    }
+}
+
+/// A line configuration the bus cannot simulate.
+#[derive(Debug, Clone, Copy, PartialEq, Error)]
+pub enum BusConfigError {
+    /// The baud rate is zero.
+    #[error("baud rate must be above zero")]
+    ZeroBaud,
+    /// A character is 10 to 12 bit times (start, 8 data, optional parity, 1–2 stop).
+    #[error("{0} bits per character; a UART character with 8 data bits is 10 to 12")]
+    BitsPerChar(u32),
+    /// The bit-error rate is not a probability.
+    #[error("bit-error rate {0} is not between 0 and 1")]
+    BitErrorRate(f64),
+}
+
+/// A frame handed to the bus that it cannot send.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Error)]
+pub enum BusError {
+    /// No port with this id was added.
+    #[error("no port {0:?} on this bus")]
+    UnknownPort(PortId),
+}
+
+/// How one port drives the line.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PortConfig {
+    /// From the instant a frame is handed to the bus to its first start bit
+    /// (the firmware's reply latency; 0 allowed).
+    pub turnaround: SimDuration,
+}
+
+impl Default for PortConfig {
+    /// The lab's default turnaround of 1 ms.
+    fn default() -> Self {
+        PortConfig {
+            turnaround: SimDuration::from_millis(1),
+        }
+    }
+}
+
+/// Where a frame went on the wire, for the recording.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FrameInfo {
+    /// The port that sent it.
+    pub from: PortId,
+    /// Its first start bit.
+    pub start: SimTime,
+    /// The end of its last stop bit.
+    pub end: SimTime,
+}
+
+/// Something that happened on the line.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BusEvent {
+    /// A byte reached a port.
+    Byte {
+        /// The listener.
+        to: PortId,
+        /// The end of the byte's stop bit.
+        at: SimTime,
+        /// The byte as received.
+        byte: u8,
+        /// Garbled by a collision or flipped by noise: differs from what was sent.
+        corrupted: bool,
+    },
+    /// A port's frame has left the wire (the end of its last stop bit).
+    TransmitDone {
+        /// The sender.
+        port: PortId,
+        /// The end of the frame's last stop bit.
+        at: SimTime,
+    },
+}
+
+impl BusEvent {
+    /// When the event happens.
+    pub fn at(&self) -> SimTime {
+        match *self {
+            BusEvent::Byte { at, .. } | BusEvent::TransmitDone { at, .. } => at,
+        }
+    }
+}
+
+/// What the bus has carried so far.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct BusStats {
+    /// Frames handed to [`SimBus::send`].
+    pub frames_sent: u64,
+    /// Bytes handed to [`SimBus::send`].
+    pub bytes_sent: u64,
+    /// Byte arrivals at listeners (a byte heard by three ports counts three times).
+    pub bytes_delivered: u64,
+    /// Byte arrivals with at least one bit flipped by noise.
+    pub bytes_corrupted_by_noise: u64,
+    /// Bits flipped by noise.
+    pub bits_flipped: u64,
+    /// Pairs of frames that overlapped on the wire.
+    pub collisions: u64,
+    /// Bytes on the wire garbled by a collision (counted once, not per listener).
+    pub bytes_garbled_by_collision: u64,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Port {
+    config: PortConfig,
+    /// Its own transmitter is busy until then: a second frame queues behind.
+    transmitting_until: SimTime,
+}
+
+/// One frame on the wire and how far its delivery has got.
+#[derive(Debug, Clone)]
+struct Transmission {
+    /// Order of sending: breaks ties between frames whose events coincide.
+    seq: u64,
+    from: PortId,
+    start: SimTime,
+    end: SimTime,
+    /// The bytes as they are on the wire (collision garbling applied).
+    bytes: Vec<u8>,
+    garbled: Vec<bool>,
+    /// Next byte to deliver; `bytes.len()` once all are delivered.
+    next_byte: usize,
+    /// Listener of the next delivery.
+    next_listener: u16,
+    active: bool,
+}
+
+impl Transmission {
+    fn empty() -> Self {
+        Transmission {
+            seq: 0,
+            from: PortId(0),
+            start: SimTime::ZERO,
+            end: SimTime::ZERO,
+            bytes: Vec::with_capacity(MAX_FRAME),
+            garbled: Vec::with_capacity(MAX_FRAME),
+            next_byte: 0,
+            next_listener: 0,
+            active: false,
+        }
+    }
+}
+
+/// The simulated bus. See the module documentation.
+#[derive(Debug, Clone)]
+pub struct SimBus {
+    config: BusConfig,
+    ports: Vec<Port>,
+    /// Pool of frames; the active ones are on the wire or awaiting delivery.
+    slots: Vec<Transmission>,
+    next_seq: u64,
+    noise: BitNoise,
+    collision_rng: Pcg64,
+    /// The latest event handed out: no frame may start before it, or it could
+    /// collide with bytes already delivered intact.
+    delivered_up_to: SimTime,
+    busy_until: SimTime,
+    stats: BusStats,
+}
+
+impl SimBus {
+    /// A bus with no ports yet.
+    pub fn new(config: BusConfig) -> Result<Self, BusConfigError> {
+        if config.baud == 0 {
+            return Err(BusConfigError::ZeroBaud);
+        }
+        if !(10..=12).contains(&config.bits_per_char) {
+            return Err(BusConfigError::BitsPerChar(config.bits_per_char));
+        }
+        if !(0.0..=1.0).contains(&config.bit_error_rate) {
+            return Err(BusConfigError::BitErrorRate(config.bit_error_rate));
+        }
+        Ok(SimBus {
+            config,
+            ports: Vec::new(),
+            slots: Vec::new(),
+            next_seq: 0,
+            noise: BitNoise::new(config.bit_error_rate, config.seed),
+            collision_rng: Pcg64::seed_from_u64(config.seed.wrapping_add(COLLISION_STREAM)),
+            delivered_up_to: SimTime::ZERO,
+            busy_until: SimTime::ZERO,
+            stats: BusStats::default(),
+        })
+    }
+
+    /// Connects a port; ids count up from 0. Also reserves room for two frames
+    /// in flight per port, so sending does not allocate.
+    pub fn add_port(&mut self, config: PortConfig) -> PortId {
+        let id = PortId(u16::try_from(self.ports.len()).unwrap_or(u16::MAX));
+        self.ports.push(Port {
+            config,
+            transmitting_until: SimTime::ZERO,
+        });
+        self.slots.push(Transmission::empty());
+        self.slots.push(Transmission::empty());
+        id
+    }
+
+    /// The line parameters.
+    pub fn config(&self) -> &BusConfig {
+        &self.config
+    }
+
+    /// Ports added so far.
+    pub fn port_count(&self) -> usize {
+        self.ports.len()
+    }
+
+    /// A port's configuration.
+    pub fn port_config(&self, port: PortId) -> Option<PortConfig> {
+        self.ports.get(port.index()).map(|p| p.config)
+    }
+
+    /// The time one character occupies the line (rounded down to a tick when
+    /// the baud does not divide 72 GHz; byte arrivals never accumulate it).
+    pub fn char_time(&self) -> SimDuration {
+        self.wire_time(1)
+    }
+
+    /// The time `chars` back-to-back characters occupy the line.
+    pub fn wire_time(&self, chars: usize) -> SimDuration {
+        let ticks =
+            chars as u128 * u128::from(self.config.bits_per_char) * u128::from(TICKS_PER_SECOND)
+                / u128::from(self.config.baud);
+        SimDuration(u64::try_from(ticks).unwrap_or(u64::MAX))
+    }
+
+    /// When the last frame handed to the bus so far leaves the wire.
+    pub fn busy_until(&self) -> SimTime {
+        self.busy_until
+    }
+
+    /// What the bus has carried so far.
+    pub fn stats(&self) -> &BusStats {
+        &self.stats
+    }
+
+    /// Puts `bytes` on the line from `from`, handed over at `now`.
+    ///
+    /// The first start bit begins at `now + turnaround`, or later if the port
+    /// is still sending an earlier frame (its UART queues) or if events after
+    /// that instant were already delivered (an engine must not send into the
+    /// past). Bytes go back to back. Any overlap with another port's frame
+    /// garbles the overlapping bytes of both and counts a collision.
+    pub fn send(
+        &mut self,
+        now: SimTime,
+        from: PortId,
+        bytes: &[u8],
+    ) -> Result<FrameInfo, BusError> {
+        let port = self
+            .ports
+            .get(from.index())
+            .ok_or(BusError::UnknownPort(from))?;
+        let start = (now + port.config.turnaround)
+            .max(port.transmitting_until)
+            .max(self.delivered_up_to);
+        let end = start + self.wire_time(bytes.len());
+
+        let slot = match self.slots.iter().position(|s| !s.active) {
+            Some(free) => free,
+            None => {
+                // More frames overlap than ever before: grow the pool once.
+                self.slots.push(Transmission::empty());
+                self.slots.len() - 1
+            }
+        };
+        let first_listener = self.next_listener(from, 0);
+        let seq = self.next_seq;
+        self.next_seq += 1;
+        if let Some(t) = self.slots.get_mut(slot) {
+            t.seq = seq;
+            t.from = from;
+            t.start = start;
+            t.end = end;
+            t.bytes.clear();
+            t.bytes.extend_from_slice(bytes);
+            t.garbled.clear();
+            t.garbled.resize(bytes.len(), false);
+            t.next_byte = if first_listener.is_some() {
+                0
+            } else {
+                bytes.len()
+            };
+            t.next_listener = first_listener.unwrap_or(0);
+        }
+
+        for other in 0..self.slots.len() {
+            let Some(t) = self.slots.get(other) else {
+                continue;
+            };
+            if other == slot || !t.active {
+                continue;
+            }
+            let (from_time, until) = (t.start.max(start), t.end.min(end));
+            if from_time < until {
+                self.stats.collisions += 1;
+                self.garble(other, from_time, until);
+                self.garble(slot, from_time, until);
+            }
+        }
+
+        if let Some(t) = self.slots.get_mut(slot) {
+            t.active = true;
+        }
+        if let Some(p) = self.ports.get_mut(from.index()) {
+            p.transmitting_until = end;
+        }
+        self.busy_until = self.busy_until.max(end);
+        self.stats.frames_sent += 1;
+        self.stats.bytes_sent += bytes.len() as u64;
+        Ok(FrameInfo { from, start, end })
+    }
+
+    /// Garbles the bytes of frame `slot` on the wire during `[from, until)`.
+    fn garble(&mut self, slot: usize, from: SimTime, until: SimTime) {
+        let Some(t) = self.slots.get(slot) else {
+            return;
+        };
+        let start = t.start;
+        for i in 0..t.bytes.len() {
+            let byte_start = start + self.wire_time(i);
+            let byte_end = start + self.wire_time(i + 1);
+            if byte_start >= until {
+                break;
+            }
+            if byte_end <= from {
+                continue;
+            }
+            let mask = self.collision_rng.random_range(1..=u8::MAX);
+            let Some(t) = self.slots.get_mut(slot) else {
+                return;
+            };
+            if let (Some(byte), Some(flag)) = (t.bytes.get_mut(i), t.garbled.get_mut(i))
+                && !*flag
+            {
+                *byte ^= mask;
+                *flag = true;
+                self.stats.bytes_garbled_by_collision += 1;
+            }
+        }
+    }
+
+    /// The first port at or after `from_index` that hears `talker`.
+    fn next_listener(&self, talker: PortId, from_index: usize) -> Option<u16> {
+        (from_index..self.ports.len())
+            .filter_map(|i| u16::try_from(i).ok())
+            .find(|&i| self.config.wiring.hears(PortId(i), talker))
+    }
+
+    /// The time of the next event of a frame, if it has one left.
+    fn next_event_time(&self, t: &Transmission) -> SimTime {
+        if t.next_byte < t.bytes.len() {
+            t.start + self.wire_time(t.next_byte + 1)
+        } else {
+            t.end
+        }
+    }
+
+    /// The frame whose next event comes first: earliest time, then earliest sent.
+    fn next_slot(&self) -> Option<(usize, SimTime)> {
+        self.slots
+            .iter()
+            .enumerate()
+            .filter(|(_, t)| t.active)
+            .map(|(i, t)| (i, self.next_event_time(t), t.seq))
+            .min_by_key(|&(_, at, seq)| (at, seq))
+            .map(|(i, at, _)| (i, at))
+    }
+
+    /// The instant of the next byte arrival or end of a frame.
+    pub fn poll_timeout(&self) -> Option<SimTime> {
+        self.next_slot().map(|(_, at)| at)
+    }
+
+    /// The next event at or before `now`, in time order. Events at the same
+    /// instant come frame by frame in the order the frames were sent; within a
+    /// frame, a byte goes to its listeners in port order, and the frame's
+    /// [`BusEvent::TransmitDone`] follows its last byte.
+    pub fn poll_event(&mut self, now: SimTime) -> Option<BusEvent> {
+        let (slot, at) = self.next_slot()?;
+        if at > now {
+            return None;
+        }
+        self.delivered_up_to = self.delivered_up_to.max(at);
+        let t = self.slots.get(slot)?;
+        let (from, index, listener) = (t.from, t.next_byte, t.next_listener);
+        let Some(&wire_byte) = t.bytes.get(index) else {
+            // All bytes delivered: the frame is done.
+            if let Some(t) = self.slots.get_mut(slot) {
+                t.active = false;
+            }
+            return Some(BusEvent::TransmitDone { port: from, at });
+        };
+        let collided = t.garbled.get(index).copied().unwrap_or(false);
+
+        let following = self.next_listener(from, usize::from(listener) + 1);
+        let first = self.next_listener(from, 0);
+        if let Some(t) = self.slots.get_mut(slot) {
+            match following {
+                Some(next) => t.next_listener = next,
+                None => {
+                    t.next_byte += 1;
+                    t.next_listener = first.unwrap_or(0);
+                }
+            }
+        }
+
+        let noise = self.noise.next_byte_mask();
+        self.stats.bytes_delivered += 1;
+        if noise != 0 {
+            self.stats.bytes_corrupted_by_noise += 1;
+            self.stats.bits_flipped += u64::from(noise.count_ones());
+        }
+        Some(BusEvent::Byte {
+            to: PortId(listener),
+            at,
+            byte: wire_byte ^ noise,
+            corrupted: collided || noise != 0,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rejects_impossible_lines() {
+        let bad = |c: BusConfig| SimBus::new(c).err();
+        let base = BusConfig::default();
+        assert_eq!(
+            bad(BusConfig { baud: 0, ..base }),
+            Some(BusConfigError::ZeroBaud)
+        );
+        assert_eq!(
+            bad(BusConfig {
+                bits_per_char: 9,
+                ..base
+            }),
+            Some(BusConfigError::BitsPerChar(9))
+        );
+        assert!(matches!(
+            bad(BusConfig {
+                bit_error_rate: f64::NAN,
+                ..base
+            }),
+            Some(BusConfigError::BitErrorRate(_))
+        ));
+        assert!(matches!(
+            bad(BusConfig {
+                bit_error_rate: 1.5,
+                ..base
+            }),
+            Some(BusConfigError::BitErrorRate(_))
+        ));
+    }
+
+    #[test]
+    fn unknown_port_is_an_error() {
+        let mut bus = SimBus::new(BusConfig::default()).unwrap();
+        assert_eq!(
+            bus.send(SimTime::ZERO, PortId(3), b"x"),
+            Err(BusError::UnknownPort(PortId(3)))
+        );
+    }
+}

@@ -1,0 +1,238 @@
+//! What the supervisor puts on the wire and how it reads the answers, for
+//! both protocols: requests are emitted straight into the caller's buffer,
+//! replies are classified against the request they should answer.
+
+use crate::proto::meb::{MebCmd, MebDecodeError, MebDecoder, MebRepr, MebWords};
+use crate::proto::modbus::pdu::function;
+use crate::proto::modbus::rtu::{self, Direction, RtuDecoder};
+use crate::proto::modbus::serial::Timing;
+use crate::proto::modbus::{Bits, ExceptionResponse, PduError, Request, Response};
+use crate::time::{SimDuration, SimTime};
+
+use super::{Protocol, StartupOutputs};
+
+/// The analog inputs read every cycle: V2, I, V1, RPM_M, RPM_L, LDR.
+pub(crate) const INPUT_WORDS: usize = 6;
+
+/// One request/reply exchange with a slave.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Transaction {
+    /// Enable the module: write `SD0`, `SD1` (RTU: coils 0–5).
+    Startup(StartupOutputs),
+    /// Read the six analog inputs.
+    ReadInputs,
+    /// Write `VEL`.
+    WriteVel(u16),
+}
+
+impl Transaction {
+    /// A short name for events.
+    pub(crate) fn name(self) -> &'static str {
+        match self {
+            Transaction::Startup(_) => "startup write",
+            Transaction::ReadInputs => "input read",
+            Transaction::WriteVel(_) => "VEL write",
+        }
+    }
+
+    /// Emits the request to slave `id` into `out`; `None` if `out` is too small.
+    pub(crate) fn emit(self, protocol: Protocol, id: u8, out: &mut [u8]) -> Option<usize> {
+        match protocol {
+            Protocol::Meb => self.meb_request(id).emit(out).ok(),
+            Protocol::ModbusRtu => rtu::emit(id, &self.rtu_request(), out).ok(),
+        }
+    }
+
+    fn meb_request(self, id: u8) -> MebRepr {
+        let (cmd, cnt, words): (MebCmd, u8, &[u16]) = match self {
+            Transaction::Startup(outputs) => (MebCmd::SD, 2, &[outputs.sd0, outputs.sd1]),
+            Transaction::ReadInputs => (MebCmd::EA, INPUT_WORDS as u8, &[]),
+            Transaction::WriteVel(vel) => (MebCmd::SA, 1, &[vel]),
+        };
+        MebRepr {
+            id,
+            cmd,
+            addr: 0,
+            cnt,
+            data: MebWords::from_slice(words).unwrap_or_default(),
+        }
+    }
+
+    fn rtu_request(self) -> Request {
+        match self {
+            Transaction::Startup(outputs) => {
+                let bit = |word: u16, n: u8| word & (1 << n) != 0;
+                let coils = [
+                    bit(outputs.sd0, 0),
+                    bit(outputs.sd0, 1),
+                    bit(outputs.sd0, 2),
+                    bit(outputs.sd0, 3),
+                    bit(outputs.sd0, 4),
+                    bit(outputs.sd1, 0),
+                ];
+                Request::WriteMultipleCoils {
+                    address: 0,
+                    coils: Bits::from_bools(&coils).unwrap_or_default(),
+                }
+            }
+            Transaction::ReadInputs => Request::ReadInputRegisters {
+                address: 0,
+                quantity: INPUT_WORDS as u16,
+            },
+            Transaction::WriteVel(vel) => Request::WriteSingleRegister {
+                address: 0,
+                value: vel,
+            },
+        }
+    }
+
+    fn rtu_function(self) -> u8 {
+        match self {
+            Transaction::Startup(_) => function::WRITE_MULTIPLE_COILS,
+            Transaction::ReadInputs => function::READ_INPUT_REGISTERS,
+            Transaction::WriteVel(_) => function::WRITE_SINGLE_REGISTER,
+        }
+    }
+}
+
+/// What a frame that reached the supervisor means for the pending request.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Reply {
+    /// The six analog inputs asked for.
+    Inputs([u16; INPUT_WORDS]),
+    /// The write was acknowledged.
+    Ack,
+    /// The slave refused: MEB `ER` code or Modbus exception code.
+    Exception(u8),
+    /// The bytes failed the check (FCS, CRC) or the frame's form.
+    Bad,
+    /// A well-formed frame that answers something else (another slave, a late
+    /// reply to an earlier request): not used, the wait goes on.
+    Unexpected,
+}
+
+/// The stream decoder of replies, per protocol. Reset before each request so
+/// that a partial frame left from an earlier exchange cannot swallow the reply.
+#[derive(Debug, Clone)]
+pub(crate) enum ReplyDecoder {
+    Meb(MebDecoder),
+    Rtu(RtuDecoder),
+}
+
+impl ReplyDecoder {
+    pub(crate) fn new(protocol: Protocol, rtu_silence: SimDuration) -> Self {
+        match protocol {
+            Protocol::Meb => ReplyDecoder::Meb(MebDecoder::new()),
+            Protocol::ModbusRtu => ReplyDecoder::Rtu(RtuDecoder::new(
+                Direction::Response,
+                Timing::Silence(rtu_silence),
+            )),
+        }
+    }
+
+    pub(crate) fn reset(&mut self) {
+        match self {
+            ReplyDecoder::Meb(decoder) => *decoder = MebDecoder::new(),
+            ReplyDecoder::Rtu(decoder) => {
+                *decoder = RtuDecoder::new(Direction::Response, decoder.timing());
+            }
+        }
+    }
+
+    /// Takes bytes from the front of `input` up to the next frame or drop and
+    /// classifies it against `pending` (slave id and request). `None` once
+    /// `input` is used up without a further frame.
+    pub(crate) fn next_reply(
+        &mut self,
+        now: SimTime,
+        input: &mut &[u8],
+        pending: (u8, Transaction),
+    ) -> Option<Reply> {
+        match self {
+            ReplyDecoder::Meb(decoder) => loop {
+                if input.is_empty() {
+                    return None;
+                }
+                let (used, event) = decoder.push(now, input);
+                let reply = event.map(|event| match event {
+                    Ok(frame) => classify_meb(&MebRepr::from_frame(&frame), pending),
+                    // A new `@` before `\n`: the bytes were cut, which is all a
+                    // master can tell of a corrupted terminator.
+                    Err(MebDecodeError::Interrupted | MebDecodeError::Malformed(_)) => Reply::Bad,
+                });
+                *input = input.get(used..).unwrap_or_default();
+                if reply.is_some() {
+                    return reply;
+                }
+            },
+            ReplyDecoder::Rtu(decoder) => {
+                let item = decoder.decode(now, input)?;
+                Some(match item {
+                    Ok(frame) if frame.unit != pending.0 => Reply::Unexpected,
+                    Ok(frame) => classify_rtu(frame.response(), pending.1),
+                    // A failed CRC, or bytes no reply can start with.
+                    Err(_) => Reply::Bad,
+                })
+            }
+        }
+    }
+}
+
+fn classify_meb(reply: &MebRepr, (id, transaction): (u8, Transaction)) -> Reply {
+    if reply.id != id {
+        return Reply::Unexpected;
+    }
+    if reply.cmd == MebCmd::ER {
+        return match reply.data.as_slice() {
+            &[code] => Reply::Exception(u8::try_from(code).unwrap_or(u8::MAX)),
+            _ => Reply::Bad,
+        };
+    }
+    let expected = transaction.meb_request(id);
+    if reply.cmd != expected.cmd || reply.addr != expected.addr || reply.cnt != expected.cnt {
+        return Reply::Unexpected;
+    }
+    match transaction {
+        Transaction::ReadInputs => match <[u16; INPUT_WORDS]>::try_from(reply.data.as_slice()) {
+            Ok(words) => Reply::Inputs(words),
+            Err(_) => Reply::Unexpected,
+        },
+        Transaction::Startup(_) | Transaction::WriteVel(_) if reply.data.is_empty() => Reply::Ack,
+        _ => Reply::Unexpected,
+    }
+}
+
+fn classify_rtu(
+    parsed: Result<Result<Response, ExceptionResponse>, PduError>,
+    transaction: Transaction,
+) -> Reply {
+    let response = match parsed {
+        Err(_) => return Reply::Bad,
+        Ok(Err(exception)) if exception.function == transaction.rtu_function() => {
+            return Reply::Exception(exception.exception.code());
+        }
+        Ok(Err(_)) => return Reply::Unexpected,
+        Ok(Ok(response)) => response,
+    };
+    match (transaction, response) {
+        (Transaction::ReadInputs, Response::ReadInputRegisters(values)) => {
+            match <[u16; INPUT_WORDS]>::try_from(values.as_slice()) {
+                Ok(words) => Reply::Inputs(words),
+                Err(_) => Reply::Unexpected,
+            }
+        }
+        (
+            Transaction::Startup(_),
+            Response::WriteMultipleCoils {
+                address: 0,
+                quantity: 6,
+            },
+        ) => Reply::Ack,
+        (Transaction::WriteVel(vel), Response::WriteSingleRegister { address: 0, value })
+            if value == vel =>
+        {
+            Reply::Ack
+        }
+        _ => Reply::Unexpected,
+    }
+}

@@ -1,0 +1,318 @@
+//! The virtual-time engine: modules, nodes and buses on one discrete-event
+//! clock, far faster than real time and deterministic.
+//!
+//! One loop jumps from event to event: a byte finishing on a bus, a node's
+//! timer, a firmware loop tick, a recording instant. The plants are advanced
+//! lazily, in fixed steps, to each instant that needs them. At equal times the
+//! order is fixed (buses, then firmware ticks, then node timers, then
+//! transmissions, each in declaration order), so the same scenario and seed
+//! always give the same run.
+
+use anyhow::Result;
+use nodes::link::{BusEvent, PortId, SimBus};
+use nodes::node::{Firmware, MAX_FRAME, Node, NodeEvent};
+use nodes::time::{SimDuration, SimTime};
+use plant::{Actuators, EvModule};
+
+/// A node as the engine drives it: the sans-IO node plus what recording and
+/// the plant need from it.
+pub trait SimNode: Node {
+    /// The firmware, for nodes that run a module.
+    fn firmware(&mut self) -> Option<&mut dyn Firmware> {
+        None
+    }
+    /// Internals worth recording now (a master's loop state), if changed
+    /// since the last call.
+    fn telemetry(&mut self) -> Option<serde_json::Value> {
+        None
+    }
+    /// A summary of the node's state for the end-of-run report.
+    fn final_state(&self) -> Option<serde_json::Value> {
+        None
+    }
+}
+
+/// One bench module and the plant time it has reached.
+pub struct ModuleSlot {
+    pub name: String,
+    pub plant: EvModule,
+    pub actuators: Actuators,
+    plant_time: SimTime,
+}
+
+/// One node, where it is attached and when its firmware ticks next.
+pub struct NodeSlot {
+    pub name: String,
+    pub node: Box<dyn SimNode>,
+    pub bus: usize,
+    pub port: PortId,
+    pub module: Option<usize>,
+    next_tick: Option<SimTime>,
+}
+
+/// A bus and its name.
+pub struct BusSlot {
+    pub name: String,
+    pub bus: SimBus,
+    /// Node index of each port.
+    pub owners: Vec<usize>,
+}
+
+/// Everything the engine reports as it runs, for the recorder.
+pub trait Observer {
+    fn plant(&mut self, now: SimTime, module: &ModuleSlot) -> Result<()>;
+    fn actuators(&mut self, now: SimTime, module: &ModuleSlot) -> Result<()>;
+    fn frame(
+        &mut self,
+        bus: &BusSlot,
+        from: &NodeSlot,
+        start: SimTime,
+        end: SimTime,
+        bytes: &[u8],
+    ) -> Result<()>;
+    fn event(&mut self, node: &NodeSlot, event: &NodeEvent) -> Result<()>;
+    fn telemetry(&mut self, now: SimTime, node: &NodeSlot, value: &serde_json::Value)
+    -> Result<()>;
+}
+
+/// The engine.
+pub struct Engine {
+    pub modules: Vec<ModuleSlot>,
+    pub nodes: Vec<NodeSlot>,
+    pub buses: Vec<BusSlot>,
+    now: SimTime,
+    plant_step: SimDuration,
+    record_period: SimDuration,
+    next_record: SimTime,
+    tx: Vec<u8>,
+    pub frames_sent: u64,
+}
+
+impl Engine {
+    pub fn new(plant_step: SimDuration, record_period: SimDuration) -> Self {
+        Self {
+            modules: Vec::new(),
+            nodes: Vec::new(),
+            buses: Vec::new(),
+            now: SimTime::ZERO,
+            plant_step,
+            record_period,
+            next_record: SimTime::ZERO,
+            tx: vec![0; MAX_FRAME],
+            frames_sent: 0,
+        }
+    }
+
+    pub fn add_module(&mut self, name: &str, plant: EvModule) -> usize {
+        self.modules.push(ModuleSlot {
+            name: name.into(),
+            plant,
+            actuators: Actuators::default(),
+            plant_time: SimTime::ZERO,
+        });
+        self.modules.len() - 1
+    }
+
+    pub fn add_bus(&mut self, name: &str, bus: SimBus) -> usize {
+        self.buses.push(BusSlot {
+            name: name.into(),
+            bus,
+            owners: Vec::new(),
+        });
+        self.buses.len() - 1
+    }
+
+    /// Attach a node to a bus at `port` (from `SimBus::add_port`).
+    pub fn add_node(
+        &mut self,
+        name: &str,
+        mut node: Box<dyn SimNode>,
+        bus: usize,
+        port: PortId,
+        module: Option<usize>,
+    ) -> usize {
+        let next_tick = node.firmware().map(|_| SimTime::ZERO);
+        let index = self.nodes.len();
+        self.nodes.push(NodeSlot {
+            name: name.into(),
+            node,
+            bus,
+            port,
+            module,
+            next_tick,
+        });
+        let owners = &mut self.buses[bus].owners;
+        if owners.len() <= port.index() {
+            owners.resize(port.index() + 1, usize::MAX);
+        }
+        owners[port.index()] = index;
+        index
+    }
+
+    pub fn now(&self) -> SimTime {
+        self.now
+    }
+
+    /// Run until `end`, reporting to `observer`; `progress` gets the time reached.
+    pub fn run_until(
+        &mut self,
+        end: SimTime,
+        observer: &mut dyn Observer,
+        mut progress: impl FnMut(SimTime),
+    ) -> Result<()> {
+        let mut handled = 0u64;
+        loop {
+            self.transmit_all(observer)?;
+            self.drain_node_output(observer)?;
+            let Some(t) = self.next_event() else { break };
+            if t > end {
+                break;
+            }
+            self.now = t;
+            self.deliver_bus_events(t);
+            self.tick_firmware(t, observer)?;
+            for slot in &mut self.nodes {
+                if slot.node.poll_timeout().is_some_and(|due| due <= t) {
+                    slot.node.handle_timeout(t);
+                }
+            }
+            if t >= self.next_record {
+                for m in 0..self.modules.len() {
+                    self.advance_plant(m, t);
+                    observer.plant(t, &self.modules[m])?;
+                }
+                self.next_record = t + self.record_period;
+            }
+            handled += 1;
+            if handled.is_multiple_of(4096) {
+                progress(t);
+            }
+        }
+        for m in 0..self.modules.len() {
+            self.advance_plant(m, end);
+        }
+        self.now = end;
+        Ok(())
+    }
+
+    fn next_event(&self) -> Option<SimTime> {
+        let buses = self.buses.iter().filter_map(|b| b.bus.poll_timeout());
+        let nodes = self.nodes.iter().filter_map(|n| n.node.poll_timeout());
+        let ticks = self.nodes.iter().filter_map(|n| n.next_tick);
+        let record = (!self.modules.is_empty()).then_some(self.next_record);
+        buses.chain(nodes).chain(ticks).chain(record).min()
+    }
+
+    fn deliver_bus_events(&mut self, t: SimTime) {
+        for b in 0..self.buses.len() {
+            while let Some(event) = self.buses[b].bus.poll_event(t) {
+                match event {
+                    BusEvent::Byte { to, at, byte, .. } => {
+                        if let Some(&n) = self.buses[b].owners.get(to.index())
+                            && let Some(slot) = self.nodes.get_mut(n)
+                        {
+                            slot.node.handle_bytes(at, &[byte]);
+                        }
+                    }
+                    BusEvent::TransmitDone { port, at } => {
+                        if let Some(&n) = self.buses[b].owners.get(port.index())
+                            && let Some(slot) = self.nodes.get_mut(n)
+                        {
+                            slot.node.transmit_done(at);
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// Step a module's plant up to `t` in whole plant steps (and a last
+    /// partial one if `t` is off the grid).
+    fn advance_plant(&mut self, m: usize, t: SimTime) {
+        let step = self.plant_step;
+        let slot = &mut self.modules[m];
+        while slot.plant_time < t {
+            let dt = step.min(t.saturating_since(slot.plant_time));
+            slot.plant.step(dt.as_secs_f64(), &slot.actuators);
+            slot.plant_time += dt;
+        }
+    }
+
+    fn tick_firmware(&mut self, t: SimTime, observer: &mut dyn Observer) -> Result<()> {
+        for n in 0..self.nodes.len() {
+            if self.nodes[n].next_tick.is_none_or(|due| due > t) {
+                continue;
+            }
+            let Some(m) = self.nodes[n].module else {
+                continue;
+            };
+            self.advance_plant(m, t);
+            let sensors = *self.modules[m].plant.sensors();
+            let slot = &mut self.nodes[n];
+            let Some(fw) = slot.node.firmware() else {
+                continue;
+            };
+            let actuators = fw.loop_tick(t, &sensors);
+            slot.next_tick = Some(t + fw.loop_period());
+            let module = &mut self.modules[m];
+            if module.actuators != actuators {
+                module.actuators = actuators;
+                observer.actuators(t, module)?;
+            }
+        }
+        Ok(())
+    }
+
+    fn transmit_all(&mut self, observer: &mut dyn Observer) -> Result<()> {
+        let t = self.now;
+        for n in 0..self.nodes.len() {
+            while let Some(len) = self.nodes[n].node.poll_transmit(t, &mut self.tx) {
+                let len = len.min(self.tx.len());
+                let slot = &self.nodes[n];
+                let bus = &mut self.buses[slot.bus];
+                let info = bus.bus.send(t, slot.port, &self.tx[..len])?;
+                self.frames_sent += 1;
+                observer.frame(
+                    &self.buses[slot.bus],
+                    slot,
+                    info.start,
+                    info.end,
+                    &self.tx[..len],
+                )?;
+            }
+        }
+        Ok(())
+    }
+
+    fn drain_node_output(&mut self, observer: &mut dyn Observer) -> Result<()> {
+        let t = self.now;
+        for n in 0..self.nodes.len() {
+            while let Some(event) = self.nodes[n].node.poll_event() {
+                observer.event(&self.nodes[n], &event)?;
+            }
+            if let Some(value) = self.nodes[n].node.telemetry() {
+                observer.telemetry(t, &self.nodes[n], &value)?;
+            }
+        }
+        Ok(())
+    }
+}
+
+macro_rules! debug_by_name {
+    ($($t:ty),*) => {$(
+        impl std::fmt::Debug for $t {
+            fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                f.debug_struct(stringify!($t)).field("name", &self.name).finish_non_exhaustive()
+            }
+        }
+    )*};
+}
+debug_by_name!(ModuleSlot, NodeSlot, BusSlot);
+
+impl std::fmt::Debug for Engine {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Engine")
+            .field("now", &self.now)
+            .finish_non_exhaustive()
+    }
+}

@@ -1,0 +1,161 @@
+//! What a virtual run writes to its recording. Channels (all JSON, JSON-schema):
+//!
+//! | topic | when | content |
+//! |---|---|---|
+//! | `/plant/<module>/sensors` | at the scenario's `record_hz` | every sensor, hall/encoder counts, energy ledger |
+//! | `/plant/<module>/actuators` | on every change | what the firmware drives |
+//! | `/bus/<bus>/frames` | every frame sent | sender, start and end time, raw bytes, decoded fields |
+//! | `/events` | as they happen | node, kind (`timeout`, `bad_check`, `retry`, `log`, …), detail |
+//! | `/master/<node>/loop` | every poll cycle | set point, measured rpm, error, output, counters |
+
+use anyhow::Result;
+use nodes::node::NodeEvent;
+use nodes::proto::meb::MebRepr;
+use nodes::proto::{modbus, modbus8};
+use nodes::time::SimTime;
+use serde::Serialize;
+use serde_json::{Value, json};
+use std::collections::{BTreeMap, VecDeque};
+
+use crate::engine::{BusSlot, ModuleSlot, NodeSlot, Observer};
+use crate::record::Recorder;
+
+/// How many log lines the end-of-run summary shows.
+const LOG_TAIL: usize = 12;
+
+/// Writes a run to MCAP; topics are created on first use.
+#[derive(Debug)]
+pub struct McapObserver {
+    pub recorder: Recorder,
+    pub frames: u64,
+    pub events: BTreeMap<String, u64>,
+    /// The last lines the nodes logged (kind `log`), for the summary.
+    pub log_tail: VecDeque<String>,
+}
+
+/// One frame on a bus, as recorded.
+#[derive(Debug, Serialize)]
+struct FrameMessage<'a> {
+    from: &'a str,
+    start_s: f64,
+    end_s: f64,
+    len: usize,
+    /// The bytes as text when they are printable ASCII (MEB), hex otherwise.
+    text: String,
+    hex: String,
+    decoded: Value,
+}
+
+impl McapObserver {
+    pub fn new(recorder: Recorder) -> Self {
+        Self {
+            recorder,
+            frames: 0,
+            events: BTreeMap::new(),
+            log_tail: VecDeque::new(),
+        }
+    }
+
+    /// Write `message` to `topic`, creating its channel on first use.
+    fn put<T: Serialize>(&mut self, topic: &str, time: SimTime, message: &T) -> Result<()> {
+        if !self.recorder.has_channel(topic) {
+            self.recorder.add_channel(topic, message)?;
+        }
+        self.recorder.write(topic, time.as_secs_f64(), message)
+    }
+}
+
+/// Decoded fields of a frame: MEB, the 8-byte variant or Modbus RTU.
+pub fn decode_frame(bytes: &[u8]) -> Value {
+    if bytes.first() == Some(&b'@') {
+        return match MebRepr::parse(bytes) {
+            Ok(r) => json!({
+                "protocol": "meb", "id": r.id, "cmd": r.cmd.to_string(), "addr": r.addr,
+                "cnt": r.cnt, "data": r.data.as_slice(),
+            }),
+            Err(e) => json!({ "protocol": "meb", "error": e.to_string() }),
+        };
+    }
+    if bytes.len() == 8
+        && let Ok(f) = modbus8::Frame::parse(bytes, modbus8::CrcOrder::HighFirst)
+    {
+        return json!({
+            "protocol": "modbus8", "id": f.id, "function": f.function, "addr": f.addr, "value": f.value,
+        });
+    }
+    match modbus::rtu::parse(bytes) {
+        Ok(f) => json!({ "protocol": "modbus-rtu", "unit": f.unit, "function": f.function() }),
+        Err(e) => json!({ "protocol": "unknown", "error": e.to_string() }),
+    }
+}
+
+fn secs(t: SimTime) -> f64 {
+    t.as_secs_f64()
+}
+
+impl Observer for McapObserver {
+    fn plant(&mut self, now: SimTime, module: &ModuleSlot) -> Result<()> {
+        self.put(
+            &format!("/plant/{}/sensors", module.name),
+            now,
+            module.plant.sensors(),
+        )
+    }
+
+    fn actuators(&mut self, now: SimTime, module: &ModuleSlot) -> Result<()> {
+        self.put(
+            &format!("/plant/{}/actuators", module.name),
+            now,
+            &module.actuators,
+        )
+    }
+
+    fn frame(
+        &mut self,
+        bus: &BusSlot,
+        from: &NodeSlot,
+        start: SimTime,
+        end: SimTime,
+        bytes: &[u8],
+    ) -> Result<()> {
+        let printable = bytes
+            .iter()
+            .all(|b| b.is_ascii_graphic() || *b == b'\n' || *b == b'\r');
+        let message = FrameMessage {
+            from: &from.name,
+            start_s: secs(start),
+            end_s: secs(end),
+            len: bytes.len(),
+            text: if printable {
+                String::from_utf8_lossy(bytes).into_owned()
+            } else {
+                String::new()
+            },
+            hex: bytes.iter().map(|b| format!("{b:02x}")).collect(),
+            decoded: decode_frame(bytes),
+        };
+        self.frames += 1;
+        self.put(&format!("/bus/{}/frames", bus.name), start, &message)
+    }
+
+    fn event(&mut self, node: &NodeSlot, event: &NodeEvent) -> Result<()> {
+        *self.events.entry(event.kind.to_string()).or_default() += 1;
+        if event.kind == "log" {
+            if self.log_tail.len() == LOG_TAIL {
+                self.log_tail.pop_front();
+            }
+            self.log_tail.push_back(format!(
+                "[{:9.3} s] {}: {}",
+                event.at.as_secs_f64(),
+                node.name,
+                event.detail
+            ));
+        }
+        let message = json!({ "node": node.name, "kind": event.kind, "detail": event.detail });
+        self.put("/events", event.at, &message)
+    }
+
+    fn telemetry(&mut self, now: SimTime, node: &NodeSlot, value: &Value) -> Result<()> {
+        self.put(&format!("/master/{}/loop", node.name), now, value)
+    }
+}
