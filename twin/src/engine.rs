@@ -26,6 +26,11 @@ pub trait SimNode: Node {
     fn telemetry(&mut self) -> Option<serde_json::Value> {
         None
     }
+    /// Whether the firmware's actuators drive its module (a sensor-only
+    /// node, like seed 002's light sensor, only reads it).
+    fn drives_plant(&self) -> bool {
+        true
+    }
     /// A summary of the node's state for the end-of-run report.
     fn final_state(&self) -> Option<serde_json::Value> {
         None

@@ -7,6 +7,7 @@ use nodes::link::{BusConfig, CheckKind, Fault, FaultWindow, FaultyNode, PortId, 
 use nodes::master::Supervisor;
 use nodes::master::{Protocol, SetPointStep, SlaveLoopConfig, SpeedSource, SupervisorConfig};
 use nodes::node::Firmware;
+use nodes::seed002::{LightConfig, LightNode, MasterConfig, MotorConfig, MotorNode, Seed002Master};
 use nodes::time::{SimDuration, SimTime};
 use plant::PlantParams;
 use serde_json::{Value, json};
@@ -152,10 +153,26 @@ pub fn build_node(
                 SimDuration::ZERO,
             ))
         }
-        NodeSpec::MotorNode { .. }
-        | NodeSpec::LightNode { .. }
-        | NodeSpec::Seed002Master { .. } => {
-            bail!("the seed-002 nodes are not built into this version yet")
+        NodeSpec::MotorNode { turnaround_ms, .. } => {
+            let motor = MotorNode::new(MotorConfig::default());
+            let node = FaultyNode::with_schedule(motor, CheckKind::Modbus8, windows);
+            Ok((Box::new(node), ms(*turnaround_ms)))
+        }
+        NodeSpec::LightNode { turnaround_ms, .. } => {
+            let light = LightNode::new(LightConfig::default());
+            let node = FaultyNode::with_schedule(light, CheckKind::Modbus8, windows);
+            Ok((Box::new(node), ms(*turnaround_ms)))
+        }
+        NodeSpec::Seed002Master {
+            reply_timeout_ms, ..
+        } => {
+            let config = MasterConfig {
+                reply_timeout: reply_timeout_ms.map(ms),
+                ..MasterConfig::default()
+            };
+            let node =
+                FaultyNode::with_schedule(Seed002Master::new(config), CheckKind::Modbus8, windows);
+            Ok((Box::new(node), SimDuration::ZERO))
         }
     }
 }
@@ -163,6 +180,46 @@ pub fn build_node(
 impl SimNode for FaultyNode<EvController> {
     fn firmware(&mut self) -> Option<&mut dyn Firmware> {
         Some(self.inner_mut())
+    }
+}
+
+impl SimNode for FaultyNode<MotorNode> {
+    fn firmware(&mut self) -> Option<&mut dyn Firmware> {
+        Some(self.inner_mut())
+    }
+    fn final_state(&self) -> Option<Value> {
+        let m = self.inner();
+        Some(
+            json!({ "state": format!("{:?}", m.state()), "set_point": m.set_point(),
+                     "latched_rpm": m.latched_rpm(), "duty": m.duty() }),
+        )
+    }
+}
+
+impl SimNode for FaultyNode<LightNode> {
+    fn firmware(&mut self) -> Option<&mut dyn Firmware> {
+        Some(self.inner_mut())
+    }
+    /// The light sensor only watches the wheel: the motor node drives it.
+    fn drives_plant(&self) -> bool {
+        false
+    }
+    fn final_state(&self) -> Option<Value> {
+        let l = self.inner();
+        Some(
+            json!({ "rpm": l.rpm(), "raw_rpm": l.raw_rpm(), "register": l.register_value(), "edges": l.edges() }),
+        )
+    }
+}
+
+impl SimNode for FaultyNode<Seed002Master> {
+    fn final_state(&self) -> Option<Value> {
+        let m = self.inner();
+        Some(
+            json!({ "phase": format!("{:?}", m.phase()), "cycles": m.cycles(), "motor_rpm": m.motor_rpm(),
+                     "sensor_value": m.sensor_value(), "set_point": m.set_point(),
+                     "crc_errors": m.crc_errors(), "timeouts": m.timeouts() }),
+        )
     }
 }
 

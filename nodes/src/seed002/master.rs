@@ -1,0 +1,461 @@
+//! The Raspberry Pi master of seed 002: a state handshake with the motor,
+//! then a loop reading the motor's rpm and the light sensor, toggling the set
+//! point between 5000 and 10000 every 20th cycle, printing what it does.
+
+use std::collections::VecDeque;
+
+use crate::node::{Node, NodeEvent};
+use crate::proto::modbus::Exception;
+use crate::proto::modbus8::{self, CrcOrder, FRAME_LEN, Frame, Modbus8Decoder, Modbus8Error};
+use crate::time::{SimDuration, SimTime};
+
+use super::{
+    BAUD, LIGHT_ID, MOTOR_ID, MotorState, REG_LIGHT_VALUE, REG_RPM, REG_SET_SPEED, REG_STATE,
+    corrupt_crc,
+};
+
+/// Events kept for the engine to take; older ones are dropped beyond this.
+const EVENT_QUEUE: usize = 64;
+
+/// Settings of the master; the defaults are the seed's program.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MasterConfig {
+    /// CRC byte order (the seed's own: high byte first).
+    pub crc_order: CrcOrder,
+    /// Line quiet that ends a partial reply.
+    pub silence: SimDuration,
+    /// `usleep(100000)` between writing a request and reading the reply.
+    pub reply_wait: SimDuration,
+    /// Give up on a reply this long after the request left. `None` (the
+    /// original program): wait for ever, so a lost reply hangs the master.
+    pub reply_timeout: Option<SimDuration>,
+    /// Sleep at the end of every loop cycle.
+    pub cycle_sleep: SimDuration,
+    /// The set point toggles every this many cycles.
+    pub toggle_every: u32,
+    /// The lower set point (rpm); the first toggle writes it.
+    pub set_point_low: u16,
+    /// The higher set point (rpm): the motor's default, assumed before the first toggle.
+    pub set_point_high: u16,
+    /// Emit the program's printout as `log` events.
+    pub log: bool,
+    /// Injected fault: add 1 to the CRC of every request (the seed's `0x55aa` test).
+    pub corrupt_request_crc: bool,
+}
+
+impl Default for MasterConfig {
+    fn default() -> Self {
+        MasterConfig {
+            crc_order: CrcOrder::HighFirst,
+            silence: crate::proto::modbus::serial::silence_3_5_chars(BAUD, 10),
+            reply_wait: SimDuration::from_millis(100),
+            reply_timeout: None,
+            cycle_sleep: SimDuration::from_millis(500),
+            toggle_every: 20,
+            set_point_low: 5_000,
+            set_point_high: 10_000,
+            log: true,
+            corrupt_request_crc: false,
+        }
+    }
+}
+
+/// What the master is doing.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum MasterPhase {
+    /// Reading the motor's state until it is operational.
+    Handshake,
+    /// Reading rpm and sensor, toggling the set point.
+    Running,
+}
+
+/// The transaction in flight or next to send.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Step {
+    ReadState,
+    WriteState(u16),
+    ReadRpm,
+    WriteSetPoint(u16),
+    ReadSensor,
+}
+
+impl Step {
+    fn request(self) -> Frame {
+        let (id, function, addr, value) = match self {
+            Step::ReadState => (MOTOR_ID, modbus8::READ, REG_STATE, 0),
+            Step::WriteState(v) => (MOTOR_ID, modbus8::WRITE, REG_STATE, v),
+            // The seed's master sends 0001 in this read's value field.
+            Step::ReadRpm => (MOTOR_ID, modbus8::READ, REG_RPM, 1),
+            Step::WriteSetPoint(v) => (MOTOR_ID, modbus8::WRITE, REG_SET_SPEED, v),
+            Step::ReadSensor => (LIGHT_ID, modbus8::READ, REG_LIGHT_VALUE, 0),
+        };
+        Frame {
+            id,
+            function,
+            addr,
+            value,
+        }
+    }
+}
+
+/// Where the current transaction stands.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Wait {
+    /// Send `step` at or after the instant.
+    Send(SimTime),
+    /// The request is out since the instant; read the reply from `+ reply_wait`.
+    Reply(SimTime),
+}
+
+/// The seed-002 master (the Raspberry Pi program).
+#[derive(Debug, Clone)]
+pub struct Seed002Master {
+    config: MasterConfig,
+    decoder: Modbus8Decoder,
+    phase: MasterPhase,
+    step: Step,
+    wait: Wait,
+    reply: Option<Result<Frame, Modbus8Error>>,
+    cycle: u32,
+    set_point: u16,
+    motor_state: Option<u16>,
+    motor_rpm: Option<i16>,
+    sensor_value: Option<u16>,
+    crc_errors: u64,
+    timeouts: u64,
+    events: VecDeque<NodeEvent>,
+}
+
+impl Seed002Master {
+    /// A master about to start its handshake at time zero.
+    pub fn new(config: MasterConfig) -> Self {
+        Seed002Master {
+            config,
+            decoder: Modbus8Decoder::new(config.crc_order, config.silence),
+            phase: MasterPhase::Handshake,
+            step: Step::ReadState,
+            wait: Wait::Send(SimTime::ZERO),
+            reply: None,
+            cycle: 0,
+            set_point: config.set_point_high,
+            motor_state: None,
+            motor_rpm: None,
+            sensor_value: None,
+            crc_errors: 0,
+            timeouts: 0,
+            events: VecDeque::with_capacity(EVENT_QUEUE),
+        }
+    }
+
+    /// Handshake or running.
+    pub fn phase(&self) -> MasterPhase {
+        self.phase
+    }
+    /// The motor state last read.
+    pub fn motor_state(&self) -> Option<u16> {
+        self.motor_state
+    }
+    /// The motor rpm last read.
+    pub fn motor_rpm(&self) -> Option<i16> {
+        self.motor_rpm
+    }
+    /// The light sensor's register last read (wheel rpm × 100).
+    pub fn sensor_value(&self) -> Option<u16> {
+        self.sensor_value
+    }
+    /// The set point last written (the motor's default before the first toggle).
+    pub fn set_point(&self) -> u16 {
+        self.set_point
+    }
+    /// Loop cycles started since the handshake.
+    pub fn cycles(&self) -> u32 {
+        self.cycle
+    }
+    /// Replies rejected for a bad CRC.
+    pub fn crc_errors(&self) -> u64 {
+        self.crc_errors
+    }
+    /// Replies given up on (only with a `reply_timeout`).
+    pub fn timeouts(&self) -> u64 {
+        self.timeouts
+    }
+
+    /// Queues an event; the oldest goes if the engine has not taken them.
+    fn push_event(&mut self, at: SimTime, kind: &'static str, detail: String) {
+        if self.events.len() == EVENT_QUEUE {
+            self.events.pop_front();
+        }
+        self.events.push_back(NodeEvent { at, kind, detail });
+    }
+
+    fn log(&mut self, at: SimTime, line: impl FnOnce() -> String) {
+        if self.config.log {
+            self.push_event(at, "log", line());
+        }
+    }
+
+    /// Reads the reply (if the wait is over) and moves to the next step.
+    fn try_finish(&mut self, now: SimTime) {
+        let Wait::Reply(sent_at) = self.wait else {
+            return;
+        };
+        if now < sent_at + self.config.reply_wait {
+            return;
+        }
+        match self.reply.take() {
+            Some(Ok(frame)) => self.use_reply(now, frame),
+            Some(Err(error)) => {
+                self.crc_errors += 1;
+                if let Modbus8Error::BadCrc {
+                    received,
+                    calculated,
+                } = error
+                {
+                    self.log(now, || {
+                        format!(
+                            "CRC Error, will not use message. Received: 0x{received:04x} Calculated: 0x{calculated:04x}"
+                        )
+                    });
+                }
+                self.push_event(now, "bad_check", error.to_string());
+                self.advance(now, None);
+            }
+            None => match self.config.reply_timeout {
+                Some(timeout) if now >= sent_at + timeout => {
+                    self.timeouts += 1;
+                    self.log(now, || "There was no data available to read!".to_string());
+                    let request = self.step.request();
+                    self.push_event(now, "timeout", format!("no reply from {:02x}", request.id));
+                    self.advance(now, None);
+                }
+                // Blocks in read() until bytes come.
+                _ => {}
+            },
+        }
+    }
+
+    fn use_reply(&mut self, now: SimTime, frame: Frame) {
+        let request = self.step.request();
+        let order = self.config.crc_order;
+        self.log(now, || {
+            let bytes = frame.to_bytes(order);
+            format!(
+                "The following was read in [8]: {:02x} {:02x} {:02x}{:02x} {:02x}{:02x} {:02x}{:02x}",
+                bytes[0], bytes[1], bytes[2], bytes[3], bytes[4], bytes[5], bytes[6], bytes[7]
+            )
+        });
+        if frame.id != request.id
+            || frame.addr != request.addr
+            || frame.function & 0x7f != request.function
+        {
+            self.push_event(now, "bad_reply", format!("reply {frame:?} to {request:?}"));
+            self.advance(now, None);
+            return;
+        }
+        match frame.reply() {
+            Ok(v) => {
+                if self.config.log {
+                    self.log_value(now, v);
+                }
+                self.advance(now, Some(v));
+            }
+            Err(exception) => {
+                self.log(now, || exception_text(exception).to_string());
+                self.push_event(
+                    now,
+                    "exception",
+                    format!("{exception:?} from {:02x}", frame.id),
+                );
+                self.advance(now, None);
+            }
+        }
+    }
+
+    /// The seed's printout of a good reply: one line with the value, then one
+    /// in hex (its "Motor RMP is" prints the high byte).
+    fn log_value(&mut self, now: SimTime, v: u16) {
+        let (first, second) = match self.step {
+            Step::ReadState => (
+                format!("Response Motor: {v}"),
+                format!("Motor State: {v:04x}"),
+            ),
+            Step::ReadRpm => (
+                format!("Response Motor: {}", v as i16),
+                format!("Motor RMP is: {:04x}", v >> 8),
+            ),
+            Step::WriteState(_) | Step::WriteSetPoint(_) => (
+                format!("Response Motor Value: {v}"),
+                format!("Motor data is set:{v:04x}"),
+            ),
+            Step::ReadSensor => (
+                format!("Response Sensor Value: {v}"),
+                format!("Sensor RPM: {:02x} {:02x}", v >> 8, v & 0xff),
+            ),
+        };
+        self.push_event(now, "log", first);
+        self.push_event(now, "log", second);
+    }
+
+    /// The next step after the current one, given the value it got (if usable).
+    fn advance(&mut self, now: SimTime, value: Option<u16>) {
+        let next = match (self.step, value) {
+            (Step::ReadState, Some(state)) => {
+                self.motor_state = Some(state);
+                match MotorState::from_code(state) {
+                    Some(MotorState::Operational) => {
+                        self.phase = MasterPhase::Running;
+                        self.push_event(now, "state", "motor operational".to_string());
+                        self.start_cycle()
+                    }
+                    Some(MotorState::PreOperational) => {
+                        Step::WriteState(MotorState::Operational.code())
+                    }
+                    Some(MotorState::Stopped) => Step::WriteState(MotorState::Init.code()),
+                    _ => Step::ReadState,
+                }
+            }
+            (Step::ReadState | Step::WriteState(_), _) => Step::ReadState,
+            (Step::ReadRpm, v) => {
+                if let Some(v) = v {
+                    self.motor_rpm = Some(v as i16);
+                }
+                if self.cycle.is_multiple_of(self.config.toggle_every.max(1)) {
+                    let next = if self.set_point == self.config.set_point_low {
+                        self.config.set_point_high
+                    } else {
+                        self.config.set_point_low
+                    };
+                    Step::WriteSetPoint(next)
+                } else {
+                    Step::ReadSensor
+                }
+            }
+            (Step::WriteSetPoint(sp), v) => {
+                if v == Some(sp) {
+                    self.set_point = sp;
+                }
+                Step::ReadSensor
+            }
+            (Step::ReadSensor, v) => {
+                if let Some(v) = v {
+                    self.sensor_value = Some(v);
+                }
+                self.step = self.start_cycle();
+                self.wait = Wait::Send(now + self.config.cycle_sleep);
+                return;
+            }
+        };
+        self.step = next;
+        self.wait = Wait::Send(now);
+    }
+
+    fn start_cycle(&mut self) -> Step {
+        self.cycle += 1;
+        Step::ReadRpm
+    }
+}
+
+/// What the seed's `handleError` prints for an exception code.
+fn exception_text(exception: Exception) -> &'static str {
+    match exception {
+        Exception::IllegalFunction => "Illegal Function",
+        Exception::IllegalDataAddress => "Illegal Data Address",
+        Exception::IllegalDataValue => "Illegal Data Value",
+        Exception::ServerDeviceFailure => "Server Device Failure",
+        _ => "Unknown error value.",
+    }
+}
+
+impl Default for Seed002Master {
+    fn default() -> Self {
+        Self::new(MasterConfig::default())
+    }
+}
+
+impl Node for Seed002Master {
+    fn handle_bytes(&mut self, now: SimTime, mut bytes: &[u8]) {
+        while !bytes.is_empty() {
+            let Some(decoded) = self.decoder.decode(now, &mut bytes) else {
+                break;
+            };
+            // Only the first frame after a request is read; later bytes sit
+            // in the port until it is flushed for the next request.
+            if matches!(self.wait, Wait::Reply(_)) && self.reply.is_none() {
+                self.reply = Some(decoded);
+            }
+        }
+        self.try_finish(now);
+    }
+
+    fn handle_timeout(&mut self, now: SimTime) {
+        if self.decoder.poll_timeout().is_some_and(|at| at <= now) {
+            self.decoder.handle_timeout(now);
+        }
+        self.try_finish(now);
+    }
+
+    fn poll_transmit(&mut self, now: SimTime, buf: &mut [u8]) -> Option<usize> {
+        let Wait::Send(at) = self.wait else {
+            return None;
+        };
+        if now < at {
+            return None;
+        }
+        let slot = buf.get_mut(..FRAME_LEN)?;
+        let request = self.step.request();
+        let mut bytes = request.to_bytes(self.config.crc_order);
+        if self.config.corrupt_request_crc {
+            corrupt_crc(&mut bytes, self.config.crc_order);
+        }
+        slot.copy_from_slice(&bytes);
+        // tcflush(TCIFLUSH) on every open: stale input is gone.
+        self.decoder = Modbus8Decoder::new(self.config.crc_order, self.config.silence);
+        self.reply = None;
+        // The wait starts now; `transmit_done` moves it to the last stop bit.
+        self.wait = Wait::Reply(now);
+        let order = self.config.crc_order;
+        self.log(now, || {
+            let crc = u16::from_be_bytes([bytes[6], bytes[7]]);
+            let crc = match order {
+                CrcOrder::HighFirst => crc,
+                CrcOrder::LowFirst => crc.swap_bytes(),
+            };
+            format!(
+                "Sent request: {:02x} {:02x} {:04x} {:04x} {crc:04x}",
+                request.id, request.function, request.addr, request.value
+            )
+        });
+        Some(FRAME_LEN)
+    }
+
+    fn poll_timeout(&self) -> Option<SimTime> {
+        let own = match self.wait {
+            Wait::Send(at) => Some(at),
+            Wait::Reply(sent_at) => {
+                let read_at = sent_at + self.config.reply_wait;
+                if self.reply.is_some() {
+                    Some(read_at)
+                } else {
+                    // Nothing to read yet: wake for the timeout, if there is one.
+                    self.config
+                        .reply_timeout
+                        .map(|t| (sent_at + t).max(read_at))
+                }
+            }
+        };
+        match (own, self.decoder.poll_timeout()) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        }
+    }
+
+    fn transmit_done(&mut self, now: SimTime) {
+        if let Wait::Reply(_) = self.wait {
+            self.wait = Wait::Reply(now);
+        }
+    }
+
+    fn poll_event(&mut self) -> Option<NodeEvent> {
+        self.events.pop_front()
+    }
+}
