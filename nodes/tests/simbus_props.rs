@@ -85,7 +85,7 @@ proptest! {
             let got: Vec<(SimTime, u8, bool)> = events
                 .iter()
                 .filter_map(|e| match *e {
-                    BusEvent::Byte { to, at, byte, corrupted } if to == listener => Some((at, byte, corrupted)),
+                    BusEvent::Byte { to, at, byte, corrupted, .. } if to == listener => Some((at, byte, corrupted)),
                     _ => None,
                 })
                 .collect();

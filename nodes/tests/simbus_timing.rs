@@ -34,6 +34,7 @@ fn bytes_to(events: &[BusEvent], port: PortId) -> Vec<Arrival> {
                 at,
                 byte,
                 corrupted,
+                ..
             } if to == port => Some((to, at, byte, corrupted)),
             _ => None,
         })

@@ -61,6 +61,77 @@ pub struct BusSlot {
     pub bus: SimBus,
     /// Node index of each port.
     pub owners: Vec<usize>,
+    /// Per port: the last frame it sent, and the frame it is receiving.
+    sent: Vec<Vec<u8>>,
+    receiving: Vec<Reception>,
+    pub checks: CheckTally,
+}
+
+/// A frame as one receiver gets it.
+#[derive(Default)]
+struct Reception {
+    bytes: Vec<u8>,
+    corrupted: bool,
+}
+
+/// What the receivers' checks made of the frames that crossed a bus. The twin
+/// knows what was sent, so it can count the corrupted frames that a weak check
+/// (MEB's 8-bit XOR) lets through.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct CheckTally {
+    /// Frames received in full, one count per receiver.
+    pub frames_received: u64,
+    /// Of those, frames with at least one byte changed by noise or a collision.
+    pub frames_corrupted: u64,
+    /// Corrupted frames that still pass their protocol's check.
+    pub corrupted_passed_check: u64,
+}
+
+/// Whether received bytes pass the check of the protocol the sender spoke.
+fn passes_check(sent: &[u8], received: &[u8]) -> bool {
+    use nodes::proto::{meb::MebRepr, modbus, modbus8};
+    if sent.first() == Some(&b'@') {
+        return MebRepr::parse(received).is_ok();
+    }
+    if sent.len() == 8 && modbus8::Frame::parse(sent, modbus8::CrcOrder::HighFirst).is_ok() {
+        return modbus8::Frame::parse(received, modbus8::CrcOrder::HighFirst).is_ok();
+    }
+    modbus::rtu::parse(received).is_ok()
+}
+
+impl BusSlot {
+    /// Follow one byte into its receiver's frame and tally the frame's check
+    /// when its last byte lands.
+    fn tally(
+        &mut self,
+        to: PortId,
+        from: PortId,
+        byte: u8,
+        corrupted: bool,
+        index: usize,
+        last: bool,
+    ) {
+        let Some(rx) = self.receiving.get_mut(to.index()) else {
+            return;
+        };
+        if index == 0 {
+            rx.bytes.clear();
+            rx.corrupted = false;
+        }
+        rx.bytes.push(byte);
+        rx.corrupted |= corrupted;
+        if !last {
+            return;
+        }
+        self.checks.frames_received += 1;
+        if rx.corrupted {
+            self.checks.frames_corrupted += 1;
+            let sent = self.sent.get(from.index()).map_or(&[][..], Vec::as_slice);
+            if passes_check(sent, &rx.bytes) {
+                self.checks.corrupted_passed_check += 1;
+            }
+        }
+    }
 }
 
 /// Everything the engine reports as it runs, for the recorder.
@@ -123,6 +194,9 @@ impl Engine {
             name: name.into(),
             bus,
             owners: Vec::new(),
+            sent: Vec::new(),
+            receiving: Vec::new(),
+            checks: CheckTally::default(),
         });
         self.buses.len() - 1
     }
@@ -151,6 +225,14 @@ impl Engine {
             owners.resize(port.index() + 1, usize::MAX);
         }
         owners[port.index()] = index;
+        let slot = &mut self.buses[bus];
+        while slot.sent.len() < slot.owners.len() {
+            slot.sent.push(Vec::with_capacity(MAX_FRAME));
+            slot.receiving.push(Reception {
+                bytes: Vec::with_capacity(MAX_FRAME),
+                corrupted: false,
+            });
+        }
         index
     }
 
@@ -212,7 +294,16 @@ impl Engine {
         for b in 0..self.buses.len() {
             while let Some(event) = self.buses[b].bus.poll_event(t) {
                 match event {
-                    BusEvent::Byte { to, at, byte, .. } => {
+                    BusEvent::Byte {
+                        to,
+                        at,
+                        byte,
+                        corrupted,
+                        from,
+                        index,
+                        last,
+                    } => {
+                        self.buses[b].tally(to, from, byte, corrupted, index, last);
                         if let Some(&n) = self.buses[b].owners.get(to.index())
                             && let Some(slot) = self.nodes.get_mut(n)
                         {
@@ -276,6 +367,10 @@ impl Engine {
                 let slot = &self.nodes[n];
                 let bus = &mut self.buses[slot.bus];
                 let info = bus.bus.send(t, slot.port, &self.tx[..len])?;
+                if let Some(sent) = bus.sent.get_mut(slot.port.index()) {
+                    sent.clear();
+                    sent.extend_from_slice(&self.tx[..len]);
+                }
                 self.frames_sent += 1;
                 observer.frame(
                     &self.buses[slot.bus],

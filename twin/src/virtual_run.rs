@@ -23,6 +23,8 @@ pub struct RunOutcome {
     pub modules: Vec<(String, plant::Sensors)>,
     /// Final telemetry of every node that reports any (masters).
     pub telemetry: Vec<(String, serde_json::Value)>,
+    /// Per bus: its name, the line's own counters and the receivers' check tally.
+    pub buses: Vec<(String, nodes::link::BusStats, crate::engine::CheckTally)>,
     /// Log lines the nodes printed (the seed-002 master's printout), last ones.
     pub log_tail: Vec<String>,
 }
@@ -109,6 +111,11 @@ pub fn run(scenario: &Scenario, out: &Path, mut progress: impl FnMut(f64)) -> Re
         .iter_mut()
         .filter_map(|n| n.node.final_state().map(|v| (n.name.clone(), v)))
         .collect();
+    let buses = engine
+        .buses
+        .iter()
+        .map(|b| (b.name.clone(), *b.bus.stats(), b.checks))
+        .collect();
     let frames = observer.frames;
     let events = observer.events.clone();
     let log_tail = observer.log_tail.iter().cloned().collect();
@@ -120,6 +127,7 @@ pub fn run(scenario: &Scenario, out: &Path, mut progress: impl FnMut(f64)) -> Re
         events,
         modules,
         telemetry,
+        buses,
         log_tail,
     })
 }

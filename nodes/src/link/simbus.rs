@@ -160,6 +160,11 @@ pub enum BusEvent {
         byte: u8,
         /// Garbled by a collision or flipped by noise: differs from what was sent.
         corrupted: bool,
+        /// The sender, the byte's place in its frame, and whether it is the
+        /// frame's last byte: what a receiver-side check tally needs.
+        from: PortId,
+        index: usize,
+        last: bool,
     },
     /// A port's frame has left the wire (the end of its last stop bit).
     TransmitDone {
@@ -483,6 +488,7 @@ impl SimBus {
         self.delivered_up_to = self.delivered_up_to.max(at);
         let t = self.slots.get(slot)?;
         let (from, index, listener) = (t.from, t.next_byte, t.next_listener);
+        let frame_len = t.bytes.len();
         let Some(&wire_byte) = t.bytes.get(index) else {
             // All bytes delivered: the frame is done.
             if let Some(t) = self.slots.get_mut(slot) {
@@ -515,6 +521,9 @@ impl SimBus {
             at,
             byte: wire_byte ^ noise,
             corrupted: collided || noise != 0,
+            from,
+            index,
+            last: index + 1 == frame_len,
         })
     }
 }

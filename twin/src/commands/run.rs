@@ -125,13 +125,24 @@ pub fn execute(args: &RunArgs) -> Result<()> {
     for (node, state) in &outcome.telemetry {
         println!("  {node}: {state}");
     }
+    for (bus, stats, checks) in &outcome.buses {
+        println!(
+            "  bus {bus}: {} bytes, {} corrupted by noise, {} collisions; {} frames received, {} corrupted, {} of them passed the check",
+            stats.bytes_sent,
+            stats.bytes_corrupted_by_noise,
+            stats.collisions,
+            checks.frames_received,
+            checks.frames_corrupted,
+            checks.corrupted_passed_check
+        );
+    }
     let events: Vec<String> = outcome
         .events
         .iter()
         .map(|(k, n)| format!("{k} {n}"))
         .collect();
     println!(
-        "  bus: {} frames; events: {}",
+        "  {} frames sent; events: {}",
         outcome.frames,
         if events.is_empty() {
             "none".to_string()
