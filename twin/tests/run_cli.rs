@@ -195,3 +195,75 @@ fn the_geared_bench_runs_near_100_wheel_rpm() {
     let rpm = last["wheel_rpm"].as_f64().unwrap();
     assert!((90.0..125.0).contains(&rpm), "{rpm}");
 }
+
+#[test]
+fn list_names_the_embedded_scenarios() {
+    let o = twin(&["run", "--list"]);
+    assert!(o.status.success());
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        text.contains("ev-meb") && text.contains("controller-network"),
+        "{text}"
+    );
+}
+
+#[test]
+fn the_default_scenario_closes_the_loop_over_meb_and_records_the_bus() {
+    let out = scratch("ev-meb.mcap");
+    let o = twin(&["run", "--duration", "2", "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(text.contains("scenario ev-meb"), "{text}");
+    let frames = read_messages(&out, "/bus/rs485/frames");
+    assert!(
+        frames.len() > 300,
+        "{} frames in 2 s at 100 Hz",
+        frames.len()
+    );
+    let first = &frames[0].1;
+    assert_eq!(first["from"], "supervisor");
+    assert_eq!(first["decoded"]["protocol"], "meb");
+    assert!(
+        first["text"].as_str().unwrap().starts_with("@01SD"),
+        "{first}"
+    );
+    // The slave's acknowledgement starts 1 ms (turnaround) after the request's last stop bit.
+    let reply = &frames[1].1;
+    assert_eq!(reply["from"], "ev1");
+    let gap = reply["start_s"].as_f64().unwrap() - first["end_s"].as_f64().unwrap();
+    assert!((gap - 1e-3).abs() < 1e-9, "turnaround {gap}");
+    let loops = read_messages(&out, "/master/supervisor/loop");
+    assert!(!loops.is_empty());
+    let sensors = read_messages(&out, "/plant/ev1/sensors");
+    let last = &sensors.last().unwrap().1;
+    assert!(
+        last["wheel_rpm"].as_f64().unwrap() > 1000.0,
+        "the loop drives the wheel: {last}"
+    );
+}
+
+#[test]
+fn an_unknown_scenario_names_the_embedded_ones() {
+    let o = twin(&["run", "no-such-scenario"]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("ev-meb") && err.contains("controller-network"),
+        "{err}"
+    );
+}
+
+#[test]
+fn a_broken_scenario_file_names_file_line_and_field() {
+    let file = scratch("broken.toml");
+    std::fs::write(
+        &file,
+        "name = \"broken\"\nduration_s = 1.0\n\n[[bus]]\nname = \"rs485\"\n\n[[node]]\nkind = \"supervisor\"\nname = \"s\"\nbus = \"rs458\"\nslaves = [1]\nkp = 1.0\nki = 1.0\nset_points = []\n",
+    )
+    .unwrap();
+    let o = twin(&["run", file.to_str().unwrap()]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains(&format!("{}:10", file.display())), "{err}");
+    assert!(err.contains("rs458"), "{err}");
+}
