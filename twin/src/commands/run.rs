@@ -123,7 +123,7 @@ pub fn execute(args: &RunArgs) -> Result<()> {
         );
     }
     for (node, state) in &outcome.telemetry {
-        println!("  {node}: {state}");
+        print_node_state(node, state, outcome.simulated_s);
     }
     for (bus, stats, checks) in &outcome.buses {
         println!(
@@ -160,6 +160,37 @@ pub fn execute(args: &RunArgs) -> Result<()> {
     );
     println!("recording: {}", outcome.recording.display());
     Ok(())
+}
+
+/// A node's end-of-run state: masters' loops spelled out, others as JSON.
+fn print_node_state(node: &str, state: &serde_json::Value, simulated_s: f64) {
+    let Some(loops) = state["loops"].as_array() else {
+        println!("  {node}: {state}");
+        return;
+    };
+    let cycles = state["cycles"].as_f64().unwrap_or(0.0);
+    println!(
+        "  {node}: {cycles} poll cycles ({:.1} per second)",
+        cycles / simulated_s.max(1e-9)
+    );
+    for l in loops {
+        let n = |k: &str| l[k].as_f64().unwrap_or(f64::NAN);
+        println!(
+            "    slave {}: set point {:.0} rpm, measured {:.0} rpm, error {:.0} rpm, VEL {:.0}; \
+             {} requests, {} replies, {} timeouts, {} bad checks, {} retries, {} lost",
+            l["slave"],
+            n("set_point_rpm"),
+            n("measured_rpm"),
+            n("error_rpm"),
+            n("output"),
+            l["requests"],
+            l["replies"],
+            l["timeouts"],
+            l["bad_checks"],
+            l["retries"],
+            l["lost"]
+        );
+    }
 }
 
 /// A progress line on stderr when it is a terminal, at most five times a second.
