@@ -146,8 +146,10 @@ pub struct SupervisorConfig {
     pub first_poll_at: SimTime,
     /// Outputs written to each slave before its first read; `None` writes nothing.
     pub startup_outputs: Option<StartupOutputs>,
-    /// RTU only: the line silence that ends a partial reply (default 1.75 ms,
-    /// the Modbus serial line value above 19 200 baud).
+    /// The line silence that ends a partial RTU reply (default 1.75 ms, the
+    /// Modbus serial line value above 19 200 baud); on every protocol, also how
+    /// long the line must be quiet before a request follows stray bytes (the
+    /// tail of a reply given up on mid-frame), so a retry never talks over it.
     pub rtu_silence: SimDuration,
 }
 

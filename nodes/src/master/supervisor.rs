@@ -108,6 +108,9 @@ pub struct Supervisor {
     cycles: u64,
     events: VecDeque<NodeEvent>,
     events_dropped: u64,
+    /// How long the line must be quiet before a request goes out after
+    /// stray bytes (the configured silence).
+    line_quiet: SimDuration,
 }
 
 impl Supervisor {
@@ -179,6 +182,7 @@ impl Supervisor {
             cycles: 0,
             events: VecDeque::with_capacity(EVENT_QUEUE_LEN),
             events_dropped: 0,
+            line_quiet: rtu_silence,
         };
         supervisor.pending.transaction = supervisor.first_transaction(0);
         Ok(supervisor)
@@ -504,6 +508,17 @@ impl Slave {
 
 impl Node for Supervisor {
     fn handle_bytes(&mut self, now: SimTime, bytes: &[u8]) {
+        // Bytes while a request waits to go out: the rest of a reply already
+        // given up on (a bad check mid-frame), or another talker. Sending now
+        // would collide with it, so the request waits for the line to be
+        // quiet for the silence interval.
+        if let Phase::Waiting { at } = self.phase
+            && !bytes.is_empty()
+        {
+            self.phase = Phase::Waiting {
+                at: at.max(now + self.line_quiet),
+            };
+        }
         let mut input = bytes;
         loop {
             let pending = (self.pending_id(), self.pending.transaction);
