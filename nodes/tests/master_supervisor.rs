@@ -363,9 +363,11 @@ fn a_reply_with_a_bad_fcs_is_not_used_and_the_request_is_retried() {
     assert_eq!(state.counters.bad_checks, 1);
     assert_eq!(bus.event_kinds(), ["bad_check", "retry"]);
 
-    // Retried at once, not after the reply timeout.
+    // Retried once the line has been quiet for the silence interval (the bad
+    // frame might have been cut short by noise), not after the reply timeout.
+    let quiet = SimDuration::from_micros(1_750);
     let retry = bus.next_request();
-    assert_eq!((retry.start, &retry.bytes), (bad_end, &first.bytes));
+    assert_eq!((retry.start, &retry.bytes), (bad_end + quiet, &first.bytes));
     bus.reply(&meb(1, MebCmd::EA, 6, &INPUTS));
     let state = bus.master.loop_state(1).unwrap();
     assert_eq!(state.measured_rpm, 200.0);
@@ -397,8 +399,9 @@ fn a_reply_with_a_bad_crc_is_not_used_and_the_request_is_retried() {
     assert_eq!(bus.master.loop_state(1).unwrap().measured_at, None);
     assert_eq!(bus.event_kinds(), ["bad_check", "retry"]);
 
+    let quiet = SimDuration::from_micros(1_750);
     let retry = bus.next_request();
-    assert_eq!((retry.start, &retry.bytes), (bad_end, &first.bytes));
+    assert_eq!((retry.start, &retry.bytes), (bad_end + quiet, &first.bytes));
     bus.reply(&good);
     let state = bus.master.loop_state(1).unwrap();
     assert_eq!(state.measured_rpm, 200.0);

@@ -421,6 +421,15 @@ impl Supervisor {
                     format!("slave {id}: {} reply failed its check", transaction.name()),
                 );
                 self.fail(now);
+                // The bad frame may have been cut short by noise (a flipped
+                // byte that reads as its end) with the rest still on the wire:
+                // the retry waits for a quiet line, as a Modbus master waits
+                // out its silence interval.
+                if let Phase::Waiting { at } = self.phase {
+                    self.phase = Phase::Waiting {
+                        at: at.max(now + self.line_quiet),
+                    };
+                }
             }
             Reply::Exception(code) => {
                 if let Some(counters) = self.counters() {
