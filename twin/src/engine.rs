@@ -53,6 +53,11 @@ pub struct NodeSlot {
     pub port: PortId,
     pub module: Option<usize>,
     next_tick: Option<SimTime>,
+    /// Given an input (bytes, a timeout, the end of its transmission, a loop
+    /// tick) since its output was last drained. A sans-IO node's output only
+    /// changes on an input, and every instant it waits for is an input
+    /// through its `poll_timeout`, so the others need not be asked.
+    stirred: bool,
 }
 
 /// A bus and its name.
@@ -162,6 +167,9 @@ pub struct Engine {
     next_record: SimTime,
     tx: Vec<u8>,
     pub frames_sent: u64,
+    /// Discrete events handled so far: byte arrivals and ends of frames,
+    /// firmware loop ticks, node timeouts and recording instants.
+    pub events: u64,
 }
 
 impl Engine {
@@ -176,6 +184,7 @@ impl Engine {
             next_record: SimTime::ZERO,
             tx: vec![0; MAX_FRAME],
             frames_sent: 0,
+            events: 0,
         }
     }
 
@@ -219,6 +228,7 @@ impl Engine {
             port,
             module,
             next_tick,
+            stirred: true,
         });
         let owners = &mut self.buses[bus].owners;
         if owners.len() <= port.index() {
@@ -261,6 +271,8 @@ impl Engine {
             for slot in &mut self.nodes {
                 if slot.node.poll_timeout().is_some_and(|due| due <= t) {
                     slot.node.handle_timeout(t);
+                    slot.stirred = true;
+                    self.events += 1;
                 }
             }
             if t >= self.next_record {
@@ -269,6 +281,7 @@ impl Engine {
                     observer.plant(t, &self.modules[m])?;
                 }
                 self.next_record = t + self.record_period;
+                self.events += 1;
             }
             handled += 1;
             if handled.is_multiple_of(4096) {
@@ -293,6 +306,7 @@ impl Engine {
     fn deliver_bus_events(&mut self, t: SimTime) {
         for b in 0..self.buses.len() {
             while let Some(event) = self.buses[b].bus.poll_event(t) {
+                self.events += 1;
                 match event {
                     BusEvent::Byte {
                         to,
@@ -308,6 +322,7 @@ impl Engine {
                             && let Some(slot) = self.nodes.get_mut(n)
                         {
                             slot.node.handle_bytes(at, &[byte]);
+                            slot.stirred = true;
                         }
                     }
                     BusEvent::TransmitDone { port, at } => {
@@ -315,6 +330,7 @@ impl Engine {
                             && let Some(slot) = self.nodes.get_mut(n)
                         {
                             slot.node.transmit_done(at);
+                            slot.stirred = true;
                         }
                     }
                 }
@@ -349,6 +365,8 @@ impl Engine {
                 continue;
             };
             let actuators = fw.loop_tick(t, &sensors);
+            slot.stirred = true;
+            self.events += 1;
             slot.next_tick = Some(t + fw.loop_period());
             let module = &mut self.modules[m];
             if module.actuators != actuators {
@@ -362,6 +380,9 @@ impl Engine {
     fn transmit_all(&mut self, observer: &mut dyn Observer) -> Result<()> {
         let t = self.now;
         for n in 0..self.nodes.len() {
+            if !self.nodes[n].stirred {
+                continue;
+            }
             while let Some(len) = self.nodes[n].node.poll_transmit(t, &mut self.tx) {
                 let len = len.min(self.tx.len());
                 let slot = &self.nodes[n];
@@ -387,12 +408,16 @@ impl Engine {
     fn drain_node_output(&mut self, observer: &mut dyn Observer) -> Result<()> {
         let t = self.now;
         for n in 0..self.nodes.len() {
+            if !self.nodes[n].stirred {
+                continue;
+            }
             while let Some(event) = self.nodes[n].node.poll_event() {
                 observer.event(&self.nodes[n], &event)?;
             }
             if let Some(value) = self.nodes[n].node.telemetry() {
                 observer.telemetry(t, &self.nodes[n], &value)?;
             }
+            self.nodes[n].stirred = false;
         }
         Ok(())
     }

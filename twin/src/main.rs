@@ -18,12 +18,14 @@ struct Cli {
 #[derive(Debug, Subcommand)]
 enum Command {
     Run(commands::run::RunArgs),
+    Bench(commands::bench::BenchArgs),
 }
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Run(args) => commands::run::execute(&args),
+        Command::Bench(args) => commands::bench::execute(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -31,6 +31,8 @@ pub struct McapObserver {
     pub events: BTreeMap<String, u64>,
     /// The last lines the nodes logged (kind `log`), for the summary.
     pub log_tail: VecDeque<String>,
+    /// A frame's hex text, reused from frame to frame.
+    hex: String,
 }
 
 /// One frame on a bus, as recorded.
@@ -41,8 +43,8 @@ struct FrameMessage<'a> {
     end_s: f64,
     len: usize,
     /// The bytes as text when they are printable ASCII (MEB), hex otherwise.
-    text: String,
-    hex: String,
+    text: &'a str,
+    hex: &'a str,
     decoded: Value,
 }
 
@@ -53,15 +55,17 @@ impl McapObserver {
             frames: 0,
             events: BTreeMap::new(),
             log_tail: VecDeque::new(),
+            hex: String::with_capacity(2 * nodes::node::MAX_FRAME),
         }
     }
 
     /// Write `message` to `topic`, creating its channel on first use.
     fn put<T: Serialize>(&mut self, topic: &str, time: SimTime, message: &T) -> Result<()> {
-        if !self.recorder.has_channel(topic) {
-            self.recorder.add_channel(topic, message)?;
-        }
-        self.recorder.write(topic, time.as_secs_f64(), message)
+        let channel = match self.recorder.channel(topic) {
+            Some(channel) => channel,
+            None => self.recorder.add_channel(topic, message)?,
+        };
+        self.recorder.write_to(channel, time.as_secs_f64(), message)
     }
 }
 
@@ -121,21 +125,28 @@ impl Observer for McapObserver {
         let printable = bytes
             .iter()
             .all(|b| b.is_ascii_graphic() || *b == b'\n' || *b == b'\r');
+        // Printable bytes are ASCII, so this never fails when it is used.
+        let text = std::str::from_utf8(bytes).ok().filter(|_| printable);
+        let mut hex = std::mem::take(&mut self.hex);
+        hex.clear();
+        for b in bytes {
+            const DIGITS: &[u8; 16] = b"0123456789abcdef";
+            hex.push(char::from(DIGITS[usize::from(b >> 4)]));
+            hex.push(char::from(DIGITS[usize::from(b & 0x0f)]));
+        }
         let message = FrameMessage {
             from: &from.name,
             start_s: secs(start),
             end_s: secs(end),
             len: bytes.len(),
-            text: if printable {
-                String::from_utf8_lossy(bytes).into_owned()
-            } else {
-                String::new()
-            },
-            hex: bytes.iter().map(|b| format!("{b:02x}")).collect(),
+            text: text.unwrap_or(""),
+            hex: &hex,
             decoded: decode_frame(bytes),
         };
         self.frames += 1;
-        self.put(&format!("/bus/{}/frames", bus.name), start, &message)
+        let written = self.put(&format!("/bus/{}/frames", bus.name), start, &message);
+        self.hex = hex;
+        written
     }
 
     fn event(&mut self, node: &NodeSlot, event: &NodeEvent) -> Result<()> {

@@ -13,13 +13,27 @@ use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 
+/// How the recording is compressed: zstd at a fixed level, on the calling
+/// thread. A worker pool would make the bytes depend on the machine's core
+/// count and would hide the compression's cost from `twin bench`.
+const ZSTD_LEVEL: u32 = 3;
+/// Uncompressed bytes per chunk (the MCAP library's default, set explicitly so
+/// that a library upgrade cannot change the file layout).
+const CHUNK_SIZE: u64 = 1024 * 1024;
+
 /// An open recording.
 pub struct Recorder {
     writer: Writer<BufWriter<File>>,
     path: PathBuf,
-    channels: BTreeMap<String, (u16, u32)>,
+    /// Per channel, in creation order: its MCAP id and next sequence number.
+    channels: Vec<(u16, u32)>,
+    topics: BTreeMap<String, ChannelId>,
     buffer: Vec<u8>,
 }
+
+/// A channel of an open recording: writing through it skips the topic lookup.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ChannelId(usize);
 
 impl std::fmt::Debug for Recorder {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -61,6 +75,9 @@ impl Recorder {
             File::create(path).with_context(|| format!("cannot create {}", path.display()))?;
         let options = WriteOptions::new()
             .compression(Some(Compression::Zstd))
+            .compression_level(ZSTD_LEVEL)
+            .compression_threads(0)
+            .chunk_size(Some(CHUNK_SIZE))
             .profile("")
             .library(concat!("ev-lab-twin ", env!("CARGO_PKG_VERSION")));
         let writer = options
@@ -69,13 +86,14 @@ impl Recorder {
         Ok(Self {
             writer,
             path: path.to_path_buf(),
-            channels: BTreeMap::new(),
+            channels: Vec::new(),
+            topics: BTreeMap::new(),
             buffer: Vec::new(),
         })
     }
 
     /// Add a channel whose messages look like `sample`.
-    pub fn add_channel<T: Serialize>(&mut self, topic: &str, sample: &T) -> Result<()> {
+    pub fn add_channel<T: Serialize>(&mut self, topic: &str, sample: &T) -> Result<ChannelId> {
         let schema = schema_of(&serde_json::to_value(sample)?);
         let name = topic.trim_start_matches('/').replace('/', ".");
         let schema_id =
@@ -84,19 +102,39 @@ impl Recorder {
         let id = self
             .writer
             .add_channel(schema_id, topic, "json", &BTreeMap::new())?;
-        self.channels.insert(topic.to_string(), (id, 0));
-        Ok(())
+        let channel = ChannelId(self.channels.len());
+        self.channels.push((id, 0));
+        self.topics.insert(topic.to_string(), channel);
+        Ok(channel)
     }
 
     /// Whether `topic` has a channel yet.
     pub fn has_channel(&self, topic: &str) -> bool {
-        self.channels.contains_key(topic)
+        self.topics.contains_key(topic)
+    }
+
+    /// The channel of `topic`, if it has one yet.
+    pub fn channel(&self, topic: &str) -> Option<ChannelId> {
+        self.topics.get(topic).copied()
     }
 
     /// Write one message at simulated time `time_s`.
     pub fn write<T: Serialize>(&mut self, topic: &str, time_s: f64, message: &T) -> Result<()> {
-        let Some((channel_id, sequence)) = self.channels.get_mut(topic) else {
+        let Some(channel) = self.channel(topic) else {
             anyhow::bail!("no channel {topic} in the recording");
+        };
+        self.write_to(channel, time_s, message)
+    }
+
+    /// Write one message to `channel` at simulated time `time_s`.
+    pub fn write_to<T: Serialize>(
+        &mut self,
+        channel: ChannelId,
+        time_s: f64,
+        message: &T,
+    ) -> Result<()> {
+        let Some((channel_id, sequence)) = self.channels.get_mut(channel.0) else {
+            anyhow::bail!("no channel {} in the recording", channel.0);
         };
         self.buffer.clear();
         serde_json::to_writer(&mut self.buffer, message)?;

@@ -225,6 +225,10 @@ struct Transmission {
     next_byte: usize,
     /// Listener of the next delivery.
     next_listener: u16,
+    /// When the next event (byte arrival or end of frame) happens: kept up
+    /// to date as delivery advances, because the engine asks for it after
+    /// every event and recomputing it takes a 128-bit division per frame.
+    next_at: SimTime,
     active: bool,
 }
 
@@ -239,6 +243,7 @@ impl Transmission {
             garbled: Vec::with_capacity(MAX_FRAME),
             next_byte: 0,
             next_listener: 0,
+            next_at: SimTime::ZERO,
             active: false,
         }
     }
@@ -259,6 +264,10 @@ pub struct SimBus {
     delivered_up_to: SimTime,
     busy_until: SimTime,
     stats: BusStats,
+    /// The frame whose event comes next and when: rescanned only when a
+    /// frame starts, moves to its next byte or ends, since most deliveries
+    /// only pass the same byte on to the next listener.
+    next: Option<(usize, SimTime)>,
 }
 
 impl SimBus {
@@ -283,6 +292,7 @@ impl SimBus {
             delivered_up_to: SimTime::ZERO,
             busy_until: SimTime::ZERO,
             stats: BusStats::default(),
+            next: None,
         })
     }
 
@@ -387,6 +397,7 @@ impl SimBus {
             };
             t.next_listener = first_listener.unwrap_or(0);
         }
+        self.refresh_next_at(slot);
 
         for other in 0..self.slots.len() {
             let Some(t) = self.slots.get(other) else {
@@ -406,6 +417,7 @@ impl SimBus {
         if let Some(t) = self.slots.get_mut(slot) {
             t.active = true;
         }
+        self.next = self.next_slot();
         if let Some(p) = self.ports.get_mut(from.index()) {
             p.transmitting_until = end;
         }
@@ -451,29 +463,36 @@ impl SimBus {
             .find(|&i| self.config.wiring.hears(PortId(i), talker))
     }
 
-    /// The time of the next event of a frame, if it has one left.
-    fn next_event_time(&self, t: &Transmission) -> SimTime {
-        if t.next_byte < t.bytes.len() {
+    /// Recomputes when frame `slot`'s next event happens: its next byte's
+    /// stop bit, or the frame's end once every byte is delivered.
+    fn refresh_next_at(&mut self, slot: usize) {
+        let Some(t) = self.slots.get(slot) else {
+            return;
+        };
+        let at = if t.next_byte < t.bytes.len() {
             t.start + self.wire_time(t.next_byte + 1)
         } else {
             t.end
+        };
+        if let Some(t) = self.slots.get_mut(slot) {
+            t.next_at = at;
         }
     }
 
     /// The frame whose next event comes first: earliest time, then earliest sent.
     fn next_slot(&self) -> Option<(usize, SimTime)> {
-        self.slots
-            .iter()
-            .enumerate()
-            .filter(|(_, t)| t.active)
-            .map(|(i, t)| (i, self.next_event_time(t), t.seq))
-            .min_by_key(|&(_, at, seq)| (at, seq))
-            .map(|(i, at, _)| (i, at))
+        let mut best: Option<(usize, SimTime, u64)> = None;
+        for (i, t) in self.slots.iter().enumerate() {
+            if t.active && best.is_none_or(|(_, at, seq)| (t.next_at, t.seq) < (at, seq)) {
+                best = Some((i, t.next_at, t.seq));
+            }
+        }
+        best.map(|(i, at, _)| (i, at))
     }
 
     /// The instant of the next byte arrival or end of a frame.
     pub fn poll_timeout(&self) -> Option<SimTime> {
-        self.next_slot().map(|(_, at)| at)
+        self.next.map(|(_, at)| at)
     }
 
     /// The next event at or before `now`, in time order. Events at the same
@@ -481,7 +500,7 @@ impl SimBus {
     /// frame, a byte goes to its listeners in port order, and the frame's
     /// [`BusEvent::TransmitDone`] follows its last byte.
     pub fn poll_event(&mut self, now: SimTime) -> Option<BusEvent> {
-        let (slot, at) = self.next_slot()?;
+        let (slot, at) = self.next?;
         if at > now {
             return None;
         }
@@ -494,19 +513,26 @@ impl SimBus {
             if let Some(t) = self.slots.get_mut(slot) {
                 t.active = false;
             }
+            self.next = self.next_slot();
             return Some(BusEvent::TransmitDone { port: from, at });
         };
         let collided = t.garbled.get(index).copied().unwrap_or(false);
 
-        let following = self.next_listener(from, usize::from(listener) + 1);
-        let first = self.next_listener(from, 0);
-        if let Some(t) = self.slots.get_mut(slot) {
-            match following {
-                Some(next) => t.next_listener = next,
-                None => {
+        match self.next_listener(from, usize::from(listener) + 1) {
+            Some(next) => {
+                if let Some(t) = self.slots.get_mut(slot) {
+                    t.next_listener = next;
+                }
+            }
+            None => {
+                // The byte has reached every listener: on to the next one.
+                let first = self.next_listener(from, 0);
+                if let Some(t) = self.slots.get_mut(slot) {
                     t.next_byte += 1;
                     t.next_listener = first.unwrap_or(0);
                 }
+                self.refresh_next_at(slot);
+                self.next = self.next_slot();
             }
         }
 

@@ -1,3 +1,4 @@
 //! One file per subcommand; each parses its arguments and calls library code.
 
+pub mod bench;
 pub mod run;
