@@ -14,19 +14,12 @@ use crate::engine::{BusSlot, ModuleSlot, NodeSlot, Observer};
 use crate::scenario::Scenario;
 use crate::virtual_run;
 
-/// The ten-module case: ten EV controllers (MEB ids 1..10) on one
-/// 115200-baud bus, one supervisor polling each at 10 Hz.
-pub const TEN_MODULES: &str = include_str!("../../recordings/scenarios/ten-modules.toml");
-
 /// The scenarios `twin bench` runs when none is named: the default one-module
 /// speed loop and the ten-module bus.
 pub const DEFAULT_SCENARIOS: [&str; 2] = ["ev-meb", "ten-modules"];
 
-/// A scenario by name (an embedded one, or `ten-modules`) or file.
+/// A scenario by name (an embedded one) or file.
 pub fn load_scenario(name_or_path: &str) -> Result<Scenario> {
-    if name_or_path == "ten-modules" {
-        return Scenario::parse(TEN_MODULES, "embedded scenario ten-modules");
-    }
     Scenario::load(name_or_path)
 }
 

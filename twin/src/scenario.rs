@@ -28,7 +28,7 @@ use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
 /// The scenarios built into the binary: name, one-line description, TOML text.
-pub const EMBEDDED: [(&str, &str, &str); 2] = [
+pub const EMBEDDED: [(&str, &str, &str); 3] = [
     (
         "ev-meb",
         "the EV module's speed loop closed by a supervisor over MEB at 115200 baud (default)",
@@ -38,6 +38,11 @@ pub const EMBEDDED: [(&str, &str, &str); 2] = [
         "controller-network",
         "the seed-002 network: motor node, light-sensor node and the Raspberry Pi master",
         include_str!("../../recordings/scenarios/controller-network.toml"),
+    ),
+    (
+        "ten-modules",
+        "ten EV modules on one 115200-baud bus, one supervisor polling each at 10 Hz",
+        include_str!("../../recordings/scenarios/ten-modules.toml"),
     ),
 ];
 
