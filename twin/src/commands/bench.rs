@@ -15,8 +15,8 @@ use twin::bench::{self, DEFAULT_SCENARIOS, Measurement};
 /// `taskset -c 0 twin bench`.
 #[derive(Debug, Args)]
 pub struct BenchArgs {
-    /// Scenario to measure: an embedded name (`twin run --list`, or
-    /// `ten-modules`) or a scenario file; repeat the option for several.
+    /// Scenario to measure: an embedded name (`twin run --list`) or a
+    /// scenario file; repeat the option for several.
     #[arg(long, value_name = "NAME|FILE")]
     scenario: Vec<String>,
     /// Simulated seconds per run [default: each scenario's duration].
