@@ -14,6 +14,10 @@ use nodes::node::{Firmware, MAX_FRAME, Node, NodeEvent};
 use nodes::time::{SimDuration, SimTime};
 use plant::{Actuators, EvModule};
 
+/// Passes of the loop at one instant after which the engine calls it a stall
+/// (a busy bus with many nodes takes a few dozen).
+const STALL_PASSES: u32 = 100_000;
+
 /// A node as the engine drives it: the sans-IO node plus what recording and
 /// the plant need from it.
 pub trait SimNode: Node {
@@ -258,12 +262,33 @@ impl Engine {
         mut progress: impl FnMut(SimTime),
     ) -> Result<()> {
         let mut handled = 0u64;
+        let mut passes_at_this_instant = 0u32;
         loop {
             self.transmit_all(observer)?;
             self.drain_node_output(observer)?;
             let Some(t) = self.next_event() else { break };
             if t > end {
                 break;
+            }
+            // A node that keeps asking to be woken at an instant it has
+            // already handled would spin the clock in place: say which.
+            passes_at_this_instant = if t == self.now {
+                passes_at_this_instant + 1
+            } else {
+                0
+            };
+            if passes_at_this_instant > STALL_PASSES {
+                let stuck: Vec<&str> = self
+                    .nodes
+                    .iter()
+                    .filter(|n| n.node.poll_timeout().is_some_and(|due| due <= t))
+                    .map(|n| n.name.as_str())
+                    .collect();
+                anyhow::bail!(
+                    "simulated time stopped at {:.6} s: node(s) {} ask to be woken again and again at that instant",
+                    t.as_secs_f64(),
+                    stuck.join(", ")
+                );
             }
             self.now = t;
             self.deliver_bus_events(t);
@@ -439,5 +464,41 @@ impl std::fmt::Debug for Engine {
         f.debug_struct("Engine")
             .field("now", &self.now)
             .finish_non_exhaustive()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nodes::link::{BusConfig, PortConfig};
+
+    /// A node that wants to be woken at time zero for ever.
+    struct Stuck;
+
+    impl Node for Stuck {
+        fn handle_bytes(&mut self, _now: SimTime, _bytes: &[u8]) {}
+        fn handle_timeout(&mut self, _now: SimTime) {}
+        fn poll_transmit(&mut self, _now: SimTime, _buf: &mut [u8]) -> Option<usize> {
+            None
+        }
+        fn poll_timeout(&self) -> Option<SimTime> {
+            Some(SimTime::ZERO)
+        }
+    }
+
+    impl SimNode for Stuck {}
+
+    #[test]
+    fn a_node_that_stops_the_clock_is_named_not_spun_on() {
+        let mut engine = Engine::new(SimDuration::from_millis(1), SimDuration::from_millis(5));
+        let mut bus = SimBus::new(BusConfig::default()).expect("bus");
+        let port = bus.add_port(PortConfig::default());
+        let b = engine.add_bus("rs485", bus);
+        engine.add_node("stuck-node", Box::new(Stuck), b, port, None);
+        let end = SimTime::ZERO + SimDuration::from_millis(10);
+        let err = engine
+            .run_until(end, &mut crate::bench::DiscardObserver, |_| {})
+            .expect_err("the clock cannot advance");
+        assert!(err.to_string().contains("stuck-node"), "{err}");
     }
 }
