@@ -7,7 +7,9 @@ mod commands;
 
 /// Digital twin of the EV lab bench: battery + BMS, buck-boost converter,
 /// inverter + BLDC motor with hall sensors, a wheel and the photoresistor that
-/// watches a paper flag on it. Every run is recorded to MCAP.
+/// watches a paper flag on it, with the lab's controller boards and masters on
+/// a simulated RS-485 bus (MEB, Modbus RTU, the seed-002 8-byte Modbus). Every
+/// run is recorded to MCAP.
 #[derive(Debug, Parser)]
 #[command(name = "twin", version, propagate_version = true, max_term_width = 100)]
 struct Cli {

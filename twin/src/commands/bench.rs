@@ -4,11 +4,11 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use twin::bench::{self, DEFAULT_SCENARIOS, Measurement};
 
-/// Measure the real-time factor of scenario runs: simulated seconds per
-/// wall-clock second, without recording (everything the engine reports is
-/// discarded) and with recording (MCAP to a temporary file, deleted after).
+/// Measure how much faster than real time scenarios run.
 ///
-/// Without --scenario, runs `ev-meb` (one module, 115200 baud, 100 Hz speed
+/// The real-time factor is simulated seconds per wall-clock second, measured
+/// without recording (everything the engine reports is discarded) and with
+/// recording (MCAP to a temporary file, deleted after). Without --scenario, runs `ev-meb` (one module, 115200 baud, 100 Hz speed
 /// loop; goal 200x) and `ten-modules` (ten modules on one bus, each polled at
 /// 10 Hz; goal 30x). Each figure is the fastest of --repeat runs. Build with
 /// --release, and pin to one core for the figures:
