@@ -3,6 +3,7 @@
 
 pub mod bench;
 pub mod engine;
+pub mod experiment;
 pub mod nodes_build;
 pub mod observe;
 pub mod openloop;

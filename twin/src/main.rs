@@ -21,6 +21,7 @@ struct Cli {
 enum Command {
     Run(commands::run::RunArgs),
     Bench(commands::bench::BenchArgs),
+    Experiment(commands::experiment::ExperimentArgs),
 }
 
 fn main() -> ExitCode {
@@ -28,6 +29,7 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Run(args) => commands::run::execute(&args),
         Command::Bench(args) => commands::bench::execute(&args),
+        Command::Experiment(args) => commands::experiment::execute(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

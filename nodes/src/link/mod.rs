@@ -6,9 +6,11 @@
 
 mod fault;
 mod noise;
+pub mod pwmline;
 mod simbus;
 
 pub use fault::{CheckKind, Fault, FaultStats, FaultWindow, FaultyNode};
+pub use pwmline::{PwmCalibration, PwmLine, PwmLineError, PwmLineParams, PwmTestValues};
 pub use simbus::{
     BusConfig, BusConfigError, BusError, BusEvent, BusStats, FrameInfo, PortConfig, PortId, SimBus,
     Wiring,
