@@ -18,11 +18,6 @@ use crate::virtual_run;
 /// speed loop and the ten-module bus.
 pub const DEFAULT_SCENARIOS: [&str; 2] = ["ev-meb", "ten-modules"];
 
-/// A scenario by name (an embedded one) or file.
-pub fn load_scenario(name_or_path: &str) -> Result<Scenario> {
-    Scenario::load(name_or_path)
-}
-
 /// An observer that keeps nothing: the engine's own cost, without recording.
 #[derive(Debug, Default, Clone, Copy)]
 pub struct DiscardObserver;
@@ -128,7 +123,7 @@ mod tests {
     use super::*;
 
     fn short(name: &str, seconds: f64) -> Scenario {
-        let mut s = load_scenario(name).expect("scenario loads");
+        let mut s = Scenario::load(name).expect("scenario loads");
         s.duration_s = seconds;
         s
     }

@@ -96,16 +96,40 @@ pub struct CheckTally {
     pub corrupted_passed_check: u64,
 }
 
-/// Whether received bytes pass the check of the protocol the sender spoke.
-fn passes_check(sent: &[u8], received: &[u8]) -> bool {
-    use nodes::proto::{meb::MebRepr, modbus, modbus8};
-    if sent.first() == Some(&b'@') {
-        return MebRepr::parse(received).is_ok();
+/// The wire format a frame was sent in, told from the sent bytes: one place
+/// for the engine's check tally and the recording's decoder to agree on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FrameKind {
+    Meb,
+    Modbus8,
+    ModbusRtu,
+}
+
+impl FrameKind {
+    /// MEB frames start with `@`; an 8-byte frame whose CRC checks high byte
+    /// first is the seed-002 variant; anything else is read as Modbus RTU.
+    pub fn of(sent: &[u8]) -> Self {
+        use nodes::proto::modbus8::{CrcOrder, Frame};
+        if sent.first() == Some(&b'@') {
+            FrameKind::Meb
+        } else if sent.len() == 8 && Frame::parse(sent, CrcOrder::HighFirst).is_ok() {
+            FrameKind::Modbus8
+        } else {
+            FrameKind::ModbusRtu
+        }
     }
-    if sent.len() == 8 && modbus8::Frame::parse(sent, modbus8::CrcOrder::HighFirst).is_ok() {
-        return modbus8::Frame::parse(received, modbus8::CrcOrder::HighFirst).is_ok();
+
+    /// Whether `received` passes this format's check.
+    pub fn passes_check(self, received: &[u8]) -> bool {
+        use nodes::proto::{meb::MebRepr, modbus, modbus8};
+        match self {
+            FrameKind::Meb => MebRepr::parse(received).is_ok(),
+            FrameKind::Modbus8 => {
+                modbus8::Frame::parse(received, modbus8::CrcOrder::HighFirst).is_ok()
+            }
+            FrameKind::ModbusRtu => modbus::rtu::parse(received).is_ok(),
+        }
     }
-    modbus::rtu::parse(received).is_ok()
 }
 
 impl BusSlot {
@@ -136,7 +160,7 @@ impl BusSlot {
         if rx.corrupted {
             self.checks.frames_corrupted += 1;
             let sent = self.sent.get(from.index()).map_or(&[][..], Vec::as_slice);
-            if passes_check(sent, &rx.bytes) {
+            if FrameKind::of(sent).passes_check(&rx.bytes) {
                 self.checks.corrupted_passed_check += 1;
             }
         }

@@ -17,7 +17,7 @@ use serde::Serialize;
 use serde_json::{Value, json};
 use std::collections::{BTreeMap, VecDeque};
 
-use crate::engine::{BusSlot, ModuleSlot, NodeSlot, Observer};
+use crate::engine::{BusSlot, FrameKind, ModuleSlot, NodeSlot, Observer};
 use crate::record::Recorder;
 
 /// How many log lines the end-of-run summary shows.
@@ -71,25 +71,24 @@ impl McapObserver {
 
 /// Decoded fields of a frame: MEB, the 8-byte variant or Modbus RTU.
 pub fn decode_frame(bytes: &[u8]) -> Value {
-    if bytes.first() == Some(&b'@') {
-        return match MebRepr::parse(bytes) {
+    match FrameKind::of(bytes) {
+        FrameKind::Meb => match MebRepr::parse(bytes) {
             Ok(r) => json!({
                 "protocol": "meb", "id": r.id, "cmd": r.cmd.to_string(), "addr": r.addr,
                 "cnt": r.cnt, "data": r.data.as_slice(),
             }),
             Err(e) => json!({ "protocol": "meb", "error": e.to_string() }),
-        };
-    }
-    if bytes.len() == 8
-        && let Ok(f) = modbus8::Frame::parse(bytes, modbus8::CrcOrder::HighFirst)
-    {
-        return json!({
-            "protocol": "modbus8", "id": f.id, "function": f.function, "addr": f.addr, "value": f.value,
-        });
-    }
-    match modbus::rtu::parse(bytes) {
-        Ok(f) => json!({ "protocol": "modbus-rtu", "unit": f.unit, "function": f.function() }),
-        Err(e) => json!({ "protocol": "unknown", "error": e.to_string() }),
+        },
+        FrameKind::Modbus8 => match modbus8::Frame::parse(bytes, modbus8::CrcOrder::HighFirst) {
+            Ok(f) => json!({
+                "protocol": "modbus8", "id": f.id, "function": f.function, "addr": f.addr, "value": f.value,
+            }),
+            Err(e) => json!({ "protocol": "modbus8", "error": e.to_string() }),
+        },
+        FrameKind::ModbusRtu => match modbus::rtu::parse(bytes) {
+            Ok(f) => json!({ "protocol": "modbus-rtu", "unit": f.unit, "function": f.function() }),
+            Err(e) => json!({ "protocol": "unknown", "error": e.to_string() }),
+        },
     }
 }
 

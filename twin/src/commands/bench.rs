@@ -51,7 +51,7 @@ pub fn execute(args: &BenchArgs) -> Result<()> {
         "scenario", "recording", "simulated", "wall", "real time", "events/s", "frames"
     );
     for name in names {
-        let mut scenario = bench::load_scenario(name)?;
+        let mut scenario = twin::scenario::Scenario::load(name)?;
         if let Some(s) = args.seconds {
             scenario.duration_s = s;
         }
