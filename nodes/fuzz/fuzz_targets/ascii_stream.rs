@@ -4,6 +4,10 @@
 //! than there are line feeds, and every frame re-emits and re-parses.
 #![no_main]
 
+#[path = "../common/chunking.rs"]
+mod chunking;
+
+use chunking::chunks;
 use libfuzzer_sys::fuzz_target;
 use nodes::proto::modbus::ascii::{self, AsciiDecoder, MAX_ADU_LEN, MAX_BINARY_LEN};
 use nodes::proto::modbus::{Drops, FrameError, Request, Response};
@@ -22,20 +26,6 @@ fn run<'a>(chunks: impl Iterator<Item = &'a [u8]>) -> (Events, Drops, usize) {
         assert!(decoder.pending() <= MAX_ADU_LEN);
     }
     (events, *decoder.drops(), decoder.pending())
-}
-
-fn chunks(bytes: &[u8]) -> Vec<&[u8]> {
-    let mut out = Vec::new();
-    let mut rest = bytes;
-    let mut i = 0;
-    while !rest.is_empty() {
-        let size = 1 + usize::from(bytes[i % bytes.len()]) % 23;
-        let (chunk, tail) = rest.split_at(size.min(rest.len()));
-        out.push(chunk);
-        rest = tail;
-        i += 1;
-    }
-    out
 }
 
 fuzz_target!(|data: &[u8]| {

@@ -4,6 +4,10 @@
 //! accounts for every byte: framed + dropped + pending = fed.
 #![no_main]
 
+#[path = "../common/chunking.rs"]
+mod chunking;
+
+use chunking::chunks;
 use libfuzzer_sys::fuzz_target;
 use nodes::proto::modbus::Drops;
 use nodes::proto::modbus8::{CrcOrder, FRAME_LEN, Frame, Modbus8Decoder, Modbus8Error};
@@ -29,20 +33,6 @@ fn run<'a>(
 }
 
 /// Splits `bytes` into chunks whose sizes (1..=23) come from the data itself.
-fn chunks(bytes: &[u8]) -> Vec<&[u8]> {
-    let mut out = Vec::new();
-    let mut rest = bytes;
-    let mut i = 0;
-    while !rest.is_empty() {
-        let size = 1 + usize::from(bytes[i % bytes.len()]) % 23;
-        let (chunk, tail) = rest.split_at(size.min(rest.len()));
-        out.push(chunk);
-        rest = tail;
-        i += 1;
-    }
-    out
-}
-
 fuzz_target!(|data: &[u8]| {
     let Some((&control, bytes)) = data.split_first() else {
         return;

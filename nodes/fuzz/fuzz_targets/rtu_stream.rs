@@ -5,6 +5,10 @@
 //! yields re-parses, and its PDU parses or fails with a typed error.
 #![no_main]
 
+#[path = "../common/chunking.rs"]
+mod chunking;
+
+use chunking::chunks;
 use libfuzzer_sys::fuzz_target;
 use nodes::proto::modbus::rtu::{self, Direction, MAX_ADU_LEN, RtuDecoder};
 use nodes::proto::modbus::serial::{PTY_SILENCE, Timing};
@@ -39,20 +43,6 @@ fn run<'a>(
         assert_eq!(decoder.poll_timeout(), None);
     }
     (events, *decoder.drops(), decoder.pending())
-}
-
-fn chunks(bytes: &[u8]) -> Vec<&[u8]> {
-    let mut out = Vec::new();
-    let mut rest = bytes;
-    let mut i = 0;
-    while !rest.is_empty() {
-        let size = 1 + usize::from(bytes[i % bytes.len()]) % 23;
-        let (chunk, tail) = rest.split_at(size.min(rest.len()));
-        out.push(chunk);
-        rest = tail;
-        i += 1;
-    }
-    out
 }
 
 fuzz_target!(|data: &[u8]| {
