@@ -6,22 +6,10 @@
 //! and driven with an in-memory observer that keeps every frame, actuator
 //! change, plant sample and loop report.
 
-use anyhow::Result;
-use nodes::node::NodeEvent;
+use e2e::{Capture, WireFrame, at, run_captured};
 use nodes::proto::meb::{MebCmd, MebRepr};
 use nodes::time::{SimDuration, SimTime};
-use plant::{Actuators, Sensors};
-use twin::engine::{BusSlot, ModuleSlot, NodeSlot, Observer};
 use twin::scenario::Scenario;
-
-/// One frame as it went on the wire.
-#[derive(Debug, Clone)]
-struct WireFrame {
-    from: String,
-    start: SimTime,
-    end: SimTime,
-    bytes: Vec<u8>,
-}
 
 /// The supervisor's loop after one poll cycle.
 #[derive(Debug, Clone, Copy)]
@@ -31,79 +19,27 @@ struct LoopSample {
     measured_rpm: f64,
 }
 
-/// Everything the engine reported, kept in memory.
-#[derive(Debug, Default)]
-struct Capture {
-    frames: Vec<WireFrame>,
-    actuators: Vec<(SimTime, Actuators)>,
-    plant: Vec<(SimTime, Sensors)>,
-    loops: Vec<LoopSample>,
-    events: Vec<NodeEvent>,
-}
-
-impl Observer for Capture {
-    fn plant(&mut self, now: SimTime, module: &ModuleSlot) -> Result<()> {
-        self.plant.push((now, *module.plant.sensors()));
-        Ok(())
-    }
-
-    fn actuators(&mut self, now: SimTime, module: &ModuleSlot) -> Result<()> {
-        self.actuators.push((now, module.actuators));
-        Ok(())
-    }
-
-    fn frame(
-        &mut self,
-        _bus: &BusSlot,
-        from: &NodeSlot,
-        start: SimTime,
-        end: SimTime,
-        bytes: &[u8],
-    ) -> Result<()> {
-        self.frames.push(WireFrame {
-            from: from.name.clone(),
-            start,
-            end,
-            bytes: bytes.to_vec(),
-        });
-        Ok(())
-    }
-
-    fn event(&mut self, _node: &NodeSlot, event: &NodeEvent) -> Result<()> {
-        self.events.push(event.clone());
-        Ok(())
-    }
-
-    fn telemetry(
-        &mut self,
-        now: SimTime,
-        _node: &NodeSlot,
-        value: &serde_json::Value,
-    ) -> Result<()> {
-        let slave = &value["loops"][0];
-        let field = |name: &str| slave[name].as_f64().unwrap_or(f64::NAN);
-        self.loops.push(LoopSample {
-            at: now,
-            set_point_rpm: field("set_point_rpm"),
-            measured_rpm: field("measured_rpm"),
-        });
-        Ok(())
-    }
-}
-
-fn at(seconds: f64) -> SimTime {
-    SimTime::ZERO + SimDuration::from_secs_f64(seconds)
+/// The supervisor's loop reports, one per poll cycle (first slave).
+fn loops(capture: &Capture) -> Vec<LoopSample> {
+    capture
+        .telemetry
+        .iter()
+        .map(|(at, _, value)| {
+            let slave = &value["loops"][0];
+            let field = |name: &str| slave[name].as_f64().unwrap_or(f64::NAN);
+            LoopSample {
+                at: *at,
+                set_point_rpm: field("set_point_rpm"),
+                measured_rpm: field("measured_rpm"),
+            }
+        })
+        .collect()
 }
 
 /// Runs `scenario` (TOML text) to `until_s` seconds and returns what it saw.
 fn run(scenario: &str, until_s: f64) -> Capture {
     let scenario = Scenario::parse(scenario, "test scenario").expect("scenario parses");
-    let mut engine = twin::virtual_run::build(&scenario).expect("engine builds");
-    let mut capture = Capture::default();
-    engine
-        .run_until(at(until_s), &mut capture, |_| {})
-        .expect("run completes");
-    capture
+    run_captured(&scenario, until_s).0
 }
 
 /// The default scenario, as `twin` embeds it (read here from the file itself,
@@ -338,7 +274,7 @@ fn embedded_ev_meb_loop_tracks_its_set_point_steps_within_2_percent() {
         }
         let mut worst_measured = 0.0f64;
         let mut cycles = 0;
-        for l in capture.loops.iter().filter(|l| settled(l.at)) {
+        for l in loops(&capture).iter().filter(|l| settled(l.at)) {
             assert_eq!(
                 l.set_point_rpm, rpm,
                 "the schedule's set point at {:?}",

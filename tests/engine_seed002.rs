@@ -4,12 +4,9 @@
 //! and the light sensor's register against its smoothing rule, all read from
 //! the 8-byte frames on the wire.
 
-use anyhow::Result;
-use nodes::node::NodeEvent;
+use e2e::{Capture, WireFrame, at, run_captured};
 use nodes::proto::modbus8::{self, CrcOrder, Frame};
 use nodes::time::{SimDuration, SimTime};
-use plant::Sensors;
-use twin::engine::{BusSlot, ModuleSlot, NodeSlot, Observer};
 use twin::scenario::Scenario;
 
 /// The embedded scenario, read from its file so the test follows the file.
@@ -28,85 +25,23 @@ const VECTORS: &str = concat!(
 /// 50 / 7 × 60 rpm.
 const RPM_STEP: f64 = 3000.0 / 7.0;
 
-/// One frame as it went on the wire.
-#[derive(Debug, Clone)]
-struct WireFrame {
-    from: String,
-    start: SimTime,
-    end: SimTime,
-    bytes: Vec<u8>,
+/// An 8-byte frame's fields.
+trait Decoded {
+    fn decoded(&self) -> Frame;
 }
 
-impl WireFrame {
+impl Decoded for WireFrame {
     fn decoded(&self) -> Frame {
         Frame::parse(&self.bytes, CrcOrder::HighFirst)
             .unwrap_or_else(|e| panic!("{} sent {:02x?}: {e}", self.from, self.bytes))
     }
 }
 
-/// Frames, plant samples and events, kept in memory.
-#[derive(Debug, Default)]
-struct Capture {
-    frames: Vec<WireFrame>,
-    plant: Vec<(SimTime, Sensors)>,
-    events: Vec<(String, NodeEvent)>,
-}
-
-impl Observer for Capture {
-    fn plant(&mut self, now: SimTime, module: &ModuleSlot) -> Result<()> {
-        self.plant.push((now, *module.plant.sensors()));
-        Ok(())
-    }
-
-    fn actuators(&mut self, _now: SimTime, _module: &ModuleSlot) -> Result<()> {
-        Ok(())
-    }
-
-    fn frame(
-        &mut self,
-        _bus: &BusSlot,
-        from: &NodeSlot,
-        start: SimTime,
-        end: SimTime,
-        bytes: &[u8],
-    ) -> Result<()> {
-        self.frames.push(WireFrame {
-            from: from.name.clone(),
-            start,
-            end,
-            bytes: bytes.to_vec(),
-        });
-        Ok(())
-    }
-
-    fn event(&mut self, node: &NodeSlot, event: &NodeEvent) -> Result<()> {
-        self.events.push((node.name.clone(), event.clone()));
-        Ok(())
-    }
-
-    fn telemetry(
-        &mut self,
-        _now: SimTime,
-        _node: &NodeSlot,
-        _value: &serde_json::Value,
-    ) -> Result<()> {
-        Ok(())
-    }
-}
-
-fn at(seconds: f64) -> SimTime {
-    SimTime::ZERO + SimDuration::from_secs_f64(seconds)
-}
-
 /// The network run for `seconds`, and the light node's final state.
 fn run_network(seconds: f64) -> (Capture, serde_json::Value) {
     let scenario = Scenario::parse(CONTROLLER_NETWORK, "controller-network.toml")
         .expect("controller-network parses");
-    let mut engine = twin::virtual_run::build(&scenario).expect("engine builds");
-    let mut capture = Capture::default();
-    engine
-        .run_until(at(seconds), &mut capture, |_| {})
-        .expect("run completes");
+    let (capture, mut engine) = run_captured(&scenario, seconds);
     let light = engine
         .nodes
         .iter_mut()
