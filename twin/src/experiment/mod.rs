@@ -2,3 +2,4 @@
 //! `twin experiment <name>` prints them.
 
 pub mod pwmcap;
+pub mod step_metrics;
