@@ -22,6 +22,8 @@ enum Command {
     Run(commands::run::RunArgs),
     Bench(commands::bench::BenchArgs),
     Experiment(commands::experiment::ExperimentArgs),
+    Step(commands::step::StepArgs),
+    Sweep(commands::sweep::SweepArgs),
 }
 
 fn main() -> ExitCode {
@@ -30,6 +32,8 @@ fn main() -> ExitCode {
         Command::Run(args) => commands::run::execute(&args),
         Command::Bench(args) => commands::bench::execute(&args),
         Command::Experiment(args) => commands::experiment::execute(&args),
+        Command::Step(args) => commands::step::execute(&args),
+        Command::Sweep(args) => commands::sweep::execute(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

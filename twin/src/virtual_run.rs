@@ -82,7 +82,21 @@ pub fn build(scenario: &Scenario) -> Result<Engine> {
 }
 
 /// Run `scenario` and record it to `out`; `progress` gets the fraction done.
-pub fn run(scenario: &Scenario, out: &Path, mut progress: impl FnMut(f64)) -> Result<RunOutcome> {
+pub fn run(scenario: &Scenario, out: &Path, progress: impl FnMut(f64)) -> Result<RunOutcome> {
+    run_sampled(scenario, out, progress, None, |_, _, _| Ok(()))
+}
+
+/// [`run`], pausing every `sample_every` of simulated time to call
+/// `on_sample` with the time, the engine and the recorder (an experiment
+/// reads the nodes' registers there and records what it measured). Pausing
+/// changes nothing in the run itself.
+pub fn run_sampled(
+    scenario: &Scenario,
+    out: &Path,
+    mut progress: impl FnMut(f64),
+    sample_every: Option<SimDuration>,
+    mut on_sample: impl FnMut(SimTime, &Engine, &mut Recorder) -> Result<()>,
+) -> Result<RunOutcome> {
     let mut engine = build(scenario)?;
     let mut recorder = Recorder::create(out)?;
     recorder.write_metadata(
@@ -97,9 +111,21 @@ pub fn run(scenario: &Scenario, out: &Path, mut progress: impl FnMut(f64)) -> Re
     )?;
     let mut observer = McapObserver::new(recorder);
     let end = SimTime::ZERO + SimDuration::from_secs_f64(scenario.duration_s);
-    engine.run_until(end, &mut observer, |t| {
-        progress(t.as_secs_f64() / scenario.duration_s)
-    })?;
+    match sample_every.filter(|p| *p > SimDuration::ZERO) {
+        None => engine.run_until(end, &mut observer, |t| {
+            progress(t.as_secs_f64() / scenario.duration_s)
+        })?,
+        Some(period) => {
+            let mut t = SimTime::ZERO;
+            on_sample(t, &engine, &mut observer.recorder)?;
+            while t < end {
+                t = (t + period).min(end);
+                engine.run_until(t, &mut observer, |_| {})?;
+                on_sample(t, &engine, &mut observer.recorder)?;
+                progress(t.as_secs_f64() / scenario.duration_s);
+            }
+        }
+    }
     progress(1.0);
     let modules = engine
         .modules

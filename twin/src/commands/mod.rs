@@ -3,3 +3,5 @@
 pub mod bench;
 pub mod experiment;
 pub mod run;
+pub mod step;
+pub mod sweep;

@@ -3,3 +3,6 @@
 
 pub mod pwmcap;
 pub mod step_metrics;
+pub mod plot;
+pub mod step;
+pub mod sweep;

@@ -172,13 +172,15 @@ pub fn delay(
     let l = step_metrics(t, lagging, step_at_s, None, &options)?;
     let first = t.partition_point(|&ti| ti <= step_at_s);
     let dt = (t[t.len() - 1] - t[0]) / (t.len() - 1) as f64;
-    let max_lag = ((max_delay_s / dt).round() as usize).min(t.len() - first - 1);
+    let max_lag = ((max_delay_s / dt).round() as usize).min(t.len() - 1);
     let rn = |i: usize| (reference[i] - r.initial) / (r.final_value - r.initial);
     let ln = |i: usize| (lagging[i] - l.initial) / (l.final_value - l.initial);
-    // Compare over the same samples at every lag, so the costs are comparable.
+    // Compare over the same samples (all those after the step) at every
+    // lag, so the costs are comparable; before its first sample the
+    // reference is taken as its first value.
     let cost = |lag: usize| {
-        (first + max_lag..t.len())
-            .map(|i| (ln(i) - rn(i - lag)).powi(2))
+        (first..t.len())
+            .map(|i| (ln(i) - rn(i.saturating_sub(lag))).powi(2))
             .sum::<f64>()
     };
     let costs: Vec<f64> = (0..=max_lag).map(cost).collect();
@@ -351,7 +353,7 @@ mod tests {
             let lagging = first_order(&t, t0 + true_delay, tau);
             // A sensor that reads 5 % low must not bias the lag.
             let lagging: Vec<f64> = lagging.iter().map(|v| 0.95 * v).collect();
-            let d = delay(&t, &reference, &lagging, t0, 0.5).unwrap();
+            let d = delay(&t, &reference, &lagging, t0, 1.5).unwrap();
             assert!(
                 (d - true_delay).abs() < 0.1 * dt,
                 "delay {d} s, expected {true_delay} s"

@@ -1,0 +1,491 @@
+//! The step-response experiment of seed 002: step the set point and watch
+//! both speed sensors, the motor's own (hall edges, or the seed-002 motor
+//! node's encoder) and the photoresistor's, against the true wheel speed.
+//!
+//! Open loop, the bench alone steps `VEL` (as `twin run --open-loop`) while
+//! the module's firmware estimators, not connected to anything, read its
+//! sensors at their loop period. Closed loop, a scenario's supervisor gets
+//! the set-point step and closes the loop over the bus; the controller's
+//! `RPM_M` and `RPM_L` registers are read from the running engine.
+
+use anyhow::{Context, Result, bail};
+use nodes::firmware::{EvController, EvControllerConfig};
+use nodes::link::{CheckKind, FaultyNode};
+use nodes::seed002::{LightConfig, LightNode, MotorConfig, MotorNode};
+use nodes::time::{SimDuration, SimTime};
+use plant::light::fixed_threshold_max_rpm;
+use plant::{PlantParams, Sensors};
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+
+use super::plot::{self, Axes, Series};
+use super::step_metrics::{StepMetrics, StepOptions, delay, step_metrics};
+use crate::engine::{SimNode, SpeedReadings};
+use crate::openloop::{self, OpenLoop};
+use crate::scenario::{NodeSpec, Scenario};
+use crate::virtual_run;
+
+/// Samples of the traces per simulated second.
+pub const SAMPLE_HZ: f64 = 500.0;
+/// Longest lag looked for between a sensor and the true speed (s).
+const MAX_DELAY_S: f64 = 2.0;
+
+/// What drives the step.
+#[derive(Debug, Clone)]
+pub enum StepDrive {
+    /// The bench alone: `VEL` from `from` to `to` (fractions of 5 V).
+    OpenLoop {
+        params: PlantParams,
+        preset: String,
+        /// The EV controller's light detector in adaptive mode.
+        adaptive_light: bool,
+    },
+    /// A scenario whose supervisor's set point steps from `from` to `to` rpm.
+    ClosedLoop { scenario: Box<Scenario> },
+}
+
+/// One step experiment.
+#[derive(Debug, Clone)]
+pub struct StepConfig {
+    pub drive: StepDrive,
+    pub from: f64,
+    pub to: f64,
+    pub step_at_s: f64,
+    pub duration_s: f64,
+    pub seed: u64,
+}
+
+/// The sampled signals, in wheel rpm (the set point in its own unit).
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct Trace {
+    pub time_s: Vec<f64>,
+    pub set_point: Vec<f64>,
+    pub wheel_rpm: Vec<f64>,
+    pub motor_rpm: Vec<f64>,
+    pub light_rpm: Vec<f64>,
+}
+
+/// One signal's figures, or why it has none.
+#[derive(Debug, Clone, Serialize)]
+pub struct SignalFigures {
+    pub signal: &'static str,
+    pub metrics: Option<StepMetrics>,
+    /// Its lag behind the true wheel speed (s).
+    pub delay_s: Option<f64>,
+    pub note: Option<String>,
+}
+
+/// The experiment's outcome: what `step.json` holds.
+#[derive(Debug, Clone, Serialize)]
+pub struct StepReport {
+    pub mode: &'static str,
+    /// Preset (open loop) or scenario (closed loop).
+    pub bench: String,
+    pub set_point_unit: &'static str,
+    pub from: f64,
+    pub to: f64,
+    pub step_at_s: f64,
+    pub duration_s: f64,
+    pub seed: u64,
+    /// Fastest wheel speed the light detector sees (plant/src/light.rs).
+    pub light_limit_rpm: f64,
+    pub light_detector: String,
+    pub signals: Vec<SignalFigures>,
+    pub recording: PathBuf,
+    #[serde(skip)]
+    pub trace: Trace,
+}
+
+/// The firmware that reads a bench's speed sensors: the EV controller, or
+/// seed 002's motor and light-sensor nodes.
+pub fn instruments(params: &PlantParams, preset: &str, adaptive: bool) -> Vec<Box<dyn SimNode>> {
+    if preset == "controller-network" {
+        vec![
+            Box::new(FaultyNode::new(
+                MotorNode::new(MotorConfig::default()),
+                CheckKind::Modbus8,
+            )),
+            Box::new(FaultyNode::new(
+                LightNode::new(LightConfig::default()),
+                CheckKind::Modbus8,
+            )),
+        ]
+    } else {
+        let mut config = EvControllerConfig::for_plant(params);
+        config.light.adaptive = adaptive;
+        vec![Box::new(FaultyNode::new(
+            EvController::new(config),
+            CheckKind::Meb,
+        ))]
+    }
+}
+
+/// The light detector a bench's firmware runs, and the fastest speed it
+/// sees by the formula of plant/src/light.rs.
+pub fn light_limit(params: &PlantParams, preset: &str, adaptive: bool) -> (String, f64) {
+    let light = &params.light;
+    if preset == "controller-network" {
+        let th = LightConfig::default().dark_below_volts;
+        (
+            format!("seed-002 node, fixed {th:.2} V, 20 ms sampling"),
+            fixed_threshold_max_rpm(light, th),
+        )
+    } else {
+        let config = EvControllerConfig::for_plant(params).light;
+        let lsb = light.adc_reference_volts / f64::from(1u32 << light.adc_bits.clamp(1, 16));
+        if adaptive {
+            // In steady running the trackers span the swing the detector
+            // sees, so what limits it is the smallest swing it accepts.
+            let swing = f64::from(config.adaptive_min_swing_counts) * lsb;
+            (
+                format!("EV controller, adaptive (swing ≥ {swing:.3} V)"),
+                plant::light::adaptive_dip_max_rpm(light, swing),
+            )
+        } else {
+            let th = f64::from(config.threshold_counts) * lsb;
+            (
+                format!("EV controller, fixed {th:.2} V"),
+                fixed_threshold_max_rpm(light, th),
+            )
+        }
+    }
+}
+
+/// Combine the instruments' readings into (motor, light) wheel rpm.
+pub fn read_instruments(instruments: &[Box<dyn SimNode>], gear_ratio: f64) -> (f64, f64) {
+    let mut r = SpeedReadings::default();
+    for i in instruments {
+        let x = i.speed_readings();
+        r.hall_wheel_rpm = r.hall_wheel_rpm.or(x.hall_wheel_rpm);
+        r.motor_shaft_rpm = r.motor_shaft_rpm.or(x.motor_shaft_rpm);
+        r.light_rpm = r.light_rpm.or(x.light_rpm);
+    }
+    let motor = r
+        .hall_wheel_rpm
+        .or(r.motor_shaft_rpm.map(|m| m / gear_ratio))
+        .unwrap_or(f64::NAN);
+    (motor, r.light_rpm.unwrap_or(f64::NAN))
+}
+
+/// What the recording's `/experiment/step` channel holds.
+#[derive(Debug, Serialize)]
+struct StepSample {
+    set_point: f64,
+    wheel_rpm: f64,
+    motor_rpm: f64,
+    light_rpm: f64,
+}
+
+impl Trace {
+    fn push(&mut self, rec: &mut crate::record::Recorder, t: f64, s: StepSample) -> Result<()> {
+        let topic = "/experiment/step";
+        if !rec.has_channel(topic) {
+            rec.add_channel(topic, &s)?;
+        }
+        rec.write(topic, t, &s)?;
+        self.time_s.push(t);
+        self.set_point.push(s.set_point);
+        self.wheel_rpm.push(s.wheel_rpm);
+        self.motor_rpm.push(s.motor_rpm);
+        self.light_rpm.push(s.light_rpm);
+        Ok(())
+    }
+}
+
+/// Run the experiment, record it to `recording`, and measure it.
+pub fn run(config: &StepConfig, recording: &Path, progress: impl FnMut(f64)) -> Result<StepReport> {
+    if !(config.duration_s.is_finite() && config.duration_s > 0.0) {
+        bail!(
+            "the duration must be a positive number of seconds, got {}",
+            config.duration_s
+        );
+    }
+    if !(config.step_at_s >= 0.0 && config.step_at_s < config.duration_s) {
+        bail!(
+            "the step at {} s must come within the run of {} s",
+            config.step_at_s,
+            config.duration_s
+        );
+    }
+    let (trace, mode, bench, unit, params, preset, adaptive) = match &config.drive {
+        StepDrive::OpenLoop {
+            params,
+            preset,
+            adaptive_light,
+        } => {
+            let trace = run_open_loop(config, params, preset, *adaptive_light, recording, progress)?;
+            (trace, "open-loop", preset.clone(), "VEL fraction", params.clone(), preset.clone(), *adaptive_light)
+        }
+        StepDrive::ClosedLoop { scenario } => {
+            let (trace, params, preset) = run_closed_loop(config, scenario, recording, progress)?;
+            (trace, "closed-loop", scenario.name.clone(), "rpm", params, preset, false)
+        }
+    };
+    let (light_detector, light_limit_rpm) = light_limit(&params, &preset, adaptive);
+    let closed = mode == "closed-loop";
+    let t = &trace.time_s;
+    let options = StepOptions::default();
+    let wheel_final = step_metrics(t, &trace.wheel_rpm, config.step_at_s, None, &options)
+        .ok()
+        .map(|m| m.final_value);
+    let mut signals = Vec::new();
+    for (signal, y) in [
+        ("wheel (true)", &trace.wheel_rpm),
+        ("motor (hall)", &trace.motor_rpm),
+        ("light sensor", &trace.light_rpm),
+    ] {
+        let is_wheel = signal.starts_with("wheel");
+        // Closed loop the set point is the reference; open loop a sensor is
+        // held against the true speed.
+        let reference = if closed {
+            Some(config.to)
+        } else if is_wheel {
+            None
+        } else {
+            wheel_final
+        };
+        let (mut metrics, mut note) =
+            match step_metrics(t, y, config.step_at_s, reference, &options) {
+                Ok(m) => (Some(m), None),
+                Err(e) => (None, Some(e.to_string())),
+            };
+        // A light sensor that ends at 0 has not responded: it lost the flag.
+        let reads_zero = match (&metrics, y.last()) {
+            (Some(m), _) => m.final_value.abs() < 1.0,
+            (None, Some(last)) => last.abs() < 1.0,
+            (None, None) => false,
+        };
+        if signal.starts_with("light") && reads_zero {
+            metrics = None;
+            note = Some(match wheel_final {
+                Some(w) if w > light_limit_rpm => format!(
+                    "reads 0 at the end: the wheel runs at {w:.0} rpm, above the {light_limit_rpm:.0} rpm the detector can see"
+                ),
+                _ => "reads 0 at the end: it does not see the flag".to_string(),
+            });
+        }
+        let delay_s = match metrics {
+            Some(_) if !is_wheel => {
+                delay(t, &trace.wheel_rpm, y, config.step_at_s, MAX_DELAY_S).ok()
+            }
+            _ => None,
+        };
+        signals.push(SignalFigures {
+            signal,
+            metrics,
+            delay_s,
+            note,
+        });
+    }
+    Ok(StepReport {
+        mode,
+        bench,
+        set_point_unit: unit,
+        from: config.from,
+        to: config.to,
+        step_at_s: config.step_at_s,
+        duration_s: config.duration_s,
+        seed: config.seed,
+        light_limit_rpm,
+        light_detector,
+        signals,
+        recording: recording.to_path_buf(),
+        trace,
+    })
+}
+
+fn run_open_loop(
+    config: &StepConfig,
+    params: &PlantParams,
+    preset: &str,
+    adaptive: bool,
+    recording: &Path,
+    progress: impl FnMut(f64),
+) -> Result<Trace> {
+    for (name, v) in [("from", config.from), ("to", config.to)] {
+        if !(0.0..=1.0).contains(&v) {
+            bail!("open loop, --{name} is VEL as a fraction of its 5 V range: 0 to 1, got {v}");
+        }
+    }
+    let mut ol = OpenLoop::new(params.clone(), preset);
+    ol.seed = config.seed;
+    ol.duration_s = config.duration_s;
+    ol.vel_before_fraction = config.from;
+    ol.vel_fraction = config.to;
+    ol.vel_step_at_s = config.step_at_s;
+    ol.record_hz = 200.0;
+    let step = SimDuration::from_secs_f64(ol.step_s);
+    let sample_every = ((1.0 / SAMPLE_HZ) / ol.step_s).round().max(1.0) as u64;
+    let mut instruments = instruments(params, preset, adaptive);
+    let mut next_tick: Vec<SimTime> = vec![SimTime::ZERO; instruments.len()];
+    let ratio = params.gearbox.ratio;
+    let mut trace = Trace::default();
+    let mut k = 0u64;
+    openloop::run_with(&ol, recording, progress, |rec, sensors: &Sensors| {
+        k += 1;
+        let now = SimTime::ZERO + SimDuration(step.0 * k);
+        for (i, node) in instruments.iter_mut().enumerate() {
+            if let Some(fw) = node.firmware()
+                && now >= next_tick[i]
+            {
+                fw.loop_tick(now, sensors);
+                next_tick[i] = now + fw.loop_period();
+            }
+        }
+        if k % sample_every == 0 {
+            let (motor, light) = read_instruments(&instruments, ratio);
+            let vel = ol.actuators_at(sensors.time_s - 0.5 * ol.step_s).vel_volts / 5.0;
+            let sample = StepSample {
+                set_point: vel,
+                wheel_rpm: sensors.wheel_rpm,
+                motor_rpm: motor,
+                light_rpm: light,
+            };
+            trace.push(rec, now.as_secs_f64(), sample)?;
+        }
+        Ok(())
+    })?;
+    Ok(trace)
+}
+
+fn run_closed_loop(
+    config: &StepConfig,
+    scenario: &Scenario,
+    recording: &Path,
+    progress: impl FnMut(f64),
+) -> Result<(Trace, PlantParams, String)> {
+    let mut scenario = scenario.clone();
+    scenario.duration_s = config.duration_s;
+    scenario.seed = config.seed;
+    let Some((slave, bus)) = scenario.nodes.iter_mut().find_map(|n| match n {
+        NodeSpec::Supervisor {
+            slaves,
+            set_points,
+            bus,
+            ..
+        } => {
+            *set_points = vec![[0.0, config.from], [config.step_at_s, config.to]];
+            slaves.first().map(|s| (*s, bus.clone()))
+        }
+        _ => None,
+    }) else {
+        bail!(
+            "scenario `{}` has no supervisor with a slave to give the set-point step to \
+             (the controller-network master runs its own schedule): use --open-loop, or a \
+             scenario with a `supervisor` node",
+            scenario.name
+        );
+    };
+    let Some((controller, module)) = scenario.nodes.iter().find_map(|n| match n {
+        NodeSpec::EvController {
+            name,
+            bus: b,
+            module,
+            id,
+            ..
+        } if *id == slave && *b == bus => Some((name.clone(), module.clone())),
+        _ => None,
+    }) else {
+        bail!(
+            "scenario `{}`: the supervisor's slave {slave} is no ev-controller on bus `{bus}`",
+            scenario.name
+        );
+    };
+    let spec = scenario
+        .modules
+        .iter()
+        .find(|m| m.name == module)
+        .context("the controller's module is not declared")?;
+    let params = scenario.module_params(spec)?;
+    let preset = spec.preset.clone();
+    let ratio = params.gearbox.ratio;
+    let mut trace = Trace::default();
+    let (from, to, at) = (config.from, config.to, config.step_at_s);
+    let period = SimDuration::from_secs_f64(1.0 / SAMPLE_HZ);
+    virtual_run::run_sampled(&scenario, recording, progress, Some(period), |now, engine, rec| {
+        let Some(node) = engine.nodes.iter().find(|n| n.name == controller) else {
+            bail!("node `{controller}` is missing from the engine");
+        };
+        let Some(m) = node.module.and_then(|m| engine.modules.get(m)) else {
+            bail!("node `{controller}` has no module");
+        };
+        let (motor, light) = read_instruments(std::slice::from_ref(&node.node), ratio);
+        let t = now.as_secs_f64();
+        let sample = StepSample {
+            set_point: if t + 1e-12 >= at { to } else { from },
+            wheel_rpm: m.plant.sensors().wheel_rpm,
+            motor_rpm: motor,
+            light_rpm: light,
+        };
+        trace.push(rec, t, sample)
+    })
+    .with_context(|| format!("scenario {} failed", scenario.name))?;
+    Ok((trace, params, preset))
+}
+
+/// The plot of `step.png`: set point (closed loop), true wheel, motor and
+/// light rpm against time.
+pub fn plot(report: &StepReport, path: &Path) -> Result<()> {
+    let tr = &report.trace;
+    let pts = |y: &[f64]| -> Vec<(f64, f64)> {
+        tr.time_s
+            .iter()
+            .zip(y)
+            .filter(|(_, v)| v.is_finite())
+            .map(|(&t, &v)| (t, v))
+            .collect()
+    };
+    let mut series = Vec::new();
+    if report.mode == "closed-loop" {
+        series.push(Series {
+            name: "set point",
+            color: plot::SET_POINT,
+            points: pts(&tr.set_point),
+            dots: false,
+        });
+    }
+    series.push(Series {
+        name: "wheel (true)",
+        color: plot::WHEEL,
+        points: pts(&tr.wheel_rpm),
+        dots: false,
+    });
+    series.push(Series {
+        name: "motor (hall)",
+        color: plot::MOTOR,
+        points: pts(&tr.motor_rpm),
+        dots: false,
+    });
+    series.push(Series {
+        name: "light sensor",
+        color: plot::LIGHT,
+        points: pts(&tr.light_rpm),
+        dots: false,
+    });
+    let y_range = plot::fit_range(
+        series.iter().flat_map(|s| s.points.iter().map(|p| p.1)).chain([0.0]),
+        0.05,
+    );
+    let title = if report.mode == "closed-loop" {
+        format!(
+            "{}: set point {:.0} → {:.0} rpm at {} s",
+            report.bench, report.from, report.to, report.step_at_s
+        )
+    } else {
+        format!(
+            "{} open loop: VEL {:.0} → {:.0} % at {} s",
+            report.bench,
+            report.from * 100.0,
+            report.to * 100.0,
+            report.step_at_s
+        )
+    };
+    let axes = Axes {
+        title: &title,
+        x_label: "time (s)",
+        y_label: "wheel rpm",
+        x_range: (0.0, report.duration_s),
+        y_range,
+    };
+    plot::line_plot(path, &axes, &series, (960, 560))
+}
