@@ -30,7 +30,7 @@ pub struct SweepArgs {
     /// The EV controller's light detector: fixed threshold, adaptive, or both.
     #[arg(long, value_enum, default_value_t = Detector::Both)]
     detector: Detector,
-    /// Lowest and highest wheel speed (rpm) [default: 50 and 1.6 × the fixed threshold's limit].
+    /// Lowest and highest wheel speed (rpm) [default: 50 and 1.6 × the detector's limit].
     #[arg(long, value_name = "RPM", num_args = 2, value_names = ["FROM", "TO"])]
     rpm: Option<Vec<f64>>,
     /// Number of speeds, evenly spaced.
@@ -79,19 +79,22 @@ pub fn execute(args: &SweepArgs) -> Result<()> {
         (_, Detector::Adaptive) => &[true],
         (_, Detector::Both) => &[false, true],
     };
-    let (from, to) = match args.rpm.as_deref() {
-        Some([a, b]) => (*a, *b),
-        _ => {
-            let (_, limit) = twin::experiment::step::light_limit(&params, &args.preset, false);
-            (50.0, 1.6 * limit)
+    let speeds = |adaptive: bool| -> Result<Vec<f64>> {
+        let (from, to) = match args.rpm.as_deref() {
+            Some([a, b]) => (*a, *b),
+            _ => {
+                let (_, limit) =
+                    twin::experiment::step::light_limit(&params, &args.preset, adaptive);
+                (50.0, (1.6 * limit).round())
+            }
+        };
+        if !(from > 0.0 && to > from) {
+            bail!("--rpm FROM TO needs 0 < FROM < TO, got {from} {to}");
         }
+        Ok((0..args.points)
+            .map(|i| from + (to - from) * i as f64 / (args.points - 1) as f64)
+            .collect())
     };
-    if !(from > 0.0 && to > from) {
-        bail!("--rpm FROM TO needs 0 < FROM < TO, got {from} {to}");
-    }
-    let target_rpm: Vec<f64> = (0..args.points)
-        .map(|i| from + (to - from) * i as f64 / (args.points - 1) as f64)
-        .collect();
     let runs_dir = match &args.out {
         Some(dir) => {
             let runs = dir.join("runs");
@@ -107,7 +110,7 @@ pub fn execute(args: &SweepArgs) -> Result<()> {
             params: params.clone(),
             preset: args.preset.clone(),
             adaptive,
-            target_rpm: target_rpm.clone(),
+            target_rpm: speeds(adaptive)?,
             settle_s: args.settle,
             measure_s: args.measure,
             seed: args.seed,
@@ -148,8 +151,9 @@ fn print_report(r: &SweepReport) {
         r.preset, r.light_detector
     );
     println!(
-        "  the formula of plant/src/light.rs: the flag is seen up to {:.0} rpm",
-        r.light_limit_rpm
+        "  the formula of plant/src/light.rs: the flag is seen up to {:.0} rpm; every dip lasts a \
+         sample below the threshold up to {:.0} rpm",
+        r.light_limit_rpm, r.every_dip_sampled_below_rpm
     );
     println!(
         "  {:>6} {:>10} {:>10} {:>10} {:>8}",
@@ -167,13 +171,14 @@ fn print_report(r: &SweepReport) {
         );
     }
     let pct = r.tolerance * 100.0;
-    match (r.tracks_up_to_rpm, r.first_failure_rpm) {
-        (Some(ok), Some(bad)) => println!(
-            "  tracks within {pct:.0} % up to {ok:.0} rpm; fails from {bad:.0} rpm (formula: {:.0} rpm)",
+    match (r.tracks_from_rpm, r.tracks_up_to_rpm, r.first_failure_rpm) {
+        (Some(a), Some(b), Some(bad)) => println!(
+            "  tracks within {pct:.0} % from {a:.0} to {b:.0} rpm; fails from {bad:.0} rpm (formula: {:.0} rpm)",
             r.light_limit_rpm
         ),
-        (Some(ok), None) => println!("  tracks within {pct:.0} % at every speed, up to {ok:.0} rpm"),
-        (None, Some(bad)) => println!("  fails already at {bad:.0} rpm"),
-        (None, None) => {}
+        (Some(a), Some(b), None) => {
+            println!("  tracks within {pct:.0} % from {a:.0} to {b:.0} rpm, the fastest point run")
+        }
+        _ => println!("  does not track within {pct:.0} % at any speed run"),
     }
 }

@@ -53,6 +53,7 @@ pub struct Series<'a> {
     pub points: Vec<(f64, f64)>,
     /// Draw the samples as dots as well.
     pub dots: bool,
+    pub width: u32,
 }
 
 /// Axis labels and ranges.
@@ -63,6 +64,8 @@ pub struct Axes<'a> {
     pub y_label: &'a str,
     pub x_range: (f64, f64),
     pub y_range: (f64, f64),
+    /// Legend in the upper left rather than the lower right.
+    pub legend_upper_left: bool,
 }
 
 pub const SET_POINT: RGBColor = RGBColor(120, 120, 120);
@@ -93,7 +96,7 @@ pub fn line_plot(path: &Path, axes: &Axes, series: &[Series], size: (u32, u32)) 
             .light_line_style(RGBColor(235, 235, 235))
             .draw()?;
         for s in series {
-            let style = s.color.stroke_width(2);
+            let style = s.color.stroke_width(s.width);
             let color = s.color;
             let drawn = chart.draw_series(LineSeries::new(s.points.iter().copied(), style))?;
             if !s.name.is_empty() {
@@ -111,7 +114,11 @@ pub fn line_plot(path: &Path, axes: &Axes, series: &[Series], size: (u32, u32)) 
         }
         chart
             .configure_series_labels()
-            .position(SeriesLabelPosition::LowerRight)
+            .position(if axes.legend_upper_left {
+                SeriesLabelPosition::UpperLeft
+            } else {
+                SeriesLabelPosition::LowerRight
+            })
             .background_style(WHITE.mix(0.85))
             .border_style(BLACK)
             .label_font(("sans-serif", 15))

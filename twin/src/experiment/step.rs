@@ -442,6 +442,7 @@ pub fn plot(report: &StepReport, path: &Path) -> Result<()> {
             color: plot::SET_POINT,
             points: pts(&tr.set_point),
             dots: false,
+            width: 2,
         });
     }
     series.push(Series {
@@ -449,18 +450,21 @@ pub fn plot(report: &StepReport, path: &Path) -> Result<()> {
         color: plot::WHEEL,
         points: pts(&tr.wheel_rpm),
         dots: false,
+            width: 2,
     });
     series.push(Series {
         name: "motor (hall)",
         color: plot::MOTOR,
         points: pts(&tr.motor_rpm),
         dots: false,
+            width: 2,
     });
     series.push(Series {
         name: "light sensor",
         color: plot::LIGHT,
         points: pts(&tr.light_rpm),
         dots: false,
+            width: 2,
     });
     let y_range = plot::fit_range(
         series.iter().flat_map(|s| s.points.iter().map(|p| p.1)).chain([0.0]),
@@ -486,6 +490,7 @@ pub fn plot(report: &StepReport, path: &Path) -> Result<()> {
         y_label: "wheel rpm",
         x_range: (0.0, report.duration_s),
         y_range,
+        legend_upper_left: false,
     };
     plot::line_plot(path, &axes, &series, (960, 560))
 }

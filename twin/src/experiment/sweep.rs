@@ -53,8 +53,13 @@ pub struct SweepReport {
     pub light_detector: String,
     /// The fastest speed the detector sees by the formula (plant/src/light.rs).
     pub light_limit_rpm: f64,
-    /// Fastest measured speed up to which every point tracks, and the first
-    /// measured speed that does not.
+    /// Below this speed the dip stays under the threshold for at least one
+    /// sample period, so a sampled detector catches every one; between it
+    /// and the limit some dips fall between samples.
+    pub every_dip_sampled_below_rpm: f64,
+    /// The measured speeds over which it tracks (from the first point that
+    /// does), and the first speed above them where it does not.
+    pub tracks_from_rpm: Option<f64>,
     pub tracks_up_to_rpm: Option<f64>,
     pub first_failure_rpm: Option<f64>,
     pub tolerance: f64,
@@ -105,23 +110,35 @@ pub fn run(
             Some(dir) => dir.join(format!("sweep-{:05.0}rpm.mcap", rpm)),
             None => std::env::temp_dir().join(format!("twin-sweep-{}.mcap", std::process::id())),
         };
-        let point = run_one(config, vel, &path, |f| progress((i as f64 + f) / n as f64))?;
+        let point = run_one(config, rpm, vel, &path, |f| progress((i as f64 + f) / n as f64))?;
         if runs_dir.is_none() {
             let _ = std::fs::remove_file(&path);
         }
         points.push(point);
     }
     points.sort_by(|a, b| a.wheel_rpm.total_cmp(&b.wheel_rpm));
-    let first_failure_rpm = points.iter().find(|p| !p.tracks).map(|p| p.wheel_rpm);
-    let tracks_up_to_rpm = points
-        .iter()
-        .take_while(|p| p.tracks)
-        .last()
-        .map(|p| p.wheel_rpm);
+    // The band where it tracks: from the first point that does up to the
+    // point before the first that no longer does.
+    let first_ok = points.iter().position(|p| p.tracks);
+    let first_bad = first_ok.and_then(|i| (i..points.len()).find(|&j| !points[j].tracks));
+    let tracks_from_rpm = first_ok.map(|i| points[i].wheel_rpm);
+    let tracks_up_to_rpm = first_ok.map(|_| points[first_bad.unwrap_or(points.len()) - 1].wheel_rpm);
+    let first_failure_rpm = first_bad.map(|j| points[j].wheel_rpm);
+    // The shadow lasts `arc_s / n`; the formula's limit is where all of it
+    // is needed to reach the threshold, so at `n` the dip spends
+    // `arc_s / n - arc_s / limit` below it.
+    let arc_s = config.params.light.flag_arc_deg / 360.0 * 60.0;
+    let sample_s = instruments(&config.params, &config.preset, config.adaptive)
+        .iter_mut()
+        .filter_map(|n| n.firmware().map(|f| f.loop_period().as_secs_f64()))
+        .fold(0.0, f64::max);
+    let every_dip_sampled_below_rpm = arc_s / (arc_s / light_limit_rpm + sample_s);
     Ok(SweepReport {
         preset: config.preset.clone(),
         light_detector,
         light_limit_rpm,
+        every_dip_sampled_below_rpm,
+        tracks_from_rpm,
         tracks_up_to_rpm,
         first_failure_rpm,
         tolerance: TRACKING_TOLERANCE,
@@ -131,13 +148,19 @@ pub fn run(
 
 fn run_one(
     config: &SweepConfig,
+    target_rpm: f64,
     vel: f64,
     path: &Path,
     progress: impl FnMut(f64),
 ) -> Result<SweepPoint> {
+    // A slow wheel needs a few turns to settle and a few to be measured: the
+    // light sensor gives one reading per turn.
+    let turn_s = 60.0 / target_rpm.max(1.0);
+    let settle_s = config.settle_s.max(4.0 * turn_s);
+    let measure_s = config.measure_s.max(3.0 * turn_s);
     let mut ol = OpenLoop::new(config.params.clone(), &config.preset);
     ol.seed = config.seed;
-    ol.duration_s = config.settle_s + config.measure_s;
+    ol.duration_s = settle_s + measure_s;
     ol.vel_step_at_s = 0.0;
     ol.vel_fraction = vel;
     ol.record_hz = 100.0;
@@ -158,7 +181,7 @@ fn run_one(
                 next_tick[i] = now + fw.loop_period();
             }
         }
-        if sensors.time_s > config.settle_s {
+        if sensors.time_s > settle_s {
             let r = super::step::read_instruments(&instruments, ratio);
             wheel += sensors.wheel_rpm;
             motor += r.0;
@@ -198,6 +221,7 @@ pub fn plot(reports: &[SweepReport], path: &Path) -> Result<PathBuf> {
         color: plot::SET_POINT,
         points: vec![(0.0, 0.0), (max, max)],
         dots: false,
+            width: 2,
     }];
     let names: Vec<String> = reports
         .iter()
@@ -210,6 +234,7 @@ pub fn plot(reports: &[SweepReport], path: &Path) -> Result<PathBuf> {
             color,
             points: r.points.iter().map(|p| (p.wheel_rpm, p.light_rpm)).collect(),
             dots: true,
+            width: 2,
         });
         if r.light_limit_rpm < max {
             series.push(Series {
@@ -217,6 +242,7 @@ pub fn plot(reports: &[SweepReport], path: &Path) -> Result<PathBuf> {
                 color,
                 points: vec![(r.light_limit_rpm, 0.0), (r.light_limit_rpm, max)],
                 dots: false,
+                width: 1,
             });
         }
     }
@@ -227,6 +253,7 @@ pub fn plot(reports: &[SweepReport], path: &Path) -> Result<PathBuf> {
         y_label: "light-sensor rpm",
         x_range: (0.0, max),
         y_range: (0.0, max),
+        legend_upper_left: true,
     };
     plot::line_plot(path, &axes, &series, (960, 640))?;
     Ok(path.to_path_buf())
