@@ -1,0 +1,124 @@
+//! `twin step` and `twin sweep` from the command line: the table, the files
+//! of `--out DIR`, and clear refusals of what they cannot run.
+
+use std::path::PathBuf;
+use std::process::{Command, Output};
+
+fn twin(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_twin"))
+        .args(args)
+        .output()
+        .expect("twin runs")
+}
+
+fn ok(args: &[&str]) -> String {
+    let o = twin(args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    String::from_utf8(o.stdout).expect("utf-8 output")
+}
+
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("twin-step-cli-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    dir
+}
+
+fn is_png(path: &PathBuf) -> bool {
+    let bytes = std::fs::read(path).unwrap_or_default();
+    bytes.len() > 1000 && bytes.starts_with(b"\x89PNG\r\n\x1a\n")
+}
+
+#[test]
+fn open_loop_step_writes_figures_plot_and_recording() {
+    let dir = scratch("open");
+    let d = dir.to_str().expect("utf-8 path");
+    let out = ok(&["step", "--open-loop", "--out", d]);
+    for expected in [
+        "twin step: open-loop, vemodule preset, VEL 2.5 → 4.5 % at 2 s",
+        "it sees the flag up to 260 rpm",
+        "wheel (true)",
+        "motor (hall)",
+        "light sensor",
+        "rise 10-90",
+        "settling 2%",
+    ] {
+        assert!(out.contains(expected), "missing {expected:?} in:\n{out}");
+    }
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("step.json")).expect("step.json"))
+            .expect("valid JSON");
+    assert_eq!(json["mode"], "open-loop");
+    let signals = json["signals"].as_array().expect("signals");
+    assert_eq!(signals.len(), 3);
+    for s in signals {
+        assert!(
+            s["metrics"]["rise_time_s"].as_f64().is_some_and(|r| r > 0.0),
+            "{s}"
+        );
+    }
+    // Both sensors lag the true speed, the light sensor more.
+    let lag = |i: usize| signals[i]["delay_s"].as_f64().expect("delay");
+    assert!(0.0 < lag(1) && lag(1) < lag(2), "{json}");
+    assert!(is_png(&dir.join("step.png")));
+    assert!(std::fs::metadata(dir.join("step.mcap")).is_ok_and(|m| m.len() > 10_000));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_light_sensor_that_loses_the_flag_is_named_not_measured() {
+    let dir = scratch("fast");
+    let d = dir.to_str().expect("utf-8 path");
+    let out = ok(&["step", "--open-loop", "--from", "0", "--to", "0.6", "--out", d]);
+    assert!(
+        out.contains("above the 260 rpm the detector can see"),
+        "{out}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn sweep_prints_where_the_light_sensor_fails_and_writes_its_files() {
+    let dir = scratch("sweep");
+    let d = dir.to_str().expect("utf-8 path");
+    let out = ok(&[
+        "sweep", "--detector", "fixed", "--rpm", "150", "350", "--points", "5", "--settle", "2",
+        "--measure", "2", "--out", d,
+    ]);
+    assert!(out.contains("seen up to 260 rpm"), "{out}");
+    assert!(
+        out.contains("from 150 to 250 rpm; fails from 300 rpm"),
+        "{out}"
+    );
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("sweep.json")).expect("sweep.json"))
+            .expect("valid JSON");
+    assert_eq!(json[0]["points"].as_array().map(Vec::len), Some(5));
+    assert!(is_png(&dir.join("sweep.png")));
+    let runs = std::fs::read_dir(dir.join("runs/fixed")).expect("runs").count();
+    assert_eq!(runs, 5);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn what_cannot_run_is_refused_with_the_reason() {
+    let o = twin(&["step", "controller-network"]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("no supervisor") && err.contains("--open-loop"), "{err}");
+
+    let o = twin(&["step", "--at", "8", "--duration", "5"]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("must come within the run"));
+
+    let o = twin(&["step", "--open-loop", "--to", "1.5"]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("0 to 1, got 1.5"));
+
+    let o = twin(&["sweep", "--preset", "controller-network", "--rpm", "100", "300"]);
+    assert!(!o.status.success());
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("cannot reach it"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+}
