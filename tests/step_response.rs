@@ -53,7 +53,10 @@ fn closed_loop_step_figures_of_both_sensors() {
     let hall_delay = hall.delay_s.expect("hall delay");
     let light_delay = light.delay_s.expect("light delay");
     assert!((0.04..0.2).contains(&hall_delay), "hall delay {hall_delay}");
-    assert!((0.2..0.9).contains(&light_delay), "light delay {light_delay}");
+    assert!(
+        (0.2..0.9).contains(&light_delay),
+        "light delay {light_delay}"
+    );
     assert!(light_m.rise_time_s.expect("rises") > hall_m.rise_time_s.expect("rises"));
 
     // The recording holds what the figures were computed from.
@@ -128,5 +131,31 @@ fn seed002_light_node_fails_below_the_formulas_speed_and_never_above() {
         "at 0.65 × the limit the light node reads {tracked} × the true speed"
     );
     let above = light_ratio_at(&p, "controller-network", false, 1.05);
-    assert!(above < 0.5, "above the limit it reads {above} × the true speed");
+    assert!(
+        above < 0.5,
+        "above the limit it reads {above} × the true speed"
+    );
+}
+
+#[test]
+fn pausing_a_run_to_sample_it_changes_nothing() {
+    let mut scenario = Scenario::load("ev-meb").expect("embedded");
+    scenario.duration_s = 3.0;
+    let (plain, paused) = (scratch("plain.mcap"), scratch("paused.mcap"));
+    twin::virtual_run::run(&scenario, &plain, |_| {}).expect("plain run");
+    let mut samples = 0;
+    twin::virtual_run::run_sampled(
+        &scenario,
+        &paused,
+        |_| {},
+        Some(nodes::time::SimDuration::from_millis(2)),
+        |_, _, _| {
+            samples += 1;
+            Ok(())
+        },
+    )
+    .expect("paused run");
+    assert_eq!(samples, 1501);
+    let (a, b) = (std::fs::read(&plain).unwrap(), std::fs::read(&paused).unwrap());
+    assert!(a == b, "recordings differ ({} and {} bytes)", a.len(), b.len());
 }

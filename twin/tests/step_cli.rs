@@ -52,7 +52,9 @@ fn open_loop_step_writes_figures_plot_and_recording() {
     assert_eq!(signals.len(), 3);
     for s in signals {
         assert!(
-            s["metrics"]["rise_time_s"].as_f64().is_some_and(|r| r > 0.0),
+            s["metrics"]["rise_time_s"]
+                .as_f64()
+                .is_some_and(|r| r > 0.0),
             "{s}"
         );
     }
@@ -68,7 +70,16 @@ fn open_loop_step_writes_figures_plot_and_recording() {
 fn a_light_sensor_that_loses_the_flag_is_named_not_measured() {
     let dir = scratch("fast");
     let d = dir.to_str().expect("utf-8 path");
-    let out = ok(&["step", "--open-loop", "--from", "0", "--to", "0.6", "--out", d]);
+    let out = ok(&[
+        "step",
+        "--open-loop",
+        "--from",
+        "0",
+        "--to",
+        "0.6",
+        "--out",
+        d,
+    ]);
     assert!(
         out.contains("above the 260 rpm the detector can see"),
         "{out}"
@@ -81,8 +92,20 @@ fn sweep_prints_where_the_light_sensor_fails_and_writes_its_files() {
     let dir = scratch("sweep");
     let d = dir.to_str().expect("utf-8 path");
     let out = ok(&[
-        "sweep", "--detector", "fixed", "--rpm", "150", "350", "--points", "5", "--settle", "2",
-        "--measure", "2", "--out", d,
+        "sweep",
+        "--detector",
+        "fixed",
+        "--rpm",
+        "150",
+        "350",
+        "--points",
+        "5",
+        "--settle",
+        "2",
+        "--measure",
+        "2",
+        "--out",
+        d,
     ]);
     assert!(out.contains("seen up to 260 rpm"), "{out}");
     assert!(
@@ -94,7 +117,9 @@ fn sweep_prints_where_the_light_sensor_fails_and_writes_its_files() {
             .expect("valid JSON");
     assert_eq!(json[0]["points"].as_array().map(Vec::len), Some(5));
     assert!(is_png(&dir.join("sweep.png")));
-    let runs = std::fs::read_dir(dir.join("runs/fixed")).expect("runs").count();
+    let runs = std::fs::read_dir(dir.join("runs/fixed"))
+        .expect("runs")
+        .count();
     assert_eq!(runs, 5);
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -104,7 +129,10 @@ fn what_cannot_run_is_refused_with_the_reason() {
     let o = twin(&["step", "controller-network"]);
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
-    assert!(err.contains("no supervisor") && err.contains("--open-loop"), "{err}");
+    assert!(
+        err.contains("no supervisor") && err.contains("--open-loop"),
+        "{err}"
+    );
 
     let o = twin(&["step", "--at", "8", "--duration", "5"]);
     assert!(!o.status.success());
@@ -114,7 +142,14 @@ fn what_cannot_run_is_refused_with_the_reason() {
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("0 to 1, got 1.5"));
 
-    let o = twin(&["sweep", "--preset", "controller-network", "--rpm", "100", "300"]);
+    let o = twin(&[
+        "sweep",
+        "--preset",
+        "controller-network",
+        "--rpm",
+        "100",
+        "300",
+    ]);
     assert!(!o.status.success());
     assert!(
         String::from_utf8_lossy(&o.stderr).contains("cannot reach it"),

@@ -81,7 +81,7 @@ pub fn execute(args: &StepArgs) -> Result<()> {
             None => base,
         };
         StepDrive::OpenLoop {
-            params,
+            params: Box::new(params),
             preset: args.preset.clone(),
             adaptive_light: args.adaptive_light,
         }
@@ -150,7 +150,14 @@ fn print_report(r: &StepReport) {
     );
     println!(
         "  {:14} {:>9} {:>9} {:>11} {:>10} {:>12} {:>13} {:>10}",
-        "signal (rpm)", "initial", "final", "rise 10-90", "overshoot", "settling 2%", "steady error", "delay"
+        "signal (rpm)",
+        "initial",
+        "final",
+        "rise 10-90",
+        "overshoot",
+        "settling 2%",
+        "steady error",
+        "delay"
     );
     let secs = |v: Option<f64>| v.map_or("—".to_string(), |s| format!("{s:.3} s"));
     for s in &r.signals {

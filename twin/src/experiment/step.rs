@@ -35,7 +35,7 @@ const MAX_DELAY_S: f64 = 2.0;
 pub enum StepDrive {
     /// The bench alone: `VEL` from `from` to `to` (fractions of 5 V).
     OpenLoop {
-        params: PlantParams,
+        params: Box<PlantParams>,
         preset: String,
         /// The EV controller's light detector in adaptive mode.
         adaptive_light: bool,
@@ -213,12 +213,29 @@ pub fn run(config: &StepConfig, recording: &Path, progress: impl FnMut(f64)) -> 
             preset,
             adaptive_light,
         } => {
-            let trace = run_open_loop(config, params, preset, *adaptive_light, recording, progress)?;
-            (trace, "open-loop", preset.clone(), "VEL fraction", params.clone(), preset.clone(), *adaptive_light)
+            let trace =
+                run_open_loop(config, params, preset, *adaptive_light, recording, progress)?;
+            (
+                trace,
+                "open-loop",
+                preset.clone(),
+                "VEL fraction",
+                (**params).clone(),
+                preset.clone(),
+                *adaptive_light,
+            )
         }
         StepDrive::ClosedLoop { scenario } => {
             let (trace, params, preset) = run_closed_loop(config, scenario, recording, progress)?;
-            (trace, "closed-loop", scenario.name.clone(), "rpm", params, preset, false)
+            (
+                trace,
+                "closed-loop",
+                scenario.name.clone(),
+                "rpm",
+                params,
+                preset,
+                false,
+            )
         }
     };
     let (light_detector, light_limit_rpm) = light_limit(&params, &preset, adaptive);
@@ -332,7 +349,7 @@ fn run_open_loop(
                 next_tick[i] = now + fw.loop_period();
             }
         }
-        if k % sample_every == 0 {
+        if k.is_multiple_of(sample_every) {
             let (motor, light) = read_instruments(&instruments, ratio);
             let vel = ol.actuators_at(sensors.time_s - 0.5 * ol.step_s).vel_volts / 5.0;
             let sample = StepSample {
@@ -402,23 +419,29 @@ fn run_closed_loop(
     let mut trace = Trace::default();
     let (from, to, at) = (config.from, config.to, config.step_at_s);
     let period = SimDuration::from_secs_f64(1.0 / SAMPLE_HZ);
-    virtual_run::run_sampled(&scenario, recording, progress, Some(period), |now, engine, rec| {
-        let Some(node) = engine.nodes.iter().find(|n| n.name == controller) else {
-            bail!("node `{controller}` is missing from the engine");
-        };
-        let Some(m) = node.module.and_then(|m| engine.modules.get(m)) else {
-            bail!("node `{controller}` has no module");
-        };
-        let (motor, light) = read_instruments(std::slice::from_ref(&node.node), ratio);
-        let t = now.as_secs_f64();
-        let sample = StepSample {
-            set_point: if t + 1e-12 >= at { to } else { from },
-            wheel_rpm: m.plant.sensors().wheel_rpm,
-            motor_rpm: motor,
-            light_rpm: light,
-        };
-        trace.push(rec, t, sample)
-    })
+    virtual_run::run_sampled(
+        &scenario,
+        recording,
+        progress,
+        Some(period),
+        |now, engine, rec| {
+            let Some(node) = engine.nodes.iter().find(|n| n.name == controller) else {
+                bail!("node `{controller}` is missing from the engine");
+            };
+            let Some(m) = node.module.and_then(|m| engine.modules.get(m)) else {
+                bail!("node `{controller}` has no module");
+            };
+            let (motor, light) = read_instruments(std::slice::from_ref(&node.node), ratio);
+            let t = now.as_secs_f64();
+            let sample = StepSample {
+                set_point: if t + 1e-12 >= at { to } else { from },
+                wheel_rpm: m.plant.sensors().wheel_rpm,
+                motor_rpm: motor,
+                light_rpm: light,
+            };
+            trace.push(rec, t, sample)
+        },
+    )
     .with_context(|| format!("scenario {} failed", scenario.name))?;
     Ok((trace, params, preset))
 }
@@ -450,24 +473,27 @@ pub fn plot(report: &StepReport, path: &Path) -> Result<()> {
         color: plot::WHEEL,
         points: pts(&tr.wheel_rpm),
         dots: false,
-            width: 2,
+        width: 2,
     });
     series.push(Series {
         name: "motor (hall)",
         color: plot::MOTOR,
         points: pts(&tr.motor_rpm),
         dots: false,
-            width: 2,
+        width: 2,
     });
     series.push(Series {
         name: "light sensor",
         color: plot::LIGHT,
         points: pts(&tr.light_rpm),
         dots: false,
-            width: 2,
+        width: 2,
     });
     let y_range = plot::fit_range(
-        series.iter().flat_map(|s| s.points.iter().map(|p| p.1)).chain([0.0]),
+        series
+            .iter()
+            .flat_map(|s| s.points.iter().map(|p| p.1))
+            .chain([0.0]),
         0.05,
     );
     let title = if report.mode == "closed-loop" {

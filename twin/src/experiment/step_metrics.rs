@@ -85,7 +85,8 @@ pub fn step_metrics(
     }
     let initial = y[first - 1];
     let after = &y[first..];
-    let tail = ((after.len() as f64 * options.final_fraction).ceil() as usize).clamp(1, after.len());
+    let tail =
+        ((after.len() as f64 * options.final_fraction).ceil() as usize).clamp(1, after.len());
     let final_value = after[after.len() - tail..].iter().sum::<f64>() / tail as f64;
     let span = final_value - initial;
     if span == 0.0 {
@@ -106,11 +107,12 @@ pub fn step_metrics(
         (Some(a), Some(b)) => Some(b - a),
         _ => None,
     };
-    let (peak_index, peak_norm) = (first..t.len())
-        .map(|i| (i, norm(y[i])))
-        .fold((first, f64::NEG_INFINITY), |best, x| {
-            if x.1 > best.1 { x } else { best }
-        });
+    let (peak_index, peak_norm) =
+        (first..t.len())
+            .map(|i| (i, norm(y[i])))
+            .fold((first, f64::NEG_INFINITY), |best, x| {
+                if x.1 > best.1 { x } else { best }
+            });
     let overshoot_pct = ((peak_norm - 1.0) * 100.0).max(0.0);
     let band = options.settling_band;
     let outside = |i: usize| (norm(y[i]) - 1.0).abs() > band;
@@ -263,7 +265,10 @@ mod tests {
         assert!((rise - 9f64.ln() * tau).abs() < 2.0 * dt, "rise {rise}");
         assert!((rise / tau - 2.197).abs() < 1e-3);
         let settle = m.settling_time_s.unwrap();
-        assert!((settle - 50f64.ln() * tau).abs() < 2.0 * dt, "settle {settle}");
+        assert!(
+            (settle - 50f64.ln() * tau).abs() < 2.0 * dt,
+            "settle {settle}"
+        );
         assert!(m.overshoot_pct < 0.01, "overshoot {} %", m.overshoot_pct);
         assert!(m.steady_state_error.unwrap().abs() < 1e-4);
     }

@@ -92,7 +92,10 @@ pub fn run(
     if !(config.settle_s > 0.0 && config.measure_s > 0.0) {
         bail!("settling and measuring times must be positive");
     }
-    let bus = config.params.battery.ocv_at(config.params.battery.initial_soc);
+    let bus = config
+        .params
+        .battery
+        .ocv_at(config.params.battery.initial_soc);
     let (light_detector, light_limit_rpm) =
         light_limit(&config.params, &config.preset, config.adaptive);
     let mut points = Vec::new();
@@ -110,7 +113,9 @@ pub fn run(
             Some(dir) => dir.join(format!("sweep-{:05.0}rpm.mcap", rpm)),
             None => std::env::temp_dir().join(format!("twin-sweep-{}.mcap", std::process::id())),
         };
-        let point = run_one(config, rpm, vel, &path, |f| progress((i as f64 + f) / n as f64))?;
+        let point = run_one(config, rpm, vel, &path, |f| {
+            progress((i as f64 + f) / n as f64)
+        })?;
         if runs_dir.is_none() {
             let _ = std::fs::remove_file(&path);
         }
@@ -122,7 +127,8 @@ pub fn run(
     let first_ok = points.iter().position(|p| p.tracks);
     let first_bad = first_ok.and_then(|i| (i..points.len()).find(|&j| !points[j].tracks));
     let tracks_from_rpm = first_ok.map(|i| points[i].wheel_rpm);
-    let tracks_up_to_rpm = first_ok.map(|_| points[first_bad.unwrap_or(points.len()) - 1].wheel_rpm);
+    let tracks_up_to_rpm =
+        first_ok.map(|_| points[first_bad.unwrap_or(points.len()) - 1].wheel_rpm);
     let first_failure_rpm = first_bad.map(|j| points[j].wheel_rpm);
     // The shadow lasts `arc_s / n`; the formula's limit is where all of it
     // is needed to reach the threshold, so at `n` the dip spends
@@ -221,7 +227,7 @@ pub fn plot(reports: &[SweepReport], path: &Path) -> Result<PathBuf> {
         color: plot::SET_POINT,
         points: vec![(0.0, 0.0), (max, max)],
         dots: false,
-            width: 2,
+        width: 2,
     }];
     let names: Vec<String> = reports
         .iter()
@@ -232,7 +238,11 @@ pub fn plot(reports: &[SweepReport], path: &Path) -> Result<PathBuf> {
         series.push(Series {
             name: &names[i],
             color,
-            points: r.points.iter().map(|p| (p.wheel_rpm, p.light_rpm)).collect(),
+            points: r
+                .points
+                .iter()
+                .map(|p| (p.wheel_rpm, p.light_rpm))
+                .collect(),
             dots: true,
             width: 2,
         });
@@ -246,7 +256,10 @@ pub fn plot(reports: &[SweepReport], path: &Path) -> Result<PathBuf> {
             });
         }
     }
-    let title = format!("{}: light-sensor rpm against true wheel rpm", reports[0].preset);
+    let title = format!(
+        "{}: light-sensor rpm against true wheel rpm",
+        reports[0].preset
+    );
     let axes = Axes {
         title: &title,
         x_label: "true wheel rpm",
