@@ -11,9 +11,11 @@ use twin::scenario::Scenario;
 
 use super::run::Progress;
 
-/// Step the set point and measure the response of the true wheel speed, the
-/// motor's own rpm (hall edges; the encoder on the seed-002 bench) and the
-/// light sensor's rpm: 10–90 % rise time, overshoot, 2 % settling time,
+/// Step response of the wheel, the hall rpm and the light-sensor rpm: rise, overshoot, settling, delay.
+///
+/// Steps the set point and measures the true wheel speed, the motor's own
+/// rpm (hall edges; the encoder on the seed-002 bench) and the light
+/// sensor's rpm: 10–90 % rise time, overshoot, 2 % settling time,
 /// steady-state error and each sensor's delay behind the true speed.
 ///
 /// Closed loop (default): SCENARIO's supervisor (default `ev-meb`) steps its
@@ -149,7 +151,7 @@ fn print_report(r: &StepReport) {
         r.light_detector, r.light_limit_rpm
     );
     println!(
-        "  {:14} {:>9} {:>9} {:>11} {:>10} {:>12} {:>13} {:>10}",
+        "  {:16} {:>9} {:>9} {:>11} {:>10} {:>12} {:>13} {:>10}",
         "signal (rpm)",
         "initial",
         "final",
@@ -163,7 +165,7 @@ fn print_report(r: &StepReport) {
     for s in &r.signals {
         match &s.metrics {
             Some(m) => println!(
-                "  {:14} {:>9.1} {:>9.1} {:>11} {:>8.1} % {:>12} {:>13} {:>10}",
+                "  {:16} {:>9.1} {:>9.1} {:>11} {:>8.1} % {:>12} {:>13} {:>10}",
                 s.signal,
                 m.initial,
                 m.final_value,
@@ -174,10 +176,10 @@ fn print_report(r: &StepReport) {
                     .map_or("—".to_string(), |e| format!("{e:.1}")),
                 secs(s.delay_s)
             ),
-            None => println!("  {:14} no step figures", s.signal),
+            None => println!("  {:16} no step figures", s.signal),
         }
         if let Some(note) = &s.note {
-            println!("  {:14} ({note})", "");
+            println!("  {:16} ({note})", "");
         }
     }
     if r.mode == "open-loop" {

@@ -10,13 +10,16 @@ use twin::experiment::sweep::{self, SweepConfig, SweepReport};
 
 use super::run::Progress;
 
-/// Run the wheel open loop at a range of speeds and hold the light sensor's
-/// rpm against the true rpm: below the fastest speed the photoresistor sees
+/// Light-sensor rpm against true rpm over a range of speeds: where the flag is lost.
+///
+/// Runs the wheel open loop at each speed and holds the light sensor's rpm
+/// against the true rpm: below the fastest speed the photoresistor sees
 /// (derived in plant/src/light.rs and printed here) it tracks, above it the
 /// reading falls to 0 or to a fraction of the speed.
 ///
 /// Each speed is reached with the VEL the DC motor's steady state asks for,
-/// held for SETTLE seconds, then averaged over MEASURE seconds. Prints a
+/// held for `--settle` seconds, then averaged over `--measure` seconds (at
+/// least four and three turns of the wheel). Prints a
 /// table; with `--out DIR` writes DIR/sweep.json, DIR/sweep.png and one
 /// recording per speed in DIR/runs/.
 #[derive(Debug, Args)]

@@ -85,6 +85,7 @@ pub fn line_plot(path: &Path, axes: &Axes, series: &[Series], size: (u32, u32)) 
         let mut chart = ChartBuilder::on(&root)
             .caption(axes.title, ("sans-serif", 22))
             .margin(12)
+            .margin_right(28)
             .x_label_area_size(42)
             .y_label_area_size(64)
             .build_cartesian_2d(x0..x1, y0..y1)?;
@@ -93,6 +94,8 @@ pub fn line_plot(path: &Path, axes: &Axes, series: &[Series], size: (u32, u32)) 
             .x_desc(axes.x_label)
             .y_desc(axes.y_label)
             .label_style(("sans-serif", 15))
+            .x_label_formatter(&|v| tick(*v))
+            .y_label_formatter(&|v| tick(*v))
             .light_line_style(RGBColor(235, 235, 235))
             .draw()?;
         for s in series {
@@ -143,4 +146,14 @@ pub fn fit_range(values: impl Iterator<Item = f64>, margin: f64) -> (f64, f64) {
     }
     let pad = ((hi - lo) * margin).max(1e-9);
     (lo - pad, hi + pad)
+}
+
+/// A tick label with no more decimals than it needs.
+fn tick(v: f64) -> String {
+    if (v - v.round()).abs() < 1e-9 {
+        format!("{v:.0}")
+    } else {
+        let s = format!("{v:.2}");
+        s.trim_end_matches('0').to_string()
+    }
 }

@@ -120,6 +120,15 @@ pub fn instruments(params: &PlantParams, preset: &str, adaptive: bool) -> Vec<Bo
     }
 }
 
+/// What the motor's own speed sensor is on a bench.
+fn motor_signal(preset: &str) -> &'static str {
+    if preset == "controller-network" {
+        "motor (encoder)"
+    } else {
+        "motor (hall)"
+    }
+}
+
 /// The light detector a bench's firmware runs, and the fastest speed it
 /// sees by the formula of plant/src/light.rs.
 pub fn light_limit(params: &PlantParams, preset: &str, adaptive: bool) -> (String, f64) {
@@ -248,7 +257,7 @@ pub fn run(config: &StepConfig, recording: &Path, progress: impl FnMut(f64)) -> 
     let mut signals = Vec::new();
     for (signal, y) in [
         ("wheel (true)", &trace.wheel_rpm),
-        ("motor (hall)", &trace.motor_rpm),
+        (motor_signal(&preset), &trace.motor_rpm),
         ("light sensor", &trace.light_rpm),
     ] {
         let is_wheel = signal.starts_with("wheel");
@@ -476,7 +485,7 @@ pub fn plot(report: &StepReport, path: &Path) -> Result<()> {
         width: 2,
     });
     series.push(Series {
-        name: "motor (hall)",
+        name: report.signals[1].signal,
         color: plot::MOTOR,
         points: pts(&tr.motor_rpm),
         dots: false,

@@ -268,6 +268,6 @@ pub fn plot(reports: &[SweepReport], path: &Path) -> Result<PathBuf> {
         y_range: (0.0, max),
         legend_upper_left: true,
     };
-    plot::line_plot(path, &axes, &series, (960, 640))?;
+    plot::line_plot(path, &axes, &series, (880, 580))?;
     Ok(path.to_path_buf())
 }
