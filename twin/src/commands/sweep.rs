@@ -159,12 +159,12 @@ fn print_report(r: &SweepReport) {
         r.light_limit_rpm, r.every_dip_sampled_below_rpm
     );
     println!(
-        "  {:>6} {:>10} {:>10} {:>10} {:>8}",
-        "VEL %", "true rpm", "hall rpm", "light rpm", "light/true"
+        "  {:>6} {:>10} {:>10} {:>10} {:>10}",
+        "VEL %", "true rpm", "motor rpm", "light rpm", "light/true"
     );
     for p in &r.points {
         println!(
-            "  {:>6.2} {:>10.1} {:>10.1} {:>10.1} {:>8.3}{}",
+            "  {:>6.2} {:>10.1} {:>10.1} {:>10.1} {:>10.3}{}",
             p.vel_fraction * 100.0,
             p.wheel_rpm,
             p.motor_rpm,
