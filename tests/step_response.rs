@@ -156,6 +156,14 @@ fn pausing_a_run_to_sample_it_changes_nothing() {
     )
     .expect("paused run");
     assert_eq!(samples, 1501);
-    let (a, b) = (std::fs::read(&plain).unwrap(), std::fs::read(&paused).unwrap());
-    assert!(a == b, "recordings differ ({} and {} bytes)", a.len(), b.len());
+    let (a, b) = (
+        std::fs::read(&plain).unwrap(),
+        std::fs::read(&paused).unwrap(),
+    );
+    assert!(
+        a == b,
+        "recordings differ ({} and {} bytes)",
+        a.len(),
+        b.len()
+    );
 }
