@@ -167,3 +167,45 @@ fn pausing_a_run_to_sample_it_changes_nothing() {
         b.len()
     );
 }
+
+#[test]
+fn the_seed002_masters_own_step_with_both_sensors() {
+    let config = StepConfig {
+        drive: StepDrive::ClosedLoop {
+            scenario: Box::new(Scenario::load("controller-network").expect("embedded")),
+        },
+        // Ignored: the Raspberry Pi master runs its own set points.
+        from: f64::NAN,
+        to: f64::NAN,
+        step_at_s: 0.0,
+        duration_s: 30.0,
+        seed: 1,
+    };
+    let report = step::run(&config, &scratch("seed002.mcap"), |_| {}).expect("step runs");
+    // The master's handshake puts the motor node in operational at its
+    // set point of 10000 motor rpm: 100 wheel rpm behind the 100:1 gearbox.
+    assert_eq!((report.from, report.to), (0.0, 100.0));
+    assert!(report.step_at_s < 1.0, "{}", report.step_at_s);
+    // Measured until the master toggles to 5000 rpm (every 20th cycle).
+    assert!((10.0..20.0).contains(&report.figures_until_s));
+    let row = |name: &str| {
+        report
+            .signals
+            .iter()
+            .find(|s| s.signal.starts_with(name))
+            .unwrap_or_else(|| panic!("no {name} row"))
+    };
+    assert_eq!(row("motor").signal, "motor (encoder)");
+    let wheel = row("wheel").metrics.expect("wheel");
+    let encoder = row("motor").metrics.expect("encoder");
+    assert!((wheel.final_value - 100.0).abs() < 3.0, "{wheel:?}");
+    assert!((encoder.final_value - wheel.final_value).abs() < 2.0);
+    // The encoder's 20 ms windows lag a little; the light node's blend of
+    // five samples and one reading per turn (0.6 s) lag far more.
+    let (enc_delay, light_delay) = (
+        row("motor").delay_s.expect("encoder delay"),
+        row("light").delay_s.expect("light delay"),
+    );
+    assert!((0.005..0.05).contains(&enc_delay), "{enc_delay}");
+    assert!(light_delay > 0.6, "{light_delay}");
+}

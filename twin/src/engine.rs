@@ -54,6 +54,9 @@ pub struct SpeedReadings {
     pub motor_shaft_rpm: Option<f64>,
     /// Wheel rpm from the photoresistor's dips.
     pub light_rpm: Option<f64>,
+    /// The speed the node's own loop holds, motor rpm (seed 002's motor
+    /// node: its set point while operational, 0 otherwise).
+    pub set_point_motor_rpm: Option<f64>,
 }
 
 /// One bench module and the plant time it has reached.

@@ -203,8 +203,15 @@ impl SimNode for FaultyNode<MotorNode> {
         )
     }
     fn speed_readings(&self) -> SpeedReadings {
+        let m = self.inner();
+        let running = m.state() == nodes::seed002::MotorState::Operational;
         SpeedReadings {
-            motor_shaft_rpm: Some(f64::from(self.inner().latched_rpm())),
+            motor_shaft_rpm: Some(f64::from(m.latched_rpm())),
+            set_point_motor_rpm: Some(if running {
+                f64::from(m.set_point())
+            } else {
+                0.0
+            }),
             ..SpeedReadings::default()
         }
     }

@@ -126,13 +126,28 @@ fn sweep_prints_where_the_light_sensor_fails_and_writes_its_files() {
 
 #[test]
 fn what_cannot_run_is_refused_with_the_reason() {
-    let o = twin(&["step", "controller-network"]);
+    // A bench with nothing on its bus to take a set point.
+    let dir = scratch("refusals");
+    std::fs::create_dir_all(&dir).expect("scratch folder");
+    let lonely = dir.join("lonely.toml");
+    std::fs::write(
+        &lonely,
+        "name = \"lonely\"\nduration_s = 1.0\n[[module]]\nname = \"m\"\n[[bus]]\nname = \"b\"\n",
+    )
+    .expect("scenario file");
+    let o = twin(&["step", lonely.to_str().expect("utf-8 path")]);
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(
-        err.contains("no supervisor") && err.contains("--open-loop"),
+        err.contains("neither a supervisor") && err.contains("--open-loop"),
         "{err}"
     );
+
+    // The seed-002 master runs its own set points.
+    let o = twin(&["step", "controller-network", "--to", "120"]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("its own set points"), "{err}");
 
     let o = twin(&["step", "--at", "8", "--duration", "5"]);
     assert!(!o.status.success());
@@ -156,4 +171,5 @@ fn what_cannot_run_is_refused_with_the_reason() {
         "{}",
         String::from_utf8_lossy(&o.stderr)
     );
+    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -7,7 +7,7 @@ use plant::PlantParams;
 use plant::params::PRESETS;
 use std::path::PathBuf;
 use twin::experiment::step::{self, StepConfig, StepDrive, StepReport};
-use twin::scenario::Scenario;
+use twin::scenario::{NodeSpec, Scenario};
 
 use super::run::Progress;
 
@@ -19,7 +19,9 @@ use super::run::Progress;
 /// steady-state error and each sensor's delay behind the true speed.
 ///
 /// Closed loop (default): SCENARIO's supervisor (default `ev-meb`) steps its
-/// set point from FROM to TO rpm and closes the loop over the bus. With
+/// set point from FROM to TO rpm and closes the loop over the bus; in the
+/// `controller-network` scenario the seed-002 master runs its own set points
+/// and its first step after `--at` is measured. With
 /// `--open-loop` the bench alone steps VEL from FROM to TO (fractions of its
 /// 5 V range) while the firmware's estimators read its sensors.
 ///
@@ -41,12 +43,13 @@ pub struct StepArgs {
     /// [default: 200 rpm; 0.045 open loop].
     #[arg(long, value_name = "VALUE", allow_negative_numbers = true)]
     to: Option<f64>,
-    /// Time of the step (s).
-    #[arg(long, default_value_t = 2.0, value_name = "SECONDS")]
-    at: f64,
-    /// Simulated duration (s).
-    #[arg(long, default_value_t = 6.0, value_name = "SECONDS")]
-    duration: f64,
+    /// Time of the step (s); with the seed-002 master, the first change of its
+    /// set point at or after this time is measured [default: 2 s; 0 s seed 002].
+    #[arg(long, value_name = "SECONDS")]
+    at: Option<f64>,
+    /// Simulated duration (s) [default: 6 s; 30 s seed 002].
+    #[arg(long, value_name = "SECONDS")]
+    duration: Option<f64>,
     /// Seed of every random draw (sensor noise, bit errors).
     #[arg(long, default_value_t = 1)]
     seed: u64,
@@ -93,17 +96,36 @@ pub fn execute(args: &StepArgs) -> Result<()> {
             scenario: Box::new(Scenario::load(name)?),
         }
     };
+    // Seed 002's master runs its own set points: its step is measured.
+    let own_schedule = match &drive {
+        StepDrive::ClosedLoop { scenario } => !scenario
+            .nodes
+            .iter()
+            .any(|n| matches!(n, NodeSpec::Supervisor { .. })),
+        StepDrive::OpenLoop { .. } => false,
+    };
+    if own_schedule && (args.from.is_some() || args.to.is_some()) {
+        bail!(
+            "this scenario's master (seed 002's Raspberry Pi) runs its own set points, so \
+             --from and --to do not apply: give --at to pick which of its steps to measure"
+        );
+    }
     let (from, to) = if args.open_loop {
         (args.from.unwrap_or(0.025), args.to.unwrap_or(0.045))
     } else {
         (args.from.unwrap_or(100.0), args.to.unwrap_or(200.0))
     };
+    let (at, duration) = if own_schedule {
+        (0.0, 30.0)
+    } else {
+        (2.0, 6.0)
+    };
     let config = StepConfig {
         drive,
         from,
         to,
-        step_at_s: args.at,
-        duration_s: args.duration,
+        step_at_s: args.at.unwrap_or(at),
+        duration_s: args.duration.unwrap_or(duration),
         seed: args.seed,
     };
     let recording = match &args.out {

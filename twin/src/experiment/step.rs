@@ -28,7 +28,7 @@ use crate::virtual_run;
 /// Samples of the traces per simulated second.
 pub const SAMPLE_HZ: f64 = 500.0;
 /// Longest lag looked for between a sensor and the true speed (s).
-const MAX_DELAY_S: f64 = 2.0;
+const MAX_DELAY_S: f64 = 5.0;
 
 /// What drives the step.
 #[derive(Debug, Clone)]
@@ -85,6 +85,8 @@ pub struct StepReport {
     pub from: f64,
     pub to: f64,
     pub step_at_s: f64,
+    /// The figures are taken up to here (the next set-point change, or the end).
+    pub figures_until_s: f64,
     pub duration_s: f64,
     pub seed: u64,
     /// Fastest wheel speed the light detector sees (plant/src/light.rs).
@@ -160,20 +162,37 @@ pub fn light_limit(params: &PlantParams, preset: &str, adaptive: bool) -> (Strin
     }
 }
 
-/// Combine the instruments' readings into (motor, light) wheel rpm.
-pub fn read_instruments(instruments: &[Box<dyn SimNode>], gear_ratio: f64) -> (f64, f64) {
+/// What a bench's instruments read, in wheel rpm.
+#[derive(Debug, Clone, Copy)]
+pub struct Reading {
+    /// The motor's own sensor (hall edges, or the encoder over the gearbox).
+    pub motor: f64,
+    pub light: f64,
+    /// The set point a node's own loop holds, if one does.
+    pub set_point: Option<f64>,
+}
+
+/// Combine the instruments' readings (NaN where none reads).
+pub fn read_instruments<'a>(
+    instruments: impl IntoIterator<Item = &'a dyn SimNode>,
+    gear_ratio: f64,
+) -> Reading {
     let mut r = SpeedReadings::default();
     for i in instruments {
         let x = i.speed_readings();
         r.hall_wheel_rpm = r.hall_wheel_rpm.or(x.hall_wheel_rpm);
         r.motor_shaft_rpm = r.motor_shaft_rpm.or(x.motor_shaft_rpm);
         r.light_rpm = r.light_rpm.or(x.light_rpm);
+        r.set_point_motor_rpm = r.set_point_motor_rpm.or(x.set_point_motor_rpm);
     }
-    let motor = r
-        .hall_wheel_rpm
-        .or(r.motor_shaft_rpm.map(|m| m / gear_ratio))
-        .unwrap_or(f64::NAN);
-    (motor, r.light_rpm.unwrap_or(f64::NAN))
+    Reading {
+        motor: r
+            .hall_wheel_rpm
+            .or(r.motor_shaft_rpm.map(|m| m / gear_ratio))
+            .unwrap_or(f64::NAN),
+        light: r.light_rpm.unwrap_or(f64::NAN),
+        set_point: r.set_point_motor_rpm.map(|m| m / gear_ratio),
+    }
 }
 
 /// What the recording's `/experiment/step` channel holds.
@@ -201,6 +220,18 @@ impl Trace {
     }
 }
 
+/// What a runner hands back: the traces, the bench, and the step it made.
+struct Ran {
+    trace: Trace,
+    params: PlantParams,
+    preset: String,
+    from: f64,
+    to: f64,
+    step_at_s: f64,
+    /// Samples the figures are taken over: up to the next set-point change.
+    until: usize,
+}
+
 /// Run the experiment, record it to `recording`, and measure it.
 pub fn run(config: &StepConfig, recording: &Path, progress: impl FnMut(f64)) -> Result<StepReport> {
     if !(config.duration_s.is_finite() && config.duration_s > 0.0) {
@@ -216,7 +247,7 @@ pub fn run(config: &StepConfig, recording: &Path, progress: impl FnMut(f64)) -> 
             config.duration_s
         );
     }
-    let (trace, mode, bench, unit, params, preset, adaptive) = match &config.drive {
+    let (ran, mode, bench, unit, adaptive) = match &config.drive {
         StepDrive::OpenLoop {
             params,
             preset,
@@ -224,57 +255,58 @@ pub fn run(config: &StepConfig, recording: &Path, progress: impl FnMut(f64)) -> 
         } => {
             let trace =
                 run_open_loop(config, params, preset, *adaptive_light, recording, progress)?;
-            (
+            let ran = Ran {
+                until: trace.time_s.len(),
                 trace,
+                params: (**params).clone(),
+                preset: preset.clone(),
+                from: config.from,
+                to: config.to,
+                step_at_s: config.step_at_s,
+            };
+            (
+                ran,
                 "open-loop",
                 preset.clone(),
                 "VEL fraction",
-                (**params).clone(),
-                preset.clone(),
                 *adaptive_light,
             )
         }
         StepDrive::ClosedLoop { scenario } => {
-            let (trace, params, preset) = run_closed_loop(config, scenario, recording, progress)?;
-            (
-                trace,
-                "closed-loop",
-                scenario.name.clone(),
-                "rpm",
-                params,
-                preset,
-                false,
-            )
+            let ran = run_closed_loop(config, scenario, recording, progress)?;
+            (ran, "closed-loop", scenario.name.clone(), "rpm", false)
         }
     };
-    let (light_detector, light_limit_rpm) = light_limit(&params, &preset, adaptive);
+    let (light_detector, light_limit_rpm) = light_limit(&ran.params, &ran.preset, adaptive);
     let closed = mode == "closed-loop";
-    let t = &trace.time_s;
+    let n = ran.until;
+    let t = &ran.trace.time_s[..n];
+    let wheel = &ran.trace.wheel_rpm[..n];
+    let at = ran.step_at_s;
     let options = StepOptions::default();
-    let wheel_final = step_metrics(t, &trace.wheel_rpm, config.step_at_s, None, &options)
+    let wheel_final = step_metrics(t, wheel, at, None, &options)
         .ok()
         .map(|m| m.final_value);
     let mut signals = Vec::new();
     for (signal, y) in [
-        ("wheel (true)", &trace.wheel_rpm),
-        (motor_signal(&preset), &trace.motor_rpm),
-        ("light sensor", &trace.light_rpm),
+        ("wheel (true)", wheel),
+        (motor_signal(&ran.preset), &ran.trace.motor_rpm[..n]),
+        ("light sensor", &ran.trace.light_rpm[..n]),
     ] {
         let is_wheel = signal.starts_with("wheel");
         // Closed loop the set point is the reference; open loop a sensor is
         // held against the true speed.
         let reference = if closed {
-            Some(config.to)
+            Some(ran.to)
         } else if is_wheel {
             None
         } else {
             wheel_final
         };
-        let (mut metrics, mut note) =
-            match step_metrics(t, y, config.step_at_s, reference, &options) {
-                Ok(m) => (Some(m), None),
-                Err(e) => (None, Some(e.to_string())),
-            };
+        let (mut metrics, mut note) = match step_metrics(t, y, at, reference, &options) {
+            Ok(m) => (Some(m), None),
+            Err(e) => (None, Some(e.to_string())),
+        };
         // A light sensor that ends at 0 has not responded: it lost the flag.
         let reads_zero = match (&metrics, y.last()) {
             (Some(m), _) => m.final_value.abs() < 1.0,
@@ -291,9 +323,13 @@ pub fn run(config: &StepConfig, recording: &Path, progress: impl FnMut(f64)) -> 
             });
         }
         let delay_s = match metrics {
-            Some(_) if !is_wheel => {
-                delay(t, &trace.wheel_rpm, y, config.step_at_s, MAX_DELAY_S).ok()
-            }
+            Some(_) if !is_wheel => match delay(t, wheel, y, at, MAX_DELAY_S) {
+                Ok(d) => Some(d),
+                Err(e) => {
+                    note = note.or(Some(format!("no delay: {e}")));
+                    None
+                }
+            },
             _ => None,
         };
         signals.push(SignalFigures {
@@ -307,16 +343,17 @@ pub fn run(config: &StepConfig, recording: &Path, progress: impl FnMut(f64)) -> 
         mode,
         bench,
         set_point_unit: unit,
-        from: config.from,
-        to: config.to,
-        step_at_s: config.step_at_s,
+        from: ran.from,
+        to: ran.to,
+        step_at_s: at,
+        figures_until_s: t.last().copied().unwrap_or(0.0),
         duration_s: config.duration_s,
         seed: config.seed,
         light_limit_rpm,
         light_detector,
         signals,
         recording: recording.to_path_buf(),
-        trace,
+        trace: ran.trace,
     })
 }
 
@@ -359,13 +396,13 @@ fn run_open_loop(
             }
         }
         if k.is_multiple_of(sample_every) {
-            let (motor, light) = read_instruments(&instruments, ratio);
+            let r = read_instruments(instruments.iter().map(|b| b.as_ref()), ratio);
             let vel = ol.actuators_at(sensors.time_s - 0.5 * ol.step_s).vel_volts / 5.0;
             let sample = StepSample {
                 set_point: vel,
                 wheel_rpm: sensors.wheel_rpm,
-                motor_rpm: motor,
-                light_rpm: light,
+                motor_rpm: r.motor,
+                light_rpm: r.light,
             };
             trace.push(rec, now.as_secs_f64(), sample)?;
         }
@@ -379,11 +416,11 @@ fn run_closed_loop(
     scenario: &Scenario,
     recording: &Path,
     progress: impl FnMut(f64),
-) -> Result<(Trace, PlantParams, String)> {
+) -> Result<Ran> {
     let mut scenario = scenario.clone();
     scenario.duration_s = config.duration_s;
     scenario.seed = config.seed;
-    let Some((slave, bus)) = scenario.nodes.iter_mut().find_map(|n| match n {
+    let supervised = scenario.nodes.iter_mut().find_map(|n| match n {
         NodeSpec::Supervisor {
             slaves,
             set_points,
@@ -394,26 +431,25 @@ fn run_closed_loop(
             slaves.first().map(|s| (*s, bus.clone()))
         }
         _ => None,
-    }) else {
-        bail!(
-            "scenario `{}` has no supervisor with a slave to give the set-point step to \
-             (the controller-network master runs its own schedule): use --open-loop, or a \
-             scenario with a `supervisor` node",
-            scenario.name
-        );
+    });
+    // The node whose module is watched: the supervisor's first slave, or
+    // seed 002's motor node, whose master runs its own set-point schedule.
+    let watched = match &supervised {
+        Some((slave, bus)) => scenario.nodes.iter().find_map(|n| match n {
+            NodeSpec::EvController {
+                bus: b, module, id, ..
+            } if id == slave && b == bus => Some(module.clone()),
+            _ => None,
+        }),
+        None => scenario.nodes.iter().find_map(|n| match n {
+            NodeSpec::MotorNode { module, .. } => Some(module.clone()),
+            _ => None,
+        }),
     };
-    let Some((controller, module)) = scenario.nodes.iter().find_map(|n| match n {
-        NodeSpec::EvController {
-            name,
-            bus: b,
-            module,
-            id,
-            ..
-        } if *id == slave && *b == bus => Some((name.clone(), module.clone())),
-        _ => None,
-    }) else {
+    let Some(module) = watched else {
         bail!(
-            "scenario `{}`: the supervisor's slave {slave} is no ev-controller on bus `{bus}`",
+            "scenario `{}` has neither a supervisor with an ev-controller slave nor a seed-002 \
+             motor node to give a set-point step to: use --open-loop, or such a scenario",
             scenario.name
         );
     };
@@ -421,7 +457,7 @@ fn run_closed_loop(
         .modules
         .iter()
         .find(|m| m.name == module)
-        .context("the controller's module is not declared")?;
+        .context("the watched module is not declared")?;
     let params = scenario.module_params(spec)?;
     let preset = spec.preset.clone();
     let ratio = params.gearbox.ratio;
@@ -434,25 +470,71 @@ fn run_closed_loop(
         progress,
         Some(period),
         |now, engine, rec| {
-            let Some(node) = engine.nodes.iter().find(|n| n.name == controller) else {
-                bail!("node `{controller}` is missing from the engine");
+            let Some(m) = engine.modules.iter().position(|m| m.name == module) else {
+                bail!("module `{module}` is missing from the engine");
             };
-            let Some(m) = node.module.and_then(|m| engine.modules.get(m)) else {
-                bail!("node `{controller}` has no module");
-            };
-            let (motor, light) = read_instruments(std::slice::from_ref(&node.node), ratio);
+            let nodes = engine
+                .nodes
+                .iter()
+                .filter(|n| n.module == Some(m))
+                .map(|n| n.node.as_ref());
+            let r = read_instruments(nodes, ratio);
             let t = now.as_secs_f64();
+            let set_point = match (&supervised, r.set_point) {
+                (Some(_), _) => {
+                    if t + 1e-12 >= at {
+                        to
+                    } else {
+                        from
+                    }
+                }
+                (None, sp) => sp.unwrap_or(f64::NAN),
+            };
             let sample = StepSample {
-                set_point: if t + 1e-12 >= at { to } else { from },
-                wheel_rpm: m.plant.sensors().wheel_rpm,
-                motor_rpm: motor,
-                light_rpm: light,
+                set_point,
+                wheel_rpm: engine.modules[m].plant.sensors().wheel_rpm,
+                motor_rpm: r.motor,
+                light_rpm: r.light,
             };
             trace.push(rec, t, sample)
         },
     )
     .with_context(|| format!("scenario {} failed", scenario.name))?;
-    Ok((trace, params, preset))
+    if supervised.is_some() {
+        return Ok(Ran {
+            until: trace.time_s.len(),
+            trace,
+            params,
+            preset,
+            from,
+            to,
+            step_at_s: at,
+        });
+    }
+    // The seed-002 master's own step: the first change of the motor node's
+    // set point at or after `at`, measured until the next change.
+    let sp = &trace.set_point;
+    let tt = &trace.time_s;
+    let Some(i) = (1..sp.len()).find(|&i| tt[i] >= at && sp[i] != sp[i - 1]) else {
+        bail!(
+            "the motor node's set point does not change after {at} s in {} s of scenario {}: \
+             give a longer --duration or an earlier --at",
+            config.duration_s,
+            scenario.name
+        );
+    };
+    let until = (i + 1..sp.len())
+        .find(|&j| sp[j] != sp[i])
+        .unwrap_or(sp.len());
+    Ok(Ran {
+        from: sp[i - 1],
+        to: sp[i],
+        step_at_s: tt[i - 1],
+        until,
+        trace,
+        params,
+        preset,
+    })
 }
 
 /// The plot of `step.png`: set point (closed loop), true wheel, motor and

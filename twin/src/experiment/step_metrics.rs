@@ -66,6 +66,8 @@ pub enum StepMetricsError {
     Flat { value: f64 },
     #[error("non-finite value at sample {index}")]
     NotFinite { index: usize },
+    #[error("the lag is {max_delay_s} s or more, beyond what was searched")]
+    DelayBeyondSearch { max_delay_s: f64 },
 }
 
 /// Step figures of `y(t)` for a step at `step_at_s`; `reference_final` is the
@@ -156,7 +158,7 @@ fn check_series(t: &[f64], y: &[f64]) -> Result<(), StepMetricsError> {
 }
 
 /// How long `lagging` trails `reference` after a step at `step_at_s`: the
-/// shift, from 0 to `max_delay_s`, that minimises the squared difference of
+/// shift, from 0 to under `max_delay_s`, that minimises the squared difference of
 /// their normalised step responses over the samples after the step, refined
 /// between samples by a parabola through the best three shifts. Both series
 /// share the times `t`, which must be evenly spaced (a recording's are).
@@ -189,6 +191,11 @@ pub fn delay(
     let best = (0..costs.len())
         .min_by(|&a, &b| costs[a].total_cmp(&costs[b]))
         .unwrap_or(0);
+    if best == max_lag && max_lag > 0 {
+        return Err(StepMetricsError::DelayBeyondSearch {
+            max_delay_s: max_lag as f64 * dt,
+        });
+    }
     let mut lag = best as f64;
     if best > 0 && best + 1 < costs.len() {
         let (a, b, c) = (costs[best - 1], costs[best], costs[best + 1]);
@@ -347,6 +354,13 @@ mod tests {
         assert!(step_metrics(&[0.0, 1.0], &[0.0, f64::NAN], 0.5, None, &opts).is_err());
         assert!(step_metrics(&[], &[], 0.5, None, &opts).is_err());
         assert!(delay(&[0.0, 1.0], &[0.0, 1.0], &[0.0], 0.5, 1.0).is_err());
+        // A lag longer than the search is refused, not clamped.
+        let t = grid(1e-3, 2.0);
+        let (a, b) = (first_order(&t, 0.2, 0.05), first_order(&t, 0.9, 0.05));
+        assert!(matches!(
+            delay(&t, &a, &b, 0.2, 0.3),
+            Err(StepMetricsError::DelayBeyondSearch { .. })
+        ));
     }
 
     #[test]

@@ -188,10 +188,10 @@ fn run_one(
             }
         }
         if sensors.time_s > settle_s {
-            let r = super::step::read_instruments(&instruments, ratio);
+            let r = super::step::read_instruments(instruments.iter().map(|b| b.as_ref()), ratio);
             wheel += sensors.wheel_rpm;
-            motor += r.0;
-            light += r.1;
+            motor += r.motor;
+            light += r.light;
             count += 1;
         }
         Ok(())
