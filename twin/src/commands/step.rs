@@ -172,6 +172,12 @@ fn print_report(r: &StepReport) {
         "  light detector: {}; it sees the flag up to {:.0} rpm",
         r.light_detector, r.light_limit_rpm
     );
+    if r.figures_until_s + 1e-6 < r.duration_s {
+        println!(
+            "  figures from the step to {:.3} s, where the set point changes again",
+            r.figures_until_s
+        );
+    }
     println!(
         "  {:16} {:>9} {:>9} {:>11} {:>10} {:>12} {:>13} {:>10}",
         "signal (rpm)",
