@@ -209,3 +209,45 @@ fn the_seed002_masters_own_step_with_both_sensors() {
     assert!((0.005..0.05).contains(&enc_delay), "{enc_delay}");
     assert!(light_delay > 0.6, "{light_delay}");
 }
+
+#[test]
+fn open_loop_wheel_step_is_the_dc_motors_first_order_lag() {
+    // Wheel speed ω in the DC-motor model: J ω' = k n i - b ω - T_c with
+    // i = (D V - k n ω) / R (the inductance's ms are negligible here), so a
+    // step of the duty D is a first-order lag of τ = J / (b + (k n)² / R).
+    let p = PlantParams::vemodule();
+    let (k, r, n) = (
+        p.motor.torque_constant,
+        p.motor.resistance_ohm,
+        p.gearbox.ratio,
+    );
+    let j = 0.5 * p.wheel.mass_kg * p.wheel.radius_m.powi(2) + p.motor.rotor_inertia * n * n;
+    let tau = j / (p.wheel.viscous_friction_nms + (k * n).powi(2) / r);
+    let config = StepConfig {
+        drive: StepDrive::OpenLoop {
+            params: Box::new(p),
+            preset: "vemodule".into(),
+            adaptive_light: false,
+        },
+        from: 0.025,
+        to: 0.045,
+        step_at_s: 2.0,
+        duration_s: 2.0 + 12.0 * tau,
+        seed: 1,
+    };
+    let report = step::run(&config, &scratch("open.mcap"), |_| {}).expect("step runs");
+    let wheel = report.signals[0].metrics.expect("wheel figures");
+    let rise = wheel.rise_time_s.expect("rises");
+    let settle = wheel.settling_time_s.expect("settles");
+    assert!(
+        (rise / (9f64.ln() * tau) - 1.0).abs() < 0.03,
+        "rise {rise} s, 2.197 τ = {} s",
+        9f64.ln() * tau
+    );
+    assert!(
+        (settle / (50f64.ln() * tau) - 1.0).abs() < 0.03,
+        "settling {settle} s, 3.912 τ = {} s",
+        50f64.ln() * tau
+    );
+    assert!(wheel.overshoot_pct < 0.5, "{wheel:?}");
+}
