@@ -5,6 +5,7 @@
 
 use plant::PlantParams;
 use std::path::PathBuf;
+use twin::experiment::instruments;
 use twin::experiment::step::{self, StepConfig, StepDrive};
 use twin::experiment::sweep::{self, SweepConfig, TRACKING_TOLERANCE};
 use twin::scenario::Scenario;
@@ -72,7 +73,7 @@ fn closed_loop_step_figures_of_both_sensors() {
 
 /// Mean light rpm over true rpm at `fraction` × the detector's limit.
 fn light_ratio_at(params: &PlantParams, preset: &str, adaptive: bool, fraction: f64) -> f64 {
-    let (_, limit) = step::light_limit(params, preset, adaptive);
+    let (_, limit) = instruments::light_limit(params, preset, adaptive);
     let config = SweepConfig {
         params: params.clone(),
         preset: preset.into(),
@@ -98,7 +99,7 @@ fn light_ratio_at(params: &PlantParams, preset: &str, adaptive: bool, fraction: 
 fn ev_module_light_sensor_fails_where_plant_says_for_both_detectors() {
     let p = PlantParams::vemodule();
     for adaptive in [false, true] {
-        let (name, limit) = step::light_limit(&p, "vemodule", adaptive);
+        let (name, limit) = instruments::light_limit(&p, "vemodule", adaptive);
         let below = light_ratio_at(&p, "vemodule", adaptive, 0.9);
         let above = light_ratio_at(&p, "vemodule", adaptive, 1.1);
         assert!(
@@ -111,7 +112,7 @@ fn ev_module_light_sensor_fails_where_plant_says_for_both_detectors() {
         );
     }
     // The numbers the module docs of plant/src/light.rs give for the fixed threshold.
-    let (_, fixed) = step::light_limit(&p, "vemodule", false);
+    let (_, fixed) = instruments::light_limit(&p, "vemodule", false);
     assert!((fixed - 260.0).abs() < 2.0, "{fixed}");
 }
 
@@ -121,7 +122,7 @@ fn seed002_light_node_fails_below_the_formulas_speed_and_never_above() {
     // pass the light sensor's limit.
     let mut p = PlantParams::controller_network();
     p.gearbox.ratio = 20.0;
-    let (_, limit) = step::light_limit(&p, "controller-network", false);
+    let (_, limit) = instruments::light_limit(&p, "controller-network", false);
     assert!((limit - 248.0).abs() < 2.0, "{limit}");
     // Its 20 ms sampling misses dips that spend less than a sample below
     // 3.0 V: every dip is caught below about 0.67 × the limit.

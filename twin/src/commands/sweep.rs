@@ -87,7 +87,7 @@ pub fn execute(args: &SweepArgs) -> Result<()> {
             Some([a, b]) => (*a, *b),
             _ => {
                 let (_, limit) =
-                    twin::experiment::step::light_limit(&params, &args.preset, adaptive);
+                    twin::experiment::instruments::light_limit(&params, &args.preset, adaptive);
                 (50.0, (1.6 * limit).round())
             }
         };

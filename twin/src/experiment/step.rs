@@ -9,18 +9,14 @@
 //! `RPM_M` and `RPM_L` registers are read from the running engine.
 
 use anyhow::{Context, Result, bail};
-use nodes::firmware::{EvController, EvControllerConfig};
-use nodes::link::{CheckKind, FaultyNode};
-use nodes::seed002::{LightConfig, LightNode, MotorConfig, MotorNode};
 use nodes::time::{SimDuration, SimTime};
-use plant::light::fixed_threshold_max_rpm;
 use plant::{PlantParams, Sensors};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 
+use super::instruments::{Instruments, light_limit, read_instruments};
 use super::plot::{self, Axes, Series};
 use super::step_metrics::{StepMetrics, StepOptions, delay, step_metrics};
-use crate::engine::{SimNode, SpeedReadings};
 use crate::openloop::{self, OpenLoop};
 use crate::scenario::{NodeSpec, Scenario};
 use crate::virtual_run;
@@ -98,100 +94,12 @@ pub struct StepReport {
     pub trace: Trace,
 }
 
-/// The firmware that reads a bench's speed sensors: the EV controller, or
-/// seed 002's motor and light-sensor nodes.
-pub fn instruments(params: &PlantParams, preset: &str, adaptive: bool) -> Vec<Box<dyn SimNode>> {
-    if preset == "controller-network" {
-        vec![
-            Box::new(FaultyNode::new(
-                MotorNode::new(MotorConfig::default()),
-                CheckKind::Modbus8,
-            )),
-            Box::new(FaultyNode::new(
-                LightNode::new(LightConfig::default()),
-                CheckKind::Modbus8,
-            )),
-        ]
-    } else {
-        let mut config = EvControllerConfig::for_plant(params);
-        config.light.adaptive = adaptive;
-        vec![Box::new(FaultyNode::new(
-            EvController::new(config),
-            CheckKind::Meb,
-        ))]
-    }
-}
-
 /// What the motor's own speed sensor is on a bench.
 fn motor_signal(preset: &str) -> &'static str {
     if preset == "controller-network" {
         "motor (encoder)"
     } else {
         "motor (hall)"
-    }
-}
-
-/// The light detector a bench's firmware runs, and the fastest speed it
-/// sees by the formula of plant/src/light.rs.
-pub fn light_limit(params: &PlantParams, preset: &str, adaptive: bool) -> (String, f64) {
-    let light = &params.light;
-    if preset == "controller-network" {
-        let th = LightConfig::default().dark_below_volts;
-        (
-            format!("seed-002 node, fixed {th:.2} V, 20 ms sampling"),
-            fixed_threshold_max_rpm(light, th),
-        )
-    } else {
-        let config = EvControllerConfig::for_plant(params).light;
-        let lsb = light.adc_reference_volts / f64::from(1u32 << light.adc_bits.clamp(1, 16));
-        if adaptive {
-            // In steady running the trackers span the swing the detector
-            // sees, so what limits it is the smallest swing it accepts.
-            let swing = f64::from(config.adaptive_min_swing_counts) * lsb;
-            (
-                format!("EV controller, adaptive (swing ≥ {swing:.3} V)"),
-                plant::light::adaptive_dip_max_rpm(light, swing),
-            )
-        } else {
-            let th = f64::from(config.threshold_counts) * lsb;
-            (
-                format!("EV controller, fixed {th:.2} V"),
-                fixed_threshold_max_rpm(light, th),
-            )
-        }
-    }
-}
-
-/// What a bench's instruments read, in wheel rpm.
-#[derive(Debug, Clone, Copy)]
-pub struct Reading {
-    /// The motor's own sensor (hall edges, or the encoder over the gearbox).
-    pub motor: f64,
-    pub light: f64,
-    /// The set point a node's own loop holds, if one does.
-    pub set_point: Option<f64>,
-}
-
-/// Combine the instruments' readings (NaN where none reads).
-pub fn read_instruments<'a>(
-    instruments: impl IntoIterator<Item = &'a dyn SimNode>,
-    gear_ratio: f64,
-) -> Reading {
-    let mut r = SpeedReadings::default();
-    for i in instruments {
-        let x = i.speed_readings();
-        r.hall_wheel_rpm = r.hall_wheel_rpm.or(x.hall_wheel_rpm);
-        r.motor_shaft_rpm = r.motor_shaft_rpm.or(x.motor_shaft_rpm);
-        r.light_rpm = r.light_rpm.or(x.light_rpm);
-        r.set_point_motor_rpm = r.set_point_motor_rpm.or(x.set_point_motor_rpm);
-    }
-    Reading {
-        motor: r
-            .hall_wheel_rpm
-            .or(r.motor_shaft_rpm.map(|m| m / gear_ratio))
-            .unwrap_or(f64::NAN),
-        light: r.light_rpm.unwrap_or(f64::NAN),
-        set_point: r.set_point_motor_rpm.map(|m| m / gear_ratio),
     }
 }
 
@@ -379,24 +287,15 @@ fn run_open_loop(
     ol.record_hz = 200.0;
     let step = SimDuration::from_secs_f64(ol.step_s);
     let sample_every = ((1.0 / SAMPLE_HZ) / ol.step_s).round().max(1.0) as u64;
-    let mut instruments = instruments(params, preset, adaptive);
-    let mut next_tick: Vec<SimTime> = vec![SimTime::ZERO; instruments.len()];
-    let ratio = params.gearbox.ratio;
+    let mut instruments = Instruments::new(params, preset, adaptive);
     let mut trace = Trace::default();
     let mut k = 0u64;
     openloop::run_with(&ol, recording, progress, |rec, sensors: &Sensors| {
         k += 1;
         let now = SimTime::ZERO + SimDuration(step.0 * k);
-        for (i, node) in instruments.iter_mut().enumerate() {
-            if let Some(fw) = node.firmware()
-                && now >= next_tick[i]
-            {
-                fw.loop_tick(now, sensors);
-                next_tick[i] = now + fw.loop_period();
-            }
-        }
+        instruments.tick(now, sensors);
         if k.is_multiple_of(sample_every) {
-            let r = read_instruments(instruments.iter().map(|b| b.as_ref()), ratio);
+            let r = instruments.read();
             let vel = ol.actuators_at(sensors.time_s - 0.5 * ol.step_s).vel_volts / 5.0;
             let sample = StepSample {
                 set_point: vel,

@@ -10,8 +10,8 @@ use plant::PlantParams;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 
+use super::instruments::{Instruments, light_limit};
 use super::plot::{self, Axes, Series};
-use super::step::{instruments, light_limit};
 use crate::openloop::{self, OpenLoop};
 
 /// Within this fraction of the true speed the light sensor tracks it.
@@ -134,10 +134,8 @@ pub fn run(
     // is needed to reach the threshold, so at `n` the dip spends
     // `arc_s / n - arc_s / limit` below it.
     let arc_s = config.params.light.flag_arc_deg / 360.0 * 60.0;
-    let sample_s = instruments(&config.params, &config.preset, config.adaptive)
-        .iter_mut()
-        .filter_map(|n| n.firmware().map(|f| f.loop_period().as_secs_f64()))
-        .fold(0.0, f64::max);
+    let sample_s =
+        Instruments::new(&config.params, &config.preset, config.adaptive).sample_period_s();
     let every_dip_sampled_below_rpm = arc_s / (arc_s / light_limit_rpm + sample_s);
     Ok(SweepReport {
         preset: config.preset.clone(),
@@ -171,24 +169,15 @@ fn run_one(
     ol.vel_fraction = vel;
     ol.record_hz = 100.0;
     let step = SimDuration::from_secs_f64(ol.step_s);
-    let mut instruments = instruments(&config.params, &config.preset, config.adaptive);
-    let mut next_tick = vec![SimTime::ZERO; instruments.len()];
-    let ratio = config.params.gearbox.ratio;
+    let mut instruments = Instruments::new(&config.params, &config.preset, config.adaptive);
     let (mut wheel, mut motor, mut light, mut count) = (0.0, 0.0, 0.0, 0u64);
     let mut k = 0u64;
     openloop::run_with(&ol, path, progress, |_, sensors| {
         k += 1;
         let now = SimTime::ZERO + SimDuration(step.0 * k);
-        for (i, node) in instruments.iter_mut().enumerate() {
-            if let Some(fw) = node.firmware()
-                && now >= next_tick[i]
-            {
-                fw.loop_tick(now, sensors);
-                next_tick[i] = now + fw.loop_period();
-            }
-        }
+        instruments.tick(now, sensors);
         if sensors.time_s > settle_s {
-            let r = super::step::read_instruments(instruments.iter().map(|b| b.as_ref()), ratio);
+            let r = instruments.read();
             wheel += sensors.wheel_rpm;
             motor += r.motor;
             light += r.light;
