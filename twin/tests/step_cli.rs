@@ -173,3 +173,23 @@ fn what_cannot_run_is_refused_with_the_reason() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn a_missing_font_says_what_to_install_and_keeps_the_figures() {
+    let dir = scratch("font");
+    std::fs::create_dir_all(&dir).expect("scratch folder");
+    let not_a_font = dir.join("not-a-font.ttf");
+    std::fs::write(&not_a_font, b"plain text").expect("file");
+    let out = dir.join("out");
+    let o = Command::new(env!("CARGO_BIN_EXE_twin"))
+        .args(["step", "--open-loop", "--out", out.to_str().expect("utf-8")])
+        .env("TWIN_FONT", &not_a_font)
+        .output()
+        .expect("twin runs");
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("not a TrueType font"), "{err}");
+    // The run and its figures are not lost with the plot.
+    assert!(out.join("step.json").exists() && out.join("step.mcap").exists());
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -32,7 +32,9 @@ fn ensure_font() -> Result<()> {
                 // plotters keeps fonts for the process's lifetime.
                 let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
                 return plotters::style::register_font("sans-serif", FontStyle::Normal, bytes)
-                    .map_err(|_| format!("{path} is not a TrueType font"));
+                    .map_err(|_| {
+                        format!("{path} is not a TrueType font: point TWIN_FONT at a .ttf file")
+                    });
             }
         }
         Err(format!(
