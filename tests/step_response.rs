@@ -21,6 +21,7 @@ fn closed_loop_step_figures_of_both_sensors() {
     let config = StepConfig {
         drive: StepDrive::ClosedLoop {
             scenario: Box::new(Scenario::load("ev-meb").expect("embedded")),
+            on_light: false,
         },
         from: 100.0,
         to: 200.0,
@@ -174,6 +175,7 @@ fn the_seed002_masters_own_step_with_both_sensors() {
     let config = StepConfig {
         drive: StepDrive::ClosedLoop {
             scenario: Box::new(Scenario::load("controller-network").expect("embedded")),
+            on_light: false,
         },
         // Ignored: the Raspberry Pi master runs its own set points.
         from: f64::NAN,

@@ -2,7 +2,7 @@
 //! sensors), with its figures for the motor's and the light sensor's rpm.
 
 use anyhow::{Context, Result, bail};
-use clap::Args;
+use clap::{Args, ValueEnum};
 use plant::PlantParams;
 use plant::params::PRESETS;
 use std::path::PathBuf;
@@ -67,9 +67,19 @@ pub struct StepArgs {
     /// Open loop: run the EV controller's light detector in adaptive mode.
     #[arg(long, requires = "open_loop")]
     adaptive_light: bool,
+    /// Closed loop: the speed the supervisor's PI closes on, the hall rpm or
+    /// the light-sensor rpm.
+    #[arg(long, value_enum, default_value_t = Feedback::Hall, conflicts_with = "open_loop")]
+    feedback: Feedback,
     /// Folder for step.json, step.png and step.mcap [default: only step.mcap, here].
     #[arg(long, value_name = "DIR")]
     out: Option<PathBuf>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum Feedback {
+    Hall,
+    Light,
 }
 
 pub fn execute(args: &StepArgs) -> Result<()> {
@@ -94,11 +104,12 @@ pub fn execute(args: &StepArgs) -> Result<()> {
         let name = args.scenario.as_deref().unwrap_or("ev-meb");
         StepDrive::ClosedLoop {
             scenario: Box::new(Scenario::load(name)?),
+            on_light: args.feedback == Feedback::Light,
         }
     };
     // Seed 002's master runs its own set points: its step is measured.
     let own_schedule = match &drive {
-        StepDrive::ClosedLoop { scenario } => !scenario
+        StepDrive::ClosedLoop { scenario, .. } => !scenario
             .nodes
             .iter()
             .any(|n| matches!(n, NodeSpec::Supervisor { .. })),

@@ -37,7 +37,11 @@ pub enum StepDrive {
         adaptive_light: bool,
     },
     /// A scenario whose supervisor's set point steps from `from` to `to` rpm.
-    ClosedLoop { scenario: Box<Scenario> },
+    ClosedLoop {
+        scenario: Box<Scenario>,
+        /// Close the supervisor's loop on the light-sensor rpm, not the hall rpm.
+        on_light: bool,
+    },
 }
 
 /// One step experiment.
@@ -180,8 +184,8 @@ pub fn run(config: &StepConfig, recording: &Path, progress: impl FnMut(f64)) -> 
                 *adaptive_light,
             )
         }
-        StepDrive::ClosedLoop { scenario } => {
-            let ran = run_closed_loop(config, scenario, recording, progress)?;
+        StepDrive::ClosedLoop { scenario, on_light } => {
+            let ran = run_closed_loop(config, scenario, *on_light, recording, progress)?;
             (ran, "closed-loop", scenario.name.clone(), "rpm", false)
         }
     };
@@ -313,6 +317,7 @@ fn run_open_loop(
 fn run_closed_loop(
     config: &StepConfig,
     scenario: &Scenario,
+    on_light: bool,
     recording: &Path,
     progress: impl FnMut(f64),
 ) -> Result<Ran> {
@@ -324,9 +329,11 @@ fn run_closed_loop(
             slaves,
             set_points,
             bus,
+            use_light_rpm,
             ..
         } => {
             *set_points = vec![[0.0, config.from], [config.step_at_s, config.to]];
+            *use_light_rpm |= on_light;
             slaves.first().map(|s| (*s, bus.clone()))
         }
         _ => None,
@@ -399,6 +406,12 @@ fn run_closed_loop(
         },
     )
     .with_context(|| format!("scenario {} failed", scenario.name))?;
+    if supervised.is_none() && on_light {
+        bail!(
+            "scenario `{}`: only a supervisor can close its loop on the light sensor",
+            scenario.name
+        );
+    }
     if supervised.is_some() {
         return Ok(Ran {
             until: trace.time_s.len(),
