@@ -173,6 +173,10 @@ fn what_cannot_run_is_refused_with_the_reason() {
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("its own set points"), "{err}");
+    let o = twin(&["step", "controller-network", "--feedback", "light"]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("only a supervisor"), "{err}");
 
     let o = twin(&["step", "--at", "8", "--duration", "5"]);
     assert!(!o.status.success());

@@ -338,6 +338,12 @@ fn run_closed_loop(
         }
         _ => None,
     });
+    if supervised.is_none() && on_light {
+        bail!(
+            "scenario `{}`: only a supervisor can close its loop on the light sensor",
+            scenario.name
+        );
+    }
     // The node whose module is watched: the supervisor's first slave, or
     // seed 002's motor node, whose master runs its own set-point schedule.
     let watched = match &supervised {
@@ -406,12 +412,6 @@ fn run_closed_loop(
         },
     )
     .with_context(|| format!("scenario {} failed", scenario.name))?;
-    if supervised.is_none() && on_light {
-        bail!(
-            "scenario `{}`: only a supervisor can close its loop on the light sensor",
-            scenario.name
-        );
-    }
     if supervised.is_some() {
         return Ok(Ran {
             until: trace.time_s.len(),
