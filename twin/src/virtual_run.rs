@@ -82,7 +82,17 @@ pub fn build(scenario: &Scenario) -> Result<Engine> {
 }
 
 /// Run `scenario` and record it to `out`; `progress` gets the fraction done.
-pub fn run(scenario: &Scenario, out: &Path, mut progress: impl FnMut(f64)) -> Result<RunOutcome> {
+pub fn run(scenario: &Scenario, out: &Path, progress: impl FnMut(f64)) -> Result<RunOutcome> {
+    run_with(scenario, out, &mut crate::bench::DiscardObserver, progress)
+}
+
+/// Like [`run`], with `also` fed everything the recorder is (a live view).
+pub fn run_with(
+    scenario: &Scenario,
+    out: &Path,
+    also: &mut dyn crate::engine::Observer,
+    mut progress: impl FnMut(f64),
+) -> Result<RunOutcome> {
     let mut engine = build(scenario)?;
     let mut recorder = Recorder::create(out)?;
     recorder.write_metadata(
@@ -97,7 +107,11 @@ pub fn run(scenario: &Scenario, out: &Path, mut progress: impl FnMut(f64)) -> Re
     )?;
     let mut observer = McapObserver::new(recorder);
     let end = SimTime::ZERO + SimDuration::from_secs_f64(scenario.duration_s);
-    engine.run_until(end, &mut observer, |t| {
+    let mut both = crate::view::Tee {
+        first: &mut observer,
+        second: also,
+    };
+    engine.run_until(end, &mut both, |t| {
         progress(t.as_secs_f64() / scenario.duration_s)
     })?;
     progress(1.0);
