@@ -83,5 +83,10 @@ pub fn blueprint(layout: &ViewLayout) -> Blueprint {
     Blueprint::new(Horizontal::new([plots, logs.into()]).with_column_shares([3.0, 2.0]))
         .with_blueprint_panel(BlueprintPanel::new().with_state(PanelState::Collapsed))
         .with_selection_panel(SelectionPanel::new().with_state(PanelState::Collapsed))
-        .with_time_panel(TimePanel::new().with_timeline(TIMELINE))
+        // Collapsed to its play bar: the plots get the room.
+        .with_time_panel(
+            TimePanel::new()
+                .with_timeline(TIMELINE)
+                .with_state(PanelState::Collapsed),
+        )
 }

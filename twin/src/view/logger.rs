@@ -149,7 +149,7 @@ impl RerunLogger {
         rec.set_log_time_enabled(false);
         rec.set_log_tick_enabled(false);
         let mut modules = Vec::new();
-        for m in &layout.modules {
+        for (i, m) in layout.modules.iter().enumerate() {
             let state = ModuleState {
                 paths: ModulePaths::new(&m.name),
                 threshold_volts: m.threshold_volts(),
@@ -159,7 +159,7 @@ impl RerunLogger {
                 last_sample_at: None,
                 config: m.light,
             };
-            log_styles(&rec, &state.paths)?;
+            log_styles(&rec, &state.paths, layout.has_seed002(i))?;
             modules.push(state);
         }
         Ok(Self {
@@ -359,7 +359,8 @@ impl RerunLogger {
             return;
         }
         // A master's frame: remember a Modbus read so that its reply can
-        // be read; the seed-002 master's set-point write to the motor node.
+        // be read; the seed-002 master's set-point write to the motor node
+        // (register 9; until the first one the node runs its default 10000).
         if let Ok(frame) = modbus::rtu::parse(bytes)
             && let Ok(Request::ReadInputRegisters { address, quantity }) = frame.request()
         {
@@ -375,6 +376,7 @@ impl RerunLogger {
         if let Ok(f) = modbus8::Frame::parse(bytes, modbus8::CrcOrder::HighFirst)
             && f.function == 6
             && f.id == 1
+            && f.addr == 9
             && let Some(m) = self.layout.seed002_motor_module()
         {
             self.scalar(|p| &p.shaft_set_point, m, f64::from(f.value));
@@ -408,7 +410,7 @@ impl RerunLogger {
 }
 
 /// Names, colours and line styles of a module's series (static, logged once).
-fn log_styles(rec: &RecordingStream, p: &ModulePaths) -> Result<()> {
+fn log_styles(rec: &RecordingStream, p: &ModulePaths, seed002: bool) -> Result<()> {
     let line = |name: &str, rgb: [u8; 3], width: f32| {
         SeriesLines::new()
             .with_names([name])
@@ -416,7 +418,8 @@ fn log_styles(rec: &RecordingStream, p: &ModulePaths) -> Result<()> {
             .with_widths([width])
     };
     let step = |l: SeriesLines| l.with_interpolation_mode(InterpolationMode::StepAfter);
-    const BLACK: [u8; 3] = [40, 40, 40];
+    // Drawn on the viewer's dark background.
+    const WHITE: [u8; 3] = [235, 235, 235];
     const ORANGE: [u8; 3] = [230, 120, 20];
     const GREEN: [u8; 3] = [40, 170, 60];
     const BLUE: [u8; 3] = [60, 120, 220];
@@ -424,7 +427,7 @@ fn log_styles(rec: &RecordingStream, p: &ModulePaths) -> Result<()> {
     const RED: [u8; 3] = [220, 40, 40];
     const PURPLE: [u8; 3] = [150, 80, 200];
     let styles = [
-        (&p.set_point, step(line("set point", BLACK, 2.0))),
+        (&p.set_point, step(line("set point", WHITE, 2.0))),
         (
             &p.hall_rpm,
             step(line("motor (hall) rpm, RPM_M", ORANGE, 2.0)),
@@ -448,12 +451,19 @@ fn log_styles(rec: &RecordingStream, p: &ModulePaths) -> Result<()> {
             &p.dark,
             step(line("detector sees dark (ED0 bit 3)", RED, 1.5)),
         ),
-        (&p.shaft_set_point, step(line("set point", BLACK, 2.0))),
+    ];
+    let shaft = [
+        (&p.shaft_set_point, step(line("set point", WHITE, 2.0))),
         (&p.shaft_node_rpm, step(line("motor node rpm", ORANGE, 2.0))),
         (&p.shaft_rpm, line("true motor rpm (plant)", GREY, 1.0)),
     ];
     for (path, style) in styles {
         rec.log_static(path.as_str(), &style)?;
+    }
+    if seed002 {
+        for (path, style) in shaft {
+            rec.log_static(path.as_str(), &style)?;
+        }
     }
     rec.log_static(
         p.dips.as_str(),

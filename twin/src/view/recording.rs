@@ -43,6 +43,12 @@ pub fn run_metadata(bytes: &[u8]) -> Option<BTreeMap<String, String>> {
 /// The view layout a recording was made with: its scenario's, or the open
 /// loop's preset.
 pub fn layout_of(bytes: &[u8], path: &Path) -> Result<ViewLayout> {
+    if !bytes.starts_with(mcap::MAGIC) {
+        bail!(
+            "{} is not an MCAP recording (it does not start with the MCAP magic bytes)",
+            path.display()
+        );
+    }
     let Some(meta) = run_metadata(bytes) else {
         bail!(
             "{} has no `twin.run` metadata record: it was not written by `twin run`",
