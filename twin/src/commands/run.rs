@@ -192,23 +192,14 @@ pub fn execute(args: &RunArgs) -> Result<()> {
     Ok(())
 }
 
-/// The live rerun view of `--view TARGET`, or `None` (with a message) when
-/// no viewer can be opened: the run goes on without it.
+/// The live rerun view of `--view TARGET`, or `None` (with the reason on
+/// stderr) when none can be opened: the run goes on without it.
 fn open_live_view(target: &str, scenario: &Scenario) -> Result<Option<RerunObserver>> {
-    let target = ViewTarget::parse(target);
-    if target == ViewTarget::Spawn && view::viewer_available().is_none() {
-        eprintln!(
-            "twin run --view: no rerun viewer to open here (`rerun` on PATH and a display); \
-             running without the live view. Install one with `pip install rerun-sdk==0.36.3`, \
-             or stream to a file with `--view FILE.rrd` and open it later."
-        );
-        return Ok(None);
-    }
     let layout = ViewLayout::of_scenario(scenario)?;
-    match RerunObserver::open(&target, &scenario.name, layout) {
+    match view::live_view(&ViewTarget::parse(target), &scenario.name, layout) {
         Ok(observer) => Ok(Some(observer)),
         Err(e) => {
-            eprintln!("twin run --view: cannot open the live view ({e:#}); running without it");
+            eprintln!("twin run --view: {e:#}; running without the live view");
             Ok(None)
         }
     }

@@ -1,10 +1,11 @@
 //! Streaming a run to rerun as it happens: an [`Observer`] that sits beside
 //! the MCAP recorder ([`Tee`]), for `twin run --view` and the real-time roles.
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use nodes::node::NodeEvent;
 use nodes::time::SimTime;
 use rerun::{RecordingStream, RecordingStreamBuilder};
+use std::net::{SocketAddr, TcpStream, ToSocketAddrs};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
@@ -18,6 +19,9 @@ pub const APPLICATION_ID: &str = "ev-lab-twin";
 
 /// How long the end of a stream may wait for a slow or vanished viewer.
 const FLUSH_TIMEOUT: Duration = Duration::from_secs(5);
+
+/// How long a viewer's port may take to accept before it counts as absent.
+const PROBE_TIMEOUT: Duration = Duration::from_secs(2);
 
 /// Where a rerun stream goes.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -73,7 +77,12 @@ pub fn open_stream(
         .with_blueprint(blueprint(layout));
     let rec = match target {
         ViewTarget::Spawn => builder.spawn()?,
-        ViewTarget::Connect(url) => builder.connect_grpc_opts(url.clone())?,
+        ViewTarget::Connect(url) => {
+            // The SDK retries a refused connection for ever while its queue
+            // fills, which would stall the run: refuse it up front instead.
+            probe(url)?;
+            builder.connect_grpc_opts(url.clone())?
+        }
         ViewTarget::Save(path) => {
             if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
                 std::fs::create_dir_all(dir)?;
@@ -82,6 +91,41 @@ pub fn open_stream(
         }
     };
     Ok(rec)
+}
+
+/// A live view of a run with `layout`, for the roles that stream as they
+/// run (`twin run --view`, the real-time engine): feed it beside the
+/// recorder with [`Tee`]. The error says what to do when no viewer can be
+/// reached; a caller usually reports it and runs on without the view.
+pub fn live_view(target: &ViewTarget, name: &str, layout: ViewLayout) -> Result<RerunObserver> {
+    if *target == ViewTarget::Spawn && viewer_available().is_none() {
+        anyhow::bail!(
+            "no rerun viewer to open here (`rerun` on PATH and a display). Install one with \
+             `pip install rerun-sdk==0.36.3`, or stream to a file with `--view FILE.rrd` and \
+             open it later with `rerun FILE.rrd`"
+        );
+    }
+    RerunObserver::open(target, name, layout).context("cannot open the live view")
+}
+
+/// Whether something listens at the host and port of a `rerun+http://` URL.
+fn probe(url: &str) -> Result<()> {
+    let rest = url.split_once("://").map_or(url, |(_, rest)| rest);
+    let authority = rest.split('/').next().unwrap_or(rest);
+    let addrs: Vec<SocketAddr> = authority
+        .to_socket_addrs()
+        .with_context(|| format!("`{url}`: expected rerun+http://HOST:PORT/proxy"))?
+        .collect();
+    if addrs
+        .iter()
+        .any(|a| TcpStream::connect_timeout(a, PROBE_TIMEOUT).is_ok())
+    {
+        Ok(())
+    } else {
+        anyhow::bail!(
+            "no rerun viewer listens at {authority} (start one with `rerun`, or `rerun --port PORT`)"
+        )
+    }
 }
 
 /// Streams everything the engine reports to rerun. A viewer that goes away

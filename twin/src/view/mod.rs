@@ -15,7 +15,7 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 pub use layout::ViewLayout;
-pub use live::{RerunObserver, Tee, ViewTarget, open_stream, viewer_available};
+pub use live::{RerunObserver, Tee, ViewTarget, live_view, open_stream, viewer_available};
 pub use logger::RerunLogger;
 pub use recording::ReadSummary;
 
