@@ -246,3 +246,49 @@ fn below_the_light_sensors_limit_every_flag_pass_is_a_detected_dip() {
     );
     assert_eq!(rows["/bench/speed/wheel_rpm"], 5001);
 }
+
+#[test]
+fn modbus_rtu_replies_give_the_same_speeds_as_meb() {
+    // The default scenario with both ends speaking Modbus RTU: the rpm
+    // words come from the FC04 replies, paired with the read they answer.
+    let text = twin::scenario::EMBEDDED
+        .iter()
+        .find(|(name, _, _)| *name == "ev-meb")
+        .map(|(_, _, toml)| *toml)
+        .unwrap()
+        .replace("protocol = \"meb\"", "protocol = \"modbus-rtu\"");
+    assert_eq!(text.matches("modbus-rtu").count(), 2, "both ends switched");
+    let scenario = scratch("rtu.toml");
+    std::fs::write(&scenario, text).unwrap();
+    let mcap = scratch("rtu.mcap");
+    ok(&twin(&[
+        "run",
+        scenario.to_str().unwrap(),
+        "--duration",
+        "2",
+        "--out",
+        mcap.to_str().unwrap(),
+    ]));
+    let rrd = scratch("rtu.rrd");
+    ok(&twin(&[
+        "view",
+        mcap.to_str().unwrap(),
+        "--save",
+        rrd.to_str().unwrap(),
+    ]));
+    let bytes = std::fs::read(&mcap).unwrap();
+    let mut fc04_replies = 0;
+    for m in mcap::MessageStream::new(&bytes).unwrap() {
+        let m = m.unwrap();
+        if m.channel.topic == "/bus/rs485/frames" {
+            let v: serde_json::Value = serde_json::from_slice(&m.data).unwrap();
+            if v["from"] == "ev1" && v["decoded"]["function"] == 4 {
+                fc04_replies += 1;
+            }
+        }
+    }
+    let rows = rrd_rows(&rrd);
+    assert!(fc04_replies > 150, "{fc04_replies}");
+    assert_eq!(rows["/ev1/speed/hall_rpm"], fc04_replies);
+    assert_eq!(rows["/ev1/speed/light_rpm"], fc04_replies);
+}
