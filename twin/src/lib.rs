@@ -9,4 +9,5 @@ pub mod observe;
 pub mod openloop;
 pub mod record;
 pub mod scenario;
+pub mod view;
 pub mod virtual_run;

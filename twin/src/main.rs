@@ -24,6 +24,7 @@ enum Command {
     Experiment(commands::experiment::ExperimentArgs),
     Step(commands::step::StepArgs),
     Sweep(commands::sweep::SweepArgs),
+    View(commands::view::ViewArgs),
 }
 
 fn main() -> ExitCode {
@@ -34,6 +35,7 @@ fn main() -> ExitCode {
         Command::Experiment(args) => commands::experiment::execute(&args),
         Command::Step(args) => commands::step::execute(&args),
         Command::Sweep(args) => commands::sweep::execute(&args),
+        Command::View(args) => commands::view::execute(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

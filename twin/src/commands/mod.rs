@@ -5,3 +5,4 @@ pub mod experiment;
 pub mod run;
 pub mod step;
 pub mod sweep;
+pub mod view;
