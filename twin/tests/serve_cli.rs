@@ -21,10 +21,21 @@ struct Server {
 
 impl Server {
     fn start(args: &[&str]) -> Server {
+        Self::spawn(args, Stdio::null())
+    }
+
+    /// With a console: the test types commands on the server's stdin.
+    fn with_console(args: &[&str]) -> (Server, std::process::ChildStdin) {
+        let mut server = Self::spawn(args, Stdio::piped());
+        let stdin = server.child.stdin.take().expect("stdin");
+        (server, stdin)
+    }
+
+    fn spawn(args: &[&str], stdin: Stdio) -> Server {
         let mut child = Command::new(env!("CARGO_BIN_EXE_twin"))
             .arg("serve")
             .args(args)
-            .stdin(Stdio::null())
+            .stdin(stdin)
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
             .spawn()
@@ -156,8 +167,8 @@ fn meb_frame(id: u8, cmd: MebCmd, addr: u8, cnt: u8, data: &[u16]) -> Vec<u8> {
     out[..n].to_vec()
 }
 
-/// Sends an MEB request and reads one reply line.
-fn meb(s: &mut TcpStream, request: &[u8]) -> MebRepr {
+/// Sends an MEB request and reads one reply line, as bytes.
+fn meb_raw(s: &mut TcpStream, request: &[u8]) -> Vec<u8> {
     s.write_all(request).unwrap();
     let mut reply = Vec::new();
     let mut byte = [0u8; 1];
@@ -166,7 +177,12 @@ fn meb(s: &mut TcpStream, request: &[u8]) -> MebRepr {
         assert_eq!(n, 1, "connection closed; got {reply:?}");
         reply.push(byte[0]);
     }
-    MebRepr::parse(&reply).expect("a well-formed MEB reply")
+    reply
+}
+
+/// Sends an MEB request and reads one reply.
+fn meb(s: &mut TcpStream, request: &[u8]) -> MebRepr {
+    MebRepr::parse(&meb_raw(s, request)).expect("a well-formed MEB reply")
 }
 
 fn read_ea(s: &mut TcpStream) -> Vec<u16> {
@@ -263,7 +279,10 @@ fn meb_and_modbus_tcp_serve_one_module_and_a_write_turns_the_wheel() {
             value: 2048,
         },
     );
-    assert!(matches!(r, Ok(Response::WriteSingleRegister { .. })), "{r:?}");
+    assert!(
+        matches!(r, Ok(Response::WriteSingleRegister { .. })),
+        "{r:?}"
+    );
     let deadline = Instant::now() + Duration::from_secs(10);
     let mut tid = 10;
     let rpm = loop {
@@ -296,10 +315,96 @@ fn meb_and_modbus_tcp_serve_one_module_and_a_write_turns_the_wheel() {
         "/plant/ev1/actuators",
         "/realtime/lateness",
     ] {
-        assert!(topics.get(topic).is_some_and(|&n| n > 0), "{topic}: {topics:?}");
+        assert!(
+            topics.get(topic).is_some_and(|&n| n > 0),
+            "{topic}: {topics:?}"
+        );
     }
-    let summary = mcap::Summary::read(&bytes).expect("summary").expect("has one");
+    let summary = mcap::Summary::read(&bytes)
+        .expect("summary")
+        .expect("has one");
     assert!(!summary.metadata_indexes.is_empty());
+}
+
+#[test]
+fn console_commands_force_inputs_and_switch_faults() {
+    let (server, mut console) = Server::with_console(&[
+        "--meb",
+        "tcp://127.0.0.1:0",
+        "--modbus",
+        "tcp://127.0.0.1:0",
+        "--quiet",
+        "--no-record",
+    ]);
+    let mut m = connect(&server.tcp(0));
+    let mut t = connect(&server.tcp(1));
+    let mut say = |line: &str, echo: &str| {
+        writeln!(console, "{line}").unwrap();
+        assert!(server.printed(echo), "`{line}`: {}", server.output());
+    };
+
+    // A forced V1 is what the controller measures at its next loop tick.
+    let sensing = plant::PlantParams::preset("vemodule").unwrap().sensing;
+    let forced = sensing.counts(30.5 / sensing.battery_divider);
+    say("force v1 30.5", "forced v1 = 30.5");
+    std::thread::sleep(Duration::from_millis(20));
+    assert_eq!(read_ea(&mut m)[2], forced);
+    assert_eq!(input_registers(&mut t, 1)[2], forced);
+    say("release v1", "released v1");
+    std::thread::sleep(Duration::from_millis(20));
+    assert!(read_ea(&mut m)[2].abs_diff(forced) > 100, "measured again");
+
+    // An exception on one link only.
+    say(
+        "fault exception 2 modbus-tcp",
+        "fault Exception(IllegalAddress) on modbus-tcp",
+    );
+    let r = modbus_tcp(
+        &mut t,
+        2,
+        1,
+        &Request::ReadInputRegisters {
+            address: 0,
+            quantity: 1,
+        },
+    );
+    assert_eq!(
+        r.expect_err("exception").exception,
+        Exception::IllegalDataAddress
+    );
+    assert_eq!(read_ea(&mut m).len(), 6, "MEB unaffected");
+
+    // A bad check: the reply is whole but its FCS is off by one.
+    say("fault bad-check meb", "fault BadCheck on meb");
+    let reply = meb_raw(&mut m, &meb_frame(1, MebCmd::EA, 0, 6, &[]));
+    assert!(
+        MebRepr::parse(&reply).is_err(),
+        "{}",
+        String::from_utf8_lossy(&reply)
+    );
+
+    // A delay.
+    say("fault delay 200", "fault Delay");
+    let sent = Instant::now();
+    assert!(MebRepr::parse(&meb_raw(&mut m, &meb_frame(1, MebCmd::EA, 0, 6, &[]))).is_ok());
+    assert!(
+        sent.elapsed() >= Duration::from_millis(200),
+        "{:?}",
+        sent.elapsed()
+    );
+
+    // No reply at all, then everything normal again.
+    say("fault no-reply", "fault NoReply");
+    m.set_read_timeout(Some(Duration::from_millis(300)))
+        .unwrap();
+    m.write_all(&meb_frame(1, MebCmd::EA, 0, 6, &[])).unwrap();
+    let mut buf = [0u8; 64];
+    assert!(m.read(&mut buf).is_err(), "no reply");
+    say("fault off", "fault off");
+    m.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    assert_eq!(read_ea(&mut m).len(), 6);
+    assert!(input_registers(&mut t, 3).len() == 10);
+    say("frobnicate", "unknown command");
 }
 
 #[test]
@@ -316,13 +421,17 @@ fn garbage_half_frames_and_disconnects_leave_other_clients_served() {
     ]);
     let mut good = connect(&server.tcp(0));
     let mut good_modbus = connect(&server.tcp(1));
-    let errs_before = meb(&mut good, &meb_frame(1, MebCmd::FA, 0, 2, &[])).data.as_slice()[1];
+    let errs_before = meb(&mut good, &meb_frame(1, MebCmd::FA, 0, 2, &[]))
+        .data
+        .as_slice()[1];
 
     // Garbage and a frame with a bad FCS on one connection: ignored, counted.
     let mut bad = connect(&server.tcp(0));
     bad.write_all(b"\x00\xffnoise@01EA0006FF*\n@@@\n").unwrap();
     let mut bad_modbus = connect(&server.tcp(1));
-    bad_modbus.write_all(&[0xde, 0xad, 0xbe, 0xef, 0, 0, 0, 0]).unwrap();
+    bad_modbus
+        .write_all(&[0xde, 0xad, 0xbe, 0xef, 0, 0, 0, 0])
+        .unwrap();
     // A half frame, then an abrupt close mid-frame.
     let mut half = connect(&server.tcp(0));
     half.write_all(b"@01EA00").unwrap();
@@ -337,8 +446,13 @@ fn garbage_half_frames_and_disconnects_leave_other_clients_served() {
     }
     // A good request after the garbage on the same connection is answered.
     assert_eq!(read_ea(&mut bad).len(), 6);
-    let errs = meb(&mut good, &meb_frame(1, MebCmd::FA, 0, 2, &[])).data.as_slice()[1];
-    assert!(errs >= errs_before + 2, "ERRS counted the bad frames: {errs_before} -> {errs}");
+    let errs = meb(&mut good, &meb_frame(1, MebCmd::FA, 0, 2, &[]))
+        .data
+        .as_slice()[1];
+    assert!(
+        errs >= errs_before + 2,
+        "ERRS counted the bad frames: {errs_before} -> {errs}"
+    );
 
     // A connection holding a partial frame past the timeout is closed ...
     let mut stuck = connect(&server.tcp(0));
@@ -372,7 +486,11 @@ fn extra_clients_are_refused_and_read_only_refuses_writes() {
     let mut second = connect(&server.tcp(0));
     let _ = second.write_all(&meb_frame(1, MebCmd::EA, 0, 6, &[]));
     let mut buf = [0u8; 64];
-    assert_eq!(second.read(&mut buf).unwrap_or(0), 0, "the second client is refused");
+    assert_eq!(
+        second.read(&mut buf).unwrap_or(0),
+        0,
+        "the second client is refused"
+    );
     assert_eq!(read_ea(&mut first).len(), 6, "the first is still served");
 
     let refused = meb(&mut first, &meb_frame(1, MebCmd::SA, 0, 1, &[2048]));
@@ -406,9 +524,16 @@ fn a_client_over_the_rate_limit_is_closed() {
     let mut good = connect(&server.tcp(0));
     let mut flood = connect(&server.tcp(0));
     let request = meb_frame(1, MebCmd::EA, 0, 6, &[]);
-    let burst: Vec<u8> = request.iter().copied().cycle().take(request.len() * 400).collect();
+    let burst: Vec<u8> = request
+        .iter()
+        .copied()
+        .cycle()
+        .take(request.len() * 400)
+        .collect();
     let _ = flood.write_all(&burst);
-    flood.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    flood
+        .set_read_timeout(Some(Duration::from_secs(5)))
+        .unwrap();
     let mut sink = Vec::new();
     let _ = flood.read_to_end(&mut sink);
     assert!(
@@ -450,7 +575,10 @@ fn modbus_rtu_and_meb_on_ptys_answer_after_the_turnaround() {
         "--no-record",
     ]);
     let listed = |p: &str| server.links.iter().find(|l| l.0 == p).cloned();
-    assert_eq!(listed("modbus-rtu"), Some(("modbus-rtu".into(), rtu_path.clone(), "01".into())));
+    assert_eq!(
+        listed("modbus-rtu"),
+        Some(("modbus-rtu".into(), rtu_path.clone(), "01".into()))
+    );
     assert_eq!(listed("meb").map(|l| l.1), Some(meb_path.clone()));
 
     let mut frame = [0u8; 300];
@@ -487,7 +615,10 @@ fn modbus_rtu_and_meb_on_ptys_answer_after_the_turnaround() {
     }
     let waited = sent.elapsed();
     assert!(MebRepr::parse(&reply).is_ok(), "{reply:?}");
-    assert!(waited >= Duration::from_millis(5), "turnaround held: {waited:?}");
+    assert!(
+        waited >= Duration::from_millis(5),
+        "turnaround held: {waited:?}"
+    );
 }
 
 #[test]

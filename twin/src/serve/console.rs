@@ -67,7 +67,11 @@ pub fn parse(line: &str) -> Result<Option<Command>, String> {
                     format!("  {name} {peer}")
                 })
                 .collect();
-            e.say(format!("{} open connection(s)\n{}", lines.len(), lines.join("\n")));
+            e.say(format!(
+                "{} open connection(s)\n{}",
+                lines.len(),
+                lines.join("\n")
+            ));
         }),
         ["stop" | "quit" | "exit"] => Box::new(|e: &mut RtEngine| {
             e.say("stopping");
@@ -120,14 +124,16 @@ pub fn parse(line: &str) -> Result<Option<Command>, String> {
                 _ => return Err(format!("unknown fault `{kind}`; try `help`")),
             };
             let link = link.map(str::to_string);
-            Box::new(move |e: &mut RtEngine| match link_index(e, link.as_deref()) {
-                Ok(l) => {
-                    e.set_fault(Some(fault), l);
-                    let on = link.as_deref().unwrap_or("every link");
-                    e.say(format!("fault {fault:?} on {on}"));
-                }
-                Err(why) => e.say(why),
-            })
+            Box::new(
+                move |e: &mut RtEngine| match link_index(e, link.as_deref()) {
+                    Ok(l) => {
+                        e.set_fault(Some(fault), l);
+                        let on = link.as_deref().unwrap_or("every link");
+                        e.say(format!("fault {fault:?} on {on}"));
+                    }
+                    Err(why) => e.say(why),
+                },
+            )
         }
         ["force", name, value] => {
             let name = name.to_ascii_lowercase();
@@ -154,7 +160,11 @@ pub fn parse(line: &str) -> Result<Option<Command>, String> {
                     let c = counts()?;
                     Box::new(move |f| f.ldr = Some(c))
                 }
-                _ => return Err(format!("cannot force `{name}`: v1, v2, i, rpm_m, rpm_l or ldr")),
+                _ => {
+                    return Err(format!(
+                        "cannot force `{name}`: v1, v2, i, rpm_m, rpm_l or ldr"
+                    ));
+                }
             };
             Box::new(move |e: &mut RtEngine| {
                 for d in &mut e.devices {
@@ -173,7 +183,11 @@ pub fn parse(line: &str) -> Result<Option<Command>, String> {
                 "rpm_l" => Box::new(|f| f.rpm_l = None),
                 "ldr" => Box::new(|f| f.ldr = None),
                 "all" => Box::new(|f| *f = Default::default()),
-                _ => return Err(format!("cannot release `{name}`: v1, v2, i, rpm_m, rpm_l, ldr or all")),
+                _ => {
+                    return Err(format!(
+                        "cannot release `{name}`: v1, v2, i, rpm_m, rpm_l, ldr or all"
+                    ));
+                }
             };
             Box::new(move |e: &mut RtEngine| {
                 for d in &mut e.devices {

@@ -200,7 +200,10 @@ fn build_devices(
     let mut ev = None;
     if wants_ev {
         let module = engine.modules.len();
-        let plant = EvModule::new(&options.params, crate::virtual_run::derive_seed(options.seed, 100));
+        let plant = EvModule::new(
+            &options.params,
+            crate::virtual_run::derive_seed(options.seed, 100),
+        );
         engine.modules.push(ModuleSlot::new("ev1", plant));
         let mut config = EvControllerConfig::for_plant(&options.params);
         config.slave_id = options.id;
@@ -260,8 +263,7 @@ async fn open_links(
     let clock = engine.clock;
     let refused = Arc::new(AtomicU64::new(0));
     let mut open = Vec::new();
-    let mut starters: Vec<Box<dyn FnOnce(&tokio::runtime::Handle, Sender<Inbound>)>> =
-        Vec::new();
+    let mut starters: Vec<Box<dyn FnOnce(&tokio::runtime::Handle, Sender<Inbound>)>> = Vec::new();
     for (index, ((protocol, spec), name)) in specs.into_iter().zip(names).enumerate() {
         let link = engine.links.len();
         debug_assert_eq!(link, index);
@@ -273,7 +275,9 @@ async fn open_links(
                 let local = listener.local_addr()?;
                 let (ids, max, refused) = (ids.clone(), options.max_clients, refused.clone());
                 starters.push(Box::new(move |rt, inbound| {
-                    rt.spawn(accept_loop(listener, link, max, ids, clock, inbound, refused));
+                    rt.spawn(accept_loop(
+                        listener, link, max, ids, clock, inbound, refused,
+                    ));
                 }));
                 (format!("tcp://{local}"), true)
             }
@@ -488,7 +492,10 @@ pub fn serve(
     let refused_clients = refused.load(std::sync::atomic::Ordering::Relaxed);
     let l = summary.lateness;
     let totals = BTreeMap::from([
-        ("elapsed_s".into(), format!("{:.3}", summary.elapsed.as_secs_f64())),
+        (
+            "elapsed_s".into(),
+            format!("{:.3}", summary.elapsed.as_secs_f64()),
+        ),
         ("tick_lateness".into(), serde_json::to_string(&l)?),
         ("counters".into(), serde_json::to_string(&summary.counters)?),
         ("refused_clients".into(), refused_clients.to_string()),
