@@ -89,6 +89,8 @@ pub struct ServeOptions {
     /// Wait for serial paths that do not exist yet (ptys made later).
     pub wait_for_ports: bool,
     pub record_hz: f64,
+    /// Real-time FIFO priority of the engine's thread, if asked for.
+    pub rt_priority: Option<u8>,
     /// The command line, for the recording's metadata.
     pub command_line: String,
 }
@@ -455,9 +457,15 @@ pub fn serve(
     let end = options
         .duration
         .map(|s| SimTime::ZERO + SimDuration::from_secs_f64(s));
+    let rt_priority = options.rt_priority;
     let rt_thread = std::thread::Builder::new()
         .name("twin-realtime".into())
         .spawn(move || {
+            if let Some(priority) = rt_priority
+                && let Err(why) = crate::realtime::clock::raise_this_thread(priority)
+            {
+                engine.say(format!("warning: no real-time priority: {why}"));
+            }
             let summary = engine.run(&inbound_rx, end);
             (summary, engine)
         })
