@@ -626,6 +626,27 @@ fn modbus_rtu_and_meb_on_ptys_answer_after_the_turnaround() {
 }
 
 #[test]
+fn paced_replies_take_their_wire_time_at_the_links_baud() {
+    let (mut port, _slave, path) = pty();
+    let link = format!("{path}?baud=9600&pace=1&turnaround_ms=0");
+    let _server = Server::start(&["--meb", &link, "--quiet", "--no-record"]);
+    let mut reply = Vec::new();
+    let mut byte = [0u8; 1];
+    let sent = Instant::now();
+    port.write_all(&meb_frame(1, MebCmd::EA, 0, 6, &[])).unwrap();
+    while reply.last() != Some(&b'\n') {
+        port.read_exact(&mut byte).expect("an MEB reply");
+        reply.push(byte[0]);
+    }
+    let waited = sent.elapsed();
+    // 37 bytes of 10 bits at 9600 baud: 38.5 ms on the wire.
+    assert_eq!(reply.len(), 37);
+    let wire = Duration::from_secs_f64(37.0 * 10.0 / 9600.0);
+    assert!(waited >= wire, "paced: {waited:?} < {wire:?}");
+    assert!(waited < wire * 4, "but not much later: {waited:?}");
+}
+
+#[test]
 fn the_seed002_network_answers_both_ids_on_one_pty() {
     use nodes::proto::modbus8::{CrcOrder, Frame};
     let (mut port, _slave, path) = pty();
