@@ -633,7 +633,8 @@ fn paced_replies_take_their_wire_time_at_the_links_baud() {
     let mut reply = Vec::new();
     let mut byte = [0u8; 1];
     let sent = Instant::now();
-    port.write_all(&meb_frame(1, MebCmd::EA, 0, 6, &[])).unwrap();
+    port.write_all(&meb_frame(1, MebCmd::EA, 0, 6, &[]))
+        .unwrap();
     while reply.last() != Some(&b'\n') {
         port.read_exact(&mut byte).expect("an MEB reply");
         reply.push(byte[0]);
