@@ -670,6 +670,56 @@ fn the_seed002_network_answers_both_ids_on_one_pty() {
 }
 
 #[test]
+fn an_io_map_file_moves_the_meb_signals() {
+    let map = scratch("map.toml");
+    std::fs::write(
+        &map,
+        "# V1 first, as on our bench\n[EA]\nV1 = 0\nV2 = 1\nRPM_M = 2\n",
+    )
+    .unwrap();
+    let server = Server::start(&[
+        "--meb",
+        "tcp://127.0.0.1:0",
+        "--modbus",
+        "tcp://127.0.0.1:0",
+        "--map",
+        map.to_str().unwrap(),
+        "--quiet",
+        "--no-record",
+    ]);
+    let mut m = connect(&server.tcp(0));
+    let mut t = connect(&server.tcp(1));
+    let r = meb(&mut m, &meb_frame(1, MebCmd::EA, 0, 3, &[]));
+    let ir = input_registers(&mut t, 1);
+    assert!(
+        r.data.as_slice()[0].abs_diff(ir[2]) <= 2,
+        "EA 0 is V1: {r:?} vs {ir:?}"
+    );
+    assert!(r.data.as_slice()[1].abs_diff(ir[0]) <= 2, "EA 1 is V2");
+    let past = meb(&mut m, &meb_frame(1, MebCmd::EA, 0, 4, &[]));
+    assert_eq!(past.cmd, MebCmd::ER, "EA holds three words now");
+
+    std::fs::write(&map, "[EA]\nV1 = 0\nV1x = 1\n").unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_twin"))
+        .args([
+            "serve",
+            "--meb",
+            "tcp://127.0.0.1:0",
+            "--no-record",
+            "--map",
+        ])
+        .arg(&map)
+        .output()
+        .expect("twin runs");
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("map.toml:3:") && err.contains("unknown signal"),
+        "{err}"
+    );
+}
+
+#[test]
 fn a_missing_serial_port_is_a_clear_error() {
     let o = Command::new(env!("CARGO_BIN_EXE_twin"))
         .args(["serve", "--meb", "/tmp/no-such-tty-for-twin", "--no-record"])

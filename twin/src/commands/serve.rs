@@ -53,6 +53,10 @@ pub struct ServeArgs {
     /// Slave id of the EV module's controller (MEB slave number, Modbus unit id).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=99))]
     id: u8,
+    /// I/O map of the MEB links (TOML, one table per block: `[EA]` with
+    /// `V1 = 0`, `[SD]` with `EN = "0.0"`); blocks not named keep spec/meb.md's map.
+    #[arg(long, value_name = "FILE")]
+    map: Option<PathBuf>,
     /// Plant parameter file (TOML) whose fields override the vemodule preset.
     #[arg(long, value_name = "FILE")]
     params: Option<PathBuf>,
@@ -148,6 +152,7 @@ fn options(args: &ServeArgs) -> Result<ServeOptions> {
         links,
         defaults,
         id: args.id,
+        meb_map: args.map.as_deref().map(serve::map::load).transpose()?,
         params,
         seed: args.seed,
         duration: args.duration,

@@ -4,6 +4,7 @@
 //! network — all serving one module, recorded to MCAP like a virtual run.
 
 pub mod console;
+pub mod map;
 
 use anyhow::{Context, Result, bail};
 use nodes::firmware::{EvController, EvControllerConfig, Framing, SlaveFrontend};
@@ -74,6 +75,8 @@ pub struct ServeOptions {
     pub defaults: LinkDefaults,
     /// Slave id of the EV module's controller (MEB slave number, Modbus unit).
     pub id: u8,
+    /// Where MEB links put the signals (`--map`; `None`: `spec/meb.md`'s map).
+    pub meb_map: Option<nodes::firmware::MebMap>,
     pub params: PlantParams,
     pub seed: u64,
     /// Stop after this long (none: until SIGINT/SIGTERM).
@@ -303,11 +306,14 @@ async fn open_links(
             match (framing(protocol, &spec), ev, seed002) {
                 (Some(framing), Some(device), _) => {
                     let label = format!("ev1 {name}");
+                    let map = options.meb_map.clone().filter(|_| framing == Framing::Meb);
                     (
                         Box::new(move |_devices, peer| {
+                            let mut frontend = SlaveFrontend::new(framing, id);
+                            frontend.set_meb_map(map.clone());
                             Box::new(SlaveEndpoint {
                                 device,
-                                frontend: SlaveFrontend::new(framing, id),
+                                frontend,
                                 name: format!("{label} {peer}"),
                             })
                         }),
