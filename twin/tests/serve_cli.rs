@@ -496,6 +496,11 @@ fn extra_clients_are_refused_and_read_only_refuses_writes() {
         "the second client is refused"
     );
     assert_eq!(read_ea(&mut first).len(), 6, "the first is still served");
+    assert!(
+        server.printed("refused, 1 client(s) already connected"),
+        "{}",
+        server.output()
+    );
 
     let refused = meb(&mut first, &meb_frame(1, MebCmd::SA, 0, 1, &[2048]));
     assert_eq!(refused.cmd, MebCmd::ER);
