@@ -95,8 +95,8 @@ pub struct ServeArgs {
     #[arg(long)]
     read_only: bool,
     /// Run the plant thread under the real-time FIFO scheduler at this
-    /// priority (1-99; needs root or CAP_SYS_NICE), so a busy machine cannot
-    /// delay its ticks.
+    /// priority, and the links' thread one below (1-99; needs root or
+    /// CAP_SYS_NICE), so a busy machine cannot delay ticks and replies.
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u8).range(1..=99))]
     rt_priority: Option<u8>,
     /// Wait for serial paths that do not exist yet (a pty another program
