@@ -200,9 +200,14 @@ pub fn execute(args: &ServeArgs) -> Result<()> {
         l.ticks, l.p50_us, l.p99_us, l.p999_us, l.max_us, l.overruns
     );
     if l.p99_us > 250.0 {
-        println!(
-            "  (ticks ran late: the machine was busy; --rt-priority 50 gives the plant thread a real-time priority)"
-        );
+        match args.rt_priority {
+            None => println!(
+                "  (ticks ran late: the machine was busy; --rt-priority 50 gives the plant thread a real-time priority)"
+            ),
+            Some(_) => {
+                println!("  (ticks ran late even at real-time priority: the machine was busy)")
+            }
+        }
     }
     println!(
         "  {} connections ({} refused over the limit, {} closed for a partial frame, {} for the rate limit); {} bytes in, {} frames out",
