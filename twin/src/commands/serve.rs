@@ -166,7 +166,11 @@ fn options(args: &ServeArgs) -> Result<ServeOptions> {
         wait_for_ports: args.wait_for_ports,
         record_hz: args.record_hz,
         rt_priority: args.rt_priority,
-        command_line: std::env::args().collect::<Vec<_>>().join(" "),
+        // The program's own path stays out of the recording, as in `twin run`.
+        command_line: std::iter::once("twin".to_string())
+            .chain(std::env::args().skip(1))
+            .collect::<Vec<_>>()
+            .join(" "),
     })
 }
 
