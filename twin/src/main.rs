@@ -25,6 +25,7 @@ enum Command {
     Step(commands::step::StepArgs),
     Sweep(commands::sweep::SweepArgs),
     View(commands::view::ViewArgs),
+    Serve(commands::serve::ServeArgs),
 }
 
 fn main() -> ExitCode {
@@ -36,6 +37,7 @@ fn main() -> ExitCode {
         Command::Step(args) => commands::step::execute(&args),
         Command::Sweep(args) => commands::sweep::execute(&args),
         Command::View(args) => commands::view::execute(&args),
+        Command::Serve(args) => commands::serve::execute(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

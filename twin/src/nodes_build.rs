@@ -189,6 +189,9 @@ impl SimNode for FaultyNode<EvController> {
             ..SpeedReadings::default()
         }
     }
+    fn image_mut(&mut self) -> Option<&mut nodes::firmware::RegisterImage> {
+        Some(self.inner_mut().image_mut())
+    }
 }
 
 impl SimNode for FaultyNode<MotorNode> {

@@ -6,3 +6,4 @@ pub mod run;
 pub mod step;
 pub mod sweep;
 pub mod view;
+pub mod serve;

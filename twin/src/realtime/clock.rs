@@ -1,0 +1,91 @@
+//! The wall clock as nodes see it: a monotonic [`Instant`] origin mapped onto
+//! [`SimTime`], so the same node code runs on the virtual and the real clock.
+
+use nodes::time::{SimDuration, SimTime, TICKS_PER_SECOND};
+use std::time::{Duration, Instant};
+
+/// Ticks per nanosecond: 72 GHz / 1 GHz.
+const TICKS_PER_NANO: u64 = TICKS_PER_SECOND / 1_000_000_000;
+
+/// A monotonic clock whose zero is the start of the session.
+#[derive(Debug, Clone, Copy)]
+pub struct RtClock {
+    origin: Instant,
+}
+
+impl RtClock {
+    /// A clock whose zero is now.
+    pub fn start() -> Self {
+        Self {
+            origin: Instant::now(),
+        }
+    }
+
+    /// The session time of `instant` (zero before the origin).
+    pub fn at(&self, instant: Instant) -> SimTime {
+        let ns = instant.saturating_duration_since(self.origin).as_nanos();
+        SimTime(
+            u64::try_from(ns)
+                .unwrap_or(u64::MAX)
+                .saturating_mul(TICKS_PER_NANO),
+        )
+    }
+
+    /// The session time now.
+    pub fn now(&self) -> SimTime {
+        self.at(Instant::now())
+    }
+
+    /// The instant of session time `t`.
+    pub fn instant(&self, t: SimTime) -> Instant {
+        self.origin + Duration::from_nanos(t.0 / TICKS_PER_NANO)
+    }
+}
+
+/// Puts the calling thread under the real-time FIFO scheduler at
+/// `priority` (1-99), so a busy machine cannot delay its ticks: Linux only,
+/// and only where permitted (root or CAP_SYS_NICE). Uses `chrt` on the
+/// thread's id, which keeps the twin free of unsafe code.
+pub fn raise_this_thread(priority: u8) -> Result<(), String> {
+    let link = std::fs::read_link("/proc/thread-self")
+        .map_err(|e| format!("cannot find this thread's id (/proc/thread-self): {e}"))?;
+    let tid = link
+        .file_name()
+        .and_then(|t| t.to_str())
+        .ok_or("cannot read this thread's id")?
+        .to_string();
+    let out = std::process::Command::new("chrt")
+        .args(["-f", "-p", &priority.to_string(), &tid])
+        .output()
+        .map_err(|e| format!("cannot run chrt (util-linux): {e}"))?;
+    if out.status.success() {
+        Ok(())
+    } else {
+        Err(format!(
+            "chrt -f -p {priority} {tid} failed: {} (run as root or grant CAP_SYS_NICE)",
+            String::from_utf8_lossy(&out.stderr).trim()
+        ))
+    }
+}
+
+/// A session duration as a std [`Duration`].
+pub fn to_std(d: SimDuration) -> Duration {
+    Duration::from_nanos(d.0 / TICKS_PER_NANO)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn instants_and_session_times_map_both_ways() {
+        let clock = RtClock::start();
+        let t = SimTime::ZERO + SimDuration::from_millis(1500);
+        assert_eq!(clock.at(clock.instant(t)), t);
+        assert!(clock.now() < SimTime::ZERO + SimDuration::from_secs(5));
+        assert_eq!(
+            to_std(SimDuration::from_micros(250)),
+            Duration::from_micros(250)
+        );
+    }
+}
