@@ -10,3 +10,4 @@ pub mod openloop;
 pub mod record;
 pub mod scenario;
 pub mod virtual_run;
+pub mod vsp;
