@@ -8,12 +8,15 @@
 //! it changed. Like every node it is a sans-IO state machine: it sees only `now`
 //! and bytes, so the virtual-time engine and a real-time one drive it alike.
 
+pub mod image_server;
 mod pi;
 mod supervisor;
 mod wire;
 
 pub use pi::{SpeedPi, VEL_MAX, VEL_MIN};
-pub use supervisor::{LoopState, PollCounters, Supervisor};
+pub use supervisor::{
+    ForwardError, LoopState, PollCounters, Supervisor, WriteOutcome, WriteTicket,
+};
 
 use crate::time::{SimDuration, SimTime};
 

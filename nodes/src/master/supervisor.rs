@@ -1,6 +1,10 @@
 //! The supervisor node: poll cycles, retries and one PI loop per slave.
 
+mod forward;
+
 use std::collections::VecDeque;
+
+pub use forward::{ForwardError, WriteOutcome, WriteTicket};
 
 use crate::node::{Node, NodeEvent};
 use crate::time::{SimDuration, SimTime};
@@ -111,6 +115,10 @@ pub struct Supervisor {
     /// How long the line must be quiet before a request goes out after
     /// stray bytes (the configured silence).
     line_quiet: SimDuration,
+    /// When the line is free for a request (last exchange + gap, or quiet
+    /// after stray bytes): where a forwarded write may go out.
+    line_free_at: SimTime,
+    forwarding: forward::Forwarding,
 }
 
 impl Supervisor {
@@ -183,6 +191,8 @@ impl Supervisor {
             events: VecDeque::with_capacity(EVENT_QUEUE_LEN),
             events_dropped: 0,
             line_quiet: rtu_silence,
+            line_free_at: first_poll_at,
+            forwarding: forward::Forwarding::default(),
         };
         supervisor.pending.transaction = supervisor.first_transaction(0);
         Ok(supervisor)
@@ -281,6 +291,16 @@ impl Supervisor {
         true
     }
 
+    /// The gains `(kp, ki)` of slave `id`'s loop.
+    pub fn gains(&self, id: u8) -> Option<(f64, f64)> {
+        self.slave(id).map(|slave| (slave.pi.kp, slave.pi.ki))
+    }
+
+    /// Closed loop or manual `VEL`, for slave `id`.
+    pub fn mode(&self, id: u8) -> Option<LoopMode> {
+        self.slave(id).map(|slave| slave.config.mode)
+    }
+
     fn slave(&self, id: u8) -> Option<&Slave> {
         self.slaves.iter().find(|slave| slave.config.id == id)
     }
@@ -321,6 +341,7 @@ impl Supervisor {
     /// moves to the next slave or the next cycle.
     fn advance(&mut self, now: SimTime, next: Option<Transaction>) {
         let after_gap = now + self.inter_frame_gap;
+        self.line_free_at = self.line_free_at.max(after_gap);
         let (slave, at) = match next {
             Some(transaction) => {
                 self.pending = Pending {
@@ -329,6 +350,7 @@ impl Supervisor {
                     ..self.pending
                 };
                 self.phase = Phase::Waiting { at: after_gap };
+                self.start_forward(now);
                 return;
             }
             None if self.pending.slave + 1 < self.slaves.len() => {
@@ -348,6 +370,7 @@ impl Supervisor {
             attempt: 0,
         };
         self.phase = Phase::Waiting { at };
+        self.start_forward(now);
     }
 
     /// The attempt failed: retry it, or give it up and move on.
@@ -390,11 +413,18 @@ impl Supervisor {
                 u16::from(attempt) + 1
             ),
         );
+        if let Transaction::Forward { .. } = transaction {
+            self.finish_forward(now, WriteOutcome::NoAnswer);
+            return;
+        }
         // A lost start-up write does not stop the read: the telemetry still
         // flows, and the write is tried again next cycle.
         let next = match transaction {
             Transaction::Startup(_) => Some(Transaction::ReadInputs),
-            Transaction::ReadInputs | Transaction::WriteVel(_) => None,
+            // Handled above; kept for the match.
+            Transaction::ReadInputs | Transaction::WriteVel(_) | Transaction::Forward { .. } => {
+                None
+            }
         };
         self.advance(now, next);
     }
@@ -440,11 +470,23 @@ impl Supervisor {
                     "exception",
                     format!("slave {id}: {} refused, code {code:02}", transaction.name()),
                 );
-                self.fail(now);
+                // The slave's refusal of a client's write is its answer to
+                // the client, not a line fault: no retry.
+                match transaction {
+                    Transaction::Forward { .. } => {
+                        self.finish_forward(now, WriteOutcome::Refused(code));
+                    }
+                    _ => self.fail(now),
+                }
             }
             Reply::Ack => {
                 let next = match (transaction, self.slaves.get_mut(self.pending.slave)) {
                     (_, None) => None,
+                    (Transaction::Forward { .. }, Some(slave)) => {
+                        slave.state.counters.replies += 1;
+                        self.finish_forward(now, WriteOutcome::Acknowledged);
+                        return;
+                    }
                     (Transaction::Startup(_), Some(slave)) => {
                         slave.state.counters.replies += 1;
                         slave.state.started = true;
@@ -527,6 +569,7 @@ impl Node for Supervisor {
             self.phase = Phase::Waiting {
                 at: at.max(now + self.line_quiet),
             };
+            self.line_free_at = self.line_free_at.max(now + self.line_quiet);
         }
         let mut input = bytes;
         loop {
@@ -562,14 +605,26 @@ impl Node for Supervisor {
             return None;
         }
         let id = self.pending_id();
-        let Some(len) = self.pending.transaction.emit(self.protocol, id, buf) else {
+        let forwarded = self
+            .forwarding
+            .current
+            .as_ref()
+            .map_or(&[][..], |forward| forward.data.as_slice());
+        let Some(len) = self
+            .pending
+            .transaction
+            .emit(self.protocol, id, forwarded, buf)
+        else {
             // Only an engine with a buffer below `MAX_FRAME` gets here: give
             // the exchange up rather than ask for the same instant forever.
             self.push_event(now, "log", format!("slave {id}: transmit buffer too small"));
             if let Some(counters) = self.counters() {
                 counters.lost += 1;
             }
-            self.advance(now, None);
+            match self.pending.transaction {
+                Transaction::Forward { .. } => self.finish_forward(now, WriteOutcome::NoAnswer),
+                _ => self.advance(now, None),
+            }
             return None;
         };
         self.decoder.reset();

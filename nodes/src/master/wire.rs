@@ -23,6 +23,9 @@ pub(crate) enum Transaction {
     ReadInputs,
     /// Write `VEL`.
     WriteVel(u16),
+    /// A remote client's MEB write, forwarded (MEB only). The words live in
+    /// the supervisor, so this stays a small `Copy` value.
+    Forward { cmd: MebCmd, addr: u8, cnt: u8 },
 }
 
 impl Transaction {
@@ -32,34 +35,55 @@ impl Transaction {
             Transaction::Startup(_) => "startup write",
             Transaction::ReadInputs => "input read",
             Transaction::WriteVel(_) => "VEL write",
+            Transaction::Forward { .. } => "forwarded write",
         }
     }
 
-    /// Emits the request to slave `id` into `out`; `None` if `out` is too small.
-    pub(crate) fn emit(self, protocol: Protocol, id: u8, out: &mut [u8]) -> Option<usize> {
-        match protocol {
-            Protocol::Meb => self.meb_request(id).emit(out).ok(),
-            Protocol::ModbusRtu => rtu::emit(id, &self.rtu_request(), out).ok(),
+    /// Emits the request to slave `id` into `out`; `None` if `out` is too small
+    /// (or a forwarded write meets a Modbus bus, which the supervisor refuses
+    /// before it gets here). `forwarded` holds the words of a `Forward`.
+    pub(crate) fn emit(
+        self,
+        protocol: Protocol,
+        id: u8,
+        forwarded: &[u16],
+        out: &mut [u8],
+    ) -> Option<usize> {
+        match (protocol, self) {
+            (Protocol::Meb, Transaction::Forward { cmd, addr, cnt }) => MebRepr {
+                id,
+                cmd,
+                addr,
+                cnt,
+                data: MebWords::from_slice(forwarded)?,
+            }
+            .emit(out)
+            .ok(),
+            (Protocol::Meb, _) => self.meb_request(id).emit(out).ok(),
+            (Protocol::ModbusRtu, _) => rtu::emit(id, &self.rtu_request()?, out).ok(),
         }
     }
 
+    /// The request's header (a forwarded write's words are not held here).
     fn meb_request(self, id: u8) -> MebRepr {
-        let (cmd, cnt, words): (MebCmd, u8, &[u16]) = match self {
-            Transaction::Startup(outputs) => (MebCmd::SD, 2, &[outputs.sd0, outputs.sd1]),
-            Transaction::ReadInputs => (MebCmd::EA, INPUT_WORDS as u8, &[]),
-            Transaction::WriteVel(vel) => (MebCmd::SA, 1, &[vel]),
+        let (cmd, addr, cnt, words): (MebCmd, u8, u8, &[u16]) = match self {
+            Transaction::Startup(outputs) => (MebCmd::SD, 0, 2, &[outputs.sd0, outputs.sd1]),
+            Transaction::ReadInputs => (MebCmd::EA, 0, INPUT_WORDS as u8, &[]),
+            Transaction::WriteVel(vel) => (MebCmd::SA, 0, 1, &[vel]),
+            Transaction::Forward { cmd, addr, cnt } => (cmd, addr, cnt, &[]),
         };
         MebRepr {
             id,
             cmd,
-            addr: 0,
+            addr,
             cnt,
             data: MebWords::from_slice(words).unwrap_or_default(),
         }
     }
 
-    fn rtu_request(self) -> Request {
-        match self {
+    /// `None` for a forwarded MEB write, which has no Modbus form.
+    fn rtu_request(self) -> Option<Request> {
+        Some(match self {
             Transaction::Startup(outputs) => {
                 let bit = |word: u16, n: u8| word & (1 << n) != 0;
                 let coils = [
@@ -83,7 +107,8 @@ impl Transaction {
                 address: 0,
                 value: vel,
             },
-        }
+            Transaction::Forward { .. } => return None,
+        })
     }
 
     fn rtu_function(self) -> u8 {
@@ -91,6 +116,8 @@ impl Transaction {
             Transaction::Startup(_) => function::WRITE_MULTIPLE_COILS,
             Transaction::ReadInputs => function::READ_INPUT_REGISTERS,
             Transaction::WriteVel(_) => function::WRITE_SINGLE_REGISTER,
+            // Never sent on a Modbus bus; no function code answers it.
+            Transaction::Forward { .. } => 0,
         }
     }
 }
@@ -197,7 +224,11 @@ fn classify_meb(reply: &MebRepr, (id, transaction): (u8, Transaction)) -> Reply 
             Ok(words) => Reply::Inputs(words),
             Err(_) => Reply::Unexpected,
         },
-        Transaction::Startup(_) | Transaction::WriteVel(_) if reply.data.is_empty() => Reply::Ack,
+        Transaction::Startup(_) | Transaction::WriteVel(_) | Transaction::Forward { .. }
+            if reply.data.is_empty() =>
+        {
+            Reply::Ack
+        }
         _ => Reply::Unexpected,
     }
 }
