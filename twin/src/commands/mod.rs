@@ -3,4 +3,5 @@
 pub mod bench;
 pub mod experiment;
 pub mod run;
+pub mod serve;
 pub mod vsp;
