@@ -44,6 +44,10 @@ pub trait SimNode: Node {
     fn image_mut(&mut self) -> Option<&mut nodes::firmware::RegisterImage> {
         None
     }
+    /// The supervisor, for nodes that are one (its TCP server reads its image).
+    fn supervisor_mut(&mut self) -> Option<&mut nodes::master::Supervisor> {
+        None
+    }
 }
 
 /// One bench module and the plant time it has reached.

@@ -12,5 +12,6 @@ pub mod realtime;
 pub mod record;
 pub mod scenario;
 pub mod serve;
+pub mod supervise;
 pub mod virtual_run;
 pub mod vsp;

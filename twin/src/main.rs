@@ -24,6 +24,7 @@ enum Command {
     Experiment(commands::experiment::ExperimentArgs),
     Serve(commands::serve::ServeArgs),
     Vsp(commands::vsp::VspArgs),
+    Supervise(commands::supervise::SuperviseArgs),
 }
 
 fn main() -> ExitCode {
@@ -34,6 +35,7 @@ fn main() -> ExitCode {
         Command::Experiment(args) => commands::experiment::execute(&args),
         Command::Serve(args) => commands::serve::execute(&args),
         Command::Vsp(args) => commands::vsp::execute(&args),
+        Command::Supervise(args) => commands::supervise::execute(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -225,28 +225,28 @@ impl ImageServer {
         }
     }
 
-    /// Takes the supervisor's outcomes of forwarded writes into the replies
-    /// owed. Call after driving the supervisor.
+    /// Takes the supervisor's outcomes of this server's forwarded writes into
+    /// the replies owed. Call after driving the supervisor.
     pub fn collect(&mut self, supervisor: &mut Supervisor) {
-        while let Some((ticket, outcome)) = supervisor.poll_write_outcome() {
-            for client in &mut self.clients {
-                for owed in &mut client.owed {
-                    if let Owed::Forwarded { ticket: t, request } = owed
-                        && *t == ticket
-                    {
-                        let reply = match outcome {
-                            WriteOutcome::Acknowledged => request.acknowledgement(),
-                            WriteOutcome::Refused(code) => refused(request, code),
-                            WriteOutcome::NoAnswer => {
-                                MebRepr::error_reply(request.id, request.addr, DEVICE_FAILURE)
-                            }
-                        };
-                        if reply.cmd == MebCmd::ER {
-                            client.stats.errors += 1;
-                        }
-                        *owed = Owed::Ready(reply);
+        for client in &mut self.clients {
+            for owed in &mut client.owed {
+                let Owed::Forwarded { ticket, request } = owed else {
+                    continue;
+                };
+                let Some(outcome) = supervisor.take_write_outcome(*ticket) else {
+                    continue;
+                };
+                let reply = match outcome {
+                    WriteOutcome::Acknowledged => request.acknowledgement(),
+                    WriteOutcome::Refused(code) => refused(request, code),
+                    WriteOutcome::NoAnswer => {
+                        MebRepr::error_reply(request.id, request.addr, DEVICE_FAILURE)
                     }
+                };
+                if reply.cmd == MebCmd::ER {
+                    client.stats.errors += 1;
                 }
+                *owed = Owed::Ready(reply);
             }
         }
     }
@@ -289,6 +289,12 @@ impl ImageServer {
     /// What `client` sent and got.
     pub fn client_stats(&self, client: ClientId) -> Option<ClientStats> {
         self.client(client).map(|c| c.stats)
+    }
+
+    /// Bytes of a partial frame `client` holds (for a partial-frame timeout
+    /// kept by the caller).
+    pub fn pending(&self, client: ClientId) -> usize {
+        self.client(client).map_or(0, |c| c.decoder.buffered())
     }
 
     /// What `client`'s stream decoder dropped (malformed frames by reason).

@@ -4,4 +4,5 @@ pub mod bench;
 pub mod experiment;
 pub mod run;
 pub mod serve;
+pub mod supervise;
 pub mod vsp;

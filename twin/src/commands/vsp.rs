@@ -51,10 +51,7 @@ async fn run(args: &VspArgs) -> Result<()> {
     let mut terminate =
         signal(SignalKind::terminate()).context("installing the SIGTERM handler")?;
     let mut hangup = signal(SignalKind::hangup()).context("installing the SIGHUP handler")?;
-    let mut pair = Pair::open(
-        [&args.first, &args.second],
-        PairOptions { baud: args.baud },
-    )?;
+    let mut pair = Pair::open([&args.first, &args.second], PairOptions { baud: args.baud })?;
     let names = [
         args.first.display().to_string(),
         args.second.display().to_string(),
@@ -109,7 +106,12 @@ fn print_counters(names: &[String; 2], counters: [DirectionCounters; 2]) {
         } else {
             String::new()
         };
-        format!("{} -> {}: {} bytes{dropped}", names[i], names[1 - i], c.bytes)
+        format!(
+            "{} -> {}: {} bytes{dropped}",
+            names[i],
+            names[1 - i],
+            c.bytes
+        )
     };
     println!("  {}; {}", line(0), line(1));
 }

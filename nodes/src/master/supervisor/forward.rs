@@ -19,6 +19,8 @@ use super::{Pending, Phase, Supervisor};
 
 /// Forwarded writes waiting for the line, at most; more are refused.
 pub(super) const FORWARD_QUEUE_LEN: usize = 64;
+/// Outcomes nobody took (their client went away) are forgotten past this many.
+const OUTCOMES_KEPT: usize = 256;
 
 /// Names one forwarded write, so its outcome finds the client that asked.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -116,9 +118,13 @@ impl Supervisor {
         Ok(ticket)
     }
 
-    /// The next forwarded write that was acknowledged, refused or lost.
-    pub fn poll_write_outcome(&mut self) -> Option<(WriteTicket, WriteOutcome)> {
-        self.forwarding.outcomes.pop_front()
+    /// What became of the forwarded write `ticket`, once it is known; each
+    /// outcome is handed out once. Every client's server asks for its own
+    /// tickets, so clients on different connections never take each other's.
+    pub fn take_write_outcome(&mut self, ticket: WriteTicket) -> Option<WriteOutcome> {
+        let outcomes = &mut self.forwarding.outcomes;
+        let index = outcomes.iter().position(|(t, _)| *t == ticket)?;
+        outcomes.remove(index).map(|(_, outcome)| outcome)
     }
 
     /// Forwarded writes waiting for the line or on it.
@@ -162,9 +168,11 @@ impl Supervisor {
             if outcome == WriteOutcome::Acknowledged {
                 self.apply_forwarded(&forward);
             }
-            self.forwarding
-                .outcomes
-                .push_back((forward.ticket, outcome));
+            let outcomes = &mut self.forwarding.outcomes;
+            if outcomes.len() >= OUTCOMES_KEPT {
+                outcomes.pop_front();
+            }
+            outcomes.push_back((forward.ticket, outcome));
         }
         let after_gap = now + self.inter_frame_gap;
         self.line_free_at = self.line_free_at.max(after_gap);
