@@ -2,6 +2,7 @@
 //! command-line front end in `main.rs` is a thin layer over these modules.
 
 pub mod bench;
+pub mod client;
 pub mod engine;
 pub mod experiment;
 pub mod io;

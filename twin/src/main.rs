@@ -25,6 +25,7 @@ enum Command {
     Serve(commands::serve::ServeArgs),
     Vsp(commands::vsp::VspArgs),
     Supervise(commands::supervise::SuperviseArgs),
+    Client(commands::client::ClientArgs),
 }
 
 fn main() -> ExitCode {
@@ -36,6 +37,7 @@ fn main() -> ExitCode {
         Command::Serve(args) => commands::serve::execute(&args),
         Command::Vsp(args) => commands::vsp::execute(&args),
         Command::Supervise(args) => commands::supervise::execute(&args),
+        Command::Client(args) => commands::client::execute(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
