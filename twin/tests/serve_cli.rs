@@ -294,7 +294,11 @@ fn meb_and_modbus_tcp_serve_one_module_and_a_write_turns_the_wheel() {
         std::thread::sleep(Duration::from_millis(50));
     };
     assert!(rpm > 1000, "the wheel turns at half VEL: RPM_M {rpm}");
-    assert_eq!(read_ea(&mut m)[3].abs_diff(rpm) < 300, true);
+    let meb_rpm = read_ea(&mut m)[3];
+    assert!(
+        meb_rpm.abs_diff(rpm) < 300,
+        "MEB RPM_M {meb_rpm} vs Modbus {rpm}"
+    );
 
     let text = server.terminate();
     assert!(text.contains("stopped (SIGTERM)"), "{text}");

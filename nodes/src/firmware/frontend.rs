@@ -56,7 +56,7 @@ impl Framing {
 
 #[derive(Debug, Clone)]
 enum Decoder {
-    Meb(MebDecoder),
+    Meb(Box<MebDecoder>),
     Rtu(Box<RtuDecoder>),
     Ascii(Box<AsciiDecoder>),
     Tcp(Box<TcpDecoder>),
@@ -100,7 +100,7 @@ impl SlaveFrontend {
     /// A front end for slave `id` (MEB slave number or Modbus unit id).
     pub fn new(framing: Framing, id: u8) -> Self {
         let decoder = match framing {
-            Framing::Meb => Decoder::Meb(MebDecoder::new()),
+            Framing::Meb => Decoder::Meb(Box::default()),
             Framing::ModbusRtu(silence) => Decoder::Rtu(Box::new(RtuDecoder::new(
                 Direction::Request,
                 Timing::Silence(silence),

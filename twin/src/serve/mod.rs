@@ -181,11 +181,14 @@ pub fn parse_links(options: &ServeOptions) -> Result<Vec<(ServeProtocol, LinkSpe
     Ok(specs)
 }
 
+/// Starts an opened link's task on the runtime, sending to the engine.
+type Starter = Box<dyn FnOnce(&tokio::runtime::Handle, Sender<Inbound>)>;
+
 /// A session being set up: the engine, and the opened links' tasks to start.
 struct Setup {
     engine: RtEngine,
     open: Vec<OpenLink>,
-    starters: Vec<Box<dyn FnOnce(&tokio::runtime::Handle, Sender<Inbound>)>>,
+    starters: Vec<Starter>,
     refused: Arc<AtomicU64>,
 }
 
@@ -263,7 +266,7 @@ async fn open_links(
     let clock = engine.clock;
     let refused = Arc::new(AtomicU64::new(0));
     let mut open = Vec::new();
-    let mut starters: Vec<Box<dyn FnOnce(&tokio::runtime::Handle, Sender<Inbound>)>> = Vec::new();
+    let mut starters: Vec<Starter> = Vec::new();
     for (index, ((protocol, spec), name)) in specs.into_iter().zip(names).enumerate() {
         let link = engine.links.len();
         debug_assert_eq!(link, index);
