@@ -19,6 +19,9 @@ pub enum Way {
     Received,
 }
 
+/// Sees each frame: its direction, seconds since connecting, its bytes.
+type Monitor = Box<dyn FnMut(Way, f64, &[u8])>;
+
 /// A connection to an MEB server.
 pub struct MebClient {
     stream: TcpStream,
@@ -26,7 +29,7 @@ pub struct MebClient {
     timeout: Duration,
     peer: SocketAddr,
     started: Instant,
-    monitor: Option<Box<dyn FnMut(Way, f64, &[u8])>>,
+    monitor: Option<Monitor>,
 }
 
 impl std::fmt::Debug for MebClient {

@@ -149,10 +149,13 @@ pub fn status_lines(supervisor: &Supervisor, now: SimTime) -> Vec<String> {
 /// Index of the supervisor among the engine's devices.
 const SUPERVISOR: usize = 0;
 
+/// Starts one link's task on the runtime, once the engine listens.
+type Starter = Box<dyn FnOnce(&tokio::runtime::Handle, Sender<Inbound>)>;
+
 struct Setup {
     engine: RtEngine,
     open: Vec<OpenLink>,
-    starters: Vec<Box<dyn FnOnce(&tokio::runtime::Handle, Sender<Inbound>)>>,
+    starters: Vec<Starter>,
     refused: Arc<AtomicU64>,
 }
 
@@ -189,7 +192,7 @@ async fn open_links(
     let clock = engine.clock;
     let refused = Arc::new(AtomicU64::new(0));
     let mut open = Vec::new();
-    let mut starters: Vec<Box<dyn FnOnce(&tokio::runtime::Handle, Sender<Inbound>)>> = Vec::new();
+    let mut starters: Vec<Starter> = Vec::new();
     let slaves = options
         .slaves
         .iter()
