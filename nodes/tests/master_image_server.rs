@@ -477,3 +477,30 @@ fn reply_shaped_frames_and_broadcasts_get_no_reply() {
     assert_eq!(rig.server.client_stats(client).unwrap().ignored, 5);
     assert_eq!(rig.slave.image().stored.vel, 0);
 }
+
+#[test]
+fn servers_sharing_one_supervisor_each_get_their_own_outcomes() {
+    // The real-time engine gives every TCP connection its own server state;
+    // all of them forward through the one supervisor.
+    let mut rig = Rig::new(ImageServerConfig::default());
+    let mut other = ImageServer::new(ImageServerConfig::default());
+    let first = rig.connect();
+    let second = other.accept(rig.now).unwrap();
+    rig.run_for(ms(50));
+    rig.send(first, &frame("@01SD0001001D"));
+    other.handle_bytes(
+        rig.now,
+        second,
+        &frame("@01SA00011000"),
+        &mut rig.supervisor,
+    );
+    // The first server collects before the second: it must leave the
+    // second's outcome alone.
+    rig.run_for(ms(30));
+    assert_eq!(rig.replies(first), [s("@01SD0001")]);
+    other.collect(&mut rig.supervisor);
+    let mut buf = [0u8; MAX_FRAME];
+    let n = other.poll_transmit(second, &mut buf).expect("its reply");
+    assert_eq!(text(&buf[..n]), s("@01ER00010003"));
+    assert_eq!(rig.supervisor.forwards_in_flight(), 0);
+}
