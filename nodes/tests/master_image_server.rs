@@ -504,3 +504,25 @@ fn servers_sharing_one_supervisor_each_get_their_own_outcomes() {
     assert_eq!(text(&buf[..n]), s("@01ER00010003"));
     assert_eq!(rig.supervisor.forwards_in_flight(), 0);
 }
+
+#[test]
+fn a_write_that_never_reaches_the_line_is_answered_error_04_and_withdrawn() {
+    let mut rig = Rig::new(ImageServerConfig::default());
+    let client = rig.connect();
+    rig.run_for(ms(50));
+    // The bus is gone: nothing drives the supervisor, the write waits.
+    rig.send(client, &frame("@01SA00010800"));
+    let later = rig.now + ms(700);
+    rig.server.expire(later, &mut rig.supervisor);
+    assert!(rig.replies(client).is_empty(), "expired too early");
+    rig.server.expire(later + ms(100), &mut rig.supervisor);
+    assert_eq!(rig.replies(client), [s("@01ER00010004")]);
+    // Withdrawn: when the bus is back, the stale write is not applied.
+    assert_eq!(rig.supervisor.forwards_in_flight(), 0);
+    rig.run_for(ms(50));
+    assert_eq!(
+        rig.slave.image().stored.vel,
+        rig.supervisor.loop_state(1).unwrap().vel_written.unwrap()
+    );
+    assert_ne!(rig.slave.image().stored.vel, 0x0800);
+}

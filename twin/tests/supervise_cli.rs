@@ -553,3 +553,66 @@ fn client_reports_a_server_that_is_not_there_and_bad_arguments() {
         "{text}"
     );
 }
+
+#[test]
+fn a_slave_or_a_port_that_vanishes_gets_error_04_and_the_server_keeps_serving() {
+    let (a, b) = pair_paths("vanish");
+    let vsp = Proc::start(&["vsp", s(&a), s(&b)]);
+    let serve = Proc::start(&[
+        "serve",
+        "--meb",
+        s(&b),
+        "--quiet",
+        "--no-record",
+        "--status-every",
+        "0",
+    ]);
+    let supervise = Proc::start(&[
+        "supervise",
+        "--meb",
+        s(&a),
+        "--listen",
+        "tcp://127.0.0.1:0",
+        "--quiet",
+        "--no-record",
+        "--status-every",
+        "0",
+        "--timeout-ms",
+        "50",
+        "--retries",
+        "1",
+    ]);
+    let url = format!("tcp://{}", supervise.tcp());
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while !client(&[&url, "read", "EA", "0", "1"]).status.success() {
+        assert!(Instant::now() < deadline, "the supervisor never polled");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let write = || {
+        let out = client(&[&url, "write", "SA", "0", "100"]);
+        (
+            out.status.code(),
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        )
+    };
+    assert_eq!(write().0, Some(0));
+    // The slave goes away: the bus is still there, the write is not answered.
+    serve.terminate();
+    let (code, err) = write();
+    assert_eq!(code, Some(1));
+    assert!(err.contains("ER 04"), "{err}");
+    // The port goes away too: nothing drives the bus, the write still gets ER 04.
+    vsp.terminate();
+    std::thread::sleep(Duration::from_millis(300));
+    let (code, err) = write();
+    assert_eq!(code, Some(1));
+    assert!(err.contains("ER 04"), "{err}");
+    // Reads are answered from the last poll all along.
+    let read = client(&[&url, "read", "EA", "0", "6"]);
+    assert!(
+        read.status.success(),
+        "{}",
+        String::from_utf8_lossy(&read.stderr)
+    );
+    supervise.terminate();
+}

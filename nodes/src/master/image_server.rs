@@ -55,6 +55,11 @@ pub struct ImageServerConfig {
     pub max_pipeline: usize,
     /// Every client is read-only: writes get `ER 01`.
     pub read_only: bool,
+    /// A forwarded write still waiting for the line after this long (the bus
+    /// is gone: no port, a master not driven) is dropped and answered `ER 04`,
+    /// so a client is never left waiting. Longer than the supervisor's retries
+    /// take, so a write on the line always gets its own answer.
+    pub max_forward_wait: SimDuration,
 }
 
 impl Default for ImageServerConfig {
@@ -66,6 +71,7 @@ impl Default for ImageServerConfig {
             rate_burst: 100.0,
             max_pipeline: 64,
             read_only: false,
+            max_forward_wait: SimDuration::from_millis(800),
         }
     }
 }
@@ -106,10 +112,12 @@ pub struct ClientStats {
 #[derive(Debug, Clone)]
 enum Owed {
     Ready(MebRepr),
-    /// A forwarded write: the request's header, to echo or to answer `ER`.
+    /// A forwarded write: the request's header, to echo or to answer `ER`,
+    /// and when it was forwarded.
     Forwarded {
         ticket: WriteTicket,
         request: MebRepr,
+        since: SimTime,
     },
 }
 
@@ -230,7 +238,10 @@ impl ImageServer {
     pub fn collect(&mut self, supervisor: &mut Supervisor) {
         for client in &mut self.clients {
             for owed in &mut client.owed {
-                let Owed::Forwarded { ticket, request } = owed else {
+                let Owed::Forwarded {
+                    ticket, request, ..
+                } = owed
+                else {
                     continue;
                 };
                 let Some(outcome) = supervisor.take_write_outcome(*ticket) else {
@@ -247,6 +258,35 @@ impl ImageServer {
                     client.stats.errors += 1;
                 }
                 *owed = Owed::Ready(reply);
+            }
+        }
+    }
+
+    /// Answers `ER 04` to forwarded writes that waited longer than
+    /// [`ImageServerConfig::max_forward_wait`], and withdraws them from the
+    /// supervisor's queue. Call with the clock now and then (every tick).
+    pub fn expire(&mut self, now: SimTime, supervisor: &mut Supervisor) {
+        let max_wait = self.config.max_forward_wait;
+        for client in &mut self.clients {
+            for owed in &mut client.owed {
+                let Owed::Forwarded {
+                    ticket,
+                    request,
+                    since,
+                } = owed
+                else {
+                    continue;
+                };
+                if now.saturating_since(*since) < max_wait {
+                    continue;
+                }
+                supervisor.cancel_forward(*ticket);
+                client.stats.errors += 1;
+                *owed = Owed::Ready(MebRepr::error_reply(
+                    request.id,
+                    request.addr,
+                    DEVICE_FAILURE,
+                ));
             }
         }
     }
@@ -416,6 +456,7 @@ fn answer(
                 Ok(ticket) => Some(Owed::Forwarded {
                     ticket,
                     request: *request,
+                    since: now,
                 }),
                 Err(ForwardError::NotMeb) => error(request, MebErrorCode::IllegalCommand),
                 Err(ForwardError::UnknownSlave(_)) => error(request, MebErrorCode::IllegalAddress),

@@ -148,6 +148,10 @@ fn options(args: &SuperviseArgs) -> Result<SuperviseOptions> {
         rate_per_second: args.rate_limit,
         rate_burst: (args.rate_limit * 1.5).max(10.0),
         read_only: args.read_only,
+        // Longer than every attempt of a write on the line takes.
+        max_forward_wait: SimDuration::from_secs_f64(
+            (f64::from(args.retries) + 1.0) * args.timeout_ms / 1000.0 + 0.5,
+        ),
         ..ImageServerConfig::default()
     };
     Ok(SuperviseOptions {

@@ -58,7 +58,7 @@ impl Endpoint for ImageEndpoint {
     fn poll_transmit(
         &mut self,
         devices: &mut [Device],
-        _now: SimTime,
+        now: SimTime,
         buf: &mut [u8],
     ) -> Option<usize> {
         if let Some(supervisor) = devices
@@ -66,6 +66,9 @@ impl Endpoint for ImageEndpoint {
             .and_then(|d| d.node.supervisor_mut())
         {
             self.server.collect(supervisor);
+            // With the bus gone the supervisor is not driven: its queued
+            // writes would never go out.
+            self.server.expire(now, supervisor);
         }
         self.server.poll_transmit(self.client, buf)
     }

@@ -127,6 +127,27 @@ impl Supervisor {
         outcomes.remove(index).map(|(_, outcome)| outcome)
     }
 
+    /// Drops the forwarded write `ticket` if it is not on the line now (its
+    /// client gave up on it); a write awaiting its reply runs its course.
+    /// Returns whether it was dropped.
+    pub fn cancel_forward(&mut self, ticket: WriteTicket) -> bool {
+        // Taken off the queue but not sent yet (or between its attempts).
+        let is_current = self.forwarding.current.as_ref().map(|f| f.ticket) == Some(ticket);
+        if is_current && let Phase::Waiting { .. } = self.phase {
+            self.forwarding.current = None;
+            if let Some((pending, at)) = self.forwarding.resume.take() {
+                self.pending = pending;
+                self.phase = Phase::Waiting { at };
+            }
+            return true;
+        }
+        let queue = &mut self.forwarding.queue;
+        match queue.iter().position(|f| f.ticket == ticket) {
+            Some(index) => queue.remove(index).is_some(),
+            None => false,
+        }
+    }
+
     /// Forwarded writes waiting for the line or on it.
     pub fn forwards_in_flight(&self) -> usize {
         self.forwarding.queue.len() + usize::from(self.forwarding.current.is_some())
