@@ -45,11 +45,17 @@ struct Rig {
 
 impl Rig {
     fn new(config: ImageServerConfig) -> Self {
+        Self::reading_status(config, 0)
+    }
+
+    /// A supervisor that reads the status words every `status_every` cycles.
+    fn reading_status(config: ImageServerConfig, status_every: u32) -> Self {
         let mut loop_config = SlaveLoopConfig::new(1);
         loop_config.kp = 0.45;
         loop_config.ki = 2.5;
-        let supervisor =
-            Supervisor::new(SupervisorConfig::new(Protocol::Meb, vec![loop_config])).unwrap();
+        let mut supervisor_config = SupervisorConfig::new(Protocol::Meb, vec![loop_config]);
+        supervisor_config.status_every = status_every;
+        let supervisor = Supervisor::new(supervisor_config).unwrap();
         let sensors = Sensors {
             bus_counts: 3000,
             current_counts: 200,
@@ -525,4 +531,57 @@ fn a_write_that_never_reaches_the_line_is_answered_error_04_and_withdrawn() {
         rig.supervisor.loop_state(1).unwrap().vel_written.unwrap()
     );
     assert_ne!(rig.slave.image().stored.vel, 0x0800);
+}
+
+#[test]
+fn the_status_words_are_served_when_the_supervisor_reads_them() {
+    let mut rig = Rig::reading_status(ImageServerConfig::default(), 5);
+    let client = rig.connect();
+    assert_eq!(
+        rig.ask(client, &frame("@01FD0001"), ms(0)),
+        [s("@01ER00010004")]
+    );
+    rig.run_for(ms(100));
+    let image = rig.slave.image();
+    let (hall, soc, errs, status) = (image.hall, image.soc, image.errs, image.status);
+    // Disabled and braked by a write, so STATUS changes and the next round shows it.
+    assert_eq!(
+        rig.ask(client, &frame("@01SD0001001B"), ms(20)),
+        [s("@01SD0001")]
+    );
+    assert_eq!(
+        rig.ask(client, &frame("@01ED0001"), ms(0)),
+        [s(&format!("@01ED0001{hall:04X}"))]
+    );
+    assert_eq!(
+        rig.ask(client, &frame("@01FA0002"), ms(0)),
+        [s(&format!("@01FA0002{soc:04X}{errs:04X}"))]
+    );
+    assert_eq!(
+        rig.ask(client, &frame("@01FD0001"), ms(0)),
+        [s(&format!("@01FD0001{status:04X}"))]
+    );
+    rig.run_for(ms(100));
+    let reversed = rig.slave.image().status;
+    assert_eq!(
+        reversed,
+        status | 0b10_0000,
+        "the direction did not show in STATUS"
+    );
+    assert_eq!(
+        rig.ask(client, &frame("@01FD0001"), ms(0)),
+        [s(&format!("@01FD0001{reversed:04X}"))]
+    );
+    // Still not held: past the blocks, and the slave's ED beyond word 0.
+    assert_eq!(
+        rig.ask(client, &frame("@01FA0102"), ms(0)),
+        [s("@01ER01010002")]
+    );
+    assert_eq!(
+        rig.ask(client, &frame("@01ED0101"), ms(0)),
+        [s("@01ER01010002")]
+    );
+    // One status round (3 reads) every 5 cycles on top of each cycle's read.
+    let c = rig.supervisor.loop_state(1).unwrap().counters;
+    assert_eq!(c.requests, c.replies);
 }

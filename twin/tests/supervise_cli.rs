@@ -130,6 +130,15 @@ fn s(path: &Path) -> &str {
     path.to_str().unwrap()
 }
 
+/// Waits until the supervisor at `url` has polled its slave once.
+fn wait_polled(url: &str) {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while !client(&[url, "read", "EA", "0", "1"]).status.success() {
+        assert!(Instant::now() < deadline, "the supervisor never polled");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
 fn client(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_twin"))
         .arg("client")
@@ -536,6 +545,7 @@ fn client_reports_a_server_that_is_not_there_and_bad_arguments() {
     let bad = client(&[&url, "read", "EA", "zz", "1"]);
     assert_eq!(bad.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&bad.stderr).contains("address `zz` is not hex"));
+    wait_polled(&url);
     let watch = client(&[&url, "watch", "--count", "3", "--every", "0.1"]);
     assert!(
         watch.status.success(),
@@ -552,6 +562,25 @@ fn client_reports_a_server_that_is_not_there_and_bad_arguments() {
         text.contains("loop closed, set point 0 rpm, kp 0.450, ki 2.500"),
         "{text}"
     );
+    // The status words the supervisor reads every 10 cycles: SOC near 90 % (900 counts).
+    let flags = client(&[&url, "read", "FA", "0", "2"]);
+    assert!(
+        flags.status.success(),
+        "{}",
+        String::from_utf8_lossy(&flags.stderr)
+    );
+    let text = String::from_utf8_lossy(&flags.stdout);
+    let soc: u16 = text
+        .lines()
+        .next()
+        .unwrap()
+        .split_whitespace()
+        .nth(3)
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!((850..=950).contains(&soc), "{text}");
+    assert!(text.contains("SOC") && text.contains("ERRS"), "{text}");
 }
 
 #[test]
@@ -583,11 +612,7 @@ fn a_slave_or_a_port_that_vanishes_gets_error_04_and_the_server_keeps_serving() 
         "1",
     ]);
     let url = format!("tcp://{}", supervise.tcp());
-    let deadline = Instant::now() + Duration::from_secs(10);
-    while !client(&[&url, "read", "EA", "0", "1"]).status.success() {
-        assert!(Instant::now() < deadline, "the supervisor never polled");
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    wait_polled(&url);
     let write = || {
         let out = client(&[&url, "write", "SA", "0", "100"]);
         (

@@ -5,7 +5,8 @@
 //! the [`Supervisor`]'s image:
 //!
 //! - reads of `EA 00`–`05` from the inputs it polled last (`ER 04` before the
-//!   first poll answered); the loop's mirrors `FA 10` set point (rpm),
+//!   first poll answered), and of `ED 00`, `FA 00`–`01`, `FD 00` when the
+//!   supervisor reads the status words (`SupervisorConfig::status_every`); the loop's mirrors `FA 10` set point (rpm),
 //!   `FA 11` Kp ×1000, `FA 12` Ki ×1000 and `FD 10` bit 0 closed loop;
 //! - writes of the loop's variables `VA 10`–`12` and `VD 10` applied at once;
 //! - other writes (`SA`, `SD`, the slave's own `VA`/`VD`) forwarded on the bus
@@ -439,6 +440,28 @@ fn answer(
         (MebBlock::Variables, _) if first >= usize::from(LOOP_ADDR) => {
             write_loop_variables(request, word_type, supervisor)
         }
+        (MebBlock::Inputs, MebWordType::Digital) if end <= 1 && supervisor.reads_status() => {
+            let hall = supervisor.loop_state(id)?.status.hall;
+            status_reply(
+                request,
+                hall.map(|w| [w]).as_ref().map(|w| &w[..]),
+                first,
+                end,
+            )
+        }
+        (MebBlock::Flags, MebWordType::Analog) if end <= 2 && supervisor.reads_status() => {
+            let flags = supervisor.loop_state(id)?.status.flags;
+            status_reply(request, flags.as_ref().map(|w| &w[..]), first, end)
+        }
+        (MebBlock::Flags, MebWordType::Digital) if end <= 1 && supervisor.reads_status() => {
+            let status = supervisor.loop_state(id)?.status.status;
+            status_reply(
+                request,
+                status.map(|w| [w]).as_ref().map(|w| &w[..]),
+                first,
+                end,
+            )
+        }
         (MebBlock::Inputs | MebBlock::Flags, _) => error(request, MebErrorCode::IllegalAddress),
         // A write that runs from the slave's variables into the loop's.
         (MebBlock::Variables, _) if end > usize::from(LOOP_ADDR) => {
@@ -464,6 +487,19 @@ fn answer(
                 Err(ForwardError::NotAWrite) => error(request, MebErrorCode::IllegalData),
             }
         }
+    }
+}
+
+/// Status words as last read, `ER 04` before the first read.
+fn status_reply(
+    request: &MebRepr,
+    words: Option<&[u16]>,
+    first: usize,
+    end: usize,
+) -> Option<Owed> {
+    match words.and_then(|w| w.get(first..end)) {
+        Some(words) => words_reply(request, words),
+        None => error(request, DEVICE_FAILURE),
     }
 }
 

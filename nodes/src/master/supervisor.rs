@@ -10,7 +10,7 @@ use crate::node::{Node, NodeEvent};
 use crate::time::{SimDuration, SimTime};
 
 use super::pi::{SpeedPi, VEL_MAX};
-use super::wire::{INPUT_WORDS, Reply, ReplyDecoder, Transaction};
+use super::wire::{INPUT_WORDS, Reply, ReplyDecoder, StatusBlock, Transaction};
 use super::{
     LoopMode, Protocol, SlaveLoopConfig, StartupOutputs, SupervisorConfig, SupervisorConfigError,
 };
@@ -43,6 +43,18 @@ pub struct PollCounters {
     pub unexpected: u64,
 }
 
+/// The slave's status words as last read (`SupervisorConfig::status_every`);
+/// `None` until read.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct StatusWords {
+    /// `ED 00`: hall code (bits 0-2), flag seen (bit 3).
+    pub hall: Option<u16>,
+    /// `FA 00` SOC (0.1 %) and `FA 01` ERRS.
+    pub flags: Option<[u16; 2]>,
+    /// `FD 00` STATUS.
+    pub status: Option<u16>,
+}
+
 /// The state of one slave's speed loop, for recording.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct LoopState {
@@ -66,6 +78,8 @@ pub struct LoopState {
     pub started: bool,
     /// Bus counters.
     pub counters: PollCounters,
+    /// Status words, if the supervisor reads them.
+    pub status: StatusWords,
 }
 
 #[derive(Debug, Clone)]
@@ -115,6 +129,7 @@ pub struct Supervisor {
     /// How long the line must be quiet before a request goes out after
     /// stray bytes (the configured silence).
     line_quiet: SimDuration,
+    status_every: u32,
     /// When the line is free for a request (last exchange + gap, or quiet
     /// after stray bytes): where a forwarded write may go out.
     line_free_at: SimTime,
@@ -134,6 +149,7 @@ impl Supervisor {
             first_poll_at,
             startup_outputs,
             rtu_silence,
+            status_every,
         } = config;
         if slaves.is_empty() {
             return Err(SupervisorConfigError::NoSlaves);
@@ -191,6 +207,11 @@ impl Supervisor {
             events: VecDeque::with_capacity(EVENT_QUEUE_LEN),
             events_dropped: 0,
             line_quiet: rtu_silence,
+            status_every: if protocol == Protocol::Meb {
+                status_every
+            } else {
+                0
+            },
             line_free_at: first_poll_at,
             forwarding: forward::Forwarding::default(),
         };
@@ -291,6 +312,12 @@ impl Supervisor {
         true
     }
 
+    /// Whether the supervisor reads its slaves' status words (`ED 00`,
+    /// `FA 00`–`01`, `FD 00`) now and then.
+    pub fn reads_status(&self) -> bool {
+        self.status_every > 0
+    }
+
     /// The gains `(kp, ki)` of slave `id`'s loop.
     pub fn gains(&self, id: u8) -> Option<(f64, f64)> {
         self.slave(id).map(|slave| (slave.pi.kp, slave.pi.ki))
@@ -307,6 +334,12 @@ impl Supervisor {
 
     fn slave_mut(&mut self, id: u8) -> Option<&mut Slave> {
         self.slaves.iter_mut().find(|slave| slave.config.id == id)
+    }
+
+    /// The status round's first read, if this cycle has one.
+    fn status_round(&self) -> Option<Transaction> {
+        (self.status_every > 0 && self.cycles % u64::from(self.status_every) == 0)
+            .then_some(Transaction::ReadStatus(StatusBlock::Hall))
     }
 
     fn first_transaction(&self, slave: usize) -> Transaction {
@@ -421,10 +454,12 @@ impl Supervisor {
         // flows, and the write is tried again next cycle.
         let next = match transaction {
             Transaction::Startup(_) => Some(Transaction::ReadInputs),
-            // Handled above; kept for the match.
-            Transaction::ReadInputs | Transaction::WriteVel(_) | Transaction::Forward { .. } => {
-                None
-            }
+            // A forwarded write was handled above; a lost status read
+            // ends the round, the next one comes in `status_every` cycles.
+            Transaction::ReadInputs
+            | Transaction::WriteVel(_)
+            | Transaction::Forward { .. }
+            | Transaction::ReadStatus(_) => None,
         };
         self.advance(now, next);
     }
@@ -495,20 +530,33 @@ impl Supervisor {
                     (Transaction::WriteVel(vel), Some(slave)) => {
                         slave.state.counters.replies += 1;
                         slave.state.vel_written = Some(vel);
-                        None
+                        self.status_round()
                     }
                     // Never classified as an acknowledgement.
-                    (Transaction::ReadInputs, Some(_)) => None,
+                    (Transaction::ReadInputs | Transaction::ReadStatus(_), Some(_)) => None,
                 };
                 self.advance(now, next);
             }
             Reply::Inputs(words) => {
                 let default_dt = self.poll_period;
-                let next = self
+                let write = self
                     .slaves
                     .get_mut(self.pending.slave)
                     .and_then(|slave| slave.measure(now, words, default_dt));
+                let next = write.or_else(|| self.status_round());
                 self.advance(now, next);
+            }
+            Reply::Status(block, words) => {
+                if let Some(slave) = self.slaves.get_mut(self.pending.slave) {
+                    slave.state.counters.replies += 1;
+                    let status = &mut slave.state.status;
+                    match block {
+                        StatusBlock::Hall => status.hall = Some(words[0]),
+                        StatusBlock::Flags => status.flags = Some(words),
+                        StatusBlock::Status => status.status = Some(words[0]),
+                    }
+                }
+                self.advance(now, block.next().map(Transaction::ReadStatus));
             }
         }
     }

@@ -23,6 +23,8 @@ pub(crate) enum Transaction {
     ReadInputs,
     /// Write `VEL`.
     WriteVel(u16),
+    /// One block of the slave's status words (MEB only).
+    ReadStatus(StatusBlock),
     /// A remote client's MEB write, forwarded (MEB only). The words live in
     /// the supervisor, so this stays a small `Copy` value.
     Forward { cmd: MebCmd, addr: u8, cnt: u8 },
@@ -36,6 +38,7 @@ impl Transaction {
             Transaction::ReadInputs => "input read",
             Transaction::WriteVel(_) => "VEL write",
             Transaction::Forward { .. } => "forwarded write",
+            Transaction::ReadStatus(_) => "status read",
         }
     }
 
@@ -71,6 +74,10 @@ impl Transaction {
             Transaction::ReadInputs => (MebCmd::EA, 0, INPUT_WORDS as u8, &[]),
             Transaction::WriteVel(vel) => (MebCmd::SA, 0, 1, &[vel]),
             Transaction::Forward { cmd, addr, cnt } => (cmd, addr, cnt, &[]),
+            Transaction::ReadStatus(block) => {
+                let (cmd, addr, cnt) = block.header();
+                (cmd, addr, cnt, &[])
+            }
         };
         MebRepr {
             id,
@@ -107,7 +114,7 @@ impl Transaction {
                 address: 0,
                 value: vel,
             },
-            Transaction::Forward { .. } => return None,
+            Transaction::Forward { .. } | Transaction::ReadStatus(_) => return None,
         })
     }
 
@@ -117,7 +124,37 @@ impl Transaction {
             Transaction::ReadInputs => function::READ_INPUT_REGISTERS,
             Transaction::WriteVel(_) => function::WRITE_SINGLE_REGISTER,
             // Never sent on a Modbus bus; no function code answers it.
-            Transaction::Forward { .. } => 0,
+            Transaction::Forward { .. } | Transaction::ReadStatus(_) => 0,
+        }
+    }
+}
+
+/// The slave's status words a supervisor reads now and then, one block per request.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum StatusBlock {
+    /// `ED 00`: hall code and flag bit.
+    Hall,
+    /// `FA 00`–`01`: SOC and ERRS.
+    Flags,
+    /// `FD 00`: STATUS.
+    Status,
+}
+
+impl StatusBlock {
+    pub(crate) fn header(self) -> (MebCmd, u8, u8) {
+        match self {
+            StatusBlock::Hall => (MebCmd::ED, 0, 1),
+            StatusBlock::Flags => (MebCmd::FA, 0, 2),
+            StatusBlock::Status => (MebCmd::FD, 0, 1),
+        }
+    }
+
+    /// The block read after this one in a status round.
+    pub(crate) fn next(self) -> Option<StatusBlock> {
+        match self {
+            StatusBlock::Hall => Some(StatusBlock::Flags),
+            StatusBlock::Flags => Some(StatusBlock::Status),
+            StatusBlock::Status => None,
         }
     }
 }
@@ -127,6 +164,8 @@ impl Transaction {
 pub(crate) enum Reply {
     /// The six analog inputs asked for.
     Inputs([u16; INPUT_WORDS]),
+    /// The words of a status block (the second unused for one-word blocks).
+    Status(StatusBlock, [u16; 2]),
     /// The write was acknowledged.
     Ack,
     /// The slave refused: MEB `ER` code or Modbus exception code.
@@ -224,6 +263,14 @@ fn classify_meb(reply: &MebRepr, (id, transaction): (u8, Transaction)) -> Reply 
             Ok(words) => Reply::Inputs(words),
             Err(_) => Reply::Unexpected,
         },
+        Transaction::ReadStatus(block) => {
+            let words = reply.data.as_slice();
+            match (words.len() == usize::from(block.header().2), words) {
+                (true, &[a]) => Reply::Status(block, [a, 0]),
+                (true, &[a, b]) => Reply::Status(block, [a, b]),
+                _ => Reply::Unexpected,
+            }
+        }
         Transaction::Startup(_) | Transaction::WriteVel(_) | Transaction::Forward { .. }
             if reply.data.is_empty() =>
         {

@@ -68,6 +68,10 @@ pub struct SuperviseArgs {
     /// Attempts after a missing or bad reply.
     #[arg(long, default_value_t = 2)]
     retries: u8,
+    /// Also read the status words (ED 00, FA 00-01, FD 00) every N poll
+    /// cycles, so clients can read them from the image (0: never).
+    #[arg(long, default_value_t = 10, value_name = "N")]
+    status_poll: u32,
     /// Refuse remote clients beyond this many.
     #[arg(long, default_value_t = 8, value_name = "N")]
     max_clients: usize,
@@ -170,6 +174,7 @@ fn options(args: &SuperviseArgs) -> Result<SuperviseOptions> {
         poll_period: millis("poll-ms", args.poll_ms)?,
         reply_timeout: millis("timeout-ms", args.timeout_ms)?,
         retries: args.retries,
+        status_poll: args.status_poll,
         server,
         // Far above any frame rate allowed: only a flood of garbage hits it.
         rate_limit_bytes: Some((args.rate_limit * 1.5 * 410.0) as u64 + 4096),

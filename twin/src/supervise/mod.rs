@@ -50,6 +50,8 @@ pub struct SuperviseOptions {
     pub poll_period: SimDuration,
     pub reply_timeout: SimDuration,
     pub retries: u8,
+    /// Read the status words (ED 00, FA 00-01, FD 00) every this many cycles (0: never).
+    pub status_poll: u32,
     pub server: ImageServerConfig,
     /// Close a client sending more bytes than this in one second.
     pub rate_limit_bytes: Option<u64>,
@@ -104,6 +106,7 @@ pub fn build_supervisor(options: &SuperviseOptions) -> Result<Supervisor> {
     config.poll_period = options.poll_period;
     config.reply_timeout = options.reply_timeout;
     config.retries = options.retries;
+    config.status_every = options.status_poll;
     let mut supervisor = Supervisor::new(config)?;
     for &id in &options.slaves {
         supervisor.set_set_point(id, Some(options.set_point));
