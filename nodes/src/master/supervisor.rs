@@ -338,7 +338,7 @@ impl Supervisor {
 
     /// The status round's first read, if this cycle has one.
     fn status_round(&self) -> Option<Transaction> {
-        (self.status_every > 0 && self.cycles % u64::from(self.status_every) == 0)
+        (self.status_every > 0 && self.cycles.is_multiple_of(u64::from(self.status_every)))
             .then_some(Transaction::ReadStatus(StatusBlock::Hall))
     }
 
