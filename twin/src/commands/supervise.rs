@@ -25,17 +25,25 @@ use twin::supervise::{self, SuperviseOptions};
 /// SIGINT/SIGTERM or after --duration.
 #[derive(Debug, Args)]
 #[command(
-    after_help = "Examples:\n  twin vsp /tmp/ttyV0 /tmp/ttyV1 &\n  twin serve --meb /tmp/ttyV1 &\n  twin supervise --meb /tmp/ttyV0 --listen tcp://127.0.0.1:5701 --set-point 1500\n  twin client tcp://127.0.0.1:5701 read EA 3 1"
+    after_help = "Examples:\n  twin vsp /tmp/ttyV0 /tmp/ttyV1 &\n  twin serve --meb /tmp/ttyV1 &\n  twin supervise --meb /tmp/ttyV0 --listen tcp://127.0.0.1:5701 --set-point 1500\n  twin supervise --meb tcp://127.0.0.1:5700 --listen tcp://127.0.0.1:0 --open-loop 2048\n  twin client tcp://127.0.0.1:5701 read EA 3 1"
 )]
 pub struct SuperviseArgs {
     /// The bus: serial device or pty (options after `?`, e.g.
     /// /tmp/ttyV0?baud=9600&parity=E), or tcp://HOST:PORT of an MEB slave.
     #[arg(long, value_name = "LINK")]
     meb: String,
-    /// Serve remote MEB clients here (port 0: any free port, printed). Repeat
-    /// for several; none: no server.
-    #[arg(long, value_name = "tcp://HOST:PORT")]
+    /// Serve remote MEB clients here (port 0: any free port, printed); repeat
+    /// for several. Only this machine can connect unless HOST says otherwise
+    /// (tcp://0.0.0.0:5701 for every interface).
+    #[arg(
+        long,
+        value_name = "tcp://HOST:PORT",
+        default_value = "tcp://127.0.0.1:5701"
+    )]
     listen: Vec<String>,
+    /// No TCP server: the supervisor alone.
+    #[arg(long, conflicts_with = "listen")]
+    no_server: bool,
     /// Baud rate of the serial bus (unless the link gives one).
     #[arg(long, default_value_t = 115_200)]
     baud: u32,
@@ -160,7 +168,11 @@ fn options(args: &SuperviseArgs) -> Result<SuperviseOptions> {
     };
     Ok(SuperviseOptions {
         bus: args.meb.clone(),
-        listen: args.listen.clone(),
+        listen: if args.no_server {
+            Vec::new()
+        } else {
+            args.listen.clone()
+        },
         baud: args.baud,
         slaves: ids,
         set_point: args.set_point,
