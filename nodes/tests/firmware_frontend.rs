@@ -148,3 +148,65 @@ fn read_only_and_forced_refusals_answer_in_each_protocol() {
     let e = frame.response().unwrap().expect_err("an exception");
     assert_eq!(e.exception, Exception::ServerDeviceFailure);
 }
+
+#[test]
+fn an_io_map_moves_signals_and_keeps_the_checks() {
+    use nodes::firmware::MebMap;
+    let mut map = MebMap::default();
+    map.clear_block("EA");
+    map.place("EA", "V1", 0, None).unwrap();
+    map.place("EA", "RPM_M", 1, None).unwrap();
+    map.clear_block("SD");
+    map.place("SD", "EN", 0, Some(4)).unwrap();
+    map.place("SD", "FR", 0, Some(0)).unwrap();
+    // Mistakes are refused with the reason.
+    assert!(
+        map.place("EA", "VEL", 3, None)
+            .unwrap_err()
+            .to_string()
+            .contains("belongs in SA")
+    );
+    assert!(
+        map.place("EA", "V2", 0, None)
+            .unwrap_err()
+            .to_string()
+            .contains("share EA 0 with `V1`")
+    );
+    assert!(
+        map.place("SD", "BRK", 0, None)
+            .unwrap_err()
+            .to_string()
+            .contains("WORD.BIT")
+    );
+    assert!(
+        map.place("EA", "FOO", 3, None)
+            .unwrap_err()
+            .to_string()
+            .contains("unknown signal")
+    );
+
+    let mut controller = EvController::new(EvControllerConfig::default());
+    controller.image_mut().inputs = [11, 22, 33, 44, 55, 66];
+    let mut meb = SlaveFrontend::new(Framing::Meb, 1);
+    meb.set_meb_map(Some(map));
+    let reply = reply_of(&mut meb, &mut controller, b"@01EA000247*\n").expect("a reply");
+    assert_eq!(
+        MebRepr::parse(&reply).unwrap().data.as_slice(),
+        &[33, 44],
+        "V1 then RPM_M"
+    );
+    // EA holds two words now: a third is past the block (ER 02).
+    let reply = reply_of(&mut meb, &mut controller, b"@01EA000346*\n").unwrap();
+    assert_eq!(MebRepr::parse(&reply).unwrap().cmd, MebCmd::ER);
+    // SD word 0: bit 4 low enables, bit 0 high turns counter-clockwise.
+    let reply = reply_of(&mut meb, &mut controller, b"@01SD0001000156*\n").unwrap();
+    assert_eq!(
+        MebRepr::parse(&reply).unwrap().cmd,
+        MebCmd::SD,
+        "{}",
+        String::from_utf8_lossy(&reply)
+    );
+    let sd0 = controller.image().stored.sd0;
+    assert_eq!(sd0 & 0b1, 0, "EN applied (active low): {sd0:#06x}");
+    assert_eq!(sd0 & 0b1_0000, 0b1_0000, "FR set: {sd0:#06x}");
+}

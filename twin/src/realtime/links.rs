@@ -39,6 +39,7 @@ pub async fn serve_stream<S>(
     peer: String,
     clock: RtClock,
     engine: Sender<Inbound>,
+    eof: &'static str,
 ) -> String
 where
     S: AsyncRead + AsyncWrite + Unpin,
@@ -59,7 +60,7 @@ where
     let why = loop {
         tokio::select! {
             read = stream.read(&mut buf) => match read {
-                Ok(0) => break "peer closed the connection".to_string(),
+                Ok(0) => break eof.to_string(),
                 Ok(n) => {
                     let at = clock.now();
                     let bytes = buf[..n].to_vec();
@@ -108,9 +109,16 @@ pub async fn accept_loop(
             tokio::time::sleep(Duration::from_millis(50)).await;
             continue;
         };
-        if max_clients.is_some_and(|max| open.load(Ordering::Relaxed) >= max) {
+        if let Some(max) = max_clients.filter(|&max| open.load(Ordering::Relaxed) >= max) {
             refused.fetch_add(1, Ordering::Relaxed);
             drop(socket);
+            let text =
+                format!("{peer}: refused, {max} client(s) already connected (--max-clients)");
+            let _ = engine.send(Inbound::Command(Box::new(move |e| {
+                let name = e.links.get(link).map_or("?", |l| l.name.as_str());
+                let line = format!("[{:12.6} s] {name} {text}", e.clock.now().as_secs_f64());
+                e.say(line);
+            })));
             continue;
         }
         // Replies are single small writes: send them at once.
@@ -120,7 +128,8 @@ pub async fn accept_loop(
         let engine = engine.clone();
         let conn = ids.next();
         tokio::spawn(async move {
-            serve_stream(socket, link, conn, peer.to_string(), clock, engine).await;
+            let eof = "peer closed the connection";
+            serve_stream(socket, link, conn, peer.to_string(), clock, engine, eof).await;
             open.fetch_sub(1, Ordering::Relaxed);
         });
     }
@@ -151,7 +160,9 @@ pub async fn serial_loop(
             },
         };
         let peer = path.display().to_string();
-        let why = serve_stream(stream, link, ids.next(), peer, clock, engine.clone()).await;
+        let eof =
+            "the port closed (a pty whose other side went away?); reopening it when it is back";
+        let why = serve_stream(stream, link, ids.next(), peer, clock, engine.clone(), eof).await;
         if why == "server stopping" {
             return;
         }

@@ -339,6 +339,7 @@ async fn tcp_bus_loop(
             format!("tcp://{addr}"),
             clock,
             engine.clone(),
+            "the slave closed the connection (reconnecting)",
         )
         .await;
         if why == "server stopping" {
