@@ -581,6 +581,34 @@ fn client_reports_a_server_that_is_not_there_and_bad_arguments() {
         .unwrap();
     assert!((850..=950).contains(&soc), "{text}");
     assert!(text.contains("SOC") && text.contains("ERRS"), "{text}");
+
+    // The interactive prompt, typed on stdin.
+    let mut prompt = Command::new(env!("CARGO_BIN_EXE_twin"))
+        .args(["client", &url])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .spawn()
+        .unwrap();
+    prompt
+        .stdin
+        .take()
+        .unwrap()
+        .write_all(b"set-point 1234\nloop off\nread FD 10\nvel 5000\nbogus\nquit\n")
+        .unwrap();
+    let out = prompt.wait_with_output().unwrap();
+    assert!(out.status.success());
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(text.contains("loop closed, set point 1234 rpm"), "{text}");
+    assert!(text.contains("loop open, set point 1234 rpm"), "{text}");
+    assert!(
+        text.contains("FD 10 =     0  (0x0000)  LOOP_CLOSED"),
+        "{text}"
+    );
+    assert!(
+        text.contains("error: slave 01 answered SA 00 = [5000] with ER 03"),
+        "{text}"
+    );
+    assert!(text.contains("error: unknown command"), "{text}");
 }
 
 #[test]
