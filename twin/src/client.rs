@@ -185,7 +185,7 @@ pub fn check(request: &MebRepr, reply: MebRepr) -> Result<MebRepr> {
     let code = reply.data.as_slice().first().copied().unwrap_or(0);
     let meaning = match MebErrorCode::from_word(code) {
         Some(MebErrorCode::IllegalCommand) => {
-            "illegal command (unknown, or a write to a read-only server)"
+            "illegal command (unknown, a write to a read-only server, or one it cannot forward)"
         }
         Some(MebErrorCode::IllegalAddress) => {
             "illegal address (not in the image or the slave's map)"

@@ -669,3 +669,49 @@ fn a_slave_or_a_port_that_vanishes_gets_error_04_and_the_server_keeps_serving() 
     );
     supervise.terminate();
 }
+
+#[test]
+fn supervise_closes_the_loop_over_modbus_rtu_and_serves_the_same_image() {
+    let (a, b) = pair_paths("rtu");
+    let _vsp = Proc::start(&["vsp", s(&a), s(&b)]);
+    let _serve = Proc::start(&[
+        "serve",
+        "--modbus-rtu",
+        s(&b),
+        "--quiet",
+        "--no-record",
+        "--status-every",
+        "0",
+    ]);
+    let supervise = Proc::start(&[
+        "supervise",
+        "--modbus-rtu",
+        s(&a),
+        "--listen",
+        "tcp://127.0.0.1:0",
+        "--set-point",
+        "1200",
+        "--quiet",
+        "--no-record",
+        "--status-every",
+        "0",
+    ]);
+    assert!(
+        supervise
+            .output()
+            .contains(&format!("  modbus-rtu {} master 01", a.display()))
+    );
+    let mut raw = Raw::connect(&supervise.tcp());
+    wait_for_speed(&mut raw, 1200.0, Duration::from_secs(20));
+    // MEB writes have no Modbus form here: ER 01, the loop's variables still work.
+    raw.send(&frame("@01SA00010800"));
+    raw.send(&frame("@01VA100101F4"));
+    raw.send(&frame("@01FA1001"));
+    let expected: Vec<String> = ["@01ER00010001", "@01VA1001", "@01FA100101F4"]
+        .iter()
+        .map(|body| String::from_utf8(frame(body)).unwrap())
+        .collect();
+    assert_eq!(raw.frames(3), expected);
+    wait_for_speed(&mut raw, 500.0, Duration::from_secs(20));
+    supervise.terminate();
+}

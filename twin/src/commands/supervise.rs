@@ -28,10 +28,20 @@ use twin::supervise::{self, SuperviseOptions};
     after_help = "Examples:\n  twin vsp /tmp/ttyV0 /tmp/ttyV1 &\n  twin serve --meb /tmp/ttyV1 &\n  twin supervise --meb /tmp/ttyV0 --listen tcp://127.0.0.1:5701 --set-point 1500\n  twin supervise --meb tcp://127.0.0.1:5700 --listen tcp://127.0.0.1:0 --open-loop 2048\n  twin client tcp://127.0.0.1:5701 read EA 3 1"
 )]
 pub struct SuperviseArgs {
-    /// The bus: serial device or pty (options after `?`, e.g.
+    /// The bus, spoken in MEB: serial device or pty (options after `?`, e.g.
     /// /tmp/ttyV0?baud=9600&parity=E), or tcp://HOST:PORT of an MEB slave.
+    #[arg(
+        long,
+        value_name = "LINK",
+        required_unless_present = "modbus_rtu",
+        conflicts_with = "modbus_rtu"
+    )]
+    meb: Option<String>,
+    /// The bus, spoken in Modbus RTU (spec/modbus-map.md): serial device or
+    /// pty. Remote clients still speak MEB to the server; writes other than
+    /// the loop's variables get ER 01 (they have no Modbus form here).
     #[arg(long, value_name = "LINK")]
-    meb: String,
+    modbus_rtu: Option<String>,
     /// Serve remote MEB clients here (port 0: any free port, printed); repeat
     /// for several. Only this machine can connect unless HOST says otherwise
     /// (tcp://0.0.0.0:5701 for every interface).
@@ -167,7 +177,16 @@ fn options(args: &SuperviseArgs) -> Result<SuperviseOptions> {
         ..ImageServerConfig::default()
     };
     Ok(SuperviseOptions {
-        bus: args.meb.clone(),
+        bus: args
+            .meb
+            .clone()
+            .or_else(|| args.modbus_rtu.clone())
+            .unwrap_or_default(),
+        protocol: if args.meb.is_some() {
+            nodes::master::Protocol::Meb
+        } else {
+            nodes::master::Protocol::ModbusRtu
+        },
         listen: if args.no_server {
             Vec::new()
         } else {

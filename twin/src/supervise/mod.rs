@@ -35,6 +35,9 @@ use endpoint::ImageEndpoint;
 pub struct SuperviseOptions {
     /// The bus: a serial device or pty, or `tcp://HOST:PORT` of an MEB slave.
     pub bus: String,
+    /// What the bus speaks: MEB, or Modbus RTU (serial only; remote clients
+    /// still speak MEB to the server, forwarded writes get `ER 01`).
+    pub protocol: Protocol,
     /// Where remote MEB clients connect (`tcp://HOST:PORT`), any number.
     pub listen: Vec<String>,
     pub baud: u32,
@@ -102,11 +105,27 @@ pub fn build_supervisor(options: &SuperviseOptions) -> Result<Supervisor> {
             l
         })
         .collect();
-    let mut config = SupervisorConfig::new(Protocol::Meb, loops);
+    let mut config = SupervisorConfig::new(options.protocol, loops);
     config.poll_period = options.poll_period;
     config.reply_timeout = options.reply_timeout;
     config.retries = options.retries;
     config.status_every = options.status_poll;
+    if options.protocol == Protocol::ModbusRtu {
+        // A pty carries no timing: the silence that ends a frame must be
+        // longer than the gaps between the chunks it arrives in.
+        let pty = match LinkSpec::parse(&options.bus, &LinkDefaults::default()) {
+            Ok(LinkSpec {
+                addr: LinkAddr::Serial(path),
+                ..
+            }) => serial::is_pty(&path),
+            _ => false,
+        };
+        config.rtu_silence = if pty {
+            nodes::proto::modbus::serial::PTY_SILENCE
+        } else {
+            nodes::proto::modbus::serial::standard_rtu_silence(options.baud, 10)
+        };
+    }
     let mut supervisor = Supervisor::new(config)?;
     for &id in &options.slaves {
         supervisor.set_set_point(id, Some(options.set_point));
@@ -170,8 +189,15 @@ fn parse_links(options: &SuperviseOptions) -> Result<(LinkSpec, Vec<LinkSpec>)> 
         tcp_turnaround: SimDuration::ZERO,
         pace: false,
     };
+    let option = bus_option(options.protocol);
     let bus = LinkSpec::parse(&options.bus, &defaults)
-        .with_context(|| format!("--meb {}", options.bus))?;
+        .with_context(|| format!("{option} {}", options.bus))?;
+    if options.protocol == Protocol::ModbusRtu && bus.is_tcp() {
+        bail!(
+            "--modbus-rtu {}: Modbus RTU runs on a serial port or pty; over TCP use --meb",
+            options.bus
+        );
+    }
     let mut listen = Vec::new();
     for text in &options.listen {
         let spec = LinkSpec::parse(text, &defaults).with_context(|| format!("--listen {text}"))?;
@@ -212,8 +238,8 @@ async fn open_links(
                     tokio::time::sleep(Duration::from_millis(100)).await;
                 }
             }
-            let port =
-                serial::open(path, &bus.serial).with_context(|| format!("--meb {}", bus.text))?;
+            let port = serial::open(path, &bus.serial)
+                .with_context(|| format!("{} {}", bus_option(options.protocol), bus.text))?;
             let (ids, path, settings) = (ids.clone(), path.clone(), bus.serial);
             starters.push(Box::new(move |rt, inbound| {
                 rt.spawn(serial_loop(path, settings, port, 0, ids, clock, inbound));
@@ -232,14 +258,18 @@ async fn open_links(
             format!("tcp://{addr}")
         }
     };
+    let bus_protocol = match options.protocol {
+        Protocol::Meb => "meb",
+        Protocol::ModbusRtu => "modbus-rtu",
+    };
     open.push(OpenLink {
-        protocol: "meb",
+        protocol: bus_protocol,
         address: address.clone(),
         role: format!("master {slaves}"),
     });
     engine.links.push(LinkConfig {
         name: "bus".into(),
-        protocol: "meb",
+        protocol: bus_protocol,
         address,
         spec: bus,
         check: None,
@@ -301,6 +331,14 @@ async fn open_links(
         starters,
         refused,
     })
+}
+
+/// The option that names the bus, for messages.
+fn bus_option(protocol: Protocol) -> &'static str {
+    match protocol {
+        Protocol::Meb => "--meb",
+        Protocol::ModbusRtu => "--modbus-rtu",
+    }
 }
 
 fn path_text(spec: &LinkSpec) -> String {
