@@ -4,8 +4,8 @@
 
 use anyhow::{Context, Result, anyhow, bail};
 use nodes::proto::meb::{
-    MEB_MAX_FRAME_LEN, MebAccess, MebCmd, MebDecodeError, MebDecoder, MebErrorCode, MebRepr,
-    MebWords,
+    MEB_BROADCAST_ID, MEB_MAX_FRAME_LEN, MebAccess, MebCmd, MebDecodeError, MebDecoder,
+    MebErrorCode, MebRepr, MebWords,
 };
 use nodes::time::SimTime;
 use std::io::{ErrorKind, Read, Write};
@@ -136,6 +136,9 @@ impl MebClient {
 
     /// Reads `cnt` words from `cmd addr`.
     pub fn read(&mut self, id: u8, cmd: MebCmd, addr: u8, cnt: u8) -> Result<Vec<u16>> {
+        if id == MEB_BROADCAST_ID {
+            bail!("id 00 is broadcast: a broadcast read is never answered (spec/meb.md)");
+        }
         let request = MebRepr {
             id,
             cmd,
@@ -165,6 +168,18 @@ impl MebClient {
             cnt: data.len() as u8,
             data,
         };
+        if id == MEB_BROADCAST_ID {
+            // Every slave applies it, none answers: nothing to wait for.
+            let mut out = [0u8; MEB_MAX_FRAME_LEN];
+            let len = request
+                .emit(&mut out)
+                .map_err(|e| anyhow!("cannot build the request: {e}"))?;
+            self.show(Way::Sent, &out[..len]);
+            return self
+                .stream
+                .write_all(&out[..len])
+                .context("the server closed the connection");
+        }
         check(&request, self.request(&request)?).map(|_| ())
     }
 }

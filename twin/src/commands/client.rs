@@ -91,7 +91,14 @@ pub fn execute(args: &ClientArgs) -> Result<()> {
                 .map(|v| parse_word(v))
                 .collect::<Result<Vec<_>>>()?;
             client.write(id, cmd, addr, &words)?;
-            println!("{cmd} {addr:02X}: {} word(s) acknowledged", words.len());
+            if id == 0 {
+                println!(
+                    "{cmd} {addr:02X}: {} word(s) broadcast (never acknowledged)",
+                    words.len()
+                );
+            } else {
+                println!("{cmd} {addr:02X}: {} word(s) acknowledged", words.len());
+            }
         }
         Some(ClientCommand::Watch { every, count }) => {
             if !(every.is_finite() && *every > 0.0) {
