@@ -44,6 +44,10 @@ pub trait SimNode: Node {
     fn image_mut(&mut self) -> Option<&mut nodes::firmware::RegisterImage> {
         None
     }
+    /// The supervisor, for nodes that are one (its TCP server reads its image).
+    fn supervisor_mut(&mut self) -> Option<&mut nodes::master::Supervisor> {
+        None
+    }
     /// What the node's own speed sensors read now (firmware nodes).
     fn speed_readings(&self) -> SpeedReadings {
         SpeedReadings::default()

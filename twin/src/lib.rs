@@ -2,6 +2,7 @@
 //! command-line front end in `main.rs` is a thin layer over these modules.
 
 pub mod bench;
+pub mod client;
 pub mod engine;
 pub mod experiment;
 pub mod io;
@@ -13,4 +14,6 @@ pub mod record;
 pub mod scenario;
 pub mod view;
 pub mod serve;
+pub mod supervise;
 pub mod virtual_run;
+pub mod vsp;

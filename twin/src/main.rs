@@ -26,6 +26,9 @@ enum Command {
     Sweep(commands::sweep::SweepArgs),
     View(commands::view::ViewArgs),
     Serve(commands::serve::ServeArgs),
+    Vsp(commands::vsp::VspArgs),
+    Supervise(commands::supervise::SuperviseArgs),
+    Client(commands::client::ClientArgs),
 }
 
 fn main() -> ExitCode {
@@ -38,6 +41,9 @@ fn main() -> ExitCode {
         Command::Sweep(args) => commands::sweep::execute(&args),
         Command::View(args) => commands::view::execute(&args),
         Command::Serve(args) => commands::serve::execute(&args),
+        Command::Vsp(args) => commands::vsp::execute(&args),
+        Command::Supervise(args) => commands::supervise::execute(&args),
+        Command::Client(args) => commands::client::execute(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

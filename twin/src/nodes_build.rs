@@ -254,12 +254,20 @@ impl SimNode for FaultyNode<Seed002Master> {
 }
 
 /// The supervisor, reporting its loop once per poll cycle.
-struct SupervisorNode {
+#[derive(Debug)]
+pub struct SupervisorNode {
     supervisor: Supervisor,
     last_cycle: u64,
 }
 
 impl SupervisorNode {
+    pub fn new(supervisor: Supervisor) -> Self {
+        Self {
+            supervisor,
+            last_cycle: 0,
+        }
+    }
+
     fn loops(&self) -> Value {
         let loops: Vec<Value> = self
             .supervisor
@@ -311,5 +319,8 @@ impl SimNode for SupervisorNode {
     }
     fn final_state(&self) -> Option<Value> {
         Some(self.loops())
+    }
+    fn supervisor_mut(&mut self) -> Option<&mut Supervisor> {
+        Some(&mut self.supervisor)
     }
 }

@@ -8,12 +8,15 @@
 //! it changed. Like every node it is a sans-IO state machine: it sees only `now`
 //! and bytes, so the virtual-time engine and a real-time one drive it alike.
 
+pub mod image_server;
 mod pi;
 mod supervisor;
 mod wire;
 
 pub use pi::{SpeedPi, VEL_MAX, VEL_MIN};
-pub use supervisor::{LoopState, PollCounters, Supervisor};
+pub use supervisor::{
+    ForwardError, LoopState, PollCounters, StatusWords, Supervisor, WriteOutcome, WriteTicket,
+};
 
 use crate::time::{SimDuration, SimTime};
 
@@ -151,6 +154,10 @@ pub struct SupervisorConfig {
     /// long the line must be quiet before a request follows stray bytes (the
     /// tail of a reply given up on mid-frame), so a retry never talks over it.
     pub rtu_silence: SimDuration,
+    /// Every this many poll cycles, also read each slave's status words
+    /// (`ED 00`, `FA 00`–`01`, `FD 00`) for the image a server answers from.
+    /// MEB only; 0 (the default) never, which keeps a cycle one read and one write.
+    pub status_every: u32,
 }
 
 impl SupervisorConfig {
@@ -166,6 +173,7 @@ impl SupervisorConfig {
             first_poll_at: SimTime::ZERO,
             startup_outputs: Some(StartupOutputs::ENABLED_BRAKE_RELEASED),
             rtu_silence: SimDuration::from_micros(1_750),
+            status_every: 0,
         }
     }
 }

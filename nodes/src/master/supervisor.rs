@@ -1,12 +1,16 @@
 //! The supervisor node: poll cycles, retries and one PI loop per slave.
 
+mod forward;
+
 use std::collections::VecDeque;
+
+pub use forward::{ForwardError, WriteOutcome, WriteTicket};
 
 use crate::node::{Node, NodeEvent};
 use crate::time::{SimDuration, SimTime};
 
 use super::pi::{SpeedPi, VEL_MAX};
-use super::wire::{INPUT_WORDS, Reply, ReplyDecoder, Transaction};
+use super::wire::{INPUT_WORDS, Reply, ReplyDecoder, StatusBlock, Transaction};
 use super::{
     LoopMode, Protocol, SlaveLoopConfig, StartupOutputs, SupervisorConfig, SupervisorConfigError,
 };
@@ -39,6 +43,18 @@ pub struct PollCounters {
     pub unexpected: u64,
 }
 
+/// The slave's status words as last read (`SupervisorConfig::status_every`);
+/// `None` until read.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct StatusWords {
+    /// `ED 00`: hall code (bits 0-2), flag seen (bit 3).
+    pub hall: Option<u16>,
+    /// `FA 00` SOC (0.1 %) and `FA 01` ERRS.
+    pub flags: Option<[u16; 2]>,
+    /// `FD 00` STATUS.
+    pub status: Option<u16>,
+}
+
 /// The state of one slave's speed loop, for recording.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct LoopState {
@@ -62,6 +78,8 @@ pub struct LoopState {
     pub started: bool,
     /// Bus counters.
     pub counters: PollCounters,
+    /// Status words, if the supervisor reads them.
+    pub status: StatusWords,
 }
 
 #[derive(Debug, Clone)]
@@ -111,6 +129,11 @@ pub struct Supervisor {
     /// How long the line must be quiet before a request goes out after
     /// stray bytes (the configured silence).
     line_quiet: SimDuration,
+    status_every: u32,
+    /// When the line is free for a request (last exchange + gap, or quiet
+    /// after stray bytes): where a forwarded write may go out.
+    line_free_at: SimTime,
+    forwarding: forward::Forwarding,
 }
 
 impl Supervisor {
@@ -126,6 +149,7 @@ impl Supervisor {
             first_poll_at,
             startup_outputs,
             rtu_silence,
+            status_every,
         } = config;
         if slaves.is_empty() {
             return Err(SupervisorConfigError::NoSlaves);
@@ -183,6 +207,13 @@ impl Supervisor {
             events: VecDeque::with_capacity(EVENT_QUEUE_LEN),
             events_dropped: 0,
             line_quiet: rtu_silence,
+            status_every: if protocol == Protocol::Meb {
+                status_every
+            } else {
+                0
+            },
+            line_free_at: first_poll_at,
+            forwarding: forward::Forwarding::default(),
         };
         supervisor.pending.transaction = supervisor.first_transaction(0);
         Ok(supervisor)
@@ -281,12 +312,34 @@ impl Supervisor {
         true
     }
 
+    /// Whether the supervisor reads its slaves' status words (`ED 00`,
+    /// `FA 00`–`01`, `FD 00`) now and then.
+    pub fn reads_status(&self) -> bool {
+        self.status_every > 0
+    }
+
+    /// The gains `(kp, ki)` of slave `id`'s loop.
+    pub fn gains(&self, id: u8) -> Option<(f64, f64)> {
+        self.slave(id).map(|slave| (slave.pi.kp, slave.pi.ki))
+    }
+
+    /// Closed loop or manual `VEL`, for slave `id`.
+    pub fn mode(&self, id: u8) -> Option<LoopMode> {
+        self.slave(id).map(|slave| slave.config.mode)
+    }
+
     fn slave(&self, id: u8) -> Option<&Slave> {
         self.slaves.iter().find(|slave| slave.config.id == id)
     }
 
     fn slave_mut(&mut self, id: u8) -> Option<&mut Slave> {
         self.slaves.iter_mut().find(|slave| slave.config.id == id)
+    }
+
+    /// The status round's first read, if this cycle has one.
+    fn status_round(&self) -> Option<Transaction> {
+        (self.status_every > 0 && self.cycles.is_multiple_of(u64::from(self.status_every)))
+            .then_some(Transaction::ReadStatus(StatusBlock::Hall))
     }
 
     fn first_transaction(&self, slave: usize) -> Transaction {
@@ -321,6 +374,7 @@ impl Supervisor {
     /// moves to the next slave or the next cycle.
     fn advance(&mut self, now: SimTime, next: Option<Transaction>) {
         let after_gap = now + self.inter_frame_gap;
+        self.line_free_at = self.line_free_at.max(after_gap);
         let (slave, at) = match next {
             Some(transaction) => {
                 self.pending = Pending {
@@ -329,6 +383,7 @@ impl Supervisor {
                     ..self.pending
                 };
                 self.phase = Phase::Waiting { at: after_gap };
+                self.start_forward(now);
                 return;
             }
             None if self.pending.slave + 1 < self.slaves.len() => {
@@ -348,6 +403,7 @@ impl Supervisor {
             attempt: 0,
         };
         self.phase = Phase::Waiting { at };
+        self.start_forward(now);
     }
 
     /// The attempt failed: retry it, or give it up and move on.
@@ -390,11 +446,20 @@ impl Supervisor {
                 u16::from(attempt) + 1
             ),
         );
+        if let Transaction::Forward { .. } = transaction {
+            self.finish_forward(now, WriteOutcome::NoAnswer);
+            return;
+        }
         // A lost start-up write does not stop the read: the telemetry still
         // flows, and the write is tried again next cycle.
         let next = match transaction {
             Transaction::Startup(_) => Some(Transaction::ReadInputs),
-            Transaction::ReadInputs | Transaction::WriteVel(_) => None,
+            // A forwarded write was handled above; a lost status read
+            // ends the round, the next one comes in `status_every` cycles.
+            Transaction::ReadInputs
+            | Transaction::WriteVel(_)
+            | Transaction::Forward { .. }
+            | Transaction::ReadStatus(_) => None,
         };
         self.advance(now, next);
     }
@@ -440,11 +505,23 @@ impl Supervisor {
                     "exception",
                     format!("slave {id}: {} refused, code {code:02}", transaction.name()),
                 );
-                self.fail(now);
+                // The slave's refusal of a client's write is its answer to
+                // the client, not a line fault: no retry.
+                match transaction {
+                    Transaction::Forward { .. } => {
+                        self.finish_forward(now, WriteOutcome::Refused(code));
+                    }
+                    _ => self.fail(now),
+                }
             }
             Reply::Ack => {
                 let next = match (transaction, self.slaves.get_mut(self.pending.slave)) {
                     (_, None) => None,
+                    (Transaction::Forward { .. }, Some(slave)) => {
+                        slave.state.counters.replies += 1;
+                        self.finish_forward(now, WriteOutcome::Acknowledged);
+                        return;
+                    }
                     (Transaction::Startup(_), Some(slave)) => {
                         slave.state.counters.replies += 1;
                         slave.state.started = true;
@@ -453,20 +530,33 @@ impl Supervisor {
                     (Transaction::WriteVel(vel), Some(slave)) => {
                         slave.state.counters.replies += 1;
                         slave.state.vel_written = Some(vel);
-                        None
+                        self.status_round()
                     }
                     // Never classified as an acknowledgement.
-                    (Transaction::ReadInputs, Some(_)) => None,
+                    (Transaction::ReadInputs | Transaction::ReadStatus(_), Some(_)) => None,
                 };
                 self.advance(now, next);
             }
             Reply::Inputs(words) => {
                 let default_dt = self.poll_period;
-                let next = self
+                let write = self
                     .slaves
                     .get_mut(self.pending.slave)
                     .and_then(|slave| slave.measure(now, words, default_dt));
+                let next = write.or_else(|| self.status_round());
                 self.advance(now, next);
+            }
+            Reply::Status(block, words) => {
+                if let Some(slave) = self.slaves.get_mut(self.pending.slave) {
+                    slave.state.counters.replies += 1;
+                    let status = &mut slave.state.status;
+                    match block {
+                        StatusBlock::Hall => status.hall = Some(words[0]),
+                        StatusBlock::Flags => status.flags = Some(words),
+                        StatusBlock::Status => status.status = Some(words[0]),
+                    }
+                }
+                self.advance(now, block.next().map(Transaction::ReadStatus));
             }
         }
     }
@@ -527,6 +617,7 @@ impl Node for Supervisor {
             self.phase = Phase::Waiting {
                 at: at.max(now + self.line_quiet),
             };
+            self.line_free_at = self.line_free_at.max(now + self.line_quiet);
         }
         let mut input = bytes;
         loop {
@@ -562,14 +653,26 @@ impl Node for Supervisor {
             return None;
         }
         let id = self.pending_id();
-        let Some(len) = self.pending.transaction.emit(self.protocol, id, buf) else {
+        let forwarded = self
+            .forwarding
+            .current
+            .as_ref()
+            .map_or(&[][..], |forward| forward.data.as_slice());
+        let Some(len) = self
+            .pending
+            .transaction
+            .emit(self.protocol, id, forwarded, buf)
+        else {
             // Only an engine with a buffer below `MAX_FRAME` gets here: give
             // the exchange up rather than ask for the same instant forever.
             self.push_event(now, "log", format!("slave {id}: transmit buffer too small"));
             if let Some(counters) = self.counters() {
                 counters.lost += 1;
             }
-            self.advance(now, None);
+            match self.pending.transaction {
+                Transaction::Forward { .. } => self.finish_forward(now, WriteOutcome::NoAnswer),
+                _ => self.advance(now, None),
+            }
             return None;
         };
         self.decoder.reset();

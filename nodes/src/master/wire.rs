@@ -23,6 +23,11 @@ pub(crate) enum Transaction {
     ReadInputs,
     /// Write `VEL`.
     WriteVel(u16),
+    /// One block of the slave's status words (MEB only).
+    ReadStatus(StatusBlock),
+    /// A remote client's MEB write, forwarded (MEB only). The words live in
+    /// the supervisor, so this stays a small `Copy` value.
+    Forward { cmd: MebCmd, addr: u8, cnt: u8 },
 }
 
 impl Transaction {
@@ -32,34 +37,60 @@ impl Transaction {
             Transaction::Startup(_) => "startup write",
             Transaction::ReadInputs => "input read",
             Transaction::WriteVel(_) => "VEL write",
+            Transaction::Forward { .. } => "forwarded write",
+            Transaction::ReadStatus(_) => "status read",
         }
     }
 
-    /// Emits the request to slave `id` into `out`; `None` if `out` is too small.
-    pub(crate) fn emit(self, protocol: Protocol, id: u8, out: &mut [u8]) -> Option<usize> {
-        match protocol {
-            Protocol::Meb => self.meb_request(id).emit(out).ok(),
-            Protocol::ModbusRtu => rtu::emit(id, &self.rtu_request(), out).ok(),
+    /// Emits the request to slave `id` into `out`; `None` if `out` is too small
+    /// (or a forwarded write meets a Modbus bus, which the supervisor refuses
+    /// before it gets here). `forwarded` holds the words of a `Forward`.
+    pub(crate) fn emit(
+        self,
+        protocol: Protocol,
+        id: u8,
+        forwarded: &[u16],
+        out: &mut [u8],
+    ) -> Option<usize> {
+        match (protocol, self) {
+            (Protocol::Meb, Transaction::Forward { cmd, addr, cnt }) => MebRepr {
+                id,
+                cmd,
+                addr,
+                cnt,
+                data: MebWords::from_slice(forwarded)?,
+            }
+            .emit(out)
+            .ok(),
+            (Protocol::Meb, _) => self.meb_request(id).emit(out).ok(),
+            (Protocol::ModbusRtu, _) => rtu::emit(id, &self.rtu_request()?, out).ok(),
         }
     }
 
+    /// The request's header (a forwarded write's words are not held here).
     fn meb_request(self, id: u8) -> MebRepr {
-        let (cmd, cnt, words): (MebCmd, u8, &[u16]) = match self {
-            Transaction::Startup(outputs) => (MebCmd::SD, 2, &[outputs.sd0, outputs.sd1]),
-            Transaction::ReadInputs => (MebCmd::EA, INPUT_WORDS as u8, &[]),
-            Transaction::WriteVel(vel) => (MebCmd::SA, 1, &[vel]),
+        let (cmd, addr, cnt, words): (MebCmd, u8, u8, &[u16]) = match self {
+            Transaction::Startup(outputs) => (MebCmd::SD, 0, 2, &[outputs.sd0, outputs.sd1]),
+            Transaction::ReadInputs => (MebCmd::EA, 0, INPUT_WORDS as u8, &[]),
+            Transaction::WriteVel(vel) => (MebCmd::SA, 0, 1, &[vel]),
+            Transaction::Forward { cmd, addr, cnt } => (cmd, addr, cnt, &[]),
+            Transaction::ReadStatus(block) => {
+                let (cmd, addr, cnt) = block.header();
+                (cmd, addr, cnt, &[])
+            }
         };
         MebRepr {
             id,
             cmd,
-            addr: 0,
+            addr,
             cnt,
             data: MebWords::from_slice(words).unwrap_or_default(),
         }
     }
 
-    fn rtu_request(self) -> Request {
-        match self {
+    /// `None` for a forwarded MEB write, which has no Modbus form.
+    fn rtu_request(self) -> Option<Request> {
+        Some(match self {
             Transaction::Startup(outputs) => {
                 let bit = |word: u16, n: u8| word & (1 << n) != 0;
                 let coils = [
@@ -83,7 +114,8 @@ impl Transaction {
                 address: 0,
                 value: vel,
             },
-        }
+            Transaction::Forward { .. } | Transaction::ReadStatus(_) => return None,
+        })
     }
 
     fn rtu_function(self) -> u8 {
@@ -91,6 +123,38 @@ impl Transaction {
             Transaction::Startup(_) => function::WRITE_MULTIPLE_COILS,
             Transaction::ReadInputs => function::READ_INPUT_REGISTERS,
             Transaction::WriteVel(_) => function::WRITE_SINGLE_REGISTER,
+            // Never sent on a Modbus bus; no function code answers it.
+            Transaction::Forward { .. } | Transaction::ReadStatus(_) => 0,
+        }
+    }
+}
+
+/// The slave's status words a supervisor reads now and then, one block per request.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum StatusBlock {
+    /// `ED 00`: hall code and flag bit.
+    Hall,
+    /// `FA 00`–`01`: SOC and ERRS.
+    Flags,
+    /// `FD 00`: STATUS.
+    Status,
+}
+
+impl StatusBlock {
+    pub(crate) fn header(self) -> (MebCmd, u8, u8) {
+        match self {
+            StatusBlock::Hall => (MebCmd::ED, 0, 1),
+            StatusBlock::Flags => (MebCmd::FA, 0, 2),
+            StatusBlock::Status => (MebCmd::FD, 0, 1),
+        }
+    }
+
+    /// The block read after this one in a status round.
+    pub(crate) fn next(self) -> Option<StatusBlock> {
+        match self {
+            StatusBlock::Hall => Some(StatusBlock::Flags),
+            StatusBlock::Flags => Some(StatusBlock::Status),
+            StatusBlock::Status => None,
         }
     }
 }
@@ -100,6 +164,8 @@ impl Transaction {
 pub(crate) enum Reply {
     /// The six analog inputs asked for.
     Inputs([u16; INPUT_WORDS]),
+    /// The words of a status block (the second unused for one-word blocks).
+    Status(StatusBlock, [u16; 2]),
     /// The write was acknowledged.
     Ack,
     /// The slave refused: MEB `ER` code or Modbus exception code.
@@ -197,7 +263,19 @@ fn classify_meb(reply: &MebRepr, (id, transaction): (u8, Transaction)) -> Reply 
             Ok(words) => Reply::Inputs(words),
             Err(_) => Reply::Unexpected,
         },
-        Transaction::Startup(_) | Transaction::WriteVel(_) if reply.data.is_empty() => Reply::Ack,
+        Transaction::ReadStatus(block) => {
+            let words = reply.data.as_slice();
+            match (words.len() == usize::from(block.header().2), words) {
+                (true, &[a]) => Reply::Status(block, [a, 0]),
+                (true, &[a, b]) => Reply::Status(block, [a, b]),
+                _ => Reply::Unexpected,
+            }
+        }
+        Transaction::Startup(_) | Transaction::WriteVel(_) | Transaction::Forward { .. }
+            if reply.data.is_empty() =>
+        {
+            Reply::Ack
+        }
         _ => Reply::Unexpected,
     }
 }

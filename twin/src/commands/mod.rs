@@ -1,9 +1,12 @@
 //! One file per subcommand; each parses its arguments and calls library code.
 
 pub mod bench;
+pub mod client;
 pub mod experiment;
 pub mod run;
 pub mod step;
 pub mod sweep;
 pub mod view;
 pub mod serve;
+pub mod supervise;
+pub mod vsp;

@@ -43,6 +43,10 @@ pub trait Endpoint: Send {
     fn frontend_mut(&mut self) -> Option<&mut SlaveFrontend> {
         None
     }
+    /// Why the endpoint wants its connection closed (a limit it keeps itself).
+    fn close_request(&self) -> Option<String> {
+        None
+    }
 }
 
 /// Drives the nodes of `devices` (indices into the engine's devices) over

@@ -384,6 +384,12 @@ impl RtEngine {
             }
         }
         conn.endpoint.handle_bytes(&mut self.devices, at, bytes);
+        if let Some(why) = conn.endpoint.close_request() {
+            // Replies already owed go out first.
+            self.drain(id, at);
+            self.close(id, &why);
+            return;
+        }
         if conn.endpoint.pending() > 0 {
             conn.partial_since.get_or_insert(at);
         } else {
@@ -576,6 +582,14 @@ impl RtEngine {
                 let _ = self.sink.send(SinkMsg::Event {
                     node: device.name.clone(),
                     event,
+                });
+            }
+            // A master's loop state, once per poll cycle (as in a virtual run).
+            if let Some(value) = device.node.telemetry() {
+                let _ = self.sink.send(SinkMsg::Telemetry {
+                    at: t,
+                    node: device.name.clone(),
+                    value,
                 });
             }
         }

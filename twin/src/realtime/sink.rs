@@ -55,6 +55,12 @@ pub enum SinkMsg {
         node: String,
         event: NodeEvent,
     },
+    /// A node's internals (a master's loop), recorded on `/master/<node>/loop`.
+    Telemetry {
+        at: SimTime,
+        node: String,
+        value: Value,
+    },
     Lateness {
         at: SimTime,
         window: LatenessSummary,
@@ -279,6 +285,10 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
                     None => Ok(()),
                 }
             }
+            SinkMsg::Telemetry { at, node, value } => match &mut observer {
+                Some(o) => o.put(&format!("/master/{node}/loop"), at, &value),
+                None => Ok(()),
+            },
             SinkMsg::Lateness { at, window, total } => match &mut observer {
                 Some(o) => o
                     .put(

@@ -1,0 +1,305 @@
+//! A remote MEB client over TCP, the third role of seed 000's tool: one
+//! request at a time to a supervisor's server (`twin supervise --listen`) or
+//! to an MEB slave served over TCP (`twin serve --meb tcp://…`).
+
+use anyhow::{Context, Result, anyhow, bail};
+use nodes::proto::meb::{
+    MEB_BROADCAST_ID, MEB_MAX_FRAME_LEN, MebAccess, MebCmd, MebDecodeError, MebDecoder,
+    MebErrorCode, MebRepr, MebWords,
+};
+use nodes::time::SimTime;
+use std::io::{ErrorKind, Read, Write};
+use std::net::{SocketAddr, TcpStream, ToSocketAddrs};
+use std::time::{Duration, Instant};
+
+/// Which way a frame went, for the monitor.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Way {
+    Sent,
+    Received,
+}
+
+/// Sees each frame: its direction, seconds since connecting, its bytes.
+type Monitor = Box<dyn FnMut(Way, f64, &[u8])>;
+
+/// A connection to an MEB server.
+pub struct MebClient {
+    stream: TcpStream,
+    decoder: MebDecoder,
+    timeout: Duration,
+    peer: SocketAddr,
+    started: Instant,
+    monitor: Option<Monitor>,
+}
+
+impl std::fmt::Debug for MebClient {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("MebClient")
+            .field("peer", &self.peer)
+            .finish_non_exhaustive()
+    }
+}
+
+/// `tcp://HOST:PORT` (or `HOST:PORT`) to a socket address.
+pub fn parse_url(url: &str) -> Result<SocketAddr> {
+    let rest = url.strip_prefix("tcp://").unwrap_or(url);
+    rest.to_socket_addrs()
+        .with_context(|| format!("`{url}` is not tcp://HOST:PORT"))?
+        .next()
+        .ok_or_else(|| anyhow!("`{url}` names no address"))
+}
+
+impl MebClient {
+    /// Connects within `timeout`; each reply is waited for that long too.
+    pub fn connect(url: &str, timeout: Duration) -> Result<Self> {
+        let peer = parse_url(url)?;
+        let stream = TcpStream::connect_timeout(&peer, timeout).with_context(|| {
+            format!("cannot connect to {url} (is `twin supervise --listen {url}` running?)")
+        })?;
+        stream.set_nodelay(true)?;
+        Ok(Self {
+            stream,
+            decoder: MebDecoder::new(),
+            timeout,
+            peer,
+            started: Instant::now(),
+            monitor: None,
+        })
+    }
+
+    /// Shows every frame both ways (`-v`).
+    pub fn set_monitor(&mut self, monitor: impl FnMut(Way, f64, &[u8]) + 'static) {
+        self.monitor = Some(Box::new(monitor));
+    }
+
+    fn show(&mut self, way: Way, bytes: &[u8]) {
+        let at = self.started.elapsed().as_secs_f64();
+        if let Some(monitor) = &mut self.monitor {
+            monitor(way, at, bytes);
+        }
+    }
+
+    /// Sends `request` and waits for its reply: the reply frame, which may be
+    /// an `ER` (see [`check`]). Frames that do not answer it (another id or
+    /// command) are skipped; malformed bytes are dropped.
+    pub fn request(&mut self, request: &MebRepr) -> Result<MebRepr> {
+        let mut out = [0u8; MEB_MAX_FRAME_LEN];
+        let len = request
+            .emit(&mut out)
+            .map_err(|e| anyhow!("cannot build the request: {e}"))?;
+        self.show(Way::Sent, &out[..len]);
+        self.stream
+            .write_all(&out[..len])
+            .context("the server closed the connection")?;
+        let deadline = Instant::now() + self.timeout;
+        let mut buf = [0u8; 1024];
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                bail!(
+                    "no reply from {} within {} ms to {}",
+                    self.peer,
+                    self.timeout.as_millis(),
+                    describe(request)
+                );
+            }
+            self.stream.set_read_timeout(Some(left))?;
+            let n = match self.stream.read(&mut buf) {
+                Ok(0) => bail!("{} closed the connection", self.peer),
+                Ok(n) => n,
+                Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => {
+                    continue;
+                }
+                Err(e) if e.kind() == ErrorKind::Interrupted => continue,
+                Err(e) => return Err(e).context("reading the reply"),
+            };
+            let mut rest = &buf[..n];
+            while !rest.is_empty() {
+                let (used, event) = self.decoder.push(SimTime::ZERO, rest);
+                let frame = match event {
+                    Some(Ok(frame)) => {
+                        Some((MebRepr::from_frame(&frame), frame.as_bytes().to_vec()))
+                    }
+                    Some(Err(MebDecodeError::Malformed(_) | MebDecodeError::Interrupted))
+                    | None => None,
+                };
+                rest = &rest[used..];
+                if let Some((reply, bytes)) = frame {
+                    self.show(Way::Received, &bytes);
+                    if answers(request, &reply) {
+                        return Ok(reply);
+                    }
+                }
+            }
+        }
+    }
+
+    /// Reads `cnt` words from `cmd addr`.
+    pub fn read(&mut self, id: u8, cmd: MebCmd, addr: u8, cnt: u8) -> Result<Vec<u16>> {
+        if id == MEB_BROADCAST_ID {
+            bail!("id 00 is broadcast: a broadcast read is never answered (spec/meb.md)");
+        }
+        let request = MebRepr {
+            id,
+            cmd,
+            addr,
+            cnt,
+            data: MebWords::new(),
+        };
+        let reply = check(&request, self.request(&request)?)?;
+        if reply.data.len() != usize::from(cnt) {
+            bail!(
+                "the reply to {} carries {} words, not {cnt}",
+                describe(&request),
+                reply.data.len()
+            );
+        }
+        Ok(reply.data.as_slice().to_vec())
+    }
+
+    /// Writes `words` to `cmd addr`; `Ok` once acknowledged.
+    pub fn write(&mut self, id: u8, cmd: MebCmd, addr: u8, words: &[u16]) -> Result<()> {
+        let data =
+            MebWords::from_slice(words).ok_or_else(|| anyhow!("at most 99 words per write"))?;
+        let request = MebRepr {
+            id,
+            cmd,
+            addr,
+            cnt: data.len() as u8,
+            data,
+        };
+        if id == MEB_BROADCAST_ID {
+            // Every slave applies it, none answers: nothing to wait for.
+            let mut out = [0u8; MEB_MAX_FRAME_LEN];
+            let len = request
+                .emit(&mut out)
+                .map_err(|e| anyhow!("cannot build the request: {e}"))?;
+            self.show(Way::Sent, &out[..len]);
+            return self
+                .stream
+                .write_all(&out[..len])
+                .context("the server closed the connection");
+        }
+        check(&request, self.request(&request)?).map(|_| ())
+    }
+}
+
+/// Whether `reply` answers `request`: same id, and its command or `ER` at its address.
+fn answers(request: &MebRepr, reply: &MebRepr) -> bool {
+    reply.id == request.id
+        && (reply.cmd == MebCmd::ER && reply.addr == request.addr
+            || reply.cmd == request.cmd && reply.addr == request.addr && reply.cnt == request.cnt)
+        && reply.shape().is_reply()
+}
+
+/// An `ER` reply as an error that says what it means.
+pub fn check(request: &MebRepr, reply: MebRepr) -> Result<MebRepr> {
+    if reply.cmd != MebCmd::ER {
+        return Ok(reply);
+    }
+    let code = reply.data.as_slice().first().copied().unwrap_or(0);
+    let meaning = match MebErrorCode::from_word(code) {
+        Some(MebErrorCode::IllegalCommand) => {
+            "illegal command (unknown, a write to a read-only server, or one it cannot forward)"
+        }
+        Some(MebErrorCode::IllegalAddress) => {
+            "illegal address (not in the image or the slave's map)"
+        }
+        Some(MebErrorCode::IllegalData) => "illegal data (count 0 or a value out of range)",
+        Some(MebErrorCode::DeviceFailure) => {
+            "device failure (the slave did not answer, or cannot apply it now)"
+        }
+        None => "unknown error code",
+    };
+    bail!(
+        "slave {:02} answered {} with ER {code:02}: {meaning}",
+        request.id,
+        describe(request)
+    )
+}
+
+/// `EA 00 CNT 03`, as a user would say it.
+pub fn describe(request: &MebRepr) -> String {
+    match request.cmd.block().map(|(block, _)| block.access()) {
+        Some(MebAccess::Write) => format!(
+            "{} {:02X} = {:?}",
+            request.cmd,
+            request.addr,
+            request.data.as_slice()
+        ),
+        _ => format!("{} {:02X} count {}", request.cmd, request.addr, request.cnt),
+    }
+}
+
+/// The tag of a word in the default map and the supervisor's image, if it has one.
+pub fn tag(cmd: MebCmd, addr: usize) -> Option<&'static str> {
+    Some(match (&cmd.letters(), addr) {
+        (b"EA", 0) => "V2",
+        (b"EA", 1) => "I",
+        (b"EA", 2) => "V1",
+        (b"EA", 3) => "RPM_M",
+        (b"EA", 4) => "RPM_L",
+        (b"EA", 5) => "LDR",
+        (b"ED", 0) => "HALL",
+        (b"SA", 0) => "VEL",
+        (b"SD", 0) => "EN/BRK/PRO/DES/FR",
+        (b"SD", 1) => "CHG",
+        (b"VA", 0) => "LDR_TH",
+        (b"VA", 1) => "RPM_WIN",
+        (b"VD", 0) => "LDR_ADAPT",
+        (b"FA", 0) => "SOC",
+        (b"FA", 1) => "ERRS",
+        (b"FD", 0) => "STATUS",
+        (b"VA" | b"FA", 0x10) => "SET_POINT",
+        (b"VA" | b"FA", 0x11) => "KP_x1000",
+        (b"VA" | b"FA", 0x12) => "KI_x1000",
+        (b"VD" | b"FD", 0x10) => "LOOP_CLOSED",
+        _ => return None,
+    })
+}
+
+/// A command as typed: two letters, any case (the server judges it).
+pub fn parse_cmd(text: &str) -> Result<MebCmd> {
+    let bytes = text.as_bytes();
+    match bytes {
+        &[a, b] => MebCmd::new([a.to_ascii_uppercase(), b.to_ascii_uppercase()])
+            .ok_or_else(|| anyhow!("`{text}` is not a command (EA ED SA SD VA VD FA FD)")),
+        _ => bail!("`{text}` is not a command (EA ED SA SD VA VD FA FD)"),
+    }
+}
+
+/// An address as on the wire: hex, `00`–`FF` (`0x` allowed).
+pub fn parse_addr(text: &str) -> Result<u8> {
+    let digits = text.strip_prefix("0x").unwrap_or(text);
+    u8::from_str_radix(digits, 16).map_err(|_| {
+        anyhow!(
+            "address `{text}` is not hex 00-FF (addresses are hex, as on the wire: FA 10 is 0x10)"
+        )
+    })
+}
+
+/// A word value: decimal, or hex with `0x`.
+pub fn parse_word(text: &str) -> Result<u16> {
+    let parsed = match text.strip_prefix("0x") {
+        Some(hex) => u16::from_str_radix(hex, 16),
+        None => text.parse(),
+    };
+    parsed.map_err(|_| anyhow!("value `{text}` is not a 16-bit word (0-65535, or 0x0000-0xFFFF)"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn typed_arguments_parse_as_the_help_says() {
+        assert_eq!(parse_addr("10").unwrap(), 0x10);
+        assert_eq!(parse_addr("0x0a").unwrap(), 0x0A);
+        assert!(parse_addr("100").is_err());
+        assert_eq!(parse_word("2048").unwrap(), 2048);
+        assert_eq!(parse_word("0x001D").unwrap(), 0x1D);
+        assert!(parse_word("70000").is_err());
+        assert_eq!(parse_cmd("ea").unwrap(), MebCmd::EA);
+        assert!(parse_cmd("E1").is_err());
+    }
+}
