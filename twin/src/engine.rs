@@ -118,9 +118,15 @@ pub fn firmware_tick(
     module.advance(plant_step, t);
     let mut sensors = *module.plant.sensors();
     adjust(&mut sensors);
+    let drives_plant = node.drives_plant();
     let fw = node.firmware()?;
     let actuators = fw.loop_tick(t, &sensors);
     let next = t + fw.loop_period();
+    // A sensor-only node (seed 002's light sensor) watches the bench that
+    // another node drives: its idle pins must not overwrite the driver's.
+    if !drives_plant {
+        return Some((next, false));
+    }
     let changed = module.actuators != actuators;
     module.actuators = actuators;
     Some((next, changed))

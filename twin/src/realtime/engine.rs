@@ -552,17 +552,10 @@ impl RtEngine {
             };
             let forces = device.forces;
             let sensing = module.plant.params().sensing.clone();
-            let held = module.actuators;
             let ticked = firmware_tick(device.node.as_mut(), module, self.plant_step, t, |s| {
                 forces.apply_sensors(s, &sensing)
             });
-            if !device.node.drives_plant() {
-                // A sensor-only node (seed 002's light sensor) watches the
-                // bench; the motor node drives it.
-                module.actuators = held;
-            }
             if let Some((next, changed)) = ticked {
-                let changed = changed && device.node.drives_plant();
                 device.next_tick = Some(next.max(t + self.tick));
                 if let Some(image) = device.node.image_mut() {
                     forces.apply_words(image);
