@@ -149,6 +149,16 @@ impl PwmLineParams {
     }
 }
 
+/// One pulse as the capture unit measured it.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct PwmCapture {
+    /// The captured ON width, counter ticks.
+    pub width: u32,
+    /// When its falling edge crossed the threshold, counter ticks after the
+    /// sender's first rising edge.
+    pub fall_at_ticks: f64,
+}
+
 /// A seeded master→slave PWM-capture line.
 #[derive(Debug, Clone)]
 pub struct PwmLine {
@@ -182,6 +192,14 @@ impl PwmLine {
             tau_ticks,
             rng: Pcg64::seed_from_u64(seed),
         })
+    }
+
+    /// The same line with its noise and counter phase drawn from `seed`.
+    pub fn reseeded(&self, seed: u64) -> Self {
+        PwmLine {
+            rng: Pcg64::seed_from_u64(seed),
+            ..self.clone()
+        }
     }
 
     /// The line's parameters.
@@ -221,6 +239,45 @@ impl PwmLine {
         period: u32,
         captured: &mut [u32],
     ) -> Result<usize, PwmLineError> {
+        let mut count = 0usize;
+        self.transmit_with(widths, period, |width, _| {
+            if let Some(slot) = captured.get_mut(count) {
+                *slot = width;
+                count += 1;
+            }
+        })?;
+        Ok(count)
+    }
+
+    /// As [`PwmLine::transmit`], and also says when each captured pulse's
+    /// falling edge reached the capture unit (the instant its width is known),
+    /// in counter ticks from the first rising edge sent: what a receiver's
+    /// capture interrupt sees, for a medium that delivers pulses in time.
+    pub fn transmit_timed(
+        &mut self,
+        widths: &[u32],
+        period: u32,
+        captured: &mut [PwmCapture],
+    ) -> Result<usize, PwmLineError> {
+        let mut count = 0usize;
+        self.transmit_with(widths, period, |width, fall_at_ticks| {
+            if let Some(slot) = captured.get_mut(count) {
+                *slot = PwmCapture {
+                    width,
+                    fall_at_ticks,
+                };
+                count += 1;
+            }
+        })?;
+        Ok(count)
+    }
+
+    fn transmit_with(
+        &mut self,
+        widths: &[u32],
+        period: u32,
+        mut capture: impl FnMut(u32, f64),
+    ) -> Result<(), PwmLineError> {
         if let Some(&width) = widths.iter().find(|&&w| w >= period) {
             return Err(PwmLineError::WidthNotBelowPeriod { width, period });
         }
@@ -233,7 +290,6 @@ impl PwmLine {
         let mut volts = 0.0_f64;
         let mut pending = self.pending(true);
         let mut rise_at: Option<f64> = None;
-        let mut count = 0usize;
 
         // Segments of constant input: [start, end) at level `input`.
         let last = widths.len().saturating_sub(1);
@@ -258,11 +314,8 @@ impl PwmLine {
                         rise_at = Some(t);
                     } else if let Some(rise) = rise_at.take() {
                         let ticks = counter(t) - counter(rise);
-                        if let Some(slot) = captured.get_mut(count) {
-                            // Non-negative and below 2^32 periods: fits.
-                            *slot = ticks.clamp(0.0, f64::from(u32::MAX)) as u32;
-                            count += 1;
-                        }
+                        // Non-negative and below 2^32 periods: fits.
+                        capture(ticks.clamp(0.0, f64::from(u32::MAX)) as u32, t);
                     }
                     pending = self.pending(!pending.rising);
                 }
@@ -273,7 +326,7 @@ impl PwmLine {
                 };
             }
         }
-        Ok(count)
+        Ok(())
     }
 
     /// Sends `values` in one frame with `coding` (start symbol first, each

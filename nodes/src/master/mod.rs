@@ -10,7 +10,7 @@
 
 mod pi;
 mod supervisor;
-mod wire;
+pub(crate) mod wire;
 
 pub use pi::{SpeedPi, VEL_MAX, VEL_MIN};
 pub use supervisor::{LoopState, PollCounters, Supervisor};
