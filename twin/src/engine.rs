@@ -136,6 +136,8 @@ pub struct BusSlot {
     pub bus: Medium,
     /// Node index of each port.
     pub owners: Vec<usize>,
+    /// Node name of each port, for the recording.
+    pub port_names: Vec<String>,
     /// Per port: the last frame it sent, and the frame it is receiving.
     sent: Vec<Vec<u8>>,
     receiving: Vec<Reception>,
@@ -300,6 +302,7 @@ impl Engine {
             name: name.into(),
             bus: bus.into(),
             owners: Vec::new(),
+            port_names: Vec::new(),
             sent: Vec::new(),
             receiving: Vec::new(),
             checks: CheckTally::default(),
@@ -333,6 +336,10 @@ impl Engine {
         }
         owners[port.index()] = index;
         let slot = &mut self.buses[bus];
+        if slot.port_names.len() <= port.index() {
+            slot.port_names.resize(port.index() + 1, String::new());
+        }
+        slot.port_names[port.index()] = name.into();
         while slot.sent.len() < slot.owners.len() {
             slot.sent.push(Vec::with_capacity(MAX_FRAME));
             slot.receiving.push(Reception {

@@ -7,7 +7,8 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use crate::engine::Engine;
-use crate::nodes_build::{build_bus, build_node, is_master};
+use crate::nodes_build::is_master;
+use crate::nodes_parallel::{build_medium, build_node_on};
 use crate::observe::McapObserver;
 use crate::record::Recorder;
 use crate::scenario::Scenario;
@@ -58,7 +59,7 @@ pub fn build(scenario: &Scenario) -> Result<Engine> {
             .iter()
             .filter(|n| n.bus() == b.name)
             .position(is_master);
-        let bus = build_bus(b, derive_seed(scenario.seed, 200 + i as u64), master)?;
+        let bus = build_medium(b, derive_seed(scenario.seed, 200 + i as u64), master)?;
         bus_index.insert(b.name.as_str(), engine.add_bus(&b.name, bus));
     }
     for spec in &scenario.nodes {
@@ -71,7 +72,10 @@ pub fn build(scenario: &Scenario) -> Result<Engine> {
             .iter()
             .filter(|f| f.node == spec.name())
             .collect();
-        let (node, turnaround) = build_node(spec, module.map(|(_, p)| p), &faults)
+        let Some(bus_spec) = scenario.buses.iter().find(|b| b.name == spec.bus()) else {
+            bail!("node `{}`: no bus `{}`", spec.name(), spec.bus());
+        };
+        let (node, turnaround) = build_node_on(spec, module.map(|(_, p)| p), &faults, bus_spec)
             .with_context(|| format!("node `{}`", spec.name()))?;
         let port = engine.buses[bus]
             .bus

@@ -17,7 +17,7 @@ use std::collections::VecDeque;
 
 use plant::{Actuators, Sensors};
 
-use crate::firmware::{EvController, EvControllerConfig, WriteSet, ea, sd};
+use crate::firmware::{EvController, EvControllerConfig, WriteSet, ea};
 use crate::master::wire::{Reply, ReplyDecoder, Transaction};
 use crate::master::{Protocol, SetPointStep, SpeedPi, StartupOutputs};
 use crate::node::{Firmware, Node, NodeEvent};
@@ -130,6 +130,10 @@ pub struct ParallelMaster {
     sent_startup: bool,
     started: Vec<bool>,
     stage: Stage,
+    /// Modbus RTU: no request before the line has been quiet for the
+    /// inter-frame silence (t3.5), or slaves that heard a neighbour's
+    /// answer cannot tell where the next request starts.
+    quiet_until: Option<SimTime>,
     pwm_rx: PwmReceiver,
     rtu_rx: ReplyDecoder,
     tx: [u8; 64],
@@ -200,6 +204,7 @@ impl ParallelMaster {
             sent_startup: false,
             started: vec![false; config.slaves.len()],
             stage: Stage::Idle,
+            quiet_until: None,
             pwm_rx: PwmReceiver::new(&config.coding, config.period_ticks),
             rtu_rx: ReplyDecoder::new(Protocol::ModbusRtu, config.rtu_silence),
             tx: [0; 64],
@@ -369,6 +374,7 @@ impl Node for ParallelMaster {
                 }
             }
             ParallelLink::ModbusRtu => {
+                self.quiet_until = Some(now + self.config.rtu_silence);
                 let mut input = bytes;
                 let transaction = if self.sent_startup {
                     Transaction::Startup(StartupOutputs::ENABLED_BRAKE_RELEASED)
@@ -395,8 +401,8 @@ impl Node for ParallelMaster {
         }
     }
 
-    fn poll_transmit(&mut self, _now: SimTime, buf: &mut [u8]) -> Option<usize> {
-        if self.stage != Stage::Idle {
+    fn poll_transmit(&mut self, now: SimTime, buf: &mut [u8]) -> Option<usize> {
+        if self.stage != Stage::Idle || self.quiet_until.is_some_and(|t| now < t) {
             return None;
         }
         if !self.in_cycle {
@@ -442,6 +448,7 @@ impl Node for ParallelMaster {
         let out = buf.get_mut(..len)?;
         out.copy_from_slice(&self.tx[..len]);
         self.sent_vel = vel;
+        self.quiet_until = None;
         self.counter().requests += 1;
         self.stage = Stage::Sending { answered };
         Some(len)
@@ -450,6 +457,8 @@ impl Node for ParallelMaster {
     fn poll_timeout(&self) -> Option<SimTime> {
         match self.stage {
             Stage::Waiting { deadline } => Some(deadline),
+            // Work waits for the quiet line (it has passed once a request went out).
+            Stage::Idle if self.in_cycle || self.cycle_due => self.quiet_until,
             _ => None,
         }
     }
@@ -460,6 +469,9 @@ impl Node for ParallelMaster {
                 self.stage = Stage::Waiting {
                     deadline: now + self.config.reply_timeout,
                 };
+                if self.config.link == ParallelLink::ModbusRtu {
+                    self.quiet_until = Some(now + self.config.rtu_silence);
+                }
             }
             Stage::Sending { answered: false } => self.advance(),
             _ => {}
@@ -481,7 +493,7 @@ impl Firmware for ParallelMaster {
     fn loop_tick(&mut self, now: SimTime, sensors: &Sensors) -> Actuators {
         if !self.own_enabled {
             let set = WriteSet {
-                sd0: Some(sd::SD0_OFF & !sd::EN),
+                sd0: Some(StartupOutputs::ENABLED_BRAKE_RELEASED.sd0),
                 vel: Some(0),
                 ..WriteSet::default()
             };

@@ -17,9 +17,10 @@
 //!   makes the master retransmit.
 //!
 //! [`PwmReceiver`] is the receiving DSP's software: it assembles the capture
-//! records the link delivers, finds frames by time (a pulse arriving more than
-//! 1.5 symbol periods after the previous one starts a new frame; a frame still
-//! short of symbols 1.5 periods after its last pulse has timed out), and hands
+//! records the link delivers, finds frames by time (a pulse that rose more
+//! than 1.5 symbol periods after the previous one's rising edge starts a new
+//! frame; a frame still short of symbols 2.5 periods after its last pulse's
+//! rising edge has timed out), and hands
 //! out whole frames for [`PwmFrame::decode`] (start-width compensation, dummy
 //! bits dropped).
 
@@ -112,27 +113,39 @@ pub enum RxOutcome {
 }
 
 /// Frames out of the capture records a PWM port receives.
+///
+/// The record arrives at the pulse's falling edge and carries its width, so
+/// the receiver knows when the pulse rose: `now − width`. Rising edges of one
+/// frame are one symbol period apart whatever the values, falling edges are
+/// not, so framing goes by rising edges.
 #[derive(Debug, Clone)]
 pub struct PwmReceiver {
-    /// 1.5 symbol periods: longer than the gap between two pulses of a frame.
+    coding: PwmCoding,
+    /// 1.5 symbol periods: longer than from one rising edge of a frame to the next.
     gap: SimDuration,
+    /// 2.5 symbol periods: the next pulse has surely fallen by then.
+    timeout: SimDuration,
     record: [u8; PWM_RECORD_BYTES],
     record_len: usize,
     widths: [u32; FRAME_SYMBOLS],
     count: usize,
-    last_at: Option<SimTime>,
+    /// The last pulse's rising edge.
+    last_rise: Option<SimTime>,
 }
 
 impl PwmReceiver {
     /// A receiver for symbols every `period_ticks` of `coding`'s counter.
     pub fn new(coding: &PwmCoding, period_ticks: u32) -> Self {
+        let period = u64::from(period_ticks);
         PwmReceiver {
-            gap: coding.ticks_to_duration(u64::from(period_ticks) * 3 / 2),
+            coding: *coding,
+            gap: coding.ticks_to_duration(period * 3 / 2),
+            timeout: coding.ticks_to_duration(period * 5 / 2),
             record: [0; PWM_RECORD_BYTES],
             record_len: 0,
             widths: [0; FRAME_SYMBOLS],
             count: 0,
-            last_at: None,
+            last_rise: None,
         }
     }
 
@@ -140,7 +153,7 @@ impl PwmReceiver {
     pub fn reset(&mut self) {
         self.record_len = 0;
         self.count = 0;
-        self.last_at = None;
+        self.last_rise = None;
     }
 
     /// One byte of a capture record, arrived at `now`. A record that starts
@@ -154,17 +167,19 @@ impl PwmReceiver {
         }
         self.record_len = 0;
         let width = u32::from_le_bytes(self.record);
+        let width_time = self.coding.ticks_to_duration(u64::from(width));
+        let rise = SimTime(now.0.saturating_sub(width_time.0));
         let mut outcome = None;
-        if self.last_at.is_some_and(|last| now > last + self.gap) && self.count > 0 {
+        if self.last_rise.is_some_and(|last| rise > last + self.gap) && self.count > 0 {
             outcome = Some(RxOutcome::Incomplete { got: self.count });
             self.count = 0;
         }
-        self.last_at = Some(now);
+        self.last_rise = Some(rise);
         self.widths[self.count] = width;
         self.count += 1;
         if self.count == FRAME_SYMBOLS {
             self.count = 0;
-            self.last_at = None;
+            self.last_rise = None;
             // A late incomplete frame and a whole one cannot both end here:
             // a whole frame needs this record to be its fourth.
             return Some(RxOutcome::Frame(self.widths));
@@ -175,9 +190,9 @@ impl PwmReceiver {
     /// When a partial frame times out.
     pub fn poll_timeout(&self) -> Option<SimTime> {
         (self.count > 0)
-            .then_some(self.last_at)
+            .then_some(self.last_rise)
             .flatten()
-            .map(|last| last + self.gap)
+            .map(|last| last + self.timeout)
     }
 
     /// The timeout of [`PwmReceiver::poll_timeout`] has come.

@@ -6,6 +6,7 @@ use std::collections::VecDeque;
 use plant::{Actuators, Sensors};
 
 use crate::firmware::{EvController, EvControllerConfig, WriteSet, sd};
+use crate::master::StartupOutputs;
 use crate::node::{Firmware, Node, NodeEvent};
 use crate::proto::pwmcap::{PwmCoding, PwmFrame, PwmFrameKind};
 use crate::time::{SimDuration, SimTime};
@@ -114,7 +115,7 @@ impl PwmSlave {
     fn take(&mut self, now: SimTime, run: bool, vel: u16) {
         let sd0 = if run {
             // EN, BRK released, boost and discharge off, clockwise.
-            sd::SD0_OFF & !sd::EN
+            StartupOutputs::ENABLED_BRAKE_RELEASED.sd0
         } else {
             sd::SD0_OFF
         };
