@@ -564,18 +564,30 @@ impl Scenario {
     }
 }
 
-/// The first line setting `key = …` after the line that sets `name = "owner"`.
+/// The line setting `key = …` in the block (up to the next `[[…]]`) of a
+/// line that sets `name = "owner"`; else that name line. A module and a node
+/// may share a name: the block that has the key is the one meant.
 fn find_line_after(text: &str, owner: &str, key: &str) -> Option<usize> {
     let quoted = format!("\"{owner}\"");
-    let start = text.lines().position(|l| {
+    let lines: Vec<&str> = text.lines().collect();
+    let sets = |l: &str, key: &str, value: Option<&str>| {
         l.split_once('=')
-            .is_some_and(|(k, v)| k.trim() == "name" && v.trim() == quoted)
-    })?;
-    let after = text
-        .lines()
-        .skip(start)
-        .position(|l| l.split('=').next().is_some_and(|k| k.trim() == key) && l.contains('='));
-    Some(after.map_or(start, |n| start + n) + 1)
+            .is_some_and(|(k, v)| k.trim() == key && value.is_none_or(|want| v.trim() == want))
+    };
+    let names: Vec<usize> = (0..lines.len())
+        .filter(|&i| sets(lines[i], "name", Some(&quoted)))
+        .collect();
+    for &start in &names {
+        let found = lines[start..]
+            .iter()
+            .enumerate()
+            .take_while(|(n, l)| *n == 0 || !l.trim_start().starts_with("[["))
+            .find(|(_, l)| sets(l, key, None));
+        if let Some((n, _)) = found {
+            return Some(start + n + 1);
+        }
+    }
+    names.first().map(|n| n + 1)
 }
 
 fn crate_time_ticks() -> u64 {
