@@ -66,6 +66,9 @@ pub struct NodeSlot {
 
 /// What carries a bus slot's frames: the RS-485 serial bus, or seed 003's
 /// PWM-capture link (frames of pulse widths, captured widths delivered).
+// One per bus, built once and never moved on a hot path: the size of the
+// PWM link's capture buffers costs nothing.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug)]
 pub enum Medium {
     Serial(SimBus),

@@ -34,7 +34,7 @@ pub fn build_medium(spec: &BusSpec, seed: u64, master: Option<usize>) -> Result<
                 .map_err(|(field, msg)| anyhow::anyhow!("bus `{}`: `{field}` {msg}", spec.name))?;
             let link =
                 PwmBus::new(config).map_err(|e| anyhow::anyhow!("bus `{}`: {e}", spec.name))?;
-            Ok(Medium::Pwm(link))
+            Ok(Medium::from(link))
         }
     }
 }

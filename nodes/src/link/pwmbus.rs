@@ -255,7 +255,7 @@ impl PwmBus {
         let turnaround = port.config.turnaround;
         let mut widths = [0u32; PWM_LINE_MAX_SYMBOLS];
         let symbols = bytes.len() / PWM_RECORD_BYTES;
-        if bytes.len() % PWM_RECORD_BYTES != 0 || symbols == 0 || symbols > widths.len() {
+        if !bytes.len().is_multiple_of(PWM_RECORD_BYTES) || symbols == 0 || symbols > widths.len() {
             return Err(BusError::Malformed(
                 "a PWM frame is 1 to 18 four-byte widths",
             ));
