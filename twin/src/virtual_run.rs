@@ -28,6 +28,8 @@ pub struct RunOutcome {
     pub buses: Vec<(String, nodes::link::BusStats, crate::engine::CheckTally)>,
     /// Log lines the nodes printed (the seed-002 master's printout), last ones.
     pub log_tail: Vec<String>,
+    /// Per PWM-capture bus: its name and the link's own counters.
+    pub pwm: Vec<(String, nodes::link::PwmStats)>,
 }
 
 /// Independent, reproducible seeds for the parts of a run (splitmix64).
@@ -120,6 +122,11 @@ pub fn run(scenario: &Scenario, out: &Path, mut progress: impl FnMut(f64)) -> Re
         .iter()
         .map(|b| (b.name.clone(), *b.bus.stats(), b.checks))
         .collect();
+    let pwm = engine
+        .buses
+        .iter()
+        .filter_map(|b| b.bus.as_pwm().map(|l| (b.name.clone(), *l.pwm_stats())))
+        .collect();
     let frames = observer.frames;
     let events = observer.events.clone();
     let log_tail = observer.log_tail.iter().cloned().collect();
@@ -133,5 +140,6 @@ pub fn run(scenario: &Scenario, out: &Path, mut progress: impl FnMut(f64)) -> Re
         telemetry,
         buses,
         log_tail,
+        pwm,
     })
 }
