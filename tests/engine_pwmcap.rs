@@ -175,6 +175,17 @@ fn parallel_wheels_track_the_master_and_pwm_beats_modbus() {
     assert!(r.latency_mean_s > 1e-3, "{r:?}");
     assert!(r.skipped > r.master_changes / 3, "{r:?}");
     assert!(r.track_max_rpm > 5.0 * p.track_max_rpm, "{r:?} vs {p:?}");
+    // A Modbus cycle is, per slave: the 8-byte FC 06 request and its 8-byte
+    // echo at 10 bits per byte, the slave's 0.1 ms turnaround, and the
+    // 1.75 ms line silence the master keeps before the next request.
+    let exchange = 2.0 * 8.0 * 10.0 / 115_200.0 + 0.1e-3 + 1.75e-3;
+    let cycle = 2.0 * exchange;
+    assert!(
+        (r.cycle_s - cycle).abs() < 0.01 * cycle,
+        "{} vs {cycle}",
+        r.cycle_s
+    );
+    assert!((p.cycle_s - 1e-3).abs() < 1e-6, "PWM: one cycle per update");
 }
 
 #[test]

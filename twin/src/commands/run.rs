@@ -79,8 +79,9 @@ pub struct RunArgs {
 
 pub fn execute(args: &RunArgs) -> Result<()> {
     if args.list {
+        let width = EMBEDDED.iter().map(|(n, _, _)| n.len()).max().unwrap_or(0);
         for (name, description, _) in EMBEDDED {
-            println!("{name:20} {description}");
+            println!("{name:width$}  {description}");
         }
         return Ok(());
     }
