@@ -270,3 +270,47 @@ fn scenario_errors_name_the_line() {
         "{error}"
     );
 }
+
+#[test]
+fn half_duplex_answers_wait_for_the_enable_full_duplex_answers_at_once() {
+    for duplex in ["half", "full"] {
+        let scenario = variant(
+            "parallel-pwm-designated",
+            0.3,
+            &[
+                ("cable_m = 10.0", "cable_m = 1.0"),
+                ("duplex = \"half\"", &format!("duplex = \"{duplex}\"")),
+                // Slaves answer the instant the fourth pulse is captured.
+                ("turnaround_ms = 0.01", "turnaround_ms = 0.0"),
+            ],
+        );
+        let (out, _) = run(&scenario, &format!("duplex-{duplex}.mcap"));
+        let frames = messages(&out, "/bus/pwm/frames");
+        let mut answers = 0;
+        for pair in frames.windows(2) {
+            let (request, answer) = (&pair[0], &pair[1]);
+            if request["from"] != "master" || answer["from"] == "master" {
+                continue;
+            }
+            answers += 1;
+            let (end, start) = (
+                request["end_s"].as_f64().unwrap(),
+                answer["start_s"].as_f64().unwrap(),
+            );
+            if duplex == "half" {
+                // The master holds the enable to the end of its last symbol period.
+                assert!(start >= end - 1e-12, "answer at {start} before {end}");
+            } else {
+                // The slave answers on its own pair once it has the fourth pulse,
+                // before the master's last symbol period is over.
+                assert!(
+                    start < end,
+                    "full duplex answer at {start}, request ends {end}"
+                );
+            }
+            // Never more than the last symbol's OFF time apart (one period, 8.16 µs).
+            assert!((start - end).abs() < 8.2e-6, "{start} vs {end}");
+        }
+        assert!(answers > 400, "{duplex}: {answers} answers");
+    }
+}
