@@ -560,6 +560,23 @@ impl Scenario {
                 _ => {}
             }
         }
+        // Faults wrap a node's bytes (bad checks, dropped replies): PWM frames
+        // carry no check to spoil, and the link's noise is the way to break them.
+        for f in &self.faults {
+            let pwm = self.nodes.iter().any(|n| {
+                n.name() == f.node
+                    && matches!(n, NodeSpec::PwmSlave { .. } | NodeSpec::ParallelMaster { .. })
+            });
+            if pwm {
+                return Err((
+                    "node".into(),
+                    format!(
+                        "fault on `{}`: faults apply to serial nodes; on a PWM-capture link raise the line's noise_mv or cable_m",
+                        f.node
+                    ),
+                ));
+            }
+        }
         Ok(())
     }
 }
