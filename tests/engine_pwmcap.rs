@@ -250,6 +250,24 @@ fn scenario_errors_name_the_line() {
         // that node (a serial node on a PWM link), a few lines below it.
         assert_eq!(place, line, "{to}: {error}");
     }
+    // A fault on a PWM node: refused at the fault's `node` line.
+    let faulty = format!(
+        "{text}\n[[fault]]\nnode = \"slave2\"\nkind = \"drop-reply\"\nfrom_s = 1.0\nuntil_s = 2.0\n"
+    );
+    let error = Scenario::parse(&faulty, "f.toml")
+        .expect_err("fault on pwm")
+        .to_string();
+    let node_line = faulty
+        .lines()
+        .position(|l| l.starts_with("node = "))
+        .unwrap()
+        + 1;
+    assert!(
+        error.starts_with(&format!(
+            "f.toml:{node_line}: `node` fault on `slave2`: faults apply to serial nodes"
+        )),
+        "{error}"
+    );
     // A serial protocol on a PWM-capture link: the master's `bus` line.
     let rtu = embedded("parallel-rtu-115200")
         .replace("baud = 115200", "baud = 115200\nmedium = \"pwmcap\"");

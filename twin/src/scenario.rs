@@ -565,7 +565,10 @@ impl Scenario {
         for f in &self.faults {
             let pwm = self.nodes.iter().any(|n| {
                 n.name() == f.node
-                    && matches!(n, NodeSpec::PwmSlave { .. } | NodeSpec::ParallelMaster { .. })
+                    && matches!(
+                        n,
+                        NodeSpec::PwmSlave { .. } | NodeSpec::ParallelMaster { .. }
+                    )
             });
             if pwm {
                 return Err((
