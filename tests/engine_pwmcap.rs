@@ -332,3 +332,48 @@ fn half_duplex_answers_wait_for_the_enable_full_duplex_answers_at_once() {
         assert!(answers > 400, "{duplex}: {answers} answers");
     }
 }
+
+#[test]
+fn a_slow_line_needs_the_start_width_calibrated_at_initialisation() {
+    let slow = |calibrate: bool| {
+        variant(
+            "parallel-pwm-designated",
+            1.5,
+            &[(
+                "noise_mv = 0.5",
+                &format!(
+                    "noise_mv = 0.5\nadded_series_ohm = 1.0\nadded_shunt_nf = 20.0\ncalibrate = {calibrate}"
+                ),
+            )],
+        )
+    };
+    // The paper's start-bit overflow: τ ≈ 80 ticks shrinks the 200-tick start
+    // so much that no status symbol decodes, and no slave ever runs.
+    let (out, figures) = run(&slow(false), "slow.mcap");
+    assert_eq!(figures.latencies, 0, "{figures:?}");
+    let last_rpm = |out: &Path, module: &str| {
+        messages(out, &format!("/plant/{module}/sensors"))
+            .last()
+            .expect("sensors")["wheel_rpm"]
+            .as_f64()
+            .unwrap_or(f64::NAN)
+    };
+    assert_eq!(last_rpm(&out, "slave2"), 0.0);
+    assert!(last_rpm(&out, "master") > 1400.0);
+    // Calibrated: the slaves follow the master again.
+    let (out, figures) = run(&slow(true), "slow-calibrated.mcap");
+    assert!(figures.latencies > 1000, "{figures:?}");
+    assert!(figures.track_max_rpm < 5.0, "{figures:?}");
+    let bytes = std::fs::read(&out).expect("recording");
+    let summary = mcap::Summary::read(&bytes)
+        .expect("summary")
+        .expect("has one");
+    let metadata = summary
+        .metadata_indexes
+        .iter()
+        .find(|m| m.name == "twin.run")
+        .expect("twin.run metadata");
+    let record = mcap::read::metadata(&bytes, metadata).expect("metadata reads");
+    let found = &record.metadata["pwm_calibration"];
+    assert!(found.starts_with("bus pwm: start "), "{found}");
+}

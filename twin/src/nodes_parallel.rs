@@ -3,7 +3,7 @@
 
 use anyhow::{Result, bail};
 use nodes::firmware::EvControllerConfig;
-use nodes::link::PwmBus;
+use nodes::link::{PwmBus, PwmCalibration, PwmLine};
 use nodes::master::SetPointStep;
 use nodes::node::Firmware;
 use nodes::parallel::{
@@ -20,6 +20,38 @@ use crate::scenario::{AddressingSpec, BusSpec, FaultSpec, MediumSpec, NodeSpec, 
 
 fn ms(v: f64) -> SimDuration {
     SimDuration::from_secs_f64(v / 1000.0)
+}
+
+/// A `[[bus]]` as the run uses it: with `calibrate = true` on a PWM-capture
+/// link, the start width and guard gap found at initialisation by sending
+/// training frames through the same line model (its own noise stream from
+/// `seed`) replace the file's `start_ticks` and `guard_ticks`. The training
+/// takes a few milliseconds of line time before the run's clock starts.
+pub fn calibrated(spec: &BusSpec, seed: u64) -> Result<(BusSpec, Option<PwmCalibration>)> {
+    let Some(pwm) = spec
+        .pwmcap
+        .as_ref()
+        .filter(|p| p.calibrate && spec.medium == MediumSpec::Pwmcap)
+    else {
+        return Ok((spec.clone(), None));
+    };
+    let config = pwm
+        .bus_config(seed, Some(0))
+        .map_err(|(field, msg)| anyhow::anyhow!("bus `{}`: `{field}` {msg}", spec.name))?;
+    let mut line = PwmLine::new(config.line, config.coding.clock_hz(), seed)?;
+    let Some(found) = PwmCalibration::find(&mut line, &config.coding)? else {
+        bail!(
+            "bus `{}`: calibration found no start width up to {} extra ticks: the line is too slow or too noisy for this coding",
+            spec.name,
+            PwmCalibration::MAX_ALLOWANCE_TICKS
+        );
+    };
+    let mut spec = spec.clone();
+    if let Some(p) = spec.pwmcap.as_mut() {
+        p.start_ticks = found.coding.start_ticks();
+        p.guard_ticks = p.guard_ticks.saturating_add(found.guard_ticks);
+    }
+    Ok((spec, Some(found)))
 }
 
 /// The medium for a scenario's `[[bus]]`: the serial bus or the PWM-capture

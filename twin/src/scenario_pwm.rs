@@ -16,6 +16,7 @@
 //! added_series_ohm = 0.0
 //! added_shunt_nf = 0.0
 //! noise_mv = 0.5              # comparator input noise, rms
+//! calibrate = false           # true: find start and guard at initialisation
 //!
 //! [[node]]
 //! kind = "parallel-master"    # the master module: speed loop on its own wheel, VEL to the slaves
@@ -81,6 +82,10 @@ pub struct PwmcapSpec {
     pub added_series_ohm: f64,
     pub added_shunt_nf: f64,
     pub noise_mv: f64,
+    /// Find the start width and guard gap the line needs at initialisation
+    /// (training frames through the line, `PwmCalibration::find`) and use
+    /// them instead of `start_ticks` and `guard_ticks`.
+    pub calibrate: bool,
 }
 
 impl Default for PwmcapSpec {
@@ -98,6 +103,7 @@ impl Default for PwmcapSpec {
             added_series_ohm: line.added_series_ohm,
             added_shunt_nf: line.added_shunt_farad * 1e9,
             noise_mv: line.noise_volts_rms * 1e3,
+            calibrate: false,
         }
     }
 }

@@ -126,6 +126,12 @@ pub fn execute(args: &RunArgs) -> Result<()> {
     for (node, state) in &outcome.telemetry {
         print_node_state(node, state, outcome.simulated_s);
     }
+    for (bus, c) in &outcome.pwm_calibrations {
+        println!(
+            "  calibrated at initialisation: {}",
+            virtual_run::describe_calibration(bus, c)
+        );
+    }
     for (bus, stats, checks) in &outcome.buses {
         if let Some((_, p)) = outcome.pwm.iter().find(|(name, _)| name == bus) {
             println!(

@@ -155,13 +155,20 @@ pub fn analyse(scenario: &Scenario, recording: &Path) -> Result<ParallelFigures>
         // none) was decoded wrong on the way.
         let mut newest = 0usize;
         let mut recovering = false;
-        for &(t2, v) in vel.get(slave).unwrap_or(&empty) {
+        // What the modules' pins hold at time zero is their power-up state,
+        // not a reference: neither side's counts.
+        for &(t2, v) in vel
+            .get(slave)
+            .unwrap_or(&empty)
+            .iter()
+            .filter(|(t, _)| *t > 0.0)
+        {
             let upto = master_vel.partition_point(|(t1, _)| *t1 <= t2);
             let issued = master_vel[..upto]
                 .iter()
                 .enumerate()
                 .rev()
-                .find(|(_, (_, v1))| *v1 == v);
+                .find(|(_, (t1, v1))| *v1 == v && *t1 > 0.0);
             match issued {
                 // Back to the right value after a wrong one: a recovery,
                 // not a reference newly issued.
@@ -181,9 +188,11 @@ pub fn analyse(scenario: &Scenario, recording: &Path) -> Result<ParallelFigures>
             }
         }
     }
-    // The first entry is power-up (VEL 0, before any reference).
-    let master_changes = master_vel.len().saturating_sub(1);
-    let skipped = taken.iter().skip(1).filter(|t| !**t).count();
+    let issued = |i: &usize| master_vel[*i].0 > 0.0;
+    let master_changes = (0..master_vel.len()).filter(issued).count();
+    let skipped = (0..master_vel.len())
+        .filter(|i| issued(i) && !taken[*i])
+        .count();
     let mut track_max: f64 = 0.0;
     let mut square_sum = 0.0;
     let mut samples = 0usize;
