@@ -185,7 +185,7 @@ fn the_receiver_frames_by_rising_edges_and_times_out_a_short_frame() {
     let period = coding.symbol_period_ticks();
     let mut rx = PwmReceiver::new(&coding, period);
     let tick = |t: u64| SimTime::ZERO + coding.ticks_to_duration(t);
-    let mut push = |rx: &mut PwmReceiver, fall: u64, width: u32| {
+    let push = |rx: &mut PwmReceiver, fall: u64, width: u32| {
         width
             .to_le_bytes()
             .into_iter()
