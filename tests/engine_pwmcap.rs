@@ -207,7 +207,12 @@ fn the_same_seed_gives_the_same_recording() {
 #[test]
 fn scenario_errors_name_the_line() {
     let text = embedded("parallel-pwm-broadcast");
-    let cases: [(&str, &str, &str); 5] = [
+    let cases: [(&str, &str, &str); 6] = [
+        (
+            "slaves = [2, 3]",
+            "slaves = [2, 16]",
+            "`slaves` of node `master` holds 16: ids on this link are 1 to 15",
+        ),
         (
             "clock_hz = 150000000",
             "clock_hz = 7",

@@ -539,6 +539,16 @@ impl Scenario {
                     reply_timeout_ms,
                     ..
                 } => {
+                    let max = if pwm_bus { 15 } else { 247 };
+                    if let Some(id) = slaves.iter().find(|&&id| id == 0 || id > max) {
+                        return Err((
+                            format!("slaves@{}", n.name()),
+                            format!(
+                                "of node `{}` holds {id}: ids on this link are 1 to {max}",
+                                n.name()
+                            ),
+                        ));
+                    }
                     if slaves.is_empty() {
                         return Err((
                             format!("slaves@{}", n.name()),

@@ -189,6 +189,17 @@ fn print_node_state(node: &str, state: &serde_json::Value, simulated_s: f64) {
         print_parallel_master(node, state, slaves, updates, simulated_s);
         return;
     }
+    if let Some(taken) = state["frames_taken"].as_u64() {
+        println!(
+            "  {node}: VEL {} from {taken} frames taken, {} for others, {} bad, {} cut short, {} answers",
+            state["vel"],
+            state["frames_ignored"],
+            state["bad_frames"],
+            state["incomplete_frames"],
+            state["answers"]
+        );
+        return;
+    }
     let Some(loops) = state["loops"].as_array() else {
         println!("  {node}: {state}");
         return;
