@@ -17,6 +17,7 @@
 //! added_shunt_nf = 0.0
 //! noise_mv = 0.5              # comparator input noise, rms
 //! calibrate = false           # true: find start and guard at initialisation
+//! cable_model = "lumped"      # lumped | elmore (distributed RC, Elmore-delay pole)
 //!
 //! [[node]]
 //! kind = "parallel-master"    # the master module: speed loop on its own wheel, VEL to the slaves
@@ -86,6 +87,17 @@ pub struct PwmcapSpec {
     /// (training frames through the line, `PwmCalibration::find`) and use
     /// them instead of `start_ticks` and `guard_ticks`.
     pub calibrate: bool,
+    /// `lumped` (default) or `elmore`: the cable as a distributed RC line.
+    pub cable_model: CableModelSpec,
+}
+
+/// How the cable's R and C make the line's pole.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CableModelSpec {
+    #[default]
+    Lumped,
+    Elmore,
 }
 
 impl Default for PwmcapSpec {
@@ -104,6 +116,7 @@ impl Default for PwmcapSpec {
             added_shunt_nf: line.added_shunt_farad * 1e9,
             noise_mv: line.noise_volts_rms * 1e3,
             calibrate: false,
+            cable_model: CableModelSpec::Lumped,
         }
     }
 }
@@ -150,6 +163,10 @@ impl PwmcapSpec {
         line.added_series_ohm = self.added_series_ohm;
         line.added_shunt_farad = self.added_shunt_nf * 1e-9;
         line.noise_volts_rms = self.noise_mv * 1e-3;
+        line.cable_model = match self.cable_model {
+            CableModelSpec::Lumped => nodes::link::CableModel::Lumped,
+            CableModelSpec::Elmore => nodes::link::CableModel::Elmore,
+        };
         let field = |name: &str| match name {
             "cable_length_m" => "cable_m",
             "added_shunt_farad" => "added_shunt_nf",

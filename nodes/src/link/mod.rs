@@ -13,7 +13,7 @@ mod simbus;
 pub use fault::{CheckKind, Fault, FaultStats, FaultWindow, FaultyNode};
 pub use pwmbus::{PwmBus, PwmBusConfig, PwmDuplex, PwmFrameRecord, PwmReception, PwmStats};
 pub use pwmline::{
-    PwmCalibration, PwmCapture, PwmLine, PwmLineError, PwmLineParams, PwmTestValues,
+    CableModel, PwmCalibration, PwmCapture, PwmLine, PwmLineError, PwmLineParams, PwmTestValues,
 };
 pub use simbus::{
     BusConfig, BusConfigError, BusError, BusEvent, BusStats, FrameInfo, PortConfig, PortId, SimBus,

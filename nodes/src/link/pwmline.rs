@@ -74,6 +74,24 @@ pub struct PwmLineParams {
     pub threshold_volts: f64,
     /// RMS input-referred noise of the comparator, V.
     pub noise_volts_rms: f64,
+    /// How the cable's own R and C enter the line's time constant.
+    pub cable_model: CableModel,
+}
+
+/// How the cable's resistance and capacitance make the one pole of the line.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum CableModel {
+    /// Everything in one lump: `τ = (R_drv + r·L + R_add)·(c·L + C_add + C_in)`.
+    /// Pessimistic for a long cable: every resistance charges every capacitance.
+    #[default]
+    Lumped,
+    /// The cable as a distributed RC line, reduced to the single pole with the
+    /// same Elmore delay (first moment of its impulse response): every
+    /// resistance charges only the capacitance downstream of it,
+    /// `τ = R_drv·(c·L + C_l) + r·L·(c·L/2 + C_l) + R_add·C_l`, `C_l = C_add + C_in`.
+    /// The cable's own `r·c·L²` counts half, and the added series R (after
+    /// the cable, at the receiver) does not charge the cable.
+    Elmore,
 }
 
 impl PwmLineParams {
@@ -97,6 +115,7 @@ impl PwmLineParams {
         drive_volts: 3.3,
         threshold_volts: 1.65,
         noise_volts_rms: 0.5e-3,
+        cable_model: CableModel::Lumped,
     };
 
     /// Total series resistance of the lumped RC, Ω.
@@ -111,9 +130,20 @@ impl PwmLineParams {
             + self.receiver_input_farad
     }
 
-    /// The line's time constant `τ = R·C`, s.
+    /// The line's time constant, s: `τ = R·C` lumped, or the Elmore delay
+    /// of the distributed cable (see [`CableModel`]).
     pub fn time_constant_s(&self) -> f64 {
-        self.series_ohm() * self.shunt_farad()
+        match self.cable_model {
+            CableModel::Lumped => self.series_ohm() * self.shunt_farad(),
+            CableModel::Elmore => {
+                let cable_c = self.cable_farad_per_m * self.cable_length_m;
+                let cable_r = self.cable_ohm_per_m * self.cable_length_m;
+                let load_c = self.added_shunt_farad + self.receiver_input_farad;
+                self.driver_ohm * (cable_c + load_c)
+                    + cable_r * (cable_c / 2.0 + load_c)
+                    + self.added_series_ohm * load_c
+            }
+        }
     }
 
     /// Checks every parameter is finite and physical.

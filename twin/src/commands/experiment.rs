@@ -65,6 +65,16 @@ struct PwmcapArgs {
     /// Step of the clean-cable search, m.
     #[arg(long, default_value_t = 10.0)]
     cable_step_m: f64,
+    /// The cable as one lump of R and C (`lumped`), or as a distributed RC
+    /// line reduced to the pole with its Elmore delay (`elmore`).
+    #[arg(long, value_enum, default_value_t = CableArg::Lumped)]
+    cable_model: CableArg,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum CableArg {
+    Lumped,
+    Elmore,
 }
 
 pub fn execute(args: &ExperimentArgs) -> Result<()> {
@@ -125,6 +135,10 @@ fn execute_pwmcap(args: &PwmcapArgs) -> Result<()> {
     setup.line.cable_length_m = args.length_m;
     setup.line.noise_volts_rms = args.noise_mv * 1e-3;
     setup.added_shunt_farad = args.added_nf * 1e-9;
+    setup.line.cable_model = match args.cable_model {
+        CableArg::Lumped => nodes::link::CableModel::Lumped,
+        CableArg::Elmore => nodes::link::CableModel::Elmore,
+    };
     setup.line.validate()?;
 
     print_table2();
@@ -196,6 +210,11 @@ fn print_parameters(setup: &ReliabilitySetup) {
         line.threshold_volts,
         line.noise_volts_rms * 1e3
     );
+    if line.cable_model == nodes::link::CableModel::Elmore {
+        println!(
+            "  cable as a distributed RC line: the pole with its Elmore delay (--cable-model elmore)"
+        );
+    }
     println!(
         "  coding: {} MHz counter, {} data + {} dummy bits, start {} ticks; \
          added shunt C {} nF in every row",
