@@ -5,6 +5,7 @@ pub mod firmware;
 pub mod link;
 pub mod master;
 pub mod node;
+pub mod parallel;
 pub mod proto;
 pub mod seed002;
 pub mod time;

@@ -215,3 +215,36 @@ fn bad_parameters_and_widths_are_errors_not_panics() {
             .is_err()
     );
 }
+
+#[test]
+fn the_elmore_cable_charges_only_what_lies_downstream() {
+    use nodes::link::CableModel;
+    let lumped = PwmLineParams {
+        cable_length_m: 100.0,
+        added_series_ohm: 20.0,
+        added_shunt_farad: 20e-9,
+        ..PwmLineParams::DEFAULT
+    };
+    let elmore = PwmLineParams {
+        cable_model: CableModel::Elmore,
+        ..lumped
+    };
+    let (cable_r, cable_c) = (0.188 * 100.0, 50e-12 * 100.0);
+    let load_c = 20e-9 + 5e-12;
+    let expected = 23.0 * (cable_c + load_c) + cable_r * (cable_c / 2.0 + load_c) + 20.0 * load_c;
+    assert!((elmore.time_constant_s() - expected).abs() < 1e-15);
+    // Lumped minus Elmore: the cable's own r·c/2 and the added R times the cable's C.
+    let difference = cable_r * cable_c / 2.0 + 20.0 * cable_c;
+    assert!((lumped.time_constant_s() - elmore.time_constant_s() - difference).abs() < 1e-15);
+    // No cable, no difference.
+    let short = |model| PwmLineParams {
+        cable_length_m: 0.0,
+        cable_model: model,
+        ..lumped
+    };
+    let (a, b) = (
+        short(CableModel::Lumped).time_constant_s(),
+        short(CableModel::Elmore).time_constant_s(),
+    );
+    assert!((a - b).abs() < 1e-18, "{a} vs {b}");
+}

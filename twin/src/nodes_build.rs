@@ -68,7 +68,9 @@ fn fault_windows(faults: &[&FaultSpec]) -> Vec<FaultWindow> {
 pub fn is_master(spec: &NodeSpec) -> bool {
     matches!(
         spec,
-        NodeSpec::Supervisor { .. } | NodeSpec::Seed002Master { .. }
+        NodeSpec::Supervisor { .. }
+            | NodeSpec::Seed002Master { .. }
+            | NodeSpec::ParallelMaster { .. }
     )
 }
 
@@ -173,6 +175,11 @@ pub fn build_node(
             let node =
                 FaultyNode::with_schedule(Seed002Master::new(config), CheckKind::Modbus8, windows);
             Ok((Box::new(node), SimDuration::ZERO))
+        }
+        NodeSpec::ParallelMaster { .. } | NodeSpec::PwmSlave { .. } => {
+            bail!(
+                "a parallel-module node needs its bus: build it with nodes_parallel::build_node_on"
+            )
         }
     }
 }

@@ -4,7 +4,7 @@
 //! |---|---|---|
 //! | `/plant/<module>/sensors` | at the scenario's `record_hz` | every sensor, hall/encoder counts, energy ledger |
 //! | `/plant/<module>/actuators` | on every change | what the firmware drives |
-//! | `/bus/<bus>/frames` | every frame sent | sender, start and end time, raw bytes, decoded fields |
+//! | `/bus/<bus>/frames` | every frame sent | sender, start and end time, raw bytes, decoded fields (PWM-capture: widths sent and captured per listener, values, pulses lost, values wrong) |
 //! | `/events` | as they happen | node, kind (`timeout`, `bad_check`, `retry`, `log`, …), detail |
 //! | `/master/<node>/loop` | every poll cycle | set point, measured rpm, error, output, counters |
 
@@ -90,6 +90,36 @@ pub fn decode_frame(bytes: &[u8]) -> Value {
             Err(e) => json!({ "protocol": "unknown", "error": e.to_string() }),
         },
     }
+}
+
+/// A PWM-capture frame as sent and as every listener captured it: widths,
+/// the values they decode to against the start width (sent, and as that
+/// receiver measured it), pulses lost and values wrong.
+pub fn decode_pwm_frame(link: &nodes::link::PwmBus, port_names: &[String]) -> Value {
+    let coding = link.config().coding;
+    let frame = link.last_frame();
+    let values = |widths: &[u32]| -> Vec<Option<u16>> {
+        let start = widths.first().copied().unwrap_or(0);
+        widths
+            .iter()
+            .skip(1)
+            .map(|&w| coding.decode_width(w, start).ok())
+            .collect()
+    };
+    let receptions: Vec<Value> = frame
+        .receptions
+        .iter()
+        .filter(|r| !r.captured.is_empty() || r.lost > 0)
+        .map(|r| {
+            let to = port_names.get(r.to.index()).map_or("", String::as_str);
+            json!({ "to": to, "captured": r.captured, "values": values(&r.captured),
+                    "lost": r.lost, "wrong": r.wrong })
+        })
+        .collect();
+    json!({
+        "protocol": "pwmcap", "period_ticks": frame.period_ticks, "widths": frame.sent,
+        "values": values(&frame.sent), "receptions": receptions,
+    })
 }
 
 fn secs(t: SimTime) -> f64 {
@@ -180,7 +210,11 @@ impl Observer for McapObserver {
         bytes: &[u8],
     ) -> Result<()> {
         let topic = format!("/bus/{}/frames", bus.name);
-        self.record_frame(&topic, &from.name, start, end, bytes, decode_frame(bytes))
+        let decoded = match bus.bus.as_pwm() {
+            Some(link) => decode_pwm_frame(link, &bus.port_names),
+            None => decode_frame(bytes),
+        };
+        self.record_frame(&topic, &from.name, start, end, bytes, decoded)
     }
 
     fn event(&mut self, node: &NodeSlot, event: &NodeEvent) -> Result<()> {

@@ -27,8 +27,12 @@ use plant::PlantParams;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
+pub use crate::scenario_pwm::{
+    AddressingSpec, DuplexSpec, MediumSpec, ParallelLinkSpec, PwmcapSpec,
+};
+
 /// The scenarios built into the binary: name, one-line description, TOML text.
-pub const EMBEDDED: [(&str, &str, &str); 3] = [
+pub const EMBEDDED: [(&str, &str, &str); 7] = [
     (
         "ev-meb",
         "the EV module's speed loop closed by a supervisor over MEB at 115200 baud (default)",
@@ -43,6 +47,26 @@ pub const EMBEDDED: [(&str, &str, &str); 3] = [
         "ten-modules",
         "ten EV modules on one 115200-baud bus, one supervisor polling each at 10 Hz",
         include_str!("../../recordings/scenarios/ten-modules.toml"),
+    ),
+    (
+        "parallel-pwm-broadcast",
+        "three parallel modules: the master's VEL to two slaves by PWM-capture broadcast, every 1 ms",
+        include_str!("../../recordings/scenarios/parallel-pwm-broadcast.toml"),
+    ),
+    (
+        "parallel-pwm-designated",
+        "three parallel modules: designated PWM-capture frames, answered, retransmitted on timeout",
+        include_str!("../../recordings/scenarios/parallel-pwm-designated.toml"),
+    ),
+    (
+        "parallel-rtu-115200",
+        "three parallel modules: the master's VEL to two slaves by Modbus RTU at 115200 baud",
+        include_str!("../../recordings/scenarios/parallel-rtu-115200.toml"),
+    ),
+    (
+        "parallel-rtu-1m",
+        "three parallel modules: the master's VEL to two slaves by Modbus RTU at 1 Mbit/s",
+        include_str!("../../recordings/scenarios/parallel-rtu-1m.toml"),
     ),
 ];
 
@@ -123,6 +147,12 @@ pub struct BusSpec {
     pub bit_error_rate: f64,
     #[serde(default = "default_wiring")]
     pub wiring: WiringSpec,
+    /// `serial` (default) or `pwmcap` (seed 003's PWM-capture link).
+    #[serde(default, skip_serializing_if = "MediumSpec::is_serial")]
+    pub medium: MediumSpec,
+    /// The PWM-capture link's coding and line, for `medium = "pwmcap"`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pwmcap: Option<PwmcapSpec>,
 }
 
 fn default_baud() -> u32 {
@@ -208,6 +238,48 @@ pub enum NodeSpec {
         #[serde(default)]
         reply_timeout_ms: Option<f64>,
     },
+    /// The master of parallel modules: closes the speed loop on its own
+    /// module's wheel and sends the resulting VEL to the slave modules.
+    ParallelMaster {
+        name: String,
+        bus: String,
+        module: String,
+        link: ParallelLinkSpec,
+        slaves: Vec<u8>,
+        /// PI update and send period (the paper's retransmission period).
+        #[serde(default = "default_update_ms")]
+        update_period_ms: f64,
+        #[serde(default = "default_pwm_timeout_ms")]
+        reply_timeout_ms: f64,
+        #[serde(default = "default_retries")]
+        retries: u32,
+        kp: f64,
+        ki: f64,
+        set_points: Vec<[f64; 2]>,
+        #[serde(default = "default_loop_ms")]
+        loop_period_ms: f64,
+        #[serde(default)]
+        turnaround_ms: f64,
+    },
+    /// A slave module's controller on a PWM-capture link.
+    PwmSlave {
+        name: String,
+        bus: String,
+        module: String,
+        id: u8,
+        addressing: AddressingSpec,
+        #[serde(default = "default_loop_ms")]
+        loop_period_ms: f64,
+        #[serde(default)]
+        turnaround_ms: f64,
+    },
+}
+
+fn default_update_ms() -> f64 {
+    1.0
+}
+fn default_pwm_timeout_ms() -> f64 {
+    0.5
 }
 
 fn default_id() -> u8 {
@@ -239,7 +311,9 @@ impl NodeSpec {
             | NodeSpec::MotorNode { name, .. }
             | NodeSpec::LightNode { name, .. }
             | NodeSpec::Supervisor { name, .. }
-            | NodeSpec::Seed002Master { name, .. } => name,
+            | NodeSpec::Seed002Master { name, .. }
+            | NodeSpec::ParallelMaster { name, .. }
+            | NodeSpec::PwmSlave { name, .. } => name,
         }
     }
     pub fn bus(&self) -> &str {
@@ -248,14 +322,18 @@ impl NodeSpec {
             | NodeSpec::MotorNode { bus, .. }
             | NodeSpec::LightNode { bus, .. }
             | NodeSpec::Supervisor { bus, .. }
-            | NodeSpec::Seed002Master { bus, .. } => bus,
+            | NodeSpec::Seed002Master { bus, .. }
+            | NodeSpec::ParallelMaster { bus, .. }
+            | NodeSpec::PwmSlave { bus, .. } => bus,
         }
     }
     pub fn module(&self) -> Option<&str> {
         match self {
             NodeSpec::EvController { module, .. }
             | NodeSpec::MotorNode { module, .. }
-            | NodeSpec::LightNode { module, .. } => Some(module),
+            | NodeSpec::LightNode { module, .. }
+            | NodeSpec::ParallelMaster { module, .. }
+            | NodeSpec::PwmSlave { module, .. } => Some(module),
             _ => None,
         }
     }
@@ -296,7 +374,13 @@ impl Scenario {
             anyhow::anyhow!("{origin}{place}: {}", e.message().trim())
         })?;
         scenario.validate().map_err(|(field, msg)| {
-            let place = find_line(text, &field).map_or_else(String::new, |l| format!(":{l}"));
+            // A field of one node or bus is found after the line naming it.
+            let place = match field.split_once('@') {
+                Some((key, owner)) => find_line_after(text, owner, key),
+                None => find_line(text, &field),
+            };
+            let field = field.split('@').next().unwrap_or_default().to_string();
+            let place = place.map_or_else(String::new, |l| format!(":{l}"));
             anyhow::anyhow!("{origin}{place}: `{field}` {msg}")
         })?;
         Ok(scenario)
@@ -379,6 +463,7 @@ impl Scenario {
                 return Err(("bit_error_rate".into(), "must be in 0..0.5".into()));
             }
         }
+        self.validate_pwm()?;
         for f in &self.faults {
             if !names.contains(f.node.as_str()) {
                 return Err((
@@ -392,6 +477,147 @@ impl Scenario {
         }
         Ok(())
     }
+}
+
+impl Scenario {
+    /// PWM-capture buses and the nodes on them. Errors name the field as
+    /// `field@name`: the field after the line that names its bus or node.
+    fn validate_pwm(&self) -> std::result::Result<(), (String, String)> {
+        for b in &self.buses {
+            let at = |field: &str| format!("{field}@{}", b.name);
+            match (b.medium, &b.pwmcap) {
+                (MediumSpec::Serial, Some(_)) => {
+                    return Err((
+                        at("medium"),
+                        format!(
+                            "of bus `{}` is serial, but it has a [bus.pwmcap] table: set medium = \"pwmcap\"",
+                            b.name
+                        ),
+                    ));
+                }
+                (MediumSpec::Pwmcap, spec) => {
+                    let spec = spec.clone().unwrap_or_default();
+                    spec.bus_config(0, Some(0)).map_err(|(f, m)| (at(&f), m))?;
+                }
+                (MediumSpec::Serial, None) => {}
+            }
+        }
+        for n in &self.nodes {
+            let Some(bus) = self.buses.iter().find(|b| b.name == n.bus()) else {
+                continue;
+            };
+            let pwm_node = match n {
+                NodeSpec::PwmSlave { .. } => true,
+                NodeSpec::ParallelMaster { link, .. } => link.is_pwm(),
+                _ => false,
+            };
+            let pwm_bus = bus.medium == MediumSpec::Pwmcap;
+            if pwm_node != pwm_bus {
+                let what = if pwm_bus {
+                    "is a PWM-capture link, and this node speaks a serial protocol"
+                } else {
+                    "is a serial bus, and this node speaks PWM-capture"
+                };
+                return Err((
+                    format!("bus@{}", n.name()),
+                    format!("`{}` of node `{}` {what}", bus.name, n.name()),
+                ));
+            }
+            match n {
+                NodeSpec::PwmSlave { id, .. } if *id == 0 || *id > 15 => {
+                    return Err((
+                        format!("id@{}", n.name()),
+                        format!(
+                            "{id} of node `{}`: a PWM slave id is 1 to 15 (the status nibble)",
+                            n.name()
+                        ),
+                    ));
+                }
+                NodeSpec::ParallelMaster {
+                    slaves,
+                    update_period_ms,
+                    reply_timeout_ms,
+                    ..
+                } => {
+                    let max = if pwm_bus { 15 } else { 247 };
+                    if let Some(id) = slaves.iter().find(|&&id| id == 0 || id > max) {
+                        return Err((
+                            format!("slaves@{}", n.name()),
+                            format!(
+                                "of node `{}` holds {id}: ids on this link are 1 to {max}",
+                                n.name()
+                            ),
+                        ));
+                    }
+                    if slaves.is_empty() {
+                        return Err((
+                            format!("slaves@{}", n.name()),
+                            "must name at least one slave id".into(),
+                        ));
+                    }
+                    for (field, v) in [
+                        ("update_period_ms", update_period_ms),
+                        ("reply_timeout_ms", reply_timeout_ms),
+                    ] {
+                        if !(v.is_finite() && *v > 0.0) {
+                            return Err((
+                                format!("{field}@{}", n.name()),
+                                format!("must be a positive number, got {v}"),
+                            ));
+                        }
+                    }
+                }
+                _ => {}
+            }
+        }
+        // Faults wrap a node's bytes (bad checks, dropped replies): PWM frames
+        // carry no check to spoil, and the link's noise is the way to break them.
+        for f in &self.faults {
+            let pwm = self.nodes.iter().any(|n| {
+                n.name() == f.node
+                    && matches!(
+                        n,
+                        NodeSpec::PwmSlave { .. } | NodeSpec::ParallelMaster { .. }
+                    )
+            });
+            if pwm {
+                return Err((
+                    "node".into(),
+                    format!(
+                        "fault on `{}`: faults apply to serial nodes; on a PWM-capture link raise the line's noise_mv or cable_m",
+                        f.node
+                    ),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The line setting `key = …` in the block (up to the next `[[…]]`) of a
+/// line that sets `name = "owner"`; else that name line. A module and a node
+/// may share a name: the block that has the key is the one meant.
+fn find_line_after(text: &str, owner: &str, key: &str) -> Option<usize> {
+    let quoted = format!("\"{owner}\"");
+    let lines: Vec<&str> = text.lines().collect();
+    let sets = |l: &str, key: &str, value: Option<&str>| {
+        l.split_once('=')
+            .is_some_and(|(k, v)| k.trim() == key && value.is_none_or(|want| v.trim() == want))
+    };
+    let names: Vec<usize> = (0..lines.len())
+        .filter(|&i| sets(lines[i], "name", Some(&quoted)))
+        .collect();
+    for &start in &names {
+        let found = lines[start..]
+            .iter()
+            .enumerate()
+            .take_while(|(n, l)| *n == 0 || !l.trim_start().starts_with("[["))
+            .find(|(_, l)| sets(l, key, None));
+        if let Some((n, _)) = found {
+            return Some(start + n + 1);
+        }
+    }
+    names.first().map(|n| n + 1)
 }
 
 fn crate_time_ticks() -> u64 {

@@ -7,7 +7,8 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use crate::engine::Engine;
-use crate::nodes_build::{build_bus, build_node, is_master};
+use crate::nodes_build::is_master;
+use crate::nodes_parallel::{build_medium, build_node_on, calibrated};
 use crate::observe::McapObserver;
 use crate::record::Recorder;
 use crate::scenario::Scenario;
@@ -27,6 +28,10 @@ pub struct RunOutcome {
     pub buses: Vec<(String, nodes::link::BusStats, crate::engine::CheckTally)>,
     /// Log lines the nodes printed (the seed-002 master's printout), last ones.
     pub log_tail: Vec<String>,
+    /// Per PWM-capture bus: its name and the link's own counters.
+    pub pwm: Vec<(String, nodes::link::PwmStats)>,
+    /// Per calibrated PWM-capture bus: what its calibration found.
+    pub pwm_calibrations: Vec<(String, nodes::link::PwmCalibration)>,
 }
 
 /// Independent, reproducible seeds for the parts of a run (splitmix64).
@@ -35,6 +40,24 @@ pub fn derive_seed(seed: u64, part: u64) -> u64 {
     z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
     z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
     z ^ (z >> 31)
+}
+
+/// The scenario's buses as the run uses them (PWM-capture links calibrated
+/// where asked), with the calibration each found.
+pub fn calibrated_buses(
+    scenario: &Scenario,
+) -> Result<
+    Vec<(
+        crate::scenario::BusSpec,
+        Option<nodes::link::PwmCalibration>,
+    )>,
+> {
+    scenario
+        .buses
+        .iter()
+        .enumerate()
+        .map(|(i, b)| calibrated(b, derive_seed(scenario.seed, 300 + i as u64)))
+        .collect()
 }
 
 /// Build the engine for a scenario.
@@ -49,8 +72,9 @@ pub fn build(scenario: &Scenario) -> Result<Engine> {
         let index = engine.add_module(&m.name, plant);
         params.insert(&m.name, (index, p));
     }
+    let buses = calibrated_buses(scenario)?;
     let mut bus_index = BTreeMap::new();
-    for (i, b) in scenario.buses.iter().enumerate() {
+    for (i, (b, _)) in buses.iter().enumerate() {
         // Ports are added in node order: the master's port is its place
         // among the bus's nodes.
         let master = scenario
@@ -58,7 +82,7 @@ pub fn build(scenario: &Scenario) -> Result<Engine> {
             .iter()
             .filter(|n| n.bus() == b.name)
             .position(is_master);
-        let bus = build_bus(b, derive_seed(scenario.seed, 200 + i as u64), master)?;
+        let bus = build_medium(b, derive_seed(scenario.seed, 200 + i as u64), master)?;
         bus_index.insert(b.name.as_str(), engine.add_bus(&b.name, bus));
     }
     for spec in &scenario.nodes {
@@ -71,7 +95,10 @@ pub fn build(scenario: &Scenario) -> Result<Engine> {
             .iter()
             .filter(|f| f.node == spec.name())
             .collect();
-        let (node, turnaround) = build_node(spec, module.map(|(_, p)| p), &faults)
+        let Some((bus_spec, _)) = buses.iter().find(|(b, _)| b.name == spec.bus()) else {
+            bail!("node `{}`: no bus `{}`", spec.name(), spec.bus());
+        };
+        let (node, turnaround) = build_node_on(spec, module.map(|(_, p)| p), &faults, bus_spec)
             .with_context(|| format!("node `{}`", spec.name()))?;
         let port = engine.buses[bus]
             .bus
@@ -79,6 +106,16 @@ pub fn build(scenario: &Scenario) -> Result<Engine> {
         engine.add_node(spec.name(), node, bus, port, module.map(|(i, _)| *i));
     }
     Ok(engine)
+}
+
+/// One line on what a PWM-capture link's calibration found.
+pub fn describe_calibration(bus: &str, c: &nodes::link::PwmCalibration) -> String {
+    format!(
+        "bus {bus}: start {} ticks, guard {} ticks, {} training frames",
+        c.coding.start_ticks(),
+        c.guard_ticks,
+        c.frames_sent
+    )
 }
 
 /// Run `scenario` and record it to `out`; `progress` gets the fraction done.
@@ -121,17 +158,26 @@ fn run_observed(
     mut on_sample: impl FnMut(SimTime, &Engine, &mut Recorder) -> Result<()>,
 ) -> Result<RunOutcome> {
     let mut engine = build(scenario)?;
+    let pwm_calibrations: Vec<(String, nodes::link::PwmCalibration)> = calibrated_buses(scenario)?
+        .into_iter()
+        .filter_map(|(b, c)| c.map(|c| (b.name, c)))
+        .collect();
     let mut recorder = Recorder::create(out)?;
-    recorder.write_metadata(
-        "twin.run",
-        BTreeMap::from([
-            ("kind".into(), "scenario".into()),
-            ("scenario".into(), scenario.name.clone()),
-            ("scenario_toml".into(), toml::to_string(scenario)?),
-            ("seed".into(), scenario.seed.to_string()),
-            ("twin_version".into(), env!("CARGO_PKG_VERSION").into()),
-        ]),
-    )?;
+    let mut identity = BTreeMap::from([
+        ("kind".into(), "scenario".into()),
+        ("scenario".into(), scenario.name.clone()),
+        ("scenario_toml".into(), toml::to_string(scenario)?),
+        ("seed".into(), scenario.seed.to_string()),
+        ("twin_version".into(), env!("CARGO_PKG_VERSION").into()),
+    ]);
+    if !pwm_calibrations.is_empty() {
+        let text: Vec<String> = pwm_calibrations
+            .iter()
+            .map(|(b, c)| describe_calibration(b, c))
+            .collect();
+        identity.insert("pwm_calibration".into(), text.join("; "));
+    }
+    recorder.write_metadata("twin.run", identity)?;
     let mut observer = McapObserver::new(recorder);
     let end = SimTime::ZERO + SimDuration::from_secs_f64(scenario.duration_s);
     let mut both = crate::view::Tee {
@@ -169,6 +215,11 @@ fn run_observed(
         .iter()
         .map(|b| (b.name.clone(), *b.bus.stats(), b.checks))
         .collect();
+    let pwm = engine
+        .buses
+        .iter()
+        .filter_map(|b| b.bus.as_pwm().map(|l| (b.name.clone(), *l.pwm_stats())))
+        .collect();
     let frames = observer.frames;
     let events = observer.events.clone();
     let log_tail = observer.log_tail.iter().cloned().collect();
@@ -182,5 +233,7 @@ fn run_observed(
         telemetry,
         buses,
         log_tail,
+        pwm,
+        pwm_calibrations,
     })
 }

@@ -71,3 +71,21 @@ fn bad_options_fail_cleanly() {
     assert!(!output.status.success());
     assert!(String::from_utf8_lossy(&output.stderr).contains("--signals"));
 }
+
+#[test]
+fn the_cable_can_be_a_distributed_line() {
+    let lumped = run(&["--cable-limit-m", "0", "--signals", "20"]);
+    let elmore = run(&[
+        "--cable-limit-m",
+        "0",
+        "--signals",
+        "20",
+        "--cable-model",
+        "elmore",
+    ]);
+    assert!(elmore.contains("distributed RC line"), "{elmore}");
+    assert!(!lumped.contains("distributed RC line"), "{lumped}");
+    // The 20 Ω row's time constant: 138.0 ticks lumped, 136.5 distributed.
+    assert!(lumped.contains("138.0"), "{lumped}");
+    assert!(elmore.contains("136.5"), "{elmore}");
+}

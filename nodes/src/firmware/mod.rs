@@ -194,6 +194,14 @@ impl EvController {
         &mut self.image
     }
 
+    /// Stores a write as a slave front end would (range and trip checks
+    /// included): for a controller that gets its settings over another link
+    /// than its serial port (the PWM-capture link of seed 003). It takes
+    /// effect at the next loop tick.
+    pub fn store(&mut self, set: &WriteSet) -> Result<(), Refusal> {
+        self.image.store(set)
+    }
+
     /// The settings the loop applied at its last tick.
     pub fn applied(&self) -> &Settings {
         &self.applied

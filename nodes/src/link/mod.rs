@@ -6,11 +6,15 @@
 
 mod fault;
 mod noise;
+pub mod pwmbus;
 pub mod pwmline;
 mod simbus;
 
 pub use fault::{CheckKind, Fault, FaultStats, FaultWindow, FaultyNode, spoil_check};
-pub use pwmline::{PwmCalibration, PwmLine, PwmLineError, PwmLineParams, PwmTestValues};
+pub use pwmbus::{PwmBus, PwmBusConfig, PwmDuplex, PwmFrameRecord, PwmReception, PwmStats};
+pub use pwmline::{
+    CableModel, PwmCalibration, PwmCapture, PwmLine, PwmLineError, PwmLineParams, PwmTestValues,
+};
 pub use simbus::{
     BusConfig, BusConfigError, BusError, BusEvent, BusStats, FrameInfo, PortConfig, PortId, SimBus,
     Wiring,

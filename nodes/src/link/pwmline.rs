@@ -74,6 +74,24 @@ pub struct PwmLineParams {
     pub threshold_volts: f64,
     /// RMS input-referred noise of the comparator, V.
     pub noise_volts_rms: f64,
+    /// How the cable's own R and C enter the line's time constant.
+    pub cable_model: CableModel,
+}
+
+/// How the cable's resistance and capacitance make the one pole of the line.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum CableModel {
+    /// Everything in one lump: `τ = (R_drv + r·L + R_add)·(c·L + C_add + C_in)`.
+    /// Pessimistic for a long cable: every resistance charges every capacitance.
+    #[default]
+    Lumped,
+    /// The cable as a distributed RC line, reduced to the single pole with the
+    /// same Elmore delay (first moment of its impulse response): every
+    /// resistance charges only the capacitance downstream of it,
+    /// `τ = R_drv·(c·L + C_l) + r·L·(c·L/2 + C_l) + R_add·C_l`, `C_l = C_add + C_in`.
+    /// The cable's own `r·c·L²` counts half, and the added series R (after
+    /// the cable, at the receiver) does not charge the cable.
+    Elmore,
 }
 
 impl PwmLineParams {
@@ -97,6 +115,7 @@ impl PwmLineParams {
         drive_volts: 3.3,
         threshold_volts: 1.65,
         noise_volts_rms: 0.5e-3,
+        cable_model: CableModel::Lumped,
     };
 
     /// Total series resistance of the lumped RC, Ω.
@@ -111,9 +130,20 @@ impl PwmLineParams {
             + self.receiver_input_farad
     }
 
-    /// The line's time constant `τ = R·C`, s.
+    /// The line's time constant, s: `τ = R·C` lumped, or the Elmore delay
+    /// of the distributed cable (see [`CableModel`]).
     pub fn time_constant_s(&self) -> f64 {
-        self.series_ohm() * self.shunt_farad()
+        match self.cable_model {
+            CableModel::Lumped => self.series_ohm() * self.shunt_farad(),
+            CableModel::Elmore => {
+                let cable_c = self.cable_farad_per_m * self.cable_length_m;
+                let cable_r = self.cable_ohm_per_m * self.cable_length_m;
+                let load_c = self.added_shunt_farad + self.receiver_input_farad;
+                self.driver_ohm * (cable_c + load_c)
+                    + cable_r * (cable_c / 2.0 + load_c)
+                    + self.added_series_ohm * load_c
+            }
+        }
     }
 
     /// Checks every parameter is finite and physical.
@@ -149,6 +179,16 @@ impl PwmLineParams {
     }
 }
 
+/// One pulse as the capture unit measured it.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct PwmCapture {
+    /// The captured ON width, counter ticks.
+    pub width: u32,
+    /// When its falling edge crossed the threshold, counter ticks after the
+    /// sender's first rising edge.
+    pub fall_at_ticks: f64,
+}
+
 /// A seeded master→slave PWM-capture line.
 #[derive(Debug, Clone)]
 pub struct PwmLine {
@@ -182,6 +222,14 @@ impl PwmLine {
             tau_ticks,
             rng: Pcg64::seed_from_u64(seed),
         })
+    }
+
+    /// The same line with its noise and counter phase drawn from `seed`.
+    pub fn reseeded(&self, seed: u64) -> Self {
+        PwmLine {
+            rng: Pcg64::seed_from_u64(seed),
+            ..self.clone()
+        }
     }
 
     /// The line's parameters.
@@ -221,6 +269,45 @@ impl PwmLine {
         period: u32,
         captured: &mut [u32],
     ) -> Result<usize, PwmLineError> {
+        let mut count = 0usize;
+        self.transmit_with(widths, period, |width, _| {
+            if let Some(slot) = captured.get_mut(count) {
+                *slot = width;
+                count += 1;
+            }
+        })?;
+        Ok(count)
+    }
+
+    /// As [`PwmLine::transmit`], and also says when each captured pulse's
+    /// falling edge reached the capture unit (the instant its width is known),
+    /// in counter ticks from the first rising edge sent: what a receiver's
+    /// capture interrupt sees, for a medium that delivers pulses in time.
+    pub fn transmit_timed(
+        &mut self,
+        widths: &[u32],
+        period: u32,
+        captured: &mut [PwmCapture],
+    ) -> Result<usize, PwmLineError> {
+        let mut count = 0usize;
+        self.transmit_with(widths, period, |width, fall_at_ticks| {
+            if let Some(slot) = captured.get_mut(count) {
+                *slot = PwmCapture {
+                    width,
+                    fall_at_ticks,
+                };
+                count += 1;
+            }
+        })?;
+        Ok(count)
+    }
+
+    fn transmit_with(
+        &mut self,
+        widths: &[u32],
+        period: u32,
+        mut capture: impl FnMut(u32, f64),
+    ) -> Result<(), PwmLineError> {
         if let Some(&width) = widths.iter().find(|&&w| w >= period) {
             return Err(PwmLineError::WidthNotBelowPeriod { width, period });
         }
@@ -233,7 +320,6 @@ impl PwmLine {
         let mut volts = 0.0_f64;
         let mut pending = self.pending(true);
         let mut rise_at: Option<f64> = None;
-        let mut count = 0usize;
 
         // Segments of constant input: [start, end) at level `input`.
         let last = widths.len().saturating_sub(1);
@@ -258,11 +344,8 @@ impl PwmLine {
                         rise_at = Some(t);
                     } else if let Some(rise) = rise_at.take() {
                         let ticks = counter(t) - counter(rise);
-                        if let Some(slot) = captured.get_mut(count) {
-                            // Non-negative and below 2^32 periods: fits.
-                            *slot = ticks.clamp(0.0, f64::from(u32::MAX)) as u32;
-                            count += 1;
-                        }
+                        // Non-negative and below 2^32 periods: fits.
+                        capture(ticks.clamp(0.0, f64::from(u32::MAX)) as u32, t);
                     }
                     pending = self.pending(!pending.rising);
                 }
@@ -273,7 +356,7 @@ impl PwmLine {
                 };
             }
         }
-        Ok(count)
+        Ok(())
     }
 
     /// Sends `values` in one frame with `coding` (start symbol first, each

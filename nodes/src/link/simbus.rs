@@ -117,6 +117,10 @@ pub enum BusError {
     /// No port with this id was added.
     #[error("no port {0:?} on this bus")]
     UnknownPort(PortId),
+    /// The frame cannot be put on this medium (a PWM frame that is not a
+    /// whole number of widths, or a width the timer cannot make).
+    #[error("malformed frame: {0}")]
+    Malformed(&'static str),
 }
 
 /// How one port drives the line.

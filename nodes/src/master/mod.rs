@@ -11,7 +11,7 @@
 pub mod image_server;
 mod pi;
 mod supervisor;
-mod wire;
+pub(crate) mod wire;
 
 pub use pi::{SpeedPi, VEL_MAX, VEL_MIN};
 pub use supervisor::{

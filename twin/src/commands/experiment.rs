@@ -19,6 +19,25 @@ enum Experiment {
     /// against added line impedance with and without start-width calibration,
     /// and the longest cable that decodes without errors.
     Pwmcap(PwmcapArgs),
+    /// Three parallel EV modules, the master's speed reference sent to two
+    /// slaves over PWM-capture (broadcast, designated) and Modbus RTU (115200
+    /// baud, 1 Mbit/s): command-to-actuation latency and wheel tracking, read
+    /// from the four recordings.
+    Parallel(ParallelArgs),
+}
+
+/// Options of `twin experiment parallel`.
+#[derive(Debug, Args)]
+struct ParallelArgs {
+    /// Folder for the four recordings (created if missing).
+    #[arg(long, default_value = "parallel-modules")]
+    out_dir: std::path::PathBuf,
+    /// Simulated seconds per variant (default: the scenarios' 6 s).
+    #[arg(long)]
+    duration: Option<f64>,
+    /// Seed of every variant (default: the scenarios' own).
+    #[arg(long)]
+    seed: Option<u64>,
 }
 
 /// Options of `twin experiment pwmcap`; the defaults are the model's fixed
@@ -46,12 +65,64 @@ struct PwmcapArgs {
     /// Step of the clean-cable search, m.
     #[arg(long, default_value_t = 10.0)]
     cable_step_m: f64,
+    /// The cable as one lump of R and C (`lumped`), or as a distributed RC
+    /// line reduced to the pole with its Elmore delay (`elmore`).
+    #[arg(long, value_enum, default_value_t = CableArg::Lumped)]
+    cable_model: CableArg,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum CableArg {
+    Lumped,
+    Elmore,
 }
 
 pub fn execute(args: &ExperimentArgs) -> Result<()> {
     match &args.experiment {
         Experiment::Pwmcap(args) => execute_pwmcap(args),
+        Experiment::Parallel(args) => execute_parallel(args),
     }
+}
+
+fn execute_parallel(args: &ParallelArgs) -> Result<()> {
+    use twin::experiment::parallel::{VARIANTS, run_variant};
+    if let Some(d) = args.duration
+        && !(d.is_finite() && d > 0.0)
+    {
+        bail!("--duration must be a positive number of seconds, got {d}");
+    }
+    println!(
+        "Parallel modules: the master module's VEL to two slave modules, three identical EV modules, \
+         set points 1500 / 2500 / 1000 rpm"
+    );
+    println!(
+        "  {:<24} {:>9} {:>21} {:>16} {:>6} {:>19}  link errors",
+        "scenario", "cycle", "latency mean / max", "updates skipped", "wrong", "wheel diff max/RMS"
+    );
+    for name in VARIANTS {
+        let f = run_variant(name, &args.out_dir, args.duration, args.seed)?;
+        let errors: u64 = ["timeout", "bad_check", "dropped"]
+            .iter()
+            .filter_map(|k| f.events.get(*k))
+            .sum();
+        let retries = f.events.get("retry").copied().unwrap_or(0);
+        println!(
+            "  {:<24} {:>6.3} ms {:>9.1} / {:>6.1} µs {:>7} of {:<6} {:>6} {:>7.2} / {:>5.2} rpm  {} ({} retries)",
+            f.scenario,
+            f.cycle_s * 1e3,
+            f.latency_mean_s * 1e6,
+            f.latency_max_s * 1e6,
+            f.skipped,
+            f.master_changes,
+            f.wrong_values,
+            f.track_max_rpm,
+            f.track_rms_rpm,
+            errors,
+            retries
+        );
+    }
+    println!("recordings: {}", args.out_dir.display());
+    Ok(())
 }
 
 fn execute_pwmcap(args: &PwmcapArgs) -> Result<()> {
@@ -64,6 +135,10 @@ fn execute_pwmcap(args: &PwmcapArgs) -> Result<()> {
     setup.line.cable_length_m = args.length_m;
     setup.line.noise_volts_rms = args.noise_mv * 1e-3;
     setup.added_shunt_farad = args.added_nf * 1e-9;
+    setup.line.cable_model = match args.cable_model {
+        CableArg::Lumped => nodes::link::CableModel::Lumped,
+        CableArg::Elmore => nodes::link::CableModel::Elmore,
+    };
     setup.line.validate()?;
 
     print_table2();
@@ -135,6 +210,11 @@ fn print_parameters(setup: &ReliabilitySetup) {
         line.threshold_volts,
         line.noise_volts_rms * 1e3
     );
+    if line.cable_model == nodes::link::CableModel::Elmore {
+        println!(
+            "  cable as a distributed RC line: the pole with its Elmore delay (--cable-model elmore)"
+        );
+    }
     println!(
         "  coding: {} MHz counter, {} data + {} dummy bits, start {} ticks; \
          added shunt C {} nF in every row",

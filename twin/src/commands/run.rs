@@ -93,8 +93,9 @@ pub struct RunArgs {
 
 pub fn execute(args: &RunArgs) -> Result<()> {
     if args.list {
+        let width = EMBEDDED.iter().map(|(n, _, _)| n.len()).max().unwrap_or(0);
         for (name, description, _) in EMBEDDED {
-            println!("{name:20} {description}");
+            println!("{name:width$}  {description}");
         }
         return Ok(());
     }
@@ -148,7 +149,27 @@ pub fn execute(args: &RunArgs) -> Result<()> {
     for (node, state) in &outcome.telemetry {
         print_node_state(node, state, outcome.simulated_s);
     }
+    for (bus, c) in &outcome.pwm_calibrations {
+        println!(
+            "  calibrated at initialisation: {}",
+            virtual_run::describe_calibration(bus, c)
+        );
+    }
     for (bus, stats, checks) in &outcome.buses {
+        if let Some((_, p)) = outcome.pwm.iter().find(|(name, _)| name == bus) {
+            println!(
+                "  bus {bus} (PWM capture): {} frames of {} symbols, {} waited for the line; \
+                 {} receptions, {} clean; {} pulses lost, {} values wrong",
+                p.frames_sent,
+                p.symbols_sent,
+                p.frames_deferred,
+                p.receptions,
+                p.receptions_clean,
+                p.pulses_lost,
+                p.symbols_wrong
+            );
+            continue;
+        }
         println!(
             "  bus {bus}: {} bytes, {} corrupted by noise, {} collisions; {} frames received, {} corrupted, {} of them passed the check",
             stats.bytes_sent,
@@ -207,6 +228,21 @@ fn open_live_view(target: &str, scenario: &Scenario) -> Result<Option<RerunObser
 
 /// A node's end-of-run state: masters' loops spelled out, others as JSON.
 fn print_node_state(node: &str, state: &serde_json::Value, simulated_s: f64) {
+    if let (Some(slaves), Some(updates)) = (state["slaves"].as_array(), state["updates"].as_u64()) {
+        print_parallel_master(node, state, slaves, updates, simulated_s);
+        return;
+    }
+    if let Some(taken) = state["frames_taken"].as_u64() {
+        println!(
+            "  {node}: VEL {} from {taken} frames taken, {} for others, {} bad, {} cut short, {} answers",
+            state["vel"],
+            state["frames_ignored"],
+            state["bad_frames"],
+            state["incomplete_frames"],
+            state["answers"]
+        );
+        return;
+    }
     let Some(loops) = state["loops"].as_array() else {
         println!("  {node}: {state}");
         return;
@@ -232,6 +268,37 @@ fn print_node_state(node: &str, state: &serde_json::Value, simulated_s: f64) {
             l["bad_checks"],
             l["retries"],
             l["lost"]
+        );
+    }
+}
+
+/// A parallel-module master: its own loop, then each exchange's tally.
+fn print_parallel_master(
+    node: &str,
+    state: &serde_json::Value,
+    slaves: &[serde_json::Value],
+    updates: u64,
+    simulated_s: f64,
+) {
+    let n = |v: &serde_json::Value, k: &str| v[k].as_f64().unwrap_or(f64::NAN);
+    let cycles = n(state, "cycles");
+    println!(
+        "  {node}: set point {:.0} rpm, measured {:.0} rpm, VEL {}; {updates} references issued, \
+         {cycles} send cycles ({:.0} per second)",
+        n(state, "set_point_rpm"),
+        n(state, "measured_rpm"),
+        state["vel"],
+        cycles / simulated_s.max(1e-9)
+    );
+    for s in slaves {
+        let who = match s["slave"].as_u64() {
+            Some(0) => "broadcast".to_string(),
+            Some(id) => format!("slave {id}"),
+            None => "?".to_string(),
+        };
+        println!(
+            "    {who}: {} frames, {} answers, {} timeouts, {} bad answers, {} retries, {} lost",
+            s["requests"], s["replies"], s["timeouts"], s["bad_replies"], s["retries"], s["lost"]
         );
     }
 }

@@ -3,6 +3,7 @@
 
 pub mod instruments;
 pub mod plot;
+pub mod parallel;
 pub mod pwmcap;
 pub mod step;
 pub mod step_metrics;

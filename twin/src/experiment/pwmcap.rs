@@ -373,9 +373,51 @@ mod tests {
         );
     }
 
+    /// The default setup with the cable reduced to its Elmore-delay pole.
+    fn distributed() -> ReliabilitySetup {
+        let mut setup = ReliabilitySetup::DEFAULT;
+        setup.line.cable_model = nodes::link::CableModel::Elmore;
+        setup
+    }
+
     #[test]
     fn reliability_falls_with_impedance_and_calibration_recovers_it() {
-        let rows = reliability(&ReliabilitySetup::DEFAULT).unwrap();
+        check_trend(&ReliabilitySetup::DEFAULT);
+    }
+
+    #[test]
+    fn the_trend_holds_with_the_cable_as_a_distributed_line() {
+        let lumped = reliability(&ReliabilitySetup::DEFAULT).unwrap();
+        let elmore = reliability(&distributed()).unwrap();
+        // The distributed cable is faster: its own r·c counts half, and the
+        // added R sits after it and does not charge it.
+        for (l, e) in lumped.iter().zip(&elmore) {
+            assert!(
+                e.tau_ticks < l.tau_ticks,
+                "{} vs {}",
+                e.tau_ticks,
+                l.tau_ticks
+            );
+        }
+        check_trend(&distributed());
+    }
+
+    #[test]
+    fn a_distributed_cable_reaches_at_least_as_far() {
+        let lumped = longest_clean_cable(&ReliabilitySetup::DEFAULT, 10.0, 300.0).unwrap();
+        let elmore = longest_clean_cable(&distributed(), 10.0, 300.0).unwrap();
+        assert!(
+            elmore.calibrated_m >= lumped.calibrated_m,
+            "{elmore:?} vs {lumped:?}"
+        );
+        assert!(
+            elmore.uncalibrated_m >= lumped.uncalibrated_m,
+            "{elmore:?} vs {lumped:?}"
+        );
+    }
+
+    fn check_trend(setup: &ReliabilitySetup) {
+        let rows = reliability(setup).unwrap();
         assert_eq!(rows.len(), 3);
         assert!(rows[0].tau_ticks < rows[1].tau_ticks && rows[1].tau_ticks < rows[2].tau_ticks);
         let initial: Vec<f64> = rows.iter().map(|r| r.uncalibrated.accuracy()).collect();

@@ -96,7 +96,12 @@ impl ViewLayout {
                         seed002.insert(name.clone(), (m, Seed002Role::Light));
                     }
                 }
-                NodeSpec::Supervisor { .. } | NodeSpec::Seed002Master { .. } => {}
+                // Their frames carry no rpm words: the plants' own sensors
+                // show the parallel modules' wheels.
+                NodeSpec::Supervisor { .. }
+                | NodeSpec::Seed002Master { .. }
+                | NodeSpec::ParallelMaster { .. }
+                | NodeSpec::PwmSlave { .. } => {}
             }
         }
         let mut slave_module = BTreeMap::new();
