@@ -30,7 +30,7 @@ pub enum Dialect {
 
 impl Dialect {
     fn read(i: usize) -> (u8, u16) {
-        if i % 2 == 0 { (4, 10) } else { (3, 3) }
+        if i.is_multiple_of(2) { (4, 10) } else { (3, 3) }
     }
 
     /// Writes request `i` into `out`, returns its length.
