@@ -212,18 +212,18 @@ fn bench(cli: &Cli) -> Result<()> {
         for recording in ["off", "mcap"] {
             let mut pair = PtyPair::open()?;
             let mut cmd = Command::new(&twin);
+            // Turnaround 0 on both links (serial links default to 1 ms);
+            // without --out nothing is recorded.
             cmd.args([
                 "serve",
                 "--quiet",
                 "--modbus",
-                "tcp://127.0.0.1:0",
-                "--modbus-rtu",
+                "tcp://127.0.0.1:0?turnaround_ms=0",
             ])
-            .arg(&pair.slave_path);
+            .arg("--modbus-rtu")
+            .arg(format!("{}?turnaround_ms=0", pair.slave_path.display()));
             if recording == "mcap" {
                 cmd.arg("--out").arg(scratch.join("serve-bench.mcap"));
-            } else {
-                cmd.arg("--no-record");
             }
             cmd.args(&cli.twin_args);
             let name = format!("twin serve, recording {recording}");
