@@ -39,6 +39,11 @@ pub trait SimNode: Node {
     fn final_state(&self) -> Option<serde_json::Value> {
         None
     }
+    /// The register image, for nodes whose image other front ends serve
+    /// too (the real-time server's links).
+    fn image_mut(&mut self) -> Option<&mut nodes::firmware::RegisterImage> {
+        None
+    }
 }
 
 /// One bench module and the plant time it has reached.
@@ -47,6 +52,56 @@ pub struct ModuleSlot {
     pub plant: EvModule,
     pub actuators: Actuators,
     plant_time: SimTime,
+}
+
+impl ModuleSlot {
+    /// A module whose plant has reached time zero.
+    pub fn new(name: &str, plant: EvModule) -> Self {
+        Self {
+            name: name.into(),
+            plant,
+            actuators: Actuators::default(),
+            plant_time: SimTime::ZERO,
+        }
+    }
+
+    /// The time the plant has reached.
+    pub fn plant_time(&self) -> SimTime {
+        self.plant_time
+    }
+
+    /// Step the plant up to `t` in whole steps of `step` (and a last partial
+    /// one if `t` is off the grid).
+    pub fn advance(&mut self, step: SimDuration, t: SimTime) {
+        while self.plant_time < t {
+            let dt = step.min(t.saturating_since(self.plant_time));
+            self.plant.step(dt.as_secs_f64(), &self.actuators);
+            self.plant_time += dt;
+        }
+    }
+}
+
+/// One firmware loop pass of `node` at `t`, shared by the virtual and the
+/// real-time engine: the module's plant advanced to `t`, its sensors (as
+/// `adjust` leaves them: the real-time server's forced inputs) handed to the
+/// firmware, the actuators it answers applied. Returns the firmware's next
+/// tick and whether the actuators changed; `None` if `node` has no firmware.
+pub fn firmware_tick(
+    node: &mut dyn SimNode,
+    module: &mut ModuleSlot,
+    plant_step: SimDuration,
+    t: SimTime,
+    adjust: impl FnOnce(&mut plant::Sensors),
+) -> Option<(SimTime, bool)> {
+    module.advance(plant_step, t);
+    let mut sensors = *module.plant.sensors();
+    adjust(&mut sensors);
+    let fw = node.firmware()?;
+    let actuators = fw.loop_tick(t, &sensors);
+    let next = t + fw.loop_period();
+    let changed = module.actuators != actuators;
+    module.actuators = actuators;
+    Some((next, changed))
 }
 
 /// One node, where it is attached and when its firmware ticks next.
@@ -217,12 +272,7 @@ impl Engine {
     }
 
     pub fn add_module(&mut self, name: &str, plant: EvModule) -> usize {
-        self.modules.push(ModuleSlot {
-            name: name.into(),
-            plant,
-            actuators: Actuators::default(),
-            plant_time: SimTime::ZERO,
-        });
+        self.modules.push(ModuleSlot::new(name, plant));
         self.modules.len() - 1
     }
 
@@ -390,13 +440,7 @@ impl Engine {
     /// Step a module's plant up to `t` in whole plant steps (and a last
     /// partial one if `t` is off the grid).
     fn advance_plant(&mut self, m: usize, t: SimTime) {
-        let step = self.plant_step;
-        let slot = &mut self.modules[m];
-        while slot.plant_time < t {
-            let dt = step.min(t.saturating_since(slot.plant_time));
-            slot.plant.step(dt.as_secs_f64(), &slot.actuators);
-            slot.plant_time += dt;
-        }
+        self.modules[m].advance(self.plant_step, t);
     }
 
     fn tick_firmware(&mut self, t: SimTime, observer: &mut dyn Observer) -> Result<()> {
@@ -407,19 +451,17 @@ impl Engine {
             let Some(m) = self.nodes[n].module else {
                 continue;
             };
-            self.advance_plant(m, t);
-            let sensors = *self.modules[m].plant.sensors();
             let slot = &mut self.nodes[n];
-            let Some(fw) = slot.node.firmware() else {
+            let module = &mut self.modules[m];
+            let Some((next, changed)) =
+                firmware_tick(slot.node.as_mut(), module, self.plant_step, t, |_| {})
+            else {
                 continue;
             };
-            let actuators = fw.loop_tick(t, &sensors);
             slot.stirred = true;
             self.events += 1;
-            slot.next_tick = Some(t + fw.loop_period());
-            let module = &mut self.modules[m];
-            if module.actuators != actuators {
-                module.actuators = actuators;
+            slot.next_tick = Some(next);
+            if changed {
                 observer.actuators(t, module)?;
             }
         }

@@ -4,9 +4,11 @@
 pub mod bench;
 pub mod engine;
 pub mod experiment;
+pub mod io;
 pub mod nodes_build;
 pub mod observe;
 pub mod openloop;
+pub mod realtime;
 pub mod record;
 pub mod scenario;
 pub mod virtual_run;

@@ -181,6 +181,9 @@ impl SimNode for FaultyNode<EvController> {
     fn firmware(&mut self) -> Option<&mut dyn Firmware> {
         Some(self.inner_mut())
     }
+    fn image_mut(&mut self) -> Option<&mut nodes::firmware::RegisterImage> {
+        Some(self.inner_mut().image_mut())
+    }
 }
 
 impl SimNode for FaultyNode<MotorNode> {

@@ -60,7 +60,7 @@ impl McapObserver {
     }
 
     /// Write `message` to `topic`, creating its channel on first use.
-    fn put<T: Serialize>(&mut self, topic: &str, time: SimTime, message: &T) -> Result<()> {
+    pub fn put<T: Serialize>(&mut self, topic: &str, time: SimTime, message: &T) -> Result<()> {
         let channel = match self.recorder.channel(topic) {
             Some(channel) => channel,
             None => self.recorder.add_channel(topic, message)?,
@@ -96,6 +96,64 @@ fn secs(t: SimTime) -> f64 {
     t.as_secs_f64()
 }
 
+impl McapObserver {
+    /// One frame on `topic` (`/bus/<bus>/frames`, `/link/<link>/frames`),
+    /// sent by `from`, with its decoded fields.
+    pub fn record_frame(
+        &mut self,
+        topic: &str,
+        from: &str,
+        start: SimTime,
+        end: SimTime,
+        bytes: &[u8],
+        decoded: Value,
+    ) -> Result<()> {
+        let printable = bytes
+            .iter()
+            .all(|b| b.is_ascii_graphic() || *b == b'\n' || *b == b'\r');
+        // Printable bytes are ASCII, so this never fails when it is used.
+        let text = std::str::from_utf8(bytes).ok().filter(|_| printable);
+        let mut hex = std::mem::take(&mut self.hex);
+        hex.clear();
+        for b in bytes {
+            const DIGITS: &[u8; 16] = b"0123456789abcdef";
+            hex.push(char::from(DIGITS[usize::from(b >> 4)]));
+            hex.push(char::from(DIGITS[usize::from(b & 0x0f)]));
+        }
+        let message = FrameMessage {
+            from,
+            start_s: secs(start),
+            end_s: secs(end),
+            len: bytes.len(),
+            text: text.unwrap_or(""),
+            hex: &hex,
+            decoded,
+        };
+        self.frames += 1;
+        let written = self.put(topic, start, &message);
+        self.hex = hex;
+        written
+    }
+
+    /// One event a node (or link) noticed.
+    pub fn record_event(&mut self, node: &str, event: &NodeEvent) -> Result<()> {
+        *self.events.entry(event.kind.to_string()).or_default() += 1;
+        if event.kind == "log" {
+            if self.log_tail.len() == LOG_TAIL {
+                self.log_tail.pop_front();
+            }
+            self.log_tail.push_back(format!(
+                "[{:9.3} s] {}: {}",
+                event.at.as_secs_f64(),
+                node,
+                event.detail
+            ));
+        }
+        let message = json!({ "node": node, "kind": event.kind, "detail": event.detail });
+        self.put("/events", event.at, &message)
+    }
+}
+
 impl Observer for McapObserver {
     fn plant(&mut self, now: SimTime, module: &ModuleSlot) -> Result<()> {
         self.put(
@@ -121,48 +179,12 @@ impl Observer for McapObserver {
         end: SimTime,
         bytes: &[u8],
     ) -> Result<()> {
-        let printable = bytes
-            .iter()
-            .all(|b| b.is_ascii_graphic() || *b == b'\n' || *b == b'\r');
-        // Printable bytes are ASCII, so this never fails when it is used.
-        let text = std::str::from_utf8(bytes).ok().filter(|_| printable);
-        let mut hex = std::mem::take(&mut self.hex);
-        hex.clear();
-        for b in bytes {
-            const DIGITS: &[u8; 16] = b"0123456789abcdef";
-            hex.push(char::from(DIGITS[usize::from(b >> 4)]));
-            hex.push(char::from(DIGITS[usize::from(b & 0x0f)]));
-        }
-        let message = FrameMessage {
-            from: &from.name,
-            start_s: secs(start),
-            end_s: secs(end),
-            len: bytes.len(),
-            text: text.unwrap_or(""),
-            hex: &hex,
-            decoded: decode_frame(bytes),
-        };
-        self.frames += 1;
-        let written = self.put(&format!("/bus/{}/frames", bus.name), start, &message);
-        self.hex = hex;
-        written
+        let topic = format!("/bus/{}/frames", bus.name);
+        self.record_frame(&topic, &from.name, start, end, bytes, decode_frame(bytes))
     }
 
     fn event(&mut self, node: &NodeSlot, event: &NodeEvent) -> Result<()> {
-        *self.events.entry(event.kind.to_string()).or_default() += 1;
-        if event.kind == "log" {
-            if self.log_tail.len() == LOG_TAIL {
-                self.log_tail.pop_front();
-            }
-            self.log_tail.push_back(format!(
-                "[{:9.3} s] {}: {}",
-                event.at.as_secs_f64(),
-                node.name,
-                event.detail
-            ));
-        }
-        let message = json!({ "node": node.name, "kind": event.kind, "detail": event.detail });
-        self.put("/events", event.at, &message)
+        self.record_event(&node.name, event)
     }
 
     fn telemetry(&mut self, now: SimTime, node: &NodeSlot, value: &Value) -> Result<()> {

@@ -159,6 +159,14 @@ impl Recorder {
         Ok(())
     }
 
+    /// Close the open chunk and write it out, so that a crash loses at most
+    /// what came after (real-time sessions call this every second or so).
+    pub fn flush(&mut self) -> Result<()> {
+        self.writer
+            .flush()
+            .with_context(|| format!("cannot write {}", self.path.display()))
+    }
+
     /// Finish the file (summary, indexes) and return its path.
     pub fn finish(mut self) -> Result<PathBuf> {
         self.writer

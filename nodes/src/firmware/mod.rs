@@ -9,6 +9,7 @@
 //! at most after the acknowledgement.
 
 mod estimators;
+mod frontend;
 mod image;
 mod meb_slave;
 mod modbus_slave;
@@ -26,6 +27,7 @@ use crate::proto::modbus::serial::{Timing, standard_rtu_silence};
 use crate::time::{SimDuration, SimTime};
 
 pub use estimators::{HallRpm, LightDetectorConfig, LightRpm};
+pub use frontend::{Framing, FrontendStats, SlaveFrontend};
 pub use image::{EA_WORDS, Protection, Refusal, RegisterImage, Settings, WriteSet, ea, sd, status};
 pub use modbus_slave::{COILS, DISCRETE_INPUTS, HOLDING_REGISTERS, INPUT_REGISTERS};
 
@@ -182,6 +184,12 @@ impl EvController {
     /// The register image as the slave serves it.
     pub fn image(&self) -> &RegisterImage {
         &self.image
+    }
+
+    /// The register image, lent to front ends that serve it over other links
+    /// ([`SlaveFrontend`]).
+    pub fn image_mut(&mut self) -> &mut RegisterImage {
+        &mut self.image
     }
 
     /// The settings the loop applied at its last tick.

@@ -9,7 +9,7 @@ mod noise;
 pub mod pwmline;
 mod simbus;
 
-pub use fault::{CheckKind, Fault, FaultStats, FaultWindow, FaultyNode};
+pub use fault::{CheckKind, Fault, FaultStats, FaultWindow, FaultyNode, spoil_check};
 pub use pwmline::{PwmCalibration, PwmLine, PwmLineError, PwmLineParams, PwmTestValues};
 pub use simbus::{
     BusConfig, BusConfigError, BusError, BusEvent, BusStats, FrameInfo, PortConfig, PortId, SimBus,

@@ -1,0 +1,47 @@
+//! Serial devices and pseudo-terminals as tokio streams (tokio-serial, built
+//! without libudev: no port enumeration is needed to open a path).
+
+use anyhow::{Result, bail};
+use std::path::Path;
+use tokio_serial::{DataBits, FlowControl, SerialStream, StopBits};
+
+use super::spec::{Parity, SerialSettings};
+
+/// Opens `path` with `settings`. Must run inside a tokio runtime. A path that
+/// does not exist gets an error that says it may be a pseudo-terminal some
+/// other program has not created yet.
+pub fn open(path: &Path, settings: &SerialSettings) -> Result<SerialStream> {
+    let shown = path.display();
+    if !path.exists() {
+        bail!(
+            "serial port {shown} does not exist; if it is a pseudo-terminal that another program \
+             creates (twin vsp, socat), start that program first, or pass --wait-for-ports"
+        );
+    }
+    let Some(name) = path.to_str() else {
+        bail!("serial port path {shown} is not valid UTF-8");
+    };
+    let builder = tokio_serial::new(name, settings.baud)
+        .data_bits(match settings.data_bits {
+            7 => DataBits::Seven,
+            _ => DataBits::Eight,
+        })
+        .parity(match settings.parity {
+            Parity::None => tokio_serial::Parity::None,
+            Parity::Even => tokio_serial::Parity::Even,
+            Parity::Odd => tokio_serial::Parity::Odd,
+        })
+        .stop_bits(match settings.stop_bits {
+            2 => StopBits::Two,
+            _ => StopBits::One,
+        })
+        .flow_control(FlowControl::None);
+    SerialStream::open(&builder)
+        .map_err(|e| anyhow::anyhow!("cannot open serial port {shown} at {settings}: {e}"))
+}
+
+/// Whether `path` is (a link to) a pseudo-terminal: bytes on a pty carry no
+/// timing, so a Modbus RTU decoder needs a longer silence there.
+pub fn is_pty(path: &Path) -> bool {
+    std::fs::canonicalize(path).is_ok_and(|p| p.starts_with("/dev/pts") || p.ends_with("ptmx"))
+}

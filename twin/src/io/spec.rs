@@ -1,0 +1,307 @@
+//! Link specs: where a link is and how it is set up.
+//!
+//! ```text
+//! tcp://HOST:PORT[?turnaround_ms=0]           a TCP listener (port 0: any free port)
+//! PATH[?baud=9600&parity=E&stop=2&data=8&turnaround_ms=1&pace=1]
+//!                                             a serial device or pseudo-terminal
+//! ```
+//!
+//! Options not given in the spec come from [`LinkDefaults`] (the command
+//! line's `--baud`, `--turnaround-ms`, `--pace`).
+
+use nodes::time::SimDuration;
+use std::fmt;
+use std::net::{SocketAddr, ToSocketAddrs};
+use std::path::PathBuf;
+
+/// Parity of a serial line.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Parity {
+    None,
+    Even,
+    Odd,
+}
+
+/// A serial line's character format and speed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SerialSettings {
+    pub baud: u32,
+    pub parity: Parity,
+    pub data_bits: u8,
+    pub stop_bits: u8,
+}
+
+impl SerialSettings {
+    /// Bits per character on the wire: start, data, parity, stop.
+    pub fn bits_per_char(&self) -> u32 {
+        1 + u32::from(self.data_bits)
+            + u32::from(self.parity != Parity::None)
+            + u32::from(self.stop_bits)
+    }
+
+    /// The wire time of `bytes` characters.
+    pub fn wire_time(&self, bytes: usize) -> SimDuration {
+        SimDuration::bit_times(bytes as u64 * u64::from(self.bits_per_char()), self.baud)
+    }
+}
+
+impl fmt::Display for SerialSettings {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let parity = match self.parity {
+            Parity::None => 'N',
+            Parity::Even => 'E',
+            Parity::Odd => 'O',
+        };
+        write!(
+            f,
+            "{} {}{}{}",
+            self.baud, self.data_bits, parity, self.stop_bits
+        )
+    }
+}
+
+/// Where a link is.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum LinkAddr {
+    /// A TCP address to listen on (or connect to).
+    Tcp(SocketAddr),
+    /// A serial device or pseudo-terminal.
+    Serial(PathBuf),
+}
+
+/// Defaults for options a spec does not give.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LinkDefaults {
+    pub baud: u32,
+    /// Reply turnaround on serial links (`spec/meb.md`: 1 ms).
+    pub serial_turnaround: SimDuration,
+    /// Reply turnaround on TCP links.
+    pub tcp_turnaround: SimDuration,
+    /// Hold each reply for its wire time at the link's baud.
+    pub pace: bool,
+}
+
+impl Default for LinkDefaults {
+    fn default() -> Self {
+        Self {
+            baud: 115_200,
+            serial_turnaround: SimDuration::from_millis(1),
+            tcp_turnaround: SimDuration::ZERO,
+            pace: false,
+        }
+    }
+}
+
+/// A parsed link spec.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LinkSpec {
+    /// The spec as given.
+    pub text: String,
+    pub addr: LinkAddr,
+    /// Character format (serial links; TCP keeps it for pacing only).
+    pub serial: SerialSettings,
+    /// From a request's last byte to the reply's write.
+    pub turnaround: SimDuration,
+    /// Whether replies wait for their wire time.
+    pub pace: bool,
+}
+
+/// Why a link spec is wrong.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum LinkSpecError {
+    #[error("link `{spec}`: empty")]
+    Empty { spec: String },
+    #[error("link `{spec}`: `{host}` is not HOST:PORT ({why})")]
+    BadTcp {
+        spec: String,
+        host: String,
+        why: String,
+    },
+    #[error("link `{spec}`: unknown option `{key}` (known: {known})")]
+    UnknownOption {
+        spec: String,
+        key: String,
+        known: &'static str,
+    },
+    #[error("link `{spec}`: option `{key}` = `{value}`: {why}")]
+    BadValue {
+        spec: String,
+        key: String,
+        value: String,
+        why: &'static str,
+    },
+}
+
+const SERIAL_OPTIONS: &str = "baud, parity, stop, data, turnaround_ms, pace";
+const TCP_OPTIONS: &str = "turnaround_ms, pace, baud";
+
+impl LinkSpec {
+    /// Parses `text`, taking options it does not give from `defaults`.
+    pub fn parse(text: &str, defaults: &LinkDefaults) -> Result<Self, LinkSpecError> {
+        let spec = || text.to_string();
+        let (location, query) = match text.split_once('?') {
+            Some((l, q)) => (l, Some(q)),
+            None => (text, None),
+        };
+        if location.is_empty() {
+            return Err(LinkSpecError::Empty { spec: spec() });
+        }
+        let (addr, known) = match location.strip_prefix("tcp://") {
+            Some(host) => (LinkAddr::Tcp(resolve(text, host)?), TCP_OPTIONS),
+            None => (LinkAddr::Serial(PathBuf::from(location)), SERIAL_OPTIONS),
+        };
+        let tcp = matches!(addr, LinkAddr::Tcp(_));
+        let mut link = LinkSpec {
+            text: text.to_string(),
+            addr,
+            serial: SerialSettings {
+                baud: defaults.baud,
+                parity: Parity::None,
+                data_bits: 8,
+                stop_bits: 1,
+            },
+            turnaround: if tcp {
+                defaults.tcp_turnaround
+            } else {
+                defaults.serial_turnaround
+            },
+            pace: defaults.pace,
+        };
+        for pair in query.unwrap_or("").split('&').filter(|p| !p.is_empty()) {
+            let (key, value) = pair.split_once('=').unwrap_or((pair, ""));
+            let bad = |why| LinkSpecError::BadValue {
+                spec: spec(),
+                key: key.into(),
+                value: value.into(),
+                why,
+            };
+            match key {
+                "baud" => {
+                    link.serial.baud = value
+                        .parse()
+                        .ok()
+                        .filter(|b| (50..=4_000_000).contains(b))
+                        .ok_or_else(|| bad("a baud rate from 50 to 4000000"))?;
+                }
+                "parity" if !tcp => {
+                    link.serial.parity = match value.to_ascii_lowercase().as_str() {
+                        "n" | "none" => Parity::None,
+                        "e" | "even" => Parity::Even,
+                        "o" | "odd" => Parity::Odd,
+                        _ => return Err(bad("N, E or O")),
+                    };
+                }
+                "stop" if !tcp => {
+                    link.serial.stop_bits = match value {
+                        "1" => 1,
+                        "2" => 2,
+                        _ => return Err(bad("1 or 2")),
+                    };
+                }
+                "data" if !tcp => {
+                    link.serial.data_bits = match value {
+                        "7" => 7,
+                        "8" => 8,
+                        _ => return Err(bad("7 or 8")),
+                    };
+                }
+                "turnaround_ms" => {
+                    let ms: f64 = value
+                        .parse()
+                        .ok()
+                        .filter(|v: &f64| v.is_finite() && (0.0..=10_000.0).contains(v))
+                        .ok_or_else(|| bad("milliseconds from 0 to 10000"))?;
+                    link.turnaround = SimDuration::from_secs_f64(ms / 1000.0);
+                }
+                "pace" => {
+                    link.pace = match value {
+                        "" | "1" | "true" | "on" | "yes" => true,
+                        "0" | "false" | "off" | "no" => false,
+                        _ => return Err(bad("1 or 0")),
+                    };
+                }
+                _ => {
+                    return Err(LinkSpecError::UnknownOption {
+                        spec: spec(),
+                        key: key.into(),
+                        known,
+                    });
+                }
+            }
+        }
+        Ok(link)
+    }
+
+    /// Whether this is a TCP link.
+    pub fn is_tcp(&self) -> bool {
+        matches!(self.addr, LinkAddr::Tcp(_))
+    }
+}
+
+fn resolve(spec: &str, host: &str) -> Result<SocketAddr, LinkSpecError> {
+    let bad = |why: String| LinkSpecError::BadTcp {
+        spec: spec.into(),
+        host: host.into(),
+        why,
+    };
+    // `tcp://:5020` means the loopback address: safe by default.
+    let full = match host.strip_prefix(':') {
+        Some(port) => format!("127.0.0.1:{port}"),
+        None => host.to_string(),
+    };
+    let (_, port) = full.rsplit_once(':').ok_or_else(|| bad("no port".into()))?;
+    port.parse::<u16>()
+        .map_err(|_| bad(format!("port `{port}` is not 0-65535")))?;
+    full.to_socket_addrs()
+        .map_err(|e| bad(e.to_string()))?
+        .next()
+        .ok_or_else(|| bad("no address".into()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn serial_options_override_the_defaults() {
+        let d = LinkDefaults::default();
+        let l = LinkSpec::parse("/tmp/ttyV1?baud=9600&parity=E&stop=2", &d).unwrap();
+        assert_eq!(l.addr, LinkAddr::Serial("/tmp/ttyV1".into()));
+        assert_eq!(l.serial.baud, 9600);
+        assert_eq!(l.serial.parity, Parity::Even);
+        assert_eq!(l.serial.bits_per_char(), 12);
+        assert_eq!(l.turnaround, SimDuration::from_millis(1));
+        let l = LinkSpec::parse("/dev/ttyUSB0", &d).unwrap();
+        assert_eq!(l.serial.to_string(), "115200 8N1");
+        // 13 MEB bytes at 115200 8N1 take 1.128 ms.
+        let t = l.serial.wire_time(13).as_secs_f64();
+        assert!((t - 13.0 * 10.0 / 115_200.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn tcp_specs_resolve_and_port_zero_is_allowed() {
+        let d = LinkDefaults::default();
+        let l = LinkSpec::parse("tcp://127.0.0.1:0", &d).unwrap();
+        assert_eq!(l.addr, LinkAddr::Tcp("127.0.0.1:0".parse().unwrap()));
+        assert_eq!(l.turnaround, SimDuration::ZERO);
+        let l = LinkSpec::parse("tcp://:5020?turnaround_ms=2", &d).unwrap();
+        assert_eq!(l.addr, LinkAddr::Tcp("127.0.0.1:5020".parse().unwrap()));
+        assert_eq!(l.turnaround, SimDuration::from_millis(2));
+    }
+
+    #[test]
+    fn bad_specs_say_what_is_wrong() {
+        let d = LinkDefaults::default();
+        let e = LinkSpec::parse("/tmp/x?baud=fast", &d).unwrap_err();
+        assert!(e.to_string().contains("`baud` = `fast`"), "{e}");
+        let e = LinkSpec::parse("/tmp/x?speed=9600", &d).unwrap_err();
+        assert!(e.to_string().contains("unknown option `speed`"), "{e}");
+        let e = LinkSpec::parse("tcp://127.0.0.1", &d).unwrap_err();
+        assert!(e.to_string().contains("no port"), "{e}");
+        let e = LinkSpec::parse("tcp://127.0.0.1:70000", &d).unwrap_err();
+        assert!(e.to_string().contains("not 0-65535"), "{e}");
+        let e = LinkSpec::parse("tcp://127.0.0.1:1?parity=E", &d).unwrap_err();
+        assert!(e.to_string().contains("unknown option `parity`"), "{e}");
+        assert!(LinkSpec::parse("", &d).is_err());
+    }
+}

@@ -1,0 +1,61 @@
+//! The wall clock as nodes see it: a monotonic [`Instant`] origin mapped onto
+//! [`SimTime`], so the same node code runs on the virtual and the real clock.
+
+use nodes::time::{SimDuration, SimTime, TICKS_PER_SECOND};
+use std::time::{Duration, Instant};
+
+/// Ticks per nanosecond: 72 GHz / 1 GHz.
+const TICKS_PER_NANO: u64 = TICKS_PER_SECOND / 1_000_000_000;
+
+/// A monotonic clock whose zero is the start of the session.
+#[derive(Debug, Clone, Copy)]
+pub struct RtClock {
+    origin: Instant,
+}
+
+impl RtClock {
+    /// A clock whose zero is now.
+    pub fn start() -> Self {
+        Self {
+            origin: Instant::now(),
+        }
+    }
+
+    /// The session time of `instant` (zero before the origin).
+    pub fn at(&self, instant: Instant) -> SimTime {
+        let ns = instant.saturating_duration_since(self.origin).as_nanos();
+        SimTime(u64::try_from(ns).unwrap_or(u64::MAX / TICKS_PER_NANO) * TICKS_PER_NANO)
+    }
+
+    /// The session time now.
+    pub fn now(&self) -> SimTime {
+        self.at(Instant::now())
+    }
+
+    /// The instant of session time `t`.
+    pub fn instant(&self, t: SimTime) -> Instant {
+        self.origin + Duration::from_nanos(t.0 / TICKS_PER_NANO)
+    }
+}
+
+/// A session duration as a std [`Duration`].
+pub fn to_std(d: SimDuration) -> Duration {
+    Duration::from_nanos(d.0 / TICKS_PER_NANO)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn instants_and_session_times_map_both_ways() {
+        let clock = RtClock::start();
+        let t = SimTime::ZERO + SimDuration::from_millis(1500);
+        assert_eq!(clock.at(clock.instant(t)), t);
+        assert!(clock.now() < SimTime::ZERO + SimDuration::from_secs(5));
+        assert_eq!(
+            to_std(SimDuration::from_micros(250)),
+            Duration::from_micros(250)
+        );
+    }
+}

@@ -1,0 +1,159 @@
+//! What sits at the twin's end of one real connection (a serial port, a TCP
+//! client): a sans-IO [`Endpoint`] the real-time engine feeds with the bytes
+//! that arrived and asks for the frames to send.
+//!
+//! Two kinds cover every role:
+//! - [`NodeEndpoint`] drives whole [`Node`](nodes::node::Node)s (the seed-002
+//!   Arduinos behind one port, a supervisor polling a serial line): the
+//!   link's bytes go to each node, each node's frames go out on the link.
+//! - [`SlaveEndpoint`] serves a device's register image through its own
+//!   [`SlaveFrontend`] (framing and reply queue per connection, one image
+//!   for all): MEB and Modbus TCP clients, RTU or ASCII on a port.
+
+use nodes::firmware::SlaveFrontend;
+use nodes::node::NodeEvent;
+use nodes::time::SimTime;
+
+use super::engine::Device;
+
+/// One connection's protocol end, driven by the real-time engine.
+pub trait Endpoint: Send {
+    /// Bytes that arrived at `now`.
+    fn handle_bytes(&mut self, devices: &mut [Device], now: SimTime, bytes: &[u8]);
+    /// The instant asked for through [`Endpoint::poll_timeout`] has come.
+    fn handle_timeout(&mut self, devices: &mut [Device], now: SimTime);
+    /// The next instant the endpoint needs to be woken at, if any.
+    fn poll_timeout(&self, devices: &[Device]) -> Option<SimTime>;
+    /// A frame to send now, written to `buf`; its length.
+    fn poll_transmit(
+        &mut self,
+        devices: &mut [Device],
+        now: SimTime,
+        buf: &mut [u8],
+    ) -> Option<usize>;
+    /// The last frame has been written to the link at `now`.
+    fn transmit_done(&mut self, _devices: &mut [Device], _now: SimTime) {}
+    /// Take the next event the endpoint itself noticed: (who, the event).
+    fn poll_event(&mut self, devices: &mut [Device]) -> Option<(String, NodeEvent)>;
+    /// Bytes held for a frame that is not complete yet (partial-frame timeout).
+    fn pending(&self) -> usize {
+        0
+    }
+    /// The slave front end, for faults and read-only switches.
+    fn frontend_mut(&mut self) -> Option<&mut SlaveFrontend> {
+        None
+    }
+}
+
+/// Drives the nodes of `devices` (indices into the engine's devices) over
+/// one link, as the simulated bus does: every node hears every byte.
+#[derive(Debug, Clone)]
+pub struct NodeEndpoint {
+    pub devices: Vec<usize>,
+}
+
+impl Endpoint for NodeEndpoint {
+    fn handle_bytes(&mut self, devices: &mut [Device], now: SimTime, bytes: &[u8]) {
+        for &d in &self.devices {
+            if let Some(device) = devices.get_mut(d) {
+                device.node.handle_bytes(now, bytes);
+            }
+        }
+    }
+
+    fn handle_timeout(&mut self, devices: &mut [Device], now: SimTime) {
+        for &d in &self.devices {
+            if let Some(device) = devices.get_mut(d)
+                && device.node.poll_timeout().is_some_and(|t| t <= now)
+            {
+                device.node.handle_timeout(now);
+            }
+        }
+    }
+
+    fn poll_timeout(&self, devices: &[Device]) -> Option<SimTime> {
+        self.devices
+            .iter()
+            .filter_map(|&d| devices.get(d)?.node.poll_timeout())
+            .min()
+    }
+
+    fn poll_transmit(
+        &mut self,
+        devices: &mut [Device],
+        now: SimTime,
+        buf: &mut [u8],
+    ) -> Option<usize> {
+        self.devices
+            .iter()
+            .find_map(|&d| devices.get_mut(d)?.node.poll_transmit(now, buf))
+    }
+
+    fn transmit_done(&mut self, devices: &mut [Device], now: SimTime) {
+        for &d in &self.devices {
+            if let Some(device) = devices.get_mut(d) {
+                device.node.transmit_done(now);
+            }
+        }
+    }
+
+    /// The engine drains the devices' own events, whatever drives them.
+    fn poll_event(&mut self, _devices: &mut [Device]) -> Option<(String, NodeEvent)> {
+        None
+    }
+}
+
+/// Serves the register image of device `device` through `frontend`.
+#[derive(Debug, Clone)]
+pub struct SlaveEndpoint {
+    pub device: usize,
+    pub frontend: SlaveFrontend,
+    /// Name for events: the device and the link.
+    pub name: String,
+}
+
+impl Endpoint for SlaveEndpoint {
+    fn handle_bytes(&mut self, devices: &mut [Device], now: SimTime, bytes: &[u8]) {
+        if let Some(image) = devices
+            .get_mut(self.device)
+            .and_then(|d| d.node.image_mut())
+        {
+            self.frontend.handle_bytes(image, now, bytes);
+        }
+    }
+
+    fn handle_timeout(&mut self, devices: &mut [Device], now: SimTime) {
+        if let Some(image) = devices
+            .get_mut(self.device)
+            .and_then(|d| d.node.image_mut())
+        {
+            self.frontend.handle_timeout(image, now);
+        }
+    }
+
+    fn poll_timeout(&self, _devices: &[Device]) -> Option<SimTime> {
+        self.frontend.poll_timeout()
+    }
+
+    fn poll_transmit(
+        &mut self,
+        _devices: &mut [Device],
+        _now: SimTime,
+        buf: &mut [u8],
+    ) -> Option<usize> {
+        self.frontend.poll_transmit(buf)
+    }
+
+    fn poll_event(&mut self, _devices: &mut [Device]) -> Option<(String, NodeEvent)> {
+        let event = self.frontend.poll_event()?;
+        Some((self.name.clone(), event))
+    }
+
+    fn pending(&self) -> usize {
+        self.frontend.pending()
+    }
+
+    fn frontend_mut(&mut self) -> Option<&mut SlaveFrontend> {
+        Some(&mut self.frontend)
+    }
+}

@@ -1,0 +1,137 @@
+//! Tick lateness (actual − scheduled tick time) as a fixed histogram: no
+//! allocation per tick, percentiles to the microsecond below 2 ms.
+
+use serde::Serialize;
+
+/// Buckets of 1 µs up to this, then of 100 µs up to 100 ms, then one more.
+const FINE_US: usize = 2_000;
+const COARSE: usize = 980;
+const BUCKETS: usize = FINE_US + COARSE + 1;
+
+/// Lateness of a run of ticks.
+#[derive(Debug, Clone)]
+pub struct Lateness {
+    counts: Box<[u32; BUCKETS]>,
+    ticks: u64,
+    max_ns: u64,
+    sum_ns: u128,
+    /// Ticks more than one period late: the loop skipped to catch up.
+    pub overruns: u64,
+}
+
+/// A summary of [`Lateness`], as printed and recorded.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct LatenessSummary {
+    pub ticks: u64,
+    pub p50_us: f64,
+    pub p99_us: f64,
+    pub p999_us: f64,
+    pub max_us: f64,
+    pub mean_us: f64,
+    pub overruns: u64,
+}
+
+impl Default for Lateness {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Lateness {
+    pub fn new() -> Self {
+        Self {
+            counts: Box::new([0; BUCKETS]),
+            ticks: 0,
+            max_ns: 0,
+            sum_ns: 0,
+            overruns: 0,
+        }
+    }
+
+    /// One tick, `late_ns` after its scheduled time.
+    pub fn record(&mut self, late_ns: u64) {
+        let us = (late_ns / 1_000) as usize;
+        let bucket = if us < FINE_US {
+            us
+        } else {
+            (FINE_US + (us - FINE_US) / 100).min(BUCKETS - 1)
+        };
+        self.counts[bucket] = self.counts[bucket].saturating_add(1);
+        self.ticks += 1;
+        self.max_ns = self.max_ns.max(late_ns);
+        self.sum_ns += u128::from(late_ns);
+    }
+
+    /// Forget everything (the per-second window).
+    pub fn clear(&mut self) {
+        self.counts.fill(0);
+        self.ticks = 0;
+        self.max_ns = 0;
+        self.sum_ns = 0;
+        self.overruns = 0;
+    }
+
+    pub fn ticks(&self) -> u64 {
+        self.ticks
+    }
+
+    /// The lateness (µs, bucket's upper edge) below which `q` of the ticks fall.
+    pub fn quantile_us(&self, q: f64) -> f64 {
+        if self.ticks == 0 {
+            return 0.0;
+        }
+        let rank = ((q * self.ticks as f64).ceil() as u64).clamp(1, self.ticks);
+        let mut seen = 0u64;
+        for (bucket, &n) in self.counts.iter().enumerate() {
+            seen += u64::from(n);
+            if seen >= rank {
+                let upper = if bucket < FINE_US {
+                    bucket as f64 + 1.0
+                } else {
+                    (FINE_US + (bucket - FINE_US + 1) * 100) as f64
+                };
+                return upper.min(self.max_ns as f64 / 1e3);
+            }
+        }
+        self.max_ns as f64 / 1e3
+    }
+
+    pub fn summary(&self) -> LatenessSummary {
+        LatenessSummary {
+            ticks: self.ticks,
+            p50_us: self.quantile_us(0.5),
+            p99_us: self.quantile_us(0.99),
+            p999_us: self.quantile_us(0.999),
+            max_us: self.max_ns as f64 / 1e3,
+            mean_us: if self.ticks == 0 {
+                0.0
+            } else {
+                self.sum_ns as f64 / self.ticks as f64 / 1e3
+            },
+            overruns: self.overruns,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn quantiles_come_from_the_histogram() {
+        let mut l = Lateness::new();
+        for i in 0..1000u64 {
+            l.record(i * 1_000 + 500); // 0.5 µs .. 999.5 µs
+        }
+        let s = l.summary();
+        assert_eq!(s.ticks, 1000);
+        assert_eq!(s.p50_us, 500.0);
+        assert_eq!(s.p99_us, 990.0);
+        assert!((s.max_us - 999.5).abs() < 1e-9);
+        assert!((s.mean_us - 500.0).abs() < 1e-9);
+        l.record(50_000_000);
+        assert_eq!(l.summary().max_us, 50_000.0);
+        l.clear();
+        assert_eq!(l.summary(), LatenessSummary::default());
+    }
+}

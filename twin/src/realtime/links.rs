@@ -1,0 +1,160 @@
+//! The tokio side of the real links: one task per TCP listener and per
+//! connection or serial port. A task reads what arrives, stamps it with the
+//! session clock and hands it to the engine; it writes each frame the engine
+//! sends back in one write. Nothing here knows a protocol.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::mpsc::Sender;
+use std::time::Duration;
+
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
+use tokio::net::TcpListener;
+use tokio::sync::mpsc::unbounded_channel;
+
+use super::clock::RtClock;
+use super::engine::{ConnId, Inbound, Outbound};
+use crate::io::{SerialSettings, serial};
+
+/// Bytes read at once: larger than any frame, so a frame rarely splits.
+const READ_CHUNK: usize = 4096;
+
+/// Hands out connection ids.
+#[derive(Debug, Clone, Default)]
+pub struct ConnIds(Arc<AtomicU64>);
+
+impl ConnIds {
+    pub fn next(&self) -> ConnId {
+        self.0.fetch_add(1, Ordering::Relaxed) + 1
+    }
+}
+
+/// Carries one open stream: sends [`Inbound::Opened`], then bytes both ways
+/// until either side closes. Returns why it ended.
+pub async fn serve_stream<S>(
+    mut stream: S,
+    link: usize,
+    conn: ConnId,
+    peer: String,
+    clock: RtClock,
+    engine: Sender<Inbound>,
+) -> String
+where
+    S: AsyncRead + AsyncWrite + Unpin,
+{
+    let (out, mut outbox) = unbounded_channel();
+    if engine
+        .send(Inbound::Opened {
+            link,
+            conn,
+            peer,
+            out,
+        })
+        .is_err()
+    {
+        return "server stopping".into();
+    }
+    let mut buf = vec![0u8; READ_CHUNK];
+    let why = loop {
+        tokio::select! {
+            read = stream.read(&mut buf) => match read {
+                Ok(0) => break "peer closed the connection".to_string(),
+                Ok(n) => {
+                    let at = clock.now();
+                    let bytes = buf[..n].to_vec();
+                    if engine.send(Inbound::Bytes { conn, at, bytes }).is_err() {
+                        break "server stopping".into();
+                    }
+                }
+                Err(e) => break format!("read failed: {e}"),
+            },
+            message = outbox.recv() => match message {
+                Some(Outbound::Frame(frame)) => {
+                    if let Err(e) = stream.write_all(&frame).await {
+                        break format!("write failed: {e}");
+                    }
+                }
+                Some(Outbound::Close(why)) => {
+                    let _ = stream.shutdown().await;
+                    return why;
+                }
+                None => break "server stopping".into(),
+            },
+        }
+    };
+    let _ = engine.send(Inbound::Closed {
+        conn,
+        why: why.clone(),
+    });
+    why
+}
+
+/// Accepts clients on `listener` for link `link`; refuses (closes at once)
+/// those beyond `max_clients`.
+pub async fn accept_loop(
+    listener: TcpListener,
+    link: usize,
+    max_clients: Option<usize>,
+    ids: ConnIds,
+    clock: RtClock,
+    engine: Sender<Inbound>,
+    refused: Arc<AtomicU64>,
+) {
+    let open = Arc::new(AtomicUsize::new(0));
+    loop {
+        let Ok((socket, peer)) = listener.accept().await else {
+            // Out of file descriptors and the like: wait and go on.
+            tokio::time::sleep(Duration::from_millis(50)).await;
+            continue;
+        };
+        if max_clients.is_some_and(|max| open.load(Ordering::Relaxed) >= max) {
+            refused.fetch_add(1, Ordering::Relaxed);
+            drop(socket);
+            continue;
+        }
+        // Replies are single small writes: send them at once.
+        let _ = socket.set_nodelay(true);
+        open.fetch_add(1, Ordering::Relaxed);
+        let open = open.clone();
+        let engine = engine.clone();
+        let conn = ids.next();
+        tokio::spawn(async move {
+            serve_stream(socket, link, conn, peer.to_string(), clock, engine).await;
+            open.fetch_sub(1, Ordering::Relaxed);
+        });
+    }
+}
+
+/// Carries serial port `path` for link `link` for the whole session: when
+/// the port vanishes (a pty whose other end went away), reopens it as soon
+/// as it is back.
+pub async fn serial_loop(
+    path: PathBuf,
+    settings: SerialSettings,
+    first: tokio_serial::SerialStream,
+    link: usize,
+    ids: ConnIds,
+    clock: RtClock,
+    engine: Sender<Inbound>,
+) {
+    let mut port = Some(first);
+    loop {
+        let stream = match port.take() {
+            Some(p) => p,
+            None => match serial::open(&path, &settings) {
+                Ok(p) => p,
+                Err(_) => {
+                    tokio::time::sleep(Duration::from_millis(200)).await;
+                    continue;
+                }
+            },
+        };
+        let peer = path.display().to_string();
+        let why = serve_stream(stream, link, ids.next(), peer, clock, engine.clone()).await;
+        if why == "server stopping" {
+            return;
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+}

@@ -1,0 +1,22 @@
+//! The real-time engine and its links: the same node and plant code as the
+//! virtual engine, paced to the wall clock, on real serial ports,
+//! pseudo-terminals and TCP sockets.
+//!
+//! Threads: the engine ([`engine::RtEngine::run`]) owns plants, devices and
+//! endpoints and ticks at 1 ms on absolute deadlines; a tokio runtime owns
+//! the sockets and ports ([`links`]); the sink ([`sink`]) records and prints.
+
+pub mod clock;
+pub mod endpoint;
+pub mod engine;
+pub mod lateness;
+pub mod links;
+pub mod sink;
+
+pub use clock::RtClock;
+pub use endpoint::{Endpoint, NodeEndpoint, SlaveEndpoint};
+pub use engine::{
+    ConnId, Device, EndpointFactory, Forces, Inbound, LinkConfig, LinkFault, Outbound, RtEngine,
+    RtSummary,
+};
+pub use lateness::{Lateness, LatenessSummary};

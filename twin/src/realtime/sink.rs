@@ -1,0 +1,337 @@
+//! The sink thread: records a real-time session to MCAP and prints the live
+//! frame monitor, off the engine's thread. Channels of the recording are
+//! those of a virtual run (`/plant/<module>/sensors`, `/plant/<module>/actuators`,
+//! `/events`) plus `/link/<link>/frames` (both directions) and
+//! `/realtime/lateness` (each second: that second's and the total tick
+//! lateness). The file is flushed every second, so a crash loses at most one.
+
+use anyhow::Result;
+use nodes::node::NodeEvent;
+use nodes::proto::modbus;
+use nodes::time::SimTime;
+use serde_json::{Value, json};
+use std::collections::{BTreeMap, HashMap};
+use std::io::Write;
+use std::path::PathBuf;
+use std::sync::mpsc::{Receiver, Sender, channel};
+use std::thread::JoinHandle;
+
+use super::lateness::LatenessSummary;
+use crate::observe::{McapObserver, decode_frame};
+use crate::record::Recorder;
+
+/// Which way a frame went.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Direction {
+    /// From the peer to the twin.
+    Rx,
+    /// From the twin to the peer.
+    Tx,
+}
+
+/// What the engine hands the sink.
+#[derive(Debug)]
+pub enum SinkMsg {
+    Plant {
+        at: SimTime,
+        module: usize,
+        sensors: Box<plant::Sensors>,
+    },
+    Actuators {
+        at: SimTime,
+        module: usize,
+        actuators: plant::Actuators,
+    },
+    /// Bytes on a link: a whole frame (tx), or a chunk as read (rx).
+    Frame {
+        link: usize,
+        conn: u64,
+        direction: Direction,
+        start: SimTime,
+        end: SimTime,
+        bytes: Vec<u8>,
+    },
+    Event {
+        node: String,
+        event: NodeEvent,
+    },
+    Lateness {
+        at: SimTime,
+        window: LatenessSummary,
+        total: LatenessSummary,
+    },
+    /// A connection came or went.
+    Note {
+        at: SimTime,
+        link: String,
+        peer: String,
+        text: String,
+    },
+    /// A line for the console (status, a command's answer).
+    Say(String),
+    /// Store these totals and finish the recording.
+    Finish(BTreeMap<String, String>),
+}
+
+/// What the sink knows about the session.
+#[derive(Debug)]
+pub struct SinkConfig {
+    pub modules: Vec<String>,
+    /// Per link: its name and protocol.
+    pub links: Vec<(String, &'static str)>,
+    /// Print every frame.
+    pub monitor: bool,
+    pub recorder: Option<Recorder>,
+}
+
+/// What the sink reports when it ends.
+#[derive(Debug, Default)]
+pub struct SinkOutcome {
+    pub recording: Option<PathBuf>,
+    pub frames_recorded: u64,
+    pub events: BTreeMap<String, u64>,
+}
+
+/// Starts the sink thread.
+pub fn spawn(config: SinkConfig) -> (Sender<SinkMsg>, JoinHandle<Result<SinkOutcome>>) {
+    let (tx, rx) = channel();
+    let handle = std::thread::Builder::new()
+        .name("twin-sink".into())
+        .spawn(move || run(config, &rx))
+        .unwrap_or_else(|e| panic!("cannot start the recording thread: {e}"));
+    (tx, handle)
+}
+
+/// Reassembles received chunks into frames for display and recording.
+#[derive(Default)]
+struct Framer {
+    buf: Vec<u8>,
+    started: Option<SimTime>,
+}
+
+/// A received frame is complete when the protocol says so; garbage longer
+/// than this is shown as it is.
+const MAX_SHOWN: usize = 1024;
+
+impl Framer {
+    /// Appends `bytes` and returns the complete frames, with their start.
+    fn push(&mut self, protocol: &str, at: SimTime, bytes: &[u8]) -> Vec<(SimTime, Vec<u8>)> {
+        if self.buf.is_empty() {
+            self.started = Some(at);
+        }
+        self.buf.extend_from_slice(bytes);
+        let mut frames = Vec::new();
+        loop {
+            let end = match protocol {
+                "meb" | "modbus-ascii" => self.buf.iter().position(|&b| b == b'\n').map(|i| i + 1),
+                "modbus-tcp" => match self.buf.get(4..6) {
+                    Some(&[hi, lo]) => {
+                        let total = 6 + usize::from(u16::from_be_bytes([hi, lo]));
+                        (self.buf.len() >= total).then_some(total)
+                    }
+                    _ => None,
+                },
+                // Binary serial framings: a read on a pty is one frame.
+                _ => (!self.buf.is_empty()).then_some(self.buf.len()),
+            };
+            let end = end.or((self.buf.len() > MAX_SHOWN).then_some(self.buf.len()));
+            let Some(end) = end else { break };
+            let frame: Vec<u8> = self.buf.drain(..end).collect();
+            frames.push((self.started.unwrap_or(at), frame));
+            self.started = Some(at);
+        }
+        frames
+    }
+}
+
+/// Decoded fields of a frame on a link of `protocol`.
+pub fn decode_link_frame(protocol: &str, bytes: &[u8]) -> Value {
+    let modbus = |f: Result<modbus::Frame<'_>, modbus::FrameError>| match f {
+        Ok(f) => json!({ "protocol": protocol, "unit": f.unit, "function": f.function() }),
+        Err(e) => json!({ "protocol": protocol, "error": e.to_string() }),
+    };
+    match protocol {
+        "modbus-tcp" => match modbus::tcp::parse(bytes) {
+            Ok(f) => json!({
+                "protocol": protocol, "transaction": f.transaction_id, "unit": f.unit,
+                "function": f.pdu.first(),
+            }),
+            Err(e) => json!({ "protocol": protocol, "error": e.to_string() }),
+        },
+        "modbus-ascii" => modbus(modbus::ascii::parse(
+            bytes,
+            &mut [0; modbus::ascii::MAX_BINARY_LEN],
+        )),
+        "modbus-rtu" => modbus(modbus::rtu::parse(bytes)),
+        _ => decode_frame(bytes),
+    }
+}
+
+/// The frame as the monitor shows it: text for MEB and ASCII, hex otherwise.
+fn shown(bytes: &[u8]) -> String {
+    let printable = bytes
+        .iter()
+        .all(|b| b.is_ascii_graphic() || *b == b' ' || *b == b'\r' || *b == b'\n');
+    if printable {
+        String::from_utf8_lossy(bytes).trim_end().to_string()
+    } else {
+        bytes
+            .iter()
+            .map(|b| format!("{b:02x}"))
+            .collect::<Vec<_>>()
+            .join(" ")
+    }
+}
+
+fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
+    let mut observer = config.recorder.take().map(McapObserver::new);
+    let mut framers: HashMap<u64, Framer> = HashMap::new();
+    let mut last_request: HashMap<u64, SimTime> = HashMap::new();
+    let stdout = std::io::stdout();
+    let mut failed: Option<anyhow::Error> = None;
+    let mut finish = None;
+    while let Ok(message) = rx.recv() {
+        let mut out = stdout.lock();
+        let recorded: Result<()> = match message {
+            SinkMsg::Plant {
+                at,
+                module,
+                sensors,
+            } => match (&mut observer, config.modules.get(module)) {
+                (Some(o), Some(name)) => o.put(&format!("/plant/{name}/sensors"), at, &*sensors),
+                _ => Ok(()),
+            },
+            SinkMsg::Actuators {
+                at,
+                module,
+                actuators,
+            } => match (&mut observer, config.modules.get(module)) {
+                (Some(o), Some(name)) => o.put(&format!("/plant/{name}/actuators"), at, &actuators),
+                _ => Ok(()),
+            },
+            SinkMsg::Frame {
+                link,
+                conn,
+                direction,
+                start,
+                end,
+                bytes,
+            } => {
+                let (name, protocol) = config.links.get(link).cloned().unwrap_or_default();
+                let frames = match direction {
+                    Direction::Rx => framers
+                        .entry(conn)
+                        .or_default()
+                        .push(protocol, start, &bytes),
+                    Direction::Tx => vec![(start, bytes)],
+                };
+                let topic = format!("/link/{name}/frames");
+                let mut result = Ok(());
+                for (at, frame) in frames {
+                    let decoded = decode_link_frame(protocol, &frame);
+                    let (arrow, from, after) = match direction {
+                        Direction::Rx => {
+                            last_request.insert(conn, end);
+                            ("<-", format!("client {conn}"), String::new())
+                        }
+                        Direction::Tx => {
+                            let after = last_request.get(&conn).map_or(String::new(), |r| {
+                                format!(
+                                    "  (+{:.3} ms)",
+                                    end.saturating_since(*r).as_secs_f64() * 1e3
+                                )
+                            });
+                            ("->", "twin".to_string(), after)
+                        }
+                    };
+                    if config.monitor {
+                        let _ = writeln!(
+                            out,
+                            "[{:12.6} s] {name} #{conn} {arrow} {}{after}  {decoded}",
+                            at.as_secs_f64(),
+                            shown(&frame),
+                        );
+                    }
+                    if let Some(o) = &mut observer {
+                        let end = if direction == Direction::Rx { at } else { end };
+                        result =
+                            result.and(o.record_frame(&topic, &from, at, end, &frame, decoded));
+                    }
+                }
+                result
+            }
+            SinkMsg::Event { node, event } => {
+                if config.monitor && event.kind != "log" {
+                    let _ = writeln!(
+                        out,
+                        "[{:12.6} s] {node}: {} {}",
+                        event.at.as_secs_f64(),
+                        event.kind,
+                        event.detail
+                    );
+                }
+                match &mut observer {
+                    Some(o) => o.record_event(&node, &event),
+                    None => Ok(()),
+                }
+            }
+            SinkMsg::Lateness { at, window, total } => match &mut observer {
+                Some(o) => o
+                    .put(
+                        "/realtime/lateness",
+                        at,
+                        &json!({ "window": window, "total": total }),
+                    )
+                    .and_then(|()| o.recorder.flush()),
+                None => Ok(()),
+            },
+            SinkMsg::Note {
+                at,
+                link,
+                peer,
+                text,
+            } => {
+                let _ = writeln!(out, "[{:12.6} s] {link} {peer}: {text}", at.as_secs_f64());
+                let event = NodeEvent {
+                    at,
+                    kind: "connection",
+                    detail: format!("{peer}: {text}"),
+                };
+                match &mut observer {
+                    Some(o) => o.record_event(&link, &event),
+                    None => Ok(()),
+                }
+            }
+            SinkMsg::Say(line) => {
+                let _ = writeln!(out, "{line}");
+                Ok(())
+            }
+            SinkMsg::Finish(totals) => {
+                finish = Some(totals);
+                break;
+            }
+        };
+        let _ = out.flush();
+        if let Err(e) = recorded {
+            // Keep serving: the session matters more than its recording.
+            if failed.is_none() {
+                let _ = writeln!(out, "warning: recording stopped: {e:#}");
+            }
+            failed.get_or_insert(e);
+            observer = None;
+        }
+    }
+    let mut outcome = SinkOutcome::default();
+    if let Some(mut o) = observer {
+        if let Some(totals) = finish {
+            o.recorder.write_metadata("twin.realtime", totals)?;
+        }
+        outcome.frames_recorded = o.frames;
+        outcome.events = o.events.clone();
+        outcome.recording = Some(o.recorder.finish()?);
+    }
+    match failed {
+        Some(e) => Err(e),
+        None => Ok(outcome),
+    }
+}
