@@ -18,8 +18,8 @@ use std::process::{Command, ExitCode};
 use std::time::Duration;
 
 /// Reply latency and request rate of `twin serve` (Modbus TCP, and Modbus RTU
-/// over a pseudo-terminal) against a bare echo server and a tokio-modbus 0.17
-/// server, measured the same way in the same run. Latency runs from the
+/// over a pseudo-terminal) against a bare echo server and tokio-modbus 0.17
+/// servers (TCP, and RTU through tokio-serial), measured the same way in the same run. Latency runs from the
 /// request's last byte written to the reply's first byte read; rates count
 /// checked replies of clients sending back to back (FC04 and FC03 alternating).
 #[derive(Debug, Parser)]
@@ -58,6 +58,9 @@ enum Role {
     /// (internal) tokio-modbus TCP server on a free port.
     #[command(hide = true)]
     TokioModbus,
+    /// (internal) tokio-modbus RTU server on a terminal device.
+    #[command(hide = true)]
+    TokioModbusRtu { path: PathBuf },
 }
 
 const START_TIMEOUT: Duration = Duration::from_secs(20);
@@ -68,6 +71,7 @@ fn main() -> ExitCode {
         Some(Role::EchoTcp) => servers::echo_tcp(),
         Some(Role::EchoPty { path }) => servers::echo_pty(path),
         Some(Role::TokioModbus) => servers::tokio_modbus_tcp(),
+        Some(Role::TokioModbusRtu { path }) => servers::tokio_modbus_rtu(path),
         None => bench(&cli),
     };
     match result {
@@ -203,6 +207,16 @@ fn bench(cli: &Cli) -> Result<()> {
     let addr = tcp_addr(reference.link("modbus-tcp")?)?.to_string();
     b.tcp_latency("tokio-modbus 0.17", &addr, Dialect::ModbusTcp)?;
     b.tcp_rates("tokio-modbus 0.17", "-", &addr, Dialect::ModbusTcp)?;
+    reference.stop();
+
+    let mut pair = PtyPair::open()?;
+    let path = pair.slave_path.display().to_string();
+    let reference = Server::start(
+        "tokio-modbus",
+        myself(&["tokio-modbus-rtu", &path])?,
+        START_TIMEOUT,
+    )?;
+    b.pty_latency("tokio-modbus 0.17", &mut pair, Dialect::ModbusRtu)?;
     reference.stop();
 
     if !cli.no_twin {

@@ -111,10 +111,7 @@ pub fn tokio_modbus_tcp() -> Result<()> {
     runtime.block_on(async {
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
         announce("modbus-tcp", &format!("tcp://{}", listener.local_addr()?));
-        let service = ModbusService(Arc::new(Mutex::new(Registers {
-            input: std::array::from_fn(|i| 1000 + i as u16),
-            holding: [0; HOLDING_REGISTERS],
-        })));
+        let service = service();
         let server = Server::new(listener);
         let on_connected = |stream: tokio::net::TcpStream, addr| {
             let service = service.clone();
@@ -128,6 +125,31 @@ pub fn tokio_modbus_tcp() -> Result<()> {
             .await?;
         anyhow::Ok(())
     })
+}
+
+/// The tokio-modbus RTU server on the terminal at `path` (tokio-serial).
+pub fn tokio_modbus_rtu(path: &Path) -> Result<()> {
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_io()
+        .build()
+        .context("starting tokio")?;
+    runtime.block_on(async {
+        let port =
+            tokio_serial::SerialStream::open(&tokio_serial::new(path.to_string_lossy(), 115_200))
+                .with_context(|| format!("opening {}", path.display()))?;
+        announce("modbus-rtu", &path.display().to_string());
+        tokio_modbus::server::rtu::Server::new(port)
+            .serve_forever(service())
+            .await?;
+        anyhow::Ok(())
+    })
+}
+
+fn service() -> ModbusService {
+    ModbusService(Arc::new(Mutex::new(Registers {
+        input: std::array::from_fn(|i| 1000 + i as u16),
+        holding: [0; HOLDING_REGISTERS],
+    })))
 }
 
 /// Connects with Nagle off: every request goes out as one segment at once.
