@@ -11,4 +11,5 @@ pub mod openloop;
 pub mod realtime;
 pub mod record;
 pub mod scenario;
+pub mod serve;
 pub mod virtual_run;

@@ -22,6 +22,7 @@ enum Command {
     Run(commands::run::RunArgs),
     Bench(commands::bench::BenchArgs),
     Experiment(commands::experiment::ExperimentArgs),
+    Serve(commands::serve::ServeArgs),
 }
 
 fn main() -> ExitCode {
@@ -30,6 +31,7 @@ fn main() -> ExitCode {
         Command::Run(args) => commands::run::execute(&args),
         Command::Bench(args) => commands::bench::execute(&args),
         Command::Experiment(args) => commands::experiment::execute(&args),
+        Command::Serve(args) => commands::serve::execute(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -312,6 +312,16 @@ impl RtEngine {
         self.conns.values().map(|c| (c.link, c.peer.as_str()))
     }
 
+    /// A sender to the sink, for lines and records from outside the engine.
+    pub fn sink(&self) -> Sender<SinkMsg> {
+        self.sink.clone()
+    }
+
+    /// End the session at the next pass of the loop.
+    pub fn request_stop(&mut self, why: &str) {
+        self.stop.get_or_insert_with(|| why.to_string());
+    }
+
     /// Print `text` on the console (through the sink).
     pub fn say(&self, text: impl Into<String>) {
         let _ = self.sink.send(SinkMsg::Say(text.into()));
@@ -362,6 +372,12 @@ impl RtEngine {
         for conn in self.conns.values() {
             let _ = conn.out.send(Outbound::Close("server stopping".into()));
         }
+        // The last (partial) second's lateness, so even a short session has one.
+        let _ = self.sink.send(SinkMsg::Lateness {
+            at: self.clock.now(),
+            window: self.window.summary(),
+            total: self.lateness.summary(),
+        });
         let elapsed = self.clock.now().saturating_since(SimTime::ZERO);
         RtSummary {
             elapsed,
@@ -665,10 +681,17 @@ impl RtEngine {
             };
             let forces = device.forces;
             let sensing = module.plant.params().sensing.clone();
+            let held = module.actuators;
             let ticked = firmware_tick(device.node.as_mut(), module, self.plant_step, t, |s| {
                 forces.apply_sensors(s, &sensing)
             });
+            if !device.node.drives_plant() {
+                // A sensor-only node (seed 002's light sensor) watches the
+                // bench; the motor node drives it.
+                module.actuators = held;
+            }
             if let Some((next, changed)) = ticked {
+                let changed = changed && device.node.drives_plant();
                 device.next_tick = Some(next.max(t + self.tick));
                 if let Some(image) = device.node.image_mut() {
                     forces.apply_words(image);
@@ -704,6 +727,11 @@ impl RtEngine {
             }
             self.next_record = t + self.record_period;
         }
+        if self.status_period > SimDuration::ZERO && t >= self.next_status {
+            let line = self.status_line(t);
+            let _ = self.sink.send(SinkMsg::Say(line));
+            self.next_status += self.status_period;
+        }
         if t >= self.next_second {
             let _ = self.sink.send(SinkMsg::Lateness {
                 at: t,
@@ -712,11 +740,6 @@ impl RtEngine {
             });
             self.window.clear();
             self.next_second += SimDuration::from_secs(1);
-        }
-        if self.status_period > SimDuration::ZERO && t >= self.next_status {
-            let line = self.status_line(t);
-            let _ = self.sink.send(SinkMsg::Say(line));
-            self.next_status += self.status_period;
         }
     }
 

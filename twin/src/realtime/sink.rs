@@ -95,11 +95,15 @@ pub struct SinkOutcome {
 /// Starts the sink thread.
 pub fn spawn(config: SinkConfig) -> (Sender<SinkMsg>, JoinHandle<Result<SinkOutcome>>) {
     let (tx, rx) = channel();
-    let handle = std::thread::Builder::new()
+    (tx, spawn_with(config, rx))
+}
+
+/// Starts the sink thread on a channel made earlier.
+pub fn spawn_with(config: SinkConfig, rx: Receiver<SinkMsg>) -> JoinHandle<Result<SinkOutcome>> {
+    std::thread::Builder::new()
         .name("twin-sink".into())
         .spawn(move || run(config, &rx))
-        .unwrap_or_else(|e| panic!("cannot start the recording thread: {e}"));
-    (tx, handle)
+        .unwrap_or_else(|e| panic!("cannot start the recording thread: {e}"))
 }
 
 /// Reassembles received chunks into frames for display and recording.

@@ -1,0 +1,204 @@
+//! `twin serve`: the simulated controller, in real time on real links.
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use nodes::time::SimDuration;
+use plant::PlantParams;
+use std::io::Write;
+use std::path::PathBuf;
+use twin::io::LinkDefaults;
+use twin::serve::{self, ServeOptions, ServeProtocol, console};
+
+/// Run the EV module in real time and serve its controller on real links.
+///
+/// LINK is `tcp://HOST:PORT` (port 0: any free port, printed) or a serial
+/// device or pseudo-terminal path, with options after `?`:
+/// `/tmp/ttyV1?baud=9600&parity=E&stop=2&turnaround_ms=1&pace=1`.
+/// Give any number of links; all serve the same module. After every link is
+/// open it prints one line per link (protocol, address, slave id) and `ready`.
+/// While it runs: a frame monitor, a status line each second, and commands on
+/// stdin (`help`). It stops on SIGINT/SIGTERM, `stop`, or after --duration,
+/// and finishes its MCAP recording.
+#[derive(Debug, Args)]
+#[command(
+    after_help = "Examples:\n  twin serve --meb tcp://127.0.0.1:5700\n  twin serve --meb /tmp/ttyV1 --baud 115200\n  twin serve --modbus tcp://127.0.0.1:5020 --meb tcp://127.0.0.1:5700\n  twin serve --modbus-rtu /tmp/ttyV1?parity=E\n  twin serve --modbus8 /tmp/ttyV1    (seed 002: motor 01, light sensor 02)"
+)]
+pub struct ServeArgs {
+    /// MEB slave on LINK (serial, pty or TCP).
+    #[arg(long, value_name = "LINK")]
+    meb: Vec<String>,
+    /// Modbus TCP server on LINK (tcp://HOST:PORT); unit ids ID, 0 and 255.
+    #[arg(long, value_name = "LINK")]
+    modbus: Vec<String>,
+    /// Modbus RTU slave on LINK (serial or pty).
+    #[arg(long, value_name = "LINK")]
+    modbus_rtu: Vec<String>,
+    /// Modbus ASCII slave on LINK (serial or pty).
+    #[arg(long, value_name = "LINK")]
+    modbus_ascii: Vec<String>,
+    /// The seed-002 network on LINK: motor node 01 and light sensor 02 on the
+    /// geared bench, 8-byte Modbus.
+    #[arg(long, value_name = "LINK")]
+    modbus8: Vec<String>,
+    /// Default baud rate of serial links (and of --pace on TCP).
+    #[arg(long, default_value_t = 115_200)]
+    baud: u32,
+    /// Reply turnaround in ms [default: 1 on serial links, 0 on TCP].
+    #[arg(long, value_name = "MS")]
+    turnaround_ms: Option<f64>,
+    /// Hold every reply for its wire time at the link's baud, so a master on
+    /// a pty sees real bus timing.
+    #[arg(long)]
+    pace: bool,
+    /// Slave id of the EV module's controller (MEB slave number, Modbus unit id).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=99))]
+    id: u8,
+    /// Plant parameter file (TOML) whose fields override the vemodule preset.
+    #[arg(long, value_name = "FILE")]
+    params: Option<PathBuf>,
+    /// Seed of the plant's noise.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Stop after this many seconds [default: run until interrupted].
+    #[arg(long, value_name = "SECONDS")]
+    duration: Option<f64>,
+    /// Where to write the recording.
+    #[arg(long, default_value = "serve.mcap", value_name = "PATH")]
+    out: PathBuf,
+    /// Do not record (for measuring the recording's cost).
+    #[arg(long)]
+    no_record: bool,
+    /// Plant state messages recorded per second.
+    #[arg(long, default_value_t = 200.0, value_name = "HZ")]
+    record_hz: f64,
+    /// No frame monitor (status lines stay).
+    #[arg(long)]
+    quiet: bool,
+    /// Seconds between status lines (0: none).
+    #[arg(long, default_value_t = 1.0, value_name = "SECONDS")]
+    status_every: f64,
+    /// Refuse TCP clients beyond this many per link (0: no limit).
+    #[arg(long, default_value_t = 8, value_name = "N")]
+    max_clients: usize,
+    /// Close a TCP connection holding a partial frame this long (0: never).
+    #[arg(long, default_value_t = 5.0, value_name = "SECONDS")]
+    partial_timeout: f64,
+    /// Close a TCP connection that sends more than this many bytes in one
+    /// second (0: no limit).
+    #[arg(long, default_value_t = 1_000_000, value_name = "BYTES")]
+    rate_limit: u64,
+    /// Remote clients may read but not write (MEB ER 01, Modbus exception 01).
+    #[arg(long)]
+    read_only: bool,
+    /// Wait for serial paths that do not exist yet (a pty another program
+    /// will create) instead of failing.
+    #[arg(long)]
+    wait_for_ports: bool,
+}
+
+fn options(args: &ServeArgs) -> Result<ServeOptions> {
+    let mut links = Vec::new();
+    for (protocol, list) in [
+        (ServeProtocol::Meb, &args.meb),
+        (ServeProtocol::ModbusTcp, &args.modbus),
+        (ServeProtocol::ModbusRtu, &args.modbus_rtu),
+        (ServeProtocol::ModbusAscii, &args.modbus_ascii),
+        (ServeProtocol::Modbus8, &args.modbus8),
+    ] {
+        links.extend(list.iter().map(|l| (protocol, l.clone())));
+    }
+    let base = LinkDefaults::default();
+    let defaults = match args.turnaround_ms {
+        Some(ms) if !(0.0..=10_000.0).contains(&ms) => {
+            bail!("--turnaround-ms {ms}: must be 0-10000")
+        }
+        Some(ms) => LinkDefaults {
+            baud: args.baud,
+            serial_turnaround: SimDuration::from_secs_f64(ms / 1000.0),
+            tcp_turnaround: SimDuration::from_secs_f64(ms / 1000.0),
+            pace: args.pace,
+        },
+        None => LinkDefaults {
+            baud: args.baud,
+            pace: args.pace,
+            ..base
+        },
+    };
+    let preset = PlantParams::preset("vemodule").unwrap_or_default();
+    let params = match &args.params {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("cannot read {}", path.display()))?;
+            PlantParams::from_toml(&text, path, &preset)?
+        }
+        None => preset,
+    };
+    if let Some(d) = args.duration
+        && !(d.is_finite() && d > 0.0)
+    {
+        bail!("--duration {d}: must be a positive number of seconds");
+    }
+    let positive = |v: f64| (v.is_finite() && v > 0.0).then_some(v);
+    Ok(ServeOptions {
+        links,
+        defaults,
+        id: args.id,
+        params,
+        seed: args.seed,
+        duration: args.duration,
+        out: (!args.no_record).then(|| args.out.clone()),
+        monitor: !args.quiet,
+        status_every: args.status_every,
+        max_clients: (args.max_clients > 0).then_some(args.max_clients),
+        partial_timeout: positive(args.partial_timeout).map(SimDuration::from_secs_f64),
+        rate_limit: (args.rate_limit > 0).then_some(args.rate_limit),
+        read_only: args.read_only,
+        wait_for_ports: args.wait_for_ports,
+        record_hz: args.record_hz,
+        command_line: std::env::args().collect::<Vec<_>>().join(" "),
+    })
+}
+
+pub fn execute(args: &ServeArgs) -> Result<()> {
+    let options = options(args)?;
+    let outcome = serve::serve(
+        &options,
+        |links| {
+            let mut out = std::io::stdout().lock();
+            let _ = writeln!(
+                out,
+                "twin serve: {} link(s); type `help` for commands",
+                links.len()
+            );
+            for l in links {
+                let _ = writeln!(out, "  {} {} {}", l.protocol, l.address, l.ids);
+            }
+            let _ = writeln!(out, "ready");
+            let _ = out.flush();
+        },
+        console::spawn_stdin,
+    )?;
+    let l = outcome.lateness;
+    let c = outcome.counters;
+    println!(
+        "twin serve: stopped ({}) after {:.3} s",
+        outcome.stopped_by, outcome.elapsed_s
+    );
+    println!(
+        "  tick lateness over {} ticks: p50 {:.0} µs, p99 {:.0} µs, p99.9 {:.0} µs, max {:.0} µs; {} overruns",
+        l.ticks, l.p50_us, l.p99_us, l.p999_us, l.max_us, l.overruns
+    );
+    println!(
+        "  {} connections ({} refused over the limit, {} closed for a partial frame, {} for the rate limit); {} bytes in, {} frames out",
+        c.connections,
+        outcome.refused_clients,
+        c.closed_partial_timeout,
+        c.closed_rate_limit,
+        c.bytes_in,
+        c.frames_out
+    );
+    if let Some(path) = outcome.recording {
+        println!("recording: {}", path.display());
+    }
+    Ok(())
+}
