@@ -226,18 +226,23 @@ fn bench(cli: &Cli) -> Result<()> {
         for recording in ["off", "mcap"] {
             let mut pair = PtyPair::open()?;
             let mut cmd = Command::new(&twin);
-            // Turnaround 0 on both links (serial links default to 1 ms);
-            // without --out nothing is recorded.
+            // Turnaround 0 (serial links default to 1 ms); no client limit
+            // or rate limit, which a load generator would trip.
             cmd.args([
                 "serve",
                 "--quiet",
-                "--modbus",
-                "tcp://127.0.0.1:0?turnaround_ms=0",
+                "--turnaround-ms",
+                "0",
+                "--status-every",
+                "0",
             ])
-            .arg("--modbus-rtu")
-            .arg(format!("{}?turnaround_ms=0", pair.slave_path.display()));
+            .args(["--max-clients", "0", "--rate-limit", "0"])
+            .args(["--modbus", "tcp://127.0.0.1:0", "--modbus-rtu"])
+            .arg(&pair.slave_path);
             if recording == "mcap" {
                 cmd.arg("--out").arg(scratch.join("serve-bench.mcap"));
+            } else {
+                cmd.arg("--no-record");
             }
             cmd.args(&cli.twin_args);
             let name = format!("twin serve, recording {recording}");
