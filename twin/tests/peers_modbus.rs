@@ -108,15 +108,26 @@ impl Mbpoll {
     }
 }
 
-/// Waits until two readings half a second apart agree within 3 % (and the
-/// wheel turns), for at most 20 s; returns the last reading.
+/// Waits until two readings a second apart agree within 2 % (and the wheel
+/// turns), for at most 20 s; returns the last reading.
 fn settle(mut rpm: impl FnMut() -> u16) -> u16 {
     let mut last = rpm();
-    wait_for(Duration::from_secs(20), Duration::from_millis(500), || {
+    wait_for(Duration::from_secs(20), Duration::from_secs(1), || {
         let now = rpm();
-        let settled = now > 200 && now.abs_diff(last) as f64 <= 0.03 * now as f64;
+        let settled = now > 200 && now.abs_diff(last) as f64 <= 0.02 * now as f64;
         last = now;
         settled.then_some(now)
+    })
+    .unwrap_or(last)
+}
+
+/// Waits until the wheel passes `target` rpm, for at most 20 s; returns the
+/// last reading.
+fn rise_past(target: f64, mut rpm: impl FnMut() -> u16) -> u16 {
+    let mut last = 0;
+    wait_for(Duration::from_secs(20), Duration::from_millis(200), || {
+        last = rpm();
+        (f64::from(last) > target).then_some(last)
     })
     .unwrap_or(last)
 }
@@ -143,7 +154,7 @@ fn drive_with_mbpoll(mb: &Mbpoll) {
     let low = settle(|| mb.rpm());
     assert!(low > 200, "the wheel turns at VEL {VEL_LOW}: {low} rpm");
     mb.write("4", 0, &[&VEL_HIGH.to_string()]);
-    let high = settle(|| mb.rpm());
+    let high = rise_past(1.4 * f64::from(low), || mb.rpm());
     assert!(
         high as f64 > 1.4 * low as f64,
         "doubling VEL speeds the wheel up: {low} -> {high} rpm"

@@ -176,8 +176,11 @@ fn abuse_on_every_link_leaves_the_others_served() {
     let rtu = PtyPair::new(&dir.join("rtu").tap_mkdir());
     let ascii = PtyPair::new(&dir.join("ascii").tap_mkdir());
     let m8 = PtyPair::new(&dir.join("m8").tap_mkdir());
+    let recording = dir.join("robust.mcap");
     let mut serve = Serve::start(&[
         "--quiet",
+        "--out",
+        recording.to_str().unwrap(),
         "--modbus",
         "tcp://127.0.0.1:0",
         "--meb",

@@ -141,20 +141,33 @@ def main():
     write(link, "SA", 0, [1638])
     write(link, "SD", 0, [0x000E])
 
+    def rpm():
+        return read(link, "EA", 3, 1)[0]
+
     def settle(deadline_s):
+        # Settled: two readings a second apart within 2 % of each other.
         end = time.monotonic() + deadline_s
-        last = read(link, "EA", 3, 1)[0]
+        last = rpm()
         while time.monotonic() < end:
-            time.sleep(0.5)
-            now = read(link, "EA", 3, 1)[0]
-            if now > 200 and abs(now - last) <= 0.03 * now:
+            time.sleep(1.0)
+            now = rpm()
+            if now > 200 and abs(now - last) <= 0.02 * now:
                 return now
             last = now
         return last
 
+    def rise_past(target, deadline_s):
+        # Following: the first reading past `target`.
+        end = time.monotonic() + deadline_s
+        now = rpm()
+        while now <= target and time.monotonic() < end:
+            time.sleep(0.2)
+            now = rpm()
+        return now
+
     seen["rpm_low"] = settle(20)
     write(link, "SA", 0, [3276])
-    seen["rpm_high"] = settle(20)
+    seen["rpm_high"] = rise_past(1.4 * seen["rpm_low"], 20)
     seen["status"] = read(link, "FD", 0, 1)[0]
     print(json.dumps(seen))
 

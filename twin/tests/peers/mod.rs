@@ -32,9 +32,16 @@ pub struct Serve {
 
 impl Serve {
     pub fn start(args: &[&str]) -> Serve {
+        // Never the default serve.mcap in the working directory.
+        let record: &[&str] = if args.contains(&"--out") {
+            &[]
+        } else {
+            &["--no-record"]
+        };
         let mut child = Command::new(env!("CARGO_BIN_EXE_twin"))
             .arg("serve")
             .args(args)
+            .args(record)
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())

@@ -52,20 +52,29 @@ def main():
         return ok(client.read_input_registers(RPM_M, count=1, device_id=dev), "FC04 RPM_M").registers[0]
 
     def settle(deadline_s):
-        # Settled: two readings half a second apart within 3 % of each other.
+        # Settled: two readings a second apart within 2 % of each other.
         end = time.monotonic() + deadline_s
         last = rpm()
         while time.monotonic() < end:
-            time.sleep(0.5)
+            time.sleep(1.0)
             now = rpm()
-            if now > 200 and abs(now - last) <= 0.03 * now:
+            if now > 200 and abs(now - last) <= 0.02 * now:
                 return now
             last = now
         return last
 
+    def rise_past(target, deadline_s):
+        # Following: the first reading past `target`.
+        end = time.monotonic() + deadline_s
+        now = rpm()
+        while now <= target and time.monotonic() < end:
+            time.sleep(0.2)
+            now = rpm()
+        return now
+
     seen["rpm_low"] = settle(20)
     ok(client.write_register(0, VEL_HIGH, device_id=dev), "FC06 VEL")
-    seen["rpm_high"] = settle(20)
+    seen["rpm_high"] = rise_past(1.4 * seen["rpm_low"], 20)
     client.close()
     print(json.dumps(seen))
 
