@@ -43,8 +43,11 @@ struct Cli {
     #[arg(long = "twin-arg", allow_hyphen_values = true)]
     twin_args: Vec<String>,
     /// Skip the twin (measure only the echo and tokio-modbus servers).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "twin_only")]
     no_twin: bool,
+    /// Measure only the twin (to compare two builds of it quickly).
+    #[arg(long)]
+    twin_only: bool,
 }
 
 #[derive(Debug, Subcommand)]
@@ -191,6 +194,18 @@ fn bench(cli: &Cli) -> Result<()> {
         rates: Vec::new(),
     };
 
+    if !cli.twin_only {
+        references(&mut b)?;
+    }
+    if !cli.no_twin {
+        twin(&mut b)?;
+    }
+    report(&b);
+    Ok(())
+}
+
+/// The echo and tokio-modbus servers.
+fn references(b: &mut Bench) -> Result<()> {
     let echo = Server::start("echo", myself(&["echo-tcp"])?, START_TIMEOUT)?;
     let addr = tcp_addr(echo.link("echo-tcp")?)?.to_string();
     b.tcp_latency("echo", &addr, Dialect::EchoTcp)?;
@@ -218,8 +233,13 @@ fn bench(cli: &Cli) -> Result<()> {
     )?;
     b.pty_latency("tokio-modbus 0.17", &mut pair, Dialect::ModbusRtu)?;
     reference.stop();
+    Ok(())
+}
 
-    if !cli.no_twin {
+/// `twin serve`, recording off and on.
+fn twin(b: &mut Bench) -> Result<()> {
+    let cli = b.cli;
+    {
         let twin = twin_binary(cli);
         let scratch = std::env::temp_dir().join(format!("serve-bench-{}", std::process::id()));
         std::fs::create_dir_all(&scratch)?;
@@ -256,8 +276,6 @@ fn bench(cli: &Cli) -> Result<()> {
         }
         let _ = std::fs::remove_dir_all(&scratch);
     }
-
-    report(&b);
     Ok(())
 }
 

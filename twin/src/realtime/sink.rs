@@ -13,8 +13,12 @@ use serde_json::{Value, json};
 use std::collections::{BTreeMap, HashMap};
 use std::io::Write;
 use std::path::PathBuf;
-use std::sync::mpsc::{Receiver, Sender, channel};
+use std::sync::mpsc::{Receiver, Sender, TryRecvError, channel};
 use std::thread::JoinHandle;
+use std::time::Duration;
+
+/// How often the sink drains its queue.
+const DRAIN_EVERY: Duration = Duration::from_millis(2);
 
 use super::lateness::LatenessSummary;
 use crate::observe::{McapObserver, decode_frame};
@@ -194,7 +198,19 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
     let stdout = std::io::stdout();
     let mut failed: Option<anyhow::Error> = None;
     let mut finish = None;
-    while let Ok(message) = rx.recv() {
+    loop {
+        // Polled on a short timer rather than parked in `recv`: a parked
+        // receiver costs the engine thread a futex wake-up, and the two cores
+        // a context switch, for every frame it sends here (measured with
+        // serve-bench: a third of the Modbus TCP request rate).
+        let message = match rx.try_recv() {
+            Ok(message) => message,
+            Err(TryRecvError::Empty) => {
+                std::thread::sleep(DRAIN_EVERY);
+                continue;
+            }
+            Err(TryRecvError::Disconnected) => break,
+        };
         let mut out = stdout.lock();
         let recorded: Result<()> = match message {
             SinkMsg::Plant {
