@@ -294,13 +294,13 @@ fn report(b: &Bench) {
     );
     println!("  write (round trip) to the reply's first byte read");
     println!(
-        "  {:<28} {:<5} {:>10} {:>10} {:>10} {:>11} {:>10} {:>5}",
-        "server", "link", "median", "p99", "max", "rt median", "rt p99", "bad"
+        "  {:<28} {:<5} {:>10} {:>10} {:>10} {:>11} {:>10} {:>10} {:>5}",
+        "server", "link", "median", "p99", "max", "rt median", "rt p99", "rt mean", "bad"
     );
     for row in &b.latency {
         let (f, rt) = (&row.figure.reply, &row.figure.round_trip);
         println!(
-            "  {:<28} {:<5} {:>10} {:>10} {:>10} {:>11} {:>10} {:>5}",
+            "  {:<28} {:<5} {:>10} {:>10} {:>10} {:>11} {:>10} {:>10} {:>5}",
             row.server,
             row.link,
             us(f.median()),
@@ -308,6 +308,7 @@ fn report(b: &Bench) {
             us(f.max()),
             us(rt.median()),
             us(rt.p99()),
+            us(rt.mean()),
             row.figure.bad_replies
         );
     }

@@ -155,6 +155,10 @@ impl Samples {
     pub fn p99(&self) -> Duration {
         self.quantile(0.99)
     }
+    pub fn mean(&self) -> Duration {
+        let sum: u64 = self.0.iter().sum();
+        Duration::from_nanos(sum / self.0.len().max(1) as u64)
+    }
     pub fn max(&self) -> Duration {
         Duration::from_nanos(*self.0.last().expect("samples"))
     }
