@@ -294,7 +294,11 @@ fn meb_and_modbus_tcp_serve_one_module_and_a_write_turns_the_wheel() {
         std::thread::sleep(Duration::from_millis(50));
     };
     assert!(rpm > 1000, "the wheel turns at half VEL: RPM_M {rpm}");
-    assert_eq!(read_ea(&mut m)[3].abs_diff(rpm) < 300, true);
+    let meb_rpm = read_ea(&mut m)[3];
+    assert!(
+        meb_rpm.abs_diff(rpm) < 300,
+        "MEB RPM_M {meb_rpm} vs Modbus {rpm}"
+    );
 
     let text = server.terminate();
     assert!(text.contains("stopped (SIGTERM)"), "{text}");
@@ -492,6 +496,11 @@ fn extra_clients_are_refused_and_read_only_refuses_writes() {
         "the second client is refused"
     );
     assert_eq!(read_ea(&mut first).len(), 6, "the first is still served");
+    assert!(
+        server.printed("refused, 1 client(s) already connected"),
+        "{}",
+        server.output()
+    );
 
     let refused = meb(&mut first, &meb_frame(1, MebCmd::SA, 0, 1, &[2048]));
     assert_eq!(refused.cmd, MebCmd::ER);
@@ -622,6 +631,28 @@ fn modbus_rtu_and_meb_on_ptys_answer_after_the_turnaround() {
 }
 
 #[test]
+fn paced_replies_take_their_wire_time_at_the_links_baud() {
+    let (mut port, _slave, path) = pty();
+    let link = format!("{path}?baud=9600&pace=1&turnaround_ms=0");
+    let _server = Server::start(&["--meb", &link, "--quiet", "--no-record"]);
+    let mut reply = Vec::new();
+    let mut byte = [0u8; 1];
+    let sent = Instant::now();
+    port.write_all(&meb_frame(1, MebCmd::EA, 0, 6, &[]))
+        .unwrap();
+    while reply.last() != Some(&b'\n') {
+        port.read_exact(&mut byte).expect("an MEB reply");
+        reply.push(byte[0]);
+    }
+    let waited = sent.elapsed();
+    // 37 bytes of 10 bits at 9600 baud: 38.5 ms on the wire.
+    assert_eq!(reply.len(), 37);
+    let wire = Duration::from_secs_f64(37.0 * 10.0 / 9600.0);
+    assert!(waited >= wire, "paced: {waited:?} < {wire:?}");
+    assert!(waited < wire * 4, "but not much later: {waited:?}");
+}
+
+#[test]
 fn the_seed002_network_answers_both_ids_on_one_pty() {
     use nodes::proto::modbus8::{CrcOrder, Frame};
     let (mut port, _slave, path) = pty();
@@ -641,6 +672,56 @@ fn the_seed002_network_answers_both_ids_on_one_pty() {
         let frame = Frame::parse(&reply, CrcOrder::HighFirst).expect("CRC checks");
         assert_eq!((frame.id, frame.addr), (id, addr), "{reply:02x?}");
     }
+}
+
+#[test]
+fn an_io_map_file_moves_the_meb_signals() {
+    let map = scratch("map.toml");
+    std::fs::write(
+        &map,
+        "# V1 first, as on our bench\n[EA]\nV1 = 0\nV2 = 1\nRPM_M = 2\n",
+    )
+    .unwrap();
+    let server = Server::start(&[
+        "--meb",
+        "tcp://127.0.0.1:0",
+        "--modbus",
+        "tcp://127.0.0.1:0",
+        "--map",
+        map.to_str().unwrap(),
+        "--quiet",
+        "--no-record",
+    ]);
+    let mut m = connect(&server.tcp(0));
+    let mut t = connect(&server.tcp(1));
+    let r = meb(&mut m, &meb_frame(1, MebCmd::EA, 0, 3, &[]));
+    let ir = input_registers(&mut t, 1);
+    assert!(
+        r.data.as_slice()[0].abs_diff(ir[2]) <= 2,
+        "EA 0 is V1: {r:?} vs {ir:?}"
+    );
+    assert!(r.data.as_slice()[1].abs_diff(ir[0]) <= 2, "EA 1 is V2");
+    let past = meb(&mut m, &meb_frame(1, MebCmd::EA, 0, 4, &[]));
+    assert_eq!(past.cmd, MebCmd::ER, "EA holds three words now");
+
+    std::fs::write(&map, "[EA]\nV1 = 0\nV1x = 1\n").unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_twin"))
+        .args([
+            "serve",
+            "--meb",
+            "tcp://127.0.0.1:0",
+            "--no-record",
+            "--map",
+        ])
+        .arg(&map)
+        .output()
+        .expect("twin runs");
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("map.toml:3:") && err.contains("unknown signal"),
+        "{err}"
+    );
 }
 
 #[test]

@@ -21,6 +21,7 @@ use crate::proto::modbus::{self, Drops, ExceptionResponse, MAX_PDU_LEN, ascii::A
 use crate::time::{SimDuration, SimTime};
 
 use super::image::{Refusal, RegisterImage};
+use super::meb_map::MebMap;
 use super::{meb_slave, modbus_slave};
 
 /// Replies held before the oldest is dropped: a client pipelining more
@@ -56,7 +57,7 @@ impl Framing {
 
 #[derive(Debug, Clone)]
 enum Decoder {
-    Meb(MebDecoder),
+    Meb(Box<MebDecoder>),
     Rtu(Box<RtuDecoder>),
     Ascii(Box<AsciiDecoder>),
     Tcp(Box<TcpDecoder>),
@@ -84,6 +85,8 @@ pub struct SlaveFrontend {
     id: u8,
     read_only: bool,
     forced: Option<Refusal>,
+    /// MEB addresses other than the default map's.
+    map: Option<Box<MebMap>>,
     decoder: Decoder,
     /// The PDU of the frame being served.
     pdu: [u8; MAX_PDU_LEN],
@@ -100,7 +103,7 @@ impl SlaveFrontend {
     /// A front end for slave `id` (MEB slave number or Modbus unit id).
     pub fn new(framing: Framing, id: u8) -> Self {
         let decoder = match framing {
-            Framing::Meb => Decoder::Meb(MebDecoder::new()),
+            Framing::Meb => Decoder::Meb(Box::default()),
             Framing::ModbusRtu(silence) => Decoder::Rtu(Box::new(RtuDecoder::new(
                 Direction::Request,
                 Timing::Silence(silence),
@@ -113,6 +116,7 @@ impl SlaveFrontend {
             id,
             read_only: false,
             forced: None,
+            map: None,
             decoder,
             pdu: [0; MAX_PDU_LEN],
             out: Vec::with_capacity(MAX_QUEUED * MAX_FRAME),
@@ -132,6 +136,12 @@ impl SlaveFrontend {
     /// (an injected fault), or serve normally again with `None`.
     pub fn set_forced_refusal(&mut self, refusal: Option<Refusal>) {
         self.forced = refusal;
+    }
+
+    /// Serve MEB at the addresses `map` gives (seed 000's configurable I/O
+    /// map); the default map needs none.
+    pub fn set_meb_map(&mut self, map: Option<MebMap>) {
+        self.map = map.filter(|m| !m.is_default()).map(Box::new);
     }
 
     /// The framing.
@@ -334,7 +344,7 @@ impl SlaveFrontend {
         let reply = match refusal {
             _ if request.is_broadcast() && refusal.is_some() => None,
             Some(refusal) => Some(MebRepr::error_reply(self.id, request.addr, refusal.meb())),
-            None => meb_slave::serve(image, self.id, request),
+            None => meb_slave::serve_mapped(image, self.id, request, self.map.as_deref()),
         };
         if let Some(reply) = reply {
             self.queue(|slot| reply.emit(slot).ok());

@@ -4,6 +4,7 @@
 use crate::proto::meb::{MebAccess, MebBlock, MebRepr, MebWordType, MebWords};
 
 use super::image::{self, Refusal, RegisterImage, WriteSet};
+use super::meb_map::MebMap;
 
 /// Words the default map holds in a block.
 fn block_size(block: MebBlock, word_type: MebWordType) -> usize {
@@ -64,6 +65,16 @@ fn write_word(
 /// (broadcast writes that pass every check are stored) and on frames whose
 /// reply would be an error to a broadcast.
 pub fn serve(image: &mut RegisterImage, own_id: u8, request: &MebRepr) -> Option<MebRepr> {
+    serve_mapped(image, own_id, request, None)
+}
+
+/// [`serve`] with the signals where `map` puts them (`None`: the default map).
+pub fn serve_mapped(
+    image: &mut RegisterImage,
+    own_id: u8,
+    request: &MebRepr,
+    map: Option<&MebMap>,
+) -> Option<MebRepr> {
     if request.shape().is_reply() {
         return None;
     }
@@ -71,7 +82,7 @@ pub fn serve(image: &mut RegisterImage, own_id: u8, request: &MebRepr) -> Option
     if request.id != own_id && !broadcast {
         return None;
     }
-    let answer = execute(image, request, broadcast);
+    let answer = execute(image, request, broadcast, map);
     if broadcast {
         return None;
     }
@@ -87,9 +98,13 @@ fn execute(
     image: &mut RegisterImage,
     request: &MebRepr,
     broadcast: bool,
+    map: Option<&MebMap>,
 ) -> Result<MebRepr, Refusal> {
     let (block, word_type) = request.cmd.block().ok_or(Refusal::IllegalCommand)?;
-    let size = block_size(block, word_type);
+    let size = match map {
+        Some(map) => map.block_len(block, word_type),
+        None => block_size(block, word_type),
+    };
     if size == 0 {
         return Err(Refusal::IllegalCommand);
     }
@@ -106,6 +121,9 @@ fn execute(
     if first + count > size {
         return Err(Refusal::IllegalAddress);
     }
+    if let Some(map) = map {
+        return execute_mapped(image, request, map, block, word_type);
+    }
     match access {
         MebAccess::Read => {
             let mut data = MebWords::new();
@@ -119,6 +137,61 @@ fn execute(
             let mut set = WriteSet::default();
             for (index, word) in (first..).zip(request.data.iter()) {
                 write_word(&mut set, block, word_type, index, *word);
+            }
+            image.store(&set)?;
+            Ok(request.acknowledgement())
+        }
+    }
+}
+
+/// The read or write of a request that passed the checks, through `map`:
+/// each user address is translated to the default map's word (or, for SD,
+/// bit by bit). An address the map leaves empty is refused (02).
+fn execute_mapped(
+    image: &mut RegisterImage,
+    request: &MebRepr,
+    map: &MebMap,
+    block: MebBlock,
+    word_type: MebWordType,
+) -> Result<MebRepr, Refusal> {
+    let first = usize::from(request.addr);
+    let count = usize::from(request.cnt);
+    match block.access() {
+        MebAccess::Read => {
+            let mut data = MebWords::new();
+            for address in first..first + count {
+                let index = map
+                    .word(block, word_type, address)
+                    .ok_or(Refusal::IllegalAddress)?;
+                let _ = data.push(read_word(image, block, word_type, index));
+            }
+            Ok(MebRepr { data, ..*request })
+        }
+        MebAccess::Write => {
+            let mut set = WriteSet::default();
+            for (address, &word) in (first..).zip(request.data.iter()) {
+                if let Some(index) = map.word(block, word_type, address) {
+                    write_word(&mut set, block, word_type, index, word);
+                    continue;
+                }
+                let mut any = false;
+                for (bit, home_word, home_bit) in map.bits(block, word_type, address) {
+                    any = true;
+                    let (slot, stored) = match home_word {
+                        0 => (&mut set.sd0, image.stored.sd0),
+                        _ => (&mut set.sd1, image.stored.sd1),
+                    };
+                    let current = slot.unwrap_or(stored);
+                    let on = word & (1 << bit) != 0;
+                    *slot = Some(if on {
+                        current | 1 << home_bit
+                    } else {
+                        current & !(1 << home_bit)
+                    });
+                }
+                if !any {
+                    return Err(Refusal::IllegalAddress);
+                }
             }
             image.store(&set)?;
             Ok(request.acknowledgement())

@@ -11,6 +11,7 @@
 mod estimators;
 mod frontend;
 mod image;
+mod meb_map;
 mod meb_slave;
 mod modbus_slave;
 
@@ -29,6 +30,7 @@ use crate::time::{SimDuration, SimTime};
 pub use estimators::{HallRpm, LightDetectorConfig, LightRpm};
 pub use frontend::{Framing, FrontendStats, SlaveFrontend};
 pub use image::{EA_WORDS, Protection, Refusal, RegisterImage, Settings, WriteSet, ea, sd, status};
+pub use meb_map::{MapError, MebMap, TAGS};
 pub use modbus_slave::{COILS, DISCRETE_INPUTS, HOLDING_REGISTERS, INPUT_REGISTERS};
 
 /// Events kept for [`Node::poll_event`] before the oldest is dropped, so an

@@ -53,6 +53,10 @@ pub struct ServeArgs {
     /// Slave id of the EV module's controller (MEB slave number, Modbus unit id).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=99))]
     id: u8,
+    /// I/O map of the MEB links (TOML, one table per block: `[EA]` with
+    /// `V1 = 0`, `[SD]` with `EN = "0.0"`); blocks not named keep spec/meb.md's map.
+    #[arg(long, value_name = "FILE")]
+    map: Option<PathBuf>,
     /// Plant parameter file (TOML) whose fields override the vemodule preset.
     #[arg(long, value_name = "FILE")]
     params: Option<PathBuf>,
@@ -90,6 +94,11 @@ pub struct ServeArgs {
     /// Remote clients may read but not write (MEB ER 01, Modbus exception 01).
     #[arg(long)]
     read_only: bool,
+    /// Run the plant thread under the real-time FIFO scheduler at this
+    /// priority (1-99; needs root or CAP_SYS_NICE), so a busy machine cannot
+    /// delay its ticks.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u8).range(1..=99))]
+    rt_priority: Option<u8>,
     /// Wait for serial paths that do not exist yet (a pty another program
     /// will create) instead of failing.
     #[arg(long)]
@@ -143,6 +152,7 @@ fn options(args: &ServeArgs) -> Result<ServeOptions> {
         links,
         defaults,
         id: args.id,
+        meb_map: args.map.as_deref().map(serve::map::load).transpose()?,
         params,
         seed: args.seed,
         duration: args.duration,
@@ -155,6 +165,7 @@ fn options(args: &ServeArgs) -> Result<ServeOptions> {
         read_only: args.read_only,
         wait_for_ports: args.wait_for_ports,
         record_hz: args.record_hz,
+        rt_priority: args.rt_priority,
         command_line: std::env::args().collect::<Vec<_>>().join(" "),
     })
 }
@@ -188,6 +199,11 @@ pub fn execute(args: &ServeArgs) -> Result<()> {
         "  tick lateness over {} ticks: p50 {:.0} µs, p99 {:.0} µs, p99.9 {:.0} µs, max {:.0} µs; {} overruns",
         l.ticks, l.p50_us, l.p99_us, l.p999_us, l.max_us, l.overruns
     );
+    if l.p99_us > 250.0 {
+        println!(
+            "  (ticks ran late: the machine was busy; --rt-priority 50 gives the plant thread a real-time priority)"
+        );
+    }
     println!(
         "  {} connections ({} refused over the limit, {} closed for a partial frame, {} for the rate limit); {} bytes in, {} frames out",
         c.connections,

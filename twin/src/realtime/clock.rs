@@ -38,6 +38,32 @@ impl RtClock {
     }
 }
 
+/// Puts the calling thread under the real-time FIFO scheduler at
+/// `priority` (1-99), so a busy machine cannot delay its ticks: Linux only,
+/// and only where permitted (root or CAP_SYS_NICE). Uses `chrt` on the
+/// thread's id, which keeps the twin free of unsafe code.
+pub fn raise_this_thread(priority: u8) -> Result<(), String> {
+    let link = std::fs::read_link("/proc/thread-self")
+        .map_err(|e| format!("cannot find this thread's id (/proc/thread-self): {e}"))?;
+    let tid = link
+        .file_name()
+        .and_then(|t| t.to_str())
+        .ok_or("cannot read this thread's id")?
+        .to_string();
+    let out = std::process::Command::new("chrt")
+        .args(["-f", "-p", &priority.to_string(), &tid])
+        .output()
+        .map_err(|e| format!("cannot run chrt (util-linux): {e}"))?;
+    if out.status.success() {
+        Ok(())
+    } else {
+        Err(format!(
+            "chrt -f -p {priority} {tid} failed: {} (run as root or grant CAP_SYS_NICE)",
+            String::from_utf8_lossy(&out.stderr).trim()
+        ))
+    }
+}
+
 /// A session duration as a std [`Duration`].
 pub fn to_std(d: SimDuration) -> Duration {
     Duration::from_nanos(d.0 / TICKS_PER_NANO)

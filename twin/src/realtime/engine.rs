@@ -236,6 +236,7 @@ pub struct RtEngine {
     pub counters: RtCounters,
     stop: Option<String>,
     buf: Vec<u8>,
+    ids: Vec<ConnId>,
 }
 
 impl RtEngine {
@@ -268,6 +269,7 @@ impl RtEngine {
             counters: RtCounters::default(),
             stop: None,
             buf: vec![0; MAX_FRAME],
+            ids: Vec::new(),
         }
     }
 
@@ -630,8 +632,12 @@ impl RtEngine {
     }
 
     fn service_timers(&mut self, now: SimTime) {
-        let ids: Vec<ConnId> = self.conns.keys().copied().collect();
-        for id in ids {
+        // The ids are copied into a kept buffer: handling a connection may
+        // close it, and this runs at every wake-up (no allocation here).
+        let mut ids = std::mem::take(&mut self.ids);
+        ids.clear();
+        ids.extend(self.conns.keys().copied());
+        for &id in &ids {
             let Some(conn) = self.conns.get_mut(&id) else {
                 continue;
             };
@@ -665,6 +671,7 @@ impl RtEngine {
                 let _ = self.sink.send(SinkMsg::Event { node: who, event });
             }
         }
+        self.ids = ids;
     }
 
     /// One plant tick at `t`: firmware loops, the plants, recording.

@@ -108,9 +108,16 @@ pub async fn accept_loop(
             tokio::time::sleep(Duration::from_millis(50)).await;
             continue;
         };
-        if max_clients.is_some_and(|max| open.load(Ordering::Relaxed) >= max) {
+        if let Some(max) = max_clients.filter(|&max| open.load(Ordering::Relaxed) >= max) {
             refused.fetch_add(1, Ordering::Relaxed);
             drop(socket);
+            let text =
+                format!("{peer}: refused, {max} client(s) already connected (--max-clients)");
+            let _ = engine.send(Inbound::Command(Box::new(move |e| {
+                let name = e.links.get(link).map_or("?", |l| l.name.as_str());
+                let line = format!("[{:12.6} s] {name} {text}", e.clock.now().as_secs_f64());
+                e.say(line);
+            })));
             continue;
         }
         // Replies are single small writes: send them at once.

@@ -94,8 +94,8 @@ pub fn parse(line: &str) -> Result<Option<Command>, String> {
         }),
         ["fault", kind, rest @ ..] => {
             let (fault, link) = match (*kind, rest) {
-                ("bad-check", [link @ ..]) => (LinkFault::BadCheck, link.first().copied()),
-                ("no-reply", [link @ ..]) => (LinkFault::NoReply, link.first().copied()),
+                ("bad-check", link) => (LinkFault::BadCheck, link.first().copied()),
+                ("no-reply", link) => (LinkFault::NoReply, link.first().copied()),
                 ("delay", [ms, link @ ..]) => {
                     let ms = number(Some(ms), "delay (ms)")?;
                     if !(0.0..=60_000.0).contains(&ms) {

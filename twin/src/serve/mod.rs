@@ -4,6 +4,7 @@
 //! network — all serving one module, recorded to MCAP like a virtual run.
 
 pub mod console;
+pub mod map;
 
 use anyhow::{Context, Result, bail};
 use nodes::firmware::{EvController, EvControllerConfig, Framing, SlaveFrontend};
@@ -74,6 +75,8 @@ pub struct ServeOptions {
     pub defaults: LinkDefaults,
     /// Slave id of the EV module's controller (MEB slave number, Modbus unit).
     pub id: u8,
+    /// Where MEB links put the signals (`--map`; `None`: `spec/meb.md`'s map).
+    pub meb_map: Option<nodes::firmware::MebMap>,
     pub params: PlantParams,
     pub seed: u64,
     /// Stop after this long (none: until SIGINT/SIGTERM).
@@ -89,6 +92,8 @@ pub struct ServeOptions {
     /// Wait for serial paths that do not exist yet (ptys made later).
     pub wait_for_ports: bool,
     pub record_hz: f64,
+    /// Real-time FIFO priority of the engine's thread, if asked for.
+    pub rt_priority: Option<u8>,
     /// The command line, for the recording's metadata.
     pub command_line: String,
 }
@@ -181,11 +186,14 @@ pub fn parse_links(options: &ServeOptions) -> Result<Vec<(ServeProtocol, LinkSpe
     Ok(specs)
 }
 
+/// Starts an opened link's task on the runtime, sending to the engine.
+type Starter = Box<dyn FnOnce(&tokio::runtime::Handle, Sender<Inbound>)>;
+
 /// A session being set up: the engine, and the opened links' tasks to start.
 struct Setup {
     engine: RtEngine,
     open: Vec<OpenLink>,
-    starters: Vec<Box<dyn FnOnce(&tokio::runtime::Handle, Sender<Inbound>)>>,
+    starters: Vec<Starter>,
     refused: Arc<AtomicU64>,
 }
 
@@ -263,7 +271,7 @@ async fn open_links(
     let clock = engine.clock;
     let refused = Arc::new(AtomicU64::new(0));
     let mut open = Vec::new();
-    let mut starters: Vec<Box<dyn FnOnce(&tokio::runtime::Handle, Sender<Inbound>)>> = Vec::new();
+    let mut starters: Vec<Starter> = Vec::new();
     for (index, ((protocol, spec), name)) in specs.into_iter().zip(names).enumerate() {
         let link = engine.links.len();
         debug_assert_eq!(link, index);
@@ -298,11 +306,14 @@ async fn open_links(
             match (framing(protocol, &spec), ev, seed002) {
                 (Some(framing), Some(device), _) => {
                     let label = format!("ev1 {name}");
+                    let map = options.meb_map.clone().filter(|_| framing == Framing::Meb);
                     (
                         Box::new(move |_devices, peer| {
+                            let mut frontend = SlaveFrontend::new(framing, id);
+                            frontend.set_meb_map(map.clone());
                             Box::new(SlaveEndpoint {
                                 device,
-                                frontend: SlaveFrontend::new(framing, id),
+                                frontend,
                                 name: format!("{label} {peer}"),
                             })
                         }),
@@ -452,9 +463,15 @@ pub fn serve(
     let end = options
         .duration
         .map(|s| SimTime::ZERO + SimDuration::from_secs_f64(s));
+    let rt_priority = options.rt_priority;
     let rt_thread = std::thread::Builder::new()
         .name("twin-realtime".into())
         .spawn(move || {
+            if let Some(priority) = rt_priority
+                && let Err(why) = crate::realtime::clock::raise_this_thread(priority)
+            {
+                engine.say(format!("warning: no real-time priority: {why}"));
+            }
             let summary = engine.run(&inbound_rx, end);
             (summary, engine)
         })

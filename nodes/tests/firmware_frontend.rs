@@ -1,0 +1,212 @@
+//! The slave front end that real-time links use: every MEB slave vector
+//! through it gives the controller's own reply, and several front ends (MEB,
+//! Modbus TCP, RTU) serving one image see each other's writes.
+
+use nodes::firmware::{EvController, EvControllerConfig, Framing, Refusal, SlaveFrontend};
+use nodes::node::{MAX_FRAME, Node};
+use nodes::proto::meb::{MebCmd, MebRepr};
+use nodes::proto::modbus::{self, Exception, Request, Response};
+use nodes::time::{SimDuration, SimTime};
+use serde::Deserialize;
+
+const VECTORS: &str = include_str!(concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/../../shared/vectors/meb_slave.jsonl"
+));
+
+#[derive(Debug, Deserialize)]
+struct Vector {
+    request: String,
+}
+
+fn reply_of(
+    frontend: &mut SlaveFrontend,
+    controller: &mut EvController,
+    bytes: &[u8],
+) -> Option<Vec<u8>> {
+    frontend.handle_bytes(controller.image_mut(), SimTime::ZERO, bytes);
+    let mut buf = [0u8; MAX_FRAME];
+    let reply = frontend.poll_transmit(&mut buf).map(|n| buf[..n].to_vec());
+    assert_eq!(
+        frontend.poll_transmit(&mut buf),
+        None,
+        "one reply per request"
+    );
+    reply
+}
+
+#[test]
+fn every_meb_vector_gets_the_controllers_own_reply() {
+    let mut count = 0;
+    for line in VECTORS.lines().filter(|l| !l.trim().is_empty()) {
+        let v: Vector = serde_json::from_str(line).expect("JSON");
+        let mut reference = EvController::new(EvControllerConfig::default());
+        reference.handle_bytes(SimTime::ZERO, v.request.as_bytes());
+        let mut buf = [0u8; MAX_FRAME];
+        let expected = reference
+            .poll_transmit(SimTime::ZERO, &mut buf)
+            .map(|n| buf[..n].to_vec());
+        let mut served = EvController::new(EvControllerConfig::default());
+        let mut frontend = SlaveFrontend::new(Framing::Meb, 1);
+        let got = reply_of(&mut frontend, &mut served, v.request.as_bytes());
+        assert_eq!(got, expected, "{}", v.request.escape_debug());
+        assert_eq!(
+            served.image().stored,
+            reference.image().stored,
+            "{}",
+            v.request.escape_debug()
+        );
+        assert_eq!(
+            served.image().errs,
+            reference.image().errs,
+            "{}",
+            v.request.escape_debug()
+        );
+        count += 1;
+    }
+    assert_eq!(count, 31);
+}
+
+#[test]
+fn front_ends_share_one_image_and_count_their_drops() {
+    let mut controller = EvController::new(EvControllerConfig::default());
+    let mut meb = SlaveFrontend::new(Framing::Meb, 1);
+    let mut tcp = SlaveFrontend::new(Framing::ModbusTcp, 1);
+    let mut rtu = SlaveFrontend::new(Framing::ModbusRtu(SimDuration::from_millis(5)), 1);
+
+    // VEL written over MEB reads back over Modbus TCP (holding register 0).
+    assert!(reply_of(&mut meb, &mut controller, b"@01SA000108005A*\n").is_some());
+    let mut adu = [0u8; 300];
+    let read = Request::ReadHoldingRegisters {
+        address: 0,
+        quantity: 1,
+    };
+    let n = modbus::tcp::emit(77, 255, &read, &mut adu).unwrap();
+    let reply = reply_of(&mut tcp, &mut controller, &adu[..n]).expect("a reply");
+    let frame = modbus::tcp::parse(&reply).unwrap();
+    assert_eq!(
+        (frame.transaction_id, frame.unit),
+        (77, 255),
+        "unit 255 echoed"
+    );
+    match frame.response().unwrap() {
+        Ok(Response::ReadHoldingRegisters(r)) => assert_eq!(r.as_slice(), &[0x0800]),
+        other => panic!("{other:?}"),
+    }
+
+    // Two frames in one TCP chunk get two replies, in order.
+    let mut two = Vec::new();
+    for tid in [1u16, 2] {
+        let n = modbus::tcp::emit(tid, 1, &read, &mut adu).unwrap();
+        two.extend_from_slice(&adu[..n]);
+    }
+    tcp.handle_bytes(controller.image_mut(), SimTime::ZERO, &two);
+    let mut buf = [0u8; MAX_FRAME];
+    for tid in [1u16, 2] {
+        let n = tcp.poll_transmit(&mut buf).expect("pipelined reply");
+        assert_eq!(modbus::tcp::parse(&buf[..n]).unwrap().transaction_id, tid);
+    }
+
+    // Garbage on RTU and a bad FCS on MEB both land in the shared ERRS.
+    let errs = controller.image().errs;
+    let n = modbus::rtu::emit(1, &read, &mut adu).unwrap();
+    adu[n - 1] ^= 0xFF;
+    assert_eq!(reply_of(&mut rtu, &mut controller, &adu[..n]), None);
+    assert_eq!(reply_of(&mut meb, &mut controller, b"@01EA000100*\n"), None);
+    assert_eq!(controller.image().errs, errs + 2);
+    assert_eq!(rtu.stats().malformed + meb.stats().malformed, 2);
+}
+
+#[test]
+fn read_only_and_forced_refusals_answer_in_each_protocol() {
+    let mut controller = EvController::new(EvControllerConfig::default());
+    let mut meb = SlaveFrontend::new(Framing::Meb, 1);
+    meb.set_read_only(true);
+    let reply = reply_of(&mut meb, &mut controller, b"@01SA000108005A*\n").unwrap();
+    let repr = MebRepr::parse(&reply).unwrap();
+    assert_eq!(repr.cmd, MebCmd::ER);
+    assert_eq!(controller.image().stored.vel, 0, "not written");
+    assert_eq!(meb.stats().read_only_refusals, 1);
+    let reply = reply_of(&mut meb, &mut controller, b"@01EA000643*\n").unwrap();
+    assert_eq!(
+        MebRepr::parse(&reply).unwrap().cmd,
+        MebCmd::EA,
+        "reads are served"
+    );
+
+    let mut ascii = SlaveFrontend::new(Framing::ModbusAscii, 1);
+    ascii.set_forced_refusal(Some(Refusal::DeviceFailure));
+    let mut adu = [0u8; 600];
+    let read = Request::ReadInputRegisters {
+        address: 0,
+        quantity: 2,
+    };
+    let n = modbus::ascii::emit(1, &read, &mut adu).unwrap();
+    let reply = reply_of(&mut ascii, &mut controller, &adu[..n]).unwrap();
+    let mut scratch = [0u8; modbus::ascii::MAX_BINARY_LEN];
+    let frame = modbus::ascii::parse(&reply, &mut scratch).unwrap();
+    let e = frame.response().unwrap().expect_err("an exception");
+    assert_eq!(e.exception, Exception::ServerDeviceFailure);
+}
+
+#[test]
+fn an_io_map_moves_signals_and_keeps_the_checks() {
+    use nodes::firmware::MebMap;
+    let mut map = MebMap::default();
+    map.clear_block("EA");
+    map.place("EA", "V1", 0, None).unwrap();
+    map.place("EA", "RPM_M", 1, None).unwrap();
+    map.clear_block("SD");
+    map.place("SD", "EN", 0, Some(4)).unwrap();
+    map.place("SD", "FR", 0, Some(0)).unwrap();
+    // Mistakes are refused with the reason.
+    assert!(
+        map.place("EA", "VEL", 3, None)
+            .unwrap_err()
+            .to_string()
+            .contains("belongs in SA")
+    );
+    assert!(
+        map.place("EA", "V2", 0, None)
+            .unwrap_err()
+            .to_string()
+            .contains("share EA 0 with `V1`")
+    );
+    assert!(
+        map.place("SD", "BRK", 0, None)
+            .unwrap_err()
+            .to_string()
+            .contains("WORD.BIT")
+    );
+    assert!(
+        map.place("EA", "FOO", 3, None)
+            .unwrap_err()
+            .to_string()
+            .contains("unknown signal")
+    );
+
+    let mut controller = EvController::new(EvControllerConfig::default());
+    controller.image_mut().inputs = [11, 22, 33, 44, 55, 66];
+    let mut meb = SlaveFrontend::new(Framing::Meb, 1);
+    meb.set_meb_map(Some(map));
+    let reply = reply_of(&mut meb, &mut controller, b"@01EA000247*\n").expect("a reply");
+    assert_eq!(
+        MebRepr::parse(&reply).unwrap().data.as_slice(),
+        &[33, 44],
+        "V1 then RPM_M"
+    );
+    // EA holds two words now: a third is past the block (ER 02).
+    let reply = reply_of(&mut meb, &mut controller, b"@01EA000346*\n").unwrap();
+    assert_eq!(MebRepr::parse(&reply).unwrap().cmd, MebCmd::ER);
+    // SD word 0: bit 4 low enables, bit 0 high turns counter-clockwise.
+    let reply = reply_of(&mut meb, &mut controller, b"@01SD0001000156*\n").unwrap();
+    assert_eq!(
+        MebRepr::parse(&reply).unwrap().cmd,
+        MebCmd::SD,
+        "{}",
+        String::from_utf8_lossy(&reply)
+    );
+    let sd0 = controller.image().stored.sd0;
+    assert_eq!(sd0 & 0b1, 0, "EN applied (active low): {sd0:#06x}");
+    assert_eq!(sd0 & 0b1_0000, 0b1_0000, "FR set: {sd0:#06x}");
+}
