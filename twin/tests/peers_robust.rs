@@ -310,6 +310,23 @@ fn abuse_on_every_link_leaves_the_others_served() {
         "served throughout: {after:?}"
     );
     serve.assert_running();
+
+    // SIGTERM finishes the recording: a whole MCAP file holding the good
+    // clients' frames and the garbage alike.
+    drop(serve);
+    let bytes = std::fs::read(&recording).expect("the recording exists");
+    let mut frames = std::collections::BTreeMap::<String, u64>::new();
+    for message in mcap::MessageStream::new(&bytes).expect("a valid MCAP file") {
+        let message = message.expect("a valid message");
+        if message.channel.topic.ends_with("/frames") {
+            *frames.entry(message.channel.topic.clone()).or_default() += 1;
+        }
+    }
+    let total: u64 = frames.values().sum();
+    assert!(
+        frames.len() >= 4 && total > 2 * (after.0 + after.1),
+        "frames of every abused link and both directions of the good clients: {frames:?}"
+    );
 }
 
 trait TapMkdir {
