@@ -95,8 +95,8 @@ pub struct ServeArgs {
     #[arg(long)]
     read_only: bool,
     /// Run the plant thread under the real-time FIFO scheduler at this
-    /// priority (1-99; needs root or CAP_SYS_NICE), so a busy machine cannot
-    /// delay its ticks.
+    /// priority, and the links' thread one below (1-99; needs root or
+    /// CAP_SYS_NICE), so a busy machine cannot delay ticks and replies.
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u8).range(1..=99))]
     rt_priority: Option<u8>,
     /// Wait for serial paths that do not exist yet (a pty another program
@@ -166,7 +166,11 @@ fn options(args: &ServeArgs) -> Result<ServeOptions> {
         wait_for_ports: args.wait_for_ports,
         record_hz: args.record_hz,
         rt_priority: args.rt_priority,
-        command_line: std::env::args().collect::<Vec<_>>().join(" "),
+        // The program's own path stays out of the recording, as in `twin run`.
+        command_line: std::iter::once("twin".to_string())
+            .chain(std::env::args().skip(1))
+            .collect::<Vec<_>>()
+            .join(" "),
     })
 }
 
@@ -200,9 +204,14 @@ pub fn execute(args: &ServeArgs) -> Result<()> {
         l.ticks, l.p50_us, l.p99_us, l.p999_us, l.max_us, l.overruns
     );
     if l.p99_us > 250.0 {
-        println!(
-            "  (ticks ran late: the machine was busy; --rt-priority 50 gives the plant thread a real-time priority)"
-        );
+        match args.rt_priority {
+            None => println!(
+                "  (ticks ran late: the machine was busy; --rt-priority 50 gives the plant thread a real-time priority)"
+            ),
+            Some(_) => {
+                println!("  (ticks ran late even at real-time priority: the machine was busy)")
+            }
+        }
     }
     println!(
         "  {} connections ({} refused over the limit, {} closed for a partial frame, {} for the rate limit); {} bytes in, {} frames out",

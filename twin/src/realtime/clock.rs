@@ -24,7 +24,11 @@ impl RtClock {
     /// The session time of `instant` (zero before the origin).
     pub fn at(&self, instant: Instant) -> SimTime {
         let ns = instant.saturating_duration_since(self.origin).as_nanos();
-        SimTime(u64::try_from(ns).unwrap_or(u64::MAX / TICKS_PER_NANO) * TICKS_PER_NANO)
+        SimTime(
+            u64::try_from(ns)
+                .unwrap_or(u64::MAX)
+                .saturating_mul(TICKS_PER_NANO),
+        )
     }
 
     /// The session time now.

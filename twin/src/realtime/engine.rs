@@ -10,8 +10,7 @@
 //! spins to it. Lateness (actual − scheduled tick time) goes into
 //! [`Lateness`] histograms: one per second for the recording, one in total.
 
-use nodes::firmware::{Refusal, RegisterImage, ea};
-use nodes::link::{CheckKind, spoil_check};
+use nodes::link::spoil_check;
 use nodes::node::MAX_FRAME;
 use nodes::time::{SimDuration, SimTime};
 use std::collections::{BTreeMap, VecDeque};
@@ -20,158 +19,17 @@ use std::time::Instant;
 use tokio::sync::mpsc::UnboundedSender;
 
 use super::clock::RtClock;
+pub use super::config::{Device, EndpointFactory, LinkConfig, LinkFault};
 use super::endpoint::Endpoint;
+pub use super::forces::Forces;
 use super::lateness::{Lateness, LatenessSummary};
+pub use super::messages::{ConnId, Inbound, Outbound};
 use super::sink::{Direction, SinkMsg};
-use crate::engine::{ModuleSlot, SimNode, firmware_tick};
-use crate::io::LinkSpec;
+use crate::engine::{ModuleSlot, firmware_tick};
 
 /// How long before a deadline the thread stops sleeping and spins: covers
 /// the kernel's wake-up latency and timer slack (50 µs by default).
 const SPIN: SimDuration = SimDuration::from_micros(150);
-
-/// A connection's id, unique for the session.
-pub type ConnId = u64;
-
-/// What the link tasks (and the console) send the engine.
-pub enum Inbound {
-    /// A connection opened on link `link` (a TCP client, a serial port).
-    Opened {
-        link: usize,
-        conn: ConnId,
-        peer: String,
-        out: UnboundedSender<Outbound>,
-    },
-    /// Bytes read at `at`.
-    Bytes {
-        conn: ConnId,
-        at: SimTime,
-        bytes: Vec<u8>,
-    },
-    /// The connection is gone (peer closed, port vanished).
-    Closed { conn: ConnId, why: String },
-    /// Run this on the engine's thread (console commands, other front ends).
-    Command(Box<dyn FnOnce(&mut RtEngine) + Send>),
-    /// Stop the session (SIGINT, SIGTERM).
-    Stop(String),
-}
-
-/// What the engine sends a link task.
-#[derive(Debug)]
-pub enum Outbound {
-    /// Write this frame, in one write.
-    Frame(Vec<u8>),
-    /// Close the connection, for this reason.
-    Close(String),
-}
-
-/// A node with a plant or an image: the EV controller, a seed-002 Arduino,
-/// a supervisor.
-pub struct Device {
-    pub name: String,
-    pub node: Box<dyn SimNode + Send>,
-    pub module: Option<usize>,
-    /// Inputs the user forced from the console.
-    pub forces: Forces,
-    next_tick: Option<SimTime>,
-}
-
-impl Device {
-    pub fn new(name: &str, mut node: Box<dyn SimNode + Send>, module: Option<usize>) -> Self {
-        let next_tick = node.firmware().map(|_| SimTime::ZERO);
-        Self {
-            name: name.into(),
-            node,
-            module,
-            forces: Forces::default(),
-            next_tick,
-        }
-    }
-}
-
-/// Inputs forced by hand: measured values replaced before the firmware
-/// samples them (`force v1 30.5`), or input words after it computed them.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct Forces {
-    /// Battery voltage V1 (V).
-    pub v1: Option<f64>,
-    /// DC-bus voltage V2 (V).
-    pub v2: Option<f64>,
-    /// Inverter current I (A).
-    pub i: Option<f64>,
-    /// RPM_M, RPM_L and LDR words (counts).
-    pub rpm_m: Option<u16>,
-    pub rpm_l: Option<u16>,
-    pub ldr: Option<u16>,
-}
-
-impl Forces {
-    /// Whether anything is forced.
-    pub fn any(&self) -> bool {
-        *self != Forces::default()
-    }
-
-    fn apply_sensors(&self, sensors: &mut plant::Sensors, s: &plant::params::SensingParams) {
-        if let Some(v) = self.v1 {
-            sensors.battery_volts = v;
-            sensors.battery_counts = s.counts(v / s.battery_divider);
-        }
-        if let Some(v) = self.v2 {
-            sensors.bus_volts = v;
-            sensors.bus_counts = s.counts(v / s.bus_divider);
-        }
-        if let Some(a) = self.i {
-            sensors.inverter_current = a;
-            sensors.current_counts = s.counts(s.current_zero_volts + a * s.current_volts_per_amp);
-        }
-        if let Some(c) = self.ldr {
-            sensors.ldr_counts = c;
-        }
-    }
-
-    fn apply_words(&self, image: &mut RegisterImage) {
-        if let Some(w) = self.rpm_m {
-            image.inputs[ea::RPM_M] = w;
-        }
-        if let Some(w) = self.rpm_l {
-            image.inputs[ea::RPM_L] = w;
-        }
-    }
-}
-
-/// A fault switched on from the console, applied to replies as they leave.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum LinkFault {
-    /// Replies go out with their check value plus one.
-    BadCheck,
-    /// Replies are lost.
-    NoReply,
-    /// Replies go out this much later.
-    Delay(SimDuration),
-    /// Every request is answered with this refusal (exception / ER).
-    Exception(Refusal),
-}
-
-/// Makes the endpoint for a new connection on a link: (devices, peer).
-pub type EndpointFactory = Box<dyn FnMut(&mut [Device], &str) -> Box<dyn Endpoint> + Send>;
-
-/// One configured link.
-pub struct LinkConfig {
-    /// Unique name, for the monitor and the recording's topic.
-    pub name: String,
-    /// Protocol as printed: `meb`, `modbus-tcp`, `modbus-rtu`, `modbus-ascii`, `modbus8`.
-    pub protocol: &'static str,
-    /// Resolved address (real port, device path).
-    pub address: String,
-    pub spec: LinkSpec,
-    /// Where a bad-check fault spoils a reply.
-    pub check: Option<CheckKind>,
-    /// Close a connection holding a partial frame this long (TCP).
-    pub partial_timeout: Option<SimDuration>,
-    /// Close a connection that sends more bytes than this in one second (TCP).
-    pub rate_limit: Option<u64>,
-    pub factory: EndpointFactory,
-}
 
 struct Queued {
     start: SimTime,
@@ -793,34 +651,5 @@ impl std::fmt::Debug for RtEngine {
             .field("links", &self.links.len())
             .field("connections", &self.conns.len())
             .finish_non_exhaustive()
-    }
-}
-
-impl std::fmt::Debug for Device {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Device")
-            .field("name", &self.name)
-            .finish_non_exhaustive()
-    }
-}
-
-impl std::fmt::Debug for LinkConfig {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("LinkConfig")
-            .field("name", &self.name)
-            .field("address", &self.address)
-            .finish_non_exhaustive()
-    }
-}
-
-impl std::fmt::Debug for Inbound {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            Inbound::Opened { link, conn, .. } => write!(f, "Opened({link}, {conn})"),
-            Inbound::Bytes { conn, bytes, .. } => write!(f, "Bytes({conn}, {})", bytes.len()),
-            Inbound::Closed { conn, why } => write!(f, "Closed({conn}, {why})"),
-            Inbound::Command(_) => write!(f, "Command"),
-            Inbound::Stop(why) => write!(f, "Stop({why})"),
-        }
     }
 }

@@ -39,6 +39,7 @@ pub async fn serve_stream<S>(
     peer: String,
     clock: RtClock,
     engine: Sender<Inbound>,
+    eof: &'static str,
 ) -> String
 where
     S: AsyncRead + AsyncWrite + Unpin,
@@ -59,7 +60,7 @@ where
     let why = loop {
         tokio::select! {
             read = stream.read(&mut buf) => match read {
-                Ok(0) => break "peer closed the connection".to_string(),
+                Ok(0) => break eof.to_string(),
                 Ok(n) => {
                     let at = clock.now();
                     let bytes = buf[..n].to_vec();
@@ -127,7 +128,8 @@ pub async fn accept_loop(
         let engine = engine.clone();
         let conn = ids.next();
         tokio::spawn(async move {
-            serve_stream(socket, link, conn, peer.to_string(), clock, engine).await;
+            let eof = "peer closed the connection";
+            serve_stream(socket, link, conn, peer.to_string(), clock, engine, eof).await;
             open.fetch_sub(1, Ordering::Relaxed);
         });
     }
@@ -158,7 +160,9 @@ pub async fn serial_loop(
             },
         };
         let peer = path.display().to_string();
-        let why = serve_stream(stream, link, ids.next(), peer, clock, engine.clone()).await;
+        let eof =
+            "the port closed (a pty whose other side went away?); reopening it when it is back";
+        let why = serve_stream(stream, link, ids.next(), peer, clock, engine.clone(), eof).await;
         if why == "server stopping" {
             return;
         }

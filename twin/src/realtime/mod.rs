@@ -7,10 +7,13 @@
 //! the sockets and ports ([`links`]); the sink ([`sink`]) records and prints.
 
 pub mod clock;
+pub mod config;
 pub mod endpoint;
 pub mod engine;
+pub mod forces;
 pub mod lateness;
 pub mod links;
+pub mod messages;
 pub mod sink;
 
 pub use clock::RtClock;

@@ -480,6 +480,15 @@ pub fn serve(
         start(runtime.handle(), inbound_tx.clone());
     }
     console(inbound_tx.clone());
+    // The links' runtime runs on this thread: a reply waits for it too.
+    if let Some(priority) = rt_priority
+        && let Err(why) =
+            crate::realtime::clock::raise_this_thread(priority.saturating_sub(1).max(1))
+    {
+        let _ = sink_tx.send(SinkMsg::Say(format!(
+            "warning: links at normal priority: {why}"
+        )));
+    }
 
     // Wait for the engine to stop, forwarding SIGINT/SIGTERM to it.
     let stopper = inbound_tx.clone();
