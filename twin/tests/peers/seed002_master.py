@@ -1,8 +1,9 @@
 """A master that behaves like seed 002's Raspberry Pi (spec/modbus8.md, "The
 real master's behaviour"): for every transaction it opens the port, writes 8
-bytes, waits a fixed time, reads once and closes the port again. It has no
-timeout, so a reply that is not whole in that one read would hang (or
-misalign) the real program: this one records it instead.
+bytes, waits a fixed time, reads once and closes the port again. Its read has no
+timeout, so no reply hangs the real program and a reply that is not whole in
+that one read misaligns it: this one records both instead (a hang is no reply
+within 2 s), and which replies came after the fixed wait (`late`).
 
     python3 seed002_master.py DEVICE CYCLES WAIT_MS
 
@@ -12,10 +13,14 @@ Its loop: read the motor's state until operational (write 01 from 80, 81 from
 """
 import json
 import os
+import select
 import sys
 import termios
 import time
 import tty
+
+
+HANG_S = 2.0
 
 
 def crc16(data: bytes) -> int:
@@ -42,13 +47,15 @@ def transaction(path, request, wait_s):
         termios.tcsetattr(fd, termios.TCSANOW, attrs)
         os.write(fd, request)
         time.sleep(wait_s)
-        try:
-            reply = os.read(fd, 64)  # the one read
-        except BlockingIOError:
-            reply = b""
+        # The one read. The real one blocks until bytes come (no timeout);
+        # here a reply that has not come in 2 s counts as a hang.
+        late = not select.select([fd], [], [], 0)[0]
+        if not select.select([fd], [], [], HANG_S)[0]:
+            return b"", late
+        reply = os.read(fd, 64)
     finally:
         os.close(fd)
-    return reply
+    return reply, late
 
 
 def check(request, reply):
@@ -73,9 +80,9 @@ def main():
 
     def ask(ident, fc, addr, value):
         req = frame(ident, fc, addr, value)
-        rep = transaction(path, req, wait_s)
-        problem = check(req, rep)
-        log.append({"request": req.hex(), "reply": rep.hex(), "problem": problem})
+        rep, late = transaction(path, req, wait_s)
+        problem = check(req, rep) if rep else "no reply: the real master would hang"
+        log.append({"request": req.hex(), "reply": rep.hex(), "problem": problem, "late": late})
         return None if problem else int.from_bytes(rep[4:6], "big", signed=True)
 
     states = []
