@@ -22,8 +22,10 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 const REPLY_TIMEOUT: Duration = Duration::from_secs(2);
-/// Longer than 3.5 characters at 115200 baud and the 5 ms a pty frame gap is.
-const SILENCE: Duration = Duration::from_millis(30);
+/// A frame gap for the slaves (3.5 characters, 5 ms on a pty), with room for
+/// the socat relay, which on a loaded machine sometimes holds bytes for over
+/// 10 ms: abuse and the valid request after it must not arrive as one burst.
+const SILENCE: Duration = Duration::from_millis(200);
 
 fn open_raw(path: &Path) -> File {
     let file = OpenOptions::new()
