@@ -47,7 +47,7 @@ impl Mbpoll {
         let out = run_timeout(
             Command::new("mbpoll")
                 .args(&self.options)
-                .args(["-a", "1", "-0", "-1", "-o", "1"])
+                .args(["-a", "1", "-0", "-1", "-o", "3"])
                 .args(args)
                 .arg(&self.target)
                 .args(values),

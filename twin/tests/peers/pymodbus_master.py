@@ -32,10 +32,10 @@ def ok(rr, what):
 
 def main():
     if sys.argv[1] == "tcp":
-        client = ModbusTcpClient(sys.argv[2], port=int(sys.argv[3]), timeout=1, retries=1)
+        client = ModbusTcpClient(sys.argv[2], port=int(sys.argv[3]), timeout=3, retries=1)
     else:
         client = ModbusSerialClient(port=sys.argv[2], framer=FramerType.RTU,
-                                    baudrate=115200, timeout=1, retries=1)
+                                    baudrate=115200, timeout=3, retries=1)
     if not client.connect():
         fail("cannot connect")
     dev = 1
