@@ -1,0 +1,104 @@
+//! A server under test as a child process: started, read until it says
+//! `ready`, stopped with SIGTERM. Every server (the twin, the echo, the
+//! tokio-modbus reference) announces its links the same way:
+//! `  <protocol> <address> [...]` lines, then `ready`.
+
+use anyhow::{Context, Result, bail};
+use rustix::process::{Pid, Signal, kill_process};
+use std::io::{BufRead, BufReader, Read};
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+#[derive(Debug)]
+pub struct Server {
+    pub name: String,
+    child: Child,
+    /// (protocol, address) of each link it printed.
+    pub links: Vec<(String, String)>,
+}
+
+impl Server {
+    pub fn start(name: &str, mut cmd: Command, timeout: Duration) -> Result<Self> {
+        cmd.stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped());
+        let mut child = cmd
+            .spawn()
+            .with_context(|| format!("starting {name}: {cmd:?}"))?;
+        let stdout = child.stdout.take().expect("piped");
+        let mut stderr = child.stderr.take().expect("piped");
+        let (tx, rx) = mpsc::channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines() {
+                let Ok(line) = line else { break };
+                if tx.send(line).is_err() {
+                    // Keep draining so the child never blocks on a full pipe.
+                    continue;
+                }
+            }
+        });
+        let (etx, erx) = mpsc::channel();
+        std::thread::spawn(move || {
+            let mut text = String::new();
+            let _ = stderr.read_to_string(&mut text);
+            let _ = etx.send(text);
+        });
+        let deadline = Instant::now() + timeout;
+        let mut links = Vec::new();
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            match rx.recv_timeout(left) {
+                Ok(line) if line == "ready" => break,
+                Ok(line) => {
+                    if let Some(rest) = line.strip_prefix("  ") {
+                        let mut words = rest.split_whitespace();
+                        if let (Some(p), Some(a)) = (words.next(), words.next()) {
+                            links.push((p.to_string(), a.to_string()));
+                        }
+                    }
+                }
+                Err(_) => {
+                    let _ = child.kill();
+                    let _ = child.wait();
+                    let err = erx.recv_timeout(Duration::from_secs(1)).unwrap_or_default();
+                    bail!("{name} did not print `ready` within {timeout:?}: {err}");
+                }
+            }
+        }
+        Ok(Self {
+            name: name.to_string(),
+            child,
+            links,
+        })
+    }
+
+    /// Address of the first link of `protocol`.
+    pub fn link(&self, protocol: &str) -> Result<&str> {
+        self.links
+            .iter()
+            .find(|(p, _)| p == protocol)
+            .map(|(_, a)| a.as_str())
+            .with_context(|| format!("{} printed no {protocol} link: {:?}", self.name, self.links))
+    }
+
+    /// SIGTERM, then SIGKILL if it does not stop within two seconds.
+    pub fn stop(mut self) {
+        let _ = kill_process(Pid::from_child(&self.child), Signal::TERM);
+        let deadline = Instant::now() + Duration::from_secs(2);
+        while Instant::now() < deadline {
+            if let Ok(Some(_)) = self.child.try_wait() {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// `tcp://127.0.0.1:40123` → `127.0.0.1:40123`.
+pub fn tcp_addr(link: &str) -> Result<&str> {
+    link.strip_prefix("tcp://")
+        .with_context(|| format!("`{link}` is not a tcp:// address"))
+}

@@ -1,0 +1,256 @@
+//! What the real-peer tests share: `twin serve` as a child process (started,
+//! read until `ready`, stopped with SIGTERM), crossed pseudo-terminal pairs
+//! from socat, peers run with a time limit. Every wait is bounded, so a broken
+//! server fails a test instead of hanging CI.
+#![allow(dead_code)] // each test file uses its own part of this
+
+use rustix::process::{Pid, Signal, kill_process};
+use std::io::{BufRead, BufReader, Read};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::sync::mpsc;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+pub const START_TIMEOUT: Duration = Duration::from_secs(30);
+
+/// One link `twin serve` printed: protocol, address and slave id.
+#[derive(Debug, Clone)]
+pub struct Link {
+    pub protocol: String,
+    pub address: String,
+    pub id: String,
+}
+
+/// A running `twin serve`.
+#[derive(Debug)]
+pub struct Serve {
+    child: Child,
+    pub links: Vec<Link>,
+    stderr: Arc<Mutex<String>>,
+}
+
+impl Serve {
+    pub fn start(args: &[&str]) -> Serve {
+        // Never the default serve.mcap in the working directory.
+        let record: &[&str] = if args.contains(&"--out") {
+            &[]
+        } else {
+            &["--no-record"]
+        };
+        let mut child = Command::new(env!("CARGO_BIN_EXE_twin"))
+            .arg("serve")
+            .args(args)
+            .args(record)
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("twin serve starts");
+        let stdout = child.stdout.take().unwrap();
+        let mut stderr_pipe = child.stderr.take().unwrap();
+        let stderr = Arc::new(Mutex::new(String::new()));
+        let sink = stderr.clone();
+        std::thread::spawn(move || {
+            let mut buf = [0u8; 4096];
+            while let Ok(n) = stderr_pipe.read(&mut buf) {
+                if n == 0 {
+                    break;
+                }
+                sink.lock()
+                    .unwrap()
+                    .push_str(&String::from_utf8_lossy(&buf[..n]));
+            }
+        });
+        let (tx, rx) = mpsc::channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines() {
+                let Ok(line) = line else { break };
+                // After `ready` nobody listens; keep draining the pipe anyway.
+                let _ = tx.send(line);
+            }
+        });
+        let deadline = Instant::now() + START_TIMEOUT;
+        let mut links = Vec::new();
+        let mut seen = Vec::new();
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            match rx.recv_timeout(left) {
+                Ok(line) if line == "ready" => break,
+                Ok(line) => {
+                    if let Some(rest) = line.strip_prefix("  ") {
+                        let w: Vec<&str> = rest.split_whitespace().collect();
+                        if w.len() >= 2 {
+                            links.push(Link {
+                                protocol: w[0].to_string(),
+                                address: w[1].to_string(),
+                                id: w.get(2).unwrap_or(&"").to_string(),
+                            });
+                        }
+                    }
+                    seen.push(line);
+                }
+                Err(_) => {
+                    let _ = child.kill();
+                    let _ = child.wait();
+                    std::thread::sleep(Duration::from_millis(100));
+                    panic!(
+                        "twin serve {args:?} did not print `ready` within {START_TIMEOUT:?}\nstdout: {seen:#?}\nstderr: {}",
+                        stderr.lock().unwrap()
+                    );
+                }
+            }
+        }
+        Serve {
+            child,
+            links,
+            stderr,
+        }
+    }
+
+    /// `host:port` of the first TCP link of `protocol`.
+    pub fn tcp(&self, protocol: &str) -> String {
+        let link = self.link(protocol);
+        link.address
+            .strip_prefix("tcp://")
+            .unwrap_or_else(|| panic!("{protocol} link is not TCP: {link:?}"))
+            .to_string()
+    }
+
+    pub fn port(&self, protocol: &str) -> u16 {
+        let addr = self.tcp(protocol);
+        addr.rsplit(':').next().unwrap().parse().expect("a port")
+    }
+
+    pub fn link(&self, protocol: &str) -> &Link {
+        self.links
+            .iter()
+            .find(|l| l.protocol == protocol)
+            .unwrap_or_else(|| panic!("twin serve printed no {protocol} link: {:?}", self.links))
+    }
+
+    /// Still running (it must survive whatever a test threw at it).
+    pub fn assert_running(&mut self) {
+        if let Some(status) = self.child.try_wait().expect("try_wait") {
+            panic!(
+                "twin serve exited ({status}); stderr:\n{}",
+                self.stderr.lock().unwrap()
+            );
+        }
+    }
+
+    pub fn stderr(&self) -> String {
+        self.stderr.lock().unwrap().clone()
+    }
+}
+
+impl Drop for Serve {
+    fn drop(&mut self) {
+        let _ = kill_process(Pid::from_child(&self.child), Signal::TERM);
+        let deadline = Instant::now() + Duration::from_secs(5);
+        while Instant::now() < deadline {
+            if let Ok(Some(_)) = self.child.try_wait() {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// A fresh directory for one test's files.
+pub fn scratch(test: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("twin-peers-{}-{test}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    dir
+}
+
+/// A crossed pseudo-terminal pair from socat: bytes written to `a` are read
+/// from `b` and the other way round. Both ends are raw, no echo.
+#[derive(Debug)]
+pub struct PtyPair {
+    child: Child,
+    pub a: PathBuf,
+    pub b: PathBuf,
+}
+
+impl PtyPair {
+    pub fn new(dir: &Path) -> PtyPair {
+        let a = dir.join("ttyA");
+        let b = dir.join("ttyB");
+        let child = Command::new("socat")
+            .arg(format!("pty,raw,echo=0,link={}", a.display()))
+            .arg(format!("pty,raw,echo=0,link={}", b.display()))
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("socat runs (apt-get install socat)");
+        let deadline = Instant::now() + Duration::from_secs(10);
+        while !(a.exists() && b.exists()) {
+            assert!(Instant::now() < deadline, "socat made no pty pair in 10 s");
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        PtyPair { child, a, b }
+    }
+}
+
+impl Drop for PtyPair {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Runs `cmd` to completion, killing it (and failing) after `timeout`.
+pub fn run_timeout(cmd: &mut Command, timeout: Duration) -> Output {
+    let mut child = cmd
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap_or_else(|e| panic!("{cmd:?} starts: {e}"));
+    let deadline = Instant::now() + timeout;
+    loop {
+        if child.try_wait().expect("try_wait").is_some() {
+            return child.wait_with_output().expect("output");
+        }
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            let out = child.wait_with_output().expect("output");
+            panic!(
+                "{cmd:?} still running after {timeout:?}\nstdout: {}\nstderr: {}",
+                String::from_utf8_lossy(&out.stdout),
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+}
+
+/// Python peer scripts live beside this file.
+pub fn script(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/peers")
+        .join(name)
+}
+
+/// Polls `f` every `period` until it returns `Some`, for at most `timeout`.
+pub fn wait_for<T>(
+    timeout: Duration,
+    period: Duration,
+    mut f: impl FnMut() -> Option<T>,
+) -> Option<T> {
+    let deadline = Instant::now() + timeout;
+    loop {
+        if let Some(v) = f() {
+            return Some(v);
+        }
+        if Instant::now() > deadline {
+            return None;
+        }
+        std::thread::sleep(period);
+    }
+}
