@@ -8,5 +8,7 @@ pub mod nodes_build;
 pub mod observe;
 pub mod openloop;
 pub mod record;
+pub mod recording;
+pub mod replay;
 pub mod scenario;
 pub mod virtual_run;

@@ -22,6 +22,9 @@ enum Command {
     Run(commands::run::RunArgs),
     Bench(commands::bench::BenchArgs),
     Experiment(commands::experiment::ExperimentArgs),
+    Replay(commands::replay::ReplayArgs),
+    Compare(commands::compare::CompareArgs),
+    Export(commands::export::ExportArgs),
 }
 
 fn main() -> ExitCode {
@@ -30,6 +33,9 @@ fn main() -> ExitCode {
         Command::Run(args) => commands::run::execute(&args),
         Command::Bench(args) => commands::bench::execute(&args),
         Command::Experiment(args) => commands::experiment::execute(&args),
+        Command::Replay(args) => commands::replay::execute(&args),
+        Command::Compare(args) => commands::compare::execute(&args),
+        Command::Export(args) => commands::export::execute(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

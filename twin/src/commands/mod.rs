@@ -1,5 +1,8 @@
 //! One file per subcommand; each parses its arguments and calls library code.
 
 pub mod bench;
+pub mod compare;
 pub mod experiment;
+pub mod export;
+pub mod replay;
 pub mod run;

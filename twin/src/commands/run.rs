@@ -194,21 +194,21 @@ fn print_node_state(node: &str, state: &serde_json::Value, simulated_s: f64) {
 }
 
 /// A progress line on stderr when it is a terminal, at most five times a second.
-struct Progress {
+pub struct Progress {
     enabled: bool,
     last: Instant,
     shown: bool,
 }
 
 impl Progress {
-    fn new() -> Self {
+    pub fn new() -> Self {
         Self {
             enabled: std::io::stderr().is_terminal(),
             last: Instant::now(),
             shown: false,
         }
     }
-    fn show(&mut self, done: f64) {
+    pub fn show(&mut self, done: f64) {
         if self.enabled && self.last.elapsed().as_millis() > 200 {
             eprint!("\r  simulating… {:3.0} %", done * 100.0);
             let _ = std::io::stderr().flush();
@@ -216,7 +216,7 @@ impl Progress {
             self.shown = true;
         }
     }
-    fn clear(&self) {
+    pub fn clear(&self) {
         if self.shown {
             eprint!("\r                        \r");
         }
