@@ -1,6 +1,7 @@
 //! The `twin` binary's library: running the bench and recording it. The
 //! command-line front end in `main.rs` is a thin layer over these modules.
 
+pub mod baseline;
 pub mod bench;
 pub mod engine;
 pub mod experiment;

@@ -25,6 +25,7 @@ enum Command {
     Replay(commands::replay::ReplayArgs),
     Compare(commands::compare::CompareArgs),
     Export(commands::export::ExportArgs),
+    Baseline(commands::baseline::BaselineArgs),
 }
 
 fn main() -> ExitCode {
@@ -36,6 +37,7 @@ fn main() -> ExitCode {
         Command::Replay(args) => commands::replay::execute(&args),
         Command::Compare(args) => commands::compare::execute(&args),
         Command::Export(args) => commands::export::execute(&args),
+        Command::Baseline(args) => commands::baseline::execute(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

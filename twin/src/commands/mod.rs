@@ -1,5 +1,6 @@
 //! One file per subcommand; each parses its arguments and calls library code.
 
+pub mod baseline;
 pub mod bench;
 pub mod compare;
 pub mod experiment;

@@ -243,8 +243,9 @@ pub fn compare(run: &Recording, baseline: &Recording, tolerances: &Tolerances) -
             .map(|(_, n)| *n)
             .collect();
         span_note = Some(format!(
-            "{} cut short: compared up to {compared_until_s:.3} s",
-            which.join(" and ")
+            "{} {} cut short: compared up to {compared_until_s:.3} s",
+            which.join(" and "),
+            if which.len() > 1 { "are" } else { "is" }
         ));
     } else if (run_end - base_end).abs() > 1e-9 {
         span_mismatch = Some(format!(
