@@ -38,7 +38,9 @@ struct Settings {
 fn settings() -> Result<Settings> {
     let s: Settings = toml::from_str(SETTINGS).context("recordings/baselines/baselines.toml")?;
     if let Some(unknown) = s.scenario.keys().find(|k| !names().contains(&k.as_str())) {
-        bail!("recordings/baselines/baselines.toml names `{unknown}`, which is not an embedded scenario");
+        bail!(
+            "recordings/baselines/baselines.toml names `{unknown}`, which is not an embedded scenario"
+        );
     }
     Ok(s)
 }

@@ -55,6 +55,7 @@ impl RunSpec {
         if overrides.is_empty() {
             return Ok(self);
         }
+        let origin = format!("the run after --set {}", overrides.join(" --set "));
         let mut table = self.to_table()?;
         for o in overrides {
             let Some((path, raw)) = o.split_once('=') else {
@@ -66,13 +67,12 @@ impl RunSpec {
         match self {
             RunSpec::Scenario(_) => {
                 let text = toml::to_string(&table)?;
-                Ok(RunSpec::Scenario(Scenario::parse(
-                    &text,
-                    "the scenario after --set",
-                )?))
+                Ok(RunSpec::Scenario(
+                    Scenario::parse(&text, "the edited scenario").context(origin)?,
+                ))
             }
             RunSpec::OpenLoop(_) => Ok(RunSpec::OpenLoop(
-                open_loop_from_table(&table).context("the open-loop run after --set")?,
+                open_loop_from_table(&table).context(origin)?,
             )),
         }
     }
