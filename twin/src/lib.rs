@@ -5,6 +5,7 @@ pub mod baseline;
 pub mod bench;
 pub mod engine;
 pub mod experiment;
+pub mod frames_to;
 pub mod nodes_build;
 pub mod observe;
 pub mod openloop;

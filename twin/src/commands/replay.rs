@@ -19,6 +19,12 @@ use super::run::Progress;
 /// `--set PATH=VALUE` changes a field of the stored scenario first (dotted as in
 /// its TOML, list items by name or index): `--set node.supervisor.kp=0.6`,
 /// `--set module.ev1.params.wheel.brake_torque_nm=3`, `--set seed=2`.
+///
+/// `--frames-to LINK` instead sends the recorded master requests of one bus to a
+/// live slave (`tcp://HOST:PORT` carrying the raw bus bytes, or a serial device or
+/// pseudo-terminal path) one at a time, and holds each reply against the recorded
+/// one. Replies carrying measurements differ in value from a slave whose plant
+/// runs on its own clock; missing, malformed or mismatched replies fail.
 #[derive(Debug, Args)]
 pub struct ReplayArgs {
     /// The recording to replay.
@@ -28,11 +34,29 @@ pub struct ReplayArgs {
     #[arg(long = "set", value_name = "PATH=VALUE")]
     overrides: Vec<String>,
     /// Where to write the replay's recording [default: RUN.replay.mcap beside RUN.mcap].
-    #[arg(long, value_name = "PATH")]
+    #[arg(long, value_name = "PATH", conflicts_with = "frames_to")]
     out: Option<PathBuf>,
+    /// Send the recorded master frames to a live slave instead of re-running.
+    #[arg(long, value_name = "LINK", conflicts_with = "overrides")]
+    frames_to: Option<String>,
+    /// With --frames-to: the bus whose frames to send [default: the only one].
+    #[arg(long, value_name = "NAME", requires = "frames_to")]
+    bus: Option<String>,
+    /// With --frames-to: how long to wait for each reply.
+    #[arg(long, value_name = "MS", default_value_t = 500, requires = "frames_to")]
+    timeout_ms: u64,
+    /// With --frames-to: send only the first N requests.
+    #[arg(long, value_name = "N", requires = "frames_to")]
+    limit: Option<usize>,
+    /// With --frames-to: how many differing replies to print.
+    #[arg(long, value_name = "N", default_value_t = 10, requires = "frames_to")]
+    show: usize,
 }
 
 pub fn execute(args: &ReplayArgs) -> Result<()> {
+    if let Some(link) = &args.frames_to {
+        return frames_to(args, link);
+    }
     let recorded = Recording::read(&args.recording)?;
     let spec = RunSpec::from_recording(&recorded)?;
     let version = recorded.run_field("twin_version").unwrap_or("unknown");
@@ -137,4 +161,88 @@ fn metadata_differences(a: &Recording, b: &Recording) -> Vec<String> {
         }
     }
     keys
+}
+
+fn frames_to(args: &ReplayArgs, link_spec: &str) -> Result<()> {
+    use twin::frames_to::{Link, Verdict, replay_frames, show};
+    let recorded = Recording::read(&args.recording)?;
+    if let Some(why) = &recorded.truncated {
+        println!("note: {}: {why}", args.recording.display());
+    }
+    let mut link = Link::open(link_spec)?;
+    let started = Instant::now();
+    let mut progress = Progress::new();
+    let report = replay_frames(
+        &recorded,
+        &mut link,
+        args.bus.as_deref(),
+        std::time::Duration::from_millis(args.timeout_ms),
+        args.limit,
+        |done| progress.show(done),
+    )?;
+    progress.clear();
+    let n = report.exchanges.len();
+    println!(
+        "twin replay --frames-to {link_spec}: {n} requests of {} on bus {} from {}, in {:.2} s",
+        report.masters.join(", "),
+        report.bus,
+        args.recording.display(),
+        started.elapsed().as_secs_f64()
+    );
+    let [same, values, missing, unexpected, different] = [
+        Verdict::Same,
+        Verdict::ValuesDiffer,
+        Verdict::Missing,
+        Verdict::Unexpected,
+        Verdict::Different,
+    ]
+    .map(|v| report.count(v));
+    println!("  {same} replies as recorded, byte for byte");
+    println!(
+        "  {values} replies differ in their values only (same id, command and length: \
+         a live plant's measurements and timing differ from the recorded run's)"
+    );
+    println!(
+        "  {missing} missing (no reply within {} ms), {unexpected} unexpected, {different} different \
+         (fail their check or answer something else)",
+        args.timeout_ms
+    );
+    if report.stray_bytes > 0 {
+        println!(
+            "  {} stray bytes arrived between exchanges",
+            report.stray_bytes
+        );
+    }
+    let differing: Vec<_> = report
+        .exchanges
+        .iter()
+        .filter(|e| e.verdict != Verdict::Same)
+        .take(args.show)
+        .collect();
+    if !differing.is_empty() {
+        println!("  first differences (recorded time, request, recorded reply, live reply):");
+    }
+    for e in differing {
+        println!("    [{:9.3} s] {:?}", e.time_s, e.verdict);
+        println!("      request   {}", show(&e.request));
+        println!(
+            "      recorded  {}",
+            e.recorded.as_deref().map_or_else(|| "(none)".into(), show)
+        );
+        println!(
+            "      live      {}",
+            if e.live.is_empty() {
+                "(none)".into()
+            } else {
+                show(&e.live)
+            }
+        );
+    }
+    if missing + unexpected + different > 0 {
+        bail!(
+            "{} of {n} replies are missing, unexpected or different",
+            missing + unexpected + different
+        );
+    }
+    Ok(())
 }

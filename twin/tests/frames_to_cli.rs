@@ -1,0 +1,220 @@
+//! `twin replay --frames-to`: the recorded master requests go out on a real
+//! TCP socket (port 0, chosen by the system) and a real pseudo-terminal pair
+//! (socat) to a slave that answers from a script: the recorded replies, one
+//! with a changed value (correctly checked), one withheld, one with a broken
+//! check. The replay must count and show exactly those.
+
+use nodes::proto::meb::{MebRepr, MebWords};
+use std::io::{Read, Write};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use twin::engine::FrameKind;
+use twin::recording::Recording;
+
+fn twin(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_twin"))
+        .args(args)
+        .output()
+        .expect("twin runs")
+}
+
+fn text(o: &Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
+}
+
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("twin-frames-to-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    dir.join(name)
+}
+
+const REQUESTS: usize = 12;
+const CHANGED: usize = 3;
+const WITHHELD: usize = 5;
+const BROKEN: usize = 8;
+
+/// The slave's script: per request, the reply to send (None: stay silent).
+fn script(recording: &Path) -> Vec<(Vec<u8>, Option<Vec<u8>>)> {
+    let frames = Recording::read(recording).expect("recording").frames();
+    let mut out = Vec::new();
+    for (i, f) in frames.iter().enumerate() {
+        if f.from != "supervisor" {
+            continue;
+        }
+        let reply = frames
+            .get(i + 1)
+            .filter(|r| r.from != "supervisor")
+            .map(|r| r.bytes.clone());
+        out.push((f.bytes.clone(), reply));
+    }
+    out.truncate(REQUESTS);
+    // Request CHANGED gets a reply with its first data word moved by one,
+    // re-emitted with a good FCS; BROKEN gets one byte flipped.
+    let reply = out[CHANGED].1.as_mut().expect("recorded reply");
+    let mut repr = MebRepr::parse(reply).expect("MEB reply");
+    let mut words: Vec<u16> = repr.data.as_slice().to_vec();
+    assert!(!words.is_empty(), "a reply with data: {repr:?}");
+    words[0] ^= 1;
+    repr.data = MebWords::from_slice(&words).unwrap();
+    let mut buf = [0u8; 512];
+    let n = repr.emit(&mut buf).unwrap();
+    *reply = buf[..n].to_vec();
+    out[WITHHELD].1 = None;
+    let broken = out[BROKEN].1.as_mut().expect("recorded reply");
+    broken[3] = if broken[3] == b'1' { b'2' } else { b'1' };
+    out
+}
+
+/// Answer requests on `io` from the script until it runs out.
+fn serve(mut io: impl Read + Write, script: Vec<(Vec<u8>, Option<Vec<u8>>)>) {
+    let mut buf = Vec::new();
+    let mut byte = [0u8; 1];
+    for (request, reply) in script {
+        buf.clear();
+        while !FrameKind::of(&request).passes_check(&buf) {
+            if io.read(&mut byte).unwrap_or(0) == 0 {
+                return;
+            }
+            buf.push(byte[0]);
+        }
+        assert_eq!(buf, request, "the requests arrive as recorded");
+        if let Some(r) = reply {
+            io.write_all(&r).unwrap();
+            io.flush().unwrap();
+        }
+    }
+}
+
+fn recorded_run() -> PathBuf {
+    let out = scratch("ev-meb.mcap");
+    if !out.exists() {
+        let o = twin(&[
+            "run",
+            "ev-meb",
+            "--duration",
+            "0.5",
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        assert!(o.status.success(), "{}", text(&o));
+    }
+    out
+}
+
+fn check_report(o: &Output) {
+    let t = text(o);
+    assert!(!o.status.success(), "a missing reply fails: {t}");
+    let recorded = script(&recorded_run());
+    let silent_as_recorded = recorded.iter().filter(|(_, r)| r.is_none()).count() - 1;
+    assert!(
+        t.contains(&format!("{REQUESTS} requests of supervisor on bus rs485")),
+        "{t}"
+    );
+    assert!(
+        t.contains(&format!("  {} replies as recorded", REQUESTS - 3)),
+        "{silent_as_recorded} silent: {t}"
+    );
+    assert!(t.contains("  1 replies differ in their values only"), "{t}");
+    assert!(
+        t.contains("1 missing (no reply within 300 ms), 0 unexpected, 1 different"),
+        "{t}"
+    );
+    let order: Vec<&str> = t
+        .lines()
+        .filter_map(|l| l.trim().split_once("] ").map(|(_, v)| v))
+        .collect();
+    assert_eq!(order, ["ValuesDiffer", "Missing", "Different"], "{t}");
+}
+
+#[test]
+fn frames_to_a_tcp_slave_counts_changed_missing_and_broken_replies() {
+    let run = recorded_run();
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").expect("bind");
+    let port = listener.local_addr().unwrap().port();
+    let script = script(&run);
+    let slave = std::thread::spawn(move || {
+        let (stream, _) = listener.accept().expect("accept");
+        serve(stream, script);
+    });
+    let o = twin(&[
+        "replay",
+        run.to_str().unwrap(),
+        "--frames-to",
+        &format!("tcp://127.0.0.1:{port}"),
+        "--limit",
+        &REQUESTS.to_string(),
+        "--timeout-ms",
+        "300",
+    ]);
+    check_report(&o);
+    slave.join().expect("slave ran");
+}
+
+#[test]
+fn frames_to_a_pseudo_terminal_slave() {
+    let run = recorded_run();
+    let (a, b) = (scratch("ttyA"), scratch("ttyB"));
+    let mut socat = Command::new("socat")
+        .args([
+            format!("pty,raw,echo=0,link={}", a.display()),
+            format!("pty,raw,echo=0,link={}", b.display()),
+        ])
+        .spawn()
+        .expect("socat is installed (apt-get install socat)");
+    let started = std::time::Instant::now();
+    while !(a.exists() && b.exists()) {
+        assert!(started.elapsed().as_secs() < 10, "socat made no ptys");
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    let script = script(&run);
+    let b2 = b.clone();
+    let slave = std::thread::spawn(move || {
+        let io = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .open(&b2)
+            .expect("open pty");
+        serve(io, script);
+    });
+    let o = twin(&[
+        "replay",
+        run.to_str().unwrap(),
+        "--frames-to",
+        a.to_str().unwrap(),
+        "--limit",
+        &REQUESTS.to_string(),
+        "--timeout-ms",
+        "300",
+    ]);
+    check_report(&o);
+    slave.join().expect("slave ran");
+    let _ = socat.kill();
+    let _ = socat.wait();
+}
+
+#[test]
+fn frames_to_a_closed_port_says_so() {
+    let run = recorded_run();
+    let port = {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        l.local_addr().unwrap().port()
+    };
+    let o = twin(&[
+        "replay",
+        run.to_str().unwrap(),
+        "--frames-to",
+        &format!("tcp://127.0.0.1:{port}"),
+    ]);
+    assert!(!o.status.success());
+    assert!(
+        text(&o).contains("cannot connect to 127.0.0.1"),
+        "{}",
+        text(&o)
+    );
+    let o = twin(&["replay", run.to_str().unwrap(), "--frames-to", "udp://x"]);
+    assert!(text(&o).contains("unknown link `udp://x`"), "{}", text(&o));
+}
