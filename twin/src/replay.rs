@@ -16,7 +16,7 @@ use crate::scenario::Scenario;
 #[derive(Debug, Clone)]
 pub enum RunSpec {
     Scenario(Scenario),
-    OpenLoop(OpenLoop),
+    OpenLoop(Box<OpenLoop>),
 }
 
 impl RunSpec {
@@ -152,7 +152,7 @@ fn open_loop_table(recording: &Recording) -> Result<Table> {
     Ok(t)
 }
 
-fn open_loop_from_table(t: &Table) -> Result<OpenLoop> {
+fn open_loop_from_table(t: &Table) -> Result<Box<OpenLoop>> {
     let preset = t
         .get("preset")
         .and_then(Value::as_str)
@@ -194,7 +194,7 @@ fn open_loop_from_table(t: &Table) -> Result<OpenLoop> {
             bail!("`{k}` must be a positive number, got {v}");
         }
     }
-    Ok(o)
+    Ok(Box::new(o))
 }
 
 /// A `--set` value: TOML (`3.0`, `true`, `[[0.5, 1000.0]]`, `"text"`), or

@@ -122,8 +122,8 @@ impl Recording {
     fn take(&mut self, record: Record<'_>, by_id: &mut BTreeMap<u16, usize>) -> Result<()> {
         match record {
             Record::Channel(c) => {
-                if !by_id.contains_key(&c.id) {
-                    by_id.insert(c.id, self.channels.len());
+                if let std::collections::btree_map::Entry::Vacant(e) = by_id.entry(c.id) {
+                    e.insert(self.channels.len());
                     self.channels.push(Channel {
                         topic: c.topic,
                         messages: Vec::new(),
