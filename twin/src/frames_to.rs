@@ -23,7 +23,7 @@ use crate::replay::RunSpec;
 
 /// How long the line must stay quiet after the last byte before a reply that
 /// has not passed its check is taken as complete.
-const QUIET: Duration = Duration::from_millis(30);
+const QUIET: Duration = Duration::from_millis(100);
 
 /// A live link: bytes out, and a stream of what comes back (read on a thread
 /// so that a reply can be waited for with a timeout on any kind of file).

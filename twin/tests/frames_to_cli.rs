@@ -89,9 +89,12 @@ fn serve(mut io: impl Read + Write, script: Vec<(Vec<u8>, Option<Vec<u8>>)>) {
     }
 }
 
+/// One half-second ev-meb run shared by the tests (made once: tests run in
+/// parallel and must not read it half-written).
 fn recorded_run() -> PathBuf {
-    let out = scratch("ev-meb.mcap");
-    if !out.exists() {
+    static RUN: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
+    RUN.get_or_init(|| {
+        let out = scratch("ev-meb.mcap");
         let o = twin(&[
             "run",
             "ev-meb",
@@ -101,22 +104,31 @@ fn recorded_run() -> PathBuf {
             out.to_str().unwrap(),
         ]);
         assert!(o.status.success(), "{}", text(&o));
+        out
+    })
+    .clone()
+}
+
+/// socat, stopped however the test ends.
+struct Socat(std::process::Child);
+
+impl Drop for Socat {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
     }
-    out
 }
 
 fn check_report(o: &Output) {
     let t = text(o);
     assert!(!o.status.success(), "a missing reply fails: {t}");
-    let recorded = script(&recorded_run());
-    let silent_as_recorded = recorded.iter().filter(|(_, r)| r.is_none()).count() - 1;
     assert!(
         t.contains(&format!("{REQUESTS} requests of supervisor on bus rs485")),
         "{t}"
     );
     assert!(
         t.contains(&format!("  {} replies as recorded", REQUESTS - 3)),
-        "{silent_as_recorded} silent: {t}"
+        "{t}"
     );
     assert!(t.contains("  1 replies differ in their values only"), "{t}");
     assert!(
@@ -158,13 +170,17 @@ fn frames_to_a_tcp_slave_counts_changed_missing_and_broken_replies() {
 fn frames_to_a_pseudo_terminal_slave() {
     let run = recorded_run();
     let (a, b) = (scratch("ttyA"), scratch("ttyB"));
-    let mut socat = Command::new("socat")
-        .args([
-            format!("pty,raw,echo=0,link={}", a.display()),
-            format!("pty,raw,echo=0,link={}", b.display()),
-        ])
-        .spawn()
-        .expect("socat is installed (apt-get install socat)");
+    let _socat = Socat(
+        Command::new("socat")
+            .args([
+                format!("pty,raw,echo=0,link={}", a.display()),
+                format!("pty,raw,echo=0,link={}", b.display()),
+            ])
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .expect("socat is installed (apt-get install socat)"),
+    );
     let started = std::time::Instant::now();
     while !(a.exists() && b.exists()) {
         assert!(started.elapsed().as_secs() < 10, "socat made no ptys");
@@ -192,8 +208,6 @@ fn frames_to_a_pseudo_terminal_slave() {
     ]);
     check_report(&o);
     slave.join().expect("slave ran");
-    let _ = socat.kill();
-    let _ = socat.wait();
 }
 
 #[test]
