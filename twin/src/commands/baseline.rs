@@ -79,8 +79,14 @@ pub fn execute(args: &BaselineArgs) -> Result<()> {
     let _ = std::fs::remove_dir_all(&scratch);
     if !failed.is_empty() {
         bail!(
-            "{} departs from its baseline (`twin baseline --record NAME` if that is intended)",
-            failed.join(", ")
+            "{} {} from {} baseline (re-record with `twin baseline --record NAME` if that is intended)",
+            failed.join(", "),
+            if failed.len() > 1 {
+                "depart"
+            } else {
+                "departs"
+            },
+            if failed.len() > 1 { "their" } else { "its" }
         );
     }
     Ok(())

@@ -114,10 +114,17 @@ pub fn execute(args: &ReplayArgs) -> Result<()> {
                 "  DEPARTS at {:.6} s on {}: recorded {}, replayed {}",
                 d.time_s, d.signal, d.recorded, d.replayed
             );
-            if d.other_fields > 0 {
+            if !d.other_fields.is_empty() {
+                let shown: Vec<&str> = d.other_fields.iter().take(8).map(String::as_str).collect();
                 println!(
-                    "    {} other field(s) of that message differ too",
-                    d.other_fields
+                    "    {} other field(s) of that message differ too: {}{}",
+                    d.other_fields.len(),
+                    shown.join(", "),
+                    if d.other_fields.len() > shown.len() {
+                        ", …"
+                    } else {
+                        ""
+                    }
                 );
             }
             println!("    {} channel(s) depart in all", d.channels_departing);

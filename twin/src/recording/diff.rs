@@ -19,7 +19,7 @@ pub struct Departure {
     pub recorded: String,
     pub replayed: String,
     /// Other fields of the same message that differ there too.
-    pub other_fields: usize,
+    pub other_fields: Vec<String>,
     /// Channels that depart at all.
     pub channels_departing: usize,
 }
@@ -66,7 +66,7 @@ fn channel_departure(
                 time_s: ma.time_s(),
                 recorded: format!("message {}", i + 1),
                 replayed: absent(),
-                other_fields: 0,
+                other_fields: Vec::new(),
                 channels_departing: 0,
             });
         };
@@ -76,7 +76,7 @@ fn channel_departure(
                 time_s: ma.time_s().min(mb.time_s()),
                 recorded: format!("message {} at {:.6} s", i + 1, ma.time_s()),
                 replayed: format!("at {:.6} s", mb.time_s()),
-                other_fields: 0,
+                other_fields: Vec::new(),
                 channels_departing: 0,
             });
         }
@@ -97,7 +97,7 @@ fn channel_departure(
                 time_s: ma.time_s(),
                 recorded: text(&fa),
                 replayed: text(&fb),
-                other_fields: differing.count(),
+                other_fields: differing.cloned().collect(),
                 channels_departing: 0,
             });
         }
@@ -110,7 +110,7 @@ fn channel_departure(
         time_s: mb.time_s(),
         recorded: absent(),
         replayed: format!("message {}", a.len() + 1),
-        other_fields: 0,
+        other_fields: Vec::new(),
         channels_departing: 0,
     })
 }
