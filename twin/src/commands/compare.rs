@@ -6,14 +6,15 @@ use std::path::PathBuf;
 use twin::recording::Recording;
 use twin::recording::compare::{self, Tolerances};
 
-/// Compare a recording with a baseline recording, signal by signal.
+/// Compare a recording with a baseline recording, signal by signal
 ///
 /// Every numeric field of every channel is a signal (`/plant/ev1/sensors.wheel_rpm`,
 /// `/master/supervisor/loop.loops.0.measured_rpm`, …). For each baseline sample
-/// the run's value is looked up at the same time (interpolated, within the
-/// signal's time shift) and must lie within `abs + rel·|baseline|`. Prints the
-/// worst sample of each signal and exits non-zero if any signal is beyond its
-/// tolerance or missing from the run. A recording cut short is compared up to
+/// the run's value is looked up at the same time (interpolated between sensor
+/// samples, held between events; anywhere within the signal's time shift) and
+/// must lie within `abs + rel·|baseline|`. Prints, per signal beyond tolerance,
+/// when it first went beyond and its worst sample, and exits non-zero if any
+/// signal is beyond its tolerance or missing from the run. A recording cut short is compared up to
 /// its last complete chunk.
 ///
 /// The defaults (abs 1e-9, rel 1e-9, no time shift) hold a deterministic re-run
