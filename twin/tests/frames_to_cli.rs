@@ -149,8 +149,11 @@ fn frames_to_a_tcp_slave_counts_changed_missing_and_broken_replies() {
     let port = listener.local_addr().unwrap().port();
     let script = script(&run);
     let slave = std::thread::spawn(move || {
-        let (stream, _) = listener.accept().expect("accept");
-        serve(stream, script);
+        let (mut stream, _) = listener.accept().expect("accept");
+        serve(&mut stream, script);
+        // Like a real slave, stay on the line until the master hangs up.
+        let mut rest = Vec::new();
+        let _ = stream.read_to_end(&mut rest);
     });
     let o = twin(&[
         "replay",
