@@ -75,7 +75,9 @@ impl Recording {
                 Ok(r) => r,
                 Err(e) => {
                     recording.truncated = Some(format!(
-                        "the file ends early ({e}); read up to its last complete chunk"
+                        "the file ends early or is damaged after {} complete chunk(s) ({e}); \
+                         read up to there",
+                        recording.chunks
                     ));
                     break;
                 }
