@@ -189,6 +189,9 @@ pub struct FramesReport {
     pub exchanges: Vec<Exchange>,
     /// Bytes that arrived between exchanges, unasked.
     pub stray_bytes: usize,
+    /// The run ended right after this many last requests, before any reply
+    /// could be recorded: they are not sent, as nothing can be said of them.
+    pub cut_off: usize,
 }
 
 impl FramesReport {
@@ -242,16 +245,26 @@ pub fn replay_frames(
         bail!("no master on bus `{bus}` in the recorded scenario");
     }
     let on_bus: Vec<&Frame> = frames.iter().filter(|f| f.bus == bus).collect();
-    let requests: Vec<usize> = on_bus
+    let mut requests: Vec<usize> = on_bus
         .iter()
         .enumerate()
         .filter(|(_, f)| masters.contains(&f.from))
         .map(|(i, _)| i)
-        .take(limit.unwrap_or(usize::MAX))
         .collect();
+    // A request that is the last frame on the bus was cut off by the end of
+    // the run: whether it got a reply is unknown.
+    let cut_off = match requests.last() {
+        Some(&i) if i + 1 == on_bus.len() => {
+            requests.pop();
+            1
+        }
+        _ => 0,
+    };
+    requests.truncate(limit.unwrap_or(usize::MAX));
     let mut report = FramesReport {
         bus,
         masters,
+        cut_off,
         ..Default::default()
     };
     report.stray_bytes += link.drain();

@@ -235,3 +235,138 @@ fn frames_to_a_closed_port_says_so() {
     let o = twin(&["replay", run.to_str().unwrap(), "--frames-to", "udp://x"]);
     assert!(text(&o).contains("unknown link `udp://x`"), "{}", text(&o));
 }
+
+/// A child process (socat, the Python slave), stopped however the test ends.
+struct Child(std::process::Child);
+
+impl Drop for Child {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+#[test]
+fn frames_to_a_pymodbus_rtu_slave_on_a_pseudo_terminal() {
+    // A peer we did not write: pymodbus' RTU server (unit 1, every register
+    // zero) on one end of a socat pty pair. The supervisor's writes (FC15
+    // start-up coils, FC06 VEL) come back as recorded, byte for byte; its
+    // FC04 reads come back as well-formed replies of the same length with
+    // the server's zeros instead of the plant's readings.
+    let scenario = scratch("ev-rtu.toml");
+    std::fs::write(
+        &scenario,
+        r#"name = "ev-rtu"
+duration_s = 0.3
+[[module]]
+name = "ev1"
+[[bus]]
+name = "rs485"
+[[node]]
+kind = "ev-controller"
+name = "ev1"
+bus = "rs485"
+module = "ev1"
+protocol = "modbus-rtu"
+[[node]]
+kind = "supervisor"
+name = "supervisor"
+bus = "rs485"
+slaves = [1]
+protocol = "modbus-rtu"
+kp = 0.45
+ki = 2.5
+set_points = [[0.0, 0.0], [0.1, 1500.0]]
+"#,
+    )
+    .unwrap();
+    let run = scratch("ev-rtu.mcap");
+    let o = twin(&[
+        "run",
+        scenario.to_str().unwrap(),
+        "--out",
+        run.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    let (a, b) = (scratch("rtuA"), scratch("rtuB"));
+    let _socat = Child(
+        Command::new("socat")
+            .args([
+                format!("pty,raw,echo=0,link={}", a.display()),
+                format!("pty,raw,echo=0,link={}", b.display()),
+            ])
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .expect("socat is installed (apt-get install socat)"),
+    );
+    let started = std::time::Instant::now();
+    while !(a.exists() && b.exists()) {
+        assert!(started.elapsed().as_secs() < 10, "socat made no ptys");
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    let script = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/peers/pymodbus_rtu_slave.py"
+    );
+    let mut slave = Child(
+        Command::new("python3")
+            .args([script, b.to_str().unwrap()])
+            .stdout(std::process::Stdio::piped())
+            .spawn()
+            .expect("python3 runs"),
+    );
+    // The slave says when it serves.
+    let mut line = [0u8; 8];
+    slave
+        .0
+        .stdout
+        .take()
+        .unwrap()
+        .read_exact(&mut line)
+        .expect("pymodbus (and pyserial) installed: the slave starts");
+    assert_eq!(&line, b"serving\n");
+
+    let requests: Vec<u8> = Recording::read(&run)
+        .unwrap()
+        .frames()
+        .iter()
+        .filter(|f| f.from == "supervisor")
+        .map(|f| f.bytes[1])
+        .collect();
+    // The last request of the run has no recorded reply: it is not sent.
+    let sent = &requests[..requests.len() - 1];
+    let reads = sent.iter().filter(|&&f| f == 4).count();
+    assert!(
+        reads > 10 && sent.contains(&15) && sent.contains(&6),
+        "{sent:?}"
+    );
+
+    let o = twin(&[
+        "replay",
+        run.to_str().unwrap(),
+        "--frames-to",
+        a.to_str().unwrap(),
+        "--timeout-ms",
+        "1000",
+    ]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert!(
+        t.contains(&format!("{} requests of supervisor", sent.len())),
+        "{t}"
+    );
+    assert!(
+        t.contains(&format!("  {} replies as recorded", sent.len() - reads)),
+        "{t}"
+    );
+    assert!(
+        t.contains(&format!("  {reads} replies differ in their values only")),
+        "{t}"
+    );
+    assert!(
+        t.contains("0 missing (no reply within 1000 ms), 0 unexpected, 0 different"),
+        "{t}"
+    );
+    assert!(t.contains("live      01 04 0c 00 00 00 00"), "{t}");
+}

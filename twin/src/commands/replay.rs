@@ -214,6 +214,11 @@ fn frames_to(args: &ReplayArgs, link_spec: &str) -> Result<()> {
          (fail their check or answer something else)",
         args.timeout_ms
     );
+    if report.cut_off > 0 && args.limit.is_none_or(|l| l >= n + report.cut_off) {
+        println!(
+            "  the last request was not sent: the recorded run ended before its reply could come"
+        );
+    }
     if report.stray_bytes > 0 {
         println!(
             "  {} stray bytes arrived between exchanges",
