@@ -371,3 +371,33 @@ fn a_killed_run_leaves_a_recording_that_compares_and_exports() {
     assert!(text(&o).contains("the run is cut short"), "{}", text(&o));
     assert!(o.status.success(), "{}", text(&o));
 }
+
+#[test]
+fn baseline_records_checks_and_names_a_missing_one() {
+    let dir = scratch("baselines");
+    let o = twin(&["baseline", "ev-meb", "--dir", s(&dir)]);
+    assert!(!o.status.success());
+    assert!(
+        text(&o).contains("no baseline for `ev-meb`")
+            && text(&o).contains("twin baseline --record ev-meb"),
+        "{}",
+        text(&o)
+    );
+    let o = twin(&["baseline", "ev-meb", "--record", "--dir", s(&dir)]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(dir.join("ev-meb.mcap").exists());
+    let o = twin(&["baseline", "ev-meb", "--dir", s(&dir)]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(
+        text(&o).contains("ev-meb               pass"),
+        "{}",
+        text(&o)
+    );
+    let o = twin(&["baseline", "no-such-scenario", "--dir", s(&dir)]);
+    assert!(!o.status.success());
+    assert!(
+        text(&o).contains("no embedded scenario `no-such-scenario`"),
+        "{}",
+        text(&o)
+    );
+}

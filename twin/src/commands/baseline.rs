@@ -35,6 +35,13 @@ pub fn execute(args: &BaselineArgs) -> Result<()> {
     } else {
         args.scenarios.clone()
     };
+    let known = baseline::names();
+    if let Some(unknown) = names.iter().find(|n| !known.contains(&n.as_str())) {
+        bail!(
+            "no embedded scenario `{unknown}`: baselines exist for {}",
+            known.join(", ")
+        );
+    }
     if args.record {
         for name in &names {
             let path = baseline::record(&args.dir, name)?;
@@ -79,14 +86,11 @@ pub fn execute(args: &BaselineArgs) -> Result<()> {
     let _ = std::fs::remove_dir_all(&scratch);
     if !failed.is_empty() {
         bail!(
-            "{} {} from {} baseline (re-record with `twin baseline --record NAME` if that is intended)",
-            failed.join(", "),
-            if failed.len() > 1 {
-                "depart"
-            } else {
-                "departs"
-            },
-            if failed.len() > 1 { "their" } else { "its" }
+            "{} of {} scenario(s) do not match their baseline ({}); re-record with \
+             `twin baseline --record NAME` if the change is intended",
+            failed.len(),
+            names.len(),
+            failed.join(", ")
         );
     }
     Ok(())
