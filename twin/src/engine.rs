@@ -39,6 +39,24 @@ pub trait SimNode: Node {
     fn final_state(&self) -> Option<serde_json::Value> {
         None
     }
+    /// What the node's own speed sensors read now (firmware nodes).
+    fn speed_readings(&self) -> SpeedReadings {
+        SpeedReadings::default()
+    }
+}
+
+/// A firmware node's speed estimates, as its registers hold them.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct SpeedReadings {
+    /// Wheel rpm from the hall edges (the EV controller's `RPM_M`).
+    pub hall_wheel_rpm: Option<f64>,
+    /// Motor-shaft rpm from an encoder (seed 002's motor node, register 0005).
+    pub motor_shaft_rpm: Option<f64>,
+    /// Wheel rpm from the photoresistor's dips.
+    pub light_rpm: Option<f64>,
+    /// The speed the node's own loop holds, motor rpm (seed 002's motor
+    /// node: its set point while operational, 0 otherwise).
+    pub set_point_motor_rpm: Option<f64>,
 }
 
 /// One bench module and the plant time it has reached.

@@ -13,4 +13,5 @@ pub mod record;
 pub mod recording;
 pub mod replay;
 pub mod scenario;
+pub mod view;
 pub mod virtual_run;

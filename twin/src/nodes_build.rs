@@ -2,7 +2,7 @@
 //! objects, and what the engine needs from each kind of node.
 
 use anyhow::{Result, bail};
-use nodes::firmware::{EvController, EvControllerConfig, SlaveProtocol};
+use nodes::firmware::{EvController, EvControllerConfig, SlaveProtocol, ea};
 use nodes::link::{BusConfig, CheckKind, Fault, FaultWindow, FaultyNode, PortId, SimBus, Wiring};
 use nodes::master::Supervisor;
 use nodes::master::{Protocol, SetPointStep, SlaveLoopConfig, SpeedSource, SupervisorConfig};
@@ -12,7 +12,7 @@ use nodes::time::{SimDuration, SimTime};
 use plant::PlantParams;
 use serde_json::{Value, json};
 
-use crate::engine::SimNode;
+use crate::engine::{SimNode, SpeedReadings};
 use crate::scenario::{BusSpec, FaultKind, FaultSpec, NodeSpec, ProtocolSpec, WiringSpec};
 
 fn ms(v: f64) -> SimDuration {
@@ -181,6 +181,14 @@ impl SimNode for FaultyNode<EvController> {
     fn firmware(&mut self) -> Option<&mut dyn Firmware> {
         Some(self.inner_mut())
     }
+    fn speed_readings(&self) -> SpeedReadings {
+        let inputs = &self.inner().image().inputs;
+        SpeedReadings {
+            hall_wheel_rpm: Some(f64::from(inputs[ea::RPM_M])),
+            light_rpm: Some(f64::from(inputs[ea::RPM_L])),
+            ..SpeedReadings::default()
+        }
+    }
 }
 
 impl SimNode for FaultyNode<MotorNode> {
@@ -193,6 +201,19 @@ impl SimNode for FaultyNode<MotorNode> {
             json!({ "state": format!("{:?}", m.state()), "set_point": m.set_point(),
                      "latched_rpm": m.latched_rpm(), "duty": m.duty() }),
         )
+    }
+    fn speed_readings(&self) -> SpeedReadings {
+        let m = self.inner();
+        let running = m.state() == nodes::seed002::MotorState::Operational;
+        SpeedReadings {
+            motor_shaft_rpm: Some(f64::from(m.latched_rpm())),
+            set_point_motor_rpm: Some(if running {
+                f64::from(m.set_point())
+            } else {
+                0.0
+            }),
+            ..SpeedReadings::default()
+        }
     }
 }
 
@@ -209,6 +230,12 @@ impl SimNode for FaultyNode<LightNode> {
         Some(
             json!({ "rpm": l.rpm(), "raw_rpm": l.raw_rpm(), "register": l.register_value(), "edges": l.edges() }),
         )
+    }
+    fn speed_readings(&self) -> SpeedReadings {
+        SpeedReadings {
+            light_rpm: Some(self.inner().rpm()),
+            ..SpeedReadings::default()
+        }
     }
 }
 

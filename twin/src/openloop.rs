@@ -20,6 +20,9 @@ pub struct OpenLoop {
     /// `VEL` step: time (s) and level (fraction of 5 V).
     pub vel_step_at_s: f64,
     pub vel_fraction: f64,
+    /// `VEL` before the step (fraction of 5 V); 0 unless a step experiment
+    /// starts from a running wheel.
+    pub vel_before_fraction: f64,
     /// Plant-state messages per simulated second.
     pub record_hz: f64,
 }
@@ -34,6 +37,7 @@ impl OpenLoop {
             step_s: 1e-3,
             vel_step_at_s: 0.5,
             vel_fraction: 0.6,
+            vel_before_fraction: 0.0,
             record_hz: 1000.0,
         }
     }
@@ -43,7 +47,7 @@ impl OpenLoop {
         let vel = if t + 1e-12 >= self.vel_step_at_s {
             5.0 * self.vel_fraction
         } else {
-            0.0
+            5.0 * self.vel_before_fraction
         };
         Actuators {
             enable: true,
@@ -65,7 +69,18 @@ pub struct Summary {
 
 /// Run the bench and record it to `out`; `progress` is called with the
 /// fraction done about every 1 % of the run.
-pub fn run(config: &OpenLoop, out: &Path, mut progress: impl FnMut(f64)) -> Result<Summary> {
+pub fn run(config: &OpenLoop, out: &Path, progress: impl FnMut(f64)) -> Result<Summary> {
+    run_with(config, out, progress, |_, _| Ok(()))
+}
+
+/// [`run`], calling `after_step` with the recording and the sensors after
+/// every plant step (an experiment's own instruments read the bench there).
+pub fn run_with(
+    config: &OpenLoop,
+    out: &Path,
+    mut progress: impl FnMut(f64),
+    mut after_step: impl FnMut(&mut crate::record::Recorder, &Sensors) -> Result<()>,
+) -> Result<Summary> {
     let mut module = EvModule::new(&config.params, config.seed);
     let mut rec = crate::record::Recorder::create(out)?;
     rec.write_metadata("twin.run", run_metadata(config)?)?;
@@ -88,6 +103,7 @@ pub fn run(config: &OpenLoop, out: &Path, mut progress: impl FnMut(f64)) -> Resu
         if (k + 1) % record_every == 0 {
             rec.write("/plant/sensors", sensors.time_s, sensors)?;
         }
+        after_step(&mut rec, sensors)?;
         if k % progress_every == 0 {
             progress(k as f64 / steps as f64);
         }
@@ -104,7 +120,7 @@ pub fn run(config: &OpenLoop, out: &Path, mut progress: impl FnMut(f64)) -> Resu
 }
 
 fn run_metadata(config: &OpenLoop) -> Result<BTreeMap<String, String>> {
-    Ok(BTreeMap::from([
+    let mut fields = BTreeMap::from([
         ("kind".into(), "open-loop".into()),
         ("twin_version".into(), env!("CARGO_PKG_VERSION").into()),
         ("preset".into(), config.preset.clone()),
@@ -115,5 +131,13 @@ fn run_metadata(config: &OpenLoop) -> Result<BTreeMap<String, String>> {
         ("vel_fraction".into(), config.vel_fraction.to_string()),
         ("record_hz".into(), config.record_hz.to_string()),
         ("params_toml".into(), toml::to_string(&config.params)?),
-    ]))
+    ]);
+    // Only when set, so that a plain open-loop run's file stays as it was.
+    if config.vel_before_fraction != 0.0 {
+        fields.insert(
+            "vel_before_fraction".into(),
+            config.vel_before_fraction.to_string(),
+        );
+    }
+    Ok(fields)
 }

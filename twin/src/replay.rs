@@ -88,6 +88,10 @@ impl RunSpec {
                 t.insert("step_s".into(), Value::Float(o.step_s));
                 t.insert("vel_step_at_s".into(), Value::Float(o.vel_step_at_s));
                 t.insert("vel_fraction".into(), Value::Float(o.vel_fraction));
+                t.insert(
+                    "vel_before_fraction".into(),
+                    Value::Float(o.vel_before_fraction),
+                );
                 t.insert("record_hz".into(), Value::Float(o.record_hz));
                 t.insert("params".into(), Value::Table(Table::try_from(&o.params)?));
                 t
@@ -146,6 +150,12 @@ fn open_loop_table(recording: &Recording) -> Result<Table> {
         None => 1000.0,
     };
     t.insert("record_hz".into(), Value::Float(hz));
+    // Written only when a step starts from a running wheel.
+    let before = match recording.run_field("vel_before_fraction") {
+        Some(_) => number("vel_before_fraction")?,
+        None => 0.0,
+    };
+    t.insert("vel_before_fraction".into(), Value::Float(before));
     let params: Table = toml::from_str(field("params_toml")?)
         .with_context(|| format!("{origin}: `params_toml` is not TOML"))?;
     t.insert("params".into(), Value::Table(params));
@@ -184,6 +194,10 @@ fn open_loop_from_table(t: &Table) -> Result<Box<OpenLoop>> {
     o.step_s = number("step_s")?;
     o.vel_step_at_s = number("vel_step_at_s")?;
     o.vel_fraction = number("vel_fraction")?;
+    o.vel_before_fraction = match t.get("vel_before_fraction") {
+        Some(_) => number("vel_before_fraction")?,
+        None => 0.0,
+    };
     o.record_hz = number("record_hz")?;
     for (k, v) in [
         ("duration_s", o.duration_s),

@@ -82,7 +82,51 @@ pub fn build(scenario: &Scenario) -> Result<Engine> {
 }
 
 /// Run `scenario` and record it to `out`; `progress` gets the fraction done.
-pub fn run(scenario: &Scenario, out: &Path, mut progress: impl FnMut(f64)) -> Result<RunOutcome> {
+pub fn run(scenario: &Scenario, out: &Path, progress: impl FnMut(f64)) -> Result<RunOutcome> {
+    run_with(scenario, out, &mut crate::bench::DiscardObserver, progress)
+}
+
+/// Like [`run`], with `also` fed everything the recorder is (a live view).
+pub fn run_with(
+    scenario: &Scenario,
+    out: &Path,
+    also: &mut dyn crate::engine::Observer,
+    progress: impl FnMut(f64),
+) -> Result<RunOutcome> {
+    run_observed(scenario, out, also, progress, None, |_, _, _| Ok(()))
+}
+
+/// [`run`], pausing every `sample_every` of simulated time to call
+/// `on_sample` with the time, the engine and the recorder (an experiment
+/// reads the nodes' registers there and records what it measured). Pausing
+/// changes nothing in the run itself.
+pub fn run_sampled(
+    scenario: &Scenario,
+    out: &Path,
+    progress: impl FnMut(f64),
+    sample_every: Option<SimDuration>,
+    on_sample: impl FnMut(SimTime, &Engine, &mut Recorder) -> Result<()>,
+) -> Result<RunOutcome> {
+    let mut discard = crate::bench::DiscardObserver;
+    run_observed(
+        scenario,
+        out,
+        &mut discard,
+        progress,
+        sample_every,
+        on_sample,
+    )
+}
+
+/// The run behind [`run_with`] and [`run_sampled`].
+fn run_observed(
+    scenario: &Scenario,
+    out: &Path,
+    also: &mut dyn crate::engine::Observer,
+    mut progress: impl FnMut(f64),
+    sample_every: Option<SimDuration>,
+    mut on_sample: impl FnMut(SimTime, &Engine, &mut Recorder) -> Result<()>,
+) -> Result<RunOutcome> {
     let mut engine = build(scenario)?;
     let mut recorder = Recorder::create(out)?;
     recorder.write_metadata(
@@ -97,9 +141,25 @@ pub fn run(scenario: &Scenario, out: &Path, mut progress: impl FnMut(f64)) -> Re
     )?;
     let mut observer = McapObserver::new(recorder);
     let end = SimTime::ZERO + SimDuration::from_secs_f64(scenario.duration_s);
-    engine.run_until(end, &mut observer, |t| {
-        progress(t.as_secs_f64() / scenario.duration_s)
-    })?;
+    let mut both = crate::view::Tee {
+        first: &mut observer,
+        second: also,
+    };
+    match sample_every.filter(|p| *p > SimDuration::ZERO) {
+        None => engine.run_until(end, &mut both, |t| {
+            progress(t.as_secs_f64() / scenario.duration_s)
+        })?,
+        Some(period) => {
+            let mut t = SimTime::ZERO;
+            on_sample(t, &engine, &mut both.first.recorder)?;
+            while t < end {
+                t = (t + period).min(end);
+                engine.run_until(t, &mut both, |_| {})?;
+                on_sample(t, &engine, &mut both.first.recorder)?;
+                progress(t.as_secs_f64() / scenario.duration_s);
+            }
+        }
+    }
     progress(1.0);
     let modules = engine
         .modules

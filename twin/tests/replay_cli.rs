@@ -161,6 +161,32 @@ fn an_open_loop_replay_names_the_vel_step() {
         "{}",
         text(&o)
     );
+
+    // A step from a running wheel (VEL before the step, as `twin step` runs
+    // it): the change shows at once, and the new recording replays exactly.
+    let moving = scratch("ol3.replay.mcap");
+    let o = twin(&[
+        "replay",
+        s(&run),
+        "--out",
+        s(&moving),
+        "--set",
+        "vel_before_fraction=0.2",
+    ]);
+    assert!(
+        text(&o).contains(
+            "DEPARTS at 0.000000 s on /plant/actuators.vel_volts: recorded 0.0, replayed 1.0"
+        ),
+        "{}",
+        text(&o)
+    );
+    let o = twin(&[
+        "replay",
+        s(&moving),
+        "--out",
+        s(&scratch("ol4.replay.mcap")),
+    ]);
+    assert!(text(&o).contains("byte-identical"), "{}", text(&o));
 }
 
 #[test]

@@ -7,3 +7,6 @@ pub mod experiment;
 pub mod export;
 pub mod replay;
 pub mod run;
+pub mod step;
+pub mod sweep;
+pub mod view;

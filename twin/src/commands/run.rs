@@ -9,6 +9,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 use twin::openloop::{self, OpenLoop};
 use twin::scenario::{EMBEDDED, Scenario};
+use twin::view::{self, RerunObserver, ViewLayout, ViewTarget};
 use twin::virtual_run;
 
 /// Run a scenario in simulated time, far faster than real time, and record it.
@@ -39,6 +40,19 @@ pub struct RunArgs {
     /// Seed of every random draw (noise, bit errors) [default: the scenario's; 1].
     #[arg(long)]
     seed: Option<u64>,
+    /// Stream the run to rerun as it goes, beside the MCAP recording:
+    /// `--view` opens a viewer (or uses the one already running),
+    /// `--view rerun+http://HOST:PORT/proxy` streams to a running viewer,
+    /// `--view FILE.rrd` writes the stream to a file. Without a viewer the
+    /// run goes on and records as usual.
+    #[arg(
+        long,
+        value_name = "TARGET",
+        num_args = 0..=1,
+        default_missing_value = "spawn",
+        conflicts_with = "open_loop"
+    )]
+    view: Option<String>,
     /// Open loop: bench to simulate, `vemodule` (the EV module of seed 000) or
     /// `controller-network` (the geared motor + light sensor of seed 002).
     #[arg(
@@ -102,10 +116,19 @@ pub fn execute(args: &RunArgs) -> Result<()> {
         .out
         .clone()
         .unwrap_or_else(|| PathBuf::from(format!("{}.mcap", scenario.name)));
+    let mut live = match &args.view {
+        Some(target) => open_live_view(target, &scenario)?,
+        None => None,
+    };
     let started = Instant::now();
     let mut progress = Progress::new();
-    let outcome = virtual_run::run(&scenario, &out, |done| progress.show(done))
-        .with_context(|| format!("scenario {} failed", scenario.name))?;
+    let outcome = match live.as_mut() {
+        Some(observer) => {
+            virtual_run::run_with(&scenario, &out, observer, |done| progress.show(done))
+        }
+        None => virtual_run::run(&scenario, &out, |done| progress.show(done)),
+    }
+    .with_context(|| format!("scenario {} failed", scenario.name))?;
     progress.clear();
     let wall = started.elapsed().as_secs_f64();
     println!(
@@ -159,7 +182,27 @@ pub fn execute(args: &RunArgs) -> Result<()> {
         outcome.simulated_s / wall.max(1e-9)
     );
     println!("recording: {}", outcome.recording.display());
+    if let Some(observer) = live {
+        let samples: u64 = observer.logger.samples.values().sum();
+        match observer.finish() {
+            Ok(()) => println!("live view: {samples} samples streamed to rerun"),
+            Err(e) => eprintln!("warning: {e:#}; the MCAP recording is complete"),
+        }
+    }
     Ok(())
+}
+
+/// The live rerun view of `--view TARGET`, or `None` (with the reason on
+/// stderr) when none can be opened: the run goes on without it.
+fn open_live_view(target: &str, scenario: &Scenario) -> Result<Option<RerunObserver>> {
+    let layout = ViewLayout::of_scenario(scenario)?;
+    match view::live_view(&ViewTarget::parse(target), &scenario.name, layout) {
+        Ok(observer) => Ok(Some(observer)),
+        Err(e) => {
+            eprintln!("twin run --view: {e:#}; running without the live view");
+            Ok(None)
+        }
+    }
 }
 
 /// A node's end-of-run state: masters' loops spelled out, others as JSON.
