@@ -29,6 +29,10 @@ enum Command {
     Vsp(commands::vsp::VspArgs),
     Supervise(commands::supervise::SuperviseArgs),
     Client(commands::client::ClientArgs),
+    Replay(commands::replay::ReplayArgs),
+    Compare(commands::compare::CompareArgs),
+    Export(commands::export::ExportArgs),
+    Baseline(commands::baseline::BaselineArgs),
 }
 
 fn main() -> ExitCode {
@@ -44,6 +48,10 @@ fn main() -> ExitCode {
         Command::Vsp(args) => commands::vsp::execute(&args),
         Command::Supervise(args) => commands::supervise::execute(&args),
         Command::Client(args) => commands::client::execute(&args),
+        Command::Replay(args) => commands::replay::execute(&args),
+        Command::Compare(args) => commands::compare::execute(&args),
+        Command::Export(args) => commands::export::execute(&args),
+        Command::Baseline(args) => commands::baseline::execute(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

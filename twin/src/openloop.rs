@@ -129,6 +129,7 @@ fn run_metadata(config: &OpenLoop) -> Result<BTreeMap<String, String>> {
         ("step_s".into(), config.step_s.to_string()),
         ("vel_step_at_s".into(), config.vel_step_at_s.to_string()),
         ("vel_fraction".into(), config.vel_fraction.to_string()),
+        ("record_hz".into(), config.record_hz.to_string()),
         ("params_toml".into(), toml::to_string(&config.params)?),
     ]);
     // Only when set, so that a plain open-loop run's file stays as it was.

@@ -20,6 +20,11 @@ const ZSTD_LEVEL: u32 = 3;
 /// Uncompressed bytes per chunk (the MCAP library's default, set explicitly so
 /// that a library upgrade cannot change the file layout).
 const CHUNK_SIZE: u64 = 1024 * 1024;
+/// The open chunk is closed and written out once per simulated second: a
+/// process killed mid-run loses at most about a second (a real-time run's
+/// second is a wall-clock second), and since the cadence is simulated time the
+/// chunk boundaries, like every other byte, depend only on the run.
+const FLUSH_EVERY_NS: u64 = 1_000_000_000;
 
 /// An open recording.
 pub struct Recorder {
@@ -29,6 +34,8 @@ pub struct Recorder {
     channels: Vec<(u16, u32)>,
     topics: BTreeMap<String, ChannelId>,
     buffer: Vec<u8>,
+    /// Simulated time (ns) at or after which the next message first flushes.
+    next_flush_ns: u64,
 }
 
 /// A channel of an open recording: writing through it skips the topic lookup.
@@ -89,6 +96,7 @@ impl Recorder {
             channels: Vec::new(),
             topics: BTreeMap::new(),
             buffer: Vec::new(),
+            next_flush_ns: FLUSH_EVERY_NS,
         })
     }
 
@@ -139,6 +147,12 @@ impl Recorder {
         self.buffer.clear();
         serde_json::to_writer(&mut self.buffer, message)?;
         let time_ns = (time_s * 1e9).round() as u64;
+        if time_ns >= self.next_flush_ns {
+            self.writer
+                .flush()
+                .with_context(|| format!("cannot write {}", self.path.display()))?;
+            self.next_flush_ns = (time_ns / FLUSH_EVERY_NS + 1) * FLUSH_EVERY_NS;
+        }
         let header = MessageHeader {
             channel_id: *channel_id,
             sequence: *sequence,

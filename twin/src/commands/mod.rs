@@ -1,8 +1,12 @@
 //! One file per subcommand; each parses its arguments and calls library code.
 
+pub mod baseline;
 pub mod bench;
 pub mod client;
+pub mod compare;
 pub mod experiment;
+pub mod export;
+pub mod replay;
 pub mod run;
 pub mod step;
 pub mod sweep;
