@@ -65,12 +65,12 @@ pub fn execute(args: &BaselineArgs) -> Result<()> {
             Ok(c) if c.passed() => {
                 let samples: usize = c.rows.iter().map(|r| r.samples).sum();
                 println!(
-                    "  {name:<20} pass  {} signals, {samples} samples, {wall:.2} s",
+                    "  {name:<24} pass  {} signals, {samples} samples, {wall:.2} s",
                     c.rows.len()
                 );
             }
             Ok(c) => {
-                println!("  {name:<20} FAIL");
+                println!("  {name:<24} FAIL");
                 if let Some(m) = &c.span_mismatch {
                     println!("    time span differs: {m}");
                 }
@@ -78,7 +78,7 @@ pub fn execute(args: &BaselineArgs) -> Result<()> {
                 failed.push(name.clone());
             }
             Err(e) => {
-                println!("  {name:<20} ERROR {e:#}");
+                println!("  {name:<24} ERROR {e:#}");
                 failed.push(name.clone());
             }
         }
