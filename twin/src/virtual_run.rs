@@ -108,7 +108,14 @@ pub fn run_sampled(
     on_sample: impl FnMut(SimTime, &Engine, &mut Recorder) -> Result<()>,
 ) -> Result<RunOutcome> {
     let mut discard = crate::bench::DiscardObserver;
-    run_observed(scenario, out, &mut discard, progress, sample_every, on_sample)
+    run_observed(
+        scenario,
+        out,
+        &mut discard,
+        progress,
+        sample_every,
+        on_sample,
+    )
 }
 
 /// The run behind [`run_with`] and [`run_sampled`].

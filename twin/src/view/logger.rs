@@ -14,7 +14,8 @@
 //! | `<m>/photoresistor/dips` | the firmware's detector run on the recorded samples | dip |
 //! | `<m>/flag/in_beam`, `<m>/flag/detector_dark` | the plant; that detector | sensor sample |
 //! | `<m>/motor_shaft/*` | seed-002 motor node (motor shaft rpm) | reply / sample |
-//! | `bus/<bus>/frames` | every frame, as text | frame |
+//! | `bus/<bus>/frames` | every frame, as text (a real-time session's links: `bus/<link>/frames`) | frame |
+//! | `realtime/lateness/p99_us`, `max_us` | a real-time session's `/realtime/lateness` | second |
 //! | `events` | every node event | event |
 
 use anyhow::{Context, Result};
@@ -161,6 +162,9 @@ impl RerunLogger {
             };
             log_styles(&rec, &state.paths, layout.has_seed002(i))?;
             modules.push(state);
+        }
+        if layout.realtime {
+            log_lateness_styles(&rec)?;
         }
         Ok(Self {
             rec,
@@ -361,17 +365,16 @@ impl RerunLogger {
         // A master's frame: remember a Modbus read so that its reply can
         // be read; the seed-002 master's set-point write to the motor node
         // (register 9; until the first one the node runs its default 10000).
-        if let Ok(frame) = modbus::rtu::parse(bytes)
-            && let Ok(Request::ReadInputRegisters { address, quantity }) = frame.request()
-        {
-            self.pending_reads.insert(
-                bus.to_string(),
-                PendingRead {
-                    unit: frame.unit,
-                    address,
-                    quantity,
-                },
-            );
+        let read = with_modbus(bytes, |frame| match frame.request() {
+            Ok(Request::ReadInputRegisters { address, quantity }) => Some(PendingRead {
+                unit: frame.unit,
+                address,
+                quantity,
+            }),
+            _ => None,
+        });
+        if let Some(read) = read {
+            self.pending_reads.insert(bus.to_string(), read);
         }
         if let Ok(f) = modbus8::Frame::parse(bytes, modbus8::CrcOrder::HighFirst)
             && f.function == 6
@@ -383,22 +386,31 @@ impl RerunLogger {
         }
     }
 
-    /// The registers of a Modbus RTU reply to the last read on `bus`.
+    /// The registers of a Modbus reply (RTU, TCP or ASCII) to the last read
+    /// on `bus`.
     fn modbus_reply(&mut self, bus: &str, bytes: &[u8]) -> Option<(usize, Vec<u16>)> {
-        let frame = modbus::rtu::parse(bytes).ok()?;
         let pending = self.pending_reads.get(bus).copied()?;
-        if frame.unit != pending.unit {
-            return None;
-        }
-        let Ok(Ok(Response::ReadInputRegisters(registers))) = frame.response() else {
-            return None;
-        };
-        let words = registers.as_slice();
-        if words.len() != usize::from(pending.quantity) {
-            return None;
-        }
+        let words = with_modbus(bytes, |frame| {
+            if frame.unit != pending.unit {
+                return None;
+            }
+            let Ok(Ok(Response::ReadInputRegisters(registers))) = frame.response() else {
+                return None;
+            };
+            let words = registers.as_slice();
+            (words.len() == usize::from(pending.quantity)).then(|| words.to_vec())
+        })?;
         self.pending_reads.remove(bus);
-        Some((usize::from(pending.address), words.to_vec()))
+        Some((usize::from(pending.address), words))
+    }
+
+    /// One second of a real-time session's tick lateness (`/realtime/lateness`).
+    pub fn lateness(&mut self, t: f64, window: &LatenessSample) {
+        self.at(t);
+        for (path, value) in [(LATENESS_P99, window.p99_us), (LATENESS_MAX, window.max_us)] {
+            let _ = self.rec.log(path, &Scalars::single(value));
+            *self.samples.entry(path.to_string()).or_default() += 1;
+        }
     }
 
     /// Push everything logged so far to the sink.
@@ -407,6 +419,51 @@ impl RerunLogger {
             .flush_blocking()
             .context("the rerun sink did not take the data")
     }
+}
+
+/// Entities of a real-time session's tick lateness.
+pub const LATENESS_P99: &str = "realtime/lateness/p99_us";
+pub const LATENESS_MAX: &str = "realtime/lateness/max_us";
+
+/// What the view takes from one second of tick lateness (the `window` of a
+/// `/realtime/lateness` message).
+#[derive(Debug, Clone, Copy, Default, Deserialize)]
+pub struct LatenessSample {
+    pub p99_us: f64,
+    pub max_us: f64,
+}
+
+/// `f` applied to `bytes` read as a Modbus frame in whichever framing it
+/// checks as: RTU (serial links, the simulated bus), TCP or ASCII.
+fn with_modbus<R>(bytes: &[u8], f: impl FnOnce(modbus::Frame<'_>) -> Option<R>) -> Option<R> {
+    if let Ok(frame) = modbus::rtu::parse(bytes) {
+        return f(frame);
+    }
+    if let Ok(frame) = modbus::tcp::parse(bytes) {
+        return f(frame.frame());
+    }
+    let mut scratch = [0; modbus::ascii::MAX_BINARY_LEN];
+    match modbus::ascii::parse(bytes, &mut scratch) {
+        Ok(frame) => f(frame),
+        Err(_) => None,
+    }
+}
+
+/// The styles of the lateness series (static, logged once).
+fn log_lateness_styles(rec: &RecordingStream) -> Result<()> {
+    let line = |name: &str, rgb: [u8; 3]| {
+        SeriesLines::new()
+            .with_names([name])
+            .with_colors([Color::from_rgb(rgb[0], rgb[1], rgb[2])])
+            .with_widths([1.5])
+            .with_interpolation_mode(InterpolationMode::StepAfter)
+    };
+    rec.log_static(
+        LATENESS_P99,
+        &line("tick lateness p99 (µs)", [60, 120, 220]),
+    )?;
+    rec.log_static(LATENESS_MAX, &line("tick lateness max (µs)", [220, 40, 40]))?;
+    Ok(())
 }
 
 /// Names, colours and line styles of a module's series (static, logged once).

@@ -1,5 +1,7 @@
 //! Reading a twin recording (MCAP) into a [`RerunLogger`]: the channels of
-//! README "What a recording holds", the layout from the `twin.run` metadata.
+//! README "What a recording holds", or of a real-time session (`twin serve`,
+//! `twin supervise`: `/link/<link>/frames`, `/realtime/lateness`), the layout
+//! from the `twin.run` metadata.
 //! A truncated file (the run killed) is read up to its last complete chunk.
 
 use anyhow::{Context, Result, bail};
@@ -10,8 +12,11 @@ use serde::Deserialize;
 use std::collections::BTreeMap;
 use std::path::Path;
 
-use super::layout::{OPEN_LOOP_MODULE, ViewLayout};
-use super::logger::{PlantSample, RerunLogger};
+use super::layout::{
+    OPEN_LOOP_MODULE, SERVE_EV_MODULE, SERVE_LIGHT_NODE, SERVE_MOTOR_NODE, SUPERVISOR_NODE,
+    ViewLayout, supervised_module,
+};
+use super::logger::{LatenessSample, PlantSample, RerunLogger};
 use crate::scenario::Scenario;
 
 /// What a recording's messages came to.
@@ -51,7 +56,7 @@ pub fn layout_of(bytes: &[u8], path: &Path) -> Result<ViewLayout> {
     }
     let Some(meta) = run_metadata(bytes) else {
         bail!(
-            "{} has no `twin.run` metadata record: it was not written by `twin run`",
+            "{} has no `twin.run` metadata record: it was not written by `twin run`, `twin serve` or `twin supervise`",
             path.display()
         );
     };
@@ -77,11 +82,88 @@ pub fn layout_of(bytes: &[u8], path: &Path) -> Result<ViewLayout> {
             };
             Ok(ViewLayout::open_loop(&params))
         }
+        Some("serve") => {
+            // `twin serve` stores its links as `--meb tcp://… --modbus8 /dev/…`.
+            let links = meta.get("links").map_or("", String::as_str);
+            let options: Vec<&str> = links.split_whitespace().step_by(2).collect();
+            let seed002 = options.contains(&"--modbus8");
+            let ev = options.iter().any(|o| *o != "--modbus8");
+            let params = match meta.get("params") {
+                Some(text) => toml::from_str::<PlantParams>(text)
+                    .with_context(|| format!("{}: the stored plant parameters", path.display()))?,
+                None => PlantParams::preset("vemodule").unwrap_or_default(),
+            };
+            Ok(ViewLayout::of_serve(&params, ev || !seed002, seed002))
+        }
+        Some("supervise") => {
+            // Stored as `[1, 2]`.
+            let text = meta.get("slaves").map_or("[1]", String::as_str);
+            let slaves: Vec<u8> = text
+                .trim_matches(|c| c == '[' || c == ']')
+                .split(',')
+                .filter(|s| !s.trim().is_empty())
+                .map(|s| s.trim().parse::<u8>())
+                .collect::<Result<_, _>>()
+                .with_context(|| {
+                    format!(
+                        "{}: the `slaves` of its `twin.run` metadata ({text}) are not slave ids",
+                        path.display()
+                    )
+                })?;
+            Ok(ViewLayout::of_supervise(&slaves))
+        }
         other => bail!(
             "{}: unknown recording kind {:?} in its `twin.run` metadata",
             path.display(),
             other.unwrap_or("(none)")
         ),
+    }
+}
+
+/// Which program wrote the recording: the senders of a real-time
+/// session's link frames are named from that program's side.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Session {
+    /// `twin run`: frames name their sending node.
+    Virtual,
+    /// `twin serve`: `twin` is the slave(s) answering, `client N` a master.
+    Serve,
+    /// `twin supervise`: on the `bus` link `twin` is the supervisor polling
+    /// and `client N` the slave(s) answering.
+    Supervise,
+}
+
+impl Session {
+    fn of(bytes: &[u8]) -> Self {
+        match run_metadata(bytes).as_ref().and_then(|m| m.get("kind")) {
+            Some(k) if k == "serve" => Self::Serve,
+            Some(k) if k == "supervise" => Self::Supervise,
+            _ => Self::Virtual,
+        }
+    }
+
+    /// The node of the layout that sent `bytes` on `link`, as recorded `from`.
+    fn sender<'a>(self, link: &str, from: &'a str, bytes: &[u8]) -> &'a str {
+        match (self, from) {
+            (Self::Serve, "twin") if link.starts_with("modbus8") => match bytes.first() {
+                Some(1) => SERVE_MOTOR_NODE,
+                Some(2) => SERVE_LIGHT_NODE,
+                _ => from,
+            },
+            (Self::Serve, "twin") => SERVE_EV_MODULE,
+            (Self::Supervise, "twin") => SUPERVISOR_NODE,
+            _ => from,
+        }
+    }
+}
+
+/// The slave id a reply on a supervisor's bus carries: MEB `@NN…`, or a
+/// Modbus RTU frame's first byte.
+fn reply_id(bytes: &[u8]) -> Option<u8> {
+    match bytes {
+        [b'@', hi, lo, ..] => u8::from_str_radix(std::str::from_utf8(&[*hi, *lo]).ok()?, 16).ok(),
+        [id, _, ..] => Some(*id),
+        _ => None,
     }
 }
 
@@ -115,6 +197,7 @@ fn unhex(hex: &str) -> Option<Vec<u8>> {
 /// Feed every message of the recording `bytes` to `logger`.
 pub fn replay_into(bytes: &[u8], logger: &mut RerunLogger) -> Result<ReadSummary> {
     let mut summary = ReadSummary::default();
+    let session = Session::of(bytes);
     let mut topics: BTreeMap<u16, String> = BTreeMap::new();
     let reader = ChunkFlattener::new_with_options(bytes, Options::IgnoreEndMagic.into())
         .context("not an MCAP file")?;
@@ -137,7 +220,7 @@ pub fn replay_into(bytes: &[u8], logger: &mut RerunLogger) -> Result<ReadSummary
                 let t = header.log_time as f64 * 1e-9;
                 summary.end_s = summary.end_s.max(t);
                 *summary.messages.entry(topic.clone()).or_default() += 1;
-                if let Err(e) = feed(logger, topic, t, &data) {
+                if let Err(e) = feed(logger, session, topic, t, &data) {
                     *summary.skipped.entry(format!("{topic}: {e}")).or_default() += 1;
                 }
             }
@@ -149,7 +232,13 @@ pub fn replay_into(bytes: &[u8], logger: &mut RerunLogger) -> Result<ReadSummary
 }
 
 /// One message to the logger, by topic.
-fn feed(logger: &mut RerunLogger, topic: &str, t: f64, data: &[u8]) -> Result<()> {
+fn feed(
+    logger: &mut RerunLogger,
+    session: Session,
+    topic: &str,
+    t: f64,
+    data: &[u8],
+) -> Result<()> {
     let parts: Vec<&str> = topic.trim_start_matches('/').split('/').collect();
     match parts.as_slice() {
         ["plant", "sensors"] => {
@@ -166,6 +255,28 @@ fn feed(logger: &mut RerunLogger, topic: &str, t: f64, data: &[u8]) -> Result<()
                 bail!("field `hex` is not hexadecimal");
             };
             logger.frame(bus, &f.from, f.start_s, f.end_s, &bytes);
+        }
+        ["link", link, "frames"] => {
+            let f: FrameMessage = serde_json::from_slice(data)?;
+            let Some(bytes) = unhex(&f.hex) else {
+                bail!("field `hex` is not hexadecimal");
+            };
+            let from = match (session, *link, f.from.as_str()) {
+                // Several slaves may share the supervisor's bus: the reply names its own.
+                (Session::Supervise, "bus", from) if from != "twin" => {
+                    reply_id(&bytes).map_or_else(|| from.to_string(), supervised_module)
+                }
+                (_, _, from) => session.sender(link, from, &bytes).to_string(),
+            };
+            logger.frame(link, &from, f.start_s, f.end_s, &bytes);
+        }
+        ["realtime", "lateness"] => {
+            #[derive(Deserialize)]
+            struct Lateness {
+                window: LatenessSample,
+            }
+            let l: Lateness = serde_json::from_slice(data)?;
+            logger.lateness(t, &l.window);
         }
         ["events"] => {
             let e: EventMessage = serde_json::from_slice(data)?;
