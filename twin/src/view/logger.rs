@@ -601,4 +601,61 @@ mod tests {
         log.master_loop("someone-else", 0.01, &report);
         assert_eq!(log.samples["ev1/speed/set_point"], 1);
     }
+
+    #[test]
+    fn input_register_replies_give_rpm_in_rtu_tcp_and_ascii_framing() {
+        use nodes::proto::modbus::{Registers, ascii, rtu, tcp};
+        let params = plant::PlantParams::default();
+        let (rec, _storage) = rerun::RecordingStreamBuilder::new("test")
+            .memory()
+            .expect("memory stream");
+        let mut log =
+            RerunLogger::new(rec, ViewLayout::of_serve(&params, true, false)).expect("logger");
+        let read = Request::ReadInputRegisters {
+            address: 2,
+            quantity: 3,
+        };
+        // V1, RPM_M, RPM_L: registers 2-4 as the EA block's.
+        let reply = Response::ReadInputRegisters(
+            Registers::from_slice(&[3333, 1500, 1490]).expect("registers"),
+        );
+        let mut request_bytes = [0u8; 300];
+        let mut reply_bytes = [0u8; 300];
+        let framings: [(
+            &str,
+            fn(&Request, &Response, &mut [u8], &mut [u8]) -> (usize, usize),
+        ); 3] = [
+            ("rtu", |q, r, a, b| {
+                (rtu::emit(1, q, a).unwrap(), rtu::emit(1, r, b).unwrap())
+            }),
+            ("tcp", |q, r, a, b| {
+                (
+                    tcp::emit(7, 1, q, a).unwrap(),
+                    tcp::emit(7, 1, r, b).unwrap(),
+                )
+            }),
+            ("ascii", |q, r, a, b| {
+                (ascii::emit(1, q, a).unwrap(), ascii::emit(1, r, b).unwrap())
+            }),
+        ];
+        for (k, (link, emit)) in framings.into_iter().enumerate() {
+            let (n, m) = emit(&read, &reply, &mut request_bytes, &mut reply_bytes);
+            // A reply nobody asked for is not read.
+            log.frame(link, "ev1", 0.0, 0.001, &reply_bytes[..m]);
+            log.frame(link, "client 1", 0.0, 0.001, &request_bytes[..n]);
+            log.frame(link, "ev1", 0.002, 0.003, &reply_bytes[..m]);
+            let k = k as u64 + 1;
+            assert_eq!(log.samples["ev1/speed/hall_rpm"], k, "{link}");
+            assert_eq!(log.samples["ev1/speed/light_rpm"], k, "{link}");
+        }
+        log.lateness(
+            1.0,
+            &LatenessSample {
+                p99_us: 20.0,
+                max_us: 900.0,
+            },
+        );
+        assert_eq!(log.samples[LATENESS_P99], 1);
+        assert_eq!(log.samples[LATENESS_MAX], 1);
+    }
 }

@@ -161,7 +161,10 @@ impl Session {
 /// Modbus RTU frame's first byte.
 fn reply_id(bytes: &[u8]) -> Option<u8> {
     match bytes {
-        [b'@', hi, lo, ..] => u8::from_str_radix(std::str::from_utf8(&[*hi, *lo]).ok()?, 16).ok(),
+        [b'@', rest @ ..] => {
+            let digits = std::str::from_utf8(rest.get(..2)?).ok()?;
+            u8::from_str_radix(digits, 16).ok()
+        }
         [id, _, ..] => Some(*id),
         _ => None,
     }
@@ -294,7 +297,27 @@ fn feed(
 
 #[cfg(test)]
 mod tests {
-    use super::unhex;
+    use super::{Session, reply_id, unhex};
+    use crate::view::layout::ViewLayout;
+
+    #[test]
+    fn a_supervisors_bus_replies_are_its_slaves_by_the_id_they_carry() {
+        assert_eq!(reply_id(b"@02EA00060BD6*\n"), Some(2));
+        assert_eq!(reply_id(&[0x03, 0x04, 0x02, 0x00, 0x01]), Some(3));
+        assert_eq!(reply_id(b"@z"), None);
+        let layout = ViewLayout::of_supervise(&[1, 2]);
+        assert_eq!(layout.module_of_node("slave02"), Some(1));
+        assert_eq!(layout.module_of_slave("supervisor", 2), Some(1));
+        assert!(!layout.modules[0].has_plant);
+        // The supervisor's own requests never feed a module.
+        let sender = Session::Supervise.sender("bus", "twin", b"@01EA000643*\n");
+        assert_eq!(layout.module_of_node(sender), None);
+        // On `twin serve`'s seed-002 link the reply's id names the node.
+        assert_eq!(Session::Serve.sender("modbus8", "twin", &[2, 3]), "sensor");
+        assert_eq!(Session::Serve.sender("modbus8", "twin", &[1, 3]), "motor");
+        assert_eq!(Session::Serve.sender("meb", "twin", b"@01"), "ev1");
+        assert_eq!(Session::Serve.sender("meb", "client 4", b"@01"), "client 4");
+    }
 
     #[test]
     fn hex_round_trips_and_refuses_garbage() {
