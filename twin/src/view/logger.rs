@@ -602,6 +602,9 @@ mod tests {
         assert_eq!(log.samples["ev1/speed/set_point"], 1);
     }
 
+    /// Writes a request and its reply in one framing; returns both lengths.
+    type EmitBoth = fn(&Request, &Response, &mut [u8], &mut [u8]) -> (usize, usize);
+
     #[test]
     fn input_register_replies_give_rpm_in_rtu_tcp_and_ascii_framing() {
         use nodes::proto::modbus::{Registers, ascii, rtu, tcp};
@@ -621,10 +624,7 @@ mod tests {
         );
         let mut request_bytes = [0u8; 300];
         let mut reply_bytes = [0u8; 300];
-        let framings: [(
-            &str,
-            fn(&Request, &Response, &mut [u8], &mut [u8]) -> (usize, usize),
-        ); 3] = [
+        let framings: [(&str, EmitBoth); 3] = [
             ("rtu", |q, r, a, b| {
                 (rtu::emit(1, q, a).unwrap(), rtu::emit(1, r, b).unwrap())
             }),
