@@ -218,8 +218,11 @@ fn connect(addr: &str) -> TcpStream {
 fn a_serve_session_views_with_the_replies_rpm_and_the_tick_lateness() {
     let mcap = scratch("serve.mcap");
     let out = mcap.to_str().unwrap();
+    let live = scratch("serve-live.rrd");
     let server = Proc::ready(&[
         "serve",
+        "--view",
+        live.to_str().unwrap(),
         "--meb",
         "tcp://127.0.0.1:0",
         "--modbus",
@@ -284,6 +287,8 @@ fn a_serve_session_views_with_the_replies_rpm_and_the_tick_lateness() {
     ] {
         assert_eq!(rows.get(entity), samples.get(entity), "{entity}: {rows:?}");
     }
+    // Streamed live (`--view FILE.rrd`), the session gave the same samples.
+    assert_eq!(rrd_rows(&live), rows);
 }
 
 #[test]
@@ -323,8 +328,11 @@ fn a_supervise_session_views_the_loop_of_each_slave() {
         "--no-record",
     ]);
     let mcap = scratch("supervise.mcap");
+    let live = scratch("supervise-live.rrd");
     let supervise = Proc::ready(&[
         "supervise",
+        "--view",
+        live.to_str().unwrap(),
         "--meb",
         a,
         "--listen",
@@ -362,9 +370,14 @@ fn a_supervise_session_views_the_loop_of_each_slave() {
         }
     }
     assert!(loops > 100 && ea_replies > 100, "{loops} {ea_replies}");
-    let (samples, text) = view(&mcap, &scratch("supervise.rrd"));
+    let rrd = scratch("supervise.rrd");
+    let (samples, text) = view(&mcap, &rrd);
     assert_eq!(samples["slave01/speed/set_point"], loops, "{text}");
     assert_eq!(samples["slave01/speed/hall_rpm"], ea_replies, "{text}");
     // No plant in a supervisor's recording, and no entity pretends one.
     assert!(!samples.keys().any(|e| e.contains("voltage")), "{text}");
+    // Streamed live, the same samples.
+    let rows = rrd_rows(&rrd);
+    assert_eq!(rows.get("slave01/speed/hall_rpm"), Some(&ea_replies));
+    assert_eq!(rrd_rows(&live), rows);
 }

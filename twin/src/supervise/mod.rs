@@ -23,11 +23,12 @@ use std::time::Duration;
 use crate::io::{LinkAddr, LinkDefaults, LinkSpec, serial, tcp};
 use crate::nodes_build::SupervisorNode;
 use crate::realtime::links::{ConnIds, accept_loop, serial_loop, serve_stream};
-use crate::realtime::sink::{self, SinkConfig, SinkMsg};
+use crate::realtime::sink::{self, LiveView, SinkConfig, SinkMsg};
 use crate::realtime::{
     Device, Inbound, LatenessSummary, LinkConfig, NodeEndpoint, RtClock, RtEngine,
 };
 use crate::record::Recorder;
+use crate::view::{Session, ViewLayout};
 use endpoint::ImageEndpoint;
 
 /// Everything `twin supervise` is told.
@@ -63,6 +64,8 @@ pub struct SuperviseOptions {
     pub monitor: bool,
     pub status_every: f64,
     pub wait_for_ports: bool,
+    /// Stream the session live to rerun (as `twin run --view` takes it).
+    pub view: Option<String>,
     pub command_line: String,
 }
 
@@ -84,6 +87,10 @@ pub struct SuperviseOutcome {
     pub refused_clients: u64,
     pub stopped_by: String,
     pub recording: Option<PathBuf>,
+    /// Samples streamed to the live view (`--view`), if it ran.
+    pub view_samples: Option<u64>,
+    /// What the live view's viewer did not take, if anything.
+    pub view_error: Option<String>,
     /// The supervisor's status line at the end.
     pub status: Vec<String>,
 }
@@ -485,6 +492,10 @@ pub fn supervise(
             links,
             monitor: options.monitor,
             recorder,
+            view: options.view.as_deref().and_then(|target| {
+                let layout = ViewLayout::of_supervise(&options.slaves);
+                LiveView::open(target, "twin supervise", layout, Session::Supervise)
+            }),
         },
         rx,
     );
@@ -583,6 +594,8 @@ pub fn supervise(
         refused_clients,
         stopped_by: summary.stopped_by,
         recording: outcome.recording,
+        view_samples: outcome.view_samples,
+        view_error: outcome.view_error,
         status,
     })
 }

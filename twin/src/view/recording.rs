@@ -123,7 +123,7 @@ pub fn layout_of(bytes: &[u8], path: &Path) -> Result<ViewLayout> {
 /// Which program wrote the recording: the senders of a real-time
 /// session's link frames are named from that program's side.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Session {
+pub enum Session {
     /// `twin run`: frames name their sending node.
     Virtual,
     /// `twin serve`: `twin` is the slave(s) answering, `client N` a master.
@@ -134,7 +134,8 @@ enum Session {
 }
 
 impl Session {
-    fn of(bytes: &[u8]) -> Self {
+    /// The session that wrote the recording `bytes`.
+    pub fn of(bytes: &[u8]) -> Self {
         match run_metadata(bytes).as_ref().and_then(|m| m.get("kind")) {
             Some(k) if k == "serve" => Self::Serve,
             Some(k) if k == "supervise" => Self::Supervise,
@@ -142,18 +143,24 @@ impl Session {
         }
     }
 
-    /// The node of the layout that sent `bytes` on `link`, as recorded `from`.
-    fn sender<'a>(self, link: &str, from: &'a str, bytes: &[u8]) -> &'a str {
-        match (self, from) {
-            (Self::Serve, "twin") if link.starts_with("modbus8") => match bytes.first() {
+    /// The node of the layout that sent `bytes` on `link`, recorded as
+    /// `from` (`twin`, or `client N` for the other side).
+    pub fn sender(self, link: &str, from: &str, bytes: &[u8]) -> String {
+        let name = match (self, link, from) {
+            (Self::Serve, _, "twin") if link.starts_with("modbus8") => match bytes.first() {
                 Some(1) => SERVE_MOTOR_NODE,
                 Some(2) => SERVE_LIGHT_NODE,
                 _ => from,
             },
-            (Self::Serve, "twin") => SERVE_EV_MODULE,
-            (Self::Supervise, "twin") => SUPERVISOR_NODE,
+            (Self::Serve, _, "twin") => SERVE_EV_MODULE,
+            (Self::Supervise, _, "twin") => SUPERVISOR_NODE,
+            // Several slaves may share the supervisor's bus: the reply names its own.
+            (Self::Supervise, "bus", _) => {
+                return reply_id(bytes).map_or_else(|| from.to_string(), supervised_module);
+            }
             _ => from,
-        }
+        };
+        name.to_string()
     }
 }
 
@@ -264,13 +271,7 @@ fn feed(
             let Some(bytes) = unhex(&f.hex) else {
                 bail!("field `hex` is not hexadecimal");
             };
-            let from = match (session, *link, f.from.as_str()) {
-                // Several slaves may share the supervisor's bus: the reply names its own.
-                (Session::Supervise, "bus", from) if from != "twin" => {
-                    reply_id(&bytes).map_or_else(|| from.to_string(), supervised_module)
-                }
-                (_, _, from) => session.sender(link, from, &bytes).to_string(),
-            };
+            let from = session.sender(link, &f.from, &bytes);
             logger.frame(link, &from, f.start_s, f.end_s, &bytes);
         }
         ["realtime", "lateness"] => {
@@ -311,7 +312,14 @@ mod tests {
         assert!(!layout.modules[0].has_plant);
         // The supervisor's own requests never feed a module.
         let sender = Session::Supervise.sender("bus", "twin", b"@01EA000643*\n");
-        assert_eq!(layout.module_of_node(sender), None);
+        assert_eq!(layout.module_of_node(&sender), None);
+        let sender = Session::Supervise.sender("bus", "client 1", b"@02EA00060BD6*\n");
+        assert_eq!(layout.module_of_node(&sender), Some(1));
+        // The image server's TCP clients are not slaves.
+        assert_eq!(
+            Session::Supervise.sender("tcp", "client 3", b"@02"),
+            "client 3"
+        );
         // On `twin serve`'s seed-002 link the reply's id names the node.
         assert_eq!(Session::Serve.sender("modbus8", "twin", &[2, 3]), "sensor");
         assert_eq!(Session::Serve.sender("modbus8", "twin", &[1, 3]), "motor");
