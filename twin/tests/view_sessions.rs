@@ -381,3 +381,27 @@ fn a_supervise_session_views_the_loop_of_each_slave() {
     assert_eq!(rows.get("slave01/speed/hall_rpm"), Some(&ea_replies));
     assert_eq!(rrd_rows(&live), rows);
 }
+
+#[test]
+fn a_session_that_cannot_start_leaves_an_earlier_recording_alone() {
+    let missing = scratch("no-such-port");
+    for role in ["serve", "supervise"] {
+        let earlier = scratch(&format!("earlier-{role}.mcap"));
+        std::fs::write(&earlier, b"an earlier session's recording").unwrap();
+        let o = Command::new(env!("CARGO_BIN_EXE_twin"))
+            .args([role, "--meb", missing.to_str().unwrap(), "--duration", "1"])
+            .arg("--out")
+            .arg(&earlier)
+            .stdin(Stdio::null())
+            .output()
+            .expect("twin runs");
+        assert!(!o.status.success(), "{role} started on a missing port");
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(err.contains("does not exist"), "{role}: {err}");
+        assert_eq!(
+            std::fs::read(&earlier).unwrap(),
+            b"an earlier session's recording",
+            "{role} overwrote the recording"
+        );
+    }
+}

@@ -395,31 +395,6 @@ pub fn serve(
         .build()
         .context("cannot start the I/O runtime")?;
 
-    let recorder = match &options.out {
-        Some(path) => {
-            let mut recorder = Recorder::create(path)?;
-            let links: Vec<String> = options
-                .links
-                .iter()
-                .map(|(p, t)| format!("{} {t}", p.option()))
-                .collect();
-            recorder.write_metadata(
-                "twin.run",
-                BTreeMap::from([
-                    ("kind".into(), "serve".into()),
-                    ("command".into(), options.command_line.clone()),
-                    ("links".into(), links.join(" ")),
-                    ("seed".into(), options.seed.to_string()),
-                    ("slave_id".into(), options.id.to_string()),
-                    ("params".into(), toml::to_string(&options.params)?),
-                    ("twin_version".into(), env!("CARGO_PKG_VERSION").into()),
-                ]),
-            )?;
-            Some(recorder)
-        }
-        None => None,
-    };
-
     let clock = RtClock::start();
     let mut engine_modules = Vec::new();
     let (sink_tx, sink_handle);
@@ -445,6 +420,32 @@ pub fn serve(
             .iter()
             .map(|l| (l.name.clone(), l.protocol))
             .collect();
+        // Created once every link is open: a session that cannot start
+        // leaves an earlier recording of the same name as it was.
+        let recorder = match &options.out {
+            Some(path) => {
+                let mut recorder = Recorder::create(path)?;
+                let links: Vec<String> = options
+                    .links
+                    .iter()
+                    .map(|(p, t)| format!("{} {t}", p.option()))
+                    .collect();
+                recorder.write_metadata(
+                    "twin.run",
+                    BTreeMap::from([
+                        ("kind".into(), "serve".into()),
+                        ("command".into(), options.command_line.clone()),
+                        ("links".into(), links.join(" ")),
+                        ("seed".into(), options.seed.to_string()),
+                        ("slave_id".into(), options.id.to_string()),
+                        ("params".into(), toml::to_string(&options.params)?),
+                        ("twin_version".into(), env!("CARGO_PKG_VERSION").into()),
+                    ]),
+                )?;
+                Some(recorder)
+            }
+            None => None,
+        };
         let view = options.view.as_deref().and_then(|target| {
             let has = |name: &str| engine_modules.iter().any(|m| m == name);
             let layout = ViewLayout::of_serve(&options.params, has("ev1"), has("bench"));

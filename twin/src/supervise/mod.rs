@@ -439,24 +439,6 @@ pub fn supervise(
         .thread_name("twin-links")
         .build()
         .context("cannot start the I/O runtime")?;
-    let recorder = match &options.out {
-        Some(path) => {
-            let mut recorder = Recorder::create(path)?;
-            recorder.write_metadata(
-                "twin.run",
-                BTreeMap::from([
-                    ("kind".into(), "supervise".into()),
-                    ("command".into(), options.command_line.clone()),
-                    ("bus".into(), options.bus.clone()),
-                    ("listen".into(), options.listen.join(" ")),
-                    ("slaves".into(), format!("{:?}", options.slaves)),
-                    ("twin_version".into(), env!("CARGO_PKG_VERSION").into()),
-                ]),
-            )?;
-            Some(recorder)
-        }
-        None => None,
-    };
 
     let clock = RtClock::start();
     let (tx, rx) = channel::<SinkMsg>();
@@ -486,6 +468,26 @@ pub fn supervise(
         .iter()
         .map(|l| (l.name.clone(), l.protocol))
         .collect();
+    // Created once every link is open: a session that cannot start
+    // leaves an earlier recording of the same name as it was.
+    let recorder = match &options.out {
+        Some(path) => {
+            let mut recorder = Recorder::create(path)?;
+            recorder.write_metadata(
+                "twin.run",
+                BTreeMap::from([
+                    ("kind".into(), "supervise".into()),
+                    ("command".into(), options.command_line.clone()),
+                    ("bus".into(), options.bus.clone()),
+                    ("listen".into(), options.listen.join(" ")),
+                    ("slaves".into(), format!("{:?}", options.slaves)),
+                    ("twin_version".into(), env!("CARGO_PKG_VERSION").into()),
+                ]),
+            )?;
+            Some(recorder)
+        }
+        None => None,
+    };
     let sink_handle = sink::spawn_with(
         SinkConfig {
             modules: Vec::new(),
