@@ -103,6 +103,13 @@ pub struct ServeArgs {
     /// will create) instead of failing.
     #[arg(long)]
     wait_for_ports: bool,
+    /// Stream the session live to rerun, beside the recording: `--view`
+    /// opens a viewer (or uses the one already running), `--view
+    /// rerun+http://HOST:PORT/proxy` streams to a running viewer, `--view
+    /// FILE.rrd` writes the stream to a file. Without a viewer the session
+    /// goes on without the view.
+    #[arg(long, value_name = "TARGET", num_args = 0..=1, default_missing_value = "spawn")]
+    view: Option<String>,
 }
 
 fn options(args: &ServeArgs) -> Result<ServeOptions> {
@@ -166,6 +173,7 @@ fn options(args: &ServeArgs) -> Result<ServeOptions> {
         wait_for_ports: args.wait_for_ports,
         record_hz: args.record_hz,
         rt_priority: args.rt_priority,
+        view: args.view.clone(),
         // The program's own path stays out of the recording, as in `twin run`.
         command_line: std::iter::once("twin".to_string())
             .chain(std::env::args().skip(1))
@@ -224,6 +232,11 @@ pub fn execute(args: &ServeArgs) -> Result<()> {
     );
     if let Some(path) = outcome.recording {
         println!("recording: {}", path.display());
+    }
+    match (outcome.view_samples, outcome.view_error) {
+        (Some(_), Some(e)) => eprintln!("live view: {e}"),
+        (Some(samples), None) => println!("live view: {samples} samples streamed to rerun"),
+        _ => {}
     }
     Ok(())
 }

@@ -121,6 +121,13 @@ pub struct SuperviseArgs {
     /// Wait for a serial path that does not exist yet instead of failing.
     #[arg(long)]
     wait_for_ports: bool,
+    /// Stream the session live to rerun, beside the recording: `--view`
+    /// opens a viewer (or uses the one already running), `--view
+    /// rerun+http://HOST:PORT/proxy` streams to a running viewer, `--view
+    /// FILE.rrd` writes the stream to a file. Without a viewer the session
+    /// goes on without the view.
+    #[arg(long, value_name = "TARGET", num_args = 0..=1, default_missing_value = "spawn")]
+    view: Option<String>,
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -214,6 +221,7 @@ fn options(args: &SuperviseArgs) -> Result<SuperviseOptions> {
         monitor: !args.quiet,
         status_every: args.status_every.max(0.0),
         wait_for_ports: args.wait_for_ports,
+        view: args.view.clone(),
         command_line: std::env::args().collect::<Vec<_>>().join(" "),
     })
 }
@@ -264,6 +272,11 @@ pub fn execute(args: &SuperviseArgs) -> Result<()> {
     );
     if let Some(path) = outcome.recording {
         println!("recording: {}", path.display());
+    }
+    match (outcome.view_samples, outcome.view_error) {
+        (Some(_), Some(e)) => eprintln!("live view: {e}"),
+        (Some(samples), None) => println!("live view: {samples} samples streamed to rerun"),
+        _ => {}
     }
     Ok(())
 }

@@ -7,11 +7,12 @@ use twin::view::{self, ViewTarget};
 
 /// Show a recording in the rerun viewer.
 ///
-/// Turns RUN.mcap (written by `twin run`) into a rerun recording laid out for
-/// the lab: the set point, the motor's (hall) rpm and the light sensor's rpm
-/// on one plot; V1, V2, I and SOC; the raw photoresistor signal with the dips
-/// the firmware's detector finds in it; every bus frame and event as a text
-/// log; simulated time as the timeline.
+/// Turns RUN.mcap (written by `twin run`, `twin serve` or `twin supervise`)
+/// into a rerun recording laid out for the lab: the set point, the motor's
+/// (hall) rpm and the light sensor's rpm on one plot; V1, V2, I and SOC; the
+/// raw photoresistor signal with the dips the firmware's detector finds in
+/// it; every bus frame and event as a text log; simulated time (session time
+/// for a real-time session, with its tick lateness) as the timeline.
 ///
 /// With a viewer installed (`rerun` on PATH and a display) it opens one;
 /// otherwise, or with `--save`, it writes an .rrd file (beside the recording
@@ -19,7 +20,7 @@ use twin::view::{self, ViewTarget};
 /// `rerun-sdk==0.36.3`: `pip install rerun-sdk==0.36.3`, then `rerun FILE.rrd`.
 #[derive(Debug, Args)]
 pub struct ViewArgs {
-    /// A recording written by `twin run`.
+    /// A recording written by `twin run`, `twin serve` or `twin supervise`.
     #[arg(value_name = "RUN.mcap")]
     recording: PathBuf,
     /// Write an .rrd file instead of opening a viewer
@@ -34,7 +35,7 @@ pub struct ViewArgs {
 pub fn execute(args: &ViewArgs) -> Result<()> {
     if !args.recording.is_file() {
         bail!(
-            "no recording {}: give the .mcap file a `twin run` wrote",
+            "no recording {}: give the .mcap file that `twin run`, `twin serve` or `twin supervise` wrote",
             args.recording.display()
         );
     }

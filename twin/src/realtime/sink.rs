@@ -20,6 +20,8 @@ use std::time::Duration;
 use super::lateness::LatenessSummary;
 use crate::observe::{McapObserver, decode_frame};
 use crate::record::Recorder;
+use crate::view::logger::{LatenessSample, PlantSample};
+use crate::view::{RerunObserver, Session, ViewLayout, ViewTarget};
 
 /// How often the sink drains its queue (console lines and recording may lag
 /// by this much; the engine never waits for them).
@@ -93,6 +95,83 @@ pub struct SinkConfig {
     /// Print every frame.
     pub monitor: bool,
     pub recorder: Option<Recorder>,
+    /// A live rerun view, fed what is recorded (`--view`).
+    pub view: Option<LiveView>,
+}
+
+/// A live rerun view of a session, and which role's session it is (so
+/// that the link frames' senders get the view's names).
+#[derive(Debug)]
+pub struct LiveView {
+    pub observer: RerunObserver,
+    pub session: Session,
+}
+
+impl LiveView {
+    /// The live view of `role`'s session with `layout` at `target` (as
+    /// `twin run --view` takes it), or `None` with the reason on stderr: a
+    /// session goes on without its view.
+    pub fn open(target: &str, role: &str, layout: ViewLayout, session: Session) -> Option<Self> {
+        match crate::view::live_view(&ViewTarget::parse(target), role, layout) {
+            Ok(observer) => Some(Self { observer, session }),
+            Err(e) => {
+                eprintln!("{role} --view: {e:#}; running without the live view");
+                None
+            }
+        }
+    }
+
+    fn feed(&mut self, config: &SinkConfig, message: &SinkMsg) {
+        let log = &mut self.observer.logger;
+        match message {
+            SinkMsg::Plant {
+                at,
+                module,
+                sensors,
+            } => {
+                if let Some(name) = config.modules.get(*module) {
+                    log.plant(name, at.as_secs_f64(), &PlantSample::from(&**sensors));
+                }
+            }
+            SinkMsg::Event { node, event } => {
+                log.event(node, event.at.as_secs_f64(), event.kind, &event.detail);
+            }
+            SinkMsg::Telemetry { at, node, value } => {
+                log.master_loop(node, at.as_secs_f64(), value);
+            }
+            SinkMsg::Lateness { at, window, .. } => {
+                let sample = LatenessSample {
+                    p99_us: window.p99_us,
+                    max_us: window.max_us,
+                };
+                log.lateness(at.as_secs_f64(), &sample);
+            }
+            SinkMsg::Note {
+                at,
+                link,
+                peer,
+                text,
+            } => log.event(
+                link,
+                at.as_secs_f64(),
+                "connection",
+                &format!("{peer}: {text}"),
+            ),
+            // Frames come one by one once reassembled (see `run`).
+            SinkMsg::Frame { .. }
+            | SinkMsg::Actuators { .. }
+            | SinkMsg::Say(_)
+            | SinkMsg::Finish(_) => {}
+        }
+    }
+
+    /// One reassembled frame on link `name`, recorded as sent by `from`.
+    fn frame(&mut self, name: &str, from: &str, start: SimTime, end: SimTime, bytes: &[u8]) {
+        let from = self.session.sender(name, from, bytes);
+        self.observer
+            .logger
+            .frame(name, &from, start.as_secs_f64(), end.as_secs_f64(), bytes);
+    }
 }
 
 /// What the sink reports when it ends.
@@ -101,6 +180,10 @@ pub struct SinkOutcome {
     pub recording: Option<PathBuf>,
     pub frames_recorded: u64,
     pub events: BTreeMap<String, u64>,
+    /// Samples streamed to the live view, if there was one.
+    pub view_samples: Option<u64>,
+    /// What the live view's viewer did not take, if anything.
+    pub view_error: Option<String>,
 }
 
 /// Starts the sink thread.
@@ -205,6 +288,7 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
     let stdout = std::io::stdout();
     let mut failed: Option<anyhow::Error> = None;
     let mut finish = None;
+    let mut view = config.view.take();
     loop {
         // Polled on a short timer rather than parked in `recv`: a parked
         // receiver costs the engine thread a futex wake-up, and the cores a
@@ -218,6 +302,9 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
             }
             Err(TryRecvError::Disconnected) => break,
         };
+        if let Some(v) = &mut view {
+            v.feed(&config, &message);
+        }
         let mut out = stdout.lock();
         let recorded: Result<()> = match message {
             SinkMsg::Plant {
@@ -279,8 +366,11 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
                             shown(&frame),
                         );
                     }
+                    let end = if direction == Direction::Rx { at } else { end };
+                    if let Some(v) = &mut view {
+                        v.frame(&name, &from, at, end, &frame);
+                    }
                     if let Some(o) = &mut observer {
-                        let end = if direction == Direction::Rx { at } else { end };
                         result =
                             result.and(o.record_frame(&topic, &from, at, end, &frame, decoded));
                     }
@@ -353,6 +443,12 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
         }
     }
     let mut outcome = SinkOutcome::default();
+    if let Some(v) = view {
+        outcome.view_samples = Some(v.observer.logger.samples.values().sum());
+        if let Err(e) = v.observer.finish() {
+            outcome.view_error = Some(format!("{e:#}"));
+        }
+    }
     if let Some(mut o) = observer {
         if let Some(totals) = finish {
             o.recorder.write_metadata("twin.realtime", totals)?;

@@ -23,11 +23,12 @@ use std::time::Duration;
 use crate::engine::ModuleSlot;
 use crate::io::{LinkAddr, LinkDefaults, LinkSpec, serial, tcp};
 use crate::realtime::links::{ConnIds, accept_loop, serial_loop};
-use crate::realtime::sink::{self, SinkConfig, SinkMsg};
+use crate::realtime::sink::{self, LiveView, SinkConfig, SinkMsg};
 use crate::realtime::{
     Device, Inbound, LatenessSummary, LinkConfig, NodeEndpoint, RtClock, RtEngine, SlaveEndpoint,
 };
 use crate::record::Recorder;
+use crate::view::{Session, ViewLayout};
 
 /// The protocols `twin serve` speaks, as its options name them.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -94,6 +95,8 @@ pub struct ServeOptions {
     pub record_hz: f64,
     /// Real-time FIFO priority of the engine's thread, if asked for.
     pub rt_priority: Option<u8>,
+    /// Stream the session live to rerun (as `twin run --view` takes it).
+    pub view: Option<String>,
     /// The command line, for the recording's metadata.
     pub command_line: String,
 }
@@ -116,6 +119,10 @@ pub struct ServeOutcome {
     pub refused_clients: u64,
     pub stopped_by: String,
     pub recording: Option<PathBuf>,
+    /// Samples streamed to the live view (`--view`), if it ran.
+    pub view_samples: Option<u64>,
+    /// What the live view's viewer did not take, if anything.
+    pub view_error: Option<String>,
 }
 
 /// What a link of a protocol needs from the module.
@@ -388,31 +395,6 @@ pub fn serve(
         .build()
         .context("cannot start the I/O runtime")?;
 
-    let recorder = match &options.out {
-        Some(path) => {
-            let mut recorder = Recorder::create(path)?;
-            let links: Vec<String> = options
-                .links
-                .iter()
-                .map(|(p, t)| format!("{} {t}", p.option()))
-                .collect();
-            recorder.write_metadata(
-                "twin.run",
-                BTreeMap::from([
-                    ("kind".into(), "serve".into()),
-                    ("command".into(), options.command_line.clone()),
-                    ("links".into(), links.join(" ")),
-                    ("seed".into(), options.seed.to_string()),
-                    ("slave_id".into(), options.id.to_string()),
-                    ("params".into(), toml::to_string(&options.params)?),
-                    ("twin_version".into(), env!("CARGO_PKG_VERSION").into()),
-                ]),
-            )?;
-            Some(recorder)
-        }
-        None => None,
-    };
-
     let clock = RtClock::start();
     let mut engine_modules = Vec::new();
     let (sink_tx, sink_handle);
@@ -438,11 +420,43 @@ pub fn serve(
             .iter()
             .map(|l| (l.name.clone(), l.protocol))
             .collect();
+        // Created once every link is open: a session that cannot start
+        // leaves an earlier recording of the same name as it was.
+        let recorder = match &options.out {
+            Some(path) => {
+                let mut recorder = Recorder::create(path)?;
+                let links: Vec<String> = options
+                    .links
+                    .iter()
+                    .map(|(p, t)| format!("{} {t}", p.option()))
+                    .collect();
+                recorder.write_metadata(
+                    "twin.run",
+                    BTreeMap::from([
+                        ("kind".into(), "serve".into()),
+                        ("command".into(), options.command_line.clone()),
+                        ("links".into(), links.join(" ")),
+                        ("seed".into(), options.seed.to_string()),
+                        ("slave_id".into(), options.id.to_string()),
+                        ("params".into(), toml::to_string(&options.params)?),
+                        ("twin_version".into(), env!("CARGO_PKG_VERSION").into()),
+                    ]),
+                )?;
+                Some(recorder)
+            }
+            None => None,
+        };
+        let view = options.view.as_deref().and_then(|target| {
+            let has = |name: &str| engine_modules.iter().any(|m| m == name);
+            let layout = ViewLayout::of_serve(&options.params, has("ev1"), has("bench"));
+            LiveView::open(target, "twin serve", layout, Session::Serve)
+        });
         let config = SinkConfig {
             modules: engine_modules,
             links,
             monitor: options.monitor,
             recorder,
+            view,
         };
         sink_handle = sink::spawn_with(config, rx);
         sink_tx = setup.engine.sink();
@@ -539,5 +553,7 @@ pub fn serve(
         refused_clients,
         stopped_by: summary.stopped_by,
         recording: outcome.recording,
+        view_samples: outcome.view_samples,
+        view_error: outcome.view_error,
     })
 }

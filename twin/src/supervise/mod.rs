@@ -23,11 +23,12 @@ use std::time::Duration;
 use crate::io::{LinkAddr, LinkDefaults, LinkSpec, serial, tcp};
 use crate::nodes_build::SupervisorNode;
 use crate::realtime::links::{ConnIds, accept_loop, serial_loop, serve_stream};
-use crate::realtime::sink::{self, SinkConfig, SinkMsg};
+use crate::realtime::sink::{self, LiveView, SinkConfig, SinkMsg};
 use crate::realtime::{
     Device, Inbound, LatenessSummary, LinkConfig, NodeEndpoint, RtClock, RtEngine,
 };
 use crate::record::Recorder;
+use crate::view::{Session, ViewLayout};
 use endpoint::ImageEndpoint;
 
 /// Everything `twin supervise` is told.
@@ -63,6 +64,8 @@ pub struct SuperviseOptions {
     pub monitor: bool,
     pub status_every: f64,
     pub wait_for_ports: bool,
+    /// Stream the session live to rerun (as `twin run --view` takes it).
+    pub view: Option<String>,
     pub command_line: String,
 }
 
@@ -84,6 +87,10 @@ pub struct SuperviseOutcome {
     pub refused_clients: u64,
     pub stopped_by: String,
     pub recording: Option<PathBuf>,
+    /// Samples streamed to the live view (`--view`), if it ran.
+    pub view_samples: Option<u64>,
+    /// What the live view's viewer did not take, if anything.
+    pub view_error: Option<String>,
     /// The supervisor's status line at the end.
     pub status: Vec<String>,
 }
@@ -432,24 +439,6 @@ pub fn supervise(
         .thread_name("twin-links")
         .build()
         .context("cannot start the I/O runtime")?;
-    let recorder = match &options.out {
-        Some(path) => {
-            let mut recorder = Recorder::create(path)?;
-            recorder.write_metadata(
-                "twin.run",
-                BTreeMap::from([
-                    ("kind".into(), "supervise".into()),
-                    ("command".into(), options.command_line.clone()),
-                    ("bus".into(), options.bus.clone()),
-                    ("listen".into(), options.listen.join(" ")),
-                    ("slaves".into(), format!("{:?}", options.slaves)),
-                    ("twin_version".into(), env!("CARGO_PKG_VERSION").into()),
-                ]),
-            )?;
-            Some(recorder)
-        }
-        None => None,
-    };
 
     let clock = RtClock::start();
     let (tx, rx) = channel::<SinkMsg>();
@@ -479,12 +468,36 @@ pub fn supervise(
         .iter()
         .map(|l| (l.name.clone(), l.protocol))
         .collect();
+    // Created once every link is open: a session that cannot start
+    // leaves an earlier recording of the same name as it was.
+    let recorder = match &options.out {
+        Some(path) => {
+            let mut recorder = Recorder::create(path)?;
+            recorder.write_metadata(
+                "twin.run",
+                BTreeMap::from([
+                    ("kind".into(), "supervise".into()),
+                    ("command".into(), options.command_line.clone()),
+                    ("bus".into(), options.bus.clone()),
+                    ("listen".into(), options.listen.join(" ")),
+                    ("slaves".into(), format!("{:?}", options.slaves)),
+                    ("twin_version".into(), env!("CARGO_PKG_VERSION").into()),
+                ]),
+            )?;
+            Some(recorder)
+        }
+        None => None,
+    };
     let sink_handle = sink::spawn_with(
         SinkConfig {
             modules: Vec::new(),
             links,
             monitor: options.monitor,
             recorder,
+            view: options.view.as_deref().and_then(|target| {
+                let layout = ViewLayout::of_supervise(&options.slaves);
+                LiveView::open(target, "twin supervise", layout, Session::Supervise)
+            }),
         },
         rx,
     );
@@ -583,6 +596,8 @@ pub fn supervise(
         refused_clients,
         stopped_by: summary.stopped_by,
         recording: outcome.recording,
+        view_samples: outcome.view_samples,
+        view_error: outcome.view_error,
         status,
     })
 }

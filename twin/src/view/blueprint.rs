@@ -1,6 +1,7 @@
 //! The layout a student sees: per module, the speeds on one plot, V1/V2, I
 //! and SOC beside each other, the photoresistor signal with its dips; the
-//! bus frames and the events as text logs on the right.
+//! bus frames and the events as text logs on the right; for a real-time
+//! session, the tick lateness under the plots.
 
 use rerun::blueprint::components::PanelState;
 use rerun::blueprint::{
@@ -26,6 +27,12 @@ fn module_column(layout: &ViewLayout, m: usize) -> Vertical {
         &format!("/{name}/speed/**"),
     )];
     let mut shares = vec![3.0];
+    if !layout.modules[m].has_plant {
+        // A supervisor's session: only what the slave's replies carry.
+        return Vertical::new(rows)
+            .with_name(name.clone())
+            .with_row_shares(shares);
+    }
     if layout.has_seed002(m) {
         rows.push(plot(
             &format!("{name}: motor shaft (rpm)"),
@@ -68,6 +75,17 @@ pub fn blueprint(layout: &ViewLayout) -> Blueprint {
     let plots: ContainerLike = match columns.len() {
         1 => columns.into_iter().next().expect("one column"),
         _ => Tabs::new(columns).into(),
+    };
+    // A real-time session: how late the plant's ticks ran, below the bench.
+    let plots: ContainerLike = if layout.realtime {
+        Vertical::new([
+            plots,
+            plot("tick lateness (µs), each second", "/realtime/lateness/**"),
+        ])
+        .with_row_shares([6.0, 1.0])
+        .into()
+    } else {
+        plots
     };
     let logs = Vertical::new([
         TextLogView::new("bus frames")

@@ -11,6 +11,19 @@ use crate::scenario::{NodeSpec, Scenario};
 /// The module an open-loop recording's `/plant/sensors` belongs to.
 pub const OPEN_LOOP_MODULE: &str = "bench";
 
+/// The names `twin serve` gives its modules and nodes.
+pub const SERVE_EV_MODULE: &str = "ev1";
+pub const SERVE_SEED002_MODULE: &str = "bench";
+pub const SERVE_MOTOR_NODE: &str = "motor";
+pub const SERVE_LIGHT_NODE: &str = "sensor";
+/// The node name of `twin supervise`'s master in its loop reports.
+pub const SUPERVISOR_NODE: &str = "supervisor";
+
+/// The view's name for slave `id` of a `twin supervise` session.
+pub fn supervised_module(id: u8) -> String {
+    format!("slave{id:02}")
+}
+
 /// One bench module as the view shows it.
 #[derive(Debug, Clone)]
 pub struct ModuleView {
@@ -19,6 +32,9 @@ pub struct ModuleView {
     pub light: LightDetectorConfig,
     /// Volts per ADC count of the photoresistor's converter.
     pub volts_per_count: f64,
+    /// Whether the recording holds this module's plant (a supervisor's
+    /// session sees only what its slave answers).
+    pub has_plant: bool,
 }
 
 impl ModuleView {
@@ -29,6 +45,7 @@ impl ModuleView {
             name: name.to_string(),
             light: LightDetectorConfig::for_sensor(light),
             volts_per_count: light.adc_reference_volts / f64::from(1u32 << bits),
+            has_plant: true,
         }
     }
 
@@ -48,6 +65,9 @@ pub struct ViewLayout {
     slave_module: BTreeMap<(String, u8), usize>,
     /// The seed-002 network's nodes: name → module index and which one.
     seed002: BTreeMap<String, (usize, Seed002Role)>,
+    /// A real-time session (`twin serve`, `twin supervise`): its tick
+    /// lateness is shown too.
+    pub realtime: bool,
 }
 
 /// Which seed-002 node a reply comes from.
@@ -129,6 +149,58 @@ impl ViewLayout {
             modules: vec![ModuleView::new(OPEN_LOOP_MODULE, params)],
             ..Self::default()
         }
+    }
+
+    /// The layout of a `twin serve` session: module `ev1` (the EV
+    /// controller every link but `--modbus8` serves, on the plant `params`)
+    /// and/or `bench`, the seed-002 network's, with its nodes `motor` and
+    /// `sensor`. The names are those `twin serve` gives them.
+    pub fn of_serve(params: &PlantParams, ev: bool, seed002: bool) -> Self {
+        let mut layout = Self {
+            realtime: true,
+            ..Self::default()
+        };
+        if ev {
+            layout
+                .modules
+                .push(ModuleView::new(SERVE_EV_MODULE, params));
+            layout.node_module.insert(SERVE_EV_MODULE.into(), 0);
+        }
+        if seed002 {
+            let m = layout.modules.len();
+            let bench = PlantParams::preset("controller-network").unwrap_or_default();
+            layout
+                .modules
+                .push(ModuleView::new(SERVE_SEED002_MODULE, &bench));
+            layout
+                .seed002
+                .insert(SERVE_MOTOR_NODE.into(), (m, Seed002Role::Motor));
+            layout
+                .seed002
+                .insert(SERVE_LIGHT_NODE.into(), (m, Seed002Role::Light));
+        }
+        layout
+    }
+
+    /// The layout of a `twin supervise` session: one module per polled
+    /// slave, named [`supervised_module`], known only through its replies
+    /// and the supervisor's loop (no plant in the recording).
+    pub fn of_supervise(slaves: &[u8]) -> Self {
+        let mut layout = Self {
+            realtime: true,
+            ..Self::default()
+        };
+        // The light detector is not run without plant samples; any preset does.
+        let params = PlantParams::preset("vemodule").unwrap_or_default();
+        for (m, &id) in slaves.iter().enumerate() {
+            let name = supervised_module(id);
+            let mut view = ModuleView::new(&name, &params);
+            view.has_plant = false;
+            layout.modules.push(view);
+            layout.node_module.insert(name, m);
+            layout.slave_module.insert((SUPERVISOR_NODE.into(), id), m);
+        }
+        layout
     }
 
     pub fn module_index(&self, name: &str) -> Option<usize> {

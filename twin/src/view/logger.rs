@@ -14,7 +14,8 @@
 //! | `<m>/photoresistor/dips` | the firmware's detector run on the recorded samples | dip |
 //! | `<m>/flag/in_beam`, `<m>/flag/detector_dark` | the plant; that detector | sensor sample |
 //! | `<m>/motor_shaft/*` | seed-002 motor node (motor shaft rpm) | reply / sample |
-//! | `bus/<bus>/frames` | every frame, as text | frame |
+//! | `bus/<bus>/frames` | every frame, as text (a real-time session's links: `bus/<link>/frames`) | frame |
+//! | `realtime/lateness/p99_us`, `max_us` | a real-time session's `/realtime/lateness` | second |
 //! | `events` | every node event | event |
 
 use anyhow::{Context, Result};
@@ -162,6 +163,9 @@ impl RerunLogger {
             log_styles(&rec, &state.paths, layout.has_seed002(i))?;
             modules.push(state);
         }
+        if layout.realtime {
+            log_lateness_styles(&rec)?;
+        }
         Ok(Self {
             rec,
             layout,
@@ -259,7 +263,7 @@ impl RerunLogger {
                 .collect::<Vec<_>>()
                 .join(" "),
         };
-        let decoded = crate::observe::decode_frame(bytes);
+        let decoded = decode_any(bytes);
         let level = if decoded.get("error").is_some() {
             TextLogLevel::WARN
         } else {
@@ -284,7 +288,8 @@ impl RerunLogger {
     pub fn event(&mut self, node: &str, t: f64, kind: &str, detail: &str) {
         self.at(t);
         let level = match kind {
-            "log" | "state" => TextLogLevel::INFO,
+            // A real-time session's clients coming and going.
+            "log" | "state" | "connection" => TextLogLevel::INFO,
             "fault" | "trip" => TextLogLevel::ERROR,
             _ => TextLogLevel::WARN,
         };
@@ -361,17 +366,16 @@ impl RerunLogger {
         // A master's frame: remember a Modbus read so that its reply can
         // be read; the seed-002 master's set-point write to the motor node
         // (register 9; until the first one the node runs its default 10000).
-        if let Ok(frame) = modbus::rtu::parse(bytes)
-            && let Ok(Request::ReadInputRegisters { address, quantity }) = frame.request()
-        {
-            self.pending_reads.insert(
-                bus.to_string(),
-                PendingRead {
-                    unit: frame.unit,
-                    address,
-                    quantity,
-                },
-            );
+        let read = with_modbus(bytes, |frame| match frame.request() {
+            Ok(Request::ReadInputRegisters { address, quantity }) => Some(PendingRead {
+                unit: frame.unit,
+                address,
+                quantity,
+            }),
+            _ => None,
+        });
+        if let Some(read) = read {
+            self.pending_reads.insert(bus.to_string(), read);
         }
         if let Ok(f) = modbus8::Frame::parse(bytes, modbus8::CrcOrder::HighFirst)
             && f.function == 6
@@ -383,22 +387,31 @@ impl RerunLogger {
         }
     }
 
-    /// The registers of a Modbus RTU reply to the last read on `bus`.
+    /// The registers of a Modbus reply (RTU, TCP or ASCII) to the last read
+    /// on `bus`.
     fn modbus_reply(&mut self, bus: &str, bytes: &[u8]) -> Option<(usize, Vec<u16>)> {
-        let frame = modbus::rtu::parse(bytes).ok()?;
         let pending = self.pending_reads.get(bus).copied()?;
-        if frame.unit != pending.unit {
-            return None;
-        }
-        let Ok(Ok(Response::ReadInputRegisters(registers))) = frame.response() else {
-            return None;
-        };
-        let words = registers.as_slice();
-        if words.len() != usize::from(pending.quantity) {
-            return None;
-        }
+        let words = with_modbus(bytes, |frame| {
+            if frame.unit != pending.unit {
+                return None;
+            }
+            let Ok(Ok(Response::ReadInputRegisters(registers))) = frame.response() else {
+                return None;
+            };
+            let words = registers.as_slice();
+            (words.len() == usize::from(pending.quantity)).then(|| words.to_vec())
+        })?;
         self.pending_reads.remove(bus);
-        Some((usize::from(pending.address), words.to_vec()))
+        Some((usize::from(pending.address), words))
+    }
+
+    /// One second of a real-time session's tick lateness (`/realtime/lateness`).
+    pub fn lateness(&mut self, t: f64, window: &LatenessSample) {
+        self.at(t);
+        for (path, value) in [(LATENESS_P99, window.p99_us), (LATENESS_MAX, window.max_us)] {
+            let _ = self.rec.log(path, &Scalars::single(value));
+            *self.samples.entry(path.to_string()).or_default() += 1;
+        }
     }
 
     /// Push everything logged so far to the sink.
@@ -407,6 +420,71 @@ impl RerunLogger {
             .flush_blocking()
             .context("the rerun sink did not take the data")
     }
+}
+
+/// Entities of a real-time session's tick lateness.
+pub const LATENESS_P99: &str = "realtime/lateness/p99_us";
+pub const LATENESS_MAX: &str = "realtime/lateness/max_us";
+
+/// What the view takes from one second of tick lateness (the `window` of a
+/// `/realtime/lateness` message).
+#[derive(Debug, Clone, Copy, Default, Deserialize)]
+pub struct LatenessSample {
+    pub p99_us: f64,
+    pub max_us: f64,
+}
+
+/// A frame's decoded fields: MEB, the seed-002 and RTU frames of a bus, or
+/// the Modbus TCP and ASCII frames a real-time session's links carry.
+fn decode_any(bytes: &[u8]) -> serde_json::Value {
+    let decoded = crate::observe::decode_frame(bytes);
+    if decoded.get("error").is_none() {
+        return decoded;
+    }
+    let other = if bytes.first() == Some(&b':') {
+        "modbus-ascii"
+    } else {
+        "modbus-tcp"
+    };
+    let retried = crate::realtime::sink::decode_link_frame(other, bytes);
+    if retried.get("error").is_none() {
+        retried
+    } else {
+        decoded
+    }
+}
+
+/// `f` applied to `bytes` read as a Modbus frame in whichever framing it
+/// checks as: RTU (serial links, the simulated bus), TCP or ASCII.
+fn with_modbus<R>(bytes: &[u8], f: impl FnOnce(modbus::Frame<'_>) -> Option<R>) -> Option<R> {
+    if let Ok(frame) = modbus::rtu::parse(bytes) {
+        return f(frame);
+    }
+    if let Ok(frame) = modbus::tcp::parse(bytes) {
+        return f(frame.frame());
+    }
+    let mut scratch = [0; modbus::ascii::MAX_BINARY_LEN];
+    match modbus::ascii::parse(bytes, &mut scratch) {
+        Ok(frame) => f(frame),
+        Err(_) => None,
+    }
+}
+
+/// The styles of the lateness series (static, logged once).
+fn log_lateness_styles(rec: &RecordingStream) -> Result<()> {
+    let line = |name: &str, rgb: [u8; 3]| {
+        SeriesLines::new()
+            .with_names([name])
+            .with_colors([Color::from_rgb(rgb[0], rgb[1], rgb[2])])
+            .with_widths([1.5])
+            .with_interpolation_mode(InterpolationMode::StepAfter)
+    };
+    rec.log_static(
+        LATENESS_P99,
+        &line("tick lateness p99 (µs)", [60, 120, 220]),
+    )?;
+    rec.log_static(LATENESS_MAX, &line("tick lateness max (µs)", [220, 40, 40]))?;
+    Ok(())
 }
 
 /// Names, colours and line styles of a module's series (static, logged once).
@@ -543,5 +621,62 @@ mod tests {
         log.master_loop("supervisor", 0.01, &report);
         log.master_loop("someone-else", 0.01, &report);
         assert_eq!(log.samples["ev1/speed/set_point"], 1);
+    }
+
+    /// Writes a request and its reply in one framing; returns both lengths.
+    type EmitBoth = fn(&Request, &Response, &mut [u8], &mut [u8]) -> (usize, usize);
+
+    #[test]
+    fn input_register_replies_give_rpm_in_rtu_tcp_and_ascii_framing() {
+        use nodes::proto::modbus::{Registers, ascii, rtu, tcp};
+        let params = plant::PlantParams::default();
+        let (rec, _storage) = rerun::RecordingStreamBuilder::new("test")
+            .memory()
+            .expect("memory stream");
+        let mut log =
+            RerunLogger::new(rec, ViewLayout::of_serve(&params, true, false)).expect("logger");
+        let read = Request::ReadInputRegisters {
+            address: 2,
+            quantity: 3,
+        };
+        // V1, RPM_M, RPM_L: registers 2-4 as the EA block's.
+        let reply = Response::ReadInputRegisters(
+            Registers::from_slice(&[3333, 1500, 1490]).expect("registers"),
+        );
+        let mut request_bytes = [0u8; 300];
+        let mut reply_bytes = [0u8; 300];
+        let framings: [(&str, EmitBoth); 3] = [
+            ("rtu", |q, r, a, b| {
+                (rtu::emit(1, q, a).unwrap(), rtu::emit(1, r, b).unwrap())
+            }),
+            ("tcp", |q, r, a, b| {
+                (
+                    tcp::emit(7, 1, q, a).unwrap(),
+                    tcp::emit(7, 1, r, b).unwrap(),
+                )
+            }),
+            ("ascii", |q, r, a, b| {
+                (ascii::emit(1, q, a).unwrap(), ascii::emit(1, r, b).unwrap())
+            }),
+        ];
+        for (k, (link, emit)) in framings.into_iter().enumerate() {
+            let (n, m) = emit(&read, &reply, &mut request_bytes, &mut reply_bytes);
+            // A reply nobody asked for is not read.
+            log.frame(link, "ev1", 0.0, 0.001, &reply_bytes[..m]);
+            log.frame(link, "client 1", 0.0, 0.001, &request_bytes[..n]);
+            log.frame(link, "ev1", 0.002, 0.003, &reply_bytes[..m]);
+            let k = k as u64 + 1;
+            assert_eq!(log.samples["ev1/speed/hall_rpm"], k, "{link}");
+            assert_eq!(log.samples["ev1/speed/light_rpm"], k, "{link}");
+        }
+        log.lateness(
+            1.0,
+            &LatenessSample {
+                p99_us: 20.0,
+                max_us: 900.0,
+            },
+        );
+        assert_eq!(log.samples[LATENESS_P99], 1);
+        assert_eq!(log.samples[LATENESS_MAX], 1);
     }
 }

@@ -17,7 +17,7 @@ use std::path::Path;
 pub use layout::ViewLayout;
 pub use live::{RerunObserver, Tee, ViewTarget, live_view, open_stream, viewer_available};
 pub use logger::RerunLogger;
-pub use recording::ReadSummary;
+pub use recording::{ReadSummary, Session};
 
 /// What converting a recording gave.
 #[derive(Debug, Clone)]
