@@ -2,8 +2,8 @@
 //! `twin experiment <name>` prints them.
 
 pub mod instruments;
-pub mod plot;
 pub mod parallel;
+pub mod plot;
 pub mod pwmcap;
 pub mod step;
 pub mod step_metrics;
