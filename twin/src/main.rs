@@ -7,9 +7,11 @@ mod commands;
 
 /// Digital twin of the EV lab bench: battery + BMS, buck-boost converter,
 /// inverter + BLDC motor with hall sensors, a wheel and the photoresistor that
-/// watches a paper flag on it, with the lab's controller boards and masters on
-/// a simulated RS-485 bus (MEB, Modbus RTU, the seed-002 8-byte Modbus). Every
-/// run is recorded to MCAP.
+/// watches a paper flag on it, with the lab's controller boards and masters.
+/// On a virtual clock (`run`) they talk over a simulated RS-485 bus or
+/// PWM-capture link; in real time (`serve`, `supervise`, `client`, `vsp`) real
+/// masters reach them over serial ports, pseudo-terminals and TCP (MEB, Modbus
+/// RTU/ASCII/TCP, the seed-002 8-byte Modbus). Every run is recorded to MCAP.
 #[derive(Debug, Parser)]
 #[command(name = "twin", version, propagate_version = true, max_term_width = 100)]
 struct Cli {
@@ -20,38 +22,39 @@ struct Cli {
 #[derive(Debug, Subcommand)]
 enum Command {
     Run(commands::run::RunArgs),
-    Bench(commands::bench::BenchArgs),
-    Experiment(commands::experiment::ExperimentArgs),
-    Step(commands::step::StepArgs),
-    Sweep(commands::sweep::SweepArgs),
-    View(commands::view::ViewArgs),
     Serve(commands::serve::ServeArgs),
-    Vsp(commands::vsp::VspArgs),
     Supervise(commands::supervise::SuperviseArgs),
     Client(commands::client::ClientArgs),
+    Vsp(commands::vsp::VspArgs),
+    View(commands::view::ViewArgs),
     Replay(commands::replay::ReplayArgs),
     Compare(commands::compare::CompareArgs),
     Export(commands::export::ExportArgs),
     Baseline(commands::baseline::BaselineArgs),
+    Step(commands::step::StepArgs),
+    Sweep(commands::sweep::SweepArgs),
+    Experiment(commands::experiment::ExperimentArgs),
+    Bench(commands::bench::BenchArgs),
 }
 
 fn main() -> ExitCode {
+    exit_quietly_on_broken_pipe();
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Run(args) => commands::run::execute(&args),
-        Command::Bench(args) => commands::bench::execute(&args),
-        Command::Experiment(args) => commands::experiment::execute(&args),
-        Command::Step(args) => commands::step::execute(&args),
-        Command::Sweep(args) => commands::sweep::execute(&args),
-        Command::View(args) => commands::view::execute(&args),
         Command::Serve(args) => commands::serve::execute(&args),
-        Command::Vsp(args) => commands::vsp::execute(&args),
         Command::Supervise(args) => commands::supervise::execute(&args),
         Command::Client(args) => commands::client::execute(&args),
+        Command::Vsp(args) => commands::vsp::execute(&args),
+        Command::View(args) => commands::view::execute(&args),
         Command::Replay(args) => commands::replay::execute(&args),
         Command::Compare(args) => commands::compare::execute(&args),
         Command::Export(args) => commands::export::execute(&args),
         Command::Baseline(args) => commands::baseline::execute(&args),
+        Command::Step(args) => commands::step::execute(&args),
+        Command::Sweep(args) => commands::sweep::execute(&args),
+        Command::Experiment(args) => commands::experiment::execute(&args),
+        Command::Bench(args) => commands::bench::execute(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -60,4 +63,23 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+/// `twin run | head` closes our stdout early. Rust ignores SIGPIPE, so the next
+/// `println!` panics; end the way a command killed by SIGPIPE does instead (exit
+/// status 141, nothing on stderr). Any other panic still reports as usual.
+fn exit_quietly_on_broken_pipe() {
+    let report = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
+        let payload = info.payload();
+        let message = payload
+            .downcast_ref::<String>()
+            .map(String::as_str)
+            .or_else(|| payload.downcast_ref::<&str>().copied())
+            .unwrap_or("");
+        if message.starts_with("failed printing to std") && message.contains("Broken pipe") {
+            std::process::exit(141);
+        }
+        report(info);
+    }));
 }
