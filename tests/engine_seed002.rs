@@ -190,31 +190,48 @@ fn motor_readings_alternate_between_neighbouring_steps_and_track_the_true_speed(
         );
     }
 
-    let readings: Vec<i16> = exchanges(&capture.frames)
+    // Each reading with the request it answers: the motor node latches the
+    // pulses of its last whole 20 ms window, so the reading counts the
+    // motor's speed at some point of the 40 ms before the request ended.
+    let readings: Vec<(SimTime, i16)> = exchanges(&capture.frames)
         .into_iter()
         .filter(|(request, reply)| inside(request.end) && reply.from == "motor")
-        .map(|(_, reply)| reply.decoded())
-        .filter(|f| f.function == modbus8::READ && f.addr == 5)
-        .map(|f| f.value as i16)
+        .map(|(request, reply)| (request.end, reply.decoded()))
+        .filter(|(_, f)| f.function == modbus8::READ && f.addr == 5)
+        .map(|(t, f)| (t, f.value as i16))
         .collect();
     assert!(readings.len() >= 15, "{} readings", readings.len());
     // Every reading is a whole number of pulses per window, truncated as the
-    // firmware does, and the two steps either side of the true speed are
-    // the only ones seen.
-    let below = (true_mean / RPM_STEP).floor();
-    let neighbours = [below, below + 1.0].map(|k| (k * RPM_STEP) as i16);
-    for r in &readings {
+    // firmware does: the step at or just below the true speed of its window,
+    // or the one above when the window caught one pulse more.
+    let window = SimDuration::from_millis(40);
+    for &(t, r) in &readings {
+        let speeds: Vec<f64> = capture
+            .plant
+            .iter()
+            .filter(|(at, _)| *at + window >= t && *at <= t)
+            .map(|(_, s)| s.motor_rpm)
+            .collect();
+        let lo = speeds.iter().copied().fold(f64::INFINITY, f64::min);
+        let hi = speeds.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        let steps = f64::from(r) / RPM_STEP;
         assert!(
-            neighbours.contains(r),
-            "reading {r} rpm is not one of {neighbours:?} around {true_mean:.0} rpm"
+            (steps - steps.round()).abs() < 0.01,
+            "reading {r} rpm is not a whole number of {RPM_STEP:.2}-rpm steps"
+        );
+        assert!(
+            steps.round() >= (lo / RPM_STEP).floor()
+                && steps.round() <= (hi / RPM_STEP).floor() + 1.0,
+            "reading {r} rpm at {:.3} s: the motor turned at {lo:.0}-{hi:.0} rpm in the window",
+            t.as_secs_f64()
         );
     }
-    for step in neighbours {
-        assert!(
-            readings.contains(&step),
-            "the readings {readings:?} never show {step}"
-        );
-    }
+    let readings: Vec<i16> = readings.into_iter().map(|(_, r)| r).collect();
+    let distinct: std::collections::BTreeSet<i16> = readings.iter().copied().collect();
+    assert!(
+        distinct.len() >= 2,
+        "the readings {readings:?} never alternate between neighbouring steps"
+    );
     let reading_mean = readings.iter().map(|&r| f64::from(r)).sum::<f64>() / readings.len() as f64;
     println!(
         "{} readings {readings:?}: mean {reading_mean:.0} rpm, true {true_mean:.0} rpm",
