@@ -415,7 +415,10 @@ fn baseline_records_checks_and_names_a_missing_one() {
     let o = twin(&["baseline", "ev-meb", "--dir", s(&dir)]);
     assert!(o.status.success(), "{}", text(&o));
     assert!(
-        text(&o).contains("ev-meb               pass"),
+        text(&o).lines().any(|l| {
+            let mut words = l.split_whitespace();
+            words.next() == Some("ev-meb") && words.next() == Some("pass")
+        }),
         "{}",
         text(&o)
     );
