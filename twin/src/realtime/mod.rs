@@ -14,6 +14,7 @@ pub mod forces;
 pub mod lateness;
 pub mod links;
 pub mod messages;
+pub mod session;
 pub mod sink;
 
 pub use clock::RtClock;

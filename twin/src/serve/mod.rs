@@ -23,6 +23,7 @@ use std::time::Duration;
 use crate::engine::ModuleSlot;
 use crate::io::{LinkAddr, LinkDefaults, LinkSpec, serial, tcp};
 use crate::realtime::links::{ConnIds, accept_loop, serial_loop};
+use crate::realtime::session;
 use crate::realtime::sink::{self, LiveView, SinkConfig, SinkMsg};
 use crate::realtime::{
     Device, Inbound, LatenessSummary, LinkConfig, NodeEndpoint, RtClock, RtEngine, SlaveEndpoint,
@@ -388,12 +389,7 @@ pub fn serve(
 ) -> Result<ServeOutcome> {
     let specs = parse_links(options)?;
     let names = link_names(&specs);
-    let runtime = tokio::runtime::Builder::new_current_thread()
-        .enable_io()
-        .enable_time()
-        .thread_name("twin-links")
-        .build()
-        .context("cannot start the I/O runtime")?;
+    let runtime = session::links_runtime()?;
 
     let clock = RtClock::start();
     let mut engine_modules = Vec::new();
@@ -504,43 +500,13 @@ pub fn serve(
         )));
     }
 
-    // Wait for the engine to stop, forwarding SIGINT/SIGTERM to it.
-    let stopper = inbound_tx.clone();
-    runtime.block_on(async {
-        let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()).ok();
-        let mut int = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::interrupt()).ok();
-        loop {
-            tokio::select! {
-                Some(()) = async { match &mut term { Some(s) => s.recv().await, None => std::future::pending().await } } => {
-                    let _ = stopper.send(Inbound::Stop("SIGTERM".into()));
-                }
-                Some(()) = async { match &mut int { Some(s) => s.recv().await, None => std::future::pending().await } } => {
-                    let _ = stopper.send(Inbound::Stop("SIGINT".into()));
-                }
-                () = tokio::time::sleep(Duration::from_millis(20)) => {
-                    if rt_thread.is_finished() { break; }
-                }
-            }
-        }
-    });
-    let (summary, engine) = rt_thread
-        .join()
-        .map_err(|_| anyhow::anyhow!("the real-time thread failed"))?;
+    let (summary, engine) = session::run_until_stopped(&runtime, rt_thread, inbound_tx.clone())?;
     drop(engine);
     runtime.shutdown_timeout(Duration::from_millis(200));
 
     let refused_clients = refused.load(std::sync::atomic::Ordering::Relaxed);
     let l = summary.lateness;
-    let totals = BTreeMap::from([
-        (
-            "elapsed_s".into(),
-            format!("{:.3}", summary.elapsed.as_secs_f64()),
-        ),
-        ("tick_lateness".into(), serde_json::to_string(&l)?),
-        ("counters".into(), serde_json::to_string(&summary.counters)?),
-        ("refused_clients".into(), refused_clients.to_string()),
-        ("stopped_by".into(), summary.stopped_by.clone()),
-    ]);
+    let totals = session::totals(&summary, refused_clients)?;
     let _ = sink_tx.send(SinkMsg::Finish(totals));
     drop(sink_tx);
     let outcome = sink_handle

@@ -23,6 +23,7 @@ use std::time::Duration;
 use crate::io::{LinkAddr, LinkDefaults, LinkSpec, serial, tcp};
 use crate::nodes_build::SupervisorNode;
 use crate::realtime::links::{ConnIds, accept_loop, serial_loop, serve_stream};
+use crate::realtime::session;
 use crate::realtime::sink::{self, LiveView, SinkConfig, SinkMsg};
 use crate::realtime::{
     Device, Inbound, LatenessSummary, LinkConfig, NodeEndpoint, RtClock, RtEngine,
@@ -433,12 +434,7 @@ pub fn supervise(
 ) -> Result<SuperviseOutcome> {
     let (bus, listen) = parse_links(options)?;
     let supervisor = build_supervisor(options)?;
-    let runtime = tokio::runtime::Builder::new_current_thread()
-        .enable_io()
-        .enable_time()
-        .thread_name("twin-links")
-        .build()
-        .context("cannot start the I/O runtime")?;
+    let runtime = session::links_runtime()?;
 
     let clock = RtClock::start();
     let (tx, rx) = channel::<SinkMsg>();
@@ -531,28 +527,8 @@ pub fn supervise(
         ));
     }
 
-    let stopper = inbound_tx.clone();
-    runtime.block_on(async {
-        use tokio::signal::unix::{SignalKind, signal};
-        let mut term = signal(SignalKind::terminate()).ok();
-        let mut int = signal(SignalKind::interrupt()).ok();
-        loop {
-            tokio::select! {
-                Some(()) = async { match &mut term { Some(s) => s.recv().await, None => std::future::pending().await } } => {
-                    let _ = stopper.send(Inbound::Stop("SIGTERM".into()));
-                }
-                Some(()) = async { match &mut int { Some(s) => s.recv().await, None => std::future::pending().await } } => {
-                    let _ = stopper.send(Inbound::Stop("SIGINT".into()));
-                }
-                () = tokio::time::sleep(Duration::from_millis(20)) => {
-                    if rt_thread.is_finished() { break; }
-                }
-            }
-        }
-    });
-    let (summary, mut engine) = rt_thread
-        .join()
-        .map_err(|_| anyhow::anyhow!("the real-time thread failed"))?;
+    let (summary, mut engine) =
+        session::run_until_stopped(&runtime, rt_thread, inbound_tx.clone())?;
     let now = engine.clock.now();
     let status = engine
         .devices
@@ -570,20 +546,8 @@ pub fn supervise(
     runtime.shutdown_timeout(Duration::from_millis(200));
 
     let refused_clients = refused.load(Ordering::Relaxed);
-    let totals = BTreeMap::from([
-        (
-            "elapsed_s".into(),
-            format!("{:.3}", summary.elapsed.as_secs_f64()),
-        ),
-        (
-            "tick_lateness".into(),
-            serde_json::to_string(&summary.lateness)?,
-        ),
-        ("counters".into(), serde_json::to_string(&summary.counters)?),
-        ("refused_clients".into(), refused_clients.to_string()),
-        ("stopped_by".into(), summary.stopped_by.clone()),
-        ("supervisor".into(), final_state),
-    ]);
+    let mut totals = session::totals(&summary, refused_clients)?;
+    totals.insert("supervisor".into(), final_state);
     let _ = sink_tx.send(SinkMsg::Finish(totals));
     drop(sink_tx);
     let outcome = sink_handle

@@ -1,0 +1,80 @@
+//! What every real-time session (`twin serve`, `twin supervise`) does around
+//! its engine: the links' runtime, waiting for the engine thread while
+//! SIGINT/SIGTERM are forwarded to it, and the totals its recording ends with.
+
+use anyhow::{Context, Result};
+use std::collections::BTreeMap;
+use std::sync::mpsc::Sender;
+use std::thread::JoinHandle;
+use std::time::Duration;
+use tokio::runtime::Runtime;
+use tokio::signal::unix::{Signal, SignalKind, signal};
+
+use super::{Inbound, RtSummary};
+
+/// The runtime the links' tasks run on: one thread (this one), so a reply is
+/// written by the thread that is already awake.
+pub fn links_runtime() -> Result<Runtime> {
+    tokio::runtime::Builder::new_current_thread()
+        .enable_io()
+        .enable_time()
+        .thread_name("twin-links")
+        .build()
+        .context("cannot start the I/O runtime")
+}
+
+/// Drives the links on `runtime` until the engine thread ends (its
+/// `--duration`, a `stop` typed on the console, or a signal: SIGINT and
+/// SIGTERM are handed to the engine as a stop, so the recording is finished),
+/// then returns what the thread returned.
+pub fn run_until_stopped<T>(
+    runtime: &Runtime,
+    engine_thread: JoinHandle<T>,
+    engine: Sender<Inbound>,
+) -> Result<T> {
+    runtime.block_on(async {
+        let mut term = signal(SignalKind::terminate()).ok();
+        let mut int = signal(SignalKind::interrupt()).ok();
+        loop {
+            tokio::select! {
+                Some(()) = next(&mut term) => {
+                    let _ = engine.send(Inbound::Stop("SIGTERM".into()));
+                }
+                Some(()) = next(&mut int) => {
+                    let _ = engine.send(Inbound::Stop("SIGINT".into()));
+                }
+                () = tokio::time::sleep(Duration::from_millis(20)) => {
+                    if engine_thread.is_finished() { break; }
+                }
+            }
+        }
+    });
+    engine_thread
+        .join()
+        .map_err(|_| anyhow::anyhow!("the real-time thread failed"))
+}
+
+/// The next delivery of `signal`; never, if it could not be installed.
+async fn next(signal: &mut Option<Signal>) -> Option<()> {
+    match signal {
+        Some(s) => s.recv().await,
+        None => std::future::pending().await,
+    }
+}
+
+/// The totals a session's recording ends with (its `twin.realtime` record).
+pub fn totals(summary: &RtSummary, refused_clients: u64) -> Result<BTreeMap<String, String>> {
+    Ok(BTreeMap::from([
+        (
+            "elapsed_s".into(),
+            format!("{:.3}", summary.elapsed.as_secs_f64()),
+        ),
+        (
+            "tick_lateness".into(),
+            serde_json::to_string(&summary.lateness)?,
+        ),
+        ("counters".into(), serde_json::to_string(&summary.counters)?),
+        ("refused_clients".into(), refused_clients.to_string()),
+        ("stopped_by".into(), summary.stopped_by.clone()),
+    ]))
+}
