@@ -4,18 +4,18 @@
 
 use nodes::proto::meb::{MebCmd, MebErrorCode, MebRepr, MebWords};
 use nodes::proto::modbus::{self, Exception, Request, Response};
-use std::io::{BufRead, BufReader, Read, Write};
+use std::io::{Read, Write};
 use std::net::TcpStream;
 use std::path::PathBuf;
-use std::process::{Child, Command, Stdio};
-use std::sync::{Arc, Mutex};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-/// A running `twin serve` whose stdout is collected in the background.
+mod support;
+use support::Proc;
+
+/// A running `twin serve` and the links it printed (protocol, address, ids).
 struct Server {
-    child: Child,
-    lines: Arc<Mutex<Vec<String>>>,
-    /// Per link: protocol, address, ids (the lines before `ready`).
+    proc: Proc,
     links: Vec<(String, String, String)>,
 }
 
@@ -27,62 +27,21 @@ impl Server {
     /// With a console: the test types commands on the server's stdin.
     fn with_console(args: &[&str]) -> (Server, std::process::ChildStdin) {
         let mut server = Self::spawn(args, Stdio::piped());
-        let stdin = server.child.stdin.take().expect("stdin");
+        let stdin = server.proc.child.stdin.take().expect("stdin");
         (server, stdin)
     }
 
     fn spawn(args: &[&str], stdin: Stdio) -> Server {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_twin"))
-            .arg("serve")
-            .args(args)
-            .stdin(stdin)
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("twin starts");
-        let stdout = child.stdout.take().expect("stdout");
-        let lines = Arc::new(Mutex::new(Vec::new()));
-        let (ready_tx, ready_rx) = std::sync::mpsc::channel();
-        let collected = lines.clone();
-        std::thread::spawn(move || {
-            let mut ready = Some(ready_tx);
-            for line in BufReader::new(stdout).lines() {
-                let Ok(line) = line else { break };
-                collected.lock().unwrap().push(line.clone());
-                if line == "ready"
-                    && let Some(tx) = ready.take()
-                {
-                    let _ = tx.send(());
-                }
-            }
-        });
-        if ready_rx.recv_timeout(Duration::from_secs(30)).is_err() {
-            let _ = child.kill();
-            let mut err = String::new();
-            if let Some(mut e) = child.stderr.take() {
-                let _ = e.read_to_string(&mut err);
-            }
-            panic!(
-                "no `ready` from twin serve {args:?}: stdout {:?}, stderr {err}",
-                lines.lock().unwrap()
-            );
-        }
-        let links = lines
-            .lock()
-            .unwrap()
-            .iter()
-            .take_while(|l| *l != "ready")
-            .filter_map(|l| l.strip_prefix("  "))
-            .map(|l| {
-                let f: Vec<&str> = l.split_whitespace().collect();
-                (f[0].to_string(), f[1].to_string(), f[2].to_string())
-            })
+        let args: Vec<&str> = std::iter::once("serve")
+            .chain(args.iter().copied())
             .collect();
-        Server {
-            child,
-            lines,
-            links,
-        }
+        let proc = Proc::spawn(&args, stdin);
+        let links = proc
+            .links()
+            .into_iter()
+            .map(|f| (f[0].clone(), f[1].clone(), f[2].clone()))
+            .collect();
+        Server { proc, links }
     }
 
     /// The address printed for the `n`th link.
@@ -95,49 +54,15 @@ impl Server {
     }
 
     fn output(&self) -> String {
-        self.lines.lock().unwrap().join("\n")
+        self.proc.output()
     }
 
-    /// Whether stdout shows `needle` within a few seconds (the printing
-    /// thread runs behind the sockets).
     fn printed(&self, needle: &str) -> bool {
-        let deadline = Instant::now() + Duration::from_secs(5);
-        while Instant::now() < deadline {
-            if self.output().contains(needle) {
-                return true;
-            }
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        false
+        self.proc.printed(needle)
     }
 
-    /// SIGTERM, then wait for a clean exit.
-    fn terminate(mut self) -> String {
-        let pid = self.child.id().to_string();
-        let status = Command::new("kill")
-            .args(["-TERM", &pid])
-            .status()
-            .expect("kill runs");
-        assert!(status.success());
-        let deadline = Instant::now() + Duration::from_secs(20);
-        loop {
-            if let Some(status) = self.child.try_wait().expect("wait") {
-                assert!(status.success(), "exit {status}: {}", self.output());
-                break;
-            }
-            assert!(Instant::now() < deadline, "did not stop on SIGTERM");
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        // Let the reader thread take the last lines.
-        std::thread::sleep(Duration::from_millis(100));
-        self.output()
-    }
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
+    fn terminate(self) -> String {
+        self.proc.terminate()
     }
 }
 

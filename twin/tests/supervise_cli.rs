@@ -4,120 +4,26 @@
 
 use nodes::proto::meb::{MebDecoder, MebRepr};
 use nodes::time::SimTime;
-use std::io::{BufRead, BufReader, Read, Write};
+use std::io::{Read, Write};
 use std::net::TcpStream;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
-use std::sync::{Arc, Mutex};
+use std::process::{Command, Output, Stdio};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-/// A running `twin` subcommand whose stdout is collected in the background.
-struct Proc {
-    child: Child,
-    lines: Arc<Mutex<Vec<String>>>,
-    what: String,
-}
+mod support;
+use support::Proc;
 
-impl Proc {
-    /// Starts `twin ARGS` with stdin closed and waits for its `ready` line.
-    fn start(args: &[&str]) -> Proc {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_twin"))
-            .args(args)
-            .stdin(Stdio::null())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("twin starts");
-        let stdout = child.stdout.take().expect("stdout");
-        let lines = Arc::new(Mutex::new(Vec::new()));
-        let (ready_tx, ready_rx) = std::sync::mpsc::channel();
-        let collected = lines.clone();
-        std::thread::spawn(move || {
-            let mut ready = Some(ready_tx);
-            for line in BufReader::new(stdout).lines() {
-                let Ok(line) = line else { break };
-                collected.lock().unwrap().push(line.clone());
-                if line == "ready"
-                    && let Some(tx) = ready.take()
-                {
-                    let _ = tx.send(());
-                }
-            }
-        });
-        let what = format!("twin {}", args.join(" "));
-        if ready_rx.recv_timeout(Duration::from_secs(30)).is_err() {
-            let _ = child.kill();
-            let mut err = String::new();
-            if let Some(mut e) = child.stderr.take() {
-                let _ = e.read_to_string(&mut err);
-            }
-            panic!(
-                "no `ready` from {what}: stdout {:?}, stderr {err}",
-                lines.lock().unwrap()
-            );
-        }
-        Proc { child, lines, what }
-    }
-
-    fn output(&self) -> String {
-        self.lines.lock().unwrap().join("\n")
-    }
-
-    /// The first `tcp://` address printed before `ready`, as HOST:PORT
-    /// (for `twin supervise`, its server's: the line that ends in `server`).
-    fn tcp(&self) -> String {
-        let out = self.output();
-        let line = out
-            .lines()
-            .take_while(|l| *l != "ready")
-            .filter(|l| l.starts_with("  ") && l.contains("tcp://"))
-            .find(|l| !l.contains(" master "))
-            .unwrap_or_else(|| panic!("no tcp link printed by {}: {out}", self.what));
-        let field = line
-            .split_whitespace()
-            .find(|f| f.starts_with("tcp://"))
-            .unwrap();
-        field.trim_start_matches("tcp://").to_string()
-    }
-
-    /// SIGTERM, a clean exit within 20 s, and everything it printed.
-    fn terminate(mut self) -> String {
-        let pid = self.child.id().to_string();
-        assert!(
-            Command::new("kill")
-                .args(["-TERM", &pid])
-                .status()
-                .unwrap()
-                .success()
-        );
-        let deadline = Instant::now() + Duration::from_secs(20);
-        loop {
-            if let Some(status) = self.child.try_wait().expect("wait") {
-                assert!(
-                    status.success(),
-                    "{} exited {status}: {}",
-                    self.what,
-                    self.output()
-                );
-                break;
-            }
-            assert!(
-                Instant::now() < deadline,
-                "{} did not stop on SIGTERM",
-                self.what
-            );
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        std::thread::sleep(Duration::from_millis(100));
-        self.output()
-    }
-}
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
+/// The first `tcp://` address `proc` printed before `ready`, as HOST:PORT
+/// (for `twin supervise`, its server's, not the bus's `master` line).
+fn server_tcp(proc: &Proc) -> String {
+    let link = proc
+        .links()
+        .into_iter()
+        .find(|f| f.iter().any(|w| w.starts_with("tcp://")) && !f.iter().any(|w| w == "master"))
+        .unwrap_or_else(|| panic!("no tcp link printed: {}", proc.output()));
+    let field = link.iter().find(|w| w.starts_with("tcp://")).unwrap();
+    field.trim_start_matches("tcp://").to_string()
 }
 
 /// Paths for a vsp pair unique to this test run.
@@ -328,7 +234,7 @@ fn supervise_closes_the_speed_loop_against_serve_over_a_vsp_pair() {
         printed.contains(&format!("  meb {} master 01", a.display())),
         "{printed}"
     );
-    let addr = supervise.tcp();
+    let addr = server_tcp(&supervise);
     let mut raw = Raw::connect(&addr);
     wait_for_speed(&mut raw, 1500.0, Duration::from_secs(20));
 
@@ -411,7 +317,7 @@ fn supervisor_over_tcp(extra: &[&str]) -> (Proc, Proc, String) {
         "--status-every",
         "0",
     ]);
-    let slave = format!("tcp://{}", serve.tcp());
+    let slave = format!("tcp://{}", server_tcp(&serve));
     let mut args = vec![
         "supervise",
         "--meb",
@@ -425,7 +331,7 @@ fn supervisor_over_tcp(extra: &[&str]) -> (Proc, Proc, String) {
     ];
     args.extend_from_slice(extra);
     let supervise = Proc::start(&args);
-    let addr = supervise.tcp();
+    let addr = server_tcp(&supervise);
     (serve, supervise, addr)
 }
 
@@ -639,7 +545,7 @@ fn a_slave_or_a_port_that_vanishes_gets_error_04_and_the_server_keeps_serving() 
         "--retries",
         "1",
     ]);
-    let url = format!("tcp://{}", supervise.tcp());
+    let url = format!("tcp://{}", server_tcp(&supervise));
     wait_polled(&url);
     let write = || {
         let out = client(&[&url, "write", "SA", "0", "100"]);
@@ -701,7 +607,7 @@ fn supervise_closes_the_loop_over_modbus_rtu_and_serves_the_same_image() {
             .output()
             .contains(&format!("  modbus-rtu {} master 01", a.display()))
     );
-    let mut raw = Raw::connect(&supervise.tcp());
+    let mut raw = Raw::connect(&server_tcp(&supervise));
     wait_for_speed(&mut raw, 1200.0, Duration::from_secs(20));
     // MEB writes have no Modbus form here: ER 01, the loop's variables still work.
     raw.send(&frame("@01SA00010800"));

@@ -7,90 +7,14 @@
 use nodes::proto::meb::{MebCmd, MebRepr, MebWords};
 use nodes::proto::modbus::{self, Request, Response};
 use std::collections::BTreeMap;
-use std::io::{BufRead, BufReader, Read, Write};
+use std::io::{Read, Write};
 use std::net::TcpStream;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
-use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
+use std::process::{Command, Output, Stdio};
+use std::time::Duration;
 
-/// A running `twin` subcommand whose stdout is collected in the background.
-struct Proc {
-    child: Child,
-    lines: Arc<Mutex<Vec<String>>>,
-}
-
-impl Proc {
-    /// Starts `twin ARGS` and waits for its `ready` line.
-    fn ready(args: &[&str]) -> Proc {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_twin"))
-            .args(args)
-            .stdin(Stdio::null())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("twin starts");
-        let stdout = child.stdout.take().expect("stdout");
-        let lines = Arc::new(Mutex::new(Vec::new()));
-        let (ready_tx, ready_rx) = std::sync::mpsc::channel();
-        let collected = lines.clone();
-        std::thread::spawn(move || {
-            let mut ready = Some(ready_tx);
-            for line in BufReader::new(stdout).lines() {
-                let Ok(line) = line else { break };
-                collected.lock().unwrap().push(line.clone());
-                if line == "ready"
-                    && let Some(tx) = ready.take()
-                {
-                    let _ = tx.send(());
-                }
-            }
-        });
-        if ready_rx.recv_timeout(Duration::from_secs(30)).is_err() {
-            let _ = child.kill();
-            let mut err = String::new();
-            if let Some(mut e) = child.stderr.take() {
-                let _ = e.read_to_string(&mut err);
-            }
-            panic!(
-                "no `ready` from twin {args:?}: stdout {:?}, stderr {err}",
-                lines.lock().unwrap()
-            );
-        }
-        Proc { child, lines }
-    }
-
-    /// The address printed on the link line starting with `protocol`.
-    fn tcp(&self, protocol: &str) -> String {
-        let lines = self.lines.lock().unwrap();
-        let line = lines
-            .iter()
-            .find(|l| l.starts_with(&format!("  {protocol} tcp://")))
-            .unwrap_or_else(|| panic!("no {protocol} link in {lines:?}"));
-        let addr = line.split_whitespace().nth(1).unwrap();
-        addr.strip_prefix("tcp://").unwrap().to_string()
-    }
-
-    /// Waits for the process to end by itself (its `--duration`).
-    fn wait(mut self) {
-        let deadline = Instant::now() + Duration::from_secs(30);
-        loop {
-            if let Some(status) = self.child.try_wait().expect("wait") {
-                assert!(status.success(), "exit {status}: {:?}", self.lines);
-                return;
-            }
-            assert!(Instant::now() < deadline, "did not stop: {:?}", self.lines);
-            std::thread::sleep(Duration::from_millis(20));
-        }
-    }
-}
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
+mod support;
+use support::Proc;
 
 fn scratch(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("twin-view-sessions-{}", std::process::id()));
@@ -219,7 +143,7 @@ fn a_serve_session_views_with_the_replies_rpm_and_the_tick_lateness() {
     let mcap = scratch("serve.mcap");
     let out = mcap.to_str().unwrap();
     let live = scratch("serve-live.rrd");
-    let server = Proc::ready(&[
+    let server = Proc::start(&[
         "serve",
         "--view",
         live.to_str().unwrap(),
@@ -235,8 +159,8 @@ fn a_serve_session_views_with_the_replies_rpm_and_the_tick_lateness() {
         "--out",
         out,
     ]);
-    let mut m = connect(&server.tcp("meb"));
-    let mut b = connect(&server.tcp("modbus-tcp"));
+    let mut m = connect(&server.tcp_of("meb"));
+    let mut b = connect(&server.tcp_of("modbus-tcp"));
     // EN and VEL at half scale: the wheel turns, RPM_M grows.
     meb(&mut m, MebCmd::SD, 0, 2, &[0x000E, 0x0001]);
     meb(&mut m, MebCmd::SA, 0, 1, &[2048]);
@@ -294,7 +218,7 @@ fn a_serve_session_views_with_the_replies_rpm_and_the_tick_lateness() {
 #[test]
 fn a_killed_serve_session_views_up_to_its_last_flush() {
     let mcap = scratch("killed.mcap");
-    let server = Proc::ready(&[
+    let server = Proc::start(&[
         "serve",
         "--meb",
         "tcp://127.0.0.1:0",
@@ -317,8 +241,8 @@ fn a_killed_serve_session_views_up_to_its_last_flush() {
 fn a_supervise_session_views_the_loop_of_each_slave() {
     let (a, b) = (scratch("ttyA"), scratch("ttyB"));
     let (a, b) = (a.to_str().unwrap(), b.to_str().unwrap());
-    let _vsp = Proc::ready(&["vsp", a, b]);
-    let _serve = Proc::ready(&[
+    let _vsp = Proc::start(&["vsp", a, b]);
+    let _serve = Proc::start(&[
         "serve",
         "--meb",
         b,
@@ -329,7 +253,7 @@ fn a_supervise_session_views_the_loop_of_each_slave() {
     ]);
     let mcap = scratch("supervise.mcap");
     let live = scratch("supervise-live.rrd");
-    let supervise = Proc::ready(&[
+    let supervise = Proc::start(&[
         "supervise",
         "--view",
         live.to_str().unwrap(),
