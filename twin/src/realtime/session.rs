@@ -3,14 +3,17 @@
 //! SIGINT/SIGTERM are forwarded to it, and the totals its recording ends with.
 
 use anyhow::{Context, Result};
+use nodes::time::SimTime;
 use std::collections::BTreeMap;
-use std::sync::mpsc::Sender;
+use std::path::Path;
+use std::sync::mpsc::{Receiver, Sender};
 use std::thread::JoinHandle;
 use std::time::Duration;
 use tokio::runtime::Runtime;
 use tokio::signal::unix::{Signal, SignalKind, signal};
 
-use super::{Inbound, RtSummary};
+use super::{Inbound, RtEngine, RtSummary};
+use crate::record::Recorder;
 
 /// The runtime the links' tasks run on: one thread (this one), so a reply is
 /// written by the thread that is already awake.
@@ -21,6 +24,54 @@ pub fn links_runtime() -> Result<Runtime> {
         .thread_name("twin-links")
         .build()
         .context("cannot start the I/O runtime")
+}
+
+/// The session's recording, with its `twin.run` metadata (`kind` and the
+/// twin's version added to `fields`); none without a path. Call it once every
+/// link is open: a session that cannot start leaves an earlier recording of
+/// the same name as it was.
+pub fn create_recording(
+    path: Option<&Path>,
+    kind: &str,
+    mut fields: BTreeMap<String, String>,
+) -> Result<Option<Recorder>> {
+    let Some(path) = path else { return Ok(None) };
+    let mut recorder = Recorder::create(path)?;
+    fields.insert("kind".into(), kind.into());
+    fields.insert("twin_version".into(), env!("CARGO_PKG_VERSION").into());
+    recorder.write_metadata("twin.run", fields)?;
+    Ok(Some(recorder))
+}
+
+/// Each link's name and protocol, as the sink labels its frames.
+pub fn link_labels(engine: &RtEngine) -> Vec<(String, &'static str)> {
+    engine
+        .links
+        .iter()
+        .map(|l| (l.name.clone(), l.protocol))
+        .collect()
+}
+
+/// Runs `engine` on its own thread until `end` or a stop, under SCHED_FIFO at
+/// `priority` when one is given (a warning in the monitor if it cannot be had).
+pub fn spawn_engine(
+    mut engine: RtEngine,
+    inbound: Receiver<Inbound>,
+    end: Option<SimTime>,
+    priority: Option<u8>,
+) -> Result<JoinHandle<(RtSummary, RtEngine)>> {
+    std::thread::Builder::new()
+        .name("twin-realtime".into())
+        .spawn(move || {
+            if let Some(priority) = priority
+                && let Err(why) = super::clock::raise_this_thread(priority)
+            {
+                engine.say(format!("warning: no real-time priority: {why}"));
+            }
+            let summary = engine.run(&inbound, end);
+            (summary, engine)
+        })
+        .context("cannot start the real-time thread")
 }
 
 /// Drives the links on `runtime` until the engine thread ends (its

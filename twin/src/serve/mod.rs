@@ -28,7 +28,6 @@ use crate::realtime::sink::{self, LiveView, SinkConfig, SinkMsg};
 use crate::realtime::{
     Device, Inbound, LatenessSummary, LinkConfig, NodeEndpoint, RtClock, RtEngine, SlaveEndpoint,
 };
-use crate::record::Recorder;
 use crate::view::{Session, ViewLayout};
 
 /// The protocols `twin serve` speaks, as its options name them.
@@ -403,45 +402,24 @@ pub fn serve(
         let setup = runtime.block_on(open_links(options, specs, names, engine, ev, seed002));
         // The sink starts once the link names are known; its channel was
         // made first so the engine could hold its sender.
-        let setup = match setup {
-            Ok(s) => s,
-            Err(e) => {
-                drop(rx);
-                return Err(e);
-            }
-        };
-        let links = setup
-            .engine
+        let setup = setup?;
+        let links = session::link_labels(&setup.engine);
+        let link_options: Vec<String> = options
             .links
             .iter()
-            .map(|l| (l.name.clone(), l.protocol))
+            .map(|(p, t)| format!("{} {t}", p.option()))
             .collect();
-        // Created once every link is open: a session that cannot start
-        // leaves an earlier recording of the same name as it was.
-        let recorder = match &options.out {
-            Some(path) => {
-                let mut recorder = Recorder::create(path)?;
-                let links: Vec<String> = options
-                    .links
-                    .iter()
-                    .map(|(p, t)| format!("{} {t}", p.option()))
-                    .collect();
-                recorder.write_metadata(
-                    "twin.run",
-                    BTreeMap::from([
-                        ("kind".into(), "serve".into()),
-                        ("command".into(), options.command_line.clone()),
-                        ("links".into(), links.join(" ")),
-                        ("seed".into(), options.seed.to_string()),
-                        ("slave_id".into(), options.id.to_string()),
-                        ("params".into(), toml::to_string(&options.params)?),
-                        ("twin_version".into(), env!("CARGO_PKG_VERSION").into()),
-                    ]),
-                )?;
-                Some(recorder)
-            }
-            None => None,
-        };
+        let recorder = session::create_recording(
+            options.out.as_deref(),
+            "serve",
+            BTreeMap::from([
+                ("command".into(), options.command_line.clone()),
+                ("links".into(), link_options.join(" ")),
+                ("seed".into(), options.seed.to_string()),
+                ("slave_id".into(), options.id.to_string()),
+                ("params".into(), toml::to_string(&options.params)?),
+            ]),
+        )?;
         let view = options.view.as_deref().and_then(|target| {
             let has = |name: &str| engine_modules.iter().any(|m| m == name);
             let layout = ViewLayout::of_serve(&options.params, has("ev1"), has("bench"));
@@ -474,18 +452,7 @@ pub fn serve(
         .duration
         .map(|s| SimTime::ZERO + SimDuration::from_secs_f64(s));
     let rt_priority = options.rt_priority;
-    let rt_thread = std::thread::Builder::new()
-        .name("twin-realtime".into())
-        .spawn(move || {
-            if let Some(priority) = rt_priority
-                && let Err(why) = crate::realtime::clock::raise_this_thread(priority)
-            {
-                engine.say(format!("warning: no real-time priority: {why}"));
-            }
-            let summary = engine.run(&inbound_rx, end);
-            (summary, engine)
-        })
-        .context("cannot start the real-time thread")?;
+    let rt_thread = session::spawn_engine(engine, inbound_rx, end, rt_priority)?;
     for start in starters {
         start(runtime.handle(), inbound_tx.clone());
     }

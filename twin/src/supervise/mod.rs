@@ -28,7 +28,6 @@ use crate::realtime::sink::{self, LiveView, SinkConfig, SinkMsg};
 use crate::realtime::{
     Device, Inbound, LatenessSummary, LinkConfig, NodeEndpoint, RtClock, RtEngine,
 };
-use crate::record::Recorder;
 use crate::view::{Session, ViewLayout};
 use endpoint::ImageEndpoint;
 
@@ -451,39 +450,18 @@ pub fn supervise(
         Box::new(SupervisorNode::new(supervisor)),
         None,
     ));
-    let setup = match runtime.block_on(open_links(options, bus, listen, engine)) {
-        Ok(s) => s,
-        Err(e) => {
-            drop(rx);
-            return Err(e);
-        }
-    };
-    let links = setup
-        .engine
-        .links
-        .iter()
-        .map(|l| (l.name.clone(), l.protocol))
-        .collect();
-    // Created once every link is open: a session that cannot start
-    // leaves an earlier recording of the same name as it was.
-    let recorder = match &options.out {
-        Some(path) => {
-            let mut recorder = Recorder::create(path)?;
-            recorder.write_metadata(
-                "twin.run",
-                BTreeMap::from([
-                    ("kind".into(), "supervise".into()),
-                    ("command".into(), options.command_line.clone()),
-                    ("bus".into(), options.bus.clone()),
-                    ("listen".into(), options.listen.join(" ")),
-                    ("slaves".into(), format!("{:?}", options.slaves)),
-                    ("twin_version".into(), env!("CARGO_PKG_VERSION").into()),
-                ]),
-            )?;
-            Some(recorder)
-        }
-        None => None,
-    };
+    let setup = runtime.block_on(open_links(options, bus, listen, engine))?;
+    let links = session::link_labels(&setup.engine);
+    let recorder = session::create_recording(
+        options.out.as_deref(),
+        "supervise",
+        BTreeMap::from([
+            ("command".into(), options.command_line.clone()),
+            ("bus".into(), options.bus.clone()),
+            ("listen".into(), options.listen.join(" ")),
+            ("slaves".into(), format!("{:?}", options.slaves)),
+        ]),
+    )?;
     let sink_handle = sink::spawn_with(
         SinkConfig {
             modules: Vec::new(),
@@ -499,7 +477,7 @@ pub fn supervise(
     );
     let sink_tx = setup.engine.sink();
     let Setup {
-        mut engine,
+        engine,
         open,
         starters,
         refused,
@@ -510,13 +488,7 @@ pub fn supervise(
     let end = options
         .duration
         .map(|s| SimTime::ZERO + SimDuration::from_secs_f64(s));
-    let rt_thread = std::thread::Builder::new()
-        .name("twin-realtime".into())
-        .spawn(move || {
-            let summary = engine.run(&inbound_rx, end);
-            (summary, engine)
-        })
-        .context("cannot start the real-time thread")?;
+    let rt_thread = session::spawn_engine(engine, inbound_rx, end, None)?;
     for start in starters {
         start(runtime.handle(), inbound_tx.clone());
     }
