@@ -221,22 +221,12 @@ pub fn execute(args: &ServeArgs) -> Result<()> {
             }
         }
     }
-    println!(
-        "  {} connections ({} refused over the limit, {} closed for a partial frame, {} for the rate limit); {} bytes in, {} frames out",
-        c.connections,
+    super::print_session_end(
+        &c,
         outcome.refused_clients,
-        c.closed_partial_timeout,
-        c.closed_rate_limit,
-        c.bytes_in,
-        c.frames_out
+        outcome.recording.as_deref(),
+        outcome.view_samples,
+        outcome.view_error.as_deref(),
     );
-    if let Some(path) = outcome.recording {
-        println!("recording: {}", path.display());
-    }
-    match (outcome.view_samples, outcome.view_error) {
-        (Some(_), Some(e)) => eprintln!("live view: {e}"),
-        (Some(samples), None) => println!("live view: {samples} samples streamed to rerun"),
-        _ => {}
-    }
     Ok(())
 }
