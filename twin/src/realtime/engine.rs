@@ -1,7 +1,9 @@
-//! The real-time engine: one thread owns the plants, the devices (firmware
-//! nodes) and every connection's endpoint, and ticks the plant every 1 ms on
-//! absolute deadlines. Tokio tasks own the sockets and ports and exchange
-//! bytes with it over channels ([`Inbound`], [`Outbound`]); a sink thread
+//! The real-time engine: one thread owns the plants and ticks them every
+//! 1 ms on absolute deadlines. The devices (firmware nodes) and every
+//! connection's endpoint live in the [`Front`], shared with the tokio tasks
+//! that own the sockets and ports: a task answers the requests it reads on
+//! its own thread, the engine runs the firmware loops and the timers; the
+//! rest goes over channels ([`Inbound`], [`Outbound`]). A sink thread
 //! records and prints ([`super::sink`]), so neither a slow terminal nor
 //! zstd ever delays a tick.
 //!
@@ -10,43 +12,33 @@
 //! spins to it. Lateness (actual − scheduled tick time) goes into
 //! [`Lateness`] histograms: one per second for the recording, one in total.
 
-use nodes::link::spoil_check;
-use nodes::node::MAX_FRAME;
 use nodes::time::{SimDuration, SimTime};
-use std::collections::{BTreeMap, VecDeque};
+use std::collections::BTreeMap;
 use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, TryRecvError};
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 use tokio::sync::mpsc::UnboundedSender;
 
 use super::clock::RtClock;
 pub use super::config::{Device, EndpointFactory, LinkConfig, LinkFault};
-use super::endpoint::Endpoint;
 pub use super::forces::Forces;
+use super::front::{Conn, Front, FrontHandle};
 use super::lateness::{Lateness, LatenessSummary};
 pub use super::messages::{ConnId, Inbound, Outbound};
-use super::sink::{Direction, SinkMsg};
+use super::sink::SinkMsg;
 use crate::engine::{ModuleSlot, firmware_tick};
 
 /// How long before a deadline the thread stops sleeping and spins: covers
 /// the kernel's wake-up latency and timer slack (50 µs by default).
 const SPIN: SimDuration = SimDuration::from_micros(150);
 
-struct Queued {
-    start: SimTime,
-    due: SimTime,
-    bytes: Vec<u8>,
-}
-
-struct Conn {
-    link: usize,
-    peer: String,
-    endpoint: Box<dyn Endpoint>,
-    out: UnboundedSender<Outbound>,
-    queue: VecDeque<Queued>,
-    line_free: SimTime,
-    partial_since: Option<SimTime>,
-    rate_window: SimTime,
-    rate_bytes: u64,
+/// The spin: `TWIN_RT_SPIN_US` (microseconds) if set, else [`SPIN`]. A
+/// tuning knob for measuring, not an option: the default is what was kept.
+fn spin_from_env() -> SimDuration {
+    std::env::var("TWIN_RT_SPIN_US")
+        .ok()
+        .and_then(|v| v.trim().parse::<u64>().ok())
+        .map_or(SPIN, SimDuration::from_micros)
 }
 
 /// Counters for the status line and the summary.
@@ -81,6 +73,8 @@ pub struct RtEngine {
     /// The fault in force, and the link it is limited to (all if `None`).
     fault: Option<(LinkFault, Option<usize>)>,
     read_only: bool,
+    /// How long before a deadline the thread stops sleeping and spins.
+    spin: SimDuration,
     plant_step: SimDuration,
     tick: SimDuration,
     record_period: SimDuration,
@@ -93,8 +87,6 @@ pub struct RtEngine {
     window: Lateness,
     pub counters: RtCounters,
     stop: Option<String>,
-    buf: Vec<u8>,
-    ids: Vec<ConnId>,
 }
 
 impl RtEngine {
@@ -114,6 +106,7 @@ impl RtEngine {
             conns: BTreeMap::new(),
             fault: None,
             read_only: false,
+            spin: spin_from_env(),
             plant_step,
             tick: SimDuration::from_millis(1),
             record_period,
@@ -126,8 +119,6 @@ impl RtEngine {
             window: Lateness::new(),
             counters: RtCounters::default(),
             stop: None,
-            buf: vec![0; MAX_FRAME],
-            ids: Vec::new(),
         }
     }
 
@@ -192,8 +183,41 @@ impl RtEngine {
         self.lateness.summary()
     }
 
+    /// How long before each deadline the thread stops sleeping and spins
+    /// (150 µs by default): a shorter spin leaves the links more of the
+    /// machine, a longer one covers a slower wake-up.
+    pub fn set_spin(&mut self, spin: SimDuration) {
+        self.spin = spin;
+    }
+
+    /// Swaps the connections' state between the engine and `front`: the
+    /// engine's own fields hold it between runs and while a console command
+    /// or a firmware tick runs (the front locked), the front the rest of
+    /// the time. Moves a few words, never the data.
+    fn swap_front(&mut self, front: &mut Front) {
+        std::mem::swap(&mut self.devices, &mut front.devices);
+        std::mem::swap(&mut self.conns, &mut front.conns);
+        std::mem::swap(&mut self.fault, &mut front.fault);
+        std::mem::swap(&mut self.counters, &mut front.counters);
+    }
+
+    /// Runs `f` on the engine with the front's state in its fields.
+    fn with_front<R>(&mut self, front: &FrontHandle, f: impl FnOnce(&mut Self) -> R) -> R {
+        let mut shared = front.lock();
+        self.swap_front(&mut shared);
+        let result = f(self);
+        self.swap_front(&mut shared);
+        result
+    }
+
     /// Run until `end` (if any) or a [`Inbound::Stop`].
     pub fn run(&mut self, inbound: &Receiver<Inbound>, end: Option<SimTime>) -> RtSummary {
+        let front = FrontHandle(Arc::new(Mutex::new(Front::new(
+            self.sink.clone(),
+            self.clock,
+            &self.links,
+        ))));
+        self.swap_front(&mut front.lock());
         let mut next_tick = SimTime::ZERO;
         loop {
             let now = self.clock.now();
@@ -210,27 +234,33 @@ impl RtEngine {
                     self.window.overruns += 1;
                     next_tick = SimTime(next_tick.0 + missed * self.tick.0);
                 }
-                self.plant_tick(next_tick);
+                self.plant_tick(next_tick, &front);
                 next_tick += self.tick;
                 if end.is_some_and(|e| now >= e) && self.stop.is_none() {
                     self.stop = Some("duration reached".into());
                 }
             }
-            self.service_timers(self.clock.now());
+            let next = {
+                let mut shared = front.lock();
+                shared.service_timers(self.clock.now());
+                shared.next_deadline()
+            };
             if self.stop.is_some() {
                 break;
             }
-            let deadline = self.next_deadline().map_or(next_tick, |d| d.min(next_tick));
+            let deadline = next.map_or(next_tick, |d| d.min(next_tick));
             if let Some(message) = self.wait(inbound, deadline) {
-                self.handle(message);
+                self.handle(message, &front);
                 // Everything already queued is handled before the next wait.
                 while let Ok(message) = inbound.try_recv() {
-                    self.handle(message);
+                    self.handle(message, &front);
                 }
             }
         }
-        for conn in self.conns.values() {
-            let _ = conn.out.send(Outbound::Close("server stopping".into()));
+        {
+            let mut shared = front.lock();
+            shared.close_all();
+            self.swap_front(&mut shared);
         }
         // The last (partial) second's lateness, so even a short session has one.
         let _ = self.sink.send(SinkMsg::Lateness {
@@ -248,12 +278,12 @@ impl RtEngine {
     }
 
     /// Blocks until a message arrives or `deadline` passes: sleeps on the
-    /// channel until [`SPIN`] before it, then spins.
+    /// channel until the spin before it, then spins.
     fn wait(&mut self, inbound: &Receiver<Inbound>, deadline: SimTime) -> Option<Inbound> {
         let wake = self.clock.instant(deadline);
         let sleep_until = self
             .clock
-            .instant(SimTime(deadline.0.saturating_sub(SPIN.0)));
+            .instant(SimTime(deadline.0.saturating_sub(self.spin.0)));
         let now = Instant::now();
         if sleep_until > now {
             match inbound.recv_timeout(sleep_until - now) {
@@ -281,265 +311,84 @@ impl RtEngine {
         }
     }
 
-    fn handle(&mut self, message: Inbound) {
+    fn handle(&mut self, message: Inbound, front: &FrontHandle) {
         match message {
             Inbound::Opened {
                 link,
                 conn,
                 peer,
                 out,
-            } => self.open(link, conn, peer, out),
-            Inbound::Bytes { conn, at, bytes } => self.receive(conn, at, &bytes),
-            Inbound::Closed { conn, why } => {
-                if let Some(c) = self.conns.remove(&conn) {
-                    self.note(c.link, &c.peer, &format!("closed: {why}"));
-                }
-            }
-            Inbound::Command(command) => command(self),
+            } => self.open(link, conn, peer, out, front),
+            Inbound::Bytes { conn, at, bytes } => front.lock().receive(conn, at, &bytes),
+            Inbound::Closed { conn, why } => front.lock().closed(conn, &why),
+            Inbound::Command(command) => self.with_front(front, command),
+            // The loop looks at the connections' deadlines again.
+            Inbound::Wake => {}
             Inbound::Stop(why) => {
                 self.stop.get_or_insert(why);
             }
         }
     }
 
-    fn note(&self, link: usize, peer: &str, text: &str) {
-        let at = self.clock.now();
-        let name = self.links.get(link).map_or("?", |l| l.name.as_str());
-        let _ = self.sink.send(SinkMsg::Note {
-            at,
-            link: name.to_string(),
-            peer: peer.to_string(),
-            text: text.to_string(),
-        });
-    }
-
-    fn open(&mut self, link: usize, id: ConnId, peer: String, out: UnboundedSender<Outbound>) {
+    fn open(
+        &mut self,
+        link: usize,
+        id: ConnId,
+        peer: String,
+        out: UnboundedSender<Outbound>,
+        front: &FrontHandle,
+    ) {
         let Some(config) = self.links.get_mut(link) else {
+            let _ = out.send(Outbound::Close(format!("no link {link}")));
             return;
         };
-        let mut endpoint = (config.factory)(&mut self.devices, &peer);
+        let mut shared = front.lock();
+        let mut endpoint = (config.factory)(&mut shared.devices, &peer);
         if let Some(f) = endpoint.frontend_mut() {
             f.set_read_only(self.read_only);
-            if let Some((LinkFault::Exception(r), l)) = self.fault
+            if let Some((LinkFault::Exception(r), l)) = shared.fault
                 && l.is_none_or(|l| l == link)
             {
                 f.set_forced_refusal(Some(r));
             }
         }
-        self.counters.connections += 1;
-        let now = self.clock.now();
-        self.conns.insert(
-            id,
-            Conn {
-                link,
-                peer: peer.clone(),
-                endpoint,
-                out,
-                queue: VecDeque::new(),
-                line_free: SimTime::ZERO,
-                partial_since: None,
-                rate_window: now,
-                rate_bytes: 0,
-            },
-        );
-        self.note(link, &peer, "connected");
-    }
-
-    fn close(&mut self, id: ConnId, why: &str) {
-        if let Some(conn) = self.conns.remove(&id) {
-            let _ = conn.out.send(Outbound::Close(why.into()));
-            self.note(conn.link, &conn.peer, &format!("closed by the twin: {why}"));
-        }
-    }
-
-    fn receive(&mut self, id: ConnId, at: SimTime, bytes: &[u8]) {
-        let Some(conn) = self.conns.get_mut(&id) else {
-            return;
-        };
-        let Some(link) = self.links.get(conn.link) else {
-            return;
-        };
-        self.counters.bytes_in += bytes.len() as u64;
-        let _ = self.sink.send(SinkMsg::Frame {
-            link: conn.link,
-            conn: id,
-            direction: Direction::Rx,
-            start: at,
-            end: at,
-            bytes: bytes.to_vec(),
-        });
-        if let Some(limit) = link.rate_limit {
-            if at.saturating_since(conn.rate_window) >= SimDuration::from_secs(1) {
-                conn.rate_window = at;
-                conn.rate_bytes = 0;
-            }
-            conn.rate_bytes += bytes.len() as u64;
-            if conn.rate_bytes > limit {
-                self.counters.closed_rate_limit += 1;
-                self.close(
-                    id,
-                    &format!("rate limit: more than {limit} bytes in one second"),
-                );
-                return;
-            }
-        }
-        conn.endpoint.handle_bytes(&mut self.devices, at, bytes);
-        if let Some(why) = conn.endpoint.close_request() {
-            // Replies already owed go out first.
-            self.drain(id, at);
-            self.close(id, &why);
-            return;
-        }
-        if conn.endpoint.pending() > 0 {
-            conn.partial_since.get_or_insert(at);
-        } else {
-            conn.partial_since = None;
-        }
-        self.drain(id, at);
-    }
-
-    /// Takes the endpoint's frames, applies the fault in force and the
-    /// link's turnaround and pacing, and writes those that are due.
-    fn drain(&mut self, id: ConnId, base: SimTime) {
-        let Some(conn) = self.conns.get_mut(&id) else {
-            return;
-        };
-        let Some(link) = self.links.get(conn.link) else {
-            return;
-        };
-        let fault = self
-            .fault
-            .filter(|(_, only)| only.is_none_or(|l| l == conn.link))
-            .map(|(f, _)| f);
-        while let Some(len) = conn
-            .endpoint
-            .poll_transmit(&mut self.devices, base, &mut self.buf)
-        {
-            let frame = &mut self.buf[..len.min(MAX_FRAME)];
-            let mut extra = SimDuration::ZERO;
-            match fault {
-                Some(LinkFault::NoReply) => {
-                    self.counters.replies_faulted += 1;
-                    conn.endpoint.transmit_done(&mut self.devices, base);
-                    continue;
-                }
-                Some(LinkFault::BadCheck) => {
-                    if let Some(kind) = link.check
-                        && spoil_check(kind, frame)
-                    {
-                        self.counters.replies_faulted += 1;
-                    }
-                }
-                Some(LinkFault::Delay(d)) => {
-                    self.counters.replies_faulted += 1;
-                    extra = d;
-                }
-                Some(LinkFault::Exception(_)) | None => {}
-            }
-            let start = (base + link.spec.turnaround + extra).max(conn.line_free);
-            let due = if link.spec.pace {
-                start + link.spec.serial.wire_time(frame.len())
-            } else {
-                start
-            };
-            conn.line_free = due;
-            conn.queue.push_back(Queued {
-                start,
-                due,
-                bytes: frame.to_vec(),
-            });
-        }
-        self.flush(id, self.clock.now());
-    }
-
-    /// Writes the queued frames that are due at `now`.
-    fn flush(&mut self, id: ConnId, now: SimTime) {
-        let Some(conn) = self.conns.get_mut(&id) else {
-            return;
-        };
-        while conn.queue.front().is_some_and(|q| q.due <= now) {
-            let Some(q) = conn.queue.pop_front() else {
-                break;
-            };
-            self.counters.frames_out += 1;
-            self.counters.bytes_out += q.bytes.len() as u64;
-            let _ = self.sink.send(SinkMsg::Frame {
-                link: conn.link,
-                conn: id,
-                direction: Direction::Tx,
-                start: q.start,
-                end: now,
-                bytes: q.bytes.clone(),
-            });
-            let _ = conn.out.send(Outbound::Frame(q.bytes));
-            conn.endpoint.transmit_done(&mut self.devices, now);
-        }
-    }
-
-    /// The earliest instant a connection needs attention at.
-    fn next_deadline(&self) -> Option<SimTime> {
-        self.conns
-            .values()
-            .flat_map(|c| {
-                let partial = c.partial_since.and_then(|since| {
-                    let timeout = self.links.get(c.link)?.partial_timeout?;
-                    Some(since + timeout)
-                });
-                [
-                    c.endpoint.poll_timeout(&self.devices),
-                    c.queue.front().map(|q| q.due),
-                    partial,
-                ]
-            })
-            .flatten()
-            .min()
-    }
-
-    fn service_timers(&mut self, now: SimTime) {
-        // The ids are copied into a kept buffer: handling a connection may
-        // close it, and this runs at every wake-up (no allocation here).
-        let mut ids = std::mem::take(&mut self.ids);
-        ids.clear();
-        ids.extend(self.conns.keys().copied());
-        for &id in &ids {
-            let Some(conn) = self.conns.get_mut(&id) else {
-                continue;
-            };
-            if conn
-                .endpoint
-                .poll_timeout(&self.devices)
-                .is_some_and(|t| t <= now)
-            {
-                conn.endpoint.handle_timeout(&mut self.devices, now);
-                conn.partial_since =
-                    (conn.endpoint.pending() > 0).then_some(conn.partial_since.unwrap_or(now));
-            }
-            let timeout = self.links.get(conn.link).and_then(|l| l.partial_timeout);
-            if let (Some(since), Some(timeout)) = (conn.partial_since, timeout)
-                && now >= since + timeout
-            {
-                self.counters.closed_partial_timeout += 1;
-                let secs = timeout.as_secs_f64();
-                self.close(
-                    id,
-                    &format!("a partial frame was held longer than {secs} s"),
-                );
-                continue;
-            }
-            self.drain(id, now);
-            while let Some((who, event)) = self
-                .conns
-                .get_mut(&id)
-                .and_then(|c| c.endpoint.poll_event(&mut self.devices))
-            {
-                let _ = self.sink.send(SinkMsg::Event { node: who, event });
-            }
-        }
-        self.ids = ids;
+        // The task answers this connection's requests itself from now on.
+        let _ = out.send(Outbound::Direct(front.clone()));
+        shared.open(config, link, id, peer, endpoint, out);
     }
 
     /// One plant tick at `t`: firmware loops, the plants, recording.
-    fn plant_tick(&mut self, t: SimTime) {
+    fn plant_tick(&mut self, t: SimTime, front: &FrontHandle) {
+        // The firmware loops and the status line need the devices (the
+        // front locked); the plant steps do not, so requests are answered
+        // while they run.
+        self.with_front(front, |engine| engine.firmware_ticks(t));
+        for module in &mut self.modules {
+            module.advance(self.plant_step, t);
+        }
+        if t >= self.next_record {
+            for (m, module) in self.modules.iter().enumerate() {
+                let _ = self.sink.send(SinkMsg::Plant {
+                    at: t,
+                    module: m,
+                    sensors: Box::new(*module.plant.sensors()),
+                });
+            }
+            self.next_record = t + self.record_period;
+        }
+        if t >= self.next_second {
+            let _ = self.sink.send(SinkMsg::Lateness {
+                at: t,
+                window: self.window.summary(),
+                total: self.lateness.summary(),
+            });
+            self.window.clear();
+            self.next_second += SimDuration::from_secs(1);
+        }
+    }
+
+    /// The firmware loops due at `t`, the devices' events, the status line.
+    fn firmware_ticks(&mut self, t: SimTime) {
         for device in &mut self.devices {
             let (Some(m), Some(due)) = (device.module, device.next_tick) else {
                 continue;
@@ -586,32 +435,10 @@ impl RtEngine {
                 });
             }
         }
-        for module in &mut self.modules {
-            module.advance(self.plant_step, t);
-        }
-        if t >= self.next_record {
-            for (m, module) in self.modules.iter().enumerate() {
-                let _ = self.sink.send(SinkMsg::Plant {
-                    at: t,
-                    module: m,
-                    sensors: Box::new(*module.plant.sensors()),
-                });
-            }
-            self.next_record = t + self.record_period;
-        }
         if self.status_period > SimDuration::ZERO && t >= self.next_status {
             let line = self.status_line(t);
             let _ = self.sink.send(SinkMsg::Say(line));
             self.next_status += self.status_period;
-        }
-        if t >= self.next_second {
-            let _ = self.sink.send(SinkMsg::Lateness {
-                at: t,
-                window: self.window.summary(),
-                total: self.lateness.summary(),
-            });
-            self.window.clear();
-            self.next_second += SimDuration::from_secs(1);
         }
     }
 

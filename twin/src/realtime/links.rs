@@ -1,7 +1,9 @@
 //! The tokio side of the real links: one task per TCP listener and per
 //! connection or serial port. A task reads what arrives, stamps it with the
-//! session clock and hands it to the engine; it writes each frame the engine
-//! sends back in one write. Nothing here knows a protocol.
+//! session clock and has the connection's endpoint answer it on the spot,
+//! through the front it shares with the engine ([`FrontHandle`]); it writes
+//! each frame in one write, whether it came from its own request or from
+//! the engine's timers (a turnaround, pacing). Nothing here knows a protocol.
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -15,6 +17,7 @@ use tokio::sync::mpsc::unbounded_channel;
 
 use super::clock::RtClock;
 use super::engine::{ConnId, Inbound, Outbound};
+use super::front::FrontHandle;
 use crate::io::{SerialSettings, serial};
 
 /// Bytes read at once: larger than any frame, so a frame rarely splits.
@@ -30,8 +33,9 @@ impl ConnIds {
     }
 }
 
-/// Carries one open stream: sends [`Inbound::Opened`], then bytes both ways
-/// until either side closes. Returns why it ended.
+/// Carries one open stream: sends [`Inbound::Opened`], waits for the front
+/// (or a refusal), then bytes both ways until either side closes. Returns
+/// why it ended.
 pub async fn serve_stream<S>(
     mut stream: S,
     link: usize,
@@ -56,30 +60,48 @@ where
     {
         return "server stopping".into();
     }
+    // Nothing is read before the front is here, so every request is
+    // answered in the order it came.
+    let front = match outbox.recv().await {
+        Some(Outbound::Direct(front)) => Some(front),
+        Some(Outbound::Close(why)) => {
+            let _ = stream.shutdown().await;
+            return why;
+        }
+        Some(Outbound::Frame(frame)) => {
+            let _ = stream.write_all(&frame).await;
+            None
+        }
+        None => return "server stopping".into(),
+    };
     let mut buf = vec![0u8; READ_CHUNK];
-    let why = loop {
+    let why = 'conn: loop {
         tokio::select! {
             read = stream.read(&mut buf) => match read {
                 Ok(0) => break eof.to_string(),
                 Ok(n) => {
                     let at = clock.now();
-                    let bytes = buf[..n].to_vec();
-                    if engine.send(Inbound::Bytes { conn, at, bytes }).is_err() {
-                        break "server stopping".into();
+                    let bytes = buf.get(..n).unwrap_or_default();
+                    if let Err(why) = answer(&front, &engine, conn, at, bytes) {
+                        break why;
+                    }
+                    // The replies due now, written before the next read.
+                    while let Ok(message) = outbox.try_recv() {
+                        match write_out(&mut stream, message).await {
+                            Ok(()) => {}
+                            Err(Ended::Closed(why)) => return why,
+                            Err(Ended::Failed(why)) => break 'conn why,
+                        }
                     }
                 }
                 Err(e) => break format!("read failed: {e}"),
             },
             message = outbox.recv() => match message {
-                Some(Outbound::Frame(frame)) => {
-                    if let Err(e) = stream.write_all(&frame).await {
-                        break format!("write failed: {e}");
-                    }
-                }
-                Some(Outbound::Close(why)) => {
-                    let _ = stream.shutdown().await;
-                    return why;
-                }
+                Some(message) => match write_out(&mut stream, message).await {
+                    Ok(()) => {}
+                    Err(Ended::Closed(why)) => return why,
+                    Err(Ended::Failed(why)) => break why,
+                },
                 None => break "server stopping".into(),
             },
         }
@@ -89,6 +111,55 @@ where
         why: why.clone(),
     });
     why
+}
+
+/// Serves bytes read at `at`: on this thread through `front` (waking the
+/// engine if the connection now waits for a timer), or through the engine.
+fn answer(
+    front: &Option<FrontHandle>,
+    engine: &Sender<Inbound>,
+    conn: ConnId,
+    at: nodes::time::SimTime,
+    bytes: &[u8],
+) -> Result<(), String> {
+    let message = match front {
+        Some(front) if front.receive(conn, at, bytes) => Inbound::Wake,
+        Some(_) => return Ok(()),
+        None => Inbound::Bytes {
+            conn,
+            at,
+            bytes: bytes.to_vec(),
+        },
+    };
+    engine
+        .send(message)
+        .map_err(|_| "server stopping".to_string())
+}
+
+/// How writing an [`Outbound`] ended a connection.
+enum Ended {
+    /// The twin closed it, for this reason.
+    Closed(String),
+    /// The write failed.
+    Failed(String),
+}
+
+/// Writes a frame in one write, or closes the stream.
+async fn write_out<S>(stream: &mut S, message: Outbound) -> Result<(), Ended>
+where
+    S: AsyncWrite + Unpin,
+{
+    match message {
+        Outbound::Frame(frame) => stream
+            .write_all(&frame)
+            .await
+            .map_err(|e| Ended::Failed(format!("write failed: {e}"))),
+        Outbound::Close(why) => {
+            let _ = stream.shutdown().await;
+            Err(Ended::Closed(why))
+        }
+        Outbound::Direct(_) => Ok(()),
+    }
 }
 
 /// Accepts clients on `listener` for link `link`; refuses (closes at once)

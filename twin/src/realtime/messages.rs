@@ -4,6 +4,7 @@ use nodes::time::SimTime;
 use tokio::sync::mpsc::UnboundedSender;
 
 use super::engine::RtEngine;
+use super::front::FrontHandle;
 
 /// A connection's id, unique for the session.
 pub type ConnId = u64;
@@ -25,6 +26,9 @@ pub enum Inbound {
     },
     /// The connection is gone (peer closed, port vanished).
     Closed { conn: ConnId, why: String },
+    /// A connection now waits for a timer (a turnaround, pacing, the RTU
+    /// silence): the engine looks at the deadlines again.
+    Wake,
     /// Run this on the engine's thread (console commands, other front ends).
     Command(Box<dyn FnOnce(&mut RtEngine) + Send>),
     /// Stop the session (SIGINT, SIGTERM).
@@ -38,6 +42,9 @@ pub enum Outbound {
     Frame(Vec<u8>),
     /// Close the connection, for this reason.
     Close(String),
+    /// Answer this connection's requests on the task's own thread through
+    /// the shared front (always the first message).
+    Direct(FrontHandle),
 }
 
 impl std::fmt::Debug for Inbound {
@@ -47,6 +54,7 @@ impl std::fmt::Debug for Inbound {
             Inbound::Bytes { conn, bytes, .. } => write!(f, "Bytes({conn}, {})", bytes.len()),
             Inbound::Closed { conn, why } => write!(f, "Closed({conn}, {why})"),
             Inbound::Command(_) => write!(f, "Command"),
+            Inbound::Wake => write!(f, "Wake"),
             Inbound::Stop(why) => write!(f, "Stop({why})"),
         }
     }

@@ -2,15 +2,17 @@
 //! virtual engine, paced to the wall clock, on real serial ports,
 //! pseudo-terminals and TCP sockets.
 //!
-//! Threads: the engine ([`engine::RtEngine::run`]) owns plants, devices and
-//! endpoints and ticks at 1 ms on absolute deadlines; a tokio runtime owns
-//! the sockets and ports ([`links`]); the sink ([`sink`]) records and prints.
+//! Threads: the engine ([`engine::RtEngine::run`]) owns the plants and ticks
+//! at 1 ms on absolute deadlines; a tokio runtime owns the sockets and ports
+//! ([`links`]) and answers requests through the devices and endpoints the
+//! two share ([`front`]); the sink ([`sink`]) records and prints.
 
 pub mod clock;
 pub mod config;
 pub mod endpoint;
 pub mod engine;
 pub mod forces;
+pub mod front;
 pub mod lateness;
 pub mod links;
 pub mod messages;

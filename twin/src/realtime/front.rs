@@ -1,0 +1,390 @@
+//! The connections' side of the real-time engine, shared between the engine
+//! thread and the link tasks: the devices (their register images), every
+//! connection's endpoint and reply queue, the fault in force and the
+//! counters, behind one mutex.
+//!
+//! Why shared: handing each request to the engine thread and its reply back
+//! cost two thread switches per request (two thirds of `twin serve`'s time,
+//! by perf). Now the task that read a request locks the front, lets the
+//! connection's endpoint answer it from the image and writes the reply
+//! itself; the lock is held for the microseconds of one request. The engine
+//! thread locks it for a firmware loop tick (inputs updated, stored writes
+//! applied: a write is acknowledged at once and takes effect at the next
+//! tick, as before) and for the timers (turnaround, pacing, RTU silence,
+//! partial-frame timeout), never across a plant step.
+
+use nodes::link::spoil_check;
+use nodes::node::MAX_FRAME;
+use nodes::time::{SimDuration, SimTime};
+use std::collections::{BTreeMap, VecDeque};
+use std::sync::mpsc::Sender;
+use std::sync::{Arc, Mutex, MutexGuard};
+use tokio::sync::mpsc::UnboundedSender;
+
+use super::clock::RtClock;
+use super::config::{Device, LinkConfig, LinkFault};
+use super::endpoint::Endpoint;
+use super::engine::RtCounters;
+use super::messages::{ConnId, Outbound};
+use super::sink::{Direction, SinkMsg};
+
+pub(super) struct Queued {
+    start: SimTime,
+    due: SimTime,
+    bytes: Vec<u8>,
+}
+
+/// What a connection needs of its link's configuration (copied at open, so
+/// the link tasks never touch the links, whose factories stay on the engine
+/// thread).
+#[derive(Clone)]
+pub(super) struct Rules {
+    serial: crate::io::SerialSettings,
+    turnaround: SimDuration,
+    pace: bool,
+    check: Option<nodes::link::CheckKind>,
+    partial_timeout: Option<SimDuration>,
+    rate_limit: Option<u64>,
+}
+
+pub(super) struct Conn {
+    pub(super) link: usize,
+    pub(super) peer: String,
+    pub(super) endpoint: Box<dyn Endpoint>,
+    out: UnboundedSender<Outbound>,
+    rules: Rules,
+    queue: VecDeque<Queued>,
+    line_free: SimTime,
+    partial_since: Option<SimTime>,
+    rate_window: SimTime,
+    rate_bytes: u64,
+}
+
+/// The shared state. The engine keeps its fields as its own between runs
+/// (console commands and set-up see them there, see [`Front::take`]).
+#[derive(Default)]
+pub struct Front {
+    pub(super) devices: Vec<Device>,
+    pub(super) conns: BTreeMap<ConnId, Conn>,
+    /// The fault in force, and the link it is limited to (all if `None`).
+    pub(super) fault: Option<(LinkFault, Option<usize>)>,
+    pub(super) counters: RtCounters,
+    /// Link names, for notes.
+    names: Vec<String>,
+    sink: Option<Sender<SinkMsg>>,
+    clock: Option<RtClock>,
+    buf: Vec<u8>,
+    ids: Vec<ConnId>,
+}
+
+/// A link task's handle on the front (sent to it when its connection opens).
+#[derive(Clone)]
+pub struct FrontHandle(pub(super) Arc<Mutex<Front>>);
+
+impl std::fmt::Debug for Front {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Front")
+            .field("devices", &self.devices.len())
+            .field("connections", &self.conns.len())
+            .finish_non_exhaustive()
+    }
+}
+
+impl std::fmt::Debug for FrontHandle {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("FrontHandle")
+    }
+}
+
+impl FrontHandle {
+    /// The front, locked. A task that panicked holding it left whole state
+    /// (every update is a few field writes), so poisoning is ignored.
+    pub(super) fn lock(&self) -> MutexGuard<'_, Front> {
+        self.0.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Bytes read at `at` on connection `conn`, answered on the caller's
+    /// thread (replies due now go to the connection's outbox). Whether the
+    /// engine must be woken: the connection now waits for a timer.
+    pub fn receive(&self, conn: ConnId, at: SimTime, bytes: &[u8]) -> bool {
+        let mut front = self.lock();
+        front.receive(conn, at, bytes);
+        front.conns.get(&conn).is_some_and(|c| {
+            !c.queue.is_empty() || c.endpoint.poll_timeout(&front.devices).is_some()
+        })
+    }
+}
+
+impl Front {
+    pub(super) fn new(sink: Sender<SinkMsg>, clock: RtClock, links: &[LinkConfig]) -> Self {
+        Self {
+            names: links.iter().map(|l| l.name.clone()).collect(),
+            sink: Some(sink),
+            clock: Some(clock),
+            buf: vec![0; MAX_FRAME],
+            ..Self::default()
+        }
+    }
+
+    fn now(&self) -> SimTime {
+        self.clock.map_or(SimTime::ZERO, |c| c.now())
+    }
+
+    fn send(&self, message: SinkMsg) {
+        if let Some(sink) = &self.sink {
+            let _ = sink.send(message);
+        }
+    }
+
+    pub(super) fn note(&self, link: usize, peer: &str, text: &str) {
+        let name = self.names.get(link).map_or("?", |l| l.as_str());
+        self.send(SinkMsg::Note {
+            at: self.now(),
+            link: name.to_string(),
+            peer: peer.to_string(),
+            text: text.to_string(),
+        });
+    }
+
+    /// Adds connection `id` on `link`, whose endpoint `endpoint` is.
+    pub(super) fn open(
+        &mut self,
+        link: &LinkConfig,
+        link_index: usize,
+        id: ConnId,
+        peer: String,
+        endpoint: Box<dyn Endpoint>,
+        out: UnboundedSender<Outbound>,
+    ) {
+        self.counters.connections += 1;
+        let now = self.now();
+        let rules = Rules {
+            serial: link.spec.serial.clone(),
+            turnaround: link.spec.turnaround,
+            pace: link.spec.pace,
+            check: link.check,
+            partial_timeout: link.partial_timeout,
+            rate_limit: link.rate_limit,
+        };
+        self.conns.insert(
+            id,
+            Conn {
+                link: link_index,
+                peer: peer.clone(),
+                endpoint,
+                out,
+                rules,
+                queue: VecDeque::new(),
+                line_free: SimTime::ZERO,
+                partial_since: None,
+                rate_window: now,
+                rate_bytes: 0,
+            },
+        );
+        self.note(link_index, &peer, "connected");
+    }
+
+    pub(super) fn closed(&mut self, id: ConnId, why: &str) {
+        if let Some(c) = self.conns.remove(&id) {
+            self.note(c.link, &c.peer, &format!("closed: {why}"));
+        }
+    }
+
+    pub(super) fn close(&mut self, id: ConnId, why: &str) {
+        if let Some(conn) = self.conns.remove(&id) {
+            let _ = conn.out.send(Outbound::Close(why.into()));
+            self.note(conn.link, &conn.peer, &format!("closed by the twin: {why}"));
+        }
+    }
+
+    /// Every connection told the server is stopping.
+    pub(super) fn close_all(&self) {
+        for conn in self.conns.values() {
+            let _ = conn.out.send(Outbound::Close("server stopping".into()));
+        }
+    }
+
+    pub(super) fn receive(&mut self, id: ConnId, at: SimTime, bytes: &[u8]) {
+        let Some(conn) = self.conns.get_mut(&id) else {
+            return;
+        };
+        self.counters.bytes_in += bytes.len() as u64;
+        if let Some(sink) = &self.sink {
+            let _ = sink.send(SinkMsg::Frame {
+                link: conn.link,
+                conn: id,
+                direction: Direction::Rx,
+                start: at,
+                end: at,
+                bytes: bytes.to_vec(),
+            });
+        }
+        if let Some(limit) = conn.rules.rate_limit {
+            if at.saturating_since(conn.rate_window) >= SimDuration::from_secs(1) {
+                conn.rate_window = at;
+                conn.rate_bytes = 0;
+            }
+            conn.rate_bytes += bytes.len() as u64;
+            if conn.rate_bytes > limit {
+                self.counters.closed_rate_limit += 1;
+                self.close(
+                    id,
+                    &format!("rate limit: more than {limit} bytes in one second"),
+                );
+                return;
+            }
+        }
+        conn.endpoint.handle_bytes(&mut self.devices, at, bytes);
+        if let Some(why) = conn.endpoint.close_request() {
+            // Replies already owed go out first.
+            self.drain(id, at);
+            self.close(id, &why);
+            return;
+        }
+        if conn.endpoint.pending() > 0 {
+            conn.partial_since.get_or_insert(at);
+        } else {
+            conn.partial_since = None;
+        }
+        self.drain(id, at);
+    }
+
+    /// Takes the endpoint's frames, applies the fault in force and the
+    /// link's turnaround and pacing, and writes those that are due.
+    fn drain(&mut self, id: ConnId, base: SimTime) {
+        let Some(conn) = self.conns.get_mut(&id) else {
+            return;
+        };
+        let fault = self
+            .fault
+            .filter(|(_, only)| only.is_none_or(|l| l == conn.link))
+            .map(|(f, _)| f);
+        while let Some(len) = conn
+            .endpoint
+            .poll_transmit(&mut self.devices, base, &mut self.buf)
+        {
+            let frame = &mut self.buf[..len.min(MAX_FRAME)];
+            let mut extra = SimDuration::ZERO;
+            match fault {
+                Some(LinkFault::NoReply) => {
+                    self.counters.replies_faulted += 1;
+                    conn.endpoint.transmit_done(&mut self.devices, base);
+                    continue;
+                }
+                Some(LinkFault::BadCheck) => {
+                    if let Some(kind) = conn.rules.check
+                        && spoil_check(kind, frame)
+                    {
+                        self.counters.replies_faulted += 1;
+                    }
+                }
+                Some(LinkFault::Delay(d)) => {
+                    self.counters.replies_faulted += 1;
+                    extra = d;
+                }
+                Some(LinkFault::Exception(_)) | None => {}
+            }
+            let rules = &conn.rules;
+            let start = (base + rules.turnaround + extra).max(conn.line_free);
+            let due = if rules.pace {
+                start + rules.serial.wire_time(frame.len())
+            } else {
+                start
+            };
+            conn.line_free = due;
+            conn.queue.push_back(Queued {
+                start,
+                due,
+                bytes: frame.to_vec(),
+            });
+        }
+        let now = self.now();
+        self.flush(id, now);
+    }
+
+    /// Writes the queued frames that are due at `now`.
+    fn flush(&mut self, id: ConnId, now: SimTime) {
+        let Some(conn) = self.conns.get_mut(&id) else {
+            return;
+        };
+        while conn.queue.front().is_some_and(|q| q.due <= now) {
+            let Some(q) = conn.queue.pop_front() else {
+                break;
+            };
+            self.counters.frames_out += 1;
+            self.counters.bytes_out += q.bytes.len() as u64;
+            if let Some(sink) = &self.sink {
+                let _ = sink.send(SinkMsg::Frame {
+                    link: conn.link,
+                    conn: id,
+                    direction: Direction::Tx,
+                    start: q.start,
+                    end: now,
+                    bytes: q.bytes.clone(),
+                });
+            }
+            let _ = conn.out.send(Outbound::Frame(q.bytes));
+            conn.endpoint.transmit_done(&mut self.devices, now);
+        }
+    }
+
+    /// The earliest instant a connection needs attention at.
+    pub(super) fn next_deadline(&self) -> Option<SimTime> {
+        self.conns
+            .values()
+            .flat_map(|c| {
+                let partial = c
+                    .partial_since
+                    .and_then(|since| Some(since + c.rules.partial_timeout?));
+                [
+                    c.endpoint.poll_timeout(&self.devices),
+                    c.queue.front().map(|q| q.due),
+                    partial,
+                ]
+            })
+            .flatten()
+            .min()
+    }
+
+    pub(super) fn service_timers(&mut self, now: SimTime) {
+        // The ids are copied into a kept buffer: handling a connection may
+        // close it, and this runs at every wake-up (no allocation here).
+        let mut ids = std::mem::take(&mut self.ids);
+        ids.clear();
+        ids.extend(self.conns.keys().copied());
+        for &id in &ids {
+            let Some(conn) = self.conns.get_mut(&id) else {
+                continue;
+            };
+            if conn
+                .endpoint
+                .poll_timeout(&self.devices)
+                .is_some_and(|t| t <= now)
+            {
+                conn.endpoint.handle_timeout(&mut self.devices, now);
+                conn.partial_since =
+                    (conn.endpoint.pending() > 0).then_some(conn.partial_since.unwrap_or(now));
+            }
+            if let (Some(since), Some(timeout)) = (conn.partial_since, conn.rules.partial_timeout)
+                && now >= since + timeout
+            {
+                self.counters.closed_partial_timeout += 1;
+                let secs = timeout.as_secs_f64();
+                self.close(
+                    id,
+                    &format!("a partial frame was held longer than {secs} s"),
+                );
+                continue;
+            }
+            self.drain(id, now);
+            while let Some((who, event)) = self
+                .conns
+                .get_mut(&id)
+                .and_then(|c| c.endpoint.poll_event(&mut self.devices))
+            {
+                self.send(SinkMsg::Event { node: who, event });
+            }
+        }
+        self.ids = ids;
+    }
+}
