@@ -159,7 +159,7 @@ impl Front {
         self.counters.connections += 1;
         let now = self.now();
         let rules = Rules {
-            serial: link.spec.serial.clone(),
+            serial: link.spec.serial,
             turnaround: link.spec.turnaround,
             pace: link.spec.pace,
             check: link.check,
