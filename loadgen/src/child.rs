@@ -19,6 +19,18 @@ pub struct Server {
 }
 
 impl Server {
+    /// The CPU time the server's process has used so far (user and
+    /// system, all threads), from `/proc`; `None` where that cannot be read.
+    pub fn cpu_time(&self) -> Option<Duration> {
+        let stat = std::fs::read_to_string(format!("/proc/{}/stat", self.child.id())).ok()?;
+        // Fields after the command name (which may hold spaces) in parentheses:
+        // state is field 3, utime and stime fields 14 and 15.
+        let fields: Vec<&str> = stat.rsplit_once(')')?.1.split_whitespace().collect();
+        let ticks = fields.get(11)?.parse::<u64>().ok()? + fields.get(12)?.parse::<u64>().ok()?;
+        let per_second = rustix::param::clock_ticks_per_second().max(1);
+        Some(Duration::from_secs_f64(ticks as f64 / per_second as f64))
+    }
+
     pub fn start(name: &str, mut cmd: Command, timeout: Duration) -> Result<Self> {
         cmd.stdin(Stdio::null())
             .stdout(Stdio::piped())

@@ -161,21 +161,23 @@ impl Bench<'_> {
     fn tcp_rates(
         &mut self,
         server: &str,
+        process: &Server,
         recording: &'static str,
         addr: &str,
         dialect: Dialect,
     ) -> Result<()> {
+        let cpu = || process.cpu_time();
         let duration = Duration::from_secs_f64(self.cli.seconds);
         let connect =
             |n: usize| -> Result<Vec<_>> { (0..n).map(|_| servers::connect(addr)).collect() };
         eprintln!("  {server}: request rate, 1 client, {duration:?}");
-        let one = rate(connect(1)?, dialect, duration)
+        let one = rate(connect(1)?, dialect, duration, cpu)
             .with_context(|| format!("{server}, one client"))?;
         eprintln!(
             "  {server}: request rate, {} clients, {duration:?}",
             self.cli.clients
         );
-        let many = rate(connect(self.cli.clients)?, dialect, duration)
+        let many = rate(connect(self.cli.clients)?, dialect, duration, cpu)
             .with_context(|| format!("{server}, {} clients", self.cli.clients))?;
         self.rates.push(RateRow {
             server: server.to_string(),
@@ -209,7 +211,7 @@ fn references(b: &mut Bench) -> Result<()> {
     let echo = Server::start("echo", myself(&["echo-tcp"])?, START_TIMEOUT)?;
     let addr = tcp_addr(echo.link("echo-tcp")?)?.to_string();
     b.tcp_latency("echo", &addr, Dialect::EchoTcp)?;
-    b.tcp_rates("echo", "-", &addr, Dialect::EchoTcp)?;
+    b.tcp_rates("echo", &echo, "-", &addr, Dialect::EchoTcp)?;
     echo.stop();
 
     let mut pair = PtyPair::open()?;
@@ -221,7 +223,13 @@ fn references(b: &mut Bench) -> Result<()> {
     let reference = Server::start("tokio-modbus", myself(&["tokio-modbus"])?, START_TIMEOUT)?;
     let addr = tcp_addr(reference.link("modbus-tcp")?)?.to_string();
     b.tcp_latency("tokio-modbus 0.17", &addr, Dialect::ModbusTcp)?;
-    b.tcp_rates("tokio-modbus 0.17", "-", &addr, Dialect::ModbusTcp)?;
+    b.tcp_rates(
+        "tokio-modbus 0.17",
+        &reference,
+        "-",
+        &addr,
+        Dialect::ModbusTcp,
+    )?;
     reference.stop();
 
     let mut pair = PtyPair::open()?;
@@ -271,7 +279,7 @@ fn twin(b: &mut Bench) -> Result<()> {
             let label = format!("twin serve (rec. {recording})");
             b.tcp_latency(&label, &addr, Dialect::ModbusTcp)?;
             b.pty_latency(&label, &mut pair, Dialect::ModbusRtu)?;
-            b.tcp_rates("twin serve", recording, &addr, Dialect::ModbusTcp)?;
+            b.tcp_rates("twin serve", &server, recording, &addr, Dialect::ModbusTcp)?;
             server.stop();
         }
         let _ = std::fs::remove_dir_all(&scratch);
@@ -313,21 +321,27 @@ fn report(b: &Bench) {
         );
     }
     println!("  Modbus TCP request rate (FC04 ten registers and FC03 three, alternating)");
+    println!("  and the server's CPU time (user + system, all threads) per request answered");
     println!(
-        "  {:<28} {:<9} {:>12} {:>12} {:>5}",
+        "  {:<28} {:<9} {:>12} {:>9} {:>12} {:>9} {:>5}",
         "server",
         "recording",
         "1 client",
+        "cpu/req",
         format!("{} clients", cli.clients),
+        "cpu/req",
         "bad"
     );
+    let cpu = |r: &Rate| r.server_cpu.map_or("-".to_string(), us);
     for row in &b.rates {
         println!(
-            "  {:<28} {:<9} {:>10.0}/s {:>10.0}/s {:>5}",
+            "  {:<28} {:<9} {:>10.0}/s {:>9} {:>10.0}/s {:>9} {:>5}",
             row.server,
             row.recording,
             row.one.per_second,
+            cpu(&row.one),
             row.many.per_second,
+            cpu(&row.many),
             row.one.bad_replies + row.many.bad_replies
         );
     }

@@ -206,14 +206,18 @@ pub fn latency<S: Read + Write + AsFd>(
 pub struct Rate {
     pub per_second: f64,
     pub bad_replies: u64,
+    /// The server's CPU time per request answered, if it could be read.
+    pub server_cpu: Option<Duration>,
 }
 
 /// `links.len()` clients, one thread each, each sending its next request as
-/// soon as its reply is in, for `duration`.
+/// soon as its reply is in, for `duration`; `server_cpu` reads the server's
+/// CPU time used so far.
 pub fn rate<S: Read + Write + AsFd + Send + 'static>(
     links: Vec<S>,
     dialect: Dialect,
     duration: Duration,
+    server_cpu: impl Fn() -> Option<Duration>,
 ) -> Result<Rate> {
     let stop = Arc::new(AtomicBool::new(false));
     let done = Arc::new(AtomicU64::new(0));
@@ -249,14 +253,20 @@ pub fn rate<S: Read + Write + AsFd + Send + 'static>(
         .collect();
     start.wait();
     let began = Instant::now();
+    let cpu_before = server_cpu();
     std::thread::sleep(duration);
     stop.store(true, Ordering::Relaxed);
     for w in workers {
         w.join().expect("client thread")?;
     }
     let elapsed = began.elapsed().as_secs_f64();
+    let cpu = server_cpu()
+        .zip(cpu_before)
+        .map(|(after, before)| after.saturating_sub(before));
+    let done = done.load(Ordering::Relaxed);
     Ok(Rate {
-        per_second: done.load(Ordering::Relaxed) as f64 / elapsed,
+        per_second: done as f64 / elapsed,
         bad_replies: bad.load(Ordering::Relaxed),
+        server_cpu: cpu.map(|c| c / u32::try_from(done.max(1)).unwrap_or(u32::MAX)),
     })
 }

@@ -12,6 +12,11 @@
 //! applied: a write is acknowledged at once and takes effect at the next
 //! tick, as before) and for the timers (turnaround, pacing, RTU silence,
 //! partial-frame timeout), never across a plant step.
+//!
+//! Nothing here allocates per request: replies go into the connection's
+//! [`Outgoing`], which its task empties into its own, and the frames for
+//! the recording and monitor into one [`FrameLog`] batch that the engine
+//! hands the sink once per pass of its loop.
 
 use nodes::link::spoil_check;
 use nodes::node::MAX_FRAME;
@@ -19,19 +24,21 @@ use nodes::time::{SimDuration, SimTime};
 use std::collections::{BTreeMap, VecDeque};
 use std::sync::mpsc::Sender;
 use std::sync::{Arc, Mutex, MutexGuard};
-use tokio::sync::mpsc::UnboundedSender;
 
 use super::clock::RtClock;
 use super::config::{Device, LinkConfig, LinkFault};
 use super::endpoint::Endpoint;
 use super::engine::RtCounters;
-use super::messages::{ConnId, Outbound};
-use super::sink::{Direction, SinkMsg};
+use super::frame_log::{Direction, FrameLog};
+use super::messages::{ConnId, LinkTask, Outbound, Outgoing};
+use super::sink::SinkMsg;
 
+/// A reply waiting for its turnaround or its wire time; its bytes are the
+/// next `len` of the connection's `queued_bytes`.
 pub(super) struct Queued {
     start: SimTime,
     due: SimTime,
-    bytes: Vec<u8>,
+    len: usize,
 }
 
 /// What a connection needs of its link's configuration (copied at open, so
@@ -51,9 +58,13 @@ pub(super) struct Conn {
     pub(super) link: usize,
     pub(super) peer: String,
     pub(super) endpoint: Box<dyn Endpoint>,
-    out: UnboundedSender<Outbound>,
+    task: LinkTask,
+    /// Frames due, for the task to write (its `ready` tells it when the
+    /// engine's timers put some there).
+    due: Outgoing,
     rules: Rules,
     queue: VecDeque<Queued>,
+    queued_bytes: Vec<u8>,
     line_free: SimTime,
     partial_since: Option<SimTime>,
     rate_window: SimTime,
@@ -72,6 +83,7 @@ pub struct Front {
     /// Link names, for notes.
     names: Vec<String>,
     sink: Option<Sender<SinkMsg>>,
+    frames: FrameLog,
     clock: Option<RtClock>,
     buf: Vec<u8>,
     ids: Vec<ConnId>,
@@ -104,14 +116,26 @@ impl FrontHandle {
     }
 
     /// Bytes read at `at` on connection `conn`, answered on the caller's
-    /// thread (replies due now go to the connection's outbox). Whether the
-    /// engine must be woken: the connection now waits for a timer.
-    pub fn receive(&self, conn: ConnId, at: SimTime, bytes: &[u8]) -> bool {
-        let mut front = self.lock();
+    /// thread: the replies due now are added to `out`. Whether the engine
+    /// must be woken: the connection now waits for a timer.
+    pub fn receive(&self, conn: ConnId, at: SimTime, bytes: &[u8], out: &mut Outgoing) -> bool {
+        let mut guard = self.lock();
+        let front = &mut *guard;
         front.receive(conn, at, bytes);
-        front.conns.get(&conn).is_some_and(|c| {
-            !c.queue.is_empty() || c.endpoint.poll_timeout(&front.devices).is_some()
+        let devices = &front.devices;
+        front.conns.get_mut(&conn).is_some_and(|c| {
+            c.due.move_to(out);
+            !c.queue.is_empty()
+                || c.partial_since.is_some()
+                || c.endpoint.poll_timeout(devices).is_some()
         })
+    }
+
+    /// Adds the frames the engine's timers made due on `conn` to `out`.
+    pub fn take_due(&self, conn: ConnId, out: &mut Outgoing) {
+        if let Some(c) = self.lock().conns.get_mut(&conn) {
+            c.due.move_to(out);
+        }
     }
 }
 
@@ -136,7 +160,19 @@ impl Front {
         }
     }
 
-    pub(super) fn note(&self, link: usize, peer: &str, text: &str) {
+    /// Hands the frames logged so far to the sink (the engine calls it on
+    /// every pass of its loop, so they reach the sink within a tick).
+    pub(super) fn ship_frames(&mut self) {
+        if let Some(batch) = self.frames.take()
+            && let Some(sink) = &self.sink
+        {
+            let _ = sink.send(SinkMsg::Frames(batch));
+        }
+    }
+
+    /// A line about a connection, after the frames it follows.
+    pub(super) fn note(&mut self, link: usize, peer: &str, text: &str) {
+        self.ship_frames();
         let name = self.names.get(link).map_or("?", |l| l.as_str());
         self.send(SinkMsg::Note {
             at: self.now(),
@@ -154,7 +190,7 @@ impl Front {
         id: ConnId,
         peer: String,
         endpoint: Box<dyn Endpoint>,
-        out: UnboundedSender<Outbound>,
+        task: LinkTask,
     ) {
         self.counters.connections += 1;
         let now = self.now();
@@ -172,9 +208,11 @@ impl Front {
                 link: link_index,
                 peer: peer.clone(),
                 endpoint,
-                out,
+                task,
+                due: Outgoing::default(),
                 rules,
                 queue: VecDeque::new(),
+                queued_bytes: Vec::new(),
                 line_free: SimTime::ZERO,
                 partial_since: None,
                 rate_window: now,
@@ -192,15 +230,21 @@ impl Front {
 
     pub(super) fn close(&mut self, id: ConnId, why: &str) {
         if let Some(conn) = self.conns.remove(&id) {
-            let _ = conn.out.send(Outbound::Close(why.into()));
+            let _ = conn.task.out.send(Outbound::Close {
+                why: why.into(),
+                owed: conn.due,
+            });
             self.note(conn.link, &conn.peer, &format!("closed by the twin: {why}"));
         }
     }
 
     /// Every connection told the server is stopping.
-    pub(super) fn close_all(&self) {
-        for conn in self.conns.values() {
-            let _ = conn.out.send(Outbound::Close("server stopping".into()));
+    pub(super) fn close_all(&mut self) {
+        for conn in self.conns.values_mut() {
+            let _ = conn.task.out.send(Outbound::Close {
+                why: "server stopping".into(),
+                owed: std::mem::take(&mut conn.due),
+            });
         }
     }
 
@@ -209,16 +253,8 @@ impl Front {
             return;
         };
         self.counters.bytes_in += bytes.len() as u64;
-        if let Some(sink) = &self.sink {
-            let _ = sink.send(SinkMsg::Frame {
-                link: conn.link,
-                conn: id,
-                direction: Direction::Rx,
-                start: at,
-                end: at,
-                bytes: bytes.to_vec(),
-            });
-        }
+        self.frames
+            .push(conn.link, id, Direction::Rx, at, at, bytes);
         if let Some(limit) = conn.rules.rate_limit {
             if at.saturating_since(conn.rate_window) >= SimDuration::from_secs(1) {
                 conn.rate_window = at;
@@ -292,38 +328,35 @@ impl Front {
                 start
             };
             conn.line_free = due;
+            conn.queued_bytes.extend_from_slice(frame);
             conn.queue.push_back(Queued {
                 start,
                 due,
-                bytes: frame.to_vec(),
+                len: frame.len(),
             });
         }
         let now = self.now();
         self.flush(id, now);
     }
 
-    /// Writes the queued frames that are due at `now`.
+    /// Moves the queued frames that are due at `now` to the connection's
+    /// due frames, for its task to write.
     fn flush(&mut self, id: ConnId, now: SimTime) {
         let Some(conn) = self.conns.get_mut(&id) else {
             return;
         };
-        while conn.queue.front().is_some_and(|q| q.due <= now) {
-            let Some(q) = conn.queue.pop_front() else {
-                break;
-            };
+        while let Some(q) = conn.queue.front()
+            && q.due <= now
+        {
+            let len = q.len.min(conn.queued_bytes.len());
+            let frame = conn.queued_bytes.get(..len).unwrap_or_default();
             self.counters.frames_out += 1;
-            self.counters.bytes_out += q.bytes.len() as u64;
-            if let Some(sink) = &self.sink {
-                let _ = sink.send(SinkMsg::Frame {
-                    link: conn.link,
-                    conn: id,
-                    direction: Direction::Tx,
-                    start: q.start,
-                    end: now,
-                    bytes: q.bytes.clone(),
-                });
-            }
-            let _ = conn.out.send(Outbound::Frame(q.bytes));
+            self.counters.bytes_out += len as u64;
+            self.frames
+                .push(conn.link, id, Direction::Tx, q.start, now, frame);
+            conn.due.push(frame);
+            conn.queued_bytes.drain(..len);
+            conn.queue.pop_front();
             conn.endpoint.transmit_done(&mut self.devices, now);
         }
     }
@@ -377,11 +410,18 @@ impl Front {
                 continue;
             }
             self.drain(id, now);
+            if let Some(conn) = self.conns.get(&id)
+                && !conn.due.is_empty()
+            {
+                // The frames of a timer: the task is not reading them.
+                conn.task.ready.notify_one();
+            }
             while let Some((who, event)) = self
                 .conns
                 .get_mut(&id)
                 .and_then(|c| c.endpoint.poll_event(&mut self.devices))
             {
+                self.ship_frames();
                 self.send(SinkMsg::Event { node: who, event });
             }
         }

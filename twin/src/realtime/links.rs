@@ -1,7 +1,7 @@
 //! The tokio side of the real links: one task per TCP listener and per
 //! connection or serial port. A task reads what arrives, stamps it with the
 //! session clock and has the connection's endpoint answer it on the spot,
-//! through the front it shares with the engine ([`FrontHandle`]); it writes
+//! through the front it shares with the engine ([`super::front::FrontHandle`]); it writes
 //! each frame in one write, whether it came from its own request or from
 //! the engine's timers (a turnaround, pacing). Nothing here knows a protocol.
 
@@ -13,11 +13,12 @@ use std::time::Duration;
 
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio::net::TcpListener;
+use tokio::sync::Notify;
 use tokio::sync::mpsc::unbounded_channel;
 
 use super::clock::RtClock;
-use super::engine::{ConnId, Inbound, Outbound};
-use super::front::FrontHandle;
+use super::engine::{ConnId, Inbound, LinkTask, Outbound};
+use super::messages::Outgoing;
 use crate::io::{SerialSettings, serial};
 
 /// Bytes read at once: larger than any frame, so a frame rarely splits.
@@ -49,12 +50,16 @@ where
     S: AsyncRead + AsyncWrite + Unpin,
 {
     let (out, mut outbox) = unbounded_channel();
+    let ready = Arc::new(Notify::new());
     if engine
         .send(Inbound::Opened {
             link,
             conn,
             peer,
-            out,
+            task: LinkTask {
+                out,
+                ready: ready.clone(),
+            },
         })
         .is_err()
     {
@@ -63,48 +68,42 @@ where
     // Nothing is read before the front is here, so every request is
     // answered in the order it came.
     let front = match outbox.recv().await {
-        Some(Outbound::Direct(front)) => Some(front),
-        Some(Outbound::Close(why)) => {
-            let _ = stream.shutdown().await;
-            return why;
-        }
-        Some(Outbound::Frame(frame)) => {
-            let _ = stream.write_all(&frame).await;
-            None
-        }
+        Some(Outbound::Direct(front)) => front,
+        Some(Outbound::Close { why, owed }) => return close(&mut stream, why, &owed).await,
         None => return "server stopping".into(),
     };
     let mut buf = vec![0u8; READ_CHUNK];
-    let why = 'conn: loop {
+    let mut due = Outgoing::default();
+    let why = loop {
         tokio::select! {
             read = stream.read(&mut buf) => match read {
                 Ok(0) => break eof.to_string(),
                 Ok(n) => {
                     let at = clock.now();
                     let bytes = buf.get(..n).unwrap_or_default();
-                    if let Err(why) = answer(&front, &engine, conn, at, bytes) {
-                        break why;
-                    }
-                    // The replies due now, written before the next read.
-                    while let Ok(message) = outbox.try_recv() {
-                        match write_out(&mut stream, message).await {
-                            Ok(()) => {}
-                            Err(Ended::Closed(why)) => return why,
-                            Err(Ended::Failed(why)) => break 'conn why,
-                        }
+                    if front.receive(conn, at, bytes, &mut due)
+                        && engine.send(Inbound::Wake).is_err()
+                    {
+                        break "server stopping".into();
                     }
                 }
                 Err(e) => break format!("read failed: {e}"),
             },
+            () = ready.notified() => front.take_due(conn, &mut due),
             message = outbox.recv() => match message {
-                Some(message) => match write_out(&mut stream, message).await {
-                    Ok(()) => {}
-                    Err(Ended::Closed(why)) => return why,
-                    Err(Ended::Failed(why)) => break why,
-                },
+                Some(Outbound::Close { why, mut owed }) => {
+                    owed.move_to(&mut due);
+                    return close(&mut stream, why, &due).await;
+                }
+                Some(Outbound::Direct(_)) => {}
                 None => break "server stopping".into(),
             },
         }
+        // The replies due now, each in one write, before the next read.
+        if let Err(e) = write_frames(&mut stream, &due).await {
+            break format!("write failed: {e}");
+        }
+        due.clear();
     };
     let _ = engine.send(Inbound::Closed {
         conn,
@@ -113,53 +112,25 @@ where
     why
 }
 
-/// Serves bytes read at `at`: on this thread through `front` (waking the
-/// engine if the connection now waits for a timer), or through the engine.
-fn answer(
-    front: &Option<FrontHandle>,
-    engine: &Sender<Inbound>,
-    conn: ConnId,
-    at: nodes::time::SimTime,
-    bytes: &[u8],
-) -> Result<(), String> {
-    let message = match front {
-        Some(front) if front.receive(conn, at, bytes) => Inbound::Wake,
-        Some(_) => return Ok(()),
-        None => Inbound::Bytes {
-            conn,
-            at,
-            bytes: bytes.to_vec(),
-        },
-    };
-    engine
-        .send(message)
-        .map_err(|_| "server stopping".to_string())
-}
-
-/// How writing an [`Outbound`] ended a connection.
-enum Ended {
-    /// The twin closed it, for this reason.
-    Closed(String),
-    /// The write failed.
-    Failed(String),
-}
-
-/// Writes a frame in one write, or closes the stream.
-async fn write_out<S>(stream: &mut S, message: Outbound) -> Result<(), Ended>
+/// Writes each frame of `frames` in one write.
+async fn write_frames<S>(stream: &mut S, frames: &Outgoing) -> std::io::Result<()>
 where
     S: AsyncWrite + Unpin,
 {
-    match message {
-        Outbound::Frame(frame) => stream
-            .write_all(&frame)
-            .await
-            .map_err(|e| Ended::Failed(format!("write failed: {e}"))),
-        Outbound::Close(why) => {
-            let _ = stream.shutdown().await;
-            Err(Ended::Closed(why))
-        }
-        Outbound::Direct(_) => Ok(()),
+    for frame in frames.frames() {
+        stream.write_all(frame).await?;
     }
+    Ok(())
+}
+
+/// Writes the frames owed, then closes the stream; returns `why`.
+async fn close<S>(stream: &mut S, why: String, owed: &Outgoing) -> String
+where
+    S: AsyncWrite + Unpin,
+{
+    let _ = write_frames(stream, owed).await;
+    let _ = stream.shutdown().await;
+    why
 }
 
 /// Accepts clients on `listener` for link `link`; refuses (closes at once)

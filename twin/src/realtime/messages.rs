@@ -1,6 +1,7 @@
 //! What the link tasks and the engine tell each other.
 
-use nodes::time::SimTime;
+use std::sync::Arc;
+use tokio::sync::Notify;
 use tokio::sync::mpsc::UnboundedSender;
 
 use super::engine::RtEngine;
@@ -16,13 +17,7 @@ pub enum Inbound {
         link: usize,
         conn: ConnId,
         peer: String,
-        out: UnboundedSender<Outbound>,
-    },
-    /// Bytes read at `at`.
-    Bytes {
-        conn: ConnId,
-        at: SimTime,
-        bytes: Vec<u8>,
+        task: LinkTask,
     },
     /// The connection is gone (peer closed, port vanished).
     Closed { conn: ConnId, why: String },
@@ -35,27 +30,98 @@ pub enum Inbound {
     Stop(String),
 }
 
+/// How the engine reaches the task carrying a connection.
+#[derive(Debug, Clone)]
+pub struct LinkTask {
+    pub out: UnboundedSender<Outbound>,
+    /// Notified when the engine's timers have made frames due on it.
+    pub ready: Arc<Notify>,
+}
+
 /// What the engine sends a link task.
 #[derive(Debug)]
 pub enum Outbound {
-    /// Write this frame, in one write.
-    Frame(Vec<u8>),
-    /// Close the connection, for this reason.
-    Close(String),
     /// Answer this connection's requests on the task's own thread through
-    /// the shared front (always the first message).
+    /// the shared front (the first message, unless the connection is refused).
     Direct(FrontHandle),
+    /// Write these frames, then close the connection, for this reason.
+    Close { why: String, owed: Outgoing },
 }
 
 impl std::fmt::Debug for Inbound {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
             Inbound::Opened { link, conn, .. } => write!(f, "Opened({link}, {conn})"),
-            Inbound::Bytes { conn, bytes, .. } => write!(f, "Bytes({conn}, {})", bytes.len()),
             Inbound::Closed { conn, why } => write!(f, "Closed({conn}, {why})"),
             Inbound::Command(_) => write!(f, "Command"),
             Inbound::Wake => write!(f, "Wake"),
             Inbound::Stop(why) => write!(f, "Stop({why})"),
         }
+    }
+}
+
+/// Frames due on a connection, in order, for its task to write (each in one
+/// write). The task keeps one and the front fills it, so neither allocates
+/// once it has grown to the largest burst.
+#[derive(Debug, Default)]
+pub struct Outgoing {
+    bytes: Vec<u8>,
+    ends: Vec<usize>,
+}
+
+impl Outgoing {
+    pub fn push(&mut self, frame: &[u8]) {
+        self.bytes.extend_from_slice(frame);
+        self.ends.push(self.bytes.len());
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.ends.is_empty()
+    }
+
+    /// Moves every frame of `self` to the end of `to`.
+    pub fn move_to(&mut self, to: &mut Outgoing) {
+        if to.is_empty() {
+            std::mem::swap(self, to);
+        } else {
+            let base = to.bytes.len();
+            to.bytes.extend_from_slice(&self.bytes);
+            to.ends.extend(self.ends.iter().map(|e| e + base));
+        }
+        self.clear();
+    }
+
+    pub fn clear(&mut self) {
+        self.bytes.clear();
+        self.ends.clear();
+    }
+
+    /// The frames, in order.
+    pub fn frames(&self) -> impl Iterator<Item = &[u8]> {
+        let mut start = 0;
+        self.ends.iter().map(move |&end| {
+            let frame = self.bytes.get(start..end).unwrap_or_default();
+            start = end;
+            frame
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Outgoing;
+
+    #[test]
+    fn frames_keep_their_bounds_when_moved() {
+        let (mut a, mut b) = (Outgoing::default(), Outgoing::default());
+        a.push(b"one");
+        a.move_to(&mut b);
+        assert!(a.is_empty());
+        a.push(b"two");
+        a.push(b"");
+        a.push(b"three");
+        a.move_to(&mut b);
+        let frames: Vec<_> = b.frames().collect();
+        assert_eq!(frames, [&b"one"[..], b"two", b"", b"three"]);
     }
 }

@@ -12,6 +12,7 @@ pub mod config;
 pub mod endpoint;
 pub mod engine;
 pub mod forces;
+pub mod frame_log;
 pub mod front;
 pub mod lateness;
 pub mod links;

@@ -15,10 +15,14 @@ use tokio::signal::unix::{Signal, SignalKind, signal};
 use super::{Inbound, RtEngine, RtSummary};
 use crate::record::Recorder;
 
-/// The runtime the links' tasks run on: one thread (this one), so a reply is
-/// written by the thread that is already awake.
+/// The runtime the links' tasks run on: a worker per core (up to four), so
+/// requests on several connections are answered at once; each task
+/// answers its own through the front (serve-bench, 8 Modbus TCP clients on
+/// 2 cores: 85-89 k requests/s against 72-81 k on one thread).
 pub fn links_runtime() -> Result<Runtime> {
-    tokio::runtime::Builder::new_current_thread()
+    let workers = std::thread::available_parallelism().map_or(2, |n| n.get().clamp(1, 4));
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(workers)
         .enable_io()
         .enable_time()
         .thread_name("twin-links")
@@ -36,7 +40,7 @@ pub fn create_recording(
     mut fields: BTreeMap<String, String>,
 ) -> Result<Option<Recorder>> {
     let Some(path) = path else { return Ok(None) };
-    let mut recorder = Recorder::create(path)?;
+    let mut recorder = Recorder::create_with_level(path, crate::record::REALTIME_ZSTD_LEVEL)?;
     fields.insert("kind".into(), kind.into());
     fields.insert("twin_version".into(), env!("CARGO_PKG_VERSION").into());
     recorder.write_metadata("twin.run", fields)?;

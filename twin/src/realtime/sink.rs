@@ -17,6 +17,7 @@ use std::sync::mpsc::{Receiver, Sender, TryRecvError, channel};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
+pub use super::frame_log::{Direction, FrameBatch};
 use super::lateness::LatenessSummary;
 use crate::observe::{McapObserver, decode_frame};
 use crate::record::Recorder;
@@ -26,15 +27,6 @@ use crate::view::{RerunObserver, Session, ViewLayout, ViewTarget};
 /// How often the sink drains its queue (console lines and recording may lag
 /// by this much; the engine never waits for them).
 const DRAIN_EVERY: Duration = Duration::from_millis(2);
-
-/// Which way a frame went.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Direction {
-    /// From the peer to the twin.
-    Rx,
-    /// From the twin to the peer.
-    Tx,
-}
 
 /// What the engine hands the sink.
 #[derive(Debug)]
@@ -49,15 +41,8 @@ pub enum SinkMsg {
         module: usize,
         actuators: plant::Actuators,
     },
-    /// Bytes on a link: a whole frame (tx), or a chunk as read (rx).
-    Frame {
-        link: usize,
-        conn: u64,
-        direction: Direction,
-        start: SimTime,
-        end: SimTime,
-        bytes: Vec<u8>,
-    },
+    /// Bytes on the links: whole frames (tx), chunks as read (rx).
+    Frames(FrameBatch),
     Event {
         node: String,
         event: NodeEvent,
@@ -158,7 +143,7 @@ impl LiveView {
                 &format!("{peer}: {text}"),
             ),
             // Frames come one by one once reassembled (see `run`).
-            SinkMsg::Frame { .. }
+            SinkMsg::Frames(_)
             | SinkMsg::Actuators { .. }
             | SinkMsg::Say(_)
             | SinkMsg::Finish(_) => {}
@@ -212,33 +197,141 @@ struct Framer {
 const MAX_SHOWN: usize = 1024;
 
 impl Framer {
-    /// Appends `bytes` and returns the complete frames, with their start.
-    fn push(&mut self, protocol: &str, at: SimTime, bytes: &[u8]) -> Vec<(SimTime, Vec<u8>)> {
+    /// Appends `bytes` and hands each complete frame, with its start, to
+    /// `frame` (the buffer is reused: nothing is allocated per frame).
+    fn push(
+        &mut self,
+        protocol: &str,
+        at: SimTime,
+        bytes: &[u8],
+        mut frame: impl FnMut(SimTime, &[u8]),
+    ) {
         if self.buf.is_empty() {
             self.started = Some(at);
         }
         self.buf.extend_from_slice(bytes);
-        let mut frames = Vec::new();
-        loop {
+        let mut taken = 0;
+        while let Some(rest) = self.buf.get(taken..).filter(|r| !r.is_empty()) {
             let end = match protocol {
-                "meb" | "modbus-ascii" => self.buf.iter().position(|&b| b == b'\n').map(|i| i + 1),
-                "modbus-tcp" => match self.buf.get(4..6) {
+                "meb" | "modbus-ascii" => rest.iter().position(|&b| b == b'\n').map(|i| i + 1),
+                "modbus-tcp" => match rest.get(4..6) {
                     Some(&[hi, lo]) => {
                         let total = 6 + usize::from(u16::from_be_bytes([hi, lo]));
-                        (self.buf.len() >= total).then_some(total)
+                        (rest.len() >= total).then_some(total)
                     }
                     _ => None,
                 },
                 // Binary serial framings: a read on a pty is one frame.
-                _ => (!self.buf.is_empty()).then_some(self.buf.len()),
+                _ => Some(rest.len()),
             };
-            let end = end.or((self.buf.len() > MAX_SHOWN).then_some(self.buf.len()));
-            let Some(end) = end else { break };
-            let frame: Vec<u8> = self.buf.drain(..end).collect();
-            frames.push((self.started.unwrap_or(at), frame));
+            let Some(end) = end.or((rest.len() > MAX_SHOWN).then_some(rest.len())) else {
+                break;
+            };
+            frame(
+                self.started.unwrap_or(at),
+                rest.get(..end).unwrap_or_default(),
+            );
+            taken += end;
             self.started = Some(at);
         }
-        frames
+        self.buf.drain(..taken);
+    }
+}
+
+/// What the sink keeps per connection.
+#[derive(Default)]
+struct ConnFrames {
+    framer: Framer,
+    /// Its frames' sender in the recording.
+    client: String,
+    /// When its last request ended (a reply's delay is shown from there).
+    last_request: Option<SimTime>,
+}
+
+/// Shows and records the frames of the links.
+struct FrameSink {
+    conns: HashMap<u64, ConnFrames>,
+    /// Per link: `/link/<link>/frames`.
+    topics: Vec<String>,
+}
+
+impl FrameSink {
+    fn new(config: &SinkConfig) -> Self {
+        Self {
+            conns: HashMap::new(),
+            topics: config
+                .links
+                .iter()
+                .map(|(name, _)| format!("/link/{name}/frames"))
+                .collect(),
+        }
+    }
+
+    /// Every frame of `batch`: printed if the monitor is on, recorded, viewed.
+    fn take(
+        &mut self,
+        config: &SinkConfig,
+        batch: &FrameBatch,
+        out: &mut impl Write,
+        observer: &mut Option<McapObserver>,
+        view: &mut Option<LiveView>,
+    ) -> Result<()> {
+        if !config.monitor && observer.is_none() && view.is_none() {
+            return Ok(());
+        }
+        let mut result = Ok(());
+        for (record, bytes) in batch.iter() {
+            let Some((name, protocol)) = config.links.get(record.link) else {
+                continue;
+            };
+            let topic = self.topics.get(record.link).map_or("", String::as_str);
+            let conn = record.conn;
+            let state = self.conns.entry(conn).or_insert_with(|| ConnFrames {
+                client: format!("client {conn}"),
+                ..ConnFrames::default()
+            });
+            let mut show = |at: SimTime, end: SimTime, frame: &[u8], from: &str, after: &str| {
+                let arrow = if from == "twin" { "->" } else { "<-" };
+                let decoded = (config.monitor || observer.is_some())
+                    .then(|| decode_link_frame(protocol, frame));
+                if config.monitor {
+                    let shown_decoded = decoded.as_ref().map_or(String::new(), Value::to_string);
+                    let _ = writeln!(
+                        out,
+                        "[{:12.6} s] {name} #{conn} {arrow} {}{after}  {shown_decoded}",
+                        at.as_secs_f64(),
+                        shown(frame),
+                    );
+                }
+                if let Some(v) = view.as_mut() {
+                    v.frame(name, from, at, end, frame);
+                }
+                if let (Some(o), Some(decoded)) = (observer.as_mut(), decoded) {
+                    let recorded = o.record_frame(topic, from, at, end, frame, decoded);
+                    result = std::mem::replace(&mut result, Ok(())).and(recorded);
+                }
+            };
+            match record.direction {
+                Direction::Rx => {
+                    state.last_request = Some(record.end);
+                    let client = &state.client;
+                    state
+                        .framer
+                        .push(protocol, record.start, bytes, |at, frame| {
+                            show(at, at, frame, client, "");
+                        });
+                }
+                Direction::Tx => {
+                    let after = state.last_request.map_or(String::new(), |r| {
+                        let ms = record.end.saturating_since(r).as_secs_f64() * 1e3;
+                        format!("  (+{ms:.3} ms)")
+                    });
+                    let after = if config.monitor { after } else { String::new() };
+                    show(record.start, record.end, bytes, "twin", &after);
+                }
+            }
+        }
+        result
     }
 }
 
@@ -283,8 +376,7 @@ fn shown(bytes: &[u8]) -> String {
 
 fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
     let mut observer = config.recorder.take().map(McapObserver::new);
-    let mut framers: HashMap<u64, Framer> = HashMap::new();
-    let mut last_request: HashMap<u64, SimTime> = HashMap::new();
+    let mut frame_sink = FrameSink::new(&config);
     let stdout = std::io::stdout();
     let mut failed: Option<anyhow::Error> = None;
     let mut finish = None;
@@ -323,59 +415,10 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
                 (Some(o), Some(name)) => o.put(&format!("/plant/{name}/actuators"), at, &actuators),
                 _ => Ok(()),
             },
-            SinkMsg::Frame {
-                link,
-                conn,
-                direction,
-                start,
-                end,
-                bytes,
-            } => {
-                let (name, protocol) = config.links.get(link).cloned().unwrap_or_default();
-                let frames = match direction {
-                    Direction::Rx => framers
-                        .entry(conn)
-                        .or_default()
-                        .push(protocol, start, &bytes),
-                    Direction::Tx => vec![(start, bytes)],
-                };
-                let topic = format!("/link/{name}/frames");
-                let mut result = Ok(());
-                for (at, frame) in frames {
-                    let decoded = decode_link_frame(protocol, &frame);
-                    let (arrow, from, after) = match direction {
-                        Direction::Rx => {
-                            last_request.insert(conn, end);
-                            ("<-", format!("client {conn}"), String::new())
-                        }
-                        Direction::Tx => {
-                            let after = last_request.get(&conn).map_or(String::new(), |r| {
-                                format!(
-                                    "  (+{:.3} ms)",
-                                    end.saturating_since(*r).as_secs_f64() * 1e3
-                                )
-                            });
-                            ("->", "twin".to_string(), after)
-                        }
-                    };
-                    if config.monitor {
-                        let _ = writeln!(
-                            out,
-                            "[{:12.6} s] {name} #{conn} {arrow} {}{after}  {decoded}",
-                            at.as_secs_f64(),
-                            shown(&frame),
-                        );
-                    }
-                    let end = if direction == Direction::Rx { at } else { end };
-                    if let Some(v) = &mut view {
-                        v.frame(&name, &from, at, end, &frame);
-                    }
-                    if let Some(o) = &mut observer {
-                        result =
-                            result.and(o.record_frame(&topic, &from, at, end, &frame, decoded));
-                    }
-                }
-                result
+            SinkMsg::Frames(batch) => {
+                let taken = frame_sink.take(&config, &batch, &mut out, &mut observer, &mut view);
+                batch.recycle();
+                taken
             }
             SinkMsg::Event { node, event } => {
                 if config.monitor && event.kind != "log" {
