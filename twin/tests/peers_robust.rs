@@ -8,37 +8,23 @@
 mod peers;
 
 use nodes::proto::crc::{crc16_modbus, lrc};
-use peers::{PtyPair, Serve, scratch};
+use peers::{DirectPty, Serve, scratch};
 use rustix::event::{PollFd, PollFlags, Timespec, poll};
-use rustix::fs::OFlags;
-use rustix::termios::{OptionalActions, tcgetattr, tcsetattr};
-use std::fs::{File, OpenOptions};
+use std::fs::File;
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
-use std::os::unix::fs::OpenOptionsExt;
-use std::path::Path;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 const REPLY_TIMEOUT: Duration = Duration::from_secs(2);
+/// How late a loaded machine has been seen to deliver bytes on a pty (see
+/// [`ask`]), with room.
+const LATE_DELIVERY: Duration = Duration::from_secs(5);
 /// A frame gap for the slaves (3.5 characters, 5 ms on a pty), with room for
-/// the socat relay, which on a loaded machine sometimes holds bytes for over
-/// 10 ms: abuse and the valid request after it must not arrive as one burst.
+/// a loaded machine: abuse and the valid request after it must not arrive as
+/// one burst.
 const SILENCE: Duration = Duration::from_millis(200);
-
-fn open_raw(path: &Path) -> File {
-    let file = OpenOptions::new()
-        .read(true)
-        .write(true)
-        .custom_flags(OFlags::NOCTTY.bits() as i32)
-        .open(path)
-        .expect("open pty");
-    let mut t = tcgetattr(&file).unwrap();
-    t.make_raw();
-    tcsetattr(&file, OptionalActions::Now, &t).unwrap();
-    file
-}
 
 /// Waits up to `wait` for `link` to have bytes to read.
 fn readable(link: &File, wait: Duration) -> bool {
@@ -50,19 +36,65 @@ fn readable(link: &File, wait: Duration) -> bool {
     poll(&mut fds, Some(&t)).unwrap() > 0
 }
 
-/// Reads until `done(bytes)` holds, each wait bounded by [`REPLY_TIMEOUT`].
+/// Reads until `done(bytes)` holds, each wait bounded by [`LATE_DELIVERY`].
 fn read_until(link: &mut File, done: impl Fn(&[u8]) -> bool) -> Vec<u8> {
+    try_read_until(link, LATE_DELIVERY, &done).unwrap_or_else(|got| {
+        panic!("no (complete) reply within {LATE_DELIVERY:?}; got {got:02x?}")
+    })
+}
+
+/// Reads until `done(bytes)` holds, each wait bounded by `wait`; what came
+/// if a wait ran out.
+fn try_read_until(
+    link: &mut File,
+    wait: Duration,
+    done: impl Fn(&[u8]) -> bool,
+) -> Result<Vec<u8>, Vec<u8>> {
     let mut got = Vec::new();
     let mut buf = [0u8; 512];
     while !done(&got) {
-        assert!(
-            readable(link, REPLY_TIMEOUT),
-            "no (complete) reply within {REPLY_TIMEOUT:?}; got {got:02x?}"
-        );
+        if !readable(link, wait) {
+            return Err(got);
+        }
         let n = link.read(&mut buf).unwrap();
         got.extend_from_slice(&buf[..n]);
     }
-    got
+    Ok(got)
+}
+
+/// Sends `request` and reads its reply (complete when `done` holds), waiting
+/// up to [`LATE_DELIVERY`]; asks once more after a silence if none came.
+/// Why: on this 2-core machine under load the kernel was seen to hold bytes
+/// written to a pty master for up to 2.3 s and hand them over together (the
+/// server's task, polling the port every 50 ms meanwhile, found nothing to
+/// read). A request that reaches the slave glued to the abuse before it is
+/// rightly taken as more of the same frame, and a real master would ask
+/// again. The reply, and how many copies went unanswered: the caller checks
+/// in the recording that each of those reached the server glued to the
+/// bytes before it.
+fn ask(port: &mut File, request: &[u8], done: impl Fn(&[u8]) -> bool) -> (Vec<u8>, usize) {
+    for unanswered in 0..2 {
+        port.write_all(request).unwrap();
+        if let Ok(reply) = try_read_until(port, LATE_DELIVERY, &done) {
+            return (reply, unanswered);
+        }
+        std::thread::sleep(SILENCE);
+    }
+    panic!("no reply to two copies of {request:02x?}");
+}
+
+/// How many times `request` reached the server less than a pty silence
+/// (5 ms) after the byte before it, in the chunks `reads` (arrival time in
+/// seconds, bytes) the recording shows for its link.
+fn glued(reads: &[(f64, Vec<u8>)], request: &[u8]) -> usize {
+    let stream: Vec<(f64, u8)> = reads
+        .iter()
+        .flat_map(|(t, bytes)| bytes.iter().map(move |&b| (*t, b)))
+        .collect();
+    let bytes: Vec<u8> = stream.iter().map(|&(_, b)| b).collect();
+    (1..stream.len())
+        .filter(|&i| bytes[i..].starts_with(request) && stream[i].0 - stream[i - 1].0 < 0.005)
+        .count()
 }
 
 /// Whatever arrives within `wait` (nothing expected).
@@ -175,9 +207,12 @@ fn abuse_tcp(addr: &str, bursts: &[&[u8]]) {
 #[test]
 fn abuse_on_every_link_leaves_the_others_served() {
     let dir = scratch("robust");
-    let rtu = PtyPair::new(&dir.join("rtu").tap_mkdir());
-    let ascii = PtyPair::new(&dir.join("ascii").tap_mkdir());
-    let m8 = PtyPair::new(&dir.join("m8").tap_mkdir());
+    // Pseudo-terminals the test holds the master of: with a socat relay
+    // between (as the other peer tests use), a loaded machine was seen to
+    // hold written bytes for seconds, until the writer closed its end.
+    let mut rtu = DirectPty::new();
+    let mut ascii = DirectPty::new();
+    let mut m8 = DirectPty::new();
     let recording = dir.join("robust.mcap");
     let mut serve = Serve::start(&[
         "--quiet",
@@ -188,11 +223,11 @@ fn abuse_on_every_link_leaves_the_others_served() {
         "--meb",
         "tcp://127.0.0.1:0",
         "--modbus-rtu",
-        rtu.a.to_str().unwrap(),
+        rtu.path.to_str().unwrap(),
         "--modbus-ascii",
-        ascii.a.to_str().unwrap(),
+        ascii.path.to_str().unwrap(),
         "--modbus8",
-        m8.a.to_str().unwrap(),
+        m8.path.to_str().unwrap(),
     ]);
     let modbus = serve.tcp("modbus-tcp");
     let meb = serve.tcp("meb");
@@ -227,14 +262,13 @@ fn abuse_on_every_link_leaves_the_others_served() {
 
     // Serial links: garbage or half a frame, a silence, then a valid request
     // must be answered (once, and whole).
-    let mut port = open_raw(&rtu.b);
+    let port = &mut rtu.master;
     port.write_all(&garbage[..300]).unwrap();
     std::thread::sleep(SILENCE);
     port.write_all(&rtu_read_inputs()[..5]).unwrap();
     std::thread::sleep(SILENCE);
-    let _ = drain(&mut port, SILENCE);
-    port.write_all(&rtu_read_inputs()).unwrap();
-    let reply = read_until(&mut port, |b| b.len() >= 25);
+    let _ = drain(port, SILENCE);
+    let (reply, rtu_unanswered) = ask(port, &rtu_read_inputs(), |b| b.len() >= 25);
     assert_eq!(
         &reply[..3],
         &[1, 4, 20],
@@ -245,31 +279,30 @@ fn abuse_on_every_link_leaves_the_others_served() {
         [reply[23], reply[24]]
     );
 
-    let mut port = open_raw(&ascii.b);
+    let port = &mut ascii.master;
     port.write_all(b":01zz\r\n:0104000").unwrap();
     std::thread::sleep(SILENCE);
     port.write_all(b"\r\n").unwrap();
-    let _ = drain(&mut port, SILENCE);
+    let _ = drain(port, SILENCE);
     port.write_all(&ascii_read_inputs()).unwrap();
-    let reply = read_until(&mut port, |b| b.ends_with(b"\r\n"));
+    let reply = read_until(port, |b| b.ends_with(b"\r\n"));
     assert!(
         reply.starts_with(b":010414"),
         "ASCII FC04 reply: {:?}",
         String::from_utf8_lossy(&reply)
     );
 
-    let mut port = open_raw(&m8.b);
+    let port = &mut m8.master;
     port.write_all(&[1, 3, 0]).unwrap();
     std::thread::sleep(SILENCE);
     let mut bad = modbus8_read_state();
     bad[7] ^= 0xff;
     port.write_all(&bad).unwrap();
     assert!(
-        drain(&mut port, Duration::from_millis(100)).is_empty(),
+        drain(port, Duration::from_millis(100)).is_empty(),
         "silent on a bad CRC"
     );
-    port.write_all(&modbus8_read_state()).unwrap();
-    let reply = read_until(&mut port, |b| b.len() >= 8);
+    let (reply, m8_unanswered) = ask(port, &modbus8_read_state(), |b| b.len() >= 8);
     assert_eq!(reply.len(), 8, "one whole 8-byte reply: {reply:02x?}");
     assert_eq!(&reply[..4], &[1, 3, 0, 1], "{reply:02x?}");
     assert_eq!(
@@ -277,7 +310,7 @@ fn abuse_on_every_link_leaves_the_others_served() {
         [reply[6], reply[7]]
     );
 
-    // A serial port vanishes under the server: socat ends, the pty is gone.
+    // A serial port vanishes under the server: its master closes, the pty is gone.
     drop(rtu);
     std::thread::sleep(Duration::from_millis(300));
 
@@ -318,26 +351,38 @@ fn abuse_on_every_link_leaves_the_others_served() {
     drop(serve);
     let bytes = std::fs::read(&recording).expect("the recording exists");
     let mut frames = std::collections::BTreeMap::<String, u64>::new();
+    let mut reads = std::collections::BTreeMap::<String, Vec<(f64, Vec<u8>)>>::new();
     for message in mcap::MessageStream::new(&bytes).expect("a valid MCAP file") {
         let message = message.expect("a valid message");
-        if message.channel.topic.ends_with("/frames") {
-            *frames.entry(message.channel.topic.clone()).or_default() += 1;
+        let topic = message.channel.topic.clone();
+        if topic.ends_with("/frames") {
+            *frames.entry(topic.clone()).or_default() += 1;
+            let frame: serde_json::Value = serde_json::from_slice(&message.data).unwrap();
+            if frame["from"] != "twin" {
+                let hex = frame["hex"].as_str().unwrap_or_default();
+                let bytes = (0..hex.len() / 2)
+                    .map(|i| u8::from_str_radix(&hex[2 * i..2 * i + 2], 16).unwrap())
+                    .collect();
+                let start = frame["start_s"].as_f64().unwrap_or_default();
+                reads.entry(topic).or_default().push((start, bytes));
+            }
         }
+    }
+    for (topic, request, unanswered) in [
+        ("/link/modbus-rtu/frames", rtu_read_inputs(), rtu_unanswered),
+        ("/link/modbus8/frames", modbus8_read_state(), m8_unanswered),
+    ] {
+        let glued = glued(reads.get(topic).map_or(&[][..], Vec::as_slice), &request);
+        assert!(
+            unanswered <= glued,
+            "{topic}: {unanswered} valid request(s) unanswered, only {glued} reached the \
+             server glued to the bytes before them: {:?}",
+            reads.get(topic)
+        );
     }
     let total: u64 = frames.values().sum();
     assert!(
         frames.len() >= 4 && total > 2 * (after.0 + after.1),
         "frames of every abused link and both directions of the good clients: {frames:?}"
     );
-}
-
-trait TapMkdir {
-    fn tap_mkdir(self) -> Self;
-}
-
-impl TapMkdir for std::path::PathBuf {
-    fn tap_mkdir(self) -> Self {
-        std::fs::create_dir_all(&self).unwrap();
-        self
-    }
 }

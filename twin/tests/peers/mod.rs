@@ -204,6 +204,34 @@ impl Drop for PtyPair {
     }
 }
 
+/// A pseudo-terminal whose master end the test holds, with no relay process
+/// between: the server opens `path` (the slave), the test reads and writes
+/// `master`. Dropping it closes the master: the server's port vanishes.
+#[derive(Debug)]
+pub struct DirectPty {
+    pub master: std::fs::File,
+    pub path: PathBuf,
+}
+
+impl DirectPty {
+    pub fn new() -> DirectPty {
+        use rustix::pty::{OpenptFlags, grantpt, openpt, ptsname, unlockpt};
+        use rustix::termios::{OptionalActions, tcgetattr, tcsetattr};
+        let master = openpt(OpenptFlags::RDWR | OpenptFlags::NOCTTY).expect("posix_openpt");
+        grantpt(&master).expect("grantpt");
+        unlockpt(&master).expect("unlockpt");
+        let name = ptsname(&master, Vec::new()).expect("ptsname");
+        let path = PathBuf::from(name.to_string_lossy().into_owned());
+        let mut t = tcgetattr(&master).expect("tcgetattr");
+        t.make_raw();
+        tcsetattr(&master, OptionalActions::Now, &t).expect("tcsetattr");
+        DirectPty {
+            master: std::fs::File::from(master),
+            path,
+        }
+    }
+}
+
 /// Runs `cmd` to completion, killing it (and failing) after `timeout`.
 pub fn run_timeout(cmd: &mut Command, timeout: Duration) -> Output {
     let mut child = cmd
