@@ -16,6 +16,8 @@ pub struct Server {
     child: Child,
     /// (protocol, address) of each link it printed.
     pub links: Vec<(String, String)>,
+    /// Its standard output, line by line, after `ready`.
+    lines: mpsc::Receiver<String>,
 }
 
 impl Server {
@@ -82,6 +84,7 @@ impl Server {
             name: name.to_string(),
             child,
             links,
+            lines: rx,
         })
     }
 
@@ -94,18 +97,29 @@ impl Server {
             .with_context(|| format!("{} printed no {protocol} link: {:?}", self.name, self.links))
     }
 
-    /// SIGTERM, then SIGKILL if it does not stop within two seconds.
-    pub fn stop(mut self) {
+    /// SIGTERM, then SIGKILL if it does not stop within two seconds; the
+    /// lines it printed after `ready`.
+    pub fn stop(mut self) -> Vec<String> {
         let _ = kill_process(Pid::from_child(&self.child), Signal::TERM);
         let deadline = Instant::now() + Duration::from_secs(2);
+        let mut stopped = false;
         while Instant::now() < deadline {
             if let Ok(Some(_)) = self.child.try_wait() {
-                return;
+                stopped = true;
+                break;
             }
             std::thread::sleep(Duration::from_millis(10));
         }
-        let _ = self.child.kill();
-        let _ = self.child.wait();
+        if !stopped {
+            let _ = self.child.kill();
+            let _ = self.child.wait();
+        }
+        // The reader thread ends with the pipe; what it had is all there is.
+        let mut lines = Vec::new();
+        while let Ok(line) = self.lines.recv_timeout(Duration::from_millis(500)) {
+            lines.push(line);
+        }
+        lines
     }
 }
 

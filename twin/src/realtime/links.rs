@@ -74,6 +74,10 @@ where
     };
     let mut buf = vec![0u8; READ_CHUNK];
     let mut due = Outgoing::default();
+    // Kept registered across passes of the loop rather than made anew for
+    // each (which locks the Notify's waiter list twice per request).
+    let notified = ready.notified();
+    tokio::pin!(notified);
     let why = loop {
         tokio::select! {
             read = stream.read(&mut buf) => match read {
@@ -89,7 +93,10 @@ where
                 }
                 Err(e) => break format!("read failed: {e}"),
             },
-            () = ready.notified() => front.take_due(conn, &mut due),
+            () = notified.as_mut() => {
+                notified.set(ready.notified());
+                front.take_due(conn, &mut due);
+            }
             message = outbox.recv() => match message {
                 Some(Outbound::Close { why, mut owed }) => {
                     owed.move_to(&mut due);

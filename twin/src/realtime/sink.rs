@@ -181,7 +181,13 @@ pub fn spawn(config: SinkConfig) -> (Sender<SinkMsg>, JoinHandle<Result<SinkOutc
 pub fn spawn_with(config: SinkConfig, rx: Receiver<SinkMsg>) -> JoinHandle<Result<SinkOutcome>> {
     std::thread::Builder::new()
         .name("twin-sink".into())
-        .spawn(move || run(config, &rx))
+        .spawn(move || {
+            // Recording and printing can wait (the queue holds them); the
+            // links' tasks and the plant cannot. On a machine whose cores are
+            // all busy, the kernel now gives them the time first.
+            let _ = rustix::process::setpriority_process(None, 10);
+            run(config, &rx)
+        })
         .unwrap_or_else(|e| panic!("cannot start the recording thread: {e}"))
 }
 
