@@ -16,7 +16,58 @@ pub enum Direction {
     Tx,
 }
 
-/// One frame of a [`FrameBatch`]: a whole frame (tx), or a chunk as read (rx).
+/// Frames back to back in one buffer, with where each ends: any number of
+/// frames in two allocations, which a cleared store keeps for the next.
+#[derive(Debug, Default)]
+pub struct PackedFrames {
+    bytes: Vec<u8>,
+    ends: Vec<usize>,
+}
+
+impl PackedFrames {
+    pub fn push(&mut self, frame: &[u8]) {
+        self.bytes.extend_from_slice(frame);
+        self.ends.push(self.bytes.len());
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.ends.is_empty()
+    }
+
+    pub fn len(&self) -> usize {
+        self.ends.len()
+    }
+
+    pub fn clear(&mut self) {
+        self.bytes.clear();
+        self.ends.clear();
+    }
+
+    /// Moves every frame of `self` to the end of `to`.
+    pub fn move_to(&mut self, to: &mut PackedFrames) {
+        if to.is_empty() {
+            std::mem::swap(self, to);
+        } else {
+            let base = to.bytes.len();
+            to.bytes.extend_from_slice(&self.bytes);
+            to.ends.extend(self.ends.iter().map(|e| e + base));
+        }
+        self.clear();
+    }
+
+    /// The frames, in order.
+    pub fn iter(&self) -> impl Iterator<Item = &[u8]> {
+        let mut start = 0;
+        self.ends.iter().map(move |&end| {
+            let frame = self.bytes.get(start..end).unwrap_or_default();
+            start = end;
+            frame
+        })
+    }
+}
+
+/// Where a frame of a [`FrameBatch`] went, and when: a whole frame (tx), or
+/// a chunk as read (rx).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct FrameRecord {
     pub link: usize,
@@ -24,17 +75,13 @@ pub struct FrameRecord {
     pub direction: Direction,
     pub start: SimTime,
     pub end: SimTime,
-    /// Where its bytes end in the batch's buffer (they start where the
-    /// previous record's end).
-    bytes_end: usize,
 }
 
-/// Frames, their bytes back to back in one buffer. Emptied batches go back
-/// to the log that filled them ([`FrameBatch::recycle`]), so a steady
-/// session allocates none.
+/// Frames and their records. Emptied batches go back to the log that
+/// filled them ([`FrameBatch::recycle`]), so a steady session allocates none.
 #[derive(Debug, Default)]
 pub struct FrameBatch {
-    bytes: Vec<u8>,
+    frames: PackedFrames,
     records: Vec<FrameRecord>,
     home: Option<Sender<FrameBatch>>,
 }
@@ -49,14 +96,13 @@ impl FrameBatch {
         end: SimTime,
         bytes: &[u8],
     ) {
-        self.bytes.extend_from_slice(bytes);
+        self.frames.push(bytes);
         self.records.push(FrameRecord {
             link,
             conn,
             direction,
             start,
             end,
-            bytes_end: self.bytes.len(),
         });
     }
 
@@ -70,17 +116,12 @@ impl FrameBatch {
 
     /// The frames in the order they were pushed, with their bytes.
     pub fn iter(&self) -> impl Iterator<Item = (&FrameRecord, &[u8])> {
-        let mut start = 0;
-        self.records.iter().map(move |record| {
-            let bytes = self.bytes.get(start..record.bytes_end).unwrap_or_default();
-            start = record.bytes_end;
-            (record, bytes)
-        })
+        self.records.iter().zip(self.frames.iter())
     }
 
     /// Empties the batch and sends it back to the log it came from.
     pub fn recycle(mut self) {
-        self.bytes.clear();
+        self.frames.clear();
         self.records.clear();
         if let Some(home) = self.home.take() {
             let _ = home.send(self);
@@ -138,6 +179,20 @@ mod tests {
     use super::*;
 
     #[test]
+    fn packed_frames_keep_their_bounds_when_moved() {
+        let (mut a, mut b) = (PackedFrames::default(), PackedFrames::default());
+        a.push(b"one");
+        a.move_to(&mut b);
+        assert!(a.is_empty());
+        a.push(b"two");
+        a.push(b"");
+        a.push(b"three");
+        a.move_to(&mut b);
+        let frames: Vec<_> = b.iter().collect();
+        assert_eq!(frames, [&b"one"[..], b"two", b"", b"three"]);
+    }
+
+    #[test]
     fn frames_come_out_as_pushed_and_batches_are_reused() {
         let mut log = FrameLog::default();
         assert!(log.take().is_none(), "nothing logged, nothing to send");
@@ -158,7 +213,7 @@ mod tests {
                 (0, 1, Direction::Tx, b"cde".to_vec()),
             ]
         );
-        let capacity = batch.bytes.capacity();
+        let capacity = batch.frames.bytes.capacity();
         batch.recycle();
         // The batch filling while the first was away goes out, and the one
         // that came back fills next: its buffer is the first one's.
@@ -168,6 +223,10 @@ mod tests {
         let again = log.take().unwrap();
         let bytes: Vec<_> = again.iter().map(|(_, b)| b.to_vec()).collect();
         assert_eq!(bytes, [b"y".to_vec()]);
-        assert_eq!(again.bytes.capacity(), capacity, "the buffer was reused");
+        assert_eq!(
+            again.frames.bytes.capacity(),
+            capacity,
+            "the buffer was reused"
+        );
     }
 }

@@ -124,7 +124,7 @@ async fn write_frames<S>(stream: &mut S, frames: &Outgoing) -> std::io::Result<(
 where
     S: AsyncWrite + Unpin,
 {
-    for frame in frames.frames() {
+    for frame in frames.iter() {
         stream.write_all(frame).await?;
     }
     Ok(())
