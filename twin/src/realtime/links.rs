@@ -11,6 +11,7 @@ use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::mpsc::Sender;
 use std::time::Duration;
 
+use tokio::io::Interest;
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio::net::TcpListener;
 use tokio::sync::Notify;
@@ -47,7 +48,7 @@ pub async fn serve_stream<S>(
     eof: &'static str,
 ) -> String
 where
-    S: AsyncRead + AsyncWrite + Unpin,
+    S: LinkStream,
 {
     let (out, mut outbox) = unbounded_channel();
     let ready = Arc::new(Notify::new());
@@ -80,7 +81,7 @@ where
     tokio::pin!(notified);
     let why = loop {
         tokio::select! {
-            read = stream.read(&mut buf) => match read {
+            read = stream.read_chunk(&mut buf) => match read {
                 Ok(0) => break eof.to_string(),
                 Ok(n) => {
                     let at = clock.now();
@@ -117,6 +118,48 @@ where
         why: why.clone(),
     });
     why
+}
+
+/// A stream a link task carries: what arrived is read in chunks.
+pub trait LinkStream: AsyncRead + AsyncWrite + Unpin + Send {
+    /// Reads what has arrived (0: the other side closed). Cancel-safe.
+    fn read_chunk<'a>(
+        &'a mut self,
+        buf: &'a mut [u8],
+    ) -> impl Future<Output = std::io::Result<usize>> + Send + 'a;
+}
+
+impl LinkStream for tokio::net::TcpStream {
+    async fn read_chunk(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        loop {
+            self.readable().await?;
+            // A short read empties the socket: a WouldBlock from inside
+            // `try_io` tells tokio so (it clears the readiness unless new
+            // data came meanwhile), where a plain read would learn it from a
+            // second recv returning EAGAIN, one syscall more per request.
+            let mut short = None;
+            let read = self.try_io(Interest::READABLE, || {
+                let n = self.try_read(buf)?;
+                if n > 0 && n < buf.len() {
+                    short = Some(n);
+                    return Err(std::io::ErrorKind::WouldBlock.into());
+                }
+                Ok(n)
+            });
+            match (read, short) {
+                (_, Some(n)) => return Ok(n),
+                (Ok(n), None) => return Ok(n),
+                (Err(e), None) if e.kind() == std::io::ErrorKind::WouldBlock => {}
+                (Err(e), None) => return Err(e),
+            }
+        }
+    }
+}
+
+impl LinkStream for tokio_serial::SerialStream {
+    async fn read_chunk(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        self.read(buf).await
+    }
 }
 
 /// Writes each frame of `frames` in one write.
