@@ -185,13 +185,6 @@ impl RtEngine {
         self.lateness.summary()
     }
 
-    /// How long before each deadline the thread stops sleeping and spins
-    /// (60 µs by default): a shorter spin leaves the links more of the
-    /// machine, a longer one covers a slower wake-up.
-    pub fn set_spin(&mut self, spin: SimDuration) {
-        self.spin = spin;
-    }
-
     /// Swaps the connections' state between the engine and `front`: the
     /// engine's own fields hold it between runs and while a console command
     /// or a firmware tick runs (the front locked), the front the rest of

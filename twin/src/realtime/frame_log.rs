@@ -34,10 +34,6 @@ impl PackedFrames {
         self.ends.is_empty()
     }
 
-    pub fn len(&self) -> usize {
-        self.ends.len()
-    }
-
     pub fn clear(&mut self) {
         self.bytes.clear();
         self.ends.clear();
@@ -108,10 +104,6 @@ impl FrameBatch {
 
     pub fn is_empty(&self) -> bool {
         self.records.is_empty()
-    }
-
-    pub fn len(&self) -> usize {
-        self.records.len()
     }
 
     /// The frames in the order they were pushed, with their bytes.

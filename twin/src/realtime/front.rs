@@ -108,6 +108,24 @@ impl std::fmt::Debug for FrontHandle {
     }
 }
 
+impl Conn {
+    /// The earliest instant this connection needs the engine's timers at:
+    /// its endpoint's timer, its next queued reply, its partial-frame timeout.
+    fn next_deadline(&self, devices: &[Device]) -> Option<SimTime> {
+        let partial = self
+            .partial_since
+            .and_then(|since| Some(since + self.rules.partial_timeout?));
+        [
+            self.endpoint.poll_timeout(devices),
+            self.queue.front().map(|q| q.due),
+            partial,
+        ]
+        .into_iter()
+        .flatten()
+        .min()
+    }
+}
+
 impl FrontHandle {
     /// The front, locked. A task that panicked holding it left whole state
     /// (every update is a few field writes), so poisoning is ignored.
@@ -125,9 +143,7 @@ impl FrontHandle {
         let devices = &front.devices;
         front.conns.get_mut(&conn).is_some_and(|c| {
             c.due.move_to(out);
-            !c.queue.is_empty()
-                || c.partial_since.is_some()
-                || c.endpoint.poll_timeout(devices).is_some()
+            c.next_deadline(devices).is_some()
         })
     }
 
@@ -365,17 +381,7 @@ impl Front {
     pub(super) fn next_deadline(&self) -> Option<SimTime> {
         self.conns
             .values()
-            .flat_map(|c| {
-                let partial = c
-                    .partial_since
-                    .and_then(|since| Some(since + c.rules.partial_timeout?));
-                [
-                    c.endpoint.poll_timeout(&self.devices),
-                    c.queue.front().map(|q| q.due),
-                    partial,
-                ]
-            })
-            .flatten()
+            .filter_map(|c| c.next_deadline(&self.devices))
             .min()
     }
 
