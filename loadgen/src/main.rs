@@ -55,6 +55,9 @@ enum Role {
     /// (internal) echo server over TCP on a free port.
     #[command(hide = true)]
     EchoTcp,
+    /// (internal) tokio echo.
+    #[command(hide = true)]
+    EchoTokio,
     /// (internal) echo server on a terminal device.
     #[command(hide = true)]
     EchoPty { path: PathBuf },
@@ -64,6 +67,19 @@ enum Role {
     /// (internal) tokio-modbus RTU server on a terminal device.
     #[command(hide = true)]
     TokioModbusRtu { path: PathBuf },
+    /// Load any Modbus TCP server (unit 1, FC04 registers 0-9 and FC03 0-2
+    /// alternating) and print the request rate it sustains, e.g. to profile
+    /// a server with `perf stat -p` meanwhile.
+    Load {
+        /// The server, e.g. `tcp://127.0.0.1:5020`.
+        address: String,
+        /// Clients sending back to back, one thread each.
+        #[arg(long, default_value_t = 8)]
+        clients: usize,
+        /// Seconds to load it for.
+        #[arg(long, default_value_t = 3.0)]
+        seconds: f64,
+    },
 }
 
 const START_TIMEOUT: Duration = Duration::from_secs(20);
@@ -72,9 +88,15 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match &cli.role {
         Some(Role::EchoTcp) => servers::echo_tcp(),
+        Some(Role::EchoTokio) => servers::echo_tokio(),
         Some(Role::EchoPty { path }) => servers::echo_pty(path),
         Some(Role::TokioModbus) => servers::tokio_modbus_tcp(),
         Some(Role::TokioModbusRtu { path }) => servers::tokio_modbus_rtu(path),
+        Some(Role::Load {
+            address,
+            clients,
+            seconds,
+        }) => load(address, *clients, *seconds),
         None => bench(&cli),
     };
     match result {
@@ -84,6 +106,29 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+fn load(address: &str, clients: usize, seconds: f64) -> Result<()> {
+    let addr = address.strip_prefix("tcp://").unwrap_or(address);
+    let links = (0..clients.max(1))
+        .map(|_| servers::connect(addr))
+        .collect::<Result<Vec<_>>>()?;
+    let duration = Duration::try_from_secs_f64(seconds).context("--seconds")?;
+    let dialect = if std::env::var_os("LOAD_ECHO").is_some() {
+        Dialect::EchoTcp
+    } else {
+        Dialect::ModbusTcp
+    };
+    let r =
+        rate(links, dialect, duration, || None).with_context(|| format!("loading {address}"))?;
+    println!(
+        "{address}: {} requests answered, {:.0}/s, from {} clients over {seconds} s, {} bad replies",
+        r.answered,
+        r.per_second,
+        clients.max(1),
+        r.bad_replies
+    );
+    Ok(())
 }
 
 fn myself(role: &[&str]) -> Result<Command> {

@@ -204,6 +204,8 @@ pub fn latency<S: Read + Write + AsFd>(
 
 #[derive(Debug, Clone, Copy)]
 pub struct Rate {
+    /// Replies checked good.
+    pub answered: u64,
     pub per_second: f64,
     pub bad_replies: u64,
     /// The server's CPU time per request answered, if it could be read.
@@ -265,6 +267,7 @@ pub fn rate<S: Read + Write + AsFd + Send + 'static>(
         .map(|(after, before)| after.saturating_sub(before));
     let done = done.load(Ordering::Relaxed);
     Ok(Rate {
+        answered: done,
         per_second: done as f64 / elapsed,
         bad_replies: bad.load(Ordering::Relaxed),
         server_cpu: cpu.map(|c| c / u32::try_from(done.max(1)).unwrap_or(u32::MAX)),

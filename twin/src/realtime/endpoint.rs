@@ -43,6 +43,13 @@ pub trait Endpoint: Send {
     fn frontend_mut(&mut self) -> Option<&mut SlaveFrontend> {
         None
     }
+    /// Whether a reply may become due with neither new bytes nor a deadline
+    /// of [`Endpoint::poll_timeout`] (it waits on another link): then the
+    /// engine's passes look for it, and its connection's carrier listens for
+    /// their wake-ups.
+    fn answers_later(&self) -> bool {
+        false
+    }
     /// Why the endpoint wants its connection closed (a limit it keeps itself).
     fn close_request(&self) -> Option<String> {
         None

@@ -261,7 +261,6 @@ impl RtEngine {
         {
             let mut shared = front.lock();
             shared.close_all();
-            shared.ship_frames();
             self.swap_front(&mut shared);
         }
         // The last (partial) second's lateness, so even a short session has one.
@@ -333,10 +332,7 @@ impl RtEngine {
 
     fn open(&mut self, link: usize, id: ConnId, peer: String, task: LinkTask, front: &FrontHandle) {
         let Some(config) = self.links.get_mut(link) else {
-            let _ = task.out.send(Outbound::Close {
-                why: format!("no link {link}"),
-                owed: Outgoing::default(),
-            });
+            task.close(format!("no link {link}"), Outgoing::default());
             return;
         };
         let mut shared = front.lock();

@@ -30,7 +30,7 @@ use super::config::{Device, LinkConfig, LinkFault};
 use super::endpoint::Endpoint;
 use super::engine::RtCounters;
 use super::frame_log::{Direction, FrameLog};
-use super::messages::{ConnId, LinkTask, Outbound, Outgoing};
+use super::messages::{ConnId, LinkTask, Outgoing};
 use super::sink::SinkMsg;
 
 /// A reply waiting for its turnaround or its wire time; its bytes are the
@@ -89,6 +89,21 @@ pub struct Front {
     ids: Vec<ConnId>,
 }
 
+/// Where a connection stands once its due frames are taken.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum After {
+    /// Nothing pending: only new bytes can bring frames, so a TCP
+    /// connection's thread may block in `recv`.
+    Idle,
+    /// Frames may come without new bytes: from the engine's timers (a
+    /// turnaround, pacing, the RTU silence, a partial frame's timeout), or
+    /// from an endpoint whose replies wait on something else (a
+    /// supervisor's, on the bus). The engine wakes the carrier for them.
+    Waiting,
+    /// The twin closed it: a `Close` is on the carrier's channel.
+    Closed,
+}
+
 /// A link task's handle on the front (sent to it when its connection opens).
 #[derive(Clone)]
 pub struct FrontHandle(pub(super) Arc<Mutex<Front>>);
@@ -134,24 +149,17 @@ impl FrontHandle {
     }
 
     /// Bytes read at `at` on connection `conn`, answered on the caller's
-    /// thread: the replies due now are added to `out`. Whether the engine
-    /// must be woken: the connection now waits for a timer.
-    pub fn receive(&self, conn: ConnId, at: SimTime, bytes: &[u8], out: &mut Outgoing) -> bool {
+    /// thread: the replies due now are added to `out`.
+    pub fn receive(&self, conn: ConnId, at: SimTime, bytes: &[u8], out: &mut Outgoing) -> After {
         let mut guard = self.lock();
         let front = &mut *guard;
         front.receive(conn, at, bytes);
-        let devices = &front.devices;
-        front.conns.get_mut(&conn).is_some_and(|c| {
-            c.due.move_to(out);
-            c.next_deadline(devices).is_some()
-        })
+        front.take_due(conn, out)
     }
 
     /// Adds the frames the engine's timers made due on `conn` to `out`.
-    pub fn take_due(&self, conn: ConnId, out: &mut Outgoing) {
-        if let Some(c) = self.lock().conns.get_mut(&conn) {
-            c.due.move_to(out);
-        }
+    pub fn take_due(&self, conn: ConnId, out: &mut Outgoing) -> After {
+        self.lock().take_due(conn, out)
     }
 }
 
@@ -163,6 +171,21 @@ impl Front {
             clock: Some(clock),
             buf: vec![0; MAX_FRAME],
             ..Self::default()
+        }
+    }
+
+    fn take_due(&mut self, conn: ConnId, out: &mut Outgoing) -> After {
+        let devices = &self.devices;
+        match self.conns.get_mut(&conn) {
+            None => After::Closed,
+            Some(c) => {
+                c.due.move_to(out);
+                if c.next_deadline(devices).is_some() || c.endpoint.answers_later() {
+                    After::Waiting
+                } else {
+                    After::Idle
+                }
+            }
         }
     }
 
@@ -246,22 +269,21 @@ impl Front {
 
     pub(super) fn close(&mut self, id: ConnId, why: &str) {
         if let Some(conn) = self.conns.remove(&id) {
-            let _ = conn.task.out.send(Outbound::Close {
-                why: why.into(),
-                owed: conn.due,
-            });
+            conn.task.close(why.into(), conn.due);
             self.note(conn.link, &conn.peer, &format!("closed by the twin: {why}"));
         }
     }
 
-    /// Every connection told the server is stopping.
+    /// Every connection told the server is stopping, the last frames
+    /// shipped, and the sink let go: the connections' threads, which may
+    /// outlive the session by a moment, must not keep it waiting for more.
     pub(super) fn close_all(&mut self) {
         for conn in self.conns.values_mut() {
-            let _ = conn.task.out.send(Outbound::Close {
-                why: "server stopping".into(),
-                owed: std::mem::take(&mut conn.due),
-            });
+            let owed = std::mem::take(&mut conn.due);
+            conn.task.close("server stopping".into(), owed);
         }
+        self.ship_frames();
+        self.sink = None;
     }
 
     pub(super) fn receive(&mut self, id: ConnId, at: SimTime, bytes: &[u8]) {
@@ -420,7 +442,7 @@ impl Front {
                 && !conn.due.is_empty()
             {
                 // The frames of a timer: the task is not reading them.
-                conn.task.ready.notify_one();
+                conn.task.frames_due();
             }
             while let Some((who, event)) = self
                 .conns

@@ -1,5 +1,5 @@
 //! The tokio side of the real links: one task per TCP listener and per
-//! connection or serial port. A task reads what arrives, stamps it with the
+//! serial port (a TCP connection gets a thread, [`super::tcp_thread`]). A task reads what arrives, stamps it with the
 //! session clock and has the connection's endpoint answer it on the spot,
 //! through the front it shares with the engine ([`super::front::FrontHandle`]); it writes
 //! each frame in one write, whether it came from its own request or from
@@ -19,7 +19,9 @@ use tokio::sync::mpsc::unbounded_channel;
 
 use super::clock::RtClock;
 use super::engine::{ConnId, Inbound, LinkTask, Outbound};
-use super::messages::Outgoing;
+use super::front::After;
+use super::messages::{Outgoing, Wake};
+use super::tcp_thread::serve_tcp;
 use crate::io::{SerialSettings, serial};
 
 /// Bytes read at once: larger than any frame, so a frame rarely splits.
@@ -59,7 +61,7 @@ where
             peer,
             task: LinkTask {
                 out,
-                ready: ready.clone(),
+                wake: Wake::Task(ready.clone()),
             },
         })
         .is_err()
@@ -86,7 +88,7 @@ where
                 Ok(n) => {
                     let at = clock.now();
                     let bytes = buf.get(..n).unwrap_or_default();
-                    if front.receive(conn, at, bytes, &mut due)
+                    if front.receive(conn, at, bytes, &mut due) == After::Waiting
                         && engine.send(Inbound::Wake).is_err()
                     {
                         break "server stopping".into();
@@ -96,7 +98,7 @@ where
             },
             () = notified.as_mut() => {
                 notified.set(ready.notified());
-                front.take_due(conn, &mut due);
+                let _ = front.take_due(conn, &mut due);
             }
             message = outbox.recv() => match message {
                 Some(Outbound::Close { why, mut owed }) => {
@@ -216,14 +218,27 @@ pub async fn accept_loop(
         // Replies are single small writes: send them at once.
         let _ = socket.set_nodelay(true);
         open.fetch_add(1, Ordering::Relaxed);
-        let open = open.clone();
-        let engine = engine.clone();
         let conn = ids.next();
-        tokio::spawn(async move {
-            let eof = "peer closed the connection";
-            serve_stream(socket, link, conn, peer.to_string(), clock, engine, eof).await;
-            open.fetch_sub(1, Ordering::Relaxed);
+        // A thread per connection, in blocking reads (see `tcp_thread`).
+        let carried = socket.into_std().and_then(|s| {
+            s.set_nonblocking(false)?;
+            let (engine, open) = (engine.clone(), open.clone());
+            std::thread::Builder::new()
+                .name("twin-tcp".into())
+                .spawn(move || {
+                    serve_tcp(s, link, conn, peer.to_string(), clock, engine);
+                    open.fetch_sub(1, Ordering::Relaxed);
+                })
         });
+        if let Err(e) = carried {
+            open.fetch_sub(1, Ordering::Relaxed);
+            let text = format!("{peer}: refused, no thread for it: {e}");
+            let _ = engine.send(Inbound::Command(Box::new(move |e| {
+                let name = e.links.get(link).map_or("?", |l| l.name.as_str());
+                let line = format!("[{:12.6} s] {name} {text}", e.clock.now().as_secs_f64());
+                e.say(line);
+            })));
+        }
     }
 }
 

@@ -30,12 +30,39 @@ pub enum Inbound {
     Stop(String),
 }
 
-/// How the engine reaches the task carrying a connection.
+/// How the engine reaches the task or thread carrying a connection.
 #[derive(Debug, Clone)]
 pub struct LinkTask {
     pub out: UnboundedSender<Outbound>,
-    /// Notified when the engine's timers have made frames due on it.
-    pub ready: Arc<Notify>,
+    pub wake: Wake,
+}
+
+/// How a connection's carrier is told the engine has something for it.
+#[derive(Debug, Clone)]
+pub enum Wake {
+    /// A tokio task (a serial port): notified when the engine's timers have
+    /// made frames due; it sees a `Close` on its channel by itself.
+    Task(Arc<Notify>),
+    /// A TCP connection's own thread, blocked in a read or a poll.
+    Thread(Arc<super::tcp_thread::ThreadWake>),
+}
+
+impl LinkTask {
+    /// The engine's timers have put frames in the connection's due frames.
+    pub fn frames_due(&self) {
+        match &self.wake {
+            Wake::Task(ready) => ready.notify_one(),
+            Wake::Thread(wake) => wake.frames_due(),
+        }
+    }
+
+    /// Write `owed`, then close the connection, for reason `why`.
+    pub fn close(&self, why: String, owed: Outgoing) {
+        let _ = self.out.send(Outbound::Close { why, owed });
+        if let Wake::Thread(wake) = &self.wake {
+            wake.closing();
+        }
+    }
 }
 
 /// What the engine sends a link task.

@@ -3,9 +3,11 @@
 //! pseudo-terminals and TCP sockets.
 //!
 //! Threads: the engine ([`engine::RtEngine::run`]) owns the plants and ticks
-//! at 1 ms on absolute deadlines; a tokio runtime owns the sockets and ports
-//! ([`links`]) and answers requests through the devices and endpoints the
-//! two share ([`front`]); the sink ([`sink`]) records and prints.
+//! at 1 ms on absolute deadlines; a tokio runtime owns the listeners and the
+//! serial ports ([`links`]), and each TCP connection has a thread of its own
+//! ([`tcp_thread`]); both answer requests through the devices and endpoints
+//! they share with the engine ([`front`]); the sink ([`sink`]) records and
+//! prints.
 
 pub mod clock;
 pub mod config;
@@ -19,6 +21,7 @@ pub mod links;
 pub mod messages;
 pub mod session;
 pub mod sink;
+pub mod tcp_thread;
 
 pub use clock::RtClock;
 pub use endpoint::{Endpoint, NodeEndpoint, SlaveEndpoint};

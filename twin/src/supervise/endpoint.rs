@@ -81,6 +81,11 @@ impl Endpoint for ImageEndpoint {
         self.server.pending(self.client)
     }
 
+    /// A write is answered once the slave has answered it on the bus.
+    fn answers_later(&self) -> bool {
+        true
+    }
+
     fn close_request(&self) -> Option<String> {
         self.server
             .close_reason(self.client)
