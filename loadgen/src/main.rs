@@ -55,7 +55,7 @@ enum Role {
     /// (internal) echo server over TCP on a free port.
     #[command(hide = true)]
     EchoTcp,
-    /// (internal) tokio echo.
+    /// (internal) echo server over TCP, a tokio task per connection.
     #[command(hide = true)]
     EchoTokio,
     /// (internal) echo server on a terminal device.
@@ -79,6 +79,9 @@ enum Role {
         /// Seconds to load it for.
         #[arg(long, default_value_t = 3.0)]
         seconds: f64,
+        /// The server echoes: expect each request back unchanged.
+        #[arg(long)]
+        echo: bool,
     },
 }
 
@@ -96,7 +99,8 @@ fn main() -> ExitCode {
             address,
             clients,
             seconds,
-        }) => load(address, *clients, *seconds),
+            echo,
+        }) => load(address, *clients, *seconds, *echo),
         None => bench(&cli),
     };
     match result {
@@ -108,13 +112,13 @@ fn main() -> ExitCode {
     }
 }
 
-fn load(address: &str, clients: usize, seconds: f64) -> Result<()> {
+fn load(address: &str, clients: usize, seconds: f64, echo: bool) -> Result<()> {
     let addr = address.strip_prefix("tcp://").unwrap_or(address);
     let links = (0..clients.max(1))
         .map(|_| servers::connect(addr))
         .collect::<Result<Vec<_>>>()?;
     let duration = Duration::try_from_secs_f64(seconds).context("--seconds")?;
-    let dialect = if std::env::var_os("LOAD_ECHO").is_some() {
+    let dialect = if echo {
         Dialect::EchoTcp
     } else {
         Dialect::ModbusTcp
@@ -260,6 +264,12 @@ fn references(b: &mut Bench) -> Result<()> {
     let addr = tcp_addr(echo.link("echo-tcp")?)?.to_string();
     b.tcp_latency("echo", &addr, Dialect::EchoTcp)?;
     b.tcp_rates("echo", &echo, "-", &addr, Dialect::EchoTcp)?;
+    let _ = echo.stop();
+
+    // The same echo on tokio: what a readiness loop costs by itself.
+    let echo = Server::start("echo", myself(&["echo-tokio"])?, START_TIMEOUT)?;
+    let addr = tcp_addr(echo.link("echo-tcp")?)?.to_string();
+    b.tcp_rates("echo (tokio)", &echo, "-", &addr, Dialect::EchoTcp)?;
     let _ = echo.stop();
 
     let mut pair = PtyPair::open()?;

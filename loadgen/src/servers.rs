@@ -1,6 +1,7 @@
 //! The reference servers the twin is measured against, each run as a child
 //! process of the benchmark exactly like `twin serve`: a bare echo over TCP
-//! and over a pseudo-terminal (the floor any server's latency sits on), and a
+//! and over a pseudo-terminal (the floor any server's latency sits on), the
+//! TCP echo again on tokio (the cost of a readiness loop by itself), and a
 //! tokio-modbus 0.17 TCP server shaped like that crate's `tcp-server` example.
 
 use crate::pty::open_raw;
@@ -159,6 +160,8 @@ pub fn connect(addr: &str) -> Result<TcpStream> {
     Ok(stream)
 }
 
+/// The echo on a multi-threaded tokio runtime, a task per connection: the
+/// readiness loop's own cost, beside the thread-per-connection echo's.
 pub fn echo_tokio() -> Result<()> {
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -167,25 +170,20 @@ pub fn echo_tokio() -> Result<()> {
         .context("starting tokio")?;
     runtime.block_on(async {
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
-        announce("modbus-tcp", &format!("tcp://{}", listener.local_addr()?));
+        announce("echo-tcp", &format!("tcp://{}", listener.local_addr()?));
         loop {
-            let (mut s, _) = listener.accept().await?;
-            let _ = s.set_nodelay(true);
+            let Ok((mut stream, _)) = listener.accept().await else {
+                continue;
+            };
+            let _ = stream.set_nodelay(true);
             tokio::spawn(async move {
                 let mut buf = [0u8; 4096];
-                loop {
-                    match s.read(&mut buf).await {
-                        Ok(0) | Err(_) => return,
-                        Ok(n) => {
-                            if s.write_all(&buf[..n]).await.is_err() {
-                                return;
-                            }
-                        }
+                while let Ok(n @ 1..) = stream.read(&mut buf).await {
+                    if stream.write_all(&buf[..n]).await.is_err() {
+                        return;
                     }
                 }
             });
         }
-        #[allow(unreachable_code)]
-        anyhow::Ok(())
     })
 }
