@@ -37,7 +37,7 @@ pub struct McapObserver {
 
 /// One frame on a bus, as recorded.
 #[derive(Debug, Serialize)]
-struct FrameMessage<'a> {
+struct FrameMessage<'a, D> {
     from: &'a str,
     start_s: f64,
     end_s: f64,
@@ -45,7 +45,7 @@ struct FrameMessage<'a> {
     /// The bytes as text when they are printable ASCII (MEB), hex otherwise.
     text: &'a str,
     hex: &'a str,
-    decoded: Value,
+    decoded: D,
 }
 
 impl McapObserver {
@@ -136,7 +136,7 @@ impl McapObserver {
         start: SimTime,
         end: SimTime,
         bytes: &[u8],
-        decoded: Value,
+        decoded: impl Serialize,
     ) -> Result<()> {
         let printable = bytes
             .iter()

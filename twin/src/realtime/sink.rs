@@ -9,6 +9,7 @@ use anyhow::Result;
 use nodes::node::NodeEvent;
 use nodes::proto::modbus;
 use nodes::time::SimTime;
+use serde::Serialize;
 use serde_json::{Value, json};
 use std::collections::{BTreeMap, HashMap};
 use std::io::Write;
@@ -299,9 +300,12 @@ impl FrameSink {
             let mut show = |at: SimTime, end: SimTime, frame: &[u8], from: &str, after: &str| {
                 let arrow = if from == "twin" { "->" } else { "<-" };
                 let decoded = (config.monitor || observer.is_some())
-                    .then(|| decode_link_frame(protocol, frame));
+                    .then(|| link_frame_fields(protocol, frame));
                 if config.monitor {
-                    let shown_decoded = decoded.as_ref().map_or(String::new(), Value::to_string);
+                    let shown_decoded = decoded
+                        .as_ref()
+                        .and_then(|d| serde_json::to_string(d).ok())
+                        .unwrap_or_default();
                     let _ = writeln!(
                         out,
                         "[{:12.6} s] {name} #{conn} {arrow} {}{after}  {shown_decoded}",
@@ -313,7 +317,7 @@ impl FrameSink {
                     v.frame(name, from, at, end, frame);
                 }
                 if let (Some(o), Some(decoded)) = (observer.as_mut(), decoded) {
-                    let recorded = o.record_frame(topic, from, at, end, frame, decoded);
+                    let recorded = o.record_frame(topic, from, at, end, frame, &decoded);
                     result = std::mem::replace(&mut result, Ok(())).and(recorded);
                 }
             };
@@ -343,24 +347,62 @@ impl FrameSink {
 
 /// Decoded fields of a frame on a link of `protocol`.
 pub fn decode_link_frame(protocol: &str, bytes: &[u8]) -> Value {
+    serde_json::to_value(link_frame_fields(protocol, bytes)).unwrap_or(Value::Null)
+}
+
+/// Decoded fields of a frame on a link, as recorded. A Modbus frame's are a
+/// small value (the sink decodes every frame a loaded server answers, and
+/// a `Value`'s map cost it more than the decoding); their keys are in the
+/// order a `Value` map sorts them, so the JSON is the same either way.
+#[derive(Debug, Serialize)]
+#[serde(untagged)]
+pub enum LinkFrameFields<'a> {
+    Modbus {
+        function: Option<u8>,
+        protocol: &'a str,
+        #[serde(skip_serializing_if = "Option::is_none")]
+        transaction: Option<u16>,
+        unit: u8,
+    },
+    Broken {
+        error: String,
+        protocol: &'a str,
+    },
+    Other(Value),
+}
+
+pub fn link_frame_fields<'a>(protocol: &'a str, bytes: &[u8]) -> LinkFrameFields<'a> {
     let modbus = |f: Result<modbus::Frame<'_>, modbus::FrameError>| match f {
-        Ok(f) => json!({ "protocol": protocol, "unit": f.unit, "function": f.function() }),
-        Err(e) => json!({ "protocol": protocol, "error": e.to_string() }),
+        Ok(f) => LinkFrameFields::Modbus {
+            function: Some(f.function()),
+            protocol,
+            transaction: None,
+            unit: f.unit,
+        },
+        Err(e) => LinkFrameFields::Broken {
+            error: e.to_string(),
+            protocol,
+        },
     };
     match protocol {
         "modbus-tcp" => match modbus::tcp::parse(bytes) {
-            Ok(f) => json!({
-                "protocol": protocol, "transaction": f.transaction_id, "unit": f.unit,
-                "function": f.pdu.first(),
-            }),
-            Err(e) => json!({ "protocol": protocol, "error": e.to_string() }),
+            Ok(f) => LinkFrameFields::Modbus {
+                function: f.pdu.first().copied(),
+                protocol,
+                transaction: Some(f.transaction_id),
+                unit: f.unit,
+            },
+            Err(e) => LinkFrameFields::Broken {
+                error: e.to_string(),
+                protocol,
+            },
         },
         "modbus-ascii" => modbus(modbus::ascii::parse(
             bytes,
             &mut [0; modbus::ascii::MAX_BINARY_LEN],
         )),
         "modbus-rtu" => modbus(modbus::rtu::parse(bytes)),
-        _ => decode_frame(bytes),
+        _ => LinkFrameFields::Other(decode_frame(bytes)),
     }
 }
 
@@ -509,5 +551,41 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
     match failed {
         Some(e) => Err(e),
         None => Ok(outcome),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn fields(protocol: &str, bytes: &[u8]) -> String {
+        serde_json::to_string(&link_frame_fields(protocol, bytes)).unwrap()
+    }
+
+    #[test]
+    fn link_frames_decode_to_the_json_a_value_map_gave() {
+        // The keys sorted, as a `serde_json::Value` map wrote them.
+        let tcp = [0, 7, 0, 0, 0, 6, 1, 4, 0, 0, 0, 10];
+        assert_eq!(
+            fields("modbus-tcp", &tcp),
+            r#"{"function":4,"protocol":"modbus-tcp","transaction":7,"unit":1}"#
+        );
+        let rtu = [1, 3, 0, 0, 0, 3, 0x05, 0xcb];
+        assert_eq!(
+            fields("modbus-rtu", &rtu),
+            r#"{"function":3,"protocol":"modbus-rtu","unit":1}"#
+        );
+        let broken = fields("modbus-rtu", &[1, 3, 0, 0, 0, 3, 0, 0]);
+        assert!(
+            broken.starts_with(r#"{"error":""#)
+                && broken.ends_with(r#"","protocol":"modbus-rtu"}"#),
+            "{broken}"
+        );
+        let meb = fields("meb", b"@01EA0006FF*\n");
+        assert_eq!(meb, decode_frame(b"@01EA0006FF*\n").to_string());
+        assert_eq!(
+            decode_link_frame("modbus-tcp", &tcp)["transaction"],
+            json!(7)
+        );
     }
 }
