@@ -6,13 +6,15 @@
 mod child;
 mod measure;
 mod pty;
+mod rounds;
 mod servers;
 
 use anyhow::{Context, Result};
 use child::{Server, tcp_addr};
 use clap::{Parser, Subcommand};
-use measure::{Dialect, Latency, Rate, latency, rate};
+use measure::{Dialect, Latency, latency, rate};
 use pty::PtyPair;
+use rounds::RateServer;
 use std::path::PathBuf;
 use std::process::{Command, ExitCode};
 use std::time::Duration;
@@ -39,6 +41,10 @@ struct Cli {
     /// Clients of the many-client rate figure.
     #[arg(long, default_value_t = 8)]
     clients: usize,
+    /// Rounds of rate figures (each server started afresh in each round;
+    /// the medians are reported).
+    #[arg(long, default_value_t = 3)]
+    rounds: usize,
     /// Extra arguments for `twin serve` (repeat it), e.g. `--twin-arg=--turnaround-ms=0`.
     #[arg(long = "twin-arg", allow_hyphen_values = true)]
     twin_args: Vec<String>,
@@ -161,20 +167,9 @@ struct LatencyRow {
     figure: Latency,
 }
 
-/// One row of the rate table.
-struct RateRow {
-    server: String,
-    recording: &'static str,
-    one: Rate,
-    many: Rate,
-}
-
 struct Bench<'a> {
     cli: &'a Cli,
     latency: Vec<LatencyRow>,
-    rates: Vec<RateRow>,
-    /// Per twin session, the plant's tick lateness it printed at the end.
-    lateness: Vec<String>,
 }
 
 impl Bench<'_> {
@@ -208,68 +203,39 @@ impl Bench<'_> {
         });
         Ok(())
     }
-
-    fn tcp_rates(
-        &mut self,
-        server: &str,
-        process: &Server,
-        recording: &'static str,
-        addr: &str,
-        dialect: Dialect,
-    ) -> Result<()> {
-        let cpu = || process.cpu_time();
-        let duration = Duration::from_secs_f64(self.cli.seconds);
-        let connect =
-            |n: usize| -> Result<Vec<_>> { (0..n).map(|_| servers::connect(addr)).collect() };
-        eprintln!("  {server}: request rate, 1 client, {duration:?}");
-        let one = rate(connect(1)?, dialect, duration, cpu)
-            .with_context(|| format!("{server}, one client"))?;
-        eprintln!(
-            "  {server}: request rate, {} clients, {duration:?}",
-            self.cli.clients
-        );
-        let many = rate(connect(self.cli.clients)?, dialect, duration, cpu)
-            .with_context(|| format!("{server}, {} clients", self.cli.clients))?;
-        self.rates.push(RateRow {
-            server: server.to_string(),
-            recording,
-            one,
-            many,
-        });
-        Ok(())
-    }
 }
 
 fn bench(cli: &Cli) -> Result<()> {
     let mut b = Bench {
         cli,
         latency: Vec::new(),
-        rates: Vec::new(),
-        lateness: Vec::new(),
     };
-
+    let scratch = std::env::temp_dir().join(format!("serve-bench-{}", std::process::id()));
+    std::fs::create_dir_all(&scratch)?;
     if !cli.twin_only {
         references(&mut b)?;
     }
     if !cli.no_twin {
-        twin(&mut b)?;
+        twin_latency(&mut b, &scratch)?;
     }
-    report(&b);
+    let mut rate_servers = rate_servers(cli, &scratch);
+    let duration = Duration::from_secs_f64(cli.seconds);
+    for round in 1..=cli.rounds.max(1) {
+        eprintln!("  rates, round {round} of {}", cli.rounds.max(1));
+        for server in &mut rate_servers {
+            server.measure(cli.clients, duration, START_TIMEOUT)?;
+        }
+    }
+    let _ = std::fs::remove_dir_all(&scratch);
+    report(&b, &rate_servers);
     Ok(())
 }
 
-/// The echo and tokio-modbus servers.
+/// The echo and tokio-modbus servers' latency, over TCP and a pty.
 fn references(b: &mut Bench) -> Result<()> {
     let echo = Server::start("echo", myself(&["echo-tcp"])?, START_TIMEOUT)?;
     let addr = tcp_addr(echo.link("echo-tcp")?)?.to_string();
     b.tcp_latency("echo", &addr, Dialect::EchoTcp)?;
-    b.tcp_rates("echo", &echo, "-", &addr, Dialect::EchoTcp)?;
-    let _ = echo.stop();
-
-    // The same echo on tokio: what a readiness loop costs by itself.
-    let echo = Server::start("echo", myself(&["echo-tokio"])?, START_TIMEOUT)?;
-    let addr = tcp_addr(echo.link("echo-tcp")?)?.to_string();
-    b.tcp_rates("echo (tokio)", &echo, "-", &addr, Dialect::EchoTcp)?;
     let _ = echo.stop();
 
     let mut pair = PtyPair::open()?;
@@ -281,13 +247,6 @@ fn references(b: &mut Bench) -> Result<()> {
     let reference = Server::start("tokio-modbus", myself(&["tokio-modbus"])?, START_TIMEOUT)?;
     let addr = tcp_addr(reference.link("modbus-tcp")?)?.to_string();
     b.tcp_latency("tokio-modbus 0.17", &addr, Dialect::ModbusTcp)?;
-    b.tcp_rates(
-        "tokio-modbus 0.17",
-        &reference,
-        "-",
-        &addr,
-        Dialect::ModbusTcp,
-    )?;
     let _ = reference.stop();
 
     let mut pair = PtyPair::open()?;
@@ -302,60 +261,119 @@ fn references(b: &mut Bench) -> Result<()> {
     Ok(())
 }
 
-/// `twin serve`, recording off and on.
-fn twin(b: &mut Bench) -> Result<()> {
-    let cli = b.cli;
-    {
-        let twin = twin_binary(cli);
-        let scratch = std::env::temp_dir().join(format!("serve-bench-{}", std::process::id()));
-        std::fs::create_dir_all(&scratch)?;
-        for recording in ["off", "mcap"] {
-            let mut pair = PtyPair::open()?;
-            let mut cmd = Command::new(&twin);
-            // Turnaround 0 (serial links default to 1 ms); no client limit
-            // or rate limit, which a load generator would trip.
-            cmd.args([
-                "serve",
-                "--quiet",
-                "--turnaround-ms",
-                "0",
-                "--status-every",
-                "0",
-            ])
-            .args(["--max-clients", "0", "--rate-limit", "0"])
-            .args(["--modbus", "tcp://127.0.0.1:0", "--modbus-rtu"])
-            .arg(&pair.slave_path);
-            if recording == "mcap" {
-                cmd.arg("--out").arg(scratch.join("serve-bench.mcap"));
-            } else {
-                cmd.arg("--no-record");
-            }
-            cmd.args(&cli.twin_args);
-            let name = format!("twin serve, recording {recording}");
-            let server = Server::start(&name, cmd, START_TIMEOUT)?;
-            let addr = tcp_addr(server.link("modbus-tcp")?)?.to_string();
-            let label = format!("twin serve (rec. {recording})");
-            b.tcp_latency(&label, &addr, Dialect::ModbusTcp)?;
-            b.pty_latency(&label, &mut pair, Dialect::ModbusRtu)?;
-            b.tcp_rates("twin serve", &server, recording, &addr, Dialect::ModbusTcp)?;
-            // The plant ran in real time all along: its tick lateness.
-            let lines = server.stop();
-            let lateness = lines.iter().find(|l| l.contains("tick lateness"));
-            b.lateness.push(format!(
-                "{label}: {}",
-                lateness.map_or("no tick lateness printed", |l| l.trim())
-            ));
+/// How `twin serve` is started: with turnaround 0 and no client or rate
+/// limit (which a load generator would trip), on Modbus TCP and, given
+/// `rtu`, Modbus RTU on that terminal; recording to a file in `scratch` or
+/// not at all.
+#[derive(Debug, Clone)]
+struct TwinSetup {
+    binary: PathBuf,
+    args: Vec<String>,
+    scratch: PathBuf,
+}
+
+impl TwinSetup {
+    fn new(cli: &Cli, scratch: &std::path::Path) -> Self {
+        Self {
+            binary: twin_binary(cli),
+            args: cli.twin_args.clone(),
+            scratch: scratch.to_path_buf(),
         }
-        let _ = std::fs::remove_dir_all(&scratch);
+    }
+
+    fn command(&self, recording: &str, rtu: Option<&std::path::Path>) -> Command {
+        let mut cmd = Command::new(&self.binary);
+        cmd.args([
+            "serve",
+            "--quiet",
+            "--turnaround-ms",
+            "0",
+            "--status-every",
+            "0",
+        ])
+        .args(["--max-clients", "0", "--rate-limit", "0"])
+        .args(["--modbus", "tcp://127.0.0.1:0"]);
+        if let Some(path) = rtu {
+            cmd.arg("--modbus-rtu").arg(path);
+        }
+        if recording == "mcap" {
+            cmd.arg("--out").arg(self.scratch.join("serve-bench.mcap"));
+        } else {
+            cmd.arg("--no-record");
+        }
+        cmd.args(&self.args);
+        cmd
+    }
+}
+
+/// `twin serve`'s latency, recording off and on.
+fn twin_latency(b: &mut Bench, scratch: &std::path::Path) -> Result<()> {
+    for recording in ["off", "mcap"] {
+        let mut pair = PtyPair::open()?;
+        let cmd = TwinSetup::new(b.cli, scratch).command(recording, Some(&pair.slave_path));
+        let name = format!("twin serve, recording {recording}");
+        let server = Server::start(&name, cmd, START_TIMEOUT)?;
+        let addr = tcp_addr(server.link("modbus-tcp")?)?.to_string();
+        let label = format!("twin serve (rec. {recording})");
+        b.tcp_latency(&label, &addr, Dialect::ModbusTcp)?;
+        b.pty_latency(&label, &mut pair, Dialect::ModbusRtu)?;
+        let _ = server.stop();
     }
     Ok(())
+}
+
+/// The servers whose rates are measured, in the order of each round.
+fn rate_servers(cli: &Cli, scratch: &std::path::Path) -> Vec<RateServer> {
+    let reference = |name: &str, role: &'static str, link, dialect| RateServer {
+        name: name.to_string(),
+        recording: "-",
+        link,
+        dialect,
+        command: Box::new(move || myself(&[role])),
+        lateness: Vec::new(),
+        one: Vec::new(),
+        many: Vec::new(),
+    };
+    let mut list = Vec::new();
+    if !cli.twin_only {
+        list.push(reference("echo", "echo-tcp", "echo-tcp", Dialect::EchoTcp));
+        // The same echo on tokio: what a readiness loop costs by itself.
+        list.push(reference(
+            "echo (tokio)",
+            "echo-tokio",
+            "echo-tcp",
+            Dialect::EchoTcp,
+        ));
+        list.push(reference(
+            "tokio-modbus 0.17",
+            "tokio-modbus",
+            "modbus-tcp",
+            Dialect::ModbusTcp,
+        ));
+    }
+    if !cli.no_twin {
+        for recording in ["off", "mcap"] {
+            let setup = TwinSetup::new(cli, scratch);
+            list.push(RateServer {
+                name: "twin serve".into(),
+                recording,
+                link: "modbus-tcp",
+                dialect: Dialect::ModbusTcp,
+                command: Box::new(move || Ok(setup.command(recording, None))),
+                lateness: Vec::new(),
+                one: Vec::new(),
+                many: Vec::new(),
+            });
+        }
+    }
+    list
 }
 
 fn us(d: Duration) -> String {
     format!("{:.1} µs", d.as_secs_f64() * 1e6)
 }
 
-fn report(b: &Bench) {
+fn report(b: &Bench, rate_servers: &[RateServer]) {
     let cli = b.cli;
     println!(
         "serve-bench: loopback, {} requests per latency figure, {} s per rate figure",
@@ -384,53 +402,24 @@ fn report(b: &Bench) {
             row.figure.bad_replies
         );
     }
-    println!("  Modbus TCP request rate (FC04 ten registers and FC03 three, alternating)");
-    println!("  and the server's CPU time (user + system, all threads) per request answered");
-    println!(
-        "  {:<28} {:<9} {:>12} {:>9} {:>12} {:>9} {:>5}",
-        "server",
-        "recording",
-        "1 client",
-        "cpu/req",
-        format!("{} clients", cli.clients),
-        "cpu/req",
-        "bad"
-    );
-    let cpu = |r: &Rate| r.server_cpu.map_or("-".to_string(), us);
-    for row in &b.rates {
-        println!(
-            "  {:<28} {:<9} {:>10.0}/s {:>9} {:>10.0}/s {:>9} {:>5}",
-            row.server,
-            row.recording,
-            row.one.per_second,
-            cpu(&row.one),
-            row.many.per_second,
-            cpu(&row.many),
-            row.one.bad_replies + row.many.bad_replies
-        );
+    rounds::report(rate_servers, cli.clients, cli.rounds.max(1));
+    if cli.twin_only {
+        println!("  goals: not judged with --twin-only (no echo or tokio-modbus figures)");
+        return;
     }
-    if !b.lateness.is_empty() {
-        println!("  the plant meanwhile (each twin session, whole):");
-        for line in &b.lateness {
-            println!("    {line}");
-        }
-    }
-    goals(b);
+    println!("  goals (turnaround 0): p99 < 1 ms and <= 3x the echo's p99; rate >= tokio-modbus");
+    latency_goals(b);
+    rounds::goals(rate_servers);
 }
 
-/// The goals, each with its verdict.
-fn goals(b: &Bench) {
+/// The latency goals, each with its verdict.
+fn latency_goals(b: &Bench) {
     let find = |server: &str, link: &str| {
         b.latency
             .iter()
             .find(|r| r.server.starts_with(server) && r.link == link)
             .map(|r| r.figure.round_trip.p99())
     };
-    if b.cli.twin_only {
-        println!("  goals: not judged with --twin-only (no echo or tokio-modbus figures)");
-        return;
-    }
-    println!("  goals (turnaround 0): p99 < 1 ms and <= 3x the echo's p99; rate >= tokio-modbus");
     for row in b.latency.iter().filter(|r| r.server.starts_with("twin")) {
         let p99 = row.figure.reply.p99();
         let rt_p99 = row.figure.round_trip.p99();
@@ -448,22 +437,5 @@ fn goals(b: &Bench) {
             ratio.unwrap_or(f64::NAN),
             if ok { "met" } else { "MISSED" }
         );
-    }
-    let reference = b
-        .rates
-        .iter()
-        .find(|r| r.server.starts_with("tokio-modbus"));
-    for row in b.rates.iter().filter(|r| r.server.starts_with("twin")) {
-        if let Some(t) = reference {
-            let ok =
-                row.one.per_second >= t.one.per_second && row.many.per_second >= t.many.per_second;
-            println!(
-                "    twin serve, recording {}: {:.2}x / {:.2}x tokio-modbus's rate: {}",
-                row.recording,
-                row.one.per_second / t.one.per_second,
-                row.many.per_second / t.many.per_second,
-                if ok { "met" } else { "MISSED" }
-            );
-        }
     }
 }
