@@ -81,7 +81,8 @@ pub struct ServeArgs {
     /// Seconds between status lines (0: none).
     #[arg(long, default_value_t = 1.0, value_name = "SECONDS")]
     status_every: f64,
-    /// Refuse TCP clients beyond this many per link (0: no limit).
+    /// Refuse TCP clients beyond this many per link (each has a thread of
+    /// its own; 0: no limit).
     #[arg(long, default_value_t = 8, value_name = "N")]
     max_clients: usize,
     /// Close a TCP connection holding a partial frame this long (0: never).

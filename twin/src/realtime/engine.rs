@@ -1,8 +1,9 @@
 //! The real-time engine: one thread owns the plants and ticks them every
 //! 1 ms on absolute deadlines. The devices (firmware nodes) and every
-//! connection's endpoint live in the [`Front`], shared with the tokio tasks
-//! that own the sockets and ports: a task answers the requests it reads on
-//! its own thread, the engine runs the firmware loops and the timers; the
+//! connection's endpoint live in the [`Front`], shared with what carries the
+//! connections (a tokio task per serial port, a thread per TCP connection):
+//! each answers the requests it reads, the engine runs the firmware loops
+//! and the timers; the
 //! rest goes over channels ([`Inbound`], [`Outbound`]). A sink thread
 //! records and prints ([`super::sink`]), so neither a slow terminal nor
 //! zstd ever delays a tick.

@@ -15,10 +15,9 @@ use tokio::signal::unix::{Signal, SignalKind, signal};
 use super::{Inbound, RtEngine, RtSummary};
 use crate::record::Recorder;
 
-/// The runtime the links' tasks run on: a worker per core (up to four), so
-/// requests on several connections are answered at once; each task
-/// answers its own through the front (serve-bench, 8 Modbus TCP clients on
-/// 2 cores: 85-89 k requests/s against 72-81 k on one thread).
+/// The runtime the listeners and serial ports run on (a TCP connection has
+/// a thread of its own, see [`super::tcp_thread`]): a worker per core (up
+/// to four), so several serial ports are answered at once.
 pub fn links_runtime() -> Result<Runtime> {
     let workers = std::thread::available_parallelism().map_or(2, |n| n.get().clamp(1, 4));
     tokio::runtime::Builder::new_multi_thread()

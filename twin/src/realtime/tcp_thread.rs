@@ -1,13 +1,14 @@
 //! A TCP connection carried by its own thread, in blocking reads.
 //!
 //! Why not a tokio task like the serial ports: on this 2-core machine, eight
-//! Modbus TCP clients got 80-87 k requests/s from tokio-modbus, from
-//! `twin serve` on tokio tasks and from a bare tokio echo alike, and
-//! 106-113 k/s from a bare echo with a thread per connection (`serve-bench
-//! load`, same run). A readiness loop costs an `epoll_wait` and the
-//! runtime's wake-ups on top of each request's `recv` and `send`; a thread
-//! blocked in `recv` is woken by the kernel with the bytes. With this
-//! carrier `twin serve` got 109-113 k/s where tokio-modbus got 87-95 k/s.
+//! clients got 71-87 k requests/s from tokio-modbus, from `twin serve` on
+//! tokio tasks and from a bare echo on tokio alike, and 106-113 k/s from a
+//! bare echo with a thread per connection (`serve-bench load`, minutes
+//! apart). A readiness loop costs an `epoll_wait` and the runtime's wake-ups
+//! on top of each request's `recv` and `send`; a thread blocked in `recv` is
+//! woken by the kernel with the bytes. With this carrier `twin serve` got
+//! 109-113 k/s where tokio-modbus got 87-95 k/s (`serve-bench`'s rounds:
+//! 1.17-1.26x tokio-modbus's rate, recording off).
 //!
 //! The thread reads, answers through the front and writes, like the tokio
 //! task in [`super::links`]. It blocks in `recv` while only new bytes can
