@@ -3,10 +3,9 @@
 //! connection's endpoint live in the [`Front`], shared with what carries the
 //! connections (a tokio task per serial port, a thread per TCP connection):
 //! each answers the requests it reads, the engine runs the firmware loops
-//! and the timers; the
-//! rest goes over channels ([`Inbound`], [`Outbound`]). A sink thread
-//! records and prints ([`super::sink`]), so neither a slow terminal nor
-//! zstd ever delays a tick.
+//! and the timers; the rest goes over channels ([`Inbound`], [`Outbound`]).
+//! A sink thread records and prints ([`super::sink`]), so neither a slow
+//! terminal nor zstd ever delays a tick.
 //!
 //! Waiting: the thread blocks on its channel until shortly before the next
 //! deadline (the next plant tick, a node's timer, a reply's turnaround), then

@@ -1,9 +1,10 @@
 //! The tokio side of the real links: one task per TCP listener and per
-//! serial port (a TCP connection gets a thread, [`super::tcp_thread`]). A task reads what arrives, stamps it with the
-//! session clock and has the connection's endpoint answer it on the spot,
-//! through the front it shares with the engine ([`super::front::FrontHandle`]); it writes
-//! each frame in one write, whether it came from its own request or from
-//! the engine's timers (a turnaround, pacing). Nothing here knows a protocol.
+//! serial port (a TCP connection gets a thread, [`super::tcp_thread`]). A
+//! task reads what arrives, stamps it with the session clock and has the
+//! connection's endpoint answer it on the spot, through the front it shares
+//! with the engine ([`super::front::FrontHandle`]); it writes each frame in
+//! one write, whether it came from its own request or from the engine's
+//! timers (a turnaround, pacing). Nothing here knows a protocol.
 
 use std::path::PathBuf;
 use std::sync::Arc;
