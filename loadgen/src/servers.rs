@@ -103,12 +103,17 @@ impl Service for ModbusService {
     }
 }
 
-/// A tokio-modbus TCP server on a multi-threaded runtime, as in its example.
-pub fn tokio_modbus_tcp() -> Result<()> {
-    let runtime = tokio::runtime::Builder::new_multi_thread()
+/// A multi-threaded runtime, as the tokio-modbus examples use.
+fn runtime() -> Result<tokio::runtime::Runtime> {
+    tokio::runtime::Builder::new_multi_thread()
         .enable_io()
         .build()
-        .context("starting tokio")?;
+        .context("starting tokio")
+}
+
+/// A tokio-modbus TCP server on a multi-threaded runtime, as in its example.
+pub fn tokio_modbus_tcp() -> Result<()> {
+    let runtime = runtime()?;
     runtime.block_on(async {
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
         announce("modbus-tcp", &format!("tcp://{}", listener.local_addr()?));
@@ -130,10 +135,7 @@ pub fn tokio_modbus_tcp() -> Result<()> {
 
 /// The tokio-modbus RTU server on the terminal at `path` (tokio-serial).
 pub fn tokio_modbus_rtu(path: &Path) -> Result<()> {
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .enable_io()
-        .build()
-        .context("starting tokio")?;
+    let runtime = runtime()?;
     runtime.block_on(async {
         let port =
             tokio_serial::SerialStream::open(&tokio_serial::new(path.to_string_lossy(), 115_200))
@@ -164,10 +166,7 @@ pub fn connect(addr: &str) -> Result<TcpStream> {
 /// readiness loop's own cost, beside the thread-per-connection echo's.
 pub fn echo_tokio() -> Result<()> {
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .enable_io()
-        .build()
-        .context("starting tokio")?;
+    let runtime = runtime()?;
     runtime.block_on(async {
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
         announce("echo-tcp", &format!("tcp://{}", listener.local_addr()?));

@@ -83,23 +83,9 @@ pub struct FrameBatch {
 }
 
 impl FrameBatch {
-    pub fn push(
-        &mut self,
-        link: usize,
-        conn: ConnId,
-        direction: Direction,
-        start: SimTime,
-        end: SimTime,
-        bytes: &[u8],
-    ) {
+    pub fn push(&mut self, record: FrameRecord, bytes: &[u8]) {
         self.frames.push(bytes);
-        self.records.push(FrameRecord {
-            link,
-            conn,
-            direction,
-            start,
-            end,
-        });
+        self.records.push(record);
     }
 
     pub fn is_empty(&self) -> bool {
@@ -141,16 +127,8 @@ impl Default for FrameLog {
 }
 
 impl FrameLog {
-    pub fn push(
-        &mut self,
-        link: usize,
-        conn: ConnId,
-        direction: Direction,
-        start: SimTime,
-        end: SimTime,
-        bytes: &[u8],
-    ) {
-        self.filling.push(link, conn, direction, start, end, bytes);
+    pub fn push(&mut self, record: FrameRecord, bytes: &[u8]) {
+        self.filling.push(record, bytes);
     }
 
     /// The frames logged so far (none if there are none), replaced by an
@@ -189,9 +167,16 @@ mod tests {
         let mut log = FrameLog::default();
         assert!(log.take().is_none(), "nothing logged, nothing to send");
         let t = SimTime::ZERO;
-        log.push(0, 1, Direction::Rx, t, t, b"ab");
-        log.push(1, 2, Direction::Tx, t, t, b"");
-        log.push(0, 1, Direction::Tx, t, t, b"cde");
+        let record = |link, conn, direction| FrameRecord {
+            link,
+            conn,
+            direction,
+            start: t,
+            end: t,
+        };
+        log.push(record(0, 1, Direction::Rx), b"ab");
+        log.push(record(1, 2, Direction::Tx), b"");
+        log.push(record(0, 1, Direction::Tx), b"cde");
         let batch = log.take().unwrap();
         let frames: Vec<_> = batch
             .iter()
@@ -209,9 +194,9 @@ mod tests {
         batch.recycle();
         // The batch filling while the first was away goes out, and the one
         // that came back fills next: its buffer is the first one's.
-        log.push(0, 3, Direction::Rx, t, t, b"x");
+        log.push(record(0, 3, Direction::Rx), b"x");
         log.take().unwrap().recycle();
-        log.push(0, 3, Direction::Rx, t, t, b"y");
+        log.push(record(0, 3, Direction::Rx), b"y");
         let again = log.take().unwrap();
         let bytes: Vec<_> = again.iter().map(|(_, b)| b.to_vec()).collect();
         assert_eq!(bytes, [b"y".to_vec()]);

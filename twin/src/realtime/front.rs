@@ -29,7 +29,7 @@ use super::clock::RtClock;
 use super::config::{Device, LinkConfig, LinkFault};
 use super::endpoint::Endpoint;
 use super::engine::RtCounters;
-use super::frame_log::{Direction, FrameLog};
+use super::frame_log::{Direction, FrameLog, FrameRecord};
 use super::messages::{ConnId, LinkTask, Outgoing};
 use super::sink::SinkMsg;
 
@@ -291,8 +291,14 @@ impl Front {
             return;
         };
         self.counters.bytes_in += bytes.len() as u64;
-        self.frames
-            .push(conn.link, id, Direction::Rx, at, at, bytes);
+        let record = FrameRecord {
+            link: conn.link,
+            conn: id,
+            direction: Direction::Rx,
+            start: at,
+            end: at,
+        };
+        self.frames.push(record, bytes);
         if let Some(limit) = conn.rules.rate_limit {
             if at.saturating_since(conn.rate_window) >= SimDuration::from_secs(1) {
                 conn.rate_window = at;
@@ -390,8 +396,14 @@ impl Front {
             let frame = conn.queued_bytes.get(..len).unwrap_or_default();
             self.counters.frames_out += 1;
             self.counters.bytes_out += len as u64;
-            self.frames
-                .push(conn.link, id, Direction::Tx, q.start, now, frame);
+            let record = FrameRecord {
+                link: conn.link,
+                conn: id,
+                direction: Direction::Tx,
+                start: q.start,
+                end: now,
+            };
+            self.frames.push(record, frame);
             conn.due.push(frame);
             conn.queued_bytes.drain(..len);
             conn.queue.pop_front();
