@@ -119,11 +119,12 @@ fn main() -> ExitCode {
 }
 
 fn load(address: &str, clients: usize, seconds: f64, echo: bool) -> Result<()> {
+    let duration = Duration::try_from_secs_f64(seconds)
+        .context("--seconds must be a number of seconds, 0 or more")?;
     let addr = address.strip_prefix("tcp://").unwrap_or(address);
     let links = (0..clients.max(1))
         .map(|_| servers::connect(addr))
         .collect::<Result<Vec<_>>>()?;
-    let duration = Duration::try_from_secs_f64(seconds).context("--seconds")?;
     let dialect = if echo {
         Dialect::EchoTcp
     } else {
@@ -206,6 +207,8 @@ impl Bench<'_> {
 }
 
 fn bench(cli: &Cli) -> Result<()> {
+    let duration = Duration::try_from_secs_f64(cli.seconds)
+        .context("--seconds must be a number of seconds, 0 or more")?;
     let mut b = Bench {
         cli,
         latency: Vec::new(),
@@ -219,7 +222,6 @@ fn bench(cli: &Cli) -> Result<()> {
         twin_latency(&mut b, &scratch)?;
     }
     let mut rate_servers = rate_servers(cli, &scratch);
-    let duration = Duration::from_secs_f64(cli.seconds);
     for round in 1..=cli.rounds.max(1) {
         eprintln!("  rates, round {round} of {}", cli.rounds.max(1));
         for server in &mut rate_servers {
