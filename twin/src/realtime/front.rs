@@ -95,13 +95,24 @@ pub enum After {
     /// Nothing pending: only new bytes can bring frames, so a TCP
     /// connection's thread may block in `recv`.
     Idle,
-    /// Frames may come without new bytes: from the engine's timers (a
-    /// turnaround, pacing, the RTU silence, a partial frame's timeout), or
-    /// from an endpoint whose replies wait on something else (a
-    /// supervisor's, on the bus). The engine wakes the carrier for them.
+    /// It waits for a deadline of the engine's timers (a turnaround,
+    /// pacing, the RTU silence, a partial frame's timeout): the engine must
+    /// be woken to look at the deadlines again, and it will wake the
+    /// carrier when the frames are due.
+    Timers,
+    /// Frames may come without new bytes or a deadline, from an endpoint
+    /// whose replies wait on something else (a supervisor's, on the bus):
+    /// the engine's passes, every tick, find them and wake the carrier.
     Waiting,
     /// The twin closed it: a `Close` is on the carrier's channel.
     Closed,
+}
+
+impl After {
+    /// Whether the carrier must listen for the engine's wake-ups.
+    pub fn listens(self) -> bool {
+        matches!(self, After::Timers | After::Waiting)
+    }
 }
 
 /// A link task's handle on the front (sent to it when its connection opens).
@@ -180,7 +191,9 @@ impl Front {
             None => After::Closed,
             Some(c) => {
                 c.due.move_to(out);
-                if c.next_deadline(devices).is_some() || c.endpoint.answers_later() {
+                if c.next_deadline(devices).is_some() {
+                    After::Timers
+                } else if c.endpoint.answers_later() {
                     After::Waiting
                 } else {
                     After::Idle

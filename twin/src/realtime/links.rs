@@ -1,6 +1,7 @@
-//! The tokio side of the real links: one task per TCP listener and per
-//! serial port (a TCP connection gets a thread, [`super::tcp_thread`]). A
-//! task reads what arrives, stamps it with the session clock and has the
+//! The tokio side of the real links: one task per TCP listener, per serial
+//! port and per connection the twin opens itself (a supervisor's to a TCP
+//! slave); an accepted TCP connection gets a thread ([`super::tcp_thread`]).
+//! A task reads what arrives, stamps it with the session clock and has the
 //! connection's endpoint answer it on the spot, through the front it shares
 //! with the engine ([`super::front::FrontHandle`]); it writes each frame in
 //! one write, whether it came from its own request or from the engine's
@@ -26,7 +27,7 @@ use super::tcp_thread::serve_tcp;
 use crate::io::{SerialSettings, serial};
 
 /// Bytes read at once: larger than any frame, so a frame rarely splits.
-const READ_CHUNK: usize = 4096;
+pub(super) const READ_CHUNK: usize = 4096;
 
 /// Hands out connection ids.
 #[derive(Debug, Clone, Default)]
@@ -89,7 +90,7 @@ where
                 Ok(n) => {
                     let at = clock.now();
                     let bytes = buf.get(..n).unwrap_or_default();
-                    if front.receive(conn, at, bytes, &mut due) == After::Waiting
+                    if front.receive(conn, at, bytes, &mut due) == After::Timers
                         && engine.send(Inbound::Wake).is_err()
                     {
                         break "server stopping".into();

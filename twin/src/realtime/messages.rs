@@ -40,15 +40,16 @@ pub struct LinkTask {
 /// How a connection's carrier is told the engine has something for it.
 #[derive(Debug, Clone)]
 pub enum Wake {
-    /// A tokio task (a serial port): notified when the engine's timers have
-    /// made frames due; it sees a `Close` on its channel by itself.
+    /// A tokio task (a serial port): notified when the engine has made
+    /// frames due; it sees a `Close` on its channel by itself.
     Task(Arc<Notify>),
     /// A TCP connection's own thread, blocked in a read or a poll.
     Thread(Arc<super::tcp_thread::ThreadWake>),
 }
 
 impl LinkTask {
-    /// The engine's timers have put frames in the connection's due frames.
+    /// The engine (its timers, or a reply that waited on the bus) has put
+    /// frames in the connection's due frames.
     pub fn frames_due(&self) {
         match &self.wake {
             Wake::Task(ready) => ready.notify_one(),

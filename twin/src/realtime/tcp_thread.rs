@@ -30,10 +30,8 @@ use tokio::sync::mpsc::{UnboundedReceiver, unbounded_channel};
 
 use super::clock::RtClock;
 use super::front::{After, FrontHandle};
+use super::links::READ_CHUNK;
 use super::messages::{ConnId, Inbound, LinkTask, Outbound, Outgoing, Wake};
-
-/// Bytes read at once: larger than any frame, so a frame rarely splits.
-const READ_CHUNK: usize = 4096;
 
 /// A client that has not taken a reply for this long is dropped, so that
 /// the thread does not wait on it forever.
@@ -159,7 +157,7 @@ impl Carrier {
         let mut buf = vec![0u8; READ_CHUNK];
         let mut after = After::Idle;
         loop {
-            if after == After::Waiting {
+            if after.listens() {
                 match self.wait() {
                     Ok(true) => {}
                     Ok(false) => {
@@ -189,7 +187,7 @@ impl Carrier {
             let at = clock.now();
             let bytes = buf.get(..n).unwrap_or_default();
             after = front.receive(self.conn, at, bytes, &mut self.due);
-            if after == After::Waiting && engine.send(Inbound::Wake).is_err() {
+            if after == After::Timers && engine.send(Inbound::Wake).is_err() {
                 return Ending::Peer("server stopping".into());
             }
             if let Err(why) = self.write_due() {
