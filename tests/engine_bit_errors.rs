@@ -19,8 +19,8 @@ use nodes::proto::meb::MebRepr;
 use nodes::seed002::{MasterConfig, Seed002Master};
 use nodes::time::{SimDuration, SimTime};
 use serde_json::Value;
-use twin::engine::{BusSlot, Engine, ModuleSlot, NodeSlot, Observer};
-use twin::scenario::Scenario;
+use twin_sim::engine::{BusSlot, Engine, ModuleSlot, NodeSlot, Observer};
+use twin_sim::scenario::Scenario;
 
 #[path = "engine_bit_errors/meb_fcs.rs"]
 mod meb_fcs;
@@ -99,7 +99,7 @@ fn at(seconds: f64) -> SimTime {
 
 fn build(toml: &str) -> Engine {
     let scenario = Scenario::parse(toml, "test scenario").expect("scenario parses");
-    twin::virtual_run::build(&scenario).expect("scenario builds")
+    twin_sim::virtual_run::build(&scenario).expect("scenario builds")
 }
 
 /// The supervisor's loop of its only slave, from one telemetry report.
@@ -412,7 +412,7 @@ struct Reading {
 struct Seed002Run {
     readings: Vec<Reading>,
     master: Value,
-    checks: twin::engine::CheckTally,
+    checks: twin_sim::engine::CheckTally,
     collisions: u64,
 }
 

@@ -2,14 +2,14 @@
 //! speed loop over the simulated RS-485 bus: bus timing, step tracking, dead
 //! time, and byte-identical recordings.
 //!
-//! Scenarios are built as TOML text, run through `twin::virtual_run::build`
+//! Scenarios are built as TOML text, run through `twin_sim::virtual_run::build`
 //! and driven with an in-memory observer that keeps every frame, actuator
 //! change, plant sample and loop report.
 
 use e2e::{Capture, WireFrame, at, run_captured};
 use nodes::proto::meb::{MebCmd, MebRepr};
 use nodes::time::{SimDuration, SimTime};
-use twin::scenario::Scenario;
+use twin_sim::scenario::Scenario;
 
 /// The supervisor's loop after one poll cycle.
 #[derive(Debug, Clone, Copy)]
@@ -57,7 +57,7 @@ fn ev_meb_gains() -> (f64, f64) {
         .nodes
         .iter()
         .find_map(|n| match n {
-            twin::scenario::NodeSpec::Supervisor { kp, ki, .. } => Some((*kp, *ki)),
+            twin_sim::scenario::NodeSpec::Supervisor { kp, ki, .. } => Some((*kp, *ki)),
             _ => None,
         })
         .expect("ev-meb has a supervisor")
@@ -237,7 +237,7 @@ fn schedule(scenario: &Scenario) -> Vec<[f64; 2]> {
         .nodes
         .iter()
         .find_map(|n| match n {
-            twin::scenario::NodeSpec::Supervisor { set_points, .. } => Some(set_points.clone()),
+            twin_sim::scenario::NodeSpec::Supervisor { set_points, .. } => Some(set_points.clone()),
             _ => None,
         })
         .expect("the scenario has a supervisor")
@@ -450,7 +450,7 @@ fn dead_time_stays_within_one_poll_cycle_and_its_mean_grows_by_half_the_period()
     );
 }
 
-/// Runs `scenario` through `twin::virtual_run::run` and returns the bytes of
+/// Runs `scenario` through `twin_sim::virtual_run::run` and returns the bytes of
 /// its recording (the file is removed again) and the frames corrupted on the
 /// way.
 fn recording_bytes(scenario: &Scenario, name: &str) -> (Vec<u8>, u64) {
@@ -458,7 +458,7 @@ fn recording_bytes(scenario: &Scenario, name: &str) -> (Vec<u8>, u64) {
         "e2e-engine-loop-{}-{name}.mcap",
         std::process::id()
     ));
-    let outcome = twin::virtual_run::run(scenario, &path, |_| {}).expect("run records");
+    let outcome = twin_sim::virtual_run::run(scenario, &path, |_| {}).expect("run records");
     assert!(outcome.frames > 0, "{name}: frames were recorded");
     let bytes = std::fs::read(&outcome.recording).expect("recording readable");
     std::fs::remove_file(&outcome.recording).expect("recording removed");

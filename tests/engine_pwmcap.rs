@@ -4,8 +4,8 @@
 use std::path::{Path, PathBuf};
 
 use serde_json::Value;
-use twin::experiment::parallel::{ParallelFigures, analyse};
-use twin::scenario::{EMBEDDED, Scenario};
+use twin_lab::parallel::{ParallelFigures, analyse};
+use twin_sim::scenario::{EMBEDDED, Scenario};
 
 fn embedded(name: &str) -> &'static str {
     EMBEDDED
@@ -34,7 +34,7 @@ fn scratch(name: &str) -> PathBuf {
 
 fn run(scenario: &Scenario, file: &str) -> (PathBuf, ParallelFigures) {
     let out = scratch(file);
-    twin::virtual_run::run(scenario, &out, |_| {}).expect("run completes");
+    twin_sim::virtual_run::run(scenario, &out, |_| {}).expect("run completes");
     let figures = analyse(scenario, &out).expect("recording reads back");
     (out, figures)
 }

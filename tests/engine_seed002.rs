@@ -7,7 +7,7 @@
 use e2e::{Capture, WireFrame, at, run_captured};
 use nodes::proto::modbus8::{self, CrcOrder, Frame};
 use nodes::time::{SimDuration, SimTime};
-use twin::scenario::Scenario;
+use twin_sim::scenario::Scenario;
 
 /// The embedded scenario, read from its file so the test follows the file.
 const CONTROLLER_NETWORK: &str = include_str!(concat!(
@@ -18,7 +18,7 @@ const CONTROLLER_NETWORK: &str = include_str!(concat!(
 /// Frames copied from the seed project's own terminal output.
 const VECTORS: &str = concat!(
     env!("CARGO_MANIFEST_DIR"),
-    "/../../shared/vectors/modbus8.jsonl"
+    "/../nodes/tests/vectors/modbus8.jsonl"
 );
 
 /// Wire rpm step of the motor node: one encoder pulse per 20 ms window is

@@ -6,8 +6,8 @@ use anyhow::Result;
 use nodes::node::NodeEvent;
 use nodes::time::{SimDuration, SimTime};
 use plant::{Actuators, Sensors};
-use twin::engine::{BusSlot, Engine, ModuleSlot, NodeSlot, Observer};
-use twin::scenario::Scenario;
+use twin_sim::engine::{BusSlot, Engine, ModuleSlot, NodeSlot, Observer};
+use twin_sim::scenario::Scenario;
 
 /// One frame as it went on the wire.
 #[derive(Debug, Clone)]
@@ -82,7 +82,7 @@ pub fn at(seconds: f64) -> SimTime {
 
 /// Run `scenario` to `until_s` seconds; the engine comes back for its final state.
 pub fn run_captured(scenario: &Scenario, until_s: f64) -> (Capture, Engine) {
-    let mut engine = twin::virtual_run::build(scenario).expect("engine builds");
+    let mut engine = twin_sim::virtual_run::build(scenario).expect("engine builds");
     let mut capture = Capture::default();
     engine
         .run_until(at(until_s), &mut capture, |_| {})

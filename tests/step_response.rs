@@ -5,10 +5,10 @@
 
 use plant::PlantParams;
 use std::path::PathBuf;
-use twin::experiment::instruments;
-use twin::experiment::step::{self, StepConfig, StepDrive};
-use twin::experiment::sweep::{self, SweepConfig, TRACKING_TOLERANCE};
-use twin::scenario::Scenario;
+use twin_lab::instruments;
+use twin_lab::step::{self, StepConfig, StepDrive};
+use twin_lab::sweep::{self, SweepConfig, TRACKING_TOLERANCE};
+use twin_sim::scenario::Scenario;
 
 fn scratch(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("twin-step-test-{}", std::process::id()));
@@ -144,9 +144,9 @@ fn pausing_a_run_to_sample_it_changes_nothing() {
     let mut scenario = Scenario::load("ev-meb").expect("embedded");
     scenario.duration_s = 3.0;
     let (plain, paused) = (scratch("plain.mcap"), scratch("paused.mcap"));
-    twin::virtual_run::run(&scenario, &plain, |_| {}).expect("plain run");
+    twin_sim::virtual_run::run(&scenario, &plain, |_| {}).expect("plain run");
     let mut samples = 0;
-    twin::virtual_run::run_sampled(
+    twin_sim::virtual_run::run_sampled(
         &scenario,
         &paused,
         |_| {},

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # A bounded fuzz run for CI: every target in nodes/fuzz/fuzz_targets for N seconds
-# each (default 20), from the seed corpus generated from the shared vectors.
+# each (default 20), from the seed corpus generated from the test vectors (nodes/tests/vectors).
 # Fails on the first crash (libFuzzer leaves the input in fuzz/artifacts/TARGET/).
 # Usage: nodes/fuzz/ci-smoke.sh [SECONDS]    (honours CARGO_TARGET_DIR)
 set -euo pipefail

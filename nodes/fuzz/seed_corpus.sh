@@ -1,14 +1,14 @@
 #!/usr/bin/env bash
-# Writes the seed corpus of every fuzz target from the shared vectors:
+# Writes the seed corpus of every fuzz target from the test vectors (nodes/tests/vectors):
 #   corpus/meb_parse/      one file per frame of meb.jsonl and meb_slave.jsonl
 #   corpus/meb_stream/     those frames concatenated, in vector order and by request/reply pair
 #   corpus/pwmcap_decode/  captured widths of a few frames in the paper's and Table 2's codings
 # The corpus is generated, not committed (fuzz/.gitignore). Needs python3.
-# Usage: nodes/fuzz/seed_corpus.sh   (SHARED_DIR overrides the vectors' location)
+# Usage: nodes/fuzz/seed_corpus.sh
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
-shared=${SHARED_DIR:-$here/../../../shared}
-python3 - "$shared/vectors" "$here/corpus" <<'PY'
+vectors=$here/../tests/vectors
+python3 - "$vectors" "$here/corpus" <<'PY'
 import json, pathlib, struct, sys
 
 vectors, corpus = pathlib.Path(sys.argv[1]), pathlib.Path(sys.argv[2])

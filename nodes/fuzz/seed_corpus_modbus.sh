@@ -1,19 +1,19 @@
 #!/usr/bin/env bash
 # Writes the seed corpus of the Modbus fuzz targets:
-#   corpus/modbus8_stream/  control byte (bit 0: CRC order) + frames of vectors/modbus8.jsonl
+#   corpus/modbus8_stream/  control byte (bit 0: CRC order) + frames of nodes/tests/vectors/modbus8.jsonl
 #   corpus/rtu_stream/      control byte (bit 0: reply direction, bit 1: no timing) + RTU frames
 #   corpus/tcp_stream/      MBAP frames
 #   corpus/ascii_stream/    ASCII lines
 # RTU/TCP/ASCII seeds cover every function code (01-06, 15, 16), request and
 # reply, and an exception, built with the same CRC/LRC as the spec examples.
 # The corpus is generated, not committed. Needs python3.
-# Usage: nodes/fuzz/seed_corpus_modbus.sh   (SHARED_DIR overrides the vectors' location,
-# CORPUS_DIR the output, default nodes/fuzz/corpus)
+# Usage: nodes/fuzz/seed_corpus_modbus.sh   (CORPUS_DIR overrides the output,
+# default nodes/fuzz/corpus)
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
-shared=${SHARED_DIR:-$here/../../../shared}
+vectors=$here/../tests/vectors
 corpus=${CORPUS_DIR:-$here/corpus}
-python3 - "$shared/vectors" "$corpus" <<'PY'
+python3 - "$vectors" "$corpus" <<'PY'
 import json, pathlib, struct, sys
 
 vectors, corpus = pathlib.Path(sys.argv[1]), pathlib.Path(sys.argv[2])

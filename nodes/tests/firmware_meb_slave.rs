@@ -10,7 +10,7 @@ use serde::Deserialize;
 
 const VECTORS: &str = include_str!(concat!(
     env!("CARGO_MANIFEST_DIR"),
-    "/../../shared/vectors/meb_slave.jsonl"
+    "/tests/vectors/meb_slave.jsonl"
 ));
 
 #[derive(Debug, Deserialize)]

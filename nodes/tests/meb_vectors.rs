@@ -10,7 +10,7 @@ use serde::Deserialize;
 
 const VECTORS: &str = include_str!(concat!(
     env!("CARGO_MANIFEST_DIR"),
-    "/../../shared/vectors/meb.jsonl"
+    "/tests/vectors/meb.jsonl"
 ));
 
 #[derive(Debug, Deserialize)]

@@ -1,4 +1,4 @@
-//! The 8-byte Modbus codec against the frames of ../shared/vectors/modbus8.jsonl
+//! The 8-byte Modbus codec against the frames of tests/vectors/modbus8.jsonl
 //! (copied from the seed-002 project's terminal output and scope captures), and
 //! the stream decoder's silence rule with explicit simulated time.
 
@@ -8,10 +8,7 @@ use nodes::proto::modbus8::{CrcOrder, Frame, Modbus8Decoder, Modbus8Error};
 use nodes::time::{SimDuration, SimTime};
 use serde::Deserialize;
 
-const VECTORS: &str = concat!(
-    env!("CARGO_MANIFEST_DIR"),
-    "/../../shared/vectors/modbus8.jsonl"
-);
+const VECTORS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/vectors/modbus8.jsonl");
 
 #[derive(Debug, Deserialize)]
 struct Vector {

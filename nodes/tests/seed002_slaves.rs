@@ -1,6 +1,6 @@
 //! The seed-002 motor and light-sensor nodes as slaves: every register and
 //! exception case of `spec/modbus8.md`, the request vectors of
-//! `../shared/vectors/modbus8.jsonl` answered with the captured replies, and
+//! `tests/vectors/modbus8.jsonl` answered with the captured replies, and
 //! the firmware's encoder window and light-sensor blend against hand results.
 
 use nodes::node::{Firmware, Node};
@@ -9,10 +9,7 @@ use nodes::seed002::{LightNode, MotorConfig, MotorNode, MotorState, PortConfig};
 use nodes::time::{SimDuration, SimTime};
 use serde::Deserialize;
 
-const VECTORS: &str = concat!(
-    env!("CARGO_MANIFEST_DIR"),
-    "/../../shared/vectors/modbus8.jsonl"
-);
+const VECTORS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/vectors/modbus8.jsonl");
 
 #[derive(Debug, Deserialize)]
 struct Vector {

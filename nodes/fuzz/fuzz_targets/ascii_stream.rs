@@ -9,8 +9,8 @@ mod chunking;
 
 use chunking::chunks;
 use libfuzzer_sys::fuzz_target;
-use nodes::proto::modbus::ascii::{self, AsciiDecoder, MAX_ADU_LEN, MAX_BINARY_LEN};
-use nodes::proto::modbus::{Drops, FrameError, Request, Response};
+use protocols::modbus::ascii::{self, AsciiDecoder, MAX_ADU_LEN, MAX_BINARY_LEN};
+use protocols::modbus::{Drops, FrameError, Request, Response};
 
 type Events = Vec<Result<(u8, Vec<u8>), FrameError>>;
 

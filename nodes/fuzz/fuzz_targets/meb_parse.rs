@@ -3,7 +3,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use nodes::proto::meb::{MEB_MAX_FRAME_LEN, MebFrame, MebRepr};
+use protocols::meb::{MEB_MAX_FRAME_LEN, MebFrame, MebRepr};
 
 fuzz_target!(|data: &[u8]| {
     let parsed = MebRepr::parse(data);

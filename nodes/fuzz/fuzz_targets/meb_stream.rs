@@ -4,8 +4,8 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use nodes::proto::meb::{MEB_MAX_FRAME_LEN, MebDecodeError, MebDecoder, MebError, MebRepr};
-use nodes::time::{SimDuration, SimTime};
+use protocols::meb::{MEB_MAX_FRAME_LEN, MebDecodeError, MebDecoder, MebError, MebRepr};
+use protocols::time::{SimDuration, SimTime};
 
 type Events = Vec<Result<MebRepr, MebDecodeError>>;
 

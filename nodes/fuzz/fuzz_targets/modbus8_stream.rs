@@ -9,9 +9,9 @@ mod chunking;
 
 use chunking::chunks;
 use libfuzzer_sys::fuzz_target;
-use nodes::proto::modbus::Drops;
-use nodes::proto::modbus8::{CrcOrder, FRAME_LEN, Frame, Modbus8Decoder, Modbus8Error};
-use nodes::time::{SimDuration, SimTime};
+use protocols::modbus::Drops;
+use protocols::modbus8::{CrcOrder, FRAME_LEN, Frame, Modbus8Decoder, Modbus8Error};
+use protocols::time::{SimDuration, SimTime};
 
 type Events = Vec<Result<Frame, Modbus8Error>>;
 

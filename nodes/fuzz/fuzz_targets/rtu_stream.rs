@@ -10,10 +10,10 @@ mod chunking;
 
 use chunking::chunks;
 use libfuzzer_sys::fuzz_target;
-use nodes::proto::modbus::rtu::{self, Direction, MAX_ADU_LEN, RtuDecoder};
-use nodes::proto::modbus::serial::{PTY_SILENCE, Timing};
-use nodes::proto::modbus::{Drops, FrameError, Request, Response};
-use nodes::time::{SimDuration, SimTime};
+use protocols::modbus::rtu::{self, Direction, MAX_ADU_LEN, RtuDecoder};
+use protocols::modbus::serial::{PTY_SILENCE, Timing};
+use protocols::modbus::{Drops, FrameError, Request, Response};
+use protocols::time::{SimDuration, SimTime};
 
 type Events = Vec<Result<(u8, Vec<u8>), FrameError>>;
 

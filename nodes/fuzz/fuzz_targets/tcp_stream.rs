@@ -9,8 +9,8 @@ mod chunking;
 
 use chunking::chunks;
 use libfuzzer_sys::fuzz_target;
-use nodes::proto::modbus::tcp::{self, MAX_ADU_LEN, TcpDecoder};
-use nodes::proto::modbus::{Drops, FrameError, Request, Response};
+use protocols::modbus::tcp::{self, MAX_ADU_LEN, TcpDecoder};
+use protocols::modbus::{Drops, FrameError, Request, Response};
 
 type Events = Vec<Result<(u16, u8, Vec<u8>), FrameError>>;
 

@@ -1,4 +1,4 @@
-//! The PWM-capture line (`../shared/spec/pwmcap.md`, seed 003): sender edges
+//! The PWM-capture line (`docs/protocols/pwmcap.md`, seed 003): sender edges
 //! in, capture widths out.
 //!
 //! The physical chain, from the master's PWM pin to the slave's capture unit:
@@ -96,7 +96,7 @@ pub enum CableModel {
 
 impl PwmLineParams {
     /// The twin's line, every value fixed from a datasheet before any
-    /// reliability figure was computed (arguments in `nodes/PWMCAP-LINE.md`):
+    /// reliability figure was computed (arguments in `docs/protocols/pwmcap-line.md`):
     /// - driver 23 Ω: a 3.3 V 74LVC1G125-class buffer, V_OL 0.55 V at 24 mA;
     /// - cable 0.188 Ω/m loop (2 × 0.094 Ω/m, 24 AWG Cat5 conductor) and
     ///   50 pF/m mutual capacitance (Cat5 / RS-485 twisted pair, ≤ 52 pF/m);

@@ -1,0 +1,13 @@
+//! The lab's serial protocols as sans-IO codecs, with no physics: MEB, the
+//! Controller_network project's 8-byte Modbus, Modbus RTU/ASCII/TCP and PWM-capture
+//! symbols. Wire formats as pure parse/emit code: a checked view plus a small value
+//! type per frame, and a stream decoder per format fed `(now, bytes)`, with time as
+//! [`time::SimTime`].
+
+pub mod crc;
+pub mod meb;
+pub mod modbus;
+pub mod modbus8;
+pub mod pwmcap;
+pub mod time;
+pub mod words;

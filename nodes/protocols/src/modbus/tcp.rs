@@ -1,0 +1,254 @@
+//! Modbus TCP framing: the MBAP header (transaction id, protocol id 0, length
+//! of what follows, unit id) in front of the PDU, no checksum.
+//!
+//! The stream decoder frames by the MBAP length. TCP bytes carry no timing, so
+//! after a header that cannot be Modbus (protocol id not 0, length outside
+//! 2..=254) it drops one byte at a time until a plausible header lines up,
+//! counting each.
+
+use super::pdu::{EncodePdu, ExceptionResponse, PduError, Request, Response};
+use super::{BufferTooSmall, Drops, Frame, FrameError, MAX_PDU_LEN};
+
+/// MBAP header length, unit id included.
+pub const MBAP_LEN: usize = 7;
+/// The shortest frame: header and a function code.
+pub const MIN_ADU_LEN: usize = MBAP_LEN + 1;
+/// The longest frame: header and a 253-byte PDU.
+pub const MAX_ADU_LEN: usize = MBAP_LEN + MAX_PDU_LEN;
+
+/// A checked Modbus TCP frame, borrowing its PDU.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TcpFrame<'a> {
+    /// Transaction id, echoed by the reply.
+    pub transaction_id: u16,
+    /// Unit id (a gateway's target; often 0 or 255 for a plain TCP device).
+    pub unit: u8,
+    /// Function code and data; never empty.
+    pub pdu: &'a [u8],
+}
+
+impl<'a> TcpFrame<'a> {
+    /// The unit id and PDU without the transaction id.
+    pub fn frame(&self) -> Frame<'a> {
+        Frame {
+            unit: self.unit,
+            pdu: self.pdu,
+        }
+    }
+
+    /// Parses the PDU as a request.
+    pub fn request(&self) -> Result<Request, PduError> {
+        Request::parse(self.pdu)
+    }
+
+    /// Parses the PDU as a reply.
+    pub fn response(&self) -> Result<Result<Response, ExceptionResponse>, PduError> {
+        Response::parse(self.pdu)
+    }
+}
+
+/// Reads the MBAP header at the start of `bytes` and returns the whole
+/// frame's length, or why no Modbus frame can start there.
+fn header_len(bytes: &[u8]) -> Result<usize, FrameError> {
+    let &[_, _, p_hi, p_lo, l_hi, l_lo, ..] = bytes else {
+        return Err(FrameError::TooShort {
+            len: bytes.len(),
+            min: MIN_ADU_LEN,
+        });
+    };
+    let protocol = u16::from_be_bytes([p_hi, p_lo]);
+    if protocol != 0 {
+        return Err(FrameError::ProtocolId(protocol));
+    }
+    let length = u16::from_be_bytes([l_hi, l_lo]);
+    if !(2..=(1 + MAX_PDU_LEN as u16)).contains(&length) {
+        return Err(FrameError::MbapLength(length));
+    }
+    Ok(6 + usize::from(length))
+}
+
+/// Checks a whole Modbus TCP frame.
+pub fn parse(adu: &[u8]) -> Result<TcpFrame<'_>, FrameError> {
+    let expected = header_len(adu)?;
+    let &[t_hi, t_lo, _, _, _, _, unit, ref pdu @ ..] = adu else {
+        return Err(FrameError::TooShort {
+            len: adu.len(),
+            min: MIN_ADU_LEN,
+        });
+    };
+    if adu.len() != expected {
+        return Err(FrameError::LengthMismatch {
+            expected: expected - 6,
+            actual: adu.len() - 6,
+        });
+    }
+    Ok(TcpFrame {
+        transaction_id: u16::from_be_bytes([t_hi, t_lo]),
+        unit,
+        pdu,
+    })
+}
+
+/// Writes `pdu` for `unit` with `transaction_id` as a Modbus TCP frame into
+/// `out`; returns its length.
+pub fn emit(
+    transaction_id: u16,
+    unit: u8,
+    pdu: &(impl EncodePdu + ?Sized),
+    out: &mut [u8],
+) -> Result<usize, BufferTooSmall> {
+    let pdu_len = pdu.pdu_len();
+    let needed = MBAP_LEN + pdu_len;
+    let available = out.len();
+    let frame = out
+        .get_mut(..needed)
+        .ok_or(BufferTooSmall { needed, available })?;
+    let (header, body) = frame.split_at_mut(MBAP_LEN);
+    let [t_hi, t_lo] = transaction_id.to_be_bytes();
+    // The PDU is at most 253 bytes, so the length always fits.
+    let [l_hi, l_lo] = (1 + pdu_len as u16).to_be_bytes();
+    header.copy_from_slice(&[t_hi, t_lo, 0, 0, l_hi, l_lo, unit]);
+    pdu.encode_pdu(body)?;
+    Ok(needed)
+}
+
+/// Turns a Modbus TCP byte stream, in chunks of any size, into frames.
+///
+/// ```
+/// use protocols::modbus::tcp::TcpDecoder;
+///
+/// let mut decoder = TcpDecoder::new();
+/// let mut input: &[u8] = &[0x00, 0x07, 0, 0, 0, 6, 0x01, 0x03, 0x00, 0x00, 0x00, 0x05];
+/// let frame = decoder.decode(&mut input).unwrap().unwrap();
+/// assert_eq!((frame.transaction_id, frame.unit), (7, 1));
+/// ```
+#[derive(Debug, Clone)]
+pub struct TcpDecoder {
+    buf: [u8; MAX_ADU_LEN],
+    len: usize,
+    /// Bytes at the front of `buf` handed out as a frame last call.
+    yielded: usize,
+    drops: Drops,
+}
+
+impl Default for TcpDecoder {
+    fn default() -> Self {
+        TcpDecoder::new()
+    }
+}
+
+impl TcpDecoder {
+    /// An empty decoder.
+    pub fn new() -> Self {
+        TcpDecoder {
+            buf: [0; MAX_ADU_LEN],
+            len: 0,
+            yielded: 0,
+            drops: Drops::default(),
+        }
+    }
+
+    /// Takes bytes from the front of `input` until a frame is complete. `None`
+    /// means `input` is used up; call again while it is not empty. Frames are
+    /// never errors here: a header that cannot be Modbus is resynchronised past
+    /// and counted in [`Drops::malformed`].
+    pub fn decode(&mut self, input: &mut &[u8]) -> Option<Result<TcpFrame<'_>, FrameError>> {
+        let end = self.advance(input)?;
+        Some(parse(&self.buf[..end]))
+    }
+
+    fn advance(&mut self, input: &mut &[u8]) -> Option<usize> {
+        if self.yielded > 0 {
+            self.buf.copy_within(self.yielded..self.len, 0);
+            self.len -= self.yielded;
+            self.yielded = 0;
+        }
+        loop {
+            let wanted = if self.len < MBAP_LEN {
+                MBAP_LEN
+            } else {
+                match header_len(&self.buf[..self.len]) {
+                    Ok(total) if self.len >= total => {
+                        self.yielded = total;
+                        return Some(total);
+                    }
+                    Ok(total) => total,
+                    Err(_) => {
+                        self.drops.malformed.add(1);
+                        self.buf.copy_within(1..self.len, 0);
+                        self.len -= 1;
+                        continue;
+                    }
+                }
+            };
+            if input.is_empty() {
+                return None;
+            }
+            let take = (wanted - self.len).min(input.len());
+            let (head, rest) = input.split_at(take);
+            self.buf[self.len..self.len + take].copy_from_slice(head);
+            self.len += take;
+            *input = rest;
+        }
+    }
+
+    /// Bytes waiting for the rest of their frame.
+    pub fn pending(&self) -> usize {
+        self.len - self.yielded
+    }
+
+    /// What has been thrown away so far, by reason.
+    pub fn drops(&self) -> &Drops {
+        &self.drops
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parse_and_emit_a_known_frame() {
+        let adu = [
+            0x00, 0x01, 0x00, 0x00, 0x00, 0x06, 0x11, 0x03, 0x00, 0x6B, 0x00, 0x03,
+        ];
+        let frame = parse(&adu).unwrap();
+        assert_eq!((frame.transaction_id, frame.unit), (1, 0x11));
+        let request = frame.request().unwrap();
+        let mut out = [0u8; MAX_ADU_LEN];
+        let n = emit(1, 0x11, &request, &mut out).unwrap();
+        assert_eq!(&out[..n], adu);
+    }
+
+    #[test]
+    fn header_faults_are_typed() {
+        let good = [0, 1, 0, 0, 0, 2, 1, 0x03];
+        assert!(parse(&good).is_ok());
+        let mut bad = good;
+        bad[2] = 1;
+        assert_eq!(parse(&bad), Err(FrameError::ProtocolId(0x0100)));
+        let mut bad = good;
+        bad[5] = 1;
+        assert_eq!(parse(&bad), Err(FrameError::MbapLength(1)));
+        assert_eq!(
+            parse(&[0, 1, 0, 0, 0, 3, 1, 0x03]),
+            Err(FrameError::LengthMismatch {
+                expected: 3,
+                actual: 2
+            })
+        );
+    }
+
+    #[test]
+    fn decoder_skips_a_bad_header() {
+        let mut decoder = TcpDecoder::new();
+        let mut stream = vec![0xFF, 0xFF, 0xFF];
+        stream.extend([0, 9, 0, 0, 0, 6, 1, 0x06, 0, 1, 0, 2]);
+        let mut input = &stream[..];
+        let frame = decoder.decode(&mut input).unwrap().unwrap();
+        assert_eq!(frame.transaction_id, 9);
+        assert_eq!(decoder.drops().malformed.bytes, 3);
+        assert!(decoder.decode(&mut input).is_none());
+        assert_eq!(decoder.pending(), 0);
+    }
+}

@@ -1,0 +1,96 @@
+//! `twin bench`: how much faster than real time the engine runs.
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use twin_lab::bench::{self, DEFAULT_SCENARIOS, Measurement};
+
+/// Measure how much faster than real time scenarios run.
+///
+/// The real-time factor is simulated seconds per wall-clock second, measured
+/// without recording (everything the engine reports is discarded) and with
+/// recording (MCAP to a temporary file, deleted after). Without --scenario, runs `ev-meb` (one module, 115200 baud, 100 Hz speed
+/// loop; goal 200x) and `ten-modules` (ten modules on one bus, each polled at
+/// 10 Hz; goal 30x). Each figure is the fastest of --repeat runs. Build with
+/// --release, and pin to one core for the figures:
+/// `taskset -c 0 twin bench`.
+#[derive(Debug, Args)]
+pub struct BenchArgs {
+    /// Scenario to measure: an embedded name (`twin run --list`) or a
+    /// scenario file; repeat the option for several.
+    #[arg(long, value_name = "NAME|FILE")]
+    scenario: Vec<String>,
+    /// Simulated seconds per run [default: each scenario's duration].
+    #[arg(long, value_name = "N")]
+    seconds: Option<f64>,
+    /// Runs per figure; the fastest counts.
+    #[arg(long, default_value_t = 3, value_name = "N")]
+    repeat: u32,
+}
+
+pub fn execute(args: &BenchArgs) -> Result<()> {
+    if let Some(s) = args.seconds
+        && !(s.is_finite() && s > 0.0)
+    {
+        bail!("--seconds must be a positive number of seconds, got {s}");
+    }
+    if args.repeat == 0 {
+        bail!("--repeat must be at least 1");
+    }
+    let names: Vec<&str> = if args.scenario.is_empty() {
+        DEFAULT_SCENARIOS.to_vec()
+    } else {
+        args.scenario.iter().map(String::as_str).collect()
+    };
+    println!(
+        "twin bench: best of {} run{} per figure",
+        args.repeat,
+        if args.repeat == 1 { "" } else { "s" }
+    );
+    println!(
+        "  {:<20} {:<10} {:>11} {:>9} {:>10} {:>14} {:>10}",
+        "scenario", "recording", "simulated", "wall", "real time", "events/s", "frames"
+    );
+    for name in names {
+        let mut scenario = twin_sim::scenario::Scenario::load(name)?;
+        if let Some(s) = args.seconds {
+            scenario.duration_s = s;
+        }
+        let discarded = bench::best_of(args.repeat, || bench::run_discarding(&scenario))
+            .with_context(|| format!("scenario {} failed", scenario.name))?;
+        print_row(&scenario.name, "off", &discarded, discarded.events);
+        let out = bench::scratch_recording(&scenario.name);
+        let recorded = bench::best_of(args.repeat, || bench::run_recording(&scenario, &out));
+        // Remove the scratch file whatever happened, then report.
+        let _ = std::fs::remove_file(&out);
+        let recorded = recorded.with_context(|| format!("scenario {} failed", scenario.name))?;
+        // The observer does not steer the engine: a recorded run handles the
+        // same events as the discarding one.
+        print_row(&scenario.name, "mcap", &recorded, discarded.events);
+        if let Some(bytes) = recorded.recording_bytes {
+            println!(
+                "  {:<20} {:<10} {:.1} kB per simulated second",
+                "",
+                "",
+                bytes as f64 / 1e3 / recorded.simulated_s.max(1e-9)
+            );
+        }
+    }
+    Ok(())
+}
+
+fn print_row(scenario: &str, recording: &str, m: &Measurement, events: Option<u64>) {
+    let events_per_s = events.map_or_else(
+        || "-".to_string(),
+        |e| format!("{:.0}", e as f64 / m.wall_s.max(1e-9)),
+    );
+    println!(
+        "  {:<20} {:<10} {:>9.1} s {:>7.3} s {:>9.0}x {:>14} {:>10}",
+        scenario,
+        recording,
+        m.simulated_s,
+        m.wall_s,
+        m.real_time_factor(),
+        events_per_s,
+        m.frames
+    );
+}

@@ -1,0 +1,110 @@
+//! `twin compare`: hold a run against a baseline, signal by signal.
+
+use anyhow::{Result, bail};
+use clap::Args;
+use std::path::PathBuf;
+use twin_recording::Recording;
+use twin_recording::compare::{self, Tolerances};
+
+/// Compare a recording with a baseline recording, signal by signal
+///
+/// Every numeric field of every channel is a signal (`/plant/ev1/sensors.wheel_rpm`,
+/// `/master/supervisor/loop.loops.0.measured_rpm`, …). For each baseline sample
+/// the run's value is looked up at the same time (interpolated between sensor
+/// samples, held between events; anywhere within the signal's time shift) and
+/// must lie within `abs + rel·|baseline|`. Prints, per signal beyond tolerance,
+/// when it first went beyond and its worst sample, and exits non-zero if any
+/// signal is beyond its tolerance or missing from the run. A recording cut short is compared up to
+/// its last complete chunk.
+///
+/// The defaults (abs 1e-9, rel 1e-9, no time shift) hold a deterministic re-run
+/// to its baseline. A tolerance file loosens them, per signal pattern (`*` any
+/// run of characters, `?` one; the last matching rule wins):
+///
+///   [default]
+///   abs = 1e-6
+///   [[signal]]
+///   pattern = "/plant/*/sensors.*rpm"
+///   abs = 5.0
+///   rel = 0.01
+///   time_shift_s = 0.02
+///   [[signal]]
+///   pattern = "/bus/*"
+///   ignore = true
+#[derive(Debug, Args)]
+#[command(verbatim_doc_comment)]
+pub struct CompareArgs {
+    /// The recording to check.
+    #[arg(value_name = "RUN.mcap")]
+    run: PathBuf,
+    /// The reference recording.
+    #[arg(value_name = "BASELINE.mcap")]
+    baseline: PathBuf,
+    /// Tolerance file (TOML): `[default]` and `[[signal]]` rules.
+    #[arg(long, value_name = "FILE.toml")]
+    tolerances: Option<PathBuf>,
+    /// Print every signal, not only the ones beyond tolerance.
+    #[arg(long)]
+    all: bool,
+}
+
+pub fn execute(args: &CompareArgs) -> Result<()> {
+    let tolerances = match &args.tolerances {
+        Some(p) => Tolerances::load(p)?,
+        None => Tolerances::default(),
+    };
+    let run = Recording::read(&args.run)?;
+    let baseline = Recording::read(&args.baseline)?;
+    println!(
+        "twin compare: {} against baseline {}",
+        args.run.display(),
+        args.baseline.display()
+    );
+    for (r, what) in [(&run, "run"), (&baseline, "baseline")] {
+        if let Some(why) = &r.truncated {
+            println!("  {what} {}: {why}", r.path.display());
+        }
+    }
+    let c = compare::compare(&run, &baseline, &tolerances);
+    if let Some(note) = &c.span_note {
+        println!("  {note}");
+    }
+    let failures = c.failures().count();
+    if failures > 0 || args.all {
+        print!("{}", compare::table(&c, args.all));
+    }
+    if !c.only_in_run.is_empty() {
+        println!(
+            "  {} signal(s) only in the run (not compared): {}",
+            c.only_in_run.len(),
+            c.only_in_run.join(", ")
+        );
+    }
+    let samples: usize = c.rows.iter().map(|r| r.samples).sum();
+    println!(
+        "  {} signals, {} samples compared{}: {} within tolerance, {} beyond",
+        c.rows.len(),
+        samples,
+        if c.ignored > 0 {
+            format!(" ({} ignored)", c.ignored)
+        } else {
+            String::new()
+        },
+        c.rows.len() - failures,
+        failures
+    );
+    if let Some(m) = &c.span_mismatch {
+        println!("  time span differs: {m}");
+    }
+    if !c.passed() {
+        let first = c
+            .failures()
+            .filter_map(|r| Some((r.first_beyond_s?, r)))
+            .min_by(|a, b| a.0.total_cmp(&b.0))
+            .map(|(t, r)| format!(": first {} at {t:.3} s", r.signal))
+            .unwrap_or_default();
+        bail!("the run departs from the baseline{first}");
+    }
+    println!("  PASS");
+    Ok(())
+}

@@ -1,0 +1,47 @@
+//! `twin export`: a recording as CSV files.
+
+use anyhow::Result;
+use clap::Args;
+use std::path::PathBuf;
+use twin_recording::{Recording, export};
+
+/// Write every channel of a recording as CSV, for spreadsheets, MATLAB and Python.
+///
+/// One file per channel, named after its topic (`/plant/ev1/sensors` →
+/// `plant_ev1_sensors.csv`): a `time_s` column (simulated seconds) and one column
+/// per field, nested fields flattened with dots (`energy.battery_out`,
+/// `loops.0.measured_rpm`). Booleans are 1 and 0. A recording cut short is
+/// exported up to its last complete chunk.
+#[derive(Debug, Args)]
+pub struct ExportArgs {
+    /// The recording.
+    #[arg(value_name = "RUN.mcap")]
+    recording: PathBuf,
+    /// Folder to write the CSV files into (created if needed).
+    #[arg(long, value_name = "DIR")]
+    csv: PathBuf,
+}
+
+pub fn execute(args: &ExportArgs) -> Result<()> {
+    let recording = Recording::read(&args.recording)?;
+    if let Some(why) = &recording.truncated {
+        println!("note: {}: {why}", args.recording.display());
+    }
+    let written = export::to_csv(&recording, &args.csv)?;
+    println!(
+        "twin export: {} channels of {} into {}",
+        written.len(),
+        args.recording.display(),
+        args.csv.display()
+    );
+    for w in &written {
+        println!(
+            "  {:<28} {:>7} rows {:>4} columns  {}",
+            w.topic,
+            w.rows,
+            w.columns,
+            w.path.display()
+        );
+    }
+    Ok(())
+}

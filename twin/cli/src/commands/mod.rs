@@ -1,0 +1,45 @@
+//! One file per subcommand; each parses its arguments and calls library code.
+
+pub mod baseline;
+pub mod bench;
+pub mod client;
+pub mod compare;
+pub mod experiment;
+pub mod export;
+mod live_view;
+pub mod replay;
+pub mod run;
+pub mod serve;
+pub mod step;
+pub mod supervise;
+pub mod sweep;
+pub mod view;
+pub mod vsp;
+
+/// The last lines of a real-time session's report (`twin serve`, `twin
+/// supervise`): its connections, where it was recorded, the live view.
+fn print_session_end(
+    c: &twin_realtime::engine::RtCounters,
+    refused_clients: u64,
+    recording: Option<&std::path::Path>,
+    view_samples: Option<u64>,
+    view_error: Option<&str>,
+) {
+    println!(
+        "  {} connections ({} refused over the limit, {} closed for a partial frame, {} for the rate limit); {} bytes in, {} frames out",
+        c.connections,
+        refused_clients,
+        c.closed_partial_timeout,
+        c.closed_rate_limit,
+        c.bytes_in,
+        c.frames_out
+    );
+    if let Some(path) = recording {
+        println!("recording: {}", path.display());
+    }
+    match (view_samples, view_error) {
+        (Some(_), Some(e)) => eprintln!("live view: {e}"),
+        (Some(samples), None) => println!("live view: {samples} samples streamed to rerun"),
+        _ => {}
+    }
+}

@@ -1,0 +1,241 @@
+//! `twin serve`: the simulated controller, in real time on real links.
+
+use twin_view::{Session, ViewLayout};
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use nodes::time::SimDuration;
+use plant::PlantParams;
+use std::io::Write;
+use std::path::PathBuf;
+use twin_realtime::io::LinkDefaults;
+use twin_realtime::serve::{self, ServeOptions, ServeProtocol, console};
+
+/// Run the EV module in real time and serve its controller on real links.
+///
+/// LINK is `tcp://HOST:PORT` (port 0: any free port, printed) or a serial
+/// device or pseudo-terminal path, with options after `?`:
+/// `/tmp/ttyV1?baud=9600&parity=E&stop=2&turnaround_ms=1&pace=1`.
+/// Give any number of links; all serve the same module. After every link is
+/// open it prints one line per link (protocol, address, slave id) and `ready`.
+/// While it runs: a frame monitor, a status line each second, and commands on
+/// stdin (`help`). It stops on SIGINT/SIGTERM, `stop`, or after --duration,
+/// and finishes its MCAP recording.
+#[derive(Debug, Args)]
+#[command(
+    after_help = "Examples:\n  twin serve --meb tcp://127.0.0.1:5700\n  twin serve --meb /tmp/ttyV1 --baud 115200\n  twin serve --modbus tcp://127.0.0.1:5020 --meb tcp://127.0.0.1:5700\n  twin serve --modbus-rtu /tmp/ttyV1?parity=E\n  twin serve --modbus8 /tmp/ttyV1    (seed 002: motor 01, light sensor 02)"
+)]
+pub struct ServeArgs {
+    /// MEB slave on LINK (serial, pty or TCP).
+    #[arg(long, value_name = "LINK")]
+    meb: Vec<String>,
+    /// Modbus TCP server on LINK (tcp://HOST:PORT); unit ids ID, 0 and 255.
+    #[arg(long, value_name = "LINK")]
+    modbus: Vec<String>,
+    /// Modbus RTU slave on LINK (serial or pty).
+    #[arg(long, value_name = "LINK")]
+    modbus_rtu: Vec<String>,
+    /// Modbus ASCII slave on LINK (serial or pty).
+    #[arg(long, value_name = "LINK")]
+    modbus_ascii: Vec<String>,
+    /// The seed-002 network on LINK: motor node 01 and light sensor 02 on the
+    /// geared bench, 8-byte Modbus.
+    #[arg(long, value_name = "LINK")]
+    modbus8: Vec<String>,
+    /// Default baud rate of serial links (and of --pace on TCP).
+    #[arg(long, default_value_t = 115_200)]
+    baud: u32,
+    /// Reply turnaround in ms [default: 1 on serial links, 0 on TCP].
+    #[arg(long, value_name = "MS")]
+    turnaround_ms: Option<f64>,
+    /// Hold every reply for its wire time at the link's baud, so a master on
+    /// a pty sees real bus timing.
+    #[arg(long)]
+    pace: bool,
+    /// Slave id of the EV module's controller (MEB slave number, Modbus unit id).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=99))]
+    id: u8,
+    /// I/O map of the MEB links (TOML, one table per block: `[EA]` with
+    /// `V1 = 0`, `[SD]` with `EN = "0.0"`); blocks not named keep spec/meb.md's map.
+    #[arg(long, value_name = "FILE")]
+    map: Option<PathBuf>,
+    /// Plant parameter file (TOML) whose fields override the vemodule preset.
+    #[arg(long, value_name = "FILE")]
+    params: Option<PathBuf>,
+    /// Seed of the plant's noise.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Stop after this many seconds [default: run until interrupted].
+    #[arg(long, value_name = "SECONDS")]
+    duration: Option<f64>,
+    /// Where to write the recording.
+    #[arg(long, default_value = "serve.mcap", value_name = "PATH")]
+    out: PathBuf,
+    /// Do not record (for measuring the recording's cost).
+    #[arg(long)]
+    no_record: bool,
+    /// Plant state messages recorded per second.
+    #[arg(long, default_value_t = 200.0, value_name = "HZ")]
+    record_hz: f64,
+    /// No frame monitor (status lines stay).
+    #[arg(long)]
+    quiet: bool,
+    /// Seconds between status lines (0: none).
+    #[arg(long, default_value_t = 1.0, value_name = "SECONDS")]
+    status_every: f64,
+    /// Refuse TCP clients beyond this many per link (each has a thread of
+    /// its own; 0: no limit).
+    #[arg(long, default_value_t = 8, value_name = "N")]
+    max_clients: usize,
+    /// Close a TCP connection holding a partial frame this long (0: never).
+    #[arg(long, default_value_t = 5.0, value_name = "SECONDS")]
+    partial_timeout: f64,
+    /// Close a TCP connection that sends more than this many bytes in one
+    /// second (0: no limit).
+    #[arg(long, default_value_t = 1_000_000, value_name = "BYTES")]
+    rate_limit: u64,
+    /// Remote clients may read but not write (MEB ER 01, Modbus exception 01).
+    #[arg(long)]
+    read_only: bool,
+    /// Run the plant thread under the real-time FIFO scheduler at this
+    /// priority, and the links' thread one below (1-99; needs root or
+    /// CAP_SYS_NICE), so a busy machine cannot delay ticks and replies.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u8).range(1..=99))]
+    rt_priority: Option<u8>,
+    /// Wait for serial paths that do not exist yet (a pty another program
+    /// will create) instead of failing.
+    #[arg(long)]
+    wait_for_ports: bool,
+    /// Stream the session live to rerun, beside the recording: `--view`
+    /// opens a viewer (or uses the one already running), `--view
+    /// rerun+http://HOST:PORT/proxy` streams to a running viewer, `--view
+    /// FILE.rrd` writes the stream to a file. Without a viewer the session
+    /// goes on without the view.
+    #[arg(long, value_name = "TARGET", num_args = 0..=1, default_missing_value = "spawn")]
+    view: Option<String>,
+}
+
+fn options(args: &ServeArgs) -> Result<ServeOptions> {
+    let mut links = Vec::new();
+    for (protocol, list) in [
+        (ServeProtocol::Meb, &args.meb),
+        (ServeProtocol::ModbusTcp, &args.modbus),
+        (ServeProtocol::ModbusRtu, &args.modbus_rtu),
+        (ServeProtocol::ModbusAscii, &args.modbus_ascii),
+        (ServeProtocol::Modbus8, &args.modbus8),
+    ] {
+        links.extend(list.iter().map(|l| (protocol, l.clone())));
+    }
+    let base = LinkDefaults::default();
+    let defaults = match args.turnaround_ms {
+        Some(ms) if !(0.0..=10_000.0).contains(&ms) => {
+            bail!("--turnaround-ms {ms}: must be 0-10000")
+        }
+        Some(ms) => LinkDefaults {
+            baud: args.baud,
+            serial_turnaround: SimDuration::from_secs_f64(ms / 1000.0),
+            tcp_turnaround: SimDuration::from_secs_f64(ms / 1000.0),
+            pace: args.pace,
+        },
+        None => LinkDefaults {
+            baud: args.baud,
+            pace: args.pace,
+            ..base
+        },
+    };
+    let preset = PlantParams::preset("vemodule").unwrap_or_default();
+    let params = match &args.params {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("cannot read {}", path.display()))?;
+            PlantParams::from_toml(&text, path, &preset)?
+        }
+        None => preset,
+    };
+    if let Some(d) = args.duration
+        && !(d.is_finite() && d > 0.0)
+    {
+        bail!("--duration {d}: must be a positive number of seconds");
+    }
+    let positive = |v: f64| (v.is_finite() && v > 0.0).then_some(v);
+    let params_for_view = params.clone();
+    Ok(ServeOptions {
+        links,
+        defaults,
+        id: args.id,
+        meb_map: args.map.as_deref().map(serve::map::load).transpose()?,
+        params,
+        seed: args.seed,
+        duration: args.duration,
+        out: (!args.no_record).then(|| args.out.clone()),
+        monitor: !args.quiet,
+        status_every: args.status_every,
+        max_clients: (args.max_clients > 0).then_some(args.max_clients),
+        partial_timeout: positive(args.partial_timeout).map(SimDuration::from_secs_f64),
+        rate_limit: (args.rate_limit > 0).then_some(args.rate_limit),
+        read_only: args.read_only,
+        wait_for_ports: args.wait_for_ports,
+        record_hz: args.record_hz,
+        rt_priority: args.rt_priority,
+        view: args.view.as_deref().map(|target| {
+            let params = params_for_view.clone();
+            super::live_view::opener(target, "twin serve", Session::Serve, move |modules| {
+                let has = |name: &str| modules.iter().any(|m| m == name);
+                ViewLayout::of_serve(&params, has("ev1"), has("bench"))
+            })
+        }),
+        // The program's own path stays out of the recording, as in `twin run`.
+        command_line: std::iter::once("twin".to_string())
+            .chain(std::env::args().skip(1))
+            .collect::<Vec<_>>()
+            .join(" "),
+    })
+}
+
+pub fn execute(args: &ServeArgs) -> Result<()> {
+    let options = options(args)?;
+    let outcome = serve::serve(
+        &options,
+        |links| {
+            let mut out = std::io::stdout().lock();
+            let _ = writeln!(
+                out,
+                "twin serve: {} link(s); type `help` for commands",
+                links.len()
+            );
+            for l in links {
+                let _ = writeln!(out, "  {} {} {}", l.protocol, l.address, l.ids);
+            }
+            let _ = writeln!(out, "ready");
+            let _ = out.flush();
+        },
+        console::spawn_stdin,
+    )?;
+    let l = outcome.lateness;
+    let c = outcome.counters;
+    println!(
+        "twin serve: stopped ({}) after {:.3} s",
+        outcome.stopped_by, outcome.elapsed_s
+    );
+    println!(
+        "  tick lateness over {} ticks: p50 {:.0} µs, p99 {:.0} µs, p99.9 {:.0} µs, max {:.0} µs; {} overruns",
+        l.ticks, l.p50_us, l.p99_us, l.p999_us, l.max_us, l.overruns
+    );
+    if l.p99_us > 250.0 {
+        match args.rt_priority {
+            None => println!(
+                "  (ticks ran late: the machine was busy; --rt-priority 50 gives the plant thread a real-time priority)"
+            ),
+            Some(_) => {
+                println!("  (ticks ran late even at real-time priority: the machine was busy)")
+            }
+        }
+    }
+    super::print_session_end(
+        &c,
+        outcome.refused_clients,
+        outcome.recording.as_deref(),
+        outcome.view_samples,
+        outcome.view_error.as_deref(),
+    );
+    Ok(())
+}

@@ -1,0 +1,233 @@
+//! `twin step`: the step-response experiment (seed 002's plot of both speed
+//! sensors), with its figures for the motor's and the light sensor's rpm.
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, ValueEnum};
+use plant::PlantParams;
+use plant::params::PRESETS;
+use std::path::PathBuf;
+use twin_lab::step::{self, StepConfig, StepDrive, StepReport};
+use twin_sim::scenario::{NodeSpec, Scenario};
+
+use super::run::Progress;
+
+/// Step response of the wheel, the hall rpm and the light-sensor rpm: rise, overshoot, settling, delay.
+///
+/// Steps the set point and measures the true wheel speed, the motor's own
+/// rpm (hall edges; the encoder on the seed-002 bench) and the light
+/// sensor's rpm: 10–90 % rise time, overshoot, 2 % settling time,
+/// steady-state error and each sensor's delay behind the true speed.
+///
+/// Closed loop (default): SCENARIO's supervisor (default `ev-meb`) steps its
+/// set point from FROM to TO rpm and closes the loop over the bus; in the
+/// `controller-network` scenario the seed-002 master runs its own set points
+/// and its first step after `--at` is measured. With
+/// `--open-loop` the bench alone steps VEL from FROM to TO (fractions of its
+/// 5 V range) while the firmware's estimators read its sensors.
+///
+/// Prints a table; with `--out DIR` writes DIR/step.json (the figures),
+/// DIR/step.png (the plot) and DIR/step.mcap (the recording).
+#[derive(Debug, Args)]
+pub struct StepArgs {
+    /// Embedded scenario name or scenario file with a supervisor [default: ev-meb].
+    #[arg(value_name = "SCENARIO", conflicts_with = "open_loop")]
+    scenario: Option<String>,
+    /// Step VEL on the bench alone instead of a set point through a master.
+    #[arg(long)]
+    open_loop: bool,
+    /// Set point before the step: rpm, or VEL fraction with --open-loop
+    /// [default: 100 rpm; 0.025 open loop].
+    #[arg(long, value_name = "VALUE", allow_negative_numbers = true)]
+    from: Option<f64>,
+    /// Set point after the step: rpm, or VEL fraction with --open-loop
+    /// [default: 200 rpm; 0.045 open loop].
+    #[arg(long, value_name = "VALUE", allow_negative_numbers = true)]
+    to: Option<f64>,
+    /// Time of the step (s); with the seed-002 master, the first change of its
+    /// set point at or after this time is measured [default: 2 s; 0 s seed 002].
+    #[arg(long, value_name = "SECONDS")]
+    at: Option<f64>,
+    /// Simulated duration (s) [default: 6 s; 30 s seed 002].
+    #[arg(long, value_name = "SECONDS")]
+    duration: Option<f64>,
+    /// Seed of every random draw (sensor noise, bit errors).
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Open loop: bench to simulate, `vemodule` or `controller-network`.
+    #[arg(
+        long,
+        default_value = "vemodule",
+        value_name = "NAME",
+        requires = "open_loop"
+    )]
+    preset: String,
+    /// Open loop: plant parameter file (TOML) whose fields override the preset's.
+    #[arg(long, value_name = "FILE", requires = "open_loop")]
+    params: Option<PathBuf>,
+    /// Open loop: run the EV controller's light detector in adaptive mode.
+    #[arg(long, requires = "open_loop")]
+    adaptive_light: bool,
+    /// Closed loop: the speed the supervisor's PI closes on, the hall rpm or
+    /// the light-sensor rpm.
+    #[arg(long, value_enum, default_value_t = Feedback::Hall, conflicts_with = "open_loop")]
+    feedback: Feedback,
+    /// Folder for step.json, step.png and step.mcap [default: only step.mcap, here].
+    #[arg(long, value_name = "DIR")]
+    out: Option<PathBuf>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum Feedback {
+    Hall,
+    Light,
+}
+
+pub fn execute(args: &StepArgs) -> Result<()> {
+    let drive = if args.open_loop {
+        let Some(base) = PlantParams::preset(&args.preset) else {
+            bail!(
+                "unknown preset `{}`: choose one of {}",
+                args.preset,
+                PRESETS.join(", ")
+            );
+        };
+        let params = match &args.params {
+            Some(file) => PlantParams::load(file, &base)?,
+            None => base,
+        };
+        StepDrive::OpenLoop {
+            params: Box::new(params),
+            preset: args.preset.clone(),
+            adaptive_light: args.adaptive_light,
+        }
+    } else {
+        let name = args.scenario.as_deref().unwrap_or("ev-meb");
+        StepDrive::ClosedLoop {
+            scenario: Box::new(Scenario::load(name)?),
+            on_light: args.feedback == Feedback::Light,
+        }
+    };
+    // Seed 002's master runs its own set points: its step is measured.
+    let own_schedule = match &drive {
+        StepDrive::ClosedLoop { scenario, .. } => !scenario
+            .nodes
+            .iter()
+            .any(|n| matches!(n, NodeSpec::Supervisor { .. })),
+        StepDrive::OpenLoop { .. } => false,
+    };
+    if own_schedule && (args.from.is_some() || args.to.is_some()) {
+        bail!(
+            "this scenario's master (seed 002's Raspberry Pi) runs its own set points, so \
+             --from and --to do not apply: give --at to pick which of its steps to measure"
+        );
+    }
+    let (from, to) = if args.open_loop {
+        (args.from.unwrap_or(0.025), args.to.unwrap_or(0.045))
+    } else {
+        (args.from.unwrap_or(100.0), args.to.unwrap_or(200.0))
+    };
+    let (at, duration) = if own_schedule {
+        (0.0, 30.0)
+    } else {
+        (2.0, 6.0)
+    };
+    let config = StepConfig {
+        drive,
+        from,
+        to,
+        step_at_s: args.at.unwrap_or(at),
+        duration_s: args.duration.unwrap_or(duration),
+        seed: args.seed,
+    };
+    let recording = match &args.out {
+        Some(dir) => {
+            std::fs::create_dir_all(dir)
+                .with_context(|| format!("cannot create folder {}", dir.display()))?;
+            dir.join("step.mcap")
+        }
+        None => PathBuf::from("step.mcap"),
+    };
+    let mut progress = Progress::new();
+    let report = step::run(&config, &recording, |f| progress.show(f))?;
+    progress.clear();
+    print_report(&report);
+    if let Some(dir) = &args.out {
+        let json = dir.join("step.json");
+        std::fs::write(&json, serde_json::to_string_pretty(&report)? + "\n")
+            .with_context(|| format!("cannot write {}", json.display()))?;
+        let png = dir.join("step.png");
+        step::plot(&report, &png)?;
+        println!("figures: {}", json.display());
+        println!("plot: {}", png.display());
+    }
+    println!("recording: {}", report.recording.display());
+    Ok(())
+}
+
+fn print_report(r: &StepReport) {
+    let (what, unit, scale) = if r.mode == "closed-loop" {
+        (format!("scenario {}, set point", r.bench), "rpm", 1.0)
+    } else {
+        (format!("{} preset, VEL", r.bench), "%", 100.0)
+    };
+    println!(
+        "twin step: {}, {what} {} → {} {unit} at {} s, {} s simulated, seed {}",
+        r.mode,
+        short(r.from * scale),
+        short(r.to * scale),
+        r.step_at_s,
+        r.duration_s,
+        r.seed
+    );
+    println!(
+        "  light detector: {}; it sees the flag up to {:.0} rpm",
+        r.light_detector, r.light_limit_rpm
+    );
+    if r.figures_until_s + 1e-6 < r.duration_s {
+        println!(
+            "  figures from the step to {:.3} s, where the set point changes again",
+            r.figures_until_s
+        );
+    }
+    println!(
+        "  {:16} {:>9} {:>9} {:>11} {:>10} {:>12} {:>13} {:>10}",
+        "signal (rpm)",
+        "initial",
+        "final",
+        "rise 10-90",
+        "overshoot",
+        "settling 2%",
+        "steady error",
+        "delay"
+    );
+    let secs = |v: Option<f64>| v.map_or("—".to_string(), |s| format!("{s:.3} s"));
+    for s in &r.signals {
+        match &s.metrics {
+            Some(m) => println!(
+                "  {:16} {:>9.1} {:>9.1} {:>11} {:>8.1} % {:>12} {:>13} {:>10}",
+                s.signal,
+                m.initial,
+                m.final_value,
+                secs(m.rise_time_s),
+                m.overshoot_pct,
+                secs(m.settling_time_s),
+                m.steady_state_error
+                    .map_or("—".to_string(), |e| format!("{e:.1}")),
+                secs(s.delay_s)
+            ),
+            None => println!("  {:16} no step figures", s.signal),
+        }
+        if let Some(note) = &s.note {
+            println!("  {:16} ({note})", "");
+        }
+    }
+    if r.mode == "open-loop" {
+        println!("  open loop the sensors' steady-state error is against the true wheel speed");
+    }
+}
+
+/// A number with at most one decimal, and none when it is whole.
+fn short(v: f64) -> String {
+    let s = format!("{v:.1}");
+    s.strip_suffix(".0").map(str::to_string).unwrap_or(s)
+}

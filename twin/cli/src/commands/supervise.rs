@@ -1,0 +1,279 @@
+//! `twin supervise`: the supervisor and TCP server, in real time on real links.
+
+use twin_view::{Session, ViewLayout};
+use anyhow::{Result, bail};
+use clap::{Args, ValueEnum};
+use nodes::master::SpeedSource;
+use nodes::master::image_server::ImageServerConfig;
+use nodes::time::SimDuration;
+use std::io::Write;
+use std::path::PathBuf;
+use twin_realtime::supervise::{self, SuperviseOptions};
+
+/// Supervise the EV module over MEB and serve remote MEB clients over TCP.
+///
+/// The master polls the controller on the --meb link (a serial port, a pty
+/// such as one end of `twin vsp`, or tcp://HOST:PORT of an MEB slave) every
+/// --poll-ms: it writes the start-up outputs (module enabled, brake
+/// released), reads EA 00-05 and closes a PI speed loop on the hall rpm by
+/// writing VEL (SA 00), or holds a manual VEL with --open-loop. Remote clients
+/// (`twin client`, a student's program) connect to --listen and are answered
+/// from the supervisor's image as spec/meb.md says: reads from the last poll,
+/// writes forwarded on the bus and acknowledged when the slave acknowledged
+/// them, the loop's set point and gains as VA 10-12 / VD 10 (read back as
+/// FA 10-12 / FD 10). Prints its links then `ready`; shows every frame on
+/// both sides and a status line per slave; records to MCAP; stops on
+/// SIGINT/SIGTERM or after --duration.
+#[derive(Debug, Args)]
+#[command(
+    after_help = "Examples:\n  twin vsp /tmp/ttyV0 /tmp/ttyV1 &\n  twin serve --meb /tmp/ttyV1 &\n  twin supervise --meb /tmp/ttyV0 --listen tcp://127.0.0.1:5701 --set-point 1500\n  twin supervise --meb tcp://127.0.0.1:5700 --listen tcp://127.0.0.1:0 --open-loop 2048\n  twin client tcp://127.0.0.1:5701 read EA 3 1"
+)]
+pub struct SuperviseArgs {
+    /// The bus, spoken in MEB: serial device or pty (options after `?`, e.g.
+    /// /tmp/ttyV0?baud=9600&parity=E), or tcp://HOST:PORT of an MEB slave.
+    #[arg(
+        long,
+        value_name = "LINK",
+        required_unless_present = "modbus_rtu",
+        conflicts_with = "modbus_rtu"
+    )]
+    meb: Option<String>,
+    /// The bus, spoken in Modbus RTU (spec/modbus-map.md): serial device or
+    /// pty. Remote clients still speak MEB to the server; writes other than
+    /// the loop's variables get ER 01 (they have no Modbus form here).
+    #[arg(long, value_name = "LINK")]
+    modbus_rtu: Option<String>,
+    /// Serve remote MEB clients here (port 0: any free port, printed); repeat
+    /// for several. Only this machine can connect unless HOST says otherwise
+    /// (tcp://0.0.0.0:5701 for every interface).
+    #[arg(
+        long,
+        value_name = "tcp://HOST:PORT",
+        default_value = "tcp://127.0.0.1:5701"
+    )]
+    listen: Vec<String>,
+    /// No TCP server: the supervisor alone.
+    #[arg(long, conflicts_with = "listen")]
+    no_server: bool,
+    /// Baud rate of the serial bus (unless the link gives one).
+    #[arg(long, default_value_t = 115_200)]
+    baud: u32,
+    /// Slave id to poll; repeat for several (each has its own loop).
+    #[arg(long = "id", default_value = "1", value_name = "ID",
+          value_parser = clap::value_parser!(u8).range(1..=99))]
+    ids: Vec<u8>,
+    /// Set point of the speed loop from the start, rpm (clients change it through VA 10).
+    #[arg(long, default_value_t = 0.0, value_name = "RPM")]
+    set_point: f64,
+    /// Hold VEL at this many DAC counts (0-4095) instead of closing the loop
+    /// (clients close it through VD 10).
+    #[arg(long, value_name = "VEL")]
+    open_loop: Option<u16>,
+    /// Proportional gain, VEL counts per rpm.
+    #[arg(long, default_value_t = 0.45)]
+    kp: f64,
+    /// Integral gain, VEL counts per rpm per second.
+    #[arg(long, default_value_t = 2.5)]
+    ki: f64,
+    /// Which speed reading closes the loop.
+    #[arg(long, value_enum, default_value_t = Source::Hall)]
+    speed_source: Source,
+    /// From one poll cycle to the next, ms.
+    #[arg(long, default_value_t = 10.0, value_name = "MS")]
+    poll_ms: f64,
+    /// Reply timeout, ms (spec/meb.md: 100).
+    #[arg(long, default_value_t = 100.0, value_name = "MS")]
+    timeout_ms: f64,
+    /// Attempts after a missing or bad reply.
+    #[arg(long, default_value_t = 2)]
+    retries: u8,
+    /// Also read the status words (ED 00, FA 00-01, FD 00) every N poll
+    /// cycles, so clients can read them from the image (0: never).
+    #[arg(long, default_value_t = 10, value_name = "N")]
+    status_poll: u32,
+    /// Refuse remote clients beyond this many.
+    #[arg(long, default_value_t = 8, value_name = "N")]
+    max_clients: usize,
+    /// Remote clients may read but not write (ER 01).
+    #[arg(long)]
+    read_only: bool,
+    /// Close a client holding a partial frame this long, seconds.
+    #[arg(long, default_value_t = 5.0, value_name = "SECONDS")]
+    partial_timeout: f64,
+    /// Close a client sending more than this many frames per second (bursts
+    /// of up to half as many again are allowed).
+    #[arg(long, default_value_t = 200.0, value_name = "FRAMES")]
+    rate_limit: f64,
+    /// Stop after this many seconds [default: run until interrupted].
+    #[arg(long, value_name = "SECONDS")]
+    duration: Option<f64>,
+    /// Where to write the recording.
+    #[arg(long, default_value = "supervise.mcap", value_name = "PATH")]
+    out: PathBuf,
+    /// Do not record.
+    #[arg(long)]
+    no_record: bool,
+    /// No frame monitor (status lines stay).
+    #[arg(long)]
+    quiet: bool,
+    /// Seconds between status lines (0: none).
+    #[arg(long, default_value_t = 1.0, value_name = "SECONDS")]
+    status_every: f64,
+    /// Wait for a serial path that does not exist yet instead of failing.
+    #[arg(long)]
+    wait_for_ports: bool,
+    /// Stream the session live to rerun, beside the recording: `--view`
+    /// opens a viewer (or uses the one already running), `--view
+    /// rerun+http://HOST:PORT/proxy` streams to a running viewer, `--view
+    /// FILE.rrd` writes the stream to a file. Without a viewer the session
+    /// goes on without the view.
+    #[arg(long, value_name = "TARGET", num_args = 0..=1, default_missing_value = "spawn")]
+    view: Option<String>,
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum Source {
+    /// RPM_M (EA 03): the motor's hall sensors.
+    Hall,
+    /// RPM_L (EA 04): the photoresistor.
+    Light,
+}
+
+fn millis(name: &str, ms: f64) -> Result<SimDuration> {
+    if !(ms.is_finite() && ms > 0.0 && ms <= 60_000.0) {
+        bail!("--{name} {ms}: must be above 0 and at most 60000 ms");
+    }
+    Ok(SimDuration::from_secs_f64(ms / 1000.0))
+}
+
+fn options(args: &SuperviseArgs) -> Result<SuperviseOptions> {
+    if !(args.set_point.is_finite() && (0.0..=20_000.0).contains(&args.set_point)) {
+        bail!("--set-point {}: must be 0-20000 rpm", args.set_point);
+    }
+    if args.open_loop.is_some_and(|v| v > 4095) {
+        bail!("--open-loop: VEL is a 12-bit DAC value, 0-4095");
+    }
+    if !(args.kp.is_finite() && args.ki.is_finite() && args.kp >= 0.0 && args.ki >= 0.0) {
+        bail!("--kp and --ki must be non-negative numbers");
+    }
+    if let Some(d) = args.duration
+        && !(d.is_finite() && d > 0.0)
+    {
+        bail!("--duration {d}: must be a positive number of seconds");
+    }
+    if !(args.partial_timeout.is_finite() && args.partial_timeout > 0.0) {
+        bail!("--partial-timeout must be a positive number of seconds");
+    }
+    if !(args.rate_limit.is_finite() && args.rate_limit >= 1.0) {
+        bail!("--rate-limit must be at least 1 frame per second");
+    }
+    if args.max_clients == 0 {
+        bail!("--max-clients must be at least 1");
+    }
+    let mut ids = args.ids.clone();
+    ids.dedup();
+    let server = ImageServerConfig {
+        max_clients: args.max_clients,
+        partial_timeout: SimDuration::from_secs_f64(args.partial_timeout),
+        rate_per_second: args.rate_limit,
+        rate_burst: (args.rate_limit * 1.5).max(10.0),
+        read_only: args.read_only,
+        // Longer than every attempt of a write on the line takes.
+        max_forward_wait: SimDuration::from_secs_f64(
+            (f64::from(args.retries) + 1.0) * args.timeout_ms / 1000.0 + 0.5,
+        ),
+        ..ImageServerConfig::default()
+    };
+    let view = args.view.as_deref().map(|target| {
+        let slaves = ids.clone();
+        super::live_view::opener(target, "twin supervise", Session::Supervise, move |_| {
+            ViewLayout::of_supervise(&slaves)
+        })
+    });
+    Ok(SuperviseOptions {
+        bus: args
+            .meb
+            .clone()
+            .or_else(|| args.modbus_rtu.clone())
+            .unwrap_or_default(),
+        protocol: if args.meb.is_some() {
+            nodes::master::Protocol::Meb
+        } else {
+            nodes::master::Protocol::ModbusRtu
+        },
+        listen: if args.no_server {
+            Vec::new()
+        } else {
+            args.listen.clone()
+        },
+        baud: args.baud,
+        slaves: ids,
+        set_point: args.set_point,
+        open_loop: args.open_loop,
+        kp: args.kp,
+        ki: args.ki,
+        speed_source: match args.speed_source {
+            Source::Hall => SpeedSource::Hall,
+            Source::Light => SpeedSource::Light,
+        },
+        poll_period: millis("poll-ms", args.poll_ms)?,
+        reply_timeout: millis("timeout-ms", args.timeout_ms)?,
+        retries: args.retries,
+        status_poll: args.status_poll,
+        server,
+        // Far above any frame rate allowed: only a flood of garbage hits it.
+        rate_limit_bytes: Some((args.rate_limit * 1.5 * 410.0) as u64 + 4096),
+        duration: args.duration,
+        out: (!args.no_record).then(|| args.out.clone()),
+        monitor: !args.quiet,
+        status_every: args.status_every.max(0.0),
+        wait_for_ports: args.wait_for_ports,
+        view,
+        command_line: std::env::args().collect::<Vec<_>>().join(" "),
+    })
+}
+
+pub fn execute(args: &SuperviseArgs) -> Result<()> {
+    let options = options(args)?;
+    let outcome = supervise::supervise(&options, |links| {
+        let mut out = std::io::stdout().lock();
+        let how = match options.open_loop {
+            Some(vel) => format!("open loop, VEL {vel}"),
+            None => format!(
+                "speed loop closed at {} rpm (kp {}, ki {})",
+                options.set_point, options.kp, options.ki
+            ),
+        };
+        let _ = writeln!(
+            out,
+            "twin supervise: {how}, polling every {:.1} ms",
+            options.poll_period.as_secs_f64() * 1e3
+        );
+        for l in links {
+            let _ = writeln!(out, "  {} {} {}", l.protocol, l.address, l.role);
+        }
+        let _ = writeln!(out, "ready");
+        let _ = out.flush();
+    })?;
+    let l = outcome.lateness;
+    let c = outcome.counters;
+    println!(
+        "twin supervise: stopped ({}) after {:.3} s",
+        outcome.stopped_by, outcome.elapsed_s
+    );
+    for line in &outcome.status {
+        println!("  {line}");
+    }
+    println!(
+        "  tick lateness over {} ticks: p50 {:.0} µs, p99 {:.0} µs, max {:.0} µs",
+        l.ticks, l.p50_us, l.p99_us, l.max_us
+    );
+    super::print_session_end(
+        &c,
+        outcome.refused_clients,
+        outcome.recording.as_deref(),
+        outcome.view_samples,
+        outcome.view_error.as_deref(),
+    );
+    Ok(())
+}

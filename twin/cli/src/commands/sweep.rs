@@ -1,0 +1,187 @@
+//! `twin sweep`: the light sensor's rpm against the true wheel rpm over a
+//! range of speeds, and where it stops seeing the flag.
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, ValueEnum};
+use plant::PlantParams;
+use plant::params::PRESETS;
+use std::path::PathBuf;
+use twin_lab::sweep::{self, SweepConfig, SweepReport};
+
+use super::run::Progress;
+
+/// Light-sensor rpm against true rpm over a range of speeds: where the flag is lost.
+///
+/// Runs the wheel open loop at each speed and holds the light sensor's rpm
+/// against the true rpm: below the fastest speed the photoresistor sees
+/// (derived in plant/src/light.rs and printed here) it tracks, above it the
+/// reading falls to 0 or to a fraction of the speed.
+///
+/// Each speed is reached with the VEL the DC motor's steady state asks for,
+/// held for `--settle` seconds, then averaged over `--measure` seconds (at
+/// least four and three turns of the wheel). Prints a
+/// table; with `--out DIR` writes DIR/sweep.json, DIR/sweep.png and one
+/// recording per speed in DIR/runs/.
+#[derive(Debug, Args)]
+pub struct SweepArgs {
+    /// Bench to simulate, `vemodule` or `controller-network`.
+    #[arg(long, default_value = "vemodule", value_name = "NAME")]
+    preset: String,
+    /// Plant parameter file (TOML) whose fields override the preset's.
+    #[arg(long, value_name = "FILE")]
+    params: Option<PathBuf>,
+    /// The EV controller's light detector: fixed threshold, adaptive, or both.
+    #[arg(long, value_enum, default_value_t = Detector::Both)]
+    detector: Detector,
+    /// Lowest and highest wheel speed (rpm) [default: 50 and 1.6 × the detector's limit].
+    #[arg(long, value_name = "RPM", num_args = 2, value_names = ["FROM", "TO"])]
+    rpm: Option<Vec<f64>>,
+    /// Number of speeds, evenly spaced.
+    #[arg(long, default_value_t = 24, value_name = "N")]
+    points: usize,
+    /// Time to reach each speed before measuring (s).
+    #[arg(long, default_value_t = 3.0, value_name = "SECONDS")]
+    settle: f64,
+    /// Time measured at each speed (s).
+    #[arg(long, default_value_t = 3.0, value_name = "SECONDS")]
+    measure: f64,
+    /// Seed of the sensor noise.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Folder for sweep.json, sweep.png and the runs' recordings.
+    #[arg(long, value_name = "DIR")]
+    out: Option<PathBuf>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum Detector {
+    Fixed,
+    Adaptive,
+    Both,
+}
+
+pub fn execute(args: &SweepArgs) -> Result<()> {
+    let Some(base) = PlantParams::preset(&args.preset) else {
+        bail!(
+            "unknown preset `{}`: choose one of {}",
+            args.preset,
+            PRESETS.join(", ")
+        );
+    };
+    let params = match &args.params {
+        Some(file) => PlantParams::load(file, &base)?,
+        None => base,
+    };
+    if args.points < 2 {
+        bail!("--points must be at least 2, got {}", args.points);
+    }
+    // The seed-002 light node has one detector.
+    let detectors: &[bool] = match (args.preset.as_str(), args.detector) {
+        ("controller-network", _) => &[false],
+        (_, Detector::Fixed) => &[false],
+        (_, Detector::Adaptive) => &[true],
+        (_, Detector::Both) => &[false, true],
+    };
+    let speeds = |adaptive: bool| -> Result<Vec<f64>> {
+        let (from, to) = match args.rpm.as_deref() {
+            Some([a, b]) => (*a, *b),
+            _ => {
+                let (_, limit) =
+                    twin_lab::instruments::light_limit(&params, &args.preset, adaptive);
+                (50.0, (1.6 * limit).round())
+            }
+        };
+        if !(from > 0.0 && to > from) {
+            bail!("--rpm FROM TO needs 0 < FROM < TO, got {from} {to}");
+        }
+        Ok((0..args.points)
+            .map(|i| from + (to - from) * i as f64 / (args.points - 1) as f64)
+            .collect())
+    };
+    let runs_dir = match &args.out {
+        Some(dir) => {
+            let runs = dir.join("runs");
+            std::fs::create_dir_all(&runs)
+                .with_context(|| format!("cannot create folder {}", runs.display()))?;
+            Some(runs)
+        }
+        None => None,
+    };
+    let mut reports = Vec::new();
+    for (i, &adaptive) in detectors.iter().enumerate() {
+        let config = SweepConfig {
+            params: params.clone(),
+            preset: args.preset.clone(),
+            adaptive,
+            target_rpm: speeds(adaptive)?,
+            settle_s: args.settle,
+            measure_s: args.measure,
+            seed: args.seed,
+        };
+        let dir = runs_dir
+            .as_ref()
+            .map(|d| d.join(if adaptive { "adaptive" } else { "fixed" }));
+        if let Some(d) = &dir {
+            std::fs::create_dir_all(d)
+                .with_context(|| format!("cannot create folder {}", d.display()))?;
+        }
+        let mut progress = Progress::new();
+        let n = detectors.len() as f64;
+        let report = sweep::run(&config, dir.as_deref(), |f| {
+            progress.show((i as f64 + f) / n)
+        })?;
+        progress.clear();
+        reports.push(report);
+    }
+    for r in &reports {
+        print_report(r);
+    }
+    if let Some(dir) = &args.out {
+        let json = dir.join("sweep.json");
+        std::fs::write(&json, serde_json::to_string_pretty(&reports)? + "\n")
+            .with_context(|| format!("cannot write {}", json.display()))?;
+        let png = sweep::plot(&reports, &dir.join("sweep.png"))?;
+        println!("figures: {}", json.display());
+        println!("plot: {}", png.display());
+        println!("recordings: {}", dir.join("runs").display());
+    }
+    Ok(())
+}
+
+fn print_report(r: &SweepReport) {
+    println!(
+        "twin sweep: {} preset, light detector {}",
+        r.preset, r.light_detector
+    );
+    println!(
+        "  the formula of plant/src/light.rs: the flag is seen up to {:.0} rpm; every dip lasts a \
+         sample below the threshold up to {:.0} rpm",
+        r.light_limit_rpm, r.every_dip_sampled_below_rpm
+    );
+    println!(
+        "  {:>6} {:>10} {:>10} {:>10} {:>10}",
+        "VEL %", "true rpm", "motor rpm", "light rpm", "light/true"
+    );
+    for p in &r.points {
+        println!(
+            "  {:>6.2} {:>10.1} {:>10.1} {:>10.1} {:>10.3}{}",
+            p.vel_fraction * 100.0,
+            p.wheel_rpm,
+            p.motor_rpm,
+            p.light_rpm,
+            p.light_ratio,
+            if p.tracks { "" } else { "  ✗" }
+        );
+    }
+    let pct = r.tolerance * 100.0;
+    match (r.tracks_from_rpm, r.tracks_up_to_rpm, r.first_failure_rpm) {
+        (Some(a), Some(b), Some(bad)) => println!(
+            "  tracks within {pct:.0} % from {a:.0} to {b:.0} rpm; fails from {bad:.0} rpm (formula: {:.0} rpm)",
+            r.light_limit_rpm
+        ),
+        (Some(a), Some(b), None) => {
+            println!("  tracks within {pct:.0} % from {a:.0} to {b:.0} rpm, the fastest point run")
+        }
+        _ => println!("  does not track within {pct:.0} % at any speed run"),
+    }
+}

@@ -1,0 +1,434 @@
+//! `twin replay`, `twin compare` and `twin export` as a user runs them: the
+//! real binary on real recordings, read back with the `mcap` crate's own
+//! reader where a count is checked.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::sync::OnceLock;
+
+fn twin(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_twin"))
+        .args(args)
+        .output()
+        .expect("twin runs")
+}
+
+fn text(o: &Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
+}
+
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("twin-replay-cli-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    dir.join(name)
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().expect("utf-8 path")
+}
+
+/// One 3-second ev-meb run shared by the tests (set point 1500 rpm at 0.5 s).
+fn ev_meb() -> &'static Path {
+    static RUN: OnceLock<PathBuf> = OnceLock::new();
+    RUN.get_or_init(|| {
+        let out = scratch("ev-meb.mcap");
+        let o = twin(&["run", "ev-meb", "--duration", "3", "--out", s(&out)]);
+        assert!(o.status.success(), "{}", text(&o));
+        out
+    })
+}
+
+/// Per topic, the messages' (log time, JSON), read with the `mcap` crate.
+fn messages(path: &Path) -> Vec<(String, u64, serde_json::Value)> {
+    let bytes = std::fs::read(path).expect("recording exists");
+    mcap::MessageStream::new(&bytes)
+        .expect("valid MCAP")
+        .map(|m| m.expect("valid message"))
+        .map(|m| {
+            (
+                m.channel.topic.clone(),
+                m.log_time,
+                serde_json::from_slice(&m.data).expect("JSON"),
+            )
+        })
+        .collect()
+}
+
+#[test]
+fn replay_of_an_unchanged_scenario_is_byte_identical() {
+    let out = scratch("unchanged.replay.mcap");
+    let o = twin(&["replay", s(ev_meb()), "--out", s(&out)]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("byte-identical"), "{}", text(&o));
+    assert_eq!(
+        std::fs::read(ev_meb()).unwrap(),
+        std::fs::read(&out).unwrap()
+    );
+}
+
+#[test]
+fn a_changed_set_point_is_reported_where_the_vel_write_departs() {
+    // 1000 rpm instead of 1500 at 0.5 s: the supervisor's first VEL write
+    // after the step (its next poll cycle, before 0.52 s) carries a smaller
+    // value; nothing departs before it.
+    let out = scratch("set-point.replay.mcap");
+    let o = twin(&[
+        "replay",
+        s(ev_meb()),
+        "--out",
+        s(&out),
+        "--set",
+        "node.supervisor.set_points=[[0.0, 0.0], [0.5, 1000.0]]",
+    ]);
+    let t = text(&o);
+    assert!(!o.status.success(), "a departure must fail: {t}");
+    let line = t
+        .lines()
+        .find(|l| l.contains("DEPARTS at"))
+        .unwrap_or_else(|| panic!("no departure line: {t}"));
+    assert!(
+        line.contains(" on /bus/rs485/frames.decoded.data.0:"),
+        "{line}"
+    );
+    let at: f64 = line
+        .split_whitespace()
+        .nth(2)
+        .and_then(|v| v.parse().ok())
+        .expect("a time");
+    assert!((0.5..0.52).contains(&at), "{line}");
+    let values: Vec<f64> = ["recorded ", "replayed "]
+        .iter()
+        .map(|k| {
+            let rest = &line[line.find(k).expect("values") + k.len()..];
+            rest.trim_end_matches(|c: char| !c.is_ascii_digit())
+                .split(|c: char| c == ',' || c.is_whitespace())
+                .next()
+                .and_then(|v| v.parse().ok())
+                .expect("a number")
+        })
+        .collect();
+    assert!(
+        values[1] < values[0],
+        "a smaller VEL for a smaller set point: {line}"
+    );
+}
+
+#[test]
+fn a_changed_plant_parameter_is_named_at_the_first_sample() {
+    // A different battery divider changes the ADC count of V1 at once, and
+    // only that field of the first sensor sample.
+    let o = twin(&[
+        "replay",
+        s(ev_meb()),
+        "--out",
+        s(&scratch("divider.replay.mcap")),
+        "--set",
+        "module.ev1.params.sensing.battery_divider=20.0",
+    ]);
+    let t = text(&o);
+    assert!(!o.status.success(), "{t}");
+    assert!(
+        t.contains("DEPARTS at 0.000000 s on /plant/ev1/sensors.battery_counts: recorded "),
+        "{t}"
+    );
+    assert!(!t.contains("other field"), "{t}");
+}
+
+#[test]
+fn an_open_loop_replay_names_the_vel_step() {
+    let run = scratch("open-loop.mcap");
+    let o = twin(&["run", "--open-loop", "--duration", "1", "--out", s(&run)]);
+    assert!(o.status.success(), "{}", text(&o));
+    let o = twin(&["replay", s(&run), "--out", s(&scratch("ol.replay.mcap"))]);
+    assert!(text(&o).contains("byte-identical"), "{}", text(&o));
+    let o = twin(&[
+        "replay",
+        s(&run),
+        "--out",
+        s(&scratch("ol2.replay.mcap")),
+        "--set",
+        "vel_fraction=0.5",
+    ]);
+    // VEL is 5 V × the fraction from 0.5 s on: 3.0 V recorded, 2.5 V now.
+    assert!(
+        text(&o).contains(
+            "DEPARTS at 0.500000 s on /plant/actuators.vel_volts: recorded 3.0, replayed 2.5"
+        ),
+        "{}",
+        text(&o)
+    );
+
+    // A step from a running wheel (VEL before the step, as `twin step` runs
+    // it): the change shows at once, and the new recording replays exactly.
+    let moving = scratch("ol3.replay.mcap");
+    let o = twin(&[
+        "replay",
+        s(&run),
+        "--out",
+        s(&moving),
+        "--set",
+        "vel_before_fraction=0.2",
+    ]);
+    assert!(
+        text(&o).contains(
+            "DEPARTS at 0.000000 s on /plant/actuators.vel_volts: recorded 0.0, replayed 1.0"
+        ),
+        "{}",
+        text(&o)
+    );
+    let o = twin(&[
+        "replay",
+        s(&moving),
+        "--out",
+        s(&scratch("ol4.replay.mcap")),
+    ]);
+    assert!(text(&o).contains("byte-identical"), "{}", text(&o));
+}
+
+#[test]
+fn replay_refuses_a_bad_change_and_names_what_exists() {
+    let o = twin(&["replay", s(ev_meb()), "--set", "node.nobody.kp=1"]);
+    assert!(!o.status.success());
+    assert!(
+        text(&o).contains("has no item `nobody`: its items are ev1, supervisor"),
+        "{}",
+        text(&o)
+    );
+    let o = twin(&[
+        "replay",
+        s(ev_meb()),
+        "--set",
+        "node.supervisor.kp=\"fast\"",
+    ]);
+    assert!(!o.status.success());
+    assert!(text(&o).contains("kp"), "{}", text(&o));
+}
+
+/// A copy of `from` with `delta` added to one field of one topic from `after_s` on.
+fn perturbed(from: &Path, to: &Path, topic: &str, field: &str, after_s: f64, delta: f64) {
+    let mut rec = twin_recording::record::Recorder::create(to).expect("create");
+    for (t, ns, mut v) in messages(from) {
+        let time_s = ns as f64 * 1e-9;
+        if t == topic && time_s >= after_s {
+            let x = v[field].as_f64().expect("numeric field");
+            v[field] = serde_json::json!(x + delta);
+        }
+        if !rec.has_channel(&t) {
+            rec.add_channel(&t, &v).expect("channel");
+        }
+        rec.write(&t, time_s, &v).expect("write");
+    }
+    rec.finish().expect("finish");
+}
+
+#[test]
+fn compare_passes_a_recording_against_itself() {
+    let o = twin(&["compare", s(ev_meb()), s(ev_meb())]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("0 beyond"), "{}", text(&o));
+    assert!(text(&o).contains("PASS"), "{}", text(&o));
+}
+
+#[test]
+fn compare_fails_a_perturbed_signal_and_names_only_it() {
+    let bad = scratch("perturbed.mcap");
+    perturbed(ev_meb(), &bad, "/plant/ev1/sensors", "wheel_rpm", 1.0, 10.0);
+    let o = twin(&["compare", s(&bad), s(ev_meb())]);
+    let t = text(&o);
+    assert!(!o.status.success(), "{t}");
+    let failing: Vec<&str> = t.lines().filter(|l| l.ends_with("FAIL")).collect();
+    assert_eq!(failing.len(), 1, "{t}");
+    let cols: Vec<&str> = failing[0].split_whitespace().collect();
+    assert_eq!(cols[0], "/plant/ev1/sensors.wheel_rpm", "{t}");
+    assert_eq!(cols[1], "1.000", "first beyond tolerance at 1 s: {t}");
+    assert_eq!(cols[5], "10", "deviation: {t}");
+    assert!(
+        t.contains("first /plant/ev1/sensors.wheel_rpm at 1.000 s"),
+        "{t}"
+    );
+
+    // Allowed 15 rpm on that signal, it passes; 5 rpm, it does not.
+    for (abs, pass) in [(15.0, true), (5.0, false)] {
+        let tol = scratch(&format!("tol-{abs}.toml"));
+        std::fs::write(
+            &tol,
+            format!("[[signal]]\npattern = \"/plant/*/sensors.wheel_rpm\"\nabs = {abs}\n"),
+        )
+        .unwrap();
+        let o = twin(&["compare", s(&bad), s(ev_meb()), "--tolerances", s(&tol)]);
+        assert_eq!(o.status.success(), pass, "abs {abs}: {}", text(&o));
+    }
+}
+
+#[test]
+fn compare_names_missing_signals_bad_files_and_bad_tolerances() {
+    let open = scratch("compare-open-loop.mcap");
+    let o = twin(&["run", "--open-loop", "--duration", "0.2", "--out", s(&open)]);
+    assert!(o.status.success(), "{}", text(&o));
+    let o = twin(&["compare", s(&open), s(ev_meb())]);
+    assert!(!o.status.success());
+    assert!(
+        text(&o).contains("/plant/ev1/sensors.wheel_rpm") && text(&o).contains("missing"),
+        "{}",
+        text(&o)
+    );
+    let o = twin(&["compare", s(&scratch("nowhere.mcap")), s(ev_meb())]);
+    assert!(!o.status.success());
+    assert!(text(&o).contains("cannot read") && text(&o).contains("nowhere.mcap"));
+    let junk = scratch("junk.mcap");
+    std::fs::write(&junk, "not a recording\n").unwrap();
+    let o = twin(&["compare", s(&junk), s(ev_meb())]);
+    assert!(
+        text(&o).contains("junk.mcap is not a readable recording"),
+        "{}",
+        text(&o)
+    );
+    let tol = scratch("bad-tol.toml");
+    std::fs::write(&tol, "[default]\nabs = 1e-3\nrel = \"loose\"\n").unwrap();
+    let o = twin(&["compare", s(ev_meb()), s(ev_meb()), "--tolerances", s(&tol)]);
+    assert!(!o.status.success());
+    assert!(text(&o).contains("bad-tol.toml:3"), "{}", text(&o));
+}
+
+#[test]
+fn export_writes_one_csv_per_channel_with_every_message() {
+    let dir = scratch("csv");
+    let o = twin(&["export", s(ev_meb()), "--csv", s(&dir)]);
+    assert!(o.status.success(), "{}", text(&o));
+    let all = messages(ev_meb());
+    for (topic, file) in [
+        ("/plant/ev1/sensors", "plant_ev1_sensors.csv"),
+        ("/plant/ev1/actuators", "plant_ev1_actuators.csv"),
+        ("/bus/rs485/frames", "bus_rs485_frames.csv"),
+        ("/master/supervisor/loop", "master_supervisor_loop.csv"),
+    ] {
+        let csv = std::fs::read_to_string(dir.join(file)).expect(file);
+        let header = csv.lines().next().unwrap();
+        assert!(header.starts_with("time_s,"), "{file}: {header}");
+        // Frames hold MEB text with a line break inside quotes: count records.
+        let rows = csv.matches("\n").count() - 1 - csv.matches("\n\"").count();
+        let expected = all.iter().filter(|(t, _, _)| t == topic).count();
+        assert_eq!(rows, expected, "{file}");
+    }
+    let sensors = std::fs::read_to_string(dir.join("plant_ev1_sensors.csv")).unwrap();
+    assert_eq!(
+        sensors.lines().count(),
+        1 + 601,
+        "200 Hz for 3 s plus t = 0"
+    );
+    let header: Vec<&str> = sensors.lines().next().unwrap().split(',').collect();
+    for column in [
+        "wheel_rpm",
+        "battery_volts",
+        "energy.battery_out",
+        "shaft.hall",
+    ] {
+        assert!(header.contains(&column), "{header:?}");
+    }
+    let last: Vec<&str> = sensors.lines().last().unwrap().split(',').collect();
+    assert_eq!(last[0], "3.000000000");
+}
+
+/// Sensor messages at 200 Hz, one chunk per simulated second: a recording cut
+/// anywhere holds a whole number of seconds of them.
+fn sensor_rows(dir: &Path) -> usize {
+    let csv = std::fs::read_to_string(dir.join("plant_ev1_sensors.csv")).expect("sensors csv");
+    csv.lines().count() - 1
+}
+
+#[test]
+fn a_truncated_recording_still_compares_and_exports_up_to_its_last_chunk() {
+    let full = std::fs::read(ev_meb()).unwrap();
+    let cut = scratch("cut.mcap");
+    std::fs::write(&cut, &full[..full.len() * 6 / 10]).unwrap();
+    let o = twin(&["compare", s(&cut), s(ev_meb())]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(
+        text(&o).contains("the run is cut short: compared up to"),
+        "{}",
+        text(&o)
+    );
+    let dir = scratch("cut-csv");
+    let o = twin(&["export", s(&cut), "--csv", s(&dir)]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("ends early"), "{}", text(&o));
+    let rows = sensor_rows(&dir);
+    assert!(rows > 0 && rows < 601, "{rows}");
+    assert!(rows.is_multiple_of(200), "whole simulated seconds: {rows}");
+}
+
+#[test]
+fn a_killed_run_leaves_a_recording_that_compares_and_exports() {
+    // A long run, killed a little after its first chunk is on disk (the
+    // kill lands anywhere: in a chunk or between two).
+    let out = scratch("killed.mcap");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_twin"))
+        .args(["run", "ev-meb", "--duration", "600", "--out", s(&out)])
+        .stdout(std::process::Stdio::null())
+        .spawn()
+        .expect("twin starts");
+    let started = std::time::Instant::now();
+    // The file opens with its header alone; a simulated second of ev-meb is
+    // a chunk of about 60 kB, so 8 kB on disk means one has landed.
+    while std::fs::metadata(&out).map_or(0, |m| m.len()) < 8 * 1024 {
+        assert!(
+            started.elapsed().as_secs() < 120,
+            "no chunk written in 2 min"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    std::thread::sleep(std::time::Duration::from_millis(300));
+    child.kill().expect("kill");
+    child.wait().expect("reaped");
+    let dir = scratch("killed-csv");
+    let o = twin(&["export", s(&out), "--csv", s(&dir)]);
+    assert!(o.status.success(), "{}", text(&o));
+    let rows = sensor_rows(&dir);
+    assert!(
+        rows >= 200 && rows.is_multiple_of(200),
+        "whole simulated seconds: {rows}"
+    );
+    let o = twin(&["compare", s(&out), s(&out)]);
+    assert!(o.status.success(), "{}", text(&o));
+    // The same scenario and seed: it matches the 3 s run as far as both go.
+    let o = twin(&["compare", s(&out), s(ev_meb())]);
+    assert!(text(&o).contains("the run is cut short"), "{}", text(&o));
+    assert!(o.status.success(), "{}", text(&o));
+}
+
+#[test]
+fn baseline_records_checks_and_names_a_missing_one() {
+    let dir = scratch("baselines");
+    let o = twin(&["baseline", "ev-meb", "--dir", s(&dir)]);
+    assert!(!o.status.success());
+    assert!(
+        text(&o).contains("no baseline for `ev-meb`")
+            && text(&o).contains("twin baseline --record ev-meb"),
+        "{}",
+        text(&o)
+    );
+    let o = twin(&["baseline", "ev-meb", "--record", "--dir", s(&dir)]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(dir.join("ev-meb.mcap").exists());
+    let o = twin(&["baseline", "ev-meb", "--dir", s(&dir)]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(
+        text(&o).lines().any(|l| {
+            let mut words = l.split_whitespace();
+            words.next() == Some("ev-meb") && words.next() == Some("pass")
+        }),
+        "{}",
+        text(&o)
+    );
+    let o = twin(&["baseline", "no-such-scenario", "--dir", s(&dir)]);
+    assert!(!o.status.success());
+    assert!(
+        text(&o).contains("no embedded scenario `no-such-scenario`"),
+        "{}",
+        text(&o)
+    );
+}

@@ -1,0 +1,15 @@
+//! Experiments on the twin: the step response (`twin step`), the light
+//! sensor's sweep (`twin sweep`), the PWM-capture paper's figures and the
+//! parallel modules (`twin experiment`), and the engine's benchmark (`twin
+//! bench`). The only crate that draws plots (plotters). The step-response
+//! metrics themselves are `twin_sim::step_metrics`, for crates without plots.
+
+pub mod bench;
+pub mod instruments;
+pub mod parallel;
+pub mod plot;
+pub mod pwmcap;
+pub mod step;
+pub mod sweep;
+
+pub use twin_sim::step_metrics;

@@ -1,0 +1,525 @@
+//! The step-response experiment of seed 002: step the set point and watch
+//! both speed sensors, the motor's own (hall edges, or the seed-002 motor
+//! node's encoder) and the photoresistor's, against the true wheel speed.
+//!
+//! Open loop, the bench alone steps `VEL` (as `twin run --open-loop`) while
+//! the module's firmware estimators, not connected to anything, read its
+//! sensors at their loop period. Closed loop, a scenario's supervisor gets
+//! the set-point step and closes the loop over the bus; the controller's
+//! `RPM_M` and `RPM_L` registers are read from the running engine.
+
+use anyhow::{Context, Result, bail};
+use nodes::time::{SimDuration, SimTime};
+use plant::{PlantParams, Sensors};
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+
+use super::instruments::{Instruments, light_limit, read_instruments};
+use super::plot::{self, Axes, Series};
+use super::step_metrics::{StepMetrics, StepOptions, delay, step_metrics};
+use twin_sim::openloop::{self, OpenLoop};
+use twin_sim::scenario::{NodeSpec, Scenario};
+use twin_sim::virtual_run;
+
+/// Samples of the traces per simulated second.
+pub const SAMPLE_HZ: f64 = 500.0;
+/// Longest lag looked for between a sensor and the true speed (s).
+const MAX_DELAY_S: f64 = 5.0;
+
+/// What drives the step.
+#[derive(Debug, Clone)]
+pub enum StepDrive {
+    /// The bench alone: `VEL` from `from` to `to` (fractions of 5 V).
+    OpenLoop {
+        params: Box<PlantParams>,
+        preset: String,
+        /// The EV controller's light detector in adaptive mode.
+        adaptive_light: bool,
+    },
+    /// A scenario whose supervisor's set point steps from `from` to `to` rpm.
+    ClosedLoop {
+        scenario: Box<Scenario>,
+        /// Close the supervisor's loop on the light-sensor rpm, not the hall rpm.
+        on_light: bool,
+    },
+}
+
+/// One step experiment.
+#[derive(Debug, Clone)]
+pub struct StepConfig {
+    pub drive: StepDrive,
+    pub from: f64,
+    pub to: f64,
+    pub step_at_s: f64,
+    pub duration_s: f64,
+    pub seed: u64,
+}
+
+/// The sampled signals, in wheel rpm (the set point in its own unit).
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct Trace {
+    pub time_s: Vec<f64>,
+    pub set_point: Vec<f64>,
+    pub wheel_rpm: Vec<f64>,
+    pub motor_rpm: Vec<f64>,
+    pub light_rpm: Vec<f64>,
+}
+
+/// One signal's figures, or why it has none.
+#[derive(Debug, Clone, Serialize)]
+pub struct SignalFigures {
+    pub signal: &'static str,
+    pub metrics: Option<StepMetrics>,
+    /// Its lag behind the true wheel speed (s).
+    pub delay_s: Option<f64>,
+    pub note: Option<String>,
+}
+
+/// The experiment's outcome: what `step.json` holds.
+#[derive(Debug, Clone, Serialize)]
+pub struct StepReport {
+    pub mode: &'static str,
+    /// Preset (open loop) or scenario (closed loop).
+    pub bench: String,
+    pub set_point_unit: &'static str,
+    pub from: f64,
+    pub to: f64,
+    pub step_at_s: f64,
+    /// The figures are taken up to here (the next set-point change, or the end).
+    pub figures_until_s: f64,
+    pub duration_s: f64,
+    pub seed: u64,
+    /// Fastest wheel speed the light detector sees (plant/src/light.rs).
+    pub light_limit_rpm: f64,
+    pub light_detector: String,
+    pub signals: Vec<SignalFigures>,
+    pub recording: PathBuf,
+    #[serde(skip)]
+    pub trace: Trace,
+}
+
+/// What the motor's own speed sensor is on a bench.
+fn motor_signal(preset: &str) -> &'static str {
+    if preset == "controller-network" {
+        "motor (encoder)"
+    } else {
+        "motor (hall)"
+    }
+}
+
+/// What the recording's `/experiment/step` channel holds.
+#[derive(Debug, Serialize)]
+struct StepSample {
+    set_point: f64,
+    wheel_rpm: f64,
+    motor_rpm: f64,
+    light_rpm: f64,
+}
+
+impl Trace {
+    fn push(&mut self, rec: &mut twin_recording::record::Recorder, t: f64, s: StepSample) -> Result<()> {
+        let topic = "/experiment/step";
+        if !rec.has_channel(topic) {
+            rec.add_channel(topic, &s)?;
+        }
+        rec.write(topic, t, &s)?;
+        self.time_s.push(t);
+        self.set_point.push(s.set_point);
+        self.wheel_rpm.push(s.wheel_rpm);
+        self.motor_rpm.push(s.motor_rpm);
+        self.light_rpm.push(s.light_rpm);
+        Ok(())
+    }
+}
+
+/// What a runner hands back: the traces, the bench, and the step it made.
+struct Ran {
+    trace: Trace,
+    params: PlantParams,
+    preset: String,
+    from: f64,
+    to: f64,
+    step_at_s: f64,
+    /// Samples the figures are taken over: up to the next set-point change.
+    until: usize,
+}
+
+/// Run the experiment, record it to `recording`, and measure it.
+pub fn run(config: &StepConfig, recording: &Path, progress: impl FnMut(f64)) -> Result<StepReport> {
+    if !(config.duration_s.is_finite() && config.duration_s > 0.0) {
+        bail!(
+            "the duration must be a positive number of seconds, got {}",
+            config.duration_s
+        );
+    }
+    if !(config.step_at_s >= 0.0 && config.step_at_s < config.duration_s) {
+        bail!(
+            "the step at {} s must come within the run of {} s",
+            config.step_at_s,
+            config.duration_s
+        );
+    }
+    let (ran, mode, bench, unit, adaptive) = match &config.drive {
+        StepDrive::OpenLoop {
+            params,
+            preset,
+            adaptive_light,
+        } => {
+            let trace =
+                run_open_loop(config, params, preset, *adaptive_light, recording, progress)?;
+            let ran = Ran {
+                until: trace.time_s.len(),
+                trace,
+                params: (**params).clone(),
+                preset: preset.clone(),
+                from: config.from,
+                to: config.to,
+                step_at_s: config.step_at_s,
+            };
+            (
+                ran,
+                "open-loop",
+                preset.clone(),
+                "VEL fraction",
+                *adaptive_light,
+            )
+        }
+        StepDrive::ClosedLoop { scenario, on_light } => {
+            let ran = run_closed_loop(config, scenario, *on_light, recording, progress)?;
+            (ran, "closed-loop", scenario.name.clone(), "rpm", false)
+        }
+    };
+    let (light_detector, light_limit_rpm) = light_limit(&ran.params, &ran.preset, adaptive);
+    let closed = mode == "closed-loop";
+    let n = ran.until;
+    let t = &ran.trace.time_s[..n];
+    let wheel = &ran.trace.wheel_rpm[..n];
+    let at = ran.step_at_s;
+    let options = StepOptions::default();
+    let wheel_final = step_metrics(t, wheel, at, None, &options)
+        .ok()
+        .map(|m| m.final_value);
+    let mut signals = Vec::new();
+    for (signal, y) in [
+        ("wheel (true)", wheel),
+        (motor_signal(&ran.preset), &ran.trace.motor_rpm[..n]),
+        ("light sensor", &ran.trace.light_rpm[..n]),
+    ] {
+        let is_wheel = signal.starts_with("wheel");
+        // Closed loop the set point is the reference; open loop a sensor is
+        // held against the true speed.
+        let reference = if closed {
+            Some(ran.to)
+        } else if is_wheel {
+            None
+        } else {
+            wheel_final
+        };
+        let (mut metrics, mut note) = match step_metrics(t, y, at, reference, &options) {
+            Ok(m) => (Some(m), None),
+            Err(e) => (None, Some(e.to_string())),
+        };
+        // A light sensor that ends at 0 has not responded: it lost the flag.
+        let reads_zero = match (&metrics, y.last()) {
+            (Some(m), _) => m.final_value.abs() < 1.0,
+            (None, Some(last)) => last.abs() < 1.0,
+            (None, None) => false,
+        };
+        if signal.starts_with("light") && reads_zero {
+            metrics = None;
+            note = Some(match wheel_final {
+                Some(w) if w > light_limit_rpm => format!(
+                    "reads 0 at the end: the wheel runs at {w:.0} rpm, above the {light_limit_rpm:.0} rpm the detector can see"
+                ),
+                _ => "reads 0 at the end: it does not see the flag".to_string(),
+            });
+        }
+        let delay_s = match metrics {
+            Some(_) if !is_wheel => match delay(t, wheel, y, at, MAX_DELAY_S) {
+                Ok(d) => Some(d),
+                Err(e) => {
+                    note = note.or(Some(format!("no delay: {e}")));
+                    None
+                }
+            },
+            _ => None,
+        };
+        signals.push(SignalFigures {
+            signal,
+            metrics,
+            delay_s,
+            note,
+        });
+    }
+    Ok(StepReport {
+        mode,
+        bench,
+        set_point_unit: unit,
+        from: ran.from,
+        to: ran.to,
+        step_at_s: at,
+        figures_until_s: t.last().copied().unwrap_or(0.0),
+        duration_s: config.duration_s,
+        seed: config.seed,
+        light_limit_rpm,
+        light_detector,
+        signals,
+        recording: recording.to_path_buf(),
+        trace: ran.trace,
+    })
+}
+
+fn run_open_loop(
+    config: &StepConfig,
+    params: &PlantParams,
+    preset: &str,
+    adaptive: bool,
+    recording: &Path,
+    progress: impl FnMut(f64),
+) -> Result<Trace> {
+    for (name, v) in [("from", config.from), ("to", config.to)] {
+        if !(0.0..=1.0).contains(&v) {
+            bail!("open loop, --{name} is VEL as a fraction of its 5 V range: 0 to 1, got {v}");
+        }
+    }
+    let mut ol = OpenLoop::new(params.clone(), preset);
+    ol.seed = config.seed;
+    ol.duration_s = config.duration_s;
+    ol.vel_before_fraction = config.from;
+    ol.vel_fraction = config.to;
+    ol.vel_step_at_s = config.step_at_s;
+    ol.record_hz = 200.0;
+    let step = SimDuration::from_secs_f64(ol.step_s);
+    let sample_every = ((1.0 / SAMPLE_HZ) / ol.step_s).round().max(1.0) as u64;
+    let mut instruments = Instruments::new(params, preset, adaptive);
+    let mut trace = Trace::default();
+    let mut k = 0u64;
+    openloop::run_with(&ol, recording, progress, |rec, sensors: &Sensors| {
+        k += 1;
+        let now = SimTime::ZERO + SimDuration(step.0 * k);
+        instruments.tick(now, sensors);
+        if k.is_multiple_of(sample_every) {
+            let r = instruments.read();
+            let vel = ol.actuators_at(sensors.time_s - 0.5 * ol.step_s).vel_volts / 5.0;
+            let sample = StepSample {
+                set_point: vel,
+                wheel_rpm: sensors.wheel_rpm,
+                motor_rpm: r.motor,
+                light_rpm: r.light,
+            };
+            trace.push(rec, now.as_secs_f64(), sample)?;
+        }
+        Ok(())
+    })?;
+    Ok(trace)
+}
+
+fn run_closed_loop(
+    config: &StepConfig,
+    scenario: &Scenario,
+    on_light: bool,
+    recording: &Path,
+    progress: impl FnMut(f64),
+) -> Result<Ran> {
+    let mut scenario = scenario.clone();
+    scenario.duration_s = config.duration_s;
+    scenario.seed = config.seed;
+    let supervised = scenario.nodes.iter_mut().find_map(|n| match n {
+        NodeSpec::Supervisor {
+            slaves,
+            set_points,
+            bus,
+            use_light_rpm,
+            ..
+        } => {
+            *set_points = vec![[0.0, config.from], [config.step_at_s, config.to]];
+            *use_light_rpm |= on_light;
+            slaves.first().map(|s| (*s, bus.clone()))
+        }
+        _ => None,
+    });
+    if supervised.is_none() && on_light {
+        bail!(
+            "scenario `{}`: only a supervisor can close its loop on the light sensor",
+            scenario.name
+        );
+    }
+    // The node whose module is watched: the supervisor's first slave, or
+    // seed 002's motor node, whose master runs its own set-point schedule.
+    let watched = match &supervised {
+        Some((slave, bus)) => scenario.nodes.iter().find_map(|n| match n {
+            NodeSpec::EvController {
+                bus: b, module, id, ..
+            } if id == slave && b == bus => Some(module.clone()),
+            _ => None,
+        }),
+        None => scenario.nodes.iter().find_map(|n| match n {
+            NodeSpec::MotorNode { module, .. } => Some(module.clone()),
+            _ => None,
+        }),
+    };
+    let Some(module) = watched else {
+        bail!(
+            "scenario `{}` has neither a supervisor with an ev-controller slave nor a seed-002 \
+             motor node to give a set-point step to: use --open-loop, or such a scenario",
+            scenario.name
+        );
+    };
+    let spec = scenario
+        .modules
+        .iter()
+        .find(|m| m.name == module)
+        .context("the watched module is not declared")?;
+    let params = scenario.module_params(spec)?;
+    let preset = spec.preset.clone();
+    let ratio = params.gearbox.ratio;
+    let mut trace = Trace::default();
+    let (from, to, at) = (config.from, config.to, config.step_at_s);
+    let period = SimDuration::from_secs_f64(1.0 / SAMPLE_HZ);
+    virtual_run::run_sampled(
+        &scenario,
+        recording,
+        progress,
+        Some(period),
+        |now, engine, rec| {
+            let Some(m) = engine.modules.iter().position(|m| m.name == module) else {
+                bail!("module `{module}` is missing from the engine");
+            };
+            let nodes = engine
+                .nodes
+                .iter()
+                .filter(|n| n.module == Some(m))
+                .map(|n| n.node.as_ref());
+            let r = read_instruments(nodes, ratio);
+            let t = now.as_secs_f64();
+            let set_point = match (&supervised, r.set_point) {
+                (Some(_), _) => {
+                    if t + 1e-12 >= at {
+                        to
+                    } else {
+                        from
+                    }
+                }
+                (None, sp) => sp.unwrap_or(f64::NAN),
+            };
+            let sample = StepSample {
+                set_point,
+                wheel_rpm: engine.modules[m].plant.sensors().wheel_rpm,
+                motor_rpm: r.motor,
+                light_rpm: r.light,
+            };
+            trace.push(rec, t, sample)
+        },
+    )
+    .with_context(|| format!("scenario {} failed", scenario.name))?;
+    if supervised.is_some() {
+        return Ok(Ran {
+            until: trace.time_s.len(),
+            trace,
+            params,
+            preset,
+            from,
+            to,
+            step_at_s: at,
+        });
+    }
+    // The seed-002 master's own step: the first change of the motor node's
+    // set point at or after `at`, measured until the next change.
+    let sp = &trace.set_point;
+    let tt = &trace.time_s;
+    let Some(i) = (1..sp.len()).find(|&i| tt[i] >= at && sp[i] != sp[i - 1]) else {
+        bail!(
+            "the motor node's set point does not change after {at} s in {} s of scenario {}: \
+             give a longer --duration or an earlier --at",
+            config.duration_s,
+            scenario.name
+        );
+    };
+    let until = (i + 1..sp.len())
+        .find(|&j| sp[j] != sp[i])
+        .unwrap_or(sp.len());
+    Ok(Ran {
+        from: sp[i - 1],
+        to: sp[i],
+        step_at_s: tt[i - 1],
+        until,
+        trace,
+        params,
+        preset,
+    })
+}
+
+/// The plot of `step.png`: set point (closed loop), true wheel, motor and
+/// light rpm against time.
+pub fn plot(report: &StepReport, path: &Path) -> Result<()> {
+    let tr = &report.trace;
+    let pts = |y: &[f64]| -> Vec<(f64, f64)> {
+        tr.time_s
+            .iter()
+            .zip(y)
+            .filter(|(_, v)| v.is_finite())
+            .map(|(&t, &v)| (t, v))
+            .collect()
+    };
+    let mut series = Vec::new();
+    if report.mode == "closed-loop" {
+        series.push(Series {
+            name: "set point",
+            color: plot::SET_POINT,
+            points: pts(&tr.set_point),
+            dots: false,
+            width: 2,
+        });
+    }
+    series.push(Series {
+        name: "wheel (true)",
+        color: plot::WHEEL,
+        points: pts(&tr.wheel_rpm),
+        dots: false,
+        width: 2,
+    });
+    series.push(Series {
+        name: report.signals[1].signal,
+        color: plot::MOTOR,
+        points: pts(&tr.motor_rpm),
+        dots: false,
+        width: 2,
+    });
+    series.push(Series {
+        name: "light sensor",
+        color: plot::LIGHT,
+        points: pts(&tr.light_rpm),
+        dots: false,
+        width: 2,
+    });
+    let y_range = plot::fit_range(
+        series
+            .iter()
+            .flat_map(|s| s.points.iter().map(|p| p.1))
+            .chain([0.0]),
+        0.05,
+    );
+    let title = if report.mode == "closed-loop" {
+        format!(
+            "{}: set point {:.0} → {:.0} rpm at {} s",
+            report.bench, report.from, report.to, report.step_at_s
+        )
+    } else {
+        format!(
+            "{} open loop: VEL {:.0} → {:.0} % at {} s",
+            report.bench,
+            report.from * 100.0,
+            report.to * 100.0,
+            report.step_at_s
+        )
+    };
+    let axes = Axes {
+        title: &title,
+        x_label: "time (s)",
+        y_label: "wheel rpm",
+        x_range: (0.0, report.duration_s),
+        y_range,
+        legend_upper_left: false,
+    };
+    plot::line_plot(path, &axes, &series, (960, 560))
+}

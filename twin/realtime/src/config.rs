@@ -1,0 +1,86 @@
+//! What the engine is built from: devices (nodes with a plant or an image),
+//! links and the faults the console switches on.
+
+use nodes::firmware::Refusal;
+use nodes::link::CheckKind;
+use nodes::time::{SimDuration, SimTime};
+
+use super::endpoint::Endpoint;
+use super::forces::Forces;
+use twin_sim::engine::SimNode;
+use crate::io::LinkSpec;
+
+/// A node with a plant or an image: the EV controller, a seed-002 Arduino,
+/// a supervisor.
+pub struct Device {
+    pub name: String,
+    pub node: Box<dyn SimNode + Send>,
+    pub module: Option<usize>,
+    /// Inputs the user forced from the console.
+    pub forces: Forces,
+    pub(super) next_tick: Option<SimTime>,
+}
+
+impl Device {
+    pub fn new(name: &str, mut node: Box<dyn SimNode + Send>, module: Option<usize>) -> Self {
+        let next_tick = node.firmware().map(|_| SimTime::ZERO);
+        Self {
+            name: name.into(),
+            node,
+            module,
+            forces: Forces::default(),
+            next_tick,
+        }
+    }
+}
+
+/// A fault switched on from the console, applied to replies as they leave.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LinkFault {
+    /// Replies go out with their check value plus one.
+    BadCheck,
+    /// Replies are lost.
+    NoReply,
+    /// Replies go out this much later.
+    Delay(SimDuration),
+    /// Every request is answered with this refusal (exception / ER).
+    Exception(Refusal),
+}
+
+/// Makes the endpoint for a new connection on a link: (devices, peer).
+pub type EndpointFactory = Box<dyn FnMut(&mut [Device], &str) -> Box<dyn Endpoint> + Send>;
+
+/// One configured link.
+pub struct LinkConfig {
+    /// Unique name, for the monitor and the recording's topic.
+    pub name: String,
+    /// Protocol as printed: `meb`, `modbus-tcp`, `modbus-rtu`, `modbus-ascii`, `modbus8`.
+    pub protocol: &'static str,
+    /// Resolved address (real port, device path).
+    pub address: String,
+    pub spec: LinkSpec,
+    /// Where a bad-check fault spoils a reply.
+    pub check: Option<CheckKind>,
+    /// Close a connection holding a partial frame this long (TCP).
+    pub partial_timeout: Option<SimDuration>,
+    /// Close a connection that sends more bytes than this in one second (TCP).
+    pub rate_limit: Option<u64>,
+    pub factory: EndpointFactory,
+}
+
+impl std::fmt::Debug for Device {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Device")
+            .field("name", &self.name)
+            .finish_non_exhaustive()
+    }
+}
+
+impl std::fmt::Debug for LinkConfig {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("LinkConfig")
+            .field("name", &self.name)
+            .field("address", &self.address)
+            .finish_non_exhaustive()
+    }
+}

@@ -1,0 +1,482 @@
+//! The real-time engine: one thread owns the plants and ticks them every
+//! 1 ms on absolute deadlines. The devices (firmware nodes) and every
+//! connection's endpoint live in the [`Front`], shared with what carries the
+//! connections (a tokio task per serial port, a thread per TCP connection):
+//! each answers the requests it reads, the engine runs the firmware loops
+//! and the timers; the rest goes over channels ([`Inbound`], [`Outbound`]).
+//! A sink thread records and prints ([`super::sink`]), so neither a slow
+//! terminal nor zstd ever delays a tick.
+//!
+//! Waiting: the thread blocks on its channel until shortly before the next
+//! deadline (the next plant tick, a node's timer, a reply's turnaround), then
+//! spins to it. Lateness (actual − scheduled tick time) goes into
+//! [`Lateness`] histograms: one per second for the recording, one in total.
+
+use nodes::time::{SimDuration, SimTime};
+use std::collections::BTreeMap;
+use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, TryRecvError};
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use super::clock::RtClock;
+pub use super::config::{Device, EndpointFactory, LinkConfig, LinkFault};
+pub use super::forces::Forces;
+use super::front::{Conn, Front, FrontHandle};
+use super::lateness::{Lateness, LatenessSummary};
+pub use super::messages::{ConnId, Inbound, LinkTask, Outbound, Outgoing};
+use super::sink::SinkMsg;
+use twin_sim::engine::{ModuleSlot, firmware_tick};
+
+/// How long before a deadline the thread stops sleeping and spins: covers
+/// the kernel's wake-up latency (the thread's timer slack is set to 1 ns).
+/// Measured on the 2-core machine, 8 s idle runs: 60 µs gave a tick
+/// lateness p99 of 43-51 µs, 150 µs 5-347 µs, 40 µs 45-72 µs; 60 spins
+/// 6 % of a core instead of 15 %, which the links get back.
+const SPIN: SimDuration = SimDuration::from_micros(60);
+
+/// The spin: `TWIN_RT_SPIN_US` (microseconds) if set, else [`SPIN`]. A
+/// tuning knob for measuring, not an option: the default is what was kept.
+fn spin_from_env() -> SimDuration {
+    std::env::var("TWIN_RT_SPIN_US")
+        .ok()
+        .and_then(|v| v.trim().parse::<u64>().ok())
+        .map_or(SPIN, SimDuration::from_micros)
+}
+
+/// Counters for the status line and the summary.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct RtCounters {
+    pub bytes_in: u64,
+    pub bytes_out: u64,
+    pub frames_out: u64,
+    pub connections: u64,
+    pub closed_partial_timeout: u64,
+    pub closed_rate_limit: u64,
+    pub replies_faulted: u64,
+}
+
+/// What a session reports at its end.
+#[derive(Debug, Clone)]
+pub struct RtSummary {
+    pub elapsed: SimDuration,
+    pub lateness: LatenessSummary,
+    pub counters: RtCounters,
+    pub stopped_by: String,
+}
+
+/// The engine. Build it, add modules, devices and links, then [`RtEngine::run`]
+/// it on its own thread.
+pub struct RtEngine {
+    pub clock: RtClock,
+    pub modules: Vec<ModuleSlot>,
+    pub devices: Vec<Device>,
+    pub links: Vec<LinkConfig>,
+    conns: BTreeMap<ConnId, Conn>,
+    /// The fault in force, and the link it is limited to (all if `None`).
+    fault: Option<(LinkFault, Option<usize>)>,
+    read_only: bool,
+    /// How long before a deadline the thread stops sleeping and spins.
+    spin: SimDuration,
+    plant_step: SimDuration,
+    tick: SimDuration,
+    record_period: SimDuration,
+    next_record: SimTime,
+    status_period: SimDuration,
+    next_status: SimTime,
+    next_second: SimTime,
+    sink: Sender<SinkMsg>,
+    lateness: Lateness,
+    window: Lateness,
+    pub counters: RtCounters,
+    stop: Option<String>,
+}
+
+impl RtEngine {
+    /// An engine whose plants step by `plant_step` on a 1 ms tick, recording
+    /// plant state every `record_period`, reporting to `sink`.
+    pub fn new(
+        clock: RtClock,
+        plant_step: SimDuration,
+        record_period: SimDuration,
+        sink: Sender<SinkMsg>,
+    ) -> Self {
+        Self {
+            clock,
+            modules: Vec::new(),
+            devices: Vec::new(),
+            links: Vec::new(),
+            conns: BTreeMap::new(),
+            fault: None,
+            read_only: false,
+            spin: spin_from_env(),
+            plant_step,
+            tick: SimDuration::from_millis(1),
+            record_period,
+            next_record: SimTime::ZERO,
+            status_period: SimDuration::from_secs(1),
+            next_status: SimTime::ZERO + SimDuration::from_secs(1),
+            next_second: SimTime::ZERO + SimDuration::from_secs(1),
+            sink,
+            lateness: Lateness::new(),
+            window: Lateness::new(),
+            counters: RtCounters::default(),
+            stop: None,
+        }
+    }
+
+    /// Status lines every `period` (zero: never).
+    pub fn set_status_period(&mut self, period: SimDuration) {
+        self.status_period = period;
+        self.next_status = SimTime::ZERO + period;
+    }
+
+    /// Make every slave front end refuse writes.
+    pub fn set_read_only(&mut self, read_only: bool) {
+        self.read_only = read_only;
+        for conn in self.conns.values_mut() {
+            if let Some(f) = conn.endpoint.frontend_mut() {
+                f.set_read_only(read_only);
+            }
+        }
+    }
+
+    /// Switch a fault on (on link `link`, or all) or off.
+    pub fn set_fault(&mut self, fault: Option<LinkFault>, link: Option<usize>) {
+        self.fault = fault.map(|f| (f, link));
+        let refusal = match fault {
+            Some(LinkFault::Exception(r)) => Some(r),
+            _ => None,
+        };
+        for conn in self.conns.values_mut() {
+            let applies = link.is_none_or(|l| l == conn.link);
+            if let Some(f) = conn.endpoint.frontend_mut() {
+                f.set_forced_refusal(if applies { refusal } else { None });
+            }
+        }
+    }
+
+    /// The fault in force.
+    pub fn fault(&self) -> Option<(LinkFault, Option<usize>)> {
+        self.fault
+    }
+
+    /// Open connections: (link, peer).
+    pub fn connections(&self) -> impl Iterator<Item = (usize, &str)> {
+        self.conns.values().map(|c| (c.link, c.peer.as_str()))
+    }
+
+    /// A sender to the sink, for lines and records from outside the engine.
+    pub fn sink(&self) -> Sender<SinkMsg> {
+        self.sink.clone()
+    }
+
+    /// End the session at the next pass of the loop.
+    pub fn request_stop(&mut self, why: &str) {
+        self.stop.get_or_insert_with(|| why.to_string());
+    }
+
+    /// Print `text` on the console (through the sink).
+    pub fn say(&self, text: impl Into<String>) {
+        let _ = self.sink.send(SinkMsg::Say(text.into()));
+    }
+
+    /// Tick lateness since the start.
+    pub fn lateness(&self) -> LatenessSummary {
+        self.lateness.summary()
+    }
+
+    /// Swaps the connections' state between the engine and `front`: the
+    /// engine's own fields hold it between runs and while a console command
+    /// or a firmware tick runs (the front locked), the front the rest of
+    /// the time. Moves a few words, never the data.
+    fn swap_front(&mut self, front: &mut Front) {
+        std::mem::swap(&mut self.devices, &mut front.devices);
+        std::mem::swap(&mut self.conns, &mut front.conns);
+        std::mem::swap(&mut self.fault, &mut front.fault);
+        std::mem::swap(&mut self.counters, &mut front.counters);
+    }
+
+    /// Runs `f` on the engine with the front's state in its fields.
+    fn with_front<R>(&mut self, front: &FrontHandle, f: impl FnOnce(&mut Self) -> R) -> R {
+        let mut shared = front.lock();
+        self.swap_front(&mut shared);
+        let result = f(self);
+        self.swap_front(&mut shared);
+        result
+    }
+
+    /// Run until `end` (if any) or a [`Inbound::Stop`].
+    pub fn run(&mut self, inbound: &Receiver<Inbound>, end: Option<SimTime>) -> RtSummary {
+        // The kernel may fire a sleeping thread's timer up to its slack late
+        // (50 µs by default) to merge wake-ups; this thread's deadlines are
+        // worth a wake-up each, and without the slack the spin before them
+        // can be short.
+        let _ = rustix::thread::set_current_timer_slack(std::num::NonZeroU64::new(1));
+        let front = FrontHandle(Arc::new(Mutex::new(Front::new(
+            self.sink.clone(),
+            self.clock,
+            &self.links,
+        ))));
+        self.swap_front(&mut front.lock());
+        let mut next_tick = SimTime::ZERO;
+        loop {
+            let now = self.clock.now();
+            if now >= next_tick {
+                let late = now.saturating_since(next_tick);
+                let ns = late.0 / (nodes::time::TICKS_PER_SECOND / 1_000_000_000);
+                self.lateness.record(ns);
+                self.window.record(ns);
+                if late > self.tick {
+                    // Fell behind (the machine was busy): skip to the latest
+                    // tick due rather than run a burst of stale ones.
+                    let missed = late.0 / self.tick.0;
+                    self.lateness.overruns += 1;
+                    self.window.overruns += 1;
+                    next_tick = SimTime(next_tick.0 + missed * self.tick.0);
+                }
+                self.plant_tick(next_tick, &front);
+                next_tick += self.tick;
+                if end.is_some_and(|e| now >= e) && self.stop.is_none() {
+                    self.stop = Some("duration reached".into());
+                }
+            }
+            let next = {
+                let mut shared = front.lock();
+                shared.service_timers(self.clock.now());
+                shared.ship_frames();
+                shared.next_deadline()
+            };
+            if self.stop.is_some() {
+                break;
+            }
+            let deadline = next.map_or(next_tick, |d| d.min(next_tick));
+            if let Some(message) = self.wait(inbound, deadline) {
+                self.handle(message, &front);
+                // Everything already queued is handled before the next wait.
+                while let Ok(message) = inbound.try_recv() {
+                    self.handle(message, &front);
+                }
+            }
+        }
+        {
+            let mut shared = front.lock();
+            shared.close_all();
+            self.swap_front(&mut shared);
+        }
+        // The last (partial) second's lateness, so even a short session has one.
+        let _ = self.sink.send(SinkMsg::Lateness {
+            at: self.clock.now(),
+            window: self.window.summary(),
+            total: self.lateness.summary(),
+        });
+        let elapsed = self.clock.now().saturating_since(SimTime::ZERO);
+        RtSummary {
+            elapsed,
+            lateness: self.lateness.summary(),
+            counters: self.counters,
+            stopped_by: self.stop.take().unwrap_or_default(),
+        }
+    }
+
+    /// Blocks until a message arrives or `deadline` passes: sleeps on the
+    /// channel until the spin before it, then spins.
+    fn wait(&mut self, inbound: &Receiver<Inbound>, deadline: SimTime) -> Option<Inbound> {
+        let wake = self.clock.instant(deadline);
+        let sleep_until = self
+            .clock
+            .instant(SimTime(deadline.0.saturating_sub(self.spin.0)));
+        let now = Instant::now();
+        if sleep_until > now {
+            match inbound.recv_timeout(sleep_until - now) {
+                Ok(message) => return Some(message),
+                Err(RecvTimeoutError::Timeout) => {}
+                Err(RecvTimeoutError::Disconnected) => {
+                    self.stop.get_or_insert_with(|| "all links closed".into());
+                    return None;
+                }
+            }
+        }
+        loop {
+            match inbound.try_recv() {
+                Ok(message) => return Some(message),
+                Err(TryRecvError::Empty) => {}
+                Err(TryRecvError::Disconnected) => {
+                    self.stop.get_or_insert_with(|| "all links closed".into());
+                    return None;
+                }
+            }
+            if Instant::now() >= wake {
+                return None;
+            }
+            std::hint::spin_loop();
+        }
+    }
+
+    fn handle(&mut self, message: Inbound, front: &FrontHandle) {
+        match message {
+            Inbound::Opened {
+                link,
+                conn,
+                peer,
+                task,
+            } => self.open(link, conn, peer, task, front),
+            Inbound::Closed { conn, why } => front.lock().closed(conn, &why),
+            Inbound::Command(command) => self.with_front(front, command),
+            // The loop looks at the connections' deadlines again.
+            Inbound::Wake => {}
+            Inbound::Stop(why) => {
+                self.stop.get_or_insert(why);
+            }
+        }
+    }
+
+    fn open(&mut self, link: usize, id: ConnId, peer: String, task: LinkTask, front: &FrontHandle) {
+        let Some(config) = self.links.get_mut(link) else {
+            task.close(format!("no link {link}"), Outgoing::default());
+            return;
+        };
+        let mut shared = front.lock();
+        let mut endpoint = (config.factory)(&mut shared.devices, &peer);
+        if let Some(f) = endpoint.frontend_mut() {
+            f.set_read_only(self.read_only);
+            if let Some((LinkFault::Exception(r), l)) = shared.fault
+                && l.is_none_or(|l| l == link)
+            {
+                f.set_forced_refusal(Some(r));
+            }
+        }
+        // The task answers this connection's requests itself from now on.
+        let _ = task.out.send(Outbound::Direct(front.clone()));
+        shared.open(config, link, id, peer, endpoint, task);
+    }
+
+    /// One plant tick at `t`: firmware loops, the plants, recording.
+    fn plant_tick(&mut self, t: SimTime, front: &FrontHandle) {
+        // The firmware loops and the status line need the devices (the
+        // front locked); the plant steps do not, so requests are answered
+        // while they run.
+        self.with_front(front, |engine| engine.firmware_ticks(t));
+        for module in &mut self.modules {
+            module.advance(self.plant_step, t);
+        }
+        if t >= self.next_record {
+            for (m, module) in self.modules.iter().enumerate() {
+                let _ = self.sink.send(SinkMsg::Plant {
+                    at: t,
+                    module: m,
+                    sensors: Box::new(*module.plant.sensors()),
+                });
+            }
+            self.next_record = t + self.record_period;
+        }
+        if t >= self.next_second {
+            let _ = self.sink.send(SinkMsg::Lateness {
+                at: t,
+                window: self.window.summary(),
+                total: self.lateness.summary(),
+            });
+            self.window.clear();
+            self.next_second += SimDuration::from_secs(1);
+        }
+    }
+
+    /// The firmware loops due at `t`, the devices' events, the status line.
+    fn firmware_ticks(&mut self, t: SimTime) {
+        for device in &mut self.devices {
+            let (Some(m), Some(due)) = (device.module, device.next_tick) else {
+                continue;
+            };
+            if due > t {
+                continue;
+            }
+            let Some(module) = self.modules.get_mut(m) else {
+                continue;
+            };
+            let forces = device.forces;
+            let sensing = module.plant.params().sensing.clone();
+            let ticked = firmware_tick(device.node.as_mut(), module, self.plant_step, t, |s| {
+                forces.apply_sensors(s, &sensing)
+            });
+            if let Some((next, changed)) = ticked {
+                device.next_tick = Some(next.max(t + self.tick));
+                if let Some(image) = device.node.image_mut() {
+                    forces.apply_words(image);
+                }
+                if changed {
+                    let _ = self.sink.send(SinkMsg::Actuators {
+                        at: t,
+                        module: m,
+                        actuators: module.actuators,
+                    });
+                }
+            }
+        }
+        // Devices' events (trips, a supervisor's timeouts) whatever drives them.
+        for device in &mut self.devices {
+            while let Some(event) = device.node.poll_event() {
+                let _ = self.sink.send(SinkMsg::Event {
+                    node: device.name.clone(),
+                    event,
+                });
+            }
+            // A master's loop state, once per poll cycle (as in a virtual run).
+            if let Some(value) = device.node.telemetry() {
+                let _ = self.sink.send(SinkMsg::Telemetry {
+                    at: t,
+                    node: device.name.clone(),
+                    value,
+                });
+            }
+        }
+        if self.status_period > SimDuration::ZERO && t >= self.next_status {
+            let line = self.status_line(t);
+            let _ = self.sink.send(SinkMsg::Say(line));
+            self.next_status += self.status_period;
+        }
+    }
+
+    /// One line of the module's state.
+    pub fn status_line(&self, t: SimTime) -> String {
+        let mut line = format!("[{:10.3} s]", t.as_secs_f64());
+        for module in &self.modules {
+            let s = module.plant.sensors();
+            let a = &module.actuators;
+            line += &format!(
+                " {}: wheel {:.1} rpm, V1 {:.2} V, V2 {:.2} V, I {:.2} A, VEL {:.2} V, EN {};",
+                module.name,
+                s.wheel_rpm,
+                s.battery_volts,
+                s.bus_volts,
+                s.inverter_current,
+                a.vel_volts,
+                if a.enable { "on" } else { "off" }
+            );
+        }
+        for device in self.devices.iter().filter(|d| d.forces.any()) {
+            line += &format!(" {} forced {:?};", device.name, device.forces);
+        }
+        let w = self.window.summary();
+        line += &format!(
+            " clients {}, frames out {}; tick lateness p99 {:.0} µs, max {:.0} µs",
+            self.conns.len(),
+            self.counters.frames_out,
+            w.p99_us,
+            w.max_us
+        );
+        if let Some((fault, _)) = self.fault {
+            line += &format!("; fault {fault:?}");
+        }
+        line
+    }
+}
+
+impl std::fmt::Debug for RtEngine {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("RtEngine")
+            .field("modules", &self.modules.len())
+            .field("devices", &self.devices.len())
+            .field("links", &self.links.len())
+            .field("connections", &self.conns.len())
+            .finish_non_exhaustive()
+    }
+}

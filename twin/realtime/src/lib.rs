@@ -1,0 +1,44 @@
+//! The EV lab bench in real time: the same node and plant code as the
+//! virtual engine, paced to the wall clock, on real serial ports,
+//! pseudo-terminals and TCP sockets; the sessions built on it (`twin serve`,
+//! `twin supervise`), the virtual serial port pair (`twin vsp`), the MEB
+//! client (`twin client`) and recorded frames sent to a live slave
+//! (`twin replay --frames-to`).
+//!
+//! The fence: no rerun here. A live view enters through [`sink::LiveView`],
+//! which the viewer crate implements and the binary hands in.
+//!
+//! Threads: the engine ([`engine::RtEngine::run`]) owns the plants and ticks
+//! at 1 ms on absolute deadlines; a tokio runtime owns the listeners and the
+//! serial ports ([`links`]), and each TCP connection has a thread of its own
+//! ([`tcp_thread`]); both answer requests through the devices and endpoints
+//! they share with the engine ([`front`]); the sink ([`sink`]) records and
+//! prints.
+
+pub mod client;
+pub mod clock;
+pub mod config;
+pub mod endpoint;
+pub mod engine;
+pub mod forces;
+pub mod frame_log;
+pub mod frames_to;
+pub mod front;
+pub mod io;
+pub mod lateness;
+pub mod links;
+pub mod messages;
+pub mod serve;
+pub mod session;
+pub mod sink;
+pub mod supervise;
+pub mod tcp_thread;
+pub mod vsp;
+
+pub use clock::RtClock;
+pub use endpoint::{Endpoint, NodeEndpoint, SlaveEndpoint};
+pub use engine::{
+    ConnId, Device, EndpointFactory, Forces, Inbound, LinkConfig, LinkFault, Outbound, RtEngine,
+    RtSummary,
+};
+pub use lateness::{Lateness, LatenessSummary};

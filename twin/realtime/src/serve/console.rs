@@ -1,0 +1,257 @@
+//! Commands typed while `twin serve` runs (one per line on stdin): faults,
+//! forced inputs, read-only, status. Parsed here, run on the engine's thread.
+
+use nodes::firmware::Refusal;
+use nodes::time::SimDuration;
+use std::io::BufRead;
+use std::sync::mpsc::Sender;
+
+use crate::{Inbound, LinkFault, RtEngine};
+
+/// The help text of the console.
+pub const HELP: &str = "\
+commands:
+  status                       the module's state, clients, tick lateness
+  clients                      open connections
+  fault bad-check [LINK]       replies go out with their check value + 1 (MEB, RTU, modbus8)
+  fault no-reply [LINK]        requests are served but never answered
+  fault delay MS [LINK]        replies go out MS milliseconds late
+  fault exception [CODE] [LINK]  every request refused: Modbus exception / MEB ER CODE (1-4, default 4;
+                               MEB and Modbus links, not the seed-002 network)
+  fault off                    no fault
+  force v1|v2 VOLTS            the controller measures this battery / bus voltage
+  force i AMPS                 ... this inverter current
+  force rpm_m|rpm_l|ldr COUNTS the input word reads this
+  release NAME|all             measure NAME again
+  read-only on|off             refuse writes from every client
+  stop                         end the session (as SIGINT)
+  help                         this text";
+
+/// A parsed console command: what to run on the engine.
+pub type Command = Box<dyn FnOnce(&mut RtEngine) + Send>;
+
+fn link_index(engine: &RtEngine, name: Option<&str>) -> Result<Option<usize>, String> {
+    let Some(name) = name else { return Ok(None) };
+    engine
+        .links
+        .iter()
+        .position(|l| l.name == name || l.protocol == name)
+        .map(Some)
+        .ok_or_else(|| {
+            let names: Vec<&str> = engine.links.iter().map(|l| l.name.as_str()).collect();
+            format!("no link `{name}` (links: {})", names.join(", "))
+        })
+}
+
+/// Parses one line; `Err` is the message to print.
+pub fn parse(line: &str) -> Result<Option<Command>, String> {
+    let words: Vec<&str> = line.split_whitespace().collect();
+    let number = |w: Option<&&str>, what: &str| -> Result<f64, String> {
+        w.ok_or_else(|| format!("missing {what}"))?
+            .parse::<f64>()
+            .ok()
+            .filter(|v| v.is_finite())
+            .ok_or_else(|| format!("{what} must be a number"))
+    };
+    let command: Command = match words.as_slice() {
+        [] => return Ok(None),
+        ["help" | "?"] => Box::new(|e: &mut RtEngine| e.say(HELP)),
+        ["status"] => Box::new(|e: &mut RtEngine| {
+            let line = e.status_line(e.clock.now());
+            e.say(line);
+        }),
+        ["clients"] => Box::new(|e: &mut RtEngine| {
+            let lines: Vec<String> = e
+                .connections()
+                .map(|(l, peer)| {
+                    let name = e.links.get(l).map_or("?", |l| l.name.as_str());
+                    format!("  {name} {peer}")
+                })
+                .collect();
+            e.say(format!(
+                "{} open connection(s)\n{}",
+                lines.len(),
+                lines.join("\n")
+            ));
+        }),
+        ["stop" | "quit" | "exit"] => Box::new(|e: &mut RtEngine| {
+            e.say("stopping");
+            e.request_stop("console");
+        }),
+        ["read-only", on] => {
+            let on = match *on {
+                "on" => true,
+                "off" => false,
+                _ => return Err("read-only on|off".into()),
+            };
+            Box::new(move |e: &mut RtEngine| {
+                e.set_read_only(on);
+                e.say(format!("read-only {}", if on { "on" } else { "off" }));
+            })
+        }
+        ["fault", "off"] => Box::new(|e: &mut RtEngine| {
+            e.set_fault(None, None);
+            e.say("fault off");
+        }),
+        ["fault", kind, rest @ ..] => {
+            let (fault, link) = match (*kind, rest) {
+                ("bad-check", link) => (LinkFault::BadCheck, link.first().copied()),
+                ("no-reply", link) => (LinkFault::NoReply, link.first().copied()),
+                ("delay", [ms, link @ ..]) => {
+                    let ms = number(Some(ms), "delay (ms)")?;
+                    if !(0.0..=60_000.0).contains(&ms) {
+                        return Err("delay must be 0-60000 ms".into());
+                    }
+                    let d = SimDuration::from_secs_f64(ms / 1000.0);
+                    (LinkFault::Delay(d), link.first().copied())
+                }
+                ("exception", args) => {
+                    let (code, link) = match args {
+                        [] => (4, None),
+                        [c, link @ ..] if c.parse::<u8>().is_ok() => {
+                            (c.parse::<u8>().unwrap_or(4), link.first().copied())
+                        }
+                        [link, ..] => (4, Some(*link)),
+                    };
+                    let refusal = match code {
+                        1 => Refusal::IllegalCommand,
+                        2 => Refusal::IllegalAddress,
+                        3 => Refusal::IllegalData,
+                        4 => Refusal::DeviceFailure,
+                        _ => return Err("exception code must be 1, 2, 3 or 4".into()),
+                    };
+                    (LinkFault::Exception(refusal), link)
+                }
+                _ => return Err(format!("unknown fault `{kind}`; try `help`")),
+            };
+            let link = link.map(str::to_string);
+            Box::new(
+                move |e: &mut RtEngine| match link_index(e, link.as_deref()) {
+                    Ok(l) => {
+                        e.set_fault(Some(fault), l);
+                        let on = link.as_deref().unwrap_or("every link");
+                        e.say(format!("fault {fault:?} on {on}"));
+                    }
+                    Err(why) => e.say(why),
+                },
+            )
+        }
+        ["force", name, value] => {
+            let name = name.to_ascii_lowercase();
+            let v = number(Some(value), "value")?;
+            let counts = || -> Result<u16, String> {
+                (0.0..=65535.0)
+                    .contains(&v)
+                    .then_some(v.round() as u16)
+                    .ok_or_else(|| "counts must be 0-65535".to_string())
+            };
+            let set: Box<dyn Fn(&mut crate::Forces) + Send> = match name.as_str() {
+                "v1" => Box::new(move |f| f.v1 = Some(v)),
+                "v2" => Box::new(move |f| f.v2 = Some(v)),
+                "i" => Box::new(move |f| f.i = Some(v)),
+                "rpm_m" => {
+                    let c = counts()?;
+                    Box::new(move |f| f.rpm_m = Some(c))
+                }
+                "rpm_l" => {
+                    let c = counts()?;
+                    Box::new(move |f| f.rpm_l = Some(c))
+                }
+                "ldr" => {
+                    let c = counts()?;
+                    Box::new(move |f| f.ldr = Some(c))
+                }
+                _ => {
+                    return Err(format!(
+                        "cannot force `{name}`: v1, v2, i, rpm_m, rpm_l or ldr"
+                    ));
+                }
+            };
+            Box::new(move |e: &mut RtEngine| {
+                for d in &mut e.devices {
+                    set(&mut d.forces);
+                }
+                e.say(format!("forced {name} = {v}"));
+            })
+        }
+        ["release", name] => {
+            let name = name.to_ascii_lowercase();
+            let clear: Box<dyn Fn(&mut crate::Forces) + Send> = match name.as_str() {
+                "v1" => Box::new(|f| f.v1 = None),
+                "v2" => Box::new(|f| f.v2 = None),
+                "i" => Box::new(|f| f.i = None),
+                "rpm_m" => Box::new(|f| f.rpm_m = None),
+                "rpm_l" => Box::new(|f| f.rpm_l = None),
+                "ldr" => Box::new(|f| f.ldr = None),
+                "all" => Box::new(|f| *f = Default::default()),
+                _ => {
+                    return Err(format!(
+                        "cannot release `{name}`: v1, v2, i, rpm_m, rpm_l, ldr or all"
+                    ));
+                }
+            };
+            Box::new(move |e: &mut RtEngine| {
+                for d in &mut e.devices {
+                    clear(&mut d.forces);
+                }
+                e.say(format!("released {name}"));
+            })
+        }
+        _ => return Err(format!("unknown command `{}`; try `help`", line.trim())),
+    };
+    Ok(Some(command))
+}
+
+/// Reads commands from stdin on its own thread until stdin closes; the
+/// session goes on without a console (CI has no stdin).
+pub fn spawn_stdin(engine: Sender<Inbound>) {
+    let _ = std::thread::Builder::new()
+        .name("twin-console".into())
+        .spawn(move || {
+            let stdin = std::io::stdin();
+            for line in stdin.lock().lines() {
+                let Ok(line) = line else { break };
+                let message = match parse(&line) {
+                    Ok(Some(command)) => Inbound::Command(command),
+                    Ok(None) => continue,
+                    Err(why) => Inbound::Command(Box::new(move |e: &mut RtEngine| e.say(why))),
+                };
+                if engine.send(message).is_err() {
+                    break;
+                }
+            }
+        });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn commands_parse_and_mistakes_say_why() {
+        assert!(parse("").unwrap().is_none());
+        for ok in [
+            "help",
+            "status",
+            "fault bad-check",
+            "fault delay 20 meb",
+            "fault exception 2",
+            "fault off",
+            "force v1 30.5",
+            "release all",
+            "read-only on",
+        ] {
+            assert!(parse(ok).unwrap().is_some(), "{ok}");
+        }
+        for (bad, why) in [
+            ("fault delay soon", "must be a number"),
+            ("fault exception 9", "1, 2, 3 or 4"),
+            ("force v9 1", "cannot force `v9`"),
+            ("force rpm_m -3", "0-65535"),
+            ("frobnicate", "unknown command"),
+        ] {
+            let e = parse(bad).err().unwrap_or_default();
+            assert!(e.contains(why), "{bad}: {e}");
+        }
+    }
+}

@@ -1,0 +1,535 @@
+//! `twin supervise`: the supervisor and server of seed 000's tool. A master on
+//! a serial line (or a TCP connection to a slave) polls the EV module's
+//! controller over MEB and closes its speed loop, or holds a manual `VEL`; a
+//! TCP server answers remote MEB clients from the supervisor's image
+//! (`spec/meb.md`). Runs on wt-serve's real-time engine and is recorded to
+//! MCAP like a virtual run.
+
+pub mod endpoint;
+
+use anyhow::{Context, Result, bail};
+use nodes::master::image_server::ImageServerConfig;
+use nodes::master::{
+    LoopMode, Protocol, SlaveLoopConfig, SpeedSource, Supervisor, SupervisorConfig,
+};
+use nodes::time::{SimDuration, SimTime};
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::mpsc::{Sender, channel};
+use std::time::Duration;
+
+use crate::io::{LinkAddr, LinkDefaults, LinkSpec, serial, tcp};
+use twin_sim::nodes_build::SupervisorNode;
+use crate::links::{ConnIds, accept_loop, serial_loop, serve_stream};
+use crate::session;
+use crate::sink::{self, SinkConfig, SinkMsg, ViewOpener};
+use crate::{
+    Device, Inbound, LatenessSummary, LinkConfig, NodeEndpoint, RtClock, RtEngine,
+};
+use endpoint::ImageEndpoint;
+
+/// Everything `twin supervise` is told.
+#[derive(Debug, Clone)]
+pub struct SuperviseOptions {
+    /// The bus: a serial device or pty, or `tcp://HOST:PORT` of an MEB slave.
+    pub bus: String,
+    /// What the bus speaks: MEB, or Modbus RTU (serial only; remote clients
+    /// still speak MEB to the server, forwarded writes get `ER 01`).
+    pub protocol: Protocol,
+    /// Where remote MEB clients connect (`tcp://HOST:PORT`), any number.
+    pub listen: Vec<String>,
+    pub baud: u32,
+    /// Slave ids polled, in order.
+    pub slaves: Vec<u8>,
+    /// Set point from the start (rpm).
+    pub set_point: f64,
+    /// A manual `VEL` (DAC counts) instead of the loop.
+    pub open_loop: Option<u16>,
+    pub kp: f64,
+    pub ki: f64,
+    pub speed_source: SpeedSource,
+    pub poll_period: SimDuration,
+    pub reply_timeout: SimDuration,
+    pub retries: u8,
+    /// Read the status words (ED 00, FA 00-01, FD 00) every this many cycles (0: never).
+    pub status_poll: u32,
+    pub server: ImageServerConfig,
+    /// Close a client sending more bytes than this in one second.
+    pub rate_limit_bytes: Option<u64>,
+    pub duration: Option<f64>,
+    pub out: Option<PathBuf>,
+    pub monitor: bool,
+    pub status_every: f64,
+    pub wait_for_ports: bool,
+    /// Opens the session's live view (`--view`), if it has one.
+    pub view: Option<ViewOpener>,
+    pub command_line: String,
+}
+
+/// One open link, as printed before `ready`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct OpenLink {
+    pub protocol: &'static str,
+    pub address: String,
+    /// `master 01` for the bus, `server` for a listener.
+    pub role: String,
+}
+
+/// What a session reports at its end.
+#[derive(Debug)]
+pub struct SuperviseOutcome {
+    pub elapsed_s: f64,
+    pub lateness: LatenessSummary,
+    pub counters: crate::engine::RtCounters,
+    pub refused_clients: u64,
+    pub stopped_by: String,
+    pub recording: Option<PathBuf>,
+    /// Samples streamed to the live view (`--view`), if it ran.
+    pub view_samples: Option<u64>,
+    /// What the live view's viewer did not take, if anything.
+    pub view_error: Option<String>,
+    /// The supervisor's status line at the end.
+    pub status: Vec<String>,
+}
+
+/// The supervisor the options describe.
+pub fn build_supervisor(options: &SuperviseOptions) -> Result<Supervisor> {
+    let loops = options
+        .slaves
+        .iter()
+        .map(|&id| {
+            let mut l = SlaveLoopConfig::new(id);
+            l.kp = options.kp;
+            l.ki = options.ki;
+            l.speed_source = options.speed_source;
+            l.mode = match options.open_loop {
+                Some(vel) => LoopMode::Open { vel },
+                None => LoopMode::Closed,
+            };
+            l
+        })
+        .collect();
+    let mut config = SupervisorConfig::new(options.protocol, loops);
+    config.poll_period = options.poll_period;
+    config.reply_timeout = options.reply_timeout;
+    config.retries = options.retries;
+    config.status_every = options.status_poll;
+    if options.protocol == Protocol::ModbusRtu {
+        // A pty carries no timing: the silence that ends a frame must be
+        // longer than the gaps between the chunks it arrives in.
+        let pty = match LinkSpec::parse(&options.bus, &LinkDefaults::default()) {
+            Ok(LinkSpec {
+                addr: LinkAddr::Serial(path),
+                ..
+            }) => serial::is_pty(&path),
+            _ => false,
+        };
+        config.rtu_silence = if pty {
+            nodes::proto::modbus::serial::PTY_SILENCE
+        } else {
+            nodes::proto::modbus::serial::standard_rtu_silence(options.baud, 10)
+        };
+    }
+    let mut supervisor = Supervisor::new(config)?;
+    for &id in &options.slaves {
+        supervisor.set_set_point(id, Some(options.set_point));
+    }
+    Ok(supervisor)
+}
+
+/// The communication status of every slave: loop, counters, last reply age.
+pub fn status_lines(supervisor: &Supervisor, now: SimTime) -> Vec<String> {
+    supervisor
+        .slave_ids()
+        .filter_map(|id| supervisor.loop_state(id).map(|s| (id, s)))
+        .map(|(id, s)| {
+            let c = s.counters;
+            let age = s.measured_at.map_or("no reply yet".to_string(), |at| {
+                format!(
+                    "last reply {:.0} ms ago",
+                    now.saturating_since(at).as_secs_f64() * 1e3
+                )
+            });
+            let mode = match supervisor.mode(id) {
+                Some(LoopMode::Open { vel }) => format!("open loop, VEL {vel}"),
+                _ => format!(
+                    "set point {:.0} rpm",
+                    supervisor.set_point(id, now).unwrap_or(0.0)
+                ),
+            };
+            format!(
+                "slave {id:02}: {mode}, measured {:.0} rpm, VEL {}; {} requests, {} replies, {} timeouts, {} bad checks, {} errors, {} lost; {age}",
+                s.measured_rpm,
+                s.vel_written.unwrap_or(s.output),
+                c.requests,
+                c.replies,
+                c.timeouts,
+                c.bad_checks,
+                c.exceptions,
+                c.lost,
+            )
+        })
+        .collect()
+}
+
+/// Index of the supervisor among the engine's devices.
+const SUPERVISOR: usize = 0;
+
+/// Starts one link's task on the runtime, once the engine listens.
+type Starter = Box<dyn FnOnce(&tokio::runtime::Handle, Sender<Inbound>)>;
+
+struct Setup {
+    engine: RtEngine,
+    open: Vec<OpenLink>,
+    starters: Vec<Starter>,
+    refused: Arc<AtomicU64>,
+}
+
+fn parse_links(options: &SuperviseOptions) -> Result<(LinkSpec, Vec<LinkSpec>)> {
+    // A master sends as soon as it is ready: no turnaround of its own.
+    let defaults = LinkDefaults {
+        baud: options.baud,
+        serial_turnaround: SimDuration::ZERO,
+        tcp_turnaround: SimDuration::ZERO,
+        pace: false,
+    };
+    let option = bus_option(options.protocol);
+    let bus = LinkSpec::parse(&options.bus, &defaults)
+        .with_context(|| format!("{option} {}", options.bus))?;
+    if options.protocol == Protocol::ModbusRtu && bus.is_tcp() {
+        bail!(
+            "--modbus-rtu {}: Modbus RTU runs on a serial port or pty; over TCP use --meb",
+            options.bus
+        );
+    }
+    let mut listen = Vec::new();
+    for text in &options.listen {
+        let spec = LinkSpec::parse(text, &defaults).with_context(|| format!("--listen {text}"))?;
+        if !spec.is_tcp() {
+            bail!(
+                "--listen {text}: the server listens on tcp://HOST:PORT (remote clients come over TCP)"
+            );
+        }
+        listen.push(spec);
+    }
+    Ok((bus, listen))
+}
+
+async fn open_links(
+    options: &SuperviseOptions,
+    bus: LinkSpec,
+    listen: Vec<LinkSpec>,
+    mut engine: RtEngine,
+) -> Result<Setup> {
+    let ids = ConnIds::default();
+    let clock = engine.clock;
+    let refused = Arc::new(AtomicU64::new(0));
+    let mut open = Vec::new();
+    let mut starters: Vec<Starter> = Vec::new();
+    let slaves = options
+        .slaves
+        .iter()
+        .map(|id| format!("{id:02}"))
+        .collect::<Vec<_>>()
+        .join(",");
+
+    // The bus: the supervisor drives it as a node, as on the simulated bus.
+    let address = match &bus.addr {
+        LinkAddr::Serial(path) => {
+            if options.wait_for_ports && !path.exists() {
+                println!("waiting for {} to appear ...", path.display());
+                while !path.exists() {
+                    tokio::time::sleep(Duration::from_millis(100)).await;
+                }
+            }
+            let port = serial::open(path, &bus.serial)
+                .with_context(|| format!("{} {}", bus_option(options.protocol), bus.text))?;
+            let (ids, path, settings) = (ids.clone(), path.clone(), bus.serial);
+            starters.push(Box::new(move |rt, inbound| {
+                rt.spawn(serial_loop(path, settings, port, 0, ids, clock, inbound));
+            }));
+            path_text(&bus)
+        }
+        LinkAddr::Tcp(addr) => {
+            let addr = *addr;
+            let first = tokio::net::TcpStream::connect(addr).await.with_context(|| {
+                format!("--meb {}: cannot connect to an MEB slave at {addr} (is `twin serve --meb tcp://{addr}` running?)", bus.text)
+            })?;
+            let ids = ids.clone();
+            starters.push(Box::new(move |rt, inbound| {
+                rt.spawn(tcp_bus_loop(addr, first, ids, clock, inbound));
+            }));
+            format!("tcp://{addr}")
+        }
+    };
+    let bus_protocol = match options.protocol {
+        Protocol::Meb => "meb",
+        Protocol::ModbusRtu => "modbus-rtu",
+    };
+    open.push(OpenLink {
+        protocol: bus_protocol,
+        address: address.clone(),
+        role: format!("master {slaves}"),
+    });
+    engine.links.push(LinkConfig {
+        name: "bus".into(),
+        protocol: bus_protocol,
+        address,
+        spec: bus,
+        check: None,
+        partial_timeout: None,
+        rate_limit: None,
+        factory: Box::new(|_devices, _peer| {
+            Box::new(NodeEndpoint {
+                devices: vec![SUPERVISOR],
+            })
+        }),
+    });
+
+    for (n, spec) in listen.into_iter().enumerate() {
+        let LinkAddr::Tcp(addr) = spec.addr else {
+            bail!("internal: a listener that is not TCP");
+        };
+        let listener = tcp::bind(addr)
+            .await
+            .with_context(|| format!("--listen {}", spec.text))?;
+        let local = listener.local_addr()?;
+        let link = engine.links.len();
+        let (ids, max, refused) = (
+            ids.clone(),
+            Some(options.server.max_clients),
+            refused.clone(),
+        );
+        starters.push(Box::new(move |rt, inbound| {
+            rt.spawn(accept_loop(
+                listener, link, max, ids, clock, inbound, refused,
+            ));
+        }));
+        let address = format!("tcp://{local}");
+        open.push(OpenLink {
+            protocol: "meb",
+            address: address.clone(),
+            role: "server".into(),
+        });
+        let server = options.server;
+        engine.links.push(LinkConfig {
+            name: if n == 0 {
+                "tcp".into()
+            } else {
+                format!("tcp-{}", n + 1)
+            },
+            protocol: "meb",
+            address,
+            spec,
+            check: None,
+            partial_timeout: Some(server.partial_timeout),
+            rate_limit: options.rate_limit_bytes,
+            factory: Box::new(move |_devices, _peer| {
+                Box::new(ImageEndpoint::new(SUPERVISOR, server, SimTime::ZERO))
+            }),
+        });
+    }
+    Ok(Setup {
+        engine,
+        open,
+        starters,
+        refused,
+    })
+}
+
+/// The option that names the bus, for messages.
+fn bus_option(protocol: Protocol) -> &'static str {
+    match protocol {
+        Protocol::Meb => "--meb",
+        Protocol::ModbusRtu => "--modbus-rtu",
+    }
+}
+
+fn path_text(spec: &LinkSpec) -> String {
+    match &spec.addr {
+        LinkAddr::Serial(p) => p.display().to_string(),
+        LinkAddr::Tcp(a) => format!("tcp://{a}"),
+    }
+}
+
+/// Carries the bus when it is a TCP connection to an MEB slave (`twin serve
+/// --meb tcp://…`): reconnects when the slave goes away.
+async fn tcp_bus_loop(
+    addr: std::net::SocketAddr,
+    first: tokio::net::TcpStream,
+    ids: ConnIds,
+    clock: RtClock,
+    engine: Sender<Inbound>,
+) {
+    let mut stream = Some(first);
+    loop {
+        let s = match stream.take() {
+            Some(s) => s,
+            None => match tokio::net::TcpStream::connect(addr).await {
+                Ok(s) => s,
+                Err(_) => {
+                    tokio::time::sleep(Duration::from_millis(200)).await;
+                    continue;
+                }
+            },
+        };
+        let _ = s.set_nodelay(true);
+        let why = serve_stream(
+            s,
+            0,
+            ids.next(),
+            format!("tcp://{addr}"),
+            clock,
+            engine.clone(),
+            "the slave closed the connection (reconnecting)",
+        )
+        .await;
+        if why == "server stopping" {
+            return;
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+}
+
+/// Every `period`, a status line of every slave on the console.
+async fn status_loop(period: Duration, engine: Sender<Inbound>) {
+    let mut interval = tokio::time::interval(period);
+    interval.tick().await;
+    loop {
+        interval.tick().await;
+        let sent = engine.send(Inbound::Command(Box::new(|engine: &mut RtEngine| {
+            let now = engine.clock.now();
+            let clients = engine.connections().filter(|(link, _)| *link > 0).count();
+            let Some(supervisor) = engine
+                .devices
+                .get_mut(SUPERVISOR)
+                .and_then(|d| d.node.supervisor_mut())
+            else {
+                return;
+            };
+            let lines = status_lines(supervisor, now);
+            let cycles = supervisor.cycles();
+            engine.say(format!(
+                "[{:10.3} s] supervisor: {cycles} poll cycles, {clients} remote client(s)",
+                now.as_secs_f64()
+            ));
+            for line in lines {
+                engine.say(format!("  {line}"));
+            }
+        })));
+        if sent.is_err() {
+            return;
+        }
+    }
+}
+
+/// Runs a session; `ready` gets the open links once they all are.
+pub fn supervise(
+    options: &SuperviseOptions,
+    ready: impl FnOnce(&[OpenLink]),
+) -> Result<SuperviseOutcome> {
+    let (bus, listen) = parse_links(options)?;
+    let supervisor = build_supervisor(options)?;
+    let runtime = session::links_runtime()?;
+
+    let clock = RtClock::start();
+    let (tx, rx) = channel::<SinkMsg>();
+    // No plant here: the module is on the other end of the bus.
+    let mut engine = RtEngine::new(
+        clock,
+        SimDuration::from_millis(1),
+        SimDuration::from_secs(1),
+        tx,
+    );
+    engine.set_status_period(SimDuration::ZERO);
+    engine.devices.push(Device::new(
+        "supervisor",
+        Box::new(SupervisorNode::new(supervisor)),
+        None,
+    ));
+    let setup = runtime.block_on(open_links(options, bus, listen, engine))?;
+    let links = session::link_labels(&setup.engine);
+    let recorder = session::create_recording(
+        options.out.as_deref(),
+        "supervise",
+        BTreeMap::from([
+            ("command".into(), options.command_line.clone()),
+            ("bus".into(), options.bus.clone()),
+            ("listen".into(), options.listen.join(" ")),
+            ("slaves".into(), format!("{:?}", options.slaves)),
+        ]),
+    )?;
+    let sink_handle = sink::spawn_with(
+        SinkConfig {
+            modules: Vec::new(),
+            links,
+            monitor: options.monitor,
+            recorder,
+            view: options.view.as_ref().and_then(|v| v.open(&[])),
+        },
+        rx,
+    );
+    let sink_tx = setup.engine.sink();
+    let Setup {
+        engine,
+        open,
+        starters,
+        refused,
+    } = setup;
+    ready(&open);
+
+    let (inbound_tx, inbound_rx) = channel::<Inbound>();
+    let end = options
+        .duration
+        .map(|s| SimTime::ZERO + SimDuration::from_secs_f64(s));
+    let rt_thread = session::spawn_engine(engine, inbound_rx, end, None)?;
+    for start in starters {
+        start(runtime.handle(), inbound_tx.clone());
+    }
+    if options.status_every > 0.0 {
+        runtime.spawn(status_loop(
+            Duration::from_secs_f64(options.status_every),
+            inbound_tx.clone(),
+        ));
+    }
+
+    let (summary, mut engine) =
+        session::run_until_stopped(&runtime, rt_thread, inbound_tx.clone())?;
+    let now = engine.clock.now();
+    let status = engine
+        .devices
+        .get_mut(SUPERVISOR)
+        .and_then(|d| d.node.supervisor_mut())
+        .map(|s| status_lines(s, now))
+        .unwrap_or_default();
+    let final_state = engine
+        .devices
+        .get(SUPERVISOR)
+        .and_then(|d| d.node.final_state())
+        .map(|v| v.to_string())
+        .unwrap_or_default();
+    drop(engine);
+    runtime.shutdown_timeout(Duration::from_millis(200));
+
+    let refused_clients = refused.load(Ordering::Relaxed);
+    let mut totals = session::totals(&summary, refused_clients)?;
+    totals.insert("supervisor".into(), final_state);
+    let _ = sink_tx.send(SinkMsg::Finish(totals));
+    drop(sink_tx);
+    let outcome = sink_handle
+        .join()
+        .map_err(|_| anyhow::anyhow!("the recording thread failed"))??;
+    Ok(SuperviseOutcome {
+        elapsed_s: summary.elapsed.as_secs_f64(),
+        lateness: summary.lateness,
+        counters: summary.counters,
+        refused_clients,
+        stopped_by: summary.stopped_by,
+        recording: outcome.recording,
+        view_samples: outcome.view_samples,
+        view_error: outcome.view_error,
+        status,
+    })
+}

@@ -1,0 +1,165 @@
+//! The one frame describer: what a frame on the bench's buses and links
+//! says, in the fields every recording stores beside its bytes (`decoded`).
+//! The virtual engine, the real-time sink and the viewer all call these, so a
+//! frame reads the same wherever it was recorded.
+
+use nodes::proto::meb::MebRepr;
+use nodes::proto::{modbus, modbus8};
+use serde::Serialize;
+use serde_json::{Value, json};
+
+/// The wire format a frame was sent in, told from the sent bytes: one place
+/// for the engine's check tally and the recording's decoder to agree on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FrameKind {
+    Meb,
+    Modbus8,
+    ModbusRtu,
+}
+
+impl FrameKind {
+    /// MEB frames start with `@`; an 8-byte frame whose CRC checks high byte
+    /// first is the seed-002 variant; anything else is read as Modbus RTU.
+    pub fn of(sent: &[u8]) -> Self {
+        use nodes::proto::modbus8::{CrcOrder, Frame};
+        if sent.first() == Some(&b'@') {
+            FrameKind::Meb
+        } else if sent.len() == 8 && Frame::parse(sent, CrcOrder::HighFirst).is_ok() {
+            FrameKind::Modbus8
+        } else {
+            FrameKind::ModbusRtu
+        }
+    }
+
+    /// Whether `received` passes this format's check.
+    pub fn passes_check(self, received: &[u8]) -> bool {
+        use nodes::proto::{meb::MebRepr, modbus, modbus8};
+        match self {
+            FrameKind::Meb => MebRepr::parse(received).is_ok(),
+            FrameKind::Modbus8 => {
+                modbus8::Frame::parse(received, modbus8::CrcOrder::HighFirst).is_ok()
+            }
+            FrameKind::ModbusRtu => modbus::rtu::parse(received).is_ok(),
+        }
+    }
+}
+
+/// Decoded fields of a frame: MEB, the 8-byte variant or Modbus RTU.
+pub fn decode_frame(bytes: &[u8]) -> Value {
+    match FrameKind::of(bytes) {
+        FrameKind::Meb => match MebRepr::parse(bytes) {
+            Ok(r) => json!({
+                "protocol": "meb", "id": r.id, "cmd": r.cmd.to_string(), "addr": r.addr,
+                "cnt": r.cnt, "data": r.data.as_slice(),
+            }),
+            Err(e) => json!({ "protocol": "meb", "error": e.to_string() }),
+        },
+        FrameKind::Modbus8 => match modbus8::Frame::parse(bytes, modbus8::CrcOrder::HighFirst) {
+            Ok(f) => json!({
+                "protocol": "modbus8", "id": f.id, "function": f.function, "addr": f.addr, "value": f.value,
+            }),
+            Err(e) => json!({ "protocol": "modbus8", "error": e.to_string() }),
+        },
+        FrameKind::ModbusRtu => match modbus::rtu::parse(bytes) {
+            Ok(f) => json!({ "protocol": "modbus-rtu", "unit": f.unit, "function": f.function() }),
+            Err(e) => json!({ "protocol": "unknown", "error": e.to_string() }),
+        },
+    }
+}
+
+/// Decoded fields of a frame on a link of `protocol`.
+pub fn decode_link_frame(protocol: &str, bytes: &[u8]) -> Value {
+    serde_json::to_value(link_frame_fields(protocol, bytes)).unwrap_or(Value::Null)
+}
+
+/// Decoded fields of a frame on a link, as recorded. A Modbus frame's are a
+/// small value (the sink decodes every frame a loaded server answers, and
+/// a `Value`'s map cost it more than the decoding); their keys are in the
+/// order a `Value` map sorts them, so the JSON is the same either way.
+#[derive(Debug, Serialize)]
+#[serde(untagged)]
+pub enum LinkFrameFields<'a> {
+    Modbus {
+        function: Option<u8>,
+        protocol: &'a str,
+        #[serde(skip_serializing_if = "Option::is_none")]
+        transaction: Option<u16>,
+        unit: u8,
+    },
+    Broken {
+        error: String,
+        protocol: &'a str,
+    },
+    Other(Value),
+}
+
+pub fn link_frame_fields<'a>(protocol: &'a str, bytes: &[u8]) -> LinkFrameFields<'a> {
+    let modbus = |f: Result<modbus::Frame<'_>, modbus::FrameError>| match f {
+        Ok(f) => LinkFrameFields::Modbus {
+            function: Some(f.function()),
+            protocol,
+            transaction: None,
+            unit: f.unit,
+        },
+        Err(e) => LinkFrameFields::Broken {
+            error: e.to_string(),
+            protocol,
+        },
+    };
+    match protocol {
+        "modbus-tcp" => match modbus::tcp::parse(bytes) {
+            Ok(f) => LinkFrameFields::Modbus {
+                function: f.pdu.first().copied(),
+                protocol,
+                transaction: Some(f.transaction_id),
+                unit: f.unit,
+            },
+            Err(e) => LinkFrameFields::Broken {
+                error: e.to_string(),
+                protocol,
+            },
+        },
+        "modbus-ascii" => modbus(modbus::ascii::parse(
+            bytes,
+            &mut [0; modbus::ascii::MAX_BINARY_LEN],
+        )),
+        "modbus-rtu" => modbus(modbus::rtu::parse(bytes)),
+        _ => LinkFrameFields::Other(decode_frame(bytes)),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn fields(protocol: &str, bytes: &[u8]) -> String {
+        serde_json::to_string(&link_frame_fields(protocol, bytes)).unwrap()
+    }
+
+    #[test]
+    fn link_frames_decode_to_the_json_a_value_map_gave() {
+        // The keys sorted, as a `serde_json::Value` map wrote them.
+        let tcp = [0, 7, 0, 0, 0, 6, 1, 4, 0, 0, 0, 10];
+        assert_eq!(
+            fields("modbus-tcp", &tcp),
+            r#"{"function":4,"protocol":"modbus-tcp","transaction":7,"unit":1}"#
+        );
+        let rtu = [1, 3, 0, 0, 0, 3, 0x05, 0xcb];
+        assert_eq!(
+            fields("modbus-rtu", &rtu),
+            r#"{"function":3,"protocol":"modbus-rtu","unit":1}"#
+        );
+        let broken = fields("modbus-rtu", &[1, 3, 0, 0, 0, 3, 0, 0]);
+        assert!(
+            broken.starts_with(r#"{"error":""#)
+                && broken.ends_with(r#"","protocol":"modbus-rtu"}"#),
+            "{broken}"
+        );
+        let meb = fields("meb", b"@01EA0006FF*\n");
+        assert_eq!(meb, decode_frame(b"@01EA0006FF*\n").to_string());
+        assert_eq!(
+            decode_link_frame("modbus-tcp", &tcp)["transaction"],
+            json!(7)
+        );
+    }
+}

@@ -1,0 +1,99 @@
+//! Baseline recordings: every embedded scenario, cut down as
+//! `recordings/baselines/baselines.toml` says (shorter, fewer plant
+//! samples), recorded once on purpose and compared with a fresh run in CI,
+//! so a change in the physics or a protocol shows up as a named signal and
+//! time.
+
+use anyhow::{Context, Result, bail};
+use serde::Deserialize;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use twin_recording::Recording;
+use twin_recording::compare::{self, Comparison, Tolerances};
+use crate::scenario::{EMBEDDED, Scenario};
+
+/// The cut-down settings, built into the binary like the scenarios.
+pub const SETTINGS: &str = include_str!("../../../recordings/baselines/baselines.toml");
+
+/// Where the baselines live, relative to the repository root.
+pub const DIR: &str = "recordings/baselines";
+
+#[derive(Debug, Clone, Copy, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct CutDown {
+    duration_s: Option<f64>,
+    record_hz: Option<f64>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Settings {
+    #[serde(default)]
+    default: CutDown,
+    #[serde(default)]
+    scenario: BTreeMap<String, CutDown>,
+}
+
+fn settings() -> Result<Settings> {
+    let s: Settings = toml::from_str(SETTINGS).context("recordings/baselines/baselines.toml")?;
+    if let Some(unknown) = s.scenario.keys().find(|k| !names().contains(&k.as_str())) {
+        bail!(
+            "recordings/baselines/baselines.toml names `{unknown}`, which is not an embedded scenario"
+        );
+    }
+    Ok(s)
+}
+
+/// The scenarios that have baselines: every embedded one.
+pub fn names() -> Vec<&'static str> {
+    EMBEDDED.iter().map(|(n, _, _)| *n).collect()
+}
+
+/// The scenario a baseline records: the embedded one, cut down.
+pub fn scenario(name: &str) -> Result<Scenario> {
+    let Some((_, _, text)) = EMBEDDED.iter().find(|(n, _, _)| *n == name) else {
+        bail!(
+            "no embedded scenario `{name}`: baselines exist for {}",
+            names().join(", ")
+        );
+    };
+    let mut s = Scenario::parse(text, &format!("embedded scenario {name}"))?;
+    let settings = settings()?;
+    let own = settings.scenario.get(name).copied().unwrap_or_default();
+    if let Some(d) = own.duration_s.or(settings.default.duration_s) {
+        s.duration_s = d;
+    }
+    if let Some(hz) = own.record_hz.or(settings.default.record_hz) {
+        s.record_hz = hz;
+    }
+    Ok(s)
+}
+
+/// The baseline file of `name` in `dir`.
+pub fn path(dir: &Path, name: &str) -> PathBuf {
+    dir.join(format!("{name}.mcap"))
+}
+
+/// Record the baseline of `name` into `dir`.
+pub fn record(dir: &Path, name: &str) -> Result<PathBuf> {
+    let s = scenario(name)?;
+    Ok(crate::virtual_run::run(&s, &path(dir, name), |_| {})?.recording)
+}
+
+/// Run `name` afresh (recording to `scratch`) and compare it with its
+/// baseline in `dir`.
+pub fn check(dir: &Path, name: &str, scratch: &Path) -> Result<Comparison> {
+    let baseline_path = path(dir, name);
+    if !baseline_path.exists() {
+        bail!(
+            "no baseline for `{name}` at {}: record it with `twin baseline --record {name}`",
+            baseline_path.display()
+        );
+    }
+    let baseline = Recording::read(&baseline_path)?;
+    let s = scenario(name)?;
+    let fresh = crate::virtual_run::run(&s, scratch, |_| {})?.recording;
+    let run = Recording::read(&fresh)?;
+    Ok(compare::compare(&run, &baseline, &Tolerances::default()))
+}

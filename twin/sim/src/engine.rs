@@ -1,0 +1,643 @@
+//! The virtual-time engine: modules, nodes and buses on one discrete-event
+//! clock, far faster than real time and deterministic.
+//!
+//! One loop jumps from event to event: a byte finishing on a bus, a node's
+//! timer, a firmware loop tick, a recording instant. The plants are advanced
+//! lazily, in fixed steps, to each instant that needs them. At equal times the
+//! order is fixed (buses, then firmware ticks, then node timers, then
+//! transmissions, each in declaration order), so the same scenario and seed
+//! always give the same run.
+
+use anyhow::Result;
+use nodes::link::{BusError, BusEvent, BusStats, FrameInfo, PortConfig, PortId, PwmBus, SimBus};
+use nodes::node::{Firmware, MAX_FRAME, Node, NodeEvent};
+use nodes::time::{SimDuration, SimTime};
+use plant::{Actuators, EvModule};
+
+/// Passes of the loop at one instant after which the engine calls it a stall
+/// (a busy bus with many nodes takes a few dozen).
+const STALL_PASSES: u32 = 100_000;
+
+/// A node as the engine drives it: the sans-IO node plus what recording and
+/// the plant need from it.
+pub trait SimNode: Node {
+    /// The firmware, for nodes that run a module.
+    fn firmware(&mut self) -> Option<&mut dyn Firmware> {
+        None
+    }
+    /// Internals worth recording now (a master's loop state), if changed
+    /// since the last call.
+    fn telemetry(&mut self) -> Option<serde_json::Value> {
+        None
+    }
+    /// Whether the firmware's actuators drive its module (a sensor-only
+    /// node, like seed 002's light sensor, only reads it).
+    fn drives_plant(&self) -> bool {
+        true
+    }
+    /// A summary of the node's state for the end-of-run report.
+    fn final_state(&self) -> Option<serde_json::Value> {
+        None
+    }
+    /// The register image, for nodes whose image other front ends serve
+    /// too (the real-time server's links).
+    fn image_mut(&mut self) -> Option<&mut nodes::firmware::RegisterImage> {
+        None
+    }
+    /// The supervisor, for nodes that are one (its TCP server reads its image).
+    fn supervisor_mut(&mut self) -> Option<&mut nodes::master::Supervisor> {
+        None
+    }
+    /// What the node's own speed sensors read now (firmware nodes).
+    fn speed_readings(&self) -> SpeedReadings {
+        SpeedReadings::default()
+    }
+}
+
+/// A firmware node's speed estimates, as its registers hold them.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct SpeedReadings {
+    /// Wheel rpm from the hall edges (the EV controller's `RPM_M`).
+    pub hall_wheel_rpm: Option<f64>,
+    /// Motor-shaft rpm from an encoder (seed 002's motor node, register 0005).
+    pub motor_shaft_rpm: Option<f64>,
+    /// Wheel rpm from the photoresistor's dips.
+    pub light_rpm: Option<f64>,
+    /// The speed the node's own loop holds, motor rpm (seed 002's motor
+    /// node: its set point while operational, 0 otherwise).
+    pub set_point_motor_rpm: Option<f64>,
+}
+
+/// One bench module and the plant time it has reached.
+pub struct ModuleSlot {
+    pub name: String,
+    pub plant: EvModule,
+    pub actuators: Actuators,
+    plant_time: SimTime,
+}
+
+impl ModuleSlot {
+    /// A module whose plant has reached time zero.
+    pub fn new(name: &str, plant: EvModule) -> Self {
+        Self {
+            name: name.into(),
+            plant,
+            actuators: Actuators::default(),
+            plant_time: SimTime::ZERO,
+        }
+    }
+
+    /// The time the plant has reached.
+    pub fn plant_time(&self) -> SimTime {
+        self.plant_time
+    }
+
+    /// Step the plant up to `t` in whole steps of `step` (and a last partial
+    /// one if `t` is off the grid).
+    pub fn advance(&mut self, step: SimDuration, t: SimTime) {
+        while self.plant_time < t {
+            let dt = step.min(t.saturating_since(self.plant_time));
+            self.plant.step(dt.as_secs_f64(), &self.actuators);
+            self.plant_time += dt;
+        }
+    }
+}
+
+/// One firmware loop pass of `node` at `t`, shared by the virtual and the
+/// real-time engine: the module's plant advanced to `t`, its sensors (as
+/// `adjust` leaves them: the real-time server's forced inputs) handed to the
+/// firmware, the actuators it answers applied. Returns the firmware's next
+/// tick and whether the actuators changed; `None` if `node` has no firmware.
+pub fn firmware_tick(
+    node: &mut dyn SimNode,
+    module: &mut ModuleSlot,
+    plant_step: SimDuration,
+    t: SimTime,
+    adjust: impl FnOnce(&mut plant::Sensors),
+) -> Option<(SimTime, bool)> {
+    module.advance(plant_step, t);
+    let mut sensors = *module.plant.sensors();
+    adjust(&mut sensors);
+    let drives_plant = node.drives_plant();
+    let fw = node.firmware()?;
+    let actuators = fw.loop_tick(t, &sensors);
+    let next = t + fw.loop_period();
+    // A sensor-only node (seed 002's light sensor) watches the bench that
+    // another node drives: its idle pins must not overwrite the driver's.
+    if !drives_plant {
+        return Some((next, false));
+    }
+    let changed = module.actuators != actuators;
+    module.actuators = actuators;
+    Some((next, changed))
+}
+
+/// One node, where it is attached and when its firmware ticks next.
+pub struct NodeSlot {
+    pub name: String,
+    pub node: Box<dyn SimNode>,
+    pub bus: usize,
+    pub port: PortId,
+    pub module: Option<usize>,
+    next_tick: Option<SimTime>,
+    /// Given an input (bytes, a timeout, the end of its transmission, a loop
+    /// tick) since its output was last drained. A sans-IO node's output only
+    /// changes on an input, and every instant it waits for is an input
+    /// through its `poll_timeout`, so the others need not be asked.
+    stirred: bool,
+}
+
+/// What carries a bus slot's frames: the RS-485 serial bus, or seed 003's
+/// PWM-capture link (frames of pulse widths, captured widths delivered).
+// One per bus, built once and never moved on a hot path: the size of the
+// PWM link's capture buffers costs nothing.
+#[allow(clippy::large_enum_variant)]
+#[derive(Debug)]
+pub enum Medium {
+    Serial(SimBus),
+    Pwm(PwmBus),
+}
+
+impl Medium {
+    pub fn add_port(&mut self, config: PortConfig) -> PortId {
+        match self {
+            Medium::Serial(bus) => bus.add_port(config),
+            Medium::Pwm(link) => link.add_port(config),
+        }
+    }
+    pub fn send(
+        &mut self,
+        now: SimTime,
+        from: PortId,
+        bytes: &[u8],
+    ) -> Result<FrameInfo, BusError> {
+        match self {
+            Medium::Serial(bus) => bus.send(now, from, bytes),
+            Medium::Pwm(link) => link.send(now, from, bytes),
+        }
+    }
+    pub fn poll_timeout(&self) -> Option<SimTime> {
+        match self {
+            Medium::Serial(bus) => bus.poll_timeout(),
+            Medium::Pwm(link) => link.poll_timeout(),
+        }
+    }
+    pub fn poll_event(&mut self, now: SimTime) -> Option<BusEvent> {
+        match self {
+            Medium::Serial(bus) => bus.poll_event(now),
+            Medium::Pwm(link) => link.poll_event(now),
+        }
+    }
+    /// The line's counters (on a PWM link, bytes are 4-byte pulse records).
+    pub fn stats(&self) -> &BusStats {
+        match self {
+            Medium::Serial(bus) => bus.stats(),
+            Medium::Pwm(link) => link.stats(),
+        }
+    }
+    /// The PWM-capture link, if this is one.
+    pub fn as_pwm(&self) -> Option<&PwmBus> {
+        match self {
+            Medium::Pwm(link) => Some(link),
+            Medium::Serial(_) => None,
+        }
+    }
+}
+
+impl From<SimBus> for Medium {
+    fn from(bus: SimBus) -> Self {
+        Medium::Serial(bus)
+    }
+}
+
+impl From<PwmBus> for Medium {
+    fn from(link: PwmBus) -> Self {
+        Medium::Pwm(link)
+    }
+}
+
+/// A bus and its name.
+pub struct BusSlot {
+    pub name: String,
+    pub bus: Medium,
+    /// Node index of each port.
+    pub owners: Vec<usize>,
+    /// Node name of each port, for the recording.
+    pub port_names: Vec<String>,
+    /// Per port: the last frame it sent, and the frame it is receiving.
+    sent: Vec<Vec<u8>>,
+    receiving: Vec<Reception>,
+    pub checks: CheckTally,
+}
+
+/// A frame as one receiver gets it.
+#[derive(Default)]
+struct Reception {
+    bytes: Vec<u8>,
+    corrupted: bool,
+}
+
+/// What the receivers' checks made of the frames that crossed a bus. The twin
+/// knows what was sent, so it can count the corrupted frames that a weak check
+/// (MEB's 8-bit XOR) lets through.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct CheckTally {
+    /// Frames received in full, one count per receiver.
+    pub frames_received: u64,
+    /// Of those, frames with at least one byte changed by noise or a collision.
+    pub frames_corrupted: u64,
+    /// Corrupted frames that still pass their protocol's check.
+    pub corrupted_passed_check: u64,
+}
+
+pub use twin_recording::describe::FrameKind;
+
+impl BusSlot {
+    /// Follow one byte into its receiver's frame and tally the frame's check
+    /// when its last byte lands.
+    fn tally(
+        &mut self,
+        to: PortId,
+        from: PortId,
+        byte: u8,
+        corrupted: bool,
+        index: usize,
+        last: bool,
+    ) {
+        let Some(rx) = self.receiving.get_mut(to.index()) else {
+            return;
+        };
+        if index == 0 {
+            rx.bytes.clear();
+            rx.corrupted = false;
+        }
+        rx.bytes.push(byte);
+        rx.corrupted |= corrupted;
+        if !last {
+            return;
+        }
+        self.checks.frames_received += 1;
+        if rx.corrupted {
+            self.checks.frames_corrupted += 1;
+            let sent = self.sent.get(from.index()).map_or(&[][..], Vec::as_slice);
+            // PWM-capture frames carry no check at all (Table 2: no CRC).
+            let pwm = matches!(self.bus, Medium::Pwm(_));
+            if pwm || FrameKind::of(sent).passes_check(&rx.bytes) {
+                self.checks.corrupted_passed_check += 1;
+            }
+        }
+    }
+}
+
+/// Everything the engine reports as it runs, for the recorder.
+pub trait Observer {
+    fn plant(&mut self, now: SimTime, module: &ModuleSlot) -> Result<()>;
+    fn actuators(&mut self, now: SimTime, module: &ModuleSlot) -> Result<()>;
+    fn frame(
+        &mut self,
+        bus: &BusSlot,
+        from: &NodeSlot,
+        start: SimTime,
+        end: SimTime,
+        bytes: &[u8],
+    ) -> Result<()>;
+    fn event(&mut self, node: &NodeSlot, event: &NodeEvent) -> Result<()>;
+    fn telemetry(&mut self, now: SimTime, node: &NodeSlot, value: &serde_json::Value)
+    -> Result<()>;
+}
+
+/// The engine.
+pub struct Engine {
+    pub modules: Vec<ModuleSlot>,
+    pub nodes: Vec<NodeSlot>,
+    pub buses: Vec<BusSlot>,
+    now: SimTime,
+    plant_step: SimDuration,
+    record_period: SimDuration,
+    next_record: SimTime,
+    tx: Vec<u8>,
+    pub frames_sent: u64,
+    /// Discrete events handled so far: byte arrivals and ends of frames,
+    /// firmware loop ticks, node timeouts and recording instants.
+    pub events: u64,
+}
+
+impl Engine {
+    pub fn new(plant_step: SimDuration, record_period: SimDuration) -> Self {
+        Self {
+            modules: Vec::new(),
+            nodes: Vec::new(),
+            buses: Vec::new(),
+            now: SimTime::ZERO,
+            plant_step,
+            record_period,
+            next_record: SimTime::ZERO,
+            tx: vec![0; MAX_FRAME],
+            frames_sent: 0,
+            events: 0,
+        }
+    }
+
+    pub fn add_module(&mut self, name: &str, plant: EvModule) -> usize {
+        self.modules.push(ModuleSlot::new(name, plant));
+        self.modules.len() - 1
+    }
+
+    /// Add a bus: a `SimBus`, a `PwmBus` or a [`Medium`].
+    pub fn add_bus(&mut self, name: &str, bus: impl Into<Medium>) -> usize {
+        self.buses.push(BusSlot {
+            name: name.into(),
+            bus: bus.into(),
+            owners: Vec::new(),
+            port_names: Vec::new(),
+            sent: Vec::new(),
+            receiving: Vec::new(),
+            checks: CheckTally::default(),
+        });
+        self.buses.len() - 1
+    }
+
+    /// Attach a node to a bus at `port` (from `SimBus::add_port`).
+    pub fn add_node(
+        &mut self,
+        name: &str,
+        mut node: Box<dyn SimNode>,
+        bus: usize,
+        port: PortId,
+        module: Option<usize>,
+    ) -> usize {
+        let next_tick = node.firmware().map(|_| SimTime::ZERO);
+        let index = self.nodes.len();
+        self.nodes.push(NodeSlot {
+            name: name.into(),
+            node,
+            bus,
+            port,
+            module,
+            next_tick,
+            stirred: true,
+        });
+        let owners = &mut self.buses[bus].owners;
+        if owners.len() <= port.index() {
+            owners.resize(port.index() + 1, usize::MAX);
+        }
+        owners[port.index()] = index;
+        let slot = &mut self.buses[bus];
+        if slot.port_names.len() <= port.index() {
+            slot.port_names.resize(port.index() + 1, String::new());
+        }
+        slot.port_names[port.index()] = name.into();
+        while slot.sent.len() < slot.owners.len() {
+            slot.sent.push(Vec::with_capacity(MAX_FRAME));
+            slot.receiving.push(Reception {
+                bytes: Vec::with_capacity(MAX_FRAME),
+                corrupted: false,
+            });
+        }
+        index
+    }
+
+    pub fn now(&self) -> SimTime {
+        self.now
+    }
+
+    /// Run until `end`, reporting to `observer`; `progress` gets the time reached.
+    pub fn run_until(
+        &mut self,
+        end: SimTime,
+        observer: &mut dyn Observer,
+        mut progress: impl FnMut(SimTime),
+    ) -> Result<()> {
+        let mut handled = 0u64;
+        let mut passes_at_this_instant = 0u32;
+        loop {
+            self.transmit_all(observer)?;
+            self.drain_node_output(observer)?;
+            let Some(t) = self.next_event() else { break };
+            if t > end {
+                break;
+            }
+            // A node that keeps asking to be woken at an instant it has
+            // already handled would spin the clock in place: say which.
+            passes_at_this_instant = if t == self.now {
+                passes_at_this_instant + 1
+            } else {
+                0
+            };
+            if passes_at_this_instant > STALL_PASSES {
+                let stuck: Vec<&str> = self
+                    .nodes
+                    .iter()
+                    .filter(|n| n.node.poll_timeout().is_some_and(|due| due <= t))
+                    .map(|n| n.name.as_str())
+                    .collect();
+                anyhow::bail!(
+                    "simulated time stopped at {:.6} s: node(s) {} ask to be woken again and again at that instant",
+                    t.as_secs_f64(),
+                    stuck.join(", ")
+                );
+            }
+            self.now = t;
+            self.deliver_bus_events(t);
+            self.tick_firmware(t, observer)?;
+            for slot in &mut self.nodes {
+                if slot.node.poll_timeout().is_some_and(|due| due <= t) {
+                    slot.node.handle_timeout(t);
+                    slot.stirred = true;
+                    self.events += 1;
+                }
+            }
+            if t >= self.next_record {
+                for m in 0..self.modules.len() {
+                    self.advance_plant(m, t);
+                    observer.plant(t, &self.modules[m])?;
+                }
+                self.next_record = t + self.record_period;
+                self.events += 1;
+            }
+            handled += 1;
+            if handled.is_multiple_of(4096) {
+                progress(t);
+            }
+        }
+        for m in 0..self.modules.len() {
+            self.advance_plant(m, end);
+        }
+        self.now = end;
+        Ok(())
+    }
+
+    fn next_event(&self) -> Option<SimTime> {
+        let buses = self.buses.iter().filter_map(|b| b.bus.poll_timeout());
+        let nodes = self.nodes.iter().filter_map(|n| n.node.poll_timeout());
+        let ticks = self.nodes.iter().filter_map(|n| n.next_tick);
+        let record = (!self.modules.is_empty()).then_some(self.next_record);
+        buses.chain(nodes).chain(ticks).chain(record).min()
+    }
+
+    fn deliver_bus_events(&mut self, t: SimTime) {
+        for b in 0..self.buses.len() {
+            while let Some(event) = self.buses[b].bus.poll_event(t) {
+                self.events += 1;
+                match event {
+                    BusEvent::Byte {
+                        to,
+                        at,
+                        byte,
+                        corrupted,
+                        from,
+                        index,
+                        last,
+                    } => {
+                        self.buses[b].tally(to, from, byte, corrupted, index, last);
+                        if let Some(&n) = self.buses[b].owners.get(to.index())
+                            && let Some(slot) = self.nodes.get_mut(n)
+                        {
+                            slot.node.handle_bytes(at, &[byte]);
+                            slot.stirred = true;
+                        }
+                    }
+                    BusEvent::TransmitDone { port, at } => {
+                        if let Some(&n) = self.buses[b].owners.get(port.index())
+                            && let Some(slot) = self.nodes.get_mut(n)
+                        {
+                            slot.node.transmit_done(at);
+                            slot.stirred = true;
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// Step a module's plant up to `t` in whole plant steps (and a last
+    /// partial one if `t` is off the grid).
+    fn advance_plant(&mut self, m: usize, t: SimTime) {
+        self.modules[m].advance(self.plant_step, t);
+    }
+
+    fn tick_firmware(&mut self, t: SimTime, observer: &mut dyn Observer) -> Result<()> {
+        for n in 0..self.nodes.len() {
+            if self.nodes[n].next_tick.is_none_or(|due| due > t) {
+                continue;
+            }
+            let Some(m) = self.nodes[n].module else {
+                continue;
+            };
+            let slot = &mut self.nodes[n];
+            let module = &mut self.modules[m];
+            let Some((next, changed)) =
+                firmware_tick(slot.node.as_mut(), module, self.plant_step, t, |_| {})
+            else {
+                continue;
+            };
+            slot.stirred = true;
+            self.events += 1;
+            slot.next_tick = Some(next);
+            if changed {
+                observer.actuators(t, module)?;
+            }
+        }
+        Ok(())
+    }
+
+    fn transmit_all(&mut self, observer: &mut dyn Observer) -> Result<()> {
+        let t = self.now;
+        for n in 0..self.nodes.len() {
+            if !self.nodes[n].stirred {
+                continue;
+            }
+            while let Some(len) = self.nodes[n].node.poll_transmit(t, &mut self.tx) {
+                let len = len.min(self.tx.len());
+                let slot = &self.nodes[n];
+                let bus = &mut self.buses[slot.bus];
+                let info = bus.bus.send(t, slot.port, &self.tx[..len])?;
+                if let Some(sent) = bus.sent.get_mut(slot.port.index()) {
+                    sent.clear();
+                    sent.extend_from_slice(&self.tx[..len]);
+                }
+                self.frames_sent += 1;
+                observer.frame(
+                    &self.buses[slot.bus],
+                    slot,
+                    info.start,
+                    info.end,
+                    &self.tx[..len],
+                )?;
+            }
+        }
+        Ok(())
+    }
+
+    fn drain_node_output(&mut self, observer: &mut dyn Observer) -> Result<()> {
+        let t = self.now;
+        for n in 0..self.nodes.len() {
+            if !self.nodes[n].stirred {
+                continue;
+            }
+            while let Some(event) = self.nodes[n].node.poll_event() {
+                observer.event(&self.nodes[n], &event)?;
+            }
+            if let Some(value) = self.nodes[n].node.telemetry() {
+                observer.telemetry(t, &self.nodes[n], &value)?;
+            }
+            self.nodes[n].stirred = false;
+        }
+        Ok(())
+    }
+}
+
+macro_rules! debug_by_name {
+    ($($t:ty),*) => {$(
+        impl std::fmt::Debug for $t {
+            fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                f.debug_struct(stringify!($t)).field("name", &self.name).finish_non_exhaustive()
+            }
+        }
+    )*};
+}
+debug_by_name!(ModuleSlot, NodeSlot, BusSlot);
+
+impl std::fmt::Debug for Engine {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Engine")
+            .field("now", &self.now)
+            .finish_non_exhaustive()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nodes::link::{BusConfig, PortConfig};
+
+    /// A node that wants to be woken at time zero for ever.
+    struct Stuck;
+
+    impl Node for Stuck {
+        fn handle_bytes(&mut self, _now: SimTime, _bytes: &[u8]) {}
+        fn handle_timeout(&mut self, _now: SimTime) {}
+        fn poll_transmit(&mut self, _now: SimTime, _buf: &mut [u8]) -> Option<usize> {
+            None
+        }
+        fn poll_timeout(&self) -> Option<SimTime> {
+            Some(SimTime::ZERO)
+        }
+    }
+
+    impl SimNode for Stuck {}
+
+    #[test]
+    fn a_node_that_stops_the_clock_is_named_not_spun_on() {
+        let mut engine = Engine::new(SimDuration::from_millis(1), SimDuration::from_millis(5));
+        let mut bus = SimBus::new(BusConfig::default()).expect("bus");
+        let port = bus.add_port(PortConfig::default());
+        let b = engine.add_bus("rs485", bus);
+        engine.add_node("stuck-node", Box::new(Stuck), b, port, None);
+        let end = SimTime::ZERO + SimDuration::from_millis(10);
+        let err = engine
+            .run_until(end, &mut crate::observe::DiscardObserver, |_| {})
+            .expect_err("the clock cannot advance");
+        assert!(err.to_string().contains("stuck-node"), "{err}");
+    }
+}

@@ -1,0 +1,306 @@
+//! Re-running a recorded run: the run's identity comes out of the
+//! recording's `twin.run` metadata (the scenario TOML with the duration and
+//! seed it ran with, or an open-loop run's settings and parameters), may be
+//! changed field by field (`--set node.supervisor.kp=0.6`), and runs again.
+
+use anyhow::{Context, Result, bail};
+use plant::PlantParams;
+use std::path::{Path, PathBuf};
+use toml::{Table, Value};
+
+use crate::openloop::{self, OpenLoop};
+use twin_recording::Recording;
+use crate::scenario::Scenario;
+
+/// What a recording says was run.
+#[derive(Debug, Clone)]
+pub enum RunSpec {
+    Scenario(Scenario),
+    OpenLoop(Box<OpenLoop>),
+}
+
+impl RunSpec {
+    /// The run stored in `recording`'s metadata.
+    pub fn from_recording(recording: &Recording) -> Result<Self> {
+        let origin = recording.path.display().to_string();
+        let Some(kind) = recording.run_field("kind") else {
+            bail!("{origin} has no `twin.run` metadata: it was not recorded by `twin run`");
+        };
+        match kind {
+            "scenario" => {
+                let text = recording
+                    .run_field("scenario_toml")
+                    .with_context(|| format!("{origin}: `twin.run` lacks `scenario_toml`"))?;
+                Ok(Self::Scenario(Scenario::parse(
+                    text,
+                    &format!("{origin}, scenario_toml"),
+                )?))
+            }
+            "open-loop" => Ok(Self::OpenLoop(open_loop_table(recording).and_then(
+                |t| {
+                    open_loop_from_table(&t)
+                        .with_context(|| format!("{origin}: open-loop settings in `twin.run`"))
+                },
+            )?)),
+            other => bail!("{origin}: unknown run kind `{other}` in `twin.run`"),
+        }
+    }
+
+    /// Change fields: `PATH=VALUE` with PATH dotted through the scenario (as
+    /// in its TOML; array items by `name` or index, e.g.
+    /// `module.ev1.params.wheel.brake_torque_nm=3` or `node.1.kp=0.6`) or, for
+    /// an open-loop run, through its settings (`vel_fraction`, `duration_s`,
+    /// `seed`, `params.motor.…`). VALUE is a TOML value; bare text is a string.
+    pub fn with_overrides(self, overrides: &[String]) -> Result<Self> {
+        if overrides.is_empty() {
+            return Ok(self);
+        }
+        let origin = format!("the run after --set {}", overrides.join(" --set "));
+        let mut table = self.to_table()?;
+        for o in overrides {
+            let Some((path, raw)) = o.split_once('=') else {
+                bail!("--set `{o}`: write PATH=VALUE, e.g. node.supervisor.kp=0.6");
+            };
+            set_path(&mut table, path.trim(), parse_value(raw.trim()))
+                .with_context(|| format!("--set `{o}`"))?;
+        }
+        match self {
+            RunSpec::Scenario(_) => {
+                let text = toml::to_string(&table)?;
+                Ok(RunSpec::Scenario(
+                    Scenario::parse(&text, "the edited scenario").context(origin)?,
+                ))
+            }
+            RunSpec::OpenLoop(_) => Ok(RunSpec::OpenLoop(
+                open_loop_from_table(&table).context(origin)?,
+            )),
+        }
+    }
+
+    fn to_table(&self) -> Result<Table> {
+        Ok(match self {
+            RunSpec::Scenario(s) => Table::try_from(s)?,
+            RunSpec::OpenLoop(o) => {
+                let mut t = Table::new();
+                t.insert("preset".into(), Value::String(o.preset.clone()));
+                t.insert("seed".into(), Value::Integer(o.seed as i64));
+                t.insert("duration_s".into(), Value::Float(o.duration_s));
+                t.insert("step_s".into(), Value::Float(o.step_s));
+                t.insert("vel_step_at_s".into(), Value::Float(o.vel_step_at_s));
+                t.insert("vel_fraction".into(), Value::Float(o.vel_fraction));
+                t.insert(
+                    "vel_before_fraction".into(),
+                    Value::Float(o.vel_before_fraction),
+                );
+                t.insert("record_hz".into(), Value::Float(o.record_hz));
+                t.insert("params".into(), Value::Table(Table::try_from(&o.params)?));
+                t
+            }
+        })
+    }
+
+    /// A line naming the run.
+    pub fn describe(&self) -> String {
+        match self {
+            RunSpec::Scenario(s) => format!(
+                "scenario {}, seed {}, {:.3} s",
+                s.name, s.seed, s.duration_s
+            ),
+            RunSpec::OpenLoop(o) => format!(
+                "open loop on the {} preset, seed {}, {:.3} s",
+                o.preset, o.seed, o.duration_s
+            ),
+        }
+    }
+
+    /// Run it, recording to `out`.
+    pub fn run(&self, out: &Path, progress: impl FnMut(f64)) -> Result<PathBuf> {
+        Ok(match self {
+            RunSpec::Scenario(s) => crate::virtual_run::run(s, out, progress)?.recording,
+            RunSpec::OpenLoop(o) => openloop::run(o, out, progress)?.recording,
+        })
+    }
+}
+
+/// An open-loop recording's settings as a table (the shape `--set` edits).
+fn open_loop_table(recording: &Recording) -> Result<Table> {
+    let origin = recording.path.display().to_string();
+    let field = |k: &str| {
+        recording
+            .run_field(k)
+            .with_context(|| format!("{origin}: `twin.run` lacks `{k}`"))
+    };
+    let number = |k: &str| -> Result<f64> {
+        field(k)?
+            .parse()
+            .with_context(|| format!("{origin}: `twin.run` field `{k}` is not a number"))
+    };
+    let mut t = Table::new();
+    t.insert("preset".into(), Value::String(field("preset")?.into()));
+    let seed: i64 = field("seed")?
+        .parse()
+        .with_context(|| format!("{origin}: `twin.run` field `seed` is not an integer"))?;
+    t.insert("seed".into(), Value::Integer(seed));
+    for k in ["duration_s", "step_s", "vel_step_at_s", "vel_fraction"] {
+        t.insert(k.into(), Value::Float(number(k)?));
+    }
+    // Recordings older than this field were all made at the default rate.
+    let hz = match recording.run_field("record_hz") {
+        Some(_) => number("record_hz")?,
+        None => 1000.0,
+    };
+    t.insert("record_hz".into(), Value::Float(hz));
+    // Written only when a step starts from a running wheel.
+    let before = match recording.run_field("vel_before_fraction") {
+        Some(_) => number("vel_before_fraction")?,
+        None => 0.0,
+    };
+    t.insert("vel_before_fraction".into(), Value::Float(before));
+    let params: Table = toml::from_str(field("params_toml")?)
+        .with_context(|| format!("{origin}: `params_toml` is not TOML"))?;
+    t.insert("params".into(), Value::Table(params));
+    Ok(t)
+}
+
+fn open_loop_from_table(t: &Table) -> Result<Box<OpenLoop>> {
+    let preset = t
+        .get("preset")
+        .and_then(Value::as_str)
+        .context("`preset` must be a preset name")?;
+    let Some(base) = PlantParams::preset(preset) else {
+        bail!("unknown preset `{preset}`");
+    };
+    let params_text = toml::to_string(
+        t.get("params")
+            .and_then(Value::as_table)
+            .context("`params` must be a table")?,
+    )?;
+    let params = PlantParams::from_toml(&params_text, Path::new("params"), &base)?;
+    let mut o = OpenLoop::new(params, preset);
+    let number = |k: &str| -> Result<f64> {
+        let v = match t.get(k) {
+            Some(Value::Float(f)) => *f,
+            Some(Value::Integer(i)) => *i as f64,
+            _ => bail!("`{k}` must be a number"),
+        };
+        Ok(v)
+    };
+    o.seed = t
+        .get("seed")
+        .and_then(Value::as_integer)
+        .and_then(|s| u64::try_from(s).ok())
+        .context("`seed` must be a non-negative integer")?;
+    o.duration_s = number("duration_s")?;
+    o.step_s = number("step_s")?;
+    o.vel_step_at_s = number("vel_step_at_s")?;
+    o.vel_fraction = number("vel_fraction")?;
+    o.vel_before_fraction = match t.get("vel_before_fraction") {
+        Some(_) => number("vel_before_fraction")?,
+        None => 0.0,
+    };
+    o.record_hz = number("record_hz")?;
+    for (k, v) in [
+        ("duration_s", o.duration_s),
+        ("step_s", o.step_s),
+        ("record_hz", o.record_hz),
+    ] {
+        if !(v.is_finite() && v > 0.0) {
+            bail!("`{k}` must be a positive number, got {v}");
+        }
+    }
+    Ok(Box::new(o))
+}
+
+/// A `--set` value: TOML (`3.0`, `true`, `[[0.5, 1000.0]]`, `"text"`), or
+/// bare text taken as a string.
+fn parse_value(raw: &str) -> Value {
+    toml::from_str::<Table>(&format!("v = {raw}"))
+        .ok()
+        .and_then(|mut t| t.remove("v"))
+        .unwrap_or_else(|| Value::String(raw.to_string()))
+}
+
+/// Set `path` (dotted) in `table`, making missing tables on the way. In a
+/// list of tables (`module`, `node`, …) the next part picks an item by its
+/// `name` or by its index.
+fn set_path(table: &mut Table, path: &str, value: Value) -> Result<()> {
+    let parts: Vec<&str> = path.split('.').collect();
+    if parts.iter().any(|p| p.is_empty()) {
+        bail!("`{path}` is not a dotted path");
+    }
+    let mut here: &mut Table = table;
+    let mut i = 0;
+    loop {
+        let part = parts[i];
+        let walked = parts[..=i].join(".");
+        if i + 1 == parts.len() {
+            here.insert(part.to_string(), value);
+            return Ok(());
+        }
+        let next = here
+            .entry(part.to_string())
+            .or_insert_with(|| Value::Table(Table::new()));
+        here = match next {
+            Value::Table(t) => t,
+            Value::Array(items) => {
+                i += 1;
+                if i + 1 == parts.len() {
+                    bail!("`{walked}` is a list: name a field of one of its items");
+                }
+                let pick = parts[i];
+                let names: Vec<String> = items
+                    .iter()
+                    .filter_map(|v| v.get("name").and_then(Value::as_str).map(String::from))
+                    .collect();
+                let index = match pick.parse::<usize>() {
+                    Ok(n) if n < items.len() => n,
+                    _ => match names.iter().position(|n| n == pick) {
+                        Some(n) => n,
+                        None => bail!(
+                            "`{walked}` has no item `{pick}`: its items are {} (or an index below {})",
+                            names.join(", "),
+                            items.len()
+                        ),
+                    },
+                };
+                match &mut items[index] {
+                    Value::Table(t) => t,
+                    _ => bail!("`{walked}.{pick}` is not a table"),
+                }
+            }
+            _ => bail!("`{walked}` is a value, not a table"),
+        };
+        i += 1;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn set_paths_through_tables_and_named_items() {
+        let mut t: Table = toml::from_str(
+            "seed = 1\n[[node]]\nname = \"a\"\nkp = 1.0\n[[node]]\nname = \"b\"\nkp = 2.0\n",
+        )
+        .unwrap();
+        set_path(&mut t, "node.b.kp", parse_value("0.5")).unwrap();
+        set_path(&mut t, "node.0.params.wheel.mass_kg", parse_value("3")).unwrap();
+        set_path(&mut t, "seed", parse_value("7")).unwrap();
+        assert_eq!(t["node"][1]["kp"].as_float(), Some(0.5));
+        assert_eq!(
+            t["node"][0]["params"]["wheel"]["mass_kg"].as_integer(),
+            Some(3)
+        );
+        assert_eq!(t["seed"].as_integer(), Some(7));
+        let e = set_path(&mut t, "node.c.kp", parse_value("1"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("items are a, b"), "{e}");
+        let e = set_path(&mut t, "seed.x", parse_value("1"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("`seed` is a value"), "{e}");
+        assert_eq!(parse_value("meb"), Value::String("meb".into()));
+    }
+}

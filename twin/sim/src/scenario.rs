@@ -1,0 +1,668 @@
+//! Scenario files: modules, buses, nodes, masters, a set-point schedule,
+//! faults and the seed, in TOML. Two scenarios are embedded in the binary.
+//!
+//! ```toml
+//! name = "ev-meb"
+//! seed = 1
+//! duration_s = 10.0
+//!
+//! [[module]]
+//! name = "ev1"
+//! preset = "vemodule"          # plus [module.params] overrides, as in a plant parameter file
+//!
+//! [[bus]]
+//! name = "rs485"
+//! baud = 115200
+//!
+//! [[node]]
+//! name = "ev1-controller"
+//! kind = "ev-controller"       # ev-controller | motor-node | light-node | supervisor | seed002-master
+//! bus = "rs485"
+//! module = "ev1"
+//! id = 1
+//! ```
+
+use anyhow::{Context, Result, bail};
+use plant::PlantParams;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+pub use crate::scenario_pwm::{
+    AddressingSpec, DuplexSpec, MediumSpec, ParallelLinkSpec, PwmcapSpec,
+};
+
+/// The scenarios built into the binary: name, one-line description, TOML text.
+pub const EMBEDDED: [(&str, &str, &str); 7] = [
+    (
+        "ev-meb",
+        "the EV module's speed loop closed by a supervisor over MEB at 115200 baud (default)",
+        include_str!("../../../recordings/scenarios/ev-meb.toml"),
+    ),
+    (
+        "controller-network",
+        "the seed-002 network: motor node, light-sensor node and the Raspberry Pi master",
+        include_str!("../../../recordings/scenarios/controller-network.toml"),
+    ),
+    (
+        "ten-modules",
+        "ten EV modules on one 115200-baud bus, one supervisor polling each at 10 Hz",
+        include_str!("../../../recordings/scenarios/ten-modules.toml"),
+    ),
+    (
+        "parallel-pwm-broadcast",
+        "three parallel modules: the master's VEL to two slaves by PWM-capture broadcast, every 1 ms",
+        include_str!("../../../recordings/scenarios/parallel-pwm-broadcast.toml"),
+    ),
+    (
+        "parallel-pwm-designated",
+        "three parallel modules: designated PWM-capture frames, answered, retransmitted on timeout",
+        include_str!("../../../recordings/scenarios/parallel-pwm-designated.toml"),
+    ),
+    (
+        "parallel-rtu-115200",
+        "three parallel modules: the master's VEL to two slaves by Modbus RTU at 115200 baud",
+        include_str!("../../../recordings/scenarios/parallel-rtu-115200.toml"),
+    ),
+    (
+        "parallel-rtu-1m",
+        "three parallel modules: the master's VEL to two slaves by Modbus RTU at 1 Mbit/s",
+        include_str!("../../../recordings/scenarios/parallel-rtu-1m.toml"),
+    ),
+];
+
+/// A whole scenario.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Scenario {
+    pub name: String,
+    #[serde(default)]
+    pub description: String,
+    #[serde(default = "default_seed")]
+    pub seed: u64,
+    pub duration_s: f64,
+    /// Plant step (s).
+    #[serde(default = "default_plant_step")]
+    pub plant_step_s: f64,
+    /// Plant state messages per simulated second in the recording.
+    #[serde(default = "default_record_hz")]
+    pub record_hz: f64,
+    #[serde(rename = "module", default)]
+    pub modules: Vec<ModuleSpec>,
+    #[serde(rename = "bus", default)]
+    pub buses: Vec<BusSpec>,
+    #[serde(rename = "node", default)]
+    pub nodes: Vec<NodeSpec>,
+    #[serde(rename = "fault", default)]
+    pub faults: Vec<FaultSpec>,
+}
+
+fn default_seed() -> u64 {
+    1
+}
+fn default_plant_step() -> f64 {
+    1e-3
+}
+fn default_record_hz() -> f64 {
+    200.0
+}
+
+/// One EV bench module: a preset plus parameter overrides.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModuleSpec {
+    pub name: String,
+    #[serde(default = "default_preset")]
+    pub preset: String,
+    /// Overrides, in the layout of a plant parameter file.
+    #[serde(default)]
+    pub params: toml::Table,
+}
+
+fn default_preset() -> String {
+    "vemodule".into()
+}
+
+/// How a bus is wired.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum WiringSpec {
+    /// Every node hears every other (RS-485 multi-drop).
+    MultiDrop,
+    /// The master's TX reaches every slave, every slave's TX reaches only the
+    /// master (the seed-002 network).
+    MasterSlaves,
+}
+
+/// A simulated serial bus.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BusSpec {
+    pub name: String,
+    #[serde(default = "default_baud")]
+    pub baud: u32,
+    /// Bits per character: 10 for 8N1, 11 for 8E1 or 8N2.
+    #[serde(default = "default_bits")]
+    pub bits_per_char: u32,
+    #[serde(default)]
+    pub bit_error_rate: f64,
+    #[serde(default = "default_wiring")]
+    pub wiring: WiringSpec,
+    /// `serial` (default) or `pwmcap` (seed 003's PWM-capture link).
+    #[serde(default, skip_serializing_if = "MediumSpec::is_serial")]
+    pub medium: MediumSpec,
+    /// The PWM-capture link's coding and line, for `medium = "pwmcap"`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pwmcap: Option<PwmcapSpec>,
+}
+
+fn default_baud() -> u32 {
+    115_200
+}
+fn default_bits() -> u32 {
+    10
+}
+fn default_wiring() -> WiringSpec {
+    WiringSpec::MultiDrop
+}
+
+/// Which protocol a slave or master speaks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ProtocolSpec {
+    Meb,
+    ModbusRtu,
+}
+
+/// A node on a bus.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "kebab-case", deny_unknown_fields)]
+pub enum NodeSpec {
+    /// The EV module's controller board: a slave that runs the module.
+    EvController {
+        name: String,
+        bus: String,
+        module: String,
+        #[serde(default = "default_id")]
+        id: u8,
+        #[serde(default = "default_protocol")]
+        protocol: ProtocolSpec,
+        #[serde(default = "default_turnaround_ms")]
+        turnaround_ms: f64,
+        #[serde(default = "default_loop_ms")]
+        loop_period_ms: f64,
+    },
+    /// The seed-002 motor node (id 01).
+    MotorNode {
+        name: String,
+        bus: String,
+        module: String,
+        #[serde(default = "default_turnaround_ms")]
+        turnaround_ms: f64,
+    },
+    /// The seed-002 light-sensor node (id 02), watching the same module's wheel.
+    LightNode {
+        name: String,
+        bus: String,
+        module: String,
+        #[serde(default = "default_turnaround_ms")]
+        turnaround_ms: f64,
+    },
+    /// A supervisor closing the speed loop over the bus.
+    Supervisor {
+        name: String,
+        bus: String,
+        slaves: Vec<u8>,
+        #[serde(default = "default_protocol")]
+        protocol: ProtocolSpec,
+        #[serde(default = "default_poll_ms")]
+        poll_period_ms: f64,
+        #[serde(default)]
+        gap_ms: f64,
+        #[serde(default = "default_timeout_ms")]
+        reply_timeout_ms: f64,
+        #[serde(default = "default_retries")]
+        retries: u32,
+        kp: f64,
+        ki: f64,
+        /// Close the loop on the light-sensor rpm instead of the hall rpm.
+        #[serde(default)]
+        use_light_rpm: bool,
+        /// `[time_s, rpm]` steps.
+        set_points: Vec<[f64; 2]>,
+    },
+    /// The seed-002 Raspberry Pi master.
+    Seed002Master {
+        name: String,
+        bus: String,
+        /// Reply timeout (ms); the original has none and hangs on a lost reply.
+        #[serde(default)]
+        reply_timeout_ms: Option<f64>,
+    },
+    /// The master of parallel modules: closes the speed loop on its own
+    /// module's wheel and sends the resulting VEL to the slave modules.
+    ParallelMaster {
+        name: String,
+        bus: String,
+        module: String,
+        link: ParallelLinkSpec,
+        slaves: Vec<u8>,
+        /// PI update and send period (the paper's retransmission period).
+        #[serde(default = "default_update_ms")]
+        update_period_ms: f64,
+        #[serde(default = "default_pwm_timeout_ms")]
+        reply_timeout_ms: f64,
+        #[serde(default = "default_retries")]
+        retries: u32,
+        kp: f64,
+        ki: f64,
+        set_points: Vec<[f64; 2]>,
+        #[serde(default = "default_loop_ms")]
+        loop_period_ms: f64,
+        #[serde(default)]
+        turnaround_ms: f64,
+    },
+    /// A slave module's controller on a PWM-capture link.
+    PwmSlave {
+        name: String,
+        bus: String,
+        module: String,
+        id: u8,
+        addressing: AddressingSpec,
+        #[serde(default = "default_loop_ms")]
+        loop_period_ms: f64,
+        #[serde(default)]
+        turnaround_ms: f64,
+    },
+}
+
+fn default_update_ms() -> f64 {
+    1.0
+}
+fn default_pwm_timeout_ms() -> f64 {
+    0.5
+}
+
+fn default_id() -> u8 {
+    1
+}
+fn default_protocol() -> ProtocolSpec {
+    ProtocolSpec::Meb
+}
+fn default_turnaround_ms() -> f64 {
+    1.0
+}
+fn default_loop_ms() -> f64 {
+    1.0
+}
+fn default_poll_ms() -> f64 {
+    10.0
+}
+fn default_timeout_ms() -> f64 {
+    100.0
+}
+fn default_retries() -> u32 {
+    2
+}
+
+impl NodeSpec {
+    pub fn name(&self) -> &str {
+        match self {
+            NodeSpec::EvController { name, .. }
+            | NodeSpec::MotorNode { name, .. }
+            | NodeSpec::LightNode { name, .. }
+            | NodeSpec::Supervisor { name, .. }
+            | NodeSpec::Seed002Master { name, .. }
+            | NodeSpec::ParallelMaster { name, .. }
+            | NodeSpec::PwmSlave { name, .. } => name,
+        }
+    }
+    pub fn bus(&self) -> &str {
+        match self {
+            NodeSpec::EvController { bus, .. }
+            | NodeSpec::MotorNode { bus, .. }
+            | NodeSpec::LightNode { bus, .. }
+            | NodeSpec::Supervisor { bus, .. }
+            | NodeSpec::Seed002Master { bus, .. }
+            | NodeSpec::ParallelMaster { bus, .. }
+            | NodeSpec::PwmSlave { bus, .. } => bus,
+        }
+    }
+    pub fn module(&self) -> Option<&str> {
+        match self {
+            NodeSpec::EvController { module, .. }
+            | NodeSpec::MotorNode { module, .. }
+            | NodeSpec::LightNode { module, .. }
+            | NodeSpec::ParallelMaster { module, .. }
+            | NodeSpec::PwmSlave { module, .. } => Some(module),
+            _ => None,
+        }
+    }
+}
+
+/// A fault switched on for a time window.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FaultSpec {
+    pub node: String,
+    pub kind: FaultKind,
+    pub from_s: f64,
+    pub until_s: f64,
+    /// For `delay-reply`.
+    #[serde(default)]
+    pub delay_ms: f64,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum FaultKind {
+    /// Replies carry a wrong FCS/CRC.
+    BadCheck,
+    /// Replies are not sent.
+    DropReply,
+    /// Replies are sent `delay_ms` late.
+    DelayReply,
+    /// The node neither answers nor sends anything.
+    Silent,
+}
+
+impl Scenario {
+    /// Parse scenario text; `origin` names it in errors.
+    pub fn parse(text: &str, origin: &str) -> Result<Self> {
+        let scenario: Scenario = toml::from_str(text).map_err(|e| {
+            let at = e.span().map(|s| line_col(text, s.start));
+            let place = at.map_or_else(String::new, |(l, c)| format!(":{l}:{c}"));
+            anyhow::anyhow!("{origin}{place}: {}", e.message().trim())
+        })?;
+        scenario.validate().map_err(|(field, msg)| {
+            // A field of one node or bus is found after the line naming it.
+            let place = match field.split_once('@') {
+                Some((key, owner)) => find_line_after(text, owner, key),
+                None => find_line(text, &field),
+            };
+            let field = field.split('@').next().unwrap_or_default().to_string();
+            let place = place.map_or_else(String::new, |l| format!(":{l}"));
+            anyhow::anyhow!("{origin}{place}: `{field}` {msg}")
+        })?;
+        Ok(scenario)
+    }
+
+    /// An embedded scenario by name, a scenario file by path.
+    pub fn load(name_or_path: &str) -> Result<Self> {
+        if let Some((name, _, text)) = EMBEDDED.iter().find(|(n, _, _)| *n == name_or_path) {
+            return Self::parse(text, &format!("embedded scenario {name}"));
+        }
+        let path = PathBuf::from(name_or_path);
+        if !path.exists() {
+            let names: Vec<_> = EMBEDDED.iter().map(|(n, _, _)| *n).collect();
+            bail!(
+                "no scenario `{name_or_path}`: not a file, and the embedded ones are {}",
+                names.join(", ")
+            );
+        }
+        let text = std::fs::read_to_string(&path)
+            .with_context(|| format!("cannot read {}", path.display()))?;
+        Self::parse(&text, &path.display().to_string())
+    }
+
+    /// The plant parameters of a module: its preset with its overrides.
+    pub fn module_params(&self, module: &ModuleSpec) -> Result<PlantParams> {
+        let Some(base) = PlantParams::preset(&module.preset) else {
+            bail!(
+                "module `{}`: unknown preset `{}`",
+                module.name,
+                module.preset
+            );
+        };
+        let text = toml::to_string(&module.params)?;
+        let origin = format!("scenario {}, module `{}` params", self.name, module.name);
+        Ok(PlantParams::from_toml(&text, Path::new(&origin), &base)?)
+    }
+
+    fn validate(&self) -> std::result::Result<(), (String, String)> {
+        let positive = |field: &str, v: f64| {
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err((
+                    field.to_string(),
+                    format!("must be a positive number, got {v}"),
+                ))
+            }
+        };
+        positive("duration_s", self.duration_s)?;
+        positive("plant_step_s", self.plant_step_s)?;
+        positive("record_hz", self.record_hz)?;
+        let mut names = std::collections::BTreeSet::new();
+        for n in &self.nodes {
+            if !names.insert(n.name()) {
+                return Err(("name".into(), format!("`{}` names two nodes", n.name())));
+            }
+            if !self.buses.iter().any(|b| b.name == n.bus()) {
+                return Err((
+                    "bus".into(),
+                    format!("`{}` of node `{}` is not a declared bus", n.bus(), n.name()),
+                ));
+            }
+            if let Some(m) = n.module()
+                && !self.modules.iter().any(|x| x.name == m)
+            {
+                return Err((
+                    "module".into(),
+                    format!("`{m}` of node `{}` is not a declared module", n.name()),
+                ));
+            }
+        }
+        for b in &self.buses {
+            if b.baud == 0 || !crate_time_ticks().is_multiple_of(u64::from(b.baud)) {
+                return Err((
+                    "baud".into(),
+                    format!("{} does not divide 72 GHz: use a standard rate", b.baud),
+                ));
+            }
+            if !(0.0..0.5).contains(&b.bit_error_rate) {
+                return Err(("bit_error_rate".into(), "must be in 0..0.5".into()));
+            }
+        }
+        self.validate_pwm()?;
+        for f in &self.faults {
+            if !names.contains(f.node.as_str()) {
+                return Err((
+                    "node".into(),
+                    format!("fault on `{}`, which is not a declared node", f.node),
+                ));
+            }
+            if f.until_s < f.from_s {
+                return Err(("until_s".into(), "must not be before from_s".into()));
+            }
+        }
+        Ok(())
+    }
+}
+
+impl Scenario {
+    /// PWM-capture buses and the nodes on them. Errors name the field as
+    /// `field@name`: the field after the line that names its bus or node.
+    fn validate_pwm(&self) -> std::result::Result<(), (String, String)> {
+        for b in &self.buses {
+            let at = |field: &str| format!("{field}@{}", b.name);
+            match (b.medium, &b.pwmcap) {
+                (MediumSpec::Serial, Some(_)) => {
+                    return Err((
+                        at("medium"),
+                        format!(
+                            "of bus `{}` is serial, but it has a [bus.pwmcap] table: set medium = \"pwmcap\"",
+                            b.name
+                        ),
+                    ));
+                }
+                (MediumSpec::Pwmcap, spec) => {
+                    let spec = spec.clone().unwrap_or_default();
+                    spec.bus_config(0, Some(0)).map_err(|(f, m)| (at(&f), m))?;
+                }
+                (MediumSpec::Serial, None) => {}
+            }
+        }
+        for n in &self.nodes {
+            let Some(bus) = self.buses.iter().find(|b| b.name == n.bus()) else {
+                continue;
+            };
+            let pwm_node = match n {
+                NodeSpec::PwmSlave { .. } => true,
+                NodeSpec::ParallelMaster { link, .. } => link.is_pwm(),
+                _ => false,
+            };
+            let pwm_bus = bus.medium == MediumSpec::Pwmcap;
+            if pwm_node != pwm_bus {
+                let what = if pwm_bus {
+                    "is a PWM-capture link, and this node speaks a serial protocol"
+                } else {
+                    "is a serial bus, and this node speaks PWM-capture"
+                };
+                return Err((
+                    format!("bus@{}", n.name()),
+                    format!("`{}` of node `{}` {what}", bus.name, n.name()),
+                ));
+            }
+            match n {
+                NodeSpec::PwmSlave { id, .. } if *id == 0 || *id > 15 => {
+                    return Err((
+                        format!("id@{}", n.name()),
+                        format!(
+                            "{id} of node `{}`: a PWM slave id is 1 to 15 (the status nibble)",
+                            n.name()
+                        ),
+                    ));
+                }
+                NodeSpec::ParallelMaster {
+                    slaves,
+                    update_period_ms,
+                    reply_timeout_ms,
+                    ..
+                } => {
+                    let max = if pwm_bus { 15 } else { 247 };
+                    if let Some(id) = slaves.iter().find(|&&id| id == 0 || id > max) {
+                        return Err((
+                            format!("slaves@{}", n.name()),
+                            format!(
+                                "of node `{}` holds {id}: ids on this link are 1 to {max}",
+                                n.name()
+                            ),
+                        ));
+                    }
+                    if slaves.is_empty() {
+                        return Err((
+                            format!("slaves@{}", n.name()),
+                            "must name at least one slave id".into(),
+                        ));
+                    }
+                    for (field, v) in [
+                        ("update_period_ms", update_period_ms),
+                        ("reply_timeout_ms", reply_timeout_ms),
+                    ] {
+                        if !(v.is_finite() && *v > 0.0) {
+                            return Err((
+                                format!("{field}@{}", n.name()),
+                                format!("must be a positive number, got {v}"),
+                            ));
+                        }
+                    }
+                }
+                _ => {}
+            }
+        }
+        // Faults wrap a node's bytes (bad checks, dropped replies): PWM frames
+        // carry no check to spoil, and the link's noise is the way to break them.
+        for f in &self.faults {
+            let pwm = self.nodes.iter().any(|n| {
+                n.name() == f.node
+                    && matches!(
+                        n,
+                        NodeSpec::PwmSlave { .. } | NodeSpec::ParallelMaster { .. }
+                    )
+            });
+            if pwm {
+                return Err((
+                    "node".into(),
+                    format!(
+                        "fault on `{}`: faults apply to serial nodes; on a PWM-capture link raise the line's noise_mv or cable_m",
+                        f.node
+                    ),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The line setting `key = …` in the block (up to the next `[[…]]`) of a
+/// line that sets `name = "owner"`; else that name line. A module and a node
+/// may share a name: the block that has the key is the one meant.
+fn find_line_after(text: &str, owner: &str, key: &str) -> Option<usize> {
+    let quoted = format!("\"{owner}\"");
+    let lines: Vec<&str> = text.lines().collect();
+    let sets = |l: &str, key: &str, value: Option<&str>| {
+        l.split_once('=')
+            .is_some_and(|(k, v)| k.trim() == key && value.is_none_or(|want| v.trim() == want))
+    };
+    let names: Vec<usize> = (0..lines.len())
+        .filter(|&i| sets(lines[i], "name", Some(&quoted)))
+        .collect();
+    for &start in &names {
+        let found = lines[start..]
+            .iter()
+            .enumerate()
+            .take_while(|(n, l)| *n == 0 || !l.trim_start().starts_with("[["))
+            .find(|(_, l)| sets(l, key, None));
+        if let Some((n, _)) = found {
+            return Some(start + n + 1);
+        }
+    }
+    names.first().map(|n| n + 1)
+}
+
+fn crate_time_ticks() -> u64 {
+    nodes::time::TICKS_PER_SECOND
+}
+
+fn line_col(text: &str, offset: usize) -> (usize, usize) {
+    let before = &text[..offset.min(text.len())];
+    let line = before.matches('\n').count() + 1;
+    let col = before.rsplit('\n').next().map_or(0, |l| l.chars().count()) + 1;
+    (line, col)
+}
+
+/// First line that sets `key = …` (good enough to point a user at the field).
+fn find_line(text: &str, key: &str) -> Option<usize> {
+    text.lines()
+        .position(|l| l.split('=').next().is_some_and(|k| k.trim() == key) && l.contains('='))
+        .map(|n| n + 1)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn embedded_scenarios_parse() {
+        for (name, _, _) in EMBEDDED {
+            let s = Scenario::load(name).expect(name);
+            assert_eq!(s.name, name);
+            for m in &s.modules {
+                s.module_params(m).expect("module params");
+            }
+        }
+    }
+
+    #[test]
+    fn errors_name_the_line_and_field() {
+        let text = "name = \"x\"\nduration_s = 1.0\n[[bus]]\nname = \"b\"\nbaud = 115200\n[[node]]\nkind = \"ev-controller\"\nname = \"n\"\nbus = \"nowhere\"\nmodule = \"m\"\n";
+        let e = Scenario::parse(text, "s.toml").unwrap_err().to_string();
+        assert!(e.starts_with("s.toml:9: `bus`"), "{e}");
+        let text = "name = \"x\"\nduration_s = \"long\"\n";
+        let e = Scenario::parse(text, "s.toml").unwrap_err().to_string();
+        assert!(e.starts_with("s.toml:2:"), "{e}");
+        let text = "name = \"x\"\nduration_s = 1.0\n[[bus]]\nname = \"b\"\nbaud = 115201\n";
+        let e = Scenario::parse(text, "s.toml").unwrap_err().to_string();
+        assert!(e.starts_with("s.toml:5: `baud`"), "{e}");
+    }
+}

@@ -1,0 +1,337 @@
+//! Reading a twin recording (MCAP) into a [`RerunLogger`]: the channels of
+//! README "What a recording holds", or of a real-time session (`twin serve`,
+//! `twin supervise`: `/link/<link>/frames`, `/realtime/lateness`), the layout
+//! from the `twin.run` metadata.
+//! A truncated file (the run killed) is read up to its last complete chunk.
+
+use anyhow::{Context, Result, bail};
+use mcap::read::{ChunkFlattener, LinearReader, Options};
+use mcap::records::Record;
+use plant::PlantParams;
+use serde::Deserialize;
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use super::layout::{
+    OPEN_LOOP_MODULE, SERVE_EV_MODULE, SERVE_LIGHT_NODE, SERVE_MOTOR_NODE, SUPERVISOR_NODE,
+    ViewLayout, supervised_module,
+};
+use super::logger::{LatenessSample, PlantSample, RerunLogger};
+use twin_sim::scenario::Scenario;
+
+/// What a recording's messages came to.
+#[derive(Debug, Clone, Default)]
+pub struct ReadSummary {
+    /// Messages read per topic.
+    pub messages: BTreeMap<String, u64>,
+    /// Simulated time of the last message (s).
+    pub end_s: f64,
+    /// Why reading stopped early, if it did (a truncated file).
+    pub stopped_early: Option<String>,
+    /// Messages that could not be read (topic, reason), counted per topic.
+    pub skipped: BTreeMap<String, u64>,
+}
+
+/// The `twin.run` metadata of a recording, if it has one.
+pub fn run_metadata(bytes: &[u8]) -> Option<BTreeMap<String, String>> {
+    let reader = LinearReader::new_with_options(bytes, Options::IgnoreEndMagic.into()).ok()?;
+    for record in reader {
+        match record {
+            Ok(Record::Metadata(m)) if m.name == "twin.run" => return Some(m.metadata),
+            Ok(_) => {}
+            Err(_) => return None,
+        }
+    }
+    None
+}
+
+/// The view layout a recording was made with: its scenario's, or the open
+/// loop's preset.
+pub fn layout_of(bytes: &[u8], path: &Path) -> Result<ViewLayout> {
+    if !bytes.starts_with(mcap::MAGIC) {
+        bail!(
+            "{} is not an MCAP recording (it does not start with the MCAP magic bytes)",
+            path.display()
+        );
+    }
+    let Some(meta) = run_metadata(bytes) else {
+        bail!(
+            "{} has no `twin.run` metadata record: it was not written by `twin run`, `twin serve` or `twin supervise`",
+            path.display()
+        );
+    };
+    match meta.get("kind").map(String::as_str) {
+        Some("scenario") => {
+            let Some(text) = meta.get("scenario_toml") else {
+                bail!(
+                    "{}: the `twin.run` metadata has no `scenario_toml`",
+                    path.display()
+                );
+            };
+            let origin = format!("{} (its stored scenario)", path.display());
+            let scenario = Scenario::parse(text, &origin)?;
+            ViewLayout::of_scenario(&scenario)
+        }
+        Some("open-loop") => {
+            let preset = meta.get("preset").map_or("vemodule", String::as_str);
+            let params = match meta.get("params_toml") {
+                Some(text) => toml::from_str::<PlantParams>(text)
+                    .with_context(|| format!("{}: the stored plant parameters", path.display()))?,
+                None => PlantParams::preset(preset)
+                    .with_context(|| format!("{}: unknown preset `{preset}`", path.display()))?,
+            };
+            Ok(ViewLayout::open_loop(&params))
+        }
+        Some("serve") => {
+            // `twin serve` stores its links as `--meb tcp://… --modbus8 /dev/…`.
+            let links = meta.get("links").map_or("", String::as_str);
+            let options: Vec<&str> = links.split_whitespace().step_by(2).collect();
+            let seed002 = options.contains(&"--modbus8");
+            let ev = options.iter().any(|o| *o != "--modbus8");
+            let params = match meta.get("params") {
+                Some(text) => toml::from_str::<PlantParams>(text)
+                    .with_context(|| format!("{}: the stored plant parameters", path.display()))?,
+                None => PlantParams::preset("vemodule").unwrap_or_default(),
+            };
+            Ok(ViewLayout::of_serve(&params, ev || !seed002, seed002))
+        }
+        Some("supervise") => {
+            // Stored as `[1, 2]`.
+            let text = meta.get("slaves").map_or("[1]", String::as_str);
+            let slaves: Vec<u8> = text
+                .trim_matches(|c| c == '[' || c == ']')
+                .split(',')
+                .filter(|s| !s.trim().is_empty())
+                .map(|s| s.trim().parse::<u8>())
+                .collect::<Result<_, _>>()
+                .with_context(|| {
+                    format!(
+                        "{}: the `slaves` of its `twin.run` metadata ({text}) are not slave ids",
+                        path.display()
+                    )
+                })?;
+            Ok(ViewLayout::of_supervise(&slaves))
+        }
+        other => bail!(
+            "{}: unknown recording kind {:?} in its `twin.run` metadata",
+            path.display(),
+            other.unwrap_or("(none)")
+        ),
+    }
+}
+
+/// Which program wrote the recording: the senders of a real-time
+/// session's link frames are named from that program's side.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Session {
+    /// `twin run`: frames name their sending node.
+    Virtual,
+    /// `twin serve`: `twin` is the slave(s) answering, `client N` a master.
+    Serve,
+    /// `twin supervise`: on the `bus` link `twin` is the supervisor polling
+    /// and `client N` the slave(s) answering.
+    Supervise,
+}
+
+impl Session {
+    /// The session that wrote the recording `bytes`.
+    pub fn of(bytes: &[u8]) -> Self {
+        match run_metadata(bytes).as_ref().and_then(|m| m.get("kind")) {
+            Some(k) if k == "serve" => Self::Serve,
+            Some(k) if k == "supervise" => Self::Supervise,
+            _ => Self::Virtual,
+        }
+    }
+
+    /// The node of the layout that sent `bytes` on `link`, recorded as
+    /// `from` (`twin`, or `client N` for the other side).
+    pub fn sender(self, link: &str, from: &str, bytes: &[u8]) -> String {
+        let name = match (self, link, from) {
+            (Self::Serve, _, "twin") if link.starts_with("modbus8") => match bytes.first() {
+                Some(1) => SERVE_MOTOR_NODE,
+                Some(2) => SERVE_LIGHT_NODE,
+                _ => from,
+            },
+            (Self::Serve, _, "twin") => SERVE_EV_MODULE,
+            (Self::Supervise, _, "twin") => SUPERVISOR_NODE,
+            // Several slaves may share the supervisor's bus: the reply names its own.
+            (Self::Supervise, "bus", _) => {
+                return reply_id(bytes).map_or_else(|| from.to_string(), supervised_module);
+            }
+            _ => from,
+        };
+        name.to_string()
+    }
+}
+
+/// The slave id a reply on a supervisor's bus carries: MEB `@NN…`, or a
+/// Modbus RTU frame's first byte.
+fn reply_id(bytes: &[u8]) -> Option<u8> {
+    match bytes {
+        [b'@', rest @ ..] => {
+            let digits = std::str::from_utf8(rest.get(..2)?).ok()?;
+            u8::from_str_radix(digits, 16).ok()
+        }
+        [id, _, ..] => Some(*id),
+        _ => None,
+    }
+}
+
+/// One frame as recorded on `/bus/<bus>/frames`.
+#[derive(Debug, Deserialize)]
+struct FrameMessage {
+    from: String,
+    start_s: f64,
+    end_s: f64,
+    hex: String,
+}
+
+/// One event as recorded on `/events`.
+#[derive(Debug, Deserialize)]
+struct EventMessage {
+    node: String,
+    kind: String,
+    detail: String,
+}
+
+fn unhex(hex: &str) -> Option<Vec<u8>> {
+    if !hex.len().is_multiple_of(2) {
+        return None;
+    }
+    (0..hex.len())
+        .step_by(2)
+        .map(|i| u8::from_str_radix(hex.get(i..i + 2)?, 16).ok())
+        .collect()
+}
+
+/// Feed every message of the recording `bytes` to `logger`.
+pub fn replay_into(bytes: &[u8], logger: &mut RerunLogger) -> Result<ReadSummary> {
+    let mut summary = ReadSummary::default();
+    let session = Session::of(bytes);
+    let mut topics: BTreeMap<u16, String> = BTreeMap::new();
+    let reader = ChunkFlattener::new_with_options(bytes, Options::IgnoreEndMagic.into())
+        .context("not an MCAP file")?;
+    for record in reader {
+        let record = match record {
+            Ok(r) => r,
+            Err(e) => {
+                summary.stopped_early = Some(e.to_string());
+                break;
+            }
+        };
+        match record {
+            Record::Channel(c) => {
+                topics.insert(c.id, c.topic);
+            }
+            Record::Message { header, data } => {
+                let Some(topic) = topics.get(&header.channel_id) else {
+                    continue;
+                };
+                let t = header.log_time as f64 * 1e-9;
+                summary.end_s = summary.end_s.max(t);
+                *summary.messages.entry(topic.clone()).or_default() += 1;
+                if let Err(e) = feed(logger, session, topic, t, &data) {
+                    *summary.skipped.entry(format!("{topic}: {e}")).or_default() += 1;
+                }
+            }
+            Record::DataEnd(_) => break,
+            _ => {}
+        }
+    }
+    Ok(summary)
+}
+
+/// One message to the logger, by topic.
+fn feed(
+    logger: &mut RerunLogger,
+    session: Session,
+    topic: &str,
+    t: f64,
+    data: &[u8],
+) -> Result<()> {
+    let parts: Vec<&str> = topic.trim_start_matches('/').split('/').collect();
+    match parts.as_slice() {
+        ["plant", "sensors"] => {
+            let s: PlantSample = serde_json::from_slice(data)?;
+            logger.plant(OPEN_LOOP_MODULE, t, &s);
+        }
+        ["plant", module, "sensors"] => {
+            let s: PlantSample = serde_json::from_slice(data)?;
+            logger.plant(module, t, &s);
+        }
+        ["bus", bus, "frames"] => {
+            let f: FrameMessage = serde_json::from_slice(data)?;
+            let Some(bytes) = unhex(&f.hex) else {
+                bail!("field `hex` is not hexadecimal");
+            };
+            logger.frame(bus, &f.from, f.start_s, f.end_s, &bytes);
+        }
+        ["link", link, "frames"] => {
+            let f: FrameMessage = serde_json::from_slice(data)?;
+            let Some(bytes) = unhex(&f.hex) else {
+                bail!("field `hex` is not hexadecimal");
+            };
+            let from = session.sender(link, &f.from, &bytes);
+            logger.frame(link, &from, f.start_s, f.end_s, &bytes);
+        }
+        ["realtime", "lateness"] => {
+            #[derive(Deserialize)]
+            struct Lateness {
+                window: LatenessSample,
+            }
+            let l: Lateness = serde_json::from_slice(data)?;
+            logger.lateness(t, &l.window);
+        }
+        ["events"] => {
+            let e: EventMessage = serde_json::from_slice(data)?;
+            logger.event(&e.node, t, &e.kind, &e.detail);
+        }
+        ["master", node, "loop"] => {
+            let report: serde_json::Value = serde_json::from_slice(data)?;
+            logger.master_loop(node, t, &report);
+        }
+        // Actuator changes are in the frames that caused them.
+        _ => {}
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{Session, reply_id, unhex};
+    use crate::layout::ViewLayout;
+
+    #[test]
+    fn a_supervisors_bus_replies_are_its_slaves_by_the_id_they_carry() {
+        assert_eq!(reply_id(b"@02EA00060BD6*\n"), Some(2));
+        assert_eq!(reply_id(&[0x03, 0x04, 0x02, 0x00, 0x01]), Some(3));
+        assert_eq!(reply_id(b"@z"), None);
+        let layout = ViewLayout::of_supervise(&[1, 2]);
+        assert_eq!(layout.module_of_node("slave02"), Some(1));
+        assert_eq!(layout.module_of_slave("supervisor", 2), Some(1));
+        assert!(!layout.modules[0].has_plant);
+        // The supervisor's own requests never feed a module.
+        let sender = Session::Supervise.sender("bus", "twin", b"@01EA000643*\n");
+        assert_eq!(layout.module_of_node(&sender), None);
+        let sender = Session::Supervise.sender("bus", "client 1", b"@02EA00060BD6*\n");
+        assert_eq!(layout.module_of_node(&sender), Some(1));
+        // The image server's TCP clients are not slaves.
+        assert_eq!(
+            Session::Supervise.sender("tcp", "client 3", b"@02"),
+            "client 3"
+        );
+        // On `twin serve`'s seed-002 link the reply's id names the node.
+        assert_eq!(Session::Serve.sender("modbus8", "twin", &[2, 3]), "sensor");
+        assert_eq!(Session::Serve.sender("modbus8", "twin", &[1, 3]), "motor");
+        assert_eq!(Session::Serve.sender("meb", "twin", b"@01"), "ev1");
+        assert_eq!(Session::Serve.sender("meb", "client 4", b"@01"), "client 4");
+    }
+
+    #[test]
+    fn hex_round_trips_and_refuses_garbage() {
+        assert_eq!(unhex("40a0ff"), Some(vec![0x40, 0xa0, 0xff]));
+        assert_eq!(unhex("4"), None);
+        assert_eq!(unhex("zz"), None);
+        assert_eq!(unhex(""), Some(vec![]));
+    }
+}
