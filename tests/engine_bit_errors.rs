@@ -16,7 +16,7 @@ use std::collections::{BTreeMap, HashSet};
 use nodes::link::{CheckKind, FaultyNode};
 use nodes::node::NodeEvent;
 use nodes::proto::meb::MebRepr;
-use nodes::seed002::{MasterConfig, Seed002Master};
+use nodes::controller_network::{MasterConfig, ControllerNetworkMaster};
 use nodes::time::{SimDuration, SimTime};
 use serde_json::Value;
 use twin_sim::engine::{BusSlot, Engine, ModuleSlot, NodeSlot, Observer};
@@ -356,7 +356,7 @@ fn modbus_rtu_crc_lets_no_corrupted_frame_or_value_through() {
 /// The seed-002 network of `recordings/scenarios/controller-network.toml` on a
 /// noisy line. The master gets a reply timeout: a corrupted request is not
 /// answered, and the original master would wait for it forever.
-fn seed002_scenario(seconds: f64) -> String {
+fn controller_network_scenario(seconds: f64) -> String {
     format!(
         r#"
 name = "controller-network-bit-errors"
@@ -381,7 +381,7 @@ name = "sensor"
 bus = "serial"
 module = "bench"
 [[node]]
-kind = "seed002-master"
+kind = "controller-network-master"
 name = "rpi"
 bus = "serial"
 reply_timeout_ms = 200.0
@@ -409,7 +409,7 @@ struct Reading {
 
 /// What a seed-002 run under noise showed.
 #[derive(Debug)]
-struct Seed002Run {
+struct ControllerNetworkRun {
     readings: Vec<Reading>,
     master: Value,
     checks: twin_sim::engine::CheckTally,
@@ -419,7 +419,7 @@ struct Seed002Run {
 /// Runs a seed-002 engine for `seconds`, checking every 20 ms that the
 /// master's motor rpm and sensor value are values the slaves sent (a value
 /// lives 0.6 s or more in the master, so none slips between two checks).
-fn run_seed002(mut engine: Engine, seconds: f64) -> Seed002Run {
+fn run_controller_network(mut engine: Engine, seconds: f64) -> ControllerNetworkRun {
     let master = engine
         .nodes
         .iter()
@@ -469,7 +469,7 @@ fn run_seed002(mut engine: Engine, seconds: f64) -> Seed002Run {
             });
         }
         if t >= seconds {
-            return Seed002Run {
+            return ControllerNetworkRun {
                 readings,
                 master: state,
                 checks: engine.buses[0].checks,
@@ -513,14 +513,14 @@ fn settled_phases(readings: &[Reading], n: usize) -> Vec<(f64, f64)> {
 
 /// The controller-network scenario's own timing: 0.7 s cycles, the set point
 /// toggling between 5000 and 10000 every 20 cycles.
-const SEED002_SECONDS: f64 = 60.0;
+const CONTROLLER_NETWORK_SECONDS: f64 = 60.0;
 
 #[test]
-fn seed002_network_uses_no_corrupted_value_and_still_settles() {
-    let run = run_seed002(build(&seed002_scenario(SEED002_SECONDS)), SEED002_SECONDS);
+fn controller_network_network_uses_no_corrupted_value_and_still_settles() {
+    let run = run_controller_network(build(&controller_network_scenario(CONTROLLER_NETWORK_SECONDS)), CONTROLLER_NETWORK_SECONDS);
     let phases = settled_phases(&run.readings, 8);
     eprintln!(
-        "seed-002 at BER {BIT_ERROR_RATE}, {SEED002_SECONDS} s: {:?}, {} collisions; master {}; \
+        "seed-002 at BER {BIT_ERROR_RATE}, {CONTROLLER_NETWORK_SECONDS} s: {:?}, {} collisions; master {}; \
          settled phases (set point, mean of the last 8 readings): {phases:?}",
         run.checks, run.collisions, run.master
     );
@@ -541,11 +541,11 @@ fn seed002_network_uses_no_corrupted_value_and_still_settles() {
 /// The seed-002 master polling back to back (a 3 ms reply wait, no sleep, no
 /// set-point toggling), to put a few thousand corrupted 8-byte frames through
 /// CRC-16 in a short run.
-const SEED002_FAST_SECONDS: f64 = 60.0;
+const CONTROLLER_NETWORK_FAST_SECONDS: f64 = 60.0;
 
 #[test]
-fn seed002_crc_catches_thousands_of_corrupted_frames() {
-    let mut engine = build(&seed002_scenario(SEED002_FAST_SECONDS));
+fn controller_network_crc_catches_thousands_of_corrupted_frames() {
+    let mut engine = build(&controller_network_scenario(CONTROLLER_NETWORK_FAST_SECONDS));
     let config = MasterConfig {
         reply_wait: SimDuration::from_millis(3),
         reply_timeout: Some(SimDuration::from_millis(10)),
@@ -560,11 +560,11 @@ fn seed002_crc_catches_thousands_of_corrupted_frames() {
         .find(|n| n.name == "rpi")
         .expect("master");
     master.node = Box::new(FaultyNode::with_schedule(
-        Seed002Master::new(config),
+        ControllerNetworkMaster::new(config),
         CheckKind::Modbus8,
         Vec::new(),
     ));
-    let run = run_seed002(engine, SEED002_FAST_SECONDS);
+    let run = run_controller_network(engine, CONTROLLER_NETWORK_FAST_SECONDS);
     let last: Vec<f64> = run.readings[run.readings.len().saturating_sub(200)..]
         .iter()
         .filter_map(|r| r.motor_rpm)
@@ -573,7 +573,7 @@ fn seed002_crc_catches_thousands_of_corrupted_frames() {
     let mean = last.iter().sum::<f64>() / last.len().max(1) as f64;
     let set_point = run.readings.last().map_or(0, |r| r.set_point) as f64;
     eprintln!(
-        "seed-002, fast master, at BER {BIT_ERROR_RATE}, {SEED002_FAST_SECONDS} s: {:?}, \
+        "seed-002, fast master, at BER {BIT_ERROR_RATE}, {CONTROLLER_NETWORK_FAST_SECONDS} s: {:?}, \
          {} collisions; master {}; mean of the last {} readings {mean:.0} rpm for {set_point}",
         run.checks,
         run.collisions,

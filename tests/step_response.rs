@@ -118,7 +118,7 @@ fn ev_module_light_sensor_fails_where_plant_says_for_both_detectors() {
 }
 
 #[test]
-fn seed002_light_node_fails_below_the_formulas_speed_and_never_above() {
+fn controller_network_light_node_fails_below_the_formulas_speed_and_never_above() {
     // The geared bench tops out near 113 rpm; a 20:1 gearbox lets the wheel
     // pass the light sensor's limit.
     let mut p = PlantParams::controller_network();
@@ -171,7 +171,7 @@ fn pausing_a_run_to_sample_it_changes_nothing() {
 }
 
 #[test]
-fn the_seed002_masters_own_step_with_both_sensors() {
+fn the_controller_network_masters_own_step_with_both_sensors() {
     let config = StepConfig {
         drive: StepDrive::ClosedLoop {
             scenario: Box::new(Scenario::load("controller-network").expect("embedded")),
@@ -184,7 +184,7 @@ fn the_seed002_masters_own_step_with_both_sensors() {
         duration_s: 30.0,
         seed: 1,
     };
-    let report = step::run(&config, &scratch("seed002.mcap"), |_| {}).expect("step runs");
+    let report = step::run(&config, &scratch("controller_network.mcap"), |_| {}).expect("step runs");
     // The master's handshake puts the motor node in operational at its
     // set point of 10000 motor rpm: 100 wheel rpm behind the 100:1 gearbox.
     assert_eq!((report.from, report.to), (0.0, 100.0));

@@ -6,7 +6,7 @@ pub mod link;
 pub mod master;
 pub mod node;
 pub mod parallel;
-pub mod seed002;
+pub mod controller_network;
 
 /// The wire formats, from the `protocols` crate (kept here so that
 /// `nodes::proto::…` paths still resolve).

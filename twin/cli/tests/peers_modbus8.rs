@@ -1,6 +1,6 @@
 //! The seed-002 network's slaves (`twin serve --modbus8`: motor id 01, light
 //! sensor id 02 behind one port) against a master that behaves like that
-//! network's Raspberry Pi (`peers/seed002_master.py`): it reopens the port for
+//! network's Raspberry Pi (`peers/controller_network_master.py`): it reopens the port for
 //! every transaction, waits a fixed 10 ms (its step-response build) or 100 ms,
 //! reads once and has no timeout. Every transaction must get a reply (none
 //! would hang the real master) and find it whole and valid in that one read
@@ -21,7 +21,7 @@ use std::time::Duration;
 fn run_master(device: &str, cycles: u32, wait_ms: u32) -> Value {
     let out = run_timeout(
         Command::new("python3")
-            .arg(script("seed002_master.py"))
+            .arg(script("controller_network_master.py"))
             .args([device, &cycles.to_string(), &wait_ms.to_string()]),
         Duration::from_secs(120),
     );
@@ -45,7 +45,7 @@ fn assert_every_reply_whole(seen: &Value) {
 }
 
 #[test]
-fn seed002_master_reopening_the_port_is_never_left_hanging() {
+fn controller_network_master_reopening_the_port_is_never_left_hanging() {
     let dir = scratch("modbus8");
     let pair = PtyPair::new(&dir);
     let serve = Serve::start(&["--quiet", "--modbus8", pair.a.to_str().unwrap()]);

@@ -578,7 +578,7 @@ fn paced_replies_take_their_wire_time_at_the_links_baud() {
 }
 
 #[test]
-fn the_seed002_network_answers_both_ids_on_one_pty() {
+fn the_controller_network_network_answers_both_ids_on_one_pty() {
     use nodes::proto::modbus8::{CrcOrder, Frame};
     let (mut port, _slave, path) = pty();
     let server = Server::start(&["--modbus8", &path, "--quiet", "--no-record"]);

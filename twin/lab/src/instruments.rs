@@ -6,7 +6,7 @@
 
 use nodes::firmware::{EvController, EvControllerConfig};
 use nodes::link::{CheckKind, FaultyNode};
-use nodes::seed002::{LightConfig, LightNode, MotorConfig, MotorNode};
+use nodes::controller_network::{LightConfig, LightNode, MotorConfig, MotorNode};
 use nodes::time::SimTime;
 use plant::light::fixed_threshold_max_rpm;
 use plant::{PlantParams, Sensors};

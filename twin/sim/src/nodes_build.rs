@@ -7,7 +7,7 @@ use nodes::link::{BusConfig, CheckKind, Fault, FaultWindow, FaultyNode, PortId, 
 use nodes::master::Supervisor;
 use nodes::master::{Protocol, SetPointStep, SlaveLoopConfig, SpeedSource, SupervisorConfig};
 use nodes::node::Firmware;
-use nodes::seed002::{LightConfig, LightNode, MasterConfig, MotorConfig, MotorNode, Seed002Master};
+use nodes::controller_network::{LightConfig, LightNode, MasterConfig, MotorConfig, MotorNode, ControllerNetworkMaster};
 use nodes::time::{SimDuration, SimTime};
 use plant::PlantParams;
 use serde_json::{Value, json};
@@ -69,7 +69,7 @@ pub fn is_master(spec: &NodeSpec) -> bool {
     matches!(
         spec,
         NodeSpec::Supervisor { .. }
-            | NodeSpec::Seed002Master { .. }
+            | NodeSpec::ControllerNetworkMaster { .. }
             | NodeSpec::ParallelMaster { .. }
     )
 }
@@ -165,7 +165,7 @@ pub fn build_node(
             let node = FaultyNode::with_schedule(light, CheckKind::Modbus8, windows);
             Ok((Box::new(node), ms(*turnaround_ms)))
         }
-        NodeSpec::Seed002Master {
+        NodeSpec::ControllerNetworkMaster {
             reply_timeout_ms, ..
         } => {
             let config = MasterConfig {
@@ -173,7 +173,7 @@ pub fn build_node(
                 ..MasterConfig::default()
             };
             let node =
-                FaultyNode::with_schedule(Seed002Master::new(config), CheckKind::Modbus8, windows);
+                FaultyNode::with_schedule(ControllerNetworkMaster::new(config), CheckKind::Modbus8, windows);
             Ok((Box::new(node), SimDuration::ZERO))
         }
         NodeSpec::ParallelMaster { .. } | NodeSpec::PwmSlave { .. } => {
@@ -214,7 +214,7 @@ impl SimNode for FaultyNode<MotorNode> {
     }
     fn speed_readings(&self) -> SpeedReadings {
         let m = self.inner();
-        let running = m.state() == nodes::seed002::MotorState::Operational;
+        let running = m.state() == nodes::controller_network::MotorState::Operational;
         SpeedReadings {
             motor_shaft_rpm: Some(f64::from(m.latched_rpm())),
             set_point_motor_rpm: Some(if running {
@@ -249,7 +249,7 @@ impl SimNode for FaultyNode<LightNode> {
     }
 }
 
-impl SimNode for FaultyNode<Seed002Master> {
+impl SimNode for FaultyNode<ControllerNetworkMaster> {
     fn final_state(&self) -> Option<Value> {
         let m = self.inner();
         Some(

@@ -16,7 +16,7 @@
 //!
 //! [[node]]
 //! name = "ev1-controller"
-//! kind = "ev-controller"       # ev-controller | motor-node | light-node | supervisor | seed002-master
+//! kind = "ev-controller"       # ev-controller | motor-node | light-node | supervisor | controller-network-master
 //! bus = "rs485"
 //! module = "ev1"
 //! id = 1
@@ -230,8 +230,10 @@ pub enum NodeSpec {
         /// `[time_s, rpm]` steps.
         set_points: Vec<[f64; 2]>,
     },
-    /// The seed-002 Raspberry Pi master.
-    Seed002Master {
+    /// The Controller_network project's Raspberry Pi master. Scenarios
+    /// written before it had this name call it `seed002-master`.
+    #[serde(alias = "seed002-master")]
+    ControllerNetworkMaster {
         name: String,
         bus: String,
         /// Reply timeout (ms); the original has none and hangs on a lost reply.
@@ -311,7 +313,7 @@ impl NodeSpec {
             | NodeSpec::MotorNode { name, .. }
             | NodeSpec::LightNode { name, .. }
             | NodeSpec::Supervisor { name, .. }
-            | NodeSpec::Seed002Master { name, .. }
+            | NodeSpec::ControllerNetworkMaster { name, .. }
             | NodeSpec::ParallelMaster { name, .. }
             | NodeSpec::PwmSlave { name, .. } => name,
         }
@@ -322,7 +324,7 @@ impl NodeSpec {
             | NodeSpec::MotorNode { bus, .. }
             | NodeSpec::LightNode { bus, .. }
             | NodeSpec::Supervisor { bus, .. }
-            | NodeSpec::Seed002Master { bus, .. }
+            | NodeSpec::ControllerNetworkMaster { bus, .. }
             | NodeSpec::ParallelMaster { bus, .. }
             | NodeSpec::PwmSlave { bus, .. } => bus,
         }

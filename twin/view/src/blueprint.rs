@@ -33,7 +33,7 @@ fn module_column(layout: &ViewLayout, m: usize) -> Vertical {
             .with_name(name.clone())
             .with_row_shares(shares);
     }
-    if layout.has_seed002(m) {
+    if layout.has_controller_network(m) {
         rows.push(plot(
             &format!("{name}: motor shaft (rpm)"),
             &format!("/{name}/motor_shaft/**"),

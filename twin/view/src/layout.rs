@@ -13,7 +13,7 @@ pub const OPEN_LOOP_MODULE: &str = "bench";
 
 /// The names `twin serve` gives its modules and nodes.
 pub const SERVE_EV_MODULE: &str = "ev1";
-pub const SERVE_SEED002_MODULE: &str = "bench";
+pub const SERVE_CONTROLLER_NETWORK_MODULE: &str = "bench";
 pub const SERVE_MOTOR_NODE: &str = "motor";
 pub const SERVE_LIGHT_NODE: &str = "sensor";
 /// The node name of `twin supervise`'s master in its loop reports.
@@ -64,7 +64,7 @@ pub struct ViewLayout {
     /// (master node name, slave id) → module index (its loop's set point).
     slave_module: BTreeMap<(String, u8), usize>,
     /// The seed-002 network's nodes: name → module index and which one.
-    seed002: BTreeMap<String, (usize, Seed002Role)>,
+    controller_network: BTreeMap<String, (usize, ControllerNetworkRole)>,
     /// A real-time session (`twin serve`, `twin supervise`): its tick
     /// lateness is shown too.
     pub realtime: bool,
@@ -72,7 +72,7 @@ pub struct ViewLayout {
 
 /// Which seed-002 node a reply comes from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Seed002Role {
+pub enum ControllerNetworkRole {
     /// Motor node: its register 5 is the motor shaft's rpm.
     Motor,
     /// Light-sensor node: its register 6 is the wheel rpm × 100.
@@ -89,7 +89,7 @@ impl ViewLayout {
         }
         let index = |name: &str| layout.modules.iter().position(|m| m.name == name);
         let mut node_module = BTreeMap::new();
-        let mut seed002 = BTreeMap::new();
+        let mut controller_network = BTreeMap::new();
         // Per bus: slave id → module, for the masters on that bus.
         let mut bus_slaves: BTreeMap<(&str, u8), usize> = BTreeMap::new();
         for node in &scenario.nodes {
@@ -108,18 +108,18 @@ impl ViewLayout {
                 }
                 NodeSpec::MotorNode { name, module, .. } => {
                     if let Some(m) = index(module) {
-                        seed002.insert(name.clone(), (m, Seed002Role::Motor));
+                        controller_network.insert(name.clone(), (m, ControllerNetworkRole::Motor));
                     }
                 }
                 NodeSpec::LightNode { name, module, .. } => {
                     if let Some(m) = index(module) {
-                        seed002.insert(name.clone(), (m, Seed002Role::Light));
+                        controller_network.insert(name.clone(), (m, ControllerNetworkRole::Light));
                     }
                 }
                 // Their frames carry no rpm words: the plants' own sensors
                 // show the parallel modules' wheels.
                 NodeSpec::Supervisor { .. }
-                | NodeSpec::Seed002Master { .. }
+                | NodeSpec::ControllerNetworkMaster { .. }
                 | NodeSpec::ParallelMaster { .. }
                 | NodeSpec::PwmSlave { .. } => {}
             }
@@ -139,7 +139,7 @@ impl ViewLayout {
         }
         layout.node_module = node_module;
         layout.slave_module = slave_module;
-        layout.seed002 = seed002;
+        layout.controller_network = controller_network;
         Ok(layout)
     }
 
@@ -155,7 +155,7 @@ impl ViewLayout {
     /// controller every link but `--modbus8` serves, on the plant `params`)
     /// and/or `bench`, the seed-002 network's, with its nodes `motor` and
     /// `sensor`. The names are those `twin serve` gives them.
-    pub fn of_serve(params: &PlantParams, ev: bool, seed002: bool) -> Self {
+    pub fn of_serve(params: &PlantParams, ev: bool, controller_network: bool) -> Self {
         let mut layout = Self {
             realtime: true,
             ..Self::default()
@@ -166,18 +166,18 @@ impl ViewLayout {
                 .push(ModuleView::new(SERVE_EV_MODULE, params));
             layout.node_module.insert(SERVE_EV_MODULE.into(), 0);
         }
-        if seed002 {
+        if controller_network {
             let m = layout.modules.len();
             let bench = PlantParams::preset("controller-network").unwrap_or_default();
             layout
                 .modules
-                .push(ModuleView::new(SERVE_SEED002_MODULE, &bench));
+                .push(ModuleView::new(SERVE_CONTROLLER_NETWORK_MODULE, &bench));
             layout
-                .seed002
-                .insert(SERVE_MOTOR_NODE.into(), (m, Seed002Role::Motor));
+                .controller_network
+                .insert(SERVE_MOTOR_NODE.into(), (m, ControllerNetworkRole::Motor));
             layout
-                .seed002
-                .insert(SERVE_LIGHT_NODE.into(), (m, Seed002Role::Light));
+                .controller_network
+                .insert(SERVE_LIGHT_NODE.into(), (m, ControllerNetworkRole::Light));
         }
         layout
     }
@@ -222,20 +222,20 @@ impl ViewLayout {
     }
 
     /// The seed-002 node `name`: its module and role.
-    pub fn seed002_node(&self, name: &str) -> Option<(usize, Seed002Role)> {
-        self.seed002.get(name).copied()
+    pub fn controller_network_node(&self, name: &str) -> Option<(usize, ControllerNetworkRole)> {
+        self.controller_network.get(name).copied()
     }
 
     /// Whether module `m` is run by seed-002 nodes (it then has a motor-shaft view).
-    pub fn has_seed002(&self, m: usize) -> bool {
-        self.seed002.values().any(|&(i, _)| i == m)
+    pub fn has_controller_network(&self, m: usize) -> bool {
+        self.controller_network.values().any(|&(i, _)| i == m)
     }
 
     /// The module of the seed-002 motor node (the master's set point is its).
-    pub fn seed002_motor_module(&self) -> Option<usize> {
-        self.seed002
+    pub fn controller_network_motor_module(&self) -> Option<usize> {
+        self.controller_network
             .values()
-            .find(|(_, role)| *role == Seed002Role::Motor)
+            .find(|(_, role)| *role == ControllerNetworkRole::Motor)
             .map(|&(m, _)| m)
     }
 }

@@ -29,7 +29,7 @@ use rerun::{Color, RecordingStream, Scalars, SeriesLines, SeriesPoints, TextLog}
 use serde::Deserialize;
 use std::collections::BTreeMap;
 
-use super::layout::{Seed002Role, ViewLayout};
+use super::layout::{ControllerNetworkRole, ViewLayout};
 
 /// The timeline every sample is placed on: simulated seconds.
 pub const TIMELINE: &str = "sim_time";
@@ -160,7 +160,7 @@ impl RerunLogger {
                 last_sample_at: None,
                 config: m.light,
             };
-            log_styles(&rec, &state.paths, layout.has_seed002(i))?;
+            log_styles(&rec, &state.paths, layout.has_controller_network(i))?;
             modules.push(state);
         }
         if layout.realtime {
@@ -217,7 +217,7 @@ impl RerunLogger {
         let threshold = self.modules[m].threshold_volts;
         self.scalar(|p| &p.threshold, m, threshold);
         self.scalar(|p| &p.in_beam, m, f64::from(u8::from(s.flag_in_beam)));
-        if self.layout.has_seed002(m) {
+        if self.layout.has_controller_network(m) {
             self.scalar(|p| &p.shaft_rpm, m, s.motor_rpm);
         }
 
@@ -347,16 +347,16 @@ impl RerunLogger {
             }
             return;
         }
-        if let Some((m, role)) = self.layout.seed002_node(from) {
+        if let Some((m, role)) = self.layout.controller_network_node(from) {
             let Ok(f) = modbus8::Frame::parse(bytes, modbus8::CrcOrder::HighFirst) else {
                 return;
             };
             match (role, f.function, f.addr) {
-                (Seed002Role::Motor, 3, 5) => {
+                (ControllerNetworkRole::Motor, 3, 5) => {
                     self.scalar(|p| &p.shaft_node_rpm, m, f64::from(f.value));
                 }
                 // The light node's register holds the smoothed wheel rpm × 100.
-                (Seed002Role::Light, 3, 6) => {
+                (ControllerNetworkRole::Light, 3, 6) => {
                     self.scalar(|p| &p.light_rpm, m, f64::from(f.value) / 100.0);
                 }
                 _ => {}
@@ -381,7 +381,7 @@ impl RerunLogger {
             && f.function == 6
             && f.id == 1
             && f.addr == 9
-            && let Some(m) = self.layout.seed002_motor_module()
+            && let Some(m) = self.layout.controller_network_motor_module()
         {
             self.scalar(|p| &p.shaft_set_point, m, f64::from(f.value));
         }
@@ -488,7 +488,7 @@ fn log_lateness_styles(rec: &RecordingStream) -> Result<()> {
 }
 
 /// Names, colours and line styles of a module's series (static, logged once).
-fn log_styles(rec: &RecordingStream, p: &ModulePaths, seed002: bool) -> Result<()> {
+fn log_styles(rec: &RecordingStream, p: &ModulePaths, controller_network: bool) -> Result<()> {
     let line = |name: &str, rgb: [u8; 3], width: f32| {
         SeriesLines::new()
             .with_names([name])
@@ -538,7 +538,7 @@ fn log_styles(rec: &RecordingStream, p: &ModulePaths, seed002: bool) -> Result<(
     for (path, style) in styles {
         rec.log_static(path.as_str(), &style)?;
     }
-    if seed002 {
+    if controller_network {
         for (path, style) in shaft {
             rec.log_static(path.as_str(), &style)?;
         }

@@ -86,14 +86,14 @@ pub fn layout_of(bytes: &[u8], path: &Path) -> Result<ViewLayout> {
             // `twin serve` stores its links as `--meb tcp://… --modbus8 /dev/…`.
             let links = meta.get("links").map_or("", String::as_str);
             let options: Vec<&str> = links.split_whitespace().step_by(2).collect();
-            let seed002 = options.contains(&"--modbus8");
+            let controller_network = options.contains(&"--modbus8");
             let ev = options.iter().any(|o| *o != "--modbus8");
             let params = match meta.get("params") {
                 Some(text) => toml::from_str::<PlantParams>(text)
                     .with_context(|| format!("{}: the stored plant parameters", path.display()))?,
                 None => PlantParams::preset("vemodule").unwrap_or_default(),
             };
-            Ok(ViewLayout::of_serve(&params, ev || !seed002, seed002))
+            Ok(ViewLayout::of_serve(&params, ev || !controller_network, controller_network))
         }
         Some("supervise") => {
             // Stored as `[1, 2]`.

@@ -10,7 +10,7 @@ use anyhow::{Context, Result, bail};
 use nodes::firmware::{EvController, EvControllerConfig, Framing, SlaveFrontend};
 use nodes::link::{CheckKind, FaultyNode};
 use nodes::proto::modbus::serial::{PTY_SILENCE, standard_rtu_silence};
-use nodes::seed002::{LightConfig, LightNode, MotorConfig, MotorNode};
+use nodes::controller_network::{LightConfig, LightNode, MotorConfig, MotorNode};
 use nodes::time::{SimDuration, SimTime};
 use plant::{EvModule, PlantParams};
 use std::collections::BTreeMap;
@@ -210,7 +210,7 @@ fn build_devices(
     engine: &mut RtEngine,
 ) -> (Option<usize>, Option<(usize, usize)>) {
     let wants_ev = specs.iter().any(|(p, _)| *p != ServeProtocol::Modbus8);
-    let wants_seed002 = specs.iter().any(|(p, _)| *p == ServeProtocol::Modbus8);
+    let wants_controller_network = specs.iter().any(|(p, _)| *p == ServeProtocol::Modbus8);
     let mut ev = None;
     if wants_ev {
         let module = engine.modules.len();
@@ -227,8 +227,8 @@ fn build_devices(
             .devices
             .push(Device::new("ev1", Box::new(node), Some(module)));
     }
-    let mut seed002 = None;
-    if wants_seed002 {
+    let mut controller_network = None;
+    if wants_controller_network {
         let params = PlantParams::preset("controller-network").unwrap_or_default();
         let module = engine.modules.len();
         let plant = EvModule::new(&params, twin_sim::virtual_run::derive_seed(options.seed, 101));
@@ -242,9 +242,9 @@ fn build_devices(
         engine
             .devices
             .push(Device::new("sensor", Box::new(light), Some(module)));
-        seed002 = Some((m, m + 1));
+        controller_network = Some((m, m + 1));
     }
-    (ev, seed002)
+    (ev, controller_network)
 }
 
 /// Unique link names: the protocol, numbered when it repeats.
@@ -271,7 +271,7 @@ async fn open_links(
     names: Vec<String>,
     mut engine: RtEngine,
     ev: Option<usize>,
-    seed002: Option<(usize, usize)>,
+    controller_network: Option<(usize, usize)>,
 ) -> Result<Setup> {
     let ids = ConnIds::default();
     let clock = engine.clock;
@@ -309,7 +309,7 @@ async fn open_links(
         };
         let id = options.id;
         let (factory, shown_ids): (crate::EndpointFactory, String) =
-            match (framing(protocol, &spec), ev, seed002) {
+            match (framing(protocol, &spec), ev, controller_network) {
                 (Some(framing), Some(device), _) => {
                     let label = format!("ev1 {name}");
                     let map = options.meb_map.clone().filter(|_| framing == Framing::Meb);
@@ -334,8 +334,8 @@ async fn open_links(
                     }),
                     format!(
                         "{:02},{:02}",
-                        nodes::seed002::MOTOR_ID,
-                        nodes::seed002::LIGHT_ID
+                        nodes::controller_network::MOTOR_ID,
+                        nodes::controller_network::LIGHT_ID
                     ),
                 ),
                 _ => bail!("internal: link {name} has no device to serve"),
@@ -396,9 +396,9 @@ pub fn serve(
         let record_period = SimDuration::from_secs_f64(1.0 / options.record_hz.max(1.0));
         let (tx, rx) = channel::<SinkMsg>();
         let mut engine = RtEngine::new(clock, SimDuration::from_millis(1), record_period, tx);
-        let (ev, seed002) = build_devices(options, &specs, &mut engine);
+        let (ev, controller_network) = build_devices(options, &specs, &mut engine);
         engine_modules.extend(engine.modules.iter().map(|m| m.name.clone()));
-        let setup = runtime.block_on(open_links(options, specs, names, engine, ev, seed002));
+        let setup = runtime.block_on(open_links(options, specs, names, engine, ev, controller_network));
         // The sink starts once the link names are known; its channel was
         // made first so the engine could hold its sender.
         let setup = setup?;

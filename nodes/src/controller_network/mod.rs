@@ -11,7 +11,7 @@ mod master;
 mod motor;
 
 pub use light::{LightConfig, LightNode};
-pub use master::{MasterConfig, MasterPhase, Seed002Master};
+pub use master::{MasterConfig, MasterPhase, ControllerNetworkMaster};
 pub use motor::{MotorConfig, MotorNode, MotorState};
 
 use crate::proto::modbus::Exception;

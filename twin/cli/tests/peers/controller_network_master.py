@@ -5,7 +5,7 @@ timeout, so no reply hangs the real program and a reply that is not whole in
 that one read misaligns it: this one records both instead (a hang is no reply
 within 2 s), and which replies came after the fixed wait (`late`).
 
-    python3 seed002_master.py DEVICE CYCLES WAIT_MS
+    python3 controller_network_master.py DEVICE CYCLES WAIT_MS
 
 Its loop: read the motor's state until operational (write 01 from 80, 81 from
 02), then read rpm, every 20th cycle toggle the set point between 5000 and

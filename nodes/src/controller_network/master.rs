@@ -109,7 +109,7 @@ enum Wait {
 
 /// The seed-002 master (the Raspberry Pi program).
 #[derive(Debug, Clone)]
-pub struct Seed002Master {
+pub struct ControllerNetworkMaster {
     config: MasterConfig,
     decoder: Modbus8Decoder,
     phase: MasterPhase,
@@ -126,10 +126,10 @@ pub struct Seed002Master {
     events: VecDeque<NodeEvent>,
 }
 
-impl Seed002Master {
+impl ControllerNetworkMaster {
     /// A master about to start its handshake at time zero.
     pub fn new(config: MasterConfig) -> Self {
-        Seed002Master {
+        ControllerNetworkMaster {
             config,
             decoder: Modbus8Decoder::new(config.crc_order, config.silence),
             phase: MasterPhase::Handshake,
@@ -366,13 +366,13 @@ fn exception_text(exception: Exception) -> &'static str {
     }
 }
 
-impl Default for Seed002Master {
+impl Default for ControllerNetworkMaster {
     fn default() -> Self {
         Self::new(MasterConfig::default())
     }
 }
 
-impl Node for Seed002Master {
+impl Node for ControllerNetworkMaster {
     fn handle_bytes(&mut self, now: SimTime, mut bytes: &[u8]) {
         while !bytes.is_empty() {
             let Some(decoded) = self.decoder.decode(now, &mut bytes) else {

@@ -5,7 +5,7 @@
 
 use nodes::node::{Firmware, Node};
 use nodes::proto::modbus8::{CrcOrder, Frame};
-use nodes::seed002::{LightNode, MotorConfig, MotorNode, MotorState, PortConfig};
+use nodes::controller_network::{LightNode, MotorConfig, MotorNode, MotorState, PortConfig};
 use nodes::time::{SimDuration, SimTime};
 use serde::Deserialize;
 

@@ -5,7 +5,7 @@
 
 use nodes::node::{Firmware, Node, NodeEvent};
 use nodes::proto::modbus8::{CrcOrder, Frame};
-use nodes::seed002::{LightNode, MasterConfig, MasterPhase, MotorNode, MotorState, Seed002Master};
+use nodes::controller_network::{LightNode, MasterConfig, MasterPhase, MotorNode, MotorState, ControllerNetworkMaster};
 use nodes::time::{SimDuration, SimTime};
 use plant::{Actuators, EvModule, PlantParams, Sensors};
 
@@ -28,7 +28,7 @@ struct Bench {
     idle: Sensors,
     motor: MotorNode,
     light: LightNode,
-    master: Seed002Master,
+    master: ControllerNetworkMaster,
     actuators: Actuators,
     t_ms: u64,
     events: Vec<NodeEvent>,
@@ -46,7 +46,7 @@ impl Bench {
             idle: Sensors::default(),
             motor: MotorNode::default(),
             light: LightNode::default(),
-            master: Seed002Master::new(master),
+            master: ControllerNetworkMaster::new(master),
             actuators: Actuators::default(),
             t_ms: 0,
             events: Vec::new(),
@@ -213,7 +213,7 @@ fn a_reply_with_a_bad_crc_is_reported_and_not_used() {
 #[test]
 fn without_a_reply_the_master_hangs_unless_given_a_timeout() {
     // Nothing answers: the original waits for ever.
-    let mut hung = Seed002Master::default();
+    let mut hung = ControllerNetworkMaster::default();
     let mut buf = [0u8; 8];
     assert_eq!(hung.poll_transmit(ms(0), &mut buf), Some(8));
     hung.transmit_done(ms(1));
@@ -221,7 +221,7 @@ fn without_a_reply_the_master_hangs_unless_given_a_timeout() {
     hung.handle_timeout(ms(10_000));
     assert_eq!(hung.poll_transmit(ms(10_000), &mut buf), None);
 
-    let mut patient = Seed002Master::new(MasterConfig {
+    let mut patient = ControllerNetworkMaster::new(MasterConfig {
         reply_timeout: Some(SimDuration::from_millis(250)),
         ..MasterConfig::default()
     });
