@@ -4,8 +4,8 @@
 //! meant, re-record: `cargo run --release -p twin -- baseline --record`.
 
 use std::path::Path;
-use twin_sim::baseline;
 use twin_recording::compare;
+use twin_sim::baseline;
 
 #[test]
 fn every_embedded_scenario_matches_its_baseline() {

@@ -6,17 +6,17 @@
 //!   rules alone, the probability that each frame actually put on the bus
 //!   arrives corrupted yet passes, and checks that the count agrees with the
 //!   sum within 4 sigma of a Poisson count.
-//! - Modbus RTU and the seed-002 8-byte frames carry CRC-16: no corrupted frame
+//! - Modbus RTU and the Controller_network 8-byte frames carry CRC-16: no corrupted frame
 //!   passes, no corrupted value reaches the master's loop, and the master
 //!   retries (or re-reads) what it lost.
 //! - In every case the closed loop still settles.
 
 use std::collections::{BTreeMap, HashSet};
 
+use nodes::controller_network::{ControllerNetworkMaster, MasterConfig};
 use nodes::link::{CheckKind, FaultyNode};
 use nodes::node::NodeEvent;
 use nodes::proto::meb::MebRepr;
-use nodes::controller_network::{MasterConfig, ControllerNetworkMaster};
 use nodes::time::{SimDuration, SimTime};
 use serde_json::Value;
 use twin_sim::engine::{BusSlot, Engine, ModuleSlot, NodeSlot, Observer};
@@ -323,7 +323,7 @@ fn unsent_readings(memory: &Memory, slave: &str, rpm_in: fn(&[u8]) -> Option<u16
 }
 
 // ---------------------------------------------------------------------------
-// CRC-16: Modbus RTU and the seed-002 8-byte frames.
+// CRC-16: Modbus RTU and the Controller_network 8-byte frames.
 
 /// Simulated seconds of the Modbus RTU run: a few thousand corrupted frames.
 const RTU_SECONDS: f64 = 120.0;
@@ -353,7 +353,7 @@ fn modbus_rtu_crc_lets_no_corrupted_frame_or_value_through() {
     assert_settled(&memory, "Modbus RTU", RTU_SECONDS);
 }
 
-/// The seed-002 network of `recordings/scenarios/controller-network.toml` on a
+/// The Controller_network nodes of `recordings/scenarios/controller-network.toml` on a
 /// noisy line. The master gets a reply timeout: a corrupted request is not
 /// answered, and the original master would wait for it forever.
 fn controller_network_scenario(seconds: f64) -> String {
@@ -389,7 +389,7 @@ reply_timeout_ms = 200.0
     )
 }
 
-/// The register value of a seed-002 read reply from `id` for `addr`.
+/// The register value of a Controller_network read reply from `id` for `addr`.
 fn modbus8_value(bytes: &[u8], id: u8, addr: u8) -> Option<u16> {
     match *bytes {
         [i, 0x03, 0x00, a, high, low, _, _] if i == id && a == addr => {
@@ -399,15 +399,15 @@ fn modbus8_value(bytes: &[u8], id: u8, addr: u8) -> Option<u16> {
     }
 }
 
-/// One rpm reading of the seed-002 master at the end of a cycle: the motor rpm
-/// it read, and the set point it had then.
+/// One rpm reading of the Controller_network master at the end of a cycle: the
+/// motor rpm it read, and the set point it had then.
 #[derive(Debug, Clone, Copy)]
 struct Reading {
     motor_rpm: Option<i64>,
     set_point: u64,
 }
 
-/// What a seed-002 run under noise showed.
+/// What a Controller_network run under noise showed.
 #[derive(Debug)]
 struct ControllerNetworkRun {
     readings: Vec<Reading>,
@@ -416,7 +416,7 @@ struct ControllerNetworkRun {
     collisions: u64,
 }
 
-/// Runs a seed-002 engine for `seconds`, checking every 20 ms that the
+/// Runs a Controller_network engine for `seconds`, checking every 20 ms that the
 /// master's motor rpm and sensor value are values the slaves sent (a value
 /// lives 0.6 s or more in the master, so none slips between two checks).
 fn run_controller_network(mut engine: Engine, seconds: f64) -> ControllerNetworkRun {
@@ -517,10 +517,13 @@ const CONTROLLER_NETWORK_SECONDS: f64 = 60.0;
 
 #[test]
 fn controller_network_network_uses_no_corrupted_value_and_still_settles() {
-    let run = run_controller_network(build(&controller_network_scenario(CONTROLLER_NETWORK_SECONDS)), CONTROLLER_NETWORK_SECONDS);
+    let run = run_controller_network(
+        build(&controller_network_scenario(CONTROLLER_NETWORK_SECONDS)),
+        CONTROLLER_NETWORK_SECONDS,
+    );
     let phases = settled_phases(&run.readings, 8);
     eprintln!(
-        "seed-002 at BER {BIT_ERROR_RATE}, {CONTROLLER_NETWORK_SECONDS} s: {:?}, {} collisions; master {}; \
+        "controller network at BER {BIT_ERROR_RATE}, {CONTROLLER_NETWORK_SECONDS} s: {:?}, {} collisions; master {}; \
          settled phases (set point, mean of the last 8 readings): {phases:?}",
         run.checks, run.collisions, run.master
     );
@@ -538,14 +541,16 @@ fn controller_network_network_uses_no_corrupted_value_and_still_settles() {
     }
 }
 
-/// The seed-002 master polling back to back (a 3 ms reply wait, no sleep, no
+/// The Controller_network master polling back to back (a 3 ms reply wait, no sleep, no
 /// set-point toggling), to put a few thousand corrupted 8-byte frames through
 /// CRC-16 in a short run.
 const CONTROLLER_NETWORK_FAST_SECONDS: f64 = 60.0;
 
 #[test]
 fn controller_network_crc_catches_thousands_of_corrupted_frames() {
-    let mut engine = build(&controller_network_scenario(CONTROLLER_NETWORK_FAST_SECONDS));
+    let mut engine = build(&controller_network_scenario(
+        CONTROLLER_NETWORK_FAST_SECONDS,
+    ));
     let config = MasterConfig {
         reply_wait: SimDuration::from_millis(3),
         reply_timeout: Some(SimDuration::from_millis(10)),
@@ -573,7 +578,7 @@ fn controller_network_crc_catches_thousands_of_corrupted_frames() {
     let mean = last.iter().sum::<f64>() / last.len().max(1) as f64;
     let set_point = run.readings.last().map_or(0, |r| r.set_point) as f64;
     eprintln!(
-        "seed-002, fast master, at BER {BIT_ERROR_RATE}, {CONTROLLER_NETWORK_FAST_SECONDS} s: {:?}, \
+        "controller network, fast master, at BER {BIT_ERROR_RATE}, {CONTROLLER_NETWORK_FAST_SECONDS} s: {:?}, \
          {} collisions; master {}; mean of the last {} readings {mean:.0} rpm for {set_point}",
         run.checks,
         run.collisions,

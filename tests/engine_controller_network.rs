@@ -1,4 +1,4 @@
-//! The seed-002 controller network (`spec/modbus8.md`) through the
+//! The Controller_network project's nodes (`docs/protocols/modbus8.md`) through the
 //! virtual-time engine: the Raspberry Pi master's handshake with the motor
 //! node, the motor's 428.57-rpm reading steps against the plant's true speed,
 //! and the light sensor's register against its smoothing rule, all read from
@@ -15,7 +15,7 @@ const CONTROLLER_NETWORK: &str = include_str!(concat!(
     "/../recordings/scenarios/controller-network.toml"
 ));
 
-/// Frames copied from the seed project's own terminal output.
+/// Frames copied from the Controller_network project's own terminal output.
 const VECTORS: &str = concat!(
     env!("CARGO_MANIFEST_DIR"),
     "/../nodes/tests/vectors/modbus8.jsonl"
@@ -243,7 +243,7 @@ fn motor_readings_alternate_between_neighbouring_steps_and_track_the_true_speed(
     );
 }
 
-/// The light sensor's rpm as `spec/modbus8.md` defines it, replayed from the
+/// The light sensor's rpm as `docs/protocols/modbus8.md` defines it, replayed from the
 /// photoresistor counts the plant showed at each of the node's 20 ms samples.
 #[derive(Debug, Default)]
 struct LightModel {

@@ -323,7 +323,7 @@ fn embedded_ev_meb_loop_tracks_its_set_point_steps_within_2_percent() {
 ///
 /// `G + W <= dead time < P + G + W + L`
 ///
-/// which is inside the bound (one poll period + gap + the write's wire
+/// which is inside the required bound (one poll period + gap + the write's wire
 /// time and turnaround + one firmware loop period; the read's own exchange
 /// time `E` does not add, because the set point is sampled when the reply
 /// arrives, not when the request leaves). Over phases uniform in the cycle

@@ -1,4 +1,4 @@
-//! Seed 003's PWM-capture link in the engine: three parallel EV modules, the
+//! The PWM-capture paper's link in the engine: three parallel EV modules, the
 //! master's VEL sent to two slaves, recorded to MCAP and read back.
 
 use std::path::{Path, PathBuf};

@@ -184,7 +184,8 @@ fn the_controller_network_masters_own_step_with_both_sensors() {
         duration_s: 30.0,
         seed: 1,
     };
-    let report = step::run(&config, &scratch("controller_network.mcap"), |_| {}).expect("step runs");
+    let report =
+        step::run(&config, &scratch("controller_network.mcap"), |_| {}).expect("step runs");
     // The master's handshake puts the motor node in operational at its
     // set point of 10000 motor rpm: 100 wheel rpm behind the 100:1 gearbox.
     assert_eq!((report.from, report.to), (0.0, 100.0));

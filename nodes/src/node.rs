@@ -6,7 +6,7 @@
 //! asks it for bytes to send ([`Node::poll_transmit`]). A node never sleeps and
 //! never reads a clock, so the same code runs on the simulated bus, a serial
 //! port, a pseudo-terminal or TCP. A node that controls a plant (the EV
-//! module's firmware, the seed-002 Arduinos) also implements [`Firmware`]: the
+//! module's firmware, the Controller_network Arduinos) also implements [`Firmware`]: the
 //! engine steps the plant up to each loop tick and hands the firmware the
 //! sensors; the firmware answers with the actuators to hold until its next tick.
 

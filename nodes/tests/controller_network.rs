@@ -1,11 +1,13 @@
-//! The seed-002 network closed with the real plant: the Raspberry Pi master
+//! The Controller_network project's loop closed with the real plant: the Raspberry Pi master
 //! wired straight to the motor and light-sensor nodes by an in-test byte pipe
 //! (no bus timing), the plant (`PlantParams::controller_network()`) stepped at
 //! 1 ms, the motor firmware ticking every 2 ms and the light sensor every 20 ms.
 
+use nodes::controller_network::{
+    ControllerNetworkMaster, LightNode, MasterConfig, MasterPhase, MotorNode, MotorState,
+};
 use nodes::node::{Firmware, Node, NodeEvent};
 use nodes::proto::modbus8::{CrcOrder, Frame};
-use nodes::controller_network::{LightNode, MasterConfig, MasterPhase, MotorNode, MotorState, ControllerNetworkMaster};
 use nodes::time::{SimDuration, SimTime};
 use plant::{Actuators, EvModule, PlantParams, Sensors};
 
@@ -154,7 +156,7 @@ fn handshake_takes_the_motor_from_pre_operational_to_operational() {
     assert_eq!(bench.master.phase(), MasterPhase::Running);
     assert_eq!(bench.motor.state(), MotorState::Operational);
     let log = bench.log_lines();
-    // The seed's own lines: read state (80), write 01, read state (01).
+    // The Controller_network master's own lines: read state (80), write 01, read state (01).
     let expected = [
         "Sent request: 01 03 0001 0000 0a14",
         "Response Motor: 128",
@@ -251,7 +253,7 @@ fn requests_with_a_bad_crc_are_ignored_by_the_slaves() {
         },
     );
     bench.run_until(1_000, |_, _| {});
-    // The seed's 0x55aa test: the request goes out with a wrong CRC, nobody answers.
+    // The project's 0x55aa test: the request goes out with a wrong CRC, nobody answers.
     assert!(
         bench
             .log_lines()
@@ -294,7 +296,7 @@ fn a_stopped_motor_is_sent_through_init() {
 
 /// The motor's rpm readings over steady 20 ms windows against the true speed.
 #[test]
-fn closed_loop_with_the_plant_reproduces_the_seed() {
+fn closed_loop_with_the_plant_reproduces_the_projects_readings() {
     let mut bench = Bench::new(true, MasterConfig::default());
     // Steady at set point 10000 from 6 s until the first toggle (cycle 20, ≈ 14 s).
     let window = 6_000..13_500;

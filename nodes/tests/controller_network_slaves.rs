@@ -1,11 +1,11 @@
-//! The seed-002 motor and light-sensor nodes as slaves: every register and
-//! exception case of `spec/modbus8.md`, the request vectors of
+//! The Controller_network project's motor and light-sensor nodes as slaves: every register and
+//! exception case of `docs/protocols/modbus8.md`, the request vectors of
 //! `tests/vectors/modbus8.jsonl` answered with the captured replies, and
 //! the firmware's encoder window and light-sensor blend against hand results.
 
+use nodes::controller_network::{LightNode, MotorConfig, MotorNode, MotorState, PortConfig};
 use nodes::node::{Firmware, Node};
 use nodes::proto::modbus8::{CrcOrder, Frame};
-use nodes::controller_network::{LightNode, MotorConfig, MotorNode, MotorState, PortConfig};
 use nodes::time::{SimDuration, SimTime};
 use serde::Deserialize;
 
@@ -257,7 +257,7 @@ fn the_crc_order_is_a_setting() {
 }
 
 #[test]
-fn injected_reply_crc_fault_adds_one_as_the_seed_did() {
+fn injected_reply_crc_fault_adds_one_as_the_project_did() {
     let mut motor = MotorNode::default();
     motor.set_corrupt_reply_crc(true);
     let write_80 = vector("request: motor, write control state 0x80");

@@ -1,4 +1,4 @@
-//! The EV controller as a Modbus RTU slave: the map of `spec/modbus-map.md`,
+//! The EV controller as a Modbus RTU slave: the map of `docs/protocols/modbus-map.md`,
 //! its reads, writes and exceptions, checked through real RTU frames.
 
 use nodes::firmware::{EvController, EvControllerConfig, SlaveProtocol};

@@ -1,7 +1,7 @@
 //! The EV controller driving the real plant (`PlantParams::vemodule()`) at
 //! 1 ms loop ticks, commanded over MEB: the wheel turns, both rpm estimates
 //! agree with the true wheel speed where the sensors allow it, and a trip
-//! latches and clears as `spec/meb.md` says.
+//! latches and clears as `docs/protocols/meb.md` says.
 
 use nodes::firmware::{EvController, EvControllerConfig, status};
 use nodes::node::{Firmware, MAX_FRAME, Node};

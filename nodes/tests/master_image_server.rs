@@ -1,4 +1,4 @@
-//! The supervisor's MEB-over-TCP server (`spec/meb.md`, "The supervisor's
+//! The supervisor's MEB-over-TCP server (`docs/protocols/meb.md`, "The supervisor's
 //! image") against the crate's real EV controller on a point-to-point line:
 //! requests are written out as the spec spells them (the FCS computed here
 //! again), and every reply is compared byte for byte.

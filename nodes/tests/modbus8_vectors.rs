@@ -1,5 +1,5 @@
 //! The 8-byte Modbus codec against the frames of tests/vectors/modbus8.jsonl
-//! (copied from the seed-002 project's terminal output and scope captures), and
+//! (copied from the Controller_network project's terminal output and scope captures), and
 //! the stream decoder's silence rule with explicit simulated time.
 
 use nodes::proto::crc::crc16_modbus;
@@ -100,11 +100,11 @@ fn every_vector_under_the_standard_order() {
 }
 
 #[test]
-fn the_seed_crc_error_message() {
+fn the_projects_crc_error_message() {
     let v = vectors()
         .into_iter()
         .find(|v| v.frame_hex == "010600010080aada")
-        .expect("seed bad-CRC vector");
+        .expect("the project's bad-CRC vector");
     let err = Frame::parse(&v.bytes(), CrcOrder::HighFirst).unwrap_err();
     assert_eq!(
         err.to_string(),

@@ -65,8 +65,9 @@ impl Node for Scripted {
 
 /// A reply from `vectors/meb.jsonl` ("reply with three analog inputs").
 const MEB_REPLY: &[u8] = b"@01EA00030A3C012307D034*\n";
-/// From `vectors/modbus8.jsonl`: motor, write control state 0x80 (seed 002's CRC
-/// is high byte first; its own bad-CRC test printed 0xaada against 0xaad9).
+/// From `vectors/modbus8.jsonl`: motor, write control state 0x80 (the
+/// Controller_network project's CRC is high byte first; its own bad-CRC test
+/// printed 0xaada against 0xaad9).
 const MODBUS8_FRAME: [u8; 8] = [0x01, 0x06, 0x00, 0x01, 0x00, 0x80, 0xaa, 0xd9];
 
 fn transmit<N: Node>(node: &mut N, now: SimTime) -> Option<Vec<u8>> {
@@ -112,7 +113,7 @@ fn bad_check_fails_the_meb_codec_and_changes_only_the_fcs() {
 }
 
 #[test]
-fn bad_check_fails_the_modbus8_codec_as_seed_002_saw_it() {
+fn bad_check_fails_the_modbus8_codec_as_the_controller_network_saw_it() {
     let mut node = triggered(&MODBUS8_FRAME, CheckKind::Modbus8);
     node.set_fault(Some(Fault::BadCheck));
     let spoiled = transmit(&mut node, SimTime::ZERO).unwrap();

@@ -232,7 +232,7 @@ fn nobody_hears_itself_and_slaves_never_hear_each_other() {
         }
     }
 
-    // Master and slaves (the seed-002 network): master on port 0.
+    // Master and slaves (as in the Controller_network project): master on port 0.
     let mut bus = SimBus::new(BusConfig {
         wiring: Wiring::MasterSlaves { master: PortId(0) },
         ..BusConfig::default()

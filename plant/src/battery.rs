@@ -60,9 +60,9 @@ impl RcPair {
 
 /// Equivalent-circuit parameters of the pack. Default = the EV module's 36 V pack (vemodule preset).
 ///
-/// Seed 000 names the module's batteries but gives no pack data, so the default is an assumption:
-/// a 36 V nominal 10s4p pack of 2.5 Ah 18650 NMC cells (Samsung INR18650-25R class), the usual
-/// supply of the e-bike hub motors such lab modules are built around.
+/// The M3CVME paper names the module's batteries but gives no pack data, so the default is an
+/// assumption: a 36 V nominal 10s4p pack of 2.5 Ah 18650 NMC cells (Samsung INR18650-25R class),
+/// the usual supply of the e-bike hub motors such lab modules are built around.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct BatteryParams {
@@ -113,9 +113,10 @@ impl Default for BatteryParams {
 }
 
 impl BatteryParams {
-    /// Seed-002 bench: a 12 V lab supply as a stiff, flat source. The OCV is 12 V at every SOC,
-    /// the capacity so large (1e6 Ah) that the SOC does not visibly move, and there are no RC pairs
-    /// (a regulated supply does not sag slowly). R0 = 20 mOhm: output impedance plus ~1 m of leads.
+    /// The Controller_network bench: a 12 V lab supply as a stiff, flat source. The OCV is 12 V at
+    /// every SOC, the capacity so large (1e6 Ah) that the SOC does not visibly move, and there are
+    /// no RC pairs (a regulated supply does not sag slowly). R0 = 20 mOhm: output impedance plus
+    /// ~1 m of leads.
     pub fn bench_supply_12v() -> Self {
         Self {
             capacity_ah: 1.0e6,
@@ -212,9 +213,10 @@ impl Default for BmsParams {
 }
 
 impl BmsParams {
-    /// The seed-002 bench supply's own limits: a 5 A current limit in trip (OCP) mode after 50 ms,
-    /// a hard trip at 15 A after 100 us, OVP at 13.2 V (110 % of 12 V). A supply has no
-    /// under-voltage cut-off: the UV trip sits at 0 V, which only a shorted output (SC first) reaches.
+    /// The Controller_network bench supply's own limits: a 5 A current limit in trip (OCP) mode
+    /// after 50 ms, a hard trip at 15 A after 100 us, OVP at 13.2 V (110 % of 12 V). A supply has
+    /// no under-voltage cut-off: the UV trip sits at 0 V, which only a shorted output (SC first)
+    /// reaches.
     pub fn bench_supply_12v() -> Self {
         Self {
             uv_trip_volts: 0.0,
@@ -289,8 +291,9 @@ impl Default for ChargerParams {
 }
 
 impl ChargerParams {
-    /// For the seed-002 bench supply, which has no charger: a 12 V 1 A set that stays consistent with
-    /// the supply's OVP and never pushes current into a supply sitting at its own 12 V.
+    /// For the Controller_network bench supply, which has no charger: a 12 V 1 A set that stays
+    /// consistent with the supply's OVP and never pushes current into a supply sitting at its own
+    /// 12 V.
     pub fn bench_supply_12v() -> Self {
         Self {
             cc_amps: 1.0,

@@ -45,8 +45,8 @@
 //! for short shadows the dip is `(x_l - x_d) t_d / tau_rise`, linear in `1 / n`, so the sensor itself
 //! allows thousands to tens of thousands of rpm. Past `1 / tau_fall` (about 3 000 rpm) the dips of
 //! successive turns merge into a ripple of about the same size on a lowered mean, so the practical
-//! limit becomes the sampling: at least two samples per turn, `n < 30 / T_s` (1 500 rpm at seed 002's
-//! 20 ms sampling) -- a few thousand rpm.
+//! limit becomes the sampling: at least two samples per turn, `n < 30 / T_s` (1 500 rpm at the
+//! Controller_network project's 20 ms sampling) -- a few thousand rpm.
 
 use std::f64::consts::TAU;
 
@@ -76,7 +76,8 @@ pub struct LightParams {
     /// Lamp flicker depth, (max - min) / (max + min), 0..=1. 0 (argument): DC lamp; a mains incandescent
     /// bulb is about 0.1.
     pub flicker_depth: f64,
-    /// Mains frequency (Hz); the lamp flickers at twice this. 50: the lab is in Europe (seed 002).
+    /// Mains frequency (Hz); the lamp flickers at twice this. 50: the lab is in Europe (the
+    /// Controller_network project).
     pub mains_hz: f64,
     /// Cell resistance at 10 lx (ohm). 15 k: middle of the GL5528 datasheet range 10-20 k.
     pub ldr_ohm_at_10_lux: f64,
@@ -137,16 +138,17 @@ pub struct LightParamsError {
 }
 
 impl LightParams {
-    /// Seed 002's Arduino node: 10-bit ADC on a 5 V reference, "dark below 3.0 V". A 39 kOhm pull-down
-    /// (E12) puts the lit level at 4.70 V and the shaded level at 1.98 V, both well clear of 3.0 V.
+    /// The Controller_network project's light-sensor Nano: 10-bit ADC on a 5 V reference, "dark
+    /// below 3.0 V". A 39 kOhm pull-down (E12) puts the lit level at 4.70 V and the shaded level at
+    /// 1.98 V, both well clear of 3.0 V.
     pub fn controller_network() -> Self {
         Self {
-            // Seed 002's log shows the light node reading a steady ≈ 98 rpm
-            // with 20 ms sampling. A 30° flag shades the cell for 50 ms at
-            // 100 rpm, of which only ~10 ms fall below 3.0 V, so most passes
-            // would slip between samples; the project's marker must have been
-            // wider. 60° (a 34 mm paper strip on the 65 mm wheel) keeps the
-            // signal below 3.0 V for about 60 ms per turn at 100 rpm.
+            // The Controller_network project's log shows the light node reading
+            // a steady ≈ 98 rpm with 20 ms sampling. A 30° flag shades the cell
+            // for 50 ms at 100 rpm, of which only ~10 ms fall below 3.0 V, so
+            // most passes would slip between samples; the project's marker must
+            // have been wider. 60° (a 34 mm paper strip on the 65 mm wheel)
+            // keeps the signal below 3.0 V for about 60 ms per turn at 100 rpm.
             flag_arc_deg: 60.0,
             divider_fixed_ohm: 39e3,
             adc_bits: 10,
@@ -605,7 +607,7 @@ mod tests {
             assert!((sensor.divider_voltage() - divider(params.shaded_lux)).abs() < 1e-9);
             assert!((params.shaded_volts() - divider(params.shaded_lux)).abs() < 1e-12);
         }
-        // Seed 002: lit well above its 3.0 V threshold, shaded well below.
+        // The Controller_network light node: lit well above its 3.0 V threshold, shaded well below.
         let network = LightParams::controller_network();
         assert!(
             network.lit_volts() > 4.5 && network.shaded_volts() < 2.0,

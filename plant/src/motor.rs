@@ -56,7 +56,7 @@ pub struct MotorParams {
     pub torque_constant: f64,
     /// Pole pairs; six hall edges per electrical turn, so 6·p per mechanical turn.
     pub pole_pairs: u32,
-    /// Encoder pulses (channel A periods) per motor turn: 7 on the seed-002
+    /// Encoder pulses (channel A periods) per motor turn: 7 on the Controller_network
     /// motor's magnetic encoder; the EV module has none, so it mirrors the halls.
     pub encoder_pulses_per_turn: u32,
     /// Rotor inertia (kg·m²), 57BLF datasheets: 1.2e-5.
@@ -90,7 +90,7 @@ impl Default for MotorParams {
 }
 
 impl MotorParams {
-    /// The seed-002 bench: a 12 V geared DC motor with a 7-pulse encoder
+    /// The Controller_network bench: a 12 V geared DC motor with a 7-pulse encoder
     /// (JGB37-520-class: 12 V, ≈ 10 000 rpm at the motor before its 1:100
     /// gearbox, 2 Ω, stall current ≈ 6 A), driven by a MOSFET H-bridge.
     pub fn controller_network() -> Self {

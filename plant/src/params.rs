@@ -11,7 +11,7 @@ use crate::motor::MotorParams;
 use crate::wheel::{GearboxParams, WheelParams};
 
 /// How the module's controller board scales V1, V2 and I onto its 0–5 V ADC
-/// pins (seed 000, Fig. 7: "Min=0V. Max=5V. ADC=12 bits").
+/// pins (the M3CVME paper, Fig. 7: "Min=0V. Max=5V. ADC=12 bits").
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct SensingParams {
@@ -93,12 +93,12 @@ impl Default for PlantParams {
 pub const PRESETS: [&str; 2] = ["vemodule", "controller-network"];
 
 impl PlantParams {
-    /// The seed-000 EV module: 36 V pack, buck-boost, BLDC, 12-bit ADC.
+    /// The M3CVME tool's EV module: 36 V pack, buck-boost, BLDC, 12-bit ADC.
     pub fn vemodule() -> Self {
         Self::default()
     }
 
-    /// The seed-002 bench: 12 V supply, geared DC motor with a 7-pulse
+    /// The Controller_network bench: 12 V supply, geared DC motor with a 7-pulse
     /// encoder, ≈ 100:1 gearbox, light sensor on a 10-bit ADC.
     pub fn controller_network() -> Self {
         Self {

@@ -83,7 +83,8 @@ pub struct ShaftReading {
     pub encoder_a: bool,
     pub encoder_b: bool,
     /// Rising edges of channel A, counted down while B is high (turning
-    /// counter-clockwise), as the seed-002 firmware counts them.
+    /// counter-clockwise), as the Controller_network motor Nano's firmware counts
+    /// them.
     pub encoder_count: i64,
     /// Time of the latest edge on either encoder channel (s), NaN before the first.
     pub last_encoder_edge_at: f64,

@@ -22,7 +22,7 @@ use serde::{Deserialize, Serialize};
 #[serde(default, deny_unknown_fields)]
 pub struct GearboxParams {
     /// Motor turns per wheel turn: 1 on the EV module (direct drive), 100 on
-    /// the seed-002 bench (≈ 10 000 motor rpm for ≈ 98 wheel rpm in its log).
+    /// the Controller_network bench (≈ 10 000 motor rpm for ≈ 98 wheel rpm in its log).
     pub ratio: f64,
 }
 
@@ -67,7 +67,7 @@ impl Default for WheelParams {
 }
 
 impl WheelParams {
-    /// The seed-002 bench: a 65 mm robot wheel on the gearbox output shaft.
+    /// The Controller_network bench: a 65 mm robot wheel on the gearbox output shaft.
     pub fn controller_network() -> Self {
         Self {
             radius_m: 0.0325,

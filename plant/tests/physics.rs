@@ -184,7 +184,7 @@ fn encoder_counts_seven_pulses_per_motor_turn_on_the_geared_bench() {
         (counts - 7.0 * motor_turns).abs() <= 1.0,
         "{counts} counts for {motor_turns} turns"
     );
-    // ≈ 10 000 motor rpm ≈ 100 wheel rpm, as seed 002's log shows.
+    // ≈ 10 000 motor rpm ≈ 100 wheel rpm, as the Controller_network project's log shows.
     assert!((9000.0..12500.0).contains(&b.motor_rpm), "{}", b.motor_rpm);
     assert!((90.0..125.0).contains(&b.wheel_rpm), "{}", b.wheel_rpm);
 }

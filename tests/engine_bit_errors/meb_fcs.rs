@@ -1,4 +1,4 @@
-//! The MEB FCS model, from the frame rules of `spec/meb.md` alone: the exact
+//! The MEB FCS model, from the frame rules of `docs/protocols/meb.md` alone: the exact
 //! probability that a frame arrives corrupted yet parses, and the same rules as
 //! integer counts of error patterns, to hold against the real parser.
 

@@ -106,7 +106,7 @@ mod tests {
         // Modbus application note example: 01 03 00 00 00 0A -> C5 CD on the wire
         // (low byte first), i.e. 0xCDC5.
         assert_eq!(crc16_modbus(&[0x01, 0x03, 0x00, 0x00, 0x00, 0x0A]), 0xCDC5);
-        // The seed-002 frame 01 06 0001 0080 carries aa d9 high byte first.
+        // The Controller_network project's frame 01 06 0001 0080 carries aa d9 high byte first.
         assert_eq!(crc16_modbus(&[0x01, 0x06, 0x00, 0x01, 0x00, 0x80]), 0xAAD9);
     }
 

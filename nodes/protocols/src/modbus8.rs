@@ -1,6 +1,7 @@
-//! The 8-byte Modbus variant of seed 002 (`spec/modbus8.md`): every request and
-//! reply is id, function, address, value, CRC — eight bytes, with the CRC high
-//! byte first unless the order is set to the standard one.
+//! The 8-byte Modbus variant of the Controller_network project
+//! (`docs/protocols/modbus8.md`): every request and reply is id, function, address,
+//! value, CRC — eight bytes, with the CRC high byte first unless the order is
+//! set to the standard one.
 //!
 //! A reply with the function's top bit set is an exception; it is still a
 //! valid frame, and [`Frame::reply`] separates the two as
@@ -27,7 +28,7 @@ pub const EXCEPTION_BIT: u8 = 0x80;
 /// The order in which the CRC's two bytes go on the wire.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub enum CrcOrder {
-    /// High byte first: what the seed-002 master and Arduinos send.
+    /// High byte first: what the Controller_network master and Arduinos send.
     #[default]
     HighFirst,
     /// Low byte first, as standard Modbus RTU, to serve a standard-order peer.
@@ -60,7 +61,7 @@ pub enum Modbus8Error {
         len: usize,
     },
     /// The CRC does not match (values read in the configured byte order, as the
-    /// seed's master prints them: "Received: 0xaada Calculated: 0xaad9").
+    /// Controller_network master prints them: "Received: 0xaada Calculated: 0xaad9").
     #[error("CRC error: received {received:#06x}, calculated {calculated:#06x}")]
     BadCrc {
         /// CRC carried by the frame.
@@ -259,7 +260,7 @@ mod tests {
     const WRITE_80: [u8; 8] = [0x01, 0x06, 0x00, 0x01, 0x00, 0x80, 0xaa, 0xd9];
 
     #[test]
-    fn seed_bad_crc_message_values() {
+    fn controller_network_bad_crc_message_values() {
         let mut bad = WRITE_80;
         bad[7] = 0xda;
         assert_eq!(

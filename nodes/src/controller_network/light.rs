@@ -10,7 +10,7 @@ use super::{Access, LIGHT_ID, PortConfig, REG_LIGHT_VALUE, RegisterMap, SlavePor
 /// Slots of the smoothing ring.
 const RING_LEN: usize = 5;
 
-/// Settings of the light-sensor node; the defaults are the seed's firmware.
+/// Settings of the light-sensor node; the defaults are the project's firmware.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LightConfig {
     /// Serial port settings and faults.
@@ -62,9 +62,9 @@ impl RegisterMap for LightRegisters {
     }
 }
 
-/// The light-sensor node (id 02) on the seed-002 network. It drives nothing:
-/// its [`Firmware::loop_tick`] returns idle actuators, which an engine must not
-/// apply over the motor node's.
+/// The light-sensor node (id 02) of the Controller_network project. It drives
+/// nothing: its [`Firmware::loop_tick`] returns idle actuators, which an engine
+/// must not apply over the motor node's.
 #[derive(Debug, Clone)]
 pub struct LightNode {
     config: LightConfig,

@@ -1,6 +1,7 @@
-//! The Raspberry Pi master of seed 002: a state handshake with the motor,
-//! then a loop reading the motor's rpm and the light sensor, toggling the set
-//! point between 5000 and 10000 every 20th cycle, printing what it does.
+//! The Raspberry Pi master of the Controller_network project: a state
+//! handshake with the motor, then a loop reading the motor's rpm and the light
+//! sensor, toggling the set point between 5000 and 10000 every 20th cycle,
+//! printing what it does.
 
 use std::collections::VecDeque;
 
@@ -17,10 +18,10 @@ use super::{
 /// Events kept for the engine to take; older ones are dropped beyond this.
 const EVENT_QUEUE: usize = 64;
 
-/// Settings of the master; the defaults are the seed's program.
+/// Settings of the master; the defaults are the project's program.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MasterConfig {
-    /// CRC byte order (the seed's own: high byte first).
+    /// CRC byte order (the project's own: high byte first).
     pub crc_order: CrcOrder,
     /// Line quiet that ends a partial reply.
     pub silence: SimDuration,
@@ -39,7 +40,7 @@ pub struct MasterConfig {
     pub set_point_high: u16,
     /// Emit the program's printout as `log` events.
     pub log: bool,
-    /// Injected fault: add 1 to the CRC of every request (the seed's `0x55aa` test).
+    /// Injected fault: add 1 to the CRC of every request (the project's `0x55aa` test).
     pub corrupt_request_crc: bool,
 }
 
@@ -84,7 +85,7 @@ impl Step {
         let (id, function, addr, value) = match self {
             Step::ReadState => (MOTOR_ID, modbus8::READ, REG_STATE, 0),
             Step::WriteState(v) => (MOTOR_ID, modbus8::WRITE, REG_STATE, v),
-            // The seed's master sends 0001 in this read's value field.
+            // The project's master sends 0001 in this read's value field.
             Step::ReadRpm => (MOTOR_ID, modbus8::READ, REG_RPM, 1),
             Step::WriteSetPoint(v) => (MOTOR_ID, modbus8::WRITE, REG_SET_SPEED, v),
             Step::ReadSensor => (LIGHT_ID, modbus8::READ, REG_LIGHT_VALUE, 0),
@@ -107,7 +108,7 @@ enum Wait {
     Reply(SimTime),
 }
 
-/// The seed-002 master (the Raspberry Pi program).
+/// The Controller_network master (the Raspberry Pi program).
 #[derive(Debug, Clone)]
 pub struct ControllerNetworkMaster {
     config: MasterConfig,
@@ -271,7 +272,7 @@ impl ControllerNetworkMaster {
         }
     }
 
-    /// The seed's printout of a good reply: one line with the value, then one
+    /// The project's printout of a good reply: one line with the value, then one
     /// in hex (its "Motor RMP is" prints the high byte).
     fn log_value(&mut self, now: SimTime, v: u16) {
         let (first, second) = match self.step {
@@ -355,7 +356,7 @@ impl ControllerNetworkMaster {
     }
 }
 
-/// What the seed's `handleError` prints for an exception code.
+/// What the project's `handleError` prints for an exception code.
 fn exception_text(exception: Exception) -> &'static str {
     match exception {
         Exception::IllegalFunction => "Illegal Function",

@@ -1,4 +1,4 @@
-//! The seed-002 controller network (`spec/modbus8.md`): the motor node (id 01),
+//! The Controller_network project (`docs/protocols/modbus8.md`): the motor node (id 01),
 //! the light-sensor node (id 02) and the Raspberry Pi master, all speaking the
 //! 8-byte Modbus variant of [`crate::proto::modbus8`].
 //!
@@ -11,7 +11,7 @@ mod master;
 mod motor;
 
 pub use light::{LightConfig, LightNode};
-pub use master::{MasterConfig, MasterPhase, ControllerNetworkMaster};
+pub use master::{ControllerNetworkMaster, MasterConfig, MasterPhase};
 pub use motor::{MotorConfig, MotorNode, MotorState};
 
 use crate::proto::modbus::Exception;
@@ -76,11 +76,11 @@ fn answer(map: &mut impl RegisterMap, request: Frame) -> Frame {
 /// Settings of a slave's serial port.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PortConfig {
-    /// CRC byte order (the seed's own: high byte first).
+    /// CRC byte order (the project's own: high byte first).
     pub crc_order: CrcOrder,
     /// Line quiet that ends a partial frame or a discard.
     pub silence: SimDuration,
-    /// Injected fault: add 1 to the CRC of every reply, as the seed's
+    /// Injected fault: add 1 to the CRC of every reply, as the project's
     /// `snd_crc += 1` test did.
     pub corrupt_reply_crc: bool,
 }
@@ -189,7 +189,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn corrupted_crc_is_the_seeds_plus_one() {
+    fn corrupted_crc_is_the_projects_plus_one() {
         let mut frame = Frame {
             id: 1,
             function: 6,

@@ -49,7 +49,7 @@ impl MotorState {
     }
 }
 
-/// Settings of the motor node; the defaults are the seed's firmware.
+/// Settings of the motor node; the defaults are the project's firmware.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MotorConfig {
     /// Serial port settings and faults.
@@ -131,7 +131,7 @@ impl RegisterMap for MotorRegisters {
     }
 }
 
-/// The seed's PI: `output = Kp (e + ∫e dt / Ti)`, clamped; the integral stops
+/// The project's PI: `output = Kp (e + ∫e dt / Ti)`, clamped; the integral stops
 /// while the output is clamped in the error's direction, so a long stop does
 /// not wind it up.
 #[derive(Debug, Clone)]
@@ -156,7 +156,7 @@ impl SpeedPi {
     }
 }
 
-/// The motor node (id 01) on the seed-002 network.
+/// The motor node (id 01) of the Controller_network project.
 #[derive(Debug, Clone)]
 pub struct MotorNode {
     config: MotorConfig,

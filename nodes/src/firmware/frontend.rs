@@ -33,7 +33,7 @@ const MAX_EVENTS: usize = 64;
 /// How the front end frames requests and replies.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Framing {
-    /// MEB (`spec/meb.md`), on a serial line or TCP.
+    /// MEB (`docs/protocols/meb.md`), on a serial line or TCP.
     Meb,
     /// Modbus RTU on a serial line; this much silence ends a frame.
     ModbusRtu(SimDuration),
@@ -138,7 +138,7 @@ impl SlaveFrontend {
         self.forced = refusal;
     }
 
-    /// Serve MEB at the addresses `map` gives (seed 000's configurable I/O
+    /// Serve MEB at the addresses `map` gives (the M3CVME tool's configurable I/O
     /// map); the default map needs none.
     pub fn set_meb_map(&mut self, map: Option<MebMap>) {
         self.map = map.filter(|m| !m.is_default()).map(Box::new);
@@ -359,7 +359,7 @@ impl SlaveFrontend {
         transaction: Option<u16>,
     ) {
         // Over TCP the unit id picks a device behind a gateway: 0 and 255
-        // mean "this device" (spec/modbus-map.md).
+        // mean "this device" (docs/protocols/modbus-map.md).
         let request_unit = unit;
         let unit = match transaction {
             Some(_) if unit == 0 || unit == 255 => self.id,

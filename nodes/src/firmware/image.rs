@@ -1,4 +1,4 @@
-//! The controller's register image (`spec/meb.md`, default map of the EV
+//! The controller's register image (`docs/protocols/meb.md`, default map of the EV
 //! module) and the protective-trip latch that guards its outputs.
 //!
 //! Both slave front ends (MEB and Modbus RTU) read and write this one image,
@@ -167,7 +167,7 @@ impl Refusal {
     }
 }
 
-/// The protective-trip latch (`spec/meb.md`, "A trip latches").
+/// The protective-trip latch (`docs/protocols/meb.md`, "A trip latches").
 ///
 /// A trip latches its flag and forces the outputs off. Enabling while its
 /// cause persists is refused; once the cause is gone, a write that releases

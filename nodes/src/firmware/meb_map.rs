@@ -1,6 +1,6 @@
 //! Where each signal sits in MEB's blocks: the I/O map the lab's tool lets
-//! one configure (seed 000, Fig. 8: type, address, tag). The default is the
-//! map of `spec/meb.md`; a front end given another one answers at the
+//! one configure (the M3CVME paper, Fig. 8: type, address, tag). The default is the
+//! map of `docs/protocols/meb.md`; a front end given another one answers at the
 //! addresses it says, with the same checks and the same image.
 
 use crate::proto::meb::{MebBlock, MebWordType};
@@ -118,7 +118,7 @@ struct Placement {
     bit: Option<u8>,
 }
 
-/// An I/O map. [`MebMap::default`] is `spec/meb.md`'s.
+/// An I/O map. [`MebMap::default`] is `docs/protocols/meb.md`'s.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct MebMap {
     placed: Vec<Placement>,

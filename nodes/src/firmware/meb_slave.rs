@@ -1,5 +1,5 @@
 //! The MEB slave front end: one well-formed frame in, the reply (if any) out,
-//! with the checks in the order `spec/meb.md` gives them.
+//! with the checks in the order `docs/protocols/meb.md` gives them.
 
 use crate::proto::meb::{MebAccess, MebBlock, MebRepr, MebWordType, MebWords};
 

@@ -1,4 +1,4 @@
-//! The EV module controller (seed 000): register image, MEB and Modbus RTU slave front ends, and the firmware loop.
+//! The EV module controller (as in the M3CVME tool): register image, MEB and Modbus RTU slave front ends, and the firmware loop.
 //!
 //! [`EvController`] is both a [`Node`] (a slave on the bus: requests in,
 //! replies out) and a [`Firmware`] (the loop that samples the module's
@@ -40,14 +40,14 @@ const MAX_PENDING_EVENTS: usize = 64;
 /// Which protocol the controller's serial port speaks.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum SlaveProtocol {
-    /// MEB (`spec/meb.md`).
+    /// MEB (`docs/protocols/meb.md`).
     #[default]
     Meb,
-    /// Modbus RTU with the map of `spec/modbus-map.md`.
+    /// Modbus RTU with the map of `docs/protocols/modbus-map.md`.
     ModbusRtu,
 }
 
-/// The converters behind the analog words (`spec/meb.md`, "default scaling").
+/// The converters behind the analog words (`docs/protocols/meb.md`, "default scaling").
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MebScaling {
     /// ADC resolution (bits): the range of `LDR_TH`.
@@ -196,7 +196,7 @@ impl EvController {
 
     /// Stores a write as a slave front end would (range and trip checks
     /// included): for a controller that gets its settings over another link
-    /// than its serial port (the PWM-capture link of seed 003). It takes
+    /// than its serial port (the PWM-capture paper's link). It takes
     /// effect at the next loop tick.
     pub fn store(&mut self, set: &WriteSet) -> Result<(), Refusal> {
         self.image.store(set)

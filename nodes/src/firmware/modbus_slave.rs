@@ -1,4 +1,4 @@
-//! The Modbus RTU slave front end: the fixed map of `spec/modbus-map.md` over
+//! The Modbus RTU slave front end: the fixed map of `docs/protocols/modbus-map.md` over
 //! the same register image the MEB front end serves.
 
 use crate::proto::modbus::{Bits, ExceptionResponse, Registers, Request, Response};

@@ -29,7 +29,7 @@ const MAX_PULLS: usize = 16;
 pub enum CheckKind {
     /// MEB: the two FCS hex characters before `*\n` (or `*\r\n`).
     Meb,
-    /// Seed 002's 8-byte Modbus: bytes 6 and 7.
+    /// The Controller_network project's 8-byte Modbus: bytes 6 and 7.
     Modbus8,
     /// Modbus RTU: the last two bytes.
     ModbusRtu,
@@ -39,8 +39,9 @@ pub enum CheckKind {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Fault {
     /// Send every frame with its check value plus one (read in wire byte
-    /// order), as seed 002's own test did on both master and slave (`0xaada`
-    /// received, `0xaad9` calculated). Everything else in the frame is intact.
+    /// order), as the Controller_network project's own test did on both
+    /// master and slave (`0xaada` received, `0xaad9` calculated). Everything
+    /// else in the frame is intact.
     BadCheck,
     /// Lose every frame on its way out: the node hears, acts and believes it
     /// answered (its `transmit_done` comes at once), but nothing reaches the wire.

@@ -1,4 +1,4 @@
-//! The PWM-capture link of seed 003 as a medium beside [`super::SimBus`]:
+//! The PWM-capture paper's link as a medium beside [`super::SimBus`]:
 //! pulse widths in, captured widths out, in time.
 //!
 //! A node hands the link one frame as the compare values its PWM timer will

@@ -1,4 +1,4 @@
-//! The PWM-capture line (`docs/protocols/pwmcap.md`, seed 003): sender edges
+//! The PWM-capture line (`docs/protocols/pwmcap.md`, the PWM-capture paper): sender edges
 //! in, capture widths out.
 //!
 //! The physical chain, from the master's PWM pin to the slave's capture unit:

@@ -49,8 +49,8 @@ pub enum Wiring {
     /// One pair shared by all: every port hears every other.
     #[default]
     MultiDrop,
-    /// The seed-002 network: the master hears every slave, a slave hears only
-    /// the master (slaves never hear each other).
+    /// As in the Controller_network project: the master hears every slave, a
+    /// slave hears only the master (slaves never hear each other).
     MasterSlaves {
         /// The port of the master.
         master: PortId,

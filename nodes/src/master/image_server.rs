@@ -1,4 +1,4 @@
-//! The supervisor's MEB-over-TCP server, sans-IO (`spec/meb.md`, "The
+//! The supervisor's MEB-over-TCP server, sans-IO (`docs/protocols/meb.md`, "The
 //! supervisor's image").
 //!
 //! Remote clients send MEB requests on a byte stream; they are answered from

@@ -23,9 +23,9 @@ use crate::time::{SimDuration, SimTime};
 /// The wire protocol the supervisor speaks to its slaves.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Protocol {
-    /// MEB, the lab's ASCII protocol (`spec/meb.md`).
+    /// MEB, the lab's ASCII protocol (`docs/protocols/meb.md`).
     Meb,
-    /// Standard Modbus RTU with the map of `spec/modbus-map.md`.
+    /// Standard Modbus RTU with the map of `docs/protocols/modbus-map.md`.
     ModbusRtu,
 }
 
@@ -161,7 +161,8 @@ pub struct SupervisorConfig {
 }
 
 impl SupervisorConfig {
-    /// The defaults of the issue and of `spec/meb.md` for `protocol` and `slaves`.
+    /// The defaults for `protocol` and `slaves`: a 10 ms poll period, the
+    /// 100 ms reply timeout of `docs/protocols/meb.md`, two retries.
     pub fn new(protocol: Protocol, slaves: Vec<SlaveLoopConfig>) -> Self {
         Self {
             protocol,

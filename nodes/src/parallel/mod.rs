@@ -1,4 +1,4 @@
-//! Parallel EV modules (seed 003's three-phase load): one master module sends
+//! Parallel EV modules (the PWM-capture paper's three-phase load): one master module sends
 //! its speed reference to slave modules, over the PWM-capture link or over
 //! Modbus RTU.
 //!

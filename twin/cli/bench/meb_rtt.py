@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-# Usage: python3 twin/bench/meb_rtt.py HOST:PORT   (a `twin supervise --listen` server, started
+# Usage: python3 twin/cli/bench/meb_rtt.py HOST:PORT   (a `twin supervise --listen` server, started
 # with --rate-limit 100000 --open-loop 0 so the forwarded writes do not fight the loop)
 # Round trips of MEB requests to a twin supervise server, and of a bare echo on loopback.
 import socket, sys, time, threading, statistics

@@ -1,5 +1,10 @@
 //! `twin`: the digital twin of the EV lab bench.
 
+#![allow(
+    clippy::disallowed_methods,
+    reason = "commands time their runs and wait on real links and viewers"
+)]
+
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
@@ -11,7 +16,8 @@ mod commands;
 /// On a virtual clock (`run`) they talk over a simulated RS-485 bus or
 /// PWM-capture link; in real time (`serve`, `supervise`, `client`, `vsp`) real
 /// masters reach them over serial ports, pseudo-terminals and TCP (MEB, Modbus
-/// RTU/ASCII/TCP, the seed-002 8-byte Modbus). Every run is recorded to MCAP.
+/// RTU/ASCII/TCP, the Controller_network project's 8-byte Modbus). Every run is
+/// recorded to MCAP.
 #[derive(Debug, Parser)]
 #[command(name = "twin", version, propagate_version = true, max_term_width = 100)]
 struct Cli {

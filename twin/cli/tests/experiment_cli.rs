@@ -1,5 +1,10 @@
 //! `twin experiment pwmcap` runs and prints the paper's figures beside the model's.
 
+#![allow(
+    clippy::disallowed_methods,
+    reason = "the test drives real processes, ports and sockets in real time"
+)]
+
 use std::process::Command;
 
 fn run(args: &[&str]) -> String {

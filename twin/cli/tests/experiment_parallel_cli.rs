@@ -1,6 +1,11 @@
 //! `twin experiment parallel` as a user runs it: four recordings written,
 //! one table row each, read back from them.
 
+#![allow(
+    clippy::disallowed_methods,
+    reason = "the test drives real processes, ports and sockets in real time"
+)]
+
 use std::process::Command;
 
 #[test]

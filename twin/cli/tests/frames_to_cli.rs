@@ -4,12 +4,17 @@
 //! with a changed value (correctly checked), one withheld, one with a broken
 //! check. The replay must count and show exactly those.
 
+#![allow(
+    clippy::disallowed_methods,
+    reason = "the test drives real processes, ports and sockets in real time"
+)]
+
 use nodes::proto::meb::{MebRepr, MebWords};
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
-use twin_sim::engine::FrameKind;
 use twin_recording::Recording;
+use twin_sim::engine::FrameKind;
 
 fn twin(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_twin"))

@@ -5,6 +5,11 @@
 //! reply, each abused serial link answers its next valid request after a
 //! silence, and the server is still running at the end.
 
+#![allow(
+    clippy::disallowed_methods,
+    reason = "the test drives real processes, ports and sockets in real time"
+)]
+
 mod peers;
 
 use nodes::proto::crc::{crc16_modbus, lrc};
@@ -121,7 +126,7 @@ fn rtu_read_inputs() -> Vec<u8> {
 
 fn modbus8_read_state() -> Vec<u8> {
     let mut f = vec![1, 3, 0, 1, 0, 0];
-    let crc = crc16_modbus(&f).to_be_bytes(); // seed 002: high byte first
+    let crc = crc16_modbus(&f).to_be_bytes(); // Controller_network: high byte first
     f.extend_from_slice(&crc);
     f
 }

@@ -2,6 +2,11 @@
 //! real binary on real recordings, read back with the `mcap` crate's own
 //! reader where a count is checked.
 
+#![allow(
+    clippy::disallowed_methods,
+    reason = "the test drives real processes, ports and sockets in real time"
+)]
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::OnceLock;

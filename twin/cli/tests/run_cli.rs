@@ -1,5 +1,10 @@
 //! `twin run` as a user runs it: the real binary, a real MCAP file read back.
 
+#![allow(
+    clippy::disallowed_methods,
+    reason = "the test drives real processes, ports and sockets in real time"
+)]
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 

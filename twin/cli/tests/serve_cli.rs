@@ -2,6 +2,11 @@
 //! pseudo-terminals, spoken to with the `nodes` crate's own codecs. Every
 //! server binds port 0 and the test reads the port it prints.
 
+#![allow(
+    clippy::disallowed_methods,
+    reason = "the test drives real processes, ports and sockets in real time"
+)]
+
 use nodes::proto::meb::{MebCmd, MebErrorCode, MebRepr, MebWords};
 use nodes::proto::modbus::{self, Exception, Request, Response};
 use std::io::{Read, Write};

@@ -1,6 +1,11 @@
 //! `twin step` and `twin sweep` from the command line: the table, the files
 //! of `--out DIR`, and clear refusals of what they cannot run.
 
+#![allow(
+    clippy::disallowed_methods,
+    reason = "the test drives real processes, ports and sockets in real time"
+)]
+
 use std::path::PathBuf;
 use std::process::{Command, Output};
 
@@ -168,7 +173,7 @@ fn what_cannot_run_is_refused_with_the_reason() {
         "{err}"
     );
 
-    // The seed-002 master runs its own set points.
+    // The Controller_network master runs its own set points.
     let o = twin(&["step", "controller-network", "--to", "120"]);
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);

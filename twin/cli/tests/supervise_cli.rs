@@ -2,6 +2,11 @@
 //! binary on real pseudo-terminals and TCP sockets. Servers bind port 0 and
 //! the test reads the port they print.
 
+#![allow(
+    clippy::disallowed_methods,
+    reason = "the test drives real processes, ports and sockets in real time"
+)]
+
 use nodes::proto::meb::{MebDecoder, MebRepr};
 use nodes::time::SimTime;
 use std::io::{Read, Write};
@@ -160,7 +165,7 @@ fn vsp_carries_bytes_both_ways_and_survives_either_end_reopening() {
     // Raw mode: binary bytes, CR and LF cross unchanged, nothing echoes back.
     fb.write_all(&[0x00, 0x0D, 0x0A, 0xFF, 0x03]).unwrap();
     assert_eq!(read_exact(&mut fa, 5), [0x00, 0x0D, 0x0A, 0xFF, 0x03]);
-    // Seed 002's master opens and closes the port for every transaction.
+    // The Controller_network master opens and closes the port for every transaction.
     for round in 0..5u8 {
         drop(fa);
         fa = open(&a);

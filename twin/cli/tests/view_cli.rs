@@ -2,6 +2,11 @@
 //! a real MCAP recording, and the `.rrd` files read back by rerun's own CLI
 //! (`rerun rrd print`, from PyPI `rerun-sdk==0.36.3`).
 
+#![allow(
+    clippy::disallowed_methods,
+    reason = "the test drives real processes, ports and sockets in real time"
+)]
+
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};

@@ -4,6 +4,11 @@
 //! print`, PyPI `rerun-sdk==0.36.3`). Servers bind port 0 and the test reads
 //! the port they print.
 
+#![allow(
+    clippy::disallowed_methods,
+    reason = "the test drives real processes, ports and sockets in real time"
+)]
+
 use nodes::proto::meb::{MebCmd, MebRepr, MebWords};
 use nodes::proto::modbus::{self, Request, Response};
 use std::collections::BTreeMap;

@@ -9,7 +9,6 @@ use nodes::time::{SimDuration, SimTime};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-
 use twin_sim::scenario::Scenario;
 use twin_sim::virtual_run;
 
@@ -45,7 +44,7 @@ pub fn run_discarding(scenario: &Scenario) -> Result<Measurement> {
     let started = Instant::now();
     let mut engine = virtual_run::build(scenario)?;
     let end = SimTime::ZERO + SimDuration::from_secs_f64(scenario.duration_s);
-    engine.run_until(end, &mut twin_sim::observe::DiscardObserver, |_| {})?;
+    engine.run_until(end, &mut twin_sim::engine::DiscardObserver, |_| {})?;
     let wall_s = started.elapsed().as_secs_f64();
     Ok(Measurement {
         simulated_s: engine.now().as_secs_f64(),
@@ -114,7 +113,7 @@ mod tests {
         assert_eq!(engine.nodes.len(), 11);
         let end = SimTime::ZERO + SimDuration::from_secs_f64(s.duration_s);
         engine
-            .run_until(end, &mut twin_sim::observe::DiscardObserver, |_| {})
+            .run_until(end, &mut twin_sim::engine::DiscardObserver, |_| {})
             .expect("runs");
         let supervisor = engine
             .nodes

@@ -1,12 +1,12 @@
 //! The firmware that reads a bench's speed sensors, run beside an open-loop
 //! bench: the EV controller (hall rpm, light rpm with a fixed or adaptive
-//! detector) or seed 002's motor node (encoder) and light-sensor node. They
-//! are ticked at their own loop period on the plant's sensors, as on the
-//! bench, and nothing they drive is applied.
+//! detector) or the Controller_network motor node (encoder) and
+//! light-sensor node. They are ticked at their own loop period on the
+//! plant's sensors, as on the bench, and nothing they drive is applied.
 
+use nodes::controller_network::{LightConfig, LightNode, MotorConfig, MotorNode};
 use nodes::firmware::{EvController, EvControllerConfig};
 use nodes::link::{CheckKind, FaultyNode};
-use nodes::controller_network::{LightConfig, LightNode, MotorConfig, MotorNode};
 use nodes::time::SimTime;
 use plant::light::fixed_threshold_max_rpm;
 use plant::{PlantParams, Sensors};
@@ -65,7 +65,7 @@ impl Instruments {
 }
 
 /// The firmware that reads a bench's speed sensors: the EV controller, or
-/// seed 002's motor and light-sensor nodes.
+/// the Controller_network motor and light-sensor nodes.
 fn instruments(params: &PlantParams, preset: &str, adaptive: bool) -> Vec<Box<dyn SimNode>> {
     if preset == "controller-network" {
         vec![
@@ -95,7 +95,7 @@ pub fn light_limit(params: &PlantParams, preset: &str, adaptive: bool) -> (Strin
     if preset == "controller-network" {
         let th = LightConfig::default().dark_below_volts;
         (
-            format!("seed-002 node, fixed {th:.2} V, 20 ms sampling"),
+            format!("light-sensor Nano, fixed {th:.2} V, 20 ms sampling"),
             fixed_threshold_max_rpm(light, th),
         )
     } else {

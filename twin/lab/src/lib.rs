@@ -4,6 +4,11 @@
 //! bench`). The only crate that draws plots (plotters). The step-response
 //! metrics themselves are `twin_sim::step_metrics`, for crates without plots.
 
+#![allow(
+    clippy::disallowed_methods,
+    reason = "the bench times the engine on the wall clock"
+)]
+
 pub mod bench;
 pub mod instruments;
 pub mod parallel;

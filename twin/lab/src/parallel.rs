@@ -1,4 +1,4 @@
-//! Parallel modules (seed 003's three-phase load): the same three EV modules,
+//! Parallel modules (the PWM-capture paper's three-phase load): the same three EV modules,
 //! the master's speed reference sent to the two slaves over each link, and
 //! what the recordings say about it.
 //!

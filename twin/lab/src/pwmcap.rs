@@ -1,4 +1,4 @@
-//! Seed 003's PWM-capture figures (`../shared/spec/pwmcap.md`): Table 2's
+//! The PWM-capture paper's figures (`docs/protocols/pwmcap.md`): Table 2's
 //! transfer times, bit-recognition reliability against added line impedance,
 //! and the longest clean cable — all computed from the coding in
 //! `nodes::proto::pwmcap` and the line model in `nodes::link::pwmline`.
@@ -7,7 +7,7 @@ use nodes::link::pwmline::{PwmCalibration, PwmLine, PwmLineError, PwmLineParams,
 use nodes::proto::pwmcap::PwmCoding;
 
 /// What a bit-recognition true/false positive is in this model; printed with
-/// the figures and repeated in `nodes/PWMCAP-LINE.md`.
+/// the figures and repeated in `docs/protocols/pwmcap-line.md`.
 pub const BIT_RECOGNITION_DEFINITION: &str = "\
 a test signal is one frame: start symbol + 4 data symbols, each a uniformly drawn 8-bit value;
 each of the 32 data bits is one recognition: sent 1 read 1 = TP, sent 0 read 1 = FP,

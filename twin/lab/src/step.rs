@@ -1,6 +1,6 @@
-//! The step-response experiment of seed 002: step the set point and watch
-//! both speed sensors, the motor's own (hall edges, or the seed-002 motor
-//! node's encoder) and the photoresistor's, against the true wheel speed.
+//! The step-response experiment of the Controller_network project: step the
+//! set point and watch both speed sensors, the motor's own (hall edges, or the
+//! Controller_network motor node's encoder) and the photoresistor's, against the true wheel speed.
 //!
 //! Open loop, the bench alone steps `VEL` (as `twin run --open-loop`) while
 //! the module's firmware estimators, not connected to anything, read its
@@ -117,7 +117,12 @@ struct StepSample {
 }
 
 impl Trace {
-    fn push(&mut self, rec: &mut twin_recording::record::Recorder, t: f64, s: StepSample) -> Result<()> {
+    fn push(
+        &mut self,
+        rec: &mut twin_recording::record::Recorder,
+        t: f64,
+        s: StepSample,
+    ) -> Result<()> {
         let topic = "/experiment/step";
         if !rec.has_channel(topic) {
             rec.add_channel(topic, &s)?;
@@ -345,7 +350,8 @@ fn run_closed_loop(
         );
     }
     // The node whose module is watched: the supervisor's first slave, or
-    // seed 002's motor node, whose master runs its own set-point schedule.
+    // the Controller_network motor node, whose master runs its own set-point
+    // schedule.
     let watched = match &supervised {
         Some((slave, bus)) => scenario.nodes.iter().find_map(|n| match n {
             NodeSpec::EvController {
@@ -360,8 +366,9 @@ fn run_closed_loop(
     };
     let Some(module) = watched else {
         bail!(
-            "scenario `{}` has neither a supervisor with an ev-controller slave nor a seed-002 \
-             motor node to give a set-point step to: use --open-loop, or such a scenario",
+            "scenario `{}` has neither a supervisor with an ev-controller slave nor a \
+             Controller_network motor node to give a set-point step to: use --open-loop, or \
+             such a scenario",
             scenario.name
         );
     };
@@ -423,7 +430,7 @@ fn run_closed_loop(
             step_at_s: at,
         });
     }
-    // The seed-002 master's own step: the first change of the motor node's
+    // The Controller_network master's own step: the first change of the motor node's
     // set point at or after `at`, measured until the next change.
     let sp = &trace.set_point;
     let tt = &trace.time_s;

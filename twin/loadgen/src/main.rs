@@ -3,6 +3,11 @@
 //! (the reference), every server a child process over a real TCP socket or a
 //! real pseudo-terminal.
 
+#![allow(
+    clippy::disallowed_methods,
+    reason = "a load generator times real servers"
+)]
+
 mod child;
 mod measure;
 mod pty;

@@ -54,7 +54,7 @@ pub fn echo_pty(path: &Path) -> Result<()> {
     Ok(())
 }
 
-/// The module's register counts (spec/modbus-map.md), so both servers answer
+/// The module's register counts (docs/protocols/modbus-map.md), so both servers answer
 /// the same requests with the same amount of data.
 const INPUT_REGISTERS: usize = 10;
 const HOLDING_REGISTERS: usize = 3;

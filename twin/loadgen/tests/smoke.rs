@@ -4,6 +4,11 @@
 //! byte for byte. Only that every reply was right is asserted: speed is for
 //! `serve-bench` itself, not for a test.
 
+#![allow(
+    clippy::disallowed_methods,
+    reason = "the test drives real processes, ports and sockets in real time"
+)]
+
 use std::io::{BufRead, BufReader};
 use std::process::{Command, Stdio};
 

@@ -1,4 +1,4 @@
-//! A remote MEB client over TCP, the third role of seed 000's tool: one
+//! A remote MEB client over TCP, the third role of the M3CVME tool: one
 //! request at a time to a supervisor's server (`twin supervise --listen`) or
 //! to an MEB slave served over TCP (`twin serve --meb tcp://…`).
 
@@ -137,7 +137,7 @@ impl MebClient {
     /// Reads `cnt` words from `cmd addr`.
     pub fn read(&mut self, id: u8, cmd: MebCmd, addr: u8, cnt: u8) -> Result<Vec<u16>> {
         if id == MEB_BROADCAST_ID {
-            bail!("id 00 is broadcast: a broadcast read is never answered (spec/meb.md)");
+            bail!("id 00 is broadcast: a broadcast read is never answered (docs/protocols/meb.md)");
         }
         let request = MebRepr {
             id,

@@ -1,38 +1,13 @@
-//! What the engine is built from: devices (nodes with a plant or an image),
-//! links and the faults the console switches on.
+//! What the engine is built from besides its devices: links and the faults
+//! the console switches on.
 
 use nodes::firmware::Refusal;
 use nodes::link::CheckKind;
-use nodes::time::{SimDuration, SimTime};
+use nodes::time::SimDuration;
 
+use super::device::Device;
 use super::endpoint::Endpoint;
-use super::forces::Forces;
-use twin_sim::engine::SimNode;
 use crate::io::LinkSpec;
-
-/// A node with a plant or an image: the EV controller, a seed-002 Arduino,
-/// a supervisor.
-pub struct Device {
-    pub name: String,
-    pub node: Box<dyn SimNode + Send>,
-    pub module: Option<usize>,
-    /// Inputs the user forced from the console.
-    pub forces: Forces,
-    pub(super) next_tick: Option<SimTime>,
-}
-
-impl Device {
-    pub fn new(name: &str, mut node: Box<dyn SimNode + Send>, module: Option<usize>) -> Self {
-        let next_tick = node.firmware().map(|_| SimTime::ZERO);
-        Self {
-            name: name.into(),
-            node,
-            module,
-            forces: Forces::default(),
-            next_tick,
-        }
-    }
-}
 
 /// A fault switched on from the console, applied to replies as they leave.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -66,14 +41,6 @@ pub struct LinkConfig {
     /// Close a connection that sends more bytes than this in one second (TCP).
     pub rate_limit: Option<u64>,
     pub factory: EndpointFactory,
-}
-
-impl std::fmt::Debug for Device {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Device")
-            .field("name", &self.name)
-            .finish_non_exhaustive()
-    }
 }
 
 impl std::fmt::Debug for LinkConfig {

@@ -3,8 +3,8 @@
 //! that arrived and asks for the frames to send.
 //!
 //! Two kinds cover every role:
-//! - [`NodeEndpoint`] drives whole [`Node`](nodes::node::Node)s (the seed-002
-//!   Arduinos behind one port, a supervisor polling a serial line): the
+//! - [`NodeEndpoint`] drives whole [`Node`](nodes::node::Node)s (the
+//!   Controller_network Nanos behind one port, a supervisor polling a serial line): the
 //!   link's bytes go to each node, each node's frames go out on the link.
 //! - [`SlaveEndpoint`] serves a device's register image through its own
 //!   [`SlaveFrontend`] (framing and reply queue per connection, one image
@@ -14,7 +14,7 @@ use nodes::firmware::SlaveFrontend;
 use nodes::node::NodeEvent;
 use nodes::time::SimTime;
 
-use super::engine::Device;
+use super::device::Device;
 
 /// One connection's protocol end, driven by the real-time engine.
 pub trait Endpoint: Send {

@@ -19,11 +19,14 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use super::clock::RtClock;
-pub use super::config::{Device, EndpointFactory, LinkConfig, LinkFault};
+pub use super::config::{EndpointFactory, LinkConfig, LinkFault};
+pub use super::device::Device;
 pub use super::forces::Forces;
+pub use super::frame_log::{ConnId, Outgoing};
+pub use super::front::RtCounters;
 use super::front::{Conn, Front, FrontHandle};
+pub use super::front::{LinkTask, Outbound};
 use super::lateness::{Lateness, LatenessSummary};
-pub use super::messages::{ConnId, Inbound, LinkTask, Outbound, Outgoing};
 use super::sink::SinkMsg;
 use twin_sim::engine::{ModuleSlot, firmware_tick};
 
@@ -41,18 +44,6 @@ fn spin_from_env() -> SimDuration {
         .ok()
         .and_then(|v| v.trim().parse::<u64>().ok())
         .map_or(SPIN, SimDuration::from_micros)
-}
-
-/// Counters for the status line and the summary.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
-pub struct RtCounters {
-    pub bytes_in: u64,
-    pub bytes_out: u64,
-    pub frames_out: u64,
-    pub connections: u64,
-    pub closed_partial_timeout: u64,
-    pub closed_rate_limit: u64,
-    pub replies_faulted: u64,
 }
 
 /// What a session reports at its end.
@@ -478,5 +469,37 @@ impl std::fmt::Debug for RtEngine {
             .field("links", &self.links.len())
             .field("connections", &self.conns.len())
             .finish_non_exhaustive()
+    }
+}
+
+/// What the link tasks (and the console) send the engine.
+pub enum Inbound {
+    /// A connection opened on link `link` (a TCP client, a serial port).
+    Opened {
+        link: usize,
+        conn: ConnId,
+        peer: String,
+        task: LinkTask,
+    },
+    /// The connection is gone (peer closed, port vanished).
+    Closed { conn: ConnId, why: String },
+    /// A connection now waits for a timer (a turnaround, pacing, the RTU
+    /// silence): the engine looks at the deadlines again.
+    Wake,
+    /// Run this on the engine's thread (console commands, other front ends).
+    Command(Box<dyn FnOnce(&mut RtEngine) + Send>),
+    /// Stop the session (SIGINT, SIGTERM).
+    Stop(String),
+}
+
+impl std::fmt::Debug for Inbound {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Inbound::Opened { link, conn, .. } => write!(f, "Opened({link}, {conn})"),
+            Inbound::Closed { conn, why } => write!(f, "Closed({conn}, {why})"),
+            Inbound::Command(_) => write!(f, "Command"),
+            Inbound::Wake => write!(f, "Wake"),
+            Inbound::Stop(why) => write!(f, "Stop({why})"),
+        }
     }
 }

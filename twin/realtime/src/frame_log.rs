@@ -5,7 +5,13 @@
 use nodes::time::SimTime;
 use std::sync::mpsc::{Receiver, Sender, channel};
 
-use super::messages::ConnId;
+/// A connection's id, unique for the session.
+pub type ConnId = u64;
+
+/// Frames due on a connection, in order, for its task to write (each in one
+/// write). The task keeps one and the front fills it, so neither allocates
+/// once it has grown to the largest burst.
+pub type Outgoing = PackedFrames;
 
 /// Which way a frame went.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

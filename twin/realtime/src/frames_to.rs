@@ -15,10 +15,11 @@ use std::io::{Read, Write};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, channel};
 use std::time::{Duration, Instant};
 
-use twin_sim::engine::FrameKind;
-use twin_sim::nodes_build::is_master;
+use crate::io::{LinkAddr, LinkSpec};
 use twin_recording::describe::decode_frame;
 use twin_recording::{Frame, Recording};
+use twin_sim::engine::FrameKind;
+use twin_sim::nodes_build::is_master;
 use twin_sim::replay::RunSpec;
 
 /// How long the line must stay quiet after the last byte before a reply that
@@ -42,27 +43,33 @@ impl std::fmt::Debug for Link {
 }
 
 impl Link {
-    /// Open `spec`: `tcp://HOST:PORT`, or the path of a serial device or
+    /// Open `spec`, a link spec of `twin serve`'s grammar ([`LinkSpec`])
+    /// without options: `tcp://HOST:PORT`, or the path of a serial device or
     /// pseudo-terminal. A serial device is used as it is configured (set its
     /// baud rate with `stty` first); a pseudo-terminal needs nothing.
     pub fn open(spec: &str) -> Result<Self> {
-        if let Some(addr) = spec.strip_prefix("tcp://") {
-            let stream = std::net::TcpStream::connect(addr)
-                .with_context(|| format!("cannot connect to {addr} (is the slave serving?)"))?;
-            stream.set_nodelay(true)?;
-            let reader = stream.try_clone()?;
-            return Ok(Self::from_parts(spec, Box::new(stream), reader));
+        let link = LinkSpec::parse_without_options(
+            spec,
+            "the link is used as it is: set a serial device's baud rate with stty",
+        )?;
+        match &link.addr {
+            LinkAddr::Tcp(addr) => {
+                let stream = std::net::TcpStream::connect(addr)
+                    .with_context(|| format!("cannot connect to {addr} (is the slave serving?)"))?;
+                stream.set_nodelay(true)?;
+                let reader = stream.try_clone()?;
+                Ok(Self::from_parts(spec, Box::new(stream), reader))
+            }
+            LinkAddr::Serial(path) => {
+                let file = std::fs::OpenOptions::new()
+                    .read(true)
+                    .write(true)
+                    .open(path)
+                    .with_context(|| format!("cannot open serial device {}", path.display()))?;
+                let reader = file.try_clone()?;
+                Ok(Self::from_parts(spec, Box::new(file), reader))
+            }
         }
-        if spec.contains("://") {
-            bail!("unknown link `{spec}`: use tcp://HOST:PORT or a serial device path");
-        }
-        let file = std::fs::OpenOptions::new()
-            .read(true)
-            .write(true)
-            .open(spec)
-            .with_context(|| format!("cannot open serial device {spec}"))?;
-        let reader = file.try_clone()?;
-        Ok(Self::from_parts(spec, Box::new(file), reader))
     }
 
     fn from_parts(

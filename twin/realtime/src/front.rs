@@ -26,12 +26,26 @@ use std::sync::mpsc::Sender;
 use std::sync::{Arc, Mutex, MutexGuard};
 
 use super::clock::RtClock;
-use super::config::{Device, LinkConfig, LinkFault};
+use super::config::{LinkConfig, LinkFault};
+use super::device::Device;
 use super::endpoint::Endpoint;
-use super::engine::RtCounters;
+use super::frame_log::{ConnId, Outgoing};
 use super::frame_log::{Direction, FrameLog, FrameRecord};
-use super::messages::{ConnId, LinkTask, Outgoing};
 use super::sink::SinkMsg;
+use super::wake::Wake;
+use tokio::sync::mpsc::UnboundedSender;
+
+/// Counters for the status line and the summary.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct RtCounters {
+    pub bytes_in: u64,
+    pub bytes_out: u64,
+    pub frames_out: u64,
+    pub connections: u64,
+    pub closed_partial_timeout: u64,
+    pub closed_rate_limit: u64,
+    pub replies_faulted: u64,
+}
 
 /// A reply waiting for its turnaround or its wire time; its bytes are the
 /// next `len` of the connection's `queued_bytes`.
@@ -480,4 +494,40 @@ impl Front {
         }
         self.ids = ids;
     }
+}
+
+/// How the engine reaches the task or thread carrying a connection.
+#[derive(Debug, Clone)]
+pub struct LinkTask {
+    pub out: UnboundedSender<Outbound>,
+    pub wake: Wake,
+}
+
+impl LinkTask {
+    /// The engine (its timers, or a reply that waited on the bus) has put
+    /// frames in the connection's due frames.
+    pub fn frames_due(&self) {
+        match &self.wake {
+            Wake::Task(ready) => ready.notify_one(),
+            Wake::Thread(wake) => wake.frames_due(),
+        }
+    }
+
+    /// Write `owed`, then close the connection, for reason `why`.
+    pub fn close(&self, why: String, owed: Outgoing) {
+        let _ = self.out.send(Outbound::Close { why, owed });
+        if let Wake::Thread(wake) = &self.wake {
+            wake.closing();
+        }
+    }
+}
+
+/// What the engine sends a link task.
+#[derive(Debug)]
+pub enum Outbound {
+    /// Answer this connection's requests on the task's own thread through
+    /// the shared front (the first message, unless the connection is refused).
+    Direct(FrontHandle),
+    /// Write these frames, then close the connection, for this reason.
+    Close { why: String, owed: Outgoing },
 }

@@ -15,9 +15,15 @@
 //! they share with the engine ([`front`]); the sink ([`sink`]) records and
 //! prints.
 
+#![allow(
+    clippy::disallowed_methods,
+    reason = "the real-time engine paces the plant to the wall clock and links wait on real ports"
+)]
+
 pub mod client;
 pub mod clock;
 pub mod config;
+pub mod device;
 pub mod endpoint;
 pub mod engine;
 pub mod forces;
@@ -27,13 +33,13 @@ pub mod front;
 pub mod io;
 pub mod lateness;
 pub mod links;
-pub mod messages;
 pub mod serve;
 pub mod session;
 pub mod sink;
 pub mod supervise;
 pub mod tcp_thread;
 pub mod vsp;
+pub mod wake;
 
 pub use clock::RtClock;
 pub use endpoint::{Endpoint, NodeEndpoint, SlaveEndpoint};

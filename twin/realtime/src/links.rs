@@ -21,13 +21,11 @@ use tokio::sync::mpsc::unbounded_channel;
 
 use super::clock::RtClock;
 use super::engine::{ConnId, Inbound, LinkTask, Outbound};
+use super::frame_log::Outgoing;
 use super::front::After;
-use super::messages::{Outgoing, Wake};
-use super::tcp_thread::serve_tcp;
+use super::tcp_thread::{READ_CHUNK, serve_tcp};
+use super::wake::Wake;
 use crate::io::{SerialSettings, serial};
-
-/// Bytes read at once: larger than any frame, so a frame rarely splits.
-pub(super) const READ_CHUNK: usize = 4096;
 
 /// Hands out connection ids.
 #[derive(Debug, Clone, Default)]

@@ -1,19 +1,279 @@
 //! What every real-time session (`twin serve`, `twin supervise`) does around
 //! its engine: the links' runtime, waiting for the engine thread while
 //! SIGINT/SIGTERM are forwarded to it, and the totals its recording ends with.
+//!
+//! [`run`] takes a session through its steps in order: the runtime and the
+//! clock, the engine, the role's devices and links ([`Role`]), the recording
+//! and its metadata, the sink, `ready`, the engine's thread and the links'
+//! tasks, the run until `--duration`, `stop` or a signal, the shutdown and the
+//! totals. A role supplies what differs; [`SessionOptions`] and
+//! [`SessionOutcome`] hold what every session is told and reports.
 
 use anyhow::{Context, Result};
-use nodes::time::SimTime;
+use nodes::time::{SimDuration, SimTime};
 use std::collections::BTreeMap;
-use std::path::Path;
-use std::sync::mpsc::{Receiver, Sender};
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::mpsc::{Receiver, Sender, channel};
 use std::thread::JoinHandle;
 use std::time::Duration;
-use tokio::runtime::Runtime;
+use tokio::runtime::{Handle, Runtime};
 use tokio::signal::unix::{Signal, SignalKind, signal};
 
-use super::{Inbound, RtEngine, RtSummary};
+use super::io::{SerialSettings, serial, tcp};
+use super::links::{ConnIds, accept_loop, serial_loop};
+use super::sink::{self, SinkConfig, SinkMsg, ViewOpener};
+use super::{Inbound, LatenessSummary, RtClock, RtEngine, RtSummary};
 use twin_recording::record::Recorder;
+
+/// What every session is told, beside what its role is told (the role's
+/// options hold it as `session`).
+#[derive(Debug, Clone)]
+pub struct SessionOptions {
+    /// Stop after this long, seconds (none: until SIGINT/SIGTERM or `stop`).
+    pub duration: Option<f64>,
+    /// Recording (none: not recorded).
+    pub out: Option<PathBuf>,
+    /// Print every frame.
+    pub monitor: bool,
+    /// Seconds between status lines (0: none).
+    pub status_every: f64,
+    /// Wait for serial paths that do not exist yet (ptys made later).
+    pub wait_for_ports: bool,
+    /// Plant state messages recorded per second.
+    pub record_hz: f64,
+    /// Real-time FIFO priority of the engine's thread (the links' thread
+    /// gets one below), if asked for.
+    pub rt_priority: Option<u8>,
+    /// Opens the session's live view (`--view`), if it has one.
+    pub view: Option<ViewOpener>,
+    /// The command line, for the recording's metadata.
+    pub command_line: String,
+}
+
+/// What every session reports at its end (a role's outcome holds it beside
+/// its own results).
+#[derive(Debug)]
+pub struct SessionOutcome {
+    pub elapsed_s: f64,
+    pub lateness: LatenessSummary,
+    pub counters: crate::engine::RtCounters,
+    pub refused_clients: u64,
+    pub stopped_by: String,
+    pub recording: Option<PathBuf>,
+    /// Samples streamed to the live view (`--view`), if it ran.
+    pub view_samples: Option<u64>,
+    /// What the live view's viewer did not take, if anything.
+    pub view_error: Option<String>,
+}
+
+/// What a session's role (`twin serve`, `twin supervise`) supplies to
+/// [`run`]: its devices, its links, its metadata, and what it does while the
+/// session runs and once it has stopped.
+pub trait Role {
+    /// One open link, as the command prints it before `ready`.
+    type Link;
+    /// What the role reports at the end, beside [`SessionOutcome`].
+    type End;
+    /// The recording's `kind`.
+    const KIND: &'static str;
+
+    /// Adds the role's modules and devices to `engine`, and sets it up.
+    fn build(&mut self, engine: &mut RtEngine) -> Result<()>;
+
+    /// Opens the role's links (inside the runtime): each is added to
+    /// `engine`, and the task that carries it to `links`.
+    fn open(
+        &mut self,
+        engine: &mut RtEngine,
+        links: &mut Links,
+    ) -> impl Future<Output = Result<Vec<Self::Link>>>;
+
+    /// The recording's `twin.run` metadata besides `command`, `kind` and the
+    /// twin's version.
+    fn metadata(&self) -> Result<BTreeMap<String, String>>;
+
+    /// Once the engine and the links run: the role's own tasks.
+    fn started(&mut self, runtime: &Runtime, engine: &Sender<Inbound>);
+
+    /// Once the engine has stopped: what the role reports, and what it adds
+    /// to the recording's totals.
+    fn stopped(
+        &mut self,
+        engine: &mut RtEngine,
+        totals: &mut BTreeMap<String, String>,
+    ) -> Self::End;
+}
+
+/// Starts an opened link's task on the runtime, sending to the engine.
+type Starter = Box<dyn FnOnce(&Handle, Sender<Inbound>)>;
+
+/// The links a role opens: connection ids, the clients refused over a
+/// limit, and the tasks that carry the links, started once the engine runs.
+pub struct Links {
+    pub clock: RtClock,
+    pub ids: ConnIds,
+    wait_for_ports: bool,
+    refused: Arc<AtomicU64>,
+    starters: Vec<Starter>,
+}
+
+impl std::fmt::Debug for Links {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Links")
+            .field("tasks", &self.starters.len())
+            .finish_non_exhaustive()
+    }
+}
+
+impl Links {
+    fn new(clock: RtClock, wait_for_ports: bool) -> Self {
+        Self {
+            clock,
+            ids: ConnIds::default(),
+            wait_for_ports,
+            refused: Arc::new(AtomicU64::new(0)),
+            starters: Vec::new(),
+        }
+    }
+
+    /// Starts `task` on the runtime once the engine runs.
+    pub fn start(&mut self, task: impl FnOnce(&Handle, Sender<Inbound>) + 'static) {
+        self.starters.push(Box::new(task));
+    }
+
+    /// Listens on `addr` for the clients of link `link`, refusing those
+    /// beyond `max_clients`; returns the address bound (port 0: the port
+    /// chosen).
+    pub async fn listen(
+        &mut self,
+        addr: SocketAddr,
+        link: usize,
+        max_clients: Option<usize>,
+    ) -> Result<SocketAddr> {
+        let listener = tcp::bind(addr).await?;
+        let local = listener.local_addr()?;
+        let (ids, clock, refused) = (self.ids.clone(), self.clock, self.refused.clone());
+        self.start(move |rt, inbound| {
+            rt.spawn(accept_loop(
+                listener,
+                link,
+                max_clients,
+                ids,
+                clock,
+                inbound,
+                refused,
+            ));
+        });
+        Ok(local)
+    }
+
+    /// Opens the serial device or pty at `path` as link `link`; with
+    /// `--wait-for-ports`, waits for a path that does not exist yet.
+    pub async fn serial(
+        &mut self,
+        path: &Path,
+        settings: SerialSettings,
+        link: usize,
+    ) -> Result<()> {
+        if self.wait_for_ports && !path.exists() {
+            println!("waiting for {} to appear ...", path.display());
+            while !path.exists() {
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+        }
+        let port = serial::open(path, &settings)?;
+        let (ids, clock, path) = (self.ids.clone(), self.clock, path.to_path_buf());
+        self.start(move |rt, inbound| {
+            rt.spawn(serial_loop(path, settings, port, link, ids, clock, inbound));
+        });
+        Ok(())
+    }
+}
+
+/// Runs a session of `role`: `ready` gets the open links once they all are
+/// (the command prints them and `ready`). Returns once the session has
+/// stopped and its recording is finished.
+pub fn run<R: Role>(
+    options: &SessionOptions,
+    mut role: R,
+    ready: impl FnOnce(&[R::Link]),
+) -> Result<(SessionOutcome, R::End)> {
+    let runtime = links_runtime()?;
+    let clock = RtClock::start();
+    let record_period = SimDuration::from_secs_f64(1.0 / options.record_hz.max(1.0));
+    // The sink starts once the links are open and named; its channel is made
+    // first so the engine can hold its sender.
+    let (tx, rx) = channel::<SinkMsg>();
+    let mut engine = RtEngine::new(clock, SimDuration::from_millis(1), record_period, tx);
+    role.build(&mut engine)?;
+    let mut links = Links::new(clock, options.wait_for_ports);
+    let open = runtime.block_on(role.open(&mut engine, &mut links))?;
+    let mut metadata = role.metadata()?;
+    metadata.insert("command".into(), options.command_line.clone());
+    let recorder = create_recording(options.out.as_deref(), R::KIND, metadata)?;
+    let modules: Vec<String> = engine.modules.iter().map(|m| m.name.clone()).collect();
+    let view = options.view.as_ref().and_then(|v| v.open(&modules));
+    let sink_handle = sink::spawn_with(
+        SinkConfig {
+            modules,
+            links: link_labels(&engine),
+            monitor: options.monitor,
+            recorder,
+            view,
+        },
+        rx,
+    );
+    let sink_tx = engine.sink();
+
+    ready(&open);
+
+    let (inbound_tx, inbound_rx) = channel::<Inbound>();
+    let end = options
+        .duration
+        .map(|s| SimTime::ZERO + SimDuration::from_secs_f64(s));
+    let engine_thread = spawn_engine(engine, inbound_rx, end, options.rt_priority)?;
+    for start in std::mem::take(&mut links.starters) {
+        start(runtime.handle(), inbound_tx.clone());
+    }
+    role.started(&runtime, &inbound_tx);
+    // The links' runtime runs on this thread: a reply waits for it too.
+    if let Some(priority) = options.rt_priority
+        && let Err(why) = super::clock::raise_this_thread(priority.saturating_sub(1).max(1))
+    {
+        let _ = sink_tx.send(SinkMsg::Say(format!(
+            "warning: links at normal priority: {why}"
+        )));
+    }
+
+    let (summary, mut engine) = run_until_stopped(&runtime, engine_thread, inbound_tx.clone())?;
+    let mut role_totals = BTreeMap::new();
+    let role_end = role.stopped(&mut engine, &mut role_totals);
+    drop(engine);
+    runtime.shutdown_timeout(Duration::from_millis(200));
+
+    let refused_clients = links.refused.load(Ordering::Relaxed);
+    let mut totals = totals(&summary, refused_clients)?;
+    totals.extend(role_totals);
+    let _ = sink_tx.send(SinkMsg::Finish(totals));
+    drop(sink_tx);
+    let sunk = sink_handle
+        .join()
+        .map_err(|_| anyhow::anyhow!("the recording thread failed"))??;
+    let outcome = SessionOutcome {
+        elapsed_s: summary.elapsed.as_secs_f64(),
+        lateness: summary.lateness,
+        counters: summary.counters,
+        refused_clients,
+        stopped_by: summary.stopped_by,
+        recording: sunk.recording,
+        view_samples: sunk.view_samples,
+        view_error: sunk.view_error,
+    };
+    Ok((outcome, role_end))
+}
 
 /// The runtime the listeners and serial ports run on (a TCP connection has
 /// a thread of its own, see [`super::tcp_thread`]): a worker per core (up
@@ -39,7 +299,8 @@ pub fn create_recording(
     mut fields: BTreeMap<String, String>,
 ) -> Result<Option<Recorder>> {
     let Some(path) = path else { return Ok(None) };
-    let mut recorder = Recorder::create_with_level(path, twin_recording::record::REALTIME_ZSTD_LEVEL)?;
+    let mut recorder =
+        Recorder::create_with_level(path, twin_recording::record::REALTIME_ZSTD_LEVEL)?;
     fields.insert("kind".into(), kind.into());
     fields.insert("twin_version".into(), env!("CARGO_PKG_VERSION").into());
     recorder.write_metadata("twin.run", fields)?;

@@ -19,8 +19,8 @@ use std::time::Duration;
 pub use super::frame_log::{Direction, FrameBatch};
 use super::lateness::LatenessSummary;
 use twin_recording::describe::link_frame_fields;
-use twin_sim::observe::McapObserver;
 use twin_recording::record::Recorder;
+use twin_sim::observe::McapObserver;
 
 /// How often the sink drains its queue (console lines and recording may lag
 /// by this much; the engine never waits for them).
@@ -102,12 +102,17 @@ pub trait LiveView: Send + std::fmt::Debug {
 /// Opens a session's live view once the session knows its modules (the
 /// view's layout depends on them). Cloned with the options that hold it.
 #[derive(Clone)]
-pub struct ViewOpener(std::sync::Arc<dyn Fn(&[String]) -> Option<Box<dyn LiveView>> + Send + Sync>);
+pub struct ViewOpener(std::sync::Arc<OpenView>);
+
+/// What a [`ViewOpener`] calls: the session's module names in, the view out.
+type OpenView = dyn Fn(&[String]) -> Option<Box<dyn LiveView>> + Send + Sync;
 
 impl ViewOpener {
     /// `open` gets the session's module names and gives the view, or
     /// `None` (having said why on stderr): a session goes on without it.
-    pub fn new(open: impl Fn(&[String]) -> Option<Box<dyn LiveView>> + Send + Sync + 'static) -> Self {
+    pub fn new(
+        open: impl Fn(&[String]) -> Option<Box<dyn LiveView>> + Send + Sync + 'static,
+    ) -> Self {
         Self(std::sync::Arc::new(open))
     }
 

@@ -21,53 +21,25 @@
 
 use std::io::{ErrorKind, Read, Write};
 use std::net::{Shutdown, TcpStream};
-use std::os::fd::OwnedFd;
 use std::sync::mpsc::Sender;
 use std::time::Duration;
 
-use rustix::event::{EventfdFlags, PollFd, PollFlags, eventfd, poll};
+use rustix::event::{PollFd, PollFlags, poll};
 use tokio::sync::mpsc::{UnboundedReceiver, unbounded_channel};
 
 use super::clock::RtClock;
-use super::front::{After, FrontHandle};
-use super::links::READ_CHUNK;
-use super::messages::{ConnId, Inbound, LinkTask, Outbound, Outgoing, Wake};
+use super::engine::Inbound;
+use super::frame_log::{ConnId, Outgoing};
+use super::front::{After, FrontHandle, LinkTask, Outbound};
+use super::wake::{ThreadWake, Wake};
+
+/// Bytes read at once, here and by the serial ports' tasks: larger than
+/// any frame, so a frame rarely splits.
+pub(super) const READ_CHUNK: usize = 4096;
 
 /// A client that has not taken a reply for this long is dropped, so that
 /// the thread does not wait on it forever.
 pub const WRITE_STALL: Duration = Duration::from_secs(10);
-
-/// How the engine wakes a connection's thread.
-#[derive(Debug)]
-pub struct ThreadWake {
-    /// Signalled when the engine made frames due.
-    frames: OwnedFd,
-    /// The connection's socket (a second handle), to shut its reading side.
-    socket: TcpStream,
-}
-
-impl ThreadWake {
-    fn new(socket: &TcpStream) -> std::io::Result<Self> {
-        Ok(Self {
-            frames: eventfd(0, EventfdFlags::CLOEXEC | EventfdFlags::NONBLOCK)?,
-            socket: socket.try_clone()?,
-        })
-    }
-
-    pub fn frames_due(&self) {
-        let _ = rustix::io::write(&self.frames, &1u64.to_ne_bytes());
-    }
-
-    /// A `Close` is on the thread's channel: end its `recv` (or `poll`).
-    pub fn closing(&self) {
-        let _ = self.socket.shutdown(Shutdown::Read);
-    }
-
-    fn clear(&self) {
-        let mut count = [0u8; 8];
-        let _ = rustix::io::read(&self.frames, &mut count);
-    }
-}
 
 /// Carries `stream` until either side closes it; returns why it ended.
 pub fn serve_tcp(

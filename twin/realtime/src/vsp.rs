@@ -7,7 +7,8 @@
 //! behave like two serial ports joined by a null-modem cable.
 //!
 //! A pty whose slave has no open descriptor hangs up its master (reads fail with
-//! `EIO`), and seed 002's master opens and closes the port for every transaction.
+//! `EIO`), and the Controller_network master opens and closes the port for every
+//! transaction.
 //! So each end holds its own descriptor of its slave, opened through the master
 //! (`TIOCGPTPEER`, no path race) and put in raw mode: the pair never hangs up,
 //! and a program that opens the port without configuring it still gets raw,

@@ -3,8 +3,8 @@
 //! The virtual engine, the real-time sink and the viewer all call these, so a
 //! frame reads the same wherever it was recorded.
 
-use nodes::proto::meb::MebRepr;
-use nodes::proto::{modbus, modbus8};
+use protocols::meb::MebRepr;
+use protocols::{modbus, modbus8};
 use serde::Serialize;
 use serde_json::{Value, json};
 
@@ -19,9 +19,9 @@ pub enum FrameKind {
 
 impl FrameKind {
     /// MEB frames start with `@`; an 8-byte frame whose CRC checks high byte
-    /// first is the seed-002 variant; anything else is read as Modbus RTU.
+    /// first is the Controller_network variant; anything else is read as Modbus RTU.
     pub fn of(sent: &[u8]) -> Self {
-        use nodes::proto::modbus8::{CrcOrder, Frame};
+        use protocols::modbus8::{CrcOrder, Frame};
         if sent.first() == Some(&b'@') {
             FrameKind::Meb
         } else if sent.len() == 8 && Frame::parse(sent, CrcOrder::HighFirst).is_ok() {
@@ -33,7 +33,7 @@ impl FrameKind {
 
     /// Whether `received` passes this format's check.
     pub fn passes_check(self, received: &[u8]) -> bool {
-        use nodes::proto::{meb::MebRepr, modbus, modbus8};
+        use protocols::{meb::MebRepr, modbus, modbus8};
         match self {
             FrameKind::Meb => MebRepr::parse(received).is_ok(),
             FrameKind::Modbus8 => {

@@ -9,9 +9,9 @@ use serde::Deserialize;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+use crate::scenario::{EMBEDDED, Scenario};
 use twin_recording::Recording;
 use twin_recording::compare::{self, Comparison, Tolerances};
-use crate::scenario::{EMBEDDED, Scenario};
 
 /// The cut-down settings, built into the binary like the scenarios.
 pub const SETTINGS: &str = include_str!("../../../recordings/baselines/baselines.toml");

@@ -31,7 +31,7 @@ pub trait SimNode: Node {
         None
     }
     /// Whether the firmware's actuators drive its module (a sensor-only
-    /// node, like seed 002's light sensor, only reads it).
+    /// node, like the Controller_network light sensor, only reads it).
     fn drives_plant(&self) -> bool {
         true
     }
@@ -59,12 +59,13 @@ pub trait SimNode: Node {
 pub struct SpeedReadings {
     /// Wheel rpm from the hall edges (the EV controller's `RPM_M`).
     pub hall_wheel_rpm: Option<f64>,
-    /// Motor-shaft rpm from an encoder (seed 002's motor node, register 0005).
+    /// Motor-shaft rpm from an encoder (the Controller_network motor node,
+    /// register 0005).
     pub motor_shaft_rpm: Option<f64>,
     /// Wheel rpm from the photoresistor's dips.
     pub light_rpm: Option<f64>,
-    /// The speed the node's own loop holds, motor rpm (seed 002's motor
-    /// node: its set point while operational, 0 otherwise).
+    /// The speed the node's own loop holds, motor rpm (the Controller_network
+    /// motor node: its set point while operational, 0 otherwise).
     pub set_point_motor_rpm: Option<f64>,
 }
 
@@ -122,7 +123,7 @@ pub fn firmware_tick(
     let fw = node.firmware()?;
     let actuators = fw.loop_tick(t, &sensors);
     let next = t + fw.loop_period();
-    // A sensor-only node (seed 002's light sensor) watches the bench that
+    // A sensor-only node (the Controller_network light sensor) watches the bench that
     // another node drives: its idle pins must not overwrite the driver's.
     if !drives_plant {
         return Some((next, false));
@@ -147,8 +148,8 @@ pub struct NodeSlot {
     stirred: bool,
 }
 
-/// What carries a bus slot's frames: the RS-485 serial bus, or seed 003's
-/// PWM-capture link (frames of pulse widths, captured widths delivered).
+/// What carries a bus slot's frames: the RS-485 serial bus, or the PWM-capture
+/// paper's link (frames of pulse widths, captured widths delivered).
 // One per bus, built once and never moved on a hot path: the size of the
 // PWM link's capture buffers costs nothing.
 #[allow(clippy::large_enum_variant)]
@@ -304,6 +305,28 @@ pub trait Observer {
     fn event(&mut self, node: &NodeSlot, event: &NodeEvent) -> Result<()>;
     fn telemetry(&mut self, now: SimTime, node: &NodeSlot, value: &serde_json::Value)
     -> Result<()>;
+}
+
+/// An observer that keeps nothing: the engine's own cost, without recording.
+#[derive(Debug, Default, Clone, Copy)]
+pub struct DiscardObserver;
+
+impl Observer for DiscardObserver {
+    fn plant(&mut self, _: SimTime, _: &ModuleSlot) -> Result<()> {
+        Ok(())
+    }
+    fn actuators(&mut self, _: SimTime, _: &ModuleSlot) -> Result<()> {
+        Ok(())
+    }
+    fn frame(&mut self, _: &BusSlot, _: &NodeSlot, _: SimTime, _: SimTime, _: &[u8]) -> Result<()> {
+        Ok(())
+    }
+    fn event(&mut self, _: &NodeSlot, _: &NodeEvent) -> Result<()> {
+        Ok(())
+    }
+    fn telemetry(&mut self, _: SimTime, _: &NodeSlot, _: &serde_json::Value) -> Result<()> {
+        Ok(())
+    }
 }
 
 /// The engine.
@@ -636,7 +659,7 @@ mod tests {
         engine.add_node("stuck-node", Box::new(Stuck), b, port, None);
         let end = SimTime::ZERO + SimDuration::from_millis(10);
         let err = engine
-            .run_until(end, &mut crate::observe::DiscardObserver, |_| {})
+            .run_until(end, &mut DiscardObserver, |_| {})
             .expect_err("the clock cannot advance");
         assert!(err.to_string().contains("stuck-node"), "{err}");
     }

@@ -2,12 +2,14 @@
 //! objects, and what the engine needs from each kind of node.
 
 use anyhow::{Result, bail};
+use nodes::controller_network::{
+    ControllerNetworkMaster, LightConfig, LightNode, MasterConfig, MotorConfig, MotorNode,
+};
 use nodes::firmware::{EvController, EvControllerConfig, SlaveProtocol, ea};
 use nodes::link::{BusConfig, CheckKind, Fault, FaultWindow, FaultyNode, PortId, SimBus, Wiring};
 use nodes::master::Supervisor;
 use nodes::master::{Protocol, SetPointStep, SlaveLoopConfig, SpeedSource, SupervisorConfig};
 use nodes::node::Firmware;
-use nodes::controller_network::{LightConfig, LightNode, MasterConfig, MotorConfig, MotorNode, ControllerNetworkMaster};
 use nodes::time::{SimDuration, SimTime};
 use plant::PlantParams;
 use serde_json::{Value, json};
@@ -172,8 +174,11 @@ pub fn build_node(
                 reply_timeout: reply_timeout_ms.map(ms),
                 ..MasterConfig::default()
             };
-            let node =
-                FaultyNode::with_schedule(ControllerNetworkMaster::new(config), CheckKind::Modbus8, windows);
+            let node = FaultyNode::with_schedule(
+                ControllerNetworkMaster::new(config),
+                CheckKind::Modbus8,
+                windows,
+            );
             Ok((Box::new(node), SimDuration::ZERO))
         }
         NodeSpec::ParallelMaster { .. } | NodeSpec::PwmSlave { .. } => {

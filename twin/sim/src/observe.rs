@@ -202,28 +202,6 @@ impl Observer for McapObserver {
     }
 }
 
-/// An observer that keeps nothing: the engine's own cost, without recording.
-#[derive(Debug, Default, Clone, Copy)]
-pub struct DiscardObserver;
-
-impl Observer for DiscardObserver {
-    fn plant(&mut self, _: SimTime, _: &ModuleSlot) -> Result<()> {
-        Ok(())
-    }
-    fn actuators(&mut self, _: SimTime, _: &ModuleSlot) -> Result<()> {
-        Ok(())
-    }
-    fn frame(&mut self, _: &BusSlot, _: &NodeSlot, _: SimTime, _: SimTime, _: &[u8]) -> Result<()> {
-        Ok(())
-    }
-    fn event(&mut self, _: &NodeSlot, _: &NodeEvent) -> Result<()> {
-        Ok(())
-    }
-    fn telemetry(&mut self, _: SimTime, _: &NodeSlot, _: &Value) -> Result<()> {
-        Ok(())
-    }
-}
-
 /// Two observers fed the same run, in order: the recorder and a live view.
 #[derive(Debug)]
 pub struct Tee<A, B> {
@@ -259,12 +237,7 @@ impl<A: Observer, B: Observer> Observer for Tee<A, B> {
         self.second.event(node, event)
     }
 
-    fn telemetry(
-        &mut self,
-        now: SimTime,
-        node: &NodeSlot,
-        value: &Value,
-    ) -> Result<()> {
+    fn telemetry(&mut self, now: SimTime, node: &NodeSlot, value: &Value) -> Result<()> {
         self.first.telemetry(now, node, value)?;
         self.second.telemetry(now, node, value)
     }
@@ -295,12 +268,7 @@ impl<O: Observer + ?Sized> Observer for &mut O {
         (**self).event(node, event)
     }
 
-    fn telemetry(
-        &mut self,
-        now: SimTime,
-        node: &NodeSlot,
-        value: &Value,
-    ) -> Result<()> {
+    fn telemetry(&mut self, now: SimTime, node: &NodeSlot, value: &Value) -> Result<()> {
         (**self).telemetry(now, node, value)
     }
 }

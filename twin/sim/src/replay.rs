@@ -9,8 +9,8 @@ use std::path::{Path, PathBuf};
 use toml::{Table, Value};
 
 use crate::openloop::{self, OpenLoop};
-use twin_recording::Recording;
 use crate::scenario::Scenario;
+use twin_recording::Recording;
 
 /// What a recording says was run.
 #[derive(Debug, Clone)]

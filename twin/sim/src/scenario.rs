@@ -40,7 +40,7 @@ pub const EMBEDDED: [(&str, &str, &str); 7] = [
     ),
     (
         "controller-network",
-        "the seed-002 network: motor node, light-sensor node and the Raspberry Pi master",
+        "the Controller_network project: motor node, light-sensor node, Raspberry Pi master",
         include_str!("../../../recordings/scenarios/controller-network.toml"),
     ),
     (
@@ -129,7 +129,7 @@ pub enum WiringSpec {
     /// Every node hears every other (RS-485 multi-drop).
     MultiDrop,
     /// The master's TX reaches every slave, every slave's TX reaches only the
-    /// master (the seed-002 network).
+    /// master (as in the Controller_network project).
     MasterSlaves,
 }
 
@@ -147,7 +147,7 @@ pub struct BusSpec {
     pub bit_error_rate: f64,
     #[serde(default = "default_wiring")]
     pub wiring: WiringSpec,
-    /// `serial` (default) or `pwmcap` (seed 003's PWM-capture link).
+    /// `serial` (default) or `pwmcap` (the PWM-capture paper's link).
     #[serde(default, skip_serializing_if = "MediumSpec::is_serial")]
     pub medium: MediumSpec,
     /// The PWM-capture link's coding and line, for `medium = "pwmcap"`.
@@ -191,7 +191,7 @@ pub enum NodeSpec {
         #[serde(default = "default_loop_ms")]
         loop_period_ms: f64,
     },
-    /// The seed-002 motor node (id 01).
+    /// The Controller_network motor node (id 01).
     MotorNode {
         name: String,
         bus: String,
@@ -199,7 +199,7 @@ pub enum NodeSpec {
         #[serde(default = "default_turnaround_ms")]
         turnaround_ms: f64,
     },
-    /// The seed-002 light-sensor node (id 02), watching the same module's wheel.
+    /// The Controller_network light-sensor node (id 02), watching the same module's wheel.
     LightNode {
         name: String,
         bus: String,

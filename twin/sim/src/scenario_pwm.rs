@@ -1,4 +1,4 @@
-//! The PWM-capture link in scenario files (seed 003), and the parallel
+//! The PWM-capture paper's link in scenario files, and the parallel
 //! modules that use it:
 //!
 //! ```toml
@@ -50,7 +50,7 @@ pub enum MediumSpec {
     /// The simulated RS-485 serial bus.
     #[default]
     Serial,
-    /// Seed 003's PWM-capture link.
+    /// The PWM-capture paper's link.
     Pwmcap,
 }
 

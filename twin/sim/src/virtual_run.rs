@@ -10,8 +10,8 @@ use crate::engine::Engine;
 use crate::nodes_build::is_master;
 use crate::nodes_parallel::{build_medium, build_node_on, calibrated};
 use crate::observe::McapObserver;
-use twin_recording::record::Recorder;
 use crate::scenario::Scenario;
+use twin_recording::record::Recorder;
 
 /// What a run reports at the end.
 #[derive(Debug, Clone)]
@@ -26,7 +26,7 @@ pub struct RunOutcome {
     pub telemetry: Vec<(String, serde_json::Value)>,
     /// Per bus: its name, the line's own counters and the receivers' check tally.
     pub buses: Vec<(String, nodes::link::BusStats, crate::engine::CheckTally)>,
-    /// Log lines the nodes printed (the seed-002 master's printout), last ones.
+    /// Log lines the nodes printed (the Controller_network master's printout), last ones.
     pub log_tail: Vec<String>,
     /// Per PWM-capture bus: its name and the link's own counters.
     pub pwm: Vec<(String, nodes::link::PwmStats)>,
@@ -120,7 +120,7 @@ pub fn describe_calibration(bus: &str, c: &nodes::link::PwmCalibration) -> Strin
 
 /// Run `scenario` and record it to `out`; `progress` gets the fraction done.
 pub fn run(scenario: &Scenario, out: &Path, progress: impl FnMut(f64)) -> Result<RunOutcome> {
-    run_with(scenario, out, &mut crate::observe::DiscardObserver, progress)
+    run_with(scenario, out, &mut crate::engine::DiscardObserver, progress)
 }
 
 /// Like [`run`], with `also` fed everything the recorder is (a live view).
@@ -144,7 +144,7 @@ pub fn run_sampled(
     sample_every: Option<SimDuration>,
     on_sample: impl FnMut(SimTime, &Engine, &mut Recorder) -> Result<()>,
 ) -> Result<RunOutcome> {
-    let mut discard = crate::observe::DiscardObserver;
+    let mut discard = crate::engine::DiscardObserver;
     run_observed(
         scenario,
         out,

@@ -63,14 +63,14 @@ pub struct ViewLayout {
     node_module: BTreeMap<String, usize>,
     /// (master node name, slave id) → module index (its loop's set point).
     slave_module: BTreeMap<(String, u8), usize>,
-    /// The seed-002 network's nodes: name → module index and which one.
+    /// The Controller_network nodes: name → module index and which one.
     controller_network: BTreeMap<String, (usize, ControllerNetworkRole)>,
     /// A real-time session (`twin serve`, `twin supervise`): its tick
     /// lateness is shown too.
     pub realtime: bool,
 }
 
-/// Which seed-002 node a reply comes from.
+/// Which Controller_network node a reply comes from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ControllerNetworkRole {
     /// Motor node: its register 5 is the motor shaft's rpm.
@@ -153,7 +153,7 @@ impl ViewLayout {
 
     /// The layout of a `twin serve` session: module `ev1` (the EV
     /// controller every link but `--modbus8` serves, on the plant `params`)
-    /// and/or `bench`, the seed-002 network's, with its nodes `motor` and
+    /// and/or `bench`, the Controller_network nodes', with its nodes `motor` and
     /// `sensor`. The names are those `twin serve` gives them.
     pub fn of_serve(params: &PlantParams, ev: bool, controller_network: bool) -> Self {
         let mut layout = Self {
@@ -221,17 +221,18 @@ impl ViewLayout {
             .map(|(_, &m)| m)
     }
 
-    /// The seed-002 node `name`: its module and role.
+    /// The Controller_network node `name`: its module and role.
     pub fn controller_network_node(&self, name: &str) -> Option<(usize, ControllerNetworkRole)> {
         self.controller_network.get(name).copied()
     }
 
-    /// Whether module `m` is run by seed-002 nodes (it then has a motor-shaft view).
+    /// Whether module `m` is run by Controller_network nodes (it then has a
+    /// motor-shaft view).
     pub fn has_controller_network(&self, m: usize) -> bool {
         self.controller_network.values().any(|&(i, _)| i == m)
     }
 
-    /// The module of the seed-002 motor node (the master's set point is its).
+    /// The module of the Controller_network motor node (the master's set point is its).
     pub fn controller_network_motor_module(&self) -> Option<usize> {
         self.controller_network
             .values()

@@ -13,7 +13,7 @@
 //! | `<m>/photoresistor/divider`, `threshold` | the plant; the firmware's fixed threshold | sensor sample |
 //! | `<m>/photoresistor/dips` | the firmware's detector run on the recorded samples | dip |
 //! | `<m>/flag/in_beam`, `<m>/flag/detector_dark` | the plant; that detector | sensor sample |
-//! | `<m>/motor_shaft/*` | seed-002 motor node (motor shaft rpm) | reply / sample |
+//! | `<m>/motor_shaft/*` | Controller_network motor node (motor shaft rpm) | reply / sample |
 //! | `bus/<bus>/frames` | every frame, as text (a real-time session's links: `bus/<link>/frames`) | frame |
 //! | `realtime/lateness/p99_us`, `max_us` | a real-time session's `/realtime/lateness` | second |
 //! | `events` | every node event | event |
@@ -324,8 +324,8 @@ impl RerunLogger {
     }
 
     /// The rpm words a slave's reply carries: RPM_M and RPM_L of an EV
-    /// controller (MEB `EA` or Modbus input registers), the seed-002 nodes'
-    /// readings, and the seed-002 master's set-point writes.
+    /// controller (MEB `EA` or Modbus input registers), the Controller_network
+    /// nodes' readings, and the Controller_network master's set-point writes.
     fn speeds_in_frame(&mut self, bus: &str, from: &str, bytes: &[u8]) {
         if let Some(m) = self.layout.module_of_node(from) {
             let words: Option<(usize, Vec<u16>)> = if bytes.first() == Some(&b'@') {
@@ -364,7 +364,7 @@ impl RerunLogger {
             return;
         }
         // A master's frame: remember a Modbus read so that its reply can
-        // be read; the seed-002 master's set-point write to the motor node
+        // be read; the Controller_network master's set-point write to the motor node
         // (register 9; until the first one the node runs its default 10000).
         let read = with_modbus(bytes, |frame| match frame.request() {
             Ok(Request::ReadInputRegisters { address, quantity }) => Some(PendingRead {
@@ -434,7 +434,7 @@ pub struct LatenessSample {
     pub max_us: f64,
 }
 
-/// A frame's decoded fields: MEB, the seed-002 and RTU frames of a bus, or
+/// A frame's decoded fields: MEB, the Controller_network and RTU frames of a bus, or
 /// the Modbus TCP and ASCII frames a real-time session's links carry.
 fn decode_any(bytes: &[u8]) -> serde_json::Value {
     let decoded = twin_recording::describe::decode_frame(bytes);

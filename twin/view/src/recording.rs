@@ -93,7 +93,11 @@ pub fn layout_of(bytes: &[u8], path: &Path) -> Result<ViewLayout> {
                     .with_context(|| format!("{}: the stored plant parameters", path.display()))?,
                 None => PlantParams::preset("vemodule").unwrap_or_default(),
             };
-            Ok(ViewLayout::of_serve(&params, ev || !controller_network, controller_network))
+            Ok(ViewLayout::of_serve(
+                &params,
+                ev || !controller_network,
+                controller_network,
+            ))
         }
         Some("supervise") => {
             // Stored as `[1, 2]`.
@@ -320,7 +324,7 @@ mod tests {
             Session::Supervise.sender("tcp", "client 3", b"@02"),
             "client 3"
         );
-        // On `twin serve`'s seed-002 link the reply's id names the node.
+        // On `twin serve`'s --modbus8 link the reply's id names the node.
         assert_eq!(Session::Serve.sender("modbus8", "twin", &[2, 3]), "sensor");
         assert_eq!(Session::Serve.sender("modbus8", "twin", &[1, 3]), "motor");
         assert_eq!(Session::Serve.sender("meb", "twin", b"@01"), "ev1");

@@ -1,7 +1,7 @@
 //! The stream decoding shared by the binary serial framings (RTU and the
 //! 8-byte variant): frames delimited by their length where the header gives it
 //! and by line silence where it does not, with the resynchronisation rules of
-//! `spec/modbus8.md`.
+//! `docs/protocols/modbus8.md`.
 //!
 //! Timing comes with each chunk: all bytes of a chunk are taken to have arrived
 //! at its `now`. A gap of at least the configured silence between two chunks

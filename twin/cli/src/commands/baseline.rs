@@ -5,8 +5,8 @@ use anyhow::{Result, bail};
 use clap::Args;
 use std::path::PathBuf;
 use std::time::Instant;
-use twin_sim::baseline;
 use twin_recording::compare;
+use twin_sim::baseline;
 
 /// Check every embedded scenario against its baseline recording, or re-record baselines.
 ///

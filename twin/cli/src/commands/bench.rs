@@ -11,7 +11,7 @@ use twin_lab::bench::{self, DEFAULT_SCENARIOS, Measurement};
 /// recording (MCAP to a temporary file, deleted after). Without --scenario, runs `ev-meb` (one module, 115200 baud, 100 Hz speed
 /// loop; goal 200x) and `ten-modules` (ten modules on one bus, each polled at
 /// 10 Hz; goal 30x). Each figure is the fastest of --repeat runs. Build with
-/// --release, and pin to one core for the figures:
+/// --release, and pin to one core for comparable figures:
 /// `taskset -c 0 twin bench`.
 #[derive(Debug, Args)]
 pub struct BenchArgs {

@@ -1,4 +1,4 @@
-//! `twin experiment`: reproduce a seed paper's figures from the twin's models.
+//! `twin experiment`: reproduce a source paper's figures from the twin's models.
 
 use anyhow::{Result, bail};
 use clap::{Args, Subcommand};
@@ -6,7 +6,7 @@ use twin_lab::pwmcap::{
     self, BIT_RECOGNITION_DEFINITION, Confusion, IMPEDANCE_ROWS_OHM, ReliabilitySetup,
 };
 
-/// Reproduce a seed paper's figures from the twin's models, paper values beside.
+/// Reproduce a paper's figures from the twin's models, paper values beside.
 #[derive(Debug, Args)]
 pub struct ExperimentArgs {
     #[command(subcommand)]
@@ -15,7 +15,7 @@ pub struct ExperimentArgs {
 
 #[derive(Debug, Subcommand)]
 enum Experiment {
-    /// Seed 003's PWM-capture link: Table 2, bit-recognition reliability
+    /// The PWM-capture paper's link (Park, Park & Kang): Table 2, bit-recognition reliability
     /// against added line impedance with and without start-width calibration,
     /// and the longest cable that decodes without errors.
     Pwmcap(PwmcapArgs),
@@ -41,7 +41,7 @@ struct ParallelArgs {
 }
 
 /// Options of `twin experiment pwmcap`; the defaults are the model's fixed
-/// parameters (see nodes/PWMCAP-LINE.md), not fitted to the paper.
+/// parameters (see docs/protocols/pwmcap-line.md), not fitted to the paper.
 #[derive(Debug, Args)]
 struct PwmcapArgs {
     /// Seed of the test values, comparator noise and counter phase.
@@ -196,7 +196,7 @@ fn print_parameters(setup: &ReliabilitySetup) {
     let line = &setup.line;
     println!();
     println!(
-        "Line model (fixed from datasheets before any figure was computed; nodes/PWMCAP-LINE.md):"
+        "Line model (fixed from datasheets before any figure was computed; docs/protocols/pwmcap-line.md):"
     );
     println!(
         "  driver {} Ω, cable {} Ω/m loop and {} pF/m × {} m, receiver {} pF, \

@@ -58,13 +58,13 @@ pub fn opener(
     layout: impl Fn(&[String]) -> ViewLayout + Send + Sync + 'static,
 ) -> ViewOpener {
     let target = ViewTarget::parse(target);
-    ViewOpener::new(move |modules| {
-        match twin_view::live_view(&target, role, layout(modules)) {
+    ViewOpener::new(
+        move |modules| match twin_view::live_view(&target, role, layout(modules)) {
             Ok(observer) => Some(Box::new(RerunSession { observer, session }) as Box<dyn LiveView>),
             Err(e) => {
                 eprintln!("{role} --view: {e:#}; running without the live view");
                 None
             }
-        }
-    })
+        },
+    )
 }

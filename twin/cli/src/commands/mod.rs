@@ -18,26 +18,21 @@ pub mod vsp;
 
 /// The last lines of a real-time session's report (`twin serve`, `twin
 /// supervise`): its connections, where it was recorded, the live view.
-fn print_session_end(
-    c: &twin_realtime::engine::RtCounters,
-    refused_clients: u64,
-    recording: Option<&std::path::Path>,
-    view_samples: Option<u64>,
-    view_error: Option<&str>,
-) {
+fn print_session_end(outcome: &twin_realtime::session::SessionOutcome) {
+    let c = &outcome.counters;
     println!(
         "  {} connections ({} refused over the limit, {} closed for a partial frame, {} for the rate limit); {} bytes in, {} frames out",
         c.connections,
-        refused_clients,
+        outcome.refused_clients,
         c.closed_partial_timeout,
         c.closed_rate_limit,
         c.bytes_in,
         c.frames_out
     );
-    if let Some(path) = recording {
+    if let Some(path) = &outcome.recording {
         println!("recording: {}", path.display());
     }
-    match (view_samples, view_error) {
+    match (outcome.view_samples, outcome.view_error.as_deref()) {
         (Some(_), Some(e)) => eprintln!("live view: {e}"),
         (Some(samples), None) => println!("live view: {samples} samples streamed to rerun"),
         _ => {}

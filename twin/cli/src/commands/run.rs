@@ -9,8 +9,8 @@ use std::path::PathBuf;
 use std::time::Instant;
 use twin_sim::openloop::{self, OpenLoop};
 use twin_sim::scenario::{EMBEDDED, Scenario};
-use twin_view::{self as view, RerunObserver, ViewLayout, ViewTarget};
 use twin_sim::virtual_run;
+use twin_view::{self as view, RerunObserver, ViewLayout, ViewTarget};
 
 /// Run a scenario in simulated time, far faster than real time, and record it.
 ///
@@ -53,8 +53,9 @@ pub struct RunArgs {
         conflicts_with = "open_loop"
     )]
     view: Option<String>,
-    /// Open loop: bench to simulate, `vemodule` (the EV module of seed 000) or
-    /// `controller-network` (the geared motor + light sensor of seed 002).
+    /// Open loop: bench to simulate, `vemodule` (the M3CVME tool's EV module) or
+    /// `controller-network` (the Controller_network project's geared motor +
+    /// light sensor).
     #[arg(
         long,
         default_value = "vemodule",

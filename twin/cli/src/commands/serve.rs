@@ -1,6 +1,5 @@
 //! `twin serve`: the simulated controller, in real time on real links.
 
-use twin_view::{Session, ViewLayout};
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use nodes::time::SimDuration;
@@ -9,6 +8,8 @@ use std::io::Write;
 use std::path::PathBuf;
 use twin_realtime::io::LinkDefaults;
 use twin_realtime::serve::{self, ServeOptions, ServeProtocol, console};
+use twin_realtime::session::SessionOptions;
+use twin_view::{Session, ViewLayout};
 
 /// Run the EV module in real time and serve its controller on real links.
 ///
@@ -22,7 +23,7 @@ use twin_realtime::serve::{self, ServeOptions, ServeProtocol, console};
 /// and finishes its MCAP recording.
 #[derive(Debug, Args)]
 #[command(
-    after_help = "Examples:\n  twin serve --meb tcp://127.0.0.1:5700\n  twin serve --meb /tmp/ttyV1 --baud 115200\n  twin serve --modbus tcp://127.0.0.1:5020 --meb tcp://127.0.0.1:5700\n  twin serve --modbus-rtu /tmp/ttyV1?parity=E\n  twin serve --modbus8 /tmp/ttyV1    (seed 002: motor 01, light sensor 02)"
+    after_help = "Examples:\n  twin serve --meb tcp://127.0.0.1:5700\n  twin serve --meb /tmp/ttyV1 --baud 115200\n  twin serve --modbus tcp://127.0.0.1:5020 --meb tcp://127.0.0.1:5700\n  twin serve --modbus-rtu /tmp/ttyV1?parity=E\n  twin serve --modbus8 /tmp/ttyV1    (Controller_network: motor 01, light sensor 02)"
 )]
 pub struct ServeArgs {
     /// MEB slave on LINK (serial, pty or TCP).
@@ -37,8 +38,8 @@ pub struct ServeArgs {
     /// Modbus ASCII slave on LINK (serial or pty).
     #[arg(long, value_name = "LINK")]
     modbus_ascii: Vec<String>,
-    /// The seed-002 network on LINK: motor node 01 and light sensor 02 on the
-    /// geared bench, 8-byte Modbus.
+    /// The Controller_network project's nodes on LINK: motor node 01 and light
+    /// sensor 02 on the geared bench, 8-byte Modbus.
     #[arg(long, value_name = "LINK")]
     modbus8: Vec<String>,
     /// Default baud rate of serial links (and of --pace on TCP).
@@ -55,7 +56,7 @@ pub struct ServeArgs {
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=99))]
     id: u8,
     /// I/O map of the MEB links (TOML, one table per block: `[EA]` with
-    /// `V1 = 0`, `[SD]` with `EN = "0.0"`); blocks not named keep spec/meb.md's map.
+    /// `V1 = 0`, `[SD]` with `EN = "0.0"`); blocks not named keep docs/protocols/meb.md's map.
     #[arg(long, value_name = "FILE")]
     map: Option<PathBuf>,
     /// Plant parameter file (TOML) whose fields override the vemodule preset.
@@ -159,35 +160,37 @@ fn options(args: &ServeArgs) -> Result<ServeOptions> {
     let positive = |v: f64| (v.is_finite() && v > 0.0).then_some(v);
     let params_for_view = params.clone();
     Ok(ServeOptions {
+        session: SessionOptions {
+            duration: args.duration,
+            out: (!args.no_record).then(|| args.out.clone()),
+            monitor: !args.quiet,
+            status_every: args.status_every,
+            wait_for_ports: args.wait_for_ports,
+            record_hz: args.record_hz,
+            rt_priority: args.rt_priority,
+            view: args.view.as_deref().map(|target| {
+                let params = params_for_view.clone();
+                super::live_view::opener(target, "twin serve", Session::Serve, move |modules| {
+                    let has = |name: &str| modules.iter().any(|m| m == name);
+                    ViewLayout::of_serve(&params, has("ev1"), has("bench"))
+                })
+            }),
+            // The program's own path stays out of the recording, as in `twin run`.
+            command_line: std::iter::once("twin".to_string())
+                .chain(std::env::args().skip(1))
+                .collect::<Vec<_>>()
+                .join(" "),
+        },
         links,
         defaults,
         id: args.id,
         meb_map: args.map.as_deref().map(serve::map::load).transpose()?,
         params,
         seed: args.seed,
-        duration: args.duration,
-        out: (!args.no_record).then(|| args.out.clone()),
-        monitor: !args.quiet,
-        status_every: args.status_every,
         max_clients: (args.max_clients > 0).then_some(args.max_clients),
         partial_timeout: positive(args.partial_timeout).map(SimDuration::from_secs_f64),
         rate_limit: (args.rate_limit > 0).then_some(args.rate_limit),
         read_only: args.read_only,
-        wait_for_ports: args.wait_for_ports,
-        record_hz: args.record_hz,
-        rt_priority: args.rt_priority,
-        view: args.view.as_deref().map(|target| {
-            let params = params_for_view.clone();
-            super::live_view::opener(target, "twin serve", Session::Serve, move |modules| {
-                let has = |name: &str| modules.iter().any(|m| m == name);
-                ViewLayout::of_serve(&params, has("ev1"), has("bench"))
-            })
-        }),
-        // The program's own path stays out of the recording, as in `twin run`.
-        command_line: std::iter::once("twin".to_string())
-            .chain(std::env::args().skip(1))
-            .collect::<Vec<_>>()
-            .join(" "),
     })
 }
 
@@ -211,7 +214,6 @@ pub fn execute(args: &ServeArgs) -> Result<()> {
         console::spawn_stdin,
     )?;
     let l = outcome.lateness;
-    let c = outcome.counters;
     println!(
         "twin serve: stopped ({}) after {:.3} s",
         outcome.stopped_by, outcome.elapsed_s
@@ -230,12 +232,6 @@ pub fn execute(args: &ServeArgs) -> Result<()> {
             }
         }
     }
-    super::print_session_end(
-        &c,
-        outcome.refused_clients,
-        outcome.recording.as_deref(),
-        outcome.view_samples,
-        outcome.view_error.as_deref(),
-    );
+    super::print_session_end(&outcome);
     Ok(())
 }

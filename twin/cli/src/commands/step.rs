@@ -1,5 +1,6 @@
-//! `twin step`: the step-response experiment (seed 002's plot of both speed
-//! sensors), with its figures for the motor's and the light sensor's rpm.
+//! `twin step`: the step-response experiment (the Controller_network project's
+//! plot of both speed sensors), with its figures for the motor's and the light
+//! sensor's rpm.
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
@@ -14,14 +15,14 @@ use super::run::Progress;
 /// Step response of the wheel, the hall rpm and the light-sensor rpm: rise, overshoot, settling, delay.
 ///
 /// Steps the set point and measures the true wheel speed, the motor's own
-/// rpm (hall edges; the encoder on the seed-002 bench) and the light
+/// rpm (hall edges; the encoder on the Controller_network bench) and the light
 /// sensor's rpm: 10–90 % rise time, overshoot, 2 % settling time,
 /// steady-state error and each sensor's delay behind the true speed.
 ///
 /// Closed loop (default): SCENARIO's supervisor (default `ev-meb`) steps its
 /// set point from FROM to TO rpm and closes the loop over the bus; in the
-/// `controller-network` scenario the seed-002 master runs its own set points
-/// and its first step after `--at` is measured. With
+/// `controller-network` scenario the Controller_network master runs its own set
+/// points and its first step after `--at` is measured. With
 /// `--open-loop` the bench alone steps VEL from FROM to TO (fractions of its
 /// 5 V range) while the firmware's estimators read its sensors.
 ///
@@ -43,11 +44,12 @@ pub struct StepArgs {
     /// [default: 200 rpm; 0.045 open loop].
     #[arg(long, value_name = "VALUE", allow_negative_numbers = true)]
     to: Option<f64>,
-    /// Time of the step (s); with the seed-002 master, the first change of its
-    /// set point at or after this time is measured [default: 2 s; 0 s seed 002].
+    /// Time of the step (s); with the Controller_network master, the first
+    /// change of its set point at or after this time is measured [default: 2 s;
+    /// 0 s controller-network].
     #[arg(long, value_name = "SECONDS")]
     at: Option<f64>,
-    /// Simulated duration (s) [default: 6 s; 30 s seed 002].
+    /// Simulated duration (s) [default: 6 s; 30 s controller-network].
     #[arg(long, value_name = "SECONDS")]
     duration: Option<f64>,
     /// Seed of every random draw (sensor noise, bit errors).
@@ -107,7 +109,7 @@ pub fn execute(args: &StepArgs) -> Result<()> {
             on_light: args.feedback == Feedback::Light,
         }
     };
-    // Seed 002's master runs its own set points: its step is measured.
+    // The Controller_network master runs its own set points: its step is measured.
     let own_schedule = match &drive {
         StepDrive::ClosedLoop { scenario, .. } => !scenario
             .nodes
@@ -117,8 +119,9 @@ pub fn execute(args: &StepArgs) -> Result<()> {
     };
     if own_schedule && (args.from.is_some() || args.to.is_some()) {
         bail!(
-            "this scenario's master (seed 002's Raspberry Pi) runs its own set points, so \
-             --from and --to do not apply: give --at to pick which of its steps to measure"
+            "this scenario's master (the Controller_network Raspberry Pi) runs its own set \
+             points, so --from and --to do not apply: give --at to pick which of its steps to \
+             measure"
         );
     }
     let (from, to) = if args.open_loop {

@@ -1,6 +1,5 @@
 //! `twin supervise`: the supervisor and TCP server, in real time on real links.
 
-use twin_view::{Session, ViewLayout};
 use anyhow::{Result, bail};
 use clap::{Args, ValueEnum};
 use nodes::master::SpeedSource;
@@ -8,7 +7,9 @@ use nodes::master::image_server::ImageServerConfig;
 use nodes::time::SimDuration;
 use std::io::Write;
 use std::path::PathBuf;
+use twin_realtime::session::SessionOptions;
 use twin_realtime::supervise::{self, SuperviseOptions};
+use twin_view::{Session, ViewLayout};
 
 /// Supervise the EV module over MEB and serve remote MEB clients over TCP.
 ///
@@ -18,7 +19,7 @@ use twin_realtime::supervise::{self, SuperviseOptions};
 /// released), reads EA 00-05 and closes a PI speed loop on the hall rpm by
 /// writing VEL (SA 00), or holds a manual VEL with --open-loop. Remote clients
 /// (`twin client`, a student's program) connect to --listen and are answered
-/// from the supervisor's image as spec/meb.md says: reads from the last poll,
+/// from the supervisor's image as docs/protocols/meb.md says: reads from the last poll,
 /// writes forwarded on the bus and acknowledged when the slave acknowledged
 /// them, the loop's set point and gains as VA 10-12 / VD 10 (read back as
 /// FA 10-12 / FD 10). Prints its links then `ready`; shows every frame on
@@ -38,7 +39,7 @@ pub struct SuperviseArgs {
         conflicts_with = "modbus_rtu"
     )]
     meb: Option<String>,
-    /// The bus, spoken in Modbus RTU (spec/modbus-map.md): serial device or
+    /// The bus, spoken in Modbus RTU (docs/protocols/modbus-map.md): serial device or
     /// pty. Remote clients still speak MEB to the server; writes other than
     /// the loop's variables get ER 01 (they have no Modbus form here).
     #[arg(long, value_name = "LINK")]
@@ -81,7 +82,7 @@ pub struct SuperviseArgs {
     /// From one poll cycle to the next, ms.
     #[arg(long, default_value_t = 10.0, value_name = "MS")]
     poll_ms: f64,
-    /// Reply timeout, ms (spec/meb.md: 100).
+    /// Reply timeout, ms (docs/protocols/meb.md: 100).
     #[arg(long, default_value_t = 100.0, value_name = "MS")]
     timeout_ms: f64,
     /// Attempts after a missing or bad reply.
@@ -191,6 +192,19 @@ fn options(args: &SuperviseArgs) -> Result<SuperviseOptions> {
         })
     });
     Ok(SuperviseOptions {
+        session: SessionOptions {
+            duration: args.duration,
+            out: (!args.no_record).then(|| args.out.clone()),
+            monitor: !args.quiet,
+            status_every: args.status_every.max(0.0),
+            wait_for_ports: args.wait_for_ports,
+            // No plant here (the module is on the other end of the bus), and
+            // no real-time priority.
+            record_hz: 1.0,
+            rt_priority: None,
+            view,
+            command_line: std::env::args().collect::<Vec<_>>().join(" "),
+        },
         bus: args
             .meb
             .clone()
@@ -223,13 +237,6 @@ fn options(args: &SuperviseArgs) -> Result<SuperviseOptions> {
         server,
         // Far above any frame rate allowed: only a flood of garbage hits it.
         rate_limit_bytes: Some((args.rate_limit * 1.5 * 410.0) as u64 + 4096),
-        duration: args.duration,
-        out: (!args.no_record).then(|| args.out.clone()),
-        monitor: !args.quiet,
-        status_every: args.status_every.max(0.0),
-        wait_for_ports: args.wait_for_ports,
-        view,
-        command_line: std::env::args().collect::<Vec<_>>().join(" "),
     })
 }
 
@@ -255,11 +262,11 @@ pub fn execute(args: &SuperviseArgs) -> Result<()> {
         let _ = writeln!(out, "ready");
         let _ = out.flush();
     })?;
-    let l = outcome.lateness;
-    let c = outcome.counters;
+    let session = &outcome.session;
+    let l = session.lateness;
     println!(
         "twin supervise: stopped ({}) after {:.3} s",
-        outcome.stopped_by, outcome.elapsed_s
+        session.stopped_by, session.elapsed_s
     );
     for line in &outcome.status {
         println!("  {line}");
@@ -268,12 +275,6 @@ pub fn execute(args: &SuperviseArgs) -> Result<()> {
         "  tick lateness over {} ticks: p50 {:.0} µs, p99 {:.0} µs, max {:.0} µs",
         l.ticks, l.p50_us, l.p99_us, l.max_us
     );
-    super::print_session_end(
-        &c,
-        outcome.refused_clients,
-        outcome.recording.as_deref(),
-        outcome.view_samples,
-        outcome.view_error.as_deref(),
-    );
+    super::print_session_end(session);
     Ok(())
 }

@@ -75,7 +75,7 @@ pub fn execute(args: &SweepArgs) -> Result<()> {
     if args.points < 2 {
         bail!("--points must be at least 2, got {}", args.points);
     }
-    // The seed-002 light node has one detector.
+    // The Controller_network light-sensor Nano has one detector.
     let detectors: &[bool] = match (args.preset.as_str(), args.detector) {
         ("controller-network", _) => &[false],
         (_, Detector::Fixed) => &[false],

@@ -13,7 +13,7 @@ use twin_realtime::vsp::{Crossing, DirectionCounters, Pair, PairOptions, hex_lin
 /// program writes to one is read from the other, so a master and a slave (for
 /// instance `twin supervise --meb /tmp/ttyV0` and `twin serve --meb /tmp/ttyV1`,
 /// or a student's program) talk as over a null-modem cable. Either end may be
-/// closed and reopened at any time (seed 002's master reopens the port for
+/// closed and reopened at any time (the Controller_network master reopens the port for
 /// every transaction). Prints the two links, then `ready`; runs until
 /// interrupted (Ctrl-C, SIGTERM), then removes the links and prints the
 /// byte counts.

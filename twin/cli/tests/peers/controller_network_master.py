@@ -1,8 +1,8 @@
-"""A master that behaves like seed 002's Raspberry Pi (spec/modbus8.md, "The
-real master's behaviour"): for every transaction it opens the port, writes 8
-bytes, waits a fixed time, reads once and closes the port again. Its read has no
-timeout, so no reply hangs the real program and a reply that is not whole in
-that one read misaligns it: this one records both instead (a hang is no reply
+"""A master that behaves like the Controller_network project's Raspberry Pi
+(docs/protocols/modbus8.md, "The real master's behaviour"): for every transaction it
+opens the port, writes 8 bytes, waits a fixed time, reads once and closes the
+port again. Its read has no timeout, so no reply hangs the real program and a
+reply that is not whole in that one read misaligns it: this one records both instead (a hang is no reply
 within 2 s), and which replies came after the fixed wait (`late`).
 
     python3 controller_network_master.py DEVICE CYCLES WAIT_MS
@@ -35,7 +35,7 @@ def crc16(data: bytes) -> int:
 def frame(ident, fc, addr, value):
     body = bytes([ident, fc, addr >> 8, addr & 0xFF, value >> 8, value & 0xFF])
     crc = crc16(body)
-    return body + bytes([crc >> 8, crc & 0xFF])  # high byte first, as seed 002
+    return body + bytes([crc >> 8, crc & 0xFF])  # high byte first, as the Controller_network master
 
 
 def transaction(path, request, wait_s):

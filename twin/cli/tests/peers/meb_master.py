@@ -1,4 +1,4 @@
-"""A small MEB master written from ../shared/spec/meb.md alone (no code of the
+"""A small MEB master written from docs/protocols/meb.md alone (no code of the
 twin's): frames `@ ID CMD ADDR CNT DATA FCS * LF`, FCS the XOR of every byte
 from `@` to the last one before it. It talks to `twin serve` over TCP or a
 serial device (a pseudo-terminal here), reads the inputs, writes VEL and the

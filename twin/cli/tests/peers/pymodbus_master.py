@@ -6,7 +6,7 @@ enable coils, then watch the wheel speed (RPM_M) follow two set points.
     python3 pymodbus_master.py rtu DEVICE
 
 Prints one JSON object with what it saw; exits 1 with a message on any Modbus
-error. Addresses are spec/modbus-map.md's.
+error. Addresses are docs/protocols/modbus-map.md's.
 """
 import json
 import sys

@@ -1,13 +1,16 @@
 //! Link specs: where a link is and how it is set up.
 //!
 //! ```text
-//! tcp://HOST:PORT[?turnaround_ms=0]           a TCP listener (port 0: any free port)
+//! tcp://HOST:PORT[?turnaround_ms=0]           a TCP listener (port 0: any free port),
+//!                                             or the slave a master connects to
 //! PATH[?baud=9600&parity=E&stop=2&data=8&turnaround_ms=1&pace=1]
 //!                                             a serial device or pseudo-terminal
 //! ```
 //!
-//! Options not given in the spec come from [`LinkDefaults`] (the command
-//! line's `--baud`, `--turnaround-ms`, `--pace`).
+//! Any other `SCHEME://` is refused. Options not given in the spec come from
+//! [`LinkDefaults`] (the command line's `--baud`, `--turnaround-ms`,
+//! `--pace`); a link that takes none (`twin replay --frames-to`) is parsed
+//! by [`LinkSpec::parse_without_options`].
 
 use nodes::time::SimDuration;
 use std::fmt;
@@ -73,7 +76,7 @@ pub enum LinkAddr {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LinkDefaults {
     pub baud: u32,
-    /// Reply turnaround on serial links (`spec/meb.md`: 1 ms).
+    /// Reply turnaround on serial links (`docs/protocols/meb.md`: 1 ms).
     pub serial_turnaround: SimDuration,
     /// Reply turnaround on TCP links.
     pub tcp_turnaround: SimDuration,
@@ -111,6 +114,8 @@ pub struct LinkSpec {
 pub enum LinkSpecError {
     #[error("link `{spec}`: empty")]
     Empty { spec: String },
+    #[error("unknown link `{spec}`: use tcp://HOST:PORT or a serial device or pseudo-terminal path")]
+    UnknownScheme { spec: String },
     #[error("link `{spec}`: `{host}` is not HOST:PORT ({why})")]
     BadTcp {
         spec: String,
@@ -130,6 +135,12 @@ pub enum LinkSpecError {
         value: String,
         why: &'static str,
     },
+    #[error("link `{spec}`: option `{key}` is not taken here ({why})")]
+    NotTaken {
+        spec: String,
+        key: String,
+        why: &'static str,
+    },
 }
 
 const SERIAL_OPTIONS: &str = "baud, parity, stop, data, turnaround_ms, pace";
@@ -139,15 +150,15 @@ impl LinkSpec {
     /// Parses `text`, taking options it does not give from `defaults`.
     pub fn parse(text: &str, defaults: &LinkDefaults) -> Result<Self, LinkSpecError> {
         let spec = || text.to_string();
-        let (location, query) = match text.split_once('?') {
-            Some((l, q)) => (l, Some(q)),
-            None => (text, None),
-        };
+        let (location, options) = split(text);
         if location.is_empty() {
             return Err(LinkSpecError::Empty { spec: spec() });
         }
         let (addr, known) = match location.strip_prefix("tcp://") {
             Some(host) => (LinkAddr::Tcp(resolve(text, host)?), TCP_OPTIONS),
+            None if location.contains("://") => {
+                return Err(LinkSpecError::UnknownScheme { spec: spec() });
+            }
             None => (LinkAddr::Serial(PathBuf::from(location)), SERIAL_OPTIONS),
         };
         let tcp = matches!(addr, LinkAddr::Tcp(_));
@@ -167,8 +178,7 @@ impl LinkSpec {
             },
             pace: defaults.pace,
         };
-        for pair in query.unwrap_or("").split('&').filter(|p| !p.is_empty()) {
-            let (key, value) = pair.split_once('=').unwrap_or((pair, ""));
+        for (key, value) in options {
             let bad = |why| LinkSpecError::BadValue {
                 spec: spec(),
                 key: key.into(),
@@ -232,10 +242,34 @@ impl LinkSpec {
         Ok(link)
     }
 
+    /// Parses `text` for a link used as it is found, which takes no options
+    /// (`twin replay --frames-to`); `why` says why if the spec gives some.
+    pub fn parse_without_options(text: &str, why: &'static str) -> Result<Self, LinkSpecError> {
+        if let Some((key, _)) = split(text).1.next() {
+            return Err(LinkSpecError::NotTaken {
+                spec: text.into(),
+                key: key.into(),
+                why,
+            });
+        }
+        Self::parse(text, &LinkDefaults::default())
+    }
+
     /// Whether this is a TCP link.
     pub fn is_tcp(&self) -> bool {
         matches!(self.addr, LinkAddr::Tcp(_))
     }
+}
+
+/// A spec's location, and its options: `KEY=VALUE` pairs after `?`, joined
+/// by `&` (a bare `KEY` has an empty value).
+fn split(text: &str) -> (&str, impl Iterator<Item = (&str, &str)>) {
+    let (location, query) = text.split_once('?').unwrap_or((text, ""));
+    let options = query
+        .split('&')
+        .filter(|p| !p.is_empty())
+        .map(|p| p.split_once('=').unwrap_or((p, "")));
+    (location, options)
 }
 
 fn resolve(spec: &str, host: &str) -> Result<SocketAddr, LinkSpecError> {
@@ -303,5 +337,26 @@ mod tests {
         let e = LinkSpec::parse("tcp://127.0.0.1:1?parity=E", &d).unwrap_err();
         assert!(e.to_string().contains("unknown option `parity`"), "{e}");
         assert!(LinkSpec::parse("", &d).is_err());
+        let e = LinkSpec::parse("udp://x", &d).unwrap_err();
+        assert!(e.to_string().starts_with("unknown link `udp://x`: use tcp://"), "{e}");
+    }
+
+    #[test]
+    fn a_link_without_options_refuses_them_and_names_the_first() {
+        let l = LinkSpec::parse_without_options("/tmp/ttyA", "as it is").unwrap();
+        assert_eq!(l.addr, LinkAddr::Serial("/tmp/ttyA".into()));
+        let l = LinkSpec::parse_without_options("tcp://127.0.0.1:5020", "as it is").unwrap();
+        assert_eq!(l.addr, LinkAddr::Tcp("127.0.0.1:5020".parse().unwrap()));
+        // An empty query gives no option.
+        let l = LinkSpec::parse_without_options("/tmp/ttyA?", "as it is").unwrap();
+        assert_eq!(l.addr, LinkAddr::Serial("/tmp/ttyA".into()));
+        let e = LinkSpec::parse_without_options("/tmp/ttyA?baud=9600&pace", "as it is")
+            .unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "link `/tmp/ttyA?baud=9600&pace`: option `baud` is not taken here (as it is)"
+        );
+        let e = LinkSpec::parse_without_options("udp://x", "as it is").unwrap_err();
+        assert!(e.to_string().starts_with("unknown link `udp://x`"), "{e}");
     }
 }

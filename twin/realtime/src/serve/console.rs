@@ -17,7 +17,7 @@ commands:
   fault no-reply [LINK]        requests are served but never answered
   fault delay MS [LINK]        replies go out MS milliseconds late
   fault exception [CODE] [LINK]  every request refused: Modbus exception / MEB ER CODE (1-4, default 4;
-                               MEB and Modbus links, not the seed-002 network)
+                               MEB and Modbus links, not --modbus8)
   fault off                    no fault
   force v1|v2 VOLTS            the controller measures this battery / bus voltage
   force i AMPS                 ... this inverter current

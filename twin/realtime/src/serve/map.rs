@@ -1,4 +1,4 @@
-//! `--map FILE`: the I/O map of the MEB links, in TOML, as seed 000's tool
+//! `--map FILE`: the I/O map of the MEB links, in TOML, as the M3CVME tool
 //! lets one set it (Fig. 8: type, address, tag). A table per block replaces
 //! that block's default placement; blocks not named keep theirs.
 //!

@@ -1,33 +1,26 @@
-//! `twin serve`: the simulated controller of seed 000's tool. Runs the bench
+//! `twin serve`: the simulated controller of the M3CVME tool. Runs the bench
 //! in real time and exposes its slave nodes on real links — MEB on a serial
-//! port, a pty or TCP; Modbus TCP, RTU and ASCII; the seed-002 8-byte
-//! network — all serving one module, recorded to MCAP like a virtual run.
+//! port, a pty or TCP; Modbus TCP, RTU and ASCII; the Controller_network
+//! project's 8-byte Modbus — all serving one module, recorded to MCAP like a virtual run.
 
 pub mod console;
 pub mod map;
 
 use anyhow::{Context, Result, bail};
+use nodes::controller_network::{LightConfig, LightNode, MotorConfig, MotorNode};
 use nodes::firmware::{EvController, EvControllerConfig, Framing, SlaveFrontend};
 use nodes::link::{CheckKind, FaultyNode};
 use nodes::proto::modbus::serial::{PTY_SILENCE, standard_rtu_silence};
-use nodes::controller_network::{LightConfig, LightNode, MotorConfig, MotorNode};
-use nodes::time::{SimDuration, SimTime};
+use nodes::time::SimDuration;
 use plant::{EvModule, PlantParams};
 use std::collections::BTreeMap;
-use std::path::PathBuf;
-use std::sync::Arc;
-use std::sync::atomic::AtomicU64;
-use std::sync::mpsc::{Sender, channel};
-use std::time::Duration;
+use std::sync::mpsc::Sender;
+use tokio::runtime::Runtime;
 
+use crate::io::{LinkAddr, LinkDefaults, LinkSpec, serial};
+use crate::session::{self, Links, Role, SessionOptions, SessionOutcome};
+use crate::{Device, Inbound, LinkConfig, NodeEndpoint, RtEngine, SlaveEndpoint};
 use twin_sim::engine::ModuleSlot;
-use crate::io::{LinkAddr, LinkDefaults, LinkSpec, serial, tcp};
-use crate::links::{ConnIds, accept_loop, serial_loop};
-use crate::session;
-use crate::sink::{self, SinkConfig, SinkMsg, ViewOpener};
-use crate::{
-    Device, Inbound, LatenessSummary, LinkConfig, NodeEndpoint, RtClock, RtEngine, SlaveEndpoint,
-};
 
 /// The protocols `twin serve` speaks, as its options name them.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -40,12 +33,12 @@ pub enum ServeProtocol {
     ModbusRtu,
     /// `--modbus-ascii`: Modbus ASCII on a serial port or pty.
     ModbusAscii,
-    /// `--modbus8`: the seed-002 network (motor 01, light sensor 02).
+    /// `--modbus8`: the Controller_network nodes (motor 01, light sensor 02).
     Modbus8,
 }
 
 impl ServeProtocol {
-    /// The name printed for the link (and wt-peers' tests parse).
+    /// The name printed for the link (which the peer tests parse).
     pub fn name(self) -> &'static str {
         match self {
             ServeProtocol::Meb => "meb",
@@ -70,34 +63,21 @@ impl ServeProtocol {
 /// Everything `twin serve` is told.
 #[derive(Debug, Clone)]
 pub struct ServeOptions {
+    /// What every session is told (duration, recording, monitor, view, …).
+    pub session: SessionOptions,
     /// The links, in the order given.
     pub links: Vec<(ServeProtocol, String)>,
     pub defaults: LinkDefaults,
     /// Slave id of the EV module's controller (MEB slave number, Modbus unit).
     pub id: u8,
-    /// Where MEB links put the signals (`--map`; `None`: `spec/meb.md`'s map).
+    /// Where MEB links put the signals (`--map`; `None`: `docs/protocols/meb.md`'s map).
     pub meb_map: Option<nodes::firmware::MebMap>,
     pub params: PlantParams,
     pub seed: u64,
-    /// Stop after this long (none: until SIGINT/SIGTERM).
-    pub duration: Option<f64>,
-    /// Recording (none: not recorded).
-    pub out: Option<PathBuf>,
-    pub monitor: bool,
-    pub status_every: f64,
     pub max_clients: Option<usize>,
     pub partial_timeout: Option<SimDuration>,
     pub rate_limit: Option<u64>,
     pub read_only: bool,
-    /// Wait for serial paths that do not exist yet (ptys made later).
-    pub wait_for_ports: bool,
-    pub record_hz: f64,
-    /// Real-time FIFO priority of the engine's thread, if asked for.
-    pub rt_priority: Option<u8>,
-    /// Opens the session's live view (`--view`), if it has one.
-    pub view: Option<ViewOpener>,
-    /// The command line, for the recording's metadata.
-    pub command_line: String,
 }
 
 /// One open link, as printed before `ready`.
@@ -107,21 +87,6 @@ pub struct OpenLink {
     pub address: String,
     /// Slave ids served, as printed (`01`, `01,02`).
     pub ids: String,
-}
-
-/// What a session reports at its end.
-#[derive(Debug)]
-pub struct ServeOutcome {
-    pub elapsed_s: f64,
-    pub lateness: LatenessSummary,
-    pub counters: crate::engine::RtCounters,
-    pub refused_clients: u64,
-    pub stopped_by: String,
-    pub recording: Option<PathBuf>,
-    /// Samples streamed to the live view (`--view`), if it ran.
-    pub view_samples: Option<u64>,
-    /// What the live view's viewer did not take, if anything.
-    pub view_error: Option<String>,
 }
 
 /// What a link of a protocol needs from the module.
@@ -187,20 +152,75 @@ pub fn parse_links(options: &ServeOptions) -> Result<Vec<(ServeProtocol, LinkSpe
         .count()
         > 1
     {
-        bail!("--modbus8 given twice: the seed-002 network has one serial line");
+        bail!("--modbus8 given twice: the Controller_network nodes share one serial line");
     }
     Ok(specs)
 }
 
-/// Starts an opened link's task on the runtime, sending to the engine.
-type Starter = Box<dyn FnOnce(&tokio::runtime::Handle, Sender<Inbound>)>;
+/// `twin serve` as a session's role: the module(s) and their slave nodes,
+/// on the links given.
+struct Serving<'a, C> {
+    options: &'a ServeOptions,
+    specs: Vec<(ServeProtocol, LinkSpec)>,
+    names: Vec<String>,
+    /// The EV module's controller among the engine's devices.
+    ev: Option<usize>,
+    /// The Controller_network motor and light sensor nodes.
+    controller_network: Option<(usize, usize)>,
+    console: Option<C>,
+}
 
-/// A session being set up: the engine, and the opened links' tasks to start.
-struct Setup {
-    engine: RtEngine,
-    open: Vec<OpenLink>,
-    starters: Vec<Starter>,
-    refused: Arc<AtomicU64>,
+impl<C: FnOnce(Sender<Inbound>)> Role for Serving<'_, C> {
+    type Link = OpenLink;
+    type End = ();
+    const KIND: &'static str = "serve";
+
+    fn build(&mut self, engine: &mut RtEngine) -> Result<()> {
+        (self.ev, self.controller_network) = build_devices(self.options, &self.specs, engine);
+        engine.set_read_only(self.options.read_only);
+        engine.set_status_period(SimDuration::from_secs_f64(
+            self.options.session.status_every.max(0.0),
+        ));
+        Ok(())
+    }
+
+    async fn open(&mut self, engine: &mut RtEngine, links: &mut Links) -> Result<Vec<OpenLink>> {
+        let specs = std::mem::take(&mut self.specs);
+        let names = std::mem::take(&mut self.names);
+        open_links(
+            self.options,
+            specs,
+            names,
+            engine,
+            links,
+            self.ev,
+            self.controller_network,
+        )
+        .await
+    }
+
+    fn metadata(&self) -> Result<BTreeMap<String, String>> {
+        let options = self.options;
+        let link_options: Vec<String> = options
+            .links
+            .iter()
+            .map(|(p, t)| format!("{} {t}", p.option()))
+            .collect();
+        Ok(BTreeMap::from([
+            ("links".into(), link_options.join(" ")),
+            ("seed".into(), options.seed.to_string()),
+            ("slave_id".into(), options.id.to_string()),
+            ("params".into(), toml::to_string(&options.params)?),
+        ]))
+    }
+
+    fn started(&mut self, _runtime: &Runtime, engine: &Sender<Inbound>) {
+        if let Some(console) = self.console.take() {
+            console(engine.clone());
+        }
+    }
+
+    fn stopped(&mut self, _engine: &mut RtEngine, _totals: &mut BTreeMap<String, String>) {}
 }
 
 /// Builds the module(s) and devices the links need.
@@ -231,7 +251,10 @@ fn build_devices(
     if wants_controller_network {
         let params = PlantParams::preset("controller-network").unwrap_or_default();
         let module = engine.modules.len();
-        let plant = EvModule::new(&params, twin_sim::virtual_run::derive_seed(options.seed, 101));
+        let plant = EvModule::new(
+            &params,
+            twin_sim::virtual_run::derive_seed(options.seed, 101),
+        );
         engine.modules.push(ModuleSlot::new("bench", plant));
         let motor = FaultyNode::new(MotorNode::new(MotorConfig::default()), CheckKind::Modbus8);
         let light = FaultyNode::new(LightNode::new(LightConfig::default()), CheckKind::Modbus8);
@@ -269,42 +292,29 @@ async fn open_links(
     options: &ServeOptions,
     specs: Vec<(ServeProtocol, LinkSpec)>,
     names: Vec<String>,
-    mut engine: RtEngine,
+    engine: &mut RtEngine,
+    links: &mut Links,
     ev: Option<usize>,
     controller_network: Option<(usize, usize)>,
-) -> Result<Setup> {
-    let ids = ConnIds::default();
-    let clock = engine.clock;
-    let refused = Arc::new(AtomicU64::new(0));
+) -> Result<Vec<OpenLink>> {
     let mut open = Vec::new();
-    let mut starters: Vec<Starter> = Vec::new();
     for (index, ((protocol, spec), name)) in specs.into_iter().zip(names).enumerate() {
         let link = engine.links.len();
         debug_assert_eq!(link, index);
         let (address, tcp) = match &spec.addr {
             LinkAddr::Tcp(addr) => {
-                let listener = tcp::bind(*addr)
+                let local = links
+                    .listen(*addr, link, options.max_clients)
                     .await
                     .with_context(|| format!("{} {}", protocol.option(), spec.text))?;
-                let local = listener.local_addr()?;
-                let (ids, max, refused) = (ids.clone(), options.max_clients, refused.clone());
-                starters.push(Box::new(move |rt, inbound| {
-                    rt.spawn(accept_loop(
-                        listener, link, max, ids, clock, inbound, refused,
-                    ));
-                }));
                 (format!("tcp://{local}"), true)
             }
             LinkAddr::Serial(path) => {
-                let port = open_serial(path, &spec, options.wait_for_ports)
+                links
+                    .serial(path, spec.serial, link)
                     .await
                     .with_context(|| format!("{} {}", protocol.option(), spec.text))?;
-                let shown = path.display().to_string();
-                let (ids, path, settings) = (ids.clone(), path.clone(), spec.serial);
-                starters.push(Box::new(move |rt, inbound| {
-                    rt.spawn(serial_loop(path, settings, port, link, ids, clock, inbound));
-                }));
-                (shown, false)
+                (path.display().to_string(), false)
             }
         };
         let id = options.id;
@@ -356,26 +366,7 @@ async fn open_links(
             factory,
         });
     }
-    Ok(Setup {
-        engine,
-        open,
-        starters,
-        refused,
-    })
-}
-
-async fn open_serial(
-    path: &std::path::Path,
-    spec: &LinkSpec,
-    wait: bool,
-) -> Result<tokio_serial::SerialStream> {
-    if wait && !path.exists() {
-        println!("waiting for {} to appear ...", path.display());
-        while !path.exists() {
-            tokio::time::sleep(Duration::from_millis(100)).await;
-        }
-    }
-    serial::open(path, &spec.serial)
+    Ok(open)
 }
 
 /// Runs a session. `ready` gets the open links once they all are (the
@@ -384,104 +375,17 @@ pub fn serve(
     options: &ServeOptions,
     ready: impl FnOnce(&[OpenLink]),
     console: impl FnOnce(Sender<Inbound>),
-) -> Result<ServeOutcome> {
+) -> Result<SessionOutcome> {
     let specs = parse_links(options)?;
     let names = link_names(&specs);
-    let runtime = session::links_runtime()?;
-
-    let clock = RtClock::start();
-    let mut engine_modules = Vec::new();
-    let (sink_tx, sink_handle);
-    let setup = {
-        let record_period = SimDuration::from_secs_f64(1.0 / options.record_hz.max(1.0));
-        let (tx, rx) = channel::<SinkMsg>();
-        let mut engine = RtEngine::new(clock, SimDuration::from_millis(1), record_period, tx);
-        let (ev, controller_network) = build_devices(options, &specs, &mut engine);
-        engine_modules.extend(engine.modules.iter().map(|m| m.name.clone()));
-        let setup = runtime.block_on(open_links(options, specs, names, engine, ev, controller_network));
-        // The sink starts once the link names are known; its channel was
-        // made first so the engine could hold its sender.
-        let setup = setup?;
-        let links = session::link_labels(&setup.engine);
-        let link_options: Vec<String> = options
-            .links
-            .iter()
-            .map(|(p, t)| format!("{} {t}", p.option()))
-            .collect();
-        let recorder = session::create_recording(
-            options.out.as_deref(),
-            "serve",
-            BTreeMap::from([
-                ("command".into(), options.command_line.clone()),
-                ("links".into(), link_options.join(" ")),
-                ("seed".into(), options.seed.to_string()),
-                ("slave_id".into(), options.id.to_string()),
-                ("params".into(), toml::to_string(&options.params)?),
-            ]),
-        )?;
-        let view = options.view.as_ref().and_then(|v| v.open(&engine_modules));
-        let config = SinkConfig {
-            modules: engine_modules,
-            links,
-            monitor: options.monitor,
-            recorder,
-            view,
-        };
-        sink_handle = sink::spawn_with(config, rx);
-        sink_tx = setup.engine.sink();
-        setup
+    let role = Serving {
+        options,
+        specs,
+        names,
+        ev: None,
+        controller_network: None,
+        console: Some(console),
     };
-    let Setup {
-        mut engine,
-        open,
-        starters,
-        refused,
-    } = setup;
-    engine.set_read_only(options.read_only);
-    engine.set_status_period(SimDuration::from_secs_f64(options.status_every.max(0.0)));
-
-    ready(&open);
-
-    let (inbound_tx, inbound_rx) = channel::<Inbound>();
-    let end = options
-        .duration
-        .map(|s| SimTime::ZERO + SimDuration::from_secs_f64(s));
-    let rt_priority = options.rt_priority;
-    let rt_thread = session::spawn_engine(engine, inbound_rx, end, rt_priority)?;
-    for start in starters {
-        start(runtime.handle(), inbound_tx.clone());
-    }
-    console(inbound_tx.clone());
-    // The links' runtime runs on this thread: a reply waits for it too.
-    if let Some(priority) = rt_priority
-        && let Err(why) =
-            crate::clock::raise_this_thread(priority.saturating_sub(1).max(1))
-    {
-        let _ = sink_tx.send(SinkMsg::Say(format!(
-            "warning: links at normal priority: {why}"
-        )));
-    }
-
-    let (summary, engine) = session::run_until_stopped(&runtime, rt_thread, inbound_tx.clone())?;
-    drop(engine);
-    runtime.shutdown_timeout(Duration::from_millis(200));
-
-    let refused_clients = refused.load(std::sync::atomic::Ordering::Relaxed);
-    let l = summary.lateness;
-    let totals = session::totals(&summary, refused_clients)?;
-    let _ = sink_tx.send(SinkMsg::Finish(totals));
-    drop(sink_tx);
-    let outcome = sink_handle
-        .join()
-        .map_err(|_| anyhow::anyhow!("the recording thread failed"))??;
-    Ok(ServeOutcome {
-        elapsed_s: summary.elapsed.as_secs_f64(),
-        lateness: l,
-        counters: summary.counters,
-        refused_clients,
-        stopped_by: summary.stopped_by,
-        recording: outcome.recording,
-        view_samples: outcome.view_samples,
-        view_error: outcome.view_error,
-    })
+    let (outcome, ()) = session::run(&options.session, role, ready)?;
+    Ok(outcome)
 }

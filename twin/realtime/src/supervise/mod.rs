@@ -1,8 +1,8 @@
-//! `twin supervise`: the supervisor and server of seed 000's tool. A master on
+//! `twin supervise`: the supervisor and server of the M3CVME tool. A master on
 //! a serial line (or a TCP connection to a slave) polls the EV module's
 //! controller over MEB and closes its speed loop, or holds a manual `VEL`; a
 //! TCP server answers remote MEB clients from the supervisor's image
-//! (`spec/meb.md`). Runs on wt-serve's real-time engine and is recorded to
+//! (`docs/protocols/meb.md`). Runs on `twin serve`'s real-time engine and is recorded to
 //! MCAP like a virtual run.
 
 pub mod endpoint;
@@ -14,25 +14,22 @@ use nodes::master::{
 };
 use nodes::time::{SimDuration, SimTime};
 use std::collections::BTreeMap;
-use std::path::PathBuf;
-use std::sync::Arc;
-use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::mpsc::{Sender, channel};
+use std::sync::mpsc::Sender;
 use std::time::Duration;
+use tokio::runtime::Runtime;
 
-use crate::io::{LinkAddr, LinkDefaults, LinkSpec, serial, tcp};
-use twin_sim::nodes_build::SupervisorNode;
-use crate::links::{ConnIds, accept_loop, serial_loop, serve_stream};
-use crate::session;
-use crate::sink::{self, SinkConfig, SinkMsg, ViewOpener};
-use crate::{
-    Device, Inbound, LatenessSummary, LinkConfig, NodeEndpoint, RtClock, RtEngine,
-};
+use crate::io::{LinkAddr, LinkDefaults, LinkSpec, serial};
+use crate::links::{ConnIds, serve_stream};
+use crate::session::{self, Links, Role, SessionOptions, SessionOutcome};
+use crate::{Device, Inbound, LinkConfig, NodeEndpoint, RtClock, RtEngine};
 use endpoint::ImageEndpoint;
+use twin_sim::nodes_build::SupervisorNode;
 
 /// Everything `twin supervise` is told.
 #[derive(Debug, Clone)]
 pub struct SuperviseOptions {
+    /// What every session is told (duration, recording, monitor, view, …).
+    pub session: SessionOptions,
     /// The bus: a serial device or pty, or `tcp://HOST:PORT` of an MEB slave.
     pub bus: String,
     /// What the bus speaks: MEB, or Modbus RTU (serial only; remote clients
@@ -58,14 +55,6 @@ pub struct SuperviseOptions {
     pub server: ImageServerConfig,
     /// Close a client sending more bytes than this in one second.
     pub rate_limit_bytes: Option<u64>,
-    pub duration: Option<f64>,
-    pub out: Option<PathBuf>,
-    pub monitor: bool,
-    pub status_every: f64,
-    pub wait_for_ports: bool,
-    /// Opens the session's live view (`--view`), if it has one.
-    pub view: Option<ViewOpener>,
-    pub command_line: String,
 }
 
 /// One open link, as printed before `ready`.
@@ -80,16 +69,8 @@ pub struct OpenLink {
 /// What a session reports at its end.
 #[derive(Debug)]
 pub struct SuperviseOutcome {
-    pub elapsed_s: f64,
-    pub lateness: LatenessSummary,
-    pub counters: crate::engine::RtCounters,
-    pub refused_clients: u64,
-    pub stopped_by: String,
-    pub recording: Option<PathBuf>,
-    /// Samples streamed to the live view (`--view`), if it ran.
-    pub view_samples: Option<u64>,
-    /// What the live view's viewer did not take, if anything.
-    pub view_error: Option<String>,
+    /// What every session reports.
+    pub session: SessionOutcome,
     /// The supervisor's status line at the end.
     pub status: Vec<String>,
 }
@@ -177,14 +158,80 @@ pub fn status_lines(supervisor: &Supervisor, now: SimTime) -> Vec<String> {
 /// Index of the supervisor among the engine's devices.
 const SUPERVISOR: usize = 0;
 
-/// Starts one link's task on the runtime, once the engine listens.
-type Starter = Box<dyn FnOnce(&tokio::runtime::Handle, Sender<Inbound>)>;
+/// `twin supervise` as a session's role: the supervisor, its bus and the
+/// server's listeners.
+struct Supervising<'a> {
+    options: &'a SuperviseOptions,
+    supervisor: Option<Supervisor>,
+    bus: Option<LinkSpec>,
+    listen: Vec<LinkSpec>,
+}
 
-struct Setup {
-    engine: RtEngine,
-    open: Vec<OpenLink>,
-    starters: Vec<Starter>,
-    refused: Arc<AtomicU64>,
+impl Role for Supervising<'_> {
+    type Link = OpenLink;
+    /// The supervisor's status lines at the end.
+    type End = Vec<String>;
+    const KIND: &'static str = "supervise";
+
+    fn build(&mut self, engine: &mut RtEngine) -> Result<()> {
+        let Some(supervisor) = self.supervisor.take() else {
+            bail!("internal: the supervisor is built once");
+        };
+        // No plant here: the module is on the other end of the bus.
+        engine.set_status_period(SimDuration::ZERO);
+        engine.devices.push(Device::new(
+            "supervisor",
+            Box::new(SupervisorNode::new(supervisor)),
+            None,
+        ));
+        Ok(())
+    }
+
+    async fn open(&mut self, engine: &mut RtEngine, links: &mut Links) -> Result<Vec<OpenLink>> {
+        let Some(bus) = self.bus.take() else {
+            bail!("internal: the bus is opened once");
+        };
+        let listen = std::mem::take(&mut self.listen);
+        open_links(self.options, bus, listen, engine, links).await
+    }
+
+    fn metadata(&self) -> Result<BTreeMap<String, String>> {
+        let options = self.options;
+        Ok(BTreeMap::from([
+            ("bus".into(), options.bus.clone()),
+            ("listen".into(), options.listen.join(" ")),
+            ("slaves".into(), format!("{:?}", options.slaves)),
+        ]))
+    }
+
+    fn started(&mut self, runtime: &Runtime, engine: &Sender<Inbound>) {
+        let every = self.options.session.status_every;
+        if every > 0.0 {
+            runtime.spawn(status_loop(Duration::from_secs_f64(every), engine.clone()));
+        }
+    }
+
+    fn stopped(
+        &mut self,
+        engine: &mut RtEngine,
+        totals: &mut BTreeMap<String, String>,
+    ) -> Vec<String> {
+        let now = engine.clock.now();
+        let status = engine
+            .devices
+            .get_mut(SUPERVISOR)
+            .and_then(|d| d.node.supervisor_mut())
+            .map(|s| status_lines(s, now))
+            .unwrap_or_default();
+        let final_state = engine
+            .devices
+            .get(SUPERVISOR)
+            .and_then(|d| d.node.final_state())
+            .map(|v| v.to_string())
+            .unwrap_or_default();
+        totals.insert("supervisor".into(), final_state);
+        status
+    }
 }
 
 fn parse_links(options: &SuperviseOptions) -> Result<(LinkSpec, Vec<LinkSpec>)> {
@@ -221,13 +268,10 @@ async fn open_links(
     options: &SuperviseOptions,
     bus: LinkSpec,
     listen: Vec<LinkSpec>,
-    mut engine: RtEngine,
-) -> Result<Setup> {
-    let ids = ConnIds::default();
-    let clock = engine.clock;
-    let refused = Arc::new(AtomicU64::new(0));
+    engine: &mut RtEngine,
+    links: &mut Links,
+) -> Result<Vec<OpenLink>> {
     let mut open = Vec::new();
-    let mut starters: Vec<Starter> = Vec::new();
     let slaves = options
         .slaves
         .iter()
@@ -238,18 +282,10 @@ async fn open_links(
     // The bus: the supervisor drives it as a node, as on the simulated bus.
     let address = match &bus.addr {
         LinkAddr::Serial(path) => {
-            if options.wait_for_ports && !path.exists() {
-                println!("waiting for {} to appear ...", path.display());
-                while !path.exists() {
-                    tokio::time::sleep(Duration::from_millis(100)).await;
-                }
-            }
-            let port = serial::open(path, &bus.serial)
+            links
+                .serial(path, bus.serial, 0)
+                .await
                 .with_context(|| format!("{} {}", bus_option(options.protocol), bus.text))?;
-            let (ids, path, settings) = (ids.clone(), path.clone(), bus.serial);
-            starters.push(Box::new(move |rt, inbound| {
-                rt.spawn(serial_loop(path, settings, port, 0, ids, clock, inbound));
-            }));
             path_text(&bus)
         }
         LinkAddr::Tcp(addr) => {
@@ -257,10 +293,10 @@ async fn open_links(
             let first = tokio::net::TcpStream::connect(addr).await.with_context(|| {
                 format!("--meb {}: cannot connect to an MEB slave at {addr} (is `twin serve --meb tcp://{addr}` running?)", bus.text)
             })?;
-            let ids = ids.clone();
-            starters.push(Box::new(move |rt, inbound| {
+            let (ids, clock) = (links.ids.clone(), links.clock);
+            links.start(move |rt, inbound| {
                 rt.spawn(tcp_bus_loop(addr, first, ids, clock, inbound));
-            }));
+            });
             format!("tcp://{addr}")
         }
     };
@@ -292,21 +328,11 @@ async fn open_links(
         let LinkAddr::Tcp(addr) = spec.addr else {
             bail!("internal: a listener that is not TCP");
         };
-        let listener = tcp::bind(addr)
+        let link = engine.links.len();
+        let local = links
+            .listen(addr, link, Some(options.server.max_clients))
             .await
             .with_context(|| format!("--listen {}", spec.text))?;
-        let local = listener.local_addr()?;
-        let link = engine.links.len();
-        let (ids, max, refused) = (
-            ids.clone(),
-            Some(options.server.max_clients),
-            refused.clone(),
-        );
-        starters.push(Box::new(move |rt, inbound| {
-            rt.spawn(accept_loop(
-                listener, link, max, ids, clock, inbound, refused,
-            ));
-        }));
         let address = format!("tcp://{local}");
         open.push(OpenLink {
             protocol: "meb",
@@ -331,12 +357,7 @@ async fn open_links(
             }),
         });
     }
-    Ok(Setup {
-        engine,
-        open,
-        starters,
-        refused,
-    })
+    Ok(open)
 }
 
 /// The option that names the bus, for messages.
@@ -432,104 +453,12 @@ pub fn supervise(
 ) -> Result<SuperviseOutcome> {
     let (bus, listen) = parse_links(options)?;
     let supervisor = build_supervisor(options)?;
-    let runtime = session::links_runtime()?;
-
-    let clock = RtClock::start();
-    let (tx, rx) = channel::<SinkMsg>();
-    // No plant here: the module is on the other end of the bus.
-    let mut engine = RtEngine::new(
-        clock,
-        SimDuration::from_millis(1),
-        SimDuration::from_secs(1),
-        tx,
-    );
-    engine.set_status_period(SimDuration::ZERO);
-    engine.devices.push(Device::new(
-        "supervisor",
-        Box::new(SupervisorNode::new(supervisor)),
-        None,
-    ));
-    let setup = runtime.block_on(open_links(options, bus, listen, engine))?;
-    let links = session::link_labels(&setup.engine);
-    let recorder = session::create_recording(
-        options.out.as_deref(),
-        "supervise",
-        BTreeMap::from([
-            ("command".into(), options.command_line.clone()),
-            ("bus".into(), options.bus.clone()),
-            ("listen".into(), options.listen.join(" ")),
-            ("slaves".into(), format!("{:?}", options.slaves)),
-        ]),
-    )?;
-    let sink_handle = sink::spawn_with(
-        SinkConfig {
-            modules: Vec::new(),
-            links,
-            monitor: options.monitor,
-            recorder,
-            view: options.view.as_ref().and_then(|v| v.open(&[])),
-        },
-        rx,
-    );
-    let sink_tx = setup.engine.sink();
-    let Setup {
-        engine,
-        open,
-        starters,
-        refused,
-    } = setup;
-    ready(&open);
-
-    let (inbound_tx, inbound_rx) = channel::<Inbound>();
-    let end = options
-        .duration
-        .map(|s| SimTime::ZERO + SimDuration::from_secs_f64(s));
-    let rt_thread = session::spawn_engine(engine, inbound_rx, end, None)?;
-    for start in starters {
-        start(runtime.handle(), inbound_tx.clone());
-    }
-    if options.status_every > 0.0 {
-        runtime.spawn(status_loop(
-            Duration::from_secs_f64(options.status_every),
-            inbound_tx.clone(),
-        ));
-    }
-
-    let (summary, mut engine) =
-        session::run_until_stopped(&runtime, rt_thread, inbound_tx.clone())?;
-    let now = engine.clock.now();
-    let status = engine
-        .devices
-        .get_mut(SUPERVISOR)
-        .and_then(|d| d.node.supervisor_mut())
-        .map(|s| status_lines(s, now))
-        .unwrap_or_default();
-    let final_state = engine
-        .devices
-        .get(SUPERVISOR)
-        .and_then(|d| d.node.final_state())
-        .map(|v| v.to_string())
-        .unwrap_or_default();
-    drop(engine);
-    runtime.shutdown_timeout(Duration::from_millis(200));
-
-    let refused_clients = refused.load(Ordering::Relaxed);
-    let mut totals = session::totals(&summary, refused_clients)?;
-    totals.insert("supervisor".into(), final_state);
-    let _ = sink_tx.send(SinkMsg::Finish(totals));
-    drop(sink_tx);
-    let outcome = sink_handle
-        .join()
-        .map_err(|_| anyhow::anyhow!("the recording thread failed"))??;
-    Ok(SuperviseOutcome {
-        elapsed_s: summary.elapsed.as_secs_f64(),
-        lateness: summary.lateness,
-        counters: summary.counters,
-        refused_clients,
-        stopped_by: summary.stopped_by,
-        recording: outcome.recording,
-        view_samples: outcome.view_samples,
-        view_error: outcome.view_error,
-        status,
-    })
+    let role = Supervising {
+        options,
+        supervisor: Some(supervisor),
+        bus: Some(bus),
+        listen,
+    };
+    let (session, status) = session::run(&options.session, role, ready)?;
+    Ok(SuperviseOutcome { session, status })
 }

@@ -1,0 +1,40 @@
+//! A device: a node with a plant or an image (the EV controller, a
+//! Controller_network Nano, a supervisor), as the real-time engine and the
+//! endpoints that answer for it see it.
+
+use nodes::time::SimTime;
+
+use super::forces::Forces;
+use twin_sim::engine::SimNode;
+
+/// A node with a plant or an image: the EV controller, a Controller_network Nano,
+/// a supervisor.
+pub struct Device {
+    pub name: String,
+    pub node: Box<dyn SimNode + Send>,
+    pub module: Option<usize>,
+    /// Inputs the user forced from the console.
+    pub forces: Forces,
+    pub(super) next_tick: Option<SimTime>,
+}
+
+impl Device {
+    pub fn new(name: &str, mut node: Box<dyn SimNode + Send>, module: Option<usize>) -> Self {
+        let next_tick = node.firmware().map(|_| SimTime::ZERO);
+        Self {
+            name: name.into(),
+            node,
+            module,
+            forces: Forces::default(),
+            next_tick,
+        }
+    }
+}
+
+impl std::fmt::Debug for Device {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Device")
+            .field("name", &self.name)
+            .finish_non_exhaustive()
+    }
+}
