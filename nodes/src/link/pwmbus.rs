@@ -379,18 +379,3 @@ impl PwmBus {
 fn ticks_to(hz: f64, counter_ticks: f64) -> SimDuration {
     SimDuration::from_secs_f64(counter_ticks.max(0.0) / hz)
 }
-
-impl super::Link for PwmBus {
-    fn add_port(&mut self, config: PortConfig) -> PortId {
-        PwmBus::add_port(self, config)
-    }
-    fn send(&mut self, now: SimTime, from: PortId, bytes: &[u8]) -> Result<FrameInfo, BusError> {
-        PwmBus::send(self, now, from, bytes)
-    }
-    fn poll_timeout(&self) -> Option<SimTime> {
-        PwmBus::poll_timeout(self)
-    }
-    fn poll_event(&mut self, now: SimTime) -> Option<BusEvent> {
-        PwmBus::poll_event(self, now)
-    }
-}

@@ -239,6 +239,32 @@ fn frames_to_a_closed_port_says_so() {
     );
     let o = twin(&["replay", run.to_str().unwrap(), "--frames-to", "udp://x"]);
     assert!(text(&o).contains("unknown link `udp://x`"), "{}", text(&o));
+    // The grammar of `twin serve`'s links, whose options a link used as it
+    // is does not take; its mistakes are said as `twin serve` says them.
+    let o = twin(&[
+        "replay",
+        run.to_str().unwrap(),
+        "--frames-to",
+        "/dev/ttyUSB0?baud=9600",
+    ]);
+    assert!(!o.status.success());
+    assert!(
+        text(&o).contains("option `baud` is not taken here"),
+        "{}",
+        text(&o)
+    );
+    let o = twin(&[
+        "replay",
+        run.to_str().unwrap(),
+        "--frames-to",
+        "tcp://127.0.0.1",
+    ]);
+    assert!(!o.status.success());
+    assert!(
+        text(&o).contains("is not HOST:PORT (no port)"),
+        "{}",
+        text(&o)
+    );
 }
 
 /// A child process (socat, the Python slave), stopped however the test ends.

@@ -128,6 +128,28 @@ pub fn link_frame_fields<'a>(protocol: &'a str, bytes: &[u8]) -> LinkFrameFields
     }
 }
 
+/// A frame's decoded fields when its link's protocol is not known (a
+/// viewer reading frames back): MEB, the Controller_network and RTU frames
+/// of a bus, or the Modbus TCP and ASCII frames a real-time session's links
+/// carry.
+pub fn decode_any(bytes: &[u8]) -> Value {
+    let decoded = decode_frame(bytes);
+    if decoded.get("error").is_none() {
+        return decoded;
+    }
+    let other = if bytes.first() == Some(&b':') {
+        "modbus-ascii"
+    } else {
+        "modbus-tcp"
+    };
+    let retried = decode_link_frame(other, bytes);
+    if retried.get("error").is_none() {
+        retried
+    } else {
+        decoded
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

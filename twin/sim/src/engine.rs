@@ -9,7 +9,7 @@
 //! always give the same run.
 
 use anyhow::Result;
-use nodes::link::{BusError, BusEvent, BusStats, FrameInfo, PortConfig, PortId, PwmBus, SimBus};
+use nodes::link::{BusEvent, Medium, PortId};
 use nodes::node::{Firmware, MAX_FRAME, Node, NodeEvent};
 use nodes::time::{SimDuration, SimTime};
 use plant::{Actuators, EvModule};
@@ -146,75 +146,6 @@ pub struct NodeSlot {
     /// changes on an input, and every instant it waits for is an input
     /// through its `poll_timeout`, so the others need not be asked.
     stirred: bool,
-}
-
-/// What carries a bus slot's frames: the RS-485 serial bus, or the PWM-capture
-/// paper's link (frames of pulse widths, captured widths delivered).
-// One per bus, built once and never moved on a hot path: the size of the
-// PWM link's capture buffers costs nothing.
-#[allow(clippy::large_enum_variant)]
-#[derive(Debug)]
-pub enum Medium {
-    Serial(SimBus),
-    Pwm(PwmBus),
-}
-
-impl Medium {
-    pub fn add_port(&mut self, config: PortConfig) -> PortId {
-        match self {
-            Medium::Serial(bus) => bus.add_port(config),
-            Medium::Pwm(link) => link.add_port(config),
-        }
-    }
-    pub fn send(
-        &mut self,
-        now: SimTime,
-        from: PortId,
-        bytes: &[u8],
-    ) -> Result<FrameInfo, BusError> {
-        match self {
-            Medium::Serial(bus) => bus.send(now, from, bytes),
-            Medium::Pwm(link) => link.send(now, from, bytes),
-        }
-    }
-    pub fn poll_timeout(&self) -> Option<SimTime> {
-        match self {
-            Medium::Serial(bus) => bus.poll_timeout(),
-            Medium::Pwm(link) => link.poll_timeout(),
-        }
-    }
-    pub fn poll_event(&mut self, now: SimTime) -> Option<BusEvent> {
-        match self {
-            Medium::Serial(bus) => bus.poll_event(now),
-            Medium::Pwm(link) => link.poll_event(now),
-        }
-    }
-    /// The line's counters (on a PWM link, bytes are 4-byte pulse records).
-    pub fn stats(&self) -> &BusStats {
-        match self {
-            Medium::Serial(bus) => bus.stats(),
-            Medium::Pwm(link) => link.stats(),
-        }
-    }
-    /// The PWM-capture link, if this is one.
-    pub fn as_pwm(&self) -> Option<&PwmBus> {
-        match self {
-            Medium::Pwm(link) => Some(link),
-            Medium::Serial(_) => None,
-        }
-    }
-}
-
-impl From<SimBus> for Medium {
-    fn from(bus: SimBus) -> Self {
-        Medium::Serial(bus)
-    }
-}
-
-impl From<PwmBus> for Medium {
-    fn from(link: PwmBus) -> Self {
-        Medium::Pwm(link)
-    }
 }
 
 /// A bus and its name.
@@ -632,7 +563,7 @@ impl std::fmt::Debug for Engine {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use nodes::link::{BusConfig, PortConfig};
+    use nodes::link::{BusConfig, PortConfig, SimBus};
 
     /// A node that wants to be woken at time zero for ever.
     struct Stuck;

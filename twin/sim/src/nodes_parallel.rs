@@ -3,7 +3,7 @@
 
 use anyhow::{Result, bail};
 use nodes::firmware::EvControllerConfig;
-use nodes::link::{PwmBus, PwmCalibration, PwmLine};
+use nodes::link::{Medium, PwmBus, PwmCalibration, PwmLine};
 use nodes::master::SetPointStep;
 use nodes::node::Firmware;
 use nodes::parallel::{
@@ -14,7 +14,7 @@ use nodes::time::{SimDuration, SimTime};
 use plant::PlantParams;
 use serde_json::{Value, json};
 
-use crate::engine::{Medium, SimNode};
+use crate::engine::SimNode;
 use crate::nodes_build::{build_bus, build_node};
 use crate::scenario::{AddressingSpec, BusSpec, FaultSpec, MediumSpec, NodeSpec, ParallelLinkSpec};
 

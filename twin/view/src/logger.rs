@@ -263,7 +263,7 @@ impl RerunLogger {
                 .collect::<Vec<_>>()
                 .join(" "),
         };
-        let decoded = decode_any(bytes);
+        let decoded = twin_recording::describe::decode_any(bytes);
         let level = if decoded.get("error").is_some() {
             TextLogLevel::WARN
         } else {
@@ -432,26 +432,6 @@ pub const LATENESS_MAX: &str = "realtime/lateness/max_us";
 pub struct LatenessSample {
     pub p99_us: f64,
     pub max_us: f64,
-}
-
-/// A frame's decoded fields: MEB, the Controller_network and RTU frames of a bus, or
-/// the Modbus TCP and ASCII frames a real-time session's links carry.
-fn decode_any(bytes: &[u8]) -> serde_json::Value {
-    let decoded = twin_recording::describe::decode_frame(bytes);
-    if decoded.get("error").is_none() {
-        return decoded;
-    }
-    let other = if bytes.first() == Some(&b':') {
-        "modbus-ascii"
-    } else {
-        "modbus-tcp"
-    };
-    let retried = twin_recording::describe::decode_link_frame(other, bytes);
-    if retried.get("error").is_none() {
-        retried
-    } else {
-        decoded
-    }
 }
 
 /// `f` applied to `bytes` read as a Modbus frame in whichever framing it

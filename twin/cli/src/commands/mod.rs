@@ -7,6 +7,7 @@ pub mod compare;
 pub mod experiment;
 pub mod export;
 mod live_view;
+mod plant_args;
 pub mod replay;
 pub mod run;
 pub mod serve;

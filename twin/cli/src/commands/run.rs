@@ -2,8 +2,6 @@
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use plant::PlantParams;
-use plant::params::PRESETS;
 use std::io::{IsTerminal, Write};
 use std::path::PathBuf;
 use std::time::Instant;
@@ -21,6 +19,10 @@ use twin_view::{self as view, RerunObserver, ViewLayout, ViewTarget};
 /// Every run prints a summary and the path of its MCAP recording (Foxglove,
 /// `mcap`, and rerun open it).
 #[derive(Debug, Args)]
+#[command(
+    mut_arg("preset", |a| a.requires("open_loop")),
+    mut_arg("params", |a| a.requires("open_loop"))
+)]
 pub struct RunArgs {
     /// Embedded scenario name or scenario file.
     #[arg(value_name = "SCENARIO", conflicts_with = "open_loop")]
@@ -53,19 +55,8 @@ pub struct RunArgs {
         conflicts_with = "open_loop"
     )]
     view: Option<String>,
-    /// Open loop: bench to simulate, `vemodule` (the M3CVME tool's EV module) or
-    /// `controller-network` (the Controller_network project's geared motor +
-    /// light sensor).
-    #[arg(
-        long,
-        default_value = "vemodule",
-        value_name = "NAME",
-        requires = "open_loop"
-    )]
-    preset: String,
-    /// Open loop: plant parameter file (TOML) whose fields override the preset's.
-    #[arg(long, value_name = "FILE", requires = "open_loop")]
-    params: Option<PathBuf>,
+    #[command(flatten)]
+    plant: super::plant_args::PlantArgs,
     /// Open loop: VEL level after the step, as a fraction of its 5 V range.
     #[arg(
         long,
@@ -335,17 +326,7 @@ impl Progress {
 }
 
 fn execute_open_loop(args: &RunArgs) -> Result<()> {
-    let Some(base) = PlantParams::preset(&args.preset) else {
-        bail!(
-            "unknown preset `{}`: choose one of {}",
-            args.preset,
-            PRESETS.join(", ")
-        );
-    };
-    let params = match &args.params {
-        Some(file) => PlantParams::load(file, &base)?,
-        None => base,
-    };
+    let params = args.plant.load()?;
     let duration = args.duration.unwrap_or(3.0);
     if !(duration.is_finite() && duration > 0.0) {
         bail!("--duration must be a positive number of seconds, got {duration}");
@@ -359,7 +340,7 @@ fn execute_open_loop(args: &RunArgs) -> Result<()> {
     if !(args.record_hz.is_finite() && args.record_hz > 0.0) {
         bail!("--record-hz must be positive, got {}", args.record_hz);
     }
-    let mut config = OpenLoop::new(params, &args.preset);
+    let mut config = OpenLoop::new(params, &args.plant.preset);
     config.duration_s = duration;
     config.seed = args.seed.unwrap_or(1);
     config.vel_fraction = args.vel;
@@ -379,7 +360,7 @@ fn execute_open_loop(args: &RunArgs) -> Result<()> {
     let s = &summary.final_state;
     println!(
         "twin run --open-loop: {} preset, seed {}, {:.3} s simulated",
-        args.preset, config.seed, s.time_s
+        args.plant.preset, config.seed, s.time_s
     );
     println!(
         "  wheel speed    {:9.1} rpm   (motor {:.0} rpm)",

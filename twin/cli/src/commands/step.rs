@@ -4,8 +4,6 @@
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
-use plant::PlantParams;
-use plant::params::PRESETS;
 use std::path::PathBuf;
 use twin_lab::step::{self, StepConfig, StepDrive, StepReport};
 use twin_sim::scenario::{NodeSpec, Scenario};
@@ -29,6 +27,10 @@ use super::run::Progress;
 /// Prints a table; with `--out DIR` writes DIR/step.json (the figures),
 /// DIR/step.png (the plot) and DIR/step.mcap (the recording).
 #[derive(Debug, Args)]
+#[command(
+    mut_arg("preset", |a| a.requires("open_loop")),
+    mut_arg("params", |a| a.requires("open_loop"))
+)]
 pub struct StepArgs {
     /// Embedded scenario name or scenario file with a supervisor [default: ev-meb].
     #[arg(value_name = "SCENARIO", conflicts_with = "open_loop")]
@@ -55,17 +57,8 @@ pub struct StepArgs {
     /// Seed of every random draw (sensor noise, bit errors).
     #[arg(long, default_value_t = 1)]
     seed: u64,
-    /// Open loop: bench to simulate, `vemodule` or `controller-network`.
-    #[arg(
-        long,
-        default_value = "vemodule",
-        value_name = "NAME",
-        requires = "open_loop"
-    )]
-    preset: String,
-    /// Open loop: plant parameter file (TOML) whose fields override the preset's.
-    #[arg(long, value_name = "FILE", requires = "open_loop")]
-    params: Option<PathBuf>,
+    #[command(flatten)]
+    plant: super::plant_args::PlantArgs,
     /// Open loop: run the EV controller's light detector in adaptive mode.
     #[arg(long, requires = "open_loop")]
     adaptive_light: bool,
@@ -86,20 +79,10 @@ enum Feedback {
 
 pub fn execute(args: &StepArgs) -> Result<()> {
     let drive = if args.open_loop {
-        let Some(base) = PlantParams::preset(&args.preset) else {
-            bail!(
-                "unknown preset `{}`: choose one of {}",
-                args.preset,
-                PRESETS.join(", ")
-            );
-        };
-        let params = match &args.params {
-            Some(file) => PlantParams::load(file, &base)?,
-            None => base,
-        };
+        let params = args.plant.load()?;
         StepDrive::OpenLoop {
             params: Box::new(params),
-            preset: args.preset.clone(),
+            preset: args.plant.preset.clone(),
             adaptive_light: args.adaptive_light,
         }
     } else {

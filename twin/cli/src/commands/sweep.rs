@@ -3,8 +3,6 @@
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
-use plant::PlantParams;
-use plant::params::PRESETS;
 use std::path::PathBuf;
 use twin_lab::sweep::{self, SweepConfig, SweepReport};
 
@@ -24,12 +22,8 @@ use super::run::Progress;
 /// recording per speed in DIR/runs/.
 #[derive(Debug, Args)]
 pub struct SweepArgs {
-    /// Bench to simulate, `vemodule` or `controller-network`.
-    #[arg(long, default_value = "vemodule", value_name = "NAME")]
-    preset: String,
-    /// Plant parameter file (TOML) whose fields override the preset's.
-    #[arg(long, value_name = "FILE")]
-    params: Option<PathBuf>,
+    #[command(flatten)]
+    plant: super::plant_args::PlantArgs,
     /// The EV controller's light detector: fixed threshold, adaptive, or both.
     #[arg(long, value_enum, default_value_t = Detector::Both)]
     detector: Detector,
@@ -61,22 +55,12 @@ enum Detector {
 }
 
 pub fn execute(args: &SweepArgs) -> Result<()> {
-    let Some(base) = PlantParams::preset(&args.preset) else {
-        bail!(
-            "unknown preset `{}`: choose one of {}",
-            args.preset,
-            PRESETS.join(", ")
-        );
-    };
-    let params = match &args.params {
-        Some(file) => PlantParams::load(file, &base)?,
-        None => base,
-    };
+    let params = args.plant.load()?;
     if args.points < 2 {
         bail!("--points must be at least 2, got {}", args.points);
     }
     // The Controller_network light-sensor Nano has one detector.
-    let detectors: &[bool] = match (args.preset.as_str(), args.detector) {
+    let detectors: &[bool] = match (args.plant.preset.as_str(), args.detector) {
         ("controller-network", _) => &[false],
         (_, Detector::Fixed) => &[false],
         (_, Detector::Adaptive) => &[true],
@@ -87,7 +71,7 @@ pub fn execute(args: &SweepArgs) -> Result<()> {
             Some([a, b]) => (*a, *b),
             _ => {
                 let (_, limit) =
-                    twin_lab::instruments::light_limit(&params, &args.preset, adaptive);
+                    twin_lab::instruments::light_limit(&params, &args.plant.preset, adaptive);
                 (50.0, (1.6 * limit).round())
             }
         };
@@ -111,7 +95,7 @@ pub fn execute(args: &SweepArgs) -> Result<()> {
     for (i, &adaptive) in detectors.iter().enumerate() {
         let config = SweepConfig {
             params: params.clone(),
-            preset: args.preset.clone(),
+            preset: args.plant.preset.clone(),
             adaptive,
             target_rpm: speeds(adaptive)?,
             settle_s: args.settle,

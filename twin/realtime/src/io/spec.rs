@@ -114,7 +114,9 @@ pub struct LinkSpec {
 pub enum LinkSpecError {
     #[error("link `{spec}`: empty")]
     Empty { spec: String },
-    #[error("unknown link `{spec}`: use tcp://HOST:PORT or a serial device or pseudo-terminal path")]
+    #[error(
+        "unknown link `{spec}`: use tcp://HOST:PORT or a serial device or pseudo-terminal path"
+    )]
     UnknownScheme { spec: String },
     #[error("link `{spec}`: `{host}` is not HOST:PORT ({why})")]
     BadTcp {
@@ -338,7 +340,11 @@ mod tests {
         assert!(e.to_string().contains("unknown option `parity`"), "{e}");
         assert!(LinkSpec::parse("", &d).is_err());
         let e = LinkSpec::parse("udp://x", &d).unwrap_err();
-        assert!(e.to_string().starts_with("unknown link `udp://x`: use tcp://"), "{e}");
+        assert!(
+            e.to_string()
+                .starts_with("unknown link `udp://x`: use tcp://"),
+            "{e}"
+        );
     }
 
     #[test]
@@ -350,8 +356,8 @@ mod tests {
         // An empty query gives no option.
         let l = LinkSpec::parse_without_options("/tmp/ttyA?", "as it is").unwrap();
         assert_eq!(l.addr, LinkAddr::Serial("/tmp/ttyA".into()));
-        let e = LinkSpec::parse_without_options("/tmp/ttyA?baud=9600&pace", "as it is")
-            .unwrap_err();
+        let e =
+            LinkSpec::parse_without_options("/tmp/ttyA?baud=9600&pace", "as it is").unwrap_err();
         assert_eq!(
             e.to_string(),
             "link `/tmp/ttyA?baud=9600&pace`: option `baud` is not taken here (as it is)"
