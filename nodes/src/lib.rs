@@ -1,5 +1,10 @@
-//! The lab's protocols and node logic, all sans-IO: no sockets, no clock, no
-//! unseeded randomness. Time comes in as [`time::SimTime`], bytes as slices.
+//! The lab's nodes and simulated media, all sans-IO: no sockets, no clock,
+//! no unseeded randomness. Time comes in as [`time::SimTime`], bytes as
+//! slices. The EV module controller (`firmware`), the Controller_network
+//! project's Nanos and Raspberry Pi master (`controller_network`), the
+//! supervisor and its server (`master`), the PWM-capture paper's parallel
+//! nodes (`parallel`), and the RS-485 bus and PWM-capture line (`link`). The
+//! codecs they speak are the `protocols` crate, re-exported here.
 
 pub mod controller_network;
 pub mod firmware;
@@ -8,8 +13,8 @@ pub mod master;
 pub mod node;
 pub mod parallel;
 
-/// The wire formats, from the `protocols` crate (kept here so that
-/// `nodes::proto::…` paths still resolve).
+/// The wire formats, from the `protocols` crate: node code and its users
+/// name them `nodes::proto::…` without depending on that crate themselves.
 pub mod proto {
     pub use protocols::{crc, meb, modbus, modbus8, pwmcap, words};
 }
