@@ -44,7 +44,10 @@ const BROKEN: usize = 8;
 
 /// The slave's script: per request, the reply to send (None: stay silent).
 fn script(recording: &Path) -> Vec<(Vec<u8>, Option<Vec<u8>>)> {
-    let frames = Recording::read(recording).expect("recording").frames();
+    let frames = Recording::read(recording)
+        .expect("recording")
+        .frames()
+        .expect("frames");
     let mut out = Vec::new();
     for (i, f) in frames.iter().enumerate() {
         if f.from != "supervisor" {
@@ -361,6 +364,7 @@ set_points = [[0.0, 0.0], [0.1, 1500.0]]
     let requests: Vec<u8> = Recording::read(&run)
         .unwrap()
         .frames()
+        .unwrap()
         .iter()
         .filter(|f| f.from == "supervisor")
         .map(|f| f.bytes[1])

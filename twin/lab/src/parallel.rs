@@ -16,11 +16,13 @@
 //!   on, each slave's wheel rpm minus the master's; the largest magnitude
 //!   and the RMS over slaves and instants.
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use serde_json::Value;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+use twin_recording::Recording;
+use twin_recording::topics::Topic;
 use twin_sim::scenario::{NodeSpec, Scenario};
 use twin_sim::virtual_run;
 
@@ -104,46 +106,39 @@ fn roles(scenario: &Scenario) -> Result<(String, Vec<String>, f64)> {
 /// Reads a parallel scenario's recording back and computes its figures.
 pub fn analyse(scenario: &Scenario, recording: &Path) -> Result<ParallelFigures> {
     let (master, slaves, first_set_point) = roles(scenario)?;
-    let bytes =
-        std::fs::read(recording).with_context(|| format!("cannot read {}", recording.display()))?;
     let mut vel: BTreeMap<String, Vec<(f64, f64)>> = BTreeMap::new();
     let mut rpm: BTreeMap<String, Vec<(f64, f64)>> = BTreeMap::new();
     let mut events = BTreeMap::new();
     let mut frames = 0u64;
     let mut last_loop = Value::Null;
-    for message in mcap::MessageStream::new(&bytes)? {
-        let message = message?;
-        let t = message.log_time as f64 * 1e-9;
-        let topic = message.channel.topic.as_str();
-        let parse = || serde_json::from_slice::<Value>(&message.data);
-        if let Some(rest) = topic.strip_prefix("/plant/") {
-            let Some((module, kind)) = rest.split_once('/') else {
-                continue;
-            };
-            let value = parse()?;
-            match kind {
-                "actuators" => {
-                    let v = value["vel_volts"].as_f64().unwrap_or(f64::NAN);
-                    let series = vel.entry(module.to_string()).or_default();
-                    if series.last().is_none_or(|&(_, last)| last != v) {
-                        series.push((t, v));
-                    }
+    Recording::scan(recording, |message| {
+        let t = message.time_s();
+        match Topic::parse(message.topic) {
+            Topic::PlantActuators(Some(module)) => {
+                let value: Value = message.json()?;
+                let v = value["vel_volts"].as_f64().unwrap_or(f64::NAN);
+                let series = vel.entry(module.to_string()).or_default();
+                if series.last().is_none_or(|&(_, last)| last != v) {
+                    series.push((t, v));
                 }
-                "sensors" => rpm
-                    .entry(module.to_string())
-                    .or_default()
-                    .push((t, value["wheel_rpm"].as_f64().unwrap_or(f64::NAN))),
-                _ => {}
             }
-        } else if topic == "/events" {
-            let kind = parse()?["kind"].as_str().unwrap_or("?").to_string();
-            *events.entry(kind).or_default() += 1;
-        } else if topic.starts_with("/bus/") {
-            frames += 1;
-        } else if topic == format!("/master/{master}/loop") {
-            last_loop = parse()?;
+            Topic::PlantSensors(Some(module)) => {
+                let value: Value = message.json()?;
+                rpm.entry(module.to_string())
+                    .or_default()
+                    .push((t, value["wheel_rpm"].as_f64().unwrap_or(f64::NAN)));
+            }
+            Topic::Events => {
+                let value: Value = message.json()?;
+                let kind = value["kind"].as_str().unwrap_or("?").to_string();
+                *events.entry(kind).or_default() += 1;
+            }
+            Topic::BusFrames(_) => frames += 1,
+            Topic::MasterLoop(node) if node == master => last_loop = message.json()?,
+            _ => {}
         }
-    }
+        Ok(())
+    })?;
     let empty = Vec::new();
     let master_vel = vel.get(&master).unwrap_or(&empty);
     let mut latencies = Vec::new();

@@ -123,7 +123,7 @@ impl Trace {
         t: f64,
         s: StepSample,
     ) -> Result<()> {
-        let topic = "/experiment/step";
+        let topic = twin_recording::topics::EXPERIMENT_STEP;
         if !rec.has_channel(topic) {
             rec.add_channel(topic, &s)?;
         }

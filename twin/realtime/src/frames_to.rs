@@ -240,7 +240,7 @@ pub fn replay_frames(
     let RunSpec::Scenario(scenario) = RunSpec::from_recording(recording)? else {
         bail!("an open-loop recording has no bus frames to replay");
     };
-    let frames = recording.frames();
+    let frames = recording.frames()?;
     let bus = pick_bus(&frames, bus)?;
     let masters: Vec<String> = scenario
         .nodes

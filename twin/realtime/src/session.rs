@@ -303,7 +303,7 @@ pub fn create_recording(
         Recorder::create_with_level(path, twin_recording::record::REALTIME_ZSTD_LEVEL)?;
     fields.insert("kind".into(), kind.into());
     fields.insert("twin_version".into(), env!("CARGO_PKG_VERSION").into());
-    recorder.write_metadata("twin.run", fields)?;
+    recorder.write_metadata(twin_recording::topics::RUN_METADATA, fields)?;
     Ok(Some(recorder))
 }
 

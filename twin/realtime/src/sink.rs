@@ -20,6 +20,7 @@ pub use super::frame_log::{Direction, FrameBatch};
 use super::lateness::LatenessSummary;
 use twin_recording::describe::link_frame_fields;
 use twin_recording::record::Recorder;
+use twin_recording::topics;
 use twin_sim::observe::McapObserver;
 
 /// How often the sink drains its queue (console lines and recording may lag
@@ -273,7 +274,7 @@ impl FrameSink {
             topics: config
                 .links
                 .iter()
-                .map(|(name, _)| format!("/link/{name}/frames"))
+                .map(|(name, _)| topics::link_frames(name))
                 .collect(),
         }
     }
@@ -395,7 +396,7 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
                 module,
                 sensors,
             } => match (&mut observer, config.modules.get(module)) {
-                (Some(o), Some(name)) => o.put(&format!("/plant/{name}/sensors"), at, &*sensors),
+                (Some(o), Some(name)) => o.put(&topics::plant_sensors(name), at, &*sensors),
                 _ => Ok(()),
             },
             SinkMsg::Actuators {
@@ -403,7 +404,7 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
                 module,
                 actuators,
             } => match (&mut observer, config.modules.get(module)) {
-                (Some(o), Some(name)) => o.put(&format!("/plant/{name}/actuators"), at, &actuators),
+                (Some(o), Some(name)) => o.put(&topics::plant_actuators(name), at, &actuators),
                 _ => Ok(()),
             },
             SinkMsg::Frames(batch) => {
@@ -427,13 +428,13 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
                 }
             }
             SinkMsg::Telemetry { at, node, value } => match &mut observer {
-                Some(o) => o.put(&format!("/master/{node}/loop"), at, &value),
+                Some(o) => o.put(&topics::master_loop(&node), at, &value),
                 None => Ok(()),
             },
             SinkMsg::Lateness { at, window, total } => match &mut observer {
                 Some(o) => o
                     .put(
-                        "/realtime/lateness",
+                        topics::REALTIME_LATENESS,
                         at,
                         &json!({ "window": window, "total": total }),
                     )
@@ -484,7 +485,8 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
     }
     if let Some(mut o) = observer {
         if let Some(totals) = finish {
-            o.recorder.write_metadata("twin.realtime", totals)?;
+            o.recorder
+                .write_metadata(topics::REALTIME_METADATA, totals)?;
         }
         outcome.frames_recorded = o.frames;
         outcome.events = o.events.clone();

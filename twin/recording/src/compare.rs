@@ -12,7 +12,8 @@ use serde::Deserialize;
 use std::collections::BTreeMap;
 use std::path::Path;
 
-use super::{Recording, Signal};
+use super::Signal;
+use super::signals::Signals;
 
 /// Tolerances of one signal.
 #[derive(Debug, Clone, Copy, PartialEq, Deserialize)]
@@ -227,10 +228,10 @@ impl Comparison {
     }
 }
 
-/// Compare `run` with `baseline`.
-pub fn compare(run: &Recording, baseline: &Recording, tolerances: &Tolerances) -> Comparison {
-    let run_signals = run.signals();
-    let base_signals = baseline.signals();
+/// Compare `run` with `baseline` (each read with [`Signals::read`]).
+pub fn compare(run: &Signals, baseline: &Signals, tolerances: &Tolerances) -> Comparison {
+    let (run_signals, base_signals) = (&run.by_name, &baseline.by_name);
+    let (run, baseline) = (&run.recording, &baseline.recording);
     let (run_end, base_end) = (run.end_s(), baseline.end_s());
     let mut compared_until_s = f64::INFINITY;
     let mut span_note = None;
@@ -255,7 +256,7 @@ pub fn compare(run: &Recording, baseline: &Recording, tolerances: &Tolerances) -
     }
     let mut rows = Vec::new();
     let mut ignored = 0;
-    for (name, base) in &base_signals {
+    for (name, base) in base_signals {
         let tol = tolerances.of(name);
         if tol.ignore {
             ignored += 1;

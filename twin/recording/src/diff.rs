@@ -1,12 +1,18 @@
 //! Where two recordings of the same scenario part: message by message, per
 //! channel, the first message whose time or content differs, and in it the
 //! first field. `replay` uses it after the bytes differ.
+//!
+//! Both files are streamed side by side, the one behind in simulated time
+//! read next: a channel's messages wait only until the other file's
+//! counterpart arrives, and none is kept once the channel has departed.
 
+use anyhow::{Context, Result};
 use serde_json::Value;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap, VecDeque};
 
+use super::Recording;
+use super::read::{Item, Reader};
 use super::signals::{leaves, signal_name};
-use super::{Message, Recording};
 
 /// The earliest place where two recordings differ.
 #[derive(Debug, Clone, PartialEq)]
@@ -24,21 +30,112 @@ pub struct Departure {
     pub channels_departing: usize,
 }
 
-/// The first departure of `replayed` from `recorded`, or `None` when every
-/// message matches. When `recorded` was cut short, only what it holds is
-/// compared (each channel's first messages).
-pub fn first_departure(recorded: &Recording, replayed: &Recording) -> Option<Departure> {
-    let mut topics: Vec<&str> = recorded.channels.iter().map(|c| c.topic.as_str()).collect();
-    for c in &replayed.channels {
-        if !topics.contains(&c.topic.as_str()) {
-            topics.push(&c.topic);
+/// A message waiting for its counterpart in the other file.
+#[derive(Debug)]
+struct Waiting {
+    log_time_ns: u64,
+    sequence: u32,
+    data: Vec<u8>,
+}
+
+impl Waiting {
+    fn time_s(&self) -> f64 {
+        self.log_time_ns as f64 * 1e-9
+    }
+
+    fn value(&self, topic: &str) -> Result<Value> {
+        serde_json::from_slice(&self.data)
+            .map_err(|e| anyhow::anyhow!("message {} on {topic} is not JSON: {e}", self.sequence))
+    }
+}
+
+/// One topic's comparison so far.
+#[derive(Debug, Default)]
+struct Lane {
+    /// Messages matched so far.
+    matched: usize,
+    /// Read in one file, not yet in the other: `[recorded, replayed]`.
+    waiting: [VecDeque<Waiting>; 2],
+    departure: Option<Departure>,
+}
+
+/// The first departure of the recording `replayed` from `recorded`, or
+/// `None` when every message matches. When `recorded` was cut short, only
+/// what it holds is compared (each channel's first messages).
+pub fn first_departure(recorded: &Recording, replayed: &Recording) -> Result<Option<Departure>> {
+    let mut readers = [Reader::open(&recorded.path)?, Reader::open(&replayed.path)?];
+    let mut done = [false; 2];
+    // How far in simulated time each file has been read.
+    let mut at = [0u64; 2];
+    // Topics in the order their channels appear in each file.
+    let mut order: [Vec<String>; 2] = [Vec::new(), Vec::new()];
+    let mut lanes: HashMap<String, Lane> = HashMap::new();
+    while !(done[0] && done[1]) {
+        let side = if done[1] || (!done[0] && at[0] <= at[1]) {
+            0
+        } else {
+            1
+        };
+        let m = match readers[side].next()? {
+            None => {
+                done[side] = true;
+                continue;
+            }
+            Some(Item::Channel { topic, .. }) => {
+                if !order[side].iter().any(|t| t == topic) {
+                    order[side].push(topic.to_string());
+                }
+                continue;
+            }
+            Some(item) => match item.message()? {
+                Some(m) => m,
+                None => continue,
+            },
+        };
+        at[side] = at[side].max(m.log_time_ns);
+        let lane = match lanes.get_mut(m.topic) {
+            Some(lane) => lane,
+            None => lanes.entry(m.topic.to_string()).or_default(),
+        };
+        if lane.departure.is_some() {
+            continue;
+        }
+        lane.waiting[side].push_back(Waiting {
+            log_time_ns: m.log_time_ns,
+            sequence: m.sequence,
+            data: m.data.to_vec(),
+        });
+        while !lane.waiting[0].is_empty() && !lane.waiting[1].is_empty() {
+            let (Some(a), Some(b)) = (lane.waiting[0].pop_front(), lane.waiting[1].pop_front())
+            else {
+                break;
+            };
+            if let Some(d) = message_departure(m.topic, lane.matched, &a, &b)? {
+                lane.departure = Some(d);
+                lane.waiting = Default::default();
+                break;
+            }
+            lane.matched += 1;
+        }
+    }
+    let cut_short = recorded.truncated.is_some();
+    let [mut topics, replayed_order] = order;
+    for t in replayed_order {
+        if !topics.contains(&t) {
+            topics.push(t);
         }
     }
     let mut first: Option<Departure> = None;
     let mut departing = 0;
-    for topic in topics {
-        let (a, b) = (messages(recorded, topic), messages(replayed, topic));
-        let Some(d) = channel_departure(topic, a, b, recorded.truncated.is_some()) else {
+    for topic in &topics {
+        let Some(mut lane) = lanes.remove(topic) else {
+            continue;
+        };
+        let Some(d) = lane
+            .departure
+            .take()
+            .or_else(|| end_departure(topic, &lane, cut_short))
+        else {
             continue;
         };
         departing += 1;
@@ -46,77 +143,81 @@ pub fn first_departure(recorded: &Recording, replayed: &Recording) -> Option<Dep
             first = Some(d);
         }
     }
-    first.map(|mut d| {
+    Ok(first.map(|mut d| {
         d.channels_departing = departing;
         d
-    })
+    }))
 }
 
-fn channel_departure(
-    topic: &str,
-    a: &[Message],
-    b: &[Message],
-    a_cut_short: bool,
-) -> Option<Departure> {
-    let absent = || "absent".to_string();
-    for (i, ma) in a.iter().enumerate() {
-        let Some(mb) = b.get(i) else {
-            return Some(Departure {
-                signal: topic.to_string(),
-                time_s: ma.time_s(),
-                recorded: format!("message {}", i + 1),
-                replayed: absent(),
-                other_fields: Vec::new(),
-                channels_departing: 0,
-            });
-        };
-        if ma.log_time_ns != mb.log_time_ns {
-            return Some(Departure {
-                signal: topic.to_string(),
-                time_s: ma.time_s().min(mb.time_s()),
-                recorded: format!("message {} at {:.6} s", i + 1, ma.time_s()),
-                replayed: format!("at {:.6} s", mb.time_s()),
-                other_fields: Vec::new(),
-                channels_departing: 0,
-            });
-        }
-        if ma.value != mb.value {
-            let fa = flat(&ma.value);
-            let fb = flat(&mb.value);
-            let mut differing = fa
-                .keys()
-                .chain(fb.keys())
-                .filter(|k| fa.get(*k) != fb.get(*k))
-                .collect::<std::collections::BTreeSet<_>>()
-                .into_iter();
-            let field = differing.next().cloned().unwrap_or_default();
-            let text =
-                |m: &BTreeMap<String, Value>| m.get(&field).map_or_else(absent, |v| v.to_string());
-            return Some(Departure {
-                signal: signal_name(topic, &field),
-                time_s: ma.time_s(),
-                recorded: text(&fa),
-                replayed: text(&fb),
-                other_fields: differing.cloned().collect(),
-                channels_departing: 0,
-            });
-        }
+fn absent() -> String {
+    "absent".to_string()
+}
+
+/// Whether message `i` of `topic` departs: recorded `a`, replayed `b`.
+fn message_departure(topic: &str, i: usize, a: &Waiting, b: &Waiting) -> Result<Option<Departure>> {
+    if a.log_time_ns != b.log_time_ns {
+        return Ok(Some(Departure {
+            signal: topic.to_string(),
+            time_s: a.time_s().min(b.time_s()),
+            recorded: format!("message {} at {:.6} s", i + 1, a.time_s()),
+            replayed: format!("at {:.6} s", b.time_s()),
+            other_fields: Vec::new(),
+            channels_departing: 0,
+        }));
     }
-    if a_cut_short {
+    if a.data == b.data {
+        return Ok(None);
+    }
+    let (va, vb) = (a.value(topic)?, b.value(topic)?);
+    if va == vb {
+        return Ok(None);
+    }
+    let fa = flat(&va);
+    let fb = flat(&vb);
+    let mut differing = fa
+        .keys()
+        .chain(fb.keys())
+        .filter(|k| fa.get(*k) != fb.get(*k))
+        .collect::<std::collections::BTreeSet<_>>()
+        .into_iter();
+    let field = differing.next().cloned().unwrap_or_default();
+    let text = |m: &BTreeMap<String, Value>| m.get(&field).map_or_else(absent, |v| v.to_string());
+    Ok(Some(Departure {
+        signal: signal_name(topic, &field),
+        time_s: a.time_s(),
+        recorded: text(&fa),
+        replayed: text(&fb),
+        other_fields: differing.cloned().collect(),
+        channels_departing: 0,
+    }))
+}
+
+/// A departure at the end of the files: messages one file holds beyond the
+/// other's (the replay's extra ones do not count when the recording was cut
+/// short).
+fn end_departure(topic: &str, lane: &Lane, recorded_cut_short: bool) -> Option<Departure> {
+    let n = lane.matched + 1;
+    if let Some(a) = lane.waiting[0].front() {
+        return Some(Departure {
+            signal: topic.to_string(),
+            time_s: a.time_s(),
+            recorded: format!("message {n}"),
+            replayed: absent(),
+            other_fields: Vec::new(),
+            channels_departing: 0,
+        });
+    }
+    if recorded_cut_short {
         return None;
     }
-    b.get(a.len()).map(|mb| Departure {
+    lane.waiting[1].front().map(|b| Departure {
         signal: topic.to_string(),
-        time_s: mb.time_s(),
+        time_s: b.time_s(),
         recorded: absent(),
-        replayed: format!("message {}", a.len() + 1),
+        replayed: format!("message {n}"),
         other_fields: Vec::new(),
         channels_departing: 0,
     })
-}
-
-fn messages<'a>(r: &'a Recording, topic: &str) -> &'a [Message] {
-    r.channel(topic).map_or(&[], |c| &c.messages)
 }
 
 fn flat(v: &Value) -> BTreeMap<String, Value> {
@@ -125,4 +226,40 @@ fn flat(v: &Value) -> BTreeMap<String, Value> {
         out.insert(p.to_string(), leaf.clone());
     });
     out
+}
+
+/// Whether two files hold the same bytes, read a block at a time.
+pub fn same_bytes(a: &std::path::Path, b: &std::path::Path) -> Result<bool> {
+    let open = |p: &std::path::Path| -> Result<std::fs::File> {
+        std::fs::File::open(p).map_err(|e| anyhow::anyhow!("cannot read {}: {e}", p.display()))
+    };
+    let (mut fa, mut fb) = (open(a)?, open(b)?);
+    if fa.metadata()?.len() != fb.metadata()?.len() {
+        return Ok(false);
+    }
+    let (mut ba, mut bb) = (vec![0u8; 64 * 1024], vec![0u8; 64 * 1024]);
+    loop {
+        let n = fill(&mut fa, &mut ba).with_context(|| format!("cannot read {}", a.display()))?;
+        let m = fill(&mut fb, &mut bb).with_context(|| format!("cannot read {}", b.display()))?;
+        if n != m || ba[..n] != bb[..m] {
+            return Ok(false);
+        }
+        if n == 0 {
+            return Ok(true);
+        }
+    }
+}
+
+/// Read until `buf` is full or the file ends; the bytes read.
+fn fill(file: &mut impl std::io::Read, buf: &mut [u8]) -> Result<usize> {
+    let mut got = 0;
+    while got < buf.len() {
+        match file.read(&mut buf[got..]) {
+            Ok(0) => break,
+            Ok(n) => got += n,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+            Err(e) => return Err(e.into()),
+        }
+    }
+    Ok(got)
 }

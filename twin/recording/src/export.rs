@@ -6,11 +6,14 @@
 
 use anyhow::{Context, Result};
 use serde_json::Value;
+use std::collections::HashMap;
+use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
+use super::Recording;
+use super::read::Reader;
 use super::signals::leaves;
-use super::{Channel, Recording};
 
 /// One CSV file written.
 #[derive(Debug, Clone, PartialEq)]
@@ -39,37 +42,98 @@ pub fn file_name(topic: &str) -> String {
     format!("{}.csv", if stem.is_empty() { "root" } else { &stem })
 }
 
-/// Write every channel of `recording` into `dir` (created if needed).
-pub fn to_csv(recording: &Recording, dir: &Path) -> Result<Vec<Written>> {
-    std::fs::create_dir_all(dir)
-        .with_context(|| format!("cannot create folder {}", dir.display()))?;
-    recording
-        .channels
-        .iter()
-        .map(|c| {
-            let path = dir.join(file_name(&c.topic));
-            write_channel(c, &path).with_context(|| format!("cannot write {}", path.display()))
-        })
-        .collect()
+/// A channel's columns: every field path in the order first seen.
+#[derive(Debug, Default)]
+struct Columns {
+    names: Vec<String>,
+    index: HashMap<String, usize>,
 }
 
-fn write_channel(channel: &Channel, path: &Path) -> Result<Written> {
-    // Columns: every field path in the order first seen.
-    let mut columns: Vec<String> = Vec::new();
-    let mut index = std::collections::HashMap::new();
+/// A channel's file being written.
+struct Sheet {
+    out: BufWriter<File>,
+    path: PathBuf,
+    /// Rows to write: the messages the first pass counted.
+    rows_left: u64,
+    row: Vec<String>,
+}
+
+/// Write every channel of the recording at `path` into `dir` (created if
+/// needed). Two passes, streamed: the columns of every channel, then the rows.
+pub fn to_csv(path: &Path, dir: &Path) -> Result<(Recording, Vec<Written>)> {
+    let mut columns: Vec<Columns> = Vec::new();
     let mut buf = String::new();
-    for m in &channel.messages {
+    let recording = Recording::scan(path, |m| {
+        let value: Value = m.json()?;
+        if columns.len() <= m.channel {
+            columns.resize_with(m.channel + 1, Columns::default);
+        }
+        let c = &mut columns[m.channel];
         buf.clear();
-        leaves(&m.value, &mut buf, &mut |p, _| {
-            if !index.contains_key(p) {
-                index.insert(p.to_string(), columns.len());
-                columns.push(p.to_string());
+        leaves(&value, &mut buf, &mut |p, _| {
+            if !c.index.contains_key(p) {
+                c.index.insert(p.to_string(), c.names.len());
+                c.names.push(p.to_string());
             }
         });
+        Ok(())
+    })?;
+    columns.resize_with(recording.channels.len(), Columns::default);
+    std::fs::create_dir_all(dir)
+        .with_context(|| format!("cannot create folder {}", dir.display()))?;
+    let mut sheets = Vec::with_capacity(recording.channels.len());
+    for (channel, c) in recording.channels.iter().zip(&columns) {
+        let file = dir.join(file_name(&channel.topic));
+        let sheet = header(&file, c, channel.message_count)
+            .with_context(|| format!("cannot write {}", file.display()))?;
+        sheets.push(sheet);
     }
-    let mut out = BufWriter::new(std::fs::File::create(path)?);
+    // The second pass stops where the first did, should the file have
+    // grown since (a session still recording).
+    let mut reader = Reader::open(path)?;
+    while let Some(item) = reader.next()? {
+        let Some(m) = item.message()? else {
+            continue;
+        };
+        let (Some(sheet), Some(c)) = (sheets.get_mut(m.channel), columns.get(m.channel)) else {
+            continue;
+        };
+        if sheet.rows_left == 0 {
+            continue;
+        }
+        sheet.rows_left -= 1;
+        let value: Value = m.json()?;
+        sheet.row.iter_mut().for_each(String::clear);
+        buf.clear();
+        leaves(&value, &mut buf, &mut |p, leaf| {
+            if let Some(&i) = c.index.get(p) {
+                sheet.row[i] = cell(leaf);
+            }
+        });
+        row(sheet, m.log_time_ns)
+            .with_context(|| format!("cannot write {}", sheet.path.display()))?;
+    }
+    let mut written = Vec::with_capacity(sheets.len());
+    for ((channel, c), mut sheet) in recording.channels.iter().zip(&columns).zip(sheets) {
+        sheet
+            .out
+            .flush()
+            .with_context(|| format!("cannot write {}", sheet.path.display()))?;
+        written.push(Written {
+            topic: channel.topic.clone(),
+            path: sheet.path,
+            rows: usize::try_from(channel.message_count).unwrap_or(usize::MAX),
+            columns: c.names.len() + 1,
+        });
+    }
+    Ok((recording, written))
+}
+
+/// Create a channel's file and write its header line.
+fn header(path: &Path, columns: &Columns, rows: u64) -> Result<Sheet> {
+    let mut out = BufWriter::new(File::create(path)?);
     write!(out, "time_s")?;
-    for c in &columns {
+    for c in &columns.names {
         write!(
             out,
             ",{}",
@@ -77,33 +141,27 @@ fn write_channel(channel: &Channel, path: &Path) -> Result<Written> {
         )?;
     }
     writeln!(out)?;
-    let mut row: Vec<String> = vec![String::new(); columns.len()];
-    for m in &channel.messages {
-        row.iter_mut().for_each(String::clear);
-        buf.clear();
-        leaves(&m.value, &mut buf, &mut |p, leaf| {
-            if let Some(&i) = index.get(p) {
-                row[i] = cell(leaf);
-            }
-        });
-        write!(
-            out,
-            "{}.{:09}",
-            m.log_time_ns / 1_000_000_000,
-            m.log_time_ns % 1_000_000_000
-        )?;
-        for c in &row {
-            write!(out, ",{c}")?;
-        }
-        writeln!(out)?;
-    }
-    out.flush()?;
-    Ok(Written {
-        topic: channel.topic.clone(),
+    Ok(Sheet {
+        out,
         path: path.to_path_buf(),
-        rows: channel.messages.len(),
-        columns: columns.len() + 1,
+        rows_left: rows,
+        row: vec![String::new(); columns.names.len()],
     })
+}
+
+/// Write the sheet's row at `log_time_ns`.
+fn row(sheet: &mut Sheet, log_time_ns: u64) -> Result<()> {
+    write!(
+        sheet.out,
+        "{}.{:09}",
+        log_time_ns / 1_000_000_000,
+        log_time_ns % 1_000_000_000
+    )?;
+    for c in &sheet.row {
+        write!(sheet.out, ",{c}")?;
+    }
+    writeln!(sheet.out)?;
+    Ok(())
 }
 
 fn cell(v: &Value) -> String {

@@ -1,21 +1,24 @@
 //! Recordings of the EV lab twin, written and read back.
 //!
+//! - [`topics`]: the catalogue of channels, their fields and the metadata
+//!   records; every writer and reader names topics through it.
 //! - [`record`]: the MCAP writer every run and session records through.
 //! - [`describe`]: the one frame describer (the `decoded` fields of a frame).
-//! - Reading back, streamed chunk by chunk: named signals, frames and events
-//!   out of an MCAP file ([`Recording`]), comparison against a baseline
-//!   ([`compare`]), the first departure of a replay ([`diff`]) and CSV export
-//!   ([`export`]). `twin replay`, `compare`, `export` and the viewer build on
-//!   this.
+//! - [`read`]: the one reader, streamed chunk by chunk ([`Reader`]), and what
+//!   a pass finds ([`Recording`]). On it: named signals as `f64` columns
+//!   ([`signals`]), comparison against a baseline ([`compare`]), the first
+//!   departure of a replay ([`diff`]) and CSV export ([`export`]).
+//!   `twin replay`, `compare`, `export` and the viewer build on this.
 
 pub mod compare;
 pub mod describe;
 pub mod diff;
 pub mod export;
-mod read;
+pub mod read;
 pub mod record;
 pub mod signals;
+pub mod topics;
 
-pub use read::{Channel, Event, Frame, Message, Recording};
+pub use read::{Channel, Cut, Event, Frame, Item, Message, Reader, Recording};
 pub use record::Recorder;
-pub use signals::Signal;
+pub use signals::{Signal, Signals};

@@ -1,163 +1,570 @@
-//! Reading a recording back: its metadata, its channels and their JSON
-//! messages, in file order. A recording cut short (the process killed
-//! mid-run) is read up to its last complete chunk and says so.
+//! Reading a recording back, streamed: [`Reader`] goes through the file front
+//! to back one chunk at a time (read from disk, decompressed, handed out
+//! message by message, dropped), so what a reader keeps is only what it asks
+//! for. [`Recording`] is what a pass leaves: the metadata, the channels with
+//! their message counts, the chunks read and, for a file cut short (the
+//! process killed mid-run), where and why reading stopped. Everything up to
+//! the last complete chunk is read; a damaged chunk is dropped whole.
+//!
+//! Every reader of recordings builds on this one: [`crate::signals`]
+//! (`twin compare`), [`crate::diff`] (`twin replay`), [`crate::export`]
+//! (`twin export`), the frames of `twin replay --frames-to`, and the viewer
+//! (`twin view`).
 
-use anyhow::{Context, Result, bail};
-use mcap::read::{ChunkReader, LinearReader, Options};
+use anyhow::{Context, Result, anyhow, bail};
 use mcap::records::Record;
-use serde_json::Value;
-use std::collections::BTreeMap;
+use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader, LinearReaderOptions};
+use serde::Deserialize;
+use std::collections::{BTreeMap, HashMap};
+use std::fs::File;
+use std::io::Read;
 use std::path::{Path, PathBuf};
 
-/// One message: its log time (simulated time) and its decoded JSON.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Message {
-    pub log_time_ns: u64,
-    pub value: Value,
+use crate::topics::{self, Topic};
+
+/// One channel of a recording: its topic and how many messages it holds.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Channel {
+    pub topic: String,
+    /// Messages read on it.
+    pub message_count: u64,
 }
 
-impl Message {
-    /// Log time in seconds.
-    pub fn time_s(&self) -> f64 {
-        self.log_time_ns as f64 * 1e-9
+/// Why reading stopped before the end of the data.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Cut {
+    /// The file ends early (or is damaged) after `chunks` complete chunks.
+    EndsEarly { chunks: u64, error: String },
+    /// Chunk `chunk` (1-based) does not decompress or decode.
+    DamagedChunk { chunk: u64, error: String },
+    /// Every record is whole, but the summary never came: the run did not
+    /// finish (the process stopped between two chunks).
+    NoSummary,
+}
+
+impl Cut {
+    /// The reader's own error, when one stopped it (not for a file that
+    /// simply ends between two chunks).
+    pub fn error(&self) -> Option<&str> {
+        match self {
+            Cut::EndsEarly { error, .. } | Cut::DamagedChunk { error, .. } => Some(error),
+            Cut::NoSummary => None,
+        }
     }
 }
 
-/// One channel and every message it holds, in file order.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Channel {
-    pub topic: String,
-    pub messages: Vec<Message>,
+impl std::fmt::Display for Cut {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Cut::EndsEarly { chunks, error } => write!(
+                f,
+                "the file ends early or is damaged after {chunks} complete chunk(s) ({error}); \
+                 read up to there"
+            ),
+            Cut::DamagedChunk { chunk, error } => write!(f, "chunk {chunk} is damaged ({error})"),
+            Cut::NoSummary => {
+                f.write_str("the file ends without its summary (the run did not finish)")
+            }
+        }
+    }
 }
 
-/// A recording read back.
-#[derive(Debug, Clone)]
+/// The error of a file that is not MCAP at all (find it with
+/// `error.root_cause().downcast_ref::<NotMcap>()`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct NotMcap;
+
+impl std::fmt::Display for NotMcap {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("it does not start with the MCAP magic bytes")
+    }
+}
+
+impl std::error::Error for NotMcap {}
+
+/// What a pass through a recording found (everything but the messages).
+#[derive(Debug, Clone, PartialEq)]
 pub struct Recording {
     pub path: PathBuf,
-    /// Metadata records by name (`twin.run`: the run's identity).
+    /// Metadata records by name (`twin.run`: the run's identity; see
+    /// [`crate::topics`]).
     pub metadata: BTreeMap<String, BTreeMap<String, String>>,
     /// Channels in the order they first appear.
     pub channels: Vec<Channel>,
     /// Complete chunks read.
     pub chunks: u64,
     /// Why reading stopped early, when the file is cut short: everything up
-    /// to its last complete chunk is here.
-    pub truncated: Option<String>,
+    /// to its last complete chunk was read.
+    pub truncated: Option<Cut>,
+    /// The latest log time of any message (ns).
+    pub end_ns: u64,
 }
 
-impl Recording {
-    /// Read `path`. A file that is not MCAP is an error; one cut short is not.
-    pub fn read(path: &Path) -> Result<Self> {
-        let bytes =
-            std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
-        Self::from_bytes(&bytes, path)
-            .with_context(|| format!("{} is not a readable recording", path.display()))
+/// One message as the reader hands it out: borrowed from the chunk being read.
+#[derive(Debug, Clone, Copy)]
+pub struct Message<'a> {
+    /// Index of its channel in [`Recording::channels`].
+    pub channel: usize,
+    pub topic: &'a str,
+    pub sequence: u32,
+    /// Log time: simulated time (ns).
+    pub log_time_ns: u64,
+    /// The message as recorded (JSON text).
+    pub data: &'a [u8],
+}
+
+impl Message<'_> {
+    /// Log time in seconds.
+    pub fn time_s(&self) -> f64 {
+        self.log_time_ns as f64 * 1e-9
     }
 
+    /// The message decoded as `T` (a [`serde_json::Value`], or one of the
+    /// catalogue's sample types).
+    pub fn json<'de, T: Deserialize<'de>>(&'de self) -> Result<T> {
+        serde_json::from_slice(self.data)
+            .with_context(|| format!("message {} on {} is not JSON", self.sequence, self.topic))
+    }
+
+    /// Check that the message is JSON without keeping any of it.
+    pub fn check_json(&self) -> Result<()> {
+        self.json::<serde::de::IgnoredAny>().map(|_| ())
+    }
+}
+
+/// What [`Reader::next`] hands out, in file order.
+#[derive(Debug, Clone, Copy)]
+pub enum Item<'a> {
+    /// A metadata record (its name and fields).
+    Metadata {
+        name: &'a str,
+        fields: &'a BTreeMap<String, String>,
+    },
+    /// A channel declared for the first time: its index in
+    /// [`Recording::channels`] and topic.
+    Channel {
+        index: usize,
+        topic: &'a str,
+    },
+    Message(Message<'a>),
+    /// A message on a channel never declared (a damaged file).
+    Stray {
+        channel_id: u16,
+        sequence: u32,
+    },
+}
+
+/// A recording read front to back, one chunk in memory at a time.
+pub struct Reader<R = File> {
+    source: R,
+    linear: LinearReader,
+    /// Records of the chunk being handed out.
+    pending: std::vec::IntoIter<Record<'static>>,
+    /// The record handed out last (items borrow from it).
+    current: Option<Current>,
+    /// Decompress chunks (off: a pass for the metadata alone).
+    chunks_too: bool,
+    /// MCAP channel id to index in `recording.channels`.
+    by_id: HashMap<u16, usize>,
+    recording: Recording,
+    done: bool,
+}
+
+impl<R> std::fmt::Debug for Reader<R> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Reader")
+            .field("path", &self.recording.path)
+            .field("chunks", &self.recording.chunks)
+            .finish_non_exhaustive()
+    }
+}
+
+impl Reader<File> {
+    /// Open `path`. A file that is not MCAP is an error; one cut short is not
+    /// (see [`Recording::truncated`]).
+    pub fn open(path: &Path) -> Result<Self> {
+        let file = File::open(path).with_context(|| format!("cannot read {}", path.display()))?;
+        let len = file
+            .metadata()
+            .with_context(|| format!("cannot read {}", path.display()))?
+            .len();
+        Self::new(file, len, path)
+            .with_context(|| format!("{} is not a readable recording", path.display()))
+    }
+}
+
+impl<'a> Reader<&'a [u8]> {
     /// Read a recording held in memory; `path` names it.
-    pub fn from_bytes(bytes: &[u8], path: &Path) -> Result<Self> {
-        if !bytes.starts_with(mcap::MAGIC) {
-            bail!("it does not start with the MCAP magic bytes");
+    pub fn from_bytes(bytes: &'a [u8], path: &Path) -> Result<Self> {
+        Self::new(bytes, bytes.len() as u64, path)
+            .with_context(|| format!("{} is not a readable recording", path.display()))
+    }
+}
+
+impl<R: Read> Reader<R> {
+    /// Read the recording `source` of `len` bytes; `path` names it.
+    pub fn new(mut source: R, len: u64, path: &Path) -> Result<Self> {
+        let mut magic = [0u8; 8];
+        let mut got = 0;
+        while got < magic.len() {
+            match source.read(&mut magic[got..]) {
+                Ok(0) => break,
+                Ok(n) => got += n,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(e.into()),
+            }
         }
-        let mut recording = Recording {
-            path: path.to_path_buf(),
-            metadata: BTreeMap::new(),
-            channels: Vec::new(),
-            chunks: 0,
-            truncated: None,
-        };
-        // Channel id to index in `channels`.
-        let mut by_id: BTreeMap<u16, usize> = BTreeMap::new();
-        let reader = LinearReader::new_with_options(bytes, Options::IgnoreEndMagic.into())?;
-        let mut data_end = false;
-        for record in reader {
-            let record = match record {
-                Ok(r) => r,
-                Err(e) => {
-                    recording.truncated = Some(format!(
-                        "the file ends early or is damaged after {} complete chunk(s) ({e}); \
-                         read up to there",
-                        recording.chunks
-                    ));
-                    break;
+        if magic[..got] != *mcap::MAGIC {
+            return Err(NotMcap.into());
+        }
+        // As `mcap::read::LinearReader` reads a whole file: chunks whole, no
+        // record longer than the file, the end magic not required.
+        let options = LinearReaderOptions::default()
+            .with_skip_start_magic(true)
+            .with_skip_end_magic(true)
+            .with_emit_chunks(true)
+            .with_record_length_limit(usize::try_from(len).unwrap_or(usize::MAX));
+        Ok(Self {
+            source,
+            linear: LinearReader::new_with_options(options),
+            pending: Vec::new().into_iter(),
+            current: None,
+            chunks_too: true,
+            by_id: HashMap::new(),
+            recording: Recording {
+                path: path.to_path_buf(),
+                metadata: BTreeMap::new(),
+                channels: Vec::new(),
+                chunks: 0,
+                truncated: None,
+                end_ns: 0,
+            },
+            done: false,
+        })
+    }
+
+    /// Skip the chunks (counted, not decompressed): a quick pass for the
+    /// metadata records, which lie between them.
+    pub fn metadata_only(mut self) -> Self {
+        self.chunks_too = false;
+        self
+    }
+
+    /// What the reader has found so far.
+    pub fn recording(&self) -> &Recording {
+        &self.recording
+    }
+
+    /// The pass's findings, once [`Self::next`] has returned `None`.
+    pub fn finish(self) -> Recording {
+        self.recording
+    }
+
+    /// The next item, or `None` at the end of the data (the data end record,
+    /// or where a file cut short stops: see [`Recording::truncated`]).
+    /// Errors are the source's (I/O); a damaged file is not one.
+    #[allow(clippy::should_implement_trait)]
+    pub fn next(&mut self) -> Result<Option<Item<'_>>> {
+        loop {
+            let record = match self.pending.next() {
+                Some(r) => r,
+                None => {
+                    if self.done {
+                        return Ok(None);
+                    }
+                    let Some(record) = self.outer()? else {
+                        return Ok(None);
+                    };
+                    record
+                }
+            };
+            if let Some(current) = self.take(record) {
+                let current = self.current.insert(current);
+                return Ok(Some(current.item(&self.recording)));
+            }
+        }
+    }
+
+    /// The next record outside the chunks, or (a chunk read whole) the
+    /// first of its records; `None` once the data ends.
+    fn outer(&mut self) -> Result<Option<Record<'static>>> {
+        loop {
+            let record = match self.raw()? {
+                Some(Ok(Raw::Record(r))) => r,
+                Some(Ok(Raw::Chunk(Ok(records)))) => {
+                    self.recording.chunks += 1;
+                    self.pending = records.into_iter();
+                    match self.pending.next() {
+                        Some(first) => return Ok(Some(first)),
+                        None => continue,
+                    }
+                }
+                Some(Ok(Raw::Chunk(Err(e)))) => {
+                    self.stop(Some(Cut::DamagedChunk {
+                        chunk: self.recording.chunks + 1,
+                        error: e.to_string(),
+                    }));
+                    return Ok(None);
+                }
+                Some(Ok(Raw::SkippedChunk)) => {
+                    self.recording.chunks += 1;
+                    continue;
+                }
+                Some(Err(e)) => {
+                    self.stop(Some(Cut::EndsEarly {
+                        chunks: self.recording.chunks,
+                        error: e.to_string(),
+                    }));
+                    return Ok(None);
+                }
+                None => {
+                    self.stop(Some(Cut::NoSummary));
+                    return Ok(None);
                 }
             };
             match record {
-                Record::Chunk { header, data } => {
-                    // Decode the whole chunk before keeping any of it, so a
-                    // damaged chunk is dropped whole.
-                    let mut inner = Vec::new();
-                    let mut damaged = None;
-                    for r in ChunkReader::new(header, &data)? {
-                        match r {
-                            Ok(r) => inner.push(r),
-                            Err(e) => {
-                                damaged = Some(e);
-                                break;
-                            }
-                        }
-                    }
-                    if let Some(e) = damaged {
-                        recording.truncated =
-                            Some(format!("chunk {} is damaged ({e})", recording.chunks + 1));
-                        break;
-                    }
-                    for r in inner {
-                        recording.take(r, &mut by_id)?;
-                    }
-                    recording.chunks += 1;
-                }
                 Record::DataEnd(_) => {
-                    data_end = true;
-                    break;
+                    self.stop(None);
+                    return Ok(None);
                 }
-                other => recording.take(other, &mut by_id)?,
+                other => return Ok(Some(other)),
             }
         }
-        if !data_end && recording.truncated.is_none() {
-            recording.truncated =
-                Some("the file ends without its summary (the run did not finish)".into());
-        }
-        Ok(recording)
     }
 
-    fn take(&mut self, record: Record<'_>, by_id: &mut BTreeMap<u16, usize>) -> Result<()> {
-        match record {
-            Record::Channel(c) => {
-                if let std::collections::btree_map::Entry::Vacant(e) = by_id.entry(c.id) {
-                    e.insert(self.channels.len());
-                    self.channels.push(Channel {
-                        topic: c.topic,
-                        messages: Vec::new(),
-                    });
+    fn stop(&mut self, cut: Option<Cut>) {
+        self.done = true;
+        self.pending = Vec::new().into_iter();
+        self.recording.truncated = cut;
+    }
+
+    /// The next record of the file, a chunk decoded whole (or skipped),
+    /// reading the source as the MCAP reader asks.
+    fn raw(&mut self) -> Result<Option<mcap::McapResult<Raw>>> {
+        while let Some(event) = self.linear.next_event() {
+            match event {
+                Ok(LinearReadEvent::ReadRequest(need)) => {
+                    let buf = self.linear.insert(need);
+                    let n = loop {
+                        match self.source.read(buf) {
+                            Ok(n) => break n,
+                            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                            Err(e) => {
+                                return Err(anyhow!(e).context(format!(
+                                    "cannot read {}",
+                                    self.recording.path.display()
+                                )));
+                            }
+                        }
+                    };
+                    self.linear.notify_read(n);
                 }
+                Ok(LinearReadEvent::Record { opcode, data }) => {
+                    let raw = match mcap::parse_record(opcode, data) {
+                        Ok(Record::Chunk { .. }) if !self.chunks_too => Ok(Raw::SkippedChunk),
+                        Ok(Record::Chunk { header, .. }) => {
+                            Ok(Raw::Chunk(chunk_records(data, header.uncompressed_size)))
+                        }
+                        Ok(record) => Ok(Raw::Record(record.into_owned())),
+                        Err(e) => Err(e),
+                    };
+                    return Ok(Some(raw));
+                }
+                Err(e) => return Ok(Some(Err(e))),
+            }
+        }
+        Ok(None)
+    }
+
+    /// Note what `record` says; the item it is, if it is one.
+    fn take(&mut self, record: Record<'static>) -> Option<Current> {
+        Some(match record {
+            Record::Channel(c) => {
+                if self.by_id.contains_key(&c.id) {
+                    return None;
+                }
+                let index = self.recording.channels.len();
+                self.by_id.insert(c.id, index);
+                self.recording.channels.push(Channel {
+                    topic: c.topic,
+                    message_count: 0,
+                });
+                Current::Channel(index)
             }
             Record::Message { header, data } => {
-                let Some(&index) = by_id.get(&header.channel_id) else {
-                    bail!(
-                        "message {} refers to channel {}, which was never declared",
-                        header.sequence,
-                        header.channel_id
-                    );
-                };
-                let channel = &mut self.channels[index];
-                let value = serde_json::from_slice(&data).with_context(|| {
-                    format!(
-                        "message {} on {} is not JSON",
-                        header.sequence, channel.topic
-                    )
-                })?;
-                channel.messages.push(Message {
+                let channel = self.by_id.get(&header.channel_id).copied();
+                if let Some(i) = channel {
+                    self.recording.channels[i].message_count += 1;
+                    self.recording.end_ns = self.recording.end_ns.max(header.log_time);
+                }
+                Current::Message {
+                    channel,
+                    channel_id: header.channel_id,
+                    sequence: header.sequence,
                     log_time_ns: header.log_time,
-                    value,
-                });
+                    data: data.into_owned(),
+                }
             }
             Record::Metadata(m) => {
-                self.metadata.insert(m.name, m.metadata);
+                self.recording
+                    .metadata
+                    .insert(m.name.clone(), m.metadata.clone());
+                Current::Metadata {
+                    name: m.name,
+                    fields: m.metadata,
+                }
             }
-            _ => {}
+            _ => return None,
+        })
+    }
+}
+
+/// A record of the file as [`Reader::raw`] reads it.
+enum Raw {
+    Record(Record<'static>),
+    /// A chunk's records, every one or (damaged) none.
+    Chunk(mcap::McapResult<Vec<Record<'static>>>),
+    /// A chunk not opened (a pass for the metadata).
+    SkippedChunk,
+}
+
+/// No record inside a chunk is taken to be longer than this, whatever a
+/// damaged chunk header claims (the twin's chunks hold about 1 MiB).
+const MAX_CHUNK_BYTES: u64 = 1 << 30;
+
+/// The records of the chunk whose record body is `body`, decompressed and
+/// checked (CRC) whole. No record may claim more than the chunk's
+/// uncompressed size: a damaged chunk is an error, not an allocation of
+/// whatever length its garbage says.
+fn chunk_records(body: &[u8], uncompressed_size: u64) -> mcap::McapResult<Vec<Record<'static>>> {
+    let limit = usize::try_from(uncompressed_size.min(MAX_CHUNK_BYTES))
+        .unwrap_or(usize::MAX)
+        .max(body.len());
+    let options = LinearReaderOptions::default()
+        .with_skip_start_magic(true)
+        .with_skip_end_magic(true)
+        .with_validate_chunk_crcs(true)
+        .with_record_length_limit(limit);
+    let mut reader = LinearReader::new_with_options(options);
+    let mut head = [0u8; 9];
+    head[0] = mcap::records::op::CHUNK;
+    head[1..].copy_from_slice(&(body.len() as u64).to_le_bytes());
+    let (mut head, mut body) = (&head[..], body);
+    let mut records = Vec::new();
+    while let Some(event) = reader.next_event() {
+        match event? {
+            LinearReadEvent::ReadRequest(need) => {
+                let from = if head.is_empty() {
+                    &mut body
+                } else {
+                    &mut head
+                };
+                let n = need.min(from.len());
+                reader.insert(n).copy_from_slice(&from[..n]);
+                reader.notify_read(n);
+                *from = &from[n..];
+            }
+            LinearReadEvent::Record { opcode, data } => {
+                records.push(mcap::parse_record(opcode, data)?.into_owned());
+            }
         }
-        Ok(())
+    }
+    Ok(records)
+}
+
+/// The record handed out last, which its item borrows from.
+#[derive(Debug)]
+enum Current {
+    Channel(usize),
+    Message {
+        /// Index in `Recording::channels`; `None` if never declared.
+        channel: Option<usize>,
+        channel_id: u16,
+        sequence: u32,
+        log_time_ns: u64,
+        data: Vec<u8>,
+    },
+    Metadata {
+        name: String,
+        fields: BTreeMap<String, String>,
+    },
+}
+
+impl Current {
+    fn item<'a>(&'a self, recording: &'a Recording) -> Item<'a> {
+        let topic = |i: usize| recording.channels.get(i).map_or("", |c| c.topic.as_str());
+        match self {
+            Current::Channel(index) => Item::Channel {
+                index: *index,
+                topic: topic(*index),
+            },
+            Current::Message {
+                channel: Some(channel),
+                sequence,
+                log_time_ns,
+                data,
+                ..
+            } => Item::Message(Message {
+                channel: *channel,
+                topic: topic(*channel),
+                sequence: *sequence,
+                log_time_ns: *log_time_ns,
+                data,
+            }),
+            Current::Message {
+                channel: None,
+                channel_id,
+                sequence,
+                ..
+            } => Item::Stray {
+                channel_id: *channel_id,
+                sequence: *sequence,
+            },
+            Current::Metadata { name, fields } => Item::Metadata { name, fields },
+        }
+    }
+}
+
+impl<'a> Item<'a> {
+    /// The message this item is, if it is one; an error for a message on
+    /// a channel never declared.
+    pub fn message(self) -> Result<Option<Message<'a>>> {
+        match self {
+            Item::Message(m) => Ok(Some(m)),
+            Item::Stray {
+                channel_id,
+                sequence,
+            } => {
+                bail!("message {sequence} refers to channel {channel_id}, which was never declared")
+            }
+            _ => Ok(None),
+        }
+    }
+}
+
+impl Recording {
+    /// Read `path` through, keeping no message: its metadata, channels and
+    /// extent. A file that is not MCAP, or holds a message that is not
+    /// JSON, is an error; one cut short is not.
+    pub fn read(path: &Path) -> Result<Self> {
+        Self::scan(path, |m| m.check_json())
+    }
+
+    /// Read `path` through, handing every message to `visit`. A message on
+    /// a channel never declared is an error (see [`Reader`] to take it), as
+    /// is any `visit` returns: both say the file is not a readable recording.
+    pub fn scan(path: &Path, mut visit: impl FnMut(&Message<'_>) -> Result<()>) -> Result<Self> {
+        let mut reader = Reader::open(path)?;
+        let read: Result<()> = (|| {
+            while let Some(item) = reader.next()? {
+                if let Some(m) = item.message()? {
+                    visit(&m)?;
+                }
+            }
+            Ok(())
+        })();
+        read.with_context(|| format!("{} is not a readable recording", path.display()))?;
+        Ok(reader.finish())
     }
 
     /// The channel on `topic`.
@@ -168,73 +575,60 @@ impl Recording {
     /// A field of the run's identity (`twin.run` metadata).
     pub fn run_field(&self, key: &str) -> Option<&str> {
         self.metadata
-            .get("twin.run")
+            .get(topics::RUN_METADATA)
             .and_then(|m| m.get(key))
             .map(String::as_str)
     }
 
     /// Messages in all channels.
-    pub fn message_count(&self) -> usize {
-        self.channels.iter().map(|c| c.messages.len()).sum()
+    pub fn message_count(&self) -> u64 {
+        self.channels.iter().map(|c| c.message_count).sum()
     }
 
     /// The latest log time of any message (s).
     pub fn end_s(&self) -> f64 {
-        self.channels
-            .iter()
-            .flat_map(|c| c.messages.iter().map(|m| m.log_time_ns))
-            .max()
-            .map_or(0.0, |t| t as f64 * 1e-9)
+        self.end_ns as f64 * 1e-9
     }
 
-    /// Every numeric field of every JSON message as a named signal (see
-    /// [`crate::signals`]).
-    pub fn signals(&self) -> BTreeMap<String, super::Signal> {
-        super::signals::of(self)
-    }
-
-    /// Every frame on every bus, in file order.
-    pub fn frames(&self) -> Vec<Frame> {
+    /// Every frame on every bus, in file order (read again from the file).
+    pub fn frames(&self) -> Result<Vec<Frame>> {
         let mut frames = Vec::new();
-        for c in &self.channels {
-            let Some(bus) = c
-                .topic
-                .strip_prefix("/bus/")
-                .and_then(|t| t.strip_suffix("/frames"))
-            else {
-                continue;
+        Self::scan(&self.path, |m| {
+            let Topic::BusFrames(bus) = Topic::parse(m.topic) else {
+                return Ok(());
             };
-            for m in &c.messages {
-                let s = |k: &str| m.value[k].as_str().unwrap_or("").to_string();
-                frames.push(Frame {
-                    time_s: m.time_s(),
-                    bus: bus.to_string(),
-                    from: s("from"),
-                    end_s: m.value["end_s"].as_f64().unwrap_or(f64::NAN),
-                    bytes: unhex(m.value["hex"].as_str().unwrap_or("")),
-                });
-            }
-        }
-        frames
+            let v: serde_json::Value = m.json()?;
+            let s = |k: &str| v[k].as_str().unwrap_or("").to_string();
+            frames.push(Frame {
+                time_s: m.time_s(),
+                bus: bus.to_string(),
+                from: s("from"),
+                end_s: v["end_s"].as_f64().unwrap_or(f64::NAN),
+                bytes: unhex(v["hex"].as_str().unwrap_or("")),
+            });
+            Ok(())
+        })?;
+        Ok(frames)
     }
 
-    /// Every event, in file order.
-    pub fn events(&self) -> Vec<Event> {
-        let Some(c) = self.channel("/events") else {
-            return Vec::new();
-        };
-        c.messages
-            .iter()
-            .map(|m| {
-                let s = |k: &str| m.value[k].as_str().unwrap_or("").to_string();
-                Event {
-                    time_s: m.time_s(),
-                    node: s("node"),
-                    kind: s("kind"),
-                    detail: s("detail"),
-                }
-            })
-            .collect()
+    /// Every event, in file order (read again from the file).
+    pub fn events(&self) -> Result<Vec<Event>> {
+        let mut events = Vec::new();
+        Self::scan(&self.path, |m| {
+            if Topic::parse(m.topic) != Topic::Events {
+                return Ok(());
+            }
+            let v: serde_json::Value = m.json()?;
+            let s = |k: &str| v[k].as_str().unwrap_or("").to_string();
+            events.push(Event {
+                time_s: m.time_s(),
+                node: s("node"),
+                kind: s("kind"),
+                detail: s("detail"),
+            });
+            Ok(())
+        })?;
+        Ok(events)
     }
 }
 
@@ -266,4 +660,177 @@ fn unhex(hex: &str) -> Vec<u8> {
             Some((d(p[0])? * 16 + d(p[1])?) as u8)
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::record::Recorder;
+    use serde_json::json;
+
+    fn scratch(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("twin-recording-read-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        dir.join(name)
+    }
+
+    /// Three simulated seconds: sensors at 100 Hz, an event each second.
+    fn write(path: &Path) {
+        let mut rec = Recorder::create(path).unwrap();
+        let run = BTreeMap::from([("kind".to_string(), "scenario".to_string())]);
+        rec.write_metadata(topics::RUN_METADATA, run).unwrap();
+        let sensors = topics::plant_sensors("ev1");
+        rec.add_channel(&sensors, &json!({"wheel_rpm": 0.0, "on": false}))
+            .unwrap();
+        rec.add_channel(
+            topics::EVENTS,
+            &json!({"node": "", "kind": "", "detail": ""}),
+        )
+        .unwrap();
+        for i in 0..300 {
+            let t = f64::from(i) * 0.01;
+            rec.write(
+                &sensors,
+                t,
+                &json!({"wheel_rpm": t * 100.0, "on": i % 2 == 0}),
+            )
+            .unwrap();
+            if i % 100 == 50 {
+                let e = json!({"node": "master", "kind": "log", "detail": format!("at {t}")});
+                rec.write(topics::EVENTS, t, &e).unwrap();
+            }
+        }
+        rec.finish().unwrap();
+    }
+
+    #[test]
+    fn a_pass_counts_channels_and_messages_and_keeps_the_metadata() {
+        let path = scratch("whole.mcap");
+        write(&path);
+        let r = Recording::read(&path).unwrap();
+        assert_eq!(r.truncated, None);
+        assert_eq!(r.run_field("kind"), Some("scenario"));
+        let topics: Vec<(&str, u64)> = r
+            .channels
+            .iter()
+            .map(|c| (c.topic.as_str(), c.message_count))
+            .collect();
+        assert_eq!(topics, [("/plant/ev1/sensors", 300), ("/events", 3)]);
+        assert_eq!(r.message_count(), 303);
+        assert!((r.end_s() - 2.99).abs() < 1e-9);
+        // One chunk per simulated second.
+        assert_eq!(r.chunks, 3);
+        let events = r.events().unwrap();
+        assert_eq!(events.len(), 3);
+        assert_eq!(
+            (events[1].node.as_str(), events[1].detail.as_str()),
+            ("master", "at 1.5")
+        );
+
+        let signals = crate::Signals::read(&path).unwrap();
+        let wheel = &signals.by_name["/plant/ev1/sensors.wheel_rpm"];
+        assert_eq!(wheel.len(), 300);
+        assert!(!wheel.hold);
+        assert_eq!(
+            signals.by_name["/plant/ev1/sensors.on"].values[..3],
+            [1.0, 0.0, 1.0]
+        );
+        assert!(!signals.by_name.contains_key("/events.detail"));
+        assert_eq!(signals.recording, r);
+    }
+
+    #[test]
+    fn a_file_cut_short_is_read_up_to_its_last_complete_chunk() {
+        let path = scratch("full.mcap");
+        write(&path);
+        let bytes = std::fs::read(&path).unwrap();
+        let cut = scratch("cut.mcap");
+        std::fs::write(&cut, &bytes[..bytes.len() * 2 / 3]).unwrap();
+        let r = Recording::read(&cut).unwrap();
+        let Some(Cut::EndsEarly { chunks, .. }) = &r.truncated else {
+            panic!("{:?}", r.truncated);
+        };
+        assert_eq!(*chunks, r.chunks);
+        assert!(r.chunks > 0 && r.chunks < 3, "{}", r.chunks);
+        // Whole chunks only: whole simulated seconds of sensors.
+        let sensors = r.channel("/plant/ev1/sensors").unwrap().message_count;
+        assert_eq!(sensors, 100 * r.chunks);
+        assert!(
+            r.truncated
+                .as_ref()
+                .unwrap()
+                .to_string()
+                .contains("ends early")
+        );
+
+        let e = Recording::read(&scratch("missing.mcap")).unwrap_err();
+        assert!(format!("{e:#}").contains("cannot read"), "{e:#}");
+        let junk = scratch("junk.mcap");
+        std::fs::write(&junk, b"not a recording").unwrap();
+        let e = Recording::read(&junk).unwrap_err();
+        assert!(e.root_cause().downcast_ref::<NotMcap>().is_some(), "{e:#}");
+        assert!(
+            format!("{e:#}").contains("is not a readable recording"),
+            "{e:#}"
+        );
+    }
+
+    #[test]
+    fn a_damaged_chunk_is_dropped_whole_and_reading_stops_there() {
+        let path = scratch("to-damage.mcap");
+        write(&path);
+        let mut bytes = std::fs::read(&path).unwrap();
+        // Garbage in the middle of the second chunk's compressed records:
+        // walk the records (opcode, length, body) to find it.
+        let (mut at, mut chunks) = (8, 0);
+        loop {
+            let len = u64::from_le_bytes(bytes[at + 1..at + 9].try_into().unwrap()) as usize;
+            if bytes[at] == mcap::records::op::CHUNK {
+                chunks += 1;
+                if chunks == 2 {
+                    let mid = at + 9 + len / 2;
+                    for b in &mut bytes[mid..mid + 64] {
+                        *b ^= 0x5a;
+                    }
+                    break;
+                }
+            }
+            at += 9 + len;
+        }
+        let damaged = scratch("damaged.mcap");
+        std::fs::write(&damaged, &bytes).unwrap();
+        let r = Recording::read(&damaged).unwrap();
+        assert!(
+            matches!(r.truncated, Some(Cut::DamagedChunk { chunk: 2, .. })),
+            "{:?}",
+            r.truncated
+        );
+        assert_eq!(r.chunks, 1);
+        assert_eq!(r.channel("/plant/ev1/sensors").unwrap().message_count, 100);
+        assert!(
+            r.truncated
+                .unwrap()
+                .to_string()
+                .starts_with("chunk 2 is damaged")
+        );
+    }
+
+    #[test]
+    fn the_metadata_pass_skips_the_chunks() {
+        let path = scratch("meta.mcap");
+        write(&path);
+        let mut reader = Reader::open(&path).unwrap().metadata_only();
+        let mut names = Vec::new();
+        while let Some(item) = reader.next().unwrap() {
+            match item {
+                Item::Metadata { name, .. } => names.push(name.to_string()),
+                Item::Message(_) | Item::Channel { .. } => panic!("{item:?}"),
+                Item::Stray { .. } => {}
+            }
+        }
+        assert_eq!(names, [topics::RUN_METADATA]);
+        let r = reader.finish();
+        assert_eq!(r.chunks, 3);
+        assert_eq!(r.truncated, None);
+    }
 }

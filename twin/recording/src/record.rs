@@ -2,7 +2,8 @@
 //! `mcap` CLI open them), simulated time as log time, and the run's identity
 //! (preset, seed, parameters, twin version) in a metadata record so that a
 //! later `replay` can re-run it. No wall-clock time goes into the file: the
-//! same run gives the same bytes.
+//! same run gives the same bytes. What the channels and metadata are is in
+//! [`crate::topics`].
 
 use anyhow::{Context, Result};
 use mcap::{Compression, WriteOptions, Writer, records::MessageHeader};
@@ -12,6 +13,8 @@ use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
+
+use crate::topics;
 
 /// How the recording is compressed: zstd at a fixed level, on the calling
 /// thread. A worker pool would make the bytes depend on the machine's core
@@ -112,13 +115,18 @@ impl Recorder {
     /// Add a channel whose messages look like `sample`.
     pub fn add_channel<T: Serialize>(&mut self, topic: &str, sample: &T) -> Result<ChannelId> {
         let schema = schema_of(&serde_json::to_value(sample)?);
-        let name = topic.trim_start_matches('/').replace('/', ".");
-        let schema_id =
-            self.writer
-                .add_schema(&name, "jsonschema", &serde_json::to_vec(&schema)?)?;
-        let id = self
-            .writer
-            .add_channel(schema_id, topic, "json", &BTreeMap::new())?;
+        let name = topics::schema_name(topic);
+        let schema_id = self.writer.add_schema(
+            &name,
+            topics::SCHEMA_ENCODING,
+            &serde_json::to_vec(&schema)?,
+        )?;
+        let id = self.writer.add_channel(
+            schema_id,
+            topic,
+            topics::MESSAGE_ENCODING,
+            &BTreeMap::new(),
+        )?;
         let channel = ChannelId(self.channels.len());
         self.channels.push((id, 0));
         self.topics.insert(topic.to_string(), channel);

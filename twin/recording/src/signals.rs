@@ -8,11 +8,17 @@
 //! read between samples by linear interpolation. Every other channel is a
 //! stream of events (an actuator change, a frame, a poll cycle): its value
 //! holds from one message to the next.
+//!
+//! [`Signals::read`] streams the recording and keeps only the numbers: a time
+//! and a value column of `f64` per signal.
 
+use anyhow::Result;
 use serde_json::Value;
 use std::collections::BTreeMap;
+use std::path::Path;
 
 use super::Recording;
+use crate::topics::Topic;
 
 /// One signal: its samples (time in seconds, value), in file order.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -103,20 +109,34 @@ pub fn signal_name(topic: &str, path: &str) -> String {
 /// Whether a topic's messages are samples at a fixed rate (the plant's
 /// sensors) rather than events.
 pub fn is_sampled(topic: &str) -> bool {
-    topic.ends_with("/sensors")
+    Topic::parse(topic).is_sampled()
 }
 
-/// Every numeric signal of `recording`, by name.
-pub fn of(recording: &Recording) -> BTreeMap<String, Signal> {
-    let mut out: BTreeMap<String, Signal> = BTreeMap::new();
-    let mut path = String::new();
-    for channel in &recording.channels {
-        // Field path to signal, per channel, so the topic prefix is built once.
-        let mut local: BTreeMap<String, Signal> = BTreeMap::new();
-        for m in &channel.messages {
+/// A recording's numeric signals, read in one pass.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Signals {
+    /// What the pass found (metadata, channels, extent, a cut).
+    pub recording: Recording,
+    /// Every numeric signal, by name.
+    pub by_name: BTreeMap<String, Signal>,
+}
+
+impl Signals {
+    /// Read every numeric signal of the recording at `path`.
+    pub fn read(path: &Path) -> Result<Self> {
+        // Per channel (by index): field path to signal, so that the topic
+        // prefix is put on once, at the end.
+        let mut per_channel: Vec<BTreeMap<String, Signal>> = Vec::new();
+        let mut buf = String::new();
+        let recording = Recording::scan(path, |m| {
+            let value: Value = m.json()?;
+            if per_channel.len() <= m.channel {
+                per_channel.resize_with(m.channel + 1, BTreeMap::new);
+            }
+            let local = &mut per_channel[m.channel];
             let t = m.time_s();
-            path.clear();
-            leaves(&m.value, &mut path, &mut |p, leaf| {
+            buf.clear();
+            leaves(&value, &mut buf, &mut |p, leaf| {
                 if let Some(v) = number(leaf) {
                     let s = match local.get_mut(p) {
                         Some(s) => s,
@@ -126,14 +146,20 @@ pub fn of(recording: &Recording) -> BTreeMap<String, Signal> {
                     s.values.push(v);
                 }
             });
+            Ok(())
+        })?;
+        let mut by_name = BTreeMap::new();
+        for (channel, local) in recording.channels.iter().zip(per_channel) {
+            let hold = !is_sampled(&channel.topic);
+            for (p, mut s) in local {
+                s.hold = hold;
+                s.times.shrink_to_fit();
+                s.values.shrink_to_fit();
+                by_name.insert(signal_name(&channel.topic, &p), s);
+            }
         }
-        let hold = !is_sampled(&channel.topic);
-        for (p, mut s) in local {
-            s.hold = hold;
-            out.insert(signal_name(&channel.topic, &p), s);
-        }
+        Ok(Self { recording, by_name })
     }
-    out
 }
 
 #[cfg(test)]

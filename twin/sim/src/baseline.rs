@@ -10,7 +10,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use crate::scenario::{EMBEDDED, Scenario};
-use twin_recording::Recording;
+use twin_recording::Signals;
 use twin_recording::compare::{self, Comparison, Tolerances};
 
 /// The cut-down settings, built into the binary like the scenarios.
@@ -91,9 +91,9 @@ pub fn check(dir: &Path, name: &str, scratch: &Path) -> Result<Comparison> {
             baseline_path.display()
         );
     }
-    let baseline = Recording::read(&baseline_path)?;
+    let baseline = Signals::read(&baseline_path)?;
     let s = scenario(name)?;
     let fresh = crate::virtual_run::run(&s, scratch, |_| {})?.recording;
-    let run = Recording::read(&fresh)?;
+    let run = Signals::read(&fresh)?;
     Ok(compare::compare(&run, &baseline, &Tolerances::default()))
 }

@@ -18,6 +18,7 @@ use std::collections::{BTreeMap, VecDeque};
 use crate::engine::{BusSlot, ModuleSlot, NodeSlot, Observer};
 use twin_recording::describe::decode_frame;
 use twin_recording::record::Recorder;
+use twin_recording::topics;
 
 /// How many log lines the end-of-run summary shows.
 const LOG_TAIL: usize = 12;
@@ -156,14 +157,14 @@ impl McapObserver {
             ));
         }
         let message = json!({ "node": node, "kind": event.kind, "detail": event.detail });
-        self.put("/events", event.at, &message)
+        self.put(topics::EVENTS, event.at, &message)
     }
 }
 
 impl Observer for McapObserver {
     fn plant(&mut self, now: SimTime, module: &ModuleSlot) -> Result<()> {
         self.put(
-            &format!("/plant/{}/sensors", module.name),
+            &topics::plant_sensors(&module.name),
             now,
             module.plant.sensors(),
         )
@@ -171,7 +172,7 @@ impl Observer for McapObserver {
 
     fn actuators(&mut self, now: SimTime, module: &ModuleSlot) -> Result<()> {
         self.put(
-            &format!("/plant/{}/actuators", module.name),
+            &topics::plant_actuators(&module.name),
             now,
             &module.actuators,
         )
@@ -185,7 +186,7 @@ impl Observer for McapObserver {
         end: SimTime,
         bytes: &[u8],
     ) -> Result<()> {
-        let topic = format!("/bus/{}/frames", bus.name);
+        let topic = topics::bus_frames(&bus.name);
         let decoded = match bus.bus.as_pwm() {
             Some(link) => decode_pwm_frame(link, &bus.port_names),
             None => decode_frame(bytes),
@@ -198,7 +199,7 @@ impl Observer for McapObserver {
     }
 
     fn telemetry(&mut self, now: SimTime, node: &NodeSlot, value: &Value) -> Result<()> {
-        self.put(&format!("/master/{}/loop", node.name), now, value)
+        self.put(&topics::master_loop(&node.name), now, value)
     }
 }
 

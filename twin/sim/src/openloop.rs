@@ -5,6 +5,7 @@ use anyhow::Result;
 use plant::{Actuators, EvModule, PlantParams, Sensors};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use twin_recording::topics;
 
 /// What to run.
 #[derive(Debug, Clone)]
@@ -83,25 +84,25 @@ pub fn run_with(
 ) -> Result<Summary> {
     let mut module = EvModule::new(&config.params, config.seed);
     let mut rec = twin_recording::record::Recorder::create(out)?;
-    rec.write_metadata("twin.run", run_metadata(config)?)?;
-    rec.add_channel("/plant/sensors", module.sensors())?;
-    rec.add_channel("/plant/actuators", &config.actuators_at(0.0))?;
+    rec.write_metadata(topics::RUN_METADATA, run_metadata(config)?)?;
+    rec.add_channel(topics::PLANT_SENSORS, module.sensors())?;
+    rec.add_channel(topics::PLANT_ACTUATORS, &config.actuators_at(0.0))?;
 
     let steps = (config.duration_s / config.step_s).round().max(0.0) as u64;
     let record_every = ((1.0 / config.record_hz) / config.step_s).round().max(1.0) as u64;
     let progress_every = (steps / 100).max(1);
     let mut last_actuators = None;
-    rec.write("/plant/sensors", 0.0, module.sensors())?;
+    rec.write(topics::PLANT_SENSORS, 0.0, module.sensors())?;
     for k in 0..steps {
         let t = k as f64 * config.step_s;
         let act = config.actuators_at(t);
         if last_actuators != Some(act) {
-            rec.write("/plant/actuators", t, &act)?;
+            rec.write(topics::PLANT_ACTUATORS, t, &act)?;
             last_actuators = Some(act);
         }
         let sensors = module.step(config.step_s, &act);
         if (k + 1) % record_every == 0 {
-            rec.write("/plant/sensors", sensors.time_s, sensors)?;
+            rec.write(topics::PLANT_SENSORS, sensors.time_s, sensors)?;
         }
         after_step(&mut rec, sensors)?;
         if k % progress_every == 0 {

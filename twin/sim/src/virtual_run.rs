@@ -12,6 +12,7 @@ use crate::nodes_parallel::{build_medium, build_node_on, calibrated};
 use crate::observe::McapObserver;
 use crate::scenario::Scenario;
 use twin_recording::record::Recorder;
+use twin_recording::topics;
 
 /// What a run reports at the end.
 #[derive(Debug, Clone)]
@@ -184,7 +185,7 @@ fn run_observed(
             .collect();
         identity.insert("pwm_calibration".into(), text.join("; "));
     }
-    recorder.write_metadata("twin.run", identity)?;
+    recorder.write_metadata(topics::RUN_METADATA, identity)?;
     let mut observer = McapObserver::new(recorder);
     let end = SimTime::ZERO + SimDuration::from_secs_f64(scenario.duration_s);
     let mut both = crate::observe::Tee {

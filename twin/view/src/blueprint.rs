@@ -10,7 +10,7 @@ use rerun::blueprint::{
 };
 
 use super::layout::ViewLayout;
-use super::logger::TIMELINE;
+use super::logger::{EVENTS, LATENESS, TIMELINE};
 
 fn plot(name: &str, contents: &str) -> ContainerLike {
     TimeSeriesView::new(name)
@@ -80,7 +80,10 @@ pub fn blueprint(layout: &ViewLayout) -> Blueprint {
     let plots: ContainerLike = if layout.realtime {
         Vertical::new([
             plots,
-            plot("tick lateness (µs), each second", "/realtime/lateness/**"),
+            plot(
+                "tick lateness (µs), each second",
+                &format!("/{LATENESS}/**"),
+            ),
         ])
         .with_row_shares([6.0, 1.0])
         .into()
@@ -93,7 +96,7 @@ pub fn blueprint(layout: &ViewLayout) -> Blueprint {
             .with_contents(["$origin/**"])
             .into(),
         TextLogView::new("events")
-            .with_origin("/events")
+            .with_origin(format!("/{EVENTS}"))
             .with_contents(["$origin"])
             .into(),
     ])

@@ -29,14 +29,13 @@ pub struct Converted {
 
 /// Turn the MCAP recording at `path` into a rerun stream to `target`.
 pub fn convert(path: &Path, target: &ViewTarget) -> Result<Converted> {
-    let bytes = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
-    let layout = recording::layout_of(&bytes, path)?;
+    let layout = recording::layout_of(path)?;
     let name = path
         .file_stem()
         .map_or_else(|| "twin".into(), |s| s.to_string_lossy().into_owned());
     let observer = RerunObserver::open(target, &name, layout)?;
     let mut logger = observer.logger;
-    let read = recording::replay_into(&bytes, &mut logger)
+    let read = recording::replay_into(path, &mut logger)
         .with_context(|| format!("cannot read {}", path.display()))?;
     let samples = std::mem::take(&mut logger.samples);
     RerunObserver { logger }.finish()?;

@@ -294,10 +294,8 @@ impl RerunLogger {
             _ => TextLogLevel::WARN,
         };
         let line = format!("{node} {kind}: {detail}");
-        let _ = self
-            .rec
-            .log("events", &TextLog::new(line).with_level(level));
-        *self.samples.entry("events".into()).or_default() += 1;
+        let _ = self.rec.log(EVENTS, &TextLog::new(line).with_level(level));
+        *self.samples.entry(EVENTS.into()).or_default() += 1;
     }
 
     /// A master's loop report (`/master/<node>/loop`): the set point per slave.
@@ -425,6 +423,11 @@ impl RerunLogger {
 /// Entities of a real-time session's tick lateness.
 pub const LATENESS_P99: &str = "realtime/lateness/p99_us";
 pub const LATENESS_MAX: &str = "realtime/lateness/max_us";
+/// The entity the tick lateness plots sit under (rerun entity paths, not
+/// recording topics).
+pub const LATENESS: &str = "realtime/lateness";
+/// The entity of every node event, as text.
+pub const EVENTS: &str = "events";
 
 /// What the view takes from one second of tick lateness (the `window` of a
 /// `/realtime/lateness` message).

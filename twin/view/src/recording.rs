@@ -1,16 +1,18 @@
 //! Reading a twin recording (MCAP) into a [`RerunLogger`]: the channels of
 //! README "What a recording holds", or of a real-time session (`twin serve`,
 //! `twin supervise`: `/link/<link>/frames`, `/realtime/lateness`), the layout
-//! from the `twin.run` metadata.
+//! from the `twin.run` metadata. The file is read by twin-recording's
+//! streaming [`Reader`], the one reader of recordings, and its topics
+//! recognised by the catalogue ([`twin_recording::topics`]).
 //! A truncated file (the run killed) is read up to its last complete chunk.
 
 use anyhow::{Context, Result, bail};
-use mcap::read::{ChunkFlattener, LinearReader, Options};
-use mcap::records::Record;
 use plant::PlantParams;
 use serde::Deserialize;
 use std::collections::BTreeMap;
 use std::path::Path;
+use twin_recording::read::{Item, NotMcap, Reader};
+use twin_recording::topics::{self, EventSample, FrameSample, Topic};
 
 use super::layout::{
     OPEN_LOOP_MODULE, SERVE_EV_MODULE, SERVE_LIGHT_NODE, SERVE_MOTOR_NODE, SUPERVISOR_NODE,
@@ -32,29 +34,34 @@ pub struct ReadSummary {
     pub skipped: BTreeMap<String, u64>,
 }
 
-/// The `twin.run` metadata of a recording, if it has one.
-pub fn run_metadata(bytes: &[u8]) -> Option<BTreeMap<String, String>> {
-    let reader = LinearReader::new_with_options(bytes, Options::IgnoreEndMagic.into()).ok()?;
-    for record in reader {
-        match record {
-            Ok(Record::Metadata(m)) if m.name == "twin.run" => return Some(m.metadata),
-            Ok(_) => {}
-            Err(_) => return None,
+/// The `twin.run` metadata of the recording at `path`, if it has one (a
+/// quick pass: the chunks are skipped, not decompressed).
+pub fn run_metadata(path: &Path) -> Option<BTreeMap<String, String>> {
+    let mut reader = Reader::open(path).ok()?.metadata_only();
+    loop {
+        match reader.next() {
+            Ok(Some(Item::Metadata { name, fields })) if name == topics::RUN_METADATA => {
+                return Some(fields.clone());
+            }
+            Ok(Some(_)) => {}
+            Ok(None) | Err(_) => return None,
         }
     }
-    None
 }
 
-/// The view layout a recording was made with: its scenario's, or the open
-/// loop's preset.
-pub fn layout_of(bytes: &[u8], path: &Path) -> Result<ViewLayout> {
-    if !bytes.starts_with(mcap::MAGIC) {
-        bail!(
-            "{} is not an MCAP recording (it does not start with the MCAP magic bytes)",
-            path.display()
-        );
+/// The view layout the recording at `path` was made with: its scenario's,
+/// or the open loop's preset.
+pub fn layout_of(path: &Path) -> Result<ViewLayout> {
+    if let Err(e) = Reader::open(path) {
+        if e.root_cause().downcast_ref::<NotMcap>().is_some() {
+            bail!(
+                "{} is not an MCAP recording (it does not start with the MCAP magic bytes)",
+                path.display()
+            );
+        }
+        return Err(e);
     }
-    let Some(meta) = run_metadata(bytes) else {
+    let Some(meta) = run_metadata(path) else {
         bail!(
             "{} has no `twin.run` metadata record: it was not written by `twin run`, `twin serve` or `twin supervise`",
             path.display()
@@ -138,9 +145,9 @@ pub enum Session {
 }
 
 impl Session {
-    /// The session that wrote the recording `bytes`.
-    pub fn of(bytes: &[u8]) -> Self {
-        match run_metadata(bytes).as_ref().and_then(|m| m.get("kind")) {
+    /// The session that wrote a recording, by its `twin.run` metadata.
+    pub fn of(run: Option<&BTreeMap<String, String>>) -> Self {
+        match run.and_then(|m| m.get("kind")) {
             Some(k) if k == "serve" => Self::Serve,
             Some(k) if k == "supervise" => Self::Supervise,
             _ => Self::Virtual,
@@ -181,23 +188,6 @@ fn reply_id(bytes: &[u8]) -> Option<u8> {
     }
 }
 
-/// One frame as recorded on `/bus/<bus>/frames`.
-#[derive(Debug, Deserialize)]
-struct FrameMessage {
-    from: String,
-    start_s: f64,
-    end_s: f64,
-    hex: String,
-}
-
-/// One event as recorded on `/events`.
-#[derive(Debug, Deserialize)]
-struct EventMessage {
-    node: String,
-    kind: String,
-    detail: String,
-}
-
 fn unhex(hex: &str) -> Option<Vec<u8>> {
     if !hex.len().is_multiple_of(2) {
         return None;
@@ -208,40 +198,39 @@ fn unhex(hex: &str) -> Option<Vec<u8>> {
         .collect()
 }
 
-/// Feed every message of the recording `bytes` to `logger`.
-pub fn replay_into(bytes: &[u8], logger: &mut RerunLogger) -> Result<ReadSummary> {
+/// Feed every message of the recording at `path` to `logger`.
+pub fn replay_into(path: &Path, logger: &mut RerunLogger) -> Result<ReadSummary> {
     let mut summary = ReadSummary::default();
-    let session = Session::of(bytes);
-    let mut topics: BTreeMap<u16, String> = BTreeMap::new();
-    let reader = ChunkFlattener::new_with_options(bytes, Options::IgnoreEndMagic.into())
-        .context("not an MCAP file")?;
-    for record in reader {
-        let record = match record {
-            Ok(r) => r,
-            Err(e) => {
-                summary.stopped_early = Some(e.to_string());
-                break;
-            }
+    let session = Session::of(run_metadata(path).as_ref());
+    let mut reader = Reader::open(path)?;
+    while let Some(item) = reader.next()? {
+        // A message on a channel never declared has no topic to show it by.
+        let Item::Message(m) = item else {
+            continue;
         };
-        match record {
-            Record::Channel(c) => {
-                topics.insert(c.id, c.topic);
+        let t = m.time_s();
+        summary.end_s = summary.end_s.max(t);
+        match summary.messages.get_mut(m.topic) {
+            Some(n) => *n += 1,
+            None => {
+                summary.messages.insert(m.topic.to_string(), 1);
             }
-            Record::Message { header, data } => {
-                let Some(topic) = topics.get(&header.channel_id) else {
-                    continue;
-                };
-                let t = header.log_time as f64 * 1e-9;
-                summary.end_s = summary.end_s.max(t);
-                *summary.messages.entry(topic.clone()).or_default() += 1;
-                if let Err(e) = feed(logger, session, topic, t, &data) {
-                    *summary.skipped.entry(format!("{topic}: {e}")).or_default() += 1;
-                }
-            }
-            Record::DataEnd(_) => break,
-            _ => {}
+        }
+        if let Err(e) = feed(logger, session, m.topic, t, m.data) {
+            *summary
+                .skipped
+                .entry(format!("{}: {e}", m.topic))
+                .or_default() += 1;
         }
     }
+    // A file that ends between two chunks, without its summary, ends
+    // without complaint: everything it holds was shown.
+    summary.stopped_early = reader
+        .recording()
+        .truncated
+        .as_ref()
+        .and_then(|cut| cut.error())
+        .map(str::to_string);
     Ok(summary)
 }
 
@@ -253,32 +242,27 @@ fn feed(
     t: f64,
     data: &[u8],
 ) -> Result<()> {
-    let parts: Vec<&str> = topic.trim_start_matches('/').split('/').collect();
-    match parts.as_slice() {
-        ["plant", "sensors"] => {
+    match Topic::parse(topic) {
+        Topic::PlantSensors(module) => {
             let s: PlantSample = serde_json::from_slice(data)?;
-            logger.plant(OPEN_LOOP_MODULE, t, &s);
+            logger.plant(module.unwrap_or(OPEN_LOOP_MODULE), t, &s);
         }
-        ["plant", module, "sensors"] => {
-            let s: PlantSample = serde_json::from_slice(data)?;
-            logger.plant(module, t, &s);
-        }
-        ["bus", bus, "frames"] => {
-            let f: FrameMessage = serde_json::from_slice(data)?;
+        Topic::BusFrames(bus) => {
+            let f: FrameSample = serde_json::from_slice(data)?;
             let Some(bytes) = unhex(&f.hex) else {
                 bail!("field `hex` is not hexadecimal");
             };
             logger.frame(bus, &f.from, f.start_s, f.end_s, &bytes);
         }
-        ["link", link, "frames"] => {
-            let f: FrameMessage = serde_json::from_slice(data)?;
+        Topic::LinkFrames(link) => {
+            let f: FrameSample = serde_json::from_slice(data)?;
             let Some(bytes) = unhex(&f.hex) else {
                 bail!("field `hex` is not hexadecimal");
             };
             let from = session.sender(link, &f.from, &bytes);
             logger.frame(link, &from, f.start_s, f.end_s, &bytes);
         }
-        ["realtime", "lateness"] => {
+        Topic::RealtimeLateness => {
             #[derive(Deserialize)]
             struct Lateness {
                 window: LatenessSample,
@@ -286,16 +270,16 @@ fn feed(
             let l: Lateness = serde_json::from_slice(data)?;
             logger.lateness(t, &l.window);
         }
-        ["events"] => {
-            let e: EventMessage = serde_json::from_slice(data)?;
+        Topic::Events => {
+            let e: EventSample = serde_json::from_slice(data)?;
             logger.event(&e.node, t, &e.kind, &e.detail);
         }
-        ["master", node, "loop"] => {
+        Topic::MasterLoop(node) => {
             let report: serde_json::Value = serde_json::from_slice(data)?;
             logger.master_loop(node, t, &report);
         }
         // Actuator changes are in the frames that caused them.
-        _ => {}
+        Topic::PlantActuators(_) | Topic::ExperimentStep | Topic::Other(_) => {}
     }
     Ok(())
 }

@@ -3,7 +3,7 @@
 use anyhow::{Result, bail};
 use clap::Args;
 use std::path::PathBuf;
-use twin_recording::Recording;
+use twin_recording::Signals;
 use twin_recording::compare::{self, Tolerances};
 
 /// Compare a recording with a baseline recording, signal by signal
@@ -53,14 +53,14 @@ pub fn execute(args: &CompareArgs) -> Result<()> {
         Some(p) => Tolerances::load(p)?,
         None => Tolerances::default(),
     };
-    let run = Recording::read(&args.run)?;
-    let baseline = Recording::read(&args.baseline)?;
+    let run = Signals::read(&args.run)?;
+    let baseline = Signals::read(&args.baseline)?;
     println!(
         "twin compare: {} against baseline {}",
         args.run.display(),
         args.baseline.display()
     );
-    for (r, what) in [(&run, "run"), (&baseline, "baseline")] {
+    for (r, what) in [(&run.recording, "run"), (&baseline.recording, "baseline")] {
         if let Some(why) = &r.truncated {
             println!("  {what} {}: {why}", r.path.display());
         }

@@ -3,7 +3,7 @@
 use anyhow::Result;
 use clap::Args;
 use std::path::PathBuf;
-use twin_recording::{Recording, export};
+use twin_recording::export;
 
 /// Write every channel of a recording as CSV, for spreadsheets, MATLAB and Python.
 ///
@@ -23,11 +23,10 @@ pub struct ExportArgs {
 }
 
 pub fn execute(args: &ExportArgs) -> Result<()> {
-    let recording = Recording::read(&args.recording)?;
+    let (recording, written) = export::to_csv(&args.recording, &args.csv)?;
     if let Some(why) = &recording.truncated {
         println!("note: {}: {why}", args.recording.display());
     }
-    let written = export::to_csv(&recording, &args.csv)?;
     println!(
         "twin export: {} channels of {} into {}",
         written.len(),

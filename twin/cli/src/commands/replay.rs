@@ -97,18 +97,16 @@ pub fn execute(args: &ReplayArgs) -> Result<()> {
         started.elapsed().as_secs_f64(),
         path.display()
     );
-    let a = std::fs::read(&args.recording)?;
-    let b = std::fs::read(&path)?;
-    if a == b {
+    if diff::same_bytes(&args.recording, &path)? {
         println!(
             "  byte-identical: the replay matches the recording exactly ({} bytes, {} messages)",
-            a.len(),
+            std::fs::metadata(&path)?.len(),
             recorded.message_count()
         );
         return Ok(());
     }
     let replayed = Recording::read(&path)?;
-    match diff::first_departure(&recorded, &replayed) {
+    match diff::first_departure(&recorded, &replayed)? {
         Some(d) => {
             println!(
                 "  DEPARTS at {:.6} s on {}: recorded {}, replayed {}",

@@ -177,7 +177,8 @@ impl Role for Supervising<'_> {
         let Some(supervisor) = self.supervisor.take() else {
             bail!("internal: the supervisor is built once");
         };
-        // No plant here: the module is on the other end of the bus.
+        // The status lines are the supervisor's (`status_loop`), not the
+        // engine's; and no plant here: the module is on the other end of the bus.
         engine.set_status_period(SimDuration::ZERO);
         engine.devices.push(Device::new(
             "supervisor",

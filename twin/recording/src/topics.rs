@@ -1,0 +1,189 @@
+//! The catalogue of what a recording holds: every channel's topic, who
+//! writes it and when, what its messages carry, and the metadata records.
+//! Writers name their channels through these functions and readers
+//! recognise them with [`Topic::parse`], so no topic is spelt anywhere else.
+//!
+//! Every channel is JSON (`json` message encoding) with a JSON schema
+//! (`jsonschema`) derived from its first message ([`crate::record::schema_of`])
+//! and named after the topic ([`schema_name`]: `/plant/ev1/sensors` →
+//! `plant.ev1.sensors`). Log time is simulated time (a real-time session's
+//! session time).
+//!
+//! | topic | written by | when | fields |
+//! |---|---|---|---|
+//! | [`plant_sensors`] `/plant/<module>/sensors` | a virtual run (`twin-sim` `observe.rs`), a real-time session (`twin-realtime` `sink.rs`) | at the scenario's `record_hz` (a session: each plant tick it records) | `plant::Sensors`: `time_s`, `battery_volts` (V1), `bus_volts` (V2), `inverter_current` (I), `battery_current`, `soc`, `charging`, `bms_trip`, `battery_counts`, `bus_counts`, `current_counts`, `motor_current`, `motor_tripped`, `motor_rpm`, `shaft` (hall code, hall and encoder counts), `wheel_rpm`, `wheel_angle`, `brake_applied`, `ldr_volts`, `ldr_counts`, `flag_in_beam`, `energy` (the energy ledger) |
+//! | [`PLANT_SENSORS`] `/plant/sensors` | the open-loop bench (`twin run` without a scenario, `twin-sim` `openloop.rs`) | at its `record_hz` | as above |
+//! | [`plant_actuators`] `/plant/<module>/actuators` | a virtual run, a real-time session | on every change | `plant::Actuators`: `vel_volts`, `enable`, `brake`, `boost`, `discharge`, `reverse`, `charger` |
+//! | [`PLANT_ACTUATORS`] `/plant/actuators` | the open-loop bench | on every change | as above |
+//! | [`bus_frames`] `/bus/<bus>/frames` | a virtual run | every frame sent, at its first byte | [`FrameSample`]: `from` (the sending node), `start_s`, `end_s`, `len`, `text` (printable bytes, else empty), `hex`, `decoded` ([`crate::describe`]; PWM-capture: widths sent and captured per listener, values, pulses lost, values wrong) |
+//! | [`link_frames`] `/link/<link>/frames` | a real-time session (`twin serve`, `twin supervise`) | every frame, both directions | [`FrameSample`], `from` being `twin` or `client N` |
+//! | [`EVENTS`] `/events` | a virtual run, a real-time session | as they happen | [`EventSample`]: `node`, `kind` (`timeout`, `bad_check`, `retry`, `exception`, `dropped`, `fault`, `state`, `log`; a session's `connection`), `detail` |
+//! | [`master_loop`] `/master/<node>/loop` | a virtual run, a real-time session (`twin supervise`) | every poll cycle of a master | the master's telemetry: set point, measured rpm, error, output, counters (a supervisor: `loops`, one per slave) |
+//! | [`REALTIME_LATENESS`] `/realtime/lateness` | a real-time session | each second (and the file is flushed) | `window` and `total`, each `ticks`, `p50_us`, `p99_us`, `p999_us`, `max_us`, `mean_us`, `overruns`: how late the plant's ticks ran |
+//! | [`EXPERIMENT_STEP`] `/experiment/step` | `twin step` (`twin-lab` `step.rs`) | each sample of the experiment | `set_point`, `wheel_rpm`, `motor_rpm`, `light_rpm` |
+//!
+//! Metadata records:
+//!
+//! | name | written by | when | fields |
+//! |---|---|---|---|
+//! | [`RUN_METADATA`] `twin.run` | every run and session | first, before any message | `kind` (`scenario`, `open-loop`, `serve`, `supervise`), `twin_version`; a scenario's `scenario`, `scenario_toml`, `seed`, `pwm_calibration`; the open loop's settings and `params_toml`; a session's `links`, `params`, `slaves`, … |
+//! | [`REALTIME_METADATA`] `twin.realtime` | a real-time session | when it ends | the session's totals |
+
+use serde::Deserialize;
+
+/// Message encoding of every channel.
+pub const MESSAGE_ENCODING: &str = "json";
+/// Schema encoding of every channel.
+pub const SCHEMA_ENCODING: &str = "jsonschema";
+
+/// The run's identity: what `twin replay` re-runs and `twin view` lays out.
+pub const RUN_METADATA: &str = "twin.run";
+/// A real-time session's totals, written when it ends.
+pub const REALTIME_METADATA: &str = "twin.realtime";
+
+/// The open-loop bench's sensors (one module, no name).
+pub const PLANT_SENSORS: &str = "/plant/sensors";
+/// The open-loop bench's actuators.
+pub const PLANT_ACTUATORS: &str = "/plant/actuators";
+/// Node events of a run or session.
+pub const EVENTS: &str = "/events";
+/// A real-time session's tick lateness, each second.
+pub const REALTIME_LATENESS: &str = "/realtime/lateness";
+/// The step-response experiment's samples.
+pub const EXPERIMENT_STEP: &str = "/experiment/step";
+
+/// A module's sensors: `/plant/<module>/sensors`.
+pub fn plant_sensors(module: &str) -> String {
+    format!("/plant/{module}/sensors")
+}
+
+/// A module's actuators: `/plant/<module>/actuators`.
+pub fn plant_actuators(module: &str) -> String {
+    format!("/plant/{module}/actuators")
+}
+
+/// The frames on a simulated bus: `/bus/<bus>/frames`.
+pub fn bus_frames(bus: &str) -> String {
+    format!("/bus/{bus}/frames")
+}
+
+/// The frames on a real-time session's link: `/link/<link>/frames`.
+pub fn link_frames(link: &str) -> String {
+    format!("/link/{link}/frames")
+}
+
+/// A master's loop reports: `/master/<node>/loop`.
+pub fn master_loop(node: &str) -> String {
+    format!("/master/{node}/loop")
+}
+
+/// The schema name of a topic's channel: `/plant/ev1/sensors` → `plant.ev1.sensors`.
+pub fn schema_name(topic: &str) -> String {
+    topic.trim_start_matches('/').replace('/', ".")
+}
+
+/// A topic recognised.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Topic<'a> {
+    /// A module's sensors (`None`: the open-loop bench's).
+    PlantSensors(Option<&'a str>),
+    /// A module's actuators (`None`: the open-loop bench's).
+    PlantActuators(Option<&'a str>),
+    BusFrames(&'a str),
+    LinkFrames(&'a str),
+    Events,
+    MasterLoop(&'a str),
+    RealtimeLateness,
+    ExperimentStep,
+    /// Anything else (not written by this twin).
+    Other(&'a str),
+}
+
+impl<'a> Topic<'a> {
+    /// Recognise `topic`.
+    pub fn parse(topic: &'a str) -> Self {
+        let named = |prefix: &str, suffix: &str| {
+            topic
+                .strip_prefix(prefix)
+                .and_then(|t| t.strip_suffix(suffix))
+                .filter(|name| !name.is_empty())
+        };
+        match topic {
+            PLANT_SENSORS => return Topic::PlantSensors(None),
+            PLANT_ACTUATORS => return Topic::PlantActuators(None),
+            EVENTS => return Topic::Events,
+            REALTIME_LATENESS => return Topic::RealtimeLateness,
+            EXPERIMENT_STEP => return Topic::ExperimentStep,
+            _ => {}
+        }
+        if let Some(m) = named("/plant/", "/sensors") {
+            Topic::PlantSensors(Some(m))
+        } else if let Some(m) = named("/plant/", "/actuators") {
+            Topic::PlantActuators(Some(m))
+        } else if let Some(b) = named("/bus/", "/frames") {
+            Topic::BusFrames(b)
+        } else if let Some(l) = named("/link/", "/frames") {
+            Topic::LinkFrames(l)
+        } else if let Some(n) = named("/master/", "/loop") {
+            Topic::MasterLoop(n)
+        } else {
+            Topic::Other(topic)
+        }
+    }
+
+    /// Whether the channel's messages are samples at a fixed rate (the
+    /// plant's sensors) rather than events: [`crate::signals`] interpolates
+    /// between samples and holds an event's value until the next.
+    pub fn is_sampled(self) -> bool {
+        matches!(self, Topic::PlantSensors(_))
+    }
+}
+
+/// A frame as recorded on [`bus_frames`] and [`link_frames`] (the fields a
+/// reader takes; `len`, `text` and `decoded` are for people and tools).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+pub struct FrameSample {
+    /// The sending node (a session's link: `twin` or `client N`).
+    pub from: String,
+    /// When its first and last byte went (s).
+    pub start_s: f64,
+    pub end_s: f64,
+    /// The bytes, two lowercase hex digits each.
+    pub hex: String,
+}
+
+/// An event as recorded on [`EVENTS`].
+#[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
+pub struct EventSample {
+    pub node: String,
+    pub kind: String,
+    pub detail: String,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_topic_parses_back_to_what_named_it() {
+        for (topic, parsed) in [
+            (plant_sensors("ev1"), Topic::PlantSensors(Some("ev1"))),
+            (PLANT_SENSORS.to_string(), Topic::PlantSensors(None)),
+            (plant_actuators("m2"), Topic::PlantActuators(Some("m2"))),
+            (PLANT_ACTUATORS.to_string(), Topic::PlantActuators(None)),
+            (bus_frames("rs485"), Topic::BusFrames("rs485")),
+            (link_frames("modbus-tcp"), Topic::LinkFrames("modbus-tcp")),
+            (EVENTS.to_string(), Topic::Events),
+            (master_loop("supervisor"), Topic::MasterLoop("supervisor")),
+            (REALTIME_LATENESS.to_string(), Topic::RealtimeLateness),
+            (EXPERIMENT_STEP.to_string(), Topic::ExperimentStep),
+        ] {
+            assert_eq!(Topic::parse(&topic), parsed, "{topic}");
+        }
+        assert_eq!(Topic::parse("/bus//frames"), Topic::Other("/bus//frames"));
+        assert_eq!(Topic::parse("/camera/image"), Topic::Other("/camera/image"));
+        assert!(Topic::parse("/plant/ev1/sensors").is_sampled());
+        assert!(!Topic::parse("/plant/ev1/actuators").is_sampled());
+        assert_eq!(schema_name("/plant/ev1/sensors"), "plant.ev1.sensors");
+    }
+}
