@@ -367,13 +367,22 @@ pub enum FaultKind {
     Silent,
 }
 
+/// The Controller_network master's old kind name, still read (`serde(alias)`).
+const LEGACY_MASTER_KIND: &str = "seed002-master"; // the serde alias above
+
 impl Scenario {
     /// Parse scenario text; `origin` names it in errors.
     pub fn parse(text: &str, origin: &str) -> Result<Self> {
         let scenario: Scenario = toml::from_str(text).map_err(|e| {
             let at = e.span().map(|s| line_col(text, s.start));
             let place = at.map_or_else(String::new, |(l, c)| format!(":{l}:{c}"));
-            anyhow::anyhow!("{origin}{place}: {}", e.message().trim())
+            // serde lists aliases among the kinds it expected; the old name
+            // of a kind is still read but not offered.
+            let message = e
+                .message()
+                .trim()
+                .replace(&format!(", `{LEGACY_MASTER_KIND}`"), "");
+            anyhow::anyhow!("{origin}{place}: {message}")
         })?;
         scenario.validate().map_err(|(field, msg)| {
             // A field of one node or bus is found after the line naming it.
@@ -666,5 +675,29 @@ mod tests {
         let text = "name = \"x\"\nduration_s = 1.0\n[[bus]]\nname = \"b\"\nbaud = 115201\n";
         let e = Scenario::parse(text, "s.toml").unwrap_err().to_string();
         assert!(e.starts_with("s.toml:5: `baud`"), "{e}");
+    }
+
+    #[test]
+    fn the_controller_network_master_keeps_its_old_name_and_errors_give_the_new_one() {
+        let embedded = EMBEDDED
+            .iter()
+            .find(|(name, _, _)| *name == "controller-network")
+            .map(|(_, _, text)| *text)
+            .expect("the controller-network scenario is embedded");
+        let new = Scenario::parse(embedded, "new.toml").expect("new name");
+        let old_text = embedded.replace(
+            "kind = \"controller-network-master\"",
+            &format!("kind = \"{LEGACY_MASTER_KIND}\""),
+        );
+        assert_ne!(old_text, embedded, "the scenario names its master's kind");
+        let old = Scenario::parse(&old_text, "old.toml").expect("old name still read");
+        assert_eq!(
+            toml::to_string(&old).unwrap(),
+            toml::to_string(&new).unwrap()
+        );
+        let wrong = embedded.replace("kind = \"controller-network-master\"", "kind = \"pi\"");
+        let e = Scenario::parse(&wrong, "w.toml").unwrap_err().to_string();
+        assert!(e.contains("controller-network-master"), "{e}");
+        assert!(!e.contains(LEGACY_MASTER_KIND), "{e}");
     }
 }
