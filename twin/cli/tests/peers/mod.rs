@@ -147,13 +147,22 @@ impl Serve {
 impl Drop for Serve {
     fn drop(&mut self) {
         let _ = kill_process(Pid::from_child(&self.child), Signal::TERM);
-        let deadline = Instant::now() + Duration::from_secs(5);
-        while Instant::now() < deadline {
+        // On SIGTERM the server finishes its recording, draining what the
+        // sink thread (at nice 10) still holds: after a flood of frames, in a
+        // debug build on a loaded machine, that has taken more than 5 s. A
+        // kill before then leaves a cut file, which the tests would misread
+        // as a recording the server broke.
+        let started = Instant::now();
+        while started.elapsed() < Duration::from_secs(60) {
             if let Ok(Some(_)) = self.child.try_wait() {
+                if started.elapsed() > Duration::from_secs(5) {
+                    eprintln!("twin serve took {:?} to stop on SIGTERM", started.elapsed());
+                }
                 return;
             }
             std::thread::sleep(Duration::from_millis(20));
         }
+        eprintln!("twin serve did not stop within 60 s of SIGTERM: killed");
         let _ = self.child.kill();
         let _ = self.child.wait();
     }
