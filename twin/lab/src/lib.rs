@@ -16,5 +16,3 @@ pub mod plot;
 pub mod pwmcap;
 pub mod step;
 pub mod sweep;
-
-pub use twin_sim::step_metrics;

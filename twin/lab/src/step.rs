@@ -16,9 +16,9 @@ use std::path::{Path, PathBuf};
 
 use super::instruments::{Instruments, light_limit, read_instruments};
 use super::plot::{self, Axes, Series};
-use super::step_metrics::{StepMetrics, StepOptions, delay, step_metrics};
 use twin_sim::openloop::{self, OpenLoop};
 use twin_sim::scenario::{NodeSpec, Scenario};
+use twin_sim::step_metrics::{StepMetrics, StepOptions, delay, step_metrics};
 use twin_sim::virtual_run;
 
 /// Samples of the traces per simulated second.

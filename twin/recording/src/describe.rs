@@ -68,7 +68,7 @@ pub fn decode_frame(bytes: &[u8]) -> Value {
 }
 
 /// Decoded fields of a frame on a link of `protocol`.
-pub fn decode_link_frame(protocol: &str, bytes: &[u8]) -> Value {
+fn decode_link_frame(protocol: &str, bytes: &[u8]) -> Value {
     serde_json::to_value(link_frame_fields(protocol, bytes)).unwrap_or(Value::Null)
 }
 
