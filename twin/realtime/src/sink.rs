@@ -21,7 +21,7 @@ use super::lateness::LatenessSummary;
 use twin_recording::describe::link_frame_fields;
 use twin_recording::record::Recorder;
 use twin_recording::topics;
-use twin_sim::observe::McapObserver;
+use twin_sim::observe::{LazyChannel, McapObserver};
 
 /// How often the sink drains its queue (console lines and recording may lag
 /// by this much; the engine never waits for them).
@@ -264,17 +264,17 @@ struct ConnFrames {
 struct FrameSink {
     conns: HashMap<u64, ConnFrames>,
     /// Per link: `/link/<link>/frames`.
-    topics: Vec<String>,
+    channels: Vec<LazyChannel>,
 }
 
 impl FrameSink {
     fn new(config: &SinkConfig) -> Self {
         Self {
             conns: HashMap::new(),
-            topics: config
+            channels: config
                 .links
                 .iter()
-                .map(|(name, _)| topics::link_frames(name))
+                .map(|(name, _)| LazyChannel::new(name, topics::link_frames(name)))
                 .collect(),
         }
     }
@@ -293,10 +293,12 @@ impl FrameSink {
         }
         let mut result = Ok(());
         for (record, bytes) in batch.iter() {
-            let Some((name, protocol)) = config.links.get(record.link) else {
+            let (Some((name, protocol)), Some(channel)) = (
+                config.links.get(record.link),
+                self.channels.get_mut(record.link),
+            ) else {
                 continue;
             };
-            let topic = self.topics.get(record.link).map_or("", String::as_str);
             let conn = record.conn;
             let state = self.conns.entry(conn).or_insert_with(|| ConnFrames {
                 client: format!("client {conn}"),
@@ -322,7 +324,7 @@ impl FrameSink {
                     v.frame(name, from, at.as_secs_f64(), end.as_secs_f64(), frame);
                 }
                 if let (Some(o), Some(decoded)) = (observer.as_mut(), decoded) {
-                    let recorded = o.record_frame(topic, from, at, end, frame, &decoded);
+                    let recorded = o.record_frame(channel, from, at, end, frame, &decoded);
                     result = std::mem::replace(&mut result, Ok(())).and(recorded);
                 }
             };
@@ -396,7 +398,7 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
                 module,
                 sensors,
             } => match (&mut observer, config.modules.get(module)) {
-                (Some(o), Some(name)) => o.put(&topics::plant_sensors(name), at, &*sensors),
+                (Some(o), Some(name)) => o.record_sensors(at, name, &sensors),
                 _ => Ok(()),
             },
             SinkMsg::Actuators {
@@ -404,7 +406,7 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
                 module,
                 actuators,
             } => match (&mut observer, config.modules.get(module)) {
-                (Some(o), Some(name)) => o.put(&topics::plant_actuators(name), at, &actuators),
+                (Some(o), Some(name)) => o.record_actuators(at, name, &actuators),
                 _ => Ok(()),
             },
             SinkMsg::Frames(batch) => {
@@ -428,7 +430,7 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
                 }
             }
             SinkMsg::Telemetry { at, node, value } => match &mut observer {
-                Some(o) => o.put(&topics::master_loop(&node), at, &value),
+                Some(o) => o.record_loop(at, &node, &value),
                 None => Ok(()),
             },
             SinkMsg::Lateness { at, window, total } => match &mut observer {

@@ -3,10 +3,10 @@
 //! The virtual engine, the real-time sink and the viewer all call these, so a
 //! frame reads the same wherever it was recorded.
 
-use protocols::meb::MebRepr;
+use protocols::meb::{MebCmd, MebRepr, MebWords};
 use protocols::{modbus, modbus8};
 use serde::Serialize;
-use serde_json::{Value, json};
+use serde_json::Value;
 
 /// The wire format a frame was sent in, told from the sent bytes: one place
 /// for the engine's check tally and the recording's decoder to agree on.
@@ -44,25 +44,109 @@ impl FrameKind {
     }
 }
 
+/// Decoded fields of a frame on a bus: MEB, the 8-byte variant or Modbus
+/// RTU. A small value serialised straight to the recording (the engine
+/// describes every frame it records, and building a `serde_json::Value` map
+/// cost more than the decoding); the keys are in the order a `Value` map
+/// sorts them, so the JSON is the one that map wrote.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[serde(untagged)]
+pub enum FrameFields {
+    Meb {
+        addr: u8,
+        #[serde(serialize_with = "as_text")]
+        cmd: MebCmd,
+        cnt: u8,
+        #[serde(serialize_with = "as_list")]
+        data: MebWords,
+        id: u8,
+        protocol: &'static str,
+    },
+    Modbus8 {
+        addr: u16,
+        function: u8,
+        id: u8,
+        protocol: &'static str,
+        value: u16,
+    },
+    ModbusRtu {
+        function: u8,
+        protocol: &'static str,
+        unit: u8,
+    },
+    Broken {
+        error: String,
+        protocol: &'static str,
+    },
+}
+
+/// A value written as its text (an MEB command's two letters).
+fn as_text<T: std::fmt::Display, S: serde::Serializer>(
+    value: &T,
+    serializer: S,
+) -> Result<S::Ok, S::Error> {
+    serializer.collect_str(value)
+}
+
+/// MEB words written as a list of numbers.
+fn as_list<S: serde::Serializer>(words: &MebWords, serializer: S) -> Result<S::Ok, S::Error> {
+    serializer.collect_seq(words.as_slice())
+}
+
+impl FrameFields {
+    /// The same fields as a JSON value (readers that look fields up).
+    pub fn to_value(&self) -> Value {
+        serde_json::to_value(self).unwrap_or(Value::Null)
+    }
+
+    /// The fields but the carried values (MEB `data`, the 8-byte `value`):
+    /// two frames equal here differ only in what they carry.
+    pub fn header(&self) -> Self {
+        let mut header = self.clone();
+        match &mut header {
+            FrameFields::Meb { data, .. } => *data = MebWords::new(),
+            FrameFields::Modbus8 { value, .. } => *value = 0,
+            FrameFields::ModbusRtu { .. } | FrameFields::Broken { .. } => {}
+        }
+        header
+    }
+}
+
 /// Decoded fields of a frame: MEB, the 8-byte variant or Modbus RTU.
-pub fn decode_frame(bytes: &[u8]) -> Value {
+pub fn decode_frame(bytes: &[u8]) -> FrameFields {
+    let broken = |protocol, error: &dyn std::fmt::Display| FrameFields::Broken {
+        error: error.to_string(),
+        protocol,
+    };
     match FrameKind::of(bytes) {
         FrameKind::Meb => match MebRepr::parse(bytes) {
-            Ok(r) => json!({
-                "protocol": "meb", "id": r.id, "cmd": r.cmd.to_string(), "addr": r.addr,
-                "cnt": r.cnt, "data": r.data.as_slice(),
-            }),
-            Err(e) => json!({ "protocol": "meb", "error": e.to_string() }),
+            Ok(r) => FrameFields::Meb {
+                addr: r.addr,
+                cmd: r.cmd,
+                cnt: r.cnt,
+                data: r.data,
+                id: r.id,
+                protocol: "meb",
+            },
+            Err(e) => broken("meb", &e),
         },
         FrameKind::Modbus8 => match modbus8::Frame::parse(bytes, modbus8::CrcOrder::HighFirst) {
-            Ok(f) => json!({
-                "protocol": "modbus8", "id": f.id, "function": f.function, "addr": f.addr, "value": f.value,
-            }),
-            Err(e) => json!({ "protocol": "modbus8", "error": e.to_string() }),
+            Ok(f) => FrameFields::Modbus8 {
+                addr: f.addr,
+                function: f.function,
+                id: f.id,
+                protocol: "modbus8",
+                value: f.value,
+            },
+            Err(e) => broken("modbus8", &e),
         },
         FrameKind::ModbusRtu => match modbus::rtu::parse(bytes) {
-            Ok(f) => json!({ "protocol": "modbus-rtu", "unit": f.unit, "function": f.function() }),
-            Err(e) => json!({ "protocol": "unknown", "error": e.to_string() }),
+            Ok(f) => FrameFields::ModbusRtu {
+                function: f.function(),
+                protocol: "modbus-rtu",
+                unit: f.unit,
+            },
+            Err(e) => broken("unknown", &e),
         },
     }
 }
@@ -90,7 +174,7 @@ pub enum LinkFrameFields<'a> {
         error: String,
         protocol: &'a str,
     },
-    Other(Value),
+    Bus(FrameFields),
 }
 
 pub fn link_frame_fields<'a>(protocol: &'a str, bytes: &[u8]) -> LinkFrameFields<'a> {
@@ -124,7 +208,7 @@ pub fn link_frame_fields<'a>(protocol: &'a str, bytes: &[u8]) -> LinkFrameFields
             &mut [0; modbus::ascii::MAX_BINARY_LEN],
         )),
         "modbus-rtu" => modbus(modbus::rtu::parse(bytes)),
-        _ => LinkFrameFields::Other(decode_frame(bytes)),
+        _ => LinkFrameFields::Bus(decode_frame(bytes)),
     }
 }
 
@@ -133,7 +217,7 @@ pub fn link_frame_fields<'a>(protocol: &'a str, bytes: &[u8]) -> LinkFrameFields
 /// of a bus, or the Modbus TCP and ASCII frames a real-time session's links
 /// carry.
 pub fn decode_any(bytes: &[u8]) -> Value {
-    let decoded = decode_frame(bytes);
+    let decoded = decode_frame(bytes).to_value();
     if decoded.get("error").is_none() {
         return decoded;
     }
@@ -153,6 +237,7 @@ pub fn decode_any(bytes: &[u8]) -> Value {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use serde_json::json;
 
     fn fields(protocol: &str, bytes: &[u8]) -> String {
         serde_json::to_string(&link_frame_fields(protocol, bytes)).unwrap()
@@ -178,7 +263,7 @@ mod tests {
             "{broken}"
         );
         let meb = fields("meb", b"@01EA0006FF*\n");
-        assert_eq!(meb, decode_frame(b"@01EA0006FF*\n").to_string());
+        assert_eq!(meb, serde_json::to_string(&decode_frame(b"@01EA0006FF*\n")).unwrap());
         assert_eq!(
             decode_link_frame("modbus-tcp", &tcp)["transaction"],
             json!(7)

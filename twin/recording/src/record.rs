@@ -13,6 +13,8 @@ use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
+use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
+use std::thread::JoinHandle;
 
 use crate::topics;
 
@@ -33,14 +35,19 @@ const CHUNK_SIZE: u64 = 1024 * 1024;
 /// chunk boundaries, like every other byte, depend only on the run.
 const FLUSH_EVERY_NS: u64 = 1_000_000_000;
 
-/// An open recording.
+/// An open recording. Messages are serialised on the caller's thread into
+/// batches; a thread of the recording's own frames them into chunks,
+/// compresses and writes them, in the order they were given, so the bytes are
+/// those one thread would write (the chunk boundaries come from the messages'
+/// simulated times and sizes, never from timing).
 pub struct Recorder {
-    writer: Writer<BufWriter<File>>,
     path: PathBuf,
-    /// Per channel, in creation order: its MCAP id and next sequence number.
-    channels: Vec<(u16, u32)>,
+    /// Per channel, in creation order: its next sequence number.
+    sequences: Vec<u32>,
     topics: BTreeMap<String, ChannelId>,
-    buffer: Vec<u8>,
+    /// Messages serialised since the last hand-over.
+    batch: Batch,
+    writer: Option<WriterThread>,
     /// Simulated time (ns) at or after which the next message first flushes.
     next_flush_ns: u64,
 }
@@ -48,6 +55,54 @@ pub struct Recorder {
 /// A channel of an open recording: writing through it skips the topic lookup.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ChannelId(usize);
+
+/// Messages handed to the writer thread at once: their bytes back to back.
+#[derive(Debug, Default)]
+struct Batch {
+    bytes: Vec<u8>,
+    messages: Vec<Queued>,
+}
+
+/// One message of a batch.
+#[derive(Debug, Clone, Copy)]
+struct Queued {
+    channel: usize,
+    sequence: u32,
+    time_ns: u64,
+    /// Where its bytes end in [`Batch::bytes`] (they start where the
+    /// previous message's end).
+    end: usize,
+    /// Close the open chunk before this message (a simulated second began).
+    flush_before: bool,
+}
+
+/// A batch is handed over at this size: large enough that the hand-over
+/// costs nothing per message, small enough to stay in cache.
+const BATCH_BYTES: usize = 256 * 1024;
+/// Batches in flight: the caller waits when the writer is this far behind,
+/// so a run faster than its compression cannot fill memory.
+const BATCHES_IN_FLIGHT: usize = 4;
+
+/// What the caller asks the writer thread, in order.
+enum Job {
+    Channel {
+        topic: String,
+        schema_name: String,
+        schema: Vec<u8>,
+    },
+    Messages(Batch),
+    Metadata(mcap::records::Metadata),
+    /// Close the open chunk, then say so.
+    Flush(SyncSender<()>),
+}
+
+/// The writer thread and the way to it.
+struct WriterThread {
+    jobs: SyncSender<Job>,
+    /// Batches written, handed back for reuse.
+    spent: Receiver<Batch>,
+    handle: JoinHandle<Result<()>>,
+}
 
 impl std::fmt::Debug for Recorder {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -102,33 +157,39 @@ impl Recorder {
         let writer = options
             .create(BufWriter::new(file))
             .with_context(|| format!("cannot start MCAP file {}", path.display()))?;
+        let (jobs, queue) = sync_channel(BATCHES_IN_FLIGHT);
+        let (give_back, spent) = sync_channel(BATCHES_IN_FLIGHT + 1);
+        let shown = path.display().to_string();
+        let handle = std::thread::Builder::new()
+            .name("twin-recorder".into())
+            .spawn(move || write_jobs(writer, &queue, &give_back, &shown))
+            .context("cannot start the recording's writer thread")?;
         Ok(Self {
-            writer,
             path: path.to_path_buf(),
-            channels: Vec::new(),
+            sequences: Vec::new(),
             topics: BTreeMap::new(),
-            buffer: Vec::new(),
+            batch: Batch::default(),
+            writer: Some(WriterThread {
+                jobs,
+                spent,
+                handle,
+            }),
             next_flush_ns: FLUSH_EVERY_NS,
         })
     }
 
     /// Add a channel whose messages look like `sample`.
     pub fn add_channel<T: Serialize>(&mut self, topic: &str, sample: &T) -> Result<ChannelId> {
-        let schema = schema_of(&serde_json::to_value(sample)?);
-        let name = topics::schema_name(topic);
-        let schema_id = self.writer.add_schema(
-            &name,
-            topics::SCHEMA_ENCODING,
-            &serde_json::to_vec(&schema)?,
-        )?;
-        let id = self.writer.add_channel(
-            schema_id,
-            topic,
-            topics::MESSAGE_ENCODING,
-            &BTreeMap::new(),
-        )?;
-        let channel = ChannelId(self.channels.len());
-        self.channels.push((id, 0));
+        let schema = serde_json::to_vec(&schema_of(&serde_json::to_value(sample)?))?;
+        // The channel's messages must not reach the writer before it does.
+        self.hand_over()?;
+        self.send(Job::Channel {
+            topic: topic.to_string(),
+            schema_name: topics::schema_name(topic),
+            schema,
+        })?;
+        let channel = ChannelId(self.sequences.len());
+        self.sequences.push(0);
         self.topics.insert(topic.to_string(), channel);
         Ok(channel)
     }
@@ -158,51 +219,187 @@ impl Recorder {
         time_s: f64,
         message: &T,
     ) -> Result<()> {
-        let Some((channel_id, sequence)) = self.channels.get_mut(channel.0) else {
+        let Some(sequence) = self.sequences.get_mut(channel.0) else {
             anyhow::bail!("no channel {} in the recording", channel.0);
         };
-        self.buffer.clear();
-        serde_json::to_writer(&mut self.buffer, message)?;
+        let start = self.batch.bytes.len();
+        if let Err(e) = serde_json::to_writer(&mut self.batch.bytes, message) {
+            self.batch.bytes.truncate(start);
+            return Err(e.into());
+        }
         let time_ns = (time_s * 1e9).round() as u64;
-        if time_ns >= self.next_flush_ns {
-            self.writer
-                .flush()
-                .with_context(|| format!("cannot write {}", self.path.display()))?;
+        let flush_before = time_ns >= self.next_flush_ns;
+        if flush_before {
             self.next_flush_ns = (time_ns / FLUSH_EVERY_NS + 1) * FLUSH_EVERY_NS;
         }
-        let header = MessageHeader {
-            channel_id: *channel_id,
+        self.batch.messages.push(Queued {
+            channel: channel.0,
             sequence: *sequence,
-            log_time: time_ns,
-            publish_time: time_ns,
-        };
+            time_ns,
+            end: self.batch.bytes.len(),
+            flush_before,
+        });
         *sequence += 1;
-        self.writer.write_to_known_channel(&header, &self.buffer)?;
+        if self.batch.bytes.len() >= BATCH_BYTES {
+            self.hand_over()?;
+        }
         Ok(())
     }
 
     /// Store the run's identity: key/value pairs under `name`.
     pub fn write_metadata(&mut self, name: &str, fields: BTreeMap<String, String>) -> Result<()> {
-        self.writer.write_metadata(&mcap::records::Metadata {
+        self.hand_over()?;
+        self.send(Job::Metadata(mcap::records::Metadata {
             name: name.into(),
             metadata: fields,
-        })?;
-        Ok(())
+        }))
     }
 
     /// Close the open chunk and write it out, so that a crash loses at most
     /// what came after (real-time sessions call this every second or so).
+    /// Returns once the writer has written it.
     pub fn flush(&mut self) -> Result<()> {
-        self.writer
-            .flush()
-            .with_context(|| format!("cannot write {}", self.path.display()))
+        self.hand_over()?;
+        let (done, written) = sync_channel(1);
+        self.send(Job::Flush(done))?;
+        if written.recv().is_err() {
+            return Err(self.writer_failed());
+        }
+        Ok(())
     }
 
     /// Finish the file (summary, indexes) and return its path.
     pub fn finish(mut self) -> Result<PathBuf> {
-        self.writer
-            .finish()
-            .with_context(|| format!("cannot finish {}", self.path.display()))?;
-        Ok(self.path)
+        self.hand_over()?;
+        if let Some(writer) = self.writer.take() {
+            drop(writer.jobs);
+            join(writer.handle)?;
+        }
+        Ok(std::mem::take(&mut self.path))
     }
+
+    /// Hand the messages serialised so far to the writer thread.
+    fn hand_over(&mut self) -> Result<()> {
+        if self.batch.messages.is_empty() {
+            return Ok(());
+        }
+        let fresh = match &self.writer {
+            Some(w) => w.spent.try_recv().unwrap_or_default(),
+            None => Batch::default(),
+        };
+        let full = std::mem::replace(&mut self.batch, fresh);
+        self.send(Job::Messages(full))
+    }
+
+    fn send(&mut self, job: Job) -> Result<()> {
+        let sent = match &self.writer {
+            Some(w) => w.jobs.send(job).is_ok(),
+            None => false,
+        };
+        if sent {
+            Ok(())
+        } else {
+            Err(self.writer_failed())
+        }
+    }
+
+    /// The writer thread's error, once it has stopped on one.
+    fn writer_failed(&mut self) -> anyhow::Error {
+        match self.writer.take() {
+            Some(w) => {
+                drop(w.jobs);
+                match join(w.handle) {
+                    Err(e) => e,
+                    Ok(()) => anyhow::anyhow!("the writer of {} stopped", self.path.display()),
+                }
+            }
+            None => anyhow::anyhow!("the recording {} is closed", self.path.display()),
+        }
+    }
+}
+
+/// A recording dropped unfinished is finished as the MCAP library does on
+/// drop (summary and all), and is complete on disk when the drop returns.
+impl Drop for Recorder {
+    fn drop(&mut self) {
+        let _ = self.hand_over();
+        if let Some(writer) = self.writer.take() {
+            drop(writer.jobs);
+            let _ = writer.handle.join();
+        }
+    }
+}
+
+fn join(handle: JoinHandle<Result<()>>) -> Result<()> {
+    handle
+        .join()
+        .unwrap_or_else(|_| Err(anyhow::anyhow!("the recording's writer thread failed")))
+}
+
+/// The writer thread: every job in order, then the file's summary.
+fn write_jobs(
+    mut writer: Writer<BufWriter<File>>,
+    jobs: &Receiver<Job>,
+    give_back: &SyncSender<Batch>,
+    shown: &str,
+) -> Result<()> {
+    let cannot_write = || format!("cannot write {shown}");
+    // MCAP ids of the channels, by creation order.
+    let mut ids: Vec<u16> = Vec::new();
+    while let Ok(job) = jobs.recv() {
+        match job {
+            Job::Channel {
+                topic,
+                schema_name,
+                schema,
+            } => {
+                let schema_id = writer
+                    .add_schema(&schema_name, topics::SCHEMA_ENCODING, &schema)
+                    .with_context(cannot_write)?;
+                let id = writer
+                    .add_channel(
+                        schema_id,
+                        &topic,
+                        topics::MESSAGE_ENCODING,
+                        &BTreeMap::new(),
+                    )
+                    .with_context(cannot_write)?;
+                ids.push(id);
+            }
+            Job::Messages(mut batch) => {
+                let mut start = 0;
+                for m in &batch.messages {
+                    if m.flush_before {
+                        writer.flush().with_context(cannot_write)?;
+                    }
+                    let header = MessageHeader {
+                        channel_id: ids.get(m.channel).copied().unwrap_or_default(),
+                        sequence: m.sequence,
+                        log_time: m.time_ns,
+                        publish_time: m.time_ns,
+                    };
+                    let data = batch.bytes.get(start..m.end).unwrap_or_default();
+                    writer
+                        .write_to_known_channel(&header, data)
+                        .with_context(cannot_write)?;
+                    start = m.end;
+                }
+                batch.bytes.clear();
+                batch.messages.clear();
+                // Kept for reuse if the caller has room for it.
+                let _ = give_back.try_send(batch);
+            }
+            Job::Metadata(metadata) => {
+                writer.write_metadata(&metadata).with_context(cannot_write)?;
+            }
+            Job::Flush(done) => {
+                writer.flush().with_context(cannot_write)?;
+                let _ = done.send(());
+            }
+        }
+    }
+    writer
+        .finish()
+        .with_context(|| format!("cannot finish {shown}"))?;
+    Ok(())
 }

@@ -17,7 +17,7 @@ use std::collections::{BTreeMap, VecDeque};
 
 use crate::engine::{BusSlot, ModuleSlot, NodeSlot, Observer};
 use twin_recording::describe::decode_frame;
-use twin_recording::record::Recorder;
+use twin_recording::record::{ChannelId, Recorder};
 use twin_recording::topics;
 
 /// How many log lines the end-of-run summary shows.
@@ -33,6 +33,78 @@ pub struct McapObserver {
     pub log_tail: VecDeque<String>,
     /// A frame's hex text, reused from frame to frame.
     hex: String,
+    /// Channels by the name of what writes them (a run has a few of each):
+    /// a message's topic is formatted once, not per message.
+    sensors: Vec<LazyChannel>,
+    actuators: Vec<LazyChannel>,
+    buses: Vec<LazyChannel>,
+    loops: Vec<LazyChannel>,
+    event_channel: LazyChannel,
+}
+
+/// A channel of the recording made on its first message (its schema comes
+/// from that message), then written without a lookup.
+#[derive(Debug)]
+pub struct LazyChannel {
+    /// What the channel belongs to: a module, bus, link or node name.
+    owner: String,
+    topic: String,
+    id: Option<ChannelId>,
+}
+
+impl LazyChannel {
+    pub fn new(owner: &str, topic: String) -> Self {
+        Self {
+            owner: owner.to_string(),
+            topic,
+            id: None,
+        }
+    }
+
+    /// Write `message` at `time`, making the channel on first use.
+    pub fn write<T: Serialize>(
+        &mut self,
+        recorder: &mut Recorder,
+        time: SimTime,
+        message: &T,
+    ) -> Result<()> {
+        let id = match self.id {
+            Some(id) => id,
+            None => {
+                let id = match recorder.channel(&self.topic) {
+                    Some(id) => id,
+                    None => recorder.add_channel(&self.topic, message)?,
+                };
+                *self.id.insert(id)
+            }
+        };
+        recorder.write_to(id, time.as_secs_f64(), message)
+    }
+}
+
+/// The channel of `owner` in `channels`, added (topic from `topic`) if new.
+fn channel_of<'c>(
+    channels: &'c mut Vec<LazyChannel>,
+    owner: &str,
+    topic: fn(&str) -> String,
+) -> &'c mut LazyChannel {
+    let index = match channels.iter().position(|c| c.owner == owner) {
+        Some(index) => index,
+        None => {
+            channels.push(LazyChannel::new(owner, topic(owner)));
+            channels.len() - 1
+        }
+    };
+    &mut channels[index]
+}
+
+/// A node's event, as recorded on `/events`.
+#[derive(Debug, Serialize)]
+struct EventMessage<'a> {
+    // In the order a `serde_json::Value` map sorted them.
+    detail: &'a str,
+    kind: &'a str,
+    node: &'a str,
 }
 
 /// One frame on a bus, as recorded.
@@ -56,7 +128,49 @@ impl McapObserver {
             events: BTreeMap::new(),
             log_tail: VecDeque::new(),
             hex: String::with_capacity(2 * nodes::node::MAX_FRAME),
+            sensors: Vec::new(),
+            actuators: Vec::new(),
+            buses: Vec::new(),
+            loops: Vec::new(),
+            event_channel: LazyChannel::new("", topics::EVENTS.to_string()),
         }
+    }
+
+    /// A module's sensors, on `/plant/<module>/sensors`.
+    pub fn record_sensors(
+        &mut self,
+        now: SimTime,
+        module: &str,
+        sensors: &plant::Sensors,
+    ) -> Result<()> {
+        channel_of(&mut self.sensors, module, topics::plant_sensors).write(
+            &mut self.recorder,
+            now,
+            sensors,
+        )
+    }
+
+    /// What drives a module, on `/plant/<module>/actuators`.
+    pub fn record_actuators(
+        &mut self,
+        now: SimTime,
+        module: &str,
+        actuators: &plant::Actuators,
+    ) -> Result<()> {
+        channel_of(&mut self.actuators, module, topics::plant_actuators).write(
+            &mut self.recorder,
+            now,
+            actuators,
+        )
+    }
+
+    /// A master's loop report, on `/master/<node>/loop`.
+    pub fn record_loop(&mut self, now: SimTime, node: &str, report: &Value) -> Result<()> {
+        channel_of(&mut self.loops, node, topics::master_loop).write(
+            &mut self.recorder,
+            now,
+            report,
+        )
     }
 
     /// Write `message` to `topic`, creating its channel on first use.
@@ -104,11 +218,11 @@ fn secs(t: SimTime) -> f64 {
 }
 
 impl McapObserver {
-    /// One frame on `topic` (`/bus/<bus>/frames`, `/link/<link>/frames`),
+    /// One frame on `channel` (`/bus/<bus>/frames`, `/link/<link>/frames`),
     /// sent by `from`, with its decoded fields.
     pub fn record_frame(
         &mut self,
-        topic: &str,
+        channel: &mut LazyChannel,
         from: &str,
         start: SimTime,
         end: SimTime,
@@ -137,7 +251,7 @@ impl McapObserver {
             decoded,
         };
         self.frames += 1;
-        let written = self.put(topic, start, &message);
+        let written = channel.write(&mut self.recorder, start, &message);
         self.hex = hex;
         written
     }
@@ -156,26 +270,22 @@ impl McapObserver {
                 event.detail
             ));
         }
-        let message = json!({ "node": node, "kind": event.kind, "detail": event.detail });
-        self.put(topics::EVENTS, event.at, &message)
+        let message = EventMessage {
+            detail: &event.detail,
+            kind: event.kind,
+            node,
+        };
+        self.event_channel.write(&mut self.recorder, event.at, &message)
     }
 }
 
 impl Observer for McapObserver {
     fn plant(&mut self, now: SimTime, module: &ModuleSlot) -> Result<()> {
-        self.put(
-            &topics::plant_sensors(&module.name),
-            now,
-            module.plant.sensors(),
-        )
+        self.record_sensors(now, &module.name, module.plant.sensors())
     }
 
     fn actuators(&mut self, now: SimTime, module: &ModuleSlot) -> Result<()> {
-        self.put(
-            &topics::plant_actuators(&module.name),
-            now,
-            &module.actuators,
-        )
+        self.record_actuators(now, &module.name, &module.actuators)
     }
 
     fn frame(
@@ -186,12 +296,17 @@ impl Observer for McapObserver {
         end: SimTime,
         bytes: &[u8],
     ) -> Result<()> {
-        let topic = topics::bus_frames(&bus.name);
-        let decoded = match bus.bus.as_pwm() {
-            Some(link) => decode_pwm_frame(link, &bus.port_names),
-            None => decode_frame(bytes),
+        let mut channels = std::mem::take(&mut self.buses);
+        let channel = channel_of(&mut channels, &bus.name, topics::bus_frames);
+        let written = match bus.bus.as_pwm() {
+            Some(link) => {
+                let decoded = decode_pwm_frame(link, &bus.port_names);
+                self.record_frame(channel, &from.name, start, end, bytes, decoded)
+            }
+            None => self.record_frame(channel, &from.name, start, end, bytes, decode_frame(bytes)),
         };
-        self.record_frame(&topic, &from.name, start, end, bytes, decoded)
+        self.buses = channels;
+        written
     }
 
     fn event(&mut self, node: &NodeSlot, event: &NodeEvent) -> Result<()> {
@@ -199,7 +314,7 @@ impl Observer for McapObserver {
     }
 
     fn telemetry(&mut self, now: SimTime, node: &NodeSlot, value: &Value) -> Result<()> {
-        self.put(&topics::master_loop(&node.name), now, value)
+        self.record_loop(now, &node.name, value)
     }
 }
 
