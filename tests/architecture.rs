@@ -22,12 +22,26 @@ fn repo_root() -> PathBuf {
         .to_path_buf()
 }
 
-/// `cargo metadata` of the workspace: its packages and the resolved graph.
+/// The host's target triple, as rustc reports it.
+fn host_triple() -> String {
+    let rustc = std::env::var("RUSTC").unwrap_or_else(|_| "rustc".into());
+    let out = Command::new(rustc).arg("-vV").output().expect("rustc runs");
+    String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .find_map(|l| l.strip_prefix("host: "))
+        .expect("rustc -vV names the host")
+        .to_string()
+}
+
+/// `cargo metadata` of the workspace: its packages and the graph resolved
+/// for this host (offline: a fresh machine has downloaded only the packages
+/// this platform builds, and other platforms' do not run here).
 fn metadata() -> Value {
     let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
     let out = Command::new(cargo)
         .current_dir(repo_root())
         .args(["metadata", "--format-version", "1", "--offline", "--locked"])
+        .args(["--filter-platform", &host_triple()])
         .output()
         .expect("cargo runs");
     assert!(

@@ -117,9 +117,9 @@ struct StepSample {
 }
 
 impl Trace {
-    fn push(
+    fn push<D: twin_recording::record::Deferred>(
         &mut self,
-        rec: &mut twin_recording::record::Recorder,
+        rec: &mut twin_recording::record::Recorder<D>,
         t: f64,
         s: StepSample,
     ) -> Result<()> {

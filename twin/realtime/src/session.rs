@@ -26,7 +26,7 @@ use super::io::{SerialSettings, serial, tcp};
 use super::links::{ConnIds, accept_loop, serial_loop};
 use super::sink::{self, SinkConfig, SinkMsg, ViewOpener};
 use super::{Inbound, LatenessSummary, RtClock, RtEngine, RtSummary};
-use twin_recording::record::Recorder;
+use twin_sim::observe::SimRecorder;
 
 /// What every session is told, beside what its role is told (the role's
 /// options hold it as `session`).
@@ -297,10 +297,9 @@ pub fn create_recording(
     path: Option<&Path>,
     kind: &str,
     mut fields: BTreeMap<String, String>,
-) -> Result<Option<Recorder>> {
+) -> Result<Option<SimRecorder>> {
     let Some(path) = path else { return Ok(None) };
-    let mut recorder =
-        Recorder::create_with_level(path, twin_recording::record::REALTIME_ZSTD_LEVEL)?;
+    let mut recorder = SimRecorder::create_inline(path)?;
     fields.insert("kind".into(), kind.into());
     fields.insert("twin_version".into(), env!("CARGO_PKG_VERSION").into());
     recorder.write_metadata(twin_recording::topics::RUN_METADATA, fields)?;

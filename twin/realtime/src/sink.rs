@@ -19,9 +19,8 @@ use std::time::Duration;
 pub use super::frame_log::{Direction, FrameBatch};
 use super::lateness::LatenessSummary;
 use twin_recording::describe::link_frame_fields;
-use twin_recording::record::Recorder;
 use twin_recording::topics;
-use twin_sim::observe::{LazyChannel, McapObserver};
+use twin_sim::observe::{LazyChannel, McapObserver, SimRecorder};
 
 /// How often the sink drains its queue (console lines and recording may lag
 /// by this much; the engine never waits for them).
@@ -78,7 +77,7 @@ pub struct SinkConfig {
     pub links: Vec<(String, &'static str)>,
     /// Print every frame.
     pub monitor: bool,
-    pub recorder: Option<Recorder>,
+    pub recorder: Option<SimRecorder>,
     /// A live view, fed what is recorded (`--view`).
     pub view: Option<Box<dyn LiveView>>,
 }
@@ -339,11 +338,14 @@ impl FrameSink {
                         });
                 }
                 Direction::Tx => {
-                    let after = state.last_request.map_or(String::new(), |r| {
-                        let ms = record.end.saturating_since(r).as_secs_f64() * 1e3;
-                        format!("  (+{ms:.3} ms)")
-                    });
-                    let after = if config.monitor { after } else { String::new() };
+                    // Only the monitor shows it: not formatted for the recording.
+                    let after = match state.last_request.filter(|_| config.monitor) {
+                        Some(r) => {
+                            let ms = record.end.saturating_since(r).as_secs_f64() * 1e3;
+                            format!("  (+{ms:.3} ms)")
+                        }
+                        None => String::new(),
+                    };
                     show(record.start, record.end, bytes, "twin", &after);
                 }
             }

@@ -263,7 +263,10 @@ mod tests {
             "{broken}"
         );
         let meb = fields("meb", b"@01EA0006FF*\n");
-        assert_eq!(meb, serde_json::to_string(&decode_frame(b"@01EA0006FF*\n")).unwrap());
+        assert_eq!(
+            meb,
+            serde_json::to_string(&decode_frame(b"@01EA0006FF*\n")).unwrap()
+        );
         assert_eq!(
             decode_link_frame("modbus-tcp", &tcp)["transaction"],
             json!(7)

@@ -18,6 +18,7 @@ pub mod read;
 pub mod record;
 pub mod signals;
 pub mod topics;
+mod writer;
 
 pub use read::{Channel, Cut, Event, Frame, Item, Message, Reader, Recording};
 pub use record::Recorder;

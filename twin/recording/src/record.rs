@@ -6,26 +6,25 @@
 //! [`crate::topics`].
 
 use anyhow::{Context, Result};
-use mcap::{Compression, WriteOptions, Writer, records::MessageHeader};
+use mcap::{Compression, WriteOptions};
 use serde::Serialize;
 use serde_json::{Map, Value, json};
 use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
-use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
-use std::thread::JoinHandle;
 
 use crate::topics;
+use crate::writer::{Appender, Backend, Batch, FileWriter, Job, Queued};
+pub use crate::writer::{Deferred, NoDeferred};
 
-/// How the recording is compressed: zstd at a fixed level, on the calling
-/// thread. A worker pool would make the bytes depend on the machine's core
-/// count and would hide the compression's cost from `twin bench`.
-const ZSTD_LEVEL: u32 = 3;
-/// The level of real-time sessions' recordings, which nobody compares byte
-/// for byte: level 1 costs the sink thread about half of level 3's time
-/// while a server is under load, for files a little larger.
-pub const REALTIME_ZSTD_LEVEL: u32 = 1;
+/// How the recording is compressed: zstd level 1, one stream per chunk on the
+/// writer thread. On the twin's recordings (JSON, most of it floating-point
+/// digits, closed every simulated second) level 1 is both faster and smaller
+/// than level 3: ev-meb 548 kB against 594 kB for 10 s, ten-modules 4.07 MB
+/// against 4.65 MB. zstd's own worker threads stay off: the writer is the
+/// one thread.
+const ZSTD_LEVEL: u32 = 1;
 /// Uncompressed bytes per chunk (the MCAP library's default, set explicitly so
 /// that a library upgrade cannot change the file layout).
 const CHUNK_SIZE: u64 = 1024 * 1024;
@@ -35,19 +34,27 @@ const CHUNK_SIZE: u64 = 1024 * 1024;
 /// chunk boundaries, like every other byte, depend only on the run.
 const FLUSH_EVERY_NS: u64 = 1_000_000_000;
 
-/// An open recording. Messages are serialised on the caller's thread into
-/// batches; a thread of the recording's own frames them into chunks,
-/// compresses and writes them, in the order they were given, so the bytes are
-/// those one thread would write (the chunk boundaries come from the messages'
-/// simulated times and sizes, never from timing).
-pub struct Recorder {
+/// An open recording. Messages are serialised into batches, which the MCAP
+/// writer frames into chunks, compresses and writes, in the order they were
+/// given: on the caller's thread ([`Recorder::create`], what a session's sink
+/// thread uses) or on a thread of the recording's own
+/// ([`Recorder::create_threaded`], what a virtual run uses, so that the
+/// engine never waits for zstd). Either way the bytes are the same: the chunk
+/// boundaries come from the messages' simulated times and sizes, never from
+/// timing.
+///
+/// `D` is a message type the writer serialises itself
+/// ([`Recorder::write_deferred`]): a run's plant samples, most of its bytes,
+/// cost a threaded recording's caller a copy instead of their JSON.
+pub struct Recorder<D: Deferred = NoDeferred> {
     path: PathBuf,
     /// Per channel, in creation order: its next sequence number.
     sequences: Vec<u32>,
     topics: BTreeMap<String, ChannelId>,
     /// Messages serialised since the last hand-over.
-    batch: Batch,
-    writer: Option<WriterThread>,
+    batch: Batch<D>,
+    /// `None` once finished or failed.
+    backend: Option<Backend<D>>,
     /// Simulated time (ns) at or after which the next message first flushes.
     next_flush_ns: u64,
 }
@@ -56,55 +63,7 @@ pub struct Recorder {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ChannelId(usize);
 
-/// Messages handed to the writer thread at once: their bytes back to back.
-#[derive(Debug, Default)]
-struct Batch {
-    bytes: Vec<u8>,
-    messages: Vec<Queued>,
-}
-
-/// One message of a batch.
-#[derive(Debug, Clone, Copy)]
-struct Queued {
-    channel: usize,
-    sequence: u32,
-    time_ns: u64,
-    /// Where its bytes end in [`Batch::bytes`] (they start where the
-    /// previous message's end).
-    end: usize,
-    /// Close the open chunk before this message (a simulated second began).
-    flush_before: bool,
-}
-
-/// A batch is handed over at this size: large enough that the hand-over
-/// costs nothing per message, small enough to stay in cache.
-const BATCH_BYTES: usize = 256 * 1024;
-/// Batches in flight: the caller waits when the writer is this far behind,
-/// so a run faster than its compression cannot fill memory.
-const BATCHES_IN_FLIGHT: usize = 4;
-
-/// What the caller asks the writer thread, in order.
-enum Job {
-    Channel {
-        topic: String,
-        schema_name: String,
-        schema: Vec<u8>,
-    },
-    Messages(Batch),
-    Metadata(mcap::records::Metadata),
-    /// Close the open chunk, then say so.
-    Flush(SyncSender<()>),
-}
-
-/// The writer thread and the way to it.
-struct WriterThread {
-    jobs: SyncSender<Job>,
-    /// Batches written, handed back for reuse.
-    spent: Receiver<Batch>,
-    handle: JoinHandle<Result<()>>,
-}
-
-impl std::fmt::Debug for Recorder {
+impl<D: Deferred> std::fmt::Debug for Recorder<D> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Recorder")
             .field("path", &self.path)
@@ -134,48 +93,36 @@ pub fn schema_of(sample: &Value) -> Value {
 }
 
 impl Recorder {
-    /// Create `path` (and its parent folders).
+    /// Create `path` (and its parent folders), written on the caller's thread.
     pub fn create(path: &Path) -> Result<Self> {
-        Self::create_with_level(path, ZSTD_LEVEL)
+        Self::create_inline(path)
+    }
+}
+
+impl<D: Deferred> Recorder<D> {
+    /// Create `path` (and its parent folders), written on the caller's
+    /// thread: for a caller that is itself off the critical path (a
+    /// session's sink), where a second thread would only add the hand-over.
+    pub fn create_inline(path: &Path) -> Result<Self> {
+        let writer = open(path)?;
+        Ok(Self::with_backend(path, Backend::inline(writer)))
     }
 
-    /// Create `path` (and its parent folders), compressed at zstd `level`.
-    pub fn create_with_level(path: &Path, level: u32) -> Result<Self> {
-        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir)
-                .with_context(|| format!("cannot create folder {}", dir.display()))?;
-        }
-        let file =
-            File::create(path).with_context(|| format!("cannot create {}", path.display()))?;
-        let options = WriteOptions::new()
-            .compression(Some(Compression::Zstd))
-            .compression_level(level)
-            .compression_threads(0)
-            .chunk_size(Some(CHUNK_SIZE))
-            .profile("")
-            .library(concat!("ev-lab-twin ", env!("CARGO_PKG_VERSION")));
-        let writer = options
-            .create(BufWriter::new(file))
-            .with_context(|| format!("cannot start MCAP file {}", path.display()))?;
-        let (jobs, queue) = sync_channel(BATCHES_IN_FLIGHT);
-        let (give_back, spent) = sync_channel(BATCHES_IN_FLIGHT + 1);
-        let shown = path.display().to_string();
-        let handle = std::thread::Builder::new()
-            .name("twin-recorder".into())
-            .spawn(move || write_jobs(writer, &queue, &give_back, &shown))
-            .context("cannot start the recording's writer thread")?;
-        Ok(Self {
+    /// Create `path` (and its parent folders), written by a thread of its own.
+    pub fn create_threaded(path: &Path) -> Result<Self> {
+        let writer = open(path)?;
+        Ok(Self::with_backend(path, Backend::threaded(writer)?))
+    }
+
+    fn with_backend(path: &Path, backend: Backend<D>) -> Self {
+        Self {
             path: path.to_path_buf(),
             sequences: Vec::new(),
             topics: BTreeMap::new(),
-            batch: Batch::default(),
-            writer: Some(WriterThread {
-                jobs,
-                spent,
-                handle,
-            }),
+            batch: Batch::new(backend.batch_bytes()),
+            backend: Some(backend),
             next_flush_ns: FLUSH_EVERY_NS,
-        })
+        }
     }
 
     /// Add a channel whose messages look like `sample`.
@@ -183,7 +130,7 @@ impl Recorder {
         let schema = serde_json::to_vec(&schema_of(&serde_json::to_value(sample)?))?;
         // The channel's messages must not reach the writer before it does.
         self.hand_over()?;
-        self.send(Job::Channel {
+        self.submit(Job::Channel {
             topic: topic.to_string(),
             schema_name: topics::schema_name(topic),
             schema,
@@ -219,14 +166,39 @@ impl Recorder {
         time_s: f64,
         message: &T,
     ) -> Result<()> {
-        let Some(sequence) = self.sequences.get_mut(channel.0) else {
-            anyhow::bail!("no channel {} in the recording", channel.0);
-        };
+        self.check(channel)?;
         let start = self.batch.bytes.len();
-        if let Err(e) = serde_json::to_writer(&mut self.batch.bytes, message) {
+        if let Err(e) = serde_json::to_writer(Appender(&mut self.batch.bytes), message) {
             self.batch.bytes.truncate(start);
             return Err(e.into());
         }
+        let end = self.batch.bytes.len();
+        self.queue(channel, time_s, end, false)
+    }
+
+    /// Write `message` to `channel` at simulated time `time_s`, serialised
+    /// by the writer (the same bytes as [`Recorder::write_to`]).
+    pub fn write_deferred(&mut self, channel: ChannelId, time_s: f64, message: D) -> Result<()> {
+        self.check(channel)?;
+        let index = self.batch.deferred.len();
+        self.batch.deferred.push(message);
+        self.queue(channel, time_s, index, true)
+    }
+
+    fn check(&self, channel: ChannelId) -> Result<()> {
+        if channel.0 < self.sequences.len() {
+            Ok(())
+        } else {
+            anyhow::bail!("no channel {} in the recording", channel.0)
+        }
+    }
+
+    /// Queue the message just added to the batch.
+    fn queue(&mut self, channel: ChannelId, time_s: f64, end: usize, deferred: bool) -> Result<()> {
+        // Checked by the callers before they add to the batch.
+        let Some(sequence) = self.sequences.get_mut(channel.0) else {
+            anyhow::bail!("no channel {} in the recording", channel.0);
+        };
         let time_ns = (time_s * 1e9).round() as u64;
         let flush_before = time_ns >= self.next_flush_ns;
         if flush_before {
@@ -236,11 +208,12 @@ impl Recorder {
             channel: channel.0,
             sequence: *sequence,
             time_ns,
-            end: self.batch.bytes.len(),
+            end,
+            deferred,
             flush_before,
         });
         *sequence += 1;
-        if self.batch.bytes.len() >= BATCH_BYTES {
+        if self.batch.is_full() {
             self.hand_over()?;
         }
         Ok(())
@@ -249,7 +222,7 @@ impl Recorder {
     /// Store the run's identity: key/value pairs under `name`.
     pub fn write_metadata(&mut self, name: &str, fields: BTreeMap<String, String>) -> Result<()> {
         self.hand_over()?;
-        self.send(Job::Metadata(mcap::records::Metadata {
+        self.submit(Job::Metadata(mcap::records::Metadata {
             name: name.into(),
             metadata: fields,
         }))
@@ -260,146 +233,91 @@ impl Recorder {
     /// Returns once the writer has written it.
     pub fn flush(&mut self) -> Result<()> {
         self.hand_over()?;
-        let (done, written) = sync_channel(1);
-        self.send(Job::Flush(done))?;
-        if written.recv().is_err() {
-            return Err(self.writer_failed());
-        }
-        Ok(())
+        let flushed = match &mut self.backend {
+            Some(backend) => backend.flush(),
+            None => return Err(self.closed()),
+        };
+        flushed.map_err(|e| self.fail(e))
     }
 
     /// Finish the file (summary, indexes) and return its path.
     pub fn finish(mut self) -> Result<PathBuf> {
         self.hand_over()?;
-        if let Some(writer) = self.writer.take() {
-            drop(writer.jobs);
-            join(writer.handle)?;
+        match self.backend.take() {
+            Some(backend) => backend.finish()?,
+            None => return Err(self.closed()),
         }
         Ok(std::mem::take(&mut self.path))
     }
 
-    /// Hand the messages serialised so far to the writer thread.
+    /// Hand the messages serialised so far to the writer.
     fn hand_over(&mut self) -> Result<()> {
         if self.batch.messages.is_empty() {
             return Ok(());
         }
-        let fresh = match &self.writer {
-            Some(w) => w.spent.try_recv().unwrap_or_default(),
-            None => Batch::default(),
-        };
-        let full = std::mem::replace(&mut self.batch, fresh);
-        self.send(Job::Messages(full))
+        let full = std::mem::replace(&mut self.batch, Batch::empty());
+        self.submit(Job::Messages(full))
     }
 
-    fn send(&mut self, job: Job) -> Result<()> {
-        let sent = match &self.writer {
-            Some(w) => w.jobs.send(job).is_ok(),
-            None => false,
+    fn submit(&mut self, job: Job<D>) -> Result<()> {
+        let Some(backend) = &mut self.backend else {
+            return Err(self.closed());
         };
-        if sent {
-            Ok(())
-        } else {
-            Err(self.writer_failed())
-        }
-    }
-
-    /// The writer thread's error, once it has stopped on one.
-    fn writer_failed(&mut self) -> anyhow::Error {
-        match self.writer.take() {
-            Some(w) => {
-                drop(w.jobs);
-                match join(w.handle) {
-                    Err(e) => e,
-                    Ok(()) => anyhow::anyhow!("the writer of {} stopped", self.path.display()),
+        match backend.submit(job) {
+            Ok(spent) => {
+                if self.batch.messages.is_empty() && self.batch.bytes.capacity() == 0 {
+                    self.batch = spent.unwrap_or_else(|| Batch::new(backend.batch_bytes()));
                 }
+                Ok(())
             }
-            None => anyhow::anyhow!("the recording {} is closed", self.path.display()),
+            Err(e) => Err(self.fail(e)),
         }
+    }
+
+    /// Close the writer after `e`: a writer thread's own error, if it
+    /// stopped on one, says more than the hand-over's.
+    fn fail(&mut self, e: anyhow::Error) -> anyhow::Error {
+        match self.backend.take().map(Backend::finish) {
+            Some(Err(cause)) => cause,
+            _ => e,
+        }
+    }
+
+    fn closed(&self) -> anyhow::Error {
+        anyhow::anyhow!(
+            "the recording {} stopped after an earlier error",
+            self.path.display()
+        )
     }
 }
 
 /// A recording dropped unfinished is finished as the MCAP library does on
 /// drop (summary and all), and is complete on disk when the drop returns.
-impl Drop for Recorder {
+impl<D: Deferred> Drop for Recorder<D> {
     fn drop(&mut self) {
         let _ = self.hand_over();
-        if let Some(writer) = self.writer.take() {
-            drop(writer.jobs);
-            let _ = writer.handle.join();
+        if let Some(backend) = self.backend.take() {
+            let _ = backend.finish();
         }
     }
 }
 
-fn join(handle: JoinHandle<Result<()>>) -> Result<()> {
-    handle
-        .join()
-        .unwrap_or_else(|_| Err(anyhow::anyhow!("the recording's writer thread failed")))
-}
-
-/// The writer thread: every job in order, then the file's summary.
-fn write_jobs(
-    mut writer: Writer<BufWriter<File>>,
-    jobs: &Receiver<Job>,
-    give_back: &SyncSender<Batch>,
-    shown: &str,
-) -> Result<()> {
-    let cannot_write = || format!("cannot write {shown}");
-    // MCAP ids of the channels, by creation order.
-    let mut ids: Vec<u16> = Vec::new();
-    while let Ok(job) = jobs.recv() {
-        match job {
-            Job::Channel {
-                topic,
-                schema_name,
-                schema,
-            } => {
-                let schema_id = writer
-                    .add_schema(&schema_name, topics::SCHEMA_ENCODING, &schema)
-                    .with_context(cannot_write)?;
-                let id = writer
-                    .add_channel(
-                        schema_id,
-                        &topic,
-                        topics::MESSAGE_ENCODING,
-                        &BTreeMap::new(),
-                    )
-                    .with_context(cannot_write)?;
-                ids.push(id);
-            }
-            Job::Messages(mut batch) => {
-                let mut start = 0;
-                for m in &batch.messages {
-                    if m.flush_before {
-                        writer.flush().with_context(cannot_write)?;
-                    }
-                    let header = MessageHeader {
-                        channel_id: ids.get(m.channel).copied().unwrap_or_default(),
-                        sequence: m.sequence,
-                        log_time: m.time_ns,
-                        publish_time: m.time_ns,
-                    };
-                    let data = batch.bytes.get(start..m.end).unwrap_or_default();
-                    writer
-                        .write_to_known_channel(&header, data)
-                        .with_context(cannot_write)?;
-                    start = m.end;
-                }
-                batch.bytes.clear();
-                batch.messages.clear();
-                // Kept for reuse if the caller has room for it.
-                let _ = give_back.try_send(batch);
-            }
-            Job::Metadata(metadata) => {
-                writer.write_metadata(&metadata).with_context(cannot_write)?;
-            }
-            Job::Flush(done) => {
-                writer.flush().with_context(cannot_write)?;
-                let _ = done.send(());
-            }
-        }
+/// The MCAP writer of a new file at `path`.
+fn open(path: &Path) -> Result<FileWriter> {
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir)
+            .with_context(|| format!("cannot create folder {}", dir.display()))?;
     }
-    writer
-        .finish()
-        .with_context(|| format!("cannot finish {shown}"))?;
-    Ok(())
+    let file = File::create(path).with_context(|| format!("cannot create {}", path.display()))?;
+    let options = WriteOptions::new()
+        .compression(Some(Compression::Zstd))
+        .compression_level(ZSTD_LEVEL)
+        .compression_threads(0)
+        .chunk_size(Some(CHUNK_SIZE))
+        .profile("")
+        .library(concat!("ev-lab-twin ", env!("CARGO_PKG_VERSION")));
+    let writer = options
+        .create(BufWriter::new(file))
+        .with_context(|| format!("cannot start MCAP file {}", path.display()))?;
+    Ok(FileWriter::new(writer, path.display().to_string()))
 }

@@ -18,6 +18,10 @@ use std::collections::{BTreeMap, VecDeque};
 use crate::engine::{BusSlot, ModuleSlot, NodeSlot, Observer};
 use twin_recording::describe::decode_frame;
 use twin_recording::record::{ChannelId, Recorder};
+
+/// The recording of a run or session: plant samples, most of its bytes, are
+/// serialised by the recording's writer thread, off the engine's.
+pub type SimRecorder = Recorder<plant::Sensors>;
 use twin_recording::topics;
 
 /// How many log lines the end-of-run summary shows.
@@ -26,7 +30,7 @@ const LOG_TAIL: usize = 12;
 /// Writes a run to MCAP; topics are created on first use.
 #[derive(Debug)]
 pub struct McapObserver {
-    pub recorder: Recorder,
+    pub recorder: SimRecorder,
     pub frames: u64,
     pub events: BTreeMap<String, u64>,
     /// The last lines the nodes logged (kind `log`), for the summary.
@@ -64,21 +68,35 @@ impl LazyChannel {
     /// Write `message` at `time`, making the channel on first use.
     pub fn write<T: Serialize>(
         &mut self,
-        recorder: &mut Recorder,
+        recorder: &mut SimRecorder,
         time: SimTime,
         message: &T,
     ) -> Result<()> {
-        let id = match self.id {
-            Some(id) => id,
-            None => {
-                let id = match recorder.channel(&self.topic) {
-                    Some(id) => id,
-                    None => recorder.add_channel(&self.topic, message)?,
-                };
-                *self.id.insert(id)
-            }
-        };
+        let id = self.id(recorder, message)?;
         recorder.write_to(id, time.as_secs_f64(), message)
+    }
+
+    /// Write a plant sample at `time`, serialised by the writer thread.
+    pub fn write_sensors(
+        &mut self,
+        recorder: &mut SimRecorder,
+        time: SimTime,
+        sensors: &plant::Sensors,
+    ) -> Result<()> {
+        let id = self.id(recorder, sensors)?;
+        recorder.write_deferred(id, time.as_secs_f64(), *sensors)
+    }
+
+    /// The channel's id, made from `sample` on first use.
+    fn id<T: Serialize>(&mut self, recorder: &mut SimRecorder, sample: &T) -> Result<ChannelId> {
+        if let Some(id) = self.id {
+            return Ok(id);
+        }
+        let id = match recorder.channel(&self.topic) {
+            Some(id) => id,
+            None => recorder.add_channel(&self.topic, sample)?,
+        };
+        Ok(*self.id.insert(id))
     }
 }
 
@@ -121,7 +139,7 @@ struct FrameMessage<'a, D> {
 }
 
 impl McapObserver {
-    pub fn new(recorder: Recorder) -> Self {
+    pub fn new(recorder: SimRecorder) -> Self {
         Self {
             recorder,
             frames: 0,
@@ -143,7 +161,7 @@ impl McapObserver {
         module: &str,
         sensors: &plant::Sensors,
     ) -> Result<()> {
-        channel_of(&mut self.sensors, module, topics::plant_sensors).write(
+        channel_of(&mut self.sensors, module, topics::plant_sensors).write_sensors(
             &mut self.recorder,
             now,
             sensors,
@@ -275,7 +293,8 @@ impl McapObserver {
             kind: event.kind,
             node,
         };
-        self.event_channel.write(&mut self.recorder, event.at, &message)
+        self.event_channel
+            .write(&mut self.recorder, event.at, &message)
     }
 }
 

@@ -10,8 +10,8 @@ use crate::engine::Engine;
 use crate::nodes_build::is_master;
 use crate::nodes_parallel::{build_medium, build_node_on, calibrated};
 use crate::observe::McapObserver;
+use crate::observe::SimRecorder;
 use crate::scenario::Scenario;
-use twin_recording::record::Recorder;
 use twin_recording::topics;
 
 /// What a run reports at the end.
@@ -143,7 +143,7 @@ pub fn run_sampled(
     out: &Path,
     progress: impl FnMut(f64),
     sample_every: Option<SimDuration>,
-    on_sample: impl FnMut(SimTime, &Engine, &mut Recorder) -> Result<()>,
+    on_sample: impl FnMut(SimTime, &Engine, &mut SimRecorder) -> Result<()>,
 ) -> Result<RunOutcome> {
     let mut discard = crate::engine::DiscardObserver;
     run_observed(
@@ -163,14 +163,14 @@ fn run_observed(
     also: &mut dyn crate::engine::Observer,
     mut progress: impl FnMut(f64),
     sample_every: Option<SimDuration>,
-    mut on_sample: impl FnMut(SimTime, &Engine, &mut Recorder) -> Result<()>,
+    mut on_sample: impl FnMut(SimTime, &Engine, &mut SimRecorder) -> Result<()>,
 ) -> Result<RunOutcome> {
     let mut engine = build(scenario)?;
     let pwm_calibrations: Vec<(String, nodes::link::PwmCalibration)> = calibrated_buses(scenario)?
         .into_iter()
         .filter_map(|(b, c)| c.map(|c| (b.name, c)))
         .collect();
-    let mut recorder = Recorder::create(out)?;
+    let mut recorder = SimRecorder::create_threaded(out)?;
     let mut identity = BTreeMap::from([
         ("kind".into(), "scenario".into()),
         ("scenario".into(), scenario.name.clone()),
