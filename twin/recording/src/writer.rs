@@ -218,7 +218,8 @@ impl FileWriter {
 
 /// Where a recorder's jobs are carried out.
 pub(crate) enum Backend<D> {
-    Inline(FileWriter),
+    /// Boxed: the MCAP writer is large beside a thread's handle.
+    Inline(Box<FileWriter>),
     Thread(WriterThread<D>),
 }
 
@@ -232,7 +233,7 @@ pub(crate) struct WriterThread<D> {
 
 impl<D: Deferred> Backend<D> {
     pub(crate) fn inline(writer: FileWriter) -> Self {
-        Backend::Inline(writer)
+        Backend::Inline(Box::new(writer))
     }
 
     pub(crate) fn threaded(writer: FileWriter) -> Result<Self> {

@@ -29,7 +29,7 @@ fn sample(i: u32) -> Sample {
         time_s: t,
         wheel_rpm: (t * 7.0).sin() * 1234.567,
         counts: (i % 4096) as u16,
-        on: i % 3 == 0,
+        on: i.is_multiple_of(3),
     }
 }
 
@@ -56,7 +56,7 @@ fn write(path: &Path, threaded: bool, deferred: bool) {
         } else {
             rec.write_to(sensors, t, &sample(i)).unwrap();
         }
-        if i % 10 == 0 {
+        if i.is_multiple_of(10) {
             let frame = json!({"from": "master", "hex": format!("{i:04x}")});
             let channel = match frames {
                 Some(c) => c,
