@@ -3,7 +3,41 @@
 //! allocation and no channel send per frame on the request path.
 
 use nodes::time::SimTime;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::mpsc::{Receiver, Sender, channel};
+
+/// Frames handed to the sink and not yet recorded, shared by the log that
+/// ships them and the batches that carry them. The connections stop reading
+/// while it is above [`Backlog::LIMIT`], so a session whose recording falls
+/// behind (the sink runs at a lower priority, and gets little of a saturated
+/// machine) slows its clients down instead of queueing without bound.
+#[derive(Debug, Clone, Default)]
+pub struct Backlog(Arc<AtomicUsize>);
+
+impl Backlog {
+    /// About a third of a second of eight clients' frames at full speed, a
+    /// few MB of queue.
+    pub const LIMIT: usize = 64 * 1024;
+
+    /// Frames shipped and not recorded yet.
+    pub fn frames(&self) -> usize {
+        self.0.load(Ordering::Relaxed)
+    }
+
+    /// Whether a connection should wait before it reads more.
+    pub fn is_full(&self) -> bool {
+        self.frames() > Self::LIMIT
+    }
+
+    fn add(&self, n: usize) {
+        self.0.fetch_add(n, Ordering::Relaxed);
+    }
+
+    fn sub(&self, n: usize) {
+        self.0.fetch_sub(n, Ordering::Relaxed);
+    }
+}
 
 /// A connection's id, unique for the session.
 pub type ConnId = u64;
@@ -86,6 +120,16 @@ pub struct FrameBatch {
     frames: PackedFrames,
     records: Vec<FrameRecord>,
     home: Option<Sender<FrameBatch>>,
+    /// Where its frames are counted until it is recycled or dropped.
+    counted: Option<(Backlog, usize)>,
+}
+
+impl Drop for FrameBatch {
+    fn drop(&mut self) {
+        if let Some((backlog, n)) = self.counted.take() {
+            backlog.sub(n);
+        }
+    }
 }
 
 impl FrameBatch {
@@ -105,6 +149,9 @@ impl FrameBatch {
 
     /// Empties the batch and sends it back to the log it came from.
     pub fn recycle(mut self) {
+        if let Some((backlog, n)) = self.counted.take() {
+            backlog.sub(n);
+        }
         self.frames.clear();
         self.records.clear();
         if let Some(home) = self.home.take() {
@@ -119,6 +166,7 @@ pub struct FrameLog {
     filling: FrameBatch,
     spares: Receiver<FrameBatch>,
     home: Sender<FrameBatch>,
+    backlog: Backlog,
 }
 
 impl Default for FrameLog {
@@ -128,6 +176,7 @@ impl Default for FrameLog {
             filling: FrameBatch::default(),
             spares,
             home,
+            backlog: Backlog::default(),
         }
     }
 }
@@ -139,6 +188,11 @@ impl FrameLog {
 
     /// The frames logged so far (none if there are none), replaced by an
     /// emptied batch when one has come back.
+    /// The count of this log's frames not yet recorded.
+    pub fn backlog(&self) -> Backlog {
+        self.backlog.clone()
+    }
+
     pub fn take(&mut self) -> Option<FrameBatch> {
         if self.filling.is_empty() {
             return None;
@@ -146,6 +200,8 @@ impl FrameLog {
         let next = self.spares.try_recv().unwrap_or_default();
         let mut batch = std::mem::replace(&mut self.filling, next);
         batch.home = Some(self.home.clone());
+        self.backlog.add(batch.records.len());
+        batch.counted = Some((self.backlog.clone(), batch.records.len()));
         Some(batch)
     }
 }
@@ -211,5 +267,37 @@ mod tests {
             capacity,
             "the buffer was reused"
         );
+    }
+
+    #[test]
+    fn the_backlog_counts_frames_until_recorded_or_dropped() {
+        let mut log = FrameLog::default();
+        let backlog = log.backlog();
+        let record = FrameRecord {
+            link: 0,
+            conn: 1,
+            direction: Direction::Rx,
+            start: SimTime::ZERO,
+            end: SimTime::ZERO,
+        };
+        log.push(record, b"a");
+        log.push(record, b"b");
+        let first = log.take().unwrap();
+        log.push(record, b"c");
+        let second = log.take().unwrap();
+        assert_eq!(backlog.frames(), 3);
+        first.recycle();
+        assert_eq!(backlog.frames(), 1);
+        // A batch the sink never took (it stopped) is uncounted when dropped.
+        drop(second);
+        assert_eq!(backlog.frames(), 0);
+        assert!(!backlog.is_full());
+        for _ in 0..=Backlog::LIMIT {
+            log.push(record, b"");
+        }
+        let big = log.take().unwrap();
+        assert!(backlog.is_full());
+        big.recycle();
+        assert!(!backlog.is_full());
     }
 }

@@ -29,8 +29,8 @@ use super::clock::RtClock;
 use super::config::{LinkConfig, LinkFault};
 use super::device::Device;
 use super::endpoint::Endpoint;
+use super::frame_log::{Backlog, Direction, FrameLog, FrameRecord};
 use super::frame_log::{ConnId, Outgoing};
-use super::frame_log::{Direction, FrameLog, FrameRecord};
 use super::sink::SinkMsg;
 use super::wake::Wake;
 use tokio::sync::mpsc::UnboundedSender;
@@ -185,6 +185,11 @@ impl FrontHandle {
     /// Adds the frames the engine's timers made due on `conn` to `out`.
     pub fn take_due(&self, conn: ConnId, out: &mut Outgoing) -> After {
         self.lock().take_due(conn, out)
+    }
+
+    /// The count of frames shipped to the sink and not yet recorded.
+    pub fn backlog(&self) -> Backlog {
+        self.lock().frames.backlog()
     }
 }
 

@@ -37,6 +37,9 @@ use super::wake::{ThreadWake, Wake};
 /// any frame, so a frame rarely splits.
 pub(super) const READ_CHUNK: usize = 4096;
 
+/// How long a connection waits before it looks at the sink's backlog again.
+const BACKLOG_WAIT: Duration = Duration::from_millis(1);
+
 /// A client that has not taken a reply for this long is dropped, so that
 /// the thread does not wait on it forever.
 pub const WRITE_STALL: Duration = Duration::from_secs(10);
@@ -128,7 +131,13 @@ impl Carrier {
     ) -> Ending {
         let mut buf = vec![0u8; READ_CHUNK];
         let mut after = After::Idle;
+        let backlog = front.backlog();
         loop {
+            // The recording is behind: let the sink catch up before reading
+            // more, so that its queue stays bounded and keeps every frame.
+            while backlog.is_full() {
+                std::thread::sleep(BACKLOG_WAIT);
+            }
             if after.listens() {
                 match self.wait() {
                     Ok(true) => {}
