@@ -18,11 +18,12 @@ use std::collections::{BTreeMap, VecDeque};
 use crate::engine::{BusSlot, ModuleSlot, NodeSlot, Observer};
 use twin_recording::describe::decode_frame;
 use twin_recording::record::{ChannelId, Recorder};
-
-/// The recording of a run or session: plant samples, most of its bytes, are
-/// serialised by the recording's writer thread, off the engine's.
-pub type SimRecorder = Recorder<plant::Sensors>;
 use twin_recording::topics;
+
+/// The recording of a run or session. Its plant samples, most of its bytes,
+/// are handed over as values and serialised by the writer (a virtual run's
+/// writer thread, off the engine's).
+pub type SimRecorder = Recorder<plant::Sensors>;
 
 /// How many log lines the end-of-run summary shows.
 const LOG_TAIL: usize = 12;
