@@ -16,9 +16,11 @@ use std::sync::mpsc::{Receiver, Sender, channel};
 pub struct Backlog(Arc<AtomicUsize>);
 
 impl Backlog {
-    /// About a third of a second of eight clients' frames at full speed, a
-    /// few MB of queue.
-    pub const LIMIT: usize = 64 * 1024;
+    /// About 60 MB of queue (a frame waits as its bytes and a 40-byte
+    /// record): several seconds of eight clients at full speed, so a burst
+    /// goes through at the links' rate and only a recording that stays
+    /// behind holds the clients back.
+    pub const LIMIT: usize = 1024 * 1024;
 
     /// Frames shipped and not recorded yet.
     pub fn frames(&self) -> usize {
