@@ -167,9 +167,14 @@ impl FrameBatch {
 pub struct FrameLog {
     filling: FrameBatch,
     spares: Receiver<FrameBatch>,
+    /// Emptied batches kept for reuse, at most [`SPARES_KEPT`].
+    pool: Vec<FrameBatch>,
     home: Sender<FrameBatch>,
     backlog: Backlog,
 }
+
+/// Emptied batches a log keeps: a steady session has two or three out.
+const SPARES_KEPT: usize = 8;
 
 impl Default for FrameLog {
     fn default() -> Self {
@@ -177,6 +182,7 @@ impl Default for FrameLog {
         Self {
             filling: FrameBatch::default(),
             spares,
+            pool: Vec::new(),
             home,
             backlog: Backlog::default(),
         }
@@ -199,7 +205,14 @@ impl FrameLog {
         if self.filling.is_empty() {
             return None;
         }
-        let next = self.spares.try_recv().unwrap_or_default();
+        // After a backlog, more batches come back than the log fills again
+        // soon: keep a few, free the rest (they would hold their memory).
+        while let Ok(spare) = self.spares.try_recv() {
+            if self.pool.len() < SPARES_KEPT {
+                self.pool.push(spare);
+            }
+        }
+        let next = self.pool.pop().unwrap_or_default();
         let mut batch = std::mem::replace(&mut self.filling, next);
         batch.home = Some(self.home.clone());
         self.backlog.add(batch.records.len());
