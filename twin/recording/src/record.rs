@@ -18,12 +18,11 @@ use crate::topics;
 use crate::writer::{Appender, Backend, Batch, FileWriter, Job, Queued};
 pub use crate::writer::{Deferred, NoDeferred};
 
-/// How the recording is compressed: zstd level 1, one stream per chunk on the
-/// writer thread. On the twin's recordings (JSON, most of it floating-point
+/// How the recording is compressed: zstd level 1, one stream per chunk, by
+/// the writer (see [`Recorder`] for which thread that is). On the twin's recordings (JSON, most of it floating-point
 /// digits, closed every simulated second) level 1 is both faster and smaller
 /// than level 3: ev-meb 548 kB against 594 kB for 10 s, ten-modules 4.07 MB
-/// against 4.65 MB. zstd's own worker threads stay off: the writer is the
-/// one thread.
+/// against 4.65 MB. zstd's own worker threads stay off: one writer compresses.
 const ZSTD_LEVEL: u32 = 1;
 /// Uncompressed bytes per chunk (the MCAP library's default, set explicitly so
 /// that a library upgrade cannot change the file layout).
