@@ -225,6 +225,7 @@ impl<D: Deferred> Recorder<D> {
             name: name.into(),
             metadata: fields,
         }))
+        .map(drop)
     }
 
     /// Close the open chunk and write it out, so that a crash loses at most
@@ -255,22 +256,18 @@ impl<D: Deferred> Recorder<D> {
             return Ok(());
         }
         let full = std::mem::replace(&mut self.batch, Batch::empty());
-        self.submit(Job::Messages(full))
+        let spent = self.submit(Job::Messages(full))?;
+        let limit = self.backend.as_ref().map_or(0, Backend::batch_bytes);
+        self.batch = spent.unwrap_or_else(|| Batch::new(limit));
+        Ok(())
     }
 
-    fn submit(&mut self, job: Job<D>) -> Result<()> {
+    /// Give `job` to the writer; an emptied batch may come back for reuse.
+    fn submit(&mut self, job: Job<D>) -> Result<Option<Batch<D>>> {
         let Some(backend) = &mut self.backend else {
             return Err(self.closed());
         };
-        match backend.submit(job) {
-            Ok(spent) => {
-                if self.batch.messages.is_empty() && self.batch.bytes.capacity() == 0 {
-                    self.batch = spent.unwrap_or_else(|| Batch::new(backend.batch_bytes()));
-                }
-                Ok(())
-            }
-            Err(e) => Err(self.fail(e)),
-        }
+        backend.submit(job).map_err(|e| self.fail(e))
     }
 
     /// Close the writer after `e`: a writer thread's own error, if it
