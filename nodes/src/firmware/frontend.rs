@@ -24,9 +24,11 @@ use super::image::{Refusal, RegisterImage};
 use super::meb_map::MebMap;
 use super::{meb_slave, modbus_slave};
 
-/// Replies held before the oldest is dropped: a client pipelining more
-/// requests than this without reading is not served in full.
-const MAX_QUEUED: usize = 16;
+/// Replies the queue is made room for at first. It holds every reply to the
+/// bytes of one call, however many requests they pipeline (a caller takes
+/// them before it feeds more bytes, so the bytes of one read bound it): no
+/// reply is ever dropped.
+const FIRST_QUEUED: usize = 16;
 /// Events kept until polled.
 const MAX_EVENTS: usize = 64;
 
@@ -74,8 +76,6 @@ pub struct FrontendStats {
     pub read_only_refusals: u64,
     /// Frames dropped for bad form or check.
     pub malformed: u64,
-    /// Replies lost because the queue was full.
-    pub replies_dropped: u64,
 }
 
 /// One link's slave front end. See the module documentation.
@@ -97,6 +97,9 @@ pub struct SlaveFrontend {
     counted_drops: u64,
     stats: FrontendStats,
     events: VecDeque<NodeEvent>,
+    /// Why the connection must close (a Modbus TCP header that cannot be
+    /// valid): nothing after it is served.
+    close: Option<String>,
 }
 
 impl SlaveFrontend {
@@ -109,7 +112,7 @@ impl SlaveFrontend {
                 Timing::Silence(silence),
             ))),
             Framing::ModbusAscii => Decoder::Ascii(Box::default()),
-            Framing::ModbusTcp => Decoder::Tcp(Box::default()),
+            Framing::ModbusTcp => Decoder::Tcp(Box::new(TcpDecoder::for_server())),
         };
         SlaveFrontend {
             framing,
@@ -119,11 +122,12 @@ impl SlaveFrontend {
             map: None,
             decoder,
             pdu: [0; MAX_PDU_LEN],
-            out: Vec::with_capacity(MAX_QUEUED * MAX_FRAME),
-            lengths: VecDeque::with_capacity(MAX_QUEUED),
+            out: Vec::with_capacity(FIRST_QUEUED * MAX_FRAME),
+            lengths: VecDeque::with_capacity(FIRST_QUEUED),
             counted_drops: 0,
             stats: FrontendStats::default(),
             events: VecDeque::with_capacity(MAX_EVENTS),
+            close: None,
         }
     }
 
@@ -157,6 +161,13 @@ impl SlaveFrontend {
     /// What it has done so far.
     pub fn stats(&self) -> &FrontendStats {
         &self.stats
+    }
+
+    /// Why the connection must be closed, once a request showed it cannot
+    /// go on (a Modbus TCP header that cannot be valid: no frame boundary
+    /// can be found after it).
+    pub fn close_request(&self) -> Option<&str> {
+        self.close.as_deref()
     }
 
     /// Bytes held for a request that is not complete yet.
@@ -195,7 +206,9 @@ impl SlaveFrontend {
     /// Bytes that arrived at `now`: serve every complete request from `image`.
     pub fn handle_bytes(&mut self, image: &mut RegisterImage, now: SimTime, bytes: &[u8]) {
         let mut input = bytes;
-        while let Some(decoded) = self.next_request(now, &mut input) {
+        while self.close.is_none()
+            && let Some(decoded) = self.next_request(now, &mut input)
+        {
             self.serve(image, now, decoded);
         }
         self.count_drops(image);
@@ -244,9 +257,15 @@ impl SlaveFrontend {
             Decoder::Ascii(decoder) => decoder
                 .decode(input)
                 .map(|f| modbus_decoded(f.map(|f| (f.unit, f.pdu, None)), pdu)),
-            Decoder::Tcp(decoder) => decoder
-                .decode(input)
-                .map(|f| modbus_decoded(f.map(|f| (f.unit, f.pdu, Some(f.transaction_id))), pdu)),
+            Decoder::Tcp(decoder) => match decoder.decode(input)? {
+                Err(
+                    fault @ (modbus::FrameError::ProtocolId(_) | modbus::FrameError::MbapLength(_)),
+                ) => Some(Decoded::Fatal(fault)),
+                frame => Some(modbus_decoded(
+                    frame.map(|f| (f.unit, f.pdu, Some(f.transaction_id))),
+                    pdu,
+                )),
+            },
         }
     }
 
@@ -264,6 +283,14 @@ impl SlaveFrontend {
             Decoded::Bad(why) => {
                 self.event(now, "bad_check", why);
                 self.count_drops(image);
+            }
+            Decoded::Fatal(fault) => {
+                let why = format!(
+                    "Modbus TCP header that cannot be valid ({fault}): no request can be found \
+                     after it, so the connection is closed, as Modbus TCP servers do"
+                );
+                self.count_drops(image);
+                self.close = Some(why);
             }
         }
     }
@@ -305,10 +332,6 @@ impl SlaveFrontend {
 
     /// Appends a reply; `emit` writes it into the slot it is given.
     fn queue(&mut self, emit: impl FnOnce(&mut [u8]) -> Option<usize>) {
-        if self.lengths.len() >= MAX_QUEUED {
-            self.stats.replies_dropped += 1;
-            return;
-        }
         let start = self.out.len();
         self.out.resize(start + MAX_FRAME, 0);
         let len = self.out.get_mut(start..).and_then(emit);
@@ -411,6 +434,8 @@ enum Decoded {
         transaction: Option<u16>,
     },
     Bad(&'static str),
+    /// A framing fault no later frame can be found after.
+    Fatal(modbus::FrameError),
 }
 
 fn modbus_decoded(

@@ -40,6 +40,8 @@ pub struct LinkConfig {
     pub partial_timeout: Option<SimDuration>,
     /// Close a connection that sends more bytes than this in one second (TCP).
     pub rate_limit: Option<u64>,
+    /// Close a connection that has sent nothing for this long (TCP).
+    pub idle_timeout: Option<SimDuration>,
     pub factory: EndpointFactory,
 }
 

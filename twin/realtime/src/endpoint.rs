@@ -167,4 +167,8 @@ impl Endpoint for SlaveEndpoint {
     fn frontend_mut(&mut self) -> Option<&mut SlaveFrontend> {
         Some(&mut self.frontend)
     }
+
+    fn close_request(&self) -> Option<String> {
+        self.frontend.close_request().map(str::to_string)
+    }
 }

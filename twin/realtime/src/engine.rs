@@ -36,6 +36,8 @@ use twin_sim::engine::{ModuleSlot, firmware_tick};
 /// lateness p99 of 43-51 µs, 150 µs 5-347 µs, 40 µs 45-72 µs; 60 spins
 /// 6 % of a core instead of 15 %, which the links get back.
 const SPIN: SimDuration = SimDuration::from_micros(60);
+/// How often the engine looks for connections past their idle timeout.
+const IDLE_CHECK_PERIOD: SimDuration = SimDuration::from_millis(100);
 
 /// The spin: `TWIN_RT_SPIN_US` (microseconds) if set, else [`SPIN`]. A
 /// tuning knob for measuring, not an option: the default is what was kept.
@@ -75,6 +77,8 @@ pub struct RtEngine {
     status_period: SimDuration,
     next_status: SimTime,
     next_second: SimTime,
+    /// When the engine next looks for connections past their idle timeout.
+    next_idle_check: SimTime,
     sink: Sender<SinkMsg>,
     lateness: Lateness,
     window: Lateness,
@@ -107,6 +111,7 @@ impl RtEngine {
             status_period: SimDuration::from_secs(1),
             next_status: SimTime::ZERO + SimDuration::from_secs(1),
             next_second: SimTime::ZERO + SimDuration::from_secs(1),
+            next_idle_check: SimTime::ZERO,
             sink,
             lateness: Lateness::new(),
             window: Lateness::new(),
@@ -313,6 +318,14 @@ impl RtEngine {
             } => self.open(link, conn, peer, task, front),
             Inbound::Closed { conn, why } => front.lock().closed(conn, &why),
             Inbound::Command(command) => self.with_front(front, command),
+            Inbound::MakeRoom {
+                link,
+                max,
+                min_idle,
+                made,
+            } => {
+                let _ = made.send(front.lock().make_room(link, min_idle, max));
+            }
             // The loop looks at the connections' deadlines again.
             Inbound::Wake => {}
             Inbound::Stop(why) => {
@@ -359,6 +372,12 @@ impl RtEngine {
                 });
             }
             self.next_record = t + self.record_period;
+        }
+        if t >= self.next_idle_check {
+            // Not a deadline of each connection's: that would make every
+            // carrier wait on the engine's timers after each request.
+            front.lock().close_idle(t);
+            self.next_idle_check = t + IDLE_CHECK_PERIOD;
         }
         if t >= self.next_second {
             let _ = self.sink.send(SinkMsg::Lateness {
@@ -488,6 +507,14 @@ pub enum Inbound {
     Wake,
     /// Run this on the engine's thread (console commands, other front ends).
     Command(Box<dyn FnOnce(&mut RtEngine) + Send>),
+    /// Link `link` has `max` clients and a newcomer: close the one quiet
+    /// longest if it has been for `min_idle`; `made` says whether it was.
+    MakeRoom {
+        link: usize,
+        max: usize,
+        min_idle: SimDuration,
+        made: tokio::sync::oneshot::Sender<bool>,
+    },
     /// Stop the session (SIGINT, SIGTERM).
     Stop(String),
 }
@@ -498,6 +525,7 @@ impl std::fmt::Debug for Inbound {
             Inbound::Opened { link, conn, .. } => write!(f, "Opened({link}, {conn})"),
             Inbound::Closed { conn, why } => write!(f, "Closed({conn}, {why})"),
             Inbound::Command(_) => write!(f, "Command"),
+            Inbound::MakeRoom { link, .. } => write!(f, "MakeRoom({link})"),
             Inbound::Wake => write!(f, "Wake"),
             Inbound::Stop(why) => write!(f, "Stop({why})"),
         }

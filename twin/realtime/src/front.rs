@@ -44,6 +44,8 @@ pub struct RtCounters {
     pub connections: u64,
     pub closed_partial_timeout: u64,
     pub closed_rate_limit: u64,
+    pub closed_idle: u64,
+    pub closed_for_room: u64,
     pub replies_faulted: u64,
 }
 
@@ -66,6 +68,7 @@ pub(super) struct Rules {
     check: Option<nodes::link::CheckKind>,
     partial_timeout: Option<SimDuration>,
     rate_limit: Option<u64>,
+    idle_timeout: Option<SimDuration>,
 }
 
 pub(super) struct Conn {
@@ -83,6 +86,8 @@ pub(super) struct Conn {
     partial_since: Option<SimTime>,
     rate_window: SimTime,
     rate_bytes: u64,
+    /// When its last bytes came (or it opened).
+    last_rx: SimTime,
 }
 
 /// The shared state. The engine keeps its fields as its own between runs
@@ -118,14 +123,27 @@ pub enum After {
     /// whose replies wait on something else (a supervisor's, on the bus):
     /// the engine's passes, every tick, find them and wake the carrier.
     Waiting,
+    /// It owes [`OWED_MAX`] replies or more that wait for the engine's
+    /// timers (a client pipelining requests on a paced link): the carrier
+    /// reads nothing more until the engine's wake-ups have let some go, so
+    /// every request is answered, in order, and the queue stays bounded.
+    Owing,
     /// The twin closed it: a `Close` is on the carrier's channel.
     Closed,
 }
 
+/// Replies a connection may owe before its carrier stops reading.
+pub const OWED_MAX: usize = 64;
+
 impl After {
     /// Whether the carrier must listen for the engine's wake-ups.
     pub fn listens(self) -> bool {
-        matches!(self, After::Timers | After::Waiting)
+        matches!(self, After::Timers | After::Waiting | After::Owing)
+    }
+
+    /// Whether the carrier may read the connection's bytes.
+    pub fn reads(self) -> bool {
+        self != After::Owing
     }
 }
 
@@ -210,7 +228,9 @@ impl Front {
             None => After::Closed,
             Some(c) => {
                 c.due.move_to(out);
-                if c.next_deadline(devices).is_some() {
+                if c.queue.len() >= OWED_MAX {
+                    After::Owing
+                } else if c.next_deadline(devices).is_some() {
                     After::Timers
                 } else if c.endpoint.answers_later() {
                     After::Waiting
@@ -272,6 +292,7 @@ impl Front {
             check: link.check,
             partial_timeout: link.partial_timeout,
             rate_limit: link.rate_limit,
+            idle_timeout: link.idle_timeout,
         };
         self.conns.insert(
             id,
@@ -288,6 +309,7 @@ impl Front {
                 partial_since: None,
                 rate_window: now,
                 rate_bytes: 0,
+                last_rx: now,
             },
         );
         self.note(link_index, &peer, "connected");
@@ -318,11 +340,62 @@ impl Front {
         self.sink = None;
     }
 
+    /// Closes every connection that has sent nothing for its link's idle
+    /// timeout (the engine looks a few times a second).
+    pub(super) fn close_idle(&mut self, now: SimTime) {
+        let mut ids = std::mem::take(&mut self.ids);
+        ids.clear();
+        ids.extend(self.conns.iter().filter_map(|(&id, c)| {
+            let timeout = c.rules.idle_timeout?;
+            (now.saturating_since(c.last_rx) >= timeout).then_some(id)
+        }));
+        for &id in &ids {
+            self.counters.closed_idle += 1;
+            let quiet = self
+                .conns
+                .get(&id)
+                .map_or(0.0, |c| now.saturating_since(c.last_rx).as_secs_f64());
+            self.close(
+                id,
+                &format!("idle for {quiet:.1} s, longer than --idle-timeout"),
+            );
+        }
+        self.ids = ids;
+    }
+
+    /// Closes the connection on `link` that has been quiet longest, if it
+    /// has been for at least `min_idle`, to make room for a newcomer; says
+    /// whether it did.
+    pub(super) fn make_room(&mut self, link: usize, min_idle: SimDuration, max: usize) -> bool {
+        let now = self.now();
+        let quietest = self
+            .conns
+            .iter()
+            .filter(|(_, c)| c.link == link)
+            .min_by_key(|(_, c)| c.last_rx)
+            .map(|(&id, c)| (id, now.saturating_since(c.last_rx)));
+        match quietest {
+            Some((id, quiet)) if quiet >= min_idle => {
+                self.counters.closed_for_room += 1;
+                self.close(
+                    id,
+                    &format!(
+                        "idle for {:.0} s, the longest of {max} (--max-clients): made room for a new client",
+                        quiet.as_secs_f64()
+                    ),
+                );
+                true
+            }
+            _ => false,
+        }
+    }
+
     pub(super) fn receive(&mut self, id: ConnId, at: SimTime, bytes: &[u8]) {
         let Some(conn) = self.conns.get_mut(&id) else {
             return;
         };
         self.counters.bytes_in += bytes.len() as u64;
+        conn.last_rx = at;
         let record = FrameRecord {
             link: conn.link,
             conn: id,

@@ -36,6 +36,7 @@ pub mod links;
 pub mod serve;
 pub mod session;
 pub mod sink;
+pub mod slots;
 pub mod supervise;
 pub mod tcp_thread;
 pub mod vsp;

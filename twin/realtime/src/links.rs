@@ -7,9 +7,10 @@
 //! one write, whether it came from its own request or from the engine's
 //! timers (a turnaround, pacing). Nothing here knows a protocol.
 
+use std::os::fd::OwnedFd;
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::Sender;
 use std::time::Duration;
 
@@ -23,9 +24,11 @@ use super::clock::RtClock;
 use super::engine::{ConnId, Inbound, LinkTask, Outbound};
 use super::frame_log::Outgoing;
 use super::front::After;
+use super::slots::Slots;
 use super::tcp_thread::{READ_CHUNK, serve_tcp};
 use super::wake::Wake;
 use crate::io::{SerialSettings, serial};
+use nodes::time::SimDuration;
 
 /// Hands out connection ids.
 #[derive(Debug, Clone, Default)]
@@ -81,14 +84,18 @@ where
     // each (which locks the Notify's waiter list twice per request).
     let notified = ready.notified();
     tokio::pin!(notified);
+    let mut after = After::Idle;
     let why = loop {
         tokio::select! {
-            read = stream.read_chunk(&mut buf) => match read {
+            // A connection that owes many paced replies is not read until
+            // some are written (see `After::Owing`).
+            read = stream.read_chunk(&mut buf), if after.reads() => match read {
                 Ok(0) => break eof.to_string(),
                 Ok(n) => {
                     let at = clock.now();
                     let bytes = buf.get(..n).unwrap_or_default();
-                    if front.receive(conn, at, bytes, &mut due) == After::Timers
+                    after = front.receive(conn, at, bytes, &mut due);
+                    if matches!(after, After::Timers | After::Owing)
                         && engine.send(Inbound::Wake).is_err()
                     {
                         break "server stopping".into();
@@ -98,7 +105,7 @@ where
             },
             () = notified.as_mut() => {
                 notified.set(ready.notified());
-                let _ = front.take_due(conn, &mut due);
+                after = front.take_due(conn, &mut due);
             }
             message = outbox.recv() => match message {
                 Some(Outbound::Close { why, mut owed }) => {
@@ -185,27 +192,61 @@ where
     why
 }
 
-/// Accepts clients on `listener` for link `link`; refuses (closes at once)
-/// those beyond `max_clients`.
+/// By default, a full listener's newcomer may take the place of a client
+/// that has sent nothing for this long (the quietest one).
+pub const ROOM_AFTER_IDLE: Duration = Duration::from_secs(30);
+
+/// How many clients a TCP listener serves at once, and when a newcomer may
+/// take the place of a quiet one.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ClientLimit {
+    pub max: usize,
+    /// A newcomer beyond `max` takes the place of the client quiet longest
+    /// if that one has been quiet this long (`None`: never).
+    pub room_after_idle: Option<Duration>,
+}
+
+impl ClientLimit {
+    /// At most `max` clients; room made after [`ROOM_AFTER_IDLE`].
+    pub fn new(max: usize) -> Self {
+        ClientLimit {
+            max,
+            room_after_idle: Some(ROOM_AFTER_IDLE),
+        }
+    }
+}
+
+/// How long a newcomer to a full listener waits for a place to free up
+/// (a client closing, a partial frame timing out) before it is refused.
+const ROOM_WAIT: Duration = Duration::from_secs(1);
+
+/// Accepts clients on `listener` for link `link`. When `limit.max` are
+/// connected, a newcomer gets the place of a client whose peer has gone, or
+/// of the one quiet longest if it has been for `limit.room_after_idle` (the
+/// engine closes it, saying so), or waits [`ROOM_WAIT`] for a place; if
+/// none comes, it is refused (closed at once).
 pub async fn accept_loop(
     listener: TcpListener,
     link: usize,
-    max_clients: Option<usize>,
+    limit: Option<ClientLimit>,
     ids: ConnIds,
     clock: RtClock,
     engine: Sender<Inbound>,
     refused: Arc<AtomicU64>,
 ) {
-    let open = Arc::new(AtomicUsize::new(0));
+    let slots = Arc::new(Slots::default());
     loop {
         let Ok((socket, peer)) = listener.accept().await else {
             // Out of file descriptors and the like: wait and go on.
             tokio::time::sleep(Duration::from_millis(50)).await;
             continue;
         };
-        if let Some(max) = max_clients.filter(|&max| open.load(Ordering::Relaxed) >= max) {
+        if let Some(limit) = limit
+            && !room(&slots, limit, link, &engine).await
+        {
             refused.fetch_add(1, Ordering::Relaxed);
             drop(socket);
+            let max = limit.max;
             let text =
                 format!("{peer}: refused, {max} client(s) already connected (--max-clients)");
             let _ = engine.send(Inbound::Command(Box::new(move |e| {
@@ -217,21 +258,21 @@ pub async fn accept_loop(
         }
         // Replies are single small writes: send them at once.
         let _ = socket.set_nodelay(true);
-        open.fetch_add(1, Ordering::Relaxed);
         let conn = ids.next();
         // A thread per connection, in blocking reads (see `tcp_thread`).
         let carried = socket.into_std().and_then(|s| {
             s.set_nonblocking(false)?;
-            let (engine, open) = (engine.clone(), open.clone());
+            slots.take(conn, OwnedFd::from(s.try_clone()?));
+            let (engine, slots) = (engine.clone(), slots.clone());
             std::thread::Builder::new()
                 .name("twin-tcp".into())
                 .spawn(move || {
                     serve_tcp(s, link, conn, peer.to_string(), clock, engine);
-                    open.fetch_sub(1, Ordering::Relaxed);
+                    slots.free(conn);
                 })
         });
         if let Err(e) = carried {
-            open.fetch_sub(1, Ordering::Relaxed);
+            slots.free(conn);
             let text = format!("{peer}: refused, no thread for it: {e}");
             let _ = engine.send(Inbound::Command(Box::new(move |e| {
                 let name = e.links.get(link).map_or("?", |l| l.name.as_str());
@@ -240,6 +281,34 @@ pub async fn accept_loop(
             })));
         }
     }
+}
+
+/// Whether a newcomer has a place among `max` (see [`accept_loop`]).
+async fn room(slots: &Slots, limit: ClientLimit, link: usize, engine: &Sender<Inbound>) -> bool {
+    let max = limit.max;
+    if slots.in_use() < max {
+        return true;
+    }
+    if let Some(after) = limit.room_after_idle {
+        let (made, answer) = tokio::sync::oneshot::channel();
+        let asked = engine.send(Inbound::MakeRoom {
+            link,
+            max,
+            min_idle: SimDuration::from_secs_f64(after.as_secs_f64()),
+            made,
+        });
+        if asked.is_ok() && answer.await.unwrap_or(false) {
+            return true;
+        }
+    }
+    let deadline = tokio::time::Instant::now() + ROOM_WAIT;
+    while tokio::time::Instant::now() < deadline {
+        tokio::time::sleep(Duration::from_millis(10)).await;
+        if slots.in_use() < max {
+            return true;
+        }
+    }
+    false
 }
 
 /// Carries serial port `path` for link `link` for the whole session: when

@@ -23,7 +23,7 @@ use tokio::runtime::{Handle, Runtime};
 use tokio::signal::unix::{Signal, SignalKind, signal};
 
 use super::io::{SerialSettings, serial, tcp};
-use super::links::{ConnIds, accept_loop, serial_loop};
+use super::links::{ClientLimit, ConnIds, accept_loop, serial_loop};
 use super::sink::{self, SinkConfig, SinkMsg, ViewOpener};
 use super::{Inbound, LatenessSummary, RtClock, RtEngine, RtSummary};
 use twin_sim::observe::SimRecorder;
@@ -144,27 +144,20 @@ impl Links {
         self.starters.push(Box::new(task));
     }
 
-    /// Listens on `addr` for the clients of link `link`, refusing those
-    /// beyond `max_clients`; returns the address bound (port 0: the port
+    /// Listens on `addr` for the clients of link `link`, up to `limit`; returns the address bound (port 0: the port
     /// chosen).
     pub async fn listen(
         &mut self,
         addr: SocketAddr,
         link: usize,
-        max_clients: Option<usize>,
+        limit: Option<ClientLimit>,
     ) -> Result<SocketAddr> {
         let listener = tcp::bind(addr).await?;
         let local = listener.local_addr()?;
         let (ids, clock, refused) = (self.ids.clone(), self.clock, self.refused.clone());
         self.start(move |rt, inbound| {
             rt.spawn(accept_loop(
-                listener,
-                link,
-                max_clients,
-                ids,
-                clock,
-                inbound,
-                refused,
+                listener, link, limit, ids, clock, inbound, refused,
             ));
         });
         Ok(local)

@@ -139,7 +139,7 @@ impl Carrier {
                 std::thread::sleep(BACKLOG_WAIT);
             }
             if after.listens() {
-                match self.wait() {
+                match self.wait(after.reads()) {
                     Ok(true) => {}
                     Ok(false) => {
                         // Only the engine's frames: write them, read nothing.
@@ -168,7 +168,8 @@ impl Carrier {
             let at = clock.now();
             let bytes = buf.get(..n).unwrap_or_default();
             after = front.receive(self.conn, at, bytes, &mut self.due);
-            if after == After::Timers && engine.send(Inbound::Wake).is_err() {
+            if matches!(after, After::Timers | After::Owing) && engine.send(Inbound::Wake).is_err()
+            {
                 return Ending::Peer("server stopping".into());
             }
             if let Err(why) = self.write_due() {
@@ -180,10 +181,16 @@ impl Carrier {
         }
     }
 
-    /// Waits for bytes (true) or the engine's signal (false).
-    fn wait(&self) -> Result<bool, String> {
+    /// Waits for bytes (true) or the engine's signal (false); for the
+    /// engine's signal alone unless `read`.
+    fn wait(&self, read: bool) -> Result<bool, String> {
+        let socket_events = if read {
+            PollFlags::IN
+        } else {
+            PollFlags::empty()
+        };
         let mut fds = [
-            PollFd::new(&self.stream, PollFlags::IN),
+            PollFd::new(&self.stream, socket_events),
             PollFd::new(&self.wake.frames, PollFlags::IN),
         ];
         loop {

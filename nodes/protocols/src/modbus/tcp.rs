@@ -1,10 +1,13 @@
 //! Modbus TCP framing: the MBAP header (transaction id, protocol id 0, length
 //! of what follows, unit id) in front of the PDU, no checksum.
 //!
-//! The stream decoder frames by the MBAP length. TCP bytes carry no timing, so
-//! after a header that cannot be Modbus (protocol id not 0, length outside
-//! 2..=254) it drops one byte at a time until a plausible header lines up,
-//! counting each.
+//! The stream decoder frames by the MBAP length. A header that cannot be
+//! Modbus (protocol id not 0, length outside 2..=254) has no way back to a
+//! frame boundary: TCP bytes carry no timing. A server's decoder
+//! ([`TcpDecoder::for_server`]) then reports it and takes nothing more, and the
+//! server closes the connection, as libmodbus and pymodbus servers do; the
+//! plain decoder drops one byte at a time until a plausible header lines up,
+//! counting each (for a capture read after the fact).
 
 use super::pdu::{EncodePdu, ExceptionResponse, PduError, Request, Response};
 use super::{BufferTooSmall, Drops, Frame, FrameError, MAX_PDU_LEN};
@@ -129,6 +132,10 @@ pub struct TcpDecoder {
     /// Bytes at the front of `buf` handed out as a frame last call.
     yielded: usize,
     drops: Drops,
+    /// Whether a header that cannot be Modbus ends the stream (a server's).
+    stop_on_bad_header: bool,
+    /// The header fault that ended the stream.
+    stopped: Option<FrameError>,
 }
 
 impl Default for TcpDecoder {
@@ -145,19 +152,48 @@ impl TcpDecoder {
             len: 0,
             yielded: 0,
             drops: Drops::default(),
+            stop_on_bad_header: false,
+            stopped: None,
         }
     }
 
-    /// Takes bytes from the front of `input` until a frame is complete. `None`
-    /// means `input` is used up; call again while it is not empty. Frames are
-    /// never errors here: a header that cannot be Modbus is resynchronised past
-    /// and counted in [`Drops::malformed`].
-    pub fn decode(&mut self, input: &mut &[u8]) -> Option<Result<TcpFrame<'_>, FrameError>> {
-        let end = self.advance(input)?;
-        Some(parse(&self.buf[..end]))
+    /// A decoder as a server uses it: a header that cannot be Modbus is
+    /// returned as its error, once, and ends the stream; everything after it
+    /// is discarded (the connection is to be closed).
+    pub fn for_server() -> Self {
+        TcpDecoder {
+            stop_on_bad_header: true,
+            ..TcpDecoder::new()
+        }
     }
 
-    fn advance(&mut self, input: &mut &[u8]) -> Option<usize> {
+    /// The header fault that ended the stream, for a server's decoder.
+    pub fn stopped(&self) -> Option<&FrameError> {
+        self.stopped.as_ref()
+    }
+
+    /// Takes bytes from the front of `input` until a frame is complete. `None`
+    /// means `input` is used up; call again while it is not empty. A header
+    /// that cannot be Modbus is counted in [`Drops::malformed`]; the plain
+    /// decoder resynchronises past it, a server's returns it (see
+    /// [`TcpDecoder::for_server`]).
+    pub fn decode(&mut self, input: &mut &[u8]) -> Option<Result<TcpFrame<'_>, FrameError>> {
+        if self.stopped.is_some() {
+            *input = &[];
+            return None;
+        }
+        match self.advance(input)? {
+            Ok(end) => Some(parse(&self.buf[..end])),
+            Err(fault) => {
+                *input = &[];
+                self.len = 0;
+                self.stopped = Some(fault);
+                Some(Err(fault))
+            }
+        }
+    }
+
+    fn advance(&mut self, input: &mut &[u8]) -> Option<Result<usize, FrameError>> {
         if self.yielded > 0 {
             self.buf.copy_within(self.yielded..self.len, 0);
             self.len -= self.yielded;
@@ -170,9 +206,13 @@ impl TcpDecoder {
                 match header_len(&self.buf[..self.len]) {
                     Ok(total) if self.len >= total => {
                         self.yielded = total;
-                        return Some(total);
+                        return Some(Ok(total));
                     }
                     Ok(total) => total,
+                    Err(fault) if self.stop_on_bad_header => {
+                        self.drops.malformed.add(self.len);
+                        return Some(Err(fault));
+                    }
                     Err(_) => {
                         self.drops.malformed.add(1);
                         self.buf.copy_within(1..self.len, 0);
@@ -250,5 +290,27 @@ mod tests {
         assert_eq!(decoder.drops().malformed.bytes, 3);
         assert!(decoder.decode(&mut input).is_none());
         assert_eq!(decoder.pending(), 0);
+    }
+
+    #[test]
+    fn a_servers_decoder_stops_at_a_bad_header() {
+        let good = [0, 9, 0, 0, 0, 6, 1, 0x06, 0, 1, 0, 2];
+        for (at, byte) in [(5, 0u8), (5, 1), (5, 255), (2, 0x80), (3, 1), (3, 2)] {
+            let mut decoder = TcpDecoder::for_server();
+            let mut bad = good;
+            bad[at] = byte;
+            let mut stream = bad.to_vec();
+            stream.extend(good);
+            let mut input = &stream[..];
+            let fault = decoder.decode(&mut input).unwrap().unwrap_err();
+            assert!(
+                matches!(fault, FrameError::ProtocolId(_) | FrameError::MbapLength(_)),
+                "{fault:?}"
+            );
+            assert!(input.is_empty(), "nothing is taken after the fault");
+            assert_eq!(decoder.stopped(), Some(&fault));
+            assert!(decoder.decode(&mut &good[..]).is_none());
+            assert_eq!(decoder.pending(), 0);
+        }
     }
 }

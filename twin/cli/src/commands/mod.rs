@@ -22,11 +22,13 @@ pub mod vsp;
 fn print_session_end(outcome: &twin_realtime::session::SessionOutcome) {
     let c = &outcome.counters;
     println!(
-        "  {} connections ({} refused over the limit, {} closed for a partial frame, {} for the rate limit); {} bytes in, {} frames out",
+        "  {} connections ({} refused over the limit, {} closed for a partial frame, {} for the rate limit, {} idle, {} to make room); {} bytes in, {} frames out",
         c.connections,
         outcome.refused_clients,
         c.closed_partial_timeout,
         c.closed_rate_limit,
+        c.closed_idle,
+        c.closed_for_room,
         c.bytes_in,
         c.frames_out
     );

@@ -83,10 +83,20 @@ pub struct ServeArgs {
     /// Seconds between status lines (0: none).
     #[arg(long, default_value_t = 1.0, value_name = "SECONDS")]
     status_every: f64,
-    /// Refuse TCP clients beyond this many per link (each has a thread of
-    /// its own; 0: no limit).
+    /// TCP clients per link (each has a thread of its own; 0: no limit). A
+    /// newcomer beyond it takes the place of the client quiet longest if
+    /// that one has sent nothing for --make-room-after, else waits up to
+    /// 1 s for a place, else is refused.
     #[arg(long, default_value_t = 8, value_name = "N")]
     max_clients: usize,
+    /// How long a client must have been quiet for a newcomer beyond
+    /// --max-clients to take its place (0: never).
+    #[arg(long, default_value_t = 30.0, value_name = "SECONDS")]
+    make_room_after: f64,
+    /// Close a TCP connection that has sent nothing for this long (0: never;
+    /// quiet connections stay open, as the MEB protocol page says).
+    #[arg(long, default_value_t = 0.0, value_name = "SECONDS")]
+    idle_timeout: f64,
     /// Close a TCP connection holding a partial frame this long (0: never).
     #[arg(long, default_value_t = 5.0, value_name = "SECONDS")]
     partial_timeout: f64,
@@ -190,6 +200,8 @@ fn options(args: &ServeArgs) -> Result<ServeOptions> {
         max_clients: (args.max_clients > 0).then_some(args.max_clients),
         partial_timeout: positive(args.partial_timeout).map(SimDuration::from_secs_f64),
         rate_limit: (args.rate_limit > 0).then_some(args.rate_limit),
+        idle_timeout: positive(args.idle_timeout).map(SimDuration::from_secs_f64),
+        room_after_idle: positive(args.make_room_after).map(std::time::Duration::from_secs_f64),
         read_only: args.read_only,
     })
 }

@@ -28,6 +28,8 @@ pub struct Serve {
     child: Child,
     pub links: Vec<Link>,
     stderr: Arc<Mutex<String>>,
+    /// Every line printed after `ready` (the monitor, status lines).
+    stdout: Arc<Mutex<String>>,
 }
 
 impl Serve {
@@ -63,11 +65,20 @@ impl Serve {
             }
         });
         let (tx, rx) = mpsc::channel();
+        let after_ready = Arc::new(Mutex::new(String::new()));
+        let kept = after_ready.clone();
         std::thread::spawn(move || {
+            let mut ready = false;
             for line in BufReader::new(stdout).lines() {
                 let Ok(line) = line else { break };
-                // After `ready` nobody listens; keep draining the pipe anyway.
-                let _ = tx.send(line);
+                if ready {
+                    let mut kept = kept.lock().unwrap();
+                    kept.push_str(&line);
+                    kept.push('\n');
+                } else {
+                    ready = line == "ready";
+                    let _ = tx.send(line);
+                }
             }
         });
         let deadline = Instant::now() + START_TIMEOUT;
@@ -105,6 +116,7 @@ impl Serve {
             child,
             links,
             stderr,
+            stdout: after_ready,
         }
     }
 
@@ -141,6 +153,22 @@ impl Serve {
 
     pub fn stderr(&self) -> String {
         self.stderr.lock().unwrap().clone()
+    }
+
+    /// What it printed after `ready` so far.
+    pub fn stdout(&self) -> String {
+        self.stdout.lock().unwrap().clone()
+    }
+
+    /// Waits up to `timeout` for a line printed after `ready` that contains
+    /// `text`; the line.
+    pub fn wait_line(&self, text: &str, timeout: Duration) -> Option<String> {
+        wait_for(timeout, Duration::from_millis(20), || {
+            self.stdout()
+                .lines()
+                .find(|l| l.contains(text))
+                .map(str::to_string)
+        })
     }
 }
 

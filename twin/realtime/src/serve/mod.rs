@@ -10,14 +10,14 @@ use anyhow::{Context, Result, bail};
 use nodes::controller_network::{LightConfig, LightNode, MotorConfig, MotorNode};
 use nodes::firmware::{EvController, EvControllerConfig, Framing, SlaveFrontend};
 use nodes::link::{CheckKind, FaultyNode};
-use nodes::proto::modbus::serial::{PTY_SILENCE, standard_rtu_silence};
 use nodes::time::SimDuration;
 use plant::{EvModule, PlantParams};
 use std::collections::BTreeMap;
 use std::sync::mpsc::Sender;
 use tokio::runtime::Runtime;
 
-use crate::io::{LinkAddr, LinkDefaults, LinkSpec, serial};
+use crate::io::{LinkAddr, LinkDefaults, LinkSpec};
+use crate::links::ClientLimit;
 use crate::session::{self, Links, Role, SessionOptions, SessionOutcome};
 use crate::{Device, Inbound, LinkConfig, NodeEndpoint, RtEngine, SlaveEndpoint};
 use twin_sim::engine::ModuleSlot;
@@ -77,6 +77,11 @@ pub struct ServeOptions {
     pub max_clients: Option<usize>,
     pub partial_timeout: Option<SimDuration>,
     pub rate_limit: Option<u64>,
+    /// Close a TCP connection quiet this long (`None`: never, as the MEB page says).
+    pub idle_timeout: Option<SimDuration>,
+    /// A newcomer beyond `max_clients` takes the place of a client quiet
+    /// this long (`None`: never).
+    pub room_after_idle: Option<std::time::Duration>,
     pub read_only: bool,
 }
 
@@ -95,16 +100,9 @@ fn framing(protocol: ServeProtocol, spec: &LinkSpec) -> Option<Framing> {
         ServeProtocol::Meb => Framing::Meb,
         ServeProtocol::ModbusTcp => Framing::ModbusTcp,
         ServeProtocol::ModbusAscii => Framing::ModbusAscii,
-        ServeProtocol::ModbusRtu => {
-            let pty = matches!(&spec.addr, LinkAddr::Serial(p) if serial::is_pty(p));
-            // Bytes on a pty carry no timing: the spec's 5 ms silence.
-            let silence = if pty {
-                PTY_SILENCE
-            } else {
-                standard_rtu_silence(spec.serial.baud, spec.serial.bits_per_char())
-            };
-            Framing::ModbusRtu(silence)
-        }
+        // Not the line's 3.5 characters: bytes on a pty or behind a USB
+        // adapter arrive with gaps of their own (`LinkSpec::silence`).
+        ServeProtocol::ModbusRtu => Framing::ModbusRtu(spec.silence()),
         ServeProtocol::Modbus8 => return None,
     })
 }
@@ -256,8 +254,20 @@ fn build_devices(
             twin_sim::virtual_run::derive_seed(options.seed, 101),
         );
         engine.modules.push(ModuleSlot::new("bench", plant));
-        let motor = FaultyNode::new(MotorNode::new(MotorConfig::default()), CheckKind::Modbus8);
-        let light = FaultyNode::new(LightNode::new(LightConfig::default()), CheckKind::Modbus8);
+        // The Nanos' own ports wait for 3.5 characters of quiet; on a real
+        // link the bytes come with gaps of their own (`LinkSpec::silence`).
+        let silence = specs
+            .iter()
+            .find(|(p, _)| *p == ServeProtocol::Modbus8)
+            .map(|(_, spec)| spec.silence());
+        let mut motor = MotorConfig::default();
+        let mut light = LightConfig::default();
+        if let Some(silence) = silence {
+            motor.port.silence = silence;
+            light.port.silence = silence;
+        }
+        let motor = FaultyNode::new(MotorNode::new(motor), CheckKind::Modbus8);
+        let light = FaultyNode::new(LightNode::new(light), CheckKind::Modbus8);
         let m = engine.devices.len();
         engine
             .devices
@@ -304,7 +314,14 @@ async fn open_links(
         let (address, tcp) = match &spec.addr {
             LinkAddr::Tcp(addr) => {
                 let local = links
-                    .listen(*addr, link, options.max_clients)
+                    .listen(
+                        *addr,
+                        link,
+                        options.max_clients.map(|max| ClientLimit {
+                            max,
+                            room_after_idle: options.room_after_idle,
+                        }),
+                    )
                     .await
                     .with_context(|| format!("{} {}", protocol.option(), spec.text))?;
                 (format!("tcp://{local}"), true)
@@ -362,6 +379,7 @@ async fn open_links(
             check: check_kind(protocol),
             partial_timeout: if tcp { options.partial_timeout } else { None },
             rate_limit: if tcp { options.rate_limit } else { None },
+            idle_timeout: if tcp { options.idle_timeout } else { None },
             spec,
             factory,
         });

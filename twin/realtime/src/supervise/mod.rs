@@ -19,7 +19,7 @@ use std::time::Duration;
 use tokio::runtime::Runtime;
 
 use crate::io::{LinkAddr, LinkDefaults, LinkSpec, serial};
-use crate::links::{ConnIds, serve_stream};
+use crate::links::{ClientLimit, ConnIds, serve_stream};
 use crate::session::{self, Links, Role, SessionOptions, SessionOutcome};
 use crate::{Device, Inbound, LinkConfig, NodeEndpoint, RtClock, RtEngine};
 use endpoint::ImageEndpoint;
@@ -99,18 +99,20 @@ pub fn build_supervisor(options: &SuperviseOptions) -> Result<Supervisor> {
     config.status_every = options.status_poll;
     if options.protocol == Protocol::ModbusRtu {
         // A pty carries no timing: the silence that ends a frame must be
-        // longer than the gaps between the chunks it arrives in.
-        let pty = match LinkSpec::parse(&options.bus, &LinkDefaults::default()) {
-            Ok(LinkSpec {
+        // longer than the gaps between the chunks it arrives in. A bus spec's
+        // `silence_ms` says what it is.
+        let spec = LinkSpec::parse(&options.bus, &LinkDefaults::default()).ok();
+        config.rtu_silence = match &spec {
+            Some(
+                spec @ LinkSpec {
+                    silence: Some(_), ..
+                },
+            ) => spec.silence(),
+            Some(LinkSpec {
                 addr: LinkAddr::Serial(path),
                 ..
-            }) => serial::is_pty(&path),
-            _ => false,
-        };
-        config.rtu_silence = if pty {
-            nodes::proto::modbus::serial::PTY_SILENCE
-        } else {
-            nodes::proto::modbus::serial::standard_rtu_silence(options.baud, 10)
+            }) if serial::is_pty(path) => nodes::proto::modbus::serial::PTY_SILENCE,
+            _ => nodes::proto::modbus::serial::standard_rtu_silence(options.baud, 10),
         };
     }
     let mut supervisor = Supervisor::new(config)?;
@@ -318,6 +320,7 @@ async fn open_links(
         check: None,
         partial_timeout: None,
         rate_limit: None,
+        idle_timeout: None,
         factory: Box::new(|_devices, _peer| {
             Box::new(NodeEndpoint {
                 devices: vec![SUPERVISOR],
@@ -331,7 +334,11 @@ async fn open_links(
         };
         let link = engine.links.len();
         let local = links
-            .listen(addr, link, Some(options.server.max_clients))
+            .listen(
+                addr,
+                link,
+                Some(ClientLimit::new(options.server.max_clients)),
+            )
             .await
             .with_context(|| format!("--listen {}", spec.text))?;
         let address = format!("tcp://{local}");
@@ -353,6 +360,7 @@ async fn open_links(
             check: None,
             partial_timeout: Some(server.partial_timeout),
             rate_limit: options.rate_limit_bytes,
+            idle_timeout: None,
             factory: Box::new(move |_devices, _peer| {
                 Box::new(ImageEndpoint::new(SUPERVISOR, server, SimTime::ZERO))
             }),
