@@ -257,15 +257,11 @@ impl SlaveFrontend {
             Decoder::Ascii(decoder) => decoder
                 .decode(input)
                 .map(|f| modbus_decoded(f.map(|f| (f.unit, f.pdu, None)), pdu)),
-            Decoder::Tcp(decoder) => match decoder.decode(input)? {
-                Err(
-                    fault @ (modbus::FrameError::ProtocolId(_) | modbus::FrameError::MbapLength(_)),
-                ) => Some(Decoded::Fatal(fault)),
-                frame => Some(modbus_decoded(
-                    frame.map(|f| (f.unit, f.pdu, Some(f.transaction_id))),
-                    pdu,
-                )),
-            },
+            // A server's decoder fails only on a header that cannot be valid.
+            Decoder::Tcp(decoder) => Some(match decoder.decode(input)? {
+                Ok(f) => modbus_decoded(Ok((f.unit, f.pdu, Some(f.transaction_id))), pdu),
+                Err(fault) => Decoded::Fatal(fault),
+            }),
         }
     }
 
@@ -289,7 +285,6 @@ impl SlaveFrontend {
                     "Modbus TCP header that cannot be valid ({fault}): no request can be found \
                      after it, so the connection is closed, as Modbus TCP servers do"
                 );
-                self.count_drops(image);
                 self.close = Some(why);
             }
         }

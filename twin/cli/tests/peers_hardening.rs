@@ -35,8 +35,8 @@ fn connect(addr: &str) -> TcpStream {
     s
 }
 
-/// 100 MEB requests in one write, each for another address, get 100
-/// replies in their order.
+/// `requests` MEB requests in one write, for addresses in turn, get as many
+/// replies, in their order.
 fn meb_pipelined(addr: &str, requests: usize) {
     let s = connect(addr);
     let mut burst = Vec::new();
@@ -125,9 +125,7 @@ fn a_modbus_tcp_header_that_cannot_be_valid_closes_the_connection() {
             started.elapsed()
         );
     }
-    let line = serve
-        .wait_line("cannot be valid", WAIT)
-        .unwrap_or_else(|| panic!("the monitor says why: {}", serve.stdout()));
+    let line = serve.expect_line("cannot be valid", WAIT);
     assert!(line.contains("closed by the twin"), "{line}");
     // A good client is served as before.
     let mut s = connect(&addr);
@@ -151,9 +149,7 @@ fn quiet_connections_time_out_and_make_room_for_newcomers() {
     let mut quiet = connect(&serve.tcp("meb"));
     let mut got = Vec::new();
     quiet.read_to_end(&mut got).expect("closed for being idle");
-    let line = serve
-        .wait_line("longer than --idle-timeout", WAIT)
-        .unwrap_or_else(|| panic!("the monitor says why: {}", serve.stdout()));
+    let line = serve.expect_line("longer than --idle-timeout", WAIT);
     assert!(line.contains("idle for"), "{line}");
     drop(serve);
 
@@ -189,9 +185,7 @@ fn quiet_connections_time_out_and_make_room_for_newcomers() {
     ask(&mut third, 4).expect("the newcomer is served");
     let mut got = Vec::new();
     first.read_to_end(&mut got).expect("the quietest is closed");
-    let line = serve
-        .wait_line("made room for a new client", WAIT)
-        .unwrap_or_else(|| panic!("the monitor says why: {}", serve.stdout()));
+    let line = serve.expect_line("made room for a new client", WAIT);
     assert!(line.contains("--max-clients"), "{line}");
     ask(&mut second, 5).expect("the other client keeps its place");
 }

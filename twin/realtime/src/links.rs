@@ -194,7 +194,7 @@ where
 
 /// By default, a full listener's newcomer may take the place of a client
 /// that has sent nothing for this long (the quietest one).
-pub const ROOM_AFTER_IDLE: Duration = Duration::from_secs(30);
+pub const ROOM_AFTER_IDLE: SimDuration = SimDuration::from_secs(30);
 
 /// How many clients a TCP listener serves at once, and when a newcomer may
 /// take the place of a quiet one.
@@ -203,7 +203,7 @@ pub struct ClientLimit {
     pub max: usize,
     /// A newcomer beyond `max` takes the place of the client quiet longest
     /// if that one has been quiet this long (`None`: never).
-    pub room_after_idle: Option<Duration>,
+    pub room_after_idle: Option<SimDuration>,
 }
 
 impl ClientLimit {
@@ -289,12 +289,12 @@ async fn room(slots: &Slots, limit: ClientLimit, link: usize, engine: &Sender<In
     if slots.in_use() < max {
         return true;
     }
-    if let Some(after) = limit.room_after_idle {
+    if let Some(min_idle) = limit.room_after_idle {
         let (made, answer) = tokio::sync::oneshot::channel();
         let asked = engine.send(Inbound::MakeRoom {
             link,
             max,
-            min_idle: SimDuration::from_secs_f64(after.as_secs_f64()),
+            min_idle,
             made,
         });
         if asked.is_ok() && answer.await.unwrap_or(false) {

@@ -201,7 +201,7 @@ fn options(args: &ServeArgs) -> Result<ServeOptions> {
         partial_timeout: positive(args.partial_timeout).map(SimDuration::from_secs_f64),
         rate_limit: (args.rate_limit > 0).then_some(args.rate_limit),
         idle_timeout: positive(args.idle_timeout).map(SimDuration::from_secs_f64),
-        room_after_idle: positive(args.make_room_after).map(std::time::Duration::from_secs_f64),
+        room_after_idle: positive(args.make_room_after).map(SimDuration::from_secs_f64),
         read_only: args.read_only,
     })
 }

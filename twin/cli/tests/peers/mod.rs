@@ -161,13 +161,19 @@ impl Serve {
     }
 
     /// Waits up to `timeout` for a line printed after `ready` that contains
-    /// `text`; the line.
-    pub fn wait_line(&self, text: &str, timeout: Duration) -> Option<String> {
+    /// `text`; the line. Fails, showing what was printed, if none comes.
+    pub fn expect_line(&self, text: &str, timeout: Duration) -> String {
         wait_for(timeout, Duration::from_millis(20), || {
             self.stdout()
                 .lines()
                 .find(|l| l.contains(text))
                 .map(str::to_string)
+        })
+        .unwrap_or_else(|| {
+            panic!(
+                "no line with `{text}` within {timeout:?}; printed:\n{}",
+                self.stdout()
+            )
         })
     }
 }

@@ -291,9 +291,14 @@ impl LinkSpec {
     /// spec's `silence_ms`, or [`PTY_SILENCE`] on a pty and
     /// [`SERIAL_PORT_SILENCE`] on a serial port.
     pub fn silence(&self) -> SimDuration {
+        self.silence_with(SERIAL_PORT_SILENCE)
+    }
+
+    /// The same, with `serial_port` as the default on a serial port.
+    pub fn silence_with(&self, serial_port: SimDuration) -> SimDuration {
         self.silence.unwrap_or(match &self.addr {
             LinkAddr::Serial(path) if super::serial::is_pty(path) => PTY_SILENCE,
-            _ => SERIAL_PORT_SILENCE,
+            _ => serial_port,
         })
     }
 }

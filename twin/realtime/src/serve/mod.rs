@@ -81,7 +81,7 @@ pub struct ServeOptions {
     pub idle_timeout: Option<SimDuration>,
     /// A newcomer beyond `max_clients` takes the place of a client quiet
     /// this long (`None`: never).
-    pub room_after_idle: Option<std::time::Duration>,
+    pub room_after_idle: Option<SimDuration>,
     pub read_only: bool,
 }
 

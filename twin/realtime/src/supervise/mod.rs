@@ -18,7 +18,7 @@ use std::sync::mpsc::Sender;
 use std::time::Duration;
 use tokio::runtime::Runtime;
 
-use crate::io::{LinkAddr, LinkDefaults, LinkSpec, serial};
+use crate::io::{LinkAddr, LinkDefaults, LinkSpec};
 use crate::links::{ClientLimit, ConnIds, serve_stream};
 use crate::session::{self, Links, Role, SessionOptions, SessionOutcome};
 use crate::{Device, Inbound, LinkConfig, NodeEndpoint, RtClock, RtEngine};
@@ -100,20 +100,10 @@ pub fn build_supervisor(options: &SuperviseOptions) -> Result<Supervisor> {
     if options.protocol == Protocol::ModbusRtu {
         // A pty carries no timing: the silence that ends a frame must be
         // longer than the gaps between the chunks it arrives in. A bus spec's
-        // `silence_ms` says what it is.
-        let spec = LinkSpec::parse(&options.bus, &LinkDefaults::default()).ok();
-        config.rtu_silence = match &spec {
-            Some(
-                spec @ LinkSpec {
-                    silence: Some(_), ..
-                },
-            ) => spec.silence(),
-            Some(LinkSpec {
-                addr: LinkAddr::Serial(path),
-                ..
-            }) if serial::is_pty(path) => nodes::proto::modbus::serial::PTY_SILENCE,
-            _ => nodes::proto::modbus::serial::standard_rtu_silence(options.baud, 10),
-        };
+        // `silence_ms` says what it is; on a serial port, the line's rule.
+        let line = nodes::proto::modbus::serial::standard_rtu_silence(options.baud, 10);
+        config.rtu_silence = LinkSpec::parse(&options.bus, &LinkDefaults::default())
+            .map_or(line, |spec| spec.silence_with(line));
     }
     let mut supervisor = Supervisor::new(config)?;
     for &id in &options.slaves {
