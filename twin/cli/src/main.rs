@@ -36,6 +36,7 @@ enum Command {
     Replay(commands::replay::ReplayArgs),
     Compare(commands::compare::CompareArgs),
     Export(commands::export::ExportArgs),
+    Recover(commands::recover::RecoverArgs),
     Baseline(commands::baseline::BaselineArgs),
     Step(commands::step::StepArgs),
     Sweep(commands::sweep::SweepArgs),
@@ -43,9 +44,31 @@ enum Command {
     Bench(commands::bench::BenchArgs),
 }
 
+impl Command {
+    /// The commands whose runs an interrupt stops cleanly (the real-time
+    /// ones handle their own signals).
+    fn runs_on_the_virtual_clock(&self) -> bool {
+        if let Command::Replay(args) = self {
+            return !args.sends_frames();
+        }
+        matches!(
+            self,
+            Command::Run(_)
+                | Command::Baseline(_)
+                | Command::Step(_)
+                | Command::Sweep(_)
+                | Command::Experiment(_)
+                | Command::Bench(_)
+        )
+    }
+}
+
 fn main() -> ExitCode {
     exit_quietly_on_broken_pipe();
     let cli = Cli::parse();
+    if cli.command.runs_on_the_virtual_clock() {
+        commands::finish_recordings_on_signals();
+    }
     let result = match cli.command {
         Command::Run(args) => commands::run::execute(&args),
         Command::Serve(args) => commands::serve::execute(&args),
@@ -56,6 +79,7 @@ fn main() -> ExitCode {
         Command::Replay(args) => commands::replay::execute(&args),
         Command::Compare(args) => commands::compare::execute(&args),
         Command::Export(args) => commands::export::execute(&args),
+        Command::Recover(args) => commands::recover::execute(&args),
         Command::Baseline(args) => commands::baseline::execute(&args),
         Command::Step(args) => commands::step::execute(&args),
         Command::Sweep(args) => commands::sweep::execute(&args),
@@ -64,11 +88,29 @@ fn main() -> ExitCode {
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
+        // Stopped as asked, not failed: say where, and exit as a shell
+        // reports a command stopped by Ctrl-C.
+        Err(e) if has_interrupt(&e) => {
+            if let Some(i) = e
+                .chain()
+                .find_map(|c| c.downcast_ref::<twin_sim::interrupt::Interrupted>())
+            {
+                eprintln!("{i}");
+            }
+            ExitCode::from(130)
+        }
         Err(e) => {
             eprintln!("error: {e:#}");
             ExitCode::FAILURE
         }
     }
+}
+
+fn has_interrupt(e: &anyhow::Error) -> bool {
+    e.chain().any(|c| {
+        c.downcast_ref::<twin_sim::interrupt::Interrupted>()
+            .is_some()
+    })
 }
 
 /// `twin run | head` closes our stdout early. Rust ignores SIGPIPE, so the next

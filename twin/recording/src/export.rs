@@ -78,6 +78,9 @@ pub fn to_csv(path: &Path, dir: &Path) -> Result<(Recording, Vec<Written>)> {
         });
         Ok(())
     })?;
+    if recording.message_count() == 0 {
+        anyhow::bail!("{}: no CSV file was written", recording.holds_no_messages());
+    }
     columns.resize_with(recording.channels.len(), Columns::default);
     std::fs::create_dir_all(dir)
         .with_context(|| format!("cannot create folder {}", dir.display()))?;

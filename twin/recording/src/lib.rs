@@ -16,6 +16,7 @@ pub mod diff;
 pub mod export;
 pub mod read;
 pub mod record;
+pub mod recover;
 pub mod signals;
 pub mod topics;
 mod writer;

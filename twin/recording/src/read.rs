@@ -313,7 +313,7 @@ impl<R: Read> Reader<R> {
                 Some(Err(e)) => {
                     self.stop(Some(Cut::EndsEarly {
                         chunks: self.recording.chunks,
-                        error: e.to_string(),
+                        error: in_words(&e),
                     }));
                     return Ok(None);
                 }
@@ -419,6 +419,17 @@ impl<R: Read> Reader<R> {
     }
 }
 
+/// The MCAP reader's error where a file stops, in a user's words: the record
+/// limit is the file's length, so a record longer than it is one cut off.
+pub(crate) fn in_words(e: &mcap::McapError) -> String {
+    match e {
+        mcap::McapError::RecordTooLarge { .. } | mcap::McapError::UnexpectedEof => {
+            "its last record is cut off".into()
+        }
+        other => other.to_string(),
+    }
+}
+
 /// A record of the file as [`Reader::raw`] reads it.
 enum Raw {
     Record(Record<'static>),
@@ -436,7 +447,10 @@ const MAX_CHUNK_BYTES: u64 = 1 << 30;
 /// checked (CRC) whole. No record may claim more than the chunk's
 /// uncompressed size: a damaged chunk is an error, not an allocation of
 /// whatever length its garbage says.
-fn chunk_records(body: &[u8], uncompressed_size: u64) -> mcap::McapResult<Vec<Record<'static>>> {
+pub(crate) fn chunk_records(
+    body: &[u8],
+    uncompressed_size: u64,
+) -> mcap::McapResult<Vec<Record<'static>>> {
     let limit = usize::try_from(uncompressed_size.min(MAX_CHUNK_BYTES))
         .unwrap_or(usize::MAX)
         .max(body.len());
@@ -581,6 +595,23 @@ impl Recording {
     }
 
     /// Messages in all channels.
+    /// Why a recording holds no message, for an error that says so: `PATH
+    /// holds no messages…`, with where a file cut short stops.
+    pub fn holds_no_messages(&self) -> String {
+        let path = self.path.display();
+        match &self.truncated {
+            None => format!("{path} holds no messages"),
+            Some(Cut::NoSummary) | Some(Cut::EndsEarly { chunks: 0, .. }) => {
+                let why = self.truncated.as_ref().and_then(Cut::error);
+                format!(
+                    "{path} holds no messages: the file ends before its first complete chunk{}",
+                    why.map_or_else(String::new, |e| format!(" ({e})"))
+                )
+            }
+            Some(cut) => format!("{path} holds no messages: {cut}"),
+        }
+    }
+
     pub fn message_count(&self) -> u64 {
         self.channels.iter().map(|c| c.message_count).sum()
     }

@@ -23,10 +23,10 @@ pub use crate::writer::{Deferred, NoDeferred};
 /// digits, closed every simulated second) level 1 is both faster and smaller
 /// than level 3: ev-meb 548 kB against 594 kB for 10 s, ten-modules 4.07 MB
 /// against 4.65 MB. zstd's own worker threads stay off: one writer compresses.
-const ZSTD_LEVEL: u32 = 1;
+pub(crate) const ZSTD_LEVEL: u32 = 1;
 /// Uncompressed bytes per chunk (the MCAP library's default, set explicitly so
 /// that a library upgrade cannot change the file layout).
-const CHUNK_SIZE: u64 = 1024 * 1024;
+pub(crate) const CHUNK_SIZE: u64 = 1024 * 1024;
 /// The open chunk is closed and written out once per simulated second: a
 /// process killed mid-run loses at most about a second (a real-time run's
 /// second is a wall-clock second), and since the cadence is simulated time the

@@ -274,6 +274,8 @@ pub struct Engine {
     /// Discrete events handled so far: byte arrivals and ends of frames,
     /// firmware loop ticks, node timeouts and recording instants.
     pub events: u64,
+    /// A run stopped by [`crate::interrupt::request`] before its end.
+    interrupted: bool,
 }
 
 impl Engine {
@@ -289,7 +291,14 @@ impl Engine {
             tx: vec![0; MAX_FRAME],
             frames_sent: 0,
             events: 0,
+            interrupted: false,
         }
+    }
+
+    /// Whether [`Self::run_until`] stopped early, at [`Self::now`], because
+    /// a stop was asked (see [`crate::interrupt`]).
+    pub fn interrupted(&self) -> bool {
+        self.interrupted
     }
 
     pub fn add_module(&mut self, name: &str, plant: EvModule) -> usize {
@@ -364,6 +373,7 @@ impl Engine {
     ) -> Result<()> {
         let mut handled = 0u64;
         let mut passes_at_this_instant = 0u32;
+        let mut until = end;
         loop {
             self.transmit_all(observer)?;
             self.drain_node_output(observer)?;
@@ -412,12 +422,17 @@ impl Engine {
             handled += 1;
             if handled.is_multiple_of(4096) {
                 progress(t);
+                if crate::interrupt::requested() {
+                    self.interrupted = true;
+                    until = t;
+                    break;
+                }
             }
         }
         for m in 0..self.modules.len() {
-            self.advance_plant(m, end);
+            self.advance_plant(m, until);
         }
-        self.now = end;
+        self.now = until;
         Ok(())
     }
 

@@ -107,6 +107,11 @@ pub fn run_with(
         after_step(&mut rec, sensors)?;
         if k % progress_every == 0 {
             progress(k as f64 / steps as f64);
+            if crate::interrupt::requested() {
+                let at_s = sensors.time_s;
+                let recording = rec.finish()?;
+                return Err(crate::interrupt::Interrupted { at_s, recording }.into());
+            }
         }
     }
     progress(1.0);

@@ -7,6 +7,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use crate::engine::Engine;
+use crate::interrupt::Interrupted;
 use crate::nodes_build::is_master;
 use crate::nodes_parallel::{build_medium, build_node_on, calibrated};
 use crate::observe::McapObserver;
@@ -199,13 +200,21 @@ fn run_observed(
         Some(period) => {
             let mut t = SimTime::ZERO;
             on_sample(t, &engine, &mut both.first.recorder)?;
-            while t < end {
+            while t < end && !engine.interrupted() {
                 t = (t + period).min(end);
                 engine.run_until(t, &mut both, |_| {})?;
-                on_sample(t, &engine, &mut both.first.recorder)?;
+                on_sample(engine.now(), &engine, &mut both.first.recorder)?;
                 progress(t.as_secs_f64() / scenario.duration_s);
             }
         }
+    }
+    if engine.interrupted() {
+        let recording = observer.recorder.finish()?;
+        return Err(Interrupted {
+            at_s: engine.now().as_secs_f64(),
+            recording,
+        }
+        .into());
     }
     progress(1.0);
     let modules = engine

@@ -3,8 +3,8 @@
 use anyhow::{Result, bail};
 use clap::Args;
 use std::path::PathBuf;
-use twin_recording::Signals;
 use twin_recording::compare::{self, Tolerances};
+use twin_recording::{Recording, Signals};
 
 /// Compare a recording with a baseline recording, signal by signal
 ///
@@ -65,6 +65,7 @@ pub fn execute(args: &CompareArgs) -> Result<()> {
             println!("  {what} {}: {why}", r.path.display());
         }
     }
+    refuse_empty_or_cut(&run.recording, &baseline.recording)?;
     let c = compare::compare(&run, &baseline, &tolerances);
     if let Some(note) = &c.span_note {
         println!("  {note}");
@@ -93,6 +94,11 @@ pub fn execute(args: &CompareArgs) -> Result<()> {
         c.rows.len() - failures,
         failures
     );
+    if samples == 0 {
+        bail!(
+            "nothing was compared: no signal of the baseline has a sample the tolerances do not ignore"
+        );
+    }
     if let Some(m) = &c.span_mismatch {
         println!("  time span differs: {m}");
     }
@@ -106,5 +112,26 @@ pub fn execute(args: &CompareArgs) -> Result<()> {
         bail!("the run departs from the baseline{first}");
     }
     println!("  PASS");
+    Ok(())
+}
+
+/// A comparison against nothing is no pass: a baseline (or run) with no
+/// message, or a baseline cut short, fails with what to do about it.
+fn refuse_empty_or_cut(run: &Recording, baseline: &Recording) -> Result<()> {
+    for (r, what) in [(baseline, "baseline"), (run, "run")] {
+        if r.message_count() == 0 {
+            bail!(
+                "the {what} {}: there is nothing to compare",
+                r.holds_no_messages()
+            );
+        }
+    }
+    if let Some(cut) = &baseline.truncated {
+        bail!(
+            "the baseline {} is cut short: {cut}. A baseline must be complete to hold a run \
+             against: make it whole with `twin recover` or record it again",
+            baseline.path.display()
+        );
+    }
     Ok(())
 }

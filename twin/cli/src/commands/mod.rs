@@ -8,6 +8,7 @@ pub mod experiment;
 pub mod export;
 mod live_view;
 mod plant_args;
+pub mod recover;
 pub mod replay;
 pub mod run;
 pub mod serve;
@@ -39,5 +40,45 @@ fn print_session_end(outcome: &twin_realtime::session::SessionOutcome) {
         (Some(_), Some(e)) => eprintln!("live view: {e}"),
         (Some(samples), None) => println!("live view: {samples} samples streamed to rerun"),
         _ => {}
+    }
+}
+
+/// Ctrl-C or SIGTERM during a virtual run stops it where it has got to and
+/// finishes its recording (a second Ctrl-C quits at once, the recording
+/// then cut short: `twin recover` makes it whole).
+pub fn finish_recordings_on_signals() {
+    use tokio::signal::unix::{SignalKind, signal};
+    let spawned = std::thread::Builder::new()
+        .name("signals".into())
+        .spawn(|| {
+            let Ok(runtime) = tokio::runtime::Builder::new_current_thread()
+                .enable_io()
+                .build()
+            else {
+                return;
+            };
+            runtime.block_on(async {
+                let (Ok(mut interrupt), Ok(mut terminate)) = (
+                    signal(SignalKind::interrupt()),
+                    signal(SignalKind::terminate()),
+                ) else {
+                    return;
+                };
+                loop {
+                    let name = tokio::select! {
+                        _ = interrupt.recv() => "Ctrl-C",
+                        _ = terminate.recv() => "SIGTERM",
+                    };
+                    if twin_sim::interrupt::requested() {
+                        eprintln!("\n{name} again: quitting without finishing the recording");
+                        std::process::exit(130);
+                    }
+                    eprintln!("\n{name}: stopping the run and finishing its recording");
+                    twin_sim::interrupt::request();
+                }
+            });
+        });
+    if let Err(e) = spawned {
+        eprintln!("note: Ctrl-C will not finish the recording ({e})");
     }
 }

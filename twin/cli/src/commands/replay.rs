@@ -53,11 +53,19 @@ pub struct ReplayArgs {
     show: usize,
 }
 
+impl ReplayArgs {
+    /// Whether this replay sends frames to a live slave (in real time).
+    pub fn sends_frames(&self) -> bool {
+        self.frames_to.is_some()
+    }
+}
+
 pub fn execute(args: &ReplayArgs) -> Result<()> {
     if let Some(link) = &args.frames_to {
         return frames_to(args, link);
     }
     let recorded = Recording::read(&args.recording)?;
+    refuse_empty(&recorded)?;
     let spec = RunSpec::from_recording(&recorded)?;
     let version = recorded.run_field("twin_version").unwrap_or("unknown");
     println!(
@@ -154,6 +162,17 @@ pub fn execute(args: &ReplayArgs) -> Result<()> {
     }
 }
 
+/// A recording with no message cannot show that a replay matches it.
+fn refuse_empty(recorded: &Recording) -> Result<()> {
+    if recorded.message_count() == 0 {
+        bail!(
+            "{}: there is nothing to hold a replay against",
+            recorded.holds_no_messages()
+        );
+    }
+    Ok(())
+}
+
 fn metadata_differences(a: &Recording, b: &Recording) -> Vec<String> {
     let mut keys = Vec::new();
     for (name, fields) in a.metadata.iter().chain(&b.metadata) {
@@ -171,6 +190,7 @@ fn metadata_differences(a: &Recording, b: &Recording) -> Vec<String> {
 fn frames_to(args: &ReplayArgs, link_spec: &str) -> Result<()> {
     use twin_realtime::frames_to::{Link, Verdict, replay_frames, show};
     let recorded = Recording::read(&args.recording)?;
+    refuse_empty(&recorded)?;
     if let Some(why) = &recorded.truncated {
         println!("note: {}: {why}", args.recording.display());
     }

@@ -65,6 +65,20 @@ pub fn execute(args: &ViewArgs) -> Result<()> {
         samples,
         converted.samples.len()
     );
+    if messages == 0 {
+        if let ViewTarget::Save(path) = &target {
+            // An .rrd of nothing would only look like a result.
+            let _ = std::fs::remove_file(path);
+        }
+        let why = read
+            .stopped_early
+            .as_ref()
+            .map_or_else(String::new, |r| format!(" ({r})"));
+        bail!(
+            "{} holds no messages{why}: there is nothing to show",
+            args.recording.display()
+        );
+    }
     for (entity, n) in &converted.samples {
         println!("  {entity:40} {n:7}");
     }

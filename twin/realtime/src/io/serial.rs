@@ -39,9 +39,3 @@ pub fn open(path: &Path, settings: &SerialSettings) -> Result<SerialStream> {
     SerialStream::open(&builder)
         .map_err(|e| anyhow::anyhow!("cannot open serial port {shown} at {settings}: {e}"))
 }
-
-/// Whether `path` is (a link to) a pseudo-terminal: bytes on a pty carry no
-/// timing, so a Modbus RTU decoder needs a longer silence there.
-pub fn is_pty(path: &Path) -> bool {
-    std::fs::canonicalize(path).is_ok_and(|p| p.starts_with("/dev/pts") || p.ends_with("ptmx"))
-}

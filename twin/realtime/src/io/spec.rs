@@ -23,7 +23,7 @@
 use nodes::time::SimDuration;
 use std::fmt;
 use std::net::{SocketAddr, ToSocketAddrs};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// Parity of a serial line.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -297,10 +297,16 @@ impl LinkSpec {
     /// The same, with `serial_port` as the default on a serial port.
     pub fn silence_with(&self, serial_port: SimDuration) -> SimDuration {
         self.silence.unwrap_or(match &self.addr {
-            LinkAddr::Serial(path) if super::serial::is_pty(path) => PTY_SILENCE,
+            LinkAddr::Serial(path) if is_pty(path) => PTY_SILENCE,
             _ => serial_port,
         })
     }
+}
+
+/// Whether `path` is (a link to) a pseudo-terminal: bytes on a pty carry no
+/// timing, so a Modbus RTU decoder needs a longer silence there.
+pub fn is_pty(path: &Path) -> bool {
+    std::fs::canonicalize(path).is_ok_and(|p| p.starts_with("/dev/pts") || p.ends_with("ptmx"))
 }
 
 /// A spec's location, and its options: `KEY=VALUE` pairs after `?`, joined

@@ -1,0 +1,234 @@
+//! Turning a recording cut short (the process killed, the disk full, the
+//! machine off) into a complete MCAP file that every reader opens, as the
+//! `mcap recover` command of the MCAP tools does: every record that can be
+//! read is copied into a new file with its summary, a damaged chunk is left
+//! out and reading goes on after it, and the copy ends where the data ends.
+//!
+//! Schemas and channels keep their ids, messages their sequence numbers and
+//! times, and metadata and attachments come along, so the recovered file is
+//! the recording as far as it was written, not a re-encoding of it.
+
+use anyhow::{Context, Result, anyhow, bail};
+use mcap::records::Record;
+use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader, LinearReaderOptions};
+use mcap::{Attachment, WriteOptions, Writer};
+use std::collections::BTreeSet;
+use std::fs::File;
+use std::io::{BufWriter, Read};
+use std::path::Path;
+
+use crate::read::{NotMcap, chunk_records, in_words};
+
+/// What a recovery copied and what it could not.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Recovered {
+    pub messages: u64,
+    pub channels: usize,
+    pub metadata: usize,
+    pub attachments: usize,
+    /// Complete chunks copied.
+    pub chunks: u64,
+    /// Chunks that did not decompress or decode (1-based), left out.
+    pub damaged_chunks: Vec<u64>,
+    /// Messages on a channel the file never declares (left out).
+    pub strays: u64,
+    /// The file had its data end record: it was complete already.
+    pub was_complete: bool,
+    /// Why reading stopped before a data end record, if it did: the end of
+    /// the file, or the reader's error where the file is damaged.
+    pub stopped: Option<String>,
+}
+
+/// Copy what `damaged` holds into a complete MCAP file at `out`.
+pub fn recover(damaged: &Path, out: &Path) -> Result<Recovered> {
+    let shown = damaged.display();
+    let mut source = File::open(damaged).with_context(|| format!("cannot read {shown}"))?;
+    let len = source
+        .metadata()
+        .with_context(|| format!("cannot read {shown}"))?
+        .len();
+    let mut magic = [0u8; 8];
+    if source.read_exact(&mut magic).is_err() || magic != *mcap::MAGIC {
+        return Err(anyhow!(NotMcap).context(format!("{shown} is not a recording")));
+    }
+    let options = LinearReaderOptions::default()
+        .with_skip_start_magic(true)
+        .with_skip_end_magic(true)
+        .with_emit_chunks(true)
+        .with_record_length_limit(usize::try_from(len).unwrap_or(usize::MAX));
+    let mut reader = LinearReader::new_with_options(options);
+    let mut copy = Copy::default();
+    let mut writer = None;
+    loop {
+        let record = match next_record(&mut reader, &mut source) {
+            Ok(Some(record)) => record,
+            Ok(None) => {
+                copy.found.stopped = Some("the file ends without its summary".into());
+                break;
+            }
+            Err(Stop::Io(e)) => return Err(e.context(format!("cannot read {shown}"))),
+            Err(Stop::Damaged(e)) => {
+                copy.found.stopped = Some(format!(
+                    "after {} complete chunk(s), {}",
+                    copy.found.chunks,
+                    in_words(&e)
+                ));
+                break;
+            }
+        };
+        let writer = match (&mut writer, &record) {
+            (Some(w), _) => w,
+            (None, Outer::Record(Record::Header(h))) => {
+                writer.insert(create(out, &h.profile, &h.library)?)
+            }
+            (None, _) => writer.insert(create(out, "", "")?),
+        };
+        let cannot_write = || format!("cannot write {}", out.display());
+        match record {
+            Outer::Record(Record::DataEnd(_)) => {
+                copy.found.was_complete = true;
+                break;
+            }
+            Outer::Record(other) => copy.take(writer, other).with_context(cannot_write)?,
+            Outer::Chunk(Ok(records)) => {
+                copy.found.chunks += 1;
+                for r in records {
+                    copy.take(writer, r).with_context(cannot_write)?;
+                }
+            }
+            // A damaged chunk's neighbours are whole: leave it out and go
+            // on, as `mcap recover` does.
+            Outer::Chunk(Err(_)) => {
+                let number = copy.found.chunks + copy.found.damaged_chunks.len() as u64 + 1;
+                copy.found.damaged_chunks.push(number);
+            }
+        }
+    }
+    let mut writer = match writer {
+        Some(w) => w,
+        None => bail!("{shown} holds nothing after its first bytes: there is nothing to recover"),
+    };
+    writer
+        .finish()
+        .with_context(|| format!("cannot finish {}", out.display()))?;
+    copy.found.channels = copy.channels.len();
+    Ok(copy.found)
+}
+
+type FileWriter = Writer<BufWriter<File>>;
+
+fn create(out: &Path, profile: &str, library: &str) -> Result<FileWriter> {
+    let file = File::create(out).with_context(|| format!("cannot create {}", out.display()))?;
+    WriteOptions::new()
+        .compression(Some(mcap::Compression::Zstd))
+        .compression_level(crate::record::ZSTD_LEVEL)
+        .chunk_size(Some(crate::record::CHUNK_SIZE))
+        .profile(profile)
+        .library(library)
+        .create(BufWriter::new(file))
+        .with_context(|| format!("cannot start MCAP file {}", out.display()))
+}
+
+/// Ids declared so far, and the tally.
+#[derive(Default)]
+struct Copy {
+    schemas: BTreeSet<u16>,
+    channels: BTreeSet<u16>,
+    found: Recovered,
+}
+
+impl Copy {
+    /// Write `record` into the copy, if it is data (the summary and the
+    /// indexes are the writer's to rebuild).
+    fn take(&mut self, writer: &mut FileWriter, record: Record<'_>) -> mcap::McapResult<()> {
+        match record {
+            Record::Schema { header, data } => {
+                writer.add_schema_with_id(header.id, &header.name, &header.encoding, &data)?;
+                self.schemas.insert(header.id);
+            }
+            Record::Channel(c) => {
+                // A channel whose schema the file lost is kept without one
+                // rather than dropped with its messages.
+                let schema = if self.schemas.contains(&c.schema_id) {
+                    c.schema_id
+                } else {
+                    0
+                };
+                writer.add_channel_with_id(
+                    c.id,
+                    schema,
+                    &c.topic,
+                    &c.message_encoding,
+                    &c.metadata,
+                )?;
+                self.channels.insert(c.id);
+            }
+            Record::Message { header, data } => {
+                if self.channels.contains(&header.channel_id) {
+                    writer.write_to_known_channel(&header, &data)?;
+                    self.found.messages += 1;
+                } else {
+                    self.found.strays += 1;
+                }
+            }
+            Record::Metadata(m) => {
+                writer.write_metadata(&m)?;
+                self.found.metadata += 1;
+            }
+            Record::Attachment { header, data, .. } => {
+                writer.attach(&Attachment {
+                    log_time: header.log_time,
+                    create_time: header.create_time,
+                    name: header.name,
+                    media_type: header.media_type,
+                    data,
+                })?;
+                self.found.attachments += 1;
+            }
+            _ => {}
+        }
+        Ok(())
+    }
+}
+
+enum Stop {
+    Io(anyhow::Error),
+    /// The MCAP reader's error: the file is damaged from here on.
+    Damaged(mcap::McapError),
+}
+
+/// A record outside the chunks, or a chunk's records (all or, damaged, none).
+enum Outer {
+    Record(Record<'static>),
+    Chunk(mcap::McapResult<Vec<Record<'static>>>),
+}
+
+/// The next record of the file outside the chunks (a chunk read whole),
+/// reading `source` as the reader asks; `None` where the file ends.
+fn next_record(reader: &mut LinearReader, source: &mut File) -> Result<Option<Outer>, Stop> {
+    while let Some(event) = reader.next_event() {
+        match event.map_err(Stop::Damaged)? {
+            LinearReadEvent::ReadRequest(need) => {
+                let buf = reader.insert(need);
+                let n = loop {
+                    match source.read(buf) {
+                        Ok(n) => break n,
+                        Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                        Err(e) => return Err(Stop::Io(e.into())),
+                    }
+                };
+                reader.notify_read(n);
+            }
+            LinearReadEvent::Record { opcode, data } => {
+                return match mcap::parse_record(opcode, data).map_err(Stop::Damaged)? {
+                    Record::Chunk { header, .. } => Ok(Some(Outer::Chunk(chunk_records(
+                        data,
+                        header.uncompressed_size,
+                    )))),
+                    other => Ok(Some(Outer::Record(other.into_owned()))),
+                };
+            }
+        }
+    }
+    Ok(None)
+}
