@@ -7,6 +7,7 @@
     reason = "the test drives real processes, ports and sockets in real time"
 )]
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::OnceLock;
@@ -397,12 +398,129 @@ fn a_killed_run_leaves_a_recording_that_compares_and_exports() {
         rows >= 200 && rows.is_multiple_of(200),
         "whole simulated seconds: {rows}"
     );
-    let o = twin(&["compare", s(&out), s(&out)]);
-    assert!(o.status.success(), "{}", text(&o));
     // The same scenario and seed: it matches the 3 s run as far as both go.
     let o = twin(&["compare", s(&out), s(ev_meb())]);
     assert!(text(&o).contains("the run is cut short"), "{}", text(&o));
     assert!(o.status.success(), "{}", text(&o));
+    // As a baseline it is refused until it is made whole.
+    let o = twin(&["compare", s(&out), s(&out)]);
+    assert!(!o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("twin recover"), "{}", text(&o));
+    let whole = scratch("killed.recovered.mcap");
+    let o = twin(&["recover", s(&out)]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains(s(&whole)), "{}", text(&o));
+    let o = twin(&["compare", s(&out), s(&whole)]);
+    assert!(o.status.success(), "{}", text(&o));
+    let (counts, _) = python_mcap_counts(&whole);
+    assert_eq!(counts["/plant/ev1/sensors"], rows as u64, "{counts:?}");
+}
+
+/// Per topic, the message counts in the summary of `path` and the messages
+/// iterated, read by the Python `mcap` package (which needs the summary a
+/// killed run never wrote).
+fn python_mcap_counts(path: &Path) -> (BTreeMap<String, u64>, u64) {
+    let script = r#"
+import json, sys
+from mcap.reader import make_reader
+with open(sys.argv[1], "rb") as f:
+    reader = make_reader(f)
+    summary = reader.get_summary()
+    counts = {c.topic: summary.statistics.channel_message_counts.get(i, 0) for i, c in summary.channels.items()}
+    n = sum(1 for _ in reader.iter_messages())
+print(json.dumps({"counts": counts, "iterated": n}))
+"#;
+    let o = Command::new("python3")
+        .arg("-c")
+        .arg(script)
+        .arg(path)
+        .output()
+        .expect("python3 runs");
+    assert!(
+        o.status.success(),
+        "the Python `mcap` package must read {} (pip install mcap): {}",
+        path.display(),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let counts = serde_json::from_value(v["counts"].clone()).unwrap();
+    (counts, v["iterated"].as_u64().unwrap())
+}
+
+#[test]
+fn a_recording_with_no_message_fails_every_reader() {
+    // The header and metadata of a run, cut before its first chunk.
+    let full = std::fs::read(ev_meb()).unwrap();
+    let empty = scratch("no-messages.mcap");
+    std::fs::write(&empty, &full[..1500]).unwrap();
+    let said = |o: &Output| {
+        assert!(!o.status.success(), "{}", text(o));
+        assert!(text(o).contains("holds no messages"), "{}", text(o));
+    };
+    said(&twin(&["replay", s(&empty)]));
+    said(&twin(&["compare", s(ev_meb()), s(&empty)]));
+    said(&twin(&["compare", s(&empty), s(ev_meb())]));
+    let dir = scratch("no-messages-csv");
+    said(&twin(&["export", s(&empty), "--csv", s(&dir)]));
+    assert!(!dir.exists(), "no folder of empty CSV files");
+    let rrd = scratch("no-messages.rrd");
+    let o = twin(&["view", s(&empty), "--save", s(&rrd)]);
+    assert!(!o.status.success(), "{}", text(&o));
+    assert!(!rrd.exists(), "no .rrd of nothing");
+    let o = twin(&["recover", s(&empty)]);
+    assert!(!o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("no message"), "{}", text(&o));
+    // Not MCAP at all.
+    let junk = scratch("junk.mcap");
+    std::fs::write(&junk, b"this is no recording").unwrap();
+    for args in [
+        vec!["compare", s(ev_meb()), s(&junk)],
+        vec!["recover", s(&junk)],
+        vec!["replay", s(&junk)],
+    ] {
+        let o = twin(&args);
+        assert!(!o.status.success(), "{args:?}: {}", text(&o));
+        assert!(text(&o).contains("MCAP magic"), "{args:?}: {}", text(&o));
+    }
+}
+
+#[test]
+fn recover_turns_a_cut_recording_into_one_every_reader_opens() {
+    let full = std::fs::read(ev_meb()).unwrap();
+    let cut = scratch("cut-for-recover.mcap");
+    std::fs::write(&cut, &full[..full.len() * 6 / 10]).unwrap();
+    let o = twin(&["compare", s(ev_meb()), s(&cut)]);
+    assert!(!o.status.success(), "a baseline cut short: {}", text(&o));
+    assert!(text(&o).contains("cut short"), "{}", text(&o));
+    let whole = scratch("cut-whole.mcap");
+    let o = twin(&["recover", s(&cut), "--out", s(&whole)]);
+    assert!(o.status.success(), "{}", text(&o));
+    // As many messages as the twin reads up to the last complete chunk.
+    let dir = scratch("cut-for-recover-csv");
+    assert!(twin(&["export", s(&cut), "--csv", s(&dir)]).status.success());
+    let rows = sensor_rows(&dir) as u64;
+    let (counts, iterated) = python_mcap_counts(&whole);
+    assert_eq!(counts["/plant/ev1/sensors"], rows, "{counts:?}");
+    assert_eq!(counts.values().sum::<u64>(), iterated);
+    assert!(
+        text(&o).contains(&format!("{iterated} messages")),
+        "{}",
+        text(&o)
+    );
+    // The messages themselves, byte for byte and in order, as far as the cut.
+    let original = messages(ev_meb());
+    let recovered = messages(&whole);
+    assert_eq!(recovered.len() as u64, iterated);
+    assert_eq!(recovered[..], original[..recovered.len()]);
+    // Made whole, it is a baseline again; and a complete file is copied as is.
+    let o = twin(&["compare", s(&cut), s(&whole)]);
+    assert!(o.status.success(), "{}", text(&o));
+    let copy = scratch("copy.mcap");
+    let o = twin(&["recover", s(ev_meb()), "--out", s(&copy)]);
+    assert!(text(&o).contains("complete already"), "{}", text(&o));
+    assert_eq!(messages(&copy), original);
+    let o = twin(&["recover", s(ev_meb()), "--out", s(ev_meb())]);
+    assert!(!o.status.success(), "{}", text(&o));
 }
 
 #[test]

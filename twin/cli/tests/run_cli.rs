@@ -272,3 +272,52 @@ fn a_broken_scenario_file_names_file_line_and_field() {
     assert!(err.contains(&format!("{}:10", file.display())), "{err}");
     assert!(err.contains("rs458"), "{err}");
 }
+
+/// Ctrl-C (and SIGTERM) stop a long run where it has got to, with its
+/// recording finished: a summary every MCAP reader takes, and exit 130.
+#[test]
+fn an_interrupted_run_finishes_its_recording() {
+    for (signal, said) in [("INT", "Ctrl-C"), ("TERM", "SIGTERM")] {
+        let out = scratch(&format!("interrupted-{signal}.mcap"));
+        let child = Command::new(env!("CARGO_BIN_EXE_twin"))
+            .args(["run", "ev-meb", "--duration", "3000"])
+            .arg("--out")
+            .arg(&out)
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .expect("twin starts");
+        let started = std::time::Instant::now();
+        // A chunk on disk: the run is under way.
+        while std::fs::metadata(&out).map_or(0, |m| m.len()) < 8 * 1024 {
+            assert!(started.elapsed().as_secs() < 120, "no chunk in 2 min");
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        let killed = Command::new("kill")
+            .arg(format!("-{signal}"))
+            .arg(child.id().to_string())
+            .status()
+            .expect("kill runs");
+        assert!(killed.success());
+        let o = child.wait_with_output().expect("twin ends");
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(130), "{stderr}");
+        assert!(stderr.contains(said), "{stderr}");
+        assert!(
+            stderr.contains("s of simulated time: the recording") && stderr.contains("complete"),
+            "{stderr}"
+        );
+        // The summary is there: the `mcap` crate's indexed reader needs it.
+        let bytes = std::fs::read(&out).unwrap();
+        let summary = mcap::Summary::read(&bytes)
+            .expect("a readable summary")
+            .expect("a summary");
+        let stats = summary.stats.expect("statistics");
+        assert!(stats.message_count > 0);
+        let streamed = mcap::MessageStream::new(&bytes)
+            .unwrap()
+            .map(|m| m.expect("every message whole"))
+            .count() as u64;
+        assert_eq!(streamed, stats.message_count);
+    }
+}
