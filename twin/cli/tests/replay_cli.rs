@@ -497,7 +497,11 @@ fn recover_turns_a_cut_recording_into_one_every_reader_opens() {
     assert!(o.status.success(), "{}", text(&o));
     // As many messages as the twin reads up to the last complete chunk.
     let dir = scratch("cut-for-recover-csv");
-    assert!(twin(&["export", s(&cut), "--csv", s(&dir)]).status.success());
+    assert!(
+        twin(&["export", s(&cut), "--csv", s(&dir)])
+            .status
+            .success()
+    );
     let rows = sensor_rows(&dir) as u64;
     let (counts, iterated) = python_mcap_counts(&whole);
     assert_eq!(counts["/plant/ev1/sensors"], rows, "{counts:?}");

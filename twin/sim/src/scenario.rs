@@ -430,19 +430,6 @@ impl Scenario {
     }
 
     fn validate(&self) -> std::result::Result<(), (String, String)> {
-        let positive = |field: &str, v: f64| {
-            if v.is_finite() && v > 0.0 {
-                Ok(())
-            } else {
-                Err((
-                    field.to_string(),
-                    format!("must be a positive number, got {v}"),
-                ))
-            }
-        };
-        positive("duration_s", self.duration_s)?;
-        positive("plant_step_s", self.plant_step_s)?;
-        positive("record_hz", self.record_hz)?;
         let mut names = std::collections::BTreeSet::new();
         for n in &self.nodes {
             if !names.insert(n.name()) {
@@ -486,7 +473,7 @@ impl Scenario {
                 return Err(("until_s".into(), "must not be before from_s".into()));
             }
         }
-        Ok(())
+        crate::scenario_check::check(self)
     }
 }
 

@@ -97,9 +97,7 @@ pub fn execute(args: &RunArgs) -> Result<()> {
     let name = args.scenario.as_deref().unwrap_or("ev-meb");
     let mut scenario = Scenario::load(name)?;
     if let Some(d) = args.duration {
-        if !(d.is_finite() && d > 0.0) {
-            bail!("--duration must be a positive number of seconds, got {d}");
-        }
+        check_duration(d)?;
         scenario.duration_s = d;
     }
     if let Some(seed) = args.seed {
@@ -328,9 +326,7 @@ impl Progress {
 fn execute_open_loop(args: &RunArgs) -> Result<()> {
     let params = args.plant.load()?;
     let duration = args.duration.unwrap_or(3.0);
-    if !(duration.is_finite() && duration > 0.0) {
-        bail!("--duration must be a positive number of seconds, got {duration}");
-    }
+    check_duration(duration)?;
     if !(0.0..=1.0).contains(&args.vel) {
         bail!(
             "--vel is a fraction of the 5 V range: 0 to 1, got {}",
@@ -388,5 +384,18 @@ fn execute_open_loop(args: &RunArgs) -> Result<()> {
         s.time_s / wall.max(1e-9)
     );
     println!("recording: {}", summary.recording.display());
+    Ok(())
+}
+
+/// `--duration` as a scenario's `duration_s` is held: above 0, a simulated
+/// day at most.
+fn check_duration(d: f64) -> Result<()> {
+    let max = twin_sim::scenario_check::MAX_DURATION_S;
+    if !(d.is_finite() && d > 0.0 && d <= max) {
+        bail!(
+            "--duration must be a number of seconds above 0 up to {max} (a simulated day), got {}",
+            twin_sim::scenario_check::shown(d)
+        );
+    }
     Ok(())
 }
