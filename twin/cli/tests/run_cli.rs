@@ -321,3 +321,31 @@ fn an_interrupted_run_finishes_its_recording() {
         assert_eq!(streamed, stats.message_count);
     }
 }
+
+/// A run stops before its recording fills the disk, the file closed whole:
+/// here the free space to keep is set above what any disk has.
+#[test]
+fn a_run_stops_with_its_recording_closed_before_the_disk_is_full() {
+    let out = scratch("disk-guard.mcap");
+    let o = Command::new(env!("CARGO_BIN_EXE_twin"))
+        .args(["run", "ev-meb", "--duration", "600"])
+        .arg("--out")
+        .arg(&out)
+        .env("TWIN_MIN_FREE_DISK_MB", "1000000000000")
+        .output()
+        .expect("twin runs");
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("MB free, under the 1000000000000 MB a recording leaves free")
+            && stderr.contains("TWIN_MIN_FREE_DISK_MB"),
+        "{stderr}"
+    );
+    let bytes = std::fs::read(&out).unwrap();
+    let summary = mcap::Summary::read(&bytes)
+        .expect("a readable summary")
+        .expect("a summary");
+    assert!(summary.stats.expect("statistics").message_count > 0);
+    // Far from the 600 s asked for.
+    assert!(bytes.len() < 1024 * 1024, "{} bytes", bytes.len());
+}

@@ -13,6 +13,7 @@
 pub mod compare;
 pub mod describe;
 pub mod diff;
+pub mod disk;
 pub mod export;
 pub mod read;
 pub mod record;

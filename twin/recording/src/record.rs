@@ -315,5 +315,5 @@ fn open(path: &Path) -> Result<FileWriter> {
     let writer = options
         .create(BufWriter::new(file))
         .with_context(|| format!("cannot start MCAP file {}", path.display()))?;
-    Ok(FileWriter::new(writer, path.display().to_string()))
+    Ok(FileWriter::new(writer, path))
 }

@@ -8,11 +8,13 @@ use mcap::records::{MessageHeader, Metadata};
 use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::BufWriter;
+use std::path::Path;
 use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
 use std::thread::JoinHandle;
 
 use serde::Serialize;
 
+use crate::disk::DiskGuard;
 use crate::topics;
 
 /// A message type the writer serialises itself: see
@@ -122,15 +124,17 @@ pub(crate) struct FileWriter {
     json: Vec<u8>,
     /// The file, as errors name it.
     shown: String,
+    disk: DiskGuard,
 }
 
 impl FileWriter {
-    pub(crate) fn new(writer: Writer<BufWriter<File>>, shown: String) -> Self {
+    pub(crate) fn new(writer: Writer<BufWriter<File>>, path: &Path) -> Self {
         Self {
             writer,
             ids: Vec::new(),
             json: Vec::new(),
-            shown,
+            shown: path.display().to_string(),
+            disk: DiskGuard::new(path),
         }
     }
 
@@ -188,6 +192,9 @@ impl FileWriter {
                         .write_to_known_channel(&header, data)
                         .with_context(cannot_write)?;
                 }
+                // A deferred message is about 1 kB of JSON.
+                self.disk
+                    .wrote(batch.bytes.len() + batch.deferred.len() * 1024)?;
                 batch.clear();
                 Ok(Some(batch))
             }
@@ -244,9 +251,16 @@ impl<D: Deferred> Backend<D> {
             .spawn(move || {
                 let mut writer = writer;
                 while let Ok(job) = queue.recv() {
-                    if let Some(batch) = writer.apply(job)? {
+                    match writer.apply(job) {
                         // Kept for reuse if the recorder has room for it.
-                        let _ = give_back.try_send(batch);
+                        Ok(Some(batch)) => drop(give_back.try_send(batch)),
+                        Ok(None) => {}
+                        // Closed whole up to here (the disk guard's stop;
+                        // on an I/O error, as far as the disk takes it).
+                        Err(e) => {
+                            let _ = writer.finish();
+                            return Err(e);
+                        }
                     }
                 }
                 writer.finish()
