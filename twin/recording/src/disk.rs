@@ -32,6 +32,8 @@ impl DiskGuard {
             Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
             _ => PathBuf::from("."),
         };
+        // Named in the error as a user finds it, not as `.`.
+        let folder = std::fs::canonicalize(&folder).unwrap_or(folder);
         let min_free = std::env::var(MIN_FREE_VAR)
             .ok()
             .and_then(|v| v.trim().parse::<u64>().ok())

@@ -60,12 +60,12 @@ pub fn execute(args: &CompareArgs) -> Result<()> {
         args.run.display(),
         args.baseline.display()
     );
+    refuse_empty_or_cut(&run.recording, &baseline.recording)?;
     for (r, what) in [(&run.recording, "run"), (&baseline.recording, "baseline")] {
         if let Some(why) = &r.truncated {
             println!("  {what} {}: {why}", r.path.display());
         }
     }
-    refuse_empty_or_cut(&run.recording, &baseline.recording)?;
     let c = compare::compare(&run, &baseline, &tolerances);
     if let Some(note) = &c.span_note {
         println!("  {note}");
