@@ -189,3 +189,34 @@ fn quiet_connections_time_out_and_make_room_for_newcomers() {
     assert!(line.contains("--max-clients"), "{line}");
     ask(&mut second, 5).expect("the other client keeps its place");
 }
+
+/// Slowloris: every place on the listener held by a frame that never ends.
+/// A newcomer takes the place of the one held longest (past a second), so
+/// the attack locks nobody out; the clients it displaces were never served.
+#[test]
+fn partial_frames_that_never_end_do_not_lock_newcomers_out() {
+    let serve = Serve::start(&["--meb", "tcp://127.0.0.1:0", "--max-clients", "4"]);
+    let addr = serve.tcp("meb");
+    let holders: Vec<TcpStream> = (0..4)
+        .map(|_| {
+            let s = connect(&addr);
+            (&s).write_all(b"@01EA").unwrap();
+            s
+        })
+        .collect();
+    std::thread::sleep(Duration::from_millis(1200));
+    for i in 0..6 {
+        let s = connect(&addr);
+        (&s).write_all(&meb_frame("@01EA0001")).unwrap();
+        let mut line = String::new();
+        BufReader::new(&s)
+            .read_line(&mut line)
+            .unwrap_or_else(|e| panic!("newcomer {i}: {e}"));
+        assert!(line.starts_with("@01EA0001"), "newcomer {i}: {line:?}");
+        // Its place is kept: it is no partial frame.
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let line = serve.expect_line("held a partial frame for", WAIT);
+    assert!(line.contains("made room for a new client"), "{line}");
+    drop(holders);
+}

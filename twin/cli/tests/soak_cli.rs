@@ -34,10 +34,19 @@ fn thirty_seconds_of_three_masters_lose_no_reply() {
         assert!(m["answered"].as_u64().unwrap() >= 1000, "{name}: {m}");
         assert_eq!(m["answered"], m["sent"], "{name}: {m}");
     }
-    assert_eq!(figures["server_exit"], 0, "SIGTERM ends the session cleanly");
+    assert_eq!(
+        figures["server_exit"], 0,
+        "SIGTERM ends the session cleanly"
+    );
     let threads = &figures["threads"];
-    assert_eq!(threads["first"], threads["last"], "no thread left behind: {threads}");
+    assert_eq!(
+        threads["first"], threads["last"],
+        "no thread left behind: {threads}"
+    );
     let tick = &figures["tick_lateness_total"];
-    assert!(tick["ticks"].as_u64().unwrap() > 25_000, "the plant ticked: {tick}");
+    assert!(
+        tick["ticks"].as_u64().unwrap() > 25_000,
+        "the plant ticked: {tick}"
+    );
     assert!(figures["recording_bytes"].as_u64().unwrap() > 0);
 }

@@ -135,6 +135,11 @@ pub enum After {
 /// Replies a connection may owe before its carrier stops reading.
 pub const OWED_MAX: usize = 64;
 
+/// How long a partial frame must have been held for its connection to make
+/// room for a newcomer on a full listener (a frame typed by hand in a
+/// terminal takes longer: it is closed only when the listener is full).
+pub const ROOM_AFTER_PARTIAL: SimDuration = SimDuration::from_secs(1);
+
 impl After {
     /// Whether the carrier must listen for the engine's wake-ups.
     pub fn listens(self) -> bool {
@@ -382,6 +387,34 @@ impl Front {
                     &format!(
                         "idle for {:.0} s, the longest of {max} (--max-clients): made room for a new client",
                         quiet.as_secs_f64()
+                    ),
+                );
+                true
+            }
+            _ => self.make_room_from_a_slow_frame(link, now, max),
+        }
+    }
+
+    /// Closes the connection on `link` that has held a partial frame
+    /// longest, if for at least [`ROOM_AFTER_PARTIAL`]: a whole frame takes
+    /// milliseconds to send, and a full listener whose places are held by
+    /// frames that never end (slowloris) would otherwise refuse everyone.
+    fn make_room_from_a_slow_frame(&mut self, link: usize, now: SimTime, max: usize) -> bool {
+        let slowest = self
+            .conns
+            .iter()
+            .filter(|(_, c)| c.link == link)
+            .filter_map(|(&id, c)| Some((id, c.partial_since?)))
+            .min_by_key(|&(_, since)| since)
+            .map(|(id, since)| (id, now.saturating_since(since)));
+        match slowest {
+            Some((id, held)) if held >= ROOM_AFTER_PARTIAL => {
+                self.counters.closed_for_room += 1;
+                self.close(
+                    id,
+                    &format!(
+                        "held a partial frame for {:.1} s, the longest of {max} (--max-clients): made room for a new client",
+                        held.as_secs_f64()
                     ),
                 );
                 true

@@ -85,7 +85,8 @@ pub struct ServeArgs {
     status_every: f64,
     /// TCP clients per link (each has a thread of its own; 0: no limit). A
     /// newcomer beyond it takes the place of the client quiet longest if
-    /// that one has sent nothing for --make-room-after, else waits up to
+    /// that one has sent nothing for --make-room-after, or of the one
+    /// holding a partial frame longest if for over 1 s, else waits up to
     /// 1 s for a place, else is refused.
     #[arg(long, default_value_t = 8, value_name = "N")]
     max_clients: usize,
