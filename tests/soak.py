@@ -307,13 +307,18 @@ def main() -> int:
         if m:
             total = dict(zip(["ticks", "p50_us", "p99_us", "p999_us", "max_us", "overruns"],
                              map(int, m.groups())))
-    rss = [s["rss_mib"] for s in samples if "rss_mib" in s]
-    threads = [s["threads"] for s in samples if "threads" in s]
+    # The first sample is taken before the masters connect (each TCP client
+    # has a thread of its own); flatness is judged from the next one on.
+    before = samples[0]
+    during = samples[1:] or samples
+    rss = [s["rss_mib"] for s in during if "rss_mib" in s]
+    threads = [s["threads"] for s in during if "threads" in s]
     half = len(rss) // 2
     figures = {
         "seconds": round(elapsed, 1),
         "rate_per_master": args.rate,
         "masters": {m.name: m.figures() for m in masters},
+        "before_clients": before,
         "rss_mib": {"first": rss[0] if rss else None, "last": rss[-1] if rss else None,
                     "max": max(rss) if rss else None,
                     # Flat: the second half grows no more than the first settled.
@@ -339,7 +344,8 @@ def main() -> int:
               f" latency p50 {f['latency_p50_us']} µs, p99 {f['latency_p99_us']} µs, max {f['latency_max_us']} µs"
               + (f"; first problem: {f['first_problem']}" if f["first_problem"] else ""))
     r, t = figures["rss_mib"], figures["threads"]
-    print(f"  RSS {r['first']} -> {r['last']} MiB (max {r['max']}), threads {t['first']} -> {t['last']} (max {t['max']})")
+    print(f"  RSS {r['first']} -> {r['last']} MiB (max {r['max']}), threads {t['first']} -> {t['last']} (max {t['max']});"
+          f" before the masters connected: {before.get('rss_mib')} MiB, {before.get('threads')} threads")
     if total:
         print(f"  tick lateness over {total['ticks']} ticks: p50 {total['p50_us']} µs, p99 {total['p99_us']} µs,"
               f" p99.9 {total['p999_us']} µs, max {total['max_us']} µs; {total['overruns']} overruns;"

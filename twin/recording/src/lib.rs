@@ -10,6 +10,7 @@
 //!   departure of a replay ([`diff`]) and CSV export ([`export`]).
 //!   `twin replay`, `compare`, `export` and the viewer build on this.
 
+mod chunk;
 pub mod compare;
 pub mod describe;
 pub mod diff;

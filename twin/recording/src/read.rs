@@ -20,6 +20,7 @@ use std::fs::File;
 use std::io::Read;
 use std::path::{Path, PathBuf};
 
+use crate::chunk::{chunk_records, in_words};
 use crate::topics::{self, Topic};
 
 /// One channel of a recording: its topic and how many messages it holds.
@@ -419,17 +420,6 @@ impl<R: Read> Reader<R> {
     }
 }
 
-/// The MCAP reader's error where a file stops, in a user's words: the record
-/// limit is the file's length, so a record longer than it is one cut off.
-pub(crate) fn in_words(e: &mcap::McapError) -> String {
-    match e {
-        mcap::McapError::RecordTooLarge { .. } | mcap::McapError::UnexpectedEof => {
-            "its last record is cut off".into()
-        }
-        other => other.to_string(),
-    }
-}
-
 /// A record of the file as [`Reader::raw`] reads it.
 enum Raw {
     Record(Record<'static>),
@@ -437,53 +427,6 @@ enum Raw {
     Chunk(mcap::McapResult<Vec<Record<'static>>>),
     /// A chunk not opened (a pass for the metadata).
     SkippedChunk,
-}
-
-/// No record inside a chunk is taken to be longer than this, whatever a
-/// damaged chunk header claims (the twin's chunks hold about 1 MiB).
-const MAX_CHUNK_BYTES: u64 = 1 << 30;
-
-/// The records of the chunk whose record body is `body`, decompressed and
-/// checked (CRC) whole. No record may claim more than the chunk's
-/// uncompressed size: a damaged chunk is an error, not an allocation of
-/// whatever length its garbage says.
-pub(crate) fn chunk_records(
-    body: &[u8],
-    uncompressed_size: u64,
-) -> mcap::McapResult<Vec<Record<'static>>> {
-    let limit = usize::try_from(uncompressed_size.min(MAX_CHUNK_BYTES))
-        .unwrap_or(usize::MAX)
-        .max(body.len());
-    let options = LinearReaderOptions::default()
-        .with_skip_start_magic(true)
-        .with_skip_end_magic(true)
-        .with_validate_chunk_crcs(true)
-        .with_record_length_limit(limit);
-    let mut reader = LinearReader::new_with_options(options);
-    let mut head = [0u8; 9];
-    head[0] = mcap::records::op::CHUNK;
-    head[1..].copy_from_slice(&(body.len() as u64).to_le_bytes());
-    let (mut head, mut body) = (&head[..], body);
-    let mut records = Vec::new();
-    while let Some(event) = reader.next_event() {
-        match event? {
-            LinearReadEvent::ReadRequest(need) => {
-                let from = if head.is_empty() {
-                    &mut body
-                } else {
-                    &mut head
-                };
-                let n = need.min(from.len());
-                reader.insert(n).copy_from_slice(&from[..n]);
-                reader.notify_read(n);
-                *from = &from[n..];
-            }
-            LinearReadEvent::Record { opcode, data } => {
-                records.push(mcap::parse_record(opcode, data)?.into_owned());
-            }
-        }
-    }
-    Ok(records)
 }
 
 /// The record handed out last, which its item borrows from.
@@ -694,19 +637,19 @@ fn unhex(hex: &str) -> Vec<u8> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::record::Recorder;
     use serde_json::json;
 
-    fn scratch(name: &str) -> PathBuf {
+    pub(crate) fn scratch(name: &str) -> PathBuf {
         let dir = std::env::temp_dir().join(format!("twin-recording-read-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         dir.join(name)
     }
 
     /// Three simulated seconds: sensors at 100 Hz, an event each second.
-    fn write(path: &Path) {
+    pub(crate) fn write(path: &Path) {
         let mut rec = Recorder::create(path).unwrap();
         let run = BTreeMap::from([("kind".to_string(), "scenario".to_string())]);
         rec.write_metadata(topics::RUN_METADATA, run).unwrap();
@@ -810,26 +753,8 @@ mod tests {
     fn a_damaged_chunk_is_dropped_whole_and_reading_stops_there() {
         let path = scratch("to-damage.mcap");
         write(&path);
-        let mut bytes = std::fs::read(&path).unwrap();
-        // Garbage in the middle of the second chunk's compressed records:
-        // walk the records (opcode, length, body) to find it.
-        let (mut at, mut chunks) = (8, 0);
-        loop {
-            let len = u64::from_le_bytes(bytes[at + 1..at + 9].try_into().unwrap()) as usize;
-            if bytes[at] == mcap::records::op::CHUNK {
-                chunks += 1;
-                if chunks == 2 {
-                    let mid = at + 9 + len / 2;
-                    for b in &mut bytes[mid..mid + 64] {
-                        *b ^= 0x5a;
-                    }
-                    break;
-                }
-            }
-            at += 9 + len;
-        }
         let damaged = scratch("damaged.mcap");
-        std::fs::write(&damaged, &bytes).unwrap();
+        std::fs::write(&damaged, damage_chunk(&path, 2)).unwrap();
         let r = Recording::read(&damaged).unwrap();
         assert!(
             matches!(r.truncated, Some(Cut::DamagedChunk { chunk: 2, .. })),
@@ -844,6 +769,27 @@ mod tests {
                 .to_string()
                 .starts_with("chunk 2 is damaged")
         );
+    }
+
+    /// The recording at `path` with garbage in the middle of chunk `n`'s
+    /// compressed records: walk the records (opcode, length, body) to it.
+    pub(crate) fn damage_chunk(path: &Path, n: usize) -> Vec<u8> {
+        let mut bytes = std::fs::read(path).unwrap();
+        let (mut at, mut chunks) = (8, 0);
+        loop {
+            let len = u64::from_le_bytes(bytes[at + 1..at + 9].try_into().unwrap()) as usize;
+            if bytes[at] == mcap::records::op::CHUNK {
+                chunks += 1;
+                if chunks == n {
+                    let mid = at + 9 + len / 2;
+                    for b in &mut bytes[mid..mid + 64] {
+                        *b ^= 0x5a;
+                    }
+                    return bytes;
+                }
+            }
+            at += 9 + len;
+        }
     }
 
     #[test]

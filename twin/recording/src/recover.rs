@@ -17,7 +17,8 @@ use std::fs::File;
 use std::io::{BufWriter, Read};
 use std::path::Path;
 
-use crate::read::{NotMcap, chunk_records, in_words};
+use crate::chunk::{chunk_records, in_words};
+use crate::read::NotMcap;
 
 /// What a recovery copied and what it could not.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
@@ -231,4 +232,38 @@ fn next_record(reader: &mut LinearReader, source: &mut File) -> Result<Option<Ou
         }
     }
     Ok(None)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::read::Recording;
+    use crate::read::tests::{damage_chunk, scratch, write};
+
+    #[test]
+    fn recover_leaves_a_damaged_chunk_out_and_copies_the_rest() {
+        let path = scratch("to-recover.mcap");
+        write(&path);
+        let damaged = scratch("damaged-for-recover.mcap");
+        std::fs::write(&damaged, damage_chunk(&path, 2)).unwrap();
+        let whole = scratch("recovered.mcap");
+        let found = recover(&damaged, &whole).unwrap();
+        assert_eq!(found.damaged_chunks, [2]);
+        assert_eq!(found.chunks, 2);
+        // Seconds 0 and 2: 200 sensor samples and the events at 0.5 and 2.5 s.
+        assert_eq!(found.messages, 202);
+        assert_eq!((found.channels, found.metadata, found.strays), (2, 1, 0));
+        assert!(found.was_complete, "the data end record is after chunk 3");
+        let r = Recording::read(&whole).unwrap();
+        assert_eq!(r.truncated, None, "a complete file");
+        assert_eq!(r.message_count(), 202);
+        assert_eq!(r.run_field("kind"), Some("scenario"));
+        // Its summary is there for the indexed readers.
+        let bytes = std::fs::read(&whole).unwrap();
+        let summary = mcap::Summary::read(&bytes).unwrap().expect("a summary");
+        assert_eq!(summary.stats.unwrap().message_count, 202);
+        let events = r.events().unwrap();
+        let times: Vec<f64> = events.iter().map(|e| e.time_s).collect();
+        assert_eq!(times, [0.5, 2.5]);
+    }
 }

@@ -17,7 +17,6 @@ pub mod observe;
 pub mod openloop;
 pub mod replay;
 pub mod scenario;
-pub mod scenario_check;
 pub mod scenario_pwm;
 pub mod step_metrics;
 pub mod virtual_run;

@@ -22,6 +22,8 @@
 //! id = 1
 //! ```
 
+pub mod check;
+
 use anyhow::{Context, Result, bail};
 use plant::PlantParams;
 use serde::{Deserialize, Serialize};
@@ -473,7 +475,7 @@ impl Scenario {
                 return Err(("until_s".into(), "must not be before from_s".into()));
             }
         }
-        crate::scenario_check::check(self)
+        check::check(self)
     }
 }
 

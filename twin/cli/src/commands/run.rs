@@ -390,11 +390,11 @@ fn execute_open_loop(args: &RunArgs) -> Result<()> {
 /// `--duration` as a scenario's `duration_s` is held: above 0, a simulated
 /// day at most.
 fn check_duration(d: f64) -> Result<()> {
-    let max = twin_sim::scenario_check::MAX_DURATION_S;
+    let max = twin_sim::scenario::check::MAX_DURATION_S;
     if !(d.is_finite() && d > 0.0 && d <= max) {
         bail!(
             "--duration must be a number of seconds above 0 up to {max} (a simulated day), got {}",
-            twin_sim::scenario_check::shown(d)
+            twin_sim::scenario::check::shown(d)
         );
     }
     Ok(())

@@ -7,7 +7,7 @@
 
 use std::collections::BTreeMap;
 
-use crate::scenario::{NodeSpec, Scenario};
+use super::{NodeSpec, Scenario};
 
 /// The longest simulated run: a day of bench time (about 5 GB of
 /// recording for one module). Longer studies are several runs.
@@ -41,6 +41,8 @@ const RECORD_HZ: Range = range(0.0, 100_000.0, false, "samples per simulated sec
 const TURNAROUND_MS: Range = range(0.0, 1000.0, true, "a board answers within a second");
 const LOOP_MS: Range = range(0.0, 1000.0, false, "a firmware loop period");
 const PERIOD_MS: Range = range(0.0, 60_000.0, false, "a minute at most");
+/// 0 polls back to back, as fast as the wire allows.
+const POLL_MS: Range = range(0.0, 60_000.0, true, "0 for back to back, a minute at most");
 const GAP_MS: Range = range(0.0, 60_000.0, true, "a minute at most");
 const DELAY_MS: Range = range(0.0, 60_000.0, true, "a minute at most");
 const GAIN: Range = range(-1e6, 1e6, true, "a PI gain");
@@ -151,7 +153,7 @@ fn node(n: &NodeSpec) -> Result<(), Fault> {
             set_points,
             ..
         } => {
-            at("poll_period_ms", &PERIOD_MS, *poll_period_ms)?;
+            at("poll_period_ms", &POLL_MS, *poll_period_ms)?;
             at("gap_ms", &GAP_MS, *gap_ms)?;
             at("reply_timeout_ms", &PERIOD_MS, *reply_timeout_ms)?;
             at("kp", &GAIN, *kp)?;
@@ -327,11 +329,11 @@ set_points = [[0.0, 0.0], [0.5, 1500.0]]
                 "poll_period_ms = 10.0",
                 "poll_period_ms = inf",
                 22,
-                "`poll_period_ms` of node `sup` must be above 0 up to 60000 (a minute at most), got inf",
+                "`poll_period_ms` of node `sup` must be from 0 up to 60000 (0 for back to back, a minute at most), got inf",
             ),
             (
                 "poll_period_ms = 10.0",
-                "poll_period_ms = 0.0",
+                "poll_period_ms = -1.0",
                 22,
                 "`poll_period_ms` of node `sup`",
             ),
