@@ -17,7 +17,10 @@ use twin_view::{self as view, RerunObserver, ViewLayout, ViewTarget};
 /// closed by a supervisor over MEB. `--open-loop` runs the bench alone instead:
 /// inverter enabled, brake released, VEL stepped to 60 % at 0.5 s, 3 s in all.
 /// Every run prints a summary and the path of its MCAP recording (Foxglove,
-/// `mcap`, and rerun open it).
+/// `mcap`, and rerun open it). Ctrl-C or SIGTERM stops a run where it has got
+/// to, with its recording finished (exit status 130); a recording also stops,
+/// closed whole, when its disk has less than 256 MB free
+/// (TWIN_MIN_FREE_DISK_MB sets another floor).
 #[derive(Debug, Args)]
 #[command(
     mut_arg("preset", |a| a.requires("open_loop")),
