@@ -491,7 +491,7 @@ fn recover_turns_a_cut_recording_into_one_every_reader_opens() {
     std::fs::write(&cut, &full[..full.len() * 6 / 10]).unwrap();
     let o = twin(&["compare", s(ev_meb()), s(&cut)]);
     assert!(!o.status.success(), "a baseline cut short: {}", text(&o));
-    assert!(text(&o).contains("cut short"), "{}", text(&o));
+    assert!(text(&o).contains("is not whole"), "{}", text(&o));
     let whole = scratch("cut-whole.mcap");
     let o = twin(&["recover", s(&cut), "--out", s(&whole)]);
     assert!(o.status.success(), "{}", text(&o));
@@ -557,5 +557,54 @@ fn baseline_records_checks_and_names_a_missing_one() {
         text(&o).contains("no embedded scenario `no-such-scenario`"),
         "{}",
         text(&o)
+    );
+}
+
+/// A damaged baseline never passes as one: bytes flipped anywhere in the
+/// file either fail the comparison, or fell where no message is (an index,
+/// the summary) and every message reads as it was recorded.
+#[test]
+fn a_corrupted_baseline_fails_unless_its_data_are_intact() {
+    let full = std::fs::read(ev_meb()).unwrap();
+    let csv_of = |path: &Path, name: &str| -> BTreeMap<String, String> {
+        let dir = scratch(name);
+        let o = twin(&["export", s(path), "--csv", s(&dir)]);
+        assert!(o.status.success(), "{}", text(&o));
+        std::fs::read_dir(&dir)
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .map(|p| {
+                let name = p.file_name().unwrap().to_string_lossy().into_owned();
+                (name, std::fs::read_to_string(&p).unwrap())
+            })
+            .collect()
+    };
+    let original = csv_of(ev_meb(), "corrupt-original-csv");
+    let (mut failed, mut intact) = (0, 0);
+    for k in 1..20 {
+        let at = full.len() * k / 20;
+        let mut bytes = full.clone();
+        for b in &mut bytes[at..at + 16] {
+            *b ^= 0xa5;
+        }
+        let damaged = scratch(&format!("corrupt-{k}.mcap"));
+        std::fs::write(&damaged, &bytes).unwrap();
+        let o = twin(&["compare", s(ev_meb()), s(&damaged)]);
+        if o.status.success() {
+            let csv = csv_of(&damaged, &format!("corrupt-{k}-csv"));
+            assert_eq!(csv, original, "a pass on damaged data (bytes {at}..)");
+            intact += 1;
+        } else {
+            assert!(
+                text(&o).contains("is not whole") || text(&o).contains("holds no messages"),
+                "{}",
+                text(&o)
+            );
+            failed += 1;
+        }
+    }
+    assert!(
+        failed > intact,
+        "most flips land in the chunks: {failed} failed, {intact} intact"
     );
 }

@@ -15,6 +15,18 @@ pub(crate) fn in_words(e: &mcap::McapError) -> String {
     }
 }
 
+/// What is wrong with a chunk that does not read, in a user's words.
+pub(crate) fn chunk_damage_in_words(e: &mcap::McapError) -> String {
+    match e {
+        mcap::McapError::DecompressionError(_) => "its data do not decompress".into(),
+        mcap::McapError::BadChunkCrc { .. } => "its checksum does not match its data".into(),
+        mcap::McapError::RecordTooLarge { .. } | mcap::McapError::UnexpectedEoc => {
+            "a record in it claims a length the chunk does not have".into()
+        }
+        other => other.to_string(),
+    }
+}
+
 /// No record inside a chunk is taken to be longer than this, whatever a
 /// damaged chunk header claims (the twin's chunks hold about 1 MiB).
 const MAX_CHUNK_BYTES: u64 = 1 << 30;

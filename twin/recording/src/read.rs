@@ -20,7 +20,7 @@ use std::fs::File;
 use std::io::Read;
 use std::path::{Path, PathBuf};
 
-use crate::chunk::{chunk_records, in_words};
+use crate::chunk::{chunk_damage_in_words, chunk_records, in_words};
 use crate::topics::{self, Topic};
 
 /// One channel of a recording: its topic and how many messages it holds.
@@ -303,7 +303,7 @@ impl<R: Read> Reader<R> {
                 Some(Ok(Raw::Chunk(Err(e)))) => {
                     self.stop(Some(Cut::DamagedChunk {
                         chunk: self.recording.chunks + 1,
-                        error: e.to_string(),
+                        error: chunk_damage_in_words(&e),
                     }));
                     return Ok(None);
                 }

@@ -128,7 +128,7 @@ fn refuse_empty_or_cut(run: &Recording, baseline: &Recording) -> Result<()> {
     }
     if let Some(cut) = &baseline.truncated {
         bail!(
-            "the baseline {} is cut short: {cut}. A baseline must be complete to hold a run \
+            "the baseline {} is not whole: {cut}. A baseline must be complete to hold a run \
              against: make it whole with `twin recover` or record it again",
             baseline.path.display()
         );
