@@ -626,3 +626,44 @@ fn supervise_closes_the_loop_over_modbus_rtu_and_serves_the_same_image() {
     wait_for_speed(&mut raw, 500.0, Duration::from_secs(20));
     supervise.terminate();
 }
+
+/// The supervisor's server closes a quiet client after --idle-timeout, and
+/// at --max-clients a newcomer takes the place of one quiet for
+/// --make-room-after, as `twin serve` does.
+#[test]
+fn quiet_remote_clients_time_out_and_make_room() {
+    let (_serve, supervise, addr) = supervisor_over_tcp(&["--idle-timeout", "0.5"]);
+    let mut quiet = TcpStream::connect(&addr).unwrap();
+    quiet
+        .set_read_timeout(Some(Duration::from_secs(10)))
+        .unwrap();
+    let mut got = Vec::new();
+    quiet.read_to_end(&mut got).expect("closed for being idle");
+    supervise.terminate();
+
+    let (_serve, supervise, addr) =
+        supervisor_over_tcp(&["--max-clients", "1", "--make-room-after", "0.5"]);
+    let mut first = Raw::connect(&addr);
+    first.send(&frame("@01FA1001"));
+    assert_eq!(first.frames(1).len(), 1);
+    std::thread::sleep(Duration::from_millis(800));
+    let mut second = Raw::connect(&addr);
+    second.send(&frame("@01FA1001"));
+    assert_eq!(second.frames(1).len(), 1, "the newcomer is served");
+    supervise.terminate();
+    let bad = Command::new(env!("CARGO_BIN_EXE_twin"))
+        .args([
+            "supervise",
+            "--meb",
+            "tcp://127.0.0.1:9",
+            "--idle-timeout=-1",
+        ])
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    assert!(
+        String::from_utf8_lossy(&bad.stderr).contains("--idle-timeout -1: give seconds above 0"),
+        "{}",
+        String::from_utf8_lossy(&bad.stderr)
+    );
+}

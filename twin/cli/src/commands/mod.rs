@@ -82,3 +82,18 @@ pub fn finish_recordings_on_signals() {
         eprintln!("note: Ctrl-C will not finish the recording ({e})");
     }
 }
+
+/// A timeout option in seconds: 0 for never; a negative, infinite or NaN
+/// one is refused rather than taken for never.
+fn timeout(flag: &str, seconds: f64) -> anyhow::Result<Option<nodes::time::SimDuration>> {
+    if seconds == 0.0 {
+        return Ok(None);
+    }
+    // A week: past that, 0 (never) is what is meant.
+    if !(seconds.is_finite() && seconds > 0.0 && seconds <= 604_800.0) {
+        anyhow::bail!(
+            "{flag} {seconds}: give seconds above 0 up to a week (604800), or 0 for never"
+        );
+    }
+    Ok(Some(nodes::time::SimDuration::from_secs_f64(seconds)))
+}

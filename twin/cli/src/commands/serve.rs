@@ -198,10 +198,10 @@ fn options(args: &ServeArgs) -> Result<ServeOptions> {
         params,
         seed: args.seed,
         max_clients: (args.max_clients > 0).then_some(args.max_clients),
-        partial_timeout: timeout("--partial-timeout", args.partial_timeout)?,
+        partial_timeout: super::timeout("--partial-timeout", args.partial_timeout)?,
         rate_limit: (args.rate_limit > 0).then_some(args.rate_limit),
-        idle_timeout: timeout("--idle-timeout", args.idle_timeout)?,
-        room_after_idle: timeout("--make-room-after", args.make_room_after)?,
+        idle_timeout: super::timeout("--idle-timeout", args.idle_timeout)?,
+        room_after_idle: super::timeout("--make-room-after", args.make_room_after)?,
         read_only: args.read_only,
     })
 }
@@ -246,17 +246,4 @@ pub fn execute(args: &ServeArgs) -> Result<()> {
     }
     super::print_session_end(&outcome);
     Ok(())
-}
-
-/// A timeout option in seconds: 0 for never; a negative, infinite or NaN
-/// one is refused rather than taken for never.
-fn timeout(flag: &str, seconds: f64) -> Result<Option<SimDuration>> {
-    if seconds == 0.0 {
-        return Ok(None);
-    }
-    // A week: past that, 0 (never) is what is meant.
-    if !(seconds.is_finite() && seconds > 0.0 && seconds <= 604_800.0) {
-        bail!("{flag} {seconds}: give seconds above 0 up to a week (604800), or 0 for never");
-    }
-    Ok(Some(SimDuration::from_secs_f64(seconds)))
 }

@@ -92,9 +92,20 @@ pub struct SuperviseArgs {
     /// cycles, so clients can read them from the image (0: never).
     #[arg(long, default_value_t = 10, value_name = "N")]
     status_poll: u32,
-    /// Refuse remote clients beyond this many.
+    /// Remote clients at once. A newcomer beyond them takes the place of
+    /// the client quiet longest if that one has sent nothing for
+    /// --make-room-after, or of the one holding a partial frame longest if
+    /// for over 1 s, else waits up to 1 s for a place, else is refused.
     #[arg(long, default_value_t = 8, value_name = "N")]
     max_clients: usize,
+    /// How long a client must have been quiet for a newcomer beyond
+    /// --max-clients to take its place (0: never).
+    #[arg(long, default_value_t = 30.0, value_name = "SECONDS")]
+    make_room_after: f64,
+    /// Close a remote client that has sent nothing for this long (0: never;
+    /// quiet connections stay open, as the MEB protocol page says).
+    #[arg(long, default_value_t = 0.0, value_name = "SECONDS")]
+    idle_timeout: f64,
     /// Remote clients may read but not write (ER 01).
     #[arg(long)]
     read_only: bool,
@@ -237,6 +248,8 @@ fn options(args: &SuperviseArgs) -> Result<SuperviseOptions> {
         server,
         // Far above any frame rate allowed: only a flood of garbage hits it.
         rate_limit_bytes: Some((args.rate_limit * 1.5 * 410.0) as u64 + 4096),
+        idle_timeout: super::timeout("--idle-timeout", args.idle_timeout)?,
+        room_after_idle: super::timeout("--make-room-after", args.make_room_after)?,
     })
 }
 

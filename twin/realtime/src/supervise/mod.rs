@@ -55,6 +55,11 @@ pub struct SuperviseOptions {
     pub server: ImageServerConfig,
     /// Close a client sending more bytes than this in one second.
     pub rate_limit_bytes: Option<u64>,
+    /// Close a remote client that has sent nothing for this long.
+    pub idle_timeout: Option<SimDuration>,
+    /// A newcomer beyond the client limit takes the place of a client quiet
+    /// this long (see [`ClientLimit`]).
+    pub room_after_idle: Option<SimDuration>,
 }
 
 /// One open link, as printed before `ready`.
@@ -327,7 +332,10 @@ async fn open_links(
             .listen(
                 addr,
                 link,
-                Some(ClientLimit::new(options.server.max_clients)),
+                Some(ClientLimit {
+                    room_after_idle: options.room_after_idle,
+                    ..ClientLimit::new(options.server.max_clients)
+                }),
             )
             .await
             .with_context(|| format!("--listen {}", spec.text))?;
@@ -350,7 +358,7 @@ async fn open_links(
             check: None,
             partial_timeout: Some(server.partial_timeout),
             rate_limit: options.rate_limit_bytes,
-            idle_timeout: None,
+            idle_timeout: options.idle_timeout,
             factory: Box::new(move |_devices, _peer| {
                 Box::new(ImageEndpoint::new(SUPERVISOR, server, SimTime::ZERO))
             }),
