@@ -45,6 +45,14 @@ pub fn run_discarding(scenario: &Scenario) -> Result<Measurement> {
     let mut engine = virtual_run::build(scenario)?;
     let end = SimTime::ZERO + SimDuration::from_secs_f64(scenario.duration_s);
     engine.run_until(end, &mut twin_sim::engine::DiscardObserver, |_| {})?;
+    if engine.interrupted() {
+        let at_s = engine.now().as_secs_f64();
+        return Err(twin_sim::interrupt::Interrupted {
+            at_s,
+            recording: None,
+        }
+        .into());
+    }
     let wall_s = started.elapsed().as_secs_f64();
     Ok(Measurement {
         simulated_s: engine.now().as_secs_f64(),

@@ -537,7 +537,6 @@ impl Recording {
             .map(String::as_str)
     }
 
-    /// Messages in all channels.
     /// Why a recording holds no message, for an error that says so: `PATH
     /// holds no messages…`, with where a file cut short stops.
     pub fn holds_no_messages(&self) -> String {
@@ -555,6 +554,7 @@ impl Recording {
         }
     }
 
+    /// Messages in all channels.
     pub fn message_count(&self) -> u64 {
         self.channels.iter().map(|c| c.message_count).sum()
     }

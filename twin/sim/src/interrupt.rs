@@ -21,13 +21,11 @@ pub fn requested() -> bool {
     REQUESTED.load(Ordering::Relaxed)
 }
 
-/// A run stopped by [`request`], its recording finished where it stopped.
+/// A run stopped by [`request`], its recording (if it had one) finished
+/// where it stopped.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[error(
-    "stopped at {at_s:.3} s of simulated time: the recording {} is complete up to there",
-    recording.display()
-)]
+#[error("stopped at {at_s:.3} s of simulated time{}", recording.as_ref().map_or_else(String::new, |r| format!(": the recording {} is complete up to there", r.display())))]
 pub struct Interrupted {
     pub at_s: f64,
-    pub recording: PathBuf,
+    pub recording: Option<PathBuf>,
 }

@@ -110,6 +110,7 @@ pub fn run_with(
             if crate::interrupt::requested() {
                 let at_s = sensors.time_s;
                 let recording = rec.finish()?;
+                let recording = Some(recording);
                 return Err(crate::interrupt::Interrupted { at_s, recording }.into());
             }
         }

@@ -212,7 +212,7 @@ fn run_observed(
         let recording = observer.recorder.finish()?;
         return Err(Interrupted {
             at_s: engine.now().as_secs_f64(),
-            recording,
+            recording: Some(recording),
         }
         .into());
     }
