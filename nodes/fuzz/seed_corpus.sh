@@ -3,7 +3,8 @@
 #   corpus/meb_parse/      one file per frame of meb.jsonl and meb_slave.jsonl
 #   corpus/meb_stream/     those frames concatenated, in vector order and by request/reply pair
 #   corpus/pwmcap_decode/  captured widths of a few frames in the paper's and Table 2's codings
-# The corpus is generated, not committed (fuzz/.gitignore). Needs python3.
+# The corpus is generated, not committed (fuzz/.gitignore), from the vectors and from
+# found/, what earlier campaigns found. Needs python3.
 # Usage: nodes/fuzz/seed_corpus.sh
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
@@ -41,4 +42,12 @@ for i, ((bits, dummy, start), kind, values) in enumerate(frames_pwm):
     data = bytes([bits, dummy]) + struct.pack("<HB", start, kind) + b"".join(struct.pack("<I", w) for w in widths)
     write("pwmcap_decode", f"frame_{i}", data)
 PY
+# What earlier fuzzing campaigns found (campaign.sh, minimised with `cargo
+# fuzz cmin`), kept in git so every run starts from there.
+for found in "$here"/found/*/; do
+  [ -d "$found" ] || continue
+  target=$(basename "$found")
+  mkdir -p "$here/corpus/$target"
+  cp -n "$found"* "$here/corpus/$target/"
+done
 for t in "$here"/corpus/*/; do echo "$(basename "$t"): $(ls "$t" | wc -l) seeds"; done
