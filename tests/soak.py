@@ -17,8 +17,10 @@ Run it by hand on an idle machine for the real figure (an hour):
     cargo build --release -p twin
     python3 tests/soak.py --twin target/release/twin --seconds 3600
 CI runs a 30-second one (twin/cli/tests/soak_cli.rs). --json prints the
-figures as JSON on the last line. The exit status is 1 if any reply was lost
-or wrong, or the server stopped on its own.
+figures as JSON on the last line. A reply later than 2 s is counted late (a
+real master would have timed out and asked again); one still missing after
+12 s is lost. The exit status is 1 if any reply was lost or wrong, or the
+server stopped on its own.
 
 Needs only Python 3's standard library.
 """
@@ -38,6 +40,13 @@ import tempfile
 import threading
 import time
 import tty
+
+
+# A reply later than this is counted late (a real master would have timed
+# out); one not there after GIVE_UP_S is lost. Waiting that long for it keeps
+# a late reply from being taken for the next request's.
+LATE_S = 2.0
+GIVE_UP_S = 12.0
 
 
 def crc16_modbus(data: bytes) -> int:
@@ -76,6 +85,8 @@ class Master:
         self.answered = 0
         self.wrong = 0
         self.lost = 0
+        # Answered, but later than a master's usual timeout.
+        self.late = 0
         self.latencies_us = []
         self.first_problem = None
 
@@ -91,6 +102,7 @@ class Master:
             "answered": self.answered,
             "wrong": self.wrong,
             "lost": self.lost,
+            "late": self.late,
             "latency_p50_us": pick(0.50),
             "latency_p99_us": pick(0.99),
             "latency_max_us": round(lat[-1]) if lat else None,
@@ -107,12 +119,16 @@ def poll(master: Master, exchange, rate: float, stop: threading.Event):
         try:
             verdict = exchange()
         except (socket.timeout, TimeoutError):
-            verdict = "no reply within 2 s"
+            verdict = f"no reply within {GIVE_UP_S:g} s"
         except OSError as e:
             verdict = f"link error: {e}"
+        took = time.monotonic() - started
         if verdict is None:
             master.answered += 1
-            master.latencies_us.append((time.monotonic() - started) * 1e6)
+            master.latencies_us.append(took * 1e6)
+            if took > LATE_S:
+                master.late += 1
+                master.problem(f"a reply {took:.2f} s late")
         elif verdict.startswith("no reply") or verdict.startswith("link error"):
             master.lost += 1
             master.problem(verdict)
@@ -129,7 +145,7 @@ def poll(master: Master, exchange, rate: float, stop: threading.Event):
 
 def meb_exchange(addr):
     s = socket.create_connection(addr, timeout=5)
-    s.settimeout(2)
+    s.settimeout(GIVE_UP_S)
     request = meb_frame("@01EA0003")
     buf = b""
 
@@ -150,7 +166,7 @@ def meb_exchange(addr):
 
 def modbus_tcp_exchange(addr):
     s = socket.create_connection(addr, timeout=5)
-    s.settimeout(2)
+    s.settimeout(GIVE_UP_S)
     s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
     tid = 0
 
@@ -186,11 +202,11 @@ def rtu_exchange(fd):
     def exchange():
         os.write(fd, request)
         reply = b""
-        deadline = time.monotonic() + 2
+        deadline = time.monotonic() + GIVE_UP_S
         while len(reply) < 25:
             left = deadline - time.monotonic()
             if left <= 0:
-                return "no reply within 2 s" if not reply else f"a cut reply {reply.hex()}"
+                return f"no reply within {GIVE_UP_S:g} s" if not reply else f"a cut reply {reply.hex()}"
             ready, _, _ = select.select([fd], [], [], left)
             if ready:
                 reply += os.read(fd, 25 - len(reply))
@@ -340,7 +356,7 @@ def main() -> int:
     print(f"twin soak: {figures['seconds']} s, {args.rate:g} requests/s per master")
     for m in masters:
         f = m.figures()
-        print(f"  {m.name:15} {f['answered']:9} of {f['sent']:9} answered, {f['lost']} lost, {f['wrong']} wrong;"
+        print(f"  {m.name:15} {f['answered']:9} of {f['sent']:9} answered ({f['late']} over {LATE_S:g} s late), {f['lost']} lost, {f['wrong']} wrong;"
               f" latency p50 {f['latency_p50_us']} µs, p99 {f['latency_p99_us']} µs, max {f['latency_max_us']} µs"
               + (f"; first problem: {f['first_problem']}" if f["first_problem"] else ""))
     r, t = figures["rss_mib"], figures["threads"]
