@@ -247,6 +247,8 @@ def main() -> int:
     ap.add_argument("--rate", type=float, default=100, help="requests a second per master [100]")
     ap.add_argument("--sample", type=float, default=10, help="seconds between memory samples [10]")
     ap.add_argument("--keep", action="store_true", help="keep the recording")
+    ap.add_argument("--no-record", action="store_true",
+                    help="serve without recording (to tell the recording's memory from the rest)")
     ap.add_argument("--json", action="store_true", help="print the figures as JSON last")
     args = ap.parse_args()
 
@@ -257,7 +259,7 @@ def main() -> int:
     pty_path = os.ttyname(slave_fd)
     recording = os.path.join(scratch, "soak.mcap")
     server = subprocess.Popen(
-        [args.twin, "serve", "--quiet", "--out", recording,
+        [args.twin, "serve", "--quiet", *(["--no-record"] if args.no_record else ["--out", recording]),
          "--meb", "tcp://127.0.0.1:0", "--modbus", "tcp://127.0.0.1:0",
          "--modbus-rtu", pty_path],
         stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
