@@ -13,8 +13,7 @@
 mod peers;
 
 use nodes::proto::crc::{crc16_modbus, lrc};
-use peers::{DirectPty, Serve, scratch};
-use rustix::event::{PollFd, PollFlags, Timespec, poll};
+use peers::{DirectPty, Serve, readable, scratch};
 use std::fs::File;
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
@@ -30,16 +29,6 @@ const LATE_DELIVERY: Duration = Duration::from_secs(5);
 /// a loaded machine: abuse and the valid request after it must not arrive as
 /// one burst.
 const SILENCE: Duration = Duration::from_millis(200);
-
-/// Waits up to `wait` for `link` to have bytes to read.
-fn readable(link: &File, wait: Duration) -> bool {
-    let t = Timespec {
-        tv_sec: wait.as_secs() as i64,
-        tv_nsec: i64::from(wait.subsec_nanos()),
-    };
-    let mut fds = [PollFd::new(link, PollFlags::IN)];
-    poll(&mut fds, Some(&t)).unwrap() > 0
-}
 
 /// Reads until `done(bytes)` holds, each wait bounded by [`LATE_DELIVERY`].
 fn read_until(link: &mut File, done: impl Fn(&[u8]) -> bool) -> Vec<u8> {

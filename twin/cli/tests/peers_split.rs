@@ -12,8 +12,7 @@
 mod peers;
 
 use nodes::proto::crc::crc16_modbus;
-use peers::{DirectPty, Serve};
-use rustix::event::{PollFd, PollFlags, Timespec, poll};
+use peers::{DirectPty, Serve, readable};
 use std::fs::File;
 use std::io::{Read, Write};
 use std::time::{Duration, Instant};
@@ -24,15 +23,6 @@ const REPLY_WAIT: Duration = Duration::from_secs(3);
 /// rightly have ended its frame (the silence is 5 ms): the test thread was
 /// held up, not the server wrong, and that request is not counted.
 const HELD_UP: Duration = Duration::from_millis(4);
-
-fn readable(link: &File, wait: Duration) -> bool {
-    let t = Timespec {
-        tv_sec: wait.as_secs() as i64,
-        tv_nsec: i64::from(wait.subsec_nanos()),
-    };
-    let mut fds = [PollFd::new(link, PollFlags::IN)];
-    poll(&mut fds, Some(&t)).unwrap() > 0
-}
 
 /// Exactly `n` bytes, or what came before a wait of `wait` ran out.
 fn read_n(link: &mut File, n: usize, wait: Duration) -> Result<Vec<u8>, Vec<u8>> {

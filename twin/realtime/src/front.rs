@@ -381,14 +381,8 @@ impl Front {
             .map(|(&id, c)| (id, now.saturating_since(c.last_rx)));
         match quietest {
             Some((id, quiet)) if quiet >= min_idle => {
-                self.counters.closed_for_room += 1;
-                self.close(
-                    id,
-                    &format!(
-                        "idle for {:.0} s, the longest of {max} (--max-clients): made room for a new client",
-                        quiet.as_secs_f64()
-                    ),
-                );
+                let why = format!("idle for {:.0} s", quiet.as_secs_f64());
+                self.close_for_room(id, &why, max);
                 true
             }
             _ => self.make_room_from_a_slow_frame(link, now, max),
@@ -409,18 +403,20 @@ impl Front {
             .map(|(id, since)| (id, now.saturating_since(since)));
         match slowest {
             Some((id, held)) if held >= ROOM_AFTER_PARTIAL => {
-                self.counters.closed_for_room += 1;
-                self.close(
-                    id,
-                    &format!(
-                        "held a partial frame for {:.1} s, the longest of {max} (--max-clients): made room for a new client",
-                        held.as_secs_f64()
-                    ),
-                );
+                let why = format!("held a partial frame for {:.1} s", held.as_secs_f64());
+                self.close_for_room(id, &why, max);
                 true
             }
             _ => false,
         }
+    }
+
+    fn close_for_room(&mut self, id: ConnId, why: &str, max: usize) {
+        self.counters.closed_for_room += 1;
+        self.close(
+            id,
+            &format!("{why}, the longest of {max} (--max-clients): made room for a new client"),
+        );
     }
 
     pub(super) fn receive(&mut self, id: ConnId, at: SimTime, bytes: &[u8]) {

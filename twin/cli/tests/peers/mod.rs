@@ -325,3 +325,14 @@ pub fn wait_for<T>(
         std::thread::sleep(period);
     }
 }
+
+/// Waits up to `wait` for `link` to have bytes to read.
+pub fn readable(link: &std::fs::File, wait: Duration) -> bool {
+    use rustix::event::{PollFd, PollFlags, Timespec, poll};
+    let t = Timespec {
+        tv_sec: wait.as_secs() as i64,
+        tv_nsec: i64::from(wait.subsec_nanos()),
+    };
+    let mut fds = [PollFd::new(link, PollFlags::IN)];
+    poll(&mut fds, Some(&t)).unwrap() > 0
+}
