@@ -29,9 +29,8 @@ fn thirty_seconds_of_three_masters_lose_no_reply() {
         let m = &figures["masters"][name];
         assert_eq!(m["lost"], 0, "{name}: {m}");
         assert_eq!(m["wrong"], 0, "{name}: {m}");
-        // Late replies (over 2 s) are printed, not failed: on a loaded
+        // Late replies (over 2 s) are in `m`, not failed: on a loaded
         // machine the kernel has held pty bytes that long.
-        assert!(m["late"].is_u64(), "{name}: {m}");
         // 3000 asked; a loaded machine paces the masters more slowly, but
         // one request in flight at a time still makes many.
         assert!(m["answered"].as_u64().unwrap() >= 1000, "{name}: {m}");
