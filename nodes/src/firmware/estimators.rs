@@ -144,6 +144,41 @@ impl LightDetectorConfig {
     }
 }
 
+impl LightDetectorConfig {
+    /// Volts per ADC count of `light`'s converter.
+    fn volts_per_count(light: &plant::light::LightParams) -> f64 {
+        light.adc_reference_volts / f64::from(1u32 << light.adc_bits.clamp(1, 16))
+    }
+
+    /// The detector in the lab's words: `fixed 2.36 V`, `adaptive (swing ≥ 0.244 V)`.
+    pub fn describe(&self, light: &plant::light::LightParams) -> String {
+        let lsb = Self::volts_per_count(light);
+        if self.adaptive {
+            let swing = f64::from(self.adaptive_min_swing_counts) * lsb;
+            format!("adaptive (swing ≥ {swing:.3} V)")
+        } else {
+            let threshold = f64::from(self.threshold_counts) * lsb;
+            format!("fixed {threshold:.2} V")
+        }
+    }
+
+    /// The fastest wheel speed (rpm) at which this detector still sees the
+    /// flag on the sensor `light`, by the formulas of `plant/src/light.rs`.
+    /// A fixed threshold: where the dip stops reaching it. Adaptive: in
+    /// steady running the trackers span the swing the detector sees, so what
+    /// limits it is the smallest swing it accepts.
+    pub fn max_rpm(&self, light: &plant::light::LightParams) -> f64 {
+        let lsb = Self::volts_per_count(light);
+        if self.adaptive {
+            let swing = f64::from(self.adaptive_min_swing_counts) * lsb;
+            plant::light::adaptive_dip_max_rpm(light, swing)
+        } else {
+            let threshold = f64::from(self.threshold_counts) * lsb;
+            plant::light::fixed_threshold_max_rpm(light, threshold)
+        }
+    }
+}
+
 impl Default for LightDetectorConfig {
     /// The EV module's sensor ([`plant::light::LightParams::default`]): lit
     /// 4.005 V and shaded 0.717 V on a 12-bit 5 V ADC, threshold midway

@@ -14,10 +14,12 @@ mod image;
 mod meb_map;
 mod meb_slave;
 mod modbus_slave;
+mod readings;
 
 use std::collections::VecDeque;
 
 use plant::battery::BmsTrip;
+use plant::params::SensingParams;
 use plant::{Actuators, PlantParams, Sensors};
 
 use crate::node::{Firmware, MAX_FRAME, Node, NodeEvent};
@@ -32,6 +34,7 @@ pub use frontend::{Framing, FrontendStats, SlaveFrontend};
 pub use image::{EA_WORDS, Protection, Refusal, RegisterImage, Settings, WriteSet, ea, sd, status};
 pub use meb_map::{MapError, MebMap, TAGS};
 pub use modbus_slave::{COILS, DISCRETE_INPUTS, HOLDING_REGISTERS, INPUT_REGISTERS};
+pub use readings::Readings;
 
 /// Events kept for [`Node::poll_event`] before the oldest is dropped, so an
 /// engine that never drains them cannot make the controller grow.
@@ -98,6 +101,9 @@ pub struct EvControllerConfig {
     pub over_current_release_amps: f64,
     /// The line silence that ends a Modbus RTU frame.
     pub modbus_silence: SimDuration,
+    /// The dividers and sensors in front of the ADC: how V1, V2 and I
+    /// counts convert to volts and amperes ([`EvController::readings`]).
+    pub sensing: SensingParams,
 }
 
 impl Default for EvControllerConfig {
@@ -115,6 +121,7 @@ impl Default for EvControllerConfig {
             stall_after: SimDuration::from_millis(500),
             over_current_release_amps: 1.0,
             modbus_silence: standard_rtu_silence(115_200, 10),
+            sensing: SensingParams::default(),
         }
     }
 }
@@ -126,6 +133,7 @@ impl EvControllerConfig {
             pole_pairs: params.motor.pole_pairs,
             gear_ratio: params.gearbox.ratio,
             light: LightDetectorConfig::for_sensor(&params.light),
+            sensing: params.sensing.clone(),
             ..Self::default()
         }
     }
@@ -200,6 +208,11 @@ impl EvController {
     /// effect at the next loop tick.
     pub fn store(&mut self, set: &WriteSet) -> Result<(), Refusal> {
         self.image.store(set)
+    }
+
+    /// What the controller reads now, its words converted with its scaling.
+    pub fn readings(&self) -> Readings {
+        Readings::of(&self.image, &self.config.sensing)
     }
 
     /// The settings the loop applied at its last tick.

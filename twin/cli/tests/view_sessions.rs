@@ -144,7 +144,7 @@ fn connect(addr: &str) -> TcpStream {
 }
 
 #[test]
-fn a_serve_session_views_with_the_replies_rpm_and_the_tick_lateness() {
+fn a_serve_session_views_with_the_controllers_readings_and_the_tick_lateness() {
     let mcap = scratch("serve.mcap");
     let out = mcap.to_str().unwrap();
     let live = scratch("serve-live.rrd");
@@ -187,13 +187,13 @@ fn a_serve_session_views_with_the_replies_rpm_and_the_tick_lateness() {
     let rrd = scratch("serve.rrd");
     let (samples, text) = view(&mcap, &rrd);
     let counts = mcap_counts(&mcap);
-    // Every reply carrying RPM_M is one sample, whichever link it came by.
-    assert_eq!(
-        samples["ev1/speed/hall_rpm"],
-        ea_replies + modbus_replies,
-        "{text}"
-    );
-    assert_eq!(samples["ev1/speed/light_rpm"], ea_replies + modbus_replies);
+    // The controller's readings are recorded beside every plant sample, and
+    // they give the speed plot its hall and light rpm (the replies on either
+    // link carry the same words, less often).
+    let readings = counts["/controller/ev1/readings"];
+    assert_eq!(readings, counts["/plant/ev1/sensors"], "{counts:?}");
+    assert_eq!(samples["ev1/speed/hall_rpm"], readings, "{text}");
+    assert_eq!(samples["ev1/speed/light_rpm"], readings);
     // Requests and replies on each link; the plant at its recording rate.
     assert_eq!(samples["bus/meb/frames"], 2 * (ea_replies + 2));
     assert_eq!(samples["bus/modbus-tcp/frames"], 2 * modbus_replies);

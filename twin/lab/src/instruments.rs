@@ -99,23 +99,12 @@ pub fn light_limit(params: &PlantParams, preset: &str, adaptive: bool) -> (Strin
             fixed_threshold_max_rpm(light, th),
         )
     } else {
-        let config = EvControllerConfig::for_plant(params).light;
-        let lsb = light.adc_reference_volts / f64::from(1u32 << light.adc_bits.clamp(1, 16));
-        if adaptive {
-            // In steady running the trackers span the swing the detector
-            // sees, so what limits it is the smallest swing it accepts.
-            let swing = f64::from(config.adaptive_min_swing_counts) * lsb;
-            (
-                format!("EV controller, adaptive (swing ≥ {swing:.3} V)"),
-                plant::light::adaptive_dip_max_rpm(light, swing),
-            )
-        } else {
-            let th = f64::from(config.threshold_counts) * lsb;
-            (
-                format!("EV controller, fixed {th:.2} V"),
-                fixed_threshold_max_rpm(light, th),
-            )
-        }
+        let mut config = EvControllerConfig::for_plant(params).light;
+        config.adaptive = adaptive;
+        (
+            format!("EV controller, {}", config.describe(light)),
+            config.max_rpm(light),
+        )
     }
 }
 

@@ -142,6 +142,8 @@ struct Ran {
     trace: Trace,
     params: PlantParams,
     preset: String,
+    /// The EV controller's light detector is adaptive.
+    adaptive_light: bool,
     from: f64,
     to: f64,
     step_at_s: f64,
@@ -177,6 +179,7 @@ pub fn run(config: &StepConfig, recording: &Path, progress: impl FnMut(f64)) -> 
                 trace,
                 params: (**params).clone(),
                 preset: preset.clone(),
+                adaptive_light: *adaptive_light,
                 from: config.from,
                 to: config.to,
                 step_at_s: config.step_at_s,
@@ -191,7 +194,8 @@ pub fn run(config: &StepConfig, recording: &Path, progress: impl FnMut(f64)) -> 
         }
         StepDrive::ClosedLoop { scenario, on_light } => {
             let ran = run_closed_loop(config, scenario, *on_light, recording, progress)?;
-            (ran, "closed-loop", scenario.name.clone(), "rpm", false)
+            let adaptive = ran.adaptive_light;
+            (ran, "closed-loop", scenario.name.clone(), "rpm", adaptive)
         }
     };
     let (light_detector, light_limit_rpm) = light_limit(&ran.params, &ran.preset, adaptive);
@@ -379,6 +383,11 @@ fn run_closed_loop(
         .context("the watched module is not declared")?;
     let params = scenario.module_params(spec)?;
     let preset = spec.preset.clone();
+    // The watched module's controller runs the detector the scenario gives it.
+    let adaptive_light = scenario.nodes.iter().any(|n| {
+        matches!(n, NodeSpec::EvController { module: m, light_detector, .. }
+            if *m == module && light_detector.adaptive())
+    });
     let ratio = params.gearbox.ratio;
     let mut trace = Trace::default();
     let (from, to, at) = (config.from, config.to, config.step_at_s);
@@ -425,6 +434,7 @@ fn run_closed_loop(
             trace,
             params,
             preset,
+            adaptive_light,
             from,
             to,
             step_at_s: at,
@@ -453,6 +463,7 @@ fn run_closed_loop(
         trace,
         params,
         preset,
+        adaptive_light,
     })
 }
 

@@ -359,11 +359,12 @@ impl RtEngine {
         // The firmware loops and the status line need the devices (the
         // front locked); the plant steps do not, so requests are answered
         // while they run.
-        self.with_front(front, |engine| engine.firmware_ticks(t));
+        let record = t >= self.next_record;
+        self.with_front(front, |engine| engine.firmware_ticks(t, record));
         for module in &mut self.modules {
             module.advance(self.plant_step, t);
         }
-        if t >= self.next_record {
+        if record {
             for (m, module) in self.modules.iter().enumerate() {
                 let _ = self.sink.send(SinkMsg::Plant {
                     at: t,
@@ -391,7 +392,9 @@ impl RtEngine {
     }
 
     /// The firmware loops due at `t`, the devices' events, the status line.
-    fn firmware_ticks(&mut self, t: SimTime) {
+    /// At a recording instant (`record`) the module controllers' readings go
+    /// to the sink too, beside the plant samples.
+    fn firmware_ticks(&mut self, t: SimTime, record: bool) {
         for device in &mut self.devices {
             let (Some(m), Some(due)) = (device.module, device.next_tick) else {
                 continue;
@@ -417,6 +420,19 @@ impl RtEngine {
                         at: t,
                         module: m,
                         actuators: module.actuators,
+                    });
+                }
+            }
+        }
+        if record {
+            for device in &self.devices {
+                if let (Some(module), Some(readings)) =
+                    (device.module, device.node.controller_readings())
+                {
+                    let _ = self.sink.send(SinkMsg::Readings {
+                        at: t,
+                        module,
+                        readings,
                     });
                 }
             }

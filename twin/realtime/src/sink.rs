@@ -1,7 +1,7 @@
 //! The sink thread: records a real-time session to MCAP and prints the live
 //! frame monitor, off the engine's thread. Channels of the recording are
 //! those of a virtual run (`/plant/<module>/sensors`, `/plant/<module>/actuators`,
-//! `/events`) plus `/link/<link>/frames` (both directions) and
+//! `/controller/<module>/readings`, `/events`) plus `/link/<link>/frames` (both directions) and
 //! `/realtime/lateness` (each second: that second's and the total tick
 //! lateness). The file is flushed every second, so a crash loses at most one.
 
@@ -19,7 +19,7 @@ use std::time::Duration;
 pub use super::frame_log::{Direction, FrameBatch};
 use super::lateness::LatenessSummary;
 use twin_recording::describe::link_frame_fields;
-use twin_recording::topics;
+use twin_recording::topics::{self, ReadingsSample};
 use twin_sim::observe::{LazyChannel, McapObserver, SimRecorder};
 
 /// How often the sink drains its queue (console lines and recording may lag
@@ -38,6 +38,14 @@ pub enum SinkMsg {
         at: SimTime,
         module: usize,
         actuators: plant::Actuators,
+    },
+    /// A module controller's readings, recorded on
+    /// `/controller/<module>/readings` (a session names its controller after
+    /// its module: `ev1`).
+    Readings {
+        at: SimTime,
+        module: usize,
+        readings: ReadingsSample,
     },
     /// Bytes on the links: whole frames (tx), chunks as read (rx).
     Frames(FrameBatch),
@@ -90,6 +98,8 @@ pub trait LiveView: Send + std::fmt::Debug {
     fn event(&mut self, node: &str, t: f64, kind: &str, detail: &str);
     /// A master's loop report, as recorded on `/master/<node>/loop`.
     fn master_loop(&mut self, node: &str, t: f64, report: &Value);
+    /// A module controller's readings, as recorded on `/controller/<node>/readings`.
+    fn readings(&mut self, node: &str, t: f64, readings: &ReadingsSample);
     /// The engine's tick lateness over the last second.
     fn lateness(&mut self, t: f64, p99_us: f64, max_us: f64);
     /// One reassembled frame on `link`, sent by `from` (`twin`, `client N`).
@@ -138,6 +148,15 @@ fn feed(view: &mut dyn LiveView, config: &SinkConfig, message: &SinkMsg) {
         } => {
             if let Some(name) = config.modules.get(*module) {
                 view.plant(name, at.as_secs_f64(), sensors);
+            }
+        }
+        SinkMsg::Readings {
+            at,
+            module,
+            readings,
+        } => {
+            if let Some(name) = config.modules.get(*module) {
+                view.readings(name, at.as_secs_f64(), readings);
             }
         }
         SinkMsg::Event { node, event } => {
@@ -409,6 +428,14 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
                 actuators,
             } => match (&mut observer, config.modules.get(module)) {
                 (Some(o), Some(name)) => o.record_actuators(at, name, &actuators),
+                _ => Ok(()),
+            },
+            SinkMsg::Readings {
+                at,
+                module,
+                readings,
+            } => match (&mut observer, config.modules.get(module)) {
+                (Some(o), Some(name)) => o.record_readings(at, name, &readings),
                 _ => Ok(()),
             },
             SinkMsg::Frames(batch) => {

@@ -124,9 +124,14 @@ impl<D: Deferred> Recorder<D> {
         }
     }
 
-    /// Add a channel whose messages look like `sample`.
+    /// Add a channel whose messages look like `sample` (its schema the
+    /// catalogue's, where [`topics::described_schema`] has one).
     pub fn add_channel<T: Serialize>(&mut self, topic: &str, sample: &T) -> Result<ChannelId> {
-        let schema = serde_json::to_vec(&schema_of(&serde_json::to_value(sample)?))?;
+        let schema = match topics::described_schema(topic) {
+            Some(schema) => schema,
+            None => schema_of(&serde_json::to_value(sample)?),
+        };
+        let schema = serde_json::to_vec(&schema)?;
         // The channel's messages must not reach the writer before it does.
         self.hand_over()?;
         self.submit(Job::Channel {

@@ -18,6 +18,7 @@
 //! | [`bus_frames`] `/bus/<bus>/frames` | a virtual run | every frame sent, at its first byte | [`FrameSample`]: `from` (the sending node), `start_s`, `end_s`, `len`, `text` (printable bytes, else empty), `hex`, `decoded` ([`crate::describe`]; PWM-capture: widths sent and captured per listener, values, pulses lost, values wrong) |
 //! | [`link_frames`] `/link/<link>/frames` | a real-time session (`twin serve`, `twin supervise`) | every frame, both directions | [`FrameSample`], `from` being `twin` or `client N` |
 //! | [`EVENTS`] `/events` | a virtual run, a real-time session | as they happen | [`EventSample`]: `node`, `kind` (`timeout`, `bad_check`, `retry`, `exception`, `dropped`, `fault`, `state`, `log`; a session's `connection`), `detail` |
+//! | [`controller_readings`] `/controller/<node>/readings` | a virtual run, a real-time session (`twin serve`) | beside each plant sample (the scenario's `record_hz`), per EV module controller | [`ReadingsSample`]: what the controller reads, named: `battery_volts` (V1), `bus_volts` (V2), `inverter_amps` (I), `hall_rpm` (RPM_M), `light_rpm` (RPM_L), `flag_dark` (ED0 bit 3), `soc_percent` (SOC), and `meb`, the raw words a master reads by their MEB names (`V2`, `I`, `V1`, `RPM_M`, `RPM_L`, `LDR`, `HALL`, `SOC`, `ERRS`, `STATUS`); its JSON schema describes every field with its unit ([`readings_schema`]) |
 //! | [`master_loop`] `/master/<node>/loop` | a virtual run, a real-time session (`twin supervise`) | every poll cycle of a master | the master's telemetry: set point, measured rpm, error, output, counters (a supervisor: `loops`, one per slave) |
 //! | [`REALTIME_LATENESS`] `/realtime/lateness` | a real-time session | each second (and the file is flushed) | `window` and `total`, each `ticks`, `p50_us`, `p99_us`, `p999_us`, `max_us`, `mean_us`, `overruns`: how late the plant's ticks ran |
 //! | [`EXPERIMENT_STEP`] `/experiment/step` | `twin step` (`twin-lab` `step.rs`) | each sample of the experiment | `set_point`, `wheel_rpm`, `motor_rpm`, `light_rpm` |
@@ -29,7 +30,8 @@
 //! | [`RUN_METADATA`] `twin.run` | every run and session | first, before any message | `kind` (`scenario`, `open-loop`, `serve`, `supervise`), `twin_version`; a scenario's `scenario`, `scenario_toml`, `seed`, `pwm_calibration`; the open loop's settings and `params_toml`; a session's `links`, `params`, `slaves`, … |
 //! | [`REALTIME_METADATA`] `twin.realtime` | a real-time session | when it ends | the session's totals |
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
+use serde_json::{Value, json};
 
 /// Message encoding of every channel.
 pub const MESSAGE_ENCODING: &str = "json";
@@ -77,6 +79,11 @@ pub fn master_loop(node: &str) -> String {
     format!("/master/{node}/loop")
 }
 
+/// An EV module controller's readings: `/controller/<node>/readings`.
+pub fn controller_readings(node: &str) -> String {
+    format!("/controller/{node}/readings")
+}
+
 /// The schema name of a topic's channel: `/plant/ev1/sensors` → `plant.ev1.sensors`.
 pub fn schema_name(topic: &str) -> String {
     topic.trim_start_matches('/').replace('/', ".")
@@ -93,6 +100,8 @@ pub enum Topic<'a> {
     LinkFrames(&'a str),
     Events,
     MasterLoop(&'a str),
+    /// An EV module controller's readings, by node name.
+    ControllerReadings(&'a str),
     RealtimeLateness,
     ExperimentStep,
     /// Anything else (not written by this twin).
@@ -126,6 +135,8 @@ impl<'a> Topic<'a> {
             Topic::LinkFrames(l)
         } else if let Some(n) = named("/master/", "/loop") {
             Topic::MasterLoop(n)
+        } else if let Some(n) = named("/controller/", "/readings") {
+            Topic::ControllerReadings(n)
         } else {
             Topic::Other(topic)
         }
@@ -152,6 +163,109 @@ pub struct FrameSample {
     pub hex: String,
 }
 
+/// An EV module controller's readings as recorded on [`controller_readings`]:
+/// what a master would read from every input block, named so that a plot or
+/// a data frame finds them (`light_rpm`), with the raw words under `meb`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ReadingsSample {
+    /// V1: battery voltage (V), from its ADC count through the divider.
+    pub battery_volts: f64,
+    /// V2: DC-bus voltage (V).
+    pub bus_volts: f64,
+    /// I: inverter input current (A).
+    pub inverter_amps: f64,
+    /// RPM_M: wheel rpm from the motor's hall sensors.
+    pub hall_rpm: u16,
+    /// RPM_L: wheel rpm from the photoresistor's dips.
+    pub light_rpm: u16,
+    /// ED0 bit 3: the light detector sees the flag now.
+    pub flag_dark: bool,
+    /// SOC: battery state of charge (%).
+    pub soc_percent: f64,
+    /// The words as a master reads them over MEB (or Modbus input registers).
+    pub meb: MebWords,
+}
+
+/// The controller's input words by their MEB names (`docs/protocols/meb.md`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct MebWords {
+    /// EA0: DC-bus voltage, ADC counts.
+    #[serde(rename = "V2")]
+    pub v2: u16,
+    /// EA1: inverter current, ADC counts.
+    #[serde(rename = "I")]
+    pub i: u16,
+    /// EA2: battery voltage, ADC counts.
+    #[serde(rename = "V1")]
+    pub v1: u16,
+    /// EA3: wheel rpm, hall sensors.
+    #[serde(rename = "RPM_M")]
+    pub rpm_m: u16,
+    /// EA4: wheel rpm, photoresistor.
+    #[serde(rename = "RPM_L")]
+    pub rpm_l: u16,
+    /// EA5: photoresistor divider, ADC counts.
+    #[serde(rename = "LDR")]
+    pub ldr: u16,
+    /// ED0: hall code (bits 0–2), light detector dark (bit 3).
+    #[serde(rename = "HALL")]
+    pub hall: u16,
+    /// FA0: state of charge, 0.1 % per count.
+    #[serde(rename = "SOC")]
+    pub soc: u16,
+    /// FA1: frames dropped for bad form or check.
+    #[serde(rename = "ERRS")]
+    pub errs: u16,
+    /// FD0: status bits.
+    #[serde(rename = "STATUS")]
+    pub status: u16,
+}
+
+/// The JSON schema of [`controller_readings`]: every field with its meaning
+/// and unit, so Foxglove and Lichtblick show what a field is.
+pub fn readings_schema() -> Value {
+    let number = |d: &str| json!({ "type": "number", "description": d });
+    let integer = |d: &str| json!({ "type": "integer", "description": d });
+    json!({
+        "type": "object",
+        "title": "EV module controller readings",
+        "properties": {
+            "battery_volts": number("V1, battery voltage (V)"),
+            "bus_volts": number("V2, DC-bus voltage (V)"),
+            "inverter_amps": number("I, inverter input current (A)"),
+            "hall_rpm": integer("RPM_M, wheel speed from the motor's hall sensors (rpm)"),
+            "light_rpm": integer("RPM_L, wheel speed from the photoresistor (rpm)"),
+            "flag_dark": { "type": "boolean", "description": "ED0 bit 3, the light detector sees the flag" },
+            "soc_percent": number("SOC, battery state of charge (%)"),
+            "meb": {
+                "type": "object",
+                "description": "the words as a master reads them, by their MEB names",
+                "properties": {
+                    "V2": integer("EA0, DC-bus voltage (ADC counts)"),
+                    "I": integer("EA1, inverter current (ADC counts)"),
+                    "V1": integer("EA2, battery voltage (ADC counts)"),
+                    "RPM_M": integer("EA3, wheel rpm from the hall sensors"),
+                    "RPM_L": integer("EA4, wheel rpm from the photoresistor"),
+                    "LDR": integer("EA5, photoresistor divider (ADC counts)"),
+                    "HALL": integer("ED0, hall code A B C in bits 0-2, light detector dark in bit 3"),
+                    "SOC": integer("FA0, state of charge (0.1 % per count)"),
+                    "ERRS": integer("FA1, frames dropped for bad form or check"),
+                    "STATUS": integer("FD0, bit 0 battery cut-off, 1 over-current, 2 brake, 3 stalled, 4 charging, 5 counter-clockwise"),
+                }
+            }
+        }
+    })
+}
+
+/// The schema the catalogue gives `topic`'s channel, where it writes one by
+/// hand; other channels' schemas are derived from their first message.
+pub fn described_schema(topic: &str) -> Option<Value> {
+    match Topic::parse(topic) {
+        Topic::ControllerReadings(_) => Some(readings_schema()),
+        _ => None,
+    }
+}
+
 /// An event as recorded on [`EVENTS`].
 #[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
 pub struct EventSample {
@@ -175,6 +289,7 @@ mod tests {
             (link_frames("modbus-tcp"), Topic::LinkFrames("modbus-tcp")),
             (EVENTS.to_string(), Topic::Events),
             (master_loop("supervisor"), Topic::MasterLoop("supervisor")),
+            (controller_readings("ev1"), Topic::ControllerReadings("ev1")),
             (REALTIME_LATENESS.to_string(), Topic::RealtimeLateness),
             (EXPERIMENT_STEP.to_string(), Topic::ExperimentStep),
         ] {

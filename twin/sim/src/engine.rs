@@ -13,6 +13,7 @@ use nodes::link::{BusEvent, Medium, PortId};
 use nodes::node::{Firmware, MAX_FRAME, Node, NodeEvent};
 use nodes::time::{SimDuration, SimTime};
 use plant::{Actuators, EvModule};
+use twin_recording::topics::ReadingsSample;
 
 /// Passes of the loop at one instant after which the engine calls it a stall
 /// (a busy bus with many nodes takes a few dozen).
@@ -51,6 +52,11 @@ pub trait SimNode: Node {
     /// What the node's own speed sensors read now (firmware nodes).
     fn speed_readings(&self) -> SpeedReadings {
         SpeedReadings::default()
+    }
+    /// An EV module controller's readings, recorded beside its module's
+    /// plant samples on `/controller/<node>/readings`.
+    fn controller_readings(&self) -> Option<ReadingsSample> {
+        None
     }
 }
 
@@ -236,6 +242,11 @@ pub trait Observer {
     fn event(&mut self, node: &NodeSlot, event: &NodeEvent) -> Result<()>;
     fn telemetry(&mut self, now: SimTime, node: &NodeSlot, value: &serde_json::Value)
     -> Result<()>;
+    /// A module controller's readings, at each recording instant.
+    fn readings(&mut self, now: SimTime, node: &NodeSlot, readings: &ReadingsSample) -> Result<()> {
+        let _ = (now, node, readings);
+        Ok(())
+    }
 }
 
 /// An observer that keeps nothing: the engine's own cost, without recording.
@@ -415,6 +426,11 @@ impl Engine {
                 for m in 0..self.modules.len() {
                     self.advance_plant(m, t);
                     observer.plant(t, &self.modules[m])?;
+                }
+                for slot in &self.nodes {
+                    if let Some(readings) = slot.node.controller_readings() {
+                        observer.readings(t, slot, &readings)?;
+                    }
                 }
                 self.next_record = t + self.record_period;
                 self.events += 1;

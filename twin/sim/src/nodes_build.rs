@@ -5,7 +5,9 @@ use anyhow::{Result, bail};
 use nodes::controller_network::{
     ControllerNetworkMaster, LightConfig, LightNode, MasterConfig, MotorConfig, MotorNode,
 };
-use nodes::firmware::{EvController, EvControllerConfig, SlaveProtocol, ea};
+use nodes::firmware::{
+    EvController, EvControllerConfig, LightDetectorConfig, Readings, SlaveProtocol, ea,
+};
 use nodes::link::{BusConfig, CheckKind, Fault, FaultWindow, FaultyNode, PortId, SimBus, Wiring};
 use nodes::master::Supervisor;
 use nodes::master::{Protocol, SetPointStep, SlaveLoopConfig, SpeedSource, SupervisorConfig};
@@ -15,7 +17,10 @@ use plant::PlantParams;
 use serde_json::{Value, json};
 
 use crate::engine::{SimNode, SpeedReadings};
-use crate::scenario::{BusSpec, FaultKind, FaultSpec, NodeSpec, ProtocolSpec, WiringSpec};
+use crate::scenario::{
+    BusSpec, FaultKind, FaultSpec, LightDetectorSpec, NodeSpec, ProtocolSpec, WiringSpec,
+};
+use twin_recording::topics::{MebWords, ReadingsSample};
 
 fn ms(v: f64) -> SimDuration {
     SimDuration::from_secs_f64(v / 1000.0)
@@ -76,6 +81,13 @@ pub fn is_master(spec: &NodeSpec) -> bool {
     )
 }
 
+/// The light detector an `ev-controller` node runs on a module with `params`.
+pub fn light_detector_config(params: &PlantParams, spec: LightDetectorSpec) -> LightDetectorConfig {
+    let mut config = LightDetectorConfig::for_sensor(&params.light);
+    config.adaptive = spec.adaptive();
+    config
+}
+
 /// The node for a scenario's `[[node]]`, and its reply turnaround.
 pub fn build_node(
     spec: &NodeSpec,
@@ -89,12 +101,14 @@ pub fn build_node(
             protocol,
             turnaround_ms,
             loop_period_ms,
+            light_detector,
             ..
         } => {
             let Some(params) = module else {
                 bail!("an ev-controller needs a module")
             };
             let mut config = EvControllerConfig::for_plant(params);
+            config.light = light_detector_config(params, *light_detector);
             config.slave_id = *id;
             config.loop_period = ms(*loop_period_ms);
             let (protocol, check) = match protocol {
@@ -203,6 +217,37 @@ impl SimNode for FaultyNode<EvController> {
     }
     fn image_mut(&mut self) -> Option<&mut nodes::firmware::RegisterImage> {
         Some(self.inner_mut().image_mut())
+    }
+    fn controller_readings(&self) -> Option<ReadingsSample> {
+        Some(readings_sample(&self.inner().readings()))
+    }
+}
+
+/// An EV controller's readings as recorded: volts and amperes to the
+/// millivolt and milliampere (finer than a count of their converters:
+/// 12 mV of V1, 12 mA of I), so the file holds no digits the ADC never gave.
+pub fn readings_sample(r: &Readings) -> ReadingsSample {
+    let milli = |v: f64| (v * 1000.0).round() / 1000.0;
+    ReadingsSample {
+        battery_volts: milli(r.battery_volts),
+        bus_volts: milli(r.bus_volts),
+        inverter_amps: milli(r.inverter_amps),
+        hall_rpm: r.hall_rpm(),
+        light_rpm: r.light_rpm(),
+        flag_dark: r.flag_dark(),
+        soc_percent: f64::from(r.soc) / 10.0,
+        meb: MebWords {
+            v2: r.ea[ea::V2],
+            i: r.ea[ea::I],
+            v1: r.ea[ea::V1],
+            rpm_m: r.ea[ea::RPM_M],
+            rpm_l: r.ea[ea::RPM_L],
+            ldr: r.ea[ea::LDR],
+            hall: r.hall,
+            soc: r.soc,
+            errs: r.errs,
+            status: r.status,
+        },
     }
 }
 

@@ -7,6 +7,7 @@
 //! | `/bus/<bus>/frames` | every frame sent | sender, start and end time, raw bytes, decoded fields (PWM-capture: widths sent and captured per listener, values, pulses lost, values wrong) |
 //! | `/events` | as they happen | node, kind (`timeout`, `bad_check`, `retry`, `log`, …), detail |
 //! | `/master/<node>/loop` | every poll cycle | set point, measured rpm, error, output, counters |
+//! | `/controller/<node>/readings` | beside each plant sample | an EV controller's readings, named (`hall_rpm`, `light_rpm`, …) |
 
 use anyhow::Result;
 use nodes::node::NodeEvent;
@@ -18,7 +19,7 @@ use std::collections::{BTreeMap, VecDeque};
 use crate::engine::{BusSlot, ModuleSlot, NodeSlot, Observer};
 use twin_recording::describe::decode_frame;
 use twin_recording::record::{ChannelId, Recorder};
-use twin_recording::topics;
+use twin_recording::topics::{self, ReadingsSample};
 
 /// The recording of a run or session. Its plant samples, most of its bytes,
 /// are handed over as values and serialised by the writer (a virtual run's
@@ -44,6 +45,7 @@ pub struct McapObserver {
     actuators: Vec<LazyChannel>,
     buses: Vec<LazyChannel>,
     loops: Vec<LazyChannel>,
+    readings: Vec<LazyChannel>,
     event_channel: LazyChannel,
 }
 
@@ -151,6 +153,7 @@ impl McapObserver {
             actuators: Vec::new(),
             buses: Vec::new(),
             loops: Vec::new(),
+            readings: Vec::new(),
             event_channel: LazyChannel::new("", topics::EVENTS.to_string()),
         }
     }
@@ -189,6 +192,20 @@ impl McapObserver {
             &mut self.recorder,
             now,
             report,
+        )
+    }
+
+    /// A module controller's readings, on `/controller/<node>/readings`.
+    pub fn record_readings(
+        &mut self,
+        now: SimTime,
+        node: &str,
+        readings: &ReadingsSample,
+    ) -> Result<()> {
+        channel_of(&mut self.readings, node, topics::controller_readings).write(
+            &mut self.recorder,
+            now,
+            readings,
         )
     }
 
@@ -336,6 +353,10 @@ impl Observer for McapObserver {
     fn telemetry(&mut self, now: SimTime, node: &NodeSlot, value: &Value) -> Result<()> {
         self.record_loop(now, &node.name, value)
     }
+
+    fn readings(&mut self, now: SimTime, node: &NodeSlot, readings: &ReadingsSample) -> Result<()> {
+        self.record_readings(now, &node.name, readings)
+    }
 }
 
 /// Two observers fed the same run, in order: the recorder and a live view.
@@ -377,6 +398,11 @@ impl<A: Observer, B: Observer> Observer for Tee<A, B> {
         self.first.telemetry(now, node, value)?;
         self.second.telemetry(now, node, value)
     }
+
+    fn readings(&mut self, now: SimTime, node: &NodeSlot, readings: &ReadingsSample) -> Result<()> {
+        self.first.readings(now, node, readings)?;
+        self.second.readings(now, node, readings)
+    }
 }
 
 /// Either observer borrowed: lets a `Tee` hold `&mut` observers.
@@ -406,5 +432,9 @@ impl<O: Observer + ?Sized> Observer for &mut O {
 
     fn telemetry(&mut self, now: SimTime, node: &NodeSlot, value: &Value) -> Result<()> {
         (**self).telemetry(now, node, value)
+    }
+
+    fn readings(&mut self, now: SimTime, node: &NodeSlot, readings: &ReadingsSample) -> Result<()> {
+        (**self).readings(now, node, readings)
     }
 }

@@ -175,6 +175,28 @@ pub enum ProtocolSpec {
     ModbusRtu,
 }
 
+/// The EV controller's light dip detector at power-up.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LightDetectorSpec {
+    /// A dip is the signal below `LDR_TH`, midway between lit and shaded:
+    /// the flag is seen up to about 260 rpm on the EV module.
+    #[default]
+    Fixed,
+    /// A dip is a fall of a fifth of the swing the detector tracks: seen up
+    /// to about 1800 rpm.
+    Adaptive,
+}
+
+impl LightDetectorSpec {
+    pub fn is_fixed(&self) -> bool {
+        *self == Self::Fixed
+    }
+    pub fn adaptive(self) -> bool {
+        self == Self::Adaptive
+    }
+}
+
 /// A node on a bus.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "kebab-case", deny_unknown_fields)]
@@ -192,6 +214,10 @@ pub enum NodeSpec {
         turnaround_ms: f64,
         #[serde(default = "default_loop_ms")]
         loop_period_ms: f64,
+        /// How the firmware finds the flag's dips at power-up (`VD0` LDR_ADAPT):
+        /// `fixed` (the threshold midway between lit and shaded) or `adaptive`.
+        #[serde(default, skip_serializing_if = "LightDetectorSpec::is_fixed")]
+        light_detector: LightDetectorSpec,
     },
     /// The Controller_network motor node (id 01).
     MotorNode {

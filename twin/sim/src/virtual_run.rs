@@ -8,12 +8,12 @@ use std::path::{Path, PathBuf};
 
 use crate::engine::Engine;
 use crate::interrupt::Interrupted;
-use crate::nodes_build::is_master;
+use crate::nodes_build::{is_master, light_detector_config};
 use crate::nodes_parallel::{build_medium, build_node_on, calibrated};
 use crate::observe::McapObserver;
 use crate::observe::SimRecorder;
-use crate::scenario::Scenario;
-use twin_recording::topics;
+use crate::scenario::{NodeSpec, Scenario};
+use twin_recording::topics::{self, ReadingsSample};
 
 /// What a run reports at the end.
 #[derive(Debug, Clone)]
@@ -34,6 +34,56 @@ pub struct RunOutcome {
     pub pwm: Vec<(String, nodes::link::PwmStats)>,
     /// Per calibrated PWM-capture bus: what its calibration found.
     pub pwm_calibrations: Vec<(String, nodes::link::PwmCalibration)>,
+    /// Every EV module controller's last readings.
+    pub controllers: Vec<ControllerOutcome>,
+}
+
+/// An EV module controller at the end of a run: what it reads, and how far
+/// its light sensor can follow the wheel.
+#[derive(Debug, Clone)]
+pub struct ControllerOutcome {
+    pub detector: LightDetectorOf,
+    pub readings: ReadingsSample,
+}
+
+/// The light detector of an `ev-controller` node of a scenario.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LightDetectorOf {
+    pub node: String,
+    pub module: String,
+    /// In the lab's words: `fixed 2.36 V`, `adaptive (swing ≥ 0.244 V)`.
+    pub description: String,
+    /// The fastest wheel speed at which it sees the flag, by the formulas of
+    /// `plant/src/light.rs` (rpm).
+    pub limit_rpm: f64,
+}
+
+/// The light detector of each `ev-controller` of `scenario`.
+pub fn light_detectors(scenario: &Scenario) -> Result<Vec<LightDetectorOf>> {
+    let mut found = Vec::new();
+    for node in &scenario.nodes {
+        let NodeSpec::EvController {
+            name,
+            module,
+            light_detector,
+            ..
+        } = node
+        else {
+            continue;
+        };
+        let Some(spec) = scenario.modules.iter().find(|m| &m.name == module) else {
+            continue;
+        };
+        let params = scenario.module_params(spec)?;
+        let config = light_detector_config(&params, *light_detector);
+        found.push(LightDetectorOf {
+            node: name.clone(),
+            module: module.clone(),
+            description: config.describe(&params.light),
+            limit_rpm: config.max_rpm(&params.light),
+        });
+    }
+    Ok(found)
 }
 
 /// Independent, reproducible seeds for the parts of a run (splitmix64).
@@ -237,6 +287,17 @@ fn run_observed(
         .iter()
         .filter_map(|b| b.bus.as_pwm().map(|l| (b.name.clone(), *l.pwm_stats())))
         .collect();
+    let mut controllers = Vec::new();
+    for detector in light_detectors(scenario)? {
+        let readings = engine
+            .nodes
+            .iter()
+            .find(|n| n.name == detector.node)
+            .and_then(|n| n.node.controller_readings());
+        if let Some(readings) = readings {
+            controllers.push(ControllerOutcome { detector, readings });
+        }
+    }
     let frames = observer.frames;
     let events = observer.events.clone();
     let log_tail = observer.log_tail.iter().cloned().collect();
@@ -252,5 +313,6 @@ fn run_observed(
         log_tail,
         pwm,
         pwm_calibrations,
+        controllers,
     })
 }

@@ -92,6 +92,8 @@ impl ViewLayout {
         let mut controller_network = BTreeMap::new();
         // Per bus: slave id → module, for the masters on that bus.
         let mut bus_slaves: BTreeMap<(&str, u8), usize> = BTreeMap::new();
+        // Per module: whether its controller's light detector is adaptive.
+        let mut adaptive = Vec::new();
         for node in &scenario.nodes {
             match node {
                 NodeSpec::EvController {
@@ -99,11 +101,13 @@ impl ViewLayout {
                     bus,
                     module,
                     id,
+                    light_detector,
                     ..
                 } => {
                     if let Some(m) = index(module) {
                         node_module.insert(name.clone(), m);
                         bus_slaves.insert((bus.as_str(), *id), m);
+                        adaptive.push((m, light_detector.adaptive()));
                     }
                 }
                 NodeSpec::MotorNode { name, module, .. } => {
@@ -136,6 +140,9 @@ impl ViewLayout {
                     }
                 }
             }
+        }
+        for (m, on) in adaptive {
+            layout.modules[m].light.adaptive = on;
         }
         layout.node_module = node_module;
         layout.slave_module = slave_module;

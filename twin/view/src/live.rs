@@ -197,6 +197,16 @@ impl Observer for RerunObserver {
         self.logger.master_loop(&node.name, secs(now), value);
         Ok(())
     }
+
+    fn readings(
+        &mut self,
+        now: SimTime,
+        node: &NodeSlot,
+        readings: &twin_recording::topics::ReadingsSample,
+    ) -> Result<()> {
+        self.logger.readings(&node.name, secs(now), readings);
+        Ok(())
+    }
 }
 
 /// The `.rrd` that `twin view` writes for `recording`: beside it, same stem.

@@ -7,10 +7,10 @@
 //! | entity | from | one sample per |
 //! |---|---|---|
 //! | `<m>/speed/set_point` | the master's loop (`/master/<node>/loop`) | poll cycle |
-//! | `<m>/speed/hall_rpm`, `<m>/speed/light_rpm` | RPM_M, RPM_L in the slave's replies | reply carrying them |
+//! | `<m>/speed/hall_rpm`, `<m>/speed/light_rpm` | the controller's readings (`/controller/<node>/readings`); in a recording without them, RPM_M, RPM_L in the slave's replies | readings sample, or reply carrying them |
 //! | `<m>/speed/wheel_rpm` | the plant (`/plant/<m>/sensors`) | sensor sample |
 //! | `<m>/voltage/V1`, `V2`, `<m>/current/I`, `<m>/soc/SOC` | the plant | sensor sample |
-//! | `<m>/photoresistor/divider`, `threshold` | the plant; the firmware's fixed threshold | sensor sample |
+//! | `<m>/photoresistor/divider`, `threshold` | the plant; the firmware's fixed threshold (none for an adaptive detector) | sensor sample |
 //! | `<m>/photoresistor/dips` | the firmware's detector run on the recorded samples | dip |
 //! | `<m>/flag/in_beam`, `<m>/flag/detector_dark` | the plant; that detector | sensor sample |
 //! | `<m>/motor_shaft/*` | Controller_network motor node (motor shaft rpm) | reply / sample |
@@ -30,6 +30,7 @@ use serde::Deserialize;
 use std::collections::BTreeMap;
 
 use super::layout::{ControllerNetworkRole, ViewLayout};
+use twin_recording::topics::ReadingsSample;
 
 /// The timeline every sample is placed on: simulated seconds.
 pub const TIMELINE: &str = "sim_time";
@@ -120,6 +121,9 @@ struct ModuleState {
     detector: Option<LightRpm>,
     last_sample_at: Option<f64>,
     config: nodes::firmware::LightDetectorConfig,
+    /// The controller's readings are recorded: its speeds come from them,
+    /// not from the replies that carry the same words less often.
+    has_readings: bool,
 }
 
 /// A Modbus read request waiting for its reply: which registers it asked for.
@@ -159,6 +163,7 @@ impl RerunLogger {
                 detector: None,
                 last_sample_at: None,
                 config: m.light,
+                has_readings: false,
             };
             log_styles(&rec, &state.paths, layout.has_controller_network(i))?;
             modules.push(state);
@@ -214,8 +219,11 @@ impl RerunLogger {
         self.scalar(|p| &p.current, m, s.inverter_current);
         self.scalar(|p| &p.soc, m, s.soc * 100.0);
         self.scalar(|p| &p.divider, m, s.ldr_volts);
-        let threshold = self.modules[m].threshold_volts;
-        self.scalar(|p| &p.threshold, m, threshold);
+        // An adaptive detector's threshold follows the signal: no fixed line.
+        if !self.modules[m].adaptive {
+            let threshold = self.modules[m].threshold_volts;
+            self.scalar(|p| &p.threshold, m, threshold);
+        }
         self.scalar(|p| &p.in_beam, m, f64::from(u8::from(s.flag_in_beam)));
         if self.layout.has_controller_network(m) {
             self.scalar(|p| &p.shaft_rpm, m, s.motor_rpm);
@@ -243,6 +251,18 @@ impl RerunLogger {
         if dip {
             self.scalar(|p| &p.dips, m, s.ldr_volts);
         }
+    }
+
+    /// An EV controller's readings (`/controller/<node>/readings`) at `t`:
+    /// its hall and light rpm, on the speed plot beside the wheel's.
+    pub fn readings(&mut self, node: &str, t: f64, r: &ReadingsSample) {
+        let Some(m) = self.layout.module_of_node(node) else {
+            return;
+        };
+        self.at(t);
+        self.modules[m].has_readings = true;
+        self.scalar(|p| &p.hall_rpm, m, f64::from(r.hall_rpm));
+        self.scalar(|p| &p.light_rpm, m, f64::from(r.light_rpm));
     }
 
     /// One frame on bus `bus`, sent by node `from` over `[start, end]`.
@@ -326,6 +346,9 @@ impl RerunLogger {
     /// nodes' readings, and the Controller_network master's set-point writes.
     fn speeds_in_frame(&mut self, bus: &str, from: &str, bytes: &[u8]) {
         if let Some(m) = self.layout.module_of_node(from) {
+            if self.modules[m].has_readings {
+                return;
+            }
             let words: Option<(usize, Vec<u16>)> = if bytes.first() == Some(&b'@') {
                 MebRepr::parse(bytes)
                     .ok()
@@ -604,6 +627,49 @@ mod tests {
         log.master_loop("supervisor", 0.01, &report);
         log.master_loop("someone-else", 0.01, &report);
         assert_eq!(log.samples["ev1/speed/set_point"], 1);
+    }
+
+    #[test]
+    fn the_controllers_readings_put_hall_and_light_rpm_beside_the_wheel() {
+        let scenario = twin_sim::scenario::Scenario::load("ev-meb").expect("scenario");
+        let layout = ViewLayout::of_scenario(&scenario).expect("layout");
+        // The default scenario's detector is adaptive: no fixed threshold line.
+        assert!(layout.modules[0].light.adaptive);
+        let (rec, _storage) = rerun::RecordingStreamBuilder::new("test")
+            .memory()
+            .expect("memory stream");
+        let mut log = RerunLogger::new(rec, layout).expect("logger");
+        let readings = ReadingsSample {
+            battery_volts: 40.0,
+            bus_volts: 40.0,
+            inverter_amps: 0.2,
+            hall_rpm: 1500,
+            light_rpm: 1463,
+            flag_dark: false,
+            soc_percent: 90.0,
+            meb: twin_recording::topics::MebWords::default(),
+        };
+        for k in 0..3 {
+            let t = f64::from(k) * 0.005;
+            log.plant("ev1", t, &PlantSample::default());
+            log.readings("ev1", t, &readings);
+        }
+        // A node that is no module's controller feeds nothing.
+        log.readings("supervisor", 0.0, &readings);
+        assert_eq!(log.samples["ev1/speed/hall_rpm"], 3);
+        assert_eq!(log.samples["ev1/speed/light_rpm"], 3);
+        assert_eq!(log.samples["ev1/speed/wheel_rpm"], 3);
+        assert!(!log.samples.contains_key("ev1/photoresistor/threshold"));
+        // With the readings recorded, the replies carrying the same words
+        // are not plotted twice.
+        log.frame(
+            "rs485",
+            "ev1",
+            0.02,
+            0.023,
+            b"@01EA00060BD608000D05000000000CCF4C*\n",
+        );
+        assert_eq!(log.samples["ev1/speed/hall_rpm"], 3);
     }
 
     /// Writes a request and its reply in one framing; returns both lengths.

@@ -12,7 +12,7 @@ use serde::Deserialize;
 use std::collections::BTreeMap;
 use std::path::Path;
 use twin_recording::read::{Item, NotMcap, Reader};
-use twin_recording::topics::{self, EventSample, FrameSample, Topic};
+use twin_recording::topics::{self, EventSample, FrameSample, ReadingsSample, Topic};
 
 use super::layout::{
     OPEN_LOOP_MODULE, SERVE_EV_MODULE, SERVE_LIGHT_NODE, SERVE_MOTOR_NODE, SUPERVISOR_NODE,
@@ -277,6 +277,10 @@ fn feed(
         Topic::MasterLoop(node) => {
             let report: serde_json::Value = serde_json::from_slice(data)?;
             logger.master_loop(node, t, &report);
+        }
+        Topic::ControllerReadings(node) => {
+            let r: ReadingsSample = serde_json::from_slice(data)?;
+            logger.readings(node, t, &r);
         }
         // Actuator changes are in the frames that caused them.
         Topic::PlantActuators(_) | Topic::ExperimentStep | Topic::Other(_) => {}

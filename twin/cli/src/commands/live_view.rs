@@ -30,6 +30,10 @@ impl LiveView for RerunSession {
         self.observer.logger.master_loop(node, t, report);
     }
 
+    fn readings(&mut self, node: &str, t: f64, readings: &twin_recording::topics::ReadingsSample) {
+        self.observer.logger.readings(node, t, readings);
+    }
+
     fn lateness(&mut self, t: f64, p99_us: f64, max_us: f64) {
         self.observer
             .logger

@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 use twin_sim::openloop::{self, OpenLoop};
 use twin_sim::scenario::{EMBEDDED, Scenario};
-use twin_sim::virtual_run;
+use twin_sim::virtual_run::{self, ControllerOutcome};
 use twin_view::{self as view, RerunObserver, ViewLayout, ViewTarget};
 
 /// Run a scenario in simulated time, far faster than real time, and record it.
@@ -138,6 +138,13 @@ pub fn execute(args: &RunArgs) -> Result<()> {
             s.inverter_current,
             s.soc * 100.0
         );
+        for c in outcome
+            .controllers
+            .iter()
+            .filter(|c| &c.detector.module == module)
+        {
+            print_speed_sensors(c, s.wheel_rpm);
+        }
     }
     for (node, state) in &outcome.telemetry {
         print_node_state(node, state, outcome.simulated_s);
@@ -217,6 +224,25 @@ fn open_live_view(target: &str, scenario: &Scenario) -> Result<Option<RerunObser
             Ok(None)
         }
     }
+}
+
+/// What a module's controller reads of the wheel's speed, beside the true
+/// speed, and how fast its light sensor can follow.
+fn print_speed_sensors(c: &ControllerOutcome, wheel_rpm: f64) {
+    let d = &c.detector;
+    println!(
+        "    speed (rpm): wheel {:.1}, motor (hall) RPM_M {}, light sensor RPM_L {}  (controller {})",
+        wheel_rpm, c.readings.hall_rpm, c.readings.light_rpm, d.node
+    );
+    let beyond = if wheel_rpm.abs() > d.limit_rpm {
+        " (the wheel is faster: RPM_L reads 0 or a fraction of its speed)"
+    } else {
+        ""
+    };
+    println!(
+        "    light detector: {}; it sees the flag up to {:.0} rpm{beyond}",
+        d.description, d.limit_rpm
+    );
 }
 
 /// A node's end-of-run state: masters' loops spelled out, others as JSON.
