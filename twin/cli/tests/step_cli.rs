@@ -118,6 +118,25 @@ fn a_light_sensor_that_loses_the_flag_is_named_not_measured() {
 }
 
 #[test]
+fn the_default_scenarios_light_sensor_is_measured_at_its_own_speeds() {
+    // ev-meb's controller runs the adaptive detector: the step names it,
+    // with its limit, and at 1000 → 1500 rpm the light sensor has figures.
+    let out = ok(&["step", "--from", "1000", "--to", "1500"]);
+    assert!(
+        out.contains("light detector: EV controller, adaptive (swing ≥ 0.244 V); it sees the flag up to 1793 rpm"),
+        "{out}"
+    );
+    let light = out
+        .lines()
+        .find(|l| l.trim_start().starts_with("light sensor"))
+        .unwrap_or_else(|| panic!("no light sensor row in:\n{out}"));
+    assert!(!light.contains("no step figures"), "{out}");
+    let last = light.split_whitespace().collect::<Vec<_>>();
+    let final_rpm: f64 = last[3].parse().expect("its final rpm");
+    assert!((final_rpm - 1500.0).abs() < 40.0, "{out}");
+}
+
+#[test]
 fn sweep_prints_where_the_light_sensor_fails_and_writes_its_files() {
     let dir = scratch("sweep");
     let d = dir.to_str().expect("utf-8 path");
