@@ -78,7 +78,7 @@ fn replay_of_an_unchanged_scenario_is_byte_identical() {
 
 #[test]
 fn a_changed_set_point_is_reported_where_the_vel_write_departs() {
-    // 1000 rpm instead of 1500 at 0.5 s: the supervisor's first VEL write
+    // 800 rpm instead of 1000 at 0.5 s: the supervisor's first VEL write
     // after the step (its next poll cycle, before 0.52 s) carries a smaller
     // value; nothing departs before it.
     let out = scratch("set-point.replay.mcap");
@@ -88,7 +88,7 @@ fn a_changed_set_point_is_reported_where_the_vel_write_departs() {
         "--out",
         s(&out),
         "--set",
-        "node.supervisor.set_points=[[0.0, 0.0], [0.5, 1000.0]]",
+        "node.supervisor.set_points=[[0.0, 0.0], [0.5, 800.0], [5.0, 1500.0]]",
     ]);
     let t = text(&o);
     assert!(!o.status.success(), "a departure must fail: {t}");
