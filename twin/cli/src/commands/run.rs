@@ -235,7 +235,7 @@ fn print_speed_sensors(c: &ControllerOutcome, wheel_rpm: f64) {
         wheel_rpm, c.readings.hall_rpm, c.readings.light_rpm, d.node
     );
     let beyond = if wheel_rpm.abs() > d.limit_rpm {
-        " (the wheel is faster: RPM_L reads 0 or a fraction of its speed)"
+        ": the wheel is faster, RPM_L cannot follow it"
     } else {
         ""
     };
