@@ -37,7 +37,7 @@ fn s(p: &Path) -> &str {
     p.to_str().expect("utf-8 path")
 }
 
-/// One 3-second ev-meb run shared by the tests (set point 1500 rpm at 0.5 s).
+/// One 3-second ev-meb run shared by the tests (set point 1000 rpm at 0.5 s).
 fn ev_meb() -> &'static Path {
     static RUN: OnceLock<PathBuf> = OnceLock::new();
     RUN.get_or_init(|| {
