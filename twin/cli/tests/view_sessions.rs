@@ -192,6 +192,17 @@ fn a_serve_session_views_with_the_controllers_readings_and_the_tick_lateness() {
     // link carry the same words, less often).
     let readings = counts["/controller/ev1/readings"];
     assert_eq!(readings, counts["/plant/ev1/sensors"], "{counts:?}");
+    // By name, as the replies carried them: the wheel turns.
+    let bytes = std::fs::read(&mcap).unwrap();
+    let last = mcap::MessageStream::new(&bytes)
+        .unwrap()
+        .filter_map(Result::ok)
+        .filter(|m| m.channel.topic == "/controller/ev1/readings")
+        .last()
+        .expect("a readings message");
+    let last: serde_json::Value = serde_json::from_slice(&last.data).unwrap();
+    assert!(last["hall_rpm"].as_u64().unwrap() > 500, "{last}");
+    assert_eq!(last["meb"]["RPM_M"], last["hall_rpm"]);
     assert_eq!(samples["ev1/speed/hall_rpm"], readings, "{text}");
     assert_eq!(samples["ev1/speed/light_rpm"], readings);
     // Requests and replies on each link; the plant at its recording rate.
