@@ -3,8 +3,9 @@
 
 use anyhow::{Result, bail};
 use clap::Args;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
+use twin_lab::step::StepConfig;
 use twin_recording::{Recording, diff};
 use twin_sim::replay::RunSpec;
 
@@ -13,7 +14,11 @@ use super::run::Progress;
 /// Re-run the scenario stored in a recording and check that the new run matches.
 ///
 /// The recording's `twin.run` metadata holds the scenario (with the duration and
-/// seed it ran with) and the twin's version. An unchanged replay must give the
+/// seed it ran with) and the twin's version. Every run on the virtual clock
+/// replays: `twin run` (a scenario or --open-loop), `twin step`, the runs of
+/// `twin sweep` and `twin experiment parallel`, baselines. A real-time session
+/// (`twin serve`, `twin supervise`) ran with live peers and the machine's clock
+/// and cannot be re-run; send its frames to a live slave with --frames-to. An unchanged replay must give the
 /// same bytes; otherwise the first signal and time where the replay departs are
 /// printed, with the value recorded and replayed, and the exit code is non-zero.
 /// `--set PATH=VALUE` changes a field of the stored scenario first (dotted as in
@@ -33,7 +38,8 @@ pub struct ReplayArgs {
     /// Change a field of the stored scenario before re-running (repeatable).
     #[arg(long = "set", value_name = "PATH=VALUE")]
     overrides: Vec<String>,
-    /// Where to write the replay's recording [default: RUN.replay.mcap beside RUN.mcap].
+    /// Where to write the replay's recording, replacing one there [default:
+    /// RUN.replay.mcap beside RUN.mcap].
     #[arg(long, value_name = "PATH", conflicts_with = "frames_to")]
     out: Option<PathBuf>,
     /// Send the recorded master frames to a live slave instead of re-running.
@@ -66,12 +72,12 @@ pub fn execute(args: &ReplayArgs) -> Result<()> {
     }
     let recorded = Recording::read(&args.recording)?;
     refuse_empty(&recorded)?;
-    let spec = RunSpec::from_recording(&recorded)?;
+    let rerun = Rerun::of(&recorded, &args.overrides)?;
     let version = recorded.run_field("twin_version").unwrap_or("unknown");
     println!(
         "twin replay: {} ({}, recorded by twin {version})",
         args.recording.display(),
-        spec.describe()
+        rerun.describe()
     );
     if version != env!("CARGO_PKG_VERSION") {
         println!(
@@ -82,7 +88,6 @@ pub fn execute(args: &ReplayArgs) -> Result<()> {
     if let Some(why) = &recorded.truncated {
         println!("  note: the recording is cut short ({why}); only what it holds is compared");
     }
-    let spec = spec.with_overrides(&args.overrides)?;
     for o in &args.overrides {
         println!("  changed: {o}");
     }
@@ -96,14 +101,16 @@ pub fn execute(args: &ReplayArgs) -> Result<()> {
     if out == args.recording {
         bail!("--out must not be the recording being replayed");
     }
+    let earlier = super::output::Earlier::at(&out);
     let started = Instant::now();
     let mut progress = Progress::new();
-    let path = spec.run(&out, |done| progress.show(done))?;
+    let path = rerun.run(&out, |done| progress.show(done))?;
     progress.clear();
     println!(
-        "  replayed in {:.2} s wall time into {}",
+        "  replayed in {:.2} s wall time into {}{}",
         started.elapsed().as_secs_f64(),
-        path.display()
+        path.display(),
+        super::output::Earlier::note(earlier.as_ref())
     );
     if diff::same_bytes(&args.recording, &path)? {
         println!(
@@ -158,6 +165,38 @@ pub fn execute(args: &ReplayArgs) -> Result<()> {
                 }
             );
             bail!("the replay is not byte-identical to the recording");
+        }
+    }
+}
+
+/// What a replay runs again: a run, or an experiment on one.
+enum Rerun {
+    Run(RunSpec),
+    Step(Box<StepConfig>),
+}
+
+impl Rerun {
+    /// The run `recorded` holds, changed by `overrides`.
+    fn of(recorded: &Recording, overrides: &[String]) -> Result<Self> {
+        if let Some(step) = StepConfig::of_recording(recorded, overrides)? {
+            return Ok(Self::Step(Box::new(step)));
+        }
+        Ok(Self::Run(
+            RunSpec::from_recording(recorded)?.with_overrides(overrides)?,
+        ))
+    }
+
+    fn describe(&self) -> String {
+        match self {
+            Rerun::Run(spec) => spec.describe(),
+            Rerun::Step(step) => step.describe(),
+        }
+    }
+
+    fn run(&self, out: &Path, progress: impl FnMut(f64)) -> Result<PathBuf> {
+        match self {
+            Rerun::Run(spec) => spec.run(out, progress),
+            Rerun::Step(step) => Ok(twin_lab::step::run(step, out, progress)?.recording),
         }
     }
 }
