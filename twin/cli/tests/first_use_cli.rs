@@ -10,8 +10,11 @@
     reason = "the test drives real processes in real time"
 )]
 
+mod support;
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
+use support::Proc;
 
 /// `twin ARGS` run in `dir`.
 fn twin_in(dir: &Path, args: &[&str]) -> Output {
@@ -170,6 +173,27 @@ fn a_real_time_session_is_refused_in_words_and_named_by_its_start_time() {
 }
 
 #[test]
+fn a_supervise_session_is_refused_in_words_too() {
+    let dir = folder("supervise");
+    let slave = Proc::start(&["serve", "--meb", "tcp://127.0.0.1:0", "--quiet", "--no-record"]);
+    let link = format!("tcp://{}", slave.tcp_of("meb"));
+    let printed = ok_in(
+        &dir,
+        &["supervise", "--meb", &link, "--no-server", "--duration", "0.5", "--quiet"],
+    );
+    let sessions = files_starting(&dir, "supervise-");
+    assert_eq!(sessions.len(), 1, "{sessions:?}: {printed}");
+    assert!(printed.contains(&format!("recording: {}", sessions[0])), "{printed}");
+    let o = twin_in(&dir, &["replay", &sessions[0]]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("is a `twin supervise` session") && err.contains("--frames-to LINK"),
+        "{err}"
+    );
+}
+
+#[test]
 fn a_run_says_what_it_replaced() {
     let dir = folder("replaced");
     let first = ok_in(&dir, &["run", "--duration", "2"]);
@@ -180,7 +204,7 @@ fn a_run_says_what_it_replaced() {
     let second = ok_in(&dir, &["run", "--duration", "1"]);
     assert!(
         second.contains(
-            "recording: ev-meb.mcap (replaced the one there before: a scenario run of ev-meb, seed 1, 2.0 s)"
+            "recording: ev-meb.mcap (replaced the one there before: a scenario run of ev-meb, seed 1, 2 s)"
         ),
         "{second}"
     );
@@ -242,8 +266,8 @@ fn compare_says_first_that_recordings_come_from_different_runs() {
     let lines: Vec<&str> = out.lines().collect();
     assert_eq!(lines[1], "  the recordings come from different runs:", "{out}");
     assert!(
-        out.contains("    run       a scenario run of controller-network, seed 1, 1.0 s")
-            && out.contains("    baseline  a scenario run of ev-meb, seed 1, 1.0 s"),
+        out.contains("    run       a scenario run of controller-network, seed 1, 1 s")
+            && out.contains("    baseline  a scenario run of ev-meb, seed 1, 1 s"),
         "{out}"
     );
     assert!(!out.contains("missing"), "no table of missing signals: {out}");

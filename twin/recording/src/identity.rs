@@ -116,7 +116,9 @@ impl Identity {
             s += &format!(", seed {seed}");
         }
         if let Some(d) = self.get("duration_s") {
-            s += &format!(", {d} s");
+            // `10` for a scenario's `10.0` and an open-loop run's `10` alike.
+            let shown = d.parse::<f64>().map_or_else(|_| d.to_string(), |d| d.to_string());
+            s += &format!(", {shown} s");
         }
         s
     }
@@ -241,7 +243,7 @@ mod tests {
         assert_eq!(fields, ["scenario", "duration_s", "node.supervisor.kp"]);
         assert!(d[0].of_what_ran() && !d[1].of_what_ran());
         assert_eq!(d[2].to_string(), "0.5, baseline 0.45");
-        assert_eq!(a.describe(), "a scenario run of ev-meb, seed 1, 10.0 s");
+        assert_eq!(a.describe(), "a scenario run of ev-meb, seed 1, 10 s");
         assert!(a.differences(&a).is_empty());
     }
 
