@@ -67,7 +67,10 @@ fn files_starting(dir: &Path, prefix: &str) -> Vec<String> {
 #[test]
 fn a_step_recording_replays_byte_for_byte_closed_and_open_loop() {
     let dir = folder("step-replay");
-    ok_in(&dir, &["step", "--duration", "2", "--at", "0.5", "--out", "closed"]);
+    ok_in(
+        &dir,
+        &["step", "--duration", "2", "--at", "0.5", "--out", "closed"],
+    );
     let o = ok_in(&dir, &["replay", "closed/step.mcap"]);
     assert!(
         o.contains("step response, scenario ev-meb, set point 100 → 200 rpm at 0.5 s")
@@ -105,7 +108,11 @@ fn a_step_recording_replays_byte_for_byte_closed_and_open_loop() {
             "faster.mcap",
         ],
     );
-    assert!(!o.status.success() && text(&o).contains("DEPARTS at"), "{}", text(&o));
+    assert!(
+        !o.status.success() && text(&o).contains("DEPARTS at"),
+        "{}",
+        text(&o)
+    );
 }
 
 #[test]
@@ -114,8 +121,20 @@ fn the_runs_of_a_sweep_replay() {
     ok_in(
         &dir,
         &[
-            "sweep", "--detector", "fixed", "--points", "2", "--rpm", "100", "200", "--settle",
-            "0.5", "--measure", "0.5", "--out", "sweep",
+            "sweep",
+            "--detector",
+            "fixed",
+            "--points",
+            "2",
+            "--rpm",
+            "100",
+            "200",
+            "--settle",
+            "0.5",
+            "--measure",
+            "0.5",
+            "--out",
+            "sweep",
         ],
     );
     let runs = dir.join("sweep/runs/fixed");
@@ -123,14 +142,24 @@ fn the_runs_of_a_sweep_replay() {
         .into_iter()
         .next()
         .expect("a run recorded");
-    let o = ok_in(&dir, &["replay", s(&runs.join(first)), "--out", "again.mcap"]);
+    let o = ok_in(
+        &dir,
+        &["replay", s(&runs.join(first)), "--out", "again.mcap"],
+    );
     assert!(o.contains("byte-identical"), "{o}");
 }
 
 #[test]
 fn a_real_time_session_is_refused_in_words_and_named_by_its_start_time() {
     let dir = folder("serve");
-    let serve = ["serve", "--meb", "tcp://127.0.0.1:0", "--duration", "0.5", "--quiet"];
+    let serve = [
+        "serve",
+        "--meb",
+        "tcp://127.0.0.1:0",
+        "--duration",
+        "0.5",
+        "--quiet",
+    ];
     let first = ok_in(&dir, &serve);
     let second = ok_in(&dir, &serve);
     let sessions = files_starting(&dir, "serve-");
@@ -147,7 +176,10 @@ fn a_real_time_session_is_refused_in_words_and_named_by_its_start_time() {
         .collect();
     assert_ne!(named[0], named[1]);
     for name in named {
-        assert!(sessions.iter().any(|s| s == name), "{name} not in {sessions:?}");
+        assert!(
+            sessions.iter().any(|s| s == name),
+            "{name} not in {sessions:?}"
+        );
         assert!(
             name.ends_with(".mcap") && name.len() >= "serve-2026-12-03T07-35-44.mcap".len(),
             "{name}"
@@ -164,10 +196,36 @@ fn a_real_time_session_is_refused_in_words_and_named_by_its_start_time() {
     );
     assert!(!err.contains("unknown run kind"), "{err}");
     // Told where, a session replaces the file and says what it held.
-    ok_in(&dir, &["serve", "--meb", "tcp://127.0.0.1:0", "--duration", "0.5", "--quiet", "--out", "mine.mcap"]);
-    let again = ok_in(&dir, &["serve", "--meb", "tcp://127.0.0.1:0", "--duration", "0.5", "--quiet", "--out", "mine.mcap"]);
+    ok_in(
+        &dir,
+        &[
+            "serve",
+            "--meb",
+            "tcp://127.0.0.1:0",
+            "--duration",
+            "0.5",
+            "--quiet",
+            "--out",
+            "mine.mcap",
+        ],
+    );
+    let again = ok_in(
+        &dir,
+        &[
+            "serve",
+            "--meb",
+            "tcp://127.0.0.1:0",
+            "--duration",
+            "0.5",
+            "--quiet",
+            "--out",
+            "mine.mcap",
+        ],
+    );
     assert!(
-        again.contains("recording: mine.mcap (replaced the one there before: a `twin serve` session, seed 1)"),
+        again.contains(
+            "recording: mine.mcap (replaced the one there before: a `twin serve` session, seed 1)"
+        ),
         "{again}"
     );
 }
@@ -175,15 +233,32 @@ fn a_real_time_session_is_refused_in_words_and_named_by_its_start_time() {
 #[test]
 fn a_supervise_session_is_refused_in_words_too() {
     let dir = folder("supervise");
-    let slave = Proc::start(&["serve", "--meb", "tcp://127.0.0.1:0", "--quiet", "--no-record"]);
+    let slave = Proc::start(&[
+        "serve",
+        "--meb",
+        "tcp://127.0.0.1:0",
+        "--quiet",
+        "--no-record",
+    ]);
     let link = format!("tcp://{}", slave.tcp_of("meb"));
     let printed = ok_in(
         &dir,
-        &["supervise", "--meb", &link, "--no-server", "--duration", "0.5", "--quiet"],
+        &[
+            "supervise",
+            "--meb",
+            &link,
+            "--no-server",
+            "--duration",
+            "0.5",
+            "--quiet",
+        ],
     );
     let sessions = files_starting(&dir, "supervise-");
     assert_eq!(sessions.len(), 1, "{sessions:?}: {printed}");
-    assert!(printed.contains(&format!("recording: {}", sessions[0])), "{printed}");
+    assert!(
+        printed.contains(&format!("recording: {}", sessions[0])),
+        "{printed}"
+    );
     let o = twin_in(&dir, &["replay", &sessions[0]]);
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
@@ -209,8 +284,14 @@ fn a_run_says_what_it_replaced() {
         "{second}"
     );
     let open = ok_in(&dir, &["run", "--open-loop", "--duration", "0.5"]);
-    assert!(open.lines().any(|l| l == "recording: twin-run.mcap"), "{open}");
-    let open = ok_in(&dir, &["run", "--open-loop", "--duration", "0.5", "--seed", "2"]);
+    assert!(
+        open.lines().any(|l| l == "recording: twin-run.mcap"),
+        "{open}"
+    );
+    let open = ok_in(
+        &dir,
+        &["run", "--open-loop", "--duration", "0.5", "--seed", "2"],
+    );
     assert!(
         open.contains("(replaced the one there before: an open-loop run on the vemodule preset, seed 1, 0.5 s)"),
         "{open}"
@@ -230,11 +311,23 @@ fn baselines_are_the_repositorys_wherever_twin_runs() {
         "{o}"
     );
     assert!(
-        o.lines().any(|l| l.split_whitespace().take(2).eq(["controller-network", "pass"])),
+        o.lines().any(|l| l
+            .split_whitespace()
+            .take(2)
+            .eq(["controller-network", "pass"])),
         "{o}"
     );
     // Recording never starts a new set of baselines by mistake.
-    let o = twin_in(&dir, &["baseline", "--record", "ev-meb", "--dir", "recordings/baselines"]);
+    let o = twin_in(
+        &dir,
+        &[
+            "baseline",
+            "--record",
+            "ev-meb",
+            "--dir",
+            "recordings/baselines",
+        ],
+    );
     assert!(!o.status.success());
     assert!(text(&o).contains("create the folder first"), "{}", text(&o));
     assert!(!dir.join("recordings").exists(), "a folder was created");
@@ -252,7 +345,11 @@ fn baselines_are_the_repositorys_wherever_twin_runs() {
     );
     let o = twin_in(&dir, &["baseline", "--dir", "no-such-folder"]);
     assert!(!o.status.success());
-    assert!(text(&o).contains("no folder no-such-folder"), "{}", text(&o));
+    assert!(
+        text(&o).contains("no folder no-such-folder"),
+        "{}",
+        text(&o)
+    );
 }
 
 #[test]
@@ -264,41 +361,95 @@ fn compare_says_first_that_recordings_come_from_different_runs() {
     assert!(!o.status.success());
     let out = String::from_utf8_lossy(&o.stdout);
     let lines: Vec<&str> = out.lines().collect();
-    assert_eq!(lines[1], "  the recordings come from different runs:", "{out}");
+    assert_eq!(
+        lines[1], "  the recordings come from different runs:",
+        "{out}"
+    );
     assert!(
         out.contains("    run       a scenario run of controller-network, seed 1, 1 s")
             && out.contains("    baseline  a scenario run of ev-meb, seed 1, 1 s"),
         "{out}"
     );
-    assert!(!out.contains("missing"), "no table of missing signals: {out}");
+    assert!(
+        !out.contains("missing"),
+        "no table of missing signals: {out}"
+    );
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(
-        err.contains("different runs") && err.contains("scenario (controller-network, baseline ev-meb)"),
+        err.contains("different runs")
+            && err.contains("scenario (controller-network, baseline ev-meb)"),
         "{err}"
     );
-    let forced = twin_in(&dir, &["compare", "controller-network.mcap", "ev-meb.mcap", "--force"]);
-    assert!(String::from_utf8_lossy(&forced.stdout).contains("missing"), "{}", text(&forced));
+    let forced = twin_in(
+        &dir,
+        &[
+            "compare",
+            "controller-network.mcap",
+            "ev-meb.mcap",
+            "--force",
+        ],
+    );
+    assert!(
+        String::from_utf8_lossy(&forced.stdout).contains("missing"),
+        "{}",
+        text(&forced)
+    );
     // The same scenario with another seed and length: said first, then compared.
-    ok_in(&dir, &["run", "ev-meb", "--duration", "0.8", "--seed", "2", "--out", "seed2.mcap"]);
+    ok_in(
+        &dir,
+        &[
+            "run",
+            "ev-meb",
+            "--duration",
+            "0.8",
+            "--seed",
+            "2",
+            "--out",
+            "seed2.mcap",
+        ],
+    );
     let o = twin_in(&dir, &["compare", "seed2.mcap", "ev-meb.mcap"]);
     let out = String::from_utf8_lossy(&o.stdout);
     let lines: Vec<&str> = out.lines().collect();
-    assert_eq!(lines[1], "  the run's settings differ from the baseline's:", "{out}");
-    assert!(lines[2].trim_start().starts_with("seed") && lines[2].ends_with("run 2, baseline 1"), "{out}");
-    assert!(lines[3].trim_start().starts_with("duration_s") && lines[3].ends_with("run 0.8, baseline 1.0"), "{out}");
+    assert_eq!(
+        lines[1], "  the run's settings differ from the baseline's:",
+        "{out}"
+    );
+    assert!(
+        lines[2].trim_start().starts_with("seed") && lines[2].ends_with("run 2, baseline 1"),
+        "{out}"
+    );
+    assert!(
+        lines[3].trim_start().starts_with("duration_s")
+            && lines[3].ends_with("run 0.8, baseline 1.0"),
+        "{out}"
+    );
     assert!(out.contains("signals"), "then compared: {out}");
 }
 
 #[test]
 fn step_without_out_leaves_its_figures_here() {
     let dir = folder("step-here");
-    let o = ok_in(&dir, &["step", "--open-loop", "--duration", "2", "--at", "0.5"]);
-    for (line, file) in [("figures:", "step.json"), ("plot:", "step.png"), ("recording:", "step.mcap")] {
+    let o = ok_in(
+        &dir,
+        &["step", "--open-loop", "--duration", "2", "--at", "0.5"],
+    );
+    for (line, file) in [
+        ("figures:", "step.json"),
+        ("plot:", "step.png"),
+        ("recording:", "step.mcap"),
+    ] {
         assert!(o.lines().any(|l| l == format!("{line} {file}")), "{o}");
         assert!(dir.join(file).is_file(), "no {file}: {o}");
     }
-    let again = ok_in(&dir, &["step", "--open-loop", "--duration", "2", "--at", "0.5"]);
-    assert!(again.contains("plot: step.png (replaced the one there before)"), "{again}");
+    let again = ok_in(
+        &dir,
+        &["step", "--open-loop", "--duration", "2", "--at", "0.5"],
+    );
+    assert!(
+        again.contains("plot: step.png (replaced the one there before)"),
+        "{again}"
+    );
 }
 
 #[test]
@@ -309,10 +460,17 @@ fn export_writes_one_time_column() {
     assert!(!o.contains("replaced"), "{o}");
     let sensors = std::fs::read_to_string(dir.join("csv/plant_ev1_sensors.csv")).expect("csv");
     let header: Vec<&str> = sensors.lines().next().expect("header").split(',').collect();
-    assert_eq!(header.iter().filter(|c| c.contains("time_s")).count(), 1, "{header:?}");
+    assert_eq!(
+        header.iter().filter(|c| c.contains("time_s")).count(),
+        1,
+        "{header:?}"
+    );
     assert_eq!(header[0], "time_s");
     let row: Vec<&str> = sensors.lines().nth(2).expect("a row").split(',').collect();
     assert_eq!(row.len(), header.len());
     let o = ok_in(&dir, &["export", "ev-meb.mcap", "--csv", "csv"]);
-    assert!(o.contains("plant_ev1_sensors.csv (replaced the one there before)"), "{o}");
+    assert!(
+        o.contains("plant_ev1_sensors.csv (replaced the one there before)"),
+        "{o}"
+    );
 }

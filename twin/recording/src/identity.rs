@@ -117,7 +117,9 @@ impl Identity {
         }
         if let Some(d) = self.get("duration_s") {
             // `10` for a scenario's `10.0` and an open-loop run's `10` alike.
-            let shown = d.parse::<f64>().map_or_else(|_| d.to_string(), |d| d.to_string());
+            let shown = d
+                .parse::<f64>()
+                .map_or_else(|_| d.to_string(), |d| d.to_string());
             s += &format!(", {shown} s");
         }
         s
@@ -156,7 +158,12 @@ impl fmt::Display for Difference {
             Some(v) => v.clone(),
             None => "(none)".into(),
         };
-        write!(f, "{}, baseline {}", shown(&self.first), shown(&self.second))
+        write!(
+            f,
+            "{}, baseline {}",
+            shown(&self.first),
+            shown(&self.second)
+        )
     }
 }
 

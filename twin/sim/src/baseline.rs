@@ -22,7 +22,9 @@ pub const DIR: &str = "recordings/baselines";
 /// The baselines of the repository this twin was built from, when that
 /// folder is still there: the ones `twin baseline` checks wherever it runs.
 pub fn repository_dir() -> Option<PathBuf> {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..").join(DIR);
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../..")
+        .join(DIR);
     let dir = dir.canonicalize().ok()?;
     dir.join("baselines.toml").is_file().then_some(dir)
 }

@@ -133,7 +133,15 @@ pub fn run_with(
     progress: impl FnMut(f64),
 ) -> Result<RunOutcome> {
     let plain = BTreeMap::new();
-    run_observed(scenario, out, also, progress, &plain, None, |_, _, _| Ok(()))
+    run_observed(
+        scenario,
+        out,
+        also,
+        progress,
+        &plain,
+        None,
+        |_, _, _| Ok(()),
+    )
 }
 
 /// [`run`], pausing every `sample_every` of simulated time to call

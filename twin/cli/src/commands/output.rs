@@ -53,12 +53,7 @@ fn recording_held(path: &Path) -> String {
     let Ok(mut reader) = Reader::open(path).map(Reader::metadata_only) else {
         return "not a readable recording".into();
     };
-    loop {
-        match reader.next() {
-            Ok(Some(_)) => {}
-            Ok(None) | Err(_) => break,
-        }
-    }
+    while let Ok(Some(_)) = reader.next() {}
     Identity::of(reader.recording()).describe()
 }
 

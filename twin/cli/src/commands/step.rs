@@ -149,7 +149,11 @@ pub fn execute(args: &StepArgs) -> Result<()> {
         Earlier::note(earlier[0].as_ref())
     );
     step::plot(&report, &png)?;
-    println!("plot: {}{}", png.display(), Earlier::note(earlier[1].as_ref()));
+    println!(
+        "plot: {}{}",
+        png.display(),
+        Earlier::note(earlier[1].as_ref())
+    );
     println!(
         "recording: {}{}",
         report.recording.display(),
