@@ -453,6 +453,36 @@ fn step_without_out_leaves_its_figures_here() {
 }
 
 #[test]
+fn sweep_without_out_leaves_its_figures_here() {
+    let dir = folder("sweep-here");
+    let sweep = [
+        "sweep",
+        "--detector",
+        "fixed",
+        "--points",
+        "2",
+        "--rpm",
+        "100",
+        "200",
+        "--settle",
+        "0.5",
+        "--measure",
+        "0.5",
+    ];
+    let o = ok_in(&dir, &sweep);
+    for (line, file) in [("figures:", "sweep.json"), ("plot:", "sweep.png")] {
+        assert!(o.lines().any(|l| l == format!("{line} {file}")), "{o}");
+        assert!(dir.join(file).is_file(), "no {file}: {o}");
+    }
+    assert!(!o.contains("recordings:"), "{o}");
+    let again = ok_in(&dir, &sweep);
+    assert!(
+        again.contains("figures: sweep.json (replaced the one there before)"),
+        "{again}"
+    );
+}
+
+#[test]
 fn export_writes_one_time_column() {
     let dir = folder("export");
     ok_in(&dir, &["run", "--duration", "0.5"]);
