@@ -18,12 +18,15 @@ use super::run::Progress;
 /// replays: `twin run` (a scenario or --open-loop), `twin step`, the runs of
 /// `twin sweep` and `twin experiment parallel`, baselines. A real-time session
 /// (`twin serve`, `twin supervise`) ran with live peers and the machine's clock
-/// and cannot be re-run; send its frames to a live slave with --frames-to. An unchanged replay must give the
-/// same bytes; otherwise the first signal and time where the replay departs are
-/// printed, with the value recorded and replayed, and the exit code is non-zero.
-/// `--set PATH=VALUE` changes a field of the stored scenario first (dotted as in
-/// its TOML, list items by name or index): `--set node.supervisor.kp=0.6`,
-/// `--set module.ev1.params.wheel.brake_torque_nm=3`, `--set seed=2`.
+/// and cannot be re-run; send its frames to a live slave with --frames-to.
+///
+/// An unchanged replay must give the same bytes; otherwise the first signal and
+/// time where the replay departs are printed, with the value recorded and
+/// replayed, and the exit code is non-zero. `--set PATH=VALUE` changes a field of
+/// the stored scenario first (dotted as in its TOML, list items by name or
+/// index): `--set node.supervisor.kp=0.6`, `--set
+/// module.ev1.params.wheel.brake_torque_nm=3`, `--set seed=2`; of a step
+/// response, the scenario or the bench it ran on.
 ///
 /// `--frames-to LINK` instead sends the recorded master requests of one bus to a
 /// live slave (`tcp://HOST:PORT` carrying the raw bus bytes, or a serial device or
@@ -72,12 +75,12 @@ pub fn execute(args: &ReplayArgs) -> Result<()> {
     }
     let recorded = Recording::read(&args.recording)?;
     refuse_empty(&recorded)?;
-    let rerun = Rerun::of(&recorded, &args.overrides)?;
+    let as_recorded = Rerun::of(&recorded, &[])?;
     let version = recorded.run_field("twin_version").unwrap_or("unknown");
     println!(
         "twin replay: {} ({}, recorded by twin {version})",
         args.recording.display(),
-        rerun.describe()
+        as_recorded.describe()
     );
     if version != env!("CARGO_PKG_VERSION") {
         println!(
@@ -88,6 +91,10 @@ pub fn execute(args: &ReplayArgs) -> Result<()> {
     if let Some(why) = &recorded.truncated {
         println!("  note: the recording is cut short ({why}); only what it holds is compared");
     }
+    let rerun = match args.overrides.is_empty() {
+        true => as_recorded,
+        false => Rerun::of(&recorded, &args.overrides)?,
+    };
     for o in &args.overrides {
         println!("  changed: {o}");
     }
