@@ -483,6 +483,30 @@ fn sweep_without_out_leaves_its_figures_here() {
 }
 
 #[test]
+fn the_parallel_experiment_says_it_replaced_its_recordings_and_they_replay() {
+    let dir = folder("parallel");
+    let parallel = [
+        "experiment",
+        "parallel",
+        "--duration",
+        "0.3",
+        "--out-dir",
+        "p",
+    ];
+    let first = ok_in(&dir, &parallel);
+    assert!(first.lines().any(|l| l == "recordings: p"), "{first}");
+    let again = ok_in(&dir, &parallel);
+    assert!(
+        again
+            .lines()
+            .any(|l| l == "recordings: p (replaced the 4 there before)"),
+        "{again}"
+    );
+    let o = ok_in(&dir, &["replay", "p/parallel-rtu-1m.mcap"]);
+    assert!(o.contains("byte-identical"), "{o}");
+}
+
+#[test]
 fn export_writes_one_time_column() {
     let dir = folder("export");
     ok_in(&dir, &["run", "--duration", "0.5"]);
