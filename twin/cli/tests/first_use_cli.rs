@@ -115,6 +115,41 @@ fn a_step_recording_replays_byte_for_byte_closed_and_open_loop() {
     );
 }
 
+/// A step recording made before the step's settings were stored: its
+/// messages and a `twin.run` without them.
+#[test]
+fn an_earlier_step_recording_is_refused_in_words() {
+    let dir = folder("old-step");
+    ok_in(
+        &dir,
+        &["step", "--open-loop", "--duration", "1", "--at", "0.5"],
+    );
+    let recording = twin_recording::Recording::read(&dir.join("step.mcap")).expect("readable");
+    let mut run = recording.metadata["twin.run"].clone();
+    run.retain(|k, _| k != "experiment" && !k.starts_with("step_"));
+    let bytes = std::fs::read(dir.join("step.mcap")).expect("recording");
+    let old = dir.join("old.mcap");
+    let mut rec = twin_recording::record::Recorder::create(&old).expect("create");
+    rec.write_metadata("twin.run", run).expect("metadata");
+    for m in mcap::MessageStream::new(&bytes).expect("valid MCAP") {
+        let m = m.expect("message");
+        let v: serde_json::Value = serde_json::from_slice(&m.data).expect("JSON");
+        if !rec.has_channel(&m.channel.topic) {
+            rec.add_channel(&m.channel.topic, &v).expect("channel");
+        }
+        rec.write(&m.channel.topic, m.log_time as f64 * 1e-9, &v)
+            .expect("write");
+    }
+    rec.finish().expect("finish");
+    let o = twin_in(&dir, &["replay", "old.mcap"]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("a step response recorded by an earlier twin") && !err.contains("absent"),
+        "{err}"
+    );
+}
+
 #[test]
 fn the_runs_of_a_sweep_replay() {
     let dir = folder("sweep-replay");

@@ -188,6 +188,17 @@ impl Rerun {
         if let Some(step) = StepConfig::of_recording(recorded, overrides)? {
             return Ok(Self::Step(Box::new(step)));
         }
+        if recorded
+            .channel(twin_recording::topics::EXPERIMENT_STEP)
+            .is_some()
+        {
+            bail!(
+                "{} is a step response recorded by an earlier twin, which did not store the \
+                 step's settings: it cannot be run again; run the `twin step` again to get one \
+                 that can",
+                recorded.path.display()
+            );
+        }
         Ok(Self::Run(
             RunSpec::from_recording(recorded)?.with_overrides(overrides)?,
         ))
