@@ -150,6 +150,7 @@ fn pausing_a_run_to_sample_it_changes_nothing() {
         &scenario,
         &paused,
         |_| {},
+        &Default::default(),
         Some(nodes::time::SimDuration::from_millis(2)),
         |_, _, _| {
             samples += 1;

@@ -277,6 +277,9 @@ fn compare_names_missing_signals_bad_files_and_bad_tolerances() {
     assert!(o.status.success(), "{}", text(&o));
     let o = twin(&["compare", s(&open), s(ev_meb())]);
     assert!(!o.status.success());
+    assert!(text(&o).contains("different runs"), "{}", text(&o));
+    let o = twin(&["compare", s(&open), s(ev_meb()), "--force"]);
+    assert!(!o.status.success());
     assert!(
         text(&o).contains("/plant/ev1/sensors.wheel_rpm") && text(&o).contains("missing"),
         "{}",
@@ -530,11 +533,12 @@ fn recover_turns_a_cut_recording_into_one_every_reader_opens() {
 #[test]
 fn baseline_records_checks_and_names_a_missing_one() {
     let dir = scratch("baselines");
+    std::fs::create_dir_all(&dir).expect("baselines folder");
     let o = twin(&["baseline", "ev-meb", "--dir", s(&dir)]);
     assert!(!o.status.success());
     assert!(
-        text(&o).contains("no baseline for `ev-meb`")
-            && text(&o).contains("twin baseline --record ev-meb"),
+        text(&o).contains("ev-meb                   MISSING")
+            && text(&o).contains("twin baseline --record ev-meb --dir"),
         "{}",
         text(&o)
     );

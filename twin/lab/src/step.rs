@@ -12,11 +12,14 @@ use anyhow::{Context, Result, bail};
 use nodes::time::{SimDuration, SimTime};
 use plant::{PlantParams, Sensors};
 use serde::Serialize;
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use super::instruments::{Instruments, light_limit, read_instruments};
 use super::plot::{self, Axes, Series};
+use twin_recording::Recording;
 use twin_sim::openloop::{self, OpenLoop};
+use twin_sim::replay::RunSpec;
 use twin_sim::scenario::{NodeSpec, Scenario};
 use twin_sim::step_metrics::{StepMetrics, StepOptions, delay, step_metrics};
 use twin_sim::virtual_run;
@@ -53,6 +56,113 @@ pub struct StepConfig {
     pub step_at_s: f64,
     pub duration_s: f64,
     pub seed: u64,
+}
+
+/// The value of `experiment` in a step recording's `twin.run`.
+const EXPERIMENT: &str = "step";
+
+impl StepConfig {
+    /// What the experiment adds to its recording's `twin.run` (beside the
+    /// scenario or the bench it ran on), so that `twin replay` runs it again.
+    fn identity(&self) -> BTreeMap<String, String> {
+        let mut fields = BTreeMap::from([
+            ("experiment".to_string(), EXPERIMENT.to_string()),
+            ("step_from".into(), self.from.to_string()),
+            ("step_to".into(), self.to.to_string()),
+            ("step_at_s".into(), self.step_at_s.to_string()),
+        ]);
+        match &self.drive {
+            StepDrive::OpenLoop { adaptive_light, .. } => {
+                fields.insert("step_adaptive_light".into(), adaptive_light.to_string())
+            }
+            StepDrive::ClosedLoop { on_light, .. } => {
+                fields.insert("step_light_feedback".into(), on_light.to_string())
+            }
+        };
+        fields
+    }
+
+    /// The step experiment a recording holds, `None` when it holds another
+    /// kind of run. `overrides` (`--set PATH=VALUE`) change the scenario or
+    /// the bench first, as for a plain run; open loop, `vel_before_fraction`,
+    /// `vel_fraction` and `vel_step_at_s` are the step itself.
+    pub fn of_recording(recording: &Recording, overrides: &[String]) -> Result<Option<Self>> {
+        if recording.run_field("experiment") != Some(EXPERIMENT) {
+            return Ok(None);
+        }
+        let origin = recording.path.display().to_string();
+        let field = |k: &str| -> Result<&str> {
+            recording
+                .run_field(k)
+                .with_context(|| format!("{origin}: the step experiment's `twin.run` lacks `{k}`"))
+        };
+        let number = |k: &str| -> Result<f64> {
+            field(k)?
+                .parse()
+                .with_context(|| format!("{origin}: `twin.run` field `{k}` is not a number"))
+        };
+        let flag = |k: &str| recording.run_field(k) == Some("true");
+        let spec = RunSpec::from_recording(recording)?.with_overrides(overrides)?;
+        Ok(Some(match spec {
+            RunSpec::Scenario(scenario) => StepConfig {
+                from: number("step_from")?,
+                to: number("step_to")?,
+                step_at_s: number("step_at_s")?,
+                duration_s: scenario.duration_s,
+                seed: scenario.seed,
+                drive: StepDrive::ClosedLoop {
+                    scenario: Box::new(scenario),
+                    on_light: flag("step_light_feedback"),
+                },
+            },
+            RunSpec::OpenLoop(o) => StepConfig {
+                from: o.vel_before_fraction,
+                to: o.vel_fraction,
+                step_at_s: o.vel_step_at_s,
+                duration_s: o.duration_s,
+                seed: o.seed,
+                drive: StepDrive::OpenLoop {
+                    params: Box::new(o.params),
+                    preset: o.preset,
+                    adaptive_light: flag("step_adaptive_light"),
+                },
+            },
+        }))
+    }
+
+    /// A line naming the experiment, as `twin replay` prints it.
+    pub fn describe(&self) -> String {
+        match &self.drive {
+            StepDrive::OpenLoop { preset, .. } => format!(
+                "step response, open loop on the {preset} preset, VEL {} → {} % at {} s, seed {}, {:.3} s",
+                percent(self.from),
+                percent(self.to),
+                self.step_at_s,
+                self.seed,
+                self.duration_s
+            ),
+            StepDrive::ClosedLoop { scenario, .. } => format!(
+                "step response, scenario {}, set point {} → {} rpm at {} s, seed {}, {:.3} s",
+                scenario.name,
+                short(self.from),
+                short(self.to),
+                self.step_at_s,
+                self.seed,
+                self.duration_s
+            ),
+        }
+    }
+}
+
+/// A number with at most one decimal, and none when it is whole.
+pub fn short(v: f64) -> String {
+    let s = format!("{v:.1}");
+    s.strip_suffix(".0").map(str::to_string).unwrap_or(s)
+}
+
+/// A VEL fraction as a percentage: 0.025 → `2.5`.
+fn percent(fraction: f64) -> String {
+    short(fraction * 100.0)
 }
 
 /// The sampled signals, in wheel rpm (the set point in its own unit).
@@ -292,6 +402,7 @@ fn run_open_loop(
         }
     }
     let mut ol = OpenLoop::new(params.clone(), preset);
+    ol.experiment = config.identity();
     ol.seed = config.seed;
     ol.duration_s = config.duration_s;
     ol.vel_before_fraction = config.from;
@@ -396,6 +507,7 @@ fn run_closed_loop(
         &scenario,
         recording,
         progress,
+        &config.identity(),
         Some(period),
         |now, engine, rec| {
             let Some(m) = engine.modules.iter().position(|m| m.name == module) else {
@@ -517,20 +629,7 @@ pub fn plot(report: &StepReport, path: &Path) -> Result<()> {
             .chain([0.0]),
         0.05,
     );
-    let title = if report.mode == "closed-loop" {
-        format!(
-            "{}: set point {:.0} → {:.0} rpm at {} s",
-            report.bench, report.from, report.to, report.step_at_s
-        )
-    } else {
-        format!(
-            "{} open loop: VEL {:.0} → {:.0} % at {} s",
-            report.bench,
-            report.from * 100.0,
-            report.to * 100.0,
-            report.step_at_s
-        )
-    };
+    let title = plot_title(report);
     let axes = Axes {
         title: &title,
         x_label: "time (s)",
@@ -540,4 +639,65 @@ pub fn plot(report: &StepReport, path: &Path) -> Result<()> {
         legend_upper_left: false,
     };
     plot::line_plot(path, &axes, &series, (960, 560))
+}
+
+/// The plot's title: the step as the printed table gives it.
+fn plot_title(report: &StepReport) -> String {
+    if report.mode == "closed-loop" {
+        format!(
+            "{}: set point {} → {} rpm at {} s",
+            report.bench,
+            short(report.from),
+            short(report.to),
+            report.step_at_s
+        )
+    } else {
+        format!(
+            "{} open loop: VEL {} → {} % at {} s",
+            report.bench,
+            percent(report.from),
+            percent(report.to),
+            report.step_at_s
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_plot_title_gives_the_step_as_the_table_does() {
+        let report = StepReport {
+            mode: "open-loop",
+            bench: "vemodule".into(),
+            set_point_unit: "VEL fraction",
+            from: 0.025,
+            to: 0.045,
+            step_at_s: 2.0,
+            figures_until_s: 6.0,
+            duration_s: 6.0,
+            seed: 1,
+            light_limit_rpm: 0.0,
+            light_detector: String::new(),
+            signals: Vec::new(),
+            recording: PathBuf::new(),
+            trace: Trace::default(),
+        };
+        assert_eq!(
+            plot_title(&report),
+            "vemodule open loop: VEL 2.5 → 4.5 % at 2 s"
+        );
+        let closed = StepReport {
+            mode: "closed-loop",
+            bench: "ev-meb".into(),
+            from: 100.0,
+            to: 250.5,
+            ..report
+        };
+        assert_eq!(
+            plot_title(&closed),
+            "ev-meb: set point 100 → 250.5 rpm at 2 s"
+        );
+    }
 }

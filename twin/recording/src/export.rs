@@ -1,6 +1,7 @@
 //! A recording as CSV for spreadsheets, MATLAB and Python: one file per
 //! channel, a `time_s` column (the log time, simulated seconds, exact to the
-//! nanosecond) and one column per flattened field (`energy.battery_out`,
+//! nanosecond; a message's own `time_s` field, the plant samples', is that
+//! time and is not repeated) and one column per flattened field (`energy.battery_out`,
 //! `loops.0.measured_rpm`). Numbers are written as recorded, booleans as 1
 //! and 0, text quoted when it needs to be; a field a message lacks is empty.
 
@@ -42,11 +43,40 @@ pub fn file_name(topic: &str) -> String {
     format!("{}.csv", if stem.is_empty() { "root" } else { &stem })
 }
 
+/// The leading column, the log time, and the name of a message's own field
+/// that would clash with it (the plant samples carry their time).
+const TIME: &str = "time_s";
+
 /// A channel's columns: every field path in the order first seen.
 #[derive(Debug, Default)]
 struct Columns {
     names: Vec<String>,
     index: HashMap<String, usize>,
+    /// A message's own `time_s` differs from its log time somewhere.
+    own_time_differs: bool,
+}
+
+impl Columns {
+    /// A message's own `time_s` is left out where it is the log time to
+    /// the nanosecond (one `time_s` column, as a spreadsheet wants), and
+    /// named apart where it is not.
+    fn settle_own_time(&mut self) {
+        let Some(i) = self.index.remove(TIME) else {
+            return;
+        };
+        if self.own_time_differs {
+            self.names[i] = format!("{TIME} (in the message)");
+            // The second pass finds the field by its path in the message.
+            self.index.insert(TIME.to_string(), i);
+        } else {
+            self.names.remove(i);
+            for v in self.index.values_mut() {
+                if *v > i {
+                    *v -= 1;
+                }
+            }
+        }
+    }
 }
 
 /// A channel's file being written.
@@ -70,7 +100,14 @@ pub fn to_csv(path: &Path, dir: &Path) -> Result<(Recording, Vec<Written>)> {
         }
         let c = &mut columns[m.channel];
         buf.clear();
-        leaves(&value, &mut buf, &mut |p, _| {
+        let log_time_ns = m.log_time_ns;
+        leaves(&value, &mut buf, &mut |p, leaf| {
+            if p == TIME {
+                let same = leaf
+                    .as_f64()
+                    .is_some_and(|t| (t * 1e9).round() == log_time_ns as f64);
+                c.own_time_differs |= !same;
+            }
             if !c.index.contains_key(p) {
                 c.index.insert(p.to_string(), c.names.len());
                 c.names.push(p.to_string());
@@ -78,6 +115,7 @@ pub fn to_csv(path: &Path, dir: &Path) -> Result<(Recording, Vec<Written>)> {
         });
         Ok(())
     })?;
+    columns.iter_mut().for_each(Columns::settle_own_time);
     if recording.message_count() == 0 {
         anyhow::bail!("{}: no CSV file was written", recording.holds_no_messages());
     }
@@ -135,7 +173,7 @@ pub fn to_csv(path: &Path, dir: &Path) -> Result<(Recording, Vec<Written>)> {
 /// Create a channel's file and write its header line.
 fn header(path: &Path, columns: &Columns, rows: u64) -> Result<Sheet> {
     let mut out = BufWriter::new(File::create(path)?);
-    write!(out, "time_s")?;
+    write!(out, "{TIME}")?;
     for c in &columns.names {
         write!(
             out,

@@ -9,6 +9,7 @@
 //!   ([`signals`]), comparison against a baseline ([`compare`]), the first
 //!   departure of a replay ([`diff`]) and CSV export ([`export`]).
 //!   `twin replay`, `compare`, `export` and the viewer build on this.
+//! - [`identity`]: what a recording says was run, field by field.
 
 mod chunk;
 pub mod compare;
@@ -16,6 +17,7 @@ pub mod describe;
 pub mod diff;
 pub mod disk;
 pub mod export;
+pub mod identity;
 pub mod read;
 pub mod record;
 pub mod recover;

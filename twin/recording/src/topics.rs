@@ -27,7 +27,7 @@
 //!
 //! | name | written by | when | fields |
 //! |---|---|---|---|
-//! | [`RUN_METADATA`] `twin.run` | every run and session | first, before any message | `kind` (`scenario`, `open-loop`, `serve`, `supervise`), `twin_version`; a scenario's `scenario`, `scenario_toml`, `seed`, `pwm_calibration`; the open loop's settings and `params_toml`; a session's `links`, `params`, `slaves`, … |
+//! | [`RUN_METADATA`] `twin.run` | every run and session | first, before any message | `kind` (`scenario`, `open-loop`, `serve`, `supervise`), `twin_version`; a scenario's `scenario`, `scenario_toml`, `seed`, `pwm_calibration`; the open loop's settings and `params_toml`; a step response's `experiment` (`step`), `step_from`, `step_to`, `step_at_s`, and `step_adaptive_light` (open loop) or `step_light_feedback` (closed loop); a session's `links`, `params`, `slaves`, … |
 //! | [`REALTIME_METADATA`] `twin.realtime` | a real-time session | when it ends | the session's totals |
 
 use serde::{Deserialize, Serialize};

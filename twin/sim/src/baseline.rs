@@ -19,6 +19,22 @@ pub const SETTINGS: &str = include_str!("../../../recordings/baselines/baselines
 /// Where the baselines live, relative to the repository root.
 pub const DIR: &str = "recordings/baselines";
 
+/// The baselines of the repository this twin was built from, when that
+/// folder is still there: the ones `twin baseline` checks wherever it runs.
+pub fn repository_dir() -> Option<PathBuf> {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../..")
+        .join(DIR);
+    let dir = dir.canonicalize().ok()?;
+    dir.join("baselines.toml").is_file().then_some(dir)
+}
+
+/// Where [`repository_dir`] looks.
+pub fn repository_dir_expected() -> PathBuf {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    root.canonicalize().unwrap_or(root).join(DIR)
+}
+
 #[derive(Debug, Clone, Copy, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct CutDown {

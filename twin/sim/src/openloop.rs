@@ -26,6 +26,9 @@ pub struct OpenLoop {
     pub vel_before_fraction: f64,
     /// Plant-state messages per simulated second.
     pub record_hz: f64,
+    /// What an experiment run on the bench adds to the run's identity
+    /// (`twin.run`), so that `twin replay` can run the experiment again.
+    pub experiment: BTreeMap<String, String>,
 }
 
 impl OpenLoop {
@@ -40,6 +43,7 @@ impl OpenLoop {
             vel_fraction: 0.6,
             vel_before_fraction: 0.0,
             record_hz: 1000.0,
+            experiment: BTreeMap::new(),
         }
     }
 
@@ -139,6 +143,7 @@ fn run_metadata(config: &OpenLoop) -> Result<BTreeMap<String, String>> {
         ("record_hz".into(), config.record_hz.to_string()),
         ("params_toml".into(), toml::to_string(&config.params)?),
     ]);
+    fields.extend(config.experiment.clone());
     // Only when set, so that a plain open-loop run's file stays as it was.
     if config.vel_before_fraction != 0.0 {
         fields.insert(

@@ -42,7 +42,16 @@ impl RunSpec {
                         .with_context(|| format!("{origin}: open-loop settings in `twin.run`"))
                 },
             )?)),
-            other => bail!("{origin}: unknown run kind `{other}` in `twin.run`"),
+            "serve" | "supervise" => bail!(
+                "{origin} is a `twin {kind}` session: it ran in real time, with live masters or \
+                 slaves and the machine's clock, so it cannot be run again. Its recorded requests \
+                 can be sent to a live slave instead: `twin replay {origin} --frames-to LINK`"
+            ),
+            other => bail!(
+                "{origin} was recorded by a run of kind `{other}`, which this twin ({}) cannot \
+                 run again: it may come from a newer twin",
+                env!("CARGO_PKG_VERSION")
+            ),
         }
     }
 

@@ -182,17 +182,29 @@ pub fn run_with(
     also: &mut dyn crate::engine::Observer,
     progress: impl FnMut(f64),
 ) -> Result<RunOutcome> {
-    run_observed(scenario, out, also, progress, None, |_, _, _| Ok(()))
+    let plain = BTreeMap::new();
+    run_observed(
+        scenario,
+        out,
+        also,
+        progress,
+        &plain,
+        None,
+        |_, _, _| Ok(()),
+    )
 }
 
 /// [`run`], pausing every `sample_every` of simulated time to call
 /// `on_sample` with the time, the engine and the recorder (an experiment
 /// reads the nodes' registers there and records what it measured). Pausing
-/// changes nothing in the run itself.
+/// changes nothing in the run itself. `experiment` is what the experiment
+/// adds to the run's identity (`twin.run`), so that `twin replay` can run it
+/// again.
 pub fn run_sampled(
     scenario: &Scenario,
     out: &Path,
     progress: impl FnMut(f64),
+    experiment: &BTreeMap<String, String>,
     sample_every: Option<SimDuration>,
     on_sample: impl FnMut(SimTime, &Engine, &mut SimRecorder) -> Result<()>,
 ) -> Result<RunOutcome> {
@@ -202,6 +214,7 @@ pub fn run_sampled(
         out,
         &mut discard,
         progress,
+        experiment,
         sample_every,
         on_sample,
     )
@@ -213,6 +226,7 @@ fn run_observed(
     out: &Path,
     also: &mut dyn crate::engine::Observer,
     mut progress: impl FnMut(f64),
+    experiment: &BTreeMap<String, String>,
     sample_every: Option<SimDuration>,
     mut on_sample: impl FnMut(SimTime, &Engine, &mut SimRecorder) -> Result<()>,
 ) -> Result<RunOutcome> {
@@ -229,6 +243,7 @@ fn run_observed(
         ("seed".into(), scenario.seed.to_string()),
         ("twin_version".into(), env!("CARGO_PKG_VERSION").into()),
     ]);
+    identity.extend(experiment.clone());
     if !pwm_calibrations.is_empty() {
         let text: Vec<String> = pwm_calibrations
             .iter()

@@ -1,7 +1,7 @@
 //! `twin baseline`: check the embedded scenarios against their baseline
 //! recordings, or re-record them on purpose.
 
-use anyhow::{Result, bail};
+use anyhow::{Context, Result, bail};
 use clap::Args;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -16,6 +16,11 @@ use twin_sim::baseline;
 /// (a deterministic re-run matches to the last digit). A departure is printed as
 /// the signal and time where it starts. After a change that is meant to move the
 /// physics or a protocol, re-record with `--record` and commit the files.
+///
+/// The baselines are those of the repository this twin was built from, wherever
+/// it runs; `--dir` names another folder. `--record` writes only into a folder
+/// that exists, so that it never starts a new set of baselines by mistake, and a
+/// baseline that is missing is reported as missing.
 #[derive(Debug, Args)]
 pub struct BaselineArgs {
     /// Scenarios to check or record [default: every embedded scenario].
@@ -24,9 +29,10 @@ pub struct BaselineArgs {
     /// Re-record the baselines instead of checking them.
     #[arg(long)]
     record: bool,
-    /// Folder of the baseline recordings.
-    #[arg(long, value_name = "DIR", default_value = baseline::DIR)]
-    dir: PathBuf,
+    /// Folder of the baseline recordings [default: recordings/baselines of the
+    /// repository this twin was built from].
+    #[arg(long, value_name = "DIR")]
+    dir: Option<PathBuf>,
 }
 
 pub fn execute(args: &BaselineArgs) -> Result<()> {
@@ -42,24 +48,39 @@ pub fn execute(args: &BaselineArgs) -> Result<()> {
             known.join(", ")
         );
     }
+    let dir = folder(args)?;
     if args.record {
         for name in &names {
-            let path = baseline::record(&args.dir, name)?;
+            let path = baseline::path(&dir, name);
+            let existed = path.exists();
+            baseline::record(&dir, name)?;
             let size = std::fs::metadata(&path)?.len();
             println!(
-                "twin baseline: recorded {} ({:.1} kB)",
+                "twin baseline: {} {} ({:.1} kB){}",
+                if existed { "re-recorded" } else { "recorded" },
                 path.display(),
-                size as f64 / 1000.0
+                size as f64 / 1000.0,
+                if existed {
+                    ""
+                } else {
+                    ", a new baseline: there was none"
+                }
             );
         }
         return Ok(());
     }
+    println!("twin baseline: the baselines in {}", dir.display());
     let scratch = std::env::temp_dir().join(format!("twin-baseline-{}", std::process::id()));
     std::fs::create_dir_all(&scratch)?;
-    let mut failed = Vec::new();
+    let (mut failed, mut missing) = (Vec::new(), Vec::new());
     for name in &names {
+        if !baseline::path(&dir, name).exists() {
+            println!("  {name:<24} MISSING  no {name}.mcap there");
+            missing.push(name.clone());
+            continue;
+        }
         let started = Instant::now();
-        let result = baseline::check(&args.dir, name, &scratch.join(format!("{name}.mcap")));
+        let result = baseline::check(&dir, name, &scratch.join(format!("{name}.mcap")));
         let wall = started.elapsed().as_secs_f64();
         match result {
             Ok(c) if c.passed() => {
@@ -84,14 +105,71 @@ pub fn execute(args: &BaselineArgs) -> Result<()> {
         }
     }
     let _ = std::fs::remove_dir_all(&scratch);
+    let mut problems = Vec::new();
     if !failed.is_empty() {
-        bail!(
-            "{} of {} scenario(s) do not match their baseline ({}); re-record with \
-             `twin baseline --record NAME` if the change is intended",
+        problems.push(format!(
+            "{} of {} scenario(s) do not match their baseline ({}); if the change is meant, \
+             re-record with `twin baseline --record {}` and commit the files",
             failed.len(),
             names.len(),
-            failed.join(", ")
-        );
+            failed.join(", "),
+            failed.join(" ")
+        ));
+    }
+    if !missing.is_empty() {
+        problems.push(format!(
+            "{} of {} scenario(s) have no baseline in {} ({}); a scenario new to the twin gets \
+             one with `twin baseline --record {}{}`, committed with it",
+            missing.len(),
+            names.len(),
+            dir.display(),
+            missing.join(", "),
+            missing.join(" "),
+            dir_flag(args)
+        ));
+    }
+    if !problems.is_empty() {
+        bail!("{}", problems.join("; "));
     }
     Ok(())
+}
+
+/// The folder of the baselines: `--dir`, or the repository's. It must exist:
+/// checking an empty place would only report every baseline missing, and
+/// recording into a new one would start a set that then passes against itself.
+fn folder(args: &BaselineArgs) -> Result<PathBuf> {
+    let Some(dir) = &args.dir else {
+        return baseline::repository_dir().with_context(|| {
+            format!(
+                "no baseline recordings: this twin looks for them in the repository it was built \
+                 from, {}, which is not there any more; give the folder that holds them with \
+                 --dir DIR (recordings/baselines in a checkout of the twin)",
+                baseline::repository_dir_expected().display()
+            )
+        });
+    };
+    if dir.is_dir() {
+        return Ok(dir.clone());
+    }
+    if args.record {
+        bail!(
+            "no folder {}: --record writes into an existing set of baselines and does not start \
+             a new one by mistake; to start one there, create the folder first (mkdir -p {})",
+            dir.display(),
+            dir.display()
+        );
+    }
+    bail!(
+        "no folder {}: give the folder that holds the baseline recordings \
+         (recordings/baselines in a checkout of the twin), or leave --dir out for the \
+         repository's",
+        dir.display()
+    )
+}
+
+/// ` --dir DIR` when one was given, for advice that repeats it.
+fn dir_flag(args: &BaselineArgs) -> String {
+    args.dir
+        .as_ref()
+        .map_or_else(String::new, |d| format!(" --dir {}", d.display()))
 }

@@ -4,7 +4,11 @@ use anyhow::{Result, bail};
 use clap::Args;
 use std::path::PathBuf;
 use twin_recording::compare::{self, Tolerances};
+use twin_recording::identity::Identity;
 use twin_recording::{Recording, Signals};
+
+/// Differences in the run's settings printed before the rest are summed up.
+const SHOWN_DIFFERENCES: usize = 8;
 
 /// Compare a recording with a baseline recording, signal by signal
 ///
@@ -16,6 +20,13 @@ use twin_recording::{Recording, Signals};
 /// when it first went beyond and its worst sample, and exits non-zero if any
 /// signal is beyond its tolerance or missing from the run. A recording cut short is compared up to
 /// its last complete chunk.
+///
+/// First the two recordings' runs are held against each other (their `twin.run`
+/// records): whatever differs is printed before any signal, the seed, the
+/// duration and every setting of the scenario or bench by its dotted path
+/// (`node.supervisor.kp`). Recordings of different runs (another scenario or
+/// bench, or another kind of run) are refused, as their signals do not match up,
+/// unless --force is given.
 ///
 /// The defaults (abs 1e-9, rel 1e-9, no time shift) hold a deterministic re-run
 /// to its baseline. A tolerance file loosens them, per signal pattern (`*` any
@@ -46,6 +57,9 @@ pub struct CompareArgs {
     /// Print every signal, not only the ones beyond tolerance.
     #[arg(long)]
     all: bool,
+    /// Compare recordings of different scenarios, benches or kinds of run anyway.
+    #[arg(long)]
+    force: bool,
 }
 
 pub fn execute(args: &CompareArgs) -> Result<()> {
@@ -61,6 +75,7 @@ pub fn execute(args: &CompareArgs) -> Result<()> {
         args.baseline.display()
     );
     refuse_empty_or_cut(&run.recording, &baseline.recording)?;
+    same_run_or_force(&run.recording, &baseline.recording, args.force)?;
     for (r, what) in [(&run.recording, "run"), (&baseline.recording, "baseline")] {
         if let Some(why) = &r.truncated {
             println!("  {what} {}: {why}", r.path.display());
@@ -112,6 +127,70 @@ pub fn execute(args: &CompareArgs) -> Result<()> {
         bail!("the run departs from the baseline{first}");
     }
     println!("  PASS");
+    Ok(())
+}
+
+/// Say first what differs between the two runs; refuse recordings of
+/// different runs unless `force`.
+fn same_run_or_force(run: &Recording, baseline: &Recording, force: bool) -> Result<()> {
+    let (a, b) = (Identity::of(run), Identity::of(baseline));
+    for (identity, r, what) in [(&a, run, "run"), (&b, baseline, "baseline")] {
+        if identity.is_empty() {
+            println!(
+                "  the {what} {} has no `twin.run` record: what it ran cannot be checked",
+                r.path.display()
+            );
+        }
+    }
+    if a.is_empty() || b.is_empty() {
+        return Ok(());
+    }
+    let differences = a.differences(&b);
+    if differences.is_empty() {
+        return Ok(());
+    }
+    let other_runs: Vec<_> = differences.iter().filter(|d| d.of_what_ran()).collect();
+    if other_runs.is_empty() {
+        println!("  the run's settings differ from the baseline's:");
+    } else {
+        println!("  the recordings come from different runs:");
+        println!("    run       {}", a.describe());
+        println!("    baseline  {}", b.describe());
+    }
+    // Of different runs, every setting differs: what ran, the seed and the
+    // length say it; of one run, the settings changed are the point.
+    let shown: Vec<_> = if other_runs.is_empty() {
+        differences.iter().take(SHOWN_DIFFERENCES).collect()
+    } else {
+        differences
+            .iter()
+            .filter(|d| d.of_what_ran() || d.of_seed_or_length())
+            .collect()
+    };
+    let width = shown.iter().map(|d| d.field.len()).max().unwrap_or(0);
+    for d in &shown {
+        println!("    {:width$}  run {d}", d.field);
+    }
+    if differences.len() > shown.len() {
+        println!(
+            "    and {} {}setting(s) of the scenario or bench",
+            differences.len() - shown.len(),
+            if shown.is_empty() { "" } else { "more " }
+        );
+    }
+    if !other_runs.is_empty() && !force {
+        let what: Vec<String> = other_runs
+            .iter()
+            .map(|d| format!("{} ({})", d.field, d))
+            .collect();
+        bail!(
+            "the run and the baseline are recordings of different runs, so their signals do not \
+             match up: they differ in {}. Compare a run with a baseline of the same scenario \
+             (`twin run NAME --out run.mcap`, then `twin compare run.mcap BASELINE.mcap`), or \
+             give --force to compare them anyway",
+            what.join(", ")
+        );
+    }
     Ok(())
 }
 

@@ -29,7 +29,8 @@ enum Experiment {
 /// Options of `twin experiment parallel`.
 #[derive(Debug, Args)]
 struct ParallelArgs {
-    /// Folder for the four recordings (created if missing).
+    /// Folder for the four recordings (created if missing; recordings of the same
+    /// name there are replaced).
     #[arg(long, default_value = "parallel-modules")]
     out_dir: std::path::PathBuf,
     /// Simulated seconds per variant (default: the scenarios' 6 s).
@@ -99,6 +100,10 @@ fn execute_parallel(args: &ParallelArgs) -> Result<()> {
         "  {:<24} {:>9} {:>21} {:>16} {:>6} {:>19}  link errors",
         "scenario", "cycle", "latency mean / max", "updates skipped", "wrong", "wheel diff max/RMS"
     );
+    let replaced = VARIANTS
+        .iter()
+        .filter(|name| args.out_dir.join(format!("{name}.mcap")).is_file())
+        .count();
     for name in VARIANTS {
         let f = run_variant(name, &args.out_dir, args.duration, args.seed)?;
         let errors: u64 = ["timeout", "bad_check", "dropped"]
@@ -121,7 +126,14 @@ fn execute_parallel(args: &ParallelArgs) -> Result<()> {
             retries
         );
     }
-    println!("recordings: {}", args.out_dir.display());
+    println!(
+        "recordings: {}{}",
+        args.out_dir.display(),
+        match replaced {
+            0 => String::new(),
+            n => format!(" (replaced the {n} there before)"),
+        }
+    );
     Ok(())
 }
 

@@ -11,7 +11,8 @@ use twin_recording::export;
 /// `plant_ev1_sensors.csv`): a `time_s` column (simulated seconds) and one column
 /// per field, nested fields flattened with dots (`energy.battery_out`,
 /// `loops.0.measured_rpm`). Booleans are 1 and 0. A recording cut short is
-/// exported up to its last complete chunk.
+/// exported up to its last complete chunk. Files of the same name in DIR are
+/// replaced, and the listing says which.
 #[derive(Debug, Args)]
 pub struct ExportArgs {
     /// The recording.
@@ -23,6 +24,9 @@ pub struct ExportArgs {
 }
 
 pub fn execute(args: &ExportArgs) -> Result<()> {
+    let existed: Vec<PathBuf> = std::fs::read_dir(&args.csv)
+        .map(|entries| entries.filter_map(|e| Some(e.ok()?.path())).collect())
+        .unwrap_or_default();
     let (recording, written) = export::to_csv(&args.recording, &args.csv)?;
     if let Some(why) = &recording.truncated {
         println!("note: {}: {why}", args.recording.display());
@@ -35,11 +39,16 @@ pub fn execute(args: &ExportArgs) -> Result<()> {
     );
     for w in &written {
         println!(
-            "  {:<28} {:>7} rows {:>4} columns  {}",
+            "  {:<28} {:>7} rows {:>4} columns  {}{}",
             w.topic,
             w.rows,
             w.columns,
-            w.path.display()
+            w.path.display(),
+            if existed.contains(&w.path) {
+                " (replaced the one there before)"
+            } else {
+                ""
+            }
         );
     }
     Ok(())

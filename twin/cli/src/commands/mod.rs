@@ -7,6 +7,7 @@ pub mod compare;
 pub mod experiment;
 pub mod export;
 mod live_view;
+mod output;
 mod plant_args;
 pub mod recover;
 pub mod replay;
@@ -20,7 +21,10 @@ pub mod vsp;
 
 /// The last lines of a real-time session's report (`twin serve`, `twin
 /// supervise`): its connections, where it was recorded, the live view.
-fn print_session_end(outcome: &twin_realtime::session::SessionOutcome) {
+fn print_session_end(
+    outcome: &twin_realtime::session::SessionOutcome,
+    earlier: Option<&output::Earlier>,
+) {
     let c = &outcome.counters;
     println!(
         "  {} connections ({} refused over the limit, {} closed for a partial frame, {} for the rate limit, {} idle, {} to make room); {} bytes in, {} frames out",
@@ -34,7 +38,11 @@ fn print_session_end(outcome: &twin_realtime::session::SessionOutcome) {
         c.frames_out
     );
     if let Some(path) = &outcome.recording {
-        println!("recording: {}", path.display());
+        println!(
+            "recording: {}{}",
+            path.display(),
+            output::Earlier::note(earlier)
+        );
     }
     match (outcome.view_samples, outcome.view_error.as_deref()) {
         (Some(_), Some(e)) => eprintln!("live view: {e}"),

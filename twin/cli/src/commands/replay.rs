@@ -3,8 +3,9 @@
 
 use anyhow::{Result, bail};
 use clap::Args;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
+use twin_lab::step::StepConfig;
 use twin_recording::{Recording, diff};
 use twin_sim::replay::RunSpec;
 
@@ -13,12 +14,19 @@ use super::run::Progress;
 /// Re-run the scenario stored in a recording and check that the new run matches.
 ///
 /// The recording's `twin.run` metadata holds the scenario (with the duration and
-/// seed it ran with) and the twin's version. An unchanged replay must give the
-/// same bytes; otherwise the first signal and time where the replay departs are
-/// printed, with the value recorded and replayed, and the exit code is non-zero.
-/// `--set PATH=VALUE` changes a field of the stored scenario first (dotted as in
-/// its TOML, list items by name or index): `--set node.supervisor.kp=0.6`,
-/// `--set module.ev1.params.wheel.brake_torque_nm=3`, `--set seed=2`.
+/// seed it ran with) and the twin's version. Every run on the virtual clock
+/// replays: `twin run` (a scenario or --open-loop), `twin step`, the runs of
+/// `twin sweep` and `twin experiment parallel`, baselines. A real-time session
+/// (`twin serve`, `twin supervise`) ran with live peers and the machine's clock
+/// and cannot be re-run; send its frames to a live slave with --frames-to.
+///
+/// An unchanged replay must give the same bytes; otherwise the first signal and
+/// time where the replay departs are printed, with the value recorded and
+/// replayed, and the exit code is non-zero. `--set PATH=VALUE` changes a field of
+/// the stored scenario first (dotted as in its TOML, list items by name or
+/// index): `--set node.supervisor.kp=0.6`, `--set
+/// module.ev1.params.wheel.brake_torque_nm=3`, `--set seed=2`; of a step
+/// response, the scenario or the bench it ran on.
 ///
 /// `--frames-to LINK` instead sends the recorded master requests of one bus to a
 /// live slave (`tcp://HOST:PORT` carrying the raw bus bytes, or a serial device or
@@ -33,7 +41,8 @@ pub struct ReplayArgs {
     /// Change a field of the stored scenario before re-running (repeatable).
     #[arg(long = "set", value_name = "PATH=VALUE")]
     overrides: Vec<String>,
-    /// Where to write the replay's recording [default: RUN.replay.mcap beside RUN.mcap].
+    /// Where to write the replay's recording, replacing one there [default:
+    /// RUN.replay.mcap beside RUN.mcap].
     #[arg(long, value_name = "PATH", conflicts_with = "frames_to")]
     out: Option<PathBuf>,
     /// Send the recorded master frames to a live slave instead of re-running.
@@ -66,12 +75,12 @@ pub fn execute(args: &ReplayArgs) -> Result<()> {
     }
     let recorded = Recording::read(&args.recording)?;
     refuse_empty(&recorded)?;
-    let spec = RunSpec::from_recording(&recorded)?;
+    let as_recorded = Rerun::of(&recorded, &[])?;
     let version = recorded.run_field("twin_version").unwrap_or("unknown");
     println!(
         "twin replay: {} ({}, recorded by twin {version})",
         args.recording.display(),
-        spec.describe()
+        as_recorded.describe()
     );
     if version != env!("CARGO_PKG_VERSION") {
         println!(
@@ -82,7 +91,10 @@ pub fn execute(args: &ReplayArgs) -> Result<()> {
     if let Some(why) = &recorded.truncated {
         println!("  note: the recording is cut short ({why}); only what it holds is compared");
     }
-    let spec = spec.with_overrides(&args.overrides)?;
+    let rerun = match args.overrides.is_empty() {
+        true => as_recorded,
+        false => Rerun::of(&recorded, &args.overrides)?,
+    };
     for o in &args.overrides {
         println!("  changed: {o}");
     }
@@ -96,14 +108,16 @@ pub fn execute(args: &ReplayArgs) -> Result<()> {
     if out == args.recording {
         bail!("--out must not be the recording being replayed");
     }
+    let earlier = super::output::Earlier::at(&out);
     let started = Instant::now();
     let mut progress = Progress::new();
-    let path = spec.run(&out, |done| progress.show(done))?;
+    let path = rerun.run(&out, |done| progress.show(done))?;
     progress.clear();
     println!(
-        "  replayed in {:.2} s wall time into {}",
+        "  replayed in {:.2} s wall time into {}{}",
         started.elapsed().as_secs_f64(),
-        path.display()
+        path.display(),
+        super::output::Earlier::note(earlier.as_ref())
     );
     if diff::same_bytes(&args.recording, &path)? {
         println!(
@@ -158,6 +172,49 @@ pub fn execute(args: &ReplayArgs) -> Result<()> {
                 }
             );
             bail!("the replay is not byte-identical to the recording");
+        }
+    }
+}
+
+/// What a replay runs again: a run, or an experiment on one.
+enum Rerun {
+    Run(RunSpec),
+    Step(Box<StepConfig>),
+}
+
+impl Rerun {
+    /// The run `recorded` holds, changed by `overrides`.
+    fn of(recorded: &Recording, overrides: &[String]) -> Result<Self> {
+        if let Some(step) = StepConfig::of_recording(recorded, overrides)? {
+            return Ok(Self::Step(Box::new(step)));
+        }
+        if recorded
+            .channel(twin_recording::topics::EXPERIMENT_STEP)
+            .is_some()
+        {
+            bail!(
+                "{} is a step response recorded by an earlier twin, which did not store the \
+                 step's settings: it cannot be run again; run the `twin step` again to get one \
+                 that can",
+                recorded.path.display()
+            );
+        }
+        Ok(Self::Run(
+            RunSpec::from_recording(recorded)?.with_overrides(overrides)?,
+        ))
+    }
+
+    fn describe(&self) -> String {
+        match self {
+            Rerun::Run(spec) => spec.describe(),
+            Rerun::Step(step) => step.describe(),
+        }
+    }
+
+    fn run(&self, out: &Path, progress: impl FnMut(f64)) -> Result<PathBuf> {
+        match self {
+            Rerun::Run(spec) => spec.run(out, progress),
+            Rerun::Step(step) => Ok(twin_lab::step::run(step, out, progress)?.recording),
         }
     }
 }

@@ -10,6 +10,8 @@ use twin_sim::scenario::{EMBEDDED, Scenario};
 use twin_sim::virtual_run::{self, ControllerOutcome};
 use twin_view::{self as view, RerunObserver, ViewLayout, ViewTarget};
 
+use super::output::Earlier;
+
 /// Run a scenario in simulated time, far faster than real time, and record it.
 ///
 /// SCENARIO is the name of an embedded scenario (`twin run --list`) or a
@@ -20,7 +22,8 @@ use twin_view::{self as view, RerunObserver, ViewLayout, ViewTarget};
 /// `mcap`, and rerun open it). Ctrl-C or SIGTERM stops a run where it has got
 /// to, with its recording finished (exit status 130); a recording also stops,
 /// closed whole, when its disk has less than 256 MB free
-/// (TWIN_MIN_FREE_DISK_MB sets another floor).
+/// (TWIN_MIN_FREE_DISK_MB sets another floor). A recording already at the path
+/// is replaced, and the summary says so with what it held.
 #[derive(Debug, Args)]
 #[command(
     mut_arg("preset", |a| a.requires("open_loop")),
@@ -39,7 +42,8 @@ pub struct RunArgs {
     /// Simulated duration in seconds (default: the scenario's; 3 s open loop).
     #[arg(long, value_name = "SECONDS")]
     duration: Option<f64>,
-    /// Where to write the recording [default: SCENARIO.mcap, twin-run.mcap open loop].
+    /// Where to write the recording, replacing one there [default: SCENARIO.mcap,
+    /// twin-run.mcap open loop].
     #[arg(long, value_name = "PATH")]
     out: Option<PathBuf>,
     /// Seed of every random draw (noise, bit errors) [default: the scenario's; 1].
@@ -110,6 +114,7 @@ pub fn execute(args: &RunArgs) -> Result<()> {
         .out
         .clone()
         .unwrap_or_else(|| PathBuf::from(format!("{}.mcap", scenario.name)));
+    let earlier = Earlier::at(&out);
     let mut live = match &args.view {
         Some(target) => open_live_view(target, &scenario)?,
         None => None,
@@ -202,7 +207,11 @@ pub fn execute(args: &RunArgs) -> Result<()> {
         wall,
         outcome.simulated_s / wall.max(1e-9)
     );
-    println!("recording: {}", outcome.recording.display());
+    println!(
+        "recording: {}{}",
+        outcome.recording.display(),
+        Earlier::note(earlier.as_ref())
+    );
     if let Some(observer) = live {
         let samples: u64 = observer.logger.samples.values().sum();
         match observer.finish() {
@@ -376,6 +385,7 @@ fn execute_open_loop(args: &RunArgs) -> Result<()> {
         .out
         .clone()
         .unwrap_or_else(|| PathBuf::from("twin-run.mcap"));
+    let earlier = Earlier::at(&out);
     let started = Instant::now();
     let mut progress = Progress::new();
     let summary = openloop::run(&config, &out, |done| progress.show(done))
@@ -412,7 +422,11 @@ fn execute_open_loop(args: &RunArgs) -> Result<()> {
         wall,
         s.time_s / wall.max(1e-9)
     );
-    println!("recording: {}", summary.recording.display());
+    println!(
+        "recording: {}{}",
+        summary.recording.display(),
+        Earlier::note(earlier.as_ref())
+    );
     Ok(())
 }
 

@@ -68,9 +68,11 @@ pub struct ServeArgs {
     /// Stop after this many seconds [default: run until interrupted].
     #[arg(long, value_name = "SECONDS")]
     duration: Option<f64>,
-    /// Where to write the recording.
-    #[arg(long, default_value = "serve.mcap", value_name = "PATH")]
-    out: PathBuf,
+    /// Where to write the recording (replaced if it exists) [default:
+    /// serve-START.mcap here, named by the session's start time in UTC, e.g.
+    /// serve-2026-12-03T07-35-44.mcap, so that a restart never writes over the last one].
+    #[arg(long, value_name = "PATH")]
+    out: Option<PathBuf>,
     /// Do not record (for measuring the recording's cost).
     #[arg(long)]
     no_record: bool,
@@ -172,7 +174,11 @@ fn options(args: &ServeArgs) -> Result<ServeOptions> {
     Ok(ServeOptions {
         session: SessionOptions {
             duration: args.duration,
-            out: (!args.no_record).then(|| args.out.clone()),
+            out: (!args.no_record).then(|| {
+                args.out
+                    .clone()
+                    .unwrap_or_else(|| super::output::session_recording("serve"))
+            }),
             monitor: !args.quiet,
             status_every: args.status_every,
             wait_for_ports: args.wait_for_ports,
@@ -208,6 +214,11 @@ fn options(args: &ServeArgs) -> Result<ServeOptions> {
 
 pub fn execute(args: &ServeArgs) -> Result<()> {
     let options = options(args)?;
+    let earlier = options
+        .session
+        .out
+        .as_deref()
+        .and_then(super::output::Earlier::at);
     let outcome = serve::serve(
         &options,
         |links| {
@@ -244,6 +255,6 @@ pub fn execute(args: &ServeArgs) -> Result<()> {
             }
         }
     }
-    super::print_session_end(&outcome);
+    super::print_session_end(&outcome, earlier.as_ref());
     Ok(())
 }

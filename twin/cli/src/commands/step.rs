@@ -8,7 +8,9 @@ use std::path::PathBuf;
 use twin_lab::step::{self, StepConfig, StepDrive, StepReport};
 use twin_sim::scenario::{NodeSpec, Scenario};
 
+use super::output::Earlier;
 use super::run::Progress;
+use twin_lab::step::short;
 
 /// Step response of the wheel, the hall rpm and the light-sensor rpm: rise, overshoot, settling, delay.
 ///
@@ -24,8 +26,9 @@ use super::run::Progress;
 /// `--open-loop` the bench alone steps VEL from FROM to TO (fractions of its
 /// 5 V range) while the firmware's estimators read its sensors.
 ///
-/// Prints a table; with `--out DIR` writes DIR/step.json (the figures),
-/// DIR/step.png (the plot) and DIR/step.mcap (the recording).
+/// Prints a table and writes step.json (the figures), step.png (the plot) and
+/// step.mcap (the recording) into the current folder, or into `--out DIR`,
+/// replacing those there.
 #[derive(Debug, Args)]
 #[command(
     mut_arg("preset", |a| a.requires("open_loop")),
@@ -66,7 +69,8 @@ pub struct StepArgs {
     /// the light-sensor rpm.
     #[arg(long, value_enum, default_value_t = Feedback::Hall, conflicts_with = "open_loop")]
     feedback: Feedback,
-    /// Folder for step.json, step.png and step.mcap [default: only step.mcap, here].
+    /// Folder for step.json, step.png and step.mcap (created if needed) [default: the
+    /// current folder].
     #[arg(long, value_name = "DIR")]
     out: Option<PathBuf>,
 }
@@ -125,28 +129,36 @@ pub fn execute(args: &StepArgs) -> Result<()> {
         duration_s: args.duration.unwrap_or(duration),
         seed: args.seed,
     };
-    let recording = match &args.out {
-        Some(dir) => {
-            std::fs::create_dir_all(dir)
-                .with_context(|| format!("cannot create folder {}", dir.display()))?;
-            dir.join("step.mcap")
-        }
-        None => PathBuf::from("step.mcap"),
-    };
+    // The current folder as `step.json`, not `./step.json`.
+    let dir = args.out.clone().unwrap_or_default();
+    if args.out.is_some() {
+        std::fs::create_dir_all(&dir)
+            .with_context(|| format!("cannot create folder {}", dir.display()))?;
+    }
+    let [json, png, recording] = ["step.json", "step.png", "step.mcap"].map(|f| dir.join(f));
+    let earlier = [&json, &png, &recording].map(|p| Earlier::at(p));
     let mut progress = Progress::new();
     let report = step::run(&config, &recording, |f| progress.show(f))?;
     progress.clear();
     print_report(&report);
-    if let Some(dir) = &args.out {
-        let json = dir.join("step.json");
-        std::fs::write(&json, serde_json::to_string_pretty(&report)? + "\n")
-            .with_context(|| format!("cannot write {}", json.display()))?;
-        let png = dir.join("step.png");
-        step::plot(&report, &png)?;
-        println!("figures: {}", json.display());
-        println!("plot: {}", png.display());
-    }
-    println!("recording: {}", report.recording.display());
+    std::fs::write(&json, serde_json::to_string_pretty(&report)? + "\n")
+        .with_context(|| format!("cannot write {}", json.display()))?;
+    println!(
+        "figures: {}{}",
+        json.display(),
+        Earlier::note(earlier[0].as_ref())
+    );
+    step::plot(&report, &png)?;
+    println!(
+        "plot: {}{}",
+        png.display(),
+        Earlier::note(earlier[1].as_ref())
+    );
+    println!(
+        "recording: {}{}",
+        report.recording.display(),
+        Earlier::note(earlier[2].as_ref())
+    );
     Ok(())
 }
 
@@ -210,10 +222,4 @@ fn print_report(r: &StepReport) {
     if r.mode == "open-loop" {
         println!("  open loop the sensors' steady-state error is against the true wheel speed");
     }
-}
-
-/// A number with at most one decimal, and none when it is whole.
-fn short(v: f64) -> String {
-    let s = format!("{v:.1}");
-    s.strip_suffix(".0").map(str::to_string).unwrap_or(s)
 }

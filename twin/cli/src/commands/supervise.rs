@@ -119,9 +119,11 @@ pub struct SuperviseArgs {
     /// Stop after this many seconds [default: run until interrupted].
     #[arg(long, value_name = "SECONDS")]
     duration: Option<f64>,
-    /// Where to write the recording.
-    #[arg(long, default_value = "supervise.mcap", value_name = "PATH")]
-    out: PathBuf,
+    /// Where to write the recording (replaced if it exists) [default:
+    /// supervise-START.mcap here, named by the session's start time in UTC, e.g.
+    /// supervise-2026-12-03T07-35-44.mcap, so that a restart never writes over the last one].
+    #[arg(long, value_name = "PATH")]
+    out: Option<PathBuf>,
     /// Do not record.
     #[arg(long)]
     no_record: bool,
@@ -205,7 +207,11 @@ fn options(args: &SuperviseArgs) -> Result<SuperviseOptions> {
     Ok(SuperviseOptions {
         session: SessionOptions {
             duration: args.duration,
-            out: (!args.no_record).then(|| args.out.clone()),
+            out: (!args.no_record).then(|| {
+                args.out
+                    .clone()
+                    .unwrap_or_else(|| super::output::session_recording("supervise"))
+            }),
             monitor: !args.quiet,
             status_every: args.status_every.max(0.0),
             wait_for_ports: args.wait_for_ports,
@@ -255,6 +261,11 @@ fn options(args: &SuperviseArgs) -> Result<SuperviseOptions> {
 
 pub fn execute(args: &SuperviseArgs) -> Result<()> {
     let options = options(args)?;
+    let earlier = options
+        .session
+        .out
+        .as_deref()
+        .and_then(super::output::Earlier::at);
     let outcome = supervise::supervise(&options, |links| {
         let mut out = std::io::stdout().lock();
         let how = match options.open_loop {
@@ -288,6 +299,6 @@ pub fn execute(args: &SuperviseArgs) -> Result<()> {
         "  tick lateness over {} ticks: p50 {:.0} µs, p99 {:.0} µs, max {:.0} µs",
         l.ticks, l.p50_us, l.p99_us, l.max_us
     );
-    super::print_session_end(session);
+    super::print_session_end(session, earlier.as_ref());
     Ok(())
 }

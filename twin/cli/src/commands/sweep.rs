@@ -6,6 +6,7 @@ use clap::{Args, ValueEnum};
 use std::path::PathBuf;
 use twin_lab::sweep::{self, SweepConfig, SweepReport};
 
+use super::output::Earlier;
 use super::run::Progress;
 
 /// Light-sensor rpm against true rpm over a range of speeds: where the flag is lost.
@@ -18,8 +19,9 @@ use super::run::Progress;
 /// Each speed is reached with the VEL the DC motor's steady state asks for,
 /// held for `--settle` seconds, then averaged over `--measure` seconds (at
 /// least four and three turns of the wheel). Prints a
-/// table; with `--out DIR` writes DIR/sweep.json, DIR/sweep.png and one
-/// recording per speed in DIR/runs/.
+/// table and writes sweep.json and sweep.png into the current folder, replacing
+/// those there; with `--out DIR` into DIR, with one recording per speed in
+/// DIR/runs/.
 #[derive(Debug, Args)]
 pub struct SweepArgs {
     #[command(flatten)]
@@ -42,7 +44,8 @@ pub struct SweepArgs {
     /// Seed of the sensor noise.
     #[arg(long, default_value_t = 1)]
     seed: u64,
-    /// Folder for sweep.json, sweep.png and the runs' recordings.
+    /// Folder for sweep.json, sweep.png and the runs' recordings [default: the
+    /// figures and the plot in the current folder, no recordings].
     #[arg(long, value_name = "DIR")]
     out: Option<PathBuf>,
 }
@@ -120,14 +123,26 @@ pub fn execute(args: &SweepArgs) -> Result<()> {
     for r in &reports {
         print_report(r);
     }
-    if let Some(dir) = &args.out {
-        let json = dir.join("sweep.json");
-        std::fs::write(&json, serde_json::to_string_pretty(&reports)? + "\n")
-            .with_context(|| format!("cannot write {}", json.display()))?;
-        let png = sweep::plot(&reports, &dir.join("sweep.png"))?;
-        println!("figures: {}", json.display());
-        println!("plot: {}", png.display());
-        println!("recordings: {}", dir.join("runs").display());
+    // The current folder as `sweep.json`, not `./sweep.json`.
+    let dir = args.out.clone().unwrap_or_default();
+    let json = dir.join("sweep.json");
+    let png = dir.join("sweep.png");
+    let earlier = [&json, &png].map(|p| Earlier::at(p));
+    std::fs::write(&json, serde_json::to_string_pretty(&reports)? + "\n")
+        .with_context(|| format!("cannot write {}", json.display()))?;
+    println!(
+        "figures: {}{}",
+        json.display(),
+        Earlier::note(earlier[0].as_ref())
+    );
+    let png = sweep::plot(&reports, &png)?;
+    println!(
+        "plot: {}{}",
+        png.display(),
+        Earlier::note(earlier[1].as_ref())
+    );
+    if let Some(runs) = &runs_dir {
+        println!("recordings: {}", runs.display());
     }
     Ok(())
 }
