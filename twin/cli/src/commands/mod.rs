@@ -7,6 +7,7 @@ pub mod compare;
 pub mod experiment;
 pub mod export;
 mod live_view;
+mod node_summary;
 mod plant_args;
 pub mod recover;
 pub mod replay;

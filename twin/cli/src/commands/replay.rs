@@ -253,7 +253,7 @@ fn frames_to(args: &ReplayArgs, link_spec: &str) -> Result<()> {
         println!("  first differences (recorded time, request, recorded reply, live reply):");
     }
     for e in differing {
-        println!("    [{:9.3} s] {:?}", e.time_s, e.verdict);
+        println!("    [{:9.3} s] {}", e.time_s, e.verdict);
         println!("      request   {}", show(&e.request));
         println!(
             "      recorded  {}",

@@ -32,12 +32,7 @@ use twin_view::{Session, ViewLayout};
 pub struct SuperviseArgs {
     /// The bus, spoken in MEB: serial device or pty (options after `?`, e.g.
     /// /tmp/ttyV0?baud=9600&parity=E), or tcp://HOST:PORT of an MEB slave.
-    #[arg(
-        long,
-        value_name = "LINK",
-        required_unless_present = "modbus_rtu",
-        conflicts_with = "modbus_rtu"
-    )]
+    #[arg(long, value_name = "LINK", conflicts_with = "modbus_rtu")]
     meb: Option<String>,
     /// The bus, spoken in Modbus RTU (docs/protocols/modbus-map.md): serial device or
     /// pty. Remote clients still speak MEB to the server; writes other than
@@ -159,6 +154,14 @@ fn millis(name: &str, ms: f64) -> Result<SimDuration> {
 }
 
 fn options(args: &SuperviseArgs) -> Result<SuperviseOptions> {
+    // Either link will do, so clap is not told one is required: it would
+    // name only the first.
+    if args.meb.is_none() && args.modbus_rtu.is_none() {
+        bail!(
+            "no bus to supervise: give --meb LINK (a controller that speaks MEB) or \
+             --modbus-rtu LINK (one that speaks Modbus RTU)"
+        );
+    }
     if !(args.set_point.is_finite() && (0.0..=20_000.0).contains(&args.set_point)) {
         bail!("--set-point {}: must be 0-20000 rpm", args.set_point);
     }

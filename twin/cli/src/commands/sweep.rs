@@ -12,7 +12,8 @@ use super::run::Progress;
 ///
 /// Runs the wheel open loop at each speed and holds the light sensor's rpm
 /// against the true rpm: below the fastest speed the photoresistor sees
-/// (derived in plant/src/light.rs and printed here) it tracks, above it the
+/// (worked out from the flag's angle, the cell's time constants and the
+/// detector's threshold, and printed here) it tracks, above it the
 /// reading falls to 0 or to a fraction of the speed.
 ///
 /// Each speed is reached with the VEL the DC motor's steady state asks for,
@@ -138,8 +139,8 @@ fn print_report(r: &SweepReport) {
         r.preset, r.light_detector
     );
     println!(
-        "  the formula of plant/src/light.rs: the flag is seen up to {:.0} rpm; every dip lasts a \
-         sample below the threshold up to {:.0} rpm",
+        "  by the light sensor's model (flag angle, photoresistor time constants, threshold): \
+         the flag is seen up to {:.0} rpm; every dip lasts a sample below the threshold up to {:.0} rpm",
         r.light_limit_rpm, r.every_dip_sampled_below_rpm
     );
     println!(
