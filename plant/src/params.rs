@@ -374,7 +374,10 @@ mod tests {
             .to_string();
         assert!(msg.starts_with("b.toml:2:"), "{msg}");
 
-        assert!(msg.contains("`motor.resistance_ohm`: expected a number"), "{msg}");
+        assert!(
+            msg.contains("`motor.resistance_ohm`: expected a number"),
+            "{msg}"
+        );
         assert!(!msg.contains("f64"), "{msg}");
 
         let text = "[motor]\npole_pairs = 2.5\n";

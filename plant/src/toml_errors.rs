@@ -199,9 +199,8 @@ fn is_what_was_found(value: &DeValue<'_>, message: &str) -> bool {
         DeValue::Integer(i) => inner("integer ").is_some_and(|n| {
             i128::from_str_radix(i.as_str(), i.radix()).is_ok_and(|v| v.to_string() == n)
         }),
-        DeValue::Float(f) => inner("floating point ").is_some_and(|n| {
-            n.parse::<f64>().ok() == f.as_str().parse::<f64>().ok()
-        }),
+        DeValue::Float(f) => inner("floating point ")
+            .is_some_and(|n| n.parse::<f64>().ok() == f.as_str().parse::<f64>().ok()),
         DeValue::Boolean(b) => inner("boolean ").is_some_and(|n| n == b.to_string()),
         DeValue::Array(_) => found == "sequence",
         DeValue::Table(_) => found == "map",
@@ -274,7 +273,9 @@ fn key_span(table: &Spanned<DeValue<'_>>, key: &str) -> Option<Range<usize>> {
     let DeValue::Table(t) = table.get_ref() else {
         return None;
     };
-    t.iter().find(|(k, _)| k.get_ref() == key).map(|(k, _)| k.span())
+    t.iter()
+        .find(|(k, _)| k.get_ref() == key)
+        .map(|(k, _)| k.span())
 }
 
 /// The name between `prefix` and the next backtick.
@@ -302,7 +303,10 @@ pub fn in_words(message: &str) -> String {
         && let Some((len, expected)) = rest.split_once(", expected ")
     {
         let items = if len == "1" { "item" } else { "items" };
-        return format!("expected {}, found {len} {items}", expected_in_words(expected));
+        return format!(
+            "expected {}, found {len} {items}",
+            expected_in_words(expected)
+        );
     }
     message.to_string()
 }
@@ -353,4 +357,3 @@ fn expected_in_words(expected: &str) -> String {
         other => other.to_string(),
     }
 }
-

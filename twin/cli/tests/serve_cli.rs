@@ -302,7 +302,9 @@ fn console_commands_force_inputs_and_switch_faults() {
         "fault exception 02 (Modbus ILLEGAL DATA ADDRESS, MEB ER 02 illegal address) on modbus-tcp",
     );
     assert!(
-        server.printed("; fault exception 02 (Modbus ILLEGAL DATA ADDRESS, MEB ER 02 illegal address)"),
+        server.printed(
+            "; fault exception 02 (Modbus ILLEGAL DATA ADDRESS, MEB ER 02 illegal address)"
+        ),
         "the status line names the exception: {}",
         server.output()
     );
@@ -353,7 +355,14 @@ fn console_commands_force_inputs_and_switch_faults() {
     assert!(input_registers(&mut t, 3).len() == 10);
     say("frobnicate", "unknown command");
     let out = server.output();
-    for rust in ["Forces", "Some(", "Exception(", "BadCheck", "NoReply", "Delay("] {
+    for rust in [
+        "Forces",
+        "Some(",
+        "Exception(",
+        "BadCheck",
+        "NoReply",
+        "Delay(",
+    ] {
         assert!(!out.contains(rust), "`{rust}` printed: {out}");
     }
 }

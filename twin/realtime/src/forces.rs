@@ -24,7 +24,11 @@ pub struct Forces {
 /// `v1 30.0 V, rpm_m 1200`.
 impl std::fmt::Display for Forces {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let measured = [("v1", self.v1, "V"), ("v2", self.v2, "V"), ("i", self.i, "A")];
+        let measured = [
+            ("v1", self.v1, "V"),
+            ("v2", self.v2, "V"),
+            ("i", self.i, "A"),
+        ];
         let words = [
             ("rpm_m", self.rpm_m),
             ("rpm_l", self.rpm_l),

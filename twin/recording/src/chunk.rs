@@ -124,10 +124,16 @@ mod tests {
     fn the_mcap_library_s_errors_are_told_in_words() {
         use mcap::McapError as E;
         let errors = [
-            E::RecordTooLarge { opcode: 6, len: 1 << 40 },
+            E::RecordTooLarge {
+                opcode: 6,
+                len: 1 << 40,
+            },
             E::BadMagic,
             E::BadFooter,
-            E::BadChunkCrc { saved: 1, calculated: 2 },
+            E::BadChunkCrc {
+                saved: 1,
+                calculated: 2,
+            },
             E::BadIndex,
             E::UnexpectedEoc,
             E::UnknownChannel(3, 7),
@@ -141,7 +147,15 @@ mod tests {
             for words in [in_words(e), chunk_damage_in_words(e)] {
                 let library = e.to_string();
                 assert_ne!(words, library);
-                for jargon in ["opcode", "CRC", "Chunk", "magic", "zstd says", "EOC", "`1099511627776`"] {
+                for jargon in [
+                    "opcode",
+                    "CRC",
+                    "Chunk",
+                    "magic",
+                    "zstd says",
+                    "EOC",
+                    "`1099511627776`",
+                ] {
                     assert!(!words.contains(jargon), "{e:?}: {words}");
                 }
             }

@@ -389,9 +389,7 @@ impl Scenario {
         let scenario: Scenario = toml_errors::deserialize(&root).map_err(|e| {
             // serde lists aliases among the kinds it expected; the old name
             // of a kind is still read but not offered.
-            let message = e
-                .message
-                .replace(&format!(", `{LEGACY_MASTER_KIND}`"), "");
+            let message = e.message.replace(&format!(", `{LEGACY_MASTER_KIND}`"), "");
             let field = e.path.rsplit('.').next().unwrap_or_default();
             let field = field.split('[').next().unwrap_or_default();
             let message = if field.is_empty() || message.contains(&format!("`{field}`")) {

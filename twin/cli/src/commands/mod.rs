@@ -8,6 +8,8 @@ pub mod experiment;
 pub mod export;
 mod live_view;
 mod node_summary;
+mod numbers;
+pub use numbers::take_negative_numbers;
 mod plant_args;
 pub mod recover;
 pub mod replay;

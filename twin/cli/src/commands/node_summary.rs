@@ -92,7 +92,7 @@ fn print_controller_network(node: &str, state: &Value) -> bool {
     if let (Some(latched), Some(kind)) = (n("latched_rpm"), state["state"].as_str()) {
         println!(
             "  {node} (motor node): {kind}, set point {} rpm, PWM duty {:.0} %; \
-             its encoder counted {latched:.0} motor rpm over the last 20 ms window",
+             its encoder: motor shaft {latched:.0} rpm over the last 20 ms window",
             state["set_point"],
             n("duty").unwrap_or(0.0) * 100.0
         );
@@ -100,21 +100,29 @@ fn print_controller_network(node: &str, state: &Value) -> bool {
     }
     if let (Some(rpm), Some(raw)) = (n("rpm"), n("raw_rpm")) {
         println!(
-            "  {node} (light-sensor node): wheel {rpm:.1} rpm by the flag, smoothed \
-             ({raw:.1} rpm from the last turn alone); {} flag passes seen",
+            "  {node} (light-sensor node): wheel {rpm:.1} rpm by the paper flag, smoothed \
+             ({raw:.1} rpm from the last turn alone); the flag passed {} times",
             state["edges"]
         );
         return true;
     }
     if let Some(phase) = state["phase"].as_str() {
-        let motor = n("motor_rpm").map_or_else(|| "nothing yet".into(), |v| format!("{v:.0} rpm"));
+        let motor = n("motor_rpm").map_or_else(
+            || "nothing yet from the motor node".into(),
+            |v| format!("motor shaft {v:.0} rpm from the motor node"),
+        );
         let wheel = n("sensor_value").map_or_else(
-            || "nothing yet".into(),
-            |v| format!("{:.2} rpm", v / 100.0),
+            || "nothing yet from the light-sensor node".into(),
+            |v| {
+                format!(
+                    "wheel {:.2} rpm ({v:.0}) from the light-sensor node",
+                    v / 100.0
+                )
+            },
         );
         println!(
-            "  {node} (Raspberry Pi master): {phase}, {} cycles, set point {} rpm; last read \
-             the motor at {motor} and the wheel at {wheel} (light sensor); {} bad CRCs, {} timeouts",
+            "  {node} (Raspberry Pi master): {phase}, {} cycles, set point {} rpm; last read: \
+             {motor}, {wheel}; {} bad CRCs, {} timeouts",
             state["cycles"], state["set_point"], state["crc_errors"], state["timeouts"]
         );
         return true;

@@ -43,13 +43,13 @@ pub struct ReplayArgs {
     #[arg(long, value_name = "NAME", requires = "frames_to")]
     bus: Option<String>,
     /// With --frames-to: how long to wait for each reply.
-    #[arg(long, value_name = "MS", default_value_t = 500, requires = "frames_to")]
+    #[arg(long, value_name = "MS", default_value_t = 500, requires = "frames_to", value_parser = super::numbers::whole::<u64>)]
     timeout_ms: u64,
     /// With --frames-to: send only the first N requests.
-    #[arg(long, value_name = "N", requires = "frames_to")]
+    #[arg(long, value_name = "N", requires = "frames_to", value_parser = super::numbers::whole::<usize>)]
     limit: Option<usize>,
     /// With --frames-to: how many differing replies to print.
-    #[arg(long, value_name = "N", default_value_t = 10, requires = "frames_to")]
+    #[arg(long, value_name = "N", default_value_t = 10, requires = "frames_to", value_parser = super::numbers::whole::<usize>)]
     show: usize,
 }
 

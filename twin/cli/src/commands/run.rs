@@ -37,13 +37,13 @@ pub struct RunArgs {
     #[arg(long)]
     open_loop: bool,
     /// Simulated duration in seconds (default: the scenario's; 3 s open loop).
-    #[arg(long, value_name = "SECONDS")]
+    #[arg(long, value_name = "SECONDS", value_parser = super::numbers::above_zero)]
     duration: Option<f64>,
     /// Where to write the recording [default: SCENARIO.mcap, twin-run.mcap open loop].
     #[arg(long, value_name = "PATH")]
     out: Option<PathBuf>,
     /// Seed of every random draw (noise, bit errors) [default: the scenario's; 1].
-    #[arg(long)]
+    #[arg(long, value_parser = super::numbers::whole::<u64>)]
     seed: Option<u64>,
     /// Stream the run to rerun as it goes, beside the MCAP recording:
     /// `--view` opens a viewer (or uses the one already running),
@@ -66,7 +66,7 @@ pub struct RunArgs {
         default_value_t = 0.6,
         value_name = "FRACTION",
         requires = "open_loop"
-    )]
+, value_parser = super::numbers::number)]
     vel: f64,
     /// Open loop: time of the VEL step in seconds.
     #[arg(
@@ -74,7 +74,7 @@ pub struct RunArgs {
         default_value_t = 0.5,
         value_name = "SECONDS",
         requires = "open_loop"
-    )]
+, value_parser = super::numbers::zero_or_more)]
     vel_at: f64,
     /// Open loop: plant state messages recorded per simulated second.
     #[arg(
@@ -82,7 +82,7 @@ pub struct RunArgs {
         default_value_t = 1000.0,
         value_name = "HZ",
         requires = "open_loop"
-    )]
+, value_parser = super::numbers::above_zero)]
     record_hz: f64,
 }
 

@@ -29,19 +29,19 @@ pub struct SweepArgs {
     #[arg(long, value_enum, default_value_t = Detector::Both)]
     detector: Detector,
     /// Lowest and highest wheel speed (rpm) [default: 50 and 1.6 × the detector's limit].
-    #[arg(long, value_name = "RPM", num_args = 2, value_names = ["FROM", "TO"])]
+    #[arg(long, value_name = "RPM", num_args = 2, value_names = ["FROM", "TO"], value_parser = super::numbers::above_zero)]
     rpm: Option<Vec<f64>>,
     /// Number of speeds, evenly spaced.
-    #[arg(long, default_value_t = 24, value_name = "N")]
+    #[arg(long, default_value_t = 24, value_name = "N", value_parser = super::numbers::whole::<usize>)]
     points: usize,
     /// Time to reach each speed before measuring (s).
-    #[arg(long, default_value_t = 3.0, value_name = "SECONDS")]
+    #[arg(long, default_value_t = 3.0, value_name = "SECONDS", value_parser = super::numbers::above_zero)]
     settle: f64,
     /// Time measured at each speed (s).
-    #[arg(long, default_value_t = 3.0, value_name = "SECONDS")]
+    #[arg(long, default_value_t = 3.0, value_name = "SECONDS", value_parser = super::numbers::above_zero)]
     measure: f64,
     /// Seed of the sensor noise.
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = 1, value_parser = super::numbers::whole::<u64>)]
     seed: u64,
     /// Folder for sweep.json, sweep.png and the runs' recordings.
     #[arg(long, value_name = "DIR")]
