@@ -516,7 +516,7 @@ fn client_reports_a_server_that_is_not_there_and_bad_arguments() {
         "{text}"
     );
     assert!(
-        text.contains("error: slave 01 answered SA 00 = [5000] with ER 03"),
+        text.contains("error: slave 01 answered SA 00 = 5000 with ER 03"),
         "{text}"
     );
     assert!(text.contains("error: unknown command"), "{text}");
