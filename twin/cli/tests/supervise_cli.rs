@@ -656,7 +656,8 @@ fn quiet_remote_clients_time_out_and_make_room() {
             "supervise",
             "--meb",
             "tcp://127.0.0.1:9",
-            "--idle-timeout=-1",
+            "--idle-timeout",
+            "-1",
         ])
         .output()
         .unwrap();

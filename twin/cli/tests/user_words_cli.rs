@@ -37,8 +37,14 @@ fn negative_numbers_are_parsed_or_refused_in_words_never_taken_for_flags() {
         ),
         (&["serve", "--duration", "-5"], "must be above 0, got -5"),
         (
-            &["serve", "--idle-timeout", "-1"],
-            "must be 0 or more, got -1",
+            &[
+                "serve",
+                "--meb",
+                "tcp://127.0.0.1:0",
+                "--idle-timeout",
+                "-1",
+            ],
+            "--idle-timeout -1: give seconds above 0",
         ),
         (
             &["serve", "--baud", "-9600"],

@@ -92,14 +92,14 @@ pub struct ServeArgs {
     max_clients: usize,
     /// How long a client must have been quiet for a newcomer beyond
     /// --max-clients to take its place (0: never).
-    #[arg(long, default_value_t = 30.0, value_name = "SECONDS", value_parser = super::numbers::zero_or_more)]
+    #[arg(long, default_value_t = 30.0, value_name = "SECONDS", value_parser = super::numbers::number)]
     make_room_after: f64,
     /// Close a TCP connection that has sent nothing for this long (0: never;
     /// quiet connections stay open, as the MEB protocol page says).
-    #[arg(long, default_value_t = 0.0, value_name = "SECONDS", value_parser = super::numbers::zero_or_more)]
+    #[arg(long, default_value_t = 0.0, value_name = "SECONDS", value_parser = super::numbers::number)]
     idle_timeout: f64,
     /// Close a TCP connection holding a partial frame this long (0: never).
-    #[arg(long, default_value_t = 5.0, value_name = "SECONDS", value_parser = super::numbers::zero_or_more)]
+    #[arg(long, default_value_t = 5.0, value_name = "SECONDS", value_parser = super::numbers::number)]
     partial_timeout: f64,
     /// Close a TCP connection that sends more than this many bytes in one
     /// second (0: no limit).

@@ -95,11 +95,11 @@ pub struct SuperviseArgs {
     max_clients: usize,
     /// How long a client must have been quiet for a newcomer beyond
     /// --max-clients to take its place (0: never).
-    #[arg(long, default_value_t = 30.0, value_name = "SECONDS", value_parser = super::numbers::zero_or_more)]
+    #[arg(long, default_value_t = 30.0, value_name = "SECONDS", value_parser = super::numbers::number)]
     make_room_after: f64,
     /// Close a remote client that has sent nothing for this long (0: never;
     /// quiet connections stay open, as the MEB protocol page says).
-    #[arg(long, default_value_t = 0.0, value_name = "SECONDS", value_parser = super::numbers::zero_or_more)]
+    #[arg(long, default_value_t = 0.0, value_name = "SECONDS", value_parser = super::numbers::number)]
     idle_timeout: f64,
     /// Remote clients may read but not write (ER 01).
     #[arg(long)]
