@@ -390,9 +390,13 @@ impl Scenario {
             // serde lists aliases among the kinds it expected; the old name
             // of a kind is still read but not offered.
             let message = e.message.replace(&format!(", `{LEGACY_MASTER_KIND}`"), "");
+            // The key at fault, unless the path ends at a whole table (a
+            // `[[node]]`), which the line already points at.
             let field = e.path.rsplit('.').next().unwrap_or_default();
-            let field = field.split('[').next().unwrap_or_default();
-            let message = if field.is_empty() || message.contains(&format!("`{field}`")) {
+            let message = if field.is_empty()
+                || field.ends_with(']')
+                || message.contains(&format!("`{field}`"))
+            {
                 message
             } else {
                 format!("`{field}`: {message}")
