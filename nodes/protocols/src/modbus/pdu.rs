@@ -592,6 +592,22 @@ mod tests {
     }
 
     #[test]
+    fn exceptions_read_as_the_modbus_specification_names_them() {
+        assert_eq!(
+            Exception::IllegalDataAddress.to_string(),
+            "exception 02 (ILLEGAL DATA ADDRESS)"
+        );
+        assert_eq!(
+            Exception::GatewayTargetFailedToRespond.to_string(),
+            "exception 0b (GATEWAY TARGET DEVICE FAILED TO RESPOND)"
+        );
+        assert_eq!(
+            Exception::Other(0x42).to_string(),
+            "exception 42 (a code the specification does not define)"
+        );
+    }
+
+    #[test]
     fn emit_reports_a_short_buffer() {
         let request = Request::WriteSingleRegister {
             address: 1,
