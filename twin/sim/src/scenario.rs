@@ -497,7 +497,7 @@ impl Scenario {
             }
             if !self.buses.iter().any(|b| b.name == n.bus()) {
                 return Err((
-                    "bus".into(),
+                    format!("bus@{}", n.name()),
                     format!("`{}` of node `{}` is not a declared bus", n.bus(), n.name()),
                 ));
             }
@@ -505,7 +505,7 @@ impl Scenario {
                 && !self.modules.iter().any(|x| x.name == m)
             {
                 return Err((
-                    "module".into(),
+                    format!("module@{}", n.name()),
                     format!("`{m}` of node `{}` is not a declared module", n.name()),
                 ));
             }
@@ -752,6 +752,15 @@ mod tests {
             e,
             format!("s.toml:{line}:1: `id`: expected an integer from 0 to 255, got 300")
         );
+    }
+
+    #[test]
+    fn an_undeclared_bus_points_at_the_node_that_names_it() {
+        // The second node's bus, not the first `bus =` line of the file.
+        let text = ev_meb_with("bus = \"rs485\"\nslaves", "bus = \"rs458\"\nslaves");
+        let e = Scenario::parse(&text, "s.toml").unwrap_err().to_string();
+        let line = line_of(&text, "rs458");
+        assert!(e.starts_with(&format!("s.toml:{line}: `bus` `rs458`")), "{e}");
     }
 
     #[test]
