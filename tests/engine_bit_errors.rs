@@ -531,7 +531,7 @@ fn controller_network_network_uses_no_corrupted_value_and_still_settles() {
     assert!(run.checks.frames_corrupted > 10, "{:?}", run.checks);
     // A reply that failed its CRC is not used; the next cycle reads again.
     assert!(run.master["crc_errors"].as_u64() > Some(0));
-    assert_eq!(run.master["phase"], "Running");
+    assert_eq!(run.master["phase"], "running");
     assert!(phases.len() >= 3, "{phases:?}");
     for (set_point, mean) in phases {
         assert!(

@@ -121,10 +121,9 @@ fn handshake_takes_the_motor_from_pre_operational_to_operational() {
         .count();
     assert_eq!(state_writes, 1, "one handshake");
     assert!(
-        capture
-            .events
-            .iter()
-            .any(|(node, e)| node == "motor" && e.kind == "state" && e.detail.ends_with("0x01")),
+        capture.events.iter().any(|(node, e)| node == "motor"
+            && e.kind == "state"
+            && e.detail.ends_with("-> 0x01 (operational)")),
         "the motor reports its move to operational"
     );
 }

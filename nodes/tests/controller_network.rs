@@ -508,3 +508,36 @@ fn set_point_toggles_every_20th_cycle_and_the_motor_and_wheel_follow() {
     );
     check_sensor_replies(&bench);
 }
+
+/// A state written by the master and the loop's next step can fall in the
+/// same millisecond: both changes reach the monitor and the recording.
+#[test]
+fn two_state_changes_in_one_tick_are_both_reported() {
+    let mut motor = MotorNode::default();
+    let mut buf = [0u8; 8];
+    let now = ms(4);
+    let init = Frame {
+        id: 1,
+        function: 6,
+        addr: 1,
+        value: 0x81,
+    }
+    .to_bytes(CrcOrder::HighFirst);
+    motor.handle_bytes(now, &init);
+    assert!(motor.poll_transmit(now, &mut buf).is_some(), "write echoed");
+    assert_eq!(motor.state(), MotorState::Init);
+    // The loop runs in the same tick, before anyone polls: init falls to
+    // pre-operational.
+    motor.loop_tick(now, &Sensors::default());
+    assert_eq!(motor.state(), MotorState::PreOperational);
+    let events: Vec<NodeEvent> = std::iter::from_fn(|| motor.poll_event()).collect();
+    let details: Vec<&str> = events.iter().map(|e| e.detail.as_str()).collect();
+    assert_eq!(
+        details,
+        [
+            "motor state 0x80 (pre-operational) -> 0x81 (init)",
+            "motor state 0x81 (init) -> 0x80 (pre-operational)",
+        ]
+    );
+    assert!(events.iter().all(|e| e.kind == "state" && e.at == now));
+}

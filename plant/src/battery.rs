@@ -426,6 +426,17 @@ pub enum BmsTrip {
     ShortCircuit,
 }
 
+impl std::fmt::Display for BmsTrip {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            BmsTrip::UnderVoltage => "under-voltage",
+            BmsTrip::OverVoltage => "over-voltage",
+            BmsTrip::OverCurrent => "over-current",
+            BmsTrip::ShortCircuit => "short circuit",
+        })
+    }
+}
+
 /// What one step did.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct BatteryStep {

@@ -21,6 +21,7 @@ mod module;
 pub mod motor;
 pub mod params;
 pub mod shaft;
+pub mod toml_errors;
 pub mod wheel;
 
 pub use module::{Actuators, EnergyLedger, EvModule, Sensors};

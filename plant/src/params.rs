@@ -3,11 +3,14 @@
 
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
+use toml::Spanned;
+use toml::de::DeValue;
 
 use crate::battery::{BatteryParams, BmsParams, ChargerParams};
 use crate::converter::ConverterParams;
 use crate::light::LightParams;
 use crate::motor::MotorParams;
+use crate::toml_errors;
 use crate::wheel::{GearboxParams, WheelParams};
 
 /// How the module's controller board scales V1, V2 and I onto its 0–5 V ADC
@@ -137,21 +140,46 @@ impl PlantParams {
     /// Parameters from TOML text: the fields the text names override `base`.
     /// `file` is only used in error messages.
     pub fn from_toml(text: &str, file: &Path, base: &Self) -> Result<Self, ParamsError> {
-        let at = |span: Option<std::ops::Range<usize>>| span.map(|s| line_col(text, s.start));
-        // Type-check the file against the struct first: toml's own errors
-        // carry the span of the offending key or value.
-        if let Err(e) = toml::from_str::<PlantParams>(text) {
+        let root = toml_errors::parse(text).map_err(|e| ParamsError::Syntax {
+            file: file.to_path_buf(),
+            at: e.span.map(|s| toml_errors::line_col(text, s.start)),
+            message: e.message,
+        })?;
+        Self::from_toml_value(&root, text, file, base)
+    }
+
+    /// The same for a table inside a larger document (a scenario's module
+    /// `params`): `text` is the whole document, so errors give its lines.
+    pub fn from_toml_value(
+        root: &Spanned<DeValue<'_>>,
+        text: &str,
+        file: &Path,
+        base: &Self,
+    ) -> Result<Self, ParamsError> {
+        let at = |span: Option<std::ops::Range<usize>>| {
+            span.map(|s| toml_errors::line_col(text, s.start))
+        };
+        // Type-check the text against the struct first: errors carry the
+        // span of the offending key or value.
+        if let Err(e) = toml_errors::deserialize::<PlantParams>(root) {
+            let last = e.path.rsplit('.').next().unwrap_or_default();
+            let message = if last.is_empty() || e.message.contains(&format!("`{last}`")) {
+                e.message
+            } else {
+                format!("`{}`: {}", e.path, e.message)
+            };
             return Err(ParamsError::Syntax {
                 file: file.to_path_buf(),
-                at: at(e.span()),
-                message: e.message().trim().to_string(),
+                at: at(e.span),
+                message,
             });
         }
-        let overrides: toml::Table = toml::from_str(text).map_err(|e| ParamsError::Syntax {
-            file: file.to_path_buf(),
-            at: at(e.span()),
-            message: e.message().trim().to_string(),
-        })?;
+        let overrides: toml::Table =
+            toml_errors::deserialize(root).map_err(|e| ParamsError::Syntax {
+                file: file.to_path_buf(),
+                at: at(e.span),
+                message: e.message,
+            })?;
         let mut merged = toml::Table::try_from(base).map_err(|e| ParamsError::Syntax {
             file: file.to_path_buf(),
             at: None,
@@ -164,13 +192,13 @@ impl PlantParams {
                 .map_err(|e: toml::de::Error| ParamsError::Syntax {
                     file: file.to_path_buf(),
                     at: None,
-                    message: e.to_string(),
+                    message: toml_errors::in_words(e.message().trim()),
                 })?;
         params
             .validate()
             .map_err(|(field, message)| ParamsError::Invalid {
                 file: file.to_path_buf(),
-                at: find_field_line(text, &field),
+                at: at(toml_errors::span_of(root, &field)),
                 field,
                 message,
             })?;
@@ -295,32 +323,6 @@ fn fmt_at(at: Option<(usize, usize)>) -> String {
     at.map_or_else(String::new, |(line, col)| format!(":{line}:{col}"))
 }
 
-/// 1-based line and column of a byte offset.
-fn line_col(text: &str, offset: usize) -> (usize, usize) {
-    let before = &text[..offset.min(text.len())];
-    let line = before.matches('\n').count() + 1;
-    let col = before.rsplit('\n').next().map_or(0, |l| l.chars().count()) + 1;
-    (line, col)
-}
-
-/// Line of `key = …` inside `[section]` for a dotted field path, if written so.
-fn find_field_line(text: &str, field: &str) -> Option<(usize, usize)> {
-    let (section, key) = field.rsplit_once('.').unwrap_or(("", field));
-    let mut current = String::new();
-    for (n, line) in text.lines().enumerate() {
-        let t = line.trim();
-        if let Some(name) = t.strip_prefix('[').and_then(|r| r.strip_suffix(']')) {
-            current = name.trim().to_string();
-        } else if current == section
-            && t.split('=').next().is_some_and(|k| k.trim() == key)
-            && t.contains('=')
-        {
-            return Some((n + 1, line.len() - line.trim_start().len() + 1));
-        }
-    }
-    None
-}
-
 /// Deep-merge `overrides` into `base`: tables merge, everything else replaces.
 fn merge(base: &mut toml::Table, overrides: toml::Table) {
     for (key, value) in overrides {
@@ -371,6 +373,21 @@ mod tests {
             .expect_err("wrong type")
             .to_string();
         assert!(msg.starts_with("b.toml:2:"), "{msg}");
+
+        assert!(
+            msg.contains("`motor.resistance_ohm`: expected a number"),
+            "{msg}"
+        );
+        assert!(!msg.contains("f64"), "{msg}");
+
+        let text = "[motor]\npole_pairs = 2.5\n";
+        let msg = PlantParams::from_toml(text, Path::new("b.toml"), &PlantParams::default())
+            .expect_err("not an integer")
+            .to_string();
+        assert_eq!(
+            msg,
+            "b.toml:2:14: `motor.pole_pairs`: expected an integer of 0 or more, found 2.5"
+        );
 
         let text = "# bench\n[wheel]\nmass_kg = -1.0\n";
         let msg = PlantParams::from_toml(text, Path::new("c.toml"), &PlantParams::default())

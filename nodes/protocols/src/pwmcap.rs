@@ -19,6 +19,7 @@
 use crate::time::{SimDuration, TICKS_PER_SECOND};
 
 use super::words::FixedWords;
+use core::fmt;
 
 /// The most data symbols a broadcast or designated frame carries in the twin.
 pub const PWM_MAX_DATA: usize = 16;
@@ -65,7 +66,7 @@ pub enum PwmError {
         needed: usize,
     },
     /// The number of captured symbols does not fit the frame kind.
-    #[error("{got} symbols do not make a {kind:?} frame")]
+    #[error("{got} symbols do not make a {kind} frame")]
     SymbolCount {
         /// The frame kind expected.
         kind: PwmFrameKind,
@@ -302,6 +303,16 @@ pub enum PwmFrameKind {
     Designated,
     /// The experiment frame (paper Fig. 15): start, function code, status, reference 1, reference 2.
     Experiment,
+}
+
+impl fmt::Display for PwmFrameKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            PwmFrameKind::Broadcast => "broadcast",
+            PwmFrameKind::Designated => "designated",
+            PwmFrameKind::Experiment => "experiment",
+        })
+    }
 }
 
 /// One frame of symbols, start symbol implied.

@@ -70,6 +70,16 @@ pub enum MasterPhase {
     Running,
 }
 
+impl MasterPhase {
+    /// The phase in words.
+    pub fn name(self) -> &'static str {
+        match self {
+            MasterPhase::Handshake => "handshake",
+            MasterPhase::Running => "running",
+        }
+    }
+}
+
 /// The transaction in flight or next to send.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Step {
@@ -249,7 +259,11 @@ impl ControllerNetworkMaster {
             || frame.addr != request.addr
             || frame.function & 0x7f != request.function
         {
-            self.push_event(now, "bad_reply", format!("reply {frame:?} to {request:?}"));
+            self.push_event(
+                now,
+                "bad_reply",
+                format!("reply {} to request {}", words(&frame), words(&request)),
+            );
             self.advance(now, None);
             return;
         }
@@ -265,7 +279,7 @@ impl ControllerNetworkMaster {
                 self.push_event(
                     now,
                     "exception",
-                    format!("{exception:?} from {:02x}", frame.id),
+                    format!("{exception} from {:02x}", frame.id),
                 );
                 self.advance(now, None);
             }
@@ -357,6 +371,14 @@ impl ControllerNetworkMaster {
 }
 
 /// What the project's `handleError` prints for an exception code.
+/// A frame's id, function, register and value, as the project prints them.
+fn words(frame: &Frame) -> String {
+    format!(
+        "{:02x} {:02x} {:04x} {:04x}",
+        frame.id, frame.function, frame.addr, frame.value
+    )
+}
+
 fn exception_text(exception: Exception) -> &'static str {
     match exception {
         Exception::IllegalFunction => "Illegal Function",

@@ -47,6 +47,74 @@ impl MotorState {
             _ => None,
         }
     }
+
+    /// The state's name in the project's firmware, in words.
+    pub fn name(self) -> &'static str {
+        match self {
+            MotorState::Operational => "operational",
+            MotorState::Stopped => "stopped",
+            MotorState::PreOperational => "pre-operational",
+            MotorState::Init => "init",
+            MotorState::ResetCommunication => "reset communication",
+        }
+    }
+}
+
+impl std::fmt::Display for MotorState {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{:#04x} ({})", self.code(), self.name())
+    }
+}
+
+/// One change of control state, waiting to be reported.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct StateChange {
+    at: SimTime,
+    from: MotorState,
+    to: MotorState,
+}
+
+/// State changes not yet polled, oldest first. Two can fall between polls
+/// (a state written by the master and the loop's next step in the same
+/// tick), so one slot would lose the first. A fixed ring keeps the loop
+/// free of allocation; the engines poll after every tick, so it never
+/// fills, and if it did the oldest change would give way.
+#[derive(Debug, Clone, Copy)]
+struct StateChanges {
+    ring: [Option<StateChange>; StateChanges::CAPACITY],
+    head: usize,
+    len: usize,
+}
+
+impl StateChanges {
+    const CAPACITY: usize = 8;
+
+    const fn new() -> Self {
+        StateChanges {
+            ring: [None; Self::CAPACITY],
+            head: 0,
+            len: 0,
+        }
+    }
+
+    fn push(&mut self, change: StateChange) {
+        if self.len == Self::CAPACITY {
+            self.head = (self.head + 1) % Self::CAPACITY;
+            self.len -= 1;
+        }
+        self.ring[(self.head + self.len) % Self::CAPACITY] = Some(change);
+        self.len += 1;
+    }
+
+    fn pop(&mut self) -> Option<StateChange> {
+        if self.len == 0 {
+            return None;
+        }
+        let change = self.ring[self.head].take();
+        self.head = (self.head + 1) % Self::CAPACITY;
+        self.len -= 1;
+        change
+    }
 }
 
 /// Settings of the motor node; the defaults are the project's firmware.
@@ -175,7 +243,7 @@ pub struct MotorNode {
     /// Injected encoder fault output (active low) and when it went low.
     encoder_fault_low_since: Option<SimTime>,
     last_state: MotorState,
-    state_event: Option<NodeEvent>,
+    state_changes: StateChanges,
 }
 
 impl MotorNode {
@@ -201,7 +269,7 @@ impl MotorNode {
             pi_due: false,
             encoder_fault_low_since: None,
             last_state: MotorState::PreOperational,
-            state_event: None,
+            state_changes: StateChanges::new(),
         }
     }
 
@@ -296,14 +364,10 @@ impl MotorNode {
     fn note_state_change(&mut self, now: SimTime) {
         let state = self.registers.state;
         if state != self.last_state {
-            self.state_event = Some(NodeEvent {
+            self.state_changes.push(StateChange {
                 at: now,
-                kind: "state",
-                detail: format!(
-                    "motor state {:#04x} -> {:#04x}",
-                    self.last_state.code(),
-                    state.code()
-                ),
+                from: self.last_state,
+                to: state,
             });
             self.last_state = state;
         }
@@ -335,7 +399,12 @@ impl Node for MotorNode {
     }
 
     fn poll_event(&mut self) -> Option<NodeEvent> {
-        self.state_event.take()
+        let change = self.state_changes.pop()?;
+        Some(NodeEvent {
+            at: change.at,
+            kind: "state",
+            detail: format!("motor state {} -> {}", change.from, change.to),
+        })
     }
 }
 

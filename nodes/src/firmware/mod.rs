@@ -410,10 +410,12 @@ impl Firmware for EvController {
                 applied.enabled(),
             );
             if self.image.protection.tripped() && !was_tripped {
-                let detail = format!(
-                    "battery cut-off: {:?}, over-current: {}",
-                    sensors.bms_trip, sensors.motor_tripped
-                );
+                let battery = sensors
+                    .bms_trip
+                    .map_or_else(|| "none".to_string(), |t| t.to_string());
+                let inverter = if sensors.motor_tripped { "yes" } else { "no" };
+                let detail =
+                    format!("battery cut-off: {battery}, inverter over-current: {inverter}");
                 self.push_event(now, "trip", detail);
             }
         }

@@ -115,7 +115,7 @@ pub enum BusConfigError {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Error)]
 pub enum BusError {
     /// No port with this id was added.
-    #[error("no port {0:?} on this bus")]
+    #[error("no port {} on this bus", .0.index())]
     UnknownPort(PortId),
     /// The frame cannot be put on this medium (a PWM frame that is not a
     /// whole number of widths, or a width the timer cannot make).

@@ -331,7 +331,9 @@ impl ParallelMaster {
                 if vel_of(&data) == Some(self.sent_vel) {
                     self.acknowledged();
                 } else {
-                    let why = format!("answer {:?}, sent VEL {}", vel_of(&data), self.sent_vel);
+                    let answer =
+                        vel_of(&data).map_or_else(|| "no VEL".to_string(), |v| format!("VEL {v}"));
+                    let why = format!("answer {answer}, sent VEL {}", self.sent_vel);
                     self.failed(now, "bad_check", why);
                 }
             }

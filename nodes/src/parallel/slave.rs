@@ -8,7 +8,7 @@ use plant::{Actuators, Sensors};
 use crate::firmware::{EvController, EvControllerConfig, WriteSet, sd};
 use crate::master::StartupOutputs;
 use crate::node::{Firmware, Node, NodeEvent};
-use crate::proto::pwmcap::{PwmCoding, PwmFrame, PwmFrameKind};
+use crate::proto::pwmcap::{PwmCoding, PwmData, PwmFrame, PwmFrameKind};
 use crate::time::{SimDuration, SimTime};
 
 use super::{
@@ -132,7 +132,7 @@ impl PwmSlave {
                 self.counters.frames_taken += 1;
                 self.vel = Some(vel);
             }
-            Err(refusal) => self.push_event(now, "exception", format!("{refusal:?}")),
+            Err(refusal) => self.push_event(now, "exception", refusal.to_string()),
         }
     }
 
@@ -155,13 +155,15 @@ impl PwmSlave {
                 (STATUS_STOP, Some(vel)) => self.take(now, false, vel),
                 _ => {
                     self.counters.bad_frames += 1;
-                    self.push_event(now, "bad_check", format!("broadcast {frame:?}"));
+                    let why = format!("broadcast frame: {}", described(status.high, &data));
+                    self.push_event(now, "bad_check", why);
                 }
             },
             PwmFrame::Designated { status, data } if status.high == self.config.id => {
                 let Some(vel) = vel_of(&data) else {
                     self.counters.bad_frames += 1;
-                    self.push_event(now, "bad_check", format!("designated {frame:?}"));
+                    let why = format!("designated frame: {}", described(status.high, &data));
+                    self.push_event(now, "bad_check", why);
                     return;
                 };
                 self.take(now, true, vel);
@@ -230,4 +232,15 @@ impl Firmware for PwmSlave {
     fn loop_tick(&mut self, now: SimTime, sensors: &Sensors) -> Actuators {
         self.controller.loop_tick(now, sensors)
     }
+}
+
+/// A frame's status nibble and data symbols, for an event that says why it
+/// was not taken.
+fn described(status: u8, data: &PwmData) -> String {
+    let data: Vec<String> = data
+        .as_slice()
+        .iter()
+        .map(|d| format!("{d:#04x}"))
+        .collect();
+    format!("status {status:#x}, data {}", data.join(" "))
 }

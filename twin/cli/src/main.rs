@@ -5,7 +5,7 @@
     reason = "commands time their runs and wait on real links and viewers"
 )]
 
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 use std::process::ExitCode;
 
 mod commands;
@@ -65,7 +65,10 @@ impl Command {
 
 fn main() -> ExitCode {
     exit_quietly_on_broken_pipe();
-    let cli = Cli::parse();
+    // Negative numbers are values, never flags: the parsers say which
+    // options cannot take them.
+    let command = commands::take_negative_numbers(Cli::command());
+    let cli = Cli::from_arg_matches(&command.get_matches()).unwrap_or_else(|e| e.exit());
     if cli.command.runs_on_the_virtual_clock() {
         commands::finish_recordings_on_signals();
     }

@@ -147,7 +147,7 @@ fn check_report(o: &Output) {
         .lines()
         .filter_map(|l| l.trim().split_once("] ").map(|(_, v)| v))
         .collect();
-    assert_eq!(order, ["ValuesDiffer", "Missing", "Different"], "{t}");
+    assert_eq!(order, ["values differ", "missing", "different"], "{t}");
 }
 
 #[test]

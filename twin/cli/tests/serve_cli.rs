@@ -269,6 +269,8 @@ fn console_commands_force_inputs_and_switch_faults() {
         "tcp://127.0.0.1:0",
         "--quiet",
         "--no-record",
+        "--status-every",
+        "0.1",
     ]);
     let mut m = connect(&server.tcp(0));
     let mut t = connect(&server.tcp(1));
@@ -281,6 +283,12 @@ fn console_commands_force_inputs_and_switch_faults() {
     let sensing = plant::PlantParams::preset("vemodule").unwrap().sensing;
     let forced = sensing.counts(30.5 / sensing.battery_divider);
     say("force v1 30.5", "forced v1 = 30.5");
+    // The status line names what is forced in the console's words.
+    assert!(
+        server.printed("ev1 forced v1 30.50 V;"),
+        "{}",
+        server.output()
+    );
     std::thread::sleep(Duration::from_millis(20));
     assert_eq!(read_ea(&mut m)[2], forced);
     assert_eq!(input_registers(&mut t, 1)[2], forced);
@@ -291,7 +299,14 @@ fn console_commands_force_inputs_and_switch_faults() {
     // An exception on one link only.
     say(
         "fault exception 2 modbus-tcp",
-        "fault Exception(IllegalAddress) on modbus-tcp",
+        "fault exception 02 (Modbus ILLEGAL DATA ADDRESS, MEB ER 02 illegal address) on modbus-tcp",
+    );
+    assert!(
+        server.printed(
+            "; fault exception 02 (Modbus ILLEGAL DATA ADDRESS, MEB ER 02 illegal address)"
+        ),
+        "the status line names the exception: {}",
+        server.output()
     );
     let r = modbus_tcp(
         &mut t,
@@ -309,7 +324,7 @@ fn console_commands_force_inputs_and_switch_faults() {
     assert_eq!(read_ea(&mut m).len(), 6, "MEB unaffected");
 
     // A bad check: the reply is whole but its FCS is off by one.
-    say("fault bad-check meb", "fault BadCheck on meb");
+    say("fault bad-check meb", "fault bad-check on meb");
     let reply = meb_raw(&mut m, &meb_frame(1, MebCmd::EA, 0, 6, &[]));
     assert!(
         MebRepr::parse(&reply).is_err(),
@@ -318,7 +333,7 @@ fn console_commands_force_inputs_and_switch_faults() {
     );
 
     // A delay.
-    say("fault delay 200", "fault Delay");
+    say("fault delay 200", "fault delay 200 ms on every link");
     let sent = Instant::now();
     assert!(MebRepr::parse(&meb_raw(&mut m, &meb_frame(1, MebCmd::EA, 0, 6, &[]))).is_ok());
     assert!(
@@ -328,7 +343,7 @@ fn console_commands_force_inputs_and_switch_faults() {
     );
 
     // No reply at all, then everything normal again.
-    say("fault no-reply", "fault NoReply");
+    say("fault no-reply", "fault no-reply on every link");
     m.set_read_timeout(Some(Duration::from_millis(300)))
         .unwrap();
     m.write_all(&meb_frame(1, MebCmd::EA, 0, 6, &[])).unwrap();
@@ -339,6 +354,17 @@ fn console_commands_force_inputs_and_switch_faults() {
     assert_eq!(read_ea(&mut m).len(), 6);
     assert!(input_registers(&mut t, 3).len() == 10);
     say("frobnicate", "unknown command");
+    let out = server.output();
+    for rust in [
+        "Forces",
+        "Some(",
+        "Exception(",
+        "BadCheck",
+        "NoReply",
+        "Delay(",
+    ] {
+        assert!(!out.contains(rust), "`{rust}` printed: {out}");
+    }
 }
 
 #[test]
@@ -621,6 +647,8 @@ fn an_io_map_file_moves_the_meb_signals() {
         map.to_str().unwrap(),
         "--quiet",
         "--no-record",
+        "--status-every",
+        "0.1",
     ]);
     let mut m = connect(&server.tcp(0));
     let mut t = connect(&server.tcp(1));

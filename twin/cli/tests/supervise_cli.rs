@@ -516,7 +516,7 @@ fn client_reports_a_server_that_is_not_there_and_bad_arguments() {
         "{text}"
     );
     assert!(
-        text.contains("error: slave 01 answered SA 00 = [5000] with ER 03"),
+        text.contains("error: slave 01 answered SA 00 = 5000 with ER 03"),
         "{text}"
     );
     assert!(text.contains("error: unknown command"), "{text}");
@@ -656,7 +656,8 @@ fn quiet_remote_clients_time_out_and_make_room() {
             "supervise",
             "--meb",
             "tcp://127.0.0.1:9",
-            "--idle-timeout=-1",
+            "--idle-timeout",
+            "-1",
         ])
         .output()
         .unwrap();

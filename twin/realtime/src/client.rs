@@ -222,10 +222,15 @@ pub fn check(request: &MebRepr, reply: MebRepr) -> Result<MebRepr> {
 pub fn describe(request: &MebRepr) -> String {
     match request.cmd.block().map(|(block, _)| block.access()) {
         Some(MebAccess::Write) => format!(
-            "{} {:02X} = {:?}",
+            "{} {:02X} = {}",
             request.cmd,
             request.addr,
-            request.data.as_slice()
+            request
+                .data
+                .iter()
+                .map(u16::to_string)
+                .collect::<Vec<_>>()
+                .join(", ")
         ),
         _ => format!("{} {:02X} count {}", request.cmd, request.addr, request.cnt),
     }

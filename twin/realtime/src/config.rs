@@ -22,6 +22,29 @@ pub enum LinkFault {
     Exception(Refusal),
 }
 
+/// The fault as the console's `fault` command names it; an exception with
+/// its name in both protocols (the Modbus specification's, the MEB page's).
+impl std::fmt::Display for LinkFault {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            LinkFault::BadCheck => f.write_str("bad-check"),
+            LinkFault::NoReply => f.write_str("no-reply"),
+            LinkFault::Delay(d) => write!(f, "delay {:.0} ms", d.as_secs_f64() * 1000.0),
+            LinkFault::Exception(refusal) => {
+                let (modbus, meb) = (refusal.modbus(), refusal.meb());
+                write!(
+                    f,
+                    "exception {:02} (Modbus {}, MEB ER {:02} {})",
+                    meb.word(),
+                    modbus.name(),
+                    meb.word(),
+                    meb.name()
+                )
+            }
+        }
+    }
+}
+
 /// Makes the endpoint for a new connection on a link: (devices, peer).
 pub type EndpointFactory = Box<dyn FnMut(&mut [Device], &str) -> Box<dyn Endpoint> + Send>;
 

@@ -479,7 +479,7 @@ impl RtEngine {
             );
         }
         for device in self.devices.iter().filter(|d| d.forces.any()) {
-            line += &format!(" {} forced {:?};", device.name, device.forces);
+            line += &format!(" {} forced {};", device.name, device.forces);
         }
         let w = self.window.summary();
         line += &format!(
@@ -490,7 +490,7 @@ impl RtEngine {
             w.max_us
         );
         if let Some((fault, _)) = self.fault {
-            line += &format!("; fault {fault:?}");
+            line += &format!("; fault {fault}");
         }
         line
     }

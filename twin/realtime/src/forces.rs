@@ -20,6 +20,42 @@ pub struct Forces {
     pub ldr: Option<u16>,
 }
 
+/// What is forced, as the console's `force` command names it:
+/// `v1 30.0 V, rpm_m 1200`.
+impl std::fmt::Display for Forces {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let measured = [
+            ("v1", self.v1, "V"),
+            ("v2", self.v2, "V"),
+            ("i", self.i, "A"),
+        ];
+        let words = [
+            ("rpm_m", self.rpm_m),
+            ("rpm_l", self.rpm_l),
+            ("ldr", self.ldr),
+        ];
+        let mut first = true;
+        let mut sep = |f: &mut std::fmt::Formatter<'_>| {
+            let s = if first { "" } else { ", " };
+            first = false;
+            f.write_str(s)
+        };
+        for (name, value, unit) in measured {
+            if let Some(v) = value {
+                sep(f)?;
+                write!(f, "{name} {v:.2} {unit}")?;
+            }
+        }
+        for (name, value) in words {
+            if let Some(v) = value {
+                sep(f)?;
+                write!(f, "{name} {v}")?;
+            }
+        }
+        Ok(())
+    }
+}
+
 impl Forces {
     /// Whether anything is forced.
     pub fn any(&self) -> bool {

@@ -188,6 +188,18 @@ pub enum Verdict {
     Different,
 }
 
+impl std::fmt::Display for Verdict {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Verdict::Same => "as recorded",
+            Verdict::ValuesDiffer => "values differ",
+            Verdict::Missing => "missing",
+            Verdict::Unexpected => "unexpected",
+            Verdict::Different => "different",
+        })
+    }
+}
+
 /// What a replay against a live slave found.
 #[derive(Debug, Clone, Default)]
 pub struct FramesReport {

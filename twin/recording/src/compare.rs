@@ -98,7 +98,10 @@ impl Tolerances {
                 .span()
                 .map(|s| text[..s.start.min(text.len())].matches('\n').count() + 1);
             let place = line.map_or_else(String::new, |l| format!(":{l}"));
-            anyhow::anyhow!("{origin}{place}: {}", e.message().trim())
+            // Every number of the file is a float: serde's Rust name for
+            // it is no word of the user's.
+            let message = e.message().trim().replace("expected f64", "expected a number");
+            anyhow::anyhow!("{origin}{place}: {message}")
         })?;
         let default = file.default.unwrap_or_default();
         let check = |what: &str, t: &PartialTolerance| -> Result<()> {
@@ -481,6 +484,11 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.starts_with("t.toml:2"), "{e}");
+        let e = Tolerances::parse("[default]\nabs = \"small\"\n", "t.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("expected a number"), "{e}");
+        assert!(!e.contains("f64"), "{e}");
     }
 
     #[test]

@@ -258,7 +258,7 @@ impl SimNode for FaultyNode<MotorNode> {
     fn final_state(&self) -> Option<Value> {
         let m = self.inner();
         Some(
-            json!({ "state": format!("{:?}", m.state()), "set_point": m.set_point(),
+            json!({ "state": m.state().name(), "set_point": m.set_point(),
                      "latched_rpm": m.latched_rpm(), "duty": m.duty() }),
         )
     }
@@ -303,7 +303,7 @@ impl SimNode for FaultyNode<ControllerNetworkMaster> {
     fn final_state(&self) -> Option<Value> {
         let m = self.inner();
         Some(
-            json!({ "phase": format!("{:?}", m.phase()), "cycles": m.cycles(), "motor_rpm": m.motor_rpm(),
+            json!({ "phase": m.phase().name(), "cycles": m.cycles(), "motor_rpm": m.motor_rpm(),
                      "sensor_value": m.sensor_value(), "set_point": m.set_point(),
                      "crc_errors": m.crc_errors(), "timeouts": m.timeouts() }),
         )

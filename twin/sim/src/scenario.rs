@@ -26,6 +26,7 @@ pub mod check;
 
 use anyhow::{Context, Result, bail};
 use plant::PlantParams;
+use plant::toml_errors::{self, line_col};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -399,19 +400,36 @@ pub enum FaultKind {
 const LEGACY_MASTER_KIND: &str = "seed002-master"; // the serde alias above
 
 impl Scenario {
-    /// Parse scenario text; `origin` names it in errors.
+    /// Parse scenario text; `origin` names it in errors, which give the
+    /// line of the key at fault (inside a `[[node]]` or a module's `params`
+    /// too) and say what a value should be in TOML's words.
     pub fn parse(text: &str, origin: &str) -> Result<Self> {
-        let scenario: Scenario = toml::from_str(text).map_err(|e| {
-            let at = e.span().map(|s| line_col(text, s.start));
-            let place = at.map_or_else(String::new, |(l, c)| format!(":{l}:{c}"));
+        let place = |span: Option<std::ops::Range<usize>>| {
+            span.map_or_else(String::new, |s| {
+                let (l, c) = line_col(text, s.start);
+                format!(":{l}:{c}")
+            })
+        };
+        let root = toml_errors::parse(text)
+            .map_err(|e| anyhow::anyhow!("{origin}{}: {}", place(e.span), e.message))?;
+        let scenario: Scenario = toml_errors::deserialize(&root).map_err(|e| {
             // serde lists aliases among the kinds it expected; the old name
             // of a kind is still read but not offered.
-            let message = e
-                .message()
-                .trim()
-                .replace(&format!(", `{LEGACY_MASTER_KIND}`"), "");
-            anyhow::anyhow!("{origin}{place}: {message}")
+            let message = e.message.replace(&format!(", `{LEGACY_MASTER_KIND}`"), "");
+            // The key at fault, unless the path ends at a whole table (a
+            // `[[node]]`), which the line already points at.
+            let field = e.path.rsplit('.').next().unwrap_or_default();
+            let message = if field.is_empty()
+                || field.ends_with(']')
+                || message.contains(&format!("`{field}`"))
+            {
+                message
+            } else {
+                format!("`{field}`: {message}")
+            };
+            anyhow::anyhow!("{origin}{}: {message}", place(e.span))
         })?;
+        scenario.check_module_params(&root, text, origin)?;
         scenario.validate().map_err(|(field, msg)| {
             // A field of one node or bus is found after the line naming it.
             let place = match field.split_once('@') {
@@ -423,6 +441,46 @@ impl Scenario {
             anyhow::anyhow!("{origin}{place}: `{field}` {msg}")
         })?;
         Ok(scenario)
+    }
+
+    /// Every module's preset and `params` read as they will be when the
+    /// module is built, with the lines of the scenario file itself.
+    fn check_module_params(
+        &self,
+        root: &toml::Spanned<toml::de::DeValue<'_>>,
+        text: &str,
+        origin: &str,
+    ) -> Result<()> {
+        let modules = match root.get_ref() {
+            toml::de::DeValue::Table(t) => t.get("module"),
+            _ => None,
+        };
+        let tables = match modules.map(toml::Spanned::get_ref) {
+            Some(toml::de::DeValue::Array(a)) => a.as_ref(),
+            _ => &[],
+        };
+        for (module, table) in self.modules.iter().zip(tables) {
+            let Some(base) = PlantParams::preset(&module.preset) else {
+                let line = toml_errors::span_of(table, "preset")
+                    .map_or_else(String::new, |s| format!(":{}", line_col(text, s.start).0));
+                bail!(
+                    "{origin}{line}: `preset` of module `{}`: unknown preset `{}`; the presets are {}",
+                    module.name,
+                    module.preset,
+                    plant::params::PRESETS.join(", ")
+                );
+            };
+            let params = match table.get_ref() {
+                toml::de::DeValue::Table(t) => t.get("params"),
+                _ => None,
+            };
+            if let Some(params) = params {
+                PlantParams::from_toml_value(params, text, Path::new(origin), &base).map_err(
+                    |e| anyhow::anyhow!("{e} (in the params of module `{}`)", module.name),
+                )?;
+            }
+        }
+        Ok(())
     }
 
     /// An embedded scenario by name, a scenario file by path.
@@ -465,7 +523,7 @@ impl Scenario {
             }
             if !self.buses.iter().any(|b| b.name == n.bus()) {
                 return Err((
-                    "bus".into(),
+                    format!("bus@{}", n.name()),
                     format!("`{}` of node `{}` is not a declared bus", n.bus(), n.name()),
                 ));
             }
@@ -473,7 +531,7 @@ impl Scenario {
                 && !self.modules.iter().any(|x| x.name == m)
             {
                 return Err((
-                    "module".into(),
+                    format!("module@{}", n.name()),
                     format!("`{m}` of node `{}` is not a declared module", n.name()),
                 ));
             }
@@ -650,13 +708,6 @@ fn crate_time_ticks() -> u64 {
     nodes::time::TICKS_PER_SECOND
 }
 
-fn line_col(text: &str, offset: usize) -> (usize, usize) {
-    let before = &text[..offset.min(text.len())];
-    let line = before.matches('\n').count() + 1;
-    let col = before.rsplit('\n').next().map_or(0, |l| l.chars().count()) + 1;
-    (line, col)
-}
-
 /// First line that sets `key = …` (good enough to point a user at the field).
 fn find_line(text: &str, key: &str) -> Option<usize> {
     text.lines()
@@ -690,6 +741,96 @@ mod tests {
         let text = "name = \"x\"\nduration_s = 1.0\n[[bus]]\nname = \"b\"\nbaud = 115201\n";
         let e = Scenario::parse(text, "s.toml").unwrap_err().to_string();
         assert!(e.starts_with("s.toml:5: `baud`"), "{e}");
+    }
+
+    /// The embedded ev-meb scenario with `from` replaced by `to` (once).
+    fn ev_meb_with(from: &str, to: &str) -> String {
+        let (_, _, text) = EMBEDDED[0];
+        assert!(text.contains(from), "ev-meb has `{from}`");
+        text.replacen(from, to, 1)
+    }
+
+    fn line_of(text: &str, needle: &str) -> usize {
+        text.lines().position(|l| l.contains(needle)).expect(needle) + 1
+    }
+
+    #[test]
+    fn a_typo_in_a_node_points_at_its_line_not_the_node_header() {
+        // An unknown key: serde reads a node's table whole before its `kind`.
+        let text = ev_meb_with("kp = ", "kpp = ");
+        let e = Scenario::parse(&text, "s.toml").unwrap_err().to_string();
+        let line = line_of(&text, "kpp = ");
+        assert!(e.starts_with(&format!("s.toml:{line}:")), "{e}");
+        assert!(e.contains("unknown field `kpp`"), "{e}");
+        // A value of the wrong type.
+        let text = ev_meb_with("ki = ", "ki = \"fast\" #");
+        let e = Scenario::parse(&text, "s.toml").unwrap_err().to_string();
+        let line = line_of(&text, "ki = \"fast\"");
+        assert_eq!(
+            e,
+            format!("s.toml:{line}:1: `ki`: expected a number, found the string \"fast\"")
+        );
+        // An integer out of range.
+        let text = ev_meb_with("id = 1", "id = 300");
+        let e = Scenario::parse(&text, "s.toml").unwrap_err().to_string();
+        let line = line_of(&text, "id = 300");
+        assert_eq!(
+            e,
+            format!("s.toml:{line}:1: `id`: expected an integer from 0 to 255, got 300")
+        );
+    }
+
+    #[test]
+    fn an_undeclared_bus_points_at_the_node_that_names_it() {
+        // The second node's bus, not the first `bus =` line of the file.
+        let text = ev_meb_with("bus = \"rs485\"\nslaves", "bus = \"rs458\"\nslaves");
+        let e = Scenario::parse(&text, "s.toml").unwrap_err().to_string();
+        let line = line_of(&text, "rs458");
+        assert!(e.starts_with(&format!("s.toml:{line}: `bus` `rs458`")), "{e}");
+    }
+
+    #[test]
+    fn type_errors_are_in_toml_words() {
+        let text = "name = \"x\"\nduration_s = \"long\"\n";
+        let e = Scenario::parse(text, "s.toml").unwrap_err().to_string();
+        assert_eq!(
+            e,
+            "s.toml:2:14: `duration_s`: expected a number, found the string \"long\""
+        );
+        let text = "name = \"x\"\nduration_s = 1.0\n[[bus]]\nname = \"b\"\nbaud = 9600.5\n";
+        let e = Scenario::parse(text, "s.toml").unwrap_err().to_string();
+        assert_eq!(
+            e,
+            "s.toml:5:8: `baud`: expected an integer of 0 or more, found 9600.5"
+        );
+        for rust in ["f64", "u32", "u8", "struct", "enum"] {
+            assert!(!e.contains(rust), "{e}");
+        }
+    }
+
+    #[test]
+    fn a_typo_in_module_params_gives_the_scenario_file_s_line() {
+        let text = ev_meb_with(
+            "preset = \"vemodule\"",
+            "preset = \"vemodule\"\n\n[module.params.wheel]\nmass_kg = 1.0\n\n[module.params.motor]\nresistance_ohms = 0.4",
+        );
+        let e = Scenario::parse(&text, "s.toml").unwrap_err().to_string();
+        let line = line_of(&text, "resistance_ohms");
+        assert!(e.starts_with(&format!("s.toml:{line}:1: ")), "{e}");
+        assert!(e.contains("resistance_ohms"), "{e}");
+        assert!(e.contains("module `ev1`"), "{e}");
+        let text = ev_meb_with(
+            "preset = \"vemodule\"",
+            "preset = \"vemodule\"\n[module.params.wheel]\nmass_kg = -1.0",
+        );
+        let e = Scenario::parse(&text, "s.toml").unwrap_err().to_string();
+        let line = line_of(&text, "mass_kg = -1.0");
+        assert!(
+            e.starts_with(&format!(
+                "s.toml:{line}:1: field `wheel.mass_kg` must be a positive number"
+            )),
+            "{e}"
+        );
     }
 
     #[test]

@@ -288,4 +288,14 @@ impl MebErrorCode {
     pub const fn word(self) -> u16 {
         self as u16
     }
+
+    /// The code's name as `docs/protocols/meb.md` gives it.
+    pub const fn name(self) -> &'static str {
+        match self {
+            MebErrorCode::IllegalCommand => "illegal command",
+            MebErrorCode::IllegalAddress => "illegal address",
+            MebErrorCode::IllegalData => "illegal data",
+            MebErrorCode::DeviceFailure => "device failure",
+        }
+    }
 }

@@ -114,9 +114,28 @@ impl Exception {
     }
 }
 
+impl Exception {
+    /// The exception's name as the Modbus Application Protocol
+    /// specification (V1.1b3, section 7) gives it.
+    pub const fn name(self) -> &'static str {
+        match self {
+            Exception::IllegalFunction => "ILLEGAL FUNCTION",
+            Exception::IllegalDataAddress => "ILLEGAL DATA ADDRESS",
+            Exception::IllegalDataValue => "ILLEGAL DATA VALUE",
+            Exception::ServerDeviceFailure => "SERVER DEVICE FAILURE",
+            Exception::Acknowledge => "ACKNOWLEDGE",
+            Exception::ServerDeviceBusy => "SERVER DEVICE BUSY",
+            Exception::MemoryParityError => "MEMORY PARITY ERROR",
+            Exception::GatewayPathUnavailable => "GATEWAY PATH UNAVAILABLE",
+            Exception::GatewayTargetFailedToRespond => "GATEWAY TARGET DEVICE FAILED TO RESPOND",
+            Exception::Other(_) => "a code the specification does not define",
+        }
+    }
+}
+
 impl fmt::Display for Exception {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "exception {:02x} ({self:?})", self.code())
+        write!(f, "exception {:02x} ({})", self.code(), self.name())
     }
 }
 
@@ -570,6 +589,22 @@ mod tests {
         assert_eq!(reply.exception, Exception::Other(0x42));
         assert_eq!(reply.exception.code(), 0x42);
         assert_eq!(encode(&reply), [0x83, 0x42]);
+    }
+
+    #[test]
+    fn exceptions_read_as_the_modbus_specification_names_them() {
+        assert_eq!(
+            Exception::IllegalDataAddress.to_string(),
+            "exception 02 (ILLEGAL DATA ADDRESS)"
+        );
+        assert_eq!(
+            Exception::GatewayTargetFailedToRespond.to_string(),
+            "exception 0b (GATEWAY TARGET DEVICE FAILED TO RESPOND)"
+        );
+        assert_eq!(
+            Exception::Other(0x42).to_string(),
+            "exception 42 (a code the specification does not define)"
+        );
     }
 
     #[test]

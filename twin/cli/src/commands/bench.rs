@@ -22,10 +22,10 @@ pub struct BenchArgs {
     #[arg(long, value_name = "NAME|FILE")]
     scenario: Vec<String>,
     /// Simulated seconds per run [default: each scenario's duration].
-    #[arg(long, value_name = "N")]
+    #[arg(long, value_name = "N", value_parser = super::numbers::above_zero)]
     seconds: Option<f64>,
     /// Runs per figure; the fastest counts.
-    #[arg(long, default_value_t = 3, value_name = "N")]
+    #[arg(long, default_value_t = 3, value_name = "N", value_parser = super::numbers::whole::<u32>)]
     repeat: u32,
 }
 

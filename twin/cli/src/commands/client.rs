@@ -27,7 +27,7 @@ pub struct ClientArgs {
           value_parser = clap::value_parser!(u8).range(0..=99))]
     id: u8,
     /// How long to wait for the connection and for each reply, ms.
-    #[arg(long, default_value_t = 1000, global = true, value_name = "MS")]
+    #[arg(long, default_value_t = 1000, global = true, value_name = "MS", value_parser = super::numbers::whole::<u64>)]
     timeout_ms: u64,
     /// Show every frame both ways (on stderr).
     #[arg(short, long, global = true)]
@@ -40,7 +40,7 @@ enum ClientCommand {
     Read {
         cmd: String,
         addr: String,
-        #[arg(default_value_t = 1)]
+        #[arg(default_value_t = 1, value_parser = super::numbers::whole::<u8>)]
         cnt: u8,
     },
     /// Write words to CMD ADDR, e.g. `write SA 0 2048` or `write SD 0 0x000E 0x0001`.
@@ -53,10 +53,10 @@ enum ClientCommand {
     /// Print the inputs (EA 00-05) and the loop (FA 10-12, FD 10) periodically.
     Watch {
         /// Seconds between readings.
-        #[arg(long, default_value_t = 0.5)]
+        #[arg(long, default_value_t = 0.5, value_parser = super::numbers::above_zero)]
         every: f64,
         /// Stop after this many readings [default: until Ctrl-C].
-        #[arg(long)]
+        #[arg(long, value_parser = super::numbers::whole::<u64>)]
         count: Option<u64>,
     },
 }

@@ -34,10 +34,10 @@ struct ParallelArgs {
     #[arg(long, default_value = "parallel-modules")]
     out_dir: std::path::PathBuf,
     /// Simulated seconds per variant (default: the scenarios' 6 s).
-    #[arg(long)]
+    #[arg(long, value_parser = super::numbers::above_zero)]
     duration: Option<f64>,
     /// Seed of every variant (default: the scenarios' own).
-    #[arg(long)]
+    #[arg(long, value_parser = super::numbers::whole::<u64>)]
     seed: Option<u64>,
 }
 
@@ -46,25 +46,25 @@ struct ParallelArgs {
 #[derive(Debug, Args)]
 struct PwmcapArgs {
     /// Seed of the test values, comparator noise and counter phase.
-    #[arg(long, default_value_t = ReliabilitySetup::DEFAULT.seed)]
+    #[arg(long, default_value_t = ReliabilitySetup::DEFAULT.seed, value_parser = super::numbers::whole::<u64>)]
     seed: u64,
     /// Test signals per impedance row.
-    #[arg(long, default_value_t = ReliabilitySetup::DEFAULT.signals)]
+    #[arg(long, default_value_t = ReliabilitySetup::DEFAULT.signals, value_parser = super::numbers::whole::<u32>)]
     signals: u32,
     /// Cable length of the reliability rows, m.
-    #[arg(long, default_value_t = ReliabilitySetup::DEFAULT.line.cable_length_m)]
+    #[arg(long, default_value_t = ReliabilitySetup::DEFAULT.line.cable_length_m, value_parser = super::numbers::zero_or_more)]
     length_m: f64,
     /// Shunt capacitance added in every reliability row, nF.
-    #[arg(long, default_value_t = ReliabilitySetup::DEFAULT.added_shunt_farad * 1e9)]
+    #[arg(long, default_value_t = ReliabilitySetup::DEFAULT.added_shunt_farad * 1e9, value_parser = super::numbers::zero_or_more)]
     added_nf: f64,
     /// Comparator input noise, mV rms.
-    #[arg(long, default_value_t = ReliabilitySetup::DEFAULT.line.noise_volts_rms * 1e3)]
+    #[arg(long, default_value_t = ReliabilitySetup::DEFAULT.line.noise_volts_rms * 1e3, value_parser = super::numbers::zero_or_more)]
     noise_mv: f64,
     /// Longest cable the clean-cable search tries, m (0 skips the search).
-    #[arg(long, default_value_t = 1000.0)]
+    #[arg(long, default_value_t = 1000.0, value_parser = super::numbers::zero_or_more)]
     cable_limit_m: f64,
     /// Step of the clean-cable search, m.
-    #[arg(long, default_value_t = 10.0)]
+    #[arg(long, default_value_t = 10.0, value_parser = super::numbers::above_zero)]
     cable_step_m: f64,
     /// The cable as one lump of R and C (`lumped`), or as a distributed RC
     /// line reduced to the pole with its Elmore delay (`elmore`).

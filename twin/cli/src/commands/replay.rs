@@ -52,13 +52,13 @@ pub struct ReplayArgs {
     #[arg(long, value_name = "NAME", requires = "frames_to")]
     bus: Option<String>,
     /// With --frames-to: how long to wait for each reply.
-    #[arg(long, value_name = "MS", default_value_t = 500, requires = "frames_to")]
+    #[arg(long, value_name = "MS", default_value_t = 500, requires = "frames_to", value_parser = super::numbers::whole::<u64>)]
     timeout_ms: u64,
     /// With --frames-to: send only the first N requests.
-    #[arg(long, value_name = "N", requires = "frames_to")]
+    #[arg(long, value_name = "N", requires = "frames_to", value_parser = super::numbers::whole::<usize>)]
     limit: Option<usize>,
     /// With --frames-to: how many differing replies to print.
-    #[arg(long, value_name = "N", default_value_t = 10, requires = "frames_to")]
+    #[arg(long, value_name = "N", default_value_t = 10, requires = "frames_to", value_parser = super::numbers::whole::<usize>)]
     show: usize,
 }
 
@@ -310,7 +310,7 @@ fn frames_to(args: &ReplayArgs, link_spec: &str) -> Result<()> {
         println!("  first differences (recorded time, request, recorded reply, live reply):");
     }
     for e in differing {
-        println!("    [{:9.3} s] {:?}", e.time_s, e.verdict);
+        println!("    [{:9.3} s] {}", e.time_s, e.verdict);
         println!("      request   {}", show(&e.request));
         println!(
             "      recorded  {}",

@@ -40,14 +40,14 @@ pub struct RunArgs {
     #[arg(long)]
     open_loop: bool,
     /// Simulated duration in seconds (default: the scenario's; 3 s open loop).
-    #[arg(long, value_name = "SECONDS")]
+    #[arg(long, value_name = "SECONDS", value_parser = super::numbers::above_zero)]
     duration: Option<f64>,
     /// Where to write the recording, replacing one there [default: SCENARIO.mcap,
     /// twin-run.mcap open loop].
     #[arg(long, value_name = "PATH")]
     out: Option<PathBuf>,
     /// Seed of every random draw (noise, bit errors) [default: the scenario's; 1].
-    #[arg(long)]
+    #[arg(long, value_parser = super::numbers::whole::<u64>)]
     seed: Option<u64>,
     /// Stream the run to rerun as it goes, beside the MCAP recording:
     /// `--view` opens a viewer (or uses the one already running),
@@ -70,7 +70,7 @@ pub struct RunArgs {
         default_value_t = 0.6,
         value_name = "FRACTION",
         requires = "open_loop"
-    )]
+, value_parser = super::numbers::number)]
     vel: f64,
     /// Open loop: time of the VEL step in seconds.
     #[arg(
@@ -78,7 +78,7 @@ pub struct RunArgs {
         default_value_t = 0.5,
         value_name = "SECONDS",
         requires = "open_loop"
-    )]
+, value_parser = super::numbers::zero_or_more)]
     vel_at: f64,
     /// Open loop: plant state messages recorded per simulated second.
     #[arg(
@@ -86,7 +86,7 @@ pub struct RunArgs {
         default_value_t = 1000.0,
         value_name = "HZ",
         requires = "open_loop"
-    )]
+, value_parser = super::numbers::above_zero)]
     record_hz: f64,
 }
 
@@ -136,7 +136,7 @@ pub fn execute(args: &RunArgs) -> Result<()> {
     );
     for (module, s) in &outcome.modules {
         println!(
-            "  module {module}: wheel {:.1} rpm, V1 {:.2} V, V2 {:.2} V, I {:.2} A, SOC {:.2} %",
+            "  module {module}: wheel {:.1} rpm (its true speed), V1 {:.2} V, V2 {:.2} V, I {:.2} A, SOC {:.2} %",
             s.wheel_rpm,
             s.battery_volts,
             s.bus_volts,
@@ -152,7 +152,7 @@ pub fn execute(args: &RunArgs) -> Result<()> {
         }
     }
     for (node, state) in &outcome.telemetry {
-        print_node_state(node, state, outcome.simulated_s);
+        super::node_summary::print(node, state, outcome.simulated_s);
     }
     for (bus, c) in &outcome.pwm_calibrations {
         println!(
@@ -254,83 +254,6 @@ fn print_speed_sensors(c: &ControllerOutcome, wheel_rpm: f64) {
     );
 }
 
-/// A node's end-of-run state: masters' loops spelled out, others as JSON.
-fn print_node_state(node: &str, state: &serde_json::Value, simulated_s: f64) {
-    if let (Some(slaves), Some(updates)) = (state["slaves"].as_array(), state["updates"].as_u64()) {
-        print_parallel_master(node, state, slaves, updates, simulated_s);
-        return;
-    }
-    if let Some(taken) = state["frames_taken"].as_u64() {
-        println!(
-            "  {node}: VEL {} from {taken} frames taken, {} for others, {} bad, {} cut short, {} answers",
-            state["vel"],
-            state["frames_ignored"],
-            state["bad_frames"],
-            state["incomplete_frames"],
-            state["answers"]
-        );
-        return;
-    }
-    let Some(loops) = state["loops"].as_array() else {
-        println!("  {node}: {state}");
-        return;
-    };
-    let cycles = state["cycles"].as_f64().unwrap_or(0.0);
-    println!(
-        "  {node}: {cycles} poll cycles ({:.1} per second)",
-        cycles / simulated_s.max(1e-9)
-    );
-    for l in loops {
-        let n = |k: &str| l[k].as_f64().unwrap_or(f64::NAN);
-        println!(
-            "    slave {}: set point {:.0} rpm, measured {:.0} rpm, error {:.0} rpm, VEL {:.0}; \
-             {} requests, {} replies, {} timeouts, {} bad checks, {} retries, {} lost",
-            l["slave"],
-            n("set_point_rpm"),
-            n("measured_rpm"),
-            n("error_rpm"),
-            n("output"),
-            l["requests"],
-            l["replies"],
-            l["timeouts"],
-            l["bad_checks"],
-            l["retries"],
-            l["lost"]
-        );
-    }
-}
-
-/// A parallel-module master: its own loop, then each exchange's tally.
-fn print_parallel_master(
-    node: &str,
-    state: &serde_json::Value,
-    slaves: &[serde_json::Value],
-    updates: u64,
-    simulated_s: f64,
-) {
-    let n = |v: &serde_json::Value, k: &str| v[k].as_f64().unwrap_or(f64::NAN);
-    let cycles = n(state, "cycles");
-    println!(
-        "  {node}: set point {:.0} rpm, measured {:.0} rpm, VEL {}; {updates} references issued, \
-         {cycles} send cycles ({:.0} per second)",
-        n(state, "set_point_rpm"),
-        n(state, "measured_rpm"),
-        state["vel"],
-        cycles / simulated_s.max(1e-9)
-    );
-    for s in slaves {
-        let who = match s["slave"].as_u64() {
-            Some(0) => "broadcast".to_string(),
-            Some(id) => format!("slave {id}"),
-            None => "?".to_string(),
-        };
-        println!(
-            "    {who}: {} frames, {} answers, {} timeouts, {} bad answers, {} retries, {} lost",
-            s["requests"], s["replies"], s["timeouts"], s["bad_replies"], s["retries"], s["lost"]
-        );
-    }
-}
-
 /// A progress line on stderr when it is a terminal, at most five times a second.
 pub struct Progress {
     enabled: bool,
@@ -411,7 +334,7 @@ fn execute_open_loop(args: &RunArgs) -> Result<()> {
         summary.battery_energy / 3600.0
     );
     if let Some(trip) = s.bms_trip {
-        println!("  BMS tripped:   {trip:?}");
+        println!("  BMS tripped:   {trip}");
     }
     if s.motor_tripped {
         println!("  inverter tripped on over-current");

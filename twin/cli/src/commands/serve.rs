@@ -43,10 +43,10 @@ pub struct ServeArgs {
     #[arg(long, value_name = "LINK")]
     modbus8: Vec<String>,
     /// Default baud rate of serial links (and of --pace on TCP).
-    #[arg(long, default_value_t = 115_200)]
+    #[arg(long, default_value_t = 115_200, value_parser = super::numbers::whole::<u32>)]
     baud: u32,
     /// Reply turnaround in ms [default: 1 on serial links, 0 on TCP].
-    #[arg(long, value_name = "MS")]
+    #[arg(long, value_name = "MS", value_parser = super::numbers::zero_or_more)]
     turnaround_ms: Option<f64>,
     /// Hold every reply for its wire time at the link's baud, so a master on
     /// a pty sees real bus timing.
@@ -63,10 +63,10 @@ pub struct ServeArgs {
     #[arg(long, value_name = "FILE")]
     params: Option<PathBuf>,
     /// Seed of the plant's noise.
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = 1, value_parser = super::numbers::whole::<u64>)]
     seed: u64,
     /// Stop after this many seconds [default: run until interrupted].
-    #[arg(long, value_name = "SECONDS")]
+    #[arg(long, value_name = "SECONDS", value_parser = super::numbers::above_zero)]
     duration: Option<f64>,
     /// Where to write the recording (replaced if it exists) [default:
     /// serve-START.mcap here, named by the session's start time in UTC, e.g.
@@ -77,35 +77,35 @@ pub struct ServeArgs {
     #[arg(long)]
     no_record: bool,
     /// Plant state messages recorded per second.
-    #[arg(long, default_value_t = 200.0, value_name = "HZ")]
+    #[arg(long, default_value_t = 200.0, value_name = "HZ", value_parser = super::numbers::above_zero)]
     record_hz: f64,
     /// No frame monitor (status lines stay).
     #[arg(long)]
     quiet: bool,
     /// Seconds between status lines (0: none).
-    #[arg(long, default_value_t = 1.0, value_name = "SECONDS")]
+    #[arg(long, default_value_t = 1.0, value_name = "SECONDS", value_parser = super::numbers::zero_or_more)]
     status_every: f64,
     /// TCP clients per link (each has a thread of its own; 0: no limit). A
     /// newcomer beyond it takes the place of the client quiet longest if
     /// that one has sent nothing for --make-room-after, or of the one
     /// holding a partial frame longest if for over 1 s, else waits up to
     /// 1 s for a place, else is refused.
-    #[arg(long, default_value_t = 8, value_name = "N")]
+    #[arg(long, default_value_t = 8, value_name = "N", value_parser = super::numbers::whole::<usize>)]
     max_clients: usize,
     /// How long a client must have been quiet for a newcomer beyond
     /// --max-clients to take its place (0: never).
-    #[arg(long, default_value_t = 30.0, value_name = "SECONDS")]
+    #[arg(long, default_value_t = 30.0, value_name = "SECONDS", value_parser = super::numbers::number)]
     make_room_after: f64,
     /// Close a TCP connection that has sent nothing for this long (0: never;
     /// quiet connections stay open, as the MEB protocol page says).
-    #[arg(long, default_value_t = 0.0, value_name = "SECONDS")]
+    #[arg(long, default_value_t = 0.0, value_name = "SECONDS", value_parser = super::numbers::number)]
     idle_timeout: f64,
     /// Close a TCP connection holding a partial frame this long (0: never).
-    #[arg(long, default_value_t = 5.0, value_name = "SECONDS")]
+    #[arg(long, default_value_t = 5.0, value_name = "SECONDS", value_parser = super::numbers::number)]
     partial_timeout: f64,
     /// Close a TCP connection that sends more than this many bytes in one
     /// second (0: no limit).
-    #[arg(long, default_value_t = 1_000_000, value_name = "BYTES")]
+    #[arg(long, default_value_t = 1_000_000, value_name = "BYTES", value_parser = super::numbers::whole::<u64>)]
     rate_limit: u64,
     /// Remote clients may read but not write (MEB ER 01, Modbus exception 01).
     #[arg(long)]

@@ -43,22 +43,22 @@ pub struct StepArgs {
     open_loop: bool,
     /// Set point before the step: rpm, or VEL fraction with --open-loop
     /// [default: 100 rpm; 0.025 open loop].
-    #[arg(long, value_name = "VALUE", allow_negative_numbers = true)]
+    #[arg(long, value_name = "VALUE", allow_negative_numbers = true, value_parser = super::numbers::number)]
     from: Option<f64>,
     /// Set point after the step: rpm, or VEL fraction with --open-loop
     /// [default: 200 rpm; 0.045 open loop].
-    #[arg(long, value_name = "VALUE", allow_negative_numbers = true)]
+    #[arg(long, value_name = "VALUE", allow_negative_numbers = true, value_parser = super::numbers::number)]
     to: Option<f64>,
     /// Time of the step (s); with the Controller_network master, the first
     /// change of its set point at or after this time is measured [default: 2 s;
     /// 0 s controller-network].
-    #[arg(long, value_name = "SECONDS")]
+    #[arg(long, value_name = "SECONDS", value_parser = super::numbers::zero_or_more)]
     at: Option<f64>,
     /// Simulated duration (s) [default: 6 s; 30 s controller-network].
-    #[arg(long, value_name = "SECONDS")]
+    #[arg(long, value_name = "SECONDS", value_parser = super::numbers::above_zero)]
     duration: Option<f64>,
     /// Seed of every random draw (sensor noise, bit errors).
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = 1, value_parser = super::numbers::whole::<u64>)]
     seed: u64,
     #[command(flatten)]
     plant: super::plant_args::PlantArgs,

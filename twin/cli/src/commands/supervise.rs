@@ -32,12 +32,7 @@ use twin_view::{Session, ViewLayout};
 pub struct SuperviseArgs {
     /// The bus, spoken in MEB: serial device or pty (options after `?`, e.g.
     /// /tmp/ttyV0?baud=9600&parity=E), or tcp://HOST:PORT of an MEB slave.
-    #[arg(
-        long,
-        value_name = "LINK",
-        required_unless_present = "modbus_rtu",
-        conflicts_with = "modbus_rtu"
-    )]
+    #[arg(long, value_name = "LINK", conflicts_with = "modbus_rtu")]
     meb: Option<String>,
     /// The bus, spoken in Modbus RTU (docs/protocols/modbus-map.md): serial device or
     /// pty. Remote clients still speak MEB to the server; writes other than
@@ -57,67 +52,67 @@ pub struct SuperviseArgs {
     #[arg(long, conflicts_with = "listen")]
     no_server: bool,
     /// Baud rate of the serial bus (unless the link gives one).
-    #[arg(long, default_value_t = 115_200)]
+    #[arg(long, default_value_t = 115_200, value_parser = super::numbers::whole::<u32>)]
     baud: u32,
     /// Slave id to poll; repeat for several (each has its own loop).
     #[arg(long = "id", default_value = "1", value_name = "ID",
           value_parser = clap::value_parser!(u8).range(1..=99))]
     ids: Vec<u8>,
     /// Set point of the speed loop from the start, rpm (clients change it through VA 10).
-    #[arg(long, default_value_t = 0.0, value_name = "RPM")]
+    #[arg(long, default_value_t = 0.0, value_name = "RPM", value_parser = super::numbers::number)]
     set_point: f64,
     /// Hold VEL at this many DAC counts (0-4095) instead of closing the loop
     /// (clients close it through VD 10).
-    #[arg(long, value_name = "VEL")]
+    #[arg(long, value_name = "VEL", value_parser = super::numbers::whole::<u16>)]
     open_loop: Option<u16>,
     /// Proportional gain, VEL counts per rpm.
-    #[arg(long, default_value_t = 0.45)]
+    #[arg(long, default_value_t = 0.45, value_parser = super::numbers::number)]
     kp: f64,
     /// Integral gain, VEL counts per rpm per second.
-    #[arg(long, default_value_t = 2.5)]
+    #[arg(long, default_value_t = 2.5, value_parser = super::numbers::number)]
     ki: f64,
     /// Which speed reading closes the loop.
     #[arg(long, value_enum, default_value_t = Source::Hall)]
     speed_source: Source,
     /// From one poll cycle to the next, ms.
-    #[arg(long, default_value_t = 10.0, value_name = "MS")]
+    #[arg(long, default_value_t = 10.0, value_name = "MS", value_parser = super::numbers::number)]
     poll_ms: f64,
     /// Reply timeout, ms (docs/protocols/meb.md: 100).
-    #[arg(long, default_value_t = 100.0, value_name = "MS")]
+    #[arg(long, default_value_t = 100.0, value_name = "MS", value_parser = super::numbers::number)]
     timeout_ms: f64,
     /// Attempts after a missing or bad reply.
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = 2, value_parser = super::numbers::whole::<u8>)]
     retries: u8,
     /// Also read the status words (ED 00, FA 00-01, FD 00) every N poll
     /// cycles, so clients can read them from the image (0: never).
-    #[arg(long, default_value_t = 10, value_name = "N")]
+    #[arg(long, default_value_t = 10, value_name = "N", value_parser = super::numbers::whole::<u32>)]
     status_poll: u32,
     /// Remote clients at once. A newcomer beyond them takes the place of
     /// the client quiet longest if that one has sent nothing for
     /// --make-room-after, or of the one holding a partial frame longest if
     /// for over 1 s, else waits up to 1 s for a place, else is refused.
-    #[arg(long, default_value_t = 8, value_name = "N")]
+    #[arg(long, default_value_t = 8, value_name = "N", value_parser = super::numbers::whole::<usize>)]
     max_clients: usize,
     /// How long a client must have been quiet for a newcomer beyond
     /// --max-clients to take its place (0: never).
-    #[arg(long, default_value_t = 30.0, value_name = "SECONDS")]
+    #[arg(long, default_value_t = 30.0, value_name = "SECONDS", value_parser = super::numbers::number)]
     make_room_after: f64,
     /// Close a remote client that has sent nothing for this long (0: never;
     /// quiet connections stay open, as the MEB protocol page says).
-    #[arg(long, default_value_t = 0.0, value_name = "SECONDS")]
+    #[arg(long, default_value_t = 0.0, value_name = "SECONDS", value_parser = super::numbers::number)]
     idle_timeout: f64,
     /// Remote clients may read but not write (ER 01).
     #[arg(long)]
     read_only: bool,
     /// Close a client holding a partial frame this long, seconds.
-    #[arg(long, default_value_t = 5.0, value_name = "SECONDS")]
+    #[arg(long, default_value_t = 5.0, value_name = "SECONDS", value_parser = super::numbers::number)]
     partial_timeout: f64,
     /// Close a client sending more than this many frames per second (bursts
     /// of up to half as many again are allowed).
-    #[arg(long, default_value_t = 200.0, value_name = "FRAMES")]
+    #[arg(long, default_value_t = 200.0, value_name = "FRAMES", value_parser = super::numbers::number)]
     rate_limit: f64,
     /// Stop after this many seconds [default: run until interrupted].
-    #[arg(long, value_name = "SECONDS")]
+    #[arg(long, value_name = "SECONDS", value_parser = super::numbers::above_zero)]
     duration: Option<f64>,
     /// Where to write the recording (replaced if it exists) [default:
     /// supervise-START.mcap here, named by the session's start time in UTC, e.g.
@@ -131,7 +126,7 @@ pub struct SuperviseArgs {
     #[arg(long)]
     quiet: bool,
     /// Seconds between status lines (0: none).
-    #[arg(long, default_value_t = 1.0, value_name = "SECONDS")]
+    #[arg(long, default_value_t = 1.0, value_name = "SECONDS", value_parser = super::numbers::zero_or_more)]
     status_every: f64,
     /// Wait for a serial path that does not exist yet instead of failing.
     #[arg(long)]
@@ -161,6 +156,14 @@ fn millis(name: &str, ms: f64) -> Result<SimDuration> {
 }
 
 fn options(args: &SuperviseArgs) -> Result<SuperviseOptions> {
+    // Either link will do, so clap is not told one is required: it would
+    // name only the first.
+    if args.meb.is_none() && args.modbus_rtu.is_none() {
+        bail!(
+            "no bus to supervise: give --meb LINK (a controller that speaks MEB) or \
+             --modbus-rtu LINK (one that speaks Modbus RTU)"
+        );
+    }
     if !(args.set_point.is_finite() && (0.0..=20_000.0).contains(&args.set_point)) {
         bail!("--set-point {}: must be 0-20000 rpm", args.set_point);
     }

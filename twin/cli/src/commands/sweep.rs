@@ -13,7 +13,8 @@ use super::run::Progress;
 ///
 /// Runs the wheel open loop at each speed and holds the light sensor's rpm
 /// against the true rpm: below the fastest speed the photoresistor sees
-/// (derived in plant/src/light.rs and printed here) it tracks, above it the
+/// (worked out from the flag's angle, the cell's time constants and the
+/// detector's threshold, and printed here) it tracks, above it the
 /// reading falls to 0 or to a fraction of the speed.
 ///
 /// Each speed is reached with the VEL the DC motor's steady state asks for,
@@ -30,19 +31,19 @@ pub struct SweepArgs {
     #[arg(long, value_enum, default_value_t = Detector::Both)]
     detector: Detector,
     /// Lowest and highest wheel speed (rpm) [default: 50 and 1.6 × the detector's limit].
-    #[arg(long, value_name = "RPM", num_args = 2, value_names = ["FROM", "TO"])]
+    #[arg(long, value_name = "RPM", num_args = 2, value_names = ["FROM", "TO"], value_parser = super::numbers::above_zero)]
     rpm: Option<Vec<f64>>,
     /// Number of speeds, evenly spaced.
-    #[arg(long, default_value_t = 24, value_name = "N")]
+    #[arg(long, default_value_t = 24, value_name = "N", value_parser = super::numbers::whole::<usize>)]
     points: usize,
     /// Time to reach each speed before measuring (s).
-    #[arg(long, default_value_t = 3.0, value_name = "SECONDS")]
+    #[arg(long, default_value_t = 3.0, value_name = "SECONDS", value_parser = super::numbers::above_zero)]
     settle: f64,
     /// Time measured at each speed (s).
-    #[arg(long, default_value_t = 3.0, value_name = "SECONDS")]
+    #[arg(long, default_value_t = 3.0, value_name = "SECONDS", value_parser = super::numbers::above_zero)]
     measure: f64,
     /// Seed of the sensor noise.
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = 1, value_parser = super::numbers::whole::<u64>)]
     seed: u64,
     /// Folder for sweep.json, sweep.png and the runs' recordings [default: the
     /// figures and the plot in the current folder, no recordings].
@@ -153,8 +154,8 @@ fn print_report(r: &SweepReport) {
         r.preset, r.light_detector
     );
     println!(
-        "  the formula of plant/src/light.rs: the flag is seen up to {:.0} rpm; every dip lasts a \
-         sample below the threshold up to {:.0} rpm",
+        "  by the light sensor's model (flag angle, photoresistor time constants, threshold): \
+         the flag is seen up to {:.0} rpm; every dip lasts a sample below the threshold up to {:.0} rpm",
         r.light_limit_rpm, r.every_dip_sampled_below_rpm
     );
     println!(

@@ -25,13 +25,13 @@ pub struct VspArgs {
     second: PathBuf,
     /// Deliver bytes at this baud rate (8N1, 10 bits a byte) instead of at once:
     /// a pty ignores the rate a program sets, so this makes the line's timing real.
-    #[arg(long, value_name = "BAUD")]
+    #[arg(long, value_name = "BAUD", value_parser = super::numbers::whole::<u32>)]
     baud: Option<u32>,
     /// Print every chunk that crosses, in hex and ASCII, with its time.
     #[arg(long, short = 'm')]
     monitor: bool,
     /// Print the byte counters every SECONDS when they changed (0: only at the end).
-    #[arg(long, default_value_t = 10.0, value_name = "SECONDS")]
+    #[arg(long, default_value_t = 10.0, value_name = "SECONDS", value_parser = super::numbers::zero_or_more)]
     stats_every: f64,
 }
 

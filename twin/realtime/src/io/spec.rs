@@ -134,6 +134,10 @@ pub enum LinkSpecError {
         "unknown link `{spec}`: use tcp://HOST:PORT or a serial device or pseudo-terminal path"
     )]
     UnknownScheme { spec: String },
+    #[error(
+        "link `{spec}` looks like a misspelt TCP address, not a serial device: write `{suggestion}`"
+    )]
+    MisspeltTcp { spec: String, suggestion: String },
     #[error("link `{spec}`: `{host}` is not HOST:PORT ({why})")]
     BadTcp {
         spec: String,
@@ -161,6 +165,33 @@ pub enum LinkSpecError {
     },
 }
 
+/// `tcp:/127.0.0.1:5000`, `tcp:127.0.0.1:5000`, `TCP://…` or a bare
+/// `127.0.0.1:5000`: what `tcp://HOST:PORT` was meant to be, unless a file
+/// of that name exists (a device path may hold colons, as
+/// /dev/serial/by-path/ names do, but those begin with `/`).
+fn misspelt_tcp(location: &str) -> Option<String> {
+    if Path::new(location).exists() {
+        return None;
+    }
+    let lower = location.to_ascii_lowercase();
+    let rest = if let Some(rest) = lower.strip_prefix("tcp") {
+        let rest = rest.trim_start_matches([':', '/', ';', '.']);
+        (rest.len() < lower.len() - 3).then_some(rest)?
+    } else {
+        // HOST:PORT with no scheme: a name or address, a colon, a port.
+        let (host, port) = lower.rsplit_once(':')?;
+        let host_like = !host.is_empty()
+            && !host.starts_with(['.', '/', '~'])
+            && host
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '-' | '[' | ']' | ':'));
+        (host_like && !port.is_empty() && port.chars().all(|c| c.is_ascii_digit()))
+            .then_some(lower.as_str())?
+    };
+    let start = location.len() - rest.len();
+    Some(format!("tcp://{}", &location[start..]))
+}
+
 const SERIAL_OPTIONS: &str = "baud, parity, stop, data, turnaround_ms, pace, silence_ms";
 const TCP_OPTIONS: &str = "turnaround_ms, pace, baud";
 
@@ -174,10 +205,18 @@ impl LinkSpec {
         }
         let (addr, known) = match location.strip_prefix("tcp://") {
             Some(host) => (LinkAddr::Tcp(resolve(text, host)?), TCP_OPTIONS),
-            None if location.contains("://") => {
-                return Err(LinkSpecError::UnknownScheme { spec: spec() });
+            None => {
+                if let Some(suggestion) = misspelt_tcp(location) {
+                    return Err(LinkSpecError::MisspeltTcp {
+                        spec: spec(),
+                        suggestion,
+                    });
+                }
+                if location.contains("://") {
+                    return Err(LinkSpecError::UnknownScheme { spec: spec() });
+                }
+                (LinkAddr::Serial(PathBuf::from(location)), SERIAL_OPTIONS)
             }
-            None => (LinkAddr::Serial(PathBuf::from(location)), SERIAL_OPTIONS),
         };
         let tcp = matches!(addr, LinkAddr::Tcp(_));
         let mut link = LinkSpec {
@@ -343,6 +382,37 @@ fn resolve(spec: &str, host: &str) -> Result<SocketAddr, LinkSpecError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_misspelt_tcp_address_is_not_taken_for_a_serial_port() {
+        for (written, meant) in [
+            ("tcp:/127.0.0.1:5000", "tcp://127.0.0.1:5000"),
+            ("tcp:127.0.0.1:5000", "tcp://127.0.0.1:5000"),
+            ("tcp//localhost:5020", "tcp://localhost:5020"),
+            ("TCP:/127.0.0.1:5000", "tcp://127.0.0.1:5000"),
+            ("127.0.0.1:5000", "tcp://127.0.0.1:5000"),
+            ("localhost:5020", "tcp://localhost:5020"),
+        ] {
+            let e = LinkSpec::parse(written, &LinkDefaults::default())
+                .expect_err(written)
+                .to_string();
+            assert_eq!(
+                e,
+                format!(
+                    "link `{written}` looks like a misspelt TCP address, not a serial device: write `{meant}`"
+                )
+            );
+        }
+        for serial in [
+            "/dev/ttyUSB0",
+            "/tmp/ttyV0",
+            "/dev/serial/by-path/pci-0000:00:14.0-usb-0:1:1.0-port0",
+            "ttyS0",
+        ] {
+            let l = LinkSpec::parse(serial, &LinkDefaults::default()).expect(serial);
+            assert!(!l.is_tcp(), "{serial}");
+        }
+    }
 
     #[test]
     fn serial_options_override_the_defaults() {

@@ -130,7 +130,7 @@ pub fn parse(line: &str) -> Result<Option<Command>, String> {
                     Ok(l) => {
                         e.set_fault(Some(fault), l);
                         let on = link.as_deref().unwrap_or("every link");
-                        e.say(format!("fault {fault:?} on {on}"));
+                        e.say(format!("fault {fault} on {on}"));
                     }
                     Err(why) => e.say(why),
                 },

@@ -38,7 +38,7 @@ pub fn parse(text: &str, path: &Path) -> Result<MebMap> {
             let line = e.span().map_or(1, |s| line_of(text, s.start));
             anyhow!(
                 "{shown}:{line}: {} (the map is one table per block, e.g. [EA] with V1 = 0)",
-                e.message().trim()
+                plant::toml_errors::in_words(e.message().trim())
             )
         })?;
     let mut map = MebMap::default();
@@ -98,5 +98,7 @@ mod tests {
             e.starts_with("map.toml:1:") && e.contains("one table per block"),
             "{e}"
         );
+        assert!(e.contains("expected a table, found 0"), "{e}");
+        assert!(!e.contains("a map"), "{e}");
     }
 }
