@@ -5,7 +5,7 @@
     reason = "commands time their runs and wait on real links and viewers"
 )]
 
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, Parser, Subcommand};
 use std::process::ExitCode;
 
 mod commands;
@@ -42,6 +42,8 @@ enum Command {
     Sweep(commands::sweep::SweepArgs),
     Experiment(commands::experiment::ExperimentArgs),
     Bench(commands::bench::BenchArgs),
+    Completions(commands::completions::CompletionsArgs),
+    Man(commands::man::ManArgs),
 }
 
 impl Command {
@@ -85,6 +87,8 @@ fn main() -> ExitCode {
         Command::Sweep(args) => commands::sweep::execute(&args),
         Command::Experiment(args) => commands::experiment::execute(&args),
         Command::Bench(args) => commands::bench::execute(&args),
+        Command::Completions(args) => commands::completions::execute(&args, Cli::command()),
+        Command::Man(args) => commands::man::execute(&args, Cli::command()),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -8,7 +8,7 @@ use std::time::Instant;
 use twin_recording::{Recording, diff};
 use twin_sim::replay::RunSpec;
 
-use super::run::Progress;
+use super::progress::Progress;
 
 /// Re-run the scenario stored in a recording and check that the new run matches.
 ///
@@ -97,7 +97,7 @@ pub fn execute(args: &ReplayArgs) -> Result<()> {
         bail!("--out must not be the recording being replayed");
     }
     let started = Instant::now();
-    let mut progress = Progress::new();
+    let progress = Progress::simulated("replay", spec.duration_s());
     let path = spec.run(&out, |done| progress.show(done))?;
     progress.clear();
     println!(
@@ -196,7 +196,7 @@ fn frames_to(args: &ReplayArgs, link_spec: &str) -> Result<()> {
     }
     let mut link = Link::open(link_spec)?;
     let started = Instant::now();
-    let mut progress = Progress::new();
+    let progress = Progress::fraction("sending the recorded requests");
     let report = replay_frames(
         &recorded,
         &mut link,

@@ -8,7 +8,7 @@ use std::path::PathBuf;
 use twin_lab::step::{self, StepConfig, StepDrive, StepReport};
 use twin_sim::scenario::{NodeSpec, Scenario};
 
-use super::run::Progress;
+use super::progress::Progress;
 
 /// Step response of the wheel, the hall rpm and the light-sensor rpm: rise, overshoot, settling, delay.
 ///
@@ -133,7 +133,7 @@ pub fn execute(args: &StepArgs) -> Result<()> {
         }
         None => PathBuf::from("step.mcap"),
     };
-    let mut progress = Progress::new();
+    let progress = Progress::fraction("step response");
     let report = step::run(&config, &recording, |f| progress.show(f))?;
     progress.clear();
     print_report(&report);

@@ -6,7 +6,7 @@ use clap::{Args, ValueEnum};
 use std::path::PathBuf;
 use twin_lab::sweep::{self, SweepConfig, SweepReport};
 
-use super::run::Progress;
+use super::progress::Progress;
 
 /// Light-sensor rpm against true rpm over a range of speeds: where the flag is lost.
 ///
@@ -92,6 +92,7 @@ pub fn execute(args: &SweepArgs) -> Result<()> {
         None => None,
     };
     let mut reports = Vec::new();
+    let progress = Progress::fraction("sweep");
     for (i, &adaptive) in detectors.iter().enumerate() {
         let config = SweepConfig {
             params: params.clone(),
@@ -109,14 +110,13 @@ pub fn execute(args: &SweepArgs) -> Result<()> {
             std::fs::create_dir_all(d)
                 .with_context(|| format!("cannot create folder {}", d.display()))?;
         }
-        let mut progress = Progress::new();
         let n = detectors.len() as f64;
         let report = sweep::run(&config, dir.as_deref(), |f| {
             progress.show((i as f64 + f) / n)
         })?;
-        progress.clear();
         reports.push(report);
     }
+    progress.clear();
     for r in &reports {
         print_report(r);
     }
