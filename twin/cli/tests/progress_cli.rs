@@ -156,3 +156,27 @@ fn bench_shows_each_run_it_times() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert_quiet("twin bench", &o.stderr);
 }
+
+#[test]
+fn the_parallel_experiment_shows_each_variant() {
+    let dir = scratch("parallel");
+    let args = [
+        "experiment",
+        "parallel",
+        "--duration",
+        "1",
+        "--out-dir",
+        dir.to_str().unwrap(),
+    ];
+    let (shown, o) = on_a_terminal(&args);
+    assert!(o.status.success(), "terminal: {shown}");
+    for variant in ["parallel-pwm-broadcast [", "parallel-rtu-1m ["] {
+        assert!(
+            shown.contains(variant),
+            "no `{variant}` on the terminal: {shown:?}"
+        );
+    }
+    let o = piped(&args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_quiet("twin experiment parallel", &o.stderr);
+}
