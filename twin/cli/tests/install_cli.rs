@@ -193,3 +193,24 @@ fn man_out_writes_a_page_per_command_that_man_reads() {
     let text = String::from_utf8_lossy(&o.stdout);
     assert!(text.contains("--cable-model"), "{text}");
 }
+
+#[test]
+fn a_reader_that_goes_early_ends_twin_quietly() {
+    for args in [&["completions", "zsh"][..], &["man"][..]] {
+        // `twin … | head -c 0`: the pipe's reading end is closed before
+        // twin writes a byte.
+        let (reader, writer) = std::io::pipe().expect("pipe");
+        drop(reader);
+        let o = Command::new(env!("CARGO_BIN_EXE_twin"))
+            .args(args)
+            .stdout(writer)
+            .output()
+            .expect("twin runs");
+        assert_eq!(o.status.code(), Some(141), "twin {}", args.join(" "));
+        assert!(
+            o.stderr.is_empty(),
+            "{}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+    }
+}

@@ -35,6 +35,7 @@ pub struct CompletionsArgs {
 /// Writes the script for `twin`'s definition `cli` to stdout.
 pub fn execute(args: &CompletionsArgs, mut cli: clap::Command) -> Result<()> {
     let name = cli.get_name().to_string();
-    clap_complete::generate(args.shell, &mut cli, name, &mut std::io::stdout());
-    Ok(())
+    let mut script = Vec::new();
+    clap_complete::generate(args.shell, &mut cli, name, &mut script);
+    super::print_bytes(&script)
 }

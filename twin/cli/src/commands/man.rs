@@ -46,8 +46,7 @@ pub fn execute(args: &ManArgs, cli: clap::Command) -> Result<()> {
     let Some(dir) = &args.out else {
         let mut page = Vec::new();
         Man::new(cli).render(&mut page)?;
-        std::io::Write::write_all(&mut std::io::stdout(), &page)?;
-        return Ok(());
+        return super::print_bytes(&page);
     };
     std::fs::create_dir_all(dir)
         .with_context(|| format!("cannot create folder {}", dir.display()))?;

@@ -46,6 +46,18 @@ fn print_session_end(outcome: &twin_realtime::session::SessionOutcome) {
     }
 }
 
+/// Writes a generated file (a completion script, a manual page) to stdout.
+/// A reader that has gone (`twin man | head`) ends the program as SIGPIPE
+/// would, quietly, like the panic hook in `main` does for `println!`.
+fn print_bytes(bytes: &[u8]) -> anyhow::Result<()> {
+    use std::io::Write;
+    let mut out = std::io::stdout().lock();
+    match out.write_all(bytes).and_then(|()| out.flush()) {
+        Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => std::process::exit(141),
+        written => Ok(written?),
+    }
+}
+
 /// Ctrl-C or SIGTERM during a virtual run stops it where it has got to and
 /// finishes its recording (a second Ctrl-C quits at once, the recording
 /// then cut short: `twin recover` makes it whole).
