@@ -14,7 +14,7 @@ fn every_embedded_scenario_matches_its_baseline() {
     std::fs::create_dir_all(&scratch).expect("temp dir");
     let mut failures = Vec::new();
     for name in baseline::names() {
-        let c = baseline::check(&dir, name, &scratch.join(format!("{name}.mcap")))
+        let c = baseline::check(&dir, name, &scratch.join(format!("{name}.mcap")), |_| {})
             .unwrap_or_else(|e| panic!("{name}: {e:#}"));
         assert!(!c.rows.is_empty(), "{name}: no signals compared");
         if !c.passed() {

@@ -42,6 +42,8 @@ enum Command {
     Sweep(commands::sweep::SweepArgs),
     Experiment(commands::experiment::ExperimentArgs),
     Bench(commands::bench::BenchArgs),
+    Completions(commands::completions::CompletionsArgs),
+    Man(commands::man::ManArgs),
 }
 
 impl Command {
@@ -88,6 +90,8 @@ fn main() -> ExitCode {
         Command::Sweep(args) => commands::sweep::execute(&args),
         Command::Experiment(args) => commands::experiment::execute(&args),
         Command::Bench(args) => commands::bench::execute(&args),
+        Command::Completions(args) => commands::completions::execute(&args, Cli::command()),
+        Command::Man(args) => commands::man::execute(&args, Cli::command()),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

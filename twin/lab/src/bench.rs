@@ -40,11 +40,14 @@ impl Measurement {
 }
 
 /// Run `scenario` without recording: build, run to its end, discard everything.
-pub fn run_discarding(scenario: &Scenario) -> Result<Measurement> {
+/// `progress` gets the fraction of the run done (every few thousand events).
+pub fn run_discarding(scenario: &Scenario, mut progress: impl FnMut(f64)) -> Result<Measurement> {
     let started = Instant::now();
     let mut engine = virtual_run::build(scenario)?;
     let end = SimTime::ZERO + SimDuration::from_secs_f64(scenario.duration_s);
-    engine.run_until(end, &mut twin_sim::engine::DiscardObserver, |_| {})?;
+    engine.run_until(end, &mut twin_sim::engine::DiscardObserver, |t| {
+        progress(t.as_secs_f64() / scenario.duration_s)
+    })?;
     if engine.interrupted() {
         let at_s = engine.now().as_secs_f64();
         return Err(twin_sim::interrupt::Interrupted {
@@ -63,10 +66,15 @@ pub fn run_discarding(scenario: &Scenario) -> Result<Measurement> {
     })
 }
 
-/// Run `scenario` as `twin run` does, recording to `out` (left in place).
-pub fn run_recording(scenario: &Scenario, out: &Path) -> Result<Measurement> {
+/// Run `scenario` as `twin run` does, recording to `out` (left in place);
+/// `progress` gets the fraction of the run done.
+pub fn run_recording(
+    scenario: &Scenario,
+    out: &Path,
+    progress: impl FnMut(f64),
+) -> Result<Measurement> {
     let started = Instant::now();
-    let outcome = virtual_run::run(scenario, out, |_| {})?;
+    let outcome = virtual_run::run(scenario, out, progress)?;
     let wall_s = started.elapsed().as_secs_f64();
     let recording_bytes = std::fs::metadata(&outcome.recording)
         .with_context(|| format!("cannot read {}", outcome.recording.display()))?
@@ -146,9 +154,9 @@ mod tests {
     #[test]
     fn recording_does_not_change_the_run() {
         let s = short("ten-modules", 1.0);
-        let discarded = run_discarding(&s).expect("runs");
+        let discarded = run_discarding(&s, |_| {}).expect("runs");
         let out = scratch_recording("unit-test");
-        let recorded = run_recording(&s, &out).expect("runs and records");
+        let recorded = run_recording(&s, &out, |_| {}).expect("runs and records");
         let _ = std::fs::remove_file(&out);
         assert_eq!(discarded.simulated_s, 1.0);
         assert_eq!(recorded.simulated_s, 1.0);
@@ -163,8 +171,8 @@ mod tests {
     fn ten_modules_records_byte_identically_twice() {
         let s = short("ten-modules", 0.5);
         let (a, b) = (scratch_recording("det-a"), scratch_recording("det-b"));
-        run_recording(&s, &a).expect("first run");
-        run_recording(&s, &b).expect("second run");
+        run_recording(&s, &a, |_| {}).expect("first run");
+        run_recording(&s, &b, |_| {}).expect("second run");
         let (x, y) = (std::fs::read(&a), std::fs::read(&b));
         let _ = (std::fs::remove_file(&a), std::fs::remove_file(&b));
         let (x, y) = (x.expect("first recording"), y.expect("second recording"));

@@ -60,12 +60,14 @@ pub struct ParallelFigures {
 }
 
 /// Runs one embedded variant (optionally shorter, or with another seed) into
-/// `out_dir` and analyses its recording.
+/// `out_dir` and analyses its recording; `progress` gets the fraction of the
+/// run done.
 pub fn run_variant(
     name: &str,
     out_dir: &Path,
     duration_s: Option<f64>,
     seed: Option<u64>,
+    progress: impl FnMut(f64),
 ) -> Result<ParallelFigures> {
     let mut scenario = Scenario::load(name)?;
     if let Some(d) = duration_s {
@@ -75,7 +77,7 @@ pub fn run_variant(
         scenario.seed = s;
     }
     let out = out_dir.join(format!("{name}.mcap"));
-    let outcome = virtual_run::run(&scenario, &out, |_| {})?;
+    let outcome = virtual_run::run(&scenario, &out, progress)?;
     analyse(&scenario, &outcome.recording)
 }
 

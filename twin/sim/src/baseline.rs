@@ -91,15 +91,21 @@ pub fn path(dir: &Path, name: &str) -> PathBuf {
     dir.join(format!("{name}.mcap"))
 }
 
-/// Record the baseline of `name` into `dir`.
-pub fn record(dir: &Path, name: &str) -> Result<PathBuf> {
+/// Record the baseline of `name` into `dir`; `progress` gets the fraction
+/// of the run done.
+pub fn record(dir: &Path, name: &str, progress: impl FnMut(f64)) -> Result<PathBuf> {
     let s = scenario(name)?;
-    Ok(crate::virtual_run::run(&s, &path(dir, name), |_| {})?.recording)
+    Ok(crate::virtual_run::run(&s, &path(dir, name), progress)?.recording)
 }
 
 /// Run `name` afresh (recording to `scratch`) and compare it with its
-/// baseline in `dir`.
-pub fn check(dir: &Path, name: &str, scratch: &Path) -> Result<Comparison> {
+/// baseline in `dir`; `progress` gets the fraction of the run done.
+pub fn check(
+    dir: &Path,
+    name: &str,
+    scratch: &Path,
+    progress: impl FnMut(f64),
+) -> Result<Comparison> {
     let baseline_path = path(dir, name);
     if !baseline_path.exists() {
         bail!(
@@ -109,7 +115,7 @@ pub fn check(dir: &Path, name: &str, scratch: &Path) -> Result<Comparison> {
     }
     let baseline = Signals::read(&baseline_path)?;
     let s = scenario(name)?;
-    let fresh = crate::virtual_run::run(&s, scratch, |_| {})?.recording;
+    let fresh = crate::virtual_run::run(&s, scratch, progress)?.recording;
     let run = Signals::read(&fresh)?;
     Ok(compare::compare(&run, &baseline, &Tolerances::default()))
 }

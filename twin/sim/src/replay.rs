@@ -122,6 +122,14 @@ impl RunSpec {
         }
     }
 
+    /// Its length in simulated seconds.
+    pub fn duration_s(&self) -> f64 {
+        match self {
+            RunSpec::Scenario(s) => s.duration_s,
+            RunSpec::OpenLoop(o) => o.duration_s,
+        }
+    }
+
     /// Run it, recording to `out`.
     pub fn run(&self, out: &Path, progress: impl FnMut(f64)) -> Result<PathBuf> {
         Ok(match self {

@@ -8,6 +8,8 @@ use std::time::Instant;
 use twin_recording::compare;
 use twin_sim::baseline;
 
+use super::progress::Progress;
+
 /// Check every embedded scenario against its baseline recording, or re-record baselines.
 ///
 /// Each embedded scenario is run cut down as `recordings/baselines/baselines.toml`
@@ -49,11 +51,17 @@ pub fn execute(args: &BaselineArgs) -> Result<()> {
         );
     }
     let dir = folder(args)?;
+    // One bar per scenario, taken off before its line is printed.
+    let progress = |i: usize, name: &str| {
+        let total_s = baseline::scenario(name).map_or(1.0, |s| s.duration_s);
+        Progress::simulated(&format!("{name} ({} of {})", i + 1, names.len()), total_s)
+    };
     if args.record {
-        for name in &names {
-            let path = baseline::path(&dir, name);
-            let existed = path.exists();
-            baseline::record(&dir, name)?;
+        for (i, name) in names.iter().enumerate() {
+            let existed = baseline::path(&dir, name).exists();
+            let bar = progress(i, name);
+            let path = baseline::record(&dir, name, |done| bar.show(done))?;
+            bar.clear();
             let size = std::fs::metadata(&path)?.len();
             println!(
                 "twin baseline: {} {} ({:.1} kB){}",
@@ -73,14 +81,21 @@ pub fn execute(args: &BaselineArgs) -> Result<()> {
     let scratch = std::env::temp_dir().join(format!("twin-baseline-{}", std::process::id()));
     std::fs::create_dir_all(&scratch)?;
     let (mut failed, mut missing) = (Vec::new(), Vec::new());
-    for name in &names {
+    for (i, name) in names.iter().enumerate() {
         if !baseline::path(&dir, name).exists() {
             println!("  {name:<24} MISSING  no {name}.mcap there");
             missing.push(name.clone());
             continue;
         }
         let started = Instant::now();
-        let result = baseline::check(&dir, name, &scratch.join(format!("{name}.mcap")));
+        let bar = progress(i, name);
+        let result = baseline::check(
+            &dir,
+            name,
+            &scratch.join(format!("{name}.mcap")),
+            |done| bar.show(done),
+        );
+        bar.clear();
         let wall = started.elapsed().as_secs_f64();
         match result {
             Ok(c) if c.passed() => {

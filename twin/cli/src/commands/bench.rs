@@ -4,6 +4,8 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use twin_lab::bench::{self, DEFAULT_SCENARIOS, Measurement};
 
+use super::progress::Progress;
+
 /// Measure how much faster than real time scenarios run.
 ///
 /// The real-time factor is simulated seconds per wall-clock second, measured
@@ -57,11 +59,30 @@ pub fn execute(args: &BenchArgs) -> Result<()> {
         if let Some(s) = args.seconds {
             scenario.duration_s = s;
         }
-        let discarded = bench::best_of(args.repeat, || bench::run_discarding(&scenario))
-            .with_context(|| format!("scenario {} failed", scenario.name))?;
+        // The bar's redraws are few (at most five a second, from the
+        // engine's progress hook): they cost the measurement nothing visible.
+        let mut run = 0;
+        let mut new_bar = |recording: &str| {
+            run += 1;
+            let n = args.repeat;
+            let what = format!(
+                "{}, {recording}, run {} of {n}",
+                scenario.name,
+                (run - 1) % n + 1
+            );
+            Progress::simulated(&what, scenario.duration_s)
+        };
+        let discarded = bench::best_of(args.repeat, || {
+            let bar = new_bar("not recorded");
+            bench::run_discarding(&scenario, |done| bar.show(done))
+        })
+        .with_context(|| format!("scenario {} failed", scenario.name))?;
         print_row(&scenario.name, "off", &discarded, discarded.events);
         let out = bench::scratch_recording(&scenario.name);
-        let recorded = bench::best_of(args.repeat, || bench::run_recording(&scenario, &out));
+        let recorded = bench::best_of(args.repeat, || {
+            let bar = new_bar("recorded");
+            bench::run_recording(&scenario, &out, |done| bar.show(done))
+        });
         // Remove the scratch file whatever happened, then report.
         let _ = std::fs::remove_file(&out);
         let recorded = recorded.with_context(|| format!("scenario {} failed", scenario.name))?;

@@ -1,5 +1,6 @@
 //! `twin experiment`: reproduce a source paper's figures from the twin's models.
 
+use super::progress::Progress;
 use anyhow::{Result, bail};
 use clap::{Args, Subcommand};
 use twin_lab::pwmcap::{
@@ -105,7 +106,15 @@ fn execute_parallel(args: &ParallelArgs) -> Result<()> {
         .filter(|name| args.out_dir.join(format!("{name}.mcap")).is_file())
         .count();
     for name in VARIANTS {
-        let f = run_variant(name, &args.out_dir, args.duration, args.seed)?;
+        let total_s = match args.duration {
+            Some(d) => d,
+            None => twin_sim::scenario::Scenario::load(name)?.duration_s,
+        };
+        let bar = Progress::simulated(name, total_s);
+        let f = run_variant(name, &args.out_dir, args.duration, args.seed, |done| {
+            bar.show(done)
+        })?;
+        bar.clear();
         let errors: u64 = ["timeout", "bad_check", "dropped"]
             .iter()
             .filter_map(|k| f.events.get(*k))

@@ -4,6 +4,7 @@ pub mod baseline;
 pub mod bench;
 pub mod client;
 pub mod compare;
+pub mod completions;
 pub mod experiment;
 pub mod export;
 mod live_view;
@@ -11,7 +12,9 @@ mod output;
 mod node_summary;
 mod numbers;
 pub use numbers::take_negative_numbers;
+pub mod man;
 mod plant_args;
+mod progress;
 pub mod recover;
 pub mod replay;
 pub mod run;
@@ -51,6 +54,18 @@ fn print_session_end(
         (Some(_), Some(e)) => eprintln!("live view: {e}"),
         (Some(samples), None) => println!("live view: {samples} samples streamed to rerun"),
         _ => {}
+    }
+}
+
+/// Writes a generated file (a completion script, a manual page) to stdout.
+/// A reader that has gone (`twin man | head`) ends the program as SIGPIPE
+/// would, quietly, like the panic hook in `main` does for `println!`.
+fn print_bytes(bytes: &[u8]) -> anyhow::Result<()> {
+    use std::io::Write;
+    let mut out = std::io::stdout().lock();
+    match out.write_all(bytes).and_then(|()| out.flush()) {
+        Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => std::process::exit(141),
+        written => Ok(written?),
     }
 }
 

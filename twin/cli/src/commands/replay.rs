@@ -9,7 +9,7 @@ use twin_lab::step::StepConfig;
 use twin_recording::{Recording, diff};
 use twin_sim::replay::RunSpec;
 
-use super::run::Progress;
+use super::progress::Progress;
 
 /// Re-run the scenario stored in a recording and check that the new run matches.
 ///
@@ -110,7 +110,7 @@ pub fn execute(args: &ReplayArgs) -> Result<()> {
     }
     let earlier = super::output::Earlier::at(&out);
     let started = Instant::now();
-    let mut progress = Progress::new();
+    let progress = Progress::simulated("replay", rerun.duration_s());
     let path = rerun.run(&out, |done| progress.show(done))?;
     progress.clear();
     println!(
@@ -211,6 +211,13 @@ impl Rerun {
         }
     }
 
+    fn duration_s(&self) -> f64 {
+        match self {
+            Rerun::Run(spec) => spec.duration_s(),
+            Rerun::Step(step) => step.duration_s,
+        }
+    }
+
     fn run(&self, out: &Path, progress: impl FnMut(f64)) -> Result<PathBuf> {
         match self {
             Rerun::Run(spec) => spec.run(out, progress),
@@ -253,7 +260,7 @@ fn frames_to(args: &ReplayArgs, link_spec: &str) -> Result<()> {
     }
     let mut link = Link::open(link_spec)?;
     let started = Instant::now();
-    let mut progress = Progress::new();
+    let progress = Progress::fraction("sending the recorded requests");
     let report = replay_frames(
         &recorded,
         &mut link,

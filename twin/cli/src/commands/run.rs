@@ -2,7 +2,6 @@
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use std::io::{IsTerminal, Write};
 use std::path::PathBuf;
 use std::time::Instant;
 use twin_sim::openloop::{self, OpenLoop};
@@ -11,6 +10,7 @@ use twin_sim::virtual_run::{self, ControllerOutcome};
 use twin_view::{self as view, RerunObserver, ViewLayout, ViewTarget};
 
 use super::output::Earlier;
+use super::progress::Progress;
 
 /// Run a scenario in simulated time, far faster than real time, and record it.
 ///
@@ -120,7 +120,7 @@ pub fn execute(args: &RunArgs) -> Result<()> {
         None => None,
     };
     let started = Instant::now();
-    let mut progress = Progress::new();
+    let progress = Progress::simulated(&scenario.name, scenario.duration_s);
     let outcome = match live.as_mut() {
         Some(observer) => {
             virtual_run::run_with(&scenario, &out, observer, |done| progress.show(done))
@@ -254,36 +254,6 @@ fn print_speed_sensors(c: &ControllerOutcome, wheel_rpm: f64) {
     );
 }
 
-/// A progress line on stderr when it is a terminal, at most five times a second.
-pub struct Progress {
-    enabled: bool,
-    last: Instant,
-    shown: bool,
-}
-
-impl Progress {
-    pub fn new() -> Self {
-        Self {
-            enabled: std::io::stderr().is_terminal(),
-            last: Instant::now(),
-            shown: false,
-        }
-    }
-    pub fn show(&mut self, done: f64) {
-        if self.enabled && self.last.elapsed().as_millis() > 200 {
-            eprint!("\r  simulating… {:3.0} %", done * 100.0);
-            let _ = std::io::stderr().flush();
-            self.last = Instant::now();
-            self.shown = true;
-        }
-    }
-    pub fn clear(&self) {
-        if self.shown {
-            eprint!("\r                        \r");
-        }
-    }
-}
-
 fn execute_open_loop(args: &RunArgs) -> Result<()> {
     let params = args.plant.load()?;
     let duration = args.duration.unwrap_or(3.0);
@@ -310,7 +280,7 @@ fn execute_open_loop(args: &RunArgs) -> Result<()> {
         .unwrap_or_else(|| PathBuf::from("twin-run.mcap"));
     let earlier = Earlier::at(&out);
     let started = Instant::now();
-    let mut progress = Progress::new();
+    let progress = Progress::simulated("the bench, open loop", duration);
     let summary = openloop::run(&config, &out, |done| progress.show(done))
         .with_context(|| format!("run failed; recording at {}", out.display()))?;
     progress.clear();

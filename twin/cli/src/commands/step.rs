@@ -9,7 +9,7 @@ use twin_lab::step::{self, StepConfig, StepDrive, StepReport};
 use twin_sim::scenario::{NodeSpec, Scenario};
 
 use super::output::Earlier;
-use super::run::Progress;
+use super::progress::Progress;
 use twin_lab::step::short;
 
 /// Step response of the wheel, the hall rpm and the light-sensor rpm: rise, overshoot, settling, delay.
@@ -137,7 +137,7 @@ pub fn execute(args: &StepArgs) -> Result<()> {
     }
     let [json, png, recording] = ["step.json", "step.png", "step.mcap"].map(|f| dir.join(f));
     let earlier = [&json, &png, &recording].map(|p| Earlier::at(p));
-    let mut progress = Progress::new();
+    let progress = Progress::fraction("step response");
     let report = step::run(&config, &recording, |f| progress.show(f))?;
     progress.clear();
     print_report(&report);

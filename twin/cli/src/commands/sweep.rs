@@ -7,7 +7,8 @@ use std::path::PathBuf;
 use twin_lab::sweep::{self, SweepConfig, SweepReport};
 
 use super::output::Earlier;
-use super::run::Progress;
+
+use super::progress::Progress;
 
 /// Light-sensor rpm against true rpm over a range of speeds: where the flag is lost.
 ///
@@ -96,6 +97,7 @@ pub fn execute(args: &SweepArgs) -> Result<()> {
         None => None,
     };
     let mut reports = Vec::new();
+    let progress = Progress::fraction("sweep");
     for (i, &adaptive) in detectors.iter().enumerate() {
         let config = SweepConfig {
             params: params.clone(),
@@ -113,14 +115,13 @@ pub fn execute(args: &SweepArgs) -> Result<()> {
             std::fs::create_dir_all(d)
                 .with_context(|| format!("cannot create folder {}", d.display()))?;
         }
-        let mut progress = Progress::new();
         let n = detectors.len() as f64;
         let report = sweep::run(&config, dir.as_deref(), |f| {
             progress.show((i as f64 + f) / n)
         })?;
-        progress.clear();
         reports.push(report);
     }
+    progress.clear();
     for r in &reports {
         print_report(r);
     }
