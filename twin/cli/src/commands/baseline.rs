@@ -89,12 +89,9 @@ pub fn execute(args: &BaselineArgs) -> Result<()> {
         }
         let started = Instant::now();
         let bar = progress(i, name);
-        let result = baseline::check(
-            &dir,
-            name,
-            &scratch.join(format!("{name}.mcap")),
-            |done| bar.show(done),
-        );
+        let result = baseline::check(&dir, name, &scratch.join(format!("{name}.mcap")), |done| {
+            bar.show(done)
+        });
         bar.clear();
         let wall = started.elapsed().as_secs_f64();
         match result {
