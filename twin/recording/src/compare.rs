@@ -100,7 +100,10 @@ impl Tolerances {
             let place = line.map_or_else(String::new, |l| format!(":{l}"));
             // Every number of the file is a float: serde's Rust name for
             // it is no word of the user's.
-            let message = e.message().trim().replace("expected f64", "expected a number");
+            let message = e
+                .message()
+                .trim()
+                .replace("expected f64", "expected a number");
             anyhow::anyhow!("{origin}{place}: {message}")
         })?;
         let default = file.default.unwrap_or_default();

@@ -760,7 +760,10 @@ mod tests {
         let text = ev_meb_with("bus = \"rs485\"\nslaves", "bus = \"rs458\"\nslaves");
         let e = Scenario::parse(&text, "s.toml").unwrap_err().to_string();
         let line = line_of(&text, "rs458");
-        assert!(e.starts_with(&format!("s.toml:{line}: `bus` `rs458`")), "{e}");
+        assert!(
+            e.starts_with(&format!("s.toml:{line}: `bus` `rs458`")),
+            "{e}"
+        );
     }
 
     #[test]
