@@ -113,6 +113,8 @@ fn a_long_run_piped_prints_no_progress() {
 #[test]
 fn recording_a_baseline_shows_which_scenario_is_running() {
     let dir = scratch("baselines");
+    // `--record` writes into a set of baselines; it does not start one.
+    std::fs::create_dir_all(&dir).unwrap();
     let args = [
         "baseline",
         "--record",
