@@ -121,7 +121,9 @@ fn a_light_sensor_that_loses_the_flag_is_named_not_measured() {
 fn the_default_scenarios_light_sensor_is_measured_at_its_own_speeds() {
     // ev-meb's controller runs the adaptive detector: the step names it,
     // with its limit, and at 1000 → 1500 rpm the light sensor has figures.
-    let out = ok(&["step", "--from", "1000", "--to", "1500"]);
+    let dir = scratch("adaptive");
+    let d = dir.to_str().expect("utf-8 path");
+    let out = ok(&["step", "--from", "1000", "--to", "1500", "--out", d]);
     assert!(
         out.contains("light detector: EV controller, adaptive (swing ≥ 0.244 V); it sees the flag up to 1793 rpm"),
         "{out}"
