@@ -260,6 +260,71 @@ fn meb_and_modbus_tcp_serve_one_module_and_a_write_turns_the_wheel() {
     assert!(!summary.metadata_indexes.is_empty());
 }
 
+/// RPM_M and RPM_L once the wheel turns at VEL `vel`: as soon as they agree
+/// within 5 %, or 3 s after the hall rpm passed 800 (15 s at most).
+fn spin_and_read_speeds(server: &Server, vel: u16) -> (u16, u16) {
+    let mut m = connect(&server.tcp(0));
+    let ack = meb(&mut m, &meb_frame(1, MebCmd::SD, 0, 1, &[SD0_RUN]));
+    assert_eq!(ack.cmd, MebCmd::SD, "{ack:?}");
+    let ack = meb(&mut m, &meb_frame(1, MebCmd::SA, 0, 1, &[vel]));
+    assert_eq!(ack.cmd, MebCmd::SA, "{ack:?}");
+    let mut deadline = Instant::now() + Duration::from_secs(15);
+    let mut fast = false;
+    loop {
+        let ea = read_ea(&mut m);
+        let (hall, light) = (ea[3], ea[4]);
+        if hall > 800 && !fast {
+            fast = true;
+            deadline = deadline.min(Instant::now() + Duration::from_secs(3));
+        }
+        let close = hall > 800 && light.abs_diff(hall) < hall / 20;
+        if close || Instant::now() > deadline {
+            return (hall, light);
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+#[test]
+fn adaptive_light_lets_rpm_l_follow_the_wheel_and_says_its_limit() {
+    let server = Server::start(&[
+        "--meb",
+        "tcp://127.0.0.1:0",
+        "--quiet",
+        "--no-record",
+        "--adaptive-light",
+    ]);
+    assert!(
+        server.printed(
+            "ev1 light detector: adaptive (swing ≥ 0.244 V); it sees the flag up to 1793 rpm"
+        ),
+        "{}",
+        server.output()
+    );
+    let (hall, light) = spin_and_read_speeds(&server, 1100);
+    assert!(hall > 800, "the wheel turns: RPM_M {hall}");
+    assert!(
+        light.abs_diff(hall) < hall / 20,
+        "RPM_L {light} follows RPM_M {hall}"
+    );
+    server.terminate();
+
+    // Without it the controller starts on the fixed threshold, says so, and
+    // its light sensor loses the flag at that speed.
+    let server = Server::start(&["--meb", "tcp://127.0.0.1:0", "--quiet", "--no-record"]);
+    assert!(
+        server.printed(
+            "ev1 light detector: fixed 2.36 V; it sees the flag up to 260 rpm (--adaptive-light"
+        ),
+        "{}",
+        server.output()
+    );
+    let (hall, light) = spin_and_read_speeds(&server, 1100);
+    assert!(hall > 800, "the wheel turns: RPM_M {hall}");
+    assert!(light < hall / 2, "RPM_L {light} cannot follow RPM_M {hall}");
+    server.terminate();
+}
+
 #[test]
 fn console_commands_force_inputs_and_switch_faults() {
     let (server, mut console) = Server::with_console(&[

@@ -162,15 +162,20 @@ impl ViewLayout {
     /// controller every link but `--modbus8` serves, on the plant `params`)
     /// and/or `bench`, the Controller_network nodes', with its nodes `motor` and
     /// `sensor`. The names are those `twin serve` gives them.
-    pub fn of_serve(params: &PlantParams, ev: bool, controller_network: bool) -> Self {
+    pub fn of_serve(
+        params: &PlantParams,
+        ev: bool,
+        controller_network: bool,
+        light_adaptive: bool,
+    ) -> Self {
         let mut layout = Self {
             realtime: true,
             ..Self::default()
         };
         if ev {
-            layout
-                .modules
-                .push(ModuleView::new(SERVE_EV_MODULE, params));
+            let mut module = ModuleView::new(SERVE_EV_MODULE, params);
+            module.light.adaptive = light_adaptive;
+            layout.modules.push(module);
             layout.node_module.insert(SERVE_EV_MODULE.into(), 0);
         }
         if controller_network {

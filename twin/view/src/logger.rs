@@ -682,8 +682,8 @@ mod tests {
         let (rec, _storage) = rerun::RecordingStreamBuilder::new("test")
             .memory()
             .expect("memory stream");
-        let mut log =
-            RerunLogger::new(rec, ViewLayout::of_serve(&params, true, false)).expect("logger");
+        let mut log = RerunLogger::new(rec, ViewLayout::of_serve(&params, true, false, false))
+            .expect("logger");
         let read = Request::ReadInputRegisters {
             address: 2,
             quantity: 3,

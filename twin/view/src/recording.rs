@@ -100,10 +100,13 @@ pub fn layout_of(path: &Path) -> Result<ViewLayout> {
                     .with_context(|| format!("{}: the stored plant parameters", path.display()))?,
                 None => PlantParams::preset("vemodule").unwrap_or_default(),
             };
+            // Recorded since the choice was given; before, always fixed.
+            let light_adaptive = meta.get("light_detector").is_some_and(|d| d == "adaptive");
             Ok(ViewLayout::of_serve(
                 &params,
                 ev || !controller_network,
                 controller_network,
+                light_adaptive,
             ))
         }
         Some("supervise") => {

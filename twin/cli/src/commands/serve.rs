@@ -2,6 +2,7 @@
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
+use nodes::firmware::LightDetectorConfig;
 use nodes::time::SimDuration;
 use plant::PlantParams;
 use std::io::Write;
@@ -110,6 +111,12 @@ pub struct ServeArgs {
     /// Remote clients may read but not write (MEB ER 01, Modbus exception 01).
     #[arg(long)]
     read_only: bool,
+    /// Start the EV controller's light detector in adaptive mode (`LDR_ADAPT`
+    /// set), which follows the wheel up to about 1800 rpm; the fixed threshold
+    /// loses the flag above about 260 rpm. A master can switch it either way
+    /// by writing VD0 (LDR_ADAPT).
+    #[arg(long)]
+    adaptive_light: bool,
     /// Run the plant thread under the real-time FIFO scheduler at this
     /// priority, and the links' thread one below (1-99; needs root or
     /// CAP_SYS_NICE), so a busy machine cannot delay ticks and replies.
@@ -186,9 +193,10 @@ fn options(args: &ServeArgs) -> Result<ServeOptions> {
             rt_priority: args.rt_priority,
             view: args.view.as_deref().map(|target| {
                 let params = params_for_view.clone();
+                let light_adaptive = args.adaptive_light;
                 super::live_view::opener(target, "twin serve", Session::Serve, move |modules| {
                     let has = |name: &str| modules.iter().any(|m| m == name);
-                    ViewLayout::of_serve(&params, has("ev1"), has("bench"))
+                    ViewLayout::of_serve(&params, has("ev1"), has("bench"), light_adaptive)
                 })
             }),
             // The program's own path stays out of the recording, as in `twin run`.
@@ -209,6 +217,7 @@ fn options(args: &ServeArgs) -> Result<ServeOptions> {
         idle_timeout: super::timeout("--idle-timeout", args.idle_timeout)?,
         room_after_idle: super::timeout("--make-room-after", args.make_room_after)?,
         read_only: args.read_only,
+        light_adaptive: args.adaptive_light,
     })
 }
 
@@ -219,6 +228,7 @@ pub fn execute(args: &ServeArgs) -> Result<()> {
         .out
         .as_deref()
         .and_then(super::output::Earlier::at);
+    let light = light_detector_line(&options);
     let outcome = serve::serve(
         &options,
         |links| {
@@ -230,6 +240,9 @@ pub fn execute(args: &ServeArgs) -> Result<()> {
             );
             for l in links {
                 let _ = writeln!(out, "  {} {} {}", l.protocol, l.address, l.ids);
+            }
+            if let Some(light) = &light {
+                let _ = writeln!(out, "{light}");
             }
             let _ = writeln!(out, "ready");
             let _ = out.flush();
@@ -257,4 +270,29 @@ pub fn execute(args: &ServeArgs) -> Result<()> {
     }
     super::print_session_end(&outcome, earlier.as_ref());
     Ok(())
+}
+
+/// What the EV controller's light detector can see, when an EV link is
+/// served: the first thing a master reading RPM_L needs to know.
+fn light_detector_line(options: &ServeOptions) -> Option<String> {
+    if options
+        .links
+        .iter()
+        .all(|(p, _)| *p == ServeProtocol::Modbus8)
+    {
+        return None;
+    }
+    let light = &options.params.light;
+    let mut detector = LightDetectorConfig::for_sensor(light);
+    detector.adaptive = options.light_adaptive;
+    Some(format!(
+        "ev1 light detector: {}; it sees the flag up to {:.0} rpm{}",
+        detector.describe(light),
+        detector.max_rpm(light),
+        if options.light_adaptive {
+            ""
+        } else {
+            " (--adaptive-light, or VD0 LDR_ADAPT from a master, for the adaptive one)"
+        }
+    ))
 }

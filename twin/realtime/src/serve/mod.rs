@@ -83,6 +83,9 @@ pub struct ServeOptions {
     /// this long (`None`: never).
     pub room_after_idle: Option<SimDuration>,
     pub read_only: bool,
+    /// The EV controller's light detector at power-up (`LDR_ADAPT`): the
+    /// adaptive one follows the wheel far faster than the fixed threshold.
+    pub light_adaptive: bool,
 }
 
 /// One open link, as printed before `ready`.
@@ -209,6 +212,15 @@ impl<C: FnOnce(Sender<Inbound>)> Role for Serving<'_, C> {
             ("seed".into(), options.seed.to_string()),
             ("slave_id".into(), options.id.to_string()),
             ("params".into(), toml::to_string(&options.params)?),
+            (
+                "light_detector".into(),
+                if options.light_adaptive {
+                    "adaptive"
+                } else {
+                    "fixed"
+                }
+                .into(),
+            ),
         ]))
     }
 
@@ -238,6 +250,7 @@ fn build_devices(
         );
         engine.modules.push(ModuleSlot::new("ev1", plant));
         let mut config = EvControllerConfig::for_plant(&options.params);
+        config.light.adaptive = options.light_adaptive;
         config.slave_id = options.id;
         let node = FaultyNode::new(EvController::new(config), CheckKind::Meb);
         ev = Some(engine.devices.len());
