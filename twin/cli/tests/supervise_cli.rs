@@ -504,7 +504,7 @@ fn client_reports_a_server_that_is_not_there_and_bad_arguments() {
         .stdin
         .take()
         .unwrap()
-        .write_all(b"set-point 1234\nloop off\nread FD 10\nvel 5000\nbogus\nquit\n")
+        .write_all(b"set-point 1234\nloop off\nread VD 10\nwrite EA 0 1\nread FD 10\nvel 5000\nbogus\nquit\n")
         .unwrap();
     let out = prompt.wait_with_output().unwrap();
     assert!(out.status.success());
@@ -520,6 +520,16 @@ fn client_reports_a_server_that_is_not_there_and_bad_arguments() {
         "{text}"
     );
     assert!(text.contains("error: unknown command"), "{text}");
+    // A read of a written block, or the reverse, would be reply-shaped and never
+    // answered: refused at once in words, and the session goes on.
+    assert!(
+        text.contains("error: VD is written, not read: MEB reads only EA, ED, FA and FD"),
+        "{text}"
+    );
+    assert!(
+        text.contains("error: EA is read, not written: MEB writes only SA, SD, VA and VD"),
+        "{text}"
+    );
 }
 
 #[test]

@@ -139,6 +139,7 @@ impl MebClient {
         if id == MEB_BROADCAST_ID {
             bail!("id 00 is broadcast: a broadcast read is never answered (docs/protocols/meb.md)");
         }
+        refuse_wrong_direction(cmd, MebAccess::Read)?;
         let request = MebRepr {
             id,
             cmd,
@@ -161,6 +162,7 @@ impl MebClient {
     pub fn write(&mut self, id: u8, cmd: MebCmd, addr: u8, words: &[u16]) -> Result<()> {
         let data =
             MebWords::from_slice(words).ok_or_else(|| anyhow!("at most 99 words per write"))?;
+        refuse_wrong_direction(cmd, MebAccess::Write)?;
         let request = MebRepr {
             id,
             cmd,
@@ -181,6 +183,24 @@ impl MebClient {
                 .context("the server closed the connection");
         }
         check(&request, self.request(&request)?).map(|_| ())
+    }
+}
+
+/// A read of a write-only block (or the reverse) has the shape of a reply, and
+/// the MEB page says reply-shaped frames are never answered: refuse it here
+/// rather than wait for a reply that cannot come.
+fn refuse_wrong_direction(cmd: MebCmd, wanted: MebAccess) -> Result<()> {
+    let Some((block, _)) = cmd.block() else {
+        return Ok(());
+    };
+    match (wanted, block.access()) {
+        (MebAccess::Read, MebAccess::Write) => bail!(
+            "{cmd} is written, not read: MEB reads only EA, ED, FA and FD (write it with `write {cmd} ADDR WORD`)"
+        ),
+        (MebAccess::Write, MebAccess::Read) => bail!(
+            "{cmd} is read, not written: MEB writes only SA, SD, VA and VD (read it with `read {cmd} ADDR CNT`)"
+        ),
+        _ => Ok(()),
     }
 }
 
