@@ -26,6 +26,7 @@ Needs only Python 3's standard library.
 """
 
 import argparse
+import glob
 import json
 import os
 import re
@@ -250,6 +251,9 @@ def main() -> int:
     ap.add_argument("--no-record", action="store_true",
                     help="serve without recording (to tell the recording's memory from the rest)")
     ap.add_argument("--json", action="store_true", help="print the figures as JSON last")
+    ap.add_argument("--serve-arg", action="append", default=[], metavar="ARG",
+                    help="one more argument for twin serve, e.g. --serve-arg=--rotate-every "
+                         "--serve-arg=10m (a service rotates its recording, which bounds its memory)")
     args = ap.parse_args()
 
     scratch = tempfile.mkdtemp(prefix="twin-soak-")
@@ -261,7 +265,7 @@ def main() -> int:
     server = subprocess.Popen(
         [args.twin, "serve", "--quiet", *(["--no-record"] if args.no_record else ["--out", recording]),
          "--meb", "tcp://127.0.0.1:0", "--modbus", "tcp://127.0.0.1:0",
-         "--modbus-rtu", pty_path],
+         "--modbus-rtu", pty_path, *args.serve_arg],
         stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
     links = {}
@@ -332,6 +336,7 @@ def main() -> int:
     rss = [s["rss_mib"] for s in during if "rss_mib" in s]
     threads = [s["threads"] for s in during if "threads" in s]
     half = len(rss) // 2
+    recordings = sorted(glob.glob(os.path.join(scratch, "*.mcap")))
     figures = {
         "seconds": round(elapsed, 1),
         "rate_per_master": args.rate,
@@ -348,7 +353,9 @@ def main() -> int:
         "tick_lateness_worst_second_p99_us": max((p for p, _ in seconds_lateness), default=None),
         "server_exit": server.returncode,
         "server_stopped_by_itself": stopped_by_itself,
-        "recording_bytes": os.path.getsize(recording) if os.path.exists(recording) else 0,
+        # With --rotate-every the session's files are soak.mcap and soak-START.mcap beside it.
+        "recording_files": len(recordings),
+        "recording_bytes": sum(os.path.getsize(f) for f in recordings),
     }
     if args.keep:
         figures["recording"] = recording
@@ -364,6 +371,8 @@ def main() -> int:
     r, t = figures["rss_mib"], figures["threads"]
     print(f"  RSS {r['first']} -> {r['last']} MiB (max {r['max']}), threads {t['first']} -> {t['last']} (max {t['max']});"
           f" before the masters connected: {before.get('rss_mib')} MiB, {before.get('threads')} threads")
+    if recordings:
+        print(f"  recording: {len(recordings)} file(s), {figures['recording_bytes'] / 1e6:.1f} MB")
     if total:
         print(f"  tick lateness over {total['ticks']} ticks: p50 {total['p50_us']} µs, p99 {total['p99_us']} µs,"
               f" p99.9 {total['p999_us']} µs, max {total['max_us']} µs; {total['overruns']} overruns;"
