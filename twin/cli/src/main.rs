@@ -38,6 +38,7 @@ enum Command {
     Export(commands::export::ExportArgs),
     Recover(commands::recover::RecoverArgs),
     Baseline(commands::baseline::BaselineArgs),
+    Batch(commands::batch::BatchArgs),
     Step(commands::step::StepArgs),
     Sweep(commands::sweep::SweepArgs),
     Experiment(commands::experiment::ExperimentArgs),
@@ -57,6 +58,7 @@ impl Command {
             self,
             Command::Run(_)
                 | Command::Baseline(_)
+                | Command::Batch(_)
                 | Command::Step(_)
                 | Command::Sweep(_)
                 | Command::Experiment(_)
@@ -86,6 +88,7 @@ fn main() -> ExitCode {
         Command::Export(args) => commands::export::execute(&args),
         Command::Recover(args) => commands::recover::execute(&args),
         Command::Baseline(args) => commands::baseline::execute(&args),
+        Command::Batch(args) => commands::batch::execute(&args),
         Command::Step(args) => commands::step::execute(&args),
         Command::Sweep(args) => commands::sweep::execute(&args),
         Command::Experiment(args) => commands::experiment::execute(&args),

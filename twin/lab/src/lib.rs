@@ -1,4 +1,4 @@
-//! Experiments on the twin: the step response (`twin step`), the light
+//! Experiments on the twin: batch runs of a manifest (`twin batch`), the step response (`twin step`), the light
 //! sensor's sweep (`twin sweep`), the PWM-capture paper's figures and the
 //! parallel modules (`twin experiment`), and the engine's benchmark (`twin
 //! bench`). The only crate that draws plots (plotters). The step-response
@@ -6,9 +6,10 @@
 
 #![allow(
     clippy::disallowed_methods,
-    reason = "the bench times the engine on the wall clock"
+    reason = "the bench times the engine on the wall clock, and a batch its runs"
 )]
 
+pub mod batch;
 pub mod bench;
 pub mod instruments;
 pub mod parallel;

@@ -230,7 +230,7 @@ fn open_loop_from_table(t: &Table) -> Result<Box<OpenLoop>> {
 
 /// A `--set` value: TOML (`3.0`, `true`, `[[0.5, 1000.0]]`, `"text"`), or
 /// bare text taken as a string.
-fn parse_value(raw: &str) -> Value {
+pub fn parse_value(raw: &str) -> Value {
     toml::from_str::<Table>(&format!("v = {raw}"))
         .ok()
         .and_then(|mut t| t.remove("v"))

@@ -1,6 +1,7 @@
 //! One file per subcommand; each parses its arguments and calls library code.
 
 pub mod baseline;
+pub mod batch;
 pub mod bench;
 pub mod client;
 pub mod compare;
