@@ -47,17 +47,31 @@ typedef struct twin_avr {
 	avr_irq_t *adc[8];
 	avr_irq_t *pin_in[PORTS * 8];
 	struct pin_ref *refs;
+	/* The program counter before the last instruction run: where a crash
+	 * happened (simavr moves the PC on when it gives up). */
+	uint32_t last_pc;
 } twin_avr_t;
 
 /* simavr's messages ("Loaded 1638 .text", a crash's reason) would go to
  * stdout, in the middle of the twin's own output: the last one is kept
  * instead, for the error that reports a crash. */
-static __thread char last_log[256];
+static __thread char last_log[512];
 static void keep_log(struct avr_t *avr, const int level, const char *format, va_list ap) {
 	(void)avr;
 	if (level > LOG_WARNING)
 		return;
-	vsnprintf(last_log, sizeof(last_log), format, ap);
+	/* The message before a crash says why (an invalid opcode and its
+	 * address): keep the last two. */
+	char line[256];
+	vsnprintf(line, sizeof(line), format, ap);
+	size_t n = strlen(line);
+	while (n && (line[n - 1] == '\n' || line[n - 1] == '\r'))
+		line[--n] = 0;
+	char *previous = strrchr(last_log, '|');
+	const char *keep = previous ? previous + 1 : last_log;
+	char joined[512];
+	snprintf(joined, sizeof(joined), "%s|%s", keep, line);
+	memcpy(last_log, joined, sizeof(last_log));
 }
 
 const char *twin_avr_last_log(void) { return last_log; }
@@ -196,6 +210,7 @@ int twin_avr_run_until(twin_avr_t *t, uint64_t target) {
 	avr_cycle_timer_register(avr, target - avr->cycle, stop_here, t);
 	int state = avr->state;
 	while (avr->cycle < target) {
+		t->last_pc = avr->pc;
 		state = avr_run(avr);
 		if (state == cpu_Done || state == cpu_Crashed)
 			break;
@@ -205,7 +220,9 @@ int twin_avr_run_until(twin_avr_t *t, uint64_t target) {
 }
 
 uint64_t twin_avr_cycle(const twin_avr_t *t) { return t->avr->cycle; }
-uint32_t twin_avr_pc(const twin_avr_t *t) { return t->avr->pc; }
+uint32_t twin_avr_pc(const twin_avr_t *t) {
+	return t->avr->state == cpu_Crashed ? t->last_pc : t->avr->pc;
+}
 int twin_avr_state(const twin_avr_t *t) { return t->avr->state; }
 uint8_t twin_avr_sreg_i(const twin_avr_t *t) { return t->avr->sreg[S_I]; }
 

@@ -188,10 +188,14 @@ impl Core {
     /// simavr's last warning or error (a crash's reason), if any.
     pub fn last_log() -> String {
         // SAFETY: the shim returns its own NUL-terminated buffer.
-        unsafe { CStr::from_ptr(twin_avr_last_log()) }
-            .to_string_lossy()
-            .trim()
-            .to_string()
+        let log = unsafe { CStr::from_ptr(twin_avr_last_log()) }.to_string_lossy();
+        // The shim keeps the last two lines, `|` between them; simavr's
+        // own name for a crash says nothing to a user.
+        log.split('|')
+            .map(str::trim)
+            .filter(|l| !l.is_empty() && !l.contains("avr_sadly_crashed"))
+            .collect::<Vec<_>>()
+            .join("; ")
     }
 }
 

@@ -26,6 +26,8 @@ use twin_sim::engine::SimNode;
 use crate::ffi::{Core, Image, State};
 use crate::wiring::{Analog, Input, Output, Pwm, Wiring};
 
+/// The ATmega328P's last flash byte address.
+const FLASH_END: u32 = 0x7FFF;
 /// Events kept for the engine before the oldest is dropped.
 const MAX_PENDING_EVENTS: usize = 64;
 /// Telemetry (pins, ADC inputs, cycles) is recorded this often.
@@ -104,6 +106,17 @@ pub fn sampled(byte: u8, tx_bit: f64, rx_bit: f64) -> u8 {
         }
     }
     out
+}
+
+/// What to hand simavr for a pin at `mv` millivolts so that it converts
+/// as the chip does. The ATmega's ADC gives floor(Vin · 1024 / Vref)
+/// (datasheet, "ADC Conversion Result"); simavr 1.6 computes
+/// floor(mV · 1023 / Vref) from whole millivolts, up to two counts low.
+/// With AVcc = 5 V as the reference, the smallest millivolt count that
+/// simavr turns into the chip's result is handed over instead.
+pub fn simavr_millivolts(mv: u32) -> u32 {
+    let count = (u64::from(mv) * 1024 / 5000).min(1023);
+    (count * 5000).div_ceil(1023) as u32
 }
 
 /// 64-bit FNV-1a of the firmware file: names exactly which build ran.
@@ -253,17 +266,19 @@ impl AvrNode {
         match state {
             State::Crashed | State::Done => {
                 let at = self.to_time(self.core.cycle());
+                let pc = self.core.pc();
                 let why = if state == State::Crashed {
                     let log = Core::last_log();
                     let log = if log.is_empty() { String::new() } else { format!(" (simavr: {log})") };
-                    format!("crashed{log}")
+                    let past = if pc > FLASH_END { ", past the end of its 32 KB of flash" } else { "" };
+                    format!("crashed{log} at PC 0x{pc:04X}{past}")
                 } else {
-                    "went to sleep with interrupts off and can never wake".into()
+                    format!("went to sleep with interrupts off at PC 0x{pc:04X} and can never wake")
                 };
                 let message = format!(
-                    "firmware {} {why} at PC 0x{:04X}, {:.6} s simulated (cycle {}); the node is stopped",
+                    "firmware {} of board `{}` {why}, {:.6} s simulated (cycle {}); the node is stopped",
                     self.elf.display(),
-                    self.core.pc(),
+                    self.name,
                     at.as_secs_f64(),
                     self.core.cycle()
                 );
@@ -301,12 +316,13 @@ impl AvrNode {
         let u = self.uart;
         let apart = (u.baud / self.bus_baud - 1.0) * 100.0;
         let detail = format!(
-            "UART0 at {:.0} baud (UBRR0 {}, U2X0 {}), {} bits per character; the bus runs at {:.0} baud, {:+.1} % apart",
+            "UART0 at {:.0} baud (UBRR0 {}, U2X0 {}), {} bits per character; the bus runs at {:.0} baud, {} bits, {:+.1} % apart",
             u.baud,
             u.ubrr,
             if u.u2x { "on" } else { "off" },
             u.bits_per_char,
             self.bus_baud,
+            self.bus_bits,
             apart
         );
         self.push_event(at, "state", detail);
@@ -401,6 +417,9 @@ impl AvrNode {
             } else {
                 target
             };
+            // To the millivolt, as a 12-bit converter would see it: the
+            // filter's endless approach is not a change worth recording.
+            let volts = (volts * 1000.0).round() / 1000.0;
             self.pwm_state[i] = (cycle, high, volts);
             vel = volts;
         }
@@ -496,7 +515,7 @@ impl Firmware for AvrNode {
             let channel = pin.adc.unwrap_or(0);
             if self.adc_mv[usize::from(channel)] != mv {
                 self.adc_mv[usize::from(channel)] = mv;
-                self.core.adc(channel, mv);
+                self.core.adc(channel, simavr_millivolts(mv));
             }
         }
         self.actuators = self.read_outputs(now);
@@ -552,6 +571,15 @@ impl SimNode for AvrNode {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn simavr_is_handed_the_millivolts_that_give_the_chips_count() {
+        for mv in (0..=5000).step_by(7) {
+            let chip = (u64::from(mv) * 1024 / 5000).min(1023);
+            let simavr = u64::from(simavr_millivolts(mv)) * 1023 / 5000;
+            assert_eq!(simavr, chip, "{mv} mV");
+        }
+    }
 
     #[test]
     fn a_receiver_a_few_per_cent_off_still_reads_every_byte() {

@@ -286,8 +286,11 @@ static float hall_tick(uint32_t now) {
     have_first = have_last;
     window_end_us = now + window;
   }
-  if (have_last && now - last_us <= HALL_TIMEOUT_US) {
-    uint32_t since = now - last_us;
+  // An edge captured after `now` was read makes a negative interval: it is
+  // the newest edge, just in.
+  int32_t since = (int32_t)(now - last_us);
+  if (since < 0) since = 0;
+  if (have_last && (uint32_t)since <= HALL_TIMEOUT_US) {
     if (since > 0) {
       float bound = 60.0f / (EDGES_PER_WHEEL_TURN * (float)since * 1e-6f);
       return hall_rpm < bound ? hall_rpm : bound;
@@ -347,9 +350,14 @@ static uint16_t rpm_word(float rpm) {
 }
 
 static void set_vel(uint16_t vel) {
+  // At either end the pin is held rather than pulsed: fast PWM gives a
+  // spike at OCR1A = 0, and simavr does not hold it high at OCR1A = TOP.
   if (vel == 0) {
-    TCCR1A &= ~_BV(COM1A1);  // disconnected: the pin holds low
+    TCCR1A &= ~_BV(COM1A1);
     digitalWrite(9, LOW);
+  } else if (vel >= 4092) {
+    TCCR1A &= ~_BV(COM1A1);
+    digitalWrite(9, HIGH);
   } else {
     OCR1A = vel >> 2;
     TCCR1A |= _BV(COM1A1);
