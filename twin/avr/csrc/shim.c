@@ -69,9 +69,13 @@ static void keep_log(struct avr_t *avr, const int level, const char *format, va_
 		line[--n] = 0;
 	char *previous = strrchr(last_log, '|');
 	const char *keep = previous ? previous + 1 : last_log;
-	char joined[512];
+	char joined[1024];
 	snprintf(joined, sizeof(joined), "%s|%s", keep, line);
-	memcpy(last_log, joined, sizeof(last_log));
+	size_t len = strlen(joined);
+	if (len > sizeof(last_log) - 1)
+		len = sizeof(last_log) - 1;
+	memcpy(last_log, joined, len);
+	last_log[len] = 0;
 }
 
 const char *twin_avr_last_log(void) { return last_log; }

@@ -74,7 +74,10 @@ pub fn execute(args: &BenchArgs) -> Result<()> {
         args.seconds,
         args.rounds.max(1)
     );
-    for (what, wall) in [("bare simavr loop", bare_wall), ("inside the twin ", twin_wall)] {
+    for (what, wall) in [
+        ("bare simavr loop", bare_wall),
+        ("inside the twin ", twin_wall),
+    ] {
         println!(
             "  {what}: {:6.1} M cycles per wall second, {:5.2}x real time ({:.2} s wall)",
             total_cycles / wall / 1e6,

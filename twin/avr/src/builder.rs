@@ -9,7 +9,7 @@ use twin_sim::engine::SimNode;
 use twin_sim::external::FirmwareBuilder;
 use twin_sim::scenario::{BusSpec, NodeSpec};
 
-use crate::node::AvrNode;
+use crate::node::{AvrNode, Board};
 use crate::wiring::Wiring;
 
 /// The builder of firmware nodes.
@@ -38,20 +38,22 @@ impl FirmwareBuilder for AvrBuilder {
             bail!("firmware node `{name}` needs a module")
         };
         if !(1_000_000..=32_000_000).contains(clock_hz) {
-            bail!("firmware node `{name}`: clock_hz {clock_hz}: give the board's clock, 1 to 32 MHz");
+            bail!(
+                "firmware node `{name}`: clock_hz {clock_hz}: give the board's clock, 1 to 32 MHz"
+            );
         }
-        let wiring = Wiring::load(wiring).with_context(|| format!("firmware node `{name}`, field `wiring`"))?;
-        let node = AvrNode::start(
+        let wiring = Wiring::load(wiring)
+            .with_context(|| format!("firmware node `{name}`, field `wiring`"))?;
+        let board = Board {
             name,
-            Path::new(elf),
+            elf: Path::new(elf),
             mcu,
-            *clock_hz,
-            wiring,
-            params.sensing.clone(),
-            bus.baud,
-            bus.bits_per_char,
-        )
-        .with_context(|| format!("firmware node `{name}`, field `elf`"))?;
+            clock_hz: *clock_hz,
+            bus_baud: bus.baud,
+            bus_bits: bus.bits_per_char,
+        };
+        let node = AvrNode::start(board, wiring, params.sensing.clone())
+            .with_context(|| format!("firmware node `{name}`, field `elf`"))?;
         Ok((Box::new(node), SimDuration::ZERO))
     }
 }

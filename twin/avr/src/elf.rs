@@ -105,7 +105,9 @@ mod tests {
         std::fs::write(&path, ":100000000C945C000C946E000C946E000C946E00CA\n").unwrap();
         let err = check(&path, "atmega328p").unwrap_err().to_string();
         assert!(err.contains("sketch.hex: not an ELF file"), "{err}");
-        let err = check(&dir.join("missing.elf"), "atmega328p").unwrap_err().to_string();
+        let err = check(&dir.join("missing.elf"), "atmega328p")
+            .unwrap_err()
+            .to_string();
         assert!(err.contains("missing.elf: cannot read it"), "{err}");
         let err = check(&path, "atmega2560").unwrap_err().to_string();
         assert!(err.contains("ATmega328P only"), "{err}");

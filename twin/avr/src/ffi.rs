@@ -180,7 +180,13 @@ impl Core {
         let (mut level, mut edges, mut high) = (0u8, 0u64, 0u64);
         // SAFETY: `raw` is a live core; the pointers are to locals.
         unsafe {
-            twin_avr_pin_output(self.raw, c_int::from(pin), &mut level, &mut edges, &mut high)
+            twin_avr_pin_output(
+                self.raw,
+                c_int::from(pin),
+                &mut level,
+                &mut edges,
+                &mut high,
+            )
         };
         (level != 0, edges, high)
     }

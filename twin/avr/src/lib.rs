@@ -9,7 +9,10 @@
 
 pub mod builder;
 pub mod elf;
-#[allow(unsafe_code, reason = "the one module that calls simavr through its C shim")]
+#[allow(
+    unsafe_code,
+    reason = "the one module that calls simavr through its C shim"
+)]
 pub mod ffi;
 pub mod node;
 pub mod wiring;

@@ -20,7 +20,12 @@ mod bench;
 /// binary is GPL-3.0-or-later because it links simavr; `twin` is MIT OR
 /// Apache-2.0 and runs every other scenario.
 #[derive(Debug, Parser)]
-#[command(name = "twin-avr", version, propagate_version = true, max_term_width = 100)]
+#[command(
+    name = "twin-avr",
+    version,
+    propagate_version = true,
+    max_term_width = 100
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,

@@ -126,6 +126,18 @@ pub fn fingerprint(bytes: &[u8]) -> u64 {
     })
 }
 
+/// What a firmware node is: its board, its file, and the bus it is on.
+#[derive(Debug, Clone, Copy)]
+pub struct Board<'a> {
+    pub name: &'a str,
+    pub elf: &'a Path,
+    pub mcu: &'a str,
+    pub clock_hz: u32,
+    /// The bus's baud and bits per character (its masters' setting).
+    pub bus_baud: u32,
+    pub bus_bits: u32,
+}
+
 /// A compiled sketch running on a simulated ATmega328P.
 #[derive(Debug)]
 pub struct AvrNode {
@@ -160,17 +172,20 @@ pub struct AvrNode {
 }
 
 impl AvrNode {
-    /// Loads `elf` (checked against `mcu`) and powers the core up.
+    /// Loads the board's ELF (checked against its MCU) and powers the core up.
     pub fn start(
-        name: &str,
-        elf: &Path,
-        mcu: &str,
-        clock_hz: u32,
+        board: Board<'_>,
         wiring: Wiring,
         sensing: SensingParams,
-        bus_baud: u32,
-        bus_bits: u32,
     ) -> Result<Self, StartError> {
+        let Board {
+            name,
+            elf,
+            mcu,
+            clock_hz,
+            bus_baud,
+            bus_bits,
+        } = board;
         crate::elf::check(elf, mcu)?;
         let bytes = std::fs::read(elf).unwrap_or_default();
         let image = Image::read(elf).ok_or_else(|| crate::elf::ElfError::Unloadable {
@@ -184,7 +199,8 @@ impl AvrNode {
             }
             .into());
         }
-        let core = Core::start(image, mcu, clock_hz).ok_or_else(|| StartError::NoMcu(mcu.into()))?;
+        let core =
+            Core::start(image, mcu, clock_hz).ok_or_else(|| StartError::NoMcu(mcu.into()))?;
         let uart = UartSetting::read(&core, clock_hz);
         let mut node = Self {
             name: name.into(),
@@ -247,7 +263,9 @@ impl AvrNode {
     }
 
     fn to_time(&self, cycle: u64) -> SimTime {
-        SimTime((u128::from(cycle) * u128::from(TICKS_PER_SECOND) / u128::from(self.clock_hz)) as u64)
+        SimTime(
+            (u128::from(cycle) * u128::from(TICKS_PER_SECOND) / u128::from(self.clock_hz)) as u64,
+        )
     }
 
     fn push_event(&mut self, at: SimTime, kind: &'static str, detail: String) {
@@ -269,8 +287,16 @@ impl AvrNode {
                 let pc = self.core.pc();
                 let why = if state == State::Crashed {
                     let log = Core::last_log();
-                    let log = if log.is_empty() { String::new() } else { format!(" (simavr: {log})") };
-                    let past = if pc > FLASH_END { ", past the end of its 32 KB of flash" } else { "" };
+                    let log = if log.is_empty() {
+                        String::new()
+                    } else {
+                        format!(" (simavr: {log})")
+                    };
+                    let past = if pc > FLASH_END {
+                        ", past the end of its 32 KB of flash"
+                    } else {
+                        ""
+                    };
                     format!("crashed{log} at PC 0x{pc:04X}{past}")
                 } else {
                     format!("went to sleep with interrupts off at PC 0x{pc:04X} and can never wake")
@@ -539,7 +565,12 @@ impl SimNode for AvrNode {
         }
         self.next_telemetry = self.last_tick + TELEMETRY_EVERY;
         let a = &self.actuators;
-        let adc: Vec<u32> = self.wiring.analog.iter().map(|(p, _)| self.adc_mv[usize::from(p.adc.unwrap_or(0))]).collect();
+        let adc: Vec<u32> = self
+            .wiring
+            .analog
+            .iter()
+            .map(|(p, _)| self.adc_mv[usize::from(p.adc.unwrap_or(0))])
+            .collect();
         Some(json!({
             "firmware_cycles": self.core.cycle(),
             "uart_baud": self.uart.baud.round(),

@@ -10,7 +10,10 @@ use serde::Deserialize;
 
 /// The maps that ship: name, text.
 pub const SHIPPED: [(&str, &str); 2] = [
-    ("ev-controller", include_str!("../wiring/ev-controller.toml")),
+    (
+        "ev-controller",
+        include_str!("../wiring/ev-controller.toml"),
+    ),
     ("light-nano", include_str!("../wiring/light-nano.toml")),
 ];
 
@@ -159,53 +162,82 @@ impl Wiring {
     /// Parses a map; `origin` names it in errors.
     pub fn parse(text: &str, origin: &str) -> Result<Self> {
         let file: File = toml::from_str(text).map_err(|e| anyhow!("{origin}: {e}"))?;
-        let analog = pins(origin, "analog", &file.analog, |s| {
-            Some(match s {
-                "v1" => Analog::V1,
-                "v2" => Analog::V2,
-                "i" => Analog::I,
-                "ldr" => Analog::Ldr,
-                _ => return None,
-            })
-        }, "v1, v2, i, ldr")?;
+        let analog = pins(
+            origin,
+            "analog",
+            &file.analog,
+            |s| {
+                Some(match s {
+                    "v1" => Analog::V1,
+                    "v2" => Analog::V2,
+                    "i" => Analog::I,
+                    "ldr" => Analog::Ldr,
+                    _ => return None,
+                })
+            },
+            "v1, v2, i, ldr",
+        )?;
         for (pin, _) in &analog {
             if pin.adc.is_none() {
                 bail!("{origin}: [analog] {}: not an analog pin (A0–A5)", pin.name);
             }
         }
-        let inputs = pins(origin, "inputs", &file.inputs, |s| {
-            Some(match s {
-                "hall_a" => Input::HallA,
-                "hall_b" => Input::HallB,
-                "hall_c" => Input::HallC,
-                "encoder_a" => Input::EncoderA,
-                "encoder_b" => Input::EncoderB,
-                "driver_fault" => Input::DriverFault,
-                _ => return None,
-            })
-        }, "hall_a, hall_b, hall_c, encoder_a, encoder_b, driver_fault")?;
-        let outputs = pins(origin, "outputs", &file.outputs, |s| {
-            Some(match s {
-                "en" => Output::En,
-                "brk" => Output::Brk,
-                "pro" => Output::Pro,
-                "des" => Output::Des,
-                "fr" => Output::Fr,
-                "chg" => Output::Chg,
-                "led" => Output::Led,
-                "driver_sleep" => Output::DriverSleep,
-                _ => return None,
-            })
-        }, "en, brk, pro, des, fr, chg, led, driver_sleep")?;
-        let pwm = pins(origin, "pwm", &file.pwm, |s| (s == "vel").then_some(Pwm::Vel), "vel")?;
+        let inputs = pins(
+            origin,
+            "inputs",
+            &file.inputs,
+            |s| {
+                Some(match s {
+                    "hall_a" => Input::HallA,
+                    "hall_b" => Input::HallB,
+                    "hall_c" => Input::HallC,
+                    "encoder_a" => Input::EncoderA,
+                    "encoder_b" => Input::EncoderB,
+                    "driver_fault" => Input::DriverFault,
+                    _ => return None,
+                })
+            },
+            "hall_a, hall_b, hall_c, encoder_a, encoder_b, driver_fault",
+        )?;
+        let outputs = pins(
+            origin,
+            "outputs",
+            &file.outputs,
+            |s| {
+                Some(match s {
+                    "en" => Output::En,
+                    "brk" => Output::Brk,
+                    "pro" => Output::Pro,
+                    "des" => Output::Des,
+                    "fr" => Output::Fr,
+                    "chg" => Output::Chg,
+                    "led" => Output::Led,
+                    "driver_sleep" => Output::DriverSleep,
+                    _ => return None,
+                })
+            },
+            "en, brk, pro, des, fr, chg, led, driver_sleep",
+        )?;
+        let pwm = pins(
+            origin,
+            "pwm",
+            &file.pwm,
+            |s| (s == "vel").then_some(Pwm::Vel),
+            "vel",
+        )?;
         let mut used: BTreeMap<u8, &str> = BTreeMap::new();
-        let all = analog.iter().map(|(p, _)| p)
+        let all = analog
+            .iter()
+            .map(|(p, _)| p)
             .chain(inputs.iter().map(|(p, _)| p))
             .chain(outputs.iter().map(|(p, _)| p))
             .chain(pwm.iter().map(|(p, _)| p));
         for p in all {
             if p.index == 16 || p.index == 17 {
-                bail!("{origin}: {}: D0 and D1 are the serial port (RXD, TXD)", p.name);
+                bail!(
+                    "{origin}: {}: D0 and D1 are the serial port (RXD, TXD)",
+                    p.name
+                );
             }
             if used.insert(p.index, p.name).is_some() {
                 bail!("{origin}: {} is wired twice", p.name);
@@ -213,10 +245,16 @@ impl Wiring {
         }
         let board = file.board;
         if !(10..=100_000).contains(&board.tick_us) {
-            bail!("{origin}: [board] tick_us: give 10 to 100000 µs, got {}", board.tick_us);
+            bail!(
+                "{origin}: [board] tick_us: give 10 to 100000 µs, got {}",
+                board.tick_us
+            );
         }
         if !(board.pwm_filter_ms.is_finite() && board.pwm_filter_ms >= 0.0) {
-            bail!("{origin}: [board] pwm_filter_ms: give 0 or more, got {}", board.pwm_filter_ms);
+            bail!(
+                "{origin}: [board] pwm_filter_ms: give 0 or more, got {}",
+                board.pwm_filter_ms
+            );
         }
         Ok(Self {
             origin: origin.into(),
@@ -243,7 +281,9 @@ fn pins<T>(
                 anyhow!("{origin}: [{table}] {name}: no such pin on the ATmega328P (D2–D13, A0–A5)")
             })?;
             let s = signal(&what.to_ascii_lowercase()).ok_or_else(|| {
-                anyhow!("{origin}: [{table}] {name} = \"{what}\": unknown signal (known here: {known})")
+                anyhow!(
+                    "{origin}: [{table}] {name} = \"{what}\": unknown signal (known here: {known})"
+                )
             })?;
             Ok((p, s))
         })
@@ -269,9 +309,17 @@ mod tests {
     #[test]
     fn an_unknown_pin_or_signal_names_the_file_and_the_field() {
         let err = Wiring::parse("[outputs]\nD22 = \"en\"\n", "my.toml").unwrap_err();
-        assert!(err.to_string().contains("my.toml: [outputs] D22: no such pin"), "{err}");
+        assert!(
+            err.to_string()
+                .contains("my.toml: [outputs] D22: no such pin"),
+            "{err}"
+        );
         let err = Wiring::parse("[inputs]\nD2 = \"hal_a\"\n", "my.toml").unwrap_err();
-        assert!(err.to_string().contains("[inputs] D2 = \"hal_a\": unknown signal"), "{err}");
+        assert!(
+            err.to_string()
+                .contains("[inputs] D2 = \"hal_a\": unknown signal"),
+            "{err}"
+        );
         let err = Wiring::parse("[analog]\nD5 = \"v1\"\n", "my.toml").unwrap_err();
         assert!(err.to_string().contains("not an analog pin"), "{err}");
     }

@@ -52,8 +52,10 @@ fn the_supervisor_closes_the_loop_through_the_sketch_as_through_the_rust_control
     let sketch = with_sketch(3.0);
     let mut model = Scenario::load("ev-meb").expect("ev-meb");
     model.duration_s = 3.0;
-    let a = virtual_run::run(&sketch, &out("ev-meb-avr.mcap"), |_| {}).expect("runs with the sketch");
-    let b = virtual_run::run(&model, &out("ev-meb-rust.mcap"), |_| {}).expect("runs with the model");
+    let a =
+        virtual_run::run(&sketch, &out("ev-meb-avr.mcap"), |_| {}).expect("runs with the sketch");
+    let b =
+        virtual_run::run(&model, &out("ev-meb-rust.mcap"), |_| {}).expect("runs with the model");
     let wheel = |o: &virtual_run::RunOutcome| o.modules[0].1.wheel_rpm;
     let (sketch_rpm, model_rpm) = (wheel(&a), wheel(&b));
     println!(
@@ -63,12 +65,19 @@ fn the_supervisor_closes_the_loop_through_the_sketch_as_through_the_rust_control
         b.modules[0].1.battery_volts
     );
     for (who, rpm) in [("sketch", sketch_rpm), ("Rust controller", model_rpm)] {
-        assert!((rpm - 1000.0).abs() <= 20.0, "the loop through the {who} settled at {rpm:.1} rpm, not within 2 % of 1000");
+        assert!(
+            (rpm - 1000.0).abs() <= 20.0,
+            "the loop through the {who} settled at {rpm:.1} rpm, not within 2 % of 1000"
+        );
     }
     // The supervisor polled the sketch all along. Its first write, at power-up,
     // comes while the board is still starting (the Arduino core's init and
     // Serial.begin): that one may time out, as on the bench, and none after.
-    assert!(a.events.get("timeout").copied().unwrap_or(0) <= 1, "{:?}", a.events);
+    assert!(
+        a.events.get("timeout").copied().unwrap_or(0) <= 1,
+        "{:?}",
+        a.events
+    );
     assert!(a.frames > 500, "{} frames", a.frames);
 }
 
@@ -81,7 +90,12 @@ fn the_same_seed_and_firmware_give_the_same_recording_bytes() {
     let a = std::fs::read(first.recording).unwrap();
     let b = std::fs::read(second.recording).unwrap();
     assert!(a.len() > 10_000, "{} bytes", a.len());
-    assert!(a == b, "two runs of one seed differ ({} and {} bytes)", a.len(), b.len());
+    assert!(
+        a == b,
+        "two runs of one seed differ ({} and {} bytes)",
+        a.len(),
+        b.len()
+    );
 }
 
 #[test]
@@ -90,6 +104,8 @@ fn twin_without_the_avr_builder_says_where_to_run_firmware() {
     // itself comes from twin-sim, which `twin` uses alone.
     let scenario = with_sketch(0.1);
     let spec = scenario.nodes.iter().find(|n| n.name() == "ev1").unwrap();
-    let err = twin_sim::external::unavailable::<()>(spec).unwrap_err().to_string();
+    let err = twin_sim::external::unavailable::<()>(spec)
+        .unwrap_err()
+        .to_string();
     assert!(err.contains("twin-avr run"), "{err}");
 }

@@ -10,6 +10,7 @@ use std::sync::OnceLock;
 use nodes::node::{Firmware, Node};
 use nodes::time::{SimDuration, SimTime};
 use plant::{EvModule, PlantParams, Sensors};
+use twin_avr::node::Board;
 use twin_avr::{AvrNode, Wiring};
 
 fn crate_dir() -> PathBuf {
@@ -19,7 +20,11 @@ fn crate_dir() -> PathBuf {
 /// Builds the sketches once per test binary into the target folder (with
 /// `defines`, into a folder of their own) and returns where.
 fn build(defines: &str) -> PathBuf {
-    let tag = if defines.is_empty() { "plain".to_string() } else { defines.replace(['-', '='], "") };
+    let tag = if defines.is_empty() {
+        "plain".to_string()
+    } else {
+        defines.replace(['-', '='], "")
+    };
     let out = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("avr-firmware-{tag}"));
     let status = Command::new("make")
         .arg("-s")
@@ -44,8 +49,23 @@ fn ms(v: u64) -> SimTime {
 
 fn start(elf: &Path, wiring: &str, bus_baud: u32) -> AvrNode {
     let wiring = Wiring::parse(wiring, "test map").expect("map");
-    AvrNode::start("board", elf, "atmega328p", 16_000_000, wiring, PlantParams::vemodule().sensing, bus_baud, 10)
-        .unwrap_or_else(|e| panic!("{e}"))
+    AvrNode::start(
+        board(elf, bus_baud),
+        wiring,
+        PlantParams::vemodule().sensing,
+    )
+    .unwrap_or_else(|e| panic!("{e}"))
+}
+
+fn board(elf: &Path, bus_baud: u32) -> Board<'_> {
+    Board {
+        name: "board",
+        elf,
+        mcu: "atmega328p",
+        clock_hz: 16_000_000,
+        bus_baud,
+        bus_bits: 10,
+    }
 }
 
 /// Runs the node to `until` in loop ticks with `sensors`, collecting every
@@ -55,7 +75,11 @@ fn run(node: &mut AvrNode, from: SimTime, until: SimTime, sensors: &Sensors, out
     let mut buf = [0u8; 600];
     while t < until {
         let tick = t + node.loop_period();
-        let next = node.poll_timeout().filter(|d| *d < tick).unwrap_or(tick).min(until);
+        let next = node
+            .poll_timeout()
+            .filter(|d| *d < tick)
+            .unwrap_or(tick)
+            .min(until);
         t = next;
         if node.poll_timeout().is_some_and(|d| d <= t) {
             node.handle_timeout(t);
@@ -75,7 +99,7 @@ fn send(node: &mut AvrNode, at: SimTime, bytes: &[u8], baud: u32, sensors: &Sens
     let mut ignored = Vec::new();
     for b in bytes {
         run(node, t, t + char_time, sensors, &mut ignored);
-        t = t + char_time;
+        t += char_time;
         node.handle_bytes(t, &[*b]);
     }
     t
@@ -87,14 +111,27 @@ const SERIAL_ONLY: &str = "[board]\ntick_us = 100\n";
 fn the_echo_sketch_answers_every_byte_at_115200_and_at_9600() {
     let text = b"MEB @01EA000643*\n";
     let at_9600 = build("-DECHO_BAUD=9600").join("echo.elf");
-    for (elf, baud, expected_baud) in [(firmware("echo"), 115_200, 117_647.0), (at_9600, 9600, 9615.0)] {
+    for (elf, baud, expected_baud) in [
+        (firmware("echo"), 115_200, 117_647.0),
+        (at_9600, 9600, 9615.0),
+    ] {
         let mut node = start(&elf, SERIAL_ONLY, baud);
         let sensors = Sensors::default();
         let mut out = Vec::new();
         run(&mut node, SimTime::ZERO, ms(5), &sensors, &mut out);
         let end = send(&mut node, ms(5), text, baud, &sensors);
-        run(&mut node, end, end + SimDuration::from_millis(40), &sensors, &mut out);
-        assert_eq!(String::from_utf8_lossy(&out), String::from_utf8_lossy(text), "at {baud} baud");
+        run(
+            &mut node,
+            end,
+            end + SimDuration::from_millis(40),
+            &sensors,
+            &mut out,
+        );
+        assert_eq!(
+            String::from_utf8_lossy(&out),
+            String::from_utf8_lossy(text),
+            "at {baud} baud"
+        );
         // The firmware's own registers set its baud: UBRR0 and U2X0.
         let got = node.uart().baud;
         assert!((got - expected_baud).abs() < 1.0, "{got} baud at {baud}");
@@ -109,8 +146,17 @@ fn a_master_at_another_baud_sees_garbled_bytes() {
     let mut out = Vec::new();
     run(&mut node, SimTime::ZERO, ms(5), &sensors, &mut out);
     let end = send(&mut node, ms(5), b"hello", 9600, &sensors);
-    run(&mut node, end, end + SimDuration::from_millis(40), &sensors, &mut out);
-    assert_ne!(out, b"hello", "no byte should survive a 12x baud mismatch intact");
+    run(
+        &mut node,
+        end,
+        end + SimDuration::from_millis(40),
+        &sensors,
+        &mut out,
+    );
+    assert_ne!(
+        out, b"hello",
+        "no byte should survive a 12x baud mismatch intact"
+    );
 }
 
 #[test]
@@ -122,7 +168,13 @@ fn the_adc_sketch_reads_v1_within_one_count_of_the_plant() {
     let mut out = Vec::new();
     run(&mut node, SimTime::ZERO, ms(5), &sensors, &mut out);
     let end = send(&mut node, ms(5), b"r", 115_200, &sensors);
-    run(&mut node, end, end + SimDuration::from_millis(20), &sensors, &mut out);
+    run(
+        &mut node,
+        end,
+        end + SimDuration::from_millis(20),
+        &sensors,
+        &mut out,
+    );
     let line = String::from_utf8_lossy(&out).to_string();
     let count: f64 = line
         .trim()
@@ -132,13 +184,17 @@ fn the_adc_sketch_reads_v1_within_one_count_of_the_plant() {
     // The pin: V1 through the 10:1 divider; the ATmega's ADC: 1024 steps of AVcc = 5 V.
     let pin = sensors.battery_volts / params.sensing.battery_divider;
     let expected = pin / 5.0 * 1024.0;
-    assert!((count - expected).abs() <= 1.0, "ADC {count}, plant {expected:.2} ({pin:.4} V)");
+    assert!(
+        (count - expected).abs() <= 1.0,
+        "ADC {count}, plant {expected:.2} ({pin:.4} V)"
+    );
 }
 
 #[test]
 fn the_ev_sketch_answers_the_meb_slave_vectors() {
-    let vectors = std::fs::read_to_string(crate_dir().join("../../nodes/tests/vectors/meb_slave.jsonl"))
-        .expect("the MEB slave vectors");
+    let vectors =
+        std::fs::read_to_string(crate_dir().join("../../nodes/tests/vectors/meb_slave.jsonl"))
+            .expect("the MEB slave vectors");
     let params = PlantParams::vemodule();
     let mut plant = EvModule::new(&params, 1);
     let sensors = *plant.step(0.001, &plant::Actuators::default());
@@ -152,14 +208,27 @@ fn the_ev_sketch_answers_the_meb_slave_vectors() {
         let mut out = Vec::new();
         run(&mut node, SimTime::ZERO, ms(5), &sensors, &mut out);
         let end = send(&mut node, ms(5), request.as_bytes(), 115_200, &sensors);
-        run(&mut node, end, end + SimDuration::from_millis(30), &sensors, &mut out);
+        run(
+            &mut node,
+            end,
+            end + SimDuration::from_millis(30),
+            &sensors,
+            &mut out,
+        );
         let reply = String::from_utf8_lossy(&out).to_string();
         let note = v["note"].as_str().unwrap_or("");
         if let Some(shape) = v.get("reply_shape") {
             let cmd = shape["cmd"].as_str().unwrap();
             let cnt = shape["cnt"].as_u64().unwrap() as usize;
-            assert!(reply.starts_with(&format!("@01{cmd}")), "{note}: {request:?} -> {reply:?}");
-            assert_eq!(reply.len(), 9 + 4 * cnt + 4, "{note}: {request:?} -> {reply:?}");
+            assert!(
+                reply.starts_with(&format!("@01{cmd}")),
+                "{note}: {request:?} -> {reply:?}"
+            );
+            assert_eq!(
+                reply.len(),
+                9 + 4 * cnt + 4,
+                "{note}: {request:?} -> {reply:?}"
+            );
         } else if v["reply"].is_null() {
             assert_eq!(reply, "", "{note}: {request:?} must be met with silence");
         } else {
@@ -174,14 +243,29 @@ fn the_ev_sketch_answers_the_meb_slave_vectors() {
 fn a_crashing_sketch_is_reported_with_its_program_counter_and_time() {
     let mut node = start(&firmware("crash"), SERIAL_ONLY, 115_200);
     let mut out = Vec::new();
-    run(&mut node, SimTime::ZERO, ms(20), &Sensors::default(), &mut out);
+    run(
+        &mut node,
+        SimTime::ZERO,
+        ms(20),
+        &Sensors::default(),
+        &mut out,
+    );
     let why = twin_sim::engine::SimNode::failure(&node).expect("the crash is seen");
     println!("{why}");
-    assert!(why.contains("crash.elf") && why.contains("crashed"), "{why}");
+    assert!(
+        why.contains("crash.elf") && why.contains("crashed"),
+        "{why}"
+    );
     assert!(why.contains("at PC 0x"), "{why}");
     assert!(why.contains(" s simulated"), "{why}");
     let mut node = start(&firmware("sleepy"), SERIAL_ONLY, 115_200);
-    run(&mut node, SimTime::ZERO, ms(20), &Sensors::default(), &mut out);
+    run(
+        &mut node,
+        SimTime::ZERO,
+        ms(20),
+        &Sensors::default(),
+        &mut out,
+    );
     let why = twin_sim::engine::SimNode::failure(&node).expect("the dead sleep is seen");
     println!("{why}");
     assert!(why.contains("sleep with interrupts off"), "{why}");
@@ -202,9 +286,13 @@ fn a_sketch_for_another_mcu_is_refused_naming_the_file_and_field() {
         .expect("avr-gcc runs");
     assert!(status.success());
     let wiring = Wiring::parse(SERIAL_ONLY, "test map").unwrap();
-    let err = AvrNode::start("board", &elf, "atmega328p", 16_000_000, wiring, PlantParams::vemodule().sensing, 115_200, 10)
-        .expect_err("an ATmega2560 build is refused")
-        .to_string();
+    let err = AvrNode::start(
+        board(&elf, 115_200),
+        wiring,
+        PlantParams::vemodule().sensing,
+    )
+    .expect_err("an ATmega2560 build is refused")
+    .to_string();
     println!("{err}");
     assert!(err.contains("mega.elf"), "{err}");
     assert!(err.contains("e_flags"), "{err}");
