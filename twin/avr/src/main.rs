@@ -16,7 +16,7 @@ mod bench;
 /// The EV lab twin with real firmware: Arduino sketches compiled for the
 /// ATmega328P run in simavr, instruction by instruction, against the
 /// simulated bench. A scenario's `firmware` node names the sketch's ELF and
-/// its wiring map (`ev-controller`, `light-nano`, or a TOML file). This
+/// its wiring map (`ev-controller` or a TOML file). This
 /// binary is GPL-3.0-or-later because it links simavr; `twin` is MIT OR
 /// Apache-2.0 and runs every other scenario.
 #[derive(Debug, Parser)]

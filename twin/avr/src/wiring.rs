@@ -1,7 +1,6 @@
 //! The wiring map: which pin of the board is wired to what on the bench
-//! (TOML). The maps for our EV controller sketch and the Controller_network
-//! boards ship with the crate; a student's sketch for the same board runs
-//! with them and no map of its own.
+//! (TOML). The map for our EV controller sketch ships with the crate; a
+//! student's sketch for the same board runs with it and no map of its own.
 
 use std::collections::BTreeMap;
 
@@ -9,12 +8,11 @@ use anyhow::{Context, Result, anyhow, bail};
 use serde::Deserialize;
 
 /// The maps that ship: name, text.
-pub const SHIPPED: [(&str, &str); 2] = [
+pub const SHIPPED: [(&str, &str); 1] = [
     (
         "ev-controller",
         include_str!("../wiring/ev-controller.toml"),
     ),
-    ("light-nano", include_str!("../wiring/light-nano.toml")),
 ];
 
 /// What a pin is wired to on the plant's side.

@@ -301,8 +301,8 @@ pub enum NodeSpec {
         module: String,
         /// The sketch's ELF file (relative to the working directory).
         elf: String,
-        /// Its wiring map: `ev-controller`, `motor-nano`, `light-nano` (the
-        /// maps `twin-avr` ships) or a TOML file.
+        /// Its wiring map: `ev-controller` (the map `twin-avr` ships for
+        /// our EV controller sketch) or a TOML file.
         wiring: String,
         /// The microcontroller the ELF must be built for.
         #[serde(default = "default_mcu")]
