@@ -521,7 +521,11 @@ fn the_twin_package_is_its_binary_and_its_commands() {
         .lines()
         .filter(|l| l.starts_with("pub ") || l.starts_with("mod ") || l.starts_with("fn "))
         .collect();
-    assert_eq!(items, ["pub mod commands;"], "twin's library holds more than its commands");
+    assert_eq!(
+        items,
+        ["pub mod commands;"],
+        "twin's library holds more than its commands"
+    );
 }
 
 /// `unsafe` code only where simavr is called: the workspace denies it, and
@@ -542,7 +546,10 @@ fn only_the_simavr_crate_allows_unsafe_code() {
             }
         }
     }
-    assert!(found.is_empty(), "unsafe code allowed outside twin-avr: {found:?}");
+    assert!(
+        found.is_empty(),
+        "unsafe code allowed outside twin-avr: {found:?}"
+    );
 }
 
 /// Our internal names for the lab's source documents, which users never

@@ -8,12 +8,10 @@ use anyhow::{Context, Result, anyhow, bail};
 use serde::Deserialize;
 
 /// The maps that ship: name, text.
-pub const SHIPPED: [(&str, &str); 1] = [
-    (
-        "ev-controller",
-        include_str!("../wiring/ev-controller.toml"),
-    ),
-];
+pub const SHIPPED: [(&str, &str); 1] = [(
+    "ev-controller",
+    include_str!("../wiring/ev-controller.toml"),
+)];
 
 /// What a pin is wired to on the plant's side.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
