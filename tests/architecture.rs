@@ -169,7 +169,7 @@ fn heavy_dependencies_stay_in_their_one_crate() {
     }
     // simavr is GPL: only twin-avr links it, and nothing else of ours
     // builds twin-avr, so `twin` and every library stay MIT OR Apache-2.0.
-    for (krate, _) in &graph {
+    for krate in graph.keys() {
         if krate != "twin-avr" && reach(&graph, krate).contains("twin-avr") {
             crossed.push(format!(
                 "{krate} builds twin-avr (GPL, for simavr): only the twin-avr binary may"
