@@ -167,6 +167,15 @@ fn heavy_dependencies_stay_in_their_one_crate() {
             }
         }
     }
+    // simavr is GPL: only twin-avr links it, and nothing else of ours
+    // builds twin-avr, so `twin` and every library stay MIT OR Apache-2.0.
+    for krate in graph.keys() {
+        if krate != "twin-avr" && reach(&graph, krate).contains("twin-avr") {
+            crossed.push(format!(
+                "{krate} builds twin-avr (GPL, for simavr): only the twin-avr binary may"
+            ));
+        }
+    }
     // Only the viewer links rerun, only the lab draws plots.
     for (dep, owner) in [("rerun", "twin-view"), ("plotters", "twin-lab")] {
         for (krate, deps) in &graph {
@@ -410,7 +419,7 @@ fn no_module_imports_its_way_back_to_itself() {
 /// How a crate lifts the fence, spelled in pieces so that this file does not.
 const LIFT: &str = concat!("allow(clippy::", "disallowed_methods");
 
-const UNFENCED: [&str; 4] = ["twin-realtime", "twin-lab", "twin", "loadgen"];
+const UNFENCED: [&str; 5] = ["twin-realtime", "twin-lab", "twin", "loadgen", "twin-avr"];
 
 #[test]
 fn the_clock_fence_is_defined_once_and_lifted_only_where_the_clock_is_the_job() {
@@ -485,7 +494,7 @@ fn rust_files(dir: &Path) -> Vec<PathBuf> {
 }
 
 #[test]
-fn the_twin_binary_has_no_library_of_its_own() {
+fn the_twin_package_is_its_binary_and_its_commands() {
     let meta = metadata();
     let twin = meta["packages"]
         .as_array()
@@ -506,9 +515,40 @@ fn the_twin_binary_has_no_library_of_its_own() {
         })
         .collect();
     assert!(kinds.contains(&"bin"), "{kinds:?}");
+    // Its library is the commands, shared with twin-avr, and nothing else.
+    let lib = std::fs::read_to_string(repo_root().join("twin/cli/src/lib.rs")).expect("lib.rs");
+    let items: Vec<&str> = lib
+        .lines()
+        .filter(|l| l.starts_with("pub ") || l.starts_with("mod ") || l.starts_with("fn "))
+        .collect();
+    assert_eq!(
+        items,
+        ["pub mod commands;"],
+        "twin's library holds more than its commands"
+    );
+}
+
+/// `unsafe` code only where simavr is called: the workspace denies it, and
+/// one crate, twin-avr, allows it.
+#[test]
+fn only_the_simavr_crate_allows_unsafe_code() {
+    let root = repo_root();
+    let lift = concat!("allow(", "unsafe_code");
+    let mut found = Vec::new();
+    for (_, root_file) in own_crates(&metadata()) {
+        let dir = root_file.parent().expect("a root file sits in a folder");
+        if dir.starts_with(root.join("twin/avr")) {
+            continue;
+        }
+        for file in rust_files(dir) {
+            if std::fs::read_to_string(&file).unwrap().contains(lift) {
+                found.push(file.display().to_string());
+            }
+        }
+    }
     assert!(
-        !kinds.contains(&"lib"),
-        "the twin package has a library: {kinds:?}"
+        found.is_empty(),
+        "unsafe code allowed outside twin-avr: {found:?}"
     );
 }
 

@@ -8,7 +8,7 @@
 use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 use std::process::ExitCode;
 
-mod commands;
+use twin::commands;
 
 /// Digital twin of the EV lab bench: battery + BMS, buck-boost converter,
 /// inverter + BLDC motor with hall sensors, a wheel and the photoresistor that

@@ -58,6 +58,11 @@ pub trait SimNode: Node {
     fn controller_readings(&self) -> Option<ReadingsSample> {
         None
     }
+    /// Why the node cannot go on (compiled firmware that crashed), in the
+    /// user's words: the engine stops the run with it.
+    fn failure(&self) -> Option<String> {
+        None
+    }
 }
 
 /// A firmware node's speed estimates, as its registers hold them.
@@ -519,6 +524,9 @@ impl Engine {
             slot.stirred = true;
             self.events += 1;
             slot.next_tick = Some(next);
+            if let Some(why) = slot.node.failure() {
+                anyhow::bail!("node `{}`: {why}", slot.name);
+            }
             if changed {
                 observer.actuators(t, module)?;
             }

@@ -195,6 +195,7 @@ pub fn build_node(
             );
             Ok((Box::new(node), SimDuration::ZERO))
         }
+        NodeSpec::Firmware { .. } => crate::external::unavailable(spec),
         NodeSpec::ParallelMaster { .. } | NodeSpec::PwmSlave { .. } => {
             bail!(
                 "a parallel-module node needs its bus: build it with nodes_parallel::build_node_on"

@@ -164,6 +164,7 @@ pub fn build_node_on(
             };
             Ok((Box::new(slave), ms(*turnaround_ms)))
         }
+        NodeSpec::Firmware { .. } => crate::external::build_firmware(spec, module, bus),
         _ => build_node(spec, module, faults),
     }
 }

@@ -292,6 +292,25 @@ pub enum NodeSpec {
         #[serde(default)]
         turnaround_ms: f64,
     },
+    /// Compiled firmware (an Arduino sketch's ELF) run instruction by
+    /// instruction in simavr, wired to its module's plant by a wiring map.
+    /// Only `twin-avr`, the GPL build of the twin that links simavr, runs it.
+    Firmware {
+        name: String,
+        bus: String,
+        module: String,
+        /// The sketch's ELF file (relative to the working directory).
+        elf: String,
+        /// Its wiring map: `ev-controller` (the map `twin-avr` ships for
+        /// our EV controller sketch) or a TOML file.
+        wiring: String,
+        /// The microcontroller the ELF must be built for.
+        #[serde(default = "default_mcu")]
+        mcu: String,
+        /// Its clock (Hz).
+        #[serde(default = "default_clock_hz")]
+        clock_hz: u32,
+    },
     /// A slave module's controller on a PWM-capture link.
     PwmSlave {
         name: String,
@@ -311,6 +330,13 @@ fn default_update_ms() -> f64 {
 }
 fn default_pwm_timeout_ms() -> f64 {
     0.5
+}
+
+fn default_mcu() -> String {
+    "atmega328p".into()
+}
+fn default_clock_hz() -> u32 {
+    16_000_000
 }
 
 fn default_id() -> u8 {
@@ -344,7 +370,8 @@ impl NodeSpec {
             | NodeSpec::Supervisor { name, .. }
             | NodeSpec::ControllerNetworkMaster { name, .. }
             | NodeSpec::ParallelMaster { name, .. }
-            | NodeSpec::PwmSlave { name, .. } => name,
+            | NodeSpec::PwmSlave { name, .. }
+            | NodeSpec::Firmware { name, .. } => name,
         }
     }
     pub fn bus(&self) -> &str {
@@ -355,7 +382,8 @@ impl NodeSpec {
             | NodeSpec::Supervisor { bus, .. }
             | NodeSpec::ControllerNetworkMaster { bus, .. }
             | NodeSpec::ParallelMaster { bus, .. }
-            | NodeSpec::PwmSlave { bus, .. } => bus,
+            | NodeSpec::PwmSlave { bus, .. }
+            | NodeSpec::Firmware { bus, .. } => bus,
         }
     }
     pub fn module(&self) -> Option<&str> {
@@ -364,7 +392,8 @@ impl NodeSpec {
             | NodeSpec::MotorNode { module, .. }
             | NodeSpec::LightNode { module, .. }
             | NodeSpec::ParallelMaster { module, .. }
-            | NodeSpec::PwmSlave { module, .. } => Some(module),
+            | NodeSpec::PwmSlave { module, .. }
+            | NodeSpec::Firmware { module, .. } => Some(module),
             _ => None,
         }
     }

@@ -258,11 +258,11 @@ fn run_observed(
         first: &mut observer,
         second: also,
     };
-    match sample_every.filter(|p| *p > SimDuration::ZERO) {
+    let ran = match sample_every.filter(|p| *p > SimDuration::ZERO) {
         None => engine.run_until(end, &mut both, |t| {
             progress(t.as_secs_f64() / scenario.duration_s)
-        })?,
-        Some(period) => {
+        }),
+        Some(period) => (|| {
             let mut t = SimTime::ZERO;
             on_sample(t, &engine, &mut both.first.recorder)?;
             while t < end && !engine.interrupted() {
@@ -271,7 +271,20 @@ fn run_observed(
                 on_sample(engine.now(), &engine, &mut both.first.recorder)?;
                 progress(t.as_secs_f64() / scenario.duration_s);
             }
-        }
+            Ok(())
+        })(),
+    };
+    if let Err(e) = ran {
+        // A node that failed (firmware that crashed) stops the run; what
+        // was recorded up to there is kept, whole.
+        return Err(match observer.recorder.finish() {
+            Ok(path) => e.context(format!(
+                "the run stopped at {:.6} s simulated; its recording up to there is {}",
+                engine.now().as_secs_f64(),
+                path.display()
+            )),
+            Err(_) => e,
+        });
     }
     if engine.interrupted() {
         let recording = observer.recorder.finish()?;

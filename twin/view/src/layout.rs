@@ -125,7 +125,8 @@ impl ViewLayout {
                 NodeSpec::Supervisor { .. }
                 | NodeSpec::ControllerNetworkMaster { .. }
                 | NodeSpec::ParallelMaster { .. }
-                | NodeSpec::PwmSlave { .. } => {}
+                | NodeSpec::PwmSlave { .. }
+                | NodeSpec::Firmware { .. } => {}
             }
         }
         let mut slave_module = BTreeMap::new();

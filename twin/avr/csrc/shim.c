@@ -1,0 +1,288 @@
+/*
+ * The one C file between the twin and Debian's libsimavr (1.6): a small,
+ * stable surface that the Rust side calls, so no bindgen (and no libclang)
+ * is needed. What it changes from simavr's defaults, and why:
+ *
+ * - the core never sleeps on the wall clock: the sleep callback is a no-op,
+ *   and every run is bounded by a cycle timer at its target, so a sleeping
+ *   core stops exactly where the twin's clock is;
+ * - the UART prints nothing on stdout; its bytes are taken with the cycle of
+ *   the write to UDR0 and timed by the Rust side from UBRR0/U2X0;
+ * - AVcc and AREF are 5 V (simavr assumes 3.3 V unless told);
+ * - every pin of ports B, C and D reports its edges with their cycle, so a
+ *   PWM duty is measured from the pin's own edges.
+ *
+ * SPDX-License-Identifier: GPL-3.0-or-later
+ */
+#include <stdarg.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <simavr/sim_avr.h>
+#include <simavr/sim_elf.h>
+#include <simavr/sim_irq.h>
+#include <simavr/sim_io.h>
+#include <simavr/sim_cycle_timers.h>
+#include <simavr/avr_uart.h>
+#include <simavr/avr_adc.h>
+#include <simavr/avr_ioport.h>
+
+#define TX_RING 512
+#define PORTS 3 /* B, C, D */
+
+typedef struct twin_avr {
+	avr_t *avr;
+	elf_firmware_t *fw;
+	uint8_t tx[TX_RING];
+	uint64_t tx_cycle[TX_RING];
+	uint32_t tx_head, tx_tail;
+	uint32_t tx_dropped;
+	/* Per pin (port * 8 + bit): level, cycle of its last edge, cycles spent
+	 * high before that edge since power-up, and edges seen. */
+	uint8_t level[PORTS * 8];
+	uint64_t last_edge[PORTS * 8];
+	uint64_t high_cycles[PORTS * 8];
+	uint64_t edges[PORTS * 8];
+	avr_irq_t *uart_in;
+	avr_irq_t *adc[8];
+	avr_irq_t *pin_in[PORTS * 8];
+	struct pin_ref *refs;
+	/* The program counter before the last instruction run: where a crash
+	 * happened (simavr moves the PC on when it gives up). */
+	uint32_t last_pc;
+} twin_avr_t;
+
+/* simavr's messages ("Loaded 1638 .text", a crash's reason) would go to
+ * stdout, in the middle of the twin's own output: the last one is kept
+ * instead, for the error that reports a crash. */
+static __thread char last_log[512];
+static void keep_log(struct avr_t *avr, const int level, const char *format, va_list ap) {
+	(void)avr;
+	if (level > LOG_WARNING)
+		return;
+	/* The message before a crash says why (an invalid opcode and its
+	 * address): keep the last two. */
+	char line[256];
+	vsnprintf(line, sizeof(line), format, ap);
+	size_t n = strlen(line);
+	while (n && (line[n - 1] == '\n' || line[n - 1] == '\r'))
+		line[--n] = 0;
+	char *previous = strrchr(last_log, '|');
+	const char *keep = previous ? previous + 1 : last_log;
+	char joined[1024];
+	snprintf(joined, sizeof(joined), "%s|%s", keep, line);
+	size_t len = strlen(joined);
+	if (len > sizeof(last_log) - 1)
+		len = sizeof(last_log) - 1;
+	memcpy(last_log, joined, len);
+	last_log[len] = 0;
+}
+
+const char *twin_avr_last_log(void) { return last_log; }
+
+static void no_sleep(avr_t *avr, avr_cycle_count_t how_long) {
+	(void)avr;
+	(void)how_long;
+}
+
+static void uart_out(struct avr_irq_t *irq, uint32_t value, void *param) {
+	(void)irq;
+	twin_avr_t *t = param;
+	uint32_t next = (t->tx_head + 1) % TX_RING;
+	if (next == t->tx_tail) {
+		t->tx_dropped++;
+		return;
+	}
+	t->tx[t->tx_head] = (uint8_t)value;
+	t->tx_cycle[t->tx_head] = t->avr->cycle;
+	t->tx_head = next;
+}
+
+typedef struct pin_ref {
+	twin_avr_t *t;
+	int index;
+} pin_ref_t;
+static pin_ref_t *pin_refs_alloc(twin_avr_t *t) {
+	pin_ref_t *refs = calloc(PORTS * 8, sizeof(pin_ref_t));
+	for (int i = 0; i < PORTS * 8; i++) {
+		refs[i].t = t;
+		refs[i].index = i;
+	}
+	return refs;
+}
+
+static void pin_changed(struct avr_irq_t *irq, uint32_t value, void *param) {
+	(void)irq;
+	pin_ref_t *r = param;
+	twin_avr_t *t = r->t;
+	uint8_t v = value ? 1 : 0;
+	int i = r->index;
+	if (v == t->level[i])
+		return;
+	uint64_t now = t->avr->cycle;
+	if (t->level[i])
+		t->high_cycles[i] += now - t->last_edge[i];
+	t->last_edge[i] = now;
+	t->level[i] = v;
+	t->edges[i]++;
+}
+
+/* Reads an ELF into a firmware record; NULL if simavr cannot read it. The
+ * MCU the ELF names (its .mmcu section, empty for Arduino builds) is copied
+ * to mcu. */
+void *twin_avr_read_elf(const char *path, char *mcu, size_t mcu_len, uint32_t *frequency) {
+	/* Extra room: the record's layout ends with symbols only when simavr
+	 * was built with them. */
+	avr_global_logger_set(keep_log);
+	elf_firmware_t *fw = calloc(1, sizeof(elf_firmware_t) + 1024);
+	if (!fw)
+		return NULL;
+	if (elf_read_firmware(path, fw) != 0) {
+		free(fw);
+		return NULL;
+	}
+	if (mcu && mcu_len) {
+		strncpy(mcu, fw->mmcu, mcu_len - 1);
+		mcu[mcu_len - 1] = 0;
+	}
+	if (frequency)
+		*frequency = fw->frequency;
+	return fw;
+}
+
+void twin_avr_free_elf(void *fw) { free(fw); }
+
+/* Starts a core for mcu at frequency with the firmware read by
+ * twin_avr_read_elf (taken over). NULL if simavr has no such MCU. */
+twin_avr_t *twin_avr_start(void *firmware, const char *mcu, uint32_t frequency) {
+	elf_firmware_t *fw = firmware;
+	avr_t *avr = avr_make_mcu_by_name(mcu);
+	if (!avr) {
+		free(fw);
+		return NULL;
+	}
+	twin_avr_t *t = calloc(1, sizeof(twin_avr_t));
+	t->avr = avr;
+	t->fw = fw;
+	avr_init(avr);
+	avr->log = 0;
+	strncpy(fw->mmcu, mcu, sizeof(fw->mmcu) - 1);
+	fw->frequency = frequency;
+	fw->vcc = fw->avcc = fw->aref = 5000;
+	avr_load_firmware(avr, fw);
+	avr->frequency = frequency;
+	avr->vcc = avr->avcc = avr->aref = 5000;
+	avr->sleep = no_sleep;
+
+	uint32_t flags = 0;
+	avr_ioctl(avr, AVR_IOCTL_UART_GET_FLAGS('0'), &flags);
+	flags &= ~AVR_UART_FLAG_STDIO;
+	avr_ioctl(avr, AVR_IOCTL_UART_SET_FLAGS('0'), &flags);
+	avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_OUTPUT),
+				uart_out, t);
+	t->uart_in = avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_INPUT);
+	for (int i = 0; i < 8; i++)
+		t->adc[i] = avr_io_getirq(avr, AVR_IOCTL_ADC_GETIRQ, ADC_IRQ_ADC0 + i);
+	pin_ref_t *refs = pin_refs_alloc(t);
+	t->refs = refs;
+	const char names[PORTS] = {'B', 'C', 'D'};
+	for (int p = 0; p < PORTS; p++) {
+		for (int b = 0; b < 8; b++) {
+			avr_irq_t *irq = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ(names[p]), b);
+			t->pin_in[p * 8 + b] = irq;
+			if (irq)
+				avr_irq_register_notify(irq, pin_changed, &refs[p * 8 + b]);
+		}
+	}
+	return t;
+}
+
+static avr_cycle_count_t stop_here(avr_t *avr, avr_cycle_count_t when, void *param) {
+	(void)avr;
+	(void)when;
+	(void)param;
+	return 0;
+}
+
+/* Runs the core until its cycle count reaches target, or it stops. Returns
+ * simavr's state (cpu_Running, cpu_Sleeping, cpu_Done, cpu_Crashed, ...). */
+int twin_avr_run_until(twin_avr_t *t, uint64_t target) {
+	avr_t *avr = t->avr;
+	if (avr->cycle >= target)
+		return avr->state;
+	/* A sleeping core jumps to its next timer: this one is at the target. */
+	avr_cycle_timer_register(avr, target - avr->cycle, stop_here, t);
+	int state = avr->state;
+	while (avr->cycle < target) {
+		t->last_pc = avr->pc;
+		state = avr_run(avr);
+		if (state == cpu_Done || state == cpu_Crashed)
+			break;
+	}
+	avr_cycle_timer_cancel(avr, stop_here, t);
+	return state;
+}
+
+uint64_t twin_avr_cycle(const twin_avr_t *t) { return t->avr->cycle; }
+uint32_t twin_avr_pc(const twin_avr_t *t) {
+	return t->avr->state == cpu_Crashed ? t->last_pc : t->avr->pc;
+}
+int twin_avr_state(const twin_avr_t *t) { return t->avr->state; }
+uint8_t twin_avr_sreg_i(const twin_avr_t *t) { return t->avr->sreg[S_I]; }
+
+/* A data-space byte (an I/O register such as UBRR0L at 0xC4). */
+uint8_t twin_avr_data(const twin_avr_t *t, uint16_t addr) {
+	if (addr > t->avr->ramend)
+		return 0;
+	return t->avr->data[addr];
+}
+
+void twin_avr_uart_input(twin_avr_t *t, uint8_t byte) { avr_raise_irq(t->uart_in, byte); }
+
+/* The next byte the firmware wrote to UDR0 and the cycle it wrote it at;
+ * 0 when there is none. */
+int twin_avr_uart_output(twin_avr_t *t, uint8_t *byte, uint64_t *cycle) {
+	if (t->tx_tail == t->tx_head)
+		return 0;
+	*byte = t->tx[t->tx_tail];
+	*cycle = t->tx_cycle[t->tx_tail];
+	t->tx_tail = (t->tx_tail + 1) % TX_RING;
+	return 1;
+}
+
+uint32_t twin_avr_uart_dropped(const twin_avr_t *t) { return t->tx_dropped; }
+
+void twin_avr_adc(twin_avr_t *t, int channel, uint32_t millivolts) {
+	if (channel >= 0 && channel < 8 && t->adc[channel])
+		avr_raise_irq(t->adc[channel], millivolts);
+}
+
+/* Drives an input pin (port index 0 = B, 1 = C, 2 = D). */
+void twin_avr_pin_input(twin_avr_t *t, int pin, int level) {
+	if (pin >= 0 && pin < PORTS * 8 && t->pin_in[pin])
+		avr_raise_irq(t->pin_in[pin], level ? 1 : 0);
+}
+
+/* A pin as the firmware drives it: level, edges since power-up and cycles
+ * spent high up to now. */
+void twin_avr_pin_output(const twin_avr_t *t, int pin, uint8_t *level, uint64_t *edges,
+			 uint64_t *high) {
+	if (pin < 0 || pin >= PORTS * 8) {
+		*level = 0;
+		*edges = 0;
+		*high = 0;
+		return;
+	}
+	*level = t->level[pin];
+	*edges = t->edges[pin];
+	*high = t->high_cycles[pin] + (t->level[pin] ? t->avr->cycle - t->last_edge[pin] : 0);
+}
+
+void twin_avr_free(twin_avr_t *t) {
+	if (!t)
+		return;
+	avr_terminate(t->avr);
+	free(t->fw);
+	free(t->refs);
+	free(t);
+}

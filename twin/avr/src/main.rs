@@ -1,0 +1,57 @@
+//! `twin-avr`: the twin with compiled AVR firmware in the loop (GPL-3.0-or-later,
+//! for simavr). `run` is `twin run`'s own command, its arguments and runner
+//! shared as library code; scenarios may hold `firmware` nodes.
+
+#![allow(
+    clippy::disallowed_methods,
+    reason = "the benchmark times simavr and the twin on the wall clock"
+)]
+
+use clap::{Parser, Subcommand};
+use std::process::ExitCode;
+use twin::commands;
+
+mod bench;
+
+/// The EV lab twin with real firmware: Arduino sketches compiled for the
+/// ATmega328P run in simavr, instruction by instruction, against the
+/// simulated bench. A scenario's `firmware` node names the sketch's ELF and
+/// its wiring map (`ev-controller` or a TOML file). This
+/// binary is GPL-3.0-or-later because it links simavr; `twin` is MIT OR
+/// Apache-2.0 and runs every other scenario.
+#[derive(Debug, Parser)]
+#[command(
+    name = "twin-avr",
+    version,
+    propagate_version = true,
+    max_term_width = 100
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    Run(commands::run::RunArgs),
+    Bench(bench::BenchArgs),
+}
+
+fn main() -> ExitCode {
+    twin_avr::register();
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Run(args) => {
+            commands::finish_recordings_on_signals();
+            commands::run::execute(&args)
+        }
+        Command::Bench(args) => bench::execute(&args),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}

@@ -1,0 +1,631 @@
+//! A compiled sketch as a node of the twin: the AVR core stepped on the
+//! engine's clock, its UART a port on the bus, its pins wired to the plant.
+//!
+//! Time: the core runs lazily, cycle by cycle, up to each instant the engine
+//! hands the node (a byte's stop bit, a loop tick), so one simulated second
+//! is exactly `clock_hz` cycles and the same scenario gives the same run.
+//! Nothing here reads the wall clock.
+//!
+//! The UART's timing comes from the firmware's own registers (UBRR0, U2X0,
+//! UCSR0C), not from simavr's UART model: a byte the firmware writes to UDR0
+//! leaves on its wire at that baud, and a master at another baud sees what a
+//! real receiver would sample (bytes garbled once the two are a few per cent
+//! apart). The bytes of one reply go on the bus as one frame once the
+//! firmware's line has been quiet for two characters.
+
+use std::collections::VecDeque;
+use std::path::{Path, PathBuf};
+
+use nodes::node::{Firmware, MAX_FRAME, Node, NodeEvent};
+use nodes::time::{SimDuration, SimTime, TICKS_PER_SECOND};
+use plant::params::SensingParams;
+use plant::{Actuators, Sensors};
+use serde_json::json;
+use twin_sim::engine::SimNode;
+
+use crate::ffi::{Core, Image, State};
+use crate::wiring::{Analog, Input, Output, Pwm, Wiring};
+
+/// The ATmega328P's last flash byte address.
+const FLASH_END: u32 = 0x7FFF;
+/// Events kept for the engine before the oldest is dropped.
+const MAX_PENDING_EVENTS: usize = 64;
+/// Telemetry (pins, ADC inputs, cycles) is recorded this often.
+const TELEMETRY_EVERY: SimDuration = SimDuration::from_millis(10);
+
+/// I/O registers of the ATmega328P (data-space addresses).
+mod reg {
+    pub const UCSR0A: u16 = 0xC0;
+    pub const UCSR0C: u16 = 0xC2;
+    pub const UBRR0L: u16 = 0xC4;
+    pub const UBRR0H: u16 = 0xC5;
+    /// PORTx and DDRx of ports B, C, D.
+    pub const PORT: [u16; 3] = [0x25, 0x28, 0x2B];
+    pub const DDR: [u16; 3] = [0x24, 0x27, 0x2A];
+}
+
+/// Why a firmware node cannot be built.
+#[derive(Debug, thiserror::Error)]
+pub enum StartError {
+    #[error(transparent)]
+    Elf(#[from] crate::elf::ElfError),
+    #[error("simavr has no MCU `{0}`")]
+    NoMcu(String),
+}
+
+/// How the firmware's UART is set: its bit time and character length.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct UartSetting {
+    pub baud: f64,
+    pub bits_per_char: u32,
+    pub ubrr: u16,
+    pub u2x: bool,
+}
+
+impl UartSetting {
+    /// From the registers: UBRR0, U2X0 (UCSR0A bit 1), UCSR0C's character
+    /// size, parity and stop bits.
+    fn read(core: &Core, clock_hz: u32) -> Self {
+        let ubrr = u16::from_le_bytes([core.data(reg::UBRR0L), core.data(reg::UBRR0H) & 0x0F]);
+        let u2x = core.data(reg::UCSR0A) & 0b10 != 0;
+        let divisor = if u2x { 8.0 } else { 16.0 };
+        let baud = f64::from(clock_hz) / (divisor * f64::from(ubrr + 1));
+        let c = core.data(reg::UCSR0C);
+        let data_bits = 5 + u32::from((c >> 1) & 0b11);
+        let parity = u32::from((c >> 4) & 0b11 != 0);
+        let stop = 1 + u32::from((c >> 3) & 1);
+        Self {
+            baud,
+            bits_per_char: 1 + data_bits + parity + stop,
+            ubrr,
+            u2x,
+        }
+    }
+}
+
+/// What a receiver at bit time `rx_bit` makes of `byte` sent at `tx_bit`
+/// (8 data bits, LSB first): it samples each bit in its own middle, timed
+/// from the start bit's falling edge, so a few per cent of mismatch is
+/// harmless and more shifts the bits.
+pub fn sampled(byte: u8, tx_bit: f64, rx_bit: f64) -> u8 {
+    let ratio = rx_bit / tx_bit;
+    if (ratio - 1.0).abs() < 1e-9 {
+        return byte;
+    }
+    let level = |t: f64| -> bool {
+        match t.floor() as i64 {
+            i64::MIN..=0 => false,
+            j @ 1..=8 => byte >> (j - 1) & 1 != 0,
+            _ => true,
+        }
+    };
+    let mut out = 0u8;
+    for k in 1..=8 {
+        if level((k as f64 + 0.5) * ratio) {
+            out |= 1 << (k - 1);
+        }
+    }
+    out
+}
+
+/// What to hand simavr for a pin at `mv` millivolts so that it converts
+/// as the chip does. The ATmega's ADC gives floor(Vin · 1024 / Vref)
+/// (datasheet, "ADC Conversion Result"); simavr 1.6 computes
+/// floor(mV · 1023 / Vref) from whole millivolts, up to two counts low.
+/// With AVcc = 5 V as the reference, the smallest millivolt count that
+/// simavr turns into the chip's result is handed over instead.
+pub fn simavr_millivolts(mv: u32) -> u32 {
+    let count = (u64::from(mv) * 1024 / 5000).min(1023);
+    (count * 5000).div_ceil(1023) as u32
+}
+
+/// 64-bit FNV-1a of the firmware file: names exactly which build ran.
+pub fn fingerprint(bytes: &[u8]) -> u64 {
+    bytes.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
+        (h ^ u64::from(*b)).wrapping_mul(0x0000_0100_0000_01B3)
+    })
+}
+
+/// What a firmware node is: its board, its file, and the bus it is on.
+#[derive(Debug, Clone, Copy)]
+pub struct Board<'a> {
+    pub name: &'a str,
+    pub elf: &'a Path,
+    pub mcu: &'a str,
+    pub clock_hz: u32,
+    /// The bus's baud and bits per character (its masters' setting).
+    pub bus_baud: u32,
+    pub bus_bits: u32,
+}
+
+/// A compiled sketch running on a simulated ATmega328P.
+#[derive(Debug)]
+pub struct AvrNode {
+    name: String,
+    elf: PathBuf,
+    core: Core,
+    clock_hz: u32,
+    wiring: Wiring,
+    sensing: SensingParams,
+    bus_baud: f64,
+    bus_bits: u32,
+    uart: UartSetting,
+    /// Bytes written by the firmware, not yet sent as a frame.
+    pending: Vec<u8>,
+    /// When the last of them ends on the firmware's wire.
+    pending_end: SimTime,
+    /// When the firmware's TX line is free for the next byte.
+    line_free: SimTime,
+    ready: Vec<u8>,
+    /// Inputs as last driven: per wired input pin.
+    input_levels: Vec<bool>,
+    /// Per PWM pin: (cycle, cycles high) at the last tick, and the filtered volts.
+    pwm_state: Vec<(u64, u64, f64)>,
+    last_tick: SimTime,
+    failure: Option<String>,
+    events: VecDeque<NodeEvent>,
+    next_telemetry: SimTime,
+    adc_mv: [u32; 8],
+    actuators: Actuators,
+    pub bytes_in: u64,
+    pub bytes_out: u64,
+}
+
+impl AvrNode {
+    /// Loads the board's ELF (checked against its MCU) and powers the core up.
+    pub fn start(
+        board: Board<'_>,
+        wiring: Wiring,
+        sensing: SensingParams,
+    ) -> Result<Self, StartError> {
+        let Board {
+            name,
+            elf,
+            mcu,
+            clock_hz,
+            bus_baud,
+            bus_bits,
+        } = board;
+        crate::elf::check(elf, mcu)?;
+        let bytes = std::fs::read(elf).unwrap_or_default();
+        let image = Image::read(elf).ok_or_else(|| crate::elf::ElfError::Unloadable {
+            file: elf.display().to_string(),
+        })?;
+        if !image.mcu.is_empty() && image.mcu != mcu {
+            return Err(crate::elf::ElfError::WrongMcu {
+                file: elf.display().to_string(),
+                found: image.mcu.clone(),
+                mcu: mcu.into(),
+            }
+            .into());
+        }
+        let core =
+            Core::start(image, mcu, clock_hz).ok_or_else(|| StartError::NoMcu(mcu.into()))?;
+        let uart = UartSetting::read(&core, clock_hz);
+        let mut node = Self {
+            name: name.into(),
+            elf: elf.to_path_buf(),
+            core,
+            clock_hz,
+            input_levels: vec![false; wiring.inputs.len()],
+            pwm_state: vec![(0, 0, 0.0); wiring.pwm.len()],
+            wiring,
+            sensing,
+            bus_baud: f64::from(bus_baud.max(1)),
+            bus_bits,
+            uart,
+            pending: Vec::with_capacity(MAX_FRAME),
+            pending_end: SimTime::ZERO,
+            line_free: SimTime::ZERO,
+            ready: Vec::with_capacity(MAX_FRAME),
+            last_tick: SimTime::ZERO,
+            failure: None,
+            events: VecDeque::with_capacity(MAX_PENDING_EVENTS),
+            next_telemetry: SimTime::ZERO,
+            adc_mv: [0; 8],
+            actuators: Actuators::from_pins(0x1F, 0x01, 0.0),
+            bytes_in: 0,
+            bytes_out: 0,
+        };
+        // Inputs the plant holds steady from power-up: a healthy driver's
+        // fault line reads high.
+        for (i, (pin, input)) in node.wiring.inputs.clone().iter().enumerate() {
+            if *input == Input::DriverFault {
+                node.core.pin_input(pin.index, true);
+                node.input_levels[i] = true;
+            }
+        }
+        let detail = format!(
+            "{} ({} bytes, FNV-1a {:016x}) on an {} at {} MHz, wiring {}",
+            elf.display(),
+            bytes.len(),
+            fingerprint(&bytes),
+            mcu,
+            f64::from(clock_hz) / 1e6,
+            node.wiring.origin
+        );
+        node.push_event(SimTime::ZERO, "state", detail);
+        Ok(node)
+    }
+
+    /// The simulated cycles run so far.
+    pub fn cycles(&self) -> u64 {
+        self.core.cycle()
+    }
+
+    /// The firmware's UART setting as its registers hold it now.
+    pub fn uart(&self) -> UartSetting {
+        self.uart
+    }
+
+    fn to_cycle(&self, t: SimTime) -> u64 {
+        (u128::from(t.0) * u128::from(self.clock_hz) / u128::from(TICKS_PER_SECOND)) as u64
+    }
+
+    fn to_time(&self, cycle: u64) -> SimTime {
+        SimTime(
+            (u128::from(cycle) * u128::from(TICKS_PER_SECOND) / u128::from(self.clock_hz)) as u64,
+        )
+    }
+
+    fn push_event(&mut self, at: SimTime, kind: &'static str, detail: String) {
+        if self.events.len() >= MAX_PENDING_EVENTS {
+            self.events.pop_front();
+        }
+        self.events.push_back(NodeEvent { at, kind, detail });
+    }
+
+    /// Runs the core up to `now` and takes what its UART wrote.
+    fn advance(&mut self, now: SimTime) {
+        if self.failure.is_some() {
+            return;
+        }
+        let state = self.core.run_until(self.to_cycle(now));
+        match state {
+            State::Crashed | State::Done => {
+                let at = self.to_time(self.core.cycle());
+                let pc = self.core.pc();
+                let why = if state == State::Crashed {
+                    let log = Core::last_log();
+                    let log = if log.is_empty() {
+                        String::new()
+                    } else {
+                        format!(" (simavr: {log})")
+                    };
+                    let past = if pc > FLASH_END {
+                        ", past the end of its 32 KB of flash"
+                    } else {
+                        ""
+                    };
+                    format!("crashed{log} at PC 0x{pc:04X}{past}")
+                } else {
+                    format!("went to sleep with interrupts off at PC 0x{pc:04X} and can never wake")
+                };
+                let message = format!(
+                    "firmware {} of board `{}` {why}, {:.6} s simulated (cycle {}); the node is stopped",
+                    self.elf.display(),
+                    self.name,
+                    at.as_secs_f64(),
+                    self.core.cycle()
+                );
+                self.push_event(at, "trip", message.clone());
+                self.failure = Some(message);
+            }
+            _ => {}
+        }
+        self.take_uart_output();
+    }
+
+    fn take_uart_output(&mut self) {
+        while let Some((byte, cycle)) = self.core.uart_output() {
+            let setting = UartSetting::read(&self.core, self.clock_hz);
+            if setting != self.uart {
+                self.uart = setting;
+                let at = self.to_time(cycle);
+                self.note_baud(at);
+            }
+            let bit = 1.0 / self.uart.baud;
+            let char_time = SimDuration::from_secs_f64(bit * f64::from(self.uart.bits_per_char));
+            let start = self.to_time(cycle).max(self.line_free);
+            self.line_free = start + char_time;
+            // The bus's receivers sample it at their own baud.
+            let seen = sampled(byte, bit, 1.0 / self.bus_baud);
+            if self.pending.len() < MAX_FRAME {
+                self.pending.push(seen);
+            }
+            self.pending_end = self.line_free;
+            self.bytes_out += 1;
+        }
+    }
+
+    fn note_baud(&mut self, at: SimTime) {
+        let u = self.uart;
+        let apart = (u.baud / self.bus_baud - 1.0) * 100.0;
+        let detail = format!(
+            "UART0 at {:.0} baud (UBRR0 {}, U2X0 {}), {} bits per character; the bus runs at {:.0} baud, {} bits, {:+.1} % apart",
+            u.baud,
+            u.ubrr,
+            if u.u2x { "on" } else { "off" },
+            u.bits_per_char,
+            self.bus_baud,
+            self.bus_bits,
+            apart
+        );
+        self.push_event(at, "state", detail);
+    }
+
+    /// When the bytes written so far make a frame: the firmware's line quiet
+    /// for two characters after the last.
+    fn frame_due(&self) -> Option<SimTime> {
+        if self.pending.is_empty() {
+            return None;
+        }
+        let char_time =
+            SimDuration::from_secs_f64(f64::from(self.uart.bits_per_char) / self.uart.baud);
+        Some(self.pending_end + char_time + char_time)
+    }
+
+    fn flush_if_due(&mut self, now: SimTime) {
+        if self.ready.is_empty() && self.frame_due().is_some_and(|due| due <= now) {
+            std::mem::swap(&mut self.ready, &mut self.pending);
+        }
+    }
+
+    /// The voltage at an analog pin for `what` on the plant, in millivolts.
+    fn pin_millivolts(&self, what: Analog, s: &Sensors) -> u32 {
+        let k = &self.sensing;
+        let volts = match what {
+            Analog::V1 => s.battery_volts / k.battery_divider,
+            Analog::V2 => s.bus_volts / k.bus_divider,
+            Analog::I => k.current_zero_volts + s.inverter_current * k.current_volts_per_amp,
+            Analog::Ldr => s.ldr_volts,
+        };
+        (volts.clamp(0.0, 5.0) * 1000.0).round() as u32
+    }
+
+    fn input_level(what: Input, s: &Sensors) -> bool {
+        match what {
+            Input::HallA => s.shaft.hall & 1 != 0,
+            Input::HallB => s.shaft.hall & 2 != 0,
+            Input::HallC => s.shaft.hall & 4 != 0,
+            Input::EncoderA => s.shaft.encoder_a,
+            Input::EncoderB => s.shaft.encoder_b,
+            Input::DriverFault => true,
+        }
+    }
+
+    /// An output pin's level: what PORTx drives where DDRx makes it an
+    /// output; an input pin floats high (the module's inputs pull up).
+    fn output_level(&self, index: u8) -> bool {
+        let port = usize::from(index / 8);
+        let bit = 1u8 << (index % 8);
+        let driven = self.core.data(reg::DDR[port]) & bit != 0;
+        !driven || self.core.data(reg::PORT[port]) & bit != 0
+    }
+
+    fn read_outputs(&mut self, now: SimTime) -> Actuators {
+        let mut sd0: u16 = 0x1F;
+        let mut sd1: u16 = 0x01;
+        for &(pin, what) in &self.wiring.outputs {
+            let high = self.output_level(pin.index);
+            let (word, bit) = match what {
+                Output::En => (&mut sd0, 0),
+                Output::Brk => (&mut sd0, 1),
+                Output::Pro => (&mut sd0, 2),
+                Output::Des => (&mut sd0, 3),
+                Output::Fr => (&mut sd0, 4),
+                Output::Chg => (&mut sd1, 0),
+                Output::Led | Output::DriverSleep => continue,
+            };
+            if high {
+                *word |= 1 << bit;
+            } else {
+                *word &= !(1 << bit);
+            }
+        }
+        let cycle = self.core.cycle();
+        let dt = now.saturating_since(self.last_tick).as_secs_f64();
+        let tau = self.wiring.board.pwm_filter_ms / 1000.0;
+        let mut vel = 0.0;
+        for (i, &(pin, Pwm::Vel)) in self.wiring.pwm.iter().enumerate() {
+            let (_, _, high) = self.core.pin_output(pin.index);
+            let (last_cycle, last_high, filtered) = self.pwm_state[i];
+            let span = cycle.saturating_sub(last_cycle);
+            // A pin that stays put has no edges: its level is its duty.
+            let duty = if span == 0 {
+                f64::from(u8::from(self.output_level(pin.index)))
+            } else {
+                (high.saturating_sub(last_high)) as f64 / span as f64
+            };
+            let target = duty.clamp(0.0, 1.0) * 5.0;
+            let volts = if tau > 0.0 {
+                filtered + (target - filtered) * (1.0 - (-dt / tau).exp())
+            } else {
+                target
+            };
+            // To the millivolt, as a 12-bit converter would see it: the
+            // filter's endless approach is not a change worth recording.
+            let volts = (volts * 1000.0).round() / 1000.0;
+            self.pwm_state[i] = (cycle, high, volts);
+            vel = volts;
+        }
+        Actuators::from_pins(sd0, sd1, vel)
+    }
+
+    /// The edge time the plant reports for `what`, if it has one in (from, to].
+    fn edge_time(what: Input, s: &Sensors) -> f64 {
+        match what {
+            Input::HallA | Input::HallB | Input::HallC => s.shaft.last_hall_edge_at,
+            Input::EncoderA | Input::EncoderB => s.shaft.last_encoder_edge_at,
+            Input::DriverFault => f64::NAN,
+        }
+    }
+}
+
+impl Node for AvrNode {
+    fn handle_bytes(&mut self, now: SimTime, bytes: &[u8]) {
+        self.advance(now);
+        if self.failure.is_some() {
+            return;
+        }
+        let setting = UartSetting::read(&self.core, self.clock_hz);
+        if setting != self.uart {
+            self.uart = setting;
+            self.note_baud(now);
+        }
+        for &b in bytes {
+            // The firmware's receiver samples the bus's bits at its own baud.
+            let seen = sampled(b, 1.0 / self.bus_baud, 1.0 / self.uart.baud);
+            self.core.uart_input(seen);
+            self.bytes_in += 1;
+        }
+    }
+
+    fn handle_timeout(&mut self, now: SimTime) {
+        self.advance(now);
+        self.flush_if_due(now);
+    }
+
+    fn poll_transmit(&mut self, now: SimTime, buf: &mut [u8]) -> Option<usize> {
+        self.flush_if_due(now);
+        if self.ready.is_empty() {
+            return None;
+        }
+        let len = self.ready.len().min(buf.len());
+        buf[..len].copy_from_slice(&self.ready[..len]);
+        self.ready.clear();
+        Some(len)
+    }
+
+    fn poll_timeout(&self) -> Option<SimTime> {
+        if self.failure.is_some() {
+            return None;
+        }
+        self.frame_due()
+    }
+
+    fn poll_event(&mut self) -> Option<NodeEvent> {
+        self.events.pop_front()
+    }
+}
+
+impl Firmware for AvrNode {
+    fn loop_period(&self) -> SimDuration {
+        SimDuration::from_micros(u64::from(self.wiring.board.tick_us))
+    }
+
+    fn loop_tick(&mut self, now: SimTime, sensors: &Sensors) -> Actuators {
+        if self.failure.is_some() {
+            return Actuators::from_pins(0x1F, 0x01, 0.0);
+        }
+        // Digital inputs change at the plant's own edge times, so the
+        // firmware's interrupts see them when the bench would.
+        let from_s = self.to_time(self.core.cycle()).as_secs_f64();
+        for i in 0..self.wiring.inputs.len() {
+            let (pin, what) = self.wiring.inputs[i];
+            let level = Self::input_level(what, sensors);
+            if level == self.input_levels[i] {
+                continue;
+            }
+            let edge = Self::edge_time(what, sensors);
+            if edge.is_finite() && edge > from_s && edge <= now.as_secs_f64() {
+                self.advance(SimTime::ZERO + SimDuration::from_secs_f64(edge));
+            }
+            self.core.pin_input(pin.index, level);
+            self.input_levels[i] = level;
+        }
+        self.advance(now);
+        for i in 0..self.wiring.analog.len() {
+            let (pin, what) = self.wiring.analog[i];
+            let mv = self.pin_millivolts(what, sensors);
+            let channel = pin.adc.unwrap_or(0);
+            if self.adc_mv[usize::from(channel)] != mv {
+                self.adc_mv[usize::from(channel)] = mv;
+                self.core.adc(channel, simavr_millivolts(mv));
+            }
+        }
+        self.actuators = self.read_outputs(now);
+        self.last_tick = now;
+        self.actuators
+    }
+}
+
+impl SimNode for AvrNode {
+    fn firmware(&mut self) -> Option<&mut dyn Firmware> {
+        Some(self)
+    }
+
+    fn drives_plant(&self) -> bool {
+        self.wiring.board.drives_plant
+    }
+
+    fn telemetry(&mut self) -> Option<serde_json::Value> {
+        if self.last_tick < self.next_telemetry {
+            return None;
+        }
+        self.next_telemetry = self.last_tick + TELEMETRY_EVERY;
+        let a = &self.actuators;
+        let adc: Vec<u32> = self
+            .wiring
+            .analog
+            .iter()
+            .map(|(p, _)| self.adc_mv[usize::from(p.adc.unwrap_or(0))])
+            .collect();
+        Some(json!({
+            "firmware_cycles": self.core.cycle(),
+            "uart_baud": self.uart.baud.round(),
+            "adc_millivolts": adc,
+            "vel_volts": a.vel_volts,
+            "enable": a.enable,
+            "brake": a.brake,
+            "reverse": a.reverse,
+            "bytes_in": self.bytes_in,
+            "bytes_out": self.bytes_out,
+        }))
+    }
+
+    fn final_state(&self) -> Option<serde_json::Value> {
+        Some(json!({
+            "firmware": self.elf.display().to_string(),
+            "firmware_cycles": self.core.cycle(),
+            "uart_baud": self.uart.baud.round(),
+            "bytes_in": self.bytes_in,
+            "bytes_out": self.bytes_out,
+        }))
+    }
+
+    fn failure(&self) -> Option<String> {
+        self.failure.clone()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn simavr_is_handed_the_millivolts_that_give_the_chips_count() {
+        for mv in (0..=5000).step_by(7) {
+            let chip = (u64::from(mv) * 1024 / 5000).min(1023);
+            let simavr = u64::from(simavr_millivolts(mv)) * 1023 / 5000;
+            assert_eq!(simavr, chip, "{mv} mV");
+        }
+    }
+
+    #[test]
+    fn a_receiver_a_few_per_cent_off_still_reads_every_byte() {
+        let bus = 1.0 / 115_200.0;
+        let firmware = 1.0 / 117_647.0; // UBRR0 16 with U2X0 at 16 MHz
+        for b in 0..=255u8 {
+            assert_eq!(sampled(b, bus, firmware), b);
+        }
+    }
+
+    #[test]
+    fn a_receiver_at_another_baud_garbles_the_bytes() {
+        let garbled = (0..=255u8)
+            .filter(|b| sampled(*b, 1.0 / 9600.0, 1.0 / 115_200.0) != *b)
+            .count();
+        assert!(garbled > 200, "{garbled}");
+    }
+}

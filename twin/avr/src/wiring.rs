@@ -1,0 +1,322 @@
+//! The wiring map: which pin of the board is wired to what on the bench
+//! (TOML). The map for our EV controller sketch ships with the crate; a
+//! student's sketch for the same board runs with it and no map of its own.
+
+use std::collections::BTreeMap;
+
+use anyhow::{Context, Result, anyhow, bail};
+use serde::Deserialize;
+
+/// The maps that ship: name, text.
+pub const SHIPPED: [(&str, &str); 1] = [(
+    "ev-controller",
+    include_str!("../wiring/ev-controller.toml"),
+)];
+
+/// What a pin is wired to on the plant's side.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Analog {
+    /// V1, battery, through its divider.
+    V1,
+    /// V2, DC bus, through its divider.
+    V2,
+    /// I, inverter current, through the hall current sensor.
+    I,
+    /// The photoresistor divider.
+    Ldr,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Input {
+    HallA,
+    HallB,
+    HallC,
+    EncoderA,
+    EncoderB,
+    /// The motor driver's fault line: high while the driver is healthy.
+    DriverFault,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Output {
+    /// MEB SD0 bits 0–4 (high = off, as the module's inputs are wired).
+    En,
+    Brk,
+    Pro,
+    Des,
+    Fr,
+    /// MEB SD1 bit 0.
+    Chg,
+    /// Read and recorded only.
+    Led,
+    DriverSleep,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Pwm {
+    /// The module's speed input VEL (0–5 V).
+    Vel,
+}
+
+/// A pin of the ATmega328P: index into ports B (0–7), C (8–15), D (16–23),
+/// and its ADC channel if it has one.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Pin {
+    pub name: &'static str,
+    pub index: u8,
+    pub adc: Option<u8>,
+}
+
+const PIN_NAMES: [&str; 20] = [
+    "D0", "D1", "D2", "D3", "D4", "D5", "D6", "D7", "D8", "D9", "D10", "D11", "D12", "D13", "A0",
+    "A1", "A2", "A3", "A4", "A5",
+];
+
+/// The Arduino pin called `name` (`D9`, `A0`; `13` for D13).
+pub fn pin(name: &str) -> Option<Pin> {
+    let upper = name.trim().to_ascii_uppercase();
+    let canonical = if upper.chars().all(|c| c.is_ascii_digit()) {
+        format!("D{upper}")
+    } else {
+        upper
+    };
+    let n = PIN_NAMES.iter().position(|p| *p == canonical)?;
+    let name = PIN_NAMES[n];
+    let (index, adc) = match n {
+        0..=7 => (16 + n as u8, None),
+        8..=13 => (n as u8 - 8, None),
+        _ => (8 + (n as u8 - 14), Some(n as u8 - 14)),
+    };
+    Some(Pin { name, index, adc })
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct File {
+    #[serde(default)]
+    analog: BTreeMap<String, String>,
+    #[serde(default)]
+    inputs: BTreeMap<String, String>,
+    #[serde(default)]
+    outputs: BTreeMap<String, String>,
+    #[serde(default)]
+    pwm: BTreeMap<String, String>,
+    #[serde(default)]
+    board: Board,
+}
+
+/// The board's settings beside its pins.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct Board {
+    /// How often the sensors reach the pins and the outputs are read (µs).
+    pub tick_us: u32,
+    /// RC time constant between a PWM pin and the module (ms).
+    pub pwm_filter_ms: f64,
+    /// Whether the outputs drive the module (false: a sensor-only board).
+    pub drives_plant: bool,
+}
+
+impl Default for Board {
+    fn default() -> Self {
+        Self {
+            tick_us: 100,
+            pwm_filter_ms: 1.0,
+            drives_plant: true,
+        }
+    }
+}
+
+/// A wiring map, checked.
+#[derive(Debug, Clone)]
+pub struct Wiring {
+    /// Where it came from, for messages.
+    pub origin: String,
+    pub analog: Vec<(Pin, Analog)>,
+    pub inputs: Vec<(Pin, Input)>,
+    pub outputs: Vec<(Pin, Output)>,
+    pub pwm: Vec<(Pin, Pwm)>,
+    pub board: Board,
+}
+
+impl Wiring {
+    /// A shipped map by name, or a TOML file.
+    pub fn load(name_or_file: &str) -> Result<Self> {
+        if let Some((name, text)) = SHIPPED.iter().find(|(n, _)| *n == name_or_file) {
+            return Self::parse(text, &format!("wiring map {name}"));
+        }
+        let text = std::fs::read_to_string(name_or_file).with_context(|| {
+            let names: Vec<&str> = SHIPPED.iter().map(|(n, _)| *n).collect();
+            format!(
+                "wiring map {name_or_file}: neither a shipped map ({}) nor a file that can be read",
+                names.join(", ")
+            )
+        })?;
+        Self::parse(&text, name_or_file)
+    }
+
+    /// Parses a map; `origin` names it in errors.
+    pub fn parse(text: &str, origin: &str) -> Result<Self> {
+        let file: File = toml::from_str(text).map_err(|e| anyhow!("{origin}: {e}"))?;
+        let analog = pins(
+            origin,
+            "analog",
+            &file.analog,
+            |s| {
+                Some(match s {
+                    "v1" => Analog::V1,
+                    "v2" => Analog::V2,
+                    "i" => Analog::I,
+                    "ldr" => Analog::Ldr,
+                    _ => return None,
+                })
+            },
+            "v1, v2, i, ldr",
+        )?;
+        for (pin, _) in &analog {
+            if pin.adc.is_none() {
+                bail!("{origin}: [analog] {}: not an analog pin (A0–A5)", pin.name);
+            }
+        }
+        let inputs = pins(
+            origin,
+            "inputs",
+            &file.inputs,
+            |s| {
+                Some(match s {
+                    "hall_a" => Input::HallA,
+                    "hall_b" => Input::HallB,
+                    "hall_c" => Input::HallC,
+                    "encoder_a" => Input::EncoderA,
+                    "encoder_b" => Input::EncoderB,
+                    "driver_fault" => Input::DriverFault,
+                    _ => return None,
+                })
+            },
+            "hall_a, hall_b, hall_c, encoder_a, encoder_b, driver_fault",
+        )?;
+        let outputs = pins(
+            origin,
+            "outputs",
+            &file.outputs,
+            |s| {
+                Some(match s {
+                    "en" => Output::En,
+                    "brk" => Output::Brk,
+                    "pro" => Output::Pro,
+                    "des" => Output::Des,
+                    "fr" => Output::Fr,
+                    "chg" => Output::Chg,
+                    "led" => Output::Led,
+                    "driver_sleep" => Output::DriverSleep,
+                    _ => return None,
+                })
+            },
+            "en, brk, pro, des, fr, chg, led, driver_sleep",
+        )?;
+        let pwm = pins(
+            origin,
+            "pwm",
+            &file.pwm,
+            |s| (s == "vel").then_some(Pwm::Vel),
+            "vel",
+        )?;
+        let mut used: BTreeMap<u8, &str> = BTreeMap::new();
+        let all = analog
+            .iter()
+            .map(|(p, _)| p)
+            .chain(inputs.iter().map(|(p, _)| p))
+            .chain(outputs.iter().map(|(p, _)| p))
+            .chain(pwm.iter().map(|(p, _)| p));
+        for p in all {
+            if p.index == 16 || p.index == 17 {
+                bail!(
+                    "{origin}: {}: D0 and D1 are the serial port (RXD, TXD)",
+                    p.name
+                );
+            }
+            if used.insert(p.index, p.name).is_some() {
+                bail!("{origin}: {} is wired twice", p.name);
+            }
+        }
+        let board = file.board;
+        if !(10..=100_000).contains(&board.tick_us) {
+            bail!(
+                "{origin}: [board] tick_us: give 10 to 100000 µs, got {}",
+                board.tick_us
+            );
+        }
+        if !(board.pwm_filter_ms.is_finite() && board.pwm_filter_ms >= 0.0) {
+            bail!(
+                "{origin}: [board] pwm_filter_ms: give 0 or more, got {}",
+                board.pwm_filter_ms
+            );
+        }
+        Ok(Self {
+            origin: origin.into(),
+            analog,
+            inputs,
+            outputs,
+            pwm,
+            board,
+        })
+    }
+}
+
+fn pins<T>(
+    origin: &str,
+    table: &str,
+    entries: &BTreeMap<String, String>,
+    signal: impl Fn(&str) -> Option<T>,
+    known: &str,
+) -> Result<Vec<(Pin, T)>> {
+    entries
+        .iter()
+        .map(|(name, what)| {
+            let p = pin(name).ok_or_else(|| {
+                anyhow!("{origin}: [{table}] {name}: no such pin on the ATmega328P (D2–D13, A0–A5)")
+            })?;
+            let s = signal(&what.to_ascii_lowercase()).ok_or_else(|| {
+                anyhow!(
+                    "{origin}: [{table}] {name} = \"{what}\": unknown signal (known here: {known})"
+                )
+            })?;
+            Ok((p, s))
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_shipped_maps_load() {
+        for (name, _) in SHIPPED {
+            Wiring::load(name).unwrap_or_else(|e| panic!("{e:#}"));
+        }
+        let ev = Wiring::load("ev-controller").unwrap();
+        assert_eq!(ev.pwm[0].0.name, "D9");
+        assert_eq!(pin("D9").unwrap().index, 1); // PB1, OC1A
+        assert_eq!(pin("A2").unwrap().adc, Some(2));
+        assert_eq!(pin("D2").unwrap().index, 18); // PD2, INT0
+    }
+
+    #[test]
+    fn an_unknown_pin_or_signal_names_the_file_and_the_field() {
+        let err = Wiring::parse("[outputs]\nD22 = \"en\"\n", "my.toml").unwrap_err();
+        assert!(
+            err.to_string()
+                .contains("my.toml: [outputs] D22: no such pin"),
+            "{err}"
+        );
+        let err = Wiring::parse("[inputs]\nD2 = \"hal_a\"\n", "my.toml").unwrap_err();
+        assert!(
+            err.to_string()
+                .contains("[inputs] D2 = \"hal_a\": unknown signal"),
+            "{err}"
+        );
+        let err = Wiring::parse("[analog]\nD5 = \"v1\"\n", "my.toml").unwrap_err();
+        assert!(err.to_string().contains("not an analog pin"), "{err}");
+    }
+}
