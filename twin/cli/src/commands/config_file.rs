@@ -259,7 +259,7 @@ fn setting(
     let mut argv: Vec<OsString> = vec![command.get_name().into()];
     argv.extend(words.iter().cloned());
     if let Err(e) = command.clone().try_get_matches_from(argv) {
-        bail!("{place}: `{key}` {}", clap_reason(&e, &flag));
+        bail!("{place}: `{key}`{}", clap_reason(&e, &flag));
     }
     Ok(Setting {
         key: key.to_string(),
@@ -302,7 +302,7 @@ fn clap_reason(e: &clap::Error, flag: &str) -> String {
     if let Some(source) = e.source() {
         let why = source.to_string();
         return if why.starts_with("must ") {
-            why
+            format!(" {why}")
         } else {
             format!(": {why}")
         };
