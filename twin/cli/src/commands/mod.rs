@@ -2,7 +2,6 @@
 
 pub mod baseline;
 pub mod bench;
-mod class;
 pub mod client;
 pub mod compare;
 pub mod completions;

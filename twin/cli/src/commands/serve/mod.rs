@@ -13,6 +13,8 @@ use twin_realtime::serve::{self, ServeOptions, ServeProtocol, console};
 use twin_realtime::session::SessionOptions;
 use twin_view::{Session, ViewLayout};
 
+mod class;
+
 /// Run the EV module in real time and serve its controller on real links.
 ///
 /// LINK is `tcp://HOST:PORT` (port 0: any free port, printed) or a serial
@@ -243,7 +245,7 @@ pub fn execute(args: &ServeArgs, matches: &ArgMatches) -> Result<()> {
     let merged;
     let args = match &file {
         Some(f) if !f.modules.is_empty() => {
-            return super::class::execute(f, &command, matches, args.service.check);
+            return class::execute(f, &command, matches, args.service.check);
         }
         Some(f) => {
             merged = super::service::reparse::<ServeArgs>(&command, f.words(None, matches))?;

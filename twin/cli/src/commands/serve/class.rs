@@ -13,9 +13,9 @@ use std::sync::mpsc::{Sender, channel};
 use twin_realtime::Inbound;
 use twin_realtime::serve::{self, OpenLink, ServeOptions};
 
-use super::config_file::ConfigFile;
-use super::serve::ServeArgs;
-use super::service::{Reread, reparse};
+use super::super::config_file::ConfigFile;
+use super::super::service::{Reread, reparse};
+use super::ServeArgs;
 
 /// What a module's thread reports to the class.
 enum Report {
@@ -53,7 +53,7 @@ pub fn execute(
     for m in &file.modules {
         let args: ServeArgs = reparse(command, file.words(Some(m), given))
             .map_err(|e| anyhow!("{}:{}: module {}: {e:#}", file.origin, m.line, m.name))?;
-        let options = super::serve::options(&args, Some(&m.name))
+        let options = super::options(&args, Some(&m.name))
             .map_err(|e| anyhow!("{}:{}: module {}: {e:#}", file.origin, m.line, m.name))?;
         serve::parse_links(&options)
             .map_err(|e| anyhow!("{}:{}: module {}: {e:#}", file.origin, m.line, m.name))?;
@@ -62,7 +62,7 @@ pub fn execute(
     if check {
         println!("{}: a class of {} modules", file.origin, modules.len());
         for (name, _, options) in &modules {
-            println!("  {name}: {}", super::serve::described(options));
+            println!("  {name}: {}", super::described(options));
         }
         return Ok(());
     }
@@ -79,7 +79,7 @@ pub fn execute(
                     allow_of: |a| a.service.allow.clone(),
                     plan_of: {
                         let name = name.clone();
-                        Box::new(move |a| super::serve::plan(a, Some(&name)))
+                        Box::new(move |a| super::plan(a, Some(&name)))
                     },
                 }
                 .hook(),
