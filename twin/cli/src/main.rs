@@ -72,14 +72,23 @@ fn main() -> ExitCode {
     // Negative numbers are values, never flags: the parsers say which
     // options cannot take them.
     let command = commands::take_negative_numbers(Cli::command());
-    let cli = Cli::from_arg_matches(&command.get_matches()).unwrap_or_else(|e| e.exit());
+    let matches = command.get_matches();
+    let cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
+    // What the command line itself gave (a configuration file's options
+    // give way to it).
+    let given = |name: &str| {
+        matches
+            .subcommand_matches(name)
+            .cloned()
+            .unwrap_or_default()
+    };
     if cli.command.runs_on_the_virtual_clock() {
         commands::finish_recordings_on_signals();
     }
     let result = match cli.command {
         Command::Run(args) => commands::run::execute(&args),
-        Command::Serve(args) => commands::serve::execute(&args),
-        Command::Supervise(args) => commands::supervise::execute(&args),
+        Command::Serve(args) => commands::serve::execute(&args, &given("serve")),
+        Command::Supervise(args) => commands::supervise::execute(&args, &given("supervise")),
         Command::Client(args) => commands::client::execute(&args),
         Command::Vsp(args) => commands::vsp::execute(&args),
         Command::View(args) => commands::view::execute(&args),

@@ -16,6 +16,8 @@ pub struct Server {
     child: Child,
     /// (protocol, address) of each link it printed.
     pub links: Vec<(String, String)>,
+    /// The fourth word of each link line, if any (a class's module name).
+    pub link_names: Vec<String>,
     /// Its standard output, line by line, after `ready`.
     lines: mpsc::Receiver<String>,
 }
@@ -60,6 +62,7 @@ impl Server {
         });
         let deadline = Instant::now() + timeout;
         let mut links = Vec::new();
+        let mut link_names = Vec::new();
         loop {
             let left = deadline.saturating_duration_since(Instant::now());
             match rx.recv_timeout(left) {
@@ -69,6 +72,7 @@ impl Server {
                         let mut words = rest.split_whitespace();
                         if let (Some(p), Some(a)) = (words.next(), words.next()) {
                             links.push((p.to_string(), a.to_string()));
+                            link_names.push(words.nth(1).unwrap_or_default().to_string());
                         }
                     }
                 }
@@ -84,6 +88,7 @@ impl Server {
             name: name.to_string(),
             child,
             links,
+            link_names,
             lines: rx,
         })
     }
@@ -97,11 +102,24 @@ impl Server {
             .with_context(|| format!("{} printed no {protocol} link: {:?}", self.name, self.links))
     }
 
+    /// Resident memory of the server's process, KiB, from `/proc`.
+    pub fn rss_kib(&self) -> Option<u64> {
+        let status = std::fs::read_to_string(format!("/proc/{}/status", self.child.id())).ok()?;
+        let line = status.lines().find(|l| l.starts_with("VmRSS:"))?;
+        line.split_whitespace().nth(1)?.parse().ok()
+    }
+
     /// SIGTERM, then SIGKILL if it does not stop within two seconds; the
     /// lines it printed after `ready`.
-    pub fn stop(mut self) -> Vec<String> {
+    pub fn stop(self) -> Vec<String> {
+        self.stop_within(Duration::from_secs(2))
+    }
+
+    /// SIGTERM, then SIGKILL if it does not stop within `limit`; the lines
+    /// it printed after `ready`.
+    pub fn stop_within(mut self, limit: Duration) -> Vec<String> {
         let _ = kill_process(Pid::from_child(&self.child), Signal::TERM);
-        let deadline = Instant::now() + Duration::from_secs(2);
+        let deadline = Instant::now() + limit;
         let mut stopped = false;
         while Instant::now() < deadline {
             if let Ok(Some(_)) = self.child.try_wait() {

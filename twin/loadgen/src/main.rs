@@ -9,6 +9,7 @@
 )]
 
 mod child;
+mod class;
 mod measure;
 mod pty;
 mod rounds;
@@ -94,6 +95,33 @@ enum Role {
         #[arg(long)]
         echo: bool,
     },
+    /// A class on this machine: N modules served by one `twin serve`
+    /// (`[[module]]` tables) against one process per module (the
+    /// `twin-serve@` template), interleaved round by round; each module
+    /// polled by its own Modbus TCP client at --hz, every reply checked.
+    /// Prints per variant the reply latency p99 and tick lateness p99 per
+    /// module (median and worst), lost and wrong replies, the servers' CPU
+    /// and memory and the machine's load, then the ratios.
+    Class {
+        /// Modules (students).
+        #[arg(long, default_value_t = 35)]
+        modules: usize,
+        /// Requests per second per module.
+        #[arg(long, default_value_t = 100.0)]
+        hz: f64,
+        /// Seconds each variant is loaded per round.
+        #[arg(long, default_value_t = 20.0)]
+        seconds: f64,
+        /// Rounds (each serves both variants, in alternating order).
+        #[arg(long, default_value_t = 2)]
+        rounds: usize,
+        /// Serve without recording (the class records by default).
+        #[arg(long)]
+        no_record: bool,
+        /// Folder for the configurations and recordings [default: a temporary one].
+        #[arg(long)]
+        dir: Option<PathBuf>,
+    },
 }
 
 const START_TIMEOUT: Duration = Duration::from_secs(20);
@@ -112,6 +140,27 @@ fn main() -> ExitCode {
             seconds,
             echo,
         }) => load(address, *clients, *seconds, *echo),
+        Some(Role::Class {
+            modules,
+            hz,
+            seconds,
+            rounds,
+            no_record,
+            dir,
+        }) => class_bench(
+            &class::ClassRun {
+                twin: twin_binary(&cli),
+                modules: *modules,
+                hz: *hz,
+                seconds: *seconds,
+                record: !*no_record,
+                dir: dir.clone().unwrap_or_else(|| {
+                    std::env::temp_dir().join(format!("serve-bench-class-{}", std::process::id()))
+                }),
+            },
+            *rounds,
+            dir.is_none(),
+        ),
         None => bench(&cli),
     };
     match result {
@@ -144,6 +193,64 @@ fn load(address: &str, clients: usize, seconds: f64, echo: bool) -> Result<()> {
         clients.max(1),
         r.bad_replies
     );
+    Ok(())
+}
+
+fn class_bench(run: &class::ClassRun, rounds: usize, temporary: bool) -> Result<()> {
+    use class::Variant::{OneProcess, ProcessPerModule};
+    eprintln!(
+        "serve-bench class: {} modules at {} Hz each, {} s per variant, {} rounds, {}",
+        run.modules,
+        run.hz,
+        run.seconds,
+        rounds,
+        if run.record {
+            "recorded"
+        } else {
+            "not recorded"
+        }
+    );
+    let mut all = Vec::new();
+    for round in 0..rounds.max(1) {
+        let order = if round % 2 == 0 {
+            [OneProcess, ProcessPerModule]
+        } else {
+            [ProcessPerModule, OneProcess]
+        };
+        for variant in order {
+            let f = class::measure(run, variant, round)?;
+            println!("round {}: {}", round + 1, class::summary(&f));
+            all.push(f);
+        }
+    }
+    // Ratios a process each / one process, over the rounds' medians.
+    let figure = |variant, g: fn(&class::ModuleFigures) -> f64| {
+        let per_round: Vec<f64> = all
+            .iter()
+            .filter(|f| f.variant == variant)
+            .map(|f| class::median(&f.modules.iter().map(g).collect::<Vec<_>>()))
+            .collect();
+        class::median(&per_round)
+    };
+    let cpu = |variant| {
+        class::median(
+            &all.iter()
+                .filter(|f| f.variant == variant)
+                .map(|f| f.server_cpu)
+                .collect::<Vec<_>>(),
+        )
+    };
+    let lat = |m: &class::ModuleFigures| m.latency_p99_us;
+    let tick = |m: &class::ModuleFigures| m.tick_p99_us.unwrap_or(f64::NAN);
+    println!(
+        "a process each / one process: reply p99 per module (median) {:.2}, tick lateness p99 per module (median) {:.2}, server CPU {:.2}",
+        figure(ProcessPerModule, lat) / figure(OneProcess, lat),
+        figure(ProcessPerModule, tick) / figure(OneProcess, tick),
+        cpu(ProcessPerModule) / cpu(OneProcess)
+    );
+    if temporary {
+        let _ = std::fs::remove_dir_all(&run.dir);
+    }
     Ok(())
 }
 

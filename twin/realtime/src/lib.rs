@@ -20,6 +20,7 @@
     reason = "the real-time engine paces the plant to the wall clock and links wait on real ports"
 )]
 
+pub mod allow;
 pub mod client;
 pub mod clock;
 pub mod config;
@@ -33,6 +34,8 @@ pub mod front;
 pub mod io;
 pub mod lateness;
 pub mod links;
+pub mod notify;
+pub mod rotate;
 pub mod serve;
 pub mod session;
 pub mod sink;

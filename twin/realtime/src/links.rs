@@ -20,6 +20,7 @@ use tokio::net::TcpListener;
 use tokio::sync::Notify;
 use tokio::sync::mpsc::unbounded_channel;
 
+use super::allow::AllowList;
 use super::clock::RtClock;
 use super::engine::{ConnId, Inbound, LinkTask, Outbound};
 use super::frame_log::Outgoing;
@@ -192,6 +193,14 @@ where
     why
 }
 
+/// Clients a session's listeners refused: over `--max-clients`, or from
+/// an address `--allow` does not name.
+#[derive(Debug, Clone, Default)]
+pub struct Refused {
+    pub over_limit: Arc<AtomicU64>,
+    pub not_allowed: Arc<AtomicU64>,
+}
+
 /// By default, a full listener's newcomer may take the place of a client
 /// that has sent nothing for this long (the quietest one).
 pub const ROOM_AFTER_IDLE: SimDuration = SimDuration::from_secs(30);
@@ -225,14 +234,20 @@ const ROOM_WAIT: Duration = Duration::from_secs(1);
 /// of the one quiet longest if it has been for `limit.room_after_idle` (the
 /// engine closes it, saying so), or waits [`ROOM_WAIT`] for a place; if
 /// none comes, it is refused (closed at once).
+/// A client from outside `allow` is closed at once, and the refusal logged.
+#[allow(
+    clippy::too_many_arguments,
+    reason = "what one listener's task is given"
+)]
 pub async fn accept_loop(
     listener: TcpListener,
     link: usize,
     limit: Option<ClientLimit>,
+    allow: AllowList,
     ids: ConnIds,
     clock: RtClock,
     engine: Sender<Inbound>,
-    refused: Arc<AtomicU64>,
+    refused: Refused,
 ) {
     let slots = Arc::new(Slots::default());
     loop {
@@ -241,10 +256,24 @@ pub async fn accept_loop(
             tokio::time::sleep(Duration::from_millis(50)).await;
             continue;
         };
+        if !allow.permits(peer.ip()) {
+            refused.not_allowed.fetch_add(1, Ordering::Relaxed);
+            drop(socket);
+            let text = format!(
+                "{peer}: refused, not an allowed address (--allow {})",
+                allow.shown()
+            );
+            let _ = engine.send(Inbound::Command(Box::new(move |e| {
+                let name = e.links.get(link).map_or("?", |l| l.name.as_str());
+                let line = format!("[{:12.6} s] {name} {text}", e.clock.now().as_secs_f64());
+                e.say(line);
+            })));
+            continue;
+        }
         if let Some(limit) = limit
             && !room(&slots, limit, link, &engine).await
         {
-            refused.fetch_add(1, Ordering::Relaxed);
+            refused.over_limit.fetch_add(1, Ordering::Relaxed);
             drop(socket);
             let max = limit.max;
             let text =

@@ -15,18 +15,19 @@ use std::collections::BTreeMap;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::Ordering;
 use std::sync::mpsc::{Receiver, Sender, channel};
 use std::thread::JoinHandle;
 use std::time::Duration;
 use tokio::runtime::{Handle, Runtime};
 use tokio::signal::unix::{Signal, SignalKind, signal};
 
+use super::allow::AllowList;
 use super::io::{SerialSettings, serial, tcp};
-use super::links::{ClientLimit, ConnIds, accept_loop, serial_loop};
+use super::links::{ClientLimit, ConnIds, Refused, accept_loop, serial_loop};
+use super::rotate::{RecordPlan, Recordings};
 use super::sink::{self, SinkConfig, SinkMsg, ViewOpener};
 use super::{Inbound, LatenessSummary, RtClock, RtEngine, RtSummary};
-use twin_sim::observe::SimRecorder;
 
 /// What every session is told, beside what its role is told (the role's
 /// options hold it as `session`).
@@ -34,8 +35,8 @@ use twin_sim::observe::SimRecorder;
 pub struct SessionOptions {
     /// Stop after this long, seconds (none: until SIGINT/SIGTERM or `stop`).
     pub duration: Option<f64>,
-    /// Recording (none: not recorded).
-    pub out: Option<PathBuf>,
+    /// Where and how the session records (none: not recorded).
+    pub record: Option<RecordPlan>,
     /// Print every frame.
     pub monitor: bool,
     /// Seconds between status lines (0: none).
@@ -51,6 +52,28 @@ pub struct SessionOptions {
     pub view: Option<ViewOpener>,
     /// The command line, for the recording's metadata.
     pub command_line: String,
+    /// The client addresses the session's TCP listeners serve (empty: any).
+    pub allow: AllowList,
+    /// What SIGHUP rereads before the recording starts a new file.
+    pub on_hangup: Option<OnHangup>,
+}
+
+/// Called on SIGHUP (on the links' thread) before the recording starts a
+/// new file: rereads what can change while serving (a configuration file)
+/// and returns the recording's new plan, if any.
+#[derive(Clone)]
+pub struct OnHangup(Arc<dyn Fn() -> Option<RecordPlan> + Send + Sync>);
+
+impl OnHangup {
+    pub fn new(reread: impl Fn() -> Option<RecordPlan> + Send + Sync + 'static) -> Self {
+        Self(Arc::new(reread))
+    }
+}
+
+impl std::fmt::Debug for OnHangup {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("OnHangup")
+    }
 }
 
 /// What every session reports at its end (a role's outcome holds it beside
@@ -61,8 +84,13 @@ pub struct SessionOutcome {
     pub lateness: LatenessSummary,
     pub counters: crate::engine::RtCounters,
     pub refused_clients: u64,
+    /// Clients refused for coming from an address `--allow` does not name.
+    pub refused_not_allowed: u64,
     pub stopped_by: String,
+    /// The recording's last file.
     pub recording: Option<PathBuf>,
+    /// The files finished before it (rotated), oldest first.
+    pub earlier_files: Vec<PathBuf>,
     /// Samples streamed to the live view (`--view`), if it ran.
     pub view_samples: Option<u64>,
     /// What the live view's viewer did not take, if anything.
@@ -116,7 +144,7 @@ pub struct Links {
     pub clock: RtClock,
     pub ids: ConnIds,
     wait_for_ports: bool,
-    refused: Arc<AtomicU64>,
+    refused: Refused,
     starters: Vec<Starter>,
 }
 
@@ -134,7 +162,7 @@ impl Links {
             clock,
             ids: ConnIds::default(),
             wait_for_ports,
-            refused: Arc::new(AtomicU64::new(0)),
+            refused: Refused::default(),
             starters: Vec::new(),
         }
     }
@@ -144,20 +172,22 @@ impl Links {
         self.starters.push(Box::new(task));
     }
 
-    /// Listens on `addr` for the clients of link `link`, up to `limit`; returns the address bound (port 0: the port
-    /// chosen).
+    /// Listens on `addr` for the clients of link `link` from the
+    /// addresses `allow` names, up to `limit`; returns the address bound
+    /// (port 0: the port chosen).
     pub async fn listen(
         &mut self,
         addr: SocketAddr,
         link: usize,
         limit: Option<ClientLimit>,
+        allow: AllowList,
     ) -> Result<SocketAddr> {
         let listener = tcp::bind(addr).await?;
         let local = listener.local_addr()?;
         let (ids, clock, refused) = (self.ids.clone(), self.clock, self.refused.clone());
         self.start(move |rt, inbound| {
             rt.spawn(accept_loop(
-                listener, link, limit, ids, clock, inbound, refused,
+                listener, link, limit, allow, ids, clock, inbound, refused,
             ));
         });
         Ok(local)
@@ -206,7 +236,10 @@ pub fn run<R: Role>(
     let open = runtime.block_on(role.open(&mut engine, &mut links))?;
     let mut metadata = role.metadata()?;
     metadata.insert("command".into(), options.command_line.clone());
-    let recorder = create_recording(options.out.as_deref(), R::KIND, metadata)?;
+    let recording = match &options.record {
+        Some(plan) => Some(Recordings::start(plan.clone(), R::KIND, metadata)?),
+        None => None,
+    };
     let modules: Vec<String> = engine.modules.iter().map(|m| m.name.clone()).collect();
     let view = options.view.as_ref().and_then(|v| v.open(&modules));
     let sink_handle = sink::spawn_with(
@@ -214,7 +247,7 @@ pub fn run<R: Role>(
             modules,
             links: link_labels(&engine),
             monitor: options.monitor,
-            recorder,
+            recording,
             view,
         },
         rx,
@@ -241,14 +274,25 @@ pub fn run<R: Role>(
         )));
     }
 
-    let (summary, mut engine) = run_until_stopped(&runtime, engine_thread, inbound_tx.clone())?;
+    let (summary, mut engine) = run_until_stopped(
+        &runtime,
+        engine_thread,
+        inbound_tx.clone(),
+        Some(sink_tx.clone()),
+        options.on_hangup.clone(),
+    )?;
     let mut role_totals = BTreeMap::new();
     let role_end = role.stopped(&mut engine, &mut role_totals);
     drop(engine);
     runtime.shutdown_timeout(Duration::from_millis(200));
 
-    let refused_clients = links.refused.load(Ordering::Relaxed);
+    let refused_clients = links.refused.over_limit.load(Ordering::Relaxed);
+    let refused_not_allowed = links.refused.not_allowed.load(Ordering::Relaxed);
     let mut totals = totals(&summary, refused_clients)?;
+    totals.insert(
+        "refused_not_allowed".into(),
+        refused_not_allowed.to_string(),
+    );
     totals.extend(role_totals);
     let _ = sink_tx.send(SinkMsg::Finish(totals));
     drop(sink_tx);
@@ -260,8 +304,10 @@ pub fn run<R: Role>(
         lateness: summary.lateness,
         counters: summary.counters,
         refused_clients,
+        refused_not_allowed,
         stopped_by: summary.stopped_by,
         recording: sunk.recording,
+        earlier_files: sunk.earlier_files,
         view_samples: sunk.view_samples,
         view_error: sunk.view_error,
     };
@@ -280,23 +326,6 @@ pub fn links_runtime() -> Result<Runtime> {
         .thread_name("twin-links")
         .build()
         .context("cannot start the I/O runtime")
-}
-
-/// The session's recording, with its `twin.run` metadata (`kind` and the
-/// twin's version added to `fields`); none without a path. Call it once every
-/// link is open: a session that cannot start leaves an earlier recording of
-/// the same name as it was.
-pub fn create_recording(
-    path: Option<&Path>,
-    kind: &str,
-    mut fields: BTreeMap<String, String>,
-) -> Result<Option<SimRecorder>> {
-    let Some(path) = path else { return Ok(None) };
-    let mut recorder = SimRecorder::create_inline(path)?;
-    fields.insert("kind".into(), kind.into());
-    fields.insert("twin_version".into(), env!("CARGO_PKG_VERSION").into());
-    recorder.write_metadata(twin_recording::topics::RUN_METADATA, fields)?;
-    Ok(Some(recorder))
 }
 
 /// Each link's name and protocol, as the sink labels its frames.
@@ -332,22 +361,37 @@ pub fn spawn_engine(
 
 /// Drives the links on `runtime` until the engine thread ends (its
 /// `--duration`, a `stop` typed on the console, or a signal: SIGINT and
-/// SIGTERM are handed to the engine as a stop, so the recording is finished),
-/// then returns what the thread returned.
+/// SIGTERM are handed to the engine as a stop, so the recording is finished;
+/// SIGHUP asks `sink` for a new recording file), then returns what the
+/// thread returned.
 pub fn run_until_stopped<T>(
     runtime: &Runtime,
     engine_thread: JoinHandle<T>,
     engine: Sender<Inbound>,
+    sink: Option<Sender<SinkMsg>>,
+    on_hangup: Option<OnHangup>,
 ) -> Result<T> {
     runtime.block_on(async {
         let mut term = signal(SignalKind::terminate()).ok();
         let mut int = signal(SignalKind::interrupt()).ok();
+        let mut hup = signal(SignalKind::hangup()).ok();
         loop {
             tokio::select! {
+                Some(()) = next(&mut hup) => {
+                    let plan = on_hangup.as_ref().and_then(|reread| (reread.0)());
+                    if let Some(sink) = &sink {
+                        if let Some(plan) = plan {
+                            let _ = sink.send(SinkMsg::Replan(plan));
+                        }
+                        let _ = sink.send(SinkMsg::Rotate("SIGHUP".into()));
+                    }
+                }
                 Some(()) = next(&mut term) => {
+                    super::notify::stopping("SIGTERM: finishing the recording");
                     let _ = engine.send(Inbound::Stop("SIGTERM".into()));
                 }
                 Some(()) = next(&mut int) => {
+                    super::notify::stopping("SIGINT: finishing the recording");
                     let _ = engine.send(Inbound::Stop("SIGINT".into()));
                 }
                 () = tokio::time::sleep(Duration::from_millis(20)) => {

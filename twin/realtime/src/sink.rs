@@ -18,7 +18,9 @@ use std::time::Duration;
 
 pub use super::frame_log::{Direction, FrameBatch};
 use super::lateness::LatenessSummary;
+use super::rotate::{DiskOutcome, Pruned, Recordings};
 use twin_recording::describe::link_frame_fields;
+use twin_recording::disk::DiskNearlyFull;
 use twin_recording::topics::{self, ReadingsSample};
 use twin_sim::observe::{LazyChannel, McapObserver, SimRecorder};
 
@@ -73,6 +75,11 @@ pub enum SinkMsg {
     },
     /// A line for the console (status, a command's answer).
     Say(String),
+    /// Finish the recording's file and go on in a new one (SIGHUP): why.
+    Rotate(String),
+    /// When to start new files and which to keep, from now on (a reread
+    /// configuration).
+    Replan(super::rotate::RecordPlan),
     /// Store these totals and finish the recording.
     Finish(BTreeMap<String, String>),
 }
@@ -85,7 +92,8 @@ pub struct SinkConfig {
     pub links: Vec<(String, &'static str)>,
     /// Print every frame.
     pub monitor: bool,
-    pub recorder: Option<SimRecorder>,
+    /// The session's recordings and the first file's recorder.
+    pub recording: Option<(Recordings, SimRecorder)>,
     /// A live view, fed what is recorded (`--view`).
     pub view: Option<Box<dyn LiveView>>,
 }
@@ -179,14 +187,22 @@ fn feed(view: &mut dyn LiveView, config: &SinkConfig, message: &SinkMsg) {
             "connection",
             &format!("{peer}: {text}"),
         ),
-        SinkMsg::Frames(_) | SinkMsg::Actuators { .. } | SinkMsg::Say(_) | SinkMsg::Finish(_) => {}
+        SinkMsg::Frames(_)
+        | SinkMsg::Actuators { .. }
+        | SinkMsg::Say(_)
+        | SinkMsg::Rotate(_)
+        | SinkMsg::Replan(_)
+        | SinkMsg::Finish(_) => {}
     }
 }
 
 /// What the sink reports when it ends.
 #[derive(Debug, Default)]
 pub struct SinkOutcome {
+    /// The last file of the recording.
     pub recording: Option<PathBuf>,
+    /// The files finished before it (rotated), oldest first.
+    pub earlier_files: Vec<PathBuf>,
     pub frames_recorded: u64,
     pub events: BTreeMap<String, u64>,
     /// Samples streamed to the live view, if there was one.
@@ -289,12 +305,22 @@ impl FrameSink {
     fn new(config: &SinkConfig) -> Self {
         Self {
             conns: HashMap::new(),
-            channels: config
-                .links
-                .iter()
-                .map(|(name, _)| LazyChannel::new(name, topics::link_frames(name)))
-                .collect(),
+            channels: Self::channels(config),
         }
+    }
+
+    fn channels(config: &SinkConfig) -> Vec<LazyChannel> {
+        config
+            .links
+            .iter()
+            .map(|(name, _)| LazyChannel::new(name, topics::link_frames(name)))
+            .collect()
+    }
+
+    /// A new file has begun: its channels are made afresh on first use (a
+    /// frame half received stays with its connection and goes into the new file).
+    fn new_file(&mut self, config: &SinkConfig) {
+        self.channels = Self::channels(config);
     }
 
     /// Every frame of `batch`: printed if the monitor is on, recorded, viewed.
@@ -390,7 +416,14 @@ fn shown(bytes: &[u8]) -> String {
 }
 
 fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
-    let mut observer = config.recorder.take().map(McapObserver::new);
+    let (mut files, first) = match config.recording.take() {
+        Some((files, first)) => (Some(files), Some(first)),
+        None => (None, None),
+    };
+    let mut observer = first.map(McapObserver::new);
+    let mut past = PastFiles::default();
+    // The session time of the last message that carried one.
+    let mut last_at = SimTime::ZERO;
     let mut frame_sink = FrameSink::new(&config);
     let stdout = std::io::stdout();
     let mut failed: Option<anyhow::Error> = None;
@@ -413,15 +446,19 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
             feed(v.as_mut(), &config, &message);
         }
         let mut out = stdout.lock();
+        let mut rotate = None;
         let recorded: Result<()> = match message {
             SinkMsg::Plant {
                 at,
                 module,
                 sensors,
-            } => match (&mut observer, config.modules.get(module)) {
-                (Some(o), Some(name)) => o.record_sensors(at, name, &sensors),
-                _ => Ok(()),
-            },
+            } => {
+                last_at = at;
+                match (&mut observer, config.modules.get(module)) {
+                    (Some(o), Some(name)) => o.record_sensors(at, name, &sensors),
+                    _ => Ok(()),
+                }
+            }
             SinkMsg::Actuators {
                 at,
                 module,
@@ -462,16 +499,56 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
                 Some(o) => o.record_loop(at, &node, &value),
                 None => Ok(()),
             },
-            SinkMsg::Lateness { at, window, total } => match &mut observer {
-                Some(o) => o
-                    .put(
-                        topics::REALTIME_LATENESS,
-                        at,
-                        &json!({ "window": window, "total": total }),
-                    )
-                    .and_then(|()| o.recorder.flush()),
-                None => Ok(()),
-            },
+            SinkMsg::Lateness { at, window, total } => {
+                last_at = at;
+                match &mut observer {
+                    Some(o) => {
+                        let written = o
+                            .put(
+                                topics::REALTIME_LATENESS,
+                                at,
+                                &json!({ "window": window, "total": total }),
+                            )
+                            .and_then(|()| o.recorder.flush());
+                        // Once a second, with the file just flushed: its size is known.
+                        rotate = files.as_ref().and_then(|f| f.due(at));
+                        written
+                    }
+                    None => {
+                        resume(
+                            &mut files,
+                            &mut observer,
+                            &mut frame_sink,
+                            &config,
+                            at,
+                            &mut out,
+                        );
+                        Ok(())
+                    }
+                }
+            }
+            SinkMsg::Replan(plan) => {
+                if let Some(f) = &mut files {
+                    f.update(plan);
+                }
+                Ok(())
+            }
+            SinkMsg::Rotate(reason) => {
+                match (&files, &observer) {
+                    (Some(_), Some(_)) => rotate = Some(reason),
+                    (Some(f), None) => {
+                        let _ = writeln!(
+                            out,
+                            "{reason}: no recording to rotate (stopped at {})",
+                            f.current().display()
+                        );
+                    }
+                    (None, _) => {
+                        let _ = writeln!(out, "{reason}: this session does not record");
+                    }
+                }
+                Ok(())
+            }
             SinkMsg::Note {
                 at,
                 link,
@@ -498,15 +575,62 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
                 break;
             }
         };
-        let _ = out.flush();
+        let recorded = match (recorded, rotate, &mut files) {
+            (Ok(()), Some(reason), Some(f)) => rotate_file(
+                &mut observer,
+                f,
+                &mut past,
+                &mut frame_sink,
+                &config,
+                last_at,
+                &reason,
+                &mut out,
+            ),
+            (recorded, _, _) => recorded,
+        };
         if let Err(e) = recorded {
-            // Keep serving: the session matters more than its recording.
-            if failed.is_none() {
-                let _ = writeln!(out, "warning: recording stopped: {e:#}");
+            if let Some(o) = observer.take() {
+                past.add(&o);
             }
-            failed.get_or_insert(e);
-            observer = None;
+            match &mut files {
+                // A service's recording goes on in a new file, after the
+                // old ones the retention rules let go.
+                Some(f) if e.downcast_ref::<DiskNearlyFull>().is_some() => {
+                    let _ = writeln!(out, "warning: recording {}: {e:#}", f.current().display());
+                    match f.disk_full(last_at) {
+                        DiskOutcome::Resumed(recorder, pruned) => {
+                            say_pruned(&mut out, &pruned);
+                            let _ =
+                                writeln!(out, "recording: going on in {}", f.current().display());
+                            observer = Some(McapObserver::new(*recorder));
+                            frame_sink.new_file(&config);
+                        }
+                        DiskOutcome::Paused(pruned, error) => {
+                            say_pruned(&mut out, &pruned);
+                            let _ = writeln!(
+                                out,
+                                "warning: recording paused until the disk has {} MB free{}{}",
+                                super::rotate::resume_free() / (1024 * 1024),
+                                if f.keeps_some() {
+                                    ""
+                                } else {
+                                    " (no --keep-files, --keep-age or --keep-size: no old recording is deleted)"
+                                },
+                                error.map(|e| format!(": {e:#}")).unwrap_or_default()
+                            );
+                        }
+                    }
+                }
+                _ => {
+                    // Keep serving: the session matters more than its recording.
+                    if failed.is_none() {
+                        let _ = writeln!(out, "warning: recording stopped: {e:#}");
+                    }
+                    failed.get_or_insert(e);
+                }
+            }
         }
+        let _ = out.flush();
     }
     let mut outcome = SinkOutcome::default();
     if let Some(v) = view {
@@ -519,12 +643,113 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
             o.recorder
                 .write_metadata(topics::REALTIME_METADATA, totals)?;
         }
-        outcome.frames_recorded = o.frames;
-        outcome.events = o.events.clone();
+        past.add(&o);
         outcome.recording = Some(o.recorder.finish()?);
+    } else if let Some(f) = &files {
+        outcome.recording = Some(f.current().to_path_buf());
+    }
+    outcome.frames_recorded = past.frames;
+    outcome.events = past.events;
+    if let Some(f) = files {
+        outcome.earlier_files = f.finished;
     }
     match failed {
         Some(e) => Err(e),
         None => Ok(outcome),
+    }
+}
+
+/// What the files finished so far recorded, for the session's last lines.
+#[derive(Debug, Default)]
+struct PastFiles {
+    frames: u64,
+    events: BTreeMap<String, u64>,
+}
+
+impl PastFiles {
+    fn add(&mut self, o: &McapObserver) {
+        self.frames += o.frames;
+        for (kind, n) in &o.events {
+            *self.events.entry(kind.clone()).or_default() += n;
+        }
+    }
+}
+
+/// Finishes the current file (its summary written, and a `twin.part` record
+/// naming the next) and opens the next; says so, and what the retention
+/// rules deleted. Called between two messages: each is in exactly one file.
+#[allow(
+    clippy::too_many_arguments,
+    reason = "the sink loop's state, lent for one step"
+)]
+fn rotate_file(
+    observer: &mut Option<McapObserver>,
+    files: &mut Recordings,
+    past: &mut PastFiles,
+    frame_sink: &mut FrameSink,
+    config: &SinkConfig,
+    at: SimTime,
+    reason: &str,
+    out: &mut impl Write,
+) -> Result<()> {
+    let Some(mut o) = observer.take() else {
+        return Ok(());
+    };
+    let next = files.next_path();
+    o.recorder
+        .write_metadata(topics::PART_METADATA, files.part_end(reason, &next))?;
+    past.add(&o);
+    o.frames = 0;
+    o.events.clear();
+    let done = o.recorder.finish()?;
+    let (recorder, pruned) = files.rotate(at)?;
+    *observer = Some(McapObserver::new(recorder));
+    frame_sink.new_file(config);
+    let _ = writeln!(
+        out,
+        "recording: {} finished ({reason}); recording to {}",
+        done.display(),
+        files.current().display()
+    );
+    say_pruned(out, &pruned);
+    Ok(())
+}
+
+/// While the recording waits for disk space: a new file once there is some.
+fn resume(
+    files: &mut Option<Recordings>,
+    observer: &mut Option<McapObserver>,
+    frame_sink: &mut FrameSink,
+    config: &SinkConfig,
+    at: SimTime,
+    out: &mut impl Write,
+) {
+    let Some(f) = files.as_mut() else { return };
+    match f.retry(at) {
+        Some(Ok(recorder)) => {
+            *observer = Some(McapObserver::new(recorder));
+            frame_sink.new_file(config);
+            let _ = writeln!(
+                out,
+                "recording: the disk has room again; recording to {}",
+                f.current().display()
+            );
+        }
+        Some(Err(e)) => {
+            let _ = writeln!(out, "warning: recording still paused: {e:#}");
+        }
+        None => {}
+    }
+}
+
+fn say_pruned(out: &mut impl Write, pruned: &[Pruned]) {
+    for p in pruned {
+        let _ = writeln!(
+            out,
+            "recording: deleted {} ({:.1} MB; {})",
+            p.path.display(),
+            p.bytes as f64 / 1e6,
+            p.reason
+        );
     }
 }

@@ -34,13 +34,9 @@ impl DiskGuard {
         };
         // Named in the error as a user finds it, not as `.`.
         let folder = std::fs::canonicalize(&folder).unwrap_or(folder);
-        let min_free = std::env::var(MIN_FREE_VAR)
-            .ok()
-            .and_then(|v| v.trim().parse::<u64>().ok())
-            .map_or(DEFAULT_MIN_FREE_BYTES, |mb| mb.saturating_mul(1024 * 1024));
         Self {
             folder,
-            min_free,
+            min_free: min_free_bytes(),
             since_check: CHECK_EVERY_BYTES,
         }
     }
@@ -54,10 +50,9 @@ impl DiskGuard {
         }
         self.since_check = 0;
         // A disk whose free space cannot be read is not taken for full.
-        let Ok(stat) = rustix::fs::statvfs(&self.folder) else {
+        let Some(free) = free_bytes(&self.folder) else {
             return Ok(());
         };
-        let free = stat.f_bavail.saturating_mul(stat.f_frsize);
         if free < self.min_free {
             return Err(DiskNearlyFull {
                 folder: self.folder.clone(),
@@ -67,6 +62,22 @@ impl DiskGuard {
         }
         Ok(())
     }
+}
+
+/// The free space a recording leaves on its disk: [`DEFAULT_MIN_FREE_BYTES`]
+/// or what `TWIN_MIN_FREE_DISK_MB` says.
+pub fn min_free_bytes() -> u64 {
+    std::env::var(MIN_FREE_VAR)
+        .ok()
+        .and_then(|v| v.trim().parse::<u64>().ok())
+        .map_or(DEFAULT_MIN_FREE_BYTES, |mb| mb.saturating_mul(1024 * 1024))
+}
+
+/// The bytes free to an unprivileged writer on the disk holding `folder`
+/// (`None` if that cannot be read).
+pub fn free_bytes(folder: &Path) -> Option<u64> {
+    let stat = rustix::fs::statvfs(folder).ok()?;
+    Some(stat.f_bavail.saturating_mul(stat.f_frsize))
 }
 
 /// The error a recording stops with when its disk is nearly full.

@@ -29,6 +29,7 @@
 //! |---|---|---|---|
 //! | [`RUN_METADATA`] `twin.run` | every run and session | first, before any message | `kind` (`scenario`, `open-loop`, `serve`, `supervise`), `twin_version`; a scenario's `scenario`, `scenario_toml`, `seed`, `pwm_calibration`; the open loop's settings and `params_toml`; a step response's `experiment` (`step`), `step_from`, `step_to`, `step_at_s`, and `step_adaptive_light` (open loop) or `step_light_feedback` (closed loop); a session's `links`, `params`, `slaves`, … |
 //! | [`REALTIME_METADATA`] `twin.realtime` | a real-time session | when it ends | the session's totals |
+//! | [`PART_METADATA`] `twin.part` | a real-time session's file that another follows (rotation) | when it is closed | `part` (from 1), `ended_by` (`SIGHUP`, `--rotate-every 1h`, …), `next` (the next file's name); the next file's `twin.run` has `part` and `previous` |
 
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
@@ -42,6 +43,8 @@ pub const SCHEMA_ENCODING: &str = "jsonschema";
 pub const RUN_METADATA: &str = "twin.run";
 /// A real-time session's totals, written when it ends.
 pub const REALTIME_METADATA: &str = "twin.realtime";
+/// Why a session's file ended and which file goes on (rotation).
+pub const PART_METADATA: &str = "twin.part";
 
 /// The open-loop bench's sensors (one module, no name).
 pub const PLANT_SENSORS: &str = "/plant/sensors";

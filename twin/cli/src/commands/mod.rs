@@ -6,6 +6,7 @@ pub mod bench;
 pub mod client;
 pub mod compare;
 pub mod completions;
+mod config_file;
 pub mod experiment;
 pub mod export;
 mod live_view;
@@ -16,10 +17,13 @@ pub use numbers::take_negative_numbers;
 pub mod man;
 mod plant_args;
 mod progress;
+mod record_args;
 pub mod recover;
 pub mod replay;
 pub mod run;
 pub mod serve;
+mod service;
+mod service_args;
 pub mod step;
 pub mod supervise;
 pub mod sweep;
@@ -34,9 +38,10 @@ fn print_session_end(
 ) {
     let c = &outcome.counters;
     println!(
-        "  {} connections ({} refused over the limit, {} closed for a partial frame, {} for the rate limit, {} idle, {} to make room); {} bytes in, {} frames out",
+        "  {} connections ({} refused over the limit, {} refused by --allow, {} closed for a partial frame, {} for the rate limit, {} idle, {} to make room); {} bytes in, {} frames out",
         c.connections,
         outcome.refused_clients,
+        outcome.refused_not_allowed,
         c.closed_partial_timeout,
         c.closed_rate_limit,
         c.closed_idle,
@@ -45,8 +50,13 @@ fn print_session_end(
         c.frames_out
     );
     if let Some(path) = &outcome.recording {
+        let earlier_files = match outcome.earlier_files.len() {
+            0 => String::new(),
+            1 => " (after 1 earlier file)".to_string(),
+            n => format!(" (after {n} earlier files)"),
+        };
         println!(
-            "recording: {}{}",
+            "recording: {}{}{earlier_files}",
             path.display(),
             output::Earlier::note(earlier)
         );

@@ -5,8 +5,7 @@
 //! service may restart at any moment, are named by their start time unless
 //! given a name, so a restart never writes over the last session.
 
-use std::path::{Path, PathBuf};
-use std::time::{SystemTime, UNIX_EPOCH};
+use std::path::Path;
 use twin_recording::Reader;
 use twin_recording::identity::Identity;
 
@@ -55,55 +54,4 @@ fn recording_held(path: &Path) -> String {
     };
     while let Ok(Some(_)) = reader.next() {}
     Identity::of(reader.recording()).describe()
-}
-
-/// A real-time session's recording when none is named: `serve-2026-12-03T07-35-44.mcap`
-/// (the start time, UTC), with `-2`, `-3`, … should that name be taken.
-pub fn session_recording(command: &str) -> PathBuf {
-    let secs = SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| d.as_secs());
-    let stem = format!("{command}-{}", utc_stamp(secs));
-    let mut path = PathBuf::from(format!("{stem}.mcap"));
-    let mut n = 2;
-    while path.exists() {
-        path = PathBuf::from(format!("{stem}-{n}.mcap"));
-        n += 1;
-    }
-    path
-}
-
-/// `2026-12-03T07-35-44` for a time in seconds since 1970 (UTC), with
-/// hyphens for colons, which some file systems refuse.
-fn utc_stamp(secs: u64) -> String {
-    let days = (secs / 86_400) as i64;
-    let rest = secs % 86_400;
-    // Civil date from days since 1970-01-01 (Howard Hinnant's algorithm).
-    let z = days + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z - era * 146_097;
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let day = doy - (153 * mp + 2) / 5 + 1;
-    let month = if mp < 10 { mp + 3 } else { mp - 9 };
-    let year = yoe + era * 400 + i64::from(month <= 2);
-    format!(
-        "{year:04}-{month:02}-{day:02}T{:02}-{:02}-{:02}",
-        rest / 3600,
-        rest / 60 % 60,
-        rest % 60
-    )
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn stamps_are_utc_dates() {
-        assert_eq!(utc_stamp(0), "1970-01-01T00-00-00");
-        assert_eq!(utc_stamp(951_782_400), "2000-02-29T00-00-00");
-        assert_eq!(utc_stamp(1_796_283_344), "2026-12-03T07-35-44");
-    }
 }

@@ -1,12 +1,12 @@
 //! `twin supervise`: the supervisor and TCP server, in real time on real links.
 
 use anyhow::{Result, bail};
-use clap::{Args, ValueEnum};
+use clap::{ArgMatches, Args, ValueEnum};
 use nodes::master::SpeedSource;
 use nodes::master::image_server::ImageServerConfig;
 use nodes::time::SimDuration;
 use std::io::Write;
-use std::path::PathBuf;
+use twin_realtime::allow::AllowList;
 use twin_realtime::session::SessionOptions;
 use twin_realtime::supervise::{self, SuperviseOptions};
 use twin_view::{Session, ViewLayout};
@@ -114,14 +114,10 @@ pub struct SuperviseArgs {
     /// Stop after this many seconds [default: run until interrupted].
     #[arg(long, value_name = "SECONDS", value_parser = super::numbers::above_zero)]
     duration: Option<f64>,
-    /// Where to write the recording (replaced if it exists) [default:
-    /// supervise-START.mcap here, named by the session's start time in UTC, e.g.
-    /// supervise-2026-12-03T07-35-44.mcap, so that a restart never writes over the last one].
-    #[arg(long, value_name = "PATH")]
-    out: Option<PathBuf>,
-    /// Do not record.
-    #[arg(long)]
-    no_record: bool,
+    #[command(flatten)]
+    record: super::record_args::RecordArgs,
+    #[command(flatten)]
+    service: super::service_args::ServiceArgs,
     /// No frame monitor (status lines stay).
     #[arg(long)]
     quiet: bool,
@@ -210,11 +206,7 @@ fn options(args: &SuperviseArgs) -> Result<SuperviseOptions> {
     Ok(SuperviseOptions {
         session: SessionOptions {
             duration: args.duration,
-            out: (!args.no_record).then(|| {
-                args.out
-                    .clone()
-                    .unwrap_or_else(|| super::output::session_recording("supervise"))
-            }),
+            record: args.record.plan("supervise")?,
             monitor: !args.quiet,
             status_every: args.status_every.max(0.0),
             wait_for_ports: args.wait_for_ports,
@@ -224,6 +216,8 @@ fn options(args: &SuperviseArgs) -> Result<SuperviseOptions> {
             rt_priority: None,
             view,
             command_line: std::env::args().collect::<Vec<_>>().join(" "),
+            allow: AllowList::new(args.service.allow.clone()),
+            on_hangup: None,
         },
         bus: args
             .meb
@@ -262,12 +256,61 @@ fn options(args: &SuperviseArgs) -> Result<SuperviseOptions> {
     })
 }
 
-pub fn execute(args: &SuperviseArgs) -> Result<()> {
-    let options = options(args)?;
+pub fn execute(args: &SuperviseArgs, matches: &ArgMatches) -> Result<()> {
+    let command = super::service::command_of::<SuperviseArgs>("supervise");
+    let file = super::service::load(args.service.config.as_deref(), &command, false)?;
+    let merged;
+    let args = match &file {
+        Some(f) => {
+            merged = super::service::reparse::<SuperviseArgs>(&command, f.words(None, matches))?;
+            &merged
+        }
+        None => args,
+    };
+    let mut options = options(args)?;
+    if args.service.check {
+        let listen: Vec<&str> = options.listen.iter().map(String::as_str).collect();
+        println!(
+            "supervises {} over {}{}{}; {}",
+            options.bus,
+            match options.protocol {
+                nodes::master::Protocol::Meb => "MEB",
+                nodes::master::Protocol::ModbusRtu => "Modbus RTU",
+            },
+            if listen.is_empty() {
+                String::new()
+            } else {
+                format!("; serves MEB clients on {}", listen.join(", "))
+            },
+            if options.session.allow.shown().is_empty() {
+                String::new()
+            } else {
+                format!(" from {}", options.session.allow.shown())
+            },
+            super::serve::recorded(options.session.record.as_ref())
+        );
+        return Ok(());
+    }
+    if let (Some(f), Some(path)) = (file, &args.service.config) {
+        options.session.on_hangup = Some(
+            super::service::Reread::<SuperviseArgs> {
+                path: path.clone(),
+                command,
+                command_line: matches.clone(),
+                module: None,
+                started: f,
+                allow: options.session.allow.clone(),
+                allow_of: |a| a.service.allow.clone(),
+                plan_of: Box::new(|a| a.record.plan("supervise")),
+            }
+            .hook(),
+        );
+    }
     let earlier = options
         .session
-        .out
-        .as_deref()
+        .record
+        .as_ref()
+        .and_then(|plan| plan.out.as_deref())
         .and_then(super::output::Earlier::at);
     let outcome = supervise::supervise(&options, |links| {
         let mut out = std::io::stdout().lock();
@@ -288,6 +331,7 @@ pub fn execute(args: &SuperviseArgs) -> Result<()> {
         }
         let _ = writeln!(out, "ready");
         let _ = out.flush();
+        twin_realtime::notify::ready(&format!("supervising {}", options.bus));
     })?;
     let session = &outcome.session;
     let l = session.lateness;

@@ -334,6 +334,7 @@ async fn open_links(
                             max,
                             room_after_idle: options.room_after_idle,
                         }),
+                        options.session.allow.clone(),
                     )
                     .await
                     .with_context(|| format!("{} {}", protocol.option(), spec.text))?;

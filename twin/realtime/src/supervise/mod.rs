@@ -336,6 +336,7 @@ async fn open_links(
                     room_after_idle: options.room_after_idle,
                     ..ClientLimit::new(options.server.max_clients)
                 }),
+                options.session.allow.clone(),
             )
             .await
             .with_context(|| format!("--listen {}", spec.text))?;

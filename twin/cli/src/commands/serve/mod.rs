@@ -1,16 +1,19 @@
 //! `twin serve`: the simulated controller, in real time on real links.
 
 use anyhow::{Context, Result, bail};
-use clap::Args;
+use clap::{ArgMatches, Args};
 use nodes::firmware::LightDetectorConfig;
 use nodes::time::SimDuration;
 use plant::PlantParams;
 use std::io::Write;
 use std::path::PathBuf;
+use twin_realtime::allow::AllowList;
 use twin_realtime::io::LinkDefaults;
 use twin_realtime::serve::{self, ServeOptions, ServeProtocol, console};
 use twin_realtime::session::SessionOptions;
 use twin_view::{Session, ViewLayout};
+
+mod class;
 
 /// Run the EV module in real time and serve its controller on real links.
 ///
@@ -21,7 +24,11 @@ use twin_view::{Session, ViewLayout};
 /// open it prints one line per link (protocol, address, slave id) and `ready`.
 /// While it runs: a frame monitor, a status line each second, and commands on
 /// stdin (`help`). It stops on SIGINT/SIGTERM, `stop`, or after --duration,
-/// and finishes its MCAP recording.
+/// and finishes its MCAP recording; SIGHUP starts a new recording file.
+///
+/// As a service: --config FILE holds the options (a `[[module]]` table per
+/// module serves a class from one process), --check checks it, and under
+/// systemd (Type=notify) it reports when it is ready.
 #[derive(Debug, Args)]
 #[command(
     after_help = "Examples:\n  twin serve --meb tcp://127.0.0.1:5700\n  twin serve --meb /tmp/ttyV1 --baud 115200\n  twin serve --modbus tcp://127.0.0.1:5020 --meb tcp://127.0.0.1:5700\n  twin serve --modbus-rtu /tmp/ttyV1?parity=E\n  twin serve --modbus8 /tmp/ttyV1    (Controller_network: motor 01, light sensor 02)"
@@ -69,14 +76,10 @@ pub struct ServeArgs {
     /// Stop after this many seconds [default: run until interrupted].
     #[arg(long, value_name = "SECONDS", value_parser = super::numbers::above_zero)]
     duration: Option<f64>,
-    /// Where to write the recording (replaced if it exists) [default:
-    /// serve-START.mcap here, named by the session's start time in UTC, e.g.
-    /// serve-2026-12-03T07-35-44.mcap, so that a restart never writes over the last one].
-    #[arg(long, value_name = "PATH")]
-    out: Option<PathBuf>,
-    /// Do not record (for measuring the recording's cost).
-    #[arg(long)]
-    no_record: bool,
+    #[command(flatten)]
+    pub(super) record: super::record_args::RecordArgs,
+    #[command(flatten)]
+    pub(super) service: super::service_args::ServiceArgs,
     /// Plant state messages recorded per second.
     #[arg(long, default_value_t = 200.0, value_name = "HZ", value_parser = super::numbers::above_zero)]
     record_hz: f64,
@@ -135,7 +138,9 @@ pub struct ServeArgs {
     view: Option<String>,
 }
 
-fn options(args: &ServeArgs) -> Result<ServeOptions> {
+/// The session `args` describe; `module` names a class's module, whose
+/// recordings go in a folder of its own name.
+pub(super) fn options(args: &ServeArgs, module: Option<&str>) -> Result<ServeOptions> {
     let mut links = Vec::new();
     for (protocol, list) in [
         (ServeProtocol::Meb, &args.meb),
@@ -181,11 +186,7 @@ fn options(args: &ServeArgs) -> Result<ServeOptions> {
     Ok(ServeOptions {
         session: SessionOptions {
             duration: args.duration,
-            out: (!args.no_record).then(|| {
-                args.out
-                    .clone()
-                    .unwrap_or_else(|| super::output::session_recording("serve"))
-            }),
+            record: plan(args, module)?,
             monitor: !args.quiet,
             status_every: args.status_every,
             wait_for_ports: args.wait_for_ports,
@@ -202,8 +203,11 @@ fn options(args: &ServeArgs) -> Result<ServeOptions> {
             // The program's own path stays out of the recording, as in `twin run`.
             command_line: std::iter::once("twin".to_string())
                 .chain(std::env::args().skip(1))
+                .chain(module.map(|m| format!("(module {m})")))
                 .collect::<Vec<_>>()
                 .join(" "),
+            allow: AllowList::new(args.service.allow.clone()),
+            on_hangup: None,
         },
         links,
         defaults,
@@ -221,12 +225,120 @@ fn options(args: &ServeArgs) -> Result<ServeOptions> {
     })
 }
 
-pub fn execute(args: &ServeArgs) -> Result<()> {
-    let options = options(args)?;
+/// The recording plan of `args`; a class's module records in a folder of its name.
+pub(super) fn plan(
+    args: &ServeArgs,
+    module: Option<&str>,
+) -> Result<Option<twin_realtime::rotate::RecordPlan>> {
+    let mut plan = args.record.plan("serve")?;
+    if let (Some(plan), Some(name)) = (plan.as_mut(), module)
+        && plan.out.is_none()
+    {
+        plan.dir = plan.dir.join(name);
+    }
+    Ok(plan)
+}
+
+pub fn execute(args: &ServeArgs, matches: &ArgMatches) -> Result<()> {
+    let command = super::service::command_of::<ServeArgs>("serve");
+    let file = super::service::load(args.service.config.as_deref(), &command, true)?;
+    let merged;
+    let args = match &file {
+        Some(f) if !f.modules.is_empty() => {
+            return class::execute(f, &command, matches, args.service.check);
+        }
+        Some(f) => {
+            merged = super::service::reparse::<ServeArgs>(&command, f.words(None, matches))?;
+            &merged
+        }
+        None => args,
+    };
+    let mut options = options(args, None)?;
+    if args.service.check {
+        serve::parse_links(&options)?;
+        println!("{}", described(&options));
+        return Ok(());
+    }
+    if let (Some(f), Some(path)) = (file, &args.service.config) {
+        options.session.on_hangup = Some(
+            super::service::Reread::<ServeArgs> {
+                path: path.clone(),
+                command,
+                command_line: matches.clone(),
+                module: None,
+                started: f,
+                allow: options.session.allow.clone(),
+                allow_of: |a| a.service.allow.clone(),
+                plan_of: Box::new(|a| plan(a, None)),
+            }
+            .hook(),
+        );
+    }
+    serve_one(args, &options)
+}
+
+/// What `--check` says a configuration would serve.
+pub(super) fn described(options: &ServeOptions) -> String {
+    let links: Vec<String> = options
+        .links
+        .iter()
+        .map(|(p, l)| format!("{} {l}", p.name()))
+        .collect();
+    let mut text = format!("serves {}", links.join(", "));
+    if !options.session.allow.shown().is_empty() {
+        text.push_str(&format!(" to {}", options.session.allow.shown()));
+    }
+    text.push_str(&format!("; {}", recorded(options.session.record.as_ref())));
+    text
+}
+
+/// Where and how a session records, in words.
+pub(super) fn recorded(plan: Option<&twin_realtime::rotate::RecordPlan>) -> String {
+    use twin_realtime::rotate::{shown_duration, shown_size};
+    let Some(plan) = plan else {
+        return "not recorded".into();
+    };
+    let mut text = match &plan.out {
+        Some(out) => format!("records to {}", out.display()),
+        None => format!(
+            "records to {}/{}-START.mcap",
+            plan.dir.display(),
+            plan.prefix
+        ),
+    };
+    if let Some(every) = plan.every {
+        text.push_str(&format!(
+            ", a new file every {}",
+            shown_duration(every.as_secs_f64())
+        ));
+    }
+    if let Some(size) = plan.size {
+        text.push_str(&format!(", a new file at {}", shown_size(size)));
+    }
+    let keep = &plan.keep;
+    let mut kept = Vec::new();
+    if let Some(n) = keep.files {
+        kept.push(format!("{n} files"));
+    }
+    if let Some(age) = keep.age {
+        kept.push(shown_duration(age.as_secs_f64()));
+    }
+    if let Some(total) = keep.total {
+        kept.push(shown_size(total));
+    }
+    if !kept.is_empty() {
+        text.push_str(&format!(", keeping at most {}", kept.join(", ")));
+    }
+    text
+}
+
+fn serve_one(args: &ServeArgs, options: &ServeOptions) -> Result<()> {
+    let options = options.clone();
     let earlier = options
         .session
-        .out
-        .as_deref()
+        .record
+        .as_ref()
+        .and_then(|plan| plan.out.as_deref())
         .and_then(super::output::Earlier::at);
     let light = light_detector_line(&options);
     let outcome = serve::serve(
@@ -246,6 +358,11 @@ pub fn execute(args: &ServeArgs) -> Result<()> {
             }
             let _ = writeln!(out, "ready");
             let _ = out.flush();
+            let served: Vec<String> = links
+                .iter()
+                .map(|l| format!("{} {}", l.protocol, l.address))
+                .collect();
+            twin_realtime::notify::ready(&format!("serving {}", served.join(", ")));
         },
         console::spawn_stdin,
     )?;

@@ -1,0 +1,185 @@
+//! A class from one `twin serve`: a configuration file's `[[module]]`
+//! tables, each an independent simulated module (its own plant, links,
+//! allowed addresses and recordings, in a folder of its name) served side
+//! by side in one process. Each module is the session `twin serve` would
+//! run for it alone, on threads of its own; the process prints every
+//! module's links, then `ready` once all are open, and stops them all on
+//! SIGTERM, each finishing its recording.
+
+use anyhow::{Result, anyhow, bail};
+use clap::{ArgMatches, Command};
+use std::io::Write;
+use std::sync::mpsc::{Sender, channel};
+use twin_realtime::Inbound;
+use twin_realtime::serve::{self, OpenLink, ServeOptions};
+
+use super::super::config_file::ConfigFile;
+use super::super::service::{Reread, reparse};
+use super::ServeArgs;
+
+/// What a module's thread reports to the class.
+enum Report {
+    Ready(usize, Vec<OpenLink>),
+    Console(usize, Sender<Inbound>),
+    Done(usize, Box<Result<twin_realtime::session::SessionOutcome>>),
+}
+
+/// Options given on the command line that would make every module the same.
+const PER_MODULE: &[&str] = &[
+    "meb",
+    "modbus",
+    "modbus_rtu",
+    "modbus_ascii",
+    "modbus8",
+    "out",
+];
+
+pub fn execute(
+    file: &ConfigFile,
+    command: &Command,
+    given: &ArgMatches,
+    check: bool,
+) -> Result<()> {
+    for id in PER_MODULE {
+        if given.value_source(id) == Some(clap::parser::ValueSource::CommandLine) {
+            bail!(
+                "--{}: the class in {} gives each module its own; set it in the module's [[module]] table",
+                id.replace('_', "-"),
+                file.origin
+            );
+        }
+    }
+    let mut modules = Vec::new();
+    for m in &file.modules {
+        let args: ServeArgs = reparse(command, file.words(Some(m), given))
+            .map_err(|e| anyhow!("{}:{}: module {}: {e:#}", file.origin, m.line, m.name))?;
+        let options = super::options(&args, Some(&m.name))
+            .map_err(|e| anyhow!("{}:{}: module {}: {e:#}", file.origin, m.line, m.name))?;
+        serve::parse_links(&options)
+            .map_err(|e| anyhow!("{}:{}: module {}: {e:#}", file.origin, m.line, m.name))?;
+        modules.push((m.name.clone(), args, options));
+    }
+    if check {
+        println!("{}: a class of {} modules", file.origin, modules.len());
+        for (name, _, options) in &modules {
+            println!("  {name}: {}", super::described(options));
+        }
+        return Ok(());
+    }
+    if let Some(path) = given.get_one::<std::path::PathBuf>("config") {
+        for (name, _, options) in &mut modules {
+            options.session.on_hangup = Some(
+                Reread::<ServeArgs> {
+                    path: path.clone(),
+                    command: command.clone(),
+                    command_line: given.clone(),
+                    module: Some(name.clone()),
+                    started: file.clone(),
+                    allow: options.session.allow.clone(),
+                    allow_of: |a| a.service.allow.clone(),
+                    plan_of: {
+                        let name = name.clone();
+                        Box::new(move |a| super::plan(a, Some(&name)))
+                    },
+                }
+                .hook(),
+            );
+        }
+    }
+    run(&modules)
+}
+
+fn run(modules: &[(String, ServeArgs, ServeOptions)]) -> Result<()> {
+    let (tx, rx) = channel::<Report>();
+    let mut stoppers: Vec<Option<Sender<Inbound>>> = vec![None; modules.len()];
+    std::thread::scope(|scope| {
+        for (n, (name, _, options)) in modules.iter().enumerate() {
+            let (ready, console, done) = (tx.clone(), tx.clone(), tx.clone());
+            let spawned = std::thread::Builder::new()
+                .name(format!("twin-{name}"))
+                .spawn_scoped(scope, move || {
+                    let outcome = serve::serve(
+                        options,
+                        |links| {
+                            let _ = ready.send(Report::Ready(n, links.to_vec()));
+                        },
+                        |engine| {
+                            let _ = console.send(Report::Console(n, engine));
+                        },
+                    );
+                    let _ = done.send(Report::Done(n, Box::new(outcome)));
+                });
+            if let Err(e) = spawned {
+                let _ = tx.send(Report::Done(
+                    n,
+                    Box::new(Err(anyhow!("no thread for it: {e}"))),
+                ));
+            }
+        }
+        drop(tx);
+        let mut ready = 0;
+        let mut failed = None;
+        let mut outcomes: Vec<Option<twin_realtime::session::SessionOutcome>> =
+            (0..modules.len()).map(|_| None).collect();
+        while let Ok(report) = rx.recv() {
+            match report {
+                Report::Ready(n, links) => {
+                    let mut out = std::io::stdout().lock();
+                    for l in links {
+                        let _ = writeln!(
+                            out,
+                            "  {} {} {} {}",
+                            l.protocol, l.address, l.ids, modules[n].0
+                        );
+                    }
+                    ready += 1;
+                    if ready == modules.len() {
+                        let _ = writeln!(out, "twin serve: a class of {ready} modules");
+                        let _ = writeln!(out, "ready");
+                        twin_realtime::notify::ready(&format!(
+                            "serving a class of {ready} modules"
+                        ));
+                    }
+                    let _ = out.flush();
+                }
+                Report::Console(n, engine) => stoppers[n] = Some(engine),
+                Report::Done(n, outcome) => match *outcome {
+                    Ok(o) => outcomes[n] = Some(o),
+                    Err(e) => {
+                        // One module that cannot serve stops the class: a
+                        // service manager then says so and restarts it whole.
+                        let e = anyhow!("module {}: {e:#}", modules[n].0);
+                        eprintln!("error: {e:#}; stopping the class");
+                        for engine in stoppers.iter().flatten() {
+                            let _ = engine
+                                .send(Inbound::Stop(format!("module {} failed", modules[n].0)));
+                        }
+                        failed.get_or_insert(e);
+                    }
+                },
+            }
+        }
+        for (n, outcome) in outcomes.iter().enumerate() {
+            let Some(o) = outcome else { continue };
+            let l = &o.lateness;
+            println!(
+                "{}: stopped ({}) after {:.3} s; tick lateness p99 {:.0} µs, max {:.0} µs; {} connections, {} refused (--allow), {} over the limit; recording: {}",
+                modules[n].0,
+                o.stopped_by,
+                o.elapsed_s,
+                l.p99_us,
+                l.max_us,
+                o.counters.connections,
+                o.refused_not_allowed,
+                o.refused_clients,
+                o.recording
+                    .as_ref()
+                    .map_or_else(|| "none".into(), |p| p.display().to_string())
+            );
+        }
+        match failed {
+            Some(e) => Err(e),
+            None => Ok(()),
+        }
+    })
+}
