@@ -133,6 +133,8 @@ pub struct ServeArgs {
     /// goes on without the view.
     #[arg(long, value_name = "TARGET", num_args = 0..=1, default_missing_value = "spawn")]
     view: Option<String>,
+    #[command(flatten)]
+    web: super::web_args::WebArgs,
 }
 
 fn options(args: &ServeArgs) -> Result<ServeOptions> {
@@ -222,7 +224,11 @@ fn options(args: &ServeArgs) -> Result<ServeOptions> {
 }
 
 pub fn execute(args: &ServeArgs) -> Result<()> {
-    let options = options(args)?;
+    let mut options = options(args)?;
+    let panel = args
+        .web
+        .bind(twin_panel::PanelRole::Serve, &mut options.session)?;
+    let panel_line = panel.as_ref().map(super::web_args::panel_line);
     let earlier = options
         .session
         .out
@@ -244,10 +250,20 @@ pub fn execute(args: &ServeArgs) -> Result<()> {
             if let Some(light) = &light {
                 let _ = writeln!(out, "{light}");
             }
+            if let Some(line) = &panel_line {
+                let _ = writeln!(out, "{line}");
+            }
             let _ = writeln!(out, "ready");
             let _ = out.flush();
         },
-        console::spawn_stdin,
+        |engine| {
+            if let Some(panel) = &panel
+                && let Err(e) = panel.start(engine.clone())
+            {
+                eprintln!("--web: {e:#}; going on without the panel");
+            }
+            console::spawn_stdin(engine);
+        },
     )?;
     let l = outcome.lateness;
     println!(
@@ -267,6 +283,11 @@ pub fn execute(args: &ServeArgs) -> Result<()> {
                 println!("  (ticks ran late even at real-time priority: the machine was busy)")
             }
         }
+    }
+    let mut outcome = outcome;
+    if args.view.is_none() {
+        // The panel's feed is not a rerun view.
+        outcome.view_samples = None;
     }
     super::print_session_end(&outcome, earlier.as_ref());
     Ok(())
