@@ -141,7 +141,8 @@ mod tests {
 
     #[test]
     fn loopback_is_open_and_anything_else_needs_the_token() {
-        let local = Access::new(&AccessOptions::default(), &"127.0.0.1:0".parse().unwrap()).unwrap();
+        let local =
+            Access::new(&AccessOptions::default(), &"127.0.0.1:0".parse().unwrap()).unwrap();
         assert!(local.token().is_none());
         assert_eq!(local.check(None), Ok(()));
         let open = Access::new(&AccessOptions::default(), &"0.0.0.0:0".parse().unwrap()).unwrap();

@@ -239,7 +239,8 @@ pub fn supervise_loop(map: &Map<String, Value>) -> Result<EngineCommand, Rejecte
     let set_point = number(map, "set_point_rpm", 0.0..=20_000.0)?;
     let kp = number(map, "kp", 0.0..=1000.0)?;
     let ki = number(map, "ki", 0.0..=1000.0)?;
-    let vel = number(map, "vel", 0.0..=f64::from(nodes::master::VEL_MAX))?.map(|v| v.round() as u16);
+    let vel =
+        number(map, "vel", 0.0..=f64::from(nodes::master::VEL_MAX))?.map(|v| v.round() as u16);
     let mode = match text(map, "mode")? {
         None => vel.map(|vel| LoopMode::Open { vel }),
         Some("loop") => Some(LoopMode::Closed),
@@ -315,12 +316,30 @@ mod tests {
     fn mistakes_name_their_field() {
         assert_eq!(object(b"{nope").unwrap_err().status, 400);
         assert!(force(&map(r#"{"input":"v1","value":30.5}"#)).is_ok());
-        assert_eq!(field_of(force(&map(r#"{"input":"v9","value":1}"#))), Some("input".into()));
-        assert_eq!(field_of(force(&map(r#"{"input":"v1","value":"x"}"#))), Some("value".into()));
-        assert_eq!(field_of(force(&map(r#"{"input":"v1","value":1e9}"#))), Some("value".into()));
-        assert_eq!(field_of(force(&map(r#"{"input":"v1","valu":3}"#))), Some("valu".into()));
-        assert_eq!(field_of(fault(&map(r#"{"fault":"smoke"}"#))), Some("fault".into()));
-        assert_eq!(field_of(fault(&map(r#"{"fault":"delay"}"#))), Some("delay_ms".into()));
+        assert_eq!(
+            field_of(force(&map(r#"{"input":"v9","value":1}"#))),
+            Some("input".into())
+        );
+        assert_eq!(
+            field_of(force(&map(r#"{"input":"v1","value":"x"}"#))),
+            Some("value".into())
+        );
+        assert_eq!(
+            field_of(force(&map(r#"{"input":"v1","value":1e9}"#))),
+            Some("value".into())
+        );
+        assert_eq!(
+            field_of(force(&map(r#"{"input":"v1","valu":3}"#))),
+            Some("valu".into())
+        );
+        assert_eq!(
+            field_of(fault(&map(r#"{"fault":"smoke"}"#))),
+            Some("fault".into())
+        );
+        assert_eq!(
+            field_of(fault(&map(r#"{"fault":"delay"}"#))),
+            Some("delay_ms".into())
+        );
         assert_eq!(
             field_of(supervise_loop(&map(r#"{"vel":99999}"#))),
             Some("vel".into())

@@ -163,13 +163,19 @@ async fn info(State(state): State<AppState>) -> Response {
 
 async fn latest(State(state): State<AppState>) -> Response {
     (
-        [(header::CONTENT_TYPE, HeaderValue::from_static("application/json"))],
+        [(
+            header::CONTENT_TYPE,
+            HeaderValue::from_static("application/json"),
+        )],
         state.hub.latest().to_string(),
     )
         .into_response()
 }
 
-async fn trend(State(state): State<AppState>, Query(q): Query<BTreeMap<String, String>>) -> Response {
+async fn trend(
+    State(state): State<AppState>,
+    Query(q): Query<BTreeMap<String, String>>,
+) -> Response {
     let seconds = q
         .get("seconds")
         .and_then(|s| s.parse::<f64>().ok())
@@ -180,7 +186,10 @@ async fn trend(State(state): State<AppState>, Query(q): Query<BTreeMap<String, S
 }
 
 /// Runs `command` on the engine and waits for its answer.
-pub async fn run_on_engine(engine: &Mutex<Sender<Inbound>>, command: EngineCommand) -> Result<Value, Rejected> {
+pub async fn run_on_engine(
+    engine: &Mutex<Sender<Inbound>>,
+    command: EngineCommand,
+) -> Result<Value, Rejected> {
     let (tx, rx) = tokio::sync::oneshot::channel();
     let sent = engine
         .lock()
@@ -189,11 +198,19 @@ pub async fn run_on_engine(engine: &Mutex<Sender<Inbound>>, command: EngineComma
             let _ = tx.send(command(e));
         })));
     if sent.is_err() {
-        return Err(Rejected { status: 503, field: None, message: "the session has ended".into() });
+        return Err(Rejected {
+            status: 503,
+            field: None,
+            message: "the session has ended".into(),
+        });
     }
     match tokio::time::timeout(Duration::from_secs(2), rx).await {
         Ok(Ok(answer)) => answer,
-        _ => Err(Rejected { status: 503, field: None, message: "the engine did not answer (the session is ending?)".into() }),
+        _ => Err(Rejected {
+            status: 503,
+            field: None,
+            message: "the engine did not answer (the session is ending?)".into(),
+        }),
     }
 }
 
@@ -233,7 +250,9 @@ impl Drop for Connected {
     }
 }
 
-async fn stream(State(state): State<AppState>) -> Sse<impl Stream<Item = Result<Event, Infallible>>> {
+async fn stream(
+    State(state): State<AppState>,
+) -> Sse<impl Stream<Item = Result<Event, Infallible>>> {
     let hub = state.hub.clone();
     hub.clients.fetch_add(1, Ordering::Relaxed);
     let first = Some(hub.latest());
@@ -268,11 +287,17 @@ struct LinkStats {
 
 /// Shown bytes: the text of an ASCII frame (MEB, Modbus ASCII), else hex.
 fn shown(bytes: &[u8]) -> String {
-    let text = bytes.iter().all(|&b| b == b'\r' || b == b'\n' || (0x20..0x7f).contains(&b));
+    let text = bytes
+        .iter()
+        .all(|&b| b == b'\r' || b == b'\n' || (0x20..0x7f).contains(&b));
     if text && !bytes.is_empty() {
         String::from_utf8_lossy(bytes).trim_end().to_string()
     } else {
-        bytes.iter().map(|b| format!("{b:02X}")).collect::<Vec<_>>().join(" ")
+        bytes
+            .iter()
+            .map(|b| format!("{b:02X}"))
+            .collect::<Vec<_>>()
+            .join(" ")
     }
 }
 
@@ -300,12 +325,19 @@ async fn produce(state: AppState) {
         let mut frames = Vec::new();
         let (events, lateness) = state.hub.take(|f| {
             let protocol = protocols.get(&f.link).copied().unwrap_or("meb");
-            let decoded = serde_json::to_value(link_frame_fields(protocol, &f.bytes)).unwrap_or(Value::Null);
+            let decoded =
+                serde_json::to_value(link_frame_fields(protocol, &f.bytes)).unwrap_or(Value::Null);
             let bad = decoded.get("error").is_some();
             let out = f.from == "twin";
             let s = stats.entry(f.link.clone()).or_default();
-            if out { s.frames_out += 1 } else { s.frames_in += 1 }
-            if bad { s.errors += 1 }
+            if out {
+                s.frames_out += 1
+            } else {
+                s.frames_in += 1
+            }
+            if bad {
+                s.errors += 1
+            }
             s.last_t = Some(f.end);
             if frames.len() < FRAMES_PER_MESSAGE {
                 frames.push(json!({
@@ -323,13 +355,16 @@ async fn produce(state: AppState) {
             .iter()
             .map(|l| {
                 let s = stats.get(&l.name);
-                (l.name.as_str(), json!({
-                    "clients": l.clients,
-                    "frames_in": s.map_or(0, |s| s.frames_in),
-                    "frames_out": s.map_or(0, |s| s.frames_out),
-                    "errors": s.map_or(0, |s| s.errors),
-                    "last_frame_age_s": s.and_then(|s| s.last_t).map(|t| (snap.t - t).max(0.0)),
-                }))
+                (
+                    l.name.as_str(),
+                    json!({
+                        "clients": l.clients,
+                        "frames_in": s.map_or(0, |s| s.frames_in),
+                        "frames_out": s.map_or(0, |s| s.frames_out),
+                        "errors": s.map_or(0, |s| s.errors),
+                        "last_frame_age_s": s.and_then(|s| s.last_t).map(|t| (snap.t - t).max(0.0)),
+                    }),
+                )
             })
             .collect();
         let message = json!({
@@ -352,13 +387,14 @@ async fn produce(state: AppState) {
 struct Gone;
 
 /// Reads the engine; `Ok(None)` if it did not answer this time.
-async fn read_snapshot(
-    engine: &Mutex<Sender<Inbound>>,
-) -> Result<Option<EngineSnapshot>, Gone> {
+async fn read_snapshot(engine: &Mutex<Sender<Inbound>>) -> Result<Option<EngineSnapshot>, Gone> {
     let (tx, rx) = tokio::sync::oneshot::channel();
-    let sent = engine.lock().map_err(|_| Gone)?.send(Inbound::Command(Box::new(move |e| {
-        let _ = tx.send(snapshot::read(e));
-    })));
+    let sent = engine
+        .lock()
+        .map_err(|_| Gone)?
+        .send(Inbound::Command(Box::new(move |e| {
+            let _ = tx.send(snapshot::read(e));
+        })));
     if sent.is_err() {
         return Err(Gone);
     }

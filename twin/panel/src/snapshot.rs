@@ -130,7 +130,8 @@ pub fn read(engine: &mut RtEngine) -> EngineSnapshot {
     let fault = engine.fault().map(|(f, link)| {
         (
             f.to_string(),
-            link.and_then(|l| engine.links.get(l)).map(|l| l.name.clone()),
+            link.and_then(|l| engine.links.get(l))
+                .map(|l| l.name.clone()),
         )
     });
     EngineSnapshot {
@@ -209,7 +210,8 @@ fn forces_json(f: &Forces) -> Value {
 fn volts(words: &[u16]) -> Value {
     let s = plant::params::SensingParams::default();
     let full = f64::from((1u32 << s.adc_bits.min(16)) - 1);
-    let pin = |i: usize| f64::from(words.get(i).copied().unwrap_or(0)) / full * s.adc_reference_volts;
+    let pin =
+        |i: usize| f64::from(words.get(i).copied().unwrap_or(0)) / full * s.adc_reference_volts;
     json!({
         "V2": pin(ea::V2) * s.bus_divider,
         "I": (pin(ea::I) - s.current_zero_volts) / s.current_volts_per_amp,

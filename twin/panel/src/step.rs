@@ -18,14 +18,20 @@ pub async fn step(state: &AppState, map: &Map<String, Value>) -> Result<Value, R
         .keys()
         .find(|k| !["to_rpm", "seconds", "slave"].contains(&k.as_str()))
     {
-        return Err(Rejected::field(k, "unknown field; this command takes to_rpm, seconds, slave"));
+        return Err(Rejected::field(
+            k,
+            "unknown field; this command takes to_rpm, seconds, slave",
+        ));
     }
     let field = |name: &str, lo: f64, hi: f64| -> Result<Option<f64>, Rejected> {
         match map.get(name) {
             None | Some(Value::Null) => Ok(None),
             Some(v) => match v.as_f64().filter(|n| n.is_finite()) {
                 Some(n) if (lo..=hi).contains(&n) => Ok(Some(n)),
-                Some(n) => Err(Rejected::field(name, format!("{n} is out of range {lo}-{hi}"))),
+                Some(n) => Err(Rejected::field(
+                    name,
+                    format!("{n} is out of range {lo}-{hi}"),
+                )),
                 None => Err(Rejected::field(name, "must be a number")),
             },
         }
@@ -67,7 +73,11 @@ pub async fn step(state: &AppState, map: &Map<String, Value>) -> Result<Value, R
     let options = twin_sim::step_metrics::StepOptions::default();
     let (hall, light, wheel) = (col(2), col(3), col(4));
     let mut signals = Map::new();
-    for (name, y) in [("wheel (loop)", &wheel), ("hall rpm", &hall), ("light rpm", &light)] {
+    for (name, y) in [
+        ("wheel (loop)", &wheel),
+        ("hall rpm", &hall),
+        ("light rpm", &light),
+    ] {
         let figures = twin_sim::step_metrics::step_metrics(&t, y, at, Some(to), &options);
         let delay = (name == "light rpm")
             .then(|| twin_sim::step_metrics::delay(&t, &hall, y, at, 2.0).ok())

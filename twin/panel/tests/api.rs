@@ -1,6 +1,11 @@
 //! The panel's API on a real `twin serve` session: access rules, commands
 //! and their refusals, many stream clients at once.
 
+#![allow(
+    clippy::disallowed_methods,
+    reason = "a test of a real-time server waits for it by the wall clock"
+)]
+
 mod common;
 
 use common::{ClientAddr, http, serve, wait_for};
@@ -21,25 +26,58 @@ fn forced_v1(session: &common::Session) -> serde_json::Value {
 fn a_panel_off_the_loopback_needs_its_token_and_refuses_without_changing_anything() {
     let session = serve("0.0.0.0:0", AccessOptions::default(), 30.0);
     let token = common::token_of(&session.panel).expect("a token in the URL printed");
-    assert!(session.panel.url.contains("/?token="), "{}", session.panel.url);
+    assert!(
+        session.panel.url.contains("/?token="),
+        "{}",
+        session.panel.url
+    );
     assert!(token.len() >= 32);
     for path in ["/", "/api/state", "/api/info", "/api/stream", "/panel.js"] {
         let (status, body) = http(&session.panel, "GET", path, None, false);
         assert_eq!(status, 401, "{path} without the token: {body}");
         assert!(body.contains("token"), "{body}");
     }
-    let (status, _) = http(&session.panel, "POST", "/api/force", Some(r#"{"input":"v1","value":12}"#), false);
+    let (status, _) = http(
+        &session.panel,
+        "POST",
+        "/api/force",
+        Some(r#"{"input":"v1","value":12}"#),
+        false,
+    );
     assert_eq!(status, 401);
-    let (status, _) = http(&session.panel, "GET", &format!("/?token={}x", token), None, false);
+    let (status, _) = http(
+        &session.panel,
+        "GET",
+        &format!("/?token={}x", token),
+        None,
+        false,
+    );
     assert_eq!(status, 401, "a wrong token");
     std::thread::sleep(Duration::from_millis(200));
-    assert!(forced_v1(&session).is_null(), "a refused command changed nothing");
-    let (status, page) = http(&session.panel, "GET", &format!("/?token={token}"), None, false);
+    assert!(
+        forced_v1(&session).is_null(),
+        "a refused command changed nothing"
+    );
+    let (status, page) = http(
+        &session.panel,
+        "GET",
+        &format!("/?token={token}"),
+        None,
+        false,
+    );
     assert_eq!(status, 200);
     assert!(page.contains("panel.js"));
-    let (status, _) = http(&session.panel, "POST", "/api/force", Some(r#"{"input":"v1","value":12}"#), true);
+    let (status, _) = http(
+        &session.panel,
+        "POST",
+        "/api/force",
+        Some(r#"{"input":"v1","value":12}"#),
+        true,
+    );
     assert_eq!(status, 200);
-    wait_for(Duration::from_secs(3), "v1 forced", || forced_v1(&session) == 12.0);
+    wait_for(Duration::from_secs(3), "v1 forced", || {
+        forced_v1(&session) == 12.0
+    });
 }
 
 #[test]
@@ -66,26 +104,64 @@ fn bad_commands_get_a_4xx_naming_the_field_and_change_nothing() {
             None => assert!(!message.is_empty()),
         }
     }
-    let (got, answer) = http(&session.panel, "POST", "/api/fault", Some(r#"{"fault":"bad-check","link":"rs485"}"#), true);
+    let (got, answer) = http(
+        &session.panel,
+        "POST",
+        "/api/fault",
+        Some(r#"{"fault":"bad-check","link":"rs485"}"#),
+        true,
+    );
     assert_eq!(got, 404, "{answer}");
-    assert!(answer.contains("no link `rs485`") && answer.contains("meb"), "{answer}");
-    let (got, answer) = http(&session.panel, "POST", "/api/fault", Some(r#"{"fault":"smoke"}"#), true);
+    assert!(
+        answer.contains("no link `rs485`") && answer.contains("meb"),
+        "{answer}"
+    );
+    let (got, answer) = http(
+        &session.panel,
+        "POST",
+        "/api/fault",
+        Some(r#"{"fault":"smoke"}"#),
+        true,
+    );
     assert_eq!(got, 422, "{answer}");
-    let (got, _) = http(&session.panel, "POST", "/api/loop", Some(r#"{"set_point_rpm":1000}"#), true);
+    let (got, _) = http(
+        &session.panel,
+        "POST",
+        "/api/loop",
+        Some(r#"{"set_point_rpm":1000}"#),
+        true,
+    );
     assert_eq!(got, 409, "a set point on a session with no supervisor");
     std::thread::sleep(Duration::from_millis(200));
     let now = state(&session);
-    assert!(now["state"]["fault"].is_null(), "no fault switched on: {}", now["state"]["fault"]);
+    assert!(
+        now["state"]["fault"].is_null(),
+        "no fault switched on: {}",
+        now["state"]["fault"]
+    );
     assert!(forced_v1(&session).is_null());
 }
 
 #[test]
 fn a_read_only_panel_shows_and_changes_nothing() {
-    let session = serve("127.0.0.1:0", AccessOptions { token_file: None, read_only: true }, 30.0);
+    let session = serve(
+        "127.0.0.1:0",
+        AccessOptions {
+            token_file: None,
+            read_only: true,
+        },
+        30.0,
+    );
     let (status, info) = http(&session.panel, "GET", "/api/info", None, true);
     assert_eq!(status, 200);
     assert!(info.contains("\"read_only\":true"), "{info}");
-    let (status, body) = http(&session.panel, "POST", "/api/fault", Some(r#"{"fault":"no-reply"}"#), true);
+    let (status, body) = http(
+        &session.panel,
+        "POST",
+        "/api/fault",
+        Some(r#"{"fault":"no-reply"}"#),
+        true,
+    );
     assert_eq!(status, 403, "{body}");
     assert!(state(&session)["state"]["fault"].is_null());
 }
@@ -93,8 +169,10 @@ fn a_read_only_panel_shows_and_changes_nothing() {
 /// Reads one stream for `seconds`: the updates it got.
 fn stream_updates(addr: std::net::SocketAddr, seconds: f64) -> usize {
     let mut s = std::net::TcpStream::connect(addr).expect("connects");
-    s.set_read_timeout(Some(Duration::from_millis(500))).unwrap();
-    s.write_all(b"GET /api/stream HTTP/1.1\r\nHost: panel\r\nAccept: text/event-stream\r\n\r\n").unwrap();
+    s.set_read_timeout(Some(Duration::from_millis(500)))
+        .unwrap();
+    s.write_all(b"GET /api/stream HTTP/1.1\r\nHost: panel\r\nAccept: text/event-stream\r\n\r\n")
+        .unwrap();
     let mut reader = BufReader::new(s);
     let end = Instant::now() + Duration::from_secs_f64(seconds);
     let mut updates = 0;
@@ -123,7 +201,10 @@ fn thirty_stream_clients_are_all_served() {
     let counts: Vec<usize> = clients.into_iter().map(|c| c.join().unwrap()).collect();
     // 20 updates a second for 3 s; every client got a steady share of them.
     for (i, n) in counts.iter().enumerate() {
-        assert!(*n >= 20, "client {i} got only {n} updates in 3 s: {counts:?}");
+        assert!(
+            *n >= 20,
+            "client {i} got only {n} updates in 3 s: {counts:?}"
+        );
     }
     wait_for(Duration::from_secs(5), "the clients counted out", || {
         state(&session)["stream_clients"].as_u64() == Some(0)

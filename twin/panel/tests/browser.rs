@@ -1,9 +1,14 @@
 //! The panel in a real browser: Debian's chromium, driven over WebDriver
 //! (chromedriver) by fantoccini, against a real `twin serve` session.
 
+#![allow(
+    clippy::disallowed_methods,
+    reason = "a test of a real-time server waits for it by the wall clock"
+)]
+
 mod common;
 
-use common::{ClientAddr, chrome_capabilities, chromedriver, fresh_dir, serve, wait_for};
+use common::{ClientAddr, chrome_capabilities, chromedriver, fresh_dir, serve};
 use fantoccini::{Client, ClientBuilder, Locator};
 use nodes::proto::meb::MebCmd;
 use std::time::{Duration, Instant};
@@ -11,7 +16,10 @@ use twin_panel::AccessOptions;
 use twin_realtime::client::MebClient;
 
 fn runtime() -> tokio::runtime::Runtime {
-    tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap()
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap()
 }
 
 async fn browser(driver: &common::Driver, name: &str, phone: bool) -> Client {
@@ -31,14 +39,23 @@ async fn text(c: &Client, css: &str) -> String {
     }
 }
 
-async fn eventually(c: &Client, what: &str, limit: Duration, check: impl Fn(&str) -> bool, css: &str) -> String {
+async fn eventually(
+    c: &Client,
+    what: &str,
+    limit: Duration,
+    check: impl Fn(&str) -> bool,
+    css: &str,
+) -> String {
     let start = Instant::now();
     loop {
         let t = text(c, css).await;
         if check(&t) {
             return t;
         }
-        assert!(start.elapsed() < limit, "timed out waiting for {what}: `{css}` shows `{t}`");
+        assert!(
+            start.elapsed() < limit,
+            "timed out waiting for {what}: `{css}` shows `{t}`"
+        );
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
 }
@@ -47,7 +64,9 @@ async fn eventually(c: &Client, what: &str, limit: Duration, check: impl Fn(&str
 /// refresh the README's), else the temporary folder.
 fn screenshot_path(name: &str) -> std::path::PathBuf {
     match std::env::var_os("TWIN_PANEL_SCREENSHOTS") {
-        Some(_) => std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../docs").join(name),
+        Some(_) => std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../docs")
+            .join(name),
         None => std::env::temp_dir().join(name),
     }
 }
@@ -63,8 +82,12 @@ fn meb_v1(meb: &str) -> f64 {
 /// Runs the wheel: EN on (SD0 bit 0 low), VEL half scale.
 fn start_wheel(meb: &str) {
     let mut client = MebClient::connect(meb, Duration::from_secs(2)).expect("MEB connects");
-    client.write(1, MebCmd::SA, 0, &[1200]).expect("VEL written");
-    client.write(1, MebCmd::SD, 0, &[0x001E]).expect("EN written");
+    client
+        .write(1, MebCmd::SA, 0, &[1200])
+        .expect("VEL written");
+    client
+        .write(1, MebCmd::SD, 0, &[0x001E])
+        .expect("EN written");
 }
 
 #[test]
@@ -76,26 +99,74 @@ fn the_panel_shows_the_bench_in_a_browser_and_its_monitor_shows_a_bad_check() {
         let c = browser(&driver, "laptop", false).await;
         c.goto(&session.panel.url).await.unwrap();
         // The page loads and its V1 gauge shows the plant's V1 as the MEB link reads it.
-        let shown = eventually(&c, "the V1 gauge", Duration::from_secs(10), |t| t.parse::<f64>().is_ok(), "#g-v1 .num").await;
+        let shown = eventually(
+            &c,
+            "the V1 gauge",
+            Duration::from_secs(10),
+            |t| t.parse::<f64>().is_ok(),
+            "#g-v1 .num",
+        )
+        .await;
         let shown: f64 = shown.parse().unwrap();
         let read = meb_v1(&session.meb);
-        assert!((shown - read).abs() <= 0.01 * read, "V1 gauge {shown} V, MEB reads {read} V");
+        assert!(
+            (shown - read).abs() <= 0.01 * read,
+            "V1 gauge {shown} V, MEB reads {read} V"
+        );
         // The wheel turns: the true-rpm gauge leaves zero.
-        eventually(&c, "the wheel gauge", Duration::from_secs(15), |t| t.parse::<f64>().is_ok_and(|v| v > 100.0), "#g-wheel .num").await;
+        eventually(
+            &c,
+            "the wheel gauge",
+            Duration::from_secs(15),
+            |t| t.parse::<f64>().is_ok_and(|v| v > 100.0),
+            "#g-wheel .num",
+        )
+        .await;
 
         // Bad check on the MEB link, switched on in the page: the monitor shows the bad frame.
-        c.find(Locator::Css("#fault-bad-check-meb")).await.expect("a bad-check switch for link meb").click().await.unwrap();
-        eventually(&c, "the fault badge", Duration::from_secs(5), |t| t.contains("bad-check"), "#fault-badge").await;
+        c.find(Locator::Css("#fault-bad-check-meb"))
+            .await
+            .expect("a bad-check switch for link meb")
+            .click()
+            .await
+            .unwrap();
+        eventually(
+            &c,
+            "the fault badge",
+            Duration::from_secs(5),
+            |t| t.contains("bad-check"),
+            "#fault-badge",
+        )
+        .await;
         let mut meb = MebClient::connect(&session.meb, Duration::from_secs(2)).unwrap();
         let refused = meb.read(1, MebCmd::EA, 0, 6);
         assert!(refused.is_err(), "the MEB client sees the bad check");
-        let bad = eventually(&c, "a bad frame in the monitor", Duration::from_secs(5), |t| !t.is_empty(), "#frames tr.bad td.dec").await;
+        let bad = eventually(
+            &c,
+            "a bad frame in the monitor",
+            Duration::from_secs(5),
+            |t| !t.is_empty(),
+            "#frames tr.bad td.dec",
+        )
+        .await;
         assert!(bad.contains('✗'), "{bad}");
         tokio::time::sleep(Duration::from_millis(300)).await;
         let png = c.screenshot().await.unwrap();
         std::fs::write(screenshot_path("panel-laptop.png"), png).unwrap();
-        c.find(Locator::Css("#fault-off-meb")).await.unwrap().click().await.unwrap();
-        eventually(&c, "the fault off", Duration::from_secs(5), |t| t.is_empty(), "#fault-badge").await;
+        c.find(Locator::Css("#fault-off-meb"))
+            .await
+            .unwrap()
+            .click()
+            .await
+            .unwrap();
+        eventually(
+            &c,
+            "the fault off",
+            Duration::from_secs(5),
+            |t| t.is_empty(),
+            "#fault-badge",
+        )
+        .await;
 
         // 30 stream clients beside the browser: everyone stays served.
         let addr = session.panel.addr_for_clients();
@@ -115,8 +186,10 @@ fn the_panel_shows_the_bench_in_a_browser_and_its_monitor_shows_a_bad_check() {
 fn count_updates(addr: std::net::SocketAddr, seconds: f64) -> usize {
     use std::io::{BufRead, BufReader, Write};
     let mut s = std::net::TcpStream::connect(addr).unwrap();
-    s.set_read_timeout(Some(Duration::from_millis(500))).unwrap();
-    s.write_all(b"GET /api/stream HTTP/1.1\r\nHost: panel\r\n\r\n").unwrap();
+    s.set_read_timeout(Some(Duration::from_millis(500)))
+        .unwrap();
+    s.write_all(b"GET /api/stream HTTP/1.1\r\nHost: panel\r\n\r\n")
+        .unwrap();
     let mut r = BufReader::new(s);
     let end = Instant::now() + Duration::from_secs_f64(seconds);
     let (mut n, mut line) = (0, String::new());
@@ -156,5 +229,4 @@ fn at_phone_width_nothing_scrolls_sideways_and_the_gauges_show_numbers() {
         std::fs::write(screenshot_path("panel-phone.png"), png).unwrap();
         c.close().await.unwrap();
     });
-    let _ = wait_for; // used by the other tests
 }

@@ -275,35 +275,39 @@ pub fn execute(args: &SuperviseArgs) -> Result<()> {
         .out
         .as_deref()
         .and_then(super::output::Earlier::at);
-    let outcome = supervise::supervise_with(&options, |links| {
-        let mut out = std::io::stdout().lock();
-        let how = match options.open_loop {
-            Some(vel) => format!("open loop, VEL {vel}"),
-            None => format!(
-                "speed loop closed at {} rpm (kp {}, ki {})",
-                options.set_point, options.kp, options.ki
-            ),
-        };
-        let _ = writeln!(
-            out,
-            "twin supervise: {how}, polling every {:.1} ms",
-            options.poll_period.as_secs_f64() * 1e3
-        );
-        for l in links {
-            let _ = writeln!(out, "  {} {} {}", l.protocol, l.address, l.role);
-        }
-        if let Some(line) = &panel_line {
-            let _ = writeln!(out, "{line}");
-        }
-        let _ = writeln!(out, "ready");
-        let _ = out.flush();
-    }, |engine| {
-        if let Some(panel) = &panel
-            && let Err(e) = panel.start(engine)
-        {
-            eprintln!("--web: {e:#}; going on without the panel");
-        }
-    })?;
+    let outcome = supervise::supervise_with(
+        &options,
+        |links| {
+            let mut out = std::io::stdout().lock();
+            let how = match options.open_loop {
+                Some(vel) => format!("open loop, VEL {vel}"),
+                None => format!(
+                    "speed loop closed at {} rpm (kp {}, ki {})",
+                    options.set_point, options.kp, options.ki
+                ),
+            };
+            let _ = writeln!(
+                out,
+                "twin supervise: {how}, polling every {:.1} ms",
+                options.poll_period.as_secs_f64() * 1e3
+            );
+            for l in links {
+                let _ = writeln!(out, "  {} {} {}", l.protocol, l.address, l.role);
+            }
+            if let Some(line) = &panel_line {
+                let _ = writeln!(out, "{line}");
+            }
+            let _ = writeln!(out, "ready");
+            let _ = out.flush();
+        },
+        |engine| {
+            if let Some(panel) = &panel
+                && let Err(e) = panel.start(engine)
+            {
+                eprintln!("--web: {e:#}; going on without the panel");
+            }
+        },
+    )?;
     let l = outcome.session.lateness;
     println!(
         "twin supervise: stopped ({}) after {:.3} s",

@@ -59,6 +59,10 @@ pub fn panel_line(panel: &Panel) -> String {
     format!(
         "panel: {}{}",
         running.url,
-        if running.read_only { " (read-only)" } else { "" }
+        if running.read_only {
+            " (read-only)"
+        } else {
+            ""
+        }
     )
 }

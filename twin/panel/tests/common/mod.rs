@@ -98,7 +98,9 @@ pub fn serve(web: &str, access: AccessOptions, seconds: f64) -> Session {
         .recv_timeout(Duration::from_secs(20))
         .expect("the session starts")
         .expect("the session opens its link");
-    let engine = engine_rx.recv_timeout(Duration::from_secs(20)).expect("the engine runs");
+    let engine = engine_rx
+        .recv_timeout(Duration::from_secs(20))
+        .expect("the engine runs");
     let session = Session {
         engine,
         meb,
@@ -122,9 +124,17 @@ pub fn wait_for(limit: Duration, what: &str, mut ok: impl FnMut() -> bool) {
 }
 
 /// One HTTP/1.1 request; `with_token` sends the panel's token when it has one.
-pub fn http(panel: &Running, method: &str, path: &str, body: Option<&str>, with_token: bool) -> (u16, String) {
+pub fn http(
+    panel: &Running,
+    method: &str,
+    path: &str,
+    body: Option<&str>,
+    with_token: bool,
+) -> (u16, String) {
     let mut stream = TcpStream::connect(panel.addr_for_clients()).expect("connects to the panel");
-    stream.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    stream
+        .set_read_timeout(Some(Duration::from_secs(5)))
+        .unwrap();
     let auth = match (with_token, token_of(panel)) {
         (true, Some(t)) => format!("Authorization: Bearer {t}\r\n"),
         _ => String::new(),
@@ -142,7 +152,10 @@ pub fn http(panel: &Running, method: &str, path: &str, body: Option<&str>, with_
         .nth(1)
         .and_then(|s| s.parse().ok())
         .unwrap_or(0);
-    let body = response.split_once("\r\n\r\n").map(|(_, b)| b.to_string()).unwrap_or_default();
+    let body = response
+        .split_once("\r\n\r\n")
+        .map(|(_, b)| b.to_string())
+        .unwrap_or_default();
     (status, body)
 }
 
@@ -179,14 +192,21 @@ impl Drop for Driver {
 }
 
 pub fn chromedriver() -> Driver {
-    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
     let child = std::process::Command::new("chromedriver")
         .arg(format!("--port={port}"))
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::null())
         .spawn()
         .expect("chromedriver runs (Debian's chromium-driver, installed by .ci/install)");
-    let driver = Driver { child, url: format!("http://127.0.0.1:{port}") };
+    let driver = Driver {
+        child,
+        url: format!("http://127.0.0.1:{port}"),
+    };
     wait_for(Duration::from_secs(20), "chromedriver to listen", || {
         TcpStream::connect(("127.0.0.1", port)).is_ok()
     });
@@ -194,7 +214,10 @@ pub fn chromedriver() -> Driver {
 }
 
 /// Chromium's options for this machine: headless, as root, no network.
-pub fn chrome_capabilities(profile: &std::path::Path, phone: bool) -> serde_json::Map<String, serde_json::Value> {
+pub fn chrome_capabilities(
+    profile: &std::path::Path,
+    phone: bool,
+) -> serde_json::Map<String, serde_json::Value> {
     let mut args = vec![
         "--headless".to_string(),
         "--no-sandbox".into(),
@@ -213,7 +236,7 @@ pub fn chrome_capabilities(profile: &std::path::Path, phone: bool) -> serde_json
             "deviceMetrics": { "width": 360, "height": 740, "pixelRatio": 2.0, "touch": true }
         });
     } else {
-        args.push("--window-size=1280,1000".into());
+        args.push("--window-size=1280,1700".into());
     }
     options["args"] = serde_json::json!(args);
     if std::path::Path::new("/usr/bin/chromium").exists() {
