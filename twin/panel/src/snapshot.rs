@@ -330,7 +330,12 @@ impl EngineSnapshot {
             ),
             _ => (None, None),
         };
-        let wheel = self.modules.first().map(|m| m.sensors.wheel_rpm.abs());
+        // The plant's true wheel; a supervisor has none: its loop's measurement.
+        let wheel = self
+            .modules
+            .first()
+            .map(|m| m.sensors.wheel_rpm.abs())
+            .or(lp.map(|l| l.state.measured_rpm));
         [Some(self.t), set_point, hall, light, wheel]
     }
 }
