@@ -4,7 +4,8 @@
 //! clients, interleaved, and prints each run's plant tick lateness (p50,
 //! p99, max) and the update rate the clients got.
 //!
-//! `cargo run --release -p twin-panel --example panel_bench -- [SECONDS] [ROUNDS]`
+//! `cargo run -p twin-panel --example panel_bench -- [SECONDS] [ROUNDS]`
+//! (`--release` for figures nearer an installed `twin`).
 
 #![allow(
     clippy::disallowed_methods,
