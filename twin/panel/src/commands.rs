@@ -239,8 +239,7 @@ pub fn supervise_loop(map: &Map<String, Value>) -> Result<EngineCommand, Rejecte
     let set_point = number(map, "set_point_rpm", 0.0..=20_000.0)?;
     let kp = number(map, "kp", 0.0..=1000.0)?;
     let ki = number(map, "ki", 0.0..=1000.0)?;
-    let vel =
-        number(map, "vel", 0.0..=f64::from(nodes::master::VEL_MAX))?.map(|v| v.round() as u16);
+    let vel = number(map, "vel", 0.0..=nodes::master::VEL_MAX)?.map(|v| v.round() as u16);
     let mode = match text(map, "mode")? {
         None => vel.map(|vel| LoopMode::Open { vel }),
         Some("loop") => Some(LoopMode::Closed),
