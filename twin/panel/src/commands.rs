@@ -6,7 +6,10 @@ use nodes::firmware::Refusal;
 use nodes::master::LoopMode;
 use nodes::time::SimDuration;
 use serde_json::{Map, Value, json};
-use twin_realtime::{Forces, LinkFault, RtEngine};
+use std::sync::Mutex;
+use std::sync::mpsc::Sender;
+use std::time::Duration;
+use twin_realtime::{Forces, Inbound, LinkFault, RtEngine};
 
 /// A command refused: the HTTP status, the field at fault and why.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -297,6 +300,35 @@ pub fn supervise_loop(map: &Map<String, Value>) -> Result<EngineCommand, Rejecte
             message: "this session has no supervisor (twin supervise has one)".into(),
         })
     }))
+}
+
+/// Runs `command` on the engine and waits for its answer.
+pub async fn run_on_engine(
+    engine: &Mutex<Sender<Inbound>>,
+    command: EngineCommand,
+) -> Result<Value, Rejected> {
+    let (tx, rx) = tokio::sync::oneshot::channel();
+    let sent = engine
+        .lock()
+        .map_err(|_| Rejected::body("the session is ending"))?
+        .send(Inbound::Command(Box::new(move |e| {
+            let _ = tx.send(command(e));
+        })));
+    if sent.is_err() {
+        return Err(Rejected {
+            status: 503,
+            field: None,
+            message: "the session has ended".into(),
+        });
+    }
+    match tokio::time::timeout(Duration::from_secs(2), rx).await {
+        Ok(Ok(answer)) => answer,
+        _ => Err(Rejected {
+            status: 503,
+            field: None,
+            message: "the engine did not answer (the session is ending?)".into(),
+        }),
+    }
 }
 
 #[cfg(test)]

@@ -185,35 +185,6 @@ async fn trend(
     axum::Json(state.hub.trend(seconds)).into_response()
 }
 
-/// Runs `command` on the engine and waits for its answer.
-pub async fn run_on_engine(
-    engine: &Mutex<Sender<Inbound>>,
-    command: EngineCommand,
-) -> Result<Value, Rejected> {
-    let (tx, rx) = tokio::sync::oneshot::channel();
-    let sent = engine
-        .lock()
-        .map_err(|_| Rejected::body("the session is ending"))?
-        .send(Inbound::Command(Box::new(move |e| {
-            let _ = tx.send(command(e));
-        })));
-    if sent.is_err() {
-        return Err(Rejected {
-            status: 503,
-            field: None,
-            message: "the session has ended".into(),
-        });
-    }
-    match tokio::time::timeout(Duration::from_secs(2), rx).await {
-        Ok(Ok(answer)) => answer,
-        _ => Err(Rejected {
-            status: 503,
-            field: None,
-            message: "the engine did not answer (the session is ending?)".into(),
-        }),
-    }
-}
-
 async fn command(
     State(state): State<AppState>,
     _headers: HeaderMap,
@@ -221,7 +192,7 @@ async fn command(
     parse: fn(&serde_json::Map<String, Value>) -> Result<EngineCommand, Rejected>,
 ) -> Response {
     let result = match commands::object(&body).and_then(|map| parse(&map)) {
-        Ok(command) => run_on_engine(&state.engine, command).await,
+        Ok(command) => commands::run_on_engine(&state.engine, command).await,
         Err(e) => Err(e),
     };
     match result {
@@ -232,7 +203,7 @@ async fn command(
 
 async fn step(State(state): State<AppState>, body: Bytes) -> Response {
     let result = match commands::object(&body) {
-        Ok(map) => crate::step::step(&state, &map).await,
+        Ok(map) => crate::step::step(&state.hub, &state.engine, &map).await,
         Err(e) => Err(e),
     };
     match result {

@@ -6,14 +6,22 @@
 use serde_json::{Map, Value, json};
 use std::time::Duration;
 
-use crate::commands::{self, Rejected};
-use crate::http::{AppState, run_on_engine};
+use std::sync::Mutex;
+use std::sync::mpsc::Sender;
+
+use crate::commands::{self, Rejected, run_on_engine};
+use crate::hub::Hub;
+use twin_realtime::Inbound;
 
 /// Longest step the button waits for, s.
 const MAX_SECONDS: f64 = 25.0;
 
 /// `POST /api/step {"to_rpm": 1500, "seconds": 6, "slave": 1}`.
-pub async fn step(state: &AppState, map: &Map<String, Value>) -> Result<Value, Rejected> {
+pub async fn step(
+    hub: &Hub,
+    engine: &Mutex<Sender<Inbound>>,
+    map: &Map<String, Value>,
+) -> Result<Value, Rejected> {
     if let Some(k) = map
         .keys()
         .find(|k| !["to_rpm", "seconds", "slave"].contains(&k.as_str()))
@@ -39,7 +47,7 @@ pub async fn step(state: &AppState, map: &Map<String, Value>) -> Result<Value, R
     let to = field("to_rpm", 0.0, 20_000.0)?.ok_or_else(|| Rejected::field("to_rpm", "missing"))?;
     let seconds = field("seconds", 2.0, MAX_SECONDS)?.unwrap_or(6.0);
     let slave = field("slave", 1.0, 99.0)?;
-    let before: Value = serde_json::from_str(&state.hub.latest()).unwrap_or(Value::Null);
+    let before: Value = serde_json::from_str(&hub.latest()).unwrap_or(Value::Null);
     let from = before["state"]["devices"]
         .as_array()
         .into_iter()
@@ -55,10 +63,10 @@ pub async fn step(state: &AppState, map: &Map<String, Value>) -> Result<Value, R
     }
     let command = commands::supervise_loop(&body)?;
     // The step's instant: the session time the engine stepped it at.
-    let answer = run_on_engine(&state.engine, command).await?;
+    let answer = run_on_engine(engine, command).await?;
     let at = answer["t"].as_f64().unwrap_or(0.0);
     tokio::time::sleep(Duration::from_secs_f64(seconds + 0.2)).await;
-    let trend = state.hub.trend(seconds + 1.5);
+    let trend = hub.trend(seconds + 1.5);
     let rows: Vec<[f64; 5]> = trend["rows"]
         .as_array()
         .into_iter()
