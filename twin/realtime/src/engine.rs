@@ -136,6 +136,11 @@ impl RtEngine {
         }
     }
 
+    /// Whether every slave front end refuses writes.
+    pub fn read_only(&self) -> bool {
+        self.read_only
+    }
+
     /// Switch a fault on (on link `link`, or all) or off.
     pub fn set_fault(&mut self, fault: Option<LinkFault>, link: Option<usize>) {
         self.fault = fault.map(|f| (f, link));

@@ -29,6 +29,7 @@ pub mod supervise;
 pub mod sweep;
 pub mod view;
 pub mod vsp;
+mod web_args;
 
 /// The last lines of a real-time session's report (`twin serve`, `twin
 /// supervise`): its connections, where it was recorded, the live view.

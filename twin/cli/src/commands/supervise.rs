@@ -134,6 +134,8 @@ pub struct SuperviseArgs {
     /// goes on without the view.
     #[arg(long, value_name = "TARGET", num_args = 0..=1, default_missing_value = "spawn")]
     view: Option<String>,
+    #[command(flatten)]
+    web: super::web_args::WebArgs,
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -306,38 +308,55 @@ pub fn execute(args: &SuperviseArgs, matches: &ArgMatches) -> Result<()> {
             .hook(),
         );
     }
+    let panel = args
+        .web
+        .bind(twin_panel::PanelRole::Supervise, &mut options.session)?;
+    let panel_line = panel.as_ref().map(super::web_args::panel_line);
     let earlier = options
         .session
         .record
         .as_ref()
         .and_then(|plan| plan.out.as_deref())
         .and_then(super::output::Earlier::at);
-    let outcome = supervise::supervise(&options, |links| {
-        let mut out = std::io::stdout().lock();
-        let how = match options.open_loop {
-            Some(vel) => format!("open loop, VEL {vel}"),
-            None => format!(
-                "speed loop closed at {} rpm (kp {}, ki {})",
-                options.set_point, options.kp, options.ki
-            ),
-        };
-        let _ = writeln!(
-            out,
-            "twin supervise: {how}, polling every {:.1} ms",
-            options.poll_period.as_secs_f64() * 1e3
-        );
-        for l in links {
-            let _ = writeln!(out, "  {} {} {}", l.protocol, l.address, l.role);
-        }
-        let _ = writeln!(out, "ready");
-        let _ = out.flush();
-        twin_realtime::notify::ready(&format!("supervising {}", options.bus));
-    })?;
+    let outcome = supervise::supervise_with(
+        &options,
+        |links| {
+            let mut out = std::io::stdout().lock();
+            let how = match options.open_loop {
+                Some(vel) => format!("open loop, VEL {vel}"),
+                None => format!(
+                    "speed loop closed at {} rpm (kp {}, ki {})",
+                    options.set_point, options.kp, options.ki
+                ),
+            };
+            let _ = writeln!(
+                out,
+                "twin supervise: {how}, polling every {:.1} ms",
+                options.poll_period.as_secs_f64() * 1e3
+            );
+            for l in links {
+                let _ = writeln!(out, "  {} {} {}", l.protocol, l.address, l.role);
+            }
+            if let Some(line) = &panel_line {
+                let _ = writeln!(out, "{line}");
+            }
+            let _ = writeln!(out, "ready");
+            let _ = out.flush();
+            twin_realtime::notify::ready(&format!("supervising {}", options.bus));
+        },
+        |engine| {
+            if let Some(panel) = &panel
+                && let Err(e) = panel.start(engine)
+            {
+                eprintln!("--web: {e:#}; going on without the panel");
+            }
+        },
+    )?;
     let session = &outcome.session;
     let l = session.lateness;
     println!(
         "twin supervise: stopped ({}) after {:.3} s",
-        session.stopped_by, session.elapsed_s
+        outcome.session.stopped_by, outcome.session.elapsed_s
     );
     for line in &outcome.status {
         println!("  {line}");
@@ -346,6 +365,11 @@ pub fn execute(args: &SuperviseArgs, matches: &ArgMatches) -> Result<()> {
         "  tick lateness over {} ticks: p50 {:.0} µs, p99 {:.0} µs, max {:.0} µs",
         l.ticks, l.p50_us, l.p99_us, l.max_us
     );
-    super::print_session_end(session, earlier.as_ref());
+    let mut session_end = outcome.session;
+    if args.view.is_none() {
+        // The panel's feed is not a rerun view.
+        session_end.view_samples = None;
+    }
+    super::print_session_end(&session_end, earlier.as_ref());
     Ok(())
 }

@@ -157,14 +157,16 @@ const SUPERVISOR: usize = 0;
 
 /// `twin supervise` as a session's role: the supervisor, its bus and the
 /// server's listeners.
-struct Supervising<'a> {
+struct Supervising<'a, C> {
     options: &'a SuperviseOptions,
     supervisor: Option<Supervisor>,
     bus: Option<LinkSpec>,
     listen: Vec<LinkSpec>,
+    /// Gets a sender for commands once the engine runs (the web panel).
+    console: Option<C>,
 }
 
-impl Role for Supervising<'_> {
+impl<C: FnOnce(Sender<Inbound>)> Role for Supervising<'_, C> {
     type Link = OpenLink;
     /// The supervisor's status lines at the end.
     type End = Vec<String>;
@@ -206,6 +208,9 @@ impl Role for Supervising<'_> {
         let every = self.options.session.status_every;
         if every > 0.0 {
             runtime.spawn(status_loop(Duration::from_secs_f64(every), engine.clone()));
+        }
+        if let Some(console) = self.console.take() {
+            console(engine.clone());
         }
     }
 
@@ -459,6 +464,16 @@ pub fn supervise(
     options: &SuperviseOptions,
     ready: impl FnOnce(&[OpenLink]),
 ) -> Result<SuperviseOutcome> {
+    supervise_with(options, ready, |_| {})
+}
+
+/// Runs a session; `ready` gets the open links once they all are, and
+/// `console` a sender for commands once the engine runs.
+pub fn supervise_with(
+    options: &SuperviseOptions,
+    ready: impl FnOnce(&[OpenLink]),
+    console: impl FnOnce(Sender<Inbound>),
+) -> Result<SuperviseOutcome> {
     let (bus, listen) = parse_links(options)?;
     let supervisor = build_supervisor(options)?;
     let role = Supervising {
@@ -466,6 +481,7 @@ pub fn supervise(
         supervisor: Some(supervisor),
         bus: Some(bus),
         listen,
+        console: Some(console),
     };
     let (session, status) = session::run(&options.session, role, ready)?;
     Ok(SuperviseOutcome { session, status })

@@ -57,6 +57,14 @@ pub fn execute(
             .map_err(|e| anyhow!("{}:{}: module {}: {e:#}", file.origin, m.line, m.name))?;
         serve::parse_links(&options)
             .map_err(|e| anyhow!("{}:{}: module {}: {e:#}", file.origin, m.line, m.name))?;
+        if args.web.web.is_some() {
+            bail!(
+                "{}:{}: module {}: `web`: the panel serves one module; a class has none yet (serve that module on its own to see its panel)",
+                file.origin,
+                m.line,
+                m.name
+            );
+        }
         modules.push((m.name.clone(), args, options));
     }
     if check {

@@ -136,6 +136,8 @@ pub struct ServeArgs {
     /// goes on without the view.
     #[arg(long, value_name = "TARGET", num_args = 0..=1, default_missing_value = "spawn")]
     view: Option<String>,
+    #[command(flatten)]
+    web: super::web_args::WebArgs,
 }
 
 /// The session `args` describe; `module` names a class's module, whose
@@ -333,7 +335,11 @@ pub(super) fn recorded(plan: Option<&twin_realtime::rotate::RecordPlan>) -> Stri
 }
 
 fn serve_one(args: &ServeArgs, options: &ServeOptions) -> Result<()> {
-    let options = options.clone();
+    let mut options = options.clone();
+    let panel = args
+        .web
+        .bind(twin_panel::PanelRole::Serve, &mut options.session)?;
+    let panel_line = panel.as_ref().map(super::web_args::panel_line);
     let earlier = options
         .session
         .record
@@ -356,6 +362,9 @@ fn serve_one(args: &ServeArgs, options: &ServeOptions) -> Result<()> {
             if let Some(light) = &light {
                 let _ = writeln!(out, "{light}");
             }
+            if let Some(line) = &panel_line {
+                let _ = writeln!(out, "{line}");
+            }
             let _ = writeln!(out, "ready");
             let _ = out.flush();
             let served: Vec<String> = links
@@ -364,7 +373,14 @@ fn serve_one(args: &ServeArgs, options: &ServeOptions) -> Result<()> {
                 .collect();
             twin_realtime::notify::ready(&format!("serving {}", served.join(", ")));
         },
-        console::spawn_stdin,
+        |engine| {
+            if let Some(panel) = &panel
+                && let Err(e) = panel.start(engine.clone())
+            {
+                eprintln!("--web: {e:#}; going on without the panel");
+            }
+            console::spawn_stdin(engine);
+        },
     )?;
     let l = outcome.lateness;
     println!(
@@ -384,6 +400,11 @@ fn serve_one(args: &ServeArgs, options: &ServeOptions) -> Result<()> {
                 println!("  (ticks ran late even at real-time priority: the machine was busy)")
             }
         }
+    }
+    let mut outcome = outcome;
+    if args.view.is_none() {
+        // The panel's feed is not a rerun view.
+        outcome.view_samples = None;
     }
     super::print_session_end(&outcome, earlier.as_ref());
     Ok(())

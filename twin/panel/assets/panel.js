@@ -1,0 +1,416 @@
+// The EV lab twin's panel: one stream (server-sent events) for state,
+// frames and events; REST for commands. See docs/panel-api.md.
+"use strict";
+
+const token = new URLSearchParams(location.search).get("token");
+const q = token ? "?token=" + encodeURIComponent(token) : "";
+const $ = (id) => document.getElementById(id);
+const el = (tag, cls, text) => {
+  const e = document.createElement(tag);
+  if (cls) e.className = cls;
+  if (text !== undefined) e.textContent = text;
+  return e;
+};
+
+let info = { role: "serve", read_only: false };
+let last = null;          // the last message
+let paused = false;
+let frames = [];          // shown frames, newest last
+const MAX_FRAMES = 2000;
+let trend = [];           // [t, sp, hall, light, wheel]
+let lastFrameT = {};      // per link, for Δ
+let skipped = 0;
+
+async function api(path, body) {
+  const opts = { headers: {} };
+  if (token) opts.headers["Authorization"] = "Bearer " + token;
+  if (body !== undefined) {
+    opts.method = "POST";
+    opts.headers["Content-Type"] = "application/json";
+    opts.body = JSON.stringify(body);
+  }
+  const r = await fetch(path, opts);
+  const j = await r.json().catch(() => ({}));
+  if (!r.ok) throw new Error(j.error || r.status + " " + r.statusText);
+  return j;
+}
+
+function say(text, bad) {
+  const li = el("li", bad ? "bad" : "", text);
+  $("events").prepend(li);
+  while ($("events").children.length > 200) $("events").lastChild.remove();
+}
+
+async function send(path, body) {
+  try { await api(path, body); } catch (e) { say("refused: " + e.message, true); }
+}
+
+// ---- gauges --------------------------------------------------------------
+const GAUGES = [
+  ["v1", "V1 battery", "V", 0, 50, 2],
+  ["v2", "V2 DC bus", "V", 0, 60, 2],
+  ["i", "I inverter", "A", -5, 20, 2],
+  ["soc", "SOC", "%", 0, 100, 1],
+  ["hall", "Hall rpm (RPM_M)", "rpm", 0, 3000, 0],
+  ["light", "Light rpm (RPM_L)", "rpm", 0, 3000, 0],
+  ["wheel", "True wheel rpm", "rpm", 0, 3000, 0],
+];
+function buildGauges() {
+  const box = $("gauges");
+  for (const [id, label, unit, lo, hi] of GAUGES) {
+    const g = el("div", "gauge");
+    g.id = "g-" + id;
+    g.dataset.lo = lo; g.dataset.hi = hi;
+    const l = el("div", "label"); l.append(el("span", "", label)); g.append(l);
+    const n = el("div"); n.append(el("span", "num", "–"), el("span", "unit", unit)); g.append(n);
+    g.append(el("div", "raw", ""));
+    const bar = el("div", "bar"); bar.append(el("i")); g.append(bar);
+    box.append(g);
+  }
+}
+function gauge(id, value, digits, raw, forced) {
+  const g = $("g-" + id);
+  if (!g) return;
+  const ok = typeof value === "number" && isFinite(value);
+  g.querySelector(".num").textContent = ok ? value.toFixed(digits) : "–";
+  g.querySelector(".raw").textContent = raw === undefined || raw === null ? "" : raw;
+  const lo = +g.dataset.lo, hi = +g.dataset.hi;
+  const f = ok ? Math.max(0, Math.min(1, (value - lo) / (hi - lo))) : 0;
+  g.querySelector(".bar i").style.width = (f * 100).toFixed(1) + "%";
+  g.classList.toggle("forced", !!forced);
+}
+
+function renderGauges(m) {
+  const st = m.state || {};
+  const dev = (st.devices || []).find((d) => d.controller);
+  const mod = (st.modules || [])[0];
+  if (dev) {
+    const c = dev.controller, x = c.inputs, f = c.forced;
+    gauge("v1", x.V1.value, 2, x.V1.counts + " counts (EA V1)", f.v1 !== null);
+    gauge("v2", x.V2.value, 2, x.V2.counts + " counts (EA V2)", f.v2 !== null);
+    gauge("i", x.I.value, 2, x.I.counts + " counts (EA I)", f.i !== null);
+    gauge("soc", x.SOC.value, 1, x.SOC.counts + " (FA SOC, 0.1 %)");
+    gauge("hall", x.RPM_M.value, 0, "EA RPM_M", f.rpm_m !== null);
+    gauge("light", x.RPM_L.value, 0, "EA RPM_L · LDR " + x.LDR.counts, f.rpm_l !== null);
+  }
+  const lp = firstLoop(st);
+  if (!dev && lp) {
+    gauge("v1", lp.volts.V1, 2, lp.inputs[2] + " counts read");
+    gauge("v2", lp.volts.V2, 2, lp.inputs[0] + " counts read");
+    gauge("i", lp.volts.I, 2, lp.inputs[1] + " counts read");
+    const soc = lp.status.flags ? lp.status.flags[0] / 10 : NaN;
+    gauge("soc", soc, 1, "FA SOC as read");
+    gauge("hall", lp.inputs[3], 0, "RPM_M as read");
+    gauge("light", lp.inputs[4], 0, "RPM_L as read");
+  }
+  if (mod) gauge("wheel", Math.abs(mod.wheel_rpm), 0, "the plant's wheel");
+  else if (lp) gauge("wheel", lp.measured_rpm, 0, "measured by the loop");
+}
+
+function firstLoop(st) {
+  for (const d of st.devices || []) if (d.loops && d.loops.length) return d.loops[0];
+  return null;
+}
+
+// ---- outputs, flags, variables ---------------------------------------------
+function kv(box, pairs) {
+  box.replaceChildren();
+  for (const [k, v] of pairs) box.append(el("span", "", k), el("span", "", v));
+}
+function renderOutputs(m) {
+  const st = m.state || {};
+  const dev = (st.devices || []).find((d) => d.controller);
+  const out = $("outputs");
+  out.replaceChildren();
+  if (dev) {
+    const o = dev.controller.outputs;
+    const row = (name, text, sense, lamp) => {
+      const r = el("div", "out-row");
+      const left = el("span"); const l = el("span", "lamp " + (lamp ? "on" : "off"));
+      left.append(l, el("b", "", name + " "), el("span", "sense", sense));
+      r.append(left, el("span", "", text));
+      out.append(r);
+    };
+    row("VEL", o.VEL.value.toFixed(2) + " V (" + o.VEL.counts + " / " + o.VEL.max + ")", "speed command, DAC", o.VEL.counts > 0);
+    const names = { EN: "inverter enable", BRK: "brake", PRO: "converter boost", DES: "bus bleeder", FR: "reverse", CHG: "charger" };
+    for (const k of ["EN", "BRK", "PRO", "DES", "FR", "CHG"]) {
+      const b = o[k];
+      row(k, b.on ? "on" : "off", names[k] + " · active low: pin " + b.pin, b.on);
+    }
+    const flags = $("flags"); flags.replaceChildren();
+    const s = dev.controller.status;
+    const lamp = (name, on, bad) => {
+      const w = el("span"); w.append(el("span", "lamp " + (on ? (bad ? "bad" : "on") : "off")), name); flags.append(w);
+    };
+    lamp("BMS cut-off", s.battery_cut_off, true); lamp("over-current", s.over_current, true);
+    lamp("stall", s.stalled, true); lamp("brake", s.brake); lamp("charging", s.charging); lamp("CCW", s.ccw);
+    const v = dev.controller.variables;
+    kv($("variables"), [["LDR_TH (light threshold)", v.LDR_TH + " counts"], ["RPM_WIN (rpm window)", v.RPM_WIN + " ms"],
+      ["LDR_ADAPT (adaptive detector)", v.LDR_ADAPT ? "on" : "off"], ["ED0 hall code", "0b" + (dev.controller.ED0 >>> 0).toString(2).padStart(4, "0")],
+      ["ERRS", String(dev.controller.ERRS)]]);
+    const forced = Object.entries(dev.controller.forced).filter(([, v]) => v !== null).map(([k, v]) => k + " = " + v);
+    $("forced").textContent = forced.length ? "forced: " + forced.join(", ") : "nothing forced";
+  }
+  const lp = firstLoop(st);
+  if (!dev && lp) {
+    const r = el("div", "out-row");
+    r.append(el("b", "", "VEL written"), el("span", "", lp.vel_written === null ? "–" : lp.vel_written + " counts (PI output " + lp.output + ")"));
+    out.append(r);
+    kv($("variables"), [["set point", fmt(lp.set_point_rpm, 0) + " rpm"], ["measured", fmt(lp.measured_rpm, 0) + " rpm"],
+      ["error", fmt(lp.error_rpm, 0) + " rpm"], ["Kp / Ki", lp.kp + " / " + lp.ki], ["mode", typeof lp.mode === "string" ? "loop" : "manual VEL " + (lp.mode && lp.mode.manual)]]);
+    $("flags").replaceChildren();
+  }
+}
+const fmt = (v, d) => (typeof v === "number" && isFinite(v) ? v.toFixed(d) : "–");
+
+// ---- supervise: per-slave lights --------------------------------------------
+function renderSlaves(m) {
+  const box = $("loop-slaves");
+  box.replaceChildren();
+  for (const d of (m.state && m.state.devices) || []) for (const l of d.loops || []) {
+    const age = l.measured_at === null ? null : m.t - l.measured_at;
+    const c = l.counters;
+    const r = el("div", "out-row");
+    const left = el("span");
+    const lampCls = age === null || age > 1 ? "bad" : c.bad_checks || c.timeouts ? "warn" : "on";
+    left.append(el("span", "lamp " + lampCls), el("b", "", "slave " + String(l.id).padStart(2, "0")));
+    left.id = "slave-" + l.id;
+    left.dataset.badChecks = c.bad_checks; left.dataset.timeouts = c.timeouts;
+    r.append(left, el("span", "", "timeouts " + c.timeouts + " · bad checks " + c.bad_checks + " · last reply " + (age === null ? "never" : (age * 1000).toFixed(0) + " ms ago")));
+    box.append(r);
+  }
+}
+
+// ---- links and faults -------------------------------------------------------
+let faultsBuilt = "";
+function renderLinks(m) {
+  const tb = $("links").querySelector("tbody");
+  tb.replaceChildren();
+  const st = m.state || {};
+  const names = [];
+  for (const l of st.links || []) {
+    names.push(l.name);
+    const s = (m.links || {})[l.name] || {};
+    const tr = el("tr");
+    const age = s.last_frame_age_s;
+    const lampCls = age === null || age === undefined ? "off" : s.errors_recent ? "bad" : age < 1 ? "on" : "warn";
+    const lampTd = el("td"); lampTd.append(el("span", "lamp " + lampCls));
+    tr.append(lampTd, el("td", "", l.name), el("td", "", l.address), el("td", "", String(l.clients)),
+      el("td", "", String(s.frames_in || 0)), el("td", "", String(s.frames_out || 0)), el("td", "", String(s.errors || 0)),
+      el("td", "", age === null || age === undefined ? "never" : age < 1 ? (age * 1000).toFixed(0) + " ms ago" : age.toFixed(1) + " s ago"));
+    tb.append(tr);
+  }
+  const key = names.join(",");
+  if (key !== faultsBuilt) { buildFaults(names); buildLinkFilter(names); faultsBuilt = key; }
+  const f = st.fault;
+  $("fault-badge").classList.toggle("hidden", !f);
+  if (f) $("fault-badge").textContent = "fault " + f.fault + " on " + (f.link || "every link");
+  document.querySelectorAll("#faults button[data-fault]").forEach((b) => {
+    const on = f && f.fault.startsWith(b.dataset.fault) && (f.link === b.dataset.link || f.link === null);
+    b.classList.toggle("on", !!on);
+  });
+}
+function buildFaults(names) {
+  const box = $("faults");
+  box.replaceChildren();
+  for (const name of names) {
+    const r = el("div", "fault-row");
+    r.append(el("b", "", name));
+    for (const [kind, label] of [["bad-check", "bad check"], ["no-reply", "no reply"], ["exception", "exception"]]) {
+      const b = el("button", "", label);
+      b.dataset.fault = kind; b.dataset.link = name;
+      b.id = "fault-" + kind + "-" + name;
+      b.onclick = () => send("/api/fault", { fault: kind, link: name });
+      r.append(b);
+    }
+    const ms = el("input"); ms.type = "number"; ms.value = 50; ms.min = 0; ms.max = 60000; ms.style.width = "5rem";
+    ms.setAttribute("aria-label", "delay ms");
+    const d = el("button", "", "delay ms");
+    d.dataset.fault = "delay"; d.dataset.link = name;
+    d.onclick = () => send("/api/fault", { fault: "delay", link: name, delay_ms: +ms.value });
+    const off = el("button", "", "off");
+    off.id = "fault-off-" + name;
+    off.onclick = () => send("/api/fault", { fault: "off" });
+    r.append(ms, d, off);
+    box.append(r);
+  }
+}
+function buildLinkFilter(names) {
+  const s = $("filter-link");
+  const keep = s.value;
+  s.replaceChildren(el("option", "", "all links"));
+  s.firstChild.value = "";
+  for (const n of names) { const o = el("option", "", n); o.value = n; s.append(o); }
+  s.value = keep;
+}
+
+// ---- frame monitor ----------------------------------------------------------
+function frameNode(f) {
+  const d = f.decoded || {};
+  return d.id !== undefined ? String(d.id) : d.unit !== undefined ? String(d.unit) : "";
+}
+function decodedText(f) {
+  const d = f.decoded || {};
+  if (d.error) return "✗ " + d.error;
+  return Object.entries(d).filter(([k]) => k !== "protocol").map(([k, v]) => k + " " + (Array.isArray(v) ? v.join(",") : v)).join(" · ");
+}
+function matches(f) {
+  const link = $("filter-link").value, node = $("filter-node").value.trim().toLowerCase();
+  if (link && f.link !== link) return false;
+  if (!node) return true;
+  return frameNode(f) === node.replace(/^0+(?=\d)/, "") || f.text.toLowerCase().includes(node) || (f.from || "").includes(node);
+}
+function takeFrames(list) {
+  for (const f of list) {
+    const prev = lastFrameT[f.link];
+    f.gap_ms = prev === undefined ? null : (f.t - prev) * 1000;
+    lastFrameT[f.link] = f.t;
+    frames.push(f);
+  }
+  if (frames.length > MAX_FRAMES) frames.splice(0, frames.length - MAX_FRAMES);
+}
+function renderFrames() {
+  const tb = $("frames").querySelector("tbody");
+  const shown = frames.filter(matches).slice(-200).reverse();
+  const rows = shown.map((f) => {
+    const tr = el("tr", (f.bad ? "bad " : "") + f.dir);
+    tr.append(el("td", "", f.t.toFixed(4)), el("td", "", f.gap_ms === null ? "" : f.gap_ms.toFixed(1)), el("td", "", f.link),
+      el("td", "dir", f.dir === "out" ? "→ " + "twin" : "← " + f.from), el("td", "text", f.text), el("td", "dec", decodedText(f)));
+    return tr;
+  });
+  tb.replaceChildren(...rows);
+  $("frame-count").textContent = frames.length + " kept" + (skipped ? ", " + skipped + " skipped (faster than the panel)" : "") + (paused ? " · paused" : "");
+}
+function exportCsv() {
+  const esc = (s) => '"' + String(s).replace(/"/g, '""') + '"';
+  const lines = ["t_s,end_s,link,direction,from,frame,decoded,bad"];
+  for (const f of frames.filter(matches))
+    lines.push([f.t, f.end, f.link, f.dir, f.from, esc(f.text), esc(decodedText(f)), f.bad].join(","));
+  const a = el("a");
+  a.href = URL.createObjectURL(new Blob([lines.join("\n") + "\n"], { type: "text/csv" }));
+  a.download = "frames.csv";
+  document.body.append(a); a.click(); a.remove();
+}
+
+// ---- trend ------------------------------------------------------------------
+const COLORS = ["--sp", "--hall", "--light", "--wheel"].map((v) => getComputedStyle(document.documentElement).getPropertyValue(v).trim());
+function drawTrend() {
+  const c = $("trend");
+  const w = c.clientWidth, h = c.clientHeight;
+  if (c.width !== w * devicePixelRatio) { c.width = w * devicePixelRatio; c.height = h * devicePixelRatio; }
+  const g = c.getContext("2d");
+  g.setTransform(devicePixelRatio, 0, 0, devicePixelRatio, 0, 0);
+  g.clearRect(0, 0, w, h);
+  if (!trend.length) return;
+  const tEnd = trend[trend.length - 1][0], t0 = tEnd - 30;
+  let hi = 100;
+  for (const p of trend) for (let k = 1; k < 5; k++) if (p[k] !== null && p[k] > hi) hi = p[k];
+  hi = Math.ceil(hi * 1.1 / 100) * 100;
+  const L = 44, B = 18;
+  const x = (t) => L + (t - t0) / 30 * (w - L - 4), y = (v) => (h - B) - v / hi * (h - B - 6);
+  g.strokeStyle = "#2c3540"; g.fillStyle = "#8b98a5"; g.font = "11px system-ui"; g.lineWidth = 1;
+  for (let i = 0; i <= 4; i++) {
+    const v = hi * i / 4; g.beginPath(); g.moveTo(L, y(v)); g.lineTo(w, y(v)); g.stroke();
+    g.fillText(v.toFixed(0), 2, y(v) + 4);
+  }
+  for (let s = 0; s <= 30; s += 10) g.fillText("-" + (30 - s) + " s", x(t0 + s) - 12, h - 4);
+  for (let k = 1; k < 5; k++) {
+    g.strokeStyle = COLORS[k - 1]; g.lineWidth = k === 1 ? 2 : 1.5; g.beginPath();
+    let pen = false;
+    for (const p of trend) {
+      if (p[0] < t0 || p[k] === null) { pen = false; continue; }
+      if (pen) g.lineTo(x(p[0]), y(p[k])); else g.moveTo(x(p[0]), y(p[k]));
+      pen = true;
+    }
+    g.stroke();
+  }
+}
+
+// ---- the stream -------------------------------------------------------------
+let dirty = false;
+function onMessage(m) {
+  if (!m.state) return;
+  last = m;
+  skipped = m.skipped_frames || 0;
+  if (!paused) takeFrames(m.frames || []);
+  for (const e of m.events || []) say(e.t.toFixed(3) + " s " + e.node + ": " + e.kind + " " + e.detail, /trip|timeout|bad/.test(e.kind));
+  const st = m.state, lp = firstLoop(st), dev = (st.devices || []).find((d) => d.readings), mod = (st.modules || [])[0];
+  trend.push([m.t, lp ? lp.set_point_rpm : null,
+    dev ? dev.readings.hall_rpm : lp ? lp.inputs[3] : null,
+    dev ? dev.readings.light_rpm : lp ? lp.inputs[4] : null,
+    mod ? Math.abs(mod.wheel_rpm) : lp ? lp.measured_rpm : null]);
+  while (trend.length && trend[0][0] < m.t - 31) trend.shift();
+  if (!dirty) { dirty = true; requestAnimationFrame(render); }
+}
+function render() {
+  dirty = false;
+  const m = last;
+  if (!m) return;
+  $("clock").textContent = "t = " + m.t.toFixed(1) + " s";
+  renderGauges(m); renderOutputs(m); renderLinks(m); renderSlaves(m);
+  if (!paused) renderFrames();
+  drawTrend();
+  const lp = firstLoop(m.state);
+  if (lp && document.activeElement !== $("set-point")) { $("set-point").value = lp.set_point_rpm || 0; $("sp-out").textContent = fmt(lp.set_point_rpm, 0); }
+  if (lp && document.activeElement !== $("kp") && document.activeElement !== $("ki") && !$("kp").value) { $("kp").value = lp.kp; $("ki").value = lp.ki; }
+}
+function connect() {
+  const es = new EventSource("/api/stream" + q);
+  es.addEventListener("update", (e) => {
+    $("live").className = "lamp on"; $("live-text").textContent = "live";
+    try { onMessage(JSON.parse(e.data)); } catch (err) { console.error(err); }
+  });
+  es.addEventListener("lagged", (e) => say("this page missed " + e.data + " updates (slow device or network)", true));
+  es.onerror = () => { $("live").className = "lamp bad"; $("live-text").textContent = "reconnecting…"; };
+}
+
+// ---- controls ---------------------------------------------------------------
+function wire() {
+  $("force-form").onsubmit = (e) => { e.preventDefault(); send("/api/force", { input: $("force-input").value, value: +$("force-value").value }); };
+  $("release").onclick = () => send("/api/release", { input: $("force-input").value });
+  $("release-all").onclick = () => send("/api/release", { input: "all" });
+  $("pause").onclick = () => { paused = !paused; $("pause").textContent = paused ? "Resume" : "Pause"; $("pause").classList.toggle("on", paused); renderFrames(); };
+  $("csv").onclick = exportCsv;
+  $("filter-link").onchange = renderFrames;
+  $("filter-node").oninput = renderFrames;
+  const sp = $("set-point");
+  sp.oninput = () => { $("sp-out").textContent = sp.value; };
+  sp.onchange = () => send("/api/loop", { set_point_rpm: +sp.value });
+  $("gains").onclick = () => send("/api/loop", { kp: +$("kp").value, ki: +$("ki").value });
+  $("loop-on").onchange = () => send("/api/loop", $("loop-on").checked ? { mode: "loop" } : { mode: "manual", vel: +$("vel").value });
+  const vel = $("vel");
+  vel.oninput = () => { $("vel-out").textContent = vel.value; };
+  vel.onchange = () => { if (!$("loop-on").checked) send("/api/loop", { mode: "manual", vel: +vel.value }); };
+  $("step").onclick = async () => {
+    $("step").disabled = true; kv($("step-result"), [["step", "running…"]]);
+    try {
+      const r = await api("/api/step", { to_rpm: +$("step-to").value, seconds: +$("step-s").value });
+      const rows = [["from → to", fmt(r.from_rpm, 0) + " → " + fmt(r.to_rpm, 0) + " rpm"]];
+      for (const [name, s] of Object.entries(r.signals)) {
+        if (s.error) { rows.push([name, s.error]); continue; }
+        const mm = s.metrics;
+        rows.push([name + " rise", fmt(mm.rise_time_s, 3) + " s"], [name + " overshoot", fmt(mm.overshoot_pct, 1) + " %"],
+          [name + " settling", fmt(mm.settling_time_s, 3) + " s"], [name + " steady error", fmt(mm.steady_state_error, 1) + " rpm"]);
+        if (s.delay_s !== undefined && s.delay_s !== null) rows.push([name + " delay", fmt(s.delay_s * 1000, 0) + " ms"]);
+      }
+      kv($("step-result"), rows);
+    } catch (e) { kv($("step-result"), [["step", e.message]]); }
+    $("step").disabled = false;
+  };
+}
+
+async function start() {
+  buildGauges();
+  try { info = await api("/api/info"); } catch (e) { say("cannot reach the twin: " + e.message, true); }
+  $("role").textContent = info.role === "supervise" ? "supervise" : "serve";
+  document.title = "EV lab twin — " + $("role").textContent;
+  document.querySelectorAll(".serve-only").forEach((e) => e.classList.toggle("hidden", info.role !== "serve" || info.read_only));
+  document.querySelectorAll(".supervise-only").forEach((e) => e.classList.toggle("hidden", info.role !== "supervise" || info.read_only));
+  $("ro").classList.toggle("hidden", !info.read_only);
+  if (info.role === "supervise") { $("outputs-card").querySelector("h2").textContent = "Master's outputs"; $("g-wheel").querySelector(".label span").textContent = "Wheel rpm (loop)"; }
+  try { const t = await api("/api/trend?seconds=30"); trend = t.rows; } catch (e) { /* the stream fills it */ }
+  wire();
+  connect();
+  addEventListener("resize", drawTrend);
+}
+start();

@@ -1,0 +1,383 @@
+//! The panel's commands: JSON bodies checked here, field by field (a
+//! mistake names its field and changes nothing), then run on the engine's
+//! thread as the console's commands are.
+
+use nodes::firmware::Refusal;
+use nodes::master::LoopMode;
+use nodes::time::SimDuration;
+use serde_json::{Map, Value, json};
+use std::sync::Mutex;
+use std::sync::mpsc::Sender;
+use std::time::Duration;
+use twin_realtime::{Forces, Inbound, LinkFault, RtEngine};
+
+/// A command refused: the HTTP status, the field at fault and why.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{message}")]
+pub struct Rejected {
+    pub status: u16,
+    pub field: Option<String>,
+    pub message: String,
+}
+
+impl Rejected {
+    pub fn field(field: &str, message: impl Into<String>) -> Self {
+        Self {
+            status: 422,
+            field: Some(field.into()),
+            message: format!("{field}: {}", message.into()),
+        }
+    }
+
+    pub fn body(message: impl Into<String>) -> Self {
+        Self {
+            status: 400,
+            field: None,
+            message: message.into(),
+        }
+    }
+
+    pub fn to_json(&self) -> Value {
+        json!({ "error": self.message, "field": self.field })
+    }
+}
+
+/// What runs on the engine: the answer, or why it was refused.
+pub type EngineCommand = Box<dyn FnOnce(&mut RtEngine) -> Result<Value, Rejected> + Send>;
+
+/// The body as a JSON object, or a 400 that says what is wrong with it.
+pub fn object(body: &[u8]) -> Result<Map<String, Value>, Rejected> {
+    let value: Value = serde_json::from_slice(body).map_err(|e| {
+        Rejected::body(format!(
+            "the body is not JSON ({e}); send an object such as {{\"input\": \"v1\", \"value\": 30.5}}"
+        ))
+    })?;
+    match value {
+        Value::Object(map) => Ok(map),
+        _ => Err(Rejected::body("the body must be a JSON object")),
+    }
+}
+
+/// Refuses fields the command does not know (a typo would be ignored otherwise).
+fn only(map: &Map<String, Value>, known: &[&str]) -> Result<(), Rejected> {
+    match map.keys().find(|k| !known.contains(&k.as_str())) {
+        Some(k) => Err(Rejected::field(
+            k,
+            format!("unknown field; this command takes {}", known.join(", ")),
+        )),
+        None => Ok(()),
+    }
+}
+
+fn text<'a>(map: &'a Map<String, Value>, field: &str) -> Result<Option<&'a str>, Rejected> {
+    match map.get(field) {
+        None | Some(Value::Null) => Ok(None),
+        Some(Value::String(s)) => Ok(Some(s)),
+        Some(_) => Err(Rejected::field(field, "must be a string")),
+    }
+}
+
+fn number(
+    map: &Map<String, Value>,
+    field: &str,
+    range: std::ops::RangeInclusive<f64>,
+) -> Result<Option<f64>, Rejected> {
+    match map.get(field) {
+        None | Some(Value::Null) => Ok(None),
+        Some(v) => {
+            let n = v
+                .as_f64()
+                .filter(|n| n.is_finite())
+                .ok_or_else(|| Rejected::field(field, "must be a number"))?;
+            if !range.contains(&n) {
+                return Err(Rejected::field(
+                    field,
+                    format!("{n} is out of range {}-{}", range.start(), range.end()),
+                ));
+            }
+            Ok(Some(n))
+        }
+    }
+}
+
+fn required<T>(value: Option<T>, field: &str) -> Result<T, Rejected> {
+    value.ok_or_else(|| Rejected::field(field, "missing"))
+}
+
+/// The link named `name` (its name or protocol), or a 404 naming the links.
+fn link_index(engine: &RtEngine, name: &str) -> Result<usize, Rejected> {
+    engine
+        .links
+        .iter()
+        .position(|l| l.name == name || l.protocol == name)
+        .ok_or_else(|| {
+            let names: Vec<&str> = engine.links.iter().map(|l| l.name.as_str()).collect();
+            Rejected {
+                status: 404,
+                field: Some("link".into()),
+                message: format!("link: no link `{name}` (links: {})", names.join(", ")),
+            }
+        })
+}
+
+const INPUTS: &str = "v1, v2, i, rpm_m, rpm_l or ldr";
+
+/// `POST /api/force {"input": "v1", "value": 30.5}`: the controller measures
+/// this value (V, A, or counts for the words) until released.
+pub fn force(map: &Map<String, Value>) -> Result<EngineCommand, Rejected> {
+    only(map, &["input", "value"])?;
+    let input = required(text(map, "input")?, "input")?.to_ascii_lowercase();
+    let set: Box<dyn Fn(&mut Forces) + Send> = match input.as_str() {
+        "v1" | "v2" => {
+            let v = required(number(map, "value", 0.0..=100.0)?, "value")?;
+            if input == "v1" {
+                Box::new(move |f| f.v1 = Some(v))
+            } else {
+                Box::new(move |f| f.v2 = Some(v))
+            }
+        }
+        "i" => {
+            let v = required(number(map, "value", -100.0..=100.0)?, "value")?;
+            Box::new(move |f| f.i = Some(v))
+        }
+        "rpm_m" | "rpm_l" | "ldr" => {
+            let c = required(number(map, "value", 0.0..=65535.0)?, "value")?.round() as u16;
+            match input.as_str() {
+                "rpm_m" => Box::new(move |f| f.rpm_m = Some(c)),
+                "rpm_l" => Box::new(move |f| f.rpm_l = Some(c)),
+                _ => Box::new(move |f| f.ldr = Some(c)),
+            }
+        }
+        other => {
+            return Err(Rejected::field(
+                "input",
+                format!("cannot force `{other}`: {INPUTS}"),
+            ));
+        }
+    };
+    Ok(Box::new(move |e: &mut RtEngine| {
+        for d in &mut e.devices {
+            set(&mut d.forces);
+        }
+        e.say(format!("panel: forced {input}"));
+        Ok(json!({ "forced": input }))
+    }))
+}
+
+/// `POST /api/release {"input": "v1" | "all"}`.
+pub fn release(map: &Map<String, Value>) -> Result<EngineCommand, Rejected> {
+    only(map, &["input"])?;
+    let input = required(text(map, "input")?, "input")?.to_ascii_lowercase();
+    let clear: Box<dyn Fn(&mut Forces) + Send> = match input.as_str() {
+        "v1" => Box::new(|f| f.v1 = None),
+        "v2" => Box::new(|f| f.v2 = None),
+        "i" => Box::new(|f| f.i = None),
+        "rpm_m" => Box::new(|f| f.rpm_m = None),
+        "rpm_l" => Box::new(|f| f.rpm_l = None),
+        "ldr" => Box::new(|f| f.ldr = None),
+        "all" => Box::new(|f| *f = Forces::default()),
+        other => {
+            return Err(Rejected::field(
+                "input",
+                format!("cannot release `{other}`: {INPUTS} or all"),
+            ));
+        }
+    };
+    Ok(Box::new(move |e: &mut RtEngine| {
+        for d in &mut e.devices {
+            clear(&mut d.forces);
+        }
+        e.say(format!("panel: released {input}"));
+        Ok(json!({ "released": input }))
+    }))
+}
+
+/// `POST /api/fault {"fault": "bad-check", "link": "meb"}`; `"off"` clears it.
+/// One fault is in force at a time, on one link or (no `link`) on all.
+pub fn fault(map: &Map<String, Value>) -> Result<EngineCommand, Rejected> {
+    only(map, &["fault", "link", "delay_ms", "code"])?;
+    let kind = required(text(map, "fault")?, "fault")?;
+    let link = text(map, "link")?.map(str::to_string);
+    let fault = match kind {
+        "off" => None,
+        "bad-check" => Some(LinkFault::BadCheck),
+        "no-reply" => Some(LinkFault::NoReply),
+        "delay" => {
+            let ms = required(number(map, "delay_ms", 0.0..=60_000.0)?, "delay_ms")?;
+            Some(LinkFault::Delay(SimDuration::from_secs_f64(ms / 1000.0)))
+        }
+        "exception" => {
+            let code = number(map, "code", 1.0..=4.0)?.unwrap_or(4.0);
+            Some(LinkFault::Exception(match code.round() as u8 {
+                1 => Refusal::IllegalCommand,
+                2 => Refusal::IllegalAddress,
+                3 => Refusal::IllegalData,
+                _ => Refusal::DeviceFailure,
+            }))
+        }
+        other => {
+            return Err(Rejected::field(
+                "fault",
+                format!("no fault `{other}`: bad-check, no-reply, delay, exception or off"),
+            ));
+        }
+    };
+    Ok(Box::new(move |e: &mut RtEngine| {
+        let index = link.as_deref().map(|l| link_index(e, l)).transpose()?;
+        e.set_fault(fault, index);
+        let on = link.as_deref().unwrap_or("every link");
+        match fault {
+            Some(f) => e.say(format!("panel: fault {f} on {on}")),
+            None => e.say("panel: fault off"),
+        }
+        Ok(json!({ "fault": fault.map(|f| f.to_string()), "link": link }))
+    }))
+}
+
+/// `POST /api/loop {"slave": 1, "set_point_rpm": 2000, "kp": .., "ki": ..,
+/// "mode": "loop" | "manual", "vel": counts}`: the supervisor's controls.
+pub fn supervise_loop(map: &Map<String, Value>) -> Result<EngineCommand, Rejected> {
+    only(map, &["slave", "set_point_rpm", "kp", "ki", "mode", "vel"])?;
+    let slave = number(map, "slave", 1.0..=99.0)?;
+    let set_point = number(map, "set_point_rpm", 0.0..=20_000.0)?;
+    let kp = number(map, "kp", 0.0..=1000.0)?;
+    let ki = number(map, "ki", 0.0..=1000.0)?;
+    let vel = number(map, "vel", 0.0..=nodes::master::VEL_MAX)?.map(|v| v.round() as u16);
+    let mode = match text(map, "mode")? {
+        None => vel.map(|vel| LoopMode::Open { vel }),
+        Some("loop") => Some(LoopMode::Closed),
+        Some("manual") => Some(LoopMode::Open {
+            vel: required(vel, "vel")?,
+        }),
+        Some(other) => {
+            return Err(Rejected::field(
+                "mode",
+                format!("no mode `{other}`: loop or manual"),
+            ));
+        }
+    };
+    if set_point.is_none() && kp.is_none() && ki.is_none() && mode.is_none() {
+        return Err(Rejected::body(
+            "nothing to change: give set_point_rpm, kp, ki, mode or vel",
+        ));
+    }
+    Ok(Box::new(move |e: &mut RtEngine| {
+        let now = e.clock.now();
+        for d in &mut e.devices {
+            let Some(s) = d.node.supervisor_mut() else {
+                continue;
+            };
+            let ids: Vec<u8> = match slave {
+                Some(id) => vec![id as u8],
+                None => s.slave_ids().collect(),
+            };
+            for id in &ids {
+                if s.set_point(*id, now).is_none() {
+                    return Err(Rejected {
+                        status: 404,
+                        field: Some("slave".into()),
+                        message: format!("slave: the supervisor polls no slave {id}"),
+                    });
+                }
+            }
+            for id in ids {
+                if let Some(rpm) = set_point {
+                    s.set_set_point(id, Some(rpm));
+                }
+                if kp.is_some() || ki.is_some() {
+                    let (old_kp, old_ki) = s.gains(id).unwrap_or((0.0, 0.0));
+                    s.set_gains(id, kp.unwrap_or(old_kp), ki.unwrap_or(old_ki));
+                }
+                if let Some(mode) = mode {
+                    s.set_mode(id, mode);
+                }
+            }
+            return Ok(json!({ "ok": true, "t": now.as_secs_f64() }));
+        }
+        Err(Rejected {
+            status: 409,
+            field: None,
+            message: "this session has no supervisor (twin supervise has one)".into(),
+        })
+    }))
+}
+
+/// Runs `command` on the engine and waits for its answer.
+pub async fn run_on_engine(
+    engine: &Mutex<Sender<Inbound>>,
+    command: EngineCommand,
+) -> Result<Value, Rejected> {
+    let (tx, rx) = tokio::sync::oneshot::channel();
+    let sent = engine
+        .lock()
+        .map_err(|_| Rejected::body("the session is ending"))?
+        .send(Inbound::Command(Box::new(move |e| {
+            let _ = tx.send(command(e));
+        })));
+    if sent.is_err() {
+        return Err(Rejected {
+            status: 503,
+            field: None,
+            message: "the session has ended".into(),
+        });
+    }
+    match tokio::time::timeout(Duration::from_secs(2), rx).await {
+        Ok(Ok(answer)) => answer,
+        _ => Err(Rejected {
+            status: 503,
+            field: None,
+            message: "the engine did not answer (the session is ending?)".into(),
+        }),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn map(text: &str) -> Map<String, Value> {
+        object(text.as_bytes()).unwrap()
+    }
+
+    fn field_of(r: Result<EngineCommand, Rejected>) -> Option<String> {
+        r.err().and_then(|e| e.field)
+    }
+
+    #[test]
+    fn mistakes_name_their_field() {
+        assert_eq!(object(b"{nope").unwrap_err().status, 400);
+        assert!(force(&map(r#"{"input":"v1","value":30.5}"#)).is_ok());
+        assert_eq!(
+            field_of(force(&map(r#"{"input":"v9","value":1}"#))),
+            Some("input".into())
+        );
+        assert_eq!(
+            field_of(force(&map(r#"{"input":"v1","value":"x"}"#))),
+            Some("value".into())
+        );
+        assert_eq!(
+            field_of(force(&map(r#"{"input":"v1","value":1e9}"#))),
+            Some("value".into())
+        );
+        assert_eq!(
+            field_of(force(&map(r#"{"input":"v1","valu":3}"#))),
+            Some("valu".into())
+        );
+        assert_eq!(
+            field_of(fault(&map(r#"{"fault":"smoke"}"#))),
+            Some("fault".into())
+        );
+        assert_eq!(
+            field_of(fault(&map(r#"{"fault":"delay"}"#))),
+            Some("delay_ms".into())
+        );
+        assert_eq!(
+            field_of(supervise_loop(&map(r#"{"vel":99999}"#))),
+            Some("vel".into())
+        );
+        assert_eq!(
+            field_of(supervise_loop(&map(r#"{"mode":"manual"}"#))),
+            Some("vel".into())
+        );
+    }
+}

@@ -1,0 +1,377 @@
+//! The HTTP side: the page, the JSON API (`docs/panel-api.md`), the stream
+//! and the producer that feeds it. Everything here runs on the panel's own
+//! thread and runtime.
+
+use axum::Router;
+use axum::body::Bytes;
+use axum::extract::{Query, Request, State};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::middleware::{self, Next};
+use axum::response::sse::{Event, KeepAlive, Sse};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use futures_util::Stream;
+use serde_json::{Value, json};
+use std::collections::BTreeMap;
+use std::convert::Infallible;
+use std::sync::atomic::Ordering;
+use std::sync::mpsc::Sender;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+use tokio::sync::broadcast::error::RecvError;
+
+use crate::access::{Access, Refused};
+use crate::commands::{self, EngineCommand, Rejected};
+use crate::hub::Hub;
+use crate::snapshot::{self, EngineSnapshot};
+use crate::{PanelRole, assets};
+use twin_realtime::Inbound;
+use twin_recording::describe::link_frame_fields;
+
+/// What every handler shares.
+#[derive(Clone, Debug)]
+pub struct AppState {
+    pub hub: Arc<Hub>,
+    pub access: Arc<Access>,
+    pub engine: Arc<Mutex<Sender<Inbound>>>,
+    pub role: PanelRole,
+    pub rate_hz: f64,
+}
+
+/// Serves until the session ends (the engine stops taking commands).
+pub async fn serve(listener: std::net::TcpListener, state: AppState) {
+    let listener = match tokio::net::TcpListener::from_std(listener) {
+        Ok(l) => l,
+        Err(e) => {
+            eprintln!("--web: cannot serve the panel: {e}");
+            return;
+        }
+    };
+    let producer = tokio::spawn(produce(state.clone()));
+    let app = router(state);
+    let server = axum::serve(listener, app);
+    tokio::select! {
+        r = server => if let Err(e) = r { eprintln!("--web: the panel stopped: {e}") },
+        _ = producer => {}
+    }
+}
+
+pub fn router(state: AppState) -> Router {
+    Router::new()
+        .route("/", get(|| async { page(assets::INDEX_HTML, "text/html; charset=utf-8") }))
+        .route("/panel.css", get(|| async { page(assets::PANEL_CSS, "text/css; charset=utf-8") }))
+        .route("/panel.js", get(|| async { page(assets::PANEL_JS, "text/javascript; charset=utf-8") }))
+        .route("/api/info", get(info))
+        .route("/api/state", get(latest))
+        .route("/api/trend", get(trend))
+        .route("/api/stream", get(stream))
+        .route("/api/force", post(|s, h, b| command(s, h, b, commands::force)))
+        .route("/api/release", post(|s, h, b| command(s, h, b, commands::release)))
+        .route("/api/fault", post(|s, h, b| command(s, h, b, commands::fault)))
+        .route("/api/loop", post(|s, h, b| command(s, h, b, commands::supervise_loop)))
+        .route("/api/step", post(step))
+        .fallback(|| async { error(404, json!({ "error": "no such page: the panel is at / and its API under /api/ (docs/panel-api.md)" })) })
+        .layer(middleware::from_fn_with_state(state.clone(), guard))
+        .with_state(state)
+}
+
+fn page(body: &'static str, kind: &'static str) -> Response {
+    (
+        [
+            (header::CONTENT_TYPE, HeaderValue::from_static(kind)),
+            (header::CACHE_CONTROL, HeaderValue::from_static("no-cache")),
+        ],
+        body,
+    )
+        .into_response()
+}
+
+fn error(status: u16, body: Value) -> Response {
+    let status = StatusCode::from_u16(status).unwrap_or(StatusCode::BAD_REQUEST);
+    (status, axum::Json(body)).into_response()
+}
+
+/// The token a request carries: `?token=`, `Authorization: Bearer`, or the cookie.
+fn token_of(request: &Request) -> Option<String> {
+    let from_query = request.uri().query().and_then(|q| {
+        q.split('&')
+            .find_map(|kv| kv.strip_prefix("token="))
+            .map(str::to_string)
+    });
+    let headers = request.headers();
+    let from_header = headers
+        .get(header::AUTHORIZATION)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.strip_prefix("Bearer "))
+        .map(|t| t.trim().to_string());
+    let from_cookie = headers
+        .get(header::COOKIE)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|c| {
+            c.split(';')
+                .find_map(|kv| kv.trim().strip_prefix("twin_panel_token="))
+                .map(str::to_string)
+        });
+    from_query.or(from_header).or(from_cookie)
+}
+
+/// Every request passes here: without the token, 401 and nothing changes;
+/// on a read-only panel, commands get 403.
+async fn guard(State(state): State<AppState>, request: Request, next: Next) -> Response {
+    let token = token_of(&request);
+    let is_command = request.method() == axum::http::Method::POST;
+    let checked = if is_command {
+        state.access.check_command(token.as_deref())
+    } else {
+        state.access.check(token.as_deref())
+    };
+    match checked {
+        Ok(()) => {
+            let mut response = next.run(request).await;
+            // The page's own fetches carry the token; a reload of `/` without
+            // the query keeps working through the cookie.
+            if let (Some(t), true) = (token, state.access.token().is_some())
+                && let Ok(v) = HeaderValue::from_str(&format!(
+                    "twin_panel_token={t}; Path=/; HttpOnly; SameSite=Strict"
+                ))
+            {
+                response.headers_mut().insert(header::SET_COOKIE, v);
+            }
+            response
+        }
+        Err(Refused::Token) => error(
+            401,
+            json!({ "error": "this panel needs its token: open the URL twin printed when it started (…/?token=…), or send Authorization: Bearer TOKEN" }),
+        ),
+        Err(Refused::ReadOnly) => error(
+            403,
+            json!({ "error": "this panel is read-only (--web-read-only): it shows, it changes nothing" }),
+        ),
+    }
+}
+
+async fn info(State(state): State<AppState>) -> Response {
+    axum::Json(json!({
+        "role": state.role,
+        "read_only": state.access.read_only(),
+        "rate_hz": state.rate_hz,
+        "version": env!("CARGO_PKG_VERSION"),
+        "stream_clients": state.hub.clients.load(Ordering::Relaxed),
+    }))
+    .into_response()
+}
+
+async fn latest(State(state): State<AppState>) -> Response {
+    (
+        [(
+            header::CONTENT_TYPE,
+            HeaderValue::from_static("application/json"),
+        )],
+        state.hub.latest().to_string(),
+    )
+        .into_response()
+}
+
+async fn trend(
+    State(state): State<AppState>,
+    Query(q): Query<BTreeMap<String, String>>,
+) -> Response {
+    let seconds = q
+        .get("seconds")
+        .and_then(|s| s.parse::<f64>().ok())
+        .filter(|s| s.is_finite() && *s > 0.0)
+        .unwrap_or(30.0)
+        .min(30.0);
+    axum::Json(state.hub.trend(seconds)).into_response()
+}
+
+async fn command(
+    State(state): State<AppState>,
+    _headers: HeaderMap,
+    body: Bytes,
+    parse: fn(&serde_json::Map<String, Value>) -> Result<EngineCommand, Rejected>,
+) -> Response {
+    let result = match commands::object(&body).and_then(|map| parse(&map)) {
+        Ok(command) => commands::run_on_engine(&state.engine, command).await,
+        Err(e) => Err(e),
+    };
+    match result {
+        Ok(answer) => axum::Json(answer).into_response(),
+        Err(e) => error(e.status, e.to_json()),
+    }
+}
+
+async fn step(State(state): State<AppState>, body: Bytes) -> Response {
+    let result = match commands::object(&body) {
+        Ok(map) => crate::step::step(&state.hub, &state.engine, &map).await,
+        Err(e) => Err(e),
+    };
+    match result {
+        Ok(answer) => axum::Json(answer).into_response(),
+        Err(e) => error(e.status, e.to_json()),
+    }
+}
+
+/// Counts a stream client while it is connected.
+struct Connected(Arc<Hub>);
+
+impl Drop for Connected {
+    fn drop(&mut self) {
+        self.0.clients.fetch_sub(1, Ordering::Relaxed);
+    }
+}
+
+async fn stream(
+    State(state): State<AppState>,
+) -> Sse<impl Stream<Item = Result<Event, Infallible>>> {
+    let hub = state.hub.clone();
+    hub.clients.fetch_add(1, Ordering::Relaxed);
+    let first = Some(hub.latest());
+    let rx = hub.subscribe();
+    let events = futures_util::stream::unfold(
+        (rx, Connected(hub), first),
+        |(mut rx, connected, first)| async move {
+            if let Some(message) = first {
+                let event = Event::default().event("update").data(&*message);
+                return Some((Ok(event), (rx, connected, None)));
+            }
+            let event = match rx.recv().await {
+                Ok(message) => Event::default().event("update").data(&*message),
+                // A client too slow for the stream is told what it missed.
+                Err(RecvError::Lagged(n)) => Event::default().event("lagged").data(n.to_string()),
+                Err(RecvError::Closed) => return None,
+            };
+            Some((Ok(event), (rx, connected, None)))
+        },
+    );
+    Sse::new(events).keep_alive(KeepAlive::default())
+}
+
+/// What the producer keeps per link.
+#[derive(Default)]
+struct LinkStats {
+    frames_in: u64,
+    frames_out: u64,
+    errors: u64,
+    last_t: Option<f64>,
+}
+
+/// Shown bytes: the text of an ASCII frame (MEB, Modbus ASCII), else hex.
+fn shown(bytes: &[u8]) -> String {
+    let text = bytes
+        .iter()
+        .all(|&b| b == b'\r' || b == b'\n' || (0x20..0x7f).contains(&b));
+    if text && !bytes.is_empty() {
+        String::from_utf8_lossy(bytes).trim_end().to_string()
+    } else {
+        bytes
+            .iter()
+            .map(|b| format!("{b:02X}"))
+            .collect::<Vec<_>>()
+            .join(" ")
+    }
+}
+
+/// Frames one message carries at most; the rest are counted as skipped.
+const FRAMES_PER_MESSAGE: usize = 400;
+
+/// Every stream period: the engine's state, the frames and events since the
+/// last message, one message for every client.
+async fn produce(state: AppState) {
+    let mut interval = tokio::time::interval(Duration::from_secs_f64(1.0 / state.rate_hz));
+    interval.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    let mut stats: BTreeMap<String, LinkStats> = BTreeMap::new();
+    let mut protocols: BTreeMap<String, &'static str> = BTreeMap::new();
+    let mut cut: u64 = 0;
+    loop {
+        interval.tick().await;
+        let snap = match read_snapshot(&state.engine).await {
+            Ok(s) => s,
+            Err(Gone) => return,
+        };
+        let Some(snap) = snap else { continue };
+        for l in &snap.links {
+            protocols.entry(l.name.clone()).or_insert(l.protocol);
+        }
+        let mut frames = Vec::new();
+        let (events, lateness) = state.hub.take(|f| {
+            let protocol = protocols.get(&f.link).copied().unwrap_or("meb");
+            let decoded =
+                serde_json::to_value(link_frame_fields(protocol, &f.bytes)).unwrap_or(Value::Null);
+            let bad = decoded.get("error").is_some();
+            let out = f.from == "twin";
+            let s = stats.entry(f.link.clone()).or_default();
+            if out {
+                s.frames_out += 1
+            } else {
+                s.frames_in += 1
+            }
+            if bad {
+                s.errors += 1
+            }
+            s.last_t = Some(f.end);
+            if frames.len() < FRAMES_PER_MESSAGE {
+                frames.push(json!({
+                    "link": f.link, "from": f.from, "dir": if out { "out" } else { "in" },
+                    "t": f.start, "end": f.end, "text": shown(&f.bytes),
+                    "decoded": decoded, "bad": bad,
+                }));
+            } else {
+                cut += 1;
+            }
+        });
+        let (dropped, total) = state.hub.frame_counts();
+        let link_stats: BTreeMap<&str, Value> = snap
+            .links
+            .iter()
+            .map(|l| {
+                let s = stats.get(&l.name);
+                (
+                    l.name.as_str(),
+                    json!({
+                        "clients": l.clients,
+                        "frames_in": s.map_or(0, |s| s.frames_in),
+                        "frames_out": s.map_or(0, |s| s.frames_out),
+                        "errors": s.map_or(0, |s| s.errors),
+                        "last_frame_age_s": s.and_then(|s| s.last_t).map(|t| (snap.t - t).max(0.0)),
+                    }),
+                )
+            })
+            .collect();
+        let message = json!({
+            "t": snap.t,
+            "role": state.role,
+            "state": snap.to_json(),
+            "links": link_stats,
+            "frames": frames,
+            "events": events,
+            "skipped_frames": dropped + cut,
+            "frames_total": total,
+            "lateness": lateness.map(|(p99, max)| json!({ "p99_us": p99, "max_us": max })),
+            "stream_clients": state.hub.clients.load(Ordering::Relaxed),
+        });
+        state.hub.publish(message.to_string(), snap.trend());
+    }
+}
+
+/// The session has ended.
+struct Gone;
+
+/// Reads the engine; `Ok(None)` if it did not answer this time.
+async fn read_snapshot(engine: &Mutex<Sender<Inbound>>) -> Result<Option<EngineSnapshot>, Gone> {
+    let (tx, rx) = tokio::sync::oneshot::channel();
+    let sent = engine
+        .lock()
+        .map_err(|_| Gone)?
+        .send(Inbound::Command(Box::new(move |e| {
+            let _ = tx.send(snapshot::read(e));
+        })));
+    if sent.is_err() {
+        return Err(Gone);
+    }
+    match tokio::time::timeout(Duration::from_millis(500), rx).await {
+        Ok(Ok(s)) => Ok(Some(s)),
+        Ok(Err(_)) => Err(Gone),
+        Err(_) => Ok(None),
+    }
+}

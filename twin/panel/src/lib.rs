@@ -1,0 +1,174 @@
+//! The lab's panel in a browser: gauges, controls, a trend and the frame
+//! monitor of a real-time session (`twin serve --web`, `twin supervise
+//! --web`), served by the twin itself so a lab PC or a phone needs nothing
+//! but a browser.
+//!
+//! Threads: the HTTP server runs on a runtime of its own, on a thread of its
+//! own, at a lower priority than the links, so no page, stream or slow client
+//! can delay a reply or the plant tick. What it shows comes two ways, both
+//! paths the console and the live view already use:
+//!
+//! - the engine's state (register images, forces, faults, connections,
+//!   counters, a supervisor's loops) is read by a closure the panel sends the
+//!   engine as an [`Inbound::Command`], 20 times a second whatever the number
+//!   of browsers ([`snapshot`]); commands (force, fault, set point) are
+//!   closures too ([`commands`]);
+//! - frames and events arrive through the sink's [`LiveView`] hook
+//!   ([`view::PanelView`]), off the engine's thread.
+//!
+//! Every 50 ms one message is built and handed to every stream client
+//! ([`hub`]); a client too slow to take it is told how many it missed.
+//! The JSON API is documented in `docs/panel-api.md`.
+
+#![allow(
+    clippy::disallowed_methods,
+    reason = "the panel is a real-time front end: it paces its stream and times its frames by the wall clock"
+)]
+
+pub mod access;
+pub mod assets;
+pub mod commands;
+pub mod http;
+pub mod hub;
+pub mod snapshot;
+pub mod step;
+pub mod view;
+
+use anyhow::{Context, Result};
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::sync::mpsc::Sender;
+
+pub use access::{Access, AccessOptions};
+pub use hub::Hub;
+use twin_realtime::Inbound;
+pub use twin_realtime::sink::LiveView;
+
+/// Which session the panel fronts: what it shows and which controls it has.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PanelRole {
+    /// `twin serve`: the simulated controller; inputs can be forced, links faulted.
+    Serve,
+    /// `twin supervise`: the master; set point, gains, loop, step.
+    Supervise,
+}
+
+/// Everything the panel is told.
+#[derive(Debug, Clone)]
+pub struct PanelOptions {
+    pub role: PanelRole,
+    /// Where to listen (`--web`).
+    pub addr: SocketAddr,
+    pub access: AccessOptions,
+    /// Stream messages per second.
+    pub rate_hz: f64,
+}
+
+/// A panel being served: its address and the URL to open.
+#[derive(Debug, Clone)]
+pub struct Running {
+    pub addr: SocketAddr,
+    /// The URL to open, with the token when one is needed.
+    pub url: String,
+    pub read_only: bool,
+}
+
+/// The panel's half made before the session starts: the hub the live view
+/// feeds, and what the server needs once the engine runs.
+#[derive(Debug, Clone)]
+pub struct Panel {
+    options: PanelOptions,
+    hub: Arc<Hub>,
+    access: Arc<Access>,
+    listener: Arc<std::sync::Mutex<Option<std::net::TcpListener>>>,
+    addr: SocketAddr,
+}
+
+impl Panel {
+    /// Binds the address (so a busy port is said before the session starts)
+    /// and decides the access rules; the server itself starts with
+    /// [`Panel::start`].
+    pub fn bind(options: PanelOptions) -> Result<Self> {
+        let access = Access::new(&options.access, &options.addr)?;
+        let listener = std::net::TcpListener::bind(options.addr)
+            .with_context(|| format!("--web {}: cannot listen there", options.addr))?;
+        listener.set_nonblocking(true)?;
+        let addr = listener.local_addr()?;
+        Ok(Self {
+            hub: Arc::new(Hub::new(options.role)),
+            options,
+            access: Arc::new(access),
+            listener: Arc::new(std::sync::Mutex::new(Some(listener))),
+            addr,
+        })
+    }
+
+    /// The address bound and the URL to open.
+    pub fn running(&self) -> Running {
+        let host = match self.addr {
+            SocketAddr::V4(a) if a.ip().is_unspecified() => {
+                format!("127.0.0.1:{}", a.port())
+            }
+            SocketAddr::V6(a) if a.ip().is_unspecified() => format!("[::1]:{}", a.port()),
+            a => a.to_string(),
+        };
+        let url = match self.access.token() {
+            Some(token) => format!("http://{host}/?token={token}"),
+            None => format!("http://{host}/"),
+        };
+        Running {
+            addr: self.addr,
+            url,
+            read_only: self.access.read_only(),
+        }
+    }
+
+    /// The live view that feeds this panel (hand it to the session's sink).
+    pub fn view(&self) -> Box<dyn LiveView> {
+        Box::new(view::PanelView::new(self.hub.clone()))
+    }
+
+    /// The hub (tests and the benchmark read it).
+    pub fn hub(&self) -> Arc<Hub> {
+        self.hub.clone()
+    }
+
+    /// Starts the server on a thread of its own, sending the engine its
+    /// state reads and commands through `engine`.
+    pub fn start(&self, engine: Sender<Inbound>) -> Result<()> {
+        let listener = self
+            .listener
+            .lock()
+            .map_err(|_| anyhow::anyhow!("panel listener poisoned"))?
+            .take()
+            .context("the panel was started twice")?;
+        let state = http::AppState {
+            hub: self.hub.clone(),
+            access: self.access.clone(),
+            engine: Arc::new(std::sync::Mutex::new(engine)),
+            role: self.options.role,
+            rate_hz: self.options.rate_hz.clamp(1.0, 100.0),
+        };
+        std::thread::Builder::new()
+            .name("twin-panel".into())
+            .spawn(move || {
+                // The panel waits; the links and the plant do not.
+                let _ = rustix::process::setpriority_process(None, 10);
+                let runtime = match tokio::runtime::Builder::new_current_thread()
+                    .enable_io()
+                    .enable_time()
+                    .build()
+                {
+                    Ok(rt) => rt,
+                    Err(e) => {
+                        eprintln!("--web: cannot start the panel's runtime: {e}");
+                        return;
+                    }
+                };
+                runtime.block_on(http::serve(listener, state));
+            })
+            .context("cannot start the panel's thread")?;
+        Ok(())
+    }
+}

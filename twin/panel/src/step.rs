@@ -1,0 +1,110 @@
+//! The step button of `twin supervise --web`: steps the set point, keeps
+//! the trend for a while and computes the figures as `twin step` does
+//! (`twin_sim::step_metrics`), on the panel's 20 Hz trend instead of a
+//! recording's samples.
+
+use serde_json::{Map, Value, json};
+use std::time::Duration;
+
+use std::sync::Mutex;
+use std::sync::mpsc::Sender;
+
+use crate::commands::{self, Rejected, run_on_engine};
+use crate::hub::Hub;
+use twin_realtime::Inbound;
+
+/// Longest step the button waits for, s.
+const MAX_SECONDS: f64 = 25.0;
+
+/// `POST /api/step {"to_rpm": 1500, "seconds": 6, "slave": 1}`.
+pub async fn step(
+    hub: &Hub,
+    engine: &Mutex<Sender<Inbound>>,
+    map: &Map<String, Value>,
+) -> Result<Value, Rejected> {
+    if let Some(k) = map
+        .keys()
+        .find(|k| !["to_rpm", "seconds", "slave"].contains(&k.as_str()))
+    {
+        return Err(Rejected::field(
+            k,
+            "unknown field; this command takes to_rpm, seconds, slave",
+        ));
+    }
+    let field = |name: &str, lo: f64, hi: f64| -> Result<Option<f64>, Rejected> {
+        match map.get(name) {
+            None | Some(Value::Null) => Ok(None),
+            Some(v) => match v.as_f64().filter(|n| n.is_finite()) {
+                Some(n) if (lo..=hi).contains(&n) => Ok(Some(n)),
+                Some(n) => Err(Rejected::field(
+                    name,
+                    format!("{n} is out of range {lo}-{hi}"),
+                )),
+                None => Err(Rejected::field(name, "must be a number")),
+            },
+        }
+    };
+    let to = field("to_rpm", 0.0, 20_000.0)?.ok_or_else(|| Rejected::field("to_rpm", "missing"))?;
+    let seconds = field("seconds", 2.0, MAX_SECONDS)?.unwrap_or(6.0);
+    let slave = field("slave", 1.0, 99.0)?;
+    let before: Value = serde_json::from_str(&hub.latest()).unwrap_or(Value::Null);
+    let from = before["state"]["devices"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .flat_map(|d| d["loops"].as_array().into_iter().flatten())
+        .next()
+        .and_then(|l| l["set_point_rpm"].as_f64())
+        .unwrap_or(0.0);
+    let mut body = Map::new();
+    body.insert("set_point_rpm".into(), json!(to));
+    if let Some(s) = slave {
+        body.insert("slave".into(), json!(s));
+    }
+    let command = commands::supervise_loop(&body)?;
+    // The step's instant: the session time the engine stepped it at.
+    let answer = run_on_engine(engine, command).await?;
+    let at = answer["t"].as_f64().unwrap_or(0.0);
+    tokio::time::sleep(Duration::from_secs_f64(seconds + 0.2)).await;
+    let trend = hub.trend(seconds + 1.5);
+    let rows: Vec<[f64; 5]> = trend["rows"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(|r| {
+            let n = |i: usize| r.get(i).and_then(Value::as_f64);
+            Some([n(0)?, n(1).unwrap_or(f64::NAN), n(2)?, n(3)?, n(4)?])
+        })
+        .collect();
+    let t: Vec<f64> = rows.iter().map(|r| r[0]).collect();
+    let col = |k: usize| -> Vec<f64> { rows.iter().map(|r| r[k]).collect() };
+    let options = twin_sim::step_metrics::StepOptions::default();
+    let (hall, light, wheel) = (col(2), col(3), col(4));
+    let mut signals = Map::new();
+    for (name, y) in [
+        ("wheel (loop)", &wheel),
+        ("hall rpm", &hall),
+        ("light rpm", &light),
+    ] {
+        let figures = twin_sim::step_metrics::step_metrics(&t, y, at, Some(to), &options);
+        let delay = (name == "light rpm")
+            .then(|| twin_sim::step_metrics::delay(&t, &hall, y, at, 2.0).ok())
+            .flatten();
+        signals.insert(
+            name.into(),
+            match figures {
+                Ok(m) => json!({ "metrics": m, "delay_s": delay }),
+                Err(e) => json!({ "error": e.to_string() }),
+            },
+        );
+    }
+    Ok(json!({
+        "from_rpm": from,
+        "to_rpm": to,
+        "step_at_s": at,
+        "seconds": seconds,
+        "samples": t.len(),
+        "signals": signals,
+        "note": "figures as `twin step` computes them, on the panel's trend (20 Hz); the light reading's delay is measured behind the hall reading",
+    }))
+}
