@@ -16,11 +16,13 @@ use std::sync::mpsc::{Receiver, Sender, channel};
 pub struct Backlog(Arc<AtomicUsize>);
 
 impl Backlog {
-    /// About 60 MB of queue (a frame waits as its bytes and a 40-byte
-    /// record): several seconds of eight clients at full speed, so a burst
-    /// goes through at the links' rate and only a recording that stays
-    /// behind holds the clients back.
-    pub const LIMIT: usize = 1024 * 1024;
+    /// About 15 MB of queue (a frame waits as its bytes, a 40-byte record
+    /// and its end): one to two seconds of eight clients at full speed, so a
+    /// burst goes through at the links' rate and only a recording that stays
+    /// behind holds the clients back. A larger queue only held more memory:
+    /// at 1 M frames a ten-minute session at eight clients grew to 383 MiB,
+    /// the queue's batches reallocated at every size from 0 up.
+    pub const LIMIT: usize = 256 * 1024;
 
     /// Frames shipped and not recorded yet.
     pub fn frames(&self) -> usize {
@@ -175,6 +177,10 @@ pub struct FrameLog {
 
 /// Emptied batches a log keeps: a steady session has two or three out.
 const SPARES_KEPT: usize = 8;
+/// A batch that came back holding room for more frames than this is freed
+/// rather than kept: one filled while the engine was held up would keep
+/// its memory for ever, and the kept batches are reused at every size.
+const SPARE_FRAMES_KEPT: usize = 4096;
 
 impl Default for FrameLog {
     fn default() -> Self {
@@ -208,7 +214,7 @@ impl FrameLog {
         // After a backlog, more batches come back than the log fills again
         // soon: keep a few, free the rest (they would hold their memory).
         while let Ok(spare) = self.spares.try_recv() {
-            if self.pool.len() < SPARES_KEPT {
+            if self.pool.len() < SPARES_KEPT && spare.records.capacity() <= SPARE_FRAMES_KEPT {
                 self.pool.push(spare);
             }
         }

@@ -18,6 +18,7 @@ pub mod diff;
 pub mod disk;
 pub mod export;
 pub mod identity;
+mod mcap_file;
 pub mod read;
 pub mod record;
 pub mod recover;

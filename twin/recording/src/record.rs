@@ -6,7 +6,6 @@
 //! [`crate::topics`].
 
 use anyhow::{Context, Result};
-use mcap::{Compression, WriteOptions};
 use serde::Serialize;
 use serde_json::{Map, Value, json};
 use std::collections::BTreeMap;
@@ -14,6 +13,7 @@ use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 
+use crate::mcap_file::McapFile;
 use crate::topics;
 use crate::writer::{Appender, Backend, Batch, FileWriter, Job, Queued};
 pub use crate::writer::{Deferred, NoDeferred};
@@ -23,10 +23,10 @@ pub use crate::writer::{Deferred, NoDeferred};
 /// digits, closed every simulated second) level 1 is both faster and smaller
 /// than level 3: ev-meb 548 kB against 594 kB for 10 s, ten-modules 4.07 MB
 /// against 4.65 MB. zstd's own worker threads stay off: one writer compresses.
-pub(crate) const ZSTD_LEVEL: u32 = 1;
+pub(crate) const ZSTD_LEVEL: i32 = 1;
 /// Uncompressed bytes per chunk (the MCAP library's default, set explicitly so
 /// that a library upgrade cannot change the file layout).
-pub(crate) const CHUNK_SIZE: u64 = 1024 * 1024;
+pub(crate) const CHUNK_SIZE: usize = 1024 * 1024;
 /// The open chunk is closed and written out once per simulated second: a
 /// process killed mid-run loses at most about a second (a real-time run's
 /// second is a wall-clock second), and since the cadence is simulated time the
@@ -310,15 +310,8 @@ fn open(path: &Path) -> Result<FileWriter> {
             .with_context(|| format!("cannot create folder {}", dir.display()))?;
     }
     let file = File::create(path).with_context(|| format!("cannot create {}", path.display()))?;
-    let options = WriteOptions::new()
-        .compression(Some(Compression::Zstd))
-        .compression_level(ZSTD_LEVEL)
-        .compression_threads(0)
-        .chunk_size(Some(CHUNK_SIZE))
-        .profile("")
-        .library(concat!("ev-lab-twin ", env!("CARGO_PKG_VERSION")));
-    let writer = options
-        .create(BufWriter::new(file))
+    let library = concat!("ev-lab-twin ", env!("CARGO_PKG_VERSION"));
+    let writer = McapFile::new(BufWriter::new(file), library, ZSTD_LEVEL, CHUNK_SIZE)
         .with_context(|| format!("cannot start MCAP file {}", path.display()))?;
     Ok(FileWriter::new(writer, path))
 }

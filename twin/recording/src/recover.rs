@@ -122,8 +122,8 @@ fn create(out: &Path, profile: &str, library: &str) -> Result<FileWriter> {
     let file = File::create(out).with_context(|| format!("cannot create {}", out.display()))?;
     WriteOptions::new()
         .compression(Some(mcap::Compression::Zstd))
-        .compression_level(crate::record::ZSTD_LEVEL)
-        .chunk_size(Some(crate::record::CHUNK_SIZE))
+        .compression_level(crate::record::ZSTD_LEVEL.unsigned_abs())
+        .chunk_size(Some(crate::record::CHUNK_SIZE as u64))
         .profile(profile)
         .library(library)
         .create(BufWriter::new(file))

@@ -3,9 +3,7 @@
 //! the recorder's thread or on one of its own.
 
 use anyhow::{Context, Result};
-use mcap::Writer;
-use mcap::records::{MessageHeader, Metadata};
-use std::collections::BTreeMap;
+use mcap::records::Metadata;
 use std::fs::File;
 use std::io::BufWriter;
 use std::path::Path;
@@ -15,6 +13,7 @@ use std::thread::JoinHandle;
 use serde::Serialize;
 
 use crate::disk::DiskGuard;
+use crate::mcap_file::McapFile;
 use crate::topics;
 
 /// A message type the writer serialises itself: see
@@ -117,7 +116,7 @@ pub(crate) enum Job<D> {
 
 /// The MCAP file and what writing to it needs.
 pub(crate) struct FileWriter {
-    writer: Writer<BufWriter<File>>,
+    writer: McapFile<BufWriter<File>>,
     /// MCAP ids of the channels, by creation order.
     ids: Vec<u16>,
     /// A deferred message's JSON, reused from message to message.
@@ -128,7 +127,7 @@ pub(crate) struct FileWriter {
 }
 
 impl FileWriter {
-    pub(crate) fn new(writer: Writer<BufWriter<File>>, path: &Path) -> Self {
+    pub(crate) fn new(writer: McapFile<BufWriter<File>>, path: &Path) -> Self {
         Self {
             writer,
             ids: Vec::new(),
@@ -154,12 +153,7 @@ impl FileWriter {
                     .with_context(cannot_write)?;
                 let id = self
                     .writer
-                    .add_channel(
-                        schema_id,
-                        &topic,
-                        topics::MESSAGE_ENCODING,
-                        &BTreeMap::new(),
-                    )
+                    .add_channel(schema_id, &topic, topics::MESSAGE_ENCODING)
                     .with_context(cannot_write)?;
                 self.ids.push(id);
                 Ok(None)
@@ -170,12 +164,7 @@ impl FileWriter {
                     if m.flush_before {
                         self.writer.flush().with_context(cannot_write)?;
                     }
-                    let header = MessageHeader {
-                        channel_id: self.ids.get(m.channel).copied().unwrap_or_default(),
-                        sequence: m.sequence,
-                        log_time: m.time_ns,
-                        publish_time: m.time_ns,
-                    };
+                    let channel = self.ids.get(m.channel).copied().unwrap_or_default();
                     let data = if m.deferred {
                         self.json.clear();
                         if let Some(message) = batch.deferred.get(m.end) {
@@ -189,7 +178,7 @@ impl FileWriter {
                         data
                     };
                     self.writer
-                        .write_to_known_channel(&header, data)
+                        .write_message(channel, m.sequence, m.time_ns, m.time_ns, data)
                         .with_context(cannot_write)?;
                 }
                 // A deferred message is about 1 kB of JSON.
@@ -200,7 +189,7 @@ impl FileWriter {
             }
             Job::Metadata(metadata) => {
                 self.writer
-                    .write_metadata(&metadata)
+                    .write_metadata(&metadata.name, &metadata.metadata)
                     .with_context(cannot_write)?;
                 Ok(None)
             }
@@ -215,9 +204,10 @@ impl FileWriter {
     }
 
     /// Write the summary and close the file.
-    fn finish(mut self) -> Result<()> {
+    fn finish(self) -> Result<()> {
         self.writer
             .finish()
+            .map(drop)
             .with_context(|| format!("cannot finish {}", self.shown))?;
         Ok(())
     }
