@@ -107,15 +107,33 @@ fn twenty_entries_by_index_by_shard_and_all_at_once_give_the_same_runs() {
     // The wheel answered the step to 400 rpm, and the controller read it.
     let wheel = s["figures"]["ev1.wheel_rpm"].as_f64().expect("wheel rpm");
     assert!((300.0..500.0).contains(&wheel), "{s}");
-    assert!(s["figures"]["ev1.hall_rpm"].as_f64().expect("RPM_M") > 200.0, "{s}");
+    assert!(
+        s["figures"]["ev1.hall_rpm"].as_f64().expect("RPM_M") > 200.0,
+        "{s}"
+    );
     assert_eq!(s["figures"]["step.to_rpm"], 400.0);
     assert_eq!(s["figures"]["step.at_s"], 0.05);
-    assert!(s["figures"]["step.rise_s"].as_f64().expect("rise") > 0.0, "{s}");
+    assert!(
+        s["figures"]["step.rise_s"].as_f64().expect("rise") > 0.0,
+        "{s}"
+    );
 
     // Three shards, one process each, cover every entry once.
     let mut seen = Vec::new();
     for k in 0..3 {
-        let out = ok(&dir, &["batch", m, "--shard", &format!("{k}/3"), "--jobs", "1", "--out", "shards"]);
+        let out = ok(
+            &dir,
+            &[
+                "batch",
+                m,
+                "--shard",
+                &format!("{k}/3"),
+                "--jobs",
+                "1",
+                "--out",
+                "shards",
+            ],
+        );
         let n = out.lines().filter(|l| l.contains(": ok,")).count();
         assert_eq!(n, if k < 2 { 7 } else { 6 }, "{out}");
         for l in out.lines().filter(|l| l.contains(": ok,")) {
@@ -129,7 +147,10 @@ fn twenty_entries_by_index_by_shard_and_all_at_once_give_the_same_runs() {
 
     // All at once on two threads: the same files, byte for byte.
     let out = ok(&dir, &["batch", m, "--jobs", "2", "--out", "all"]);
-    assert!(out.contains("twin batch: 20 of 20 entries: 20 ran, 0 done before, 0 failed"), "{out}");
+    assert!(
+        out.contains("twin batch: 20 of 20 entries: 20 ran, 0 done before, 0 failed"),
+        "{out}"
+    );
     let (shards, all) = (files(&dir.join("shards")), files(&dir.join("all")));
     assert_eq!(all.len(), 40, "{:?}", all.keys());
     for (name, bytes) in &all {
@@ -137,7 +158,10 @@ fn twenty_entries_by_index_by_shard_and_all_at_once_give_the_same_runs() {
         if name.ends_with(".mcap") {
             assert!(bytes == other, "{name} differs between shards and --jobs 2");
         } else {
-            let (mut a, mut b) = (summary(&dir.join("all").join(name)), summary(&dir.join("shards").join(name)));
+            let (mut a, mut b) = (
+                summary(&dir.join("all").join(name)),
+                summary(&dir.join("shards").join(name)),
+            );
             // Only the wall time may differ.
             a["wall_s"] = 0.into();
             b["wall_s"] = 0.into();
@@ -146,7 +170,11 @@ fn twenty_entries_by_index_by_shard_and_all_at_once_give_the_same_runs() {
     }
     assert_eq!(all["kp-07.mcap"], files(&dir.join("one"))["kp-07.mcap"]);
     // A stiffer loop rises faster: kp 0.58 against kp 0.20, same seed.
-    let rise = |name: &str| summary(&dir.join("all").join(name))["figures"]["step.rise_s"].as_f64().unwrap();
+    let rise = |name: &str| {
+        summary(&dir.join("all").join(name))["figures"]["step.rise_s"]
+            .as_f64()
+            .unwrap()
+    };
     assert!(rise("kp-19.json") < rise("kp-01.json") || rise("kp-18.json") < rise("kp-00.json"));
 }
 
@@ -159,9 +187,24 @@ fn a_batch_run_records_what_twin_run_records() {
     )
     .unwrap();
     ok(&dir, &["batch", "m.toml", "--index", "0"]);
-    ok(&dir, &["run", "ev-meb", "--duration", "0.6", "--seed", "4", "--out", "run.mcap"]);
+    ok(
+        &dir,
+        &[
+            "run",
+            "ev-meb",
+            "--duration",
+            "0.6",
+            "--seed",
+            "4",
+            "--out",
+            "run.mcap",
+        ],
+    );
     let batch = std::fs::read(dir.join("m/plain.mcap")).expect("the batch's recording, in m/");
-    assert!(batch == std::fs::read(dir.join("run.mcap")).unwrap(), "recordings differ");
+    assert!(
+        batch == std::fs::read(dir.join("run.mcap")).unwrap(),
+        "recordings differ"
+    );
 }
 
 #[test]
@@ -180,15 +223,33 @@ fn succeeded_entries_are_skipped_failed_ones_named_and_retried() {
         twin_in(&dir, &all, &[])
     };
     let o = run(&["--jobs", "2"]);
-    let (stdout, stderr) = (String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr),
+    );
     assert_eq!(o.status.code(), Some(1), "{stdout}{stderr}");
     assert!(stdout.contains("entry 0 first: ok"), "{stdout}");
-    assert!(stderr.contains("2 of the entries failed: 1 (later), 2 (typo)"), "{stderr}");
+    assert!(
+        stderr.contains("2 of the entries failed: 1 (later), 2 (typo)"),
+        "{stderr}"
+    );
     let later = summary(&dir.join("out/later.json"));
     assert_eq!(later["status"], "failed");
-    assert!(later["error"].as_str().unwrap().contains("no scenario `later.toml`"), "{later}");
+    assert!(
+        later["error"]
+            .as_str()
+            .unwrap()
+            .contains("no scenario `later.toml`"),
+        "{later}"
+    );
     let typo = summary(&dir.join("out/typo.json"));
-    assert!(typo["error"].as_str().unwrap().contains("`node` has no item `nosuch`"), "{typo}");
+    assert!(
+        typo["error"]
+            .as_str()
+            .unwrap()
+            .contains("`node` has no item `nosuch`"),
+        "{typo}"
+    );
     assert!(!dir.join("out/later.mcap").exists());
     let first = std::fs::read(dir.join("out/first.json")).unwrap();
 
@@ -196,19 +257,30 @@ fn succeeded_entries_are_skipped_failed_ones_named_and_retried() {
     let o = run(&[]);
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert_eq!(o.status.code(), Some(1));
-    assert!(stdout.contains("entry 0 first: done before, skipped"), "{stdout}");
+    assert!(
+        stdout.contains("entry 0 first: done before, skipped"),
+        "{stdout}"
+    );
     assert!(stdout.contains("entry 1 later: FAILED"), "{stdout}");
 
     // The missing scenario appears, the typo stays: one more done.
-    let ev_meb = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../recordings/scenarios/ev-meb.toml");
+    let ev_meb =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../recordings/scenarios/ev-meb.toml");
     std::fs::copy(ev_meb, dir.join("later.toml")).unwrap();
     let o = run(&[]);
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert_eq!(o.status.code(), Some(1));
     assert!(stdout.contains("entry 1 later: ok"), "{stdout}");
     assert_eq!(summary(&dir.join("out/later.json"))["status"], "ok");
-    assert!(stdout.contains("1 ran, 1 done before, 1 failed"), "{stdout}");
-    assert_eq!(std::fs::read(dir.join("out/first.json")).unwrap(), first, "a skipped entry is left alone");
+    assert!(
+        stdout.contains("1 ran, 1 done before, 1 failed"),
+        "{stdout}"
+    );
+    assert_eq!(
+        std::fs::read(dir.join("out/first.json")).unwrap(),
+        first,
+        "a skipped entry is left alone"
+    );
 
     // --force runs a done entry again.
     let o = run(&["--index", "0", "--force"]);
@@ -226,22 +298,49 @@ fn an_array_task_takes_its_index_from_its_scheduler() {
     let m = manifest.to_str().unwrap();
     for (variable, index) in SCHEDULER_VARIABLES.iter().zip(["3", "11", "19"]) {
         let o = twin_in(&dir, &["batch", m, "--out", variable], &[(variable, index)]);
-        let (stdout, stderr) = (String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+        let (stdout, stderr) = (
+            String::from_utf8_lossy(&o.stdout),
+            String::from_utf8_lossy(&o.stderr),
+        );
         assert!(o.status.success(), "{stdout}{stderr}");
-        assert!(stderr.contains(&format!("twin batch: entry {index}, from {variable}")), "{stderr}");
+        assert!(
+            stderr.contains(&format!("twin batch: entry {index}, from {variable}")),
+            "{stderr}"
+        );
         let names: Vec<String> = files(&dir.join(variable)).into_keys().collect();
-        assert_eq!(names, [format!("kp-{index}.json"), format!("kp-{index}.mcap")]);
+        assert_eq!(
+            names,
+            [format!("kp-{index}.json"), format!("kp-{index}.mcap")]
+        );
     }
     // --index wins over the variable; a bad one is refused in words.
-    let o = twin_in(&dir, &["batch", m, "--index", "2", "--out", "x"], &[("SLURM_ARRAY_TASK_ID", "9")]);
+    let o = twin_in(
+        &dir,
+        &["batch", m, "--index", "2", "--out", "x"],
+        &[("SLURM_ARRAY_TASK_ID", "9")],
+    );
     assert!(String::from_utf8_lossy(&o.stdout).contains("entry 2 kp-02: ok"));
-    let o = twin_in(&dir, &["batch", m, "--out", "x"], &[("JOB_COMPLETION_INDEX", "20")]);
+    let o = twin_in(
+        &dir,
+        &["batch", m, "--out", "x"],
+        &[("JOB_COMPLETION_INDEX", "20")],
+    );
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success());
-    assert!(stderr.contains("entry 20 is past the end: the manifest has 20 entries, 0 to 19"), "{stderr}");
-    let o = twin_in(&dir, &["batch", m, "--out", "x"], &[("AWS_BATCH_JOB_ARRAY_INDEX", "two")]);
+    assert!(
+        stderr.contains("entry 20 is past the end: the manifest has 20 entries, 0 to 19"),
+        "{stderr}"
+    );
+    let o = twin_in(
+        &dir,
+        &["batch", m, "--out", "x"],
+        &[("AWS_BATCH_JOB_ARRAY_INDEX", "two")],
+    );
     let stderr = String::from_utf8_lossy(&o.stderr);
-    assert!(stderr.contains("AWS_BATCH_JOB_ARRAY_INDEX is `two`, not an entry index"), "{stderr}");
+    assert!(
+        stderr.contains("AWS_BATCH_JOB_ARRAY_INDEX is `two`, not an entry index"),
+        "{stderr}"
+    );
 }
 
 #[test]
@@ -265,10 +364,24 @@ fn summarize_gathers_a_known_set_into_csv_and_plot() {
     std::fs::write(out.join(".kp3.json.77.tmp"), "{\"entry\": 3, \"na").unwrap();
     let printed = ok(
         &dir,
-        &["batch", "summarize", "set", "--plot", "step.settling_s", "--against", "node.supervisor.kp"],
+        &[
+            "batch",
+            "summarize",
+            "set",
+            "--plot",
+            "step.settling_s",
+            "--against",
+            "node.supervisor.kp",
+        ],
     );
-    assert!(printed.contains("summary: 3 runs, 2 ok, 1 failed: 2 (kp2); 12 columns in set/summary.csv"), "{printed}");
-    assert!(printed.contains("plot: step.settling_s against node.supervisor.kp, 2 runs (1 left out"), "{printed}");
+    assert!(
+        printed.contains("summary: 3 runs, 2 ok, 1 failed: 2 (kp2); 12 columns in set/summary.csv"),
+        "{printed}"
+    );
+    assert!(
+        printed.contains("plot: step.settling_s against node.supervisor.kp, 2 runs (1 left out"),
+        "{printed}"
+    );
     let csv = std::fs::read_to_string(out.join("summary.csv")).unwrap();
     assert_eq!(
         csv,
@@ -282,20 +395,42 @@ fn summarize_gathers_a_known_set_into_csv_and_plot() {
     // The PNG header's size: 900 × 560.
     assert_eq!(&png[16..24], &[0, 0, 3, 0x84, 0, 0, 2, 0x30]);
     // A column that is not there is named with the ones that are.
-    let o = twin_in(&dir, &["batch", "summarize", "set", "--plot", "kd", "--against", "seed"], &[]);
+    let o = twin_in(
+        &dir,
+        &[
+            "batch",
+            "summarize",
+            "set",
+            "--plot",
+            "kd",
+            "--against",
+            "seed",
+        ],
+        &[],
+    );
     let stderr = String::from_utf8_lossy(&o.stderr);
-    assert!(stderr.contains("no column `kd`") && stderr.contains("ev1.wheel_rpm"), "{stderr}");
+    assert!(
+        stderr.contains("no column `kd`") && stderr.contains("ev1.wheel_rpm"),
+        "{stderr}"
+    );
 }
 
 #[test]
 fn a_broken_manifest_is_refused_with_file_line_and_field() {
     let dir = scratch("broken");
-    std::fs::write(dir.join("m.jsonl"), "{\"scenario\": \"ev-meb\"}\n\n{\"scenario\": \"ev-meb\", \"seed\": -1}\n").unwrap();
+    std::fs::write(
+        dir.join("m.jsonl"),
+        "{\"scenario\": \"ev-meb\"}\n\n{\"scenario\": \"ev-meb\", \"seed\": -1}\n",
+    )
+    .unwrap();
     let o = twin_in(&dir, &["batch", "m.jsonl", "--count"], &[]);
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success());
     assert!(stderr.starts_with("error: m.jsonl:3:"), "{stderr}");
-    assert!(stderr.contains("u64") || stderr.contains("invalid value"), "{stderr}");
+    assert!(
+        stderr.contains("u64") || stderr.contains("invalid value"),
+        "{stderr}"
+    );
 }
 
 /// The GNU parallel example of `docs/batch.md`, its shell block run as
@@ -303,19 +438,28 @@ fn a_broken_manifest_is_refused_with_file_line_and_field() {
 #[test]
 fn the_gnu_parallel_example_of_the_docs_runs() {
     assert!(
-        Command::new("parallel").arg("--version").output().is_ok_and(|o| o.status.success()),
+        Command::new("parallel")
+            .arg("--version")
+            .output()
+            .is_ok_and(|o| o.status.success()),
         "GNU parallel is missing: install it (Debian: apt-get install parallel; .ci/install does)"
     );
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
     let doc = std::fs::read_to_string(root.join("docs/batch.md")).expect("docs/batch.md");
-    let start = doc.find("```sh parallel").expect("a ```sh parallel block in docs/batch.md");
+    let start = doc
+        .find("```sh parallel")
+        .expect("a ```sh parallel block in docs/batch.md");
     let block = &doc[start..];
     let block = &block[block.find('\n').unwrap() + 1..];
     let block = &block[..block.find("```").unwrap()];
     let dir = scratch("parallel");
     std::fs::copy(root.join("docs/batch/sweep.jsonl"), dir.join("sweep.jsonl")).unwrap();
     let bin = Path::new(env!("CARGO_BIN_EXE_twin")).parent().unwrap();
-    let path = format!("{}:{}", bin.display(), std::env::var("PATH").unwrap_or_default());
+    let path = format!(
+        "{}:{}",
+        bin.display(),
+        std::env::var("PATH").unwrap_or_default()
+    );
     let o = Command::new("bash")
         .args(["-euo", "pipefail", "-c", block])
         .current_dir(&dir)
@@ -323,14 +467,36 @@ fn the_gnu_parallel_example_of_the_docs_runs() {
         .env("HOME", &dir)
         .output()
         .expect("bash runs");
-    let (stdout, stderr) = (String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr),
+    );
     assert!(o.status.success(), "{block}\n{stdout}\n{stderr}");
     let csv = std::fs::read_to_string(dir.join("sweep/summary.csv")).expect("the summary CSV");
-    let n: usize = ok(&dir, &["batch", "sweep.jsonl", "--count"]).trim().parse().unwrap();
+    let n: usize = ok(&dir, &["batch", "sweep.jsonl", "--count"])
+        .trim()
+        .parse()
+        .unwrap();
     assert_eq!(csv.lines().count(), n + 1, "{csv}");
-    assert!(csv.lines().skip(1).all(|l| l.split(',').nth(2) == Some("ok")), "{csv}");
-    assert!(dir.join("sweep/step.settling_s-against-node.supervisor.kp.png").exists(), "{stdout}");
+    assert!(
+        csv.lines()
+            .skip(1)
+            .all(|l| l.split(',').nth(2) == Some("ok")),
+        "{csv}"
+    );
+    assert!(
+        dir.join("sweep/step.settling_s-against-node.supervisor.kp.png")
+            .exists(),
+        "{stdout}"
+    );
     // The job log GNU parallel kept: one line per entry, every one exit 0.
     let log = std::fs::read_to_string(dir.join("sweep.log")).expect("the job log");
-    assert_eq!(log.lines().skip(1).filter(|l| l.split('\t').nth(6) == Some("0")).count(), n, "{log}");
+    assert_eq!(
+        log.lines()
+            .skip(1)
+            .filter(|l| l.split('\t').nth(6) == Some("0"))
+            .count(),
+        n,
+        "{log}"
+    );
 }

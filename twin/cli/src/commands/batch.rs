@@ -220,7 +220,8 @@ fn print_report(report: &Report, n: usize, total: usize, dir: &Path) {
             "[{n}/{total}] entry {} {}: ok, {} in {:.2} s{}",
             s.entry,
             s.name,
-            dir.join(s.recording.as_deref().unwrap_or_default()).display(),
+            dir.join(s.recording.as_deref().unwrap_or_default())
+                .display(),
             s.wall_s,
             headline(s)
         ),
@@ -289,7 +290,10 @@ fn execute_summarize(args: &SummarizeArgs) -> Result<()> {
             "plot: {y} against {x}, {} runs{}, in {}",
             plotted.points,
             if plotted.left_out > 0 {
-                format!(" ({} left out: failed, or without a value)", plotted.left_out)
+                format!(
+                    " ({} left out: failed, or without a value)",
+                    plotted.left_out
+                )
             } else {
                 String::new()
             },

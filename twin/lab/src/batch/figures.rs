@@ -41,8 +41,14 @@ pub fn of_outcome(outcome: &RunOutcome) -> Figures {
         } else {
             d.module.clone()
         };
-        f.insert(format!("{who}.hall_rpm"), Some(f64::from(c.readings.hall_rpm)));
-        f.insert(format!("{who}.light_rpm"), Some(f64::from(c.readings.light_rpm)));
+        f.insert(
+            format!("{who}.hall_rpm"),
+            Some(f64::from(c.readings.hall_rpm)),
+        );
+        f.insert(
+            format!("{who}.light_rpm"),
+            Some(f64::from(c.readings.light_rpm)),
+        );
         f.insert(format!("{who}.light_limit_rpm"), Some(d.limit_rpm));
     }
     for (bus, stats, checks) in &outcome.buses {
@@ -51,8 +57,14 @@ pub fn of_outcome(outcome: &RunOutcome) -> Figures {
             format!("{bus}.bytes_corrupted_by_noise"),
             Some(stats.bytes_corrupted_by_noise as f64),
         );
-        f.insert(format!("{bus}.frames_received"), Some(checks.frames_received as f64));
-        f.insert(format!("{bus}.frames_corrupted"), Some(checks.frames_corrupted as f64));
+        f.insert(
+            format!("{bus}.frames_received"),
+            Some(checks.frames_received as f64),
+        );
+        f.insert(
+            format!("{bus}.frames_corrupted"),
+            Some(checks.frames_corrupted as f64),
+        );
         f.insert(
             format!("{bus}.corrupted_passed_check"),
             Some(checks.corrupted_passed_check as f64),
@@ -90,9 +102,9 @@ impl Step {
             _ => None,
         })?;
         let module = scenario.nodes.iter().find_map(|n| match n {
-            NodeSpec::EvController { bus: b, module, id, .. } if *id == slave && b == bus => {
-                Some(module.clone())
-            }
+            NodeSpec::EvController {
+                bus: b, module, id, ..
+            } if *id == slave && b == bus => Some(module.clone()),
             _ => None,
         })?;
         let mut before = 0.0;
@@ -131,9 +143,15 @@ impl Step {
         f.insert("step.at_s".into(), Some(self.at_s));
         f.insert("step.from_rpm".into(), Some(self.from));
         f.insert("step.to_rpm".into(), Some(self.to));
-        f.insert("step.settling_s".into(), metrics.and_then(|m| m.settling_time_s));
+        f.insert(
+            "step.settling_s".into(),
+            metrics.and_then(|m| m.settling_time_s),
+        );
         f.insert("step.rise_s".into(), metrics.and_then(|m| m.rise_time_s));
-        f.insert("step.overshoot_pct".into(), metrics.map(|m| m.overshoot_pct));
+        f.insert(
+            "step.overshoot_pct".into(),
+            metrics.map(|m| m.overshoot_pct),
+        );
         f.insert(
             "step.error_rpm".into(),
             metrics.and_then(|m| m.steady_state_error),
@@ -165,7 +183,13 @@ mod tests {
         let t: Vec<f64> = (0..2500).map(|i| f64::from(i) * 0.002).collect();
         let y: Vec<f64> = t
             .iter()
-            .map(|&t| if t <= 0.5 { 0.0 } else { 1000.0 * (1.0 - (-(t - 0.5) / 0.1).exp()) })
+            .map(|&t| {
+                if t <= 0.5 {
+                    0.0
+                } else {
+                    1000.0 * (1.0 - (-(t - 0.5) / 0.1).exp())
+                }
+            })
             .collect();
         let f = step.figures(&t, &y);
         let settling = f["step.settling_s"].unwrap();

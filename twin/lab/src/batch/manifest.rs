@@ -52,9 +52,8 @@ impl Manifest {
     /// Read a manifest: TOML when the file ends in `.toml`, JSON Lines
     /// otherwise (blank lines and lines starting with `#` are skipped).
     pub fn load(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|e| {
-            anyhow::anyhow!("cannot read the manifest {}: {e}", path.display())
-        })?;
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| anyhow::anyhow!("cannot read the manifest {}: {e}", path.display()))?;
         Self::parse(&text, path)
     }
 
@@ -114,7 +113,9 @@ impl Manifest {
             if let Some(out) = &e.out {
                 let bad = out.is_empty()
                     || out.starts_with('.')
-                    || out.chars().any(|c| matches!(c, '/' | '\\') || c.is_control());
+                    || out
+                        .chars()
+                        .any(|c| matches!(c, '/' | '\\') || c.is_control());
                 if bad {
                     bail!(
                         "{at}: `out` `{out}` must be a plain file name: not empty, no `/` or `\\`, \
@@ -184,7 +185,10 @@ pub enum Selection {
     One(usize),
     /// Shard `k` of `n`: the entries whose index is `k` modulo `n`, so that
     /// shards of a sweep share its long and short runs alike.
-    Shard { k: usize, n: usize },
+    Shard {
+        k: usize,
+        n: usize,
+    },
     All,
 }
 
@@ -225,7 +229,9 @@ pub const SCHEDULER_INDEX_VARIABLES: [&str; 3] = [
 
 /// The index a scheduler gave this task, and the variable it came in, from
 /// `var` (the process's environment, or a test's).
-pub fn scheduler_index(var: impl Fn(&str) -> Option<String>) -> Result<Option<(usize, &'static str)>> {
+pub fn scheduler_index(
+    var: impl Fn(&str) -> Option<String>,
+) -> Result<Option<(usize, &'static str)>> {
     for name in SCHEDULER_INDEX_VARIABLES {
         if let Some(value) = var(name) {
             return match value.trim().parse::<usize>() {
@@ -278,20 +284,34 @@ mod tests {
         )
         .unwrap_err()
         .to_string();
-        assert!(e.contains("m.jsonl:2: `out` `a`") && e.contains("line 1"), "{e}");
-        let e = Manifest::parse("{\"scenario\": \"ev-meb\", \"set\": [\"kp\"]}", Path::new("m"))
-            .unwrap_err()
-            .to_string();
+        assert!(
+            e.contains("m.jsonl:2: `out` `a`") && e.contains("line 1"),
+            "{e}"
+        );
+        let e = Manifest::parse(
+            "{\"scenario\": \"ev-meb\", \"set\": [\"kp\"]}",
+            Path::new("m"),
+        )
+        .unwrap_err()
+        .to_string();
         assert!(e.contains("m:1: `set`"), "{e}");
     }
 
     #[test]
     fn selections_and_scheduler_variables() {
-        assert_eq!(Selection::parse_shard("1/3").unwrap().indices(8).unwrap(), vec![1, 4, 7]);
+        assert_eq!(
+            Selection::parse_shard("1/3").unwrap().indices(8).unwrap(),
+            vec![1, 4, 7]
+        );
         assert!(Selection::parse_shard("3/3").is_err());
         assert!(Selection::One(8).indices(8).is_err());
         let env = |pairs: &'static [(&'static str, &'static str)]| {
-            move |k: &str| pairs.iter().find(|(n, _)| *n == k).map(|(_, v)| v.to_string())
+            move |k: &str| {
+                pairs
+                    .iter()
+                    .find(|(n, _)| *n == k)
+                    .map(|(_, v)| v.to_string())
+            }
         };
         assert_eq!(
             scheduler_index(env(&[("JOB_COMPLETION_INDEX", "4")])).unwrap(),

@@ -98,7 +98,10 @@ pub fn run(
                 run_entry(manifest, index, &options.dir, options.force)
             };
             on_done(&report);
-            reports.lock().unwrap_or_else(|e| e.into_inner()).push(report);
+            reports
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .push(report);
         }
     };
     let workers = options.jobs.clamp(1, indices.len().max(1));

@@ -10,7 +10,15 @@ use super::summary::{Status, Summary};
 use crate::plot::{self, Axes, Series};
 
 /// The columns every row starts with.
-const FIRST: [&str; 7] = ["entry", "name", "status", "scenario", "seed", "simulated_s", "wall_s"];
+const FIRST: [&str; 7] = [
+    "entry",
+    "name",
+    "status",
+    "scenario",
+    "seed",
+    "simulated_s",
+    "wall_s",
+];
 
 /// Every summary in `dir` (its `*.json` files), in manifest order.
 pub fn gather(dir: &Path) -> Result<Vec<Summary>> {
@@ -21,7 +29,10 @@ pub fn gather(dir: &Path) -> Result<Vec<Summary>> {
         let path = item
             .with_context(|| format!("cannot read the folder {}", dir.display()))?
             .path();
-        let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
         // Temporary files start with a dot.
         if !name.ends_with(".json") || name.starts_with('.') {
             continue;
@@ -226,8 +237,15 @@ mod tests {
         );
         assert_eq!(lines[1], "0,kp-0.3,ok,ev-meb,1,2,0.5,0.3,1.25,kp-0.3.mcap,");
         assert_eq!(lines[2], "1,kp-0.6,ok,ev-meb,1,2,0.5,0.6,,kp-0.6.mcap,");
-        assert!(lines[3].ends_with(",failed,ev-meb,1,2,0.5,0.9,,kp-0.9.mcap,\"no scenario `x, y`\""), "{}", lines[3]);
-        assert_eq!(find_column(&rows, "node.supervisor.kp").unwrap(), "set.node.supervisor.kp");
+        assert!(
+            lines[3].ends_with(",failed,ev-meb,1,2,0.5,0.9,,kp-0.9.mcap,\"no scenario `x, y`\""),
+            "{}",
+            lines[3]
+        );
+        assert_eq!(
+            find_column(&rows, "node.supervisor.kp").unwrap(),
+            "set.node.supervisor.kp"
+        );
         let e = find_column(&rows, "kd").unwrap_err().to_string();
         assert!(e.contains("step.settling_s"), "{e}");
     }

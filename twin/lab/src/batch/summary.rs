@@ -72,7 +72,10 @@ impl Summary {
 /// A temporary name beside `path` that no other process writing the same
 /// file uses (a scheduler may run a task twice at once).
 pub fn temporary(path: &Path) -> PathBuf {
-    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
     path.with_file_name(format!(".{name}.{}.tmp", std::process::id()))
 }
 
