@@ -205,3 +205,52 @@ fn supervise_panel_moves_the_set_point_and_steps_the_loop() {
     );
     supervise.terminate();
 }
+
+#[test]
+fn each_module_of_a_class_has_its_own_panel_and_token() {
+    let dir = std::env::temp_dir().join(format!("twin-{}-panel-class", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let mut config = format!(
+        "quiet = true\nstatus-every = 0\nrecord-dir = \"{}\"\n",
+        dir.display()
+    );
+    for n in 1..=2 {
+        config.push_str(&format!(
+            "\n[[module]]\nname = \"student{n:02}\"\nmeb = [\"tcp://127.0.0.1:0\"]\nweb = \"127.0.0.1:0\"\nweb-token-file = \"{}\"\n",
+            dir.join(format!("student{n:02}.token")).display()
+        ));
+    }
+    let path = dir.join("class.toml");
+    std::fs::write(&path, config).unwrap();
+    let server = Proc::start(&["serve", "--config", path.to_str().unwrap()]);
+    // `  panel: URL NAME`, one per module, before `ready`.
+    let panels: Vec<(String, String)> = server
+        .links()
+        .into_iter()
+        .filter(|l| l.first().map(String::as_str) == Some("panel:"))
+        .map(|l| (l[2].clone(), l[1].clone()))
+        .collect();
+    assert_eq!(panels.len(), 2, "{}", server.output());
+    let (host1, token1) = parts(&panels[0].1);
+    let (host2, token2) = parts(&panels[1].1);
+    let (token1, token2) = (token1.unwrap(), token2.unwrap());
+    assert_ne!(host1, host2, "two panels, two ports");
+    assert_ne!(token1, token2, "each module its own token");
+    for (name, host, own, other) in [
+        (&panels[0].0, &host1, &token1, &token2),
+        (&panels[1].0, &host2, &token2, &token1),
+    ] {
+        let saved = std::fs::read_to_string(dir.join(format!("{name}.token"))).unwrap();
+        assert_eq!(saved.trim(), own.as_str(), "{name}'s token file");
+        let (status, body) = http(host, "GET", "/api/state", Some(own), "");
+        assert_eq!(status, 200, "{name}: {body}");
+        let (status, _) = http(host, "GET", "/api/state", Some(other), "");
+        assert_eq!(
+            status, 401,
+            "{name}'s panel refuses the other module's token"
+        );
+    }
+    server.terminate();
+    let _ = std::fs::remove_dir_all(&dir);
+}

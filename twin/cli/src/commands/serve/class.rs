@@ -57,14 +57,6 @@ pub fn execute(
             .map_err(|e| anyhow!("{}:{}: module {}: {e:#}", file.origin, m.line, m.name))?;
         serve::parse_links(&options)
             .map_err(|e| anyhow!("{}:{}: module {}: {e:#}", file.origin, m.line, m.name))?;
-        if args.web.web.is_some() {
-            bail!(
-                "{}:{}: module {}: `web`: the panel serves one module; a class has none yet (serve that module on its own to see its panel)",
-                file.origin,
-                m.line,
-                m.name
-            );
-        }
         modules.push((m.name.clone(), args, options));
     }
     if check {
@@ -94,10 +86,23 @@ pub fn execute(
             );
         }
     }
-    run(&modules)
+    // Each module's own panel, with its own token (`web-token-file` in its
+    // table), bound only once the whole class has been checked.
+    let mut panels = Vec::with_capacity(modules.len());
+    for (name, args, options) in &mut modules {
+        panels.push(
+            args.web
+                .bind(twin_panel::PanelRole::Serve, &mut options.session)
+                .map_err(|e| anyhow!("module {name}: {e:#}"))?,
+        );
+    }
+    run(&modules, &panels)
 }
 
-fn run(modules: &[(String, ServeArgs, ServeOptions)]) -> Result<()> {
+fn run(
+    modules: &[(String, ServeArgs, ServeOptions)],
+    panels: &[Option<twin_panel::Panel>],
+) -> Result<()> {
     let (tx, rx) = channel::<Report>();
     let mut stoppers: Vec<Option<Sender<Inbound>>> = vec![None; modules.len()];
     std::thread::scope(|scope| {
@@ -112,6 +117,13 @@ fn run(modules: &[(String, ServeArgs, ServeOptions)]) -> Result<()> {
                             let _ = ready.send(Report::Ready(n, links.to_vec()));
                         },
                         |engine| {
+                            if let Some(panel) = &panels[n]
+                                && let Err(e) = panel.start(engine.clone())
+                            {
+                                eprintln!(
+                                    "module {name}: --web: {e:#}; going on without its panel"
+                                );
+                            }
                             let _ = console.send(Report::Console(n, engine));
                         },
                     );
@@ -138,6 +150,14 @@ fn run(modules: &[(String, ServeArgs, ServeOptions)]) -> Result<()> {
                             out,
                             "  {} {} {} {}",
                             l.protocol, l.address, l.ids, modules[n].0
+                        );
+                    }
+                    if let Some(panel) = &panels[n] {
+                        let _ = writeln!(
+                            out,
+                            "  {} {}",
+                            super::super::web_args::panel_line(panel),
+                            modules[n].0
                         );
                     }
                     ready += 1;
