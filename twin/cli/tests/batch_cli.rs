@@ -273,7 +273,8 @@ fn succeeded_entries_are_skipped_failed_ones_named_and_retried() {
     assert!(stdout.contains("entry 1 later: ok"), "{stdout}");
     assert_eq!(summary(&dir.join("out/later.json"))["status"], "ok");
     assert!(
-        stdout.contains("1 ran, 1 done before, 1 failed"),
+        // Two ran (the typo again, and failed again), one was done before.
+        stdout.contains("2 ran, 1 done before, 1 failed"),
         "{stdout}"
     );
     assert_eq!(
@@ -308,10 +309,10 @@ fn an_array_task_takes_its_index_from_its_scheduler() {
             "{stderr}"
         );
         let names: Vec<String> = files(&dir.join(variable)).into_keys().collect();
-        assert_eq!(
-            names,
-            [format!("kp-{index}.json"), format!("kp-{index}.mcap")]
-        );
+        assert_eq!(names, {
+            let n: usize = index.parse().unwrap();
+            [format!("kp-{n:02}.json"), format!("kp-{n:02}.mcap")]
+        });
     }
     // --index wins over the variable; a bad one is refused in words.
     let o = twin_in(

@@ -254,6 +254,9 @@ pub fn run<R: Role>(
     );
     let sink_tx = engine.sink();
 
+    // Taken over before `ready` is said: a service manager's stop right
+    // after READY=1 must still finish the recording, not kill the process.
+    let signals = Signals::install(&runtime);
     ready(&open);
 
     let (inbound_tx, inbound_rx) = channel::<Inbound>();
@@ -276,6 +279,7 @@ pub fn run<R: Role>(
 
     let (summary, mut engine) = run_until_stopped(
         &runtime,
+        signals,
         engine_thread,
         inbound_tx.clone(),
         Some(sink_tx.clone()),
@@ -366,15 +370,18 @@ pub fn spawn_engine(
 /// thread returned.
 pub fn run_until_stopped<T>(
     runtime: &Runtime,
+    signals: Signals,
     engine_thread: JoinHandle<T>,
     engine: Sender<Inbound>,
     sink: Option<Sender<SinkMsg>>,
     on_hangup: Option<OnHangup>,
 ) -> Result<T> {
+    let Signals {
+        mut term,
+        mut int,
+        mut hup,
+    } = signals;
     runtime.block_on(async {
-        let mut term = signal(SignalKind::terminate()).ok();
-        let mut int = signal(SignalKind::interrupt()).ok();
-        let mut hup = signal(SignalKind::hangup()).ok();
         loop {
             tokio::select! {
                 Some(()) = next(&mut hup) => {
@@ -403,6 +410,27 @@ pub fn run_until_stopped<T>(
     engine_thread
         .join()
         .map_err(|_| anyhow::anyhow!("the real-time thread failed"))
+}
+
+/// SIGTERM, SIGINT and SIGHUP, each taken over from its default action
+/// (none: it could not be installed).
+#[derive(Debug)]
+pub struct Signals {
+    term: Option<Signal>,
+    int: Option<Signal>,
+    hup: Option<Signal>,
+}
+
+impl Signals {
+    /// Takes the three signals over, on `runtime`'s driver.
+    pub fn install(runtime: &Runtime) -> Signals {
+        let _entered = runtime.enter();
+        Signals {
+            term: signal(SignalKind::terminate()).ok(),
+            int: signal(SignalKind::interrupt()).ok(),
+            hup: signal(SignalKind::hangup()).ok(),
+        }
+    }
 }
 
 /// The next delivery of `signal`; never, if it could not be installed.

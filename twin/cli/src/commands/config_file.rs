@@ -258,7 +258,11 @@ fn setting(
     // The option's own parser judges the value, as on the command line.
     let mut argv: Vec<OsString> = vec![command.get_name().into()];
     argv.extend(words.iter().cloned());
-    if let Err(e) = command.clone().try_get_matches_from(argv) {
+    // Alone, an option that needs another (`web-token-file` needs `web`)
+    // misses it; whether the file gives both is judged with the whole file.
+    if let Err(e) = command.clone().try_get_matches_from(argv)
+        && e.kind() != clap::error::ErrorKind::MissingRequiredArgument
+    {
         bail!("{place}: `{key}`{}", clap_reason(&e, &flag));
     }
     Ok(Setting {

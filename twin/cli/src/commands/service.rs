@@ -42,11 +42,17 @@ pub fn reparse<A: FromArgMatches>(command: &Command, words: Vec<OsString>) -> Re
     Ok(A::from_arg_matches(&matches)?)
 }
 
-/// clap's error as one of ours: its first line, without `error: `.
+/// clap's error as one of ours: its first paragraph on one line (a missing
+/// option is listed on the lines after the first), without `error: `.
 fn clap_words(e: &clap::Error) -> String {
     let rendered = e.render().to_string();
-    let first = rendered.lines().next().unwrap_or_default();
-    first.strip_prefix("error: ").unwrap_or(first).to_string()
+    let paragraph: Vec<&str> = rendered
+        .lines()
+        .take_while(|l| !l.trim().is_empty())
+        .map(str::trim)
+        .collect();
+    let text = paragraph.join(" ");
+    text.strip_prefix("error: ").unwrap_or(&text).to_string()
 }
 
 /// The recording plan a session's arguments give.
