@@ -268,7 +268,7 @@ impl EngineSnapshot {
                     "motor_rpm": s.motor_rpm,
                     "ldr_counts": s.ldr_counts,
                     "flag_in_beam": s.flag_in_beam,
-                    "bms_trip": s.bms_trip.map(|t| format!("{t:?}")),
+                    "bms_trip": s.bms_trip.map(|t| t.to_string()),
                     "motor_tripped": s.motor_tripped,
                     "brake_applied": s.brake_applied,
                     "charging": s.charging,

@@ -72,7 +72,7 @@ impl RecordArgs {
         if let Some(every) = self.rotate_every
             && every.as_secs_f64() < 1.0
         {
-            bail!("--rotate-every {every:?}: give 1 s or more");
+            bail!("--rotate-every {} s: give 1 s or more", every.as_secs_f64());
         }
         let mut plan = match &self.out {
             Some(path) => RecordPlan::at_path(path),
