@@ -104,6 +104,9 @@ pub struct Recordings {
     pub finished: Vec<PathBuf>,
     /// When the recording stopped for want of disk space and waits for it.
     paused_since: Option<SimTime>,
+    /// The name promised to the finishing file's `twin.part` record, which
+    /// the next file must then have (the clock may have moved on since).
+    promised_next: Option<PathBuf>,
 }
 
 /// How often a recording stopped for want of disk space looks for it again.
@@ -143,6 +146,7 @@ impl Recordings {
                 part: 1,
                 finished: Vec::new(),
                 paused_since: None,
+                promised_next: None,
             },
             recorder,
         ))
@@ -198,7 +202,10 @@ impl Recordings {
     /// retention rules say may go, and returns what it deleted too.
     pub fn rotate(&mut self, now: SimTime) -> Result<(SimRecorder, Vec<Pruned>)> {
         let finished = std::mem::take(&mut self.current);
-        let path = next_name(&self.plan.dir, &self.plan.prefix, SystemTime::now());
+        let path = self
+            .promised_next
+            .take()
+            .unwrap_or_else(|| next_name(&self.plan.dir, &self.plan.prefix, SystemTime::now()));
         let mut metadata = self.metadata.clone();
         metadata.insert("part".into(), (self.part + 1).to_string());
         if let Some(name) = finished.file_name() {
@@ -229,9 +236,11 @@ impl Recordings {
     }
 
     /// The name the next file will have (for the `twin.part` record, written
-    /// before that file exists; `rotate` may add `-2` should it be taken by then).
-    pub fn next_path(&self) -> PathBuf {
-        next_name(&self.plan.dir, &self.plan.prefix, SystemTime::now())
+    /// before that file exists); `rotate` then creates exactly that file.
+    pub fn next_path(&mut self) -> PathBuf {
+        let path = next_name(&self.plan.dir, &self.plan.prefix, SystemTime::now());
+        self.promised_next = Some(path.clone());
+        path
     }
 
     /// The disk guard stopped the current file (closed whole) at `now`.
