@@ -95,3 +95,43 @@ impl RecordArgs {
         Ok(Some(plan))
     }
 }
+
+/// Where and how a session records, in words.
+pub fn recorded(plan: Option<&RecordPlan>) -> String {
+    use twin_realtime::rotate::{shown_duration, shown_size};
+    let Some(plan) = plan else {
+        return "not recorded".into();
+    };
+    let mut text = match &plan.out {
+        Some(out) => format!("records to {}", out.display()),
+        None => format!(
+            "records to {}/{}-START.mcap",
+            plan.dir.display(),
+            plan.prefix
+        ),
+    };
+    if let Some(every) = plan.every {
+        text.push_str(&format!(
+            ", a new file every {}",
+            shown_duration(every.as_secs_f64())
+        ));
+    }
+    if let Some(size) = plan.size {
+        text.push_str(&format!(", a new file at {}", shown_size(size)));
+    }
+    let keep = &plan.keep;
+    let mut kept = Vec::new();
+    if let Some(n) = keep.files {
+        kept.push(format!("{n} files"));
+    }
+    if let Some(age) = keep.age {
+        kept.push(shown_duration(age.as_secs_f64()));
+    }
+    if let Some(total) = keep.total {
+        kept.push(shown_size(total));
+    }
+    if !kept.is_empty() {
+        text.push_str(&format!(", keeping at most {}", kept.join(", ")));
+    }
+    text
+}

@@ -289,7 +289,7 @@ pub fn execute(args: &SuperviseArgs, matches: &ArgMatches) -> Result<()> {
             } else {
                 format!(" from {}", options.session.allow.shown())
             },
-            super::serve::recorded(options.session.record.as_ref())
+            super::record_args::recorded(options.session.record.as_ref())
         );
         return Ok(());
     }
