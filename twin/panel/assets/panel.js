@@ -135,7 +135,9 @@ function renderOutputs(m) {
     const names = { EN: "inverter enable", BRK: "brake", PRO: "converter boost", DES: "bus bleeder", FR: "reverse", CHG: "charger" };
     for (const k of ["EN", "BRK", "PRO", "DES", "FR", "CHG"]) {
       const b = o[k];
-      row(k, b.on ? "on" : "off", names[k] + " · active low: pin " + b.pin, b.on);
+      const sense = b.active_low ? " · active low: pin " : " · 0 clockwise, 1 counter-clockwise: pin ";
+      const text = k === "FR" ? (b.on ? "counter-clockwise" : "clockwise") : (b.on ? "on" : "off");
+      row(k, text, names[k] + sense + b.pin, b.on);
     }
     const flags = $("flags"); flags.replaceChildren();
     const s = dev.controller.status;

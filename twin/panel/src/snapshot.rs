@@ -147,7 +147,15 @@ pub fn read(engine: &mut RtEngine) -> EngineSnapshot {
 
 /// A digital output as the lab's I/O list names it: active low on the pin.
 fn bit(word: u16, mask: u16) -> Value {
-    json!({ "on": word & mask == 0, "pin": if word & mask == 0 { 0 } else { 1 } })
+    let pin = u8::from(word & mask != 0);
+    json!({ "on": pin == 0, "pin": pin, "active_low": true })
+}
+
+/// FR is the one output that is not active low: the pin is the direction,
+/// 0 clockwise and 1 counter-clockwise, so "on" (reverse) is pin 1.
+fn direction(word: u16, mask: u16) -> Value {
+    let pin = u8::from(word & mask != 0);
+    json!({ "on": pin == 1, "pin": pin, "active_low": false })
 }
 
 /// An MEB word with its engineering value.
@@ -186,7 +194,7 @@ fn image_json(image: &RegisterImage, readings: Option<&ReadingsSample>, forces: 
             "BRK": bit(stored.sd0, sd::BRK),
             "PRO": bit(stored.sd0, sd::PRO),
             "DES": bit(stored.sd0, sd::DES),
-            "FR": bit(stored.sd0, sd::FR),
+            "FR": direction(stored.sd0, sd::FR),
             "CHG": bit(stored.sd1, sd::CHG),
         },
         "variables": {
@@ -337,5 +345,25 @@ impl EngineSnapshot {
             .map(|m| m.sensors.wheel_rpm.abs())
             .or(lp.map(|l| l.state.measured_rpm));
         [Some(self.t), set_point, hall, light, wheel]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fr_is_the_direction_and_the_others_are_active_low() {
+        // What the supervisor writes to run forward: EN active, the rest off, FR 0.
+        let forward = 0x000E;
+        assert_eq!(bit(forward, sd::EN)["on"], true);
+        assert_eq!(bit(forward, sd::BRK)["on"], false);
+        assert_eq!(direction(forward, sd::FR)["on"], false, "FR 0 is clockwise");
+        // All pins high (the controller's idle outputs): counter-clockwise,
+        // as the controller's CCW status flag says.
+        let idle = sd::SD0_OFF;
+        assert_eq!(direction(idle, sd::FR)["on"], true);
+        assert_eq!(direction(idle, sd::FR)["pin"], 1);
+        assert_eq!(bit(idle, sd::EN)["on"], false);
     }
 }
