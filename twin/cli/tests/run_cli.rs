@@ -488,3 +488,62 @@ fn a_wheel_faster_than_the_light_sensors_limit_is_said_so() {
     let said = "light detector: fixed 2.36 V; it sees the flag up to 260 rpm: the wheel is faster, RPM_L cannot follow it";
     assert_eq!(text.matches(said).count(), 10, "{text}");
 }
+
+#[test]
+fn set_changes_a_field_of_the_scenario_before_it_runs() {
+    let out = scratch("set.mcap");
+    let o = twin(&[
+        "run",
+        "--duration",
+        "3",
+        "--set",
+        "node.supervisor.set_points=[[0.0, 0.0], [0.5, 800.0]]",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let text = String::from_utf8_lossy(&o.stdout);
+    let (wheel, hall, _) = summary_speeds(&text);
+    // The scenario's own set points are 1000 and 1500 rpm; the edited one is 800.
+    assert!(
+        (wheel - 800.0).abs() < 0.03 * 800.0,
+        "wheel {wheel}: {text}"
+    );
+    assert!((hall - 800.0).abs() < 0.03 * 800.0, "RPM_M {hall}: {text}");
+
+    let o = twin(&["run", "--duration", "1", "--set", "node.supervisor.kp"]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("write PATH=VALUE"), "{err}");
+
+    let o = twin(&["run", "--duration", "1", "--set", "node.nobody.kp=1"]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("nobody"), "{err}");
+    assert!(!err.contains("Error {"), "no Debug dump: {err}");
+}
+
+#[test]
+fn set_changes_an_open_loop_setting() {
+    let out = scratch("set-open-loop.mcap");
+    let o = twin(&[
+        "run",
+        "--open-loop",
+        "--set",
+        "vel_fraction=0",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let text = String::from_utf8_lossy(&o.stdout);
+    let wheel: f64 = text
+        .lines()
+        .find_map(|l| l.trim().strip_prefix("wheel speed"))
+        .and_then(|rest| rest.split_whitespace().next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("no wheel speed: {text}"));
+    assert!(
+        wheel.abs() < 1.0,
+        "VEL 0 leaves the wheel still: {wheel} rpm"
+    );
+}

@@ -64,26 +64,34 @@ impl RunSpec {
         if overrides.is_empty() {
             return Ok(self);
         }
-        let origin = format!("the run after --set {}", overrides.join(" --set "));
-        let mut table = self.to_table()?;
-        for o in overrides {
-            let Some((path, raw)) = o.split_once('=') else {
-                bail!("--set `{o}`: write PATH=VALUE, e.g. node.supervisor.kp=0.6");
-            };
-            set_path(&mut table, path.trim(), parse_value(raw.trim()))
-                .with_context(|| format!("--set `{o}`"))?;
-        }
+        let table = edited(self.to_table()?, overrides)?;
+        let origin = origin_of(overrides);
         match self {
-            RunSpec::Scenario(_) => {
-                let text = toml::to_string(&table)?;
-                Ok(RunSpec::Scenario(
-                    Scenario::parse(&text, "the edited scenario").context(origin)?,
-                ))
-            }
+            RunSpec::Scenario(_) => Ok(RunSpec::Scenario(scenario_from_table(&table, &origin)?)),
             RunSpec::OpenLoop(_) => Ok(RunSpec::OpenLoop(
                 open_loop_from_table(&table).context(origin)?,
             )),
         }
+    }
+
+    /// `scenario` with `overrides` applied, as [`RunSpec::with_overrides`]
+    /// changes a recorded one (`twin run --set`).
+    pub fn scenario_with_overrides(scenario: Scenario, overrides: &[String]) -> Result<Scenario> {
+        if overrides.is_empty() {
+            return Ok(scenario);
+        }
+        let table = edited(Table::try_from(&scenario)?, overrides)?;
+        scenario_from_table(&table, &origin_of(overrides))
+    }
+
+    /// An open-loop run's settings with `overrides` applied.
+    pub fn open_loop_with_overrides(config: OpenLoop, overrides: &[String]) -> Result<OpenLoop> {
+        if overrides.is_empty() {
+            return Ok(config);
+        }
+        let spec = RunSpec::OpenLoop(Box::new(config));
+        let table = edited(spec.to_table()?, overrides)?;
+        Ok(*open_loop_from_table(&table).context(origin_of(overrides))?)
     }
 
     fn to_table(&self) -> Result<Table> {
@@ -289,6 +297,26 @@ fn set_path(table: &mut Table, path: &str, value: Value) -> Result<()> {
         };
         i += 1;
     }
+}
+
+fn origin_of(overrides: &[String]) -> String {
+    format!("the run after --set {}", overrides.join(" --set "))
+}
+
+fn edited(mut table: Table, overrides: &[String]) -> Result<Table> {
+    for o in overrides {
+        let Some((path, raw)) = o.split_once('=') else {
+            bail!("--set `{o}`: write PATH=VALUE, e.g. node.supervisor.kp=0.6");
+        };
+        set_path(&mut table, path.trim(), parse_value(raw.trim()))
+            .with_context(|| format!("--set `{o}`"))?;
+    }
+    Ok(table)
+}
+
+fn scenario_from_table(table: &Table, origin: &str) -> Result<Scenario> {
+    let text = toml::to_string(table)?;
+    Scenario::parse(&text, "the edited scenario").context(origin.to_string())
 }
 
 #[cfg(test)]

@@ -5,6 +5,7 @@ use clap::Args;
 use std::path::PathBuf;
 use std::time::Instant;
 use twin_sim::openloop::{self, OpenLoop};
+use twin_sim::replay::RunSpec;
 use twin_sim::scenario::{EMBEDDED, Scenario};
 use twin_sim::virtual_run::{self, ControllerOutcome};
 use twin_view::{self as view, RerunObserver, ViewLayout, ViewTarget};
@@ -24,6 +25,12 @@ use super::progress::Progress;
 /// closed whole, when its disk has less than 256 MB free
 /// (TWIN_MIN_FREE_DISK_MB sets another floor). A recording already at the path
 /// is replaced, and the summary says so with what it held.
+///
+/// `--set PATH=VALUE` changes one field of the scenario before it runs, dotted
+/// as in its TOML with list items by name or index, as `twin replay` and
+/// `twin batch` take it: `--set node.supervisor.kp=0.6`,
+/// `--set module.ev1.params.wheel.brake_torque_nm=3`; open loop, a setting
+/// (`vel_fraction`) or a plant parameter (`params.motor.…`).
 #[derive(Debug, Args)]
 #[command(
     mut_arg("preset", |a| a.requires("open_loop")),
@@ -49,6 +56,10 @@ pub struct RunArgs {
     /// Seed of every random draw (noise, bit errors) [default: the scenario's; 1].
     #[arg(long, value_parser = super::numbers::whole::<u64>)]
     seed: Option<u64>,
+    /// Change a field of the scenario before it runs (repeatable), e.g.
+    /// `node.supervisor.kp=0.6`.
+    #[arg(long = "set", value_name = "PATH=VALUE")]
+    overrides: Vec<String>,
     /// Stream the run to rerun as it goes, beside the MCAP recording:
     /// `--view` opens a viewer (or uses the one already running),
     /// `--view rerun+http://HOST:PORT/proxy` streams to a running viewer,
@@ -102,7 +113,7 @@ pub fn execute(args: &RunArgs) -> Result<()> {
         return execute_open_loop(args);
     }
     let name = args.scenario.as_deref().unwrap_or("ev-meb");
-    let mut scenario = Scenario::load(name)?;
+    let mut scenario = RunSpec::scenario_with_overrides(Scenario::load(name)?, &args.overrides)?;
     if let Some(d) = args.duration {
         check_duration(d)?;
         scenario.duration_s = d;
@@ -272,6 +283,7 @@ fn execute_open_loop(args: &RunArgs) -> Result<()> {
     config.vel_fraction = args.vel;
     config.vel_step_at_s = args.vel_at;
     config.record_hz = args.record_hz;
+    let config = RunSpec::open_loop_with_overrides(config, &args.overrides)?;
 
     let out = args
         .out
@@ -279,7 +291,7 @@ fn execute_open_loop(args: &RunArgs) -> Result<()> {
         .unwrap_or_else(|| PathBuf::from("twin-run.mcap"));
     let earlier = Earlier::at(&out);
     let started = Instant::now();
-    let progress = Progress::simulated("the bench, open loop", duration);
+    let progress = Progress::simulated("the bench, open loop", config.duration_s);
     let summary = openloop::run(&config, &out, |done| progress.show(done))
         .with_context(|| format!("run failed; recording at {}", out.display()))?;
     progress.clear();
