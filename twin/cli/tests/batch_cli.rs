@@ -501,3 +501,48 @@ fn the_gnu_parallel_example_of_the_docs_runs() {
         "{log}"
     );
 }
+
+#[test]
+fn check_names_the_wrong_entries_and_runs_none() {
+    let dir = scratch("check");
+    std::fs::write(
+        dir.join("m.jsonl"),
+        "{\"scenario\": \"ev-meb\", \"set\": [\"duration_s=0.3\"], \"out\": \"first\"}\n\
+         {\"scenario\": \"later.toml\", \"out\": \"later\"}\n\
+         {\"scenario\": \"ev-meb\", \"set\": [\"node.nosuch.kp=1\"], \"out\": \"typo\"}\n",
+    )
+    .unwrap();
+    let o = twin_in(&dir, &["batch", "m.jsonl", "--check"], &[]);
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr),
+    );
+    assert_eq!(o.status.code(), Some(1), "{stdout}{stderr}");
+    assert!(
+        stdout.contains("entry 0 first: ok, scenario ev-meb, 0.3 s, seed 1"),
+        "{stdout}"
+    );
+    assert!(stdout.contains("entry 1 later: WRONG"), "{stdout}");
+    assert!(stdout.contains("later.toml"), "{stdout}");
+    assert!(stdout.contains("entry 2 typo: WRONG"), "{stdout}");
+    assert!(stdout.contains("nosuch"), "{stdout}");
+    assert!(
+        stderr.contains("2 of 3 entries checked are wrong; nothing was run"),
+        "{stderr}"
+    );
+    assert!(!dir.join("m").exists(), "nothing run, no output folder");
+
+    std::fs::write(
+        dir.join("good.jsonl"),
+        "{\"scenario\": \"ev-meb\", \"seed\": 4}\n{\"scenario\": \"ten-modules\"}\n",
+    )
+    .unwrap();
+    let text = ok(&dir, &["batch", "good.jsonl", "--check", "--index", "0"]);
+    assert!(text.contains("entry 0 0000: ok, scenario ev-meb"), "{text}");
+    assert!(text.contains("seed 4"), "{text}");
+    assert!(
+        text.contains("1 entries checked, every one would run"),
+        "{text}"
+    );
+    assert!(!dir.join("good").exists());
+}

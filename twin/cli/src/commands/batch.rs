@@ -29,7 +29,7 @@ use twin_lab::batch::{self, Manifest, Options, Report, Selection, Status, Summar
 #[command(
     args_conflicts_with_subcommands = true,
     subcommand_negates_reqs = true,
-    after_help = "Examples:\n  twin batch sweep.jsonl --count\n  twin batch sweep.jsonl --jobs 2 --out sweep\n  twin batch sweep.jsonl --index 7 --out sweep\n  twin batch sweep.jsonl --shard 1/4 --out sweep\n  twin batch summarize sweep --plot step.settling_s --against node.supervisor.kp"
+    after_help = "Examples:\n  twin batch sweep.jsonl --count\n  twin batch sweep.jsonl --check\n  twin batch sweep.jsonl --jobs 2 --out sweep\n  twin batch sweep.jsonl --index 7 --out sweep\n  twin batch sweep.jsonl --shard 1/4 --out sweep\n  twin batch summarize sweep --plot step.settling_s --against node.supervisor.kp"
 )]
 pub struct BatchArgs {
     #[command(subcommand)]
@@ -40,6 +40,10 @@ pub struct BatchArgs {
     /// Print how many entries the manifest has (for a launcher) and exit.
     #[arg(long)]
     count: bool,
+    /// Check every entry chosen (its scenario loads, its changes apply)
+    /// without running any, and exit: non-zero if one is wrong.
+    #[arg(long, conflicts_with = "count")]
+    check: bool,
     /// The folder of recordings and summaries [default: the manifest's name
     /// without its extension, in the current folder].
     #[arg(long, value_name = "DIR")]
@@ -114,6 +118,9 @@ pub fn execute(args: &BatchArgs) -> Result<()> {
     }
     let selection = select(args)?;
     let indices = selection.indices(count)?;
+    if args.check {
+        return check(&manifest, &indices, path);
+    }
     let dir = args.out.clone().unwrap_or_else(|| default_dir(path));
     let jobs = args.jobs.unwrap_or_else(|| {
         std::thread::available_parallelism().map_or(1, std::num::NonZeroUsize::get)
@@ -175,6 +182,38 @@ pub fn execute(args: &BatchArgs) -> Result<()> {
             names.join(", ")
         );
     }
+    Ok(())
+}
+
+/// `--check`: each entry prepared as a run would prepare it, none run.
+fn check(manifest: &Manifest, indices: &[usize], path: &Path) -> Result<()> {
+    let mut wrong = 0;
+    for &i in indices {
+        match batch::runner::prepare(manifest, i) {
+            Ok(s) => println!(
+                "entry {i} {}: ok, scenario {}, {} s, seed {}",
+                manifest.name(i),
+                s.name,
+                s.duration_s,
+                s.seed
+            ),
+            Err(e) => {
+                wrong += 1;
+                println!("entry {i} {}: WRONG: {e:#}", manifest.name(i));
+            }
+        }
+    }
+    let shown = path.display();
+    if wrong > 0 {
+        bail!(
+            "{shown}: {wrong} of {} entries checked are wrong; nothing was run",
+            indices.len()
+        );
+    }
+    println!(
+        "{shown}: {} entries checked, every one would run",
+        indices.len()
+    );
     Ok(())
 }
 

@@ -63,10 +63,7 @@ pub struct Options {
 pub fn prepare(manifest: &Manifest, index: usize) -> Result<Scenario> {
     let entry = &manifest.entries[index];
     let scenario = Scenario::load(&manifest.scenario_of(index))?;
-    let RunSpec::Scenario(mut scenario) = RunSpec::Scenario(scenario).with_overrides(&entry.set)?
-    else {
-        unreachable!("a scenario stays a scenario when changed");
-    };
+    let mut scenario = RunSpec::scenario_with_overrides(scenario, &entry.set)?;
     if let Some(seed) = entry.seed {
         scenario.seed = seed;
     }
