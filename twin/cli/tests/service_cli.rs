@@ -514,3 +514,26 @@ fn a_class_of_five_modules_each_reached_by_its_own_pymodbus_client() {
         "{printed}"
     );
 }
+
+#[test]
+fn check_refuses_a_serial_port_that_is_not_there_unless_told_to_wait() {
+    let missing = folder("ports").join("ttyGone");
+    let missing = missing.to_str().unwrap();
+    for args in [
+        vec!["serve", "--modbus-rtu", missing, "--check"],
+        vec!["supervise", "--meb", missing, "--check"],
+    ] {
+        let o = twin(&args);
+        assert!(!o.status.success(), "{args:?}: {}", text(&o));
+        assert!(
+            text(&o).contains(&format!("serial port {missing} does not exist")),
+            "{args:?}: {}",
+            text(&o)
+        );
+        assert!(text(&o).contains("--wait-for-ports"), "{}", text(&o));
+        let mut waiting = args.clone();
+        waiting.push("--wait-for-ports");
+        let o = twin(&waiting);
+        assert!(o.status.success(), "{waiting:?}: {}", text(&o));
+    }
+}

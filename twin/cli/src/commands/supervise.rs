@@ -271,6 +271,7 @@ pub fn execute(args: &SuperviseArgs, matches: &ArgMatches) -> Result<()> {
     };
     let mut options = options(args)?;
     if args.service.check {
+        supervise::check_links(&options)?;
         let listen: Vec<&str> = options.listen.iter().map(String::as_str).collect();
         println!(
             "supervises {} over {}{}{}; {}",

@@ -7,17 +7,26 @@ use tokio_serial::{DataBits, FlowControl, SerialStream, StopBits};
 
 use super::spec::{Parity, SerialSettings};
 
+/// Refuses a serial path that does not exist, saying it may be a
+/// pseudo-terminal some other program has not created yet (what `open` and
+/// the services' `--check` say alike).
+pub fn present(path: &Path) -> Result<()> {
+    if !path.exists() {
+        bail!(
+            "serial port {} does not exist; if it is a pseudo-terminal that another program \
+             creates (twin vsp, socat), start that program first, or pass --wait-for-ports",
+            path.display()
+        );
+    }
+    Ok(())
+}
+
 /// Opens `path` with `settings`. Must run inside a tokio runtime. A path that
 /// does not exist gets an error that says it may be a pseudo-terminal some
 /// other program has not created yet.
 pub fn open(path: &Path, settings: &SerialSettings) -> Result<SerialStream> {
     let shown = path.display();
-    if !path.exists() {
-        bail!(
-            "serial port {shown} does not exist; if it is a pseudo-terminal that another program \
-             creates (twin vsp, socat), start that program first, or pass --wait-for-ports"
-        );
-    }
+    present(path)?;
     let Some(name) = path.to_str() else {
         bail!("serial port path {shown} is not valid UTF-8");
     };

@@ -119,6 +119,21 @@ fn check_kind(protocol: ServeProtocol) -> Option<CheckKind> {
     }
 }
 
+/// `--check`: the links as serving them would read them, and each serial
+/// port there already (or waited for, with `--wait-for-ports`); nothing is
+/// opened or bound.
+pub fn check_links(options: &ServeOptions) -> Result<()> {
+    for (protocol, spec) in parse_links(options)? {
+        if let LinkAddr::Serial(path) = &spec.addr
+            && !options.session.wait_for_ports
+        {
+            crate::io::serial::present(path)
+                .with_context(|| format!("{} {}", protocol.option(), spec.text))?;
+        }
+    }
+    Ok(())
+}
+
 /// Parses every link and checks each protocol is on a medium it runs on.
 pub fn parse_links(options: &ServeOptions) -> Result<Vec<(ServeProtocol, LinkSpec)>> {
     if options.links.is_empty() {

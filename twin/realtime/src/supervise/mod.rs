@@ -237,6 +237,20 @@ impl<C: FnOnce(Sender<Inbound>)> Role for Supervising<'_, C> {
     }
 }
 
+/// `--check`: the bus and the listening addresses as supervising would read
+/// them, and the bus's serial port there already (or waited for); nothing is
+/// opened or bound.
+pub fn check_links(options: &SuperviseOptions) -> Result<()> {
+    let (bus, _) = parse_links(options)?;
+    if let LinkAddr::Serial(path) = &bus.addr
+        && !options.session.wait_for_ports
+    {
+        crate::io::serial::present(path)
+            .with_context(|| format!("{} {}", bus_option(options.protocol), options.bus))?;
+    }
+    Ok(())
+}
+
 fn parse_links(options: &SuperviseOptions) -> Result<(LinkSpec, Vec<LinkSpec>)> {
     // A master sends as soon as it is ready: no turnaround of its own.
     let defaults = LinkDefaults {

@@ -55,8 +55,12 @@ pub fn execute(
             .map_err(|e| anyhow!("{}:{}: module {}: {e:#}", file.origin, m.line, m.name))?;
         let options = super::options(&args, Some(&m.name))
             .map_err(|e| anyhow!("{}:{}: module {}: {e:#}", file.origin, m.line, m.name))?;
-        serve::parse_links(&options)
-            .map_err(|e| anyhow!("{}:{}: module {}: {e:#}", file.origin, m.line, m.name))?;
+        let links = if check {
+            serve::check_links(&options)
+        } else {
+            serve::parse_links(&options).map(drop)
+        };
+        links.map_err(|e| anyhow!("{}:{}: module {}: {e:#}", file.origin, m.line, m.name))?;
         modules.push((m.name.clone(), args, options));
     }
     if check {

@@ -257,7 +257,7 @@ pub fn execute(args: &ServeArgs, matches: &ArgMatches) -> Result<()> {
     };
     let mut options = options(args, None)?;
     if args.service.check {
-        serve::parse_links(&options)?;
+        serve::check_links(&options)?;
         println!("{}", described(&options));
         return Ok(());
     }
