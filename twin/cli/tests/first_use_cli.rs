@@ -14,7 +14,7 @@ mod support;
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
-use support::Proc;
+use support::{Proc, text};
 
 /// `twin ARGS` run in `dir`.
 fn twin_in(dir: &Path, args: &[&str]) -> Output {
@@ -24,14 +24,6 @@ fn twin_in(dir: &Path, args: &[&str]) -> Output {
         .stdin(Stdio::null())
         .output()
         .expect("twin runs")
-}
-
-fn text(o: &Output) -> String {
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    )
 }
 
 /// `twin ARGS` in `dir`, which must succeed; what it printed.

@@ -3,14 +3,9 @@
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output, Stdio};
-
-fn twin(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_twin"))
-        .args(args)
-        .output()
-        .expect("twin runs")
-}
+use std::process::{Command, Stdio};
+mod support;
+use support::twin;
 
 fn stdout_of(args: &[&str]) -> String {
     let o = twin(args);
@@ -24,9 +19,7 @@ fn stdout_of(args: &[&str]) -> String {
 }
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("twin-install-cli-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    dir.join(name)
+    support::scratch("install-cli", name)
 }
 
 /// What bash offers for the words typed so far, through the script's own

@@ -6,11 +6,10 @@ use std::io::Read;
 use std::os::fd::OwnedFd;
 use std::path::PathBuf;
 use std::process::{Command, Output, Stdio};
+mod support;
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("twin-progress-cli-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    dir.join(name)
+    support::scratch("progress-cli", name)
 }
 
 /// Runs `twin ARGS` with stderr on a fresh pseudo-terminal (100 columns,

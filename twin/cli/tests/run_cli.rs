@@ -6,19 +6,12 @@
 )]
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
-
-fn twin(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_twin"))
-        .args(args)
-        .output()
-        .expect("twin runs")
-}
+use std::process::Command;
+mod support;
+use support::twin;
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("twin-run-cli-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    dir.join(name)
+    support::scratch("run-cli", name)
 }
 
 fn read_messages(path: &Path, topic: &str) -> Vec<(u64, serde_json::Value)> {

@@ -72,9 +72,7 @@ impl Server {
 }
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("twin-serve-cli-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    dir.join(name)
+    support::scratch("serve-cli", name)
 }
 
 fn connect(addr: &str) -> TcpStream {

@@ -13,11 +13,11 @@
 
 use std::os::unix::net::UnixDatagram;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
 mod support;
-use support::Proc;
+use support::{Proc, text, twin};
 
 fn folder(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("twin-service-cli-{}-{name}", std::process::id()));
@@ -28,21 +28,6 @@ fn folder(name: &str) -> PathBuf {
 
 fn repo() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
-
-fn twin(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_twin"))
-        .args(args)
-        .output()
-        .expect("twin runs")
-}
-
-fn text(o: &Output) -> String {
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    )
 }
 
 fn signal(proc: &Proc, name: &str) {

@@ -22,9 +22,7 @@ mod support;
 use support::Proc;
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("twin-view-sessions-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    dir.join(name)
+    support::scratch("view-sessions", name)
 }
 
 fn ok(o: &Output) -> String {

@@ -30,7 +30,7 @@ use super::progress::Progress;
 /// as in its TOML with list items by name or index, as `twin replay` and
 /// `twin batch` take it: `--set node.supervisor.kp=0.6`,
 /// `--set module.ev1.params.wheel.brake_torque_nm=3`; open loop, a setting
-/// (`vel_fraction`) or a plant parameter (`params.motor.…`).
+/// (`vel_fraction`) or a plant parameter (`params.motor.current_limit_amps=8`).
 #[derive(Debug, Args)]
 #[command(
     mut_arg("preset", |a| a.requires("open_loop")),

@@ -1,12 +1,19 @@
-//! The real `twin` binary as the CLI tests start it: a subcommand that prints
-//! its links and then `ready`, its stdout collected in the background, stopped
-//! by SIGTERM, by its own `--duration`, or killed when the test drops it.
+//! The real `twin` binary as the CLI tests start it: run to its end
+//! ([`twin`]), or a subcommand that prints its links and then `ready`, its
+//! stdout collected in the background, stopped by SIGTERM, by its own
+//! `--duration`, or killed when the test drops it ([`Proc`]); and the scratch
+//! folders the tests write in.
 
 // Each test crate compiles this module for itself and uses part of it.
 #![allow(dead_code)]
+#![allow(
+    clippy::disallowed_methods,
+    reason = "the tests drive real processes in real time"
+)]
 
 use std::io::{BufRead, BufReader, Read};
-use std::process::{Child, Command, Stdio};
+use std::path::PathBuf;
+use std::process::{Child, Command, Output, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -157,4 +164,52 @@ impl Drop for Proc {
         let _ = self.child.kill();
         let _ = self.child.wait();
     }
+}
+
+/// `twin ARGS`, run to its end with its output collected.
+pub fn twin(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_twin"))
+        .args(args)
+        .output()
+        .expect("twin runs")
+}
+
+/// What a finished `twin` printed, stdout then stderr.
+pub fn text(o: &Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
+}
+
+/// The file `name` in this test binary's scratch folder,
+/// `$TMPDIR/twin-TEST-PID`. The first call removes the folders of `TEST`
+/// that earlier runs left (their process gone), so runs do not pile up.
+pub fn scratch(test: &str, name: &str) -> PathBuf {
+    static SWEPT: std::sync::Once = std::sync::Once::new();
+    let tmp = std::env::temp_dir();
+    let prefix = format!("twin-{test}-");
+    SWEPT.call_once(|| {
+        let Ok(entries) = std::fs::read_dir(&tmp) else {
+            return;
+        };
+        for e in entries.flatten() {
+            let file_name = e.file_name();
+            let Some(pid) = file_name
+                .to_str()
+                .and_then(|n| n.strip_prefix(&prefix))
+                .and_then(|rest| rest.parse::<u32>().ok())
+            else {
+                continue;
+            };
+            if pid != std::process::id() && !std::path::Path::new(&format!("/proc/{pid}")).exists()
+            {
+                let _ = std::fs::remove_dir_all(e.path());
+            }
+        }
+    });
+    let dir = tmp.join(format!("{prefix}{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("scratch folder");
+    dir.join(name)
 }
