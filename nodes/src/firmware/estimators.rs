@@ -196,6 +196,8 @@ impl Default for LightDetectorConfig {
 /// for the detector (the cell is slow: above
 /// [`plant::light::fixed_threshold_max_rpm`] it never reaches the threshold)
 /// is missed, and the estimate falls to 0 or to a sub-multiple of the speed.
+/// Between dips it never reads faster than one turn in the time since the
+/// last dip, so a slowing wheel reads slower at once.
 #[derive(Debug, Clone)]
 pub struct LightRpm {
     config: LightDetectorConfig,
@@ -282,10 +284,20 @@ impl LightRpm {
             self.last_dip_at = None;
             self.rpm = 0.0;
         }
-        if self.last_dip_at.is_none() {
+        let Some(previous) = self.last_dip_at else {
             self.rpm = 0.0;
+            return 0.0;
+        };
+        // No dip for longer than the last period: the wheel has slowed, and
+        // turns at most once in the time since the last dip. Holding the last
+        // period instead would read a stopping wheel as still turning until
+        // the timeout, and a loop closed on RPM_L would stop the wheel dead.
+        let since = (now - previous).as_secs_f64();
+        if since > 0.0 {
+            self.rpm.min(60.0 / since)
+        } else {
+            self.rpm
         }
-        self.rpm
     }
 }
 
@@ -378,5 +390,31 @@ mod tests {
             rpm = adaptive.tick(SimTime::ZERO + SimDuration::from_millis(ms), 3280, 0, true);
         }
         assert_eq!(rpm, 0.0);
+    }
+
+    #[test]
+    fn a_slowing_wheel_reads_slower_between_dips() {
+        let config = LightDetectorConfig::default();
+        let mut light = LightRpm::new(config, SimDuration::from_millis(1));
+        let at = |ms: u64| SimTime::ZERO + SimDuration::from_millis(ms);
+        let mut tick = |ms: u64, dark: bool| {
+            light.tick(
+                at(ms),
+                if dark { 600 } else { 3280 },
+                config.threshold_counts,
+                false,
+            )
+        };
+        // Dips 500 ms apart (120 rpm), the last at 1000 ms; then the wheel stops.
+        for ms in 0..=1000u64 {
+            tick(ms, ms % 500 < 40);
+        }
+        // Within one period of the last dip, the last period stands...
+        assert!((tick(1400, false) - 120.0).abs() < 1e-9);
+        // ...past it, at most one turn in the time since the dip: 60 rpm at 1 s.
+        assert!((tick(2000, false) - 60.0).abs() < 1e-9);
+        assert!((tick(2500, false) - 40.0).abs() < 1e-9);
+        // And 0 after the timeout, as before.
+        assert_eq!(tick(3100, false), 0.0);
     }
 }

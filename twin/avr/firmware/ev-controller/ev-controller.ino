@@ -335,6 +335,12 @@ static float light_tick(uint32_t now, uint16_t counts) {
   }
   if (have_dip && now - last_dip_us > NO_DIP_TIMEOUT_US) have_dip = false;
   if (!have_dip) light_rpm = 0;
+  // Between dips: at most one turn in the time since the last one (twin:
+  // LightRpm), so a slowing wheel reads slower at once.
+  if (have_dip && now != last_dip_us) {
+    float bound = 60.0f / ((float)(now - last_dip_us) * 1e-6f);
+    if (bound < light_rpm) return bound;
+  }
   return light_rpm;
 }
 
