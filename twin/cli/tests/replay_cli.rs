@@ -508,9 +508,18 @@ fn recover_turns_a_cut_recording_into_one_every_reader_opens() {
     let o = twin(&["compare", s(&cut), s(&whole)]);
     assert!(o.status.success(), "{}", text(&o));
     let copy = scratch("copy.mcap");
+    let _ = std::fs::remove_file(&copy);
     let o = twin(&["recover", s(ev_meb()), "--out", s(&copy)]);
     assert!(text(&o).contains("complete already"), "{}", text(&o));
+    assert!(!text(&o).contains("replaced"), "{}", text(&o));
     assert_eq!(messages(&copy), original);
+    // A second time it says what it replaced.
+    let o = twin(&["recover", s(ev_meb()), "--out", s(&copy)]);
+    assert!(
+        text(&o).contains("(replaced the one there before: a scenario run of ev-meb"),
+        "{}",
+        text(&o)
+    );
     let o = twin(&["recover", s(ev_meb()), "--out", s(ev_meb())]);
     assert!(!o.status.success(), "{}", text(&o));
 }

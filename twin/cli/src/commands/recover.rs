@@ -37,11 +37,13 @@ pub fn execute(args: &RecoverArgs) -> Result<()> {
     if same_file(&args.recording, &out) {
         bail!("--out must not be the recording being recovered: the original is kept as it is");
     }
+    let earlier = super::output::Earlier::at(&out);
     let r = recover::recover(&args.recording, &out)?;
     println!(
-        "twin recover: {} -> {}",
+        "twin recover: {} -> {}{}",
         args.recording.display(),
-        out.display()
+        out.display(),
+        super::output::Earlier::note(earlier.as_ref())
     );
     println!(
         "  {} messages on {} channels, {} metadata record(s), {} attachment(s), from {} complete chunk(s)",
