@@ -105,6 +105,37 @@ fn a_step_recording_replays_byte_for_byte_closed_and_open_loop() {
         "{}",
         text(&o)
     );
+    // The step itself changes too: its set point after the step.
+    let o = twin_in(
+        &dir,
+        &[
+            "replay",
+            "closed/step.mcap",
+            "--set",
+            "step.to=300",
+            "--out",
+            "to-300.mcap",
+        ],
+    );
+    assert!(
+        text(&o).contains("changed: step.to=300")
+            && text(&o).contains(
+                "DEPARTS at 0.500000 s on /experiment/step.set_point: recorded 200.0, replayed 300.0"
+            ),
+        "{}",
+        text(&o)
+    );
+    let o = twin_in(
+        &dir,
+        &["replay", "closed/step.mcap", "--set", "step.size=3"],
+    );
+    assert!(
+        !o.status.success()
+            && text(&o)
+                .contains("the step has `step.from`, `step.to` and `step.at_s`, not `step.size`"),
+        "{}",
+        text(&o)
+    );
 }
 
 /// A step recording made before the step's settings were stored: its

@@ -102,8 +102,13 @@ impl StepConfig {
                 .with_context(|| format!("{origin}: `twin.run` field `{k}` is not a number"))
         };
         let flag = |k: &str| recording.run_field(k) == Some("true");
-        let spec = RunSpec::from_recording(recording)?.with_overrides(overrides)?;
-        Ok(Some(match spec {
+        // `step.from`, `step.to`, `step.at_s` change the step itself; every
+        // other path, the scenario or the bench it ran on.
+        let (step_changes, others): (Vec<&String>, Vec<&String>) =
+            overrides.iter().partition(|o| o.starts_with("step."));
+        let others: Vec<String> = others.into_iter().cloned().collect();
+        let spec = RunSpec::from_recording(recording)?.with_overrides(&others)?;
+        let mut config = match spec {
             RunSpec::Scenario(scenario) => StepConfig {
                 from: number("step_from")?,
                 to: number("step_to")?,
@@ -127,7 +132,57 @@ impl StepConfig {
                     adaptive_light: flag("step_adaptive_light"),
                 },
             },
-        }))
+        };
+        for change in step_changes {
+            config.change_step(change)?;
+        }
+        Ok(Some(config))
+    }
+
+    /// One `--set step.from=V` (or `step.to`, `step.at_s`): rpm closed loop,
+    /// a fraction of VEL's range open loop, as `twin step` takes them.
+    fn change_step(&mut self, change: &str) -> Result<()> {
+        let Some((path, value)) = change.split_once('=') else {
+            bail!("--set `{change}`: write PATH=VALUE, e.g. step.to=300");
+        };
+        let value: f64 = value
+            .trim()
+            .parse()
+            .ok()
+            .filter(|v: &f64| v.is_finite())
+            .with_context(|| format!("--set `{change}`: {} must be a number", path.trim()))?;
+        let open_loop = matches!(self.drive, StepDrive::OpenLoop { .. });
+        let own_set_points = match &self.drive {
+            StepDrive::ClosedLoop { scenario, .. } => !scenario
+                .nodes
+                .iter()
+                .any(|n| matches!(n, NodeSpec::Supervisor { .. })),
+            StepDrive::OpenLoop { .. } => false,
+        };
+        match path.trim() {
+            "step.from" | "step.to" if own_set_points => bail!(
+                "--set `{change}`: this scenario's master runs its own set points (the \
+                 Controller_network master), so the step's levels are its own; `step.at_s` \
+                 picks which of its steps is measured"
+            ),
+            "step.from" | "step.to" if open_loop && !(0.0..=1.0).contains(&value) => bail!(
+                "--set `{change}`: open loop, the step is a fraction of VEL's 5 V range, 0 to 1"
+            ),
+            "step.from" | "step.to" if value < 0.0 => {
+                bail!("--set `{change}`: a set point in rpm, 0 or more")
+            }
+            "step.from" => self.from = value,
+            "step.to" => self.to = value,
+            "step.at_s" if !(value > 0.0 && value < self.duration_s) => bail!(
+                "--set `{change}`: the step's time must fall within the run, above 0 and below {} s",
+                self.duration_s
+            ),
+            "step.at_s" => self.step_at_s = value,
+            other => bail!(
+                "--set `{change}`: the step has `step.from`, `step.to` and `step.at_s`, not `{other}`"
+            ),
+        }
+        Ok(())
     }
 
     /// A line naming the experiment, as `twin replay` prints it.

@@ -26,7 +26,8 @@ use super::progress::Progress;
 /// the stored scenario first (dotted as in its TOML, list items by name or
 /// index): `--set node.supervisor.kp=0.6`, `--set
 /// module.ev1.params.wheel.brake_torque_nm=3`, `--set seed=2`; of a step
-/// response, the scenario or the bench it ran on.
+/// response, the scenario or the bench it ran on, or the step itself:
+/// `--set step.to=300` (`step.from`, `step.at_s`).
 ///
 /// `--frames-to LINK` instead sends the recorded master requests of one bus to a
 /// live slave (`tcp://HOST:PORT` carrying the raw bus bytes, or a serial device or
