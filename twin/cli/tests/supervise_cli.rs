@@ -207,6 +207,24 @@ fn vsp_refuses_to_replace_a_file_that_is_not_a_link() {
 }
 
 #[test]
+fn vsp_replaces_a_link_a_killed_run_left_and_says_so() {
+    let (a, b) = pair_paths("stale");
+    let _ = std::fs::remove_file(&a);
+    std::os::unix::fs::symlink("/dev/pts/9999", &a).unwrap();
+    let vsp = Proc::start(&["vsp", s(&a), s(&b)]);
+    assert!(
+        vsp.output()
+            .contains(&format!("{} -> /dev/pts/", a.display()))
+            && vsp.output().contains(
+                "(replaced the link to /dev/pts/9999 that was there, left by an earlier run)"
+            ),
+        "{}",
+        vsp.output()
+    );
+    assert_ne!(std::fs::read_link(&a).unwrap(), Path::new("/dev/pts/9999"));
+}
+
+#[test]
 fn supervise_closes_the_speed_loop_against_serve_over_a_vsp_pair() {
     let (a, b) = pair_paths("loop");
     let _vsp = Proc::start(&["vsp", s(&a), s(&b)]);

@@ -40,6 +40,8 @@ pub struct PtyEnd {
     device: PathBuf,
     /// The symlink the user opens.
     link: PathBuf,
+    /// Where an old symlink at `link` pointed, replaced by this one.
+    replaced: Option<PathBuf>,
 }
 
 impl PtyEnd {
@@ -72,13 +74,14 @@ impl PtyEnd {
             .context("registering the pty with the runtime")?;
         let tx = pipe::Sender::from_owned_fd_unchecked(tx_fd)
             .context("registering the pty with the runtime")?;
-        place_link(link, &device)?;
+        let replaced = place_link(link, &device)?;
         Ok(Self {
             rx,
             tx,
             _held_slave: held_slave,
             device,
             link: link.to_path_buf(),
+            replaced,
         })
     }
 
@@ -91,6 +94,12 @@ impl PtyEnd {
     pub fn link(&self) -> &Path {
         &self.link
     }
+
+    /// Where the symlink this one replaced pointed (left by a run that was
+    /// killed), if there was one.
+    pub fn replaced(&self) -> Option<&Path> {
+        self.replaced.as_deref()
+    }
 }
 
 impl Drop for PtyEnd {
@@ -102,19 +111,25 @@ impl Drop for PtyEnd {
     }
 }
 
-fn place_link(link: &Path, device: &Path) -> Result<()> {
-    match std::fs::symlink_metadata(link) {
-        Ok(meta) if meta.file_type().is_symlink() => std::fs::remove_file(link)
-            .with_context(|| format!("cannot replace the old symlink {}", link.display()))?,
+/// Points `link` at `device`; returns where an old symlink there pointed.
+fn place_link(link: &Path, device: &Path) -> Result<Option<PathBuf>> {
+    let replaced = match std::fs::symlink_metadata(link) {
+        Ok(meta) if meta.file_type().is_symlink() => {
+            let old = std::fs::read_link(link).ok();
+            std::fs::remove_file(link)
+                .with_context(|| format!("cannot replace the old symlink {}", link.display()))?;
+            old
+        }
         Ok(_) => bail!(
             "{} exists and is not a symlink; remove it or choose another path",
             link.display()
         ),
-        Err(e) if e.kind() == ErrorKind::NotFound => {}
+        Err(e) if e.kind() == ErrorKind::NotFound => None,
         Err(e) => return Err(e).with_context(|| format!("cannot check {}", link.display())),
-    }
+    };
     std::os::unix::fs::symlink(device, link)
-        .with_context(|| format!("cannot create the symlink {}", link.display()))
+        .with_context(|| format!("cannot create the symlink {}", link.display()))?;
+    Ok(replaced)
 }
 
 /// Bytes copied one way, and bytes dropped because the far end's buffer was full.

@@ -62,7 +62,14 @@ async fn run(args: &VspArgs) -> Result<()> {
             .map_or(String::new(), |b| format!(", paced at {b} baud (8N1)"))
     );
     for i in 0..2 {
-        println!("  {} -> {}", names[i], pair.end(i).device().display());
+        let end = pair.end(i);
+        let replaced = end.replaced().map_or(String::new(), |old| {
+            format!(
+                " (replaced the link to {} that was there, left by an earlier run)",
+                old.display()
+            )
+        });
+        println!("  {} -> {}{replaced}", names[i], end.device().display());
     }
     println!("ready");
 
