@@ -429,7 +429,11 @@ impl Firmware for EvController {
                 && sensors.motor_current.abs() > self.config.over_current_release_amps);
 
         let actuators = if self.image.protection.tripped() {
-            Actuators::from_pins(sd::SD0_OFF, sd::SD1_OFF, 0.0)
+            // A trip switches every function off; FR is a direction, not a
+            // function, so it stays where the master set it (and the CCW
+            // flag with it).
+            let off = (sd::SD0_OFF & !sd::FR) | (applied.sd0 & sd::FR);
+            Actuators::from_pins(off, sd::SD1_OFF, 0.0)
         } else {
             Actuators::from_pins(applied.sd0, applied.sd1, self.vel_volts(applied.vel))
         };

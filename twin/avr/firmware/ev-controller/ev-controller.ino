@@ -7,7 +7,8 @@
 // Pins (wiring map `ev-controller`):
 //   A0 V2, A1 I, A2 V1, A3 LDR      analog inputs through the bench's dividers
 //   D2 D3 D4 hall A, B, C           pin-change interrupt, edges timestamped
-//   D5 EN, D6 BRK, D7 PRO, D8 DES, D10 FR, D11 CHG   active low, as MEB's SD words
+//   D5 EN, D6 BRK, D7 PRO, D8 DES, D11 CHG   active low, as MEB's SD words
+//   D10 FR                          direction: low clockwise, high counter-clockwise
 //   D9 VEL                          Timer1 fast PWM, 10 bits, 15.6 kHz; the
 //                                   bench's RC filter makes it a voltage
 //   D13 LED                         on while the module is enabled
