@@ -254,3 +254,208 @@ fn each_module_of_a_class_has_its_own_panel_and_token() {
     server.terminate();
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The serve panel's state (the plant's true wheel, the outputs the controller holds).
+fn serve_state(host: &str) -> serde_json::Value {
+    let (_, body) = http(host, "GET", "/api/state", None, "");
+    serde_json::from_str(&body).unwrap_or_default()
+}
+
+/// A port free now on 127.0.0.1.
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+fn start_serve(meb: &str, web: bool) -> Proc {
+    let mut args = vec![
+        "serve",
+        "--meb",
+        meb,
+        "--quiet",
+        "--no-record",
+        "--status-every",
+        "0",
+    ];
+    if web {
+        args.extend(["--web", "127.0.0.1:0"]);
+    }
+    Proc::start(&args)
+}
+
+#[test]
+fn the_client_panel_writes_vel_and_the_switches_and_the_wheel_follows() {
+    let meb = format!("tcp://127.0.0.1:{}", free_port());
+    let serve = start_serve(&meb, true);
+    let (serve_host, _) = parts(&panel_url(&serve));
+    // A moved signal: the client reads V1 where the map puts it.
+    let dir = std::env::temp_dir().join(format!("twin-{}-panel-client", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let map = dir.join("map.toml");
+    std::fs::write(
+        &map,
+        "[EA]\nV1 = 0\nV2 = 1\nI = 2\nRPM_M = 3\nRPM_L = 4\nLDR = 5\n",
+    )
+    .unwrap();
+    let serve_mapped = Proc::start(&[
+        "serve",
+        "--meb",
+        "tcp://127.0.0.1:0",
+        "--map",
+        map.to_str().unwrap(),
+        "--quiet",
+        "--no-record",
+        "--status-every",
+        "0",
+    ]);
+    let panel = Proc::start(&["panel", &meb, "--web", "127.0.0.1:0"]);
+    assert!(
+        panel.output().contains("MEB client of"),
+        "{}",
+        panel.output()
+    );
+    let (host, token) = parts(&panel_url(&panel));
+    assert!(token.is_none());
+    // Enable, release the brake, VEL at half scale: the wheel turns.
+    let (status, body) = http(
+        &host,
+        "POST",
+        "/api/outputs",
+        None,
+        r#"{"EN":true,"BRK":false,"vel":2048}"#,
+    );
+    assert_eq!(status, 200, "{body}");
+    wait_until(
+        &serve_host,
+        "the controller to hold VEL, EN on and BRK off",
+        |s| {
+            let o = &s["state"]["devices"][0]["controller"]["outputs"];
+            o["VEL"]["counts"] == 2048 && o["EN"]["on"] == true && o["BRK"]["on"] == false
+        },
+    );
+    // The wheel spins up, and the client's hall gauge (EA RPM_M, read over
+    // its own link) follows the plant's true wheel.
+    let start = Instant::now();
+    loop {
+        let wheel = serve_state(&serve_host)["state"]["modules"][0]["wheel_rpm"]
+            .as_f64()
+            .unwrap_or(0.0)
+            .abs();
+        let (_, body) = http(&host, "GET", "/api/state", None, "");
+        let client: serde_json::Value = serde_json::from_str(&body).unwrap_or_default();
+        let hall = client["state"]["devices"][0]["controller"]["inputs"]["RPM_M"]["value"]
+            .as_f64()
+            .unwrap_or(0.0);
+        if wheel > 300.0 && (hall - wheel).abs() < 0.05 * wheel {
+            assert_eq!(client["role"], "client");
+            assert_eq!(client["state"]["connection"]["connected"], true);
+            assert!(
+                client["frames"].as_array().is_some_and(|f| !f.is_empty()),
+                "its own frames in the monitor: {client}"
+            );
+            break;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(15),
+            "the client's hall rpm {hall} did not follow the wheel {wheel}"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    // Bad commands name their field and change nothing.
+    let (status, body) = http(&host, "POST", "/api/outputs", None, r#"{"vel":9999}"#);
+    assert_eq!(status, 422, "{body}");
+    assert!(body.contains("vel"), "{body}");
+    let (status, body) = http(&host, "POST", "/api/outputs", None, r#"{"TURBO":true}"#);
+    assert_eq!(status, 422, "{body}");
+    let (status, _) = http(
+        &host,
+        "POST",
+        "/api/force",
+        None,
+        r#"{"input":"v1","value":3}"#,
+    );
+    assert_eq!(status, 409, "a client cannot force the slave's inputs");
+    assert_eq!(
+        serve_state(&serve_host)["state"]["devices"][0]["controller"]["outputs"]["VEL"]["counts"],
+        2048
+    );
+    // The slave goes away: shown, retried, no crash; it comes back: reconnected.
+    serve.terminate();
+    wait_until(&host, "the drop shown", |s| {
+        s["state"]["connection"]["connected"] == false
+            && s["state"]["connection"]["error"]
+                .as_str()
+                .is_some_and(|e| !e.is_empty())
+    });
+    let (status, body) = http(&host, "POST", "/api/outputs", None, r#"{"vel":100}"#);
+    assert_eq!(status, 503, "{body}");
+    assert!(body.contains("not connected"), "{body}");
+    let _serve = start_serve(&meb, false);
+    wait_until(&host, "the connection made again", |s| {
+        s["state"]["connection"]["connected"] == true
+            && s["state"]["connection"]["counters"]["reconnects"].as_u64() >= Some(1)
+    });
+    assert!(panel.printed("disconnected:"), "{}", panel.output());
+    assert!(panel.printed("connected again"), "{}", panel.output());
+    // With the map the slave uses, V1 is read from EA 00.
+    let mapped = format!("tcp://{}", serve_mapped.tcp_of("meb"));
+    let panel2 = Proc::start(&[
+        "panel",
+        &mapped,
+        "--map",
+        map.to_str().unwrap(),
+        "--web",
+        "127.0.0.1:0",
+    ]);
+    let (host2, _) = parts(&panel_url(&panel2));
+    wait_until(&host2, "V1 from EA 00", |s| {
+        let v1 = &s["state"]["devices"][0]["controller"]["inputs"]["V1"];
+        v1["at"] == "EA 00"
+            && v1["value"]
+                .as_f64()
+                .is_some_and(|v| (20.0..60.0).contains(&v))
+    });
+    panel2.terminate();
+    panel.terminate();
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+fn wait_until(host: &str, what: &str, ok: impl Fn(&serde_json::Value) -> bool) {
+    let start = Instant::now();
+    loop {
+        let (_, body) = http(host, "GET", "/api/state", None, "");
+        let s: serde_json::Value = serde_json::from_str(&body).unwrap_or_default();
+        if ok(&s) {
+            return;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(15),
+            "timed out waiting for {what}: {s}"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+#[test]
+fn the_client_panel_says_what_is_wrong_with_its_address() {
+    for (url, said) in [
+        (
+            format!("tcp://127.0.0.1:{}", free_port()),
+            "cannot connect to",
+        ),
+        ("127.0.0.1:5701".to_string(), "is not tcp://HOST:PORT"),
+    ] {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_twin"))
+            .args(["panel", &url, "--web", "127.0.0.1:0", "--timeout-ms", "300"])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{err}");
+        assert!(err.contains(said), "{url}: {err}");
+        assert!(!err.contains("panicked") && !err.contains("Os {"), "{err}");
+    }
+}

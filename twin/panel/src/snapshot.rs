@@ -186,7 +186,9 @@ fn image_json(image: &RegisterImage, readings: Option<&ReadingsSample>, forces: 
             "BRK": bit(stored.sd0, sd::BRK),
             "PRO": bit(stored.sd0, sd::PRO),
             "DES": bit(stored.sd0, sd::DES),
-            "FR": bit(stored.sd0, sd::FR),
+            // FR is no active-low switch: its high pin turns the wheel
+            // counter-clockwise, so "on" is reverse.
+            "FR": { "on": stored.sd0 & sd::FR != 0, "pin": u8::from(stored.sd0 & sd::FR != 0) },
             "CHG": bit(stored.sd1, sd::CHG),
         },
         "variables": {
