@@ -427,7 +427,11 @@ async fn produce(state: AppState, engine: Arc<Mutex<Sender<Inbound>>>) {
             "stream_clients": state.hub.clients.load(Ordering::Relaxed),
         });
         if state.role == PanelRole::Supervise {
-            message["switches"] = outputs::written_json(&state.written);
+            let ids = snap
+                .devices
+                .iter()
+                .flat_map(|d| d.loops.iter().map(|l| l.id));
+            message["switches"] = outputs::written_json(&state.written, ids);
         }
         state.hub.publish(message.to_string(), snap.trend());
     }

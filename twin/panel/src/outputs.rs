@@ -65,9 +65,13 @@ pub fn parse(map: &Map<String, Value>) -> Result<(Option<u8>, OutputRequest), Re
     Ok((slave, request))
 }
 
-/// The switches as the panel last had them written, for the stream.
-pub fn written_json(written: &Written) -> Value {
-    let w = written.lock().map(|w| w.clone()).unwrap_or_default();
+/// The switches of slaves `ids` as the panel last had them written (the
+/// start-up outputs until then), for the stream.
+pub fn written_json(written: &Written, ids: impl Iterator<Item = u8>) -> Value {
+    let mut w = written.lock().map(|w| w.clone()).unwrap_or_default();
+    for id in ids {
+        w.entry(id).or_insert_with(start_words);
+    }
     let mut out = Map::new();
     for (id, words) in w {
         let mut s = Map::new();
@@ -256,8 +260,8 @@ mod tests {
 
     #[test]
     fn switches_are_active_low_but_fr_whose_high_pin_is_reverse() {
-        let w: Written = Arc::new(Mutex::new(BTreeMap::from([(1, start_words())])));
-        let j = written_json(&w);
+        let w: Written = Arc::default();
+        let j = written_json(&w, [1].into_iter());
         assert_eq!(j["1"]["EN"]["on"], true, "the start-up outputs enable");
         assert_eq!(j["1"]["BRK"]["on"], false, "and release the brake");
         assert_eq!(j["1"]["FR"]["on"], false, "forward");
