@@ -348,11 +348,21 @@ fn the_client_panel_writes_vel_and_the_switches_and_the_wheel_follows() {
         "tcp://127.0.0.1:0",
         "--map",
         map.to_str().unwrap(),
+        "--web",
+        "127.0.0.1:0",
         "--quiet",
         "--no-record",
         "--status-every",
         "0",
     ]);
+    // Its own panel labels each signal where the map puts it.
+    let (mapped_host, _) = parts(&panel_url(&serve_mapped));
+    wait_until(&mapped_host, "the serve panel's map labels", |s| {
+        let c = &s["state"]["devices"][0]["controller"];
+        c["inputs"]["V1"]["at"] == "EA 00"
+            && c["inputs"]["V2"]["at"] == "EA 01"
+            && c["outputs"]["BRK"]["at"] == "SD 00 bit 1"
+    });
     let panel = Proc::start(&["panel", &meb, "--web", "127.0.0.1:0"]);
     assert!(
         panel.output().contains("MEB client of"),

@@ -47,6 +47,8 @@ pub struct AppState {
     pub rate_hz: f64,
     /// The switches the panel had a supervisor write.
     pub written: outputs::Written,
+    /// The I/O map's places (`twin serve --map`), for the labels.
+    pub layout: Option<Arc<crate::remote::layout::Layout>>,
 }
 
 /// Serves until the session ends (the engine stops taking commands).
@@ -414,10 +416,16 @@ async fn produce(state: AppState, engine: Arc<Mutex<Sender<Inbound>>>) {
             snap.links.iter().map(|l| (l.name.as_str(), l.clients)),
             snap.t,
         );
+        let mut shown = snap.to_json();
+        if let (Some(layout), Some(devices)) = (&state.layout, shown["devices"].as_array_mut()) {
+            for d in devices.iter_mut().filter_map(|d| d.get_mut("controller")) {
+                crate::remote::layout::label(d, layout);
+            }
+        }
         let mut message = json!({
             "t": snap.t,
             "role": state.role,
-            "state": snap.to_json(),
+            "state": shown,
             "links": link_stats,
             "frames": frames,
             "events": events,

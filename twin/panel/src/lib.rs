@@ -90,6 +90,8 @@ pub struct Panel {
     access: Arc<Access>,
     listener: Arc<std::sync::Mutex<Option<std::net::TcpListener>>>,
     addr: SocketAddr,
+    /// Where the MEB links place each signal (`--map`), for the labels.
+    layout: Option<Arc<remote::layout::Layout>>,
 }
 
 impl Panel {
@@ -108,7 +110,14 @@ impl Panel {
             access: Arc::new(access),
             listener: Arc::new(std::sync::Mutex::new(Some(listener))),
             addr,
+            layout: None,
         })
+    }
+
+    /// Labels each signal where `map` places it (`twin serve --map`).
+    pub fn with_map(mut self, map: &nodes::firmware::MebMap) -> Self {
+        self.layout = Some(Arc::new(remote::layout::Layout::new(map)));
+        self
     }
 
     /// The address bound and the URL to open.
@@ -168,6 +177,7 @@ impl Panel {
             role: self.options.role,
             rate_hz: self.options.rate_hz.clamp(1.0, 100.0),
             written: Default::default(),
+            layout: self.layout.clone(),
         };
         std::thread::Builder::new()
             .name("twin-panel".into())

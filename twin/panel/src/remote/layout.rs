@@ -107,6 +107,27 @@ impl Layout {
     }
 }
 
+/// Writes where `layout` places each signal (`"at": "EA 02"`) into a
+/// controller's `inputs` and `outputs`, as the page shows it.
+pub fn label(controller: &mut serde_json::Value, layout: &Layout) {
+    for (i, (name, _)) in INPUTS.iter().enumerate() {
+        if let Some(v) = controller["inputs"].get_mut(*name) {
+            v["at"] = layout.input_label(i).into();
+        }
+    }
+    if let Some(v) = controller["inputs"].get_mut("SOC") {
+        v["at"] = layout.soc.map(|a| format!("FA {a:02X}")).into();
+    }
+    if let Some(v) = controller["outputs"].get_mut("VEL") {
+        v["at"] = layout.vel.map(|a| format!("SA {a:02X}")).into();
+    }
+    for (i, (name, ..)) in SWITCHES.iter().enumerate() {
+        if let Some(v) = controller["outputs"].get_mut(*name) {
+            v["at"] = layout.switch_label(i).into();
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
