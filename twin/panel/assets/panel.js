@@ -445,7 +445,8 @@ function wire() {
     $("step").disabled = true; kv($("step-result"), [["step", "running…"]]);
     try {
       const r = await api("/api/step", { to_rpm: +$("step-to").value, seconds: +$("step-s").value });
-      const rows = [["from → to", fmt(r.from_rpm, 0) + " → " + fmt(r.to_rpm, 0) + " rpm"]];
+      const rows = [["from → to", fmt(r.from_rpm, 0) + " → " + fmt(r.to_rpm, 0) + " rpm"],
+        ["measurements", r.samples + ", largest gap " + fmt(r.largest_gap_ms, 0) + " ms" + (r.largest_gap_ms > 50 ? " (a busy machine: polls were late)" : "")]];
       for (const [name, s] of Object.entries(r.signals)) {
         if (s.error) { rows.push([name, s.error]); continue; }
         const mm = s.metrics;

@@ -105,6 +105,8 @@ pub async fn step(
         "step_at_s": at,
         "seconds": seconds,
         "samples": t.len(),
+        // A busy machine delays the polls, and the figures with them.
+        "largest_gap_ms": t.windows(2).map(|w| (w[1] - w[0]) * 1000.0).fold(0.0, f64::max),
         "signals": signals,
         "note": "figures as `twin step` computes them, on every measurement the supervisor's polls brought; the light reading's delay is measured behind the hall reading",
     }))
