@@ -487,6 +487,17 @@ fn the_client_panel_writes_vel_and_the_switches_and_the_wheel_follows() {
                 .is_some_and(|v| (20.0..60.0).contains(&v))
     });
     panel2.terminate();
+    // Off the loopback, the same token rules as every panel.
+    let panel3 = Proc::start(&["panel", &mapped, "--web", "0.0.0.0:0"]);
+    let (host3, token3) = parts(&panel_url(&panel3));
+    let token3 = token3.expect("a token in the URL off the loopback");
+    let (status, _) = http(&host3, "GET", "/api/state", None, "");
+    assert_eq!(status, 401);
+    let (status, _) = http(&host3, "POST", "/api/outputs", None, r#"{"vel":10}"#);
+    assert_eq!(status, 401);
+    let (status, _) = http(&host3, "GET", "/api/state", Some(&token3), "");
+    assert_eq!(status, 200);
+    panel3.terminate();
     panel.terminate();
     let _ = std::fs::remove_dir_all(&dir);
 }
