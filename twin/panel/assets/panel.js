@@ -475,6 +475,8 @@ async function start() {
   if (info.role === "client") {
     $("outputs-card").querySelector("h2").textContent = "Outputs this panel set";
     $("g-wheel").classList.add("hidden");
+    // A client reads neither the master's set point nor the true wheel.
+    document.querySelectorAll(".legend .sp, .legend .wheel").forEach((e) => e.classList.add("hidden"));
   }
   $("ro").classList.toggle("hidden", !info.read_only);
   if (info.role === "supervise") { $("outputs-card").querySelector("h2").textContent = "Master's outputs"; $("g-wheel").querySelector(".label span").textContent = "Wheel rpm (loop)"; }
