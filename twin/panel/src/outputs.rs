@@ -99,9 +99,10 @@ pub async fn supervise(
     slave: Option<u8>,
     request: OutputRequest,
 ) -> Result<Value, Rejected> {
-    // The words to write, from those last written.
-    let known: BTreeMap<u8, [u16; 2]> = written.lock().map(|w| w.clone()).unwrap_or_default();
-    let shadow = move |id: u8| -> [u16; 2] { known.get(&id).copied().unwrap_or_else(start_words) };
+    // The words are computed and kept on the engine's thread, where the
+    // commands run one after the other: two clicks in quick succession each
+    // start from the other's words, and the bus gets them in that order.
+    let shadow = written.clone();
     let switches = request.switches.clone();
     let vel = request.vel;
     let queue: EngineCommand = Box::new(move |e: &mut RtEngine| {
@@ -133,7 +134,11 @@ pub async fn supervise(
                 message: "the speed loop is closed: switch it to manual (loop off) before setting the switches".into(),
             });
         }
-        let mut words = shadow(id);
+        let mut kept = shadow
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let before = kept.get(&id).copied().unwrap_or_else(start_words);
+        let mut words = before;
         let mut touched = [false; 2];
         for &(i, on) in &switches {
             let (_, word, bit) = SWITCHES[i];
@@ -158,7 +163,8 @@ pub async fn supervise(
                 })?;
             tickets.push(ticket.0);
         }
-        Ok(json!({ "slave": id, "words": words, "tickets": tickets }))
+        kept.insert(id, words);
+        Ok(json!({ "slave": id, "words": words, "before": before, "tickets": tickets }))
     });
     let queued = run_on_engine(engine, queue).await?;
     let id = queued["slave"].as_u64().unwrap_or(1) as u8;
@@ -168,16 +174,22 @@ pub async fn supervise(
         .flatten()
         .filter_map(Value::as_u64)
         .collect();
+    let pair = |v: &Value| {
+        [
+            v[0].as_u64().unwrap_or(0) as u16,
+            v[1].as_u64().unwrap_or(0) as u16,
+        ]
+    };
     for ticket in tickets {
-        wait_outcome(engine, WriteTicket(ticket)).await?;
-    }
-    if !request.switches.is_empty() {
-        let words = [
-            queued["words"][0].as_u64().unwrap_or(0) as u16,
-            queued["words"][1].as_u64().unwrap_or(0) as u16,
-        ];
-        if let Ok(mut w) = written.lock() {
-            w.insert(id, words);
+        if let Err(e) = wait_outcome(engine, WriteTicket(ticket)).await {
+            // Not written: the switches are shown as they were, unless a
+            // later click has changed them since.
+            if let Ok(mut w) = written.lock()
+                && w.get(&id) == Some(&pair(&queued["words"]))
+            {
+                w.insert(id, pair(&queued["before"]));
+            }
+            return Err(e);
         }
     }
     Ok(json!({ "ok": true, "slave": id }))
