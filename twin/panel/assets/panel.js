@@ -86,12 +86,15 @@ function renderGauges(m) {
   const mod = (st.modules || [])[0];
   if (dev) {
     const c = dev.controller, x = c.inputs, f = c.forced;
-    gauge("v1", x.V1.value, 2, x.V1.counts + " counts (EA V1)", f.v1 !== null);
-    gauge("v2", x.V2.value, 2, x.V2.counts + " counts (EA V2)", f.v2 !== null);
-    gauge("i", x.I.value, 2, x.I.counts + " counts (EA I)", f.i !== null);
-    gauge("soc", x.SOC.value, 1, x.SOC.counts + " (FA SOC, 0.1 %)");
-    gauge("hall", x.RPM_M.value, 0, "EA RPM_M", f.rpm_m !== null);
-    gauge("light", x.RPM_L.value, 0, "EA RPM_L · LDR " + x.LDR.counts, f.rpm_l !== null);
+    // Where the map places each signal (`at`), or its default block.
+    const at = (v, home) => (v.at === undefined ? home : v.at === null ? "not in the map" : v.at);
+    const counts = (v) => (v.counts === null || v.counts === undefined ? "–" : v.counts);
+    gauge("v1", x.V1.value, 2, counts(x.V1) + " counts (" + at(x.V1, "EA V1") + ")", f.v1 !== null);
+    gauge("v2", x.V2.value, 2, counts(x.V2) + " counts (" + at(x.V2, "EA V2") + ")", f.v2 !== null);
+    gauge("i", x.I.value, 2, counts(x.I) + " counts (" + at(x.I, "EA I") + ")", f.i !== null);
+    gauge("soc", x.SOC.value, 1, counts(x.SOC) + " (" + at(x.SOC, "FA SOC") + ", 0.1 %)");
+    gauge("hall", x.RPM_M.value, 0, at(x.RPM_M, "EA RPM_M"), f.rpm_m !== null);
+    gauge("light", x.RPM_L.value, 0, at(x.RPM_L, "EA RPM_L") + " · LDR " + counts(x.LDR), f.rpm_l !== null);
   }
   const lp = firstLoop(st);
   if (!dev && lp) {
@@ -131,13 +134,12 @@ function renderOutputs(m) {
       r.append(left, el("span", "", text));
       out.append(r);
     };
-    row("VEL", o.VEL.value.toFixed(2) + " V (" + o.VEL.counts + " / " + o.VEL.max + ")", "speed command, DAC", o.VEL.counts > 0);
-    const names = { EN: "inverter enable", BRK: "brake", PRO: "converter boost", DES: "bus bleeder", FR: "reverse", CHG: "charger" };
-    for (const k of ["EN", "BRK", "PRO", "DES", "FR", "CHG"]) {
+    const where = (v) => (v.at ? " · " + v.at : "");
+    row("VEL", o.VEL.counts === null ? "not set yet" : o.VEL.value.toFixed(2) + " V (" + o.VEL.counts + " / " + o.VEL.max + ")", "speed command, DAC" + where(o.VEL), o.VEL.counts > 0);
+    for (const k of SWITCH_NAMES) {
       const b = o[k];
-      const sense = b.active_low ? " · active low: pin " : " · 0 clockwise, 1 counter-clockwise: pin ";
-      const text = k === "FR" ? (b.on ? "counter-clockwise" : "clockwise") : (b.on ? "on" : "off");
-      row(k, text, names[k] + sense + b.pin, b.on);
+      const sense = k === "FR" ? "pin 1 = reverse" : "active low";
+      row(k, b.on === null ? "not set yet" : b.on ? "on" : "off", SWITCH_LABELS[k] + " · " + sense + (b.pin === null ? "" : ": pin " + b.pin) + where(b), b.on);
     }
     const flags = $("flags"); flags.replaceChildren();
     const s = dev.controller.status;
@@ -147,7 +149,10 @@ function renderOutputs(m) {
     lamp("BMS cut-off", s.battery_cut_off, true); lamp("over-current", s.over_current, true);
     lamp("stall", s.stalled, true); lamp("brake", s.brake); lamp("charging", s.charging); lamp("CCW", s.ccw);
     const v = dev.controller.variables;
-    kv($("variables"), [["LDR_TH (light threshold)", v.LDR_TH + " counts"], ["RPM_WIN (rpm window)", v.RPM_WIN + " ms"],
+    if (!v) {
+      kv($("variables"), [["ED0 hall code", dev.controller.ED0 === null ? "–" : "0b" + (dev.controller.ED0 >>> 0).toString(2).padStart(4, "0")],
+        ["ERRS", String(dev.controller.ERRS)], ["variables", "write-only over MEB (VA, VD): not shown to a client"]]);
+    } else kv($("variables"), [["LDR_TH (light threshold)", v.LDR_TH + " counts"], ["RPM_WIN (rpm window)", v.RPM_WIN + " ms"],
       ["LDR_ADAPT (adaptive detector)", v.LDR_ADAPT ? "on" : "off"], ["ED0 hall code", "0b" + (dev.controller.ED0 >>> 0).toString(2).padStart(4, "0")],
       ["ERRS", String(dev.controller.ERRS)]]);
     const forced = Object.entries(dev.controller.forced).filter(([, v]) => v !== null).map(([k, v]) => k + " = " + v);
@@ -162,6 +167,55 @@ function renderOutputs(m) {
       ["error", fmt(lp.error_rpm, 0) + " rpm"], ["Kp / Ki", lp.kp + " / " + lp.ki], ["mode", typeof lp.mode === "string" ? "loop" : "manual VEL " + (lp.mode && lp.mode.manual)]]);
     $("flags").replaceChildren();
   }
+}
+const SWITCH_NAMES = ["EN", "BRK", "PRO", "DES", "FR", "CHG"];
+const SWITCH_LABELS = { EN: "inverter enable", BRK: "brake", PRO: "converter boost", DES: "bus bleeder", FR: "reverse", CHG: "charger" };
+
+// ---- the switches (twin panel, twin supervise in manual mode) --------------
+let switchPending = {};
+function buildSwitches() {
+  const box = $("switches");
+  for (const k of SWITCH_NAMES) {
+    const l = el("label");
+    const c = el("input"); c.type = "checkbox"; c.id = "sw-" + k;
+    c.onchange = async () => {
+      switchPending[k] = true;
+      const body = {}; body[k] = c.checked;
+      await send("/api/outputs", body);
+      delete switchPending[k];
+    };
+    l.append(c, el("b", "", k), el("span", "at", SWITCH_LABELS[k]));
+    box.append(l);
+  }
+}
+function renderSwitches(m) {
+  let states = null, locked = null;
+  if (info.role === "client") {
+    const dev = ((m.state && m.state.devices) || []).find((d) => d.controller);
+    if (dev) states = dev.controller.outputs;
+  } else if (info.role === "supervise") {
+    const lp = firstLoop(m.state);
+    if (lp) {
+      states = (m.switches || {})[String(lp.id)] || null;
+      if (lp.mode === "loop") locked = "the loop is on: switch it off (manual VEL) to set the switches";
+    }
+  }
+  for (const k of SWITCH_NAMES) {
+    const c = $("sw-" + k);
+    c.disabled = !!locked;
+    if (states && states[k] && states[k].on !== null && !switchPending[k]) c.checked = !!states[k].on;
+  }
+  $("switch-note").textContent = locked || "On: the lab's active sense (pin 0), but FR: on is reverse (pin 1). MEB outputs cannot be read back: shown as last set here.";
+}
+function renderConnection(m) {
+  const c = m.state && m.state.connection;
+  const b = $("conn");
+  b.classList.toggle("hidden", !c);
+  if (!c) return;
+  b.className = "badge " + (c.connected ? "" : "bad");
+  b.id = "conn";
+  b.textContent = c.connected ? "MEB client of " + c.url + " · slave " + String(c.id).padStart(2, "0") + (c.error ? " · " + c.error : "")
+    : "disconnected from " + c.url + ": " + (c.error || "?") + " · retrying";
 }
 const fmt = (v, d) => (typeof v === "number" && isFinite(v) ? v.toFixed(d) : "–");
 
@@ -350,6 +404,7 @@ function render() {
   if (!m) return;
   $("clock").textContent = "t = " + m.t.toFixed(1) + " s";
   renderGauges(m); renderOutputs(m); renderLinks(m); renderSlaves(m);
+  if (info.role !== "serve") { renderSwitches(m); renderConnection(m); }
   if (!paused) renderFrames();
   drawTrend();
   const lp = firstLoop(m.state);
@@ -380,6 +435,9 @@ function wire() {
   sp.onchange = () => send("/api/loop", { set_point_rpm: +sp.value });
   $("gains").onclick = () => send("/api/loop", { kp: +$("kp").value, ki: +$("ki").value });
   $("loop-on").onchange = () => send("/api/loop", $("loop-on").checked ? { mode: "loop" } : { mode: "manual", vel: +$("vel").value });
+  const ov = $("out-vel");
+  ov.oninput = () => { $("out-vel-out").textContent = ov.value; };
+  ov.onchange = () => send("/api/outputs", { vel: +ov.value });
   const vel = $("vel");
   vel.oninput = () => { $("vel-out").textContent = vel.value; };
   vel.onchange = () => { if (!$("loop-on").checked) send("/api/loop", { mode: "manual", vel: +vel.value }); };
@@ -387,7 +445,8 @@ function wire() {
     $("step").disabled = true; kv($("step-result"), [["step", "running…"]]);
     try {
       const r = await api("/api/step", { to_rpm: +$("step-to").value, seconds: +$("step-s").value });
-      const rows = [["from → to", fmt(r.from_rpm, 0) + " → " + fmt(r.to_rpm, 0) + " rpm"]];
+      const rows = [["from → to", fmt(r.from_rpm, 0) + " → " + fmt(r.to_rpm, 0) + " rpm"],
+        ["measurements", r.samples + ", largest gap " + fmt(r.largest_gap_ms, 0) + " ms" + (r.largest_gap_ms > 50 ? " (a busy machine: polls were late)" : "")]];
       for (const [name, s] of Object.entries(r.signals)) {
         if (s.error) { rows.push([name, s.error]); continue; }
         const mm = s.metrics;
@@ -403,11 +462,22 @@ function wire() {
 
 async function start() {
   buildGauges();
+  buildSwitches();
   try { info = await api("/api/info"); } catch (e) { say("cannot reach the twin: " + e.message, true); }
-  $("role").textContent = info.role === "supervise" ? "supervise" : "serve";
+  $("role").textContent = info.role === "supervise" || info.role === "client" ? info.role : "serve";
   document.title = "EV lab twin — " + $("role").textContent;
-  document.querySelectorAll(".serve-only").forEach((e) => e.classList.toggle("hidden", info.role !== "serve" || info.read_only));
-  document.querySelectorAll(".supervise-only").forEach((e) => e.classList.toggle("hidden", info.role !== "supervise" || info.read_only));
+  // A card shows if one of its roles is this panel's (and it can change things).
+  document.querySelectorAll(".control").forEach((e) => {
+    const roles = ["serve", "supervise", "client"].filter((r) => e.classList.contains(r + "-only"));
+    e.classList.toggle("hidden", !roles.includes(info.role) || info.read_only);
+  });
+  document.querySelectorAll(".slider.client-only").forEach((e) => e.classList.toggle("hidden", info.role !== "client"));
+  if (info.role === "client") {
+    $("outputs-card").querySelector("h2").textContent = "Outputs this panel set";
+    $("g-wheel").classList.add("hidden");
+    // A client reads neither the master's set point nor the true wheel.
+    document.querySelectorAll(".legend .sp, .legend .wheel").forEach((e) => e.classList.add("hidden"));
+  }
   $("ro").classList.toggle("hidden", !info.read_only);
   if (info.role === "supervise") { $("outputs-card").querySelector("h2").textContent = "Master's outputs"; $("g-wheel").querySelector(".label span").textContent = "Wheel rpm (loop)"; }
   try { const t = await api("/api/trend?seconds=30"); trend = t.rows; } catch (e) { /* the stream fills it */ }

@@ -23,19 +23,32 @@ use tokio::sync::broadcast::error::RecvError;
 use crate::access::{Access, Refused};
 use crate::commands::{self, EngineCommand, Rejected};
 use crate::hub::Hub;
+use crate::remote::Remote;
 use crate::snapshot::{self, EngineSnapshot};
-use crate::{PanelRole, assets};
+use crate::{PanelRole, assets, outputs};
 use twin_realtime::Inbound;
 use twin_recording::describe::link_frame_fields;
+
+/// What the panel fronts: a session's engine, or (`twin panel`) its own
+/// MEB-TCP connection to a slave.
+#[derive(Clone, Debug)]
+pub enum Backend {
+    Engine(Arc<Mutex<Sender<Inbound>>>),
+    Remote(Arc<Remote>),
+}
 
 /// What every handler shares.
 #[derive(Clone, Debug)]
 pub struct AppState {
     pub hub: Arc<Hub>,
     pub access: Arc<Access>,
-    pub engine: Arc<Mutex<Sender<Inbound>>>,
+    pub backend: Backend,
     pub role: PanelRole,
     pub rate_hz: f64,
+    /// The switches the panel had a supervisor write.
+    pub written: outputs::Written,
+    /// The I/O map's places (`twin serve --map`), for the labels.
+    pub layout: Option<Arc<crate::remote::layout::Layout>>,
 }
 
 /// Serves until the session ends (the engine stops taking commands).
@@ -47,7 +60,10 @@ pub async fn serve(listener: std::net::TcpListener, state: AppState) {
             return;
         }
     };
-    let producer = tokio::spawn(produce(state.clone()));
+    let producer = match &state.backend {
+        Backend::Engine(engine) => tokio::spawn(produce(state.clone(), engine.clone())),
+        Backend::Remote(remote) => tokio::spawn(produce_remote(state.clone(), remote.clone())),
+    };
     let app = router(state);
     let server = axum::serve(listener, app);
     tokio::select! {
@@ -70,6 +86,7 @@ pub fn router(state: AppState) -> Router {
         .route("/api/fault", post(|s, h, b| command(s, h, b, commands::fault)))
         .route("/api/loop", post(|s, h, b| command(s, h, b, commands::supervise_loop)))
         .route("/api/step", post(step))
+        .route("/api/outputs", post(set_outputs))
         .fallback(|| async { error(404, json!({ "error": "no such page: the panel is at / and its API under /api/ (docs/panel-api.md)" })) })
         .layer(middleware::from_fn_with_state(state.clone(), guard))
         .with_state(state)
@@ -191,9 +208,13 @@ async fn command(
     body: Bytes,
     parse: fn(&serde_json::Map<String, Value>) -> Result<EngineCommand, Rejected>,
 ) -> Response {
-    let result = match commands::object(&body).and_then(|map| parse(&map)) {
-        Ok(command) => commands::run_on_engine(&state.engine, command).await,
-        Err(e) => Err(e),
+    let result = match (
+        commands::object(&body).and_then(|map| parse(&map)),
+        &state.backend,
+    ) {
+        (Ok(command), Backend::Engine(engine)) => commands::run_on_engine(engine, command).await,
+        (Ok(_), Backend::Remote(_)) => Err(client_only()),
+        (Err(e), _) => Err(e),
     };
     match result {
         Ok(answer) => axum::Json(answer).into_response(),
@@ -202,9 +223,39 @@ async fn command(
 }
 
 async fn step(State(state): State<AppState>, body: Bytes) -> Response {
-    let result = match commands::object(&body) {
-        Ok(map) => crate::step::step(&state.hub, &state.engine, &map).await,
-        Err(e) => Err(e),
+    let result = match (commands::object(&body), &state.backend) {
+        (Ok(map), Backend::Engine(engine)) => crate::step::step(&state.hub, engine, &map).await,
+        (Ok(_), Backend::Remote(_)) => Err(client_only()),
+        (Err(e), _) => Err(e),
+    };
+    match result {
+        Ok(answer) => axum::Json(answer).into_response(),
+        Err(e) => error(e.status, e.to_json()),
+    }
+}
+
+/// What a client panel answers the commands of a session's panel.
+fn client_only() -> Rejected {
+    Rejected {
+        status: 409,
+        field: None,
+        message: "this panel is an MEB client of a remote slave: it sets outputs (POST /api/outputs), it cannot force, fault or step".into(),
+    }
+}
+
+async fn set_outputs(State(state): State<AppState>, body: Bytes) -> Response {
+    let parsed = commands::object(&body).and_then(|map| outputs::parse(&map));
+    let result = match (parsed, &state.backend) {
+        (Err(e), _) => Err(e),
+        (Ok((_, request)), Backend::Remote(remote)) => remote.write(request).await,
+        (Ok((slave, request)), Backend::Engine(engine)) if state.role == PanelRole::Supervise => {
+            outputs::supervise(engine, &state.written, slave, request).await
+        }
+        (Ok(_), Backend::Engine(_)) => Err(Rejected {
+            status: 409,
+            field: None,
+            message: "on twin serve the master sets the outputs; force an input instead (POST /api/force)".into(),
+        }),
     };
     match result {
         Ok(answer) => axum::Json(answer).into_response(),
@@ -275,32 +326,25 @@ fn shown(bytes: &[u8]) -> String {
 /// Frames one message carries at most; the rest are counted as skipped.
 const FRAMES_PER_MESSAGE: usize = 400;
 
-/// Every stream period: the engine's state, the frames and events since the
-/// last message, one message for every client.
-async fn produce(state: AppState) {
-    let mut interval = tokio::time::interval(Duration::from_secs_f64(1.0 / state.rate_hz));
-    interval.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
-    let mut stats: BTreeMap<String, LinkStats> = BTreeMap::new();
-    let mut protocols: BTreeMap<String, &'static str> = BTreeMap::new();
-    let mut cut: u64 = 0;
-    loop {
-        interval.tick().await;
-        let snap = match read_snapshot(&state.engine).await {
-            Ok(s) => s,
-            Err(Gone) => return,
-        };
-        let Some(snap) = snap else { continue };
-        for l in &snap.links {
-            protocols.entry(l.name.clone()).or_insert(l.protocol);
-        }
+/// The frame monitor's side of the producer: frames decoded and counted per link.
+#[derive(Default)]
+struct Monitor {
+    stats: BTreeMap<String, LinkStats>,
+    protocols: BTreeMap<String, &'static str>,
+    cut: u64,
+}
+
+impl Monitor {
+    /// The frames and events held since the last message.
+    fn take(&mut self, hub: &Hub) -> (Vec<Value>, Vec<crate::hub::HeldEvent>, Option<(f64, f64)>) {
         let mut frames = Vec::new();
-        let (events, lateness) = state.hub.take(|f| {
-            let protocol = protocols.get(&f.link).copied().unwrap_or("meb");
+        let (events, lateness) = hub.take(|f| {
+            let protocol = self.protocols.get(&f.link).copied().unwrap_or("meb");
             let decoded =
                 serde_json::to_value(link_frame_fields(protocol, &f.bytes)).unwrap_or(Value::Null);
             let bad = decoded.get("error").is_some();
             let out = f.from == "twin";
-            let s = stats.entry(f.link.clone()).or_default();
+            let s = self.stats.entry(f.link.clone()).or_default();
             if out {
                 s.frames_out += 1
             } else {
@@ -317,40 +361,116 @@ async fn produce(state: AppState) {
                     "decoded": decoded, "bad": bad,
                 }));
             } else {
-                cut += 1;
+                self.cut += 1;
             }
         });
-        let (dropped, total) = state.hub.frame_counts();
-        let link_stats: BTreeMap<&str, Value> = snap
-            .links
-            .iter()
-            .map(|l| {
-                let s = stats.get(&l.name);
+        (frames, events, lateness)
+    }
+
+    /// Per link: clients, frames, errors, age of the last frame at `now`.
+    fn links<'a>(
+        &self,
+        links: impl Iterator<Item = (&'a str, usize)>,
+        now: f64,
+    ) -> BTreeMap<&'a str, Value> {
+        links
+            .map(|(name, clients)| {
+                let s = self.stats.get(name);
                 (
-                    l.name.as_str(),
+                    name,
                     json!({
-                        "clients": l.clients,
+                        "clients": clients,
                         "frames_in": s.map_or(0, |s| s.frames_in),
                         "frames_out": s.map_or(0, |s| s.frames_out),
                         "errors": s.map_or(0, |s| s.errors),
-                        "last_frame_age_s": s.and_then(|s| s.last_t).map(|t| (snap.t - t).max(0.0)),
+                        "last_frame_age_s": s.and_then(|s| s.last_t).map(|t| (now - t).max(0.0)),
                     }),
                 )
             })
-            .collect();
-        let message = json!({
+            .collect()
+    }
+}
+
+/// Every stream period: the engine's state, the frames and events since the
+/// last message, one message for every client.
+async fn produce(state: AppState, engine: Arc<Mutex<Sender<Inbound>>>) {
+    let mut interval = tokio::time::interval(Duration::from_secs_f64(1.0 / state.rate_hz));
+    interval.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    let mut monitor = Monitor::default();
+    loop {
+        interval.tick().await;
+        let snap = match read_snapshot(&engine).await {
+            Ok(s) => s,
+            Err(Gone) => return,
+        };
+        let Some(snap) = snap else { continue };
+        for l in &snap.links {
+            monitor
+                .protocols
+                .entry(l.name.clone())
+                .or_insert(l.protocol);
+        }
+        let (frames, events, lateness) = monitor.take(&state.hub);
+        let (dropped, total) = state.hub.frame_counts();
+        let link_stats = monitor.links(
+            snap.links.iter().map(|l| (l.name.as_str(), l.clients)),
+            snap.t,
+        );
+        let mut shown = snap.to_json();
+        if let (Some(layout), Some(devices)) = (&state.layout, shown["devices"].as_array_mut()) {
+            for d in devices.iter_mut().filter_map(|d| d.get_mut("controller")) {
+                crate::remote::layout::label(d, layout);
+            }
+        }
+        let mut message = json!({
             "t": snap.t,
             "role": state.role,
-            "state": snap.to_json(),
+            "state": shown,
             "links": link_stats,
             "frames": frames,
             "events": events,
-            "skipped_frames": dropped + cut,
+            "skipped_frames": dropped + monitor.cut,
             "frames_total": total,
             "lateness": lateness.map(|(p99, max)| json!({ "p99_us": p99, "max_us": max })),
             "stream_clients": state.hub.clients.load(Ordering::Relaxed),
         });
+        if state.role == PanelRole::Supervise {
+            let ids = snap
+                .devices
+                .iter()
+                .flat_map(|d| d.loops.iter().map(|l| l.id));
+            message["switches"] = outputs::written_json(&state.written, ids);
+        }
         state.hub.publish(message.to_string(), snap.trend());
+    }
+}
+
+/// The client panel's producer: its connection's state instead of an engine's.
+async fn produce_remote(state: AppState, remote: Arc<Remote>) {
+    let mut interval = tokio::time::interval(Duration::from_secs_f64(1.0 / state.rate_hz));
+    interval.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    let mut monitor = Monitor::default();
+    loop {
+        interval.tick().await;
+        let (snapshot, trend) = crate::remote::message_state(&remote);
+        let t = remote.now();
+        let (frames, events, _) = monitor.take(&state.hub);
+        let (dropped, total) = state.hub.frame_counts();
+        let connected = usize::from(snapshot["connection"]["connected"] == true);
+        let link_stats = monitor.links(std::iter::once((crate::remote::LINK, connected)), t);
+        let message = json!({
+            "t": t,
+            "role": state.role,
+            "state": snapshot,
+            "links": link_stats,
+            "frames": frames,
+            "events": events,
+            "skipped_frames": dropped + monitor.cut,
+            "frames_total": total,
+            "lateness": null,
+            "stream_clients": state.hub.clients.load(Ordering::Relaxed),
+        });
+        state.hub.publish(message.to_string(), trend);
     }
 }
 

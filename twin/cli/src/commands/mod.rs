@@ -13,6 +13,7 @@ mod live_view;
 mod node_summary;
 mod numbers;
 mod output;
+pub mod panel;
 pub use numbers::take_negative_numbers;
 pub mod man;
 mod plant_args;

@@ -52,6 +52,11 @@ pub fn session_options(view: Option<ViewOpener>, seconds: f64) -> SessionOptions
 
 /// `twin serve --meb tcp://127.0.0.1:0 --web WEB` for at most `seconds`.
 pub fn serve(web: &str, access: AccessOptions, seconds: f64) -> Session {
+    serve_on("tcp://127.0.0.1:0", web, access, seconds)
+}
+
+/// `twin serve --meb LINK --adaptive-light --web WEB` for at most `seconds`.
+pub fn serve_on(link: &str, web: &str, access: AccessOptions, seconds: f64) -> Session {
     let panel = Panel::bind(PanelOptions {
         role: PanelRole::Serve,
         addr: web.parse().unwrap(),
@@ -63,7 +68,7 @@ pub fn serve(web: &str, access: AccessOptions, seconds: f64) -> Session {
     let feeds = panel.clone();
     let options = ServeOptions {
         session: session_options(Some(ViewOpener::new(move |_| Some(feeds.view()))), seconds),
-        links: vec![(ServeProtocol::Meb, "tcp://127.0.0.1:0".into())],
+        links: vec![(ServeProtocol::Meb, link.into())],
         defaults: LinkDefaults::default(),
         id: 1,
         meb_map: None,
@@ -238,7 +243,8 @@ pub fn chrome_capabilities(
             "deviceMetrics": { "width": 360, "height": 740, "pixelRatio": 2.0, "touch": true }
         });
     } else {
-        args.push("--window-size=1280,1700".into());
+        // A laptop: the trend must show above the fold.
+        args.push("--window-size=1366,768".into());
     }
     options["args"] = serde_json::json!(args);
     if std::path::Path::new("/usr/bin/chromium").exists() {
@@ -256,4 +262,100 @@ pub fn fresh_dir(name: &str) -> std::path::PathBuf {
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     dir
+}
+
+/// `twin vsp A B`: a crossed pseudo-terminal pair, copied by a thread of
+/// its own for as long as the test runs.
+pub fn vsp(name: &str) -> [std::path::PathBuf; 2] {
+    let base = std::env::temp_dir().join(format!("twin-panel-{name}-{}", std::process::id()));
+    let ends = [base.with_extension("V0"), base.with_extension("V1")];
+    let links = ends.clone();
+    std::thread::spawn(move || {
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        runtime.block_on(async move {
+            let mut pair = twin_realtime::vsp::Pair::open(
+                [&links[0], &links[1]],
+                twin_realtime::vsp::PairOptions::default(),
+            )
+            .expect("the pty pair opens");
+            let _ = pair.run(None, |_| {}, |_| {}).await;
+        });
+    });
+    wait_for(Duration::from_secs(10), "the pty pair", || {
+        ends.iter().all(|e| e.exists())
+    });
+    ends
+}
+
+/// `twin supervise --meb BUS --no-server --web WEB` (a PI loop on slave 01,
+/// polled every 10 ms, status words every 10 cycles) for at most `seconds`.
+pub fn supervise(bus: &str, web: &str, seconds: f64) -> Session {
+    use nodes::master::image_server::ImageServerConfig;
+    use nodes::time::SimDuration;
+    use twin_realtime::supervise::{SuperviseOptions, supervise_with};
+    let panel = Panel::bind(PanelOptions {
+        role: PanelRole::Supervise,
+        addr: web.parse().unwrap(),
+        access: AccessOptions::default(),
+        rate_hz: 20.0,
+    })
+    .expect("the panel binds");
+    let running = panel.running();
+    let feeds = panel.clone();
+    let options = SuperviseOptions {
+        session: session_options(Some(ViewOpener::new(move |_| Some(feeds.view()))), seconds),
+        bus: bus.into(),
+        protocol: nodes::master::Protocol::Meb,
+        listen: Vec::new(),
+        baud: 115_200,
+        slaves: vec![1],
+        set_point: 0.0,
+        open_loop: None,
+        kp: 0.45,
+        ki: 2.5,
+        speed_source: nodes::master::SpeedSource::Hall,
+        poll_period: SimDuration::from_millis(10),
+        reply_timeout: SimDuration::from_millis(100),
+        retries: 2,
+        status_poll: 10,
+        server: ImageServerConfig::default(),
+        rate_limit_bytes: None,
+        idle_timeout: None,
+        room_after_idle: None,
+    };
+    let (engine_tx, engine_rx) = channel();
+    let thread = std::thread::spawn(move || {
+        let result = supervise_with(
+            &options,
+            |_| {},
+            move |engine| {
+                panel.start(engine.clone()).expect("the panel starts");
+                let _ = engine_tx.send(engine);
+            },
+        );
+        if let Err(e) = result {
+            eprintln!("supervise failed: {e:#}");
+        }
+    });
+    let engine = engine_rx
+        .recv_timeout(Duration::from_secs(20))
+        .expect("the supervisor runs");
+    let session = Session {
+        engine,
+        meb: bus.into(),
+        panel: running,
+        thread: Some(thread),
+    };
+    wait_for(
+        Duration::from_secs(10),
+        "the supervise panel's first update",
+        || {
+            let (status, body) = http(&session.panel, "GET", "/api/state", None, true);
+            status == 200 && body.contains("\"loops\"")
+        },
+    );
+    session
 }

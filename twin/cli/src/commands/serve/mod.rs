@@ -301,7 +301,11 @@ fn serve_one(args: &ServeArgs, options: &ServeOptions) -> Result<()> {
     let mut options = options.clone();
     let panel = args
         .web
-        .bind(twin_panel::PanelRole::Serve, &mut options.session)?;
+        .bind(twin_panel::PanelRole::Serve, &mut options.session)?
+        .map(|p| match &options.meb_map {
+            Some(map) => p.with_map(map),
+            None => p,
+        });
     let panel_line = panel.as_ref().map(super::web_args::panel_line);
     let earlier = options
         .session

@@ -1,0 +1,164 @@
+//! Where the client panel finds each signal on the slave: the I/O map
+//! (`--map`, the file `twin serve` reads) turned into the reads one poll
+//! makes and the place of each output it writes.
+
+use nodes::firmware::{MebMap, ea};
+use nodes::proto::meb::{MebBlock, MebWordType};
+
+/// The analog inputs, as the lab's I/O list names them, with their
+/// default-map word.
+pub const INPUTS: [(&str, usize); 6] = [
+    ("V2", ea::V2),
+    ("I", ea::I),
+    ("V1", ea::V1),
+    ("RPM_M", ea::RPM_M),
+    ("RPM_L", ea::RPM_L),
+    ("LDR", ea::LDR),
+];
+
+/// The switches: name, default SD word and bit.
+pub const SWITCHES: [(&str, usize, u8); 6] = [
+    ("EN", 0, 0),
+    ("BRK", 0, 1),
+    ("PRO", 0, 2),
+    ("DES", 0, 3),
+    ("FR", 0, 4),
+    ("CHG", 1, 0),
+];
+
+/// A switch's place on the slave.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct BitPlace {
+    pub word: u8,
+    pub bit: u8,
+}
+
+/// Every signal's address under one map.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Layout {
+    /// `EA` word of each of [`INPUTS`], if the map places it.
+    pub inputs: [Option<u8>; 6],
+    /// Words read from `EA 00` on.
+    pub ea_len: u8,
+    pub hall: Option<u8>,
+    pub ed_len: u8,
+    pub soc: Option<u8>,
+    /// `FA` words read: SOC and ERRS (ERRS keeps `FA 01`).
+    pub fa_len: u8,
+    pub vel: Option<u8>,
+    pub switches: [Option<BitPlace>; 6],
+    /// The SD words that hold a switch.
+    pub sd_words: Vec<u8>,
+}
+
+/// The highest word address a map may use (CNT and ADDR are two digits).
+const LAST: usize = 98;
+
+fn word_of(map: &MebMap, block: MebBlock, kind: MebWordType, home: usize) -> Option<u8> {
+    (0..=LAST)
+        .find(|&a| map.word(block, kind, a) == Some(home))
+        .map(|a| a as u8)
+}
+
+impl Layout {
+    pub fn new(map: &MebMap) -> Self {
+        use MebBlock::{Flags, Inputs, Outputs};
+        use MebWordType::{Analog, Digital};
+        let inputs = INPUTS.map(|(_, home)| word_of(map, Inputs, Analog, home));
+        let mut switches = [None; 6];
+        for a in 0..=LAST {
+            for (user_bit, home_word, home_bit) in map.bits(Outputs, Digital, a) {
+                if let Some(i) = SWITCHES
+                    .iter()
+                    .position(|&(_, w, b)| w == home_word && b == home_bit)
+                {
+                    switches[i] = Some(BitPlace {
+                        word: a as u8,
+                        bit: user_bit,
+                    });
+                }
+            }
+        }
+        let mut sd_words: Vec<u8> = switches.iter().flatten().map(|p| p.word).collect();
+        sd_words.sort_unstable();
+        sd_words.dedup();
+        let len = |b, k| map.block_len(b, k).min(LAST + 1) as u8;
+        Self {
+            inputs,
+            ea_len: len(Inputs, Analog),
+            hall: word_of(map, Inputs, Digital, 0),
+            ed_len: len(Inputs, Digital),
+            soc: word_of(map, Flags, Analog, 0),
+            fa_len: len(Flags, Analog),
+            vel: word_of(map, Outputs, Analog, 0),
+            switches,
+            sd_words,
+        }
+    }
+
+    /// Where the input `name` sits, as a label (`EA 02`).
+    pub fn input_label(&self, i: usize) -> Option<String> {
+        self.inputs[i].map(|a| format!("EA {a:02X}"))
+    }
+
+    /// Where switch `i` sits, as a label (`SD 00 bit 1`).
+    pub fn switch_label(&self, i: usize) -> Option<String> {
+        self.switches[i].map(|p| format!("SD {:02X} bit {}", p.word, p.bit))
+    }
+}
+
+/// Writes where `layout` places each signal (`"at": "EA 02"`) into a
+/// controller's `inputs` and `outputs`, as the page shows it.
+pub fn label(controller: &mut serde_json::Value, layout: &Layout) {
+    for (i, (name, _)) in INPUTS.iter().enumerate() {
+        if let Some(v) = controller["inputs"].get_mut(*name) {
+            v["at"] = layout.input_label(i).into();
+        }
+    }
+    if let Some(v) = controller["inputs"].get_mut("SOC") {
+        v["at"] = layout.soc.map(|a| format!("FA {a:02X}")).into();
+    }
+    if let Some(v) = controller["outputs"].get_mut("VEL") {
+        v["at"] = layout.vel.map(|a| format!("SA {a:02X}")).into();
+    }
+    for (i, (name, ..)) in SWITCHES.iter().enumerate() {
+        if let Some(v) = controller["outputs"].get_mut(*name) {
+            v["at"] = layout.switch_label(i).into();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_default_map_is_the_protocol_pages_and_a_moved_signal_moves() {
+        let d = Layout::new(&MebMap::default());
+        assert_eq!(
+            d.inputs,
+            [Some(0), Some(1), Some(2), Some(3), Some(4), Some(5)]
+        );
+        assert_eq!(
+            (d.ea_len, d.vel, d.soc, d.hall),
+            (6, Some(0), Some(0), Some(0))
+        );
+        assert_eq!(d.switches[1], Some(BitPlace { word: 0, bit: 1 }));
+        assert_eq!(d.switches[5], Some(BitPlace { word: 1, bit: 0 }));
+        assert_eq!(d.sd_words, vec![0, 1]);
+        let mut map = MebMap::default();
+        map.clear_block("EA");
+        map.place("EA", "V1", 0, None).unwrap();
+        map.place("EA", "RPM_M", 7, None).unwrap();
+        map.clear_block("SD");
+        map.place("SD", "EN", 2, Some(5)).unwrap();
+        let m = Layout::new(&map);
+        assert_eq!(m.inputs[2], Some(0));
+        assert_eq!(m.inputs[3], Some(7));
+        assert_eq!(m.inputs[0], None, "V2 is not placed");
+        assert_eq!(m.ea_len, 8);
+        assert_eq!(m.switch_label(0).as_deref(), Some("SD 02 bit 5"));
+        assert_eq!(m.switches[1], None);
+        assert_eq!(m.sd_words, vec![2]);
+    }
+}
