@@ -209,7 +209,11 @@ fn an_over_current_trip_latches_and_clears_after_release_and_enable() {
     assert_eq!(bench.actuators.vel_volts, 0.0);
     // FR is a direction, not a function: the trip leaves it forward, as set.
     assert!(!bench.actuators.reverse, "FR kept");
-    assert_eq!(status_word(&mut bench) & status::CCW, 0, "not counter-clockwise");
+    assert_eq!(
+        status_word(&mut bench) & status::CCW,
+        0,
+        "not counter-clockwise"
+    );
     let trip = bench.controller.poll_event().expect("a trip event");
     assert_eq!(trip.kind, "trip");
 

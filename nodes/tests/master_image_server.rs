@@ -534,6 +534,35 @@ fn a_write_that_never_reaches_the_line_is_answered_error_04_and_withdrawn() {
 }
 
 #[test]
+fn a_write_already_on_the_line_when_its_wait_runs_out_gets_its_own_answer() {
+    let mut rig = Rig::new(ImageServerConfig::default());
+    let client = rig.connect();
+    rig.run_for(ms(50));
+    let asked = rig.now;
+    rig.send(client, &frame("@01SA00010800"));
+    // Until the supervisor has put the write on the line.
+    while !rig
+        .line
+        .iter()
+        .any(|(_, to_slave, bytes)| *to_slave && bytes.starts_with(b"@01SA00010800"))
+    {
+        rig.run_for(SimDuration::from_micros(100));
+        assert!(rig.now < asked + ms(100), "the write never went out");
+    }
+    // The wait runs out mid-exchange (a machine that stalled): too late to
+    // withdraw it, so no ER 04 that the slave's own answer would contradict.
+    rig.server.expire(asked + ms(900), &mut rig.supervisor);
+    assert!(
+        rig.replies(client).is_empty(),
+        "answered before the slave did"
+    );
+    rig.run_for(ms(20));
+    // The slave's acknowledgement, passed on (the loop writes its own VEL
+    // again at its next poll, so the stored value is not the test).
+    assert_eq!(rig.replies(client), [s("@01SA0001")]);
+}
+
+#[test]
 fn the_status_words_are_served_when_the_supervisor_reads_them() {
     let mut rig = Rig::reading_status(ImageServerConfig::default(), 5);
     let client = rig.connect();

@@ -264,8 +264,9 @@ impl ImageServer {
     }
 
     /// Answers `ER 04` to forwarded writes that waited longer than
-    /// [`ImageServerConfig::max_forward_wait`], and withdraws them from the
-    /// supervisor's queue. Call with the clock now and then (every tick).
+    /// [`ImageServerConfig::max_forward_wait`] for the line, and withdraws
+    /// them from the supervisor's queue; one already on the line gets its own
+    /// answer. Call with the clock now and then (every tick).
     pub fn expire(&mut self, now: SimTime, supervisor: &mut Supervisor) {
         let max_wait = self.config.max_forward_wait;
         for client in &mut self.clients {
@@ -281,7 +282,12 @@ impl ImageServer {
                 if now.saturating_since(*since) < max_wait {
                     continue;
                 }
-                supervisor.cancel_forward(*ticket);
+                if !supervisor.cancel_forward(*ticket) {
+                    // Already on the line: the slave may apply it, so only
+                    // its own answer (or the supervisor's retries running
+                    // out) may reply; an ER 04 now would say it was not.
+                    continue;
+                }
                 client.stats.errors += 1;
                 *owed = Owed::Ready(MebRepr::error_reply(
                     request.id,
