@@ -256,9 +256,25 @@ pub fn chrome_capabilities(
     caps
 }
 
-/// A fresh profile folder under the system's temporary folder.
+/// A fresh profile folder under the system's temporary folder. Those an
+/// earlier run left (its process gone; a browser profile is tens of MB) are
+/// removed first.
 pub fn fresh_dir(name: &str) -> std::path::PathBuf {
-    let dir = std::env::temp_dir().join(format!("twin-panel-{name}-{}", std::process::id()));
+    let tmp = std::env::temp_dir();
+    let prefix = format!("twin-panel-{name}-");
+    for e in std::fs::read_dir(&tmp).into_iter().flatten().flatten() {
+        let file_name = e.file_name();
+        let pid = file_name
+            .to_str()
+            .and_then(|n| n.strip_prefix(&prefix))
+            .and_then(|rest| rest.parse::<u32>().ok());
+        if let Some(pid) = pid
+            && !std::path::Path::new(&format!("/proc/{pid}")).exists()
+        {
+            let _ = std::fs::remove_dir_all(e.path());
+        }
+    }
+    let dir = tmp.join(format!("{prefix}{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     dir
