@@ -34,6 +34,7 @@
 #include <string.h>
 #include <simavr/sim_avr.h>
 #include <simavr/sim_elf.h>
+#include <simavr/sim_hex.h>
 #include <simavr/sim_irq.h>
 #include <simavr/sim_io.h>
 #include <simavr/sim_cycle_timers.h>
@@ -172,7 +173,31 @@ void *twin_avr_read_elf(const char *path, char *mcu, size_t mcu_len, uint32_t *f
 	elf_firmware_t *fw = calloc(1, sizeof(elf_firmware_t) + 1024);
 	if (!fw)
 		return NULL;
-	if (elf_read_firmware(path, fw) != 0) {
+	FILE *f = fopen(path, "rb");
+	int first = f ? fgetc(f) : EOF;
+	if (f)
+		fclose(f);
+	if (first == ':') {
+		/* Intel HEX, as avr-objcopy and the Arduino IDE write it: flash
+		 * only; the MCU and clock come from the node. */
+		ihex_chunk_p chunks = NULL;
+		int count = read_ihex_chunks(path, &chunks);
+		for (int i = 0; i < count; i++) {
+			if (chunks[i].baseaddr < 0x800000 && !fw->flash) {
+				fw->flash = chunks[i].data;
+				fw->flashsize = chunks[i].size;
+				fw->flashbase = chunks[i].baseaddr;
+				chunks[i].data = NULL;
+			}
+		}
+		for (int i = 0; i < count; i++)
+			free(chunks[i].data);
+		free(chunks);
+		if (!fw->flash) {
+			free(fw);
+			return NULL;
+		}
+	} else if (elf_read_firmware(path, fw) != 0) {
 		free(fw);
 		return NULL;
 	}
