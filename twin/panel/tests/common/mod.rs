@@ -76,6 +76,7 @@ pub fn serve(web: &str, access: AccessOptions, seconds: f64) -> Session {
         room_after_idle: None,
         read_only: false,
         light_adaptive: true,
+        firmware: None,
     };
     let (ready_tx, ready_rx) = channel();
     let (engine_tx, engine_rx) = channel();
