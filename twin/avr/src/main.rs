@@ -17,7 +17,8 @@ mod bench;
 /// ATmega328P run in simavr, instruction by instruction, against the
 /// simulated bench. A scenario's `firmware` node names the sketch's ELF and
 /// its wiring map (`ev-controller` or a TOML file); `serve --firmware`
-/// runs a sketch in real time for a real master. This
+/// runs a sketch in real time for a real master (`supervise` and `vsp` are
+/// `twin`'s own, here so one binary holds a whole bench). This
 /// binary is GPL-3.0-or-later because it links simavr; `twin` is MIT OR
 /// Apache-2.0 and runs every other scenario.
 #[derive(Debug, clap::Parser)]
@@ -36,6 +37,8 @@ struct Cli {
 enum Command {
     Run(commands::run::RunArgs),
     Serve(commands::serve::ServeArgs),
+    Supervise(commands::supervise::SuperviseArgs),
+    Vsp(commands::vsp::VspArgs),
     Bench(bench::BenchArgs),
 }
 
@@ -44,6 +47,12 @@ fn main() -> ExitCode {
     let command = commands::take_negative_numbers(Cli::command());
     let matches = command.get_matches();
     let cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
+    let given = |name: &str| {
+        matches
+            .subcommand_matches(name)
+            .cloned()
+            .unwrap_or_default()
+    };
     let result = match cli.command {
         Command::Run(args) => {
             commands::finish_recordings_on_signals();
@@ -51,13 +60,9 @@ fn main() -> ExitCode {
         }
         // `twin serve` itself: a configuration file's options give way to
         // the command line's.
-        Command::Serve(args) => commands::serve::execute(
-            &args,
-            &matches
-                .subcommand_matches("serve")
-                .cloned()
-                .unwrap_or_default(),
-        ),
+        Command::Serve(args) => commands::serve::execute(&args, &given("serve")),
+        Command::Supervise(args) => commands::supervise::execute(&args, &given("supervise")),
+        Command::Vsp(args) => commands::vsp::execute(&args),
         Command::Bench(args) => bench::execute(&args),
     };
     match result {

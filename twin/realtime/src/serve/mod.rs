@@ -237,12 +237,15 @@ impl<C: FnOnce(Sender<Inbound>)> Role for Serving<'_, C> {
     fn stopped(&mut self, _engine: &mut RtEngine, _totals: &mut BTreeMap<String, String>) {}
 }
 
+/// The devices built: the EV controller's, and the Controller_network motor's and light sensor's.
+type Served = (Option<usize>, Option<(usize, usize)>);
+
 /// Builds the module(s) and devices the links need.
 fn build_devices(
     options: &ServeOptions,
     specs: &[(ServeProtocol, LinkSpec)],
     engine: &mut RtEngine,
-) -> Result<(Option<usize>, Option<(usize, usize)>)> {
+) -> Result<Served> {
     let wants_ev = specs.iter().any(|(p, _)| *p != ServeProtocol::Modbus8);
     let wants_controller_network = specs.iter().any(|(p, _)| *p == ServeProtocol::Modbus8);
     let mut ev = None;
@@ -258,6 +261,17 @@ fn build_devices(
                 if let Some((p, spec)) = specs.iter().find(|(p, _)| *p != ServeProtocol::Meb) {
                     bail!(
                         "{} {}: the firmware serves MEB links only (its sketch's own protocol)",
+                        p.option(),
+                        spec.text
+                    );
+                }
+                // A TCP client's requests are answered on the thread that
+                // reads them; the sketch answers on the engine's ticks, and
+                // back-to-back requests on TCP still lose replies.
+                if let Some((p, spec)) = specs.iter().find(|(_, spec)| spec.is_tcp()) {
+                    bail!(
+                        "{} {}: the firmware answers on serial ports and pseudo-terminals \
+                         (its UART); reach it over TCP through a pty bridge such as socat",
                         p.option(),
                         spec.text
                     );
@@ -382,6 +396,7 @@ async fn open_links(
                     Box::new(move |_devices, _peer| {
                         Box::new(NodeEndpoint {
                             devices: vec![device],
+                            answers_later: true,
                         })
                     }),
                     format!("{id:02}"),
@@ -406,6 +421,7 @@ async fn open_links(
                     Box::new(move |_devices, _peer| {
                         Box::new(NodeEndpoint {
                             devices: vec![motor, light],
+                            answers_later: false,
                         })
                     }),
                     format!(

@@ -68,7 +68,12 @@ pub struct ServeArgs {
     firmware: Option<PathBuf>,
     /// The sketch's wiring map: a shipped one (ev-controller, motor-nano,
     /// light-nano) or a TOML file.
-    #[arg(long, value_name = "MAP", default_value = "ev-controller", requires = "firmware")]
+    #[arg(
+        long,
+        value_name = "MAP",
+        default_value = "ev-controller",
+        requires = "firmware"
+    )]
     wiring: String,
     /// Slave id of the EV module's controller (MEB slave number, Modbus unit id).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=99))]
