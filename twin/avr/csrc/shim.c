@@ -6,11 +6,25 @@
  * - the core never sleeps on the wall clock: the sleep callback is a no-op,
  *   and every run is bounded by a cycle timer at its target, so a sleeping
  *   core stops exactly where the twin's clock is;
- * - the UART prints nothing on stdout; its bytes are taken with the cycle of
- *   the write to UDR0 and timed by the Rust side from UBRR0/U2X0;
+ * - the UART prints nothing on stdout and never sleeps on the wall clock
+ *   when the firmware polls UCSR0A (simavr's "poll sleep" costs a usleep per
+ *   read: tens of microseconds of wall time for every byte a sketch sends);
+ *   its bytes are taken with the cycle of the write to UDR0 and timed by the
+ *   Rust side from UBRR0/U2X0;
+ * - the UART's byte time is the chip's: simavr 1.6 counts a parity bit that
+ *   8N1 does not send (11 bits, 93.5 us at 115200), so UDRE came back late
+ *   and a sketch's replies left at 93 us a byte instead of the 85 us of a
+ *   real ATmega328P; it is set from UBRR0, U2X0 and UCSR0C at every byte;
  * - AVcc and AREF are 5 V (simavr assumes 3.3 V unless told);
  * - every pin of ports B, C and D reports its edges with their cycle, so a
- *   PWM duty is measured from the pin's own edges.
+ *   PWM duty is measured from the pin's own edges;
+ * - a low level on INT0/INT1 (D2, D3) starts no per-cycle poll while that
+ *   interrupt is disabled in EIMSK: simavr 1.6 starts a poll on every cycle
+ *   for each low level it is handed in level mode (EICRA's default),
+ *   whether or not the interrupt is enabled, so a hall or encoder on D2/D3
+ *   read by pin-change interrupts or by polling cost timer callbacks on
+ *   every cycle for half the time: most of what the twin cost beyond
+ *   simavr itself.
  *
  * SPDX-License-Identifier: GPL-3.0-or-later
  */
@@ -20,12 +34,14 @@
 #include <string.h>
 #include <simavr/sim_avr.h>
 #include <simavr/sim_elf.h>
+#include <simavr/sim_hex.h>
 #include <simavr/sim_irq.h>
 #include <simavr/sim_io.h>
 #include <simavr/sim_cycle_timers.h>
 #include <simavr/avr_uart.h>
 #include <simavr/avr_adc.h>
 #include <simavr/avr_ioport.h>
+#include <simavr/avr_extint.h>
 
 #define TX_RING 512
 #define PORTS 3 /* B, C, D */
@@ -44,6 +60,7 @@ typedef struct twin_avr {
 	uint64_t high_cycles[PORTS * 8];
 	uint64_t edges[PORTS * 8];
 	avr_irq_t *uart_in;
+	avr_uart_t *uart;
 	avr_irq_t *adc[8];
 	avr_irq_t *pin_in[PORTS * 8];
 	struct pin_ref *refs;
@@ -85,9 +102,28 @@ static void no_sleep(avr_t *avr, avr_cycle_count_t how_long) {
 	(void)how_long;
 }
 
+/* UART0's byte time as the chip has it: start, data, parity if any, stop
+ * bits, each 16 (8 with U2X0) times UBRR0 + 1 cycles. */
+static void uart_byte_time(twin_avr_t *t) {
+	if (!t->uart)
+		return;
+	const uint8_t *d = t->avr->data;
+	uint32_t ubrr = d[0xC4] | ((d[0xC5] & 0x0F) << 8);
+	uint32_t bit = (ubrr + 1) * ((d[0xC0] & 0x02) ? 8 : 16);
+	uint8_t c = d[0xC2];
+	uint32_t data_bits = 5 + ((c >> 1) & 3) + ((d[0xC1] & 0x04) ? 4 : 0);
+	if (data_bits > 9)
+		data_bits = 9;
+	uint32_t bits = 1 + data_bits + (((c >> 4) & 3) ? 1 : 0) + 1 + ((c >> 3) & 1);
+	t->uart->cycles_per_byte = (avr_cycle_count_t)bit * bits;
+}
+
 static void uart_out(struct avr_irq_t *irq, uint32_t value, void *param) {
 	(void)irq;
 	twin_avr_t *t = param;
+	/* Raised by simavr before it starts its transmit timer for this byte:
+	 * the timer then runs at the chip's byte time. */
+	uart_byte_time(t);
 	uint32_t next = (t->tx_head + 1) % TX_RING;
 	if (next == t->tx_tail) {
 		t->tx_dropped++;
@@ -137,7 +173,31 @@ void *twin_avr_read_elf(const char *path, char *mcu, size_t mcu_len, uint32_t *f
 	elf_firmware_t *fw = calloc(1, sizeof(elf_firmware_t) + 1024);
 	if (!fw)
 		return NULL;
-	if (elf_read_firmware(path, fw) != 0) {
+	FILE *f = fopen(path, "rb");
+	int first = f ? fgetc(f) : EOF;
+	if (f)
+		fclose(f);
+	if (first == ':') {
+		/* Intel HEX, as avr-objcopy and the Arduino IDE write it: flash
+		 * only; the MCU and clock come from the node. */
+		ihex_chunk_p chunks = NULL;
+		int count = read_ihex_chunks(path, &chunks);
+		for (int i = 0; i < count; i++) {
+			if (chunks[i].baseaddr < 0x800000 && !fw->flash) {
+				fw->flash = chunks[i].data;
+				fw->flashsize = chunks[i].size;
+				fw->flashbase = chunks[i].baseaddr;
+				chunks[i].data = NULL;
+			}
+		}
+		for (int i = 0; i < count; i++)
+			free(chunks[i].data);
+		free(chunks);
+		if (!fw->flash) {
+			free(fw);
+			return NULL;
+		}
+	} else if (elf_read_firmware(path, fw) != 0) {
 		free(fw);
 		return NULL;
 	}
@@ -176,8 +236,12 @@ twin_avr_t *twin_avr_start(void *firmware, const char *mcu, uint32_t frequency) 
 
 	uint32_t flags = 0;
 	avr_ioctl(avr, AVR_IOCTL_UART_GET_FLAGS('0'), &flags);
-	flags &= ~AVR_UART_FLAG_STDIO;
+	flags &= ~(AVR_UART_FLAG_STDIO | AVR_UART_FLAG_POLL_SLEEP);
 	avr_ioctl(avr, AVR_IOCTL_UART_SET_FLAGS('0'), &flags);
+	for (avr_io_t *io = avr->io_port; io; io = io->next) {
+		if (io->kind && strcmp(io->kind, "uart") == 0 && ((avr_uart_t *)io)->name == '0')
+			t->uart = (avr_uart_t *)io;
+	}
 	avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_OUTPUT),
 				uart_out, t);
 	t->uart_in = avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_INPUT);
@@ -237,7 +301,11 @@ uint8_t twin_avr_data(const twin_avr_t *t, uint16_t addr) {
 	return t->avr->data[addr];
 }
 
-void twin_avr_uart_input(twin_avr_t *t, uint8_t byte) { avr_raise_irq(t->uart_in, byte); }
+void twin_avr_uart_input(twin_avr_t *t, uint8_t byte) {
+	/* simavr paces received bytes into RXC with the same byte time. */
+	uart_byte_time(t);
+	avr_raise_irq(t->uart_in, byte);
+}
 
 /* The next byte the firmware wrote to UDR0 and the cycle it wrote it at;
  * 0 when there is none. */
@@ -259,8 +327,17 @@ void twin_avr_adc(twin_avr_t *t, int channel, uint32_t millivolts) {
 
 /* Drives an input pin (port index 0 = B, 1 = C, 2 = D). */
 void twin_avr_pin_input(twin_avr_t *t, int pin, int level) {
-	if (pin >= 0 && pin < PORTS * 8 && t->pin_in[pin])
-		avr_raise_irq(t->pin_in[pin], level ? 1 : 0);
+	if (pin < 0 || pin >= PORTS * 8 || !t->pin_in[pin])
+		return;
+	int n = pin - (2 * 8 + 2); /* INT0 is PD2, INT1 is PD3 */
+	if (!level && (n == 0 || n == 1)) {
+		/* simavr 1.6 starts a poll on every cycle for each low level it is
+		 * handed in level mode (EICRA's default), enabled or not: keep
+		 * that only where the interrupt can fire. */
+		int enabled = (t->avr->data[0x3D] >> n) & 1; /* EIMSK */
+		avr_extint_set_strict_lvl_trig(t->avr, n, enabled);
+	}
+	avr_raise_irq(t->pin_in[pin], level ? 1 : 0);
 }
 
 /* A pin as the firmware drives it: level, edges since power-up and cycles

@@ -22,7 +22,7 @@ impl FirmwareBuilder for AvrBuilder {
         spec: &NodeSpec,
         module: Option<&PlantParams>,
         bus: &BusSpec,
-    ) -> Result<(Box<dyn SimNode>, SimDuration)> {
+    ) -> Result<(Box<dyn SimNode + Send>, SimDuration)> {
         let NodeSpec::Firmware {
             name,
             elf,

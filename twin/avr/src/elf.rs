@@ -13,6 +13,14 @@ pub enum ElfError {
         "{file}: not an ELF file (it starts {start:02X?}); give the sketch's .elf, as avr-gcc or the Arduino IDE's \"Export compiled binary\" writes it"
     )]
     NotElf { file: String, start: Vec<u8> },
+    #[error("{file}, line {line}: not an Intel HEX record ({why})")]
+    BadHex {
+        file: String,
+        line: usize,
+        why: &'static str,
+    },
+    #[error("{file}: {end} bytes of flash, more than the {mcu}'s 32 KB")]
+    HexTooBig { file: String, end: u32, mcu: String },
     #[error("{file}: ELF header cut short ({len} bytes)")]
     Short { file: String, len: usize },
     #[error("{file}: built for another processor (ELF field e_machine = {machine}), not an AVR")]
@@ -64,6 +72,9 @@ pub fn check(path: &Path, mcu: &str) -> Result<(), ElfError> {
         file: file.clone(),
         why: e.kind().to_string(),
     })?;
+    if bytes.first() == Some(&b':') {
+        return check_hex(&file, &bytes, mcu);
+    }
     if bytes.get(..4) != Some(b"\x7fELF") {
         return Err(ElfError::NotElf {
             file,
@@ -93,6 +104,68 @@ pub fn check(path: &Path, mcu: &str) -> Result<(), ElfError> {
     Ok(())
 }
 
+/// An Intel HEX file (avr-objcopy's or the Arduino IDE's `.hex`): every
+/// record well formed with its checksum, and the flash it fills within the
+/// MCU's. A `.hex` names no MCU: the node's `mcu` and `clock_hz` are taken.
+fn check_hex(file: &str, bytes: &[u8], mcu: &str) -> Result<(), ElfError> {
+    let bad = |line, why| ElfError::BadHex {
+        file: file.into(),
+        line,
+        why,
+    };
+    let text = std::str::from_utf8(bytes).map_err(|_| bad(1, "not text"))?;
+    let (mut base, mut end, mut saw_eof) = (0u32, 0u32, false);
+    for (n, line) in text.lines().enumerate().map(|(i, l)| (i + 1, l.trim())) {
+        if line.is_empty() {
+            continue;
+        }
+        let hex = line
+            .strip_prefix(':')
+            .ok_or_else(|| bad(n, "no ':' at its start"))?;
+        if hex.len() % 2 != 0 || hex.len() < 10 {
+            return Err(bad(n, "too short or an odd number of digits"));
+        }
+        let record: Vec<u8> = (0..hex.len() / 2)
+            .map(|i| u8::from_str_radix(&hex[2 * i..2 * i + 2], 16))
+            .collect::<Result<_, _>>()
+            .map_err(|_| bad(n, "not hexadecimal"))?;
+        if record.len() != usize::from(record[0]) + 5 {
+            return Err(bad(n, "its length byte does not match"));
+        }
+        if record.iter().fold(0u8, |a, b| a.wrapping_add(*b)) != 0 {
+            return Err(bad(n, "bad checksum"));
+        }
+        let addr = u32::from(u16::from_be_bytes([record[1], record[2]]));
+        let data = &record[4..record.len() - 1];
+        match record[3] {
+            0x00 => end = end.max(base + addr + data.len() as u32),
+            0x01 => saw_eof = true,
+            0x02 if data.len() == 2 => {
+                base = u32::from(u16::from_be_bytes([data[0], data[1]])) << 4
+            }
+            0x04 if data.len() == 2 => {
+                base = u32::from(u16::from_be_bytes([data[0], data[1]])) << 16
+            }
+            0x03 | 0x05 => {}
+            _ => return Err(bad(n, "unknown record type")),
+        }
+    }
+    if !saw_eof {
+        return Err(bad(
+            text.lines().count().max(1),
+            "no end-of-file record (cut short?)",
+        ));
+    }
+    if end > 0x8000 {
+        return Err(ElfError::HexTooBig {
+            file: file.into(),
+            end,
+            mcu: mcu.into(),
+        });
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -102,7 +175,7 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("twin-avr-elf-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join("sketch.hex");
-        std::fs::write(&path, ":100000000C945C000C946E000C946E000C946E00CA\n").unwrap();
+        std::fs::write(&path, "MEB @01EA000643*\n").unwrap();
         let err = check(&path, "atmega328p").unwrap_err().to_string();
         assert!(err.contains("sketch.hex: not an ELF file"), "{err}");
         let err = check(&dir.join("missing.elf"), "atmega328p")
@@ -111,5 +184,24 @@ mod tests {
         assert!(err.contains("missing.elf: cannot read it"), "{err}");
         let err = check(&path, "atmega2560").unwrap_err().to_string();
         assert!(err.contains("ATmega328P only"), "{err}");
+    }
+
+    #[test]
+    fn an_intel_hex_file_is_checked_record_by_record() {
+        let dir = std::env::temp_dir().join(format!("twin-avr-hex-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("sketch.hex");
+        let good = ":100000000C945C000C946E000C946E000C946E00CA\n:00000001FF\n";
+        std::fs::write(&path, good).unwrap();
+        check(&path, "atmega328p").expect("a good .hex");
+        std::fs::write(&path, good.replace("CA", "CB")).unwrap();
+        let err = check(&path, "atmega328p").unwrap_err().to_string();
+        assert!(
+            err.contains("sketch.hex, line 1: not an Intel HEX record (bad checksum)"),
+            "{err}"
+        );
+        std::fs::write(&path, ":100000000C945C000C946E000C946E000C946E00CA\n").unwrap();
+        let err = check(&path, "atmega328p").unwrap_err().to_string();
+        assert!(err.contains("no end-of-file record"), "{err}");
     }
 }

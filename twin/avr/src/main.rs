@@ -7,7 +7,7 @@
     reason = "the benchmark times simavr and the twin on the wall clock"
 )]
 
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, FromArgMatches, Subcommand};
 use std::process::ExitCode;
 use twin::commands;
 
@@ -16,10 +16,12 @@ mod bench;
 /// The EV lab twin with real firmware: Arduino sketches compiled for the
 /// ATmega328P run in simavr, instruction by instruction, against the
 /// simulated bench. A scenario's `firmware` node names the sketch's ELF and
-/// its wiring map (`ev-controller` or a TOML file). This
+/// its wiring map (`ev-controller` or a TOML file); `serve --firmware`
+/// runs a sketch in real time for a real master (`supervise` and `vsp` are
+/// `twin`'s own, here so one binary holds a whole bench). This
 /// binary is GPL-3.0-or-later because it links simavr; `twin` is MIT OR
 /// Apache-2.0 and runs every other scenario.
-#[derive(Debug, Parser)]
+#[derive(Debug, clap::Parser)]
 #[command(
     name = "twin-avr",
     version,
@@ -34,17 +36,33 @@ struct Cli {
 #[derive(Debug, Subcommand)]
 enum Command {
     Run(commands::run::RunArgs),
+    Serve(commands::serve::ServeArgs),
+    Supervise(commands::supervise::SuperviseArgs),
+    Vsp(commands::vsp::VspArgs),
     Bench(bench::BenchArgs),
 }
 
 fn main() -> ExitCode {
     twin_avr::register();
-    let cli = Cli::parse();
+    let command = commands::take_negative_numbers(Cli::command());
+    let matches = command.get_matches();
+    let cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
+    let given = |name: &str| {
+        matches
+            .subcommand_matches(name)
+            .cloned()
+            .unwrap_or_default()
+    };
     let result = match cli.command {
         Command::Run(args) => {
             commands::finish_recordings_on_signals();
             commands::run::execute(&args)
         }
+        // `twin serve` itself: a configuration file's options give way to
+        // the command line's.
+        Command::Serve(args) => commands::serve::execute(&args, &given("serve")),
+        Command::Supervise(args) => commands::supervise::execute(&args, &given("supervise")),
+        Command::Vsp(args) => commands::vsp::execute(&args),
         Command::Bench(args) => bench::execute(&args),
     };
     match result {

@@ -253,6 +253,12 @@ impl AvrNode {
         self.core.cycle()
     }
 
+    /// A byte of the firmware's data space (registers, I/O, RAM: a global
+    /// variable at the address `avr-nm` gives, less 0x800000).
+    pub fn ram(&self, addr: u16) -> u8 {
+        self.core.data(addr)
+    }
+
     /// The firmware's UART setting as its registers hold it now.
     pub fn uart(&self) -> UartSetting {
         self.uart
@@ -404,7 +410,8 @@ impl AvrNode {
     }
 
     fn read_outputs(&mut self, now: SimTime) -> Actuators {
-        let mut sd0: u16 = 0x1F;
+        // Lines no pin is wired to rest inactive; FR at 0 is clockwise.
+        let mut sd0: u16 = 0x0F;
         let mut sd1: u16 = 0x01;
         for &(pin, what) in &self.wiring.outputs {
             let high = self.output_level(pin.index);
@@ -415,7 +422,16 @@ impl AvrNode {
                 Output::Des => (&mut sd0, 3),
                 Output::Fr => (&mut sd0, 4),
                 Output::Chg => (&mut sd1, 0),
-                Output::Led | Output::DriverSleep => continue,
+                // Awake (high) enables the inverter: EN is active low.
+                Output::DriverSleep => {
+                    if high {
+                        sd0 &= !1;
+                    } else {
+                        sd0 |= 1;
+                    }
+                    continue;
+                }
+                Output::Led => continue,
             };
             if high {
                 *word |= 1 << bit;

@@ -8,10 +8,14 @@ use anyhow::{Context, Result, anyhow, bail};
 use serde::Deserialize;
 
 /// The maps that ship: name, text.
-pub const SHIPPED: [(&str, &str); 1] = [(
-    "ev-controller",
-    include_str!("../wiring/ev-controller.toml"),
-)];
+pub const SHIPPED: [(&str, &str); 3] = [
+    (
+        "ev-controller",
+        include_str!("../wiring/ev-controller.toml"),
+    ),
+    ("motor-nano", include_str!("../wiring/motor-nano.toml")),
+    ("light-nano", include_str!("../wiring/light-nano.toml")),
+];
 
 /// What a pin is wired to on the plant's side.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -49,6 +53,8 @@ pub enum Output {
     Chg,
     /// Read and recorded only.
     Led,
+    /// The motor driver's sleep line: high = awake, the inverter enabled
+    /// (the Controller_network motor Nano).
     DriverSleep,
 }
 
@@ -300,6 +306,14 @@ mod tests {
         assert_eq!(pin("D9").unwrap().index, 1); // PB1, OC1A
         assert_eq!(pin("A2").unwrap().adc, Some(2));
         assert_eq!(pin("D2").unwrap().index, 18); // PD2, INT0
+        let motor = Wiring::load("motor-nano").unwrap();
+        assert_eq!(motor.pwm[0].0.name, "D9");
+        assert!(
+            motor
+                .inputs
+                .contains(&(pin("D4").unwrap(), Input::DriverFault))
+        );
+        assert!(!Wiring::load("light-nano").unwrap().board.drives_plant);
     }
 
     #[test]

@@ -299,3 +299,32 @@ fn a_sketch_for_another_mcu_is_refused_naming_the_file_and_field() {
     assert!(err.contains("avr6"), "{err}");
     assert!(err.contains("-mmcu=atmega328p"), "{err}");
 }
+
+#[test]
+fn the_echo_sketch_runs_from_an_intel_hex_file_as_from_its_elf() {
+    // What the Arduino IDE exports and avrdude flashes: flash only, the MCU
+    // and clock given by the node.
+    let hex = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("echo.hex");
+    let status = Command::new("avr-objcopy")
+        .args(["-O", "ihex", "-R", ".eeprom"])
+        .arg(firmware("echo"))
+        .arg(&hex)
+        .status()
+        .expect("avr-objcopy runs (gcc-avr's binutils)");
+    assert!(status.success());
+    let text = b"@01EA000643*\n";
+    let mut node = start(&hex, SERIAL_ONLY, 115_200);
+    let sensors = Sensors::default();
+    let mut out = Vec::new();
+    run(&mut node, SimTime::ZERO, ms(5), &sensors, &mut out);
+    let end = send(&mut node, ms(5), text, 115_200, &sensors);
+    run(
+        &mut node,
+        end,
+        end + SimDuration::from_millis(20),
+        &sensors,
+        &mut out,
+    );
+    assert_eq!(String::from_utf8_lossy(&out), String::from_utf8_lossy(text));
+    assert_eq!(node.uart().baud.round(), 117_647.0);
+}

@@ -21,7 +21,7 @@ pub trait FirmwareBuilder: Send + Sync {
         spec: &NodeSpec,
         module: Option<&PlantParams>,
         bus: &BusSpec,
-    ) -> Result<(Box<dyn SimNode>, SimDuration)>;
+    ) -> Result<(Box<dyn SimNode + Send>, SimDuration)>;
 }
 
 static BUILDER: OnceLock<Box<dyn FirmwareBuilder>> = OnceLock::new();
@@ -42,7 +42,7 @@ pub fn build_firmware(
     spec: &NodeSpec,
     module: Option<&PlantParams>,
     bus: &BusSpec,
-) -> Result<(Box<dyn SimNode>, SimDuration)> {
+) -> Result<(Box<dyn SimNode + Send>, SimDuration)> {
     match BUILDER.get() {
         Some(builder) => builder.build(spec, module, bus),
         None => unavailable(spec),

@@ -164,7 +164,8 @@ pub fn build_node_on(
             };
             Ok((Box::new(slave), ms(*turnaround_ms)))
         }
-        NodeSpec::Firmware { .. } => crate::external::build_firmware(spec, module, bus),
+        NodeSpec::Firmware { .. } => crate::external::build_firmware(spec, module, bus)
+            .map(|(node, turnaround)| (node as Box<dyn SimNode>, turnaround)),
         _ => build_node(spec, module, faults),
     }
 }

@@ -86,6 +86,10 @@ pub struct ServeOptions {
     /// The EV controller's light detector at power-up (`LDR_ADAPT`): the
     /// adaptive one follows the wheel far faster than the fixed threshold.
     pub light_adaptive: bool,
+    /// The EV module's controller as compiled firmware (a `firmware` node,
+    /// built by the registered builder: `twin-avr serve --firmware`), in
+    /// place of the Rust controller; its MEB links reach the sketch's UART.
+    pub firmware: Option<twin_sim::scenario::NodeSpec>,
 }
 
 /// One open link, as printed before `ready`.
@@ -192,7 +196,7 @@ impl<C: FnOnce(Sender<Inbound>)> Role for Serving<'_, C> {
     const KIND: &'static str = "serve";
 
     fn build(&mut self, engine: &mut RtEngine) -> Result<()> {
-        (self.ev, self.controller_network) = build_devices(self.options, &self.specs, engine);
+        (self.ev, self.controller_network) = build_devices(self.options, &self.specs, engine)?;
         engine.set_read_only(self.options.read_only);
         engine.set_status_period(SimDuration::from_secs_f64(
             self.options.session.status_every.max(0.0),
@@ -248,12 +252,15 @@ impl<C: FnOnce(Sender<Inbound>)> Role for Serving<'_, C> {
     fn stopped(&mut self, _engine: &mut RtEngine, _totals: &mut BTreeMap<String, String>) {}
 }
 
+/// The devices built: the EV controller's, and the Controller_network motor's and light sensor's.
+type Served = (Option<usize>, Option<(usize, usize)>);
+
 /// Builds the module(s) and devices the links need.
 fn build_devices(
     options: &ServeOptions,
     specs: &[(ServeProtocol, LinkSpec)],
     engine: &mut RtEngine,
-) -> (Option<usize>, Option<(usize, usize)>) {
+) -> Result<Served> {
     let wants_ev = specs.iter().any(|(p, _)| *p != ServeProtocol::Modbus8);
     let wants_controller_network = specs.iter().any(|(p, _)| *p == ServeProtocol::Modbus8);
     let mut ev = None;
@@ -264,14 +271,46 @@ fn build_devices(
             twin_sim::virtual_run::derive_seed(options.seed, 100),
         );
         engine.modules.push(ModuleSlot::new("ev1", plant));
-        let mut config = EvControllerConfig::for_plant(&options.params);
-        config.light.adaptive = options.light_adaptive;
-        config.slave_id = options.id;
-        let node = FaultyNode::new(EvController::new(config), CheckKind::Meb);
+        let node: Box<dyn twin_sim::engine::SimNode + Send> = match &options.firmware {
+            Some(spec) => {
+                if let Some((p, spec)) = specs.iter().find(|(p, _)| *p != ServeProtocol::Meb) {
+                    bail!(
+                        "{} {}: the firmware serves MEB links only (its sketch's own protocol)",
+                        p.option(),
+                        spec.text
+                    );
+                }
+                // A TCP client's requests are answered on the thread that
+                // reads them; the sketch answers on the engine's ticks, and
+                // back-to-back requests on TCP still lose replies.
+                if let Some((p, spec)) = specs.iter().find(|(_, spec)| spec.is_tcp()) {
+                    bail!(
+                        "{} {}: the firmware answers on serial ports and pseudo-terminals \
+                         (its UART); reach it over TCP through a pty bridge such as socat",
+                        p.option(),
+                        spec.text
+                    );
+                }
+                let bus = twin_sim::scenario::BusSpec {
+                    name: "link".into(),
+                    baud: options.defaults.baud,
+                    bits_per_char: 10,
+                    bit_error_rate: 0.0,
+                    wiring: twin_sim::scenario::WiringSpec::MultiDrop,
+                    medium: Default::default(),
+                    pwmcap: None,
+                };
+                twin_sim::external::build_firmware(spec, Some(&options.params), &bus)?.0
+            }
+            None => {
+                let mut config = EvControllerConfig::for_plant(&options.params);
+                config.light.adaptive = options.light_adaptive;
+                config.slave_id = options.id;
+                Box::new(FaultyNode::new(EvController::new(config), CheckKind::Meb))
+            }
+        };
         ev = Some(engine.devices.len());
-        engine
-            .devices
-            .push(Device::new("ev1", Box::new(node), Some(module)));
+        engine.devices.push(Device::new("ev1", node, Some(module)));
     }
     let mut controller_network = None;
     if wants_controller_network {
@@ -305,7 +344,7 @@ fn build_devices(
             .push(Device::new("sensor", Box::new(light), Some(module)));
         controller_network = Some((m, m + 1));
     }
-    (ev, controller_network)
+    Ok((ev, controller_network))
 }
 
 /// Unique link names: the protocol, numbered when it repeats.
@@ -366,6 +405,17 @@ async fn open_links(
         let id = options.id;
         let (factory, shown_ids): (crate::EndpointFactory, String) =
             match (framing(protocol, &spec), ev, controller_network) {
+                // Compiled firmware answers on its own UART: the link's
+                // bytes go to the sketch as to a node on a bus.
+                (Some(_), Some(device), _) if options.firmware.is_some() => (
+                    Box::new(move |_devices, _peer| {
+                        Box::new(NodeEndpoint {
+                            devices: vec![device],
+                            answers_later: true,
+                        })
+                    }),
+                    format!("{id:02}"),
+                ),
                 (Some(framing), Some(device), _) => {
                     let label = format!("ev1 {name}");
                     let map = options.meb_map.clone().filter(|_| framing == Framing::Meb);
@@ -386,6 +436,7 @@ async fn open_links(
                     Box::new(move |_devices, _peer| {
                         Box::new(NodeEndpoint {
                             devices: vec![motor, light],
+                            answers_later: false,
                         })
                     }),
                     format!(

@@ -338,6 +338,7 @@ async fn open_links(
         factory: Box::new(|_devices, _peer| {
             Box::new(NodeEndpoint {
                 devices: vec![SUPERVISOR],
+                answers_later: false,
             })
         }),
     });

@@ -60,6 +60,21 @@ pub struct ServeArgs {
     /// a pty sees real bus timing.
     #[arg(long)]
     pace: bool,
+    /// The EV module's controller as a compiled Arduino sketch (ELF or Intel
+    /// HEX for the ATmega328P at 16 MHz), run in simavr in real time and
+    /// answering the MEB links on its own UART (`twin-avr serve` only: it
+    /// links simavr, GPL).
+    #[arg(long, value_name = "FILE")]
+    firmware: Option<PathBuf>,
+    /// The sketch's wiring map: a shipped one (ev-controller, motor-nano,
+    /// light-nano) or a TOML file.
+    #[arg(
+        long,
+        value_name = "MAP",
+        default_value = "ev-controller",
+        requires = "firmware"
+    )]
+    wiring: String,
     /// Slave id of the EV module's controller (MEB slave number, Modbus unit id).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=99))]
     id: u8,
@@ -224,6 +239,22 @@ pub(super) fn options(args: &ServeArgs, module: Option<&str>) -> Result<ServeOpt
         room_after_idle: super::timeout("--make-room-after", args.make_room_after)?,
         read_only: args.read_only,
         light_adaptive: args.adaptive_light,
+        firmware: match &args.firmware {
+            None => None,
+            Some(_) if !twin_sim::external::available() => anyhow::bail!(
+                "--firmware runs a compiled AVR sketch: use `twin-avr serve`, the build of \
+                 the twin that links simavr (GPL)"
+            ),
+            Some(elf) => Some(twin_sim::scenario::NodeSpec::Firmware {
+                name: "ev1".into(),
+                bus: "link".into(),
+                module: "ev1".into(),
+                elf: elf.display().to_string(),
+                wiring: args.wiring.clone(),
+                mcu: "atmega328p".into(),
+                clock_hz: 16_000_000,
+            }),
+        },
     })
 }
 
