@@ -1,6 +1,8 @@
 // The Controller_network project's 8-byte Modbus, slave side
 // (docs/protocols/modbus8.md): every frame is id, function, address (2),
 // value (2), CRC-16/MODBUS over the first six bytes, high byte first.
+// The same file sits in motor-nano and light-nano on purpose: each sketch
+// folder opens and builds on its own in the Arduino IDE, as the boards' do.
 #pragma once
 #include <Arduino.h>
 
