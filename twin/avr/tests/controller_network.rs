@@ -184,3 +184,15 @@ fn the_motor_sketch_counts_every_rising_edge_of_the_plants_encoder() {
     assert!(rising > 500, "the motor barely turned: {rising} edges");
     assert_eq!(i64::from(counted), rising);
 }
+
+/// Each Nano sketch folder carries its own copy of the protocol header, so
+/// it opens alone in the Arduino IDE; the copies must not drift apart.
+#[test]
+fn both_nanos_speak_the_same_modbus8() {
+    let firmware = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("firmware");
+    let read = |sketch: &str| {
+        std::fs::read_to_string(firmware.join(sketch).join("modbus8.h"))
+            .unwrap_or_else(|e| panic!("{sketch}/modbus8.h: {e}"))
+    };
+    assert_eq!(read("motor-nano"), read("light-nano"));
+}
