@@ -77,10 +77,13 @@ impl Schema {
     }
 }
 
+/// A field as a hand-written schema gives it: name, kind, repeated.
+pub(crate) type FieldSpec<'a> = (&'a str, Kind, bool);
+
 /// A schema written by hand, in the order of [`Schema::messages`]: each
 /// message's short name and fields (`name`, kind, repeated); a nested
 /// message's kind names it by its index.
-pub(crate) fn schema(package: &str, messages: &[(&str, &[(&str, Kind, bool)])]) -> Schema {
+pub(crate) fn schema(package: &str, messages: &[(&str, &[FieldSpec<'_>])]) -> Schema {
     let root = messages.first().map_or("", |m| m.0);
     Schema {
         messages: messages
