@@ -186,8 +186,9 @@ fn message_departure(topic: &str, i: usize, a: &Waiting, b: &Waiting) -> Result<
     let fa = flat(&va);
     let fb = flat(&vb);
     // A field absent is one written as null: protobuf leaves out the
-    // optional fields JSON wrote as null (a BMS that has not tripped), so a
-    // replay of an older JSON recording does not depart on them.
+    // optional fields JSON wrote as null (a BMS that has not tripped) and
+    // empty lists (no leaves either way), so a replay of an older JSON
+    // recording does not depart on them.
     let given =
         |m: &BTreeMap<String, Value>, k: &String| m.get(k).filter(|v| !v.is_null()).cloned();
     let mut differing = fa

@@ -1,8 +1,8 @@
 //! A protobuf message back to the JSON value a JSON recording holds: every
 //! field by its name, a nested message as an object, a repeated field as a
-//! list (empty when absent, as JSON wrote an empty list), a number that is
-//! not finite as `null` (as JSON wrote it). An optional field not on the
-//! wire is left out.
+//! list, a number that is not finite as `null` (as JSON wrote it). A field
+//! not on the wire (an optional one JSON wrote as `null`, an empty list, a
+//! field of another protocol's frame) is left out.
 
 use serde_json::{Map, Number, Value};
 
@@ -26,9 +26,6 @@ fn message(schema: &Schema, index: usize, mut bytes: &[u8], depth: usize) -> Res
         return Err("it nests messages deeper than any the twin writes".into());
     }
     let mut out = Map::new();
-    for f in m.fields.iter().filter(|f| f.repeated) {
-        out.insert(f.name.clone(), Value::Array(Vec::new()));
-    }
     while !bytes.is_empty() {
         let (number, wire) =
             next_field(&mut bytes).ok_or("it does not read as a protobuf message")?;
@@ -48,7 +45,10 @@ fn message(schema: &Schema, index: usize, mut bytes: &[u8], depth: usize) -> Res
             (wire, kind) => values.push(scalar(schema, kind, wire, depth).ok_or_else(bad)??),
         }
         if f.repeated {
-            if let Some(Value::Array(items)) = out.get_mut(&f.name) {
+            let items = out
+                .entry(f.name.clone())
+                .or_insert_with(|| Value::Array(Vec::new()));
+            if let Value::Array(items) = items {
                 items.extend(values);
             }
         } else if let Some(v) = values.pop() {
