@@ -45,7 +45,7 @@ fn messages(path: &Path, topic: &str) -> Vec<Value> {
         .expect("valid MCAP")
         .map(|m| m.expect("message"))
         .filter(|m| m.channel.topic == topic)
-        .map(|m| serde_json::from_slice(&m.data).expect("JSON"))
+        .map(|m| twin_recording::read::value_of(&m.channel, &m.data).expect("a message that reads"))
         .collect()
 }
 

@@ -156,7 +156,8 @@ fn an_earlier_step_recording_is_refused_in_words() {
     rec.write_metadata("twin.run", run).expect("metadata");
     for m in mcap::MessageStream::new(&bytes).expect("valid MCAP") {
         let m = m.expect("message");
-        let v: serde_json::Value = serde_json::from_slice(&m.data).expect("JSON");
+        let v: serde_json::Value =
+            twin_recording::read::value_of(&m.channel, &m.data).expect("a message that reads");
         if !rec.has_channel(&m.channel.topic) {
             rec.add_channel(&m.channel.topic, &v).expect("channel");
         }

@@ -351,7 +351,8 @@ fn abuse_on_every_link_leaves_the_others_served() {
         let topic = message.channel.topic.clone();
         if topic.ends_with("/frames") {
             *frames.entry(topic.clone()).or_default() += 1;
-            let frame: serde_json::Value = serde_json::from_slice(&message.data).unwrap();
+            let frame: serde_json::Value =
+                twin_recording::read::value_of(&message.channel, &message.data).unwrap();
             if frame["from"] != "twin" {
                 let hex = frame["hex"].as_str().unwrap_or_default();
                 let bytes = (0..hex.len() / 2)

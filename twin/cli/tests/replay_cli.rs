@@ -43,7 +43,7 @@ fn messages(path: &Path) -> Vec<(String, u64, serde_json::Value)> {
             (
                 m.channel.topic.clone(),
                 m.log_time,
-                serde_json::from_slice(&m.data).expect("JSON"),
+                twin_recording::read::value_of(&m.channel, &m.data).expect("a message that reads"),
             )
         })
         .collect()

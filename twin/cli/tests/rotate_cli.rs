@@ -91,7 +91,8 @@ fn contents(path: &Path) -> FileContents {
         if m.channel.topic != "/link/modbus-tcp/frames" {
             continue;
         }
-        let v: serde_json::Value = serde_json::from_slice(&m.data).expect("JSON");
+        let v: serde_json::Value =
+            twin_recording::read::value_of(&m.channel, &m.data).expect("a message that reads");
         let hex = v["hex"].as_str().expect("hex");
         let tid = u16::from_str_radix(&hex[..4], 16).expect("tid");
         let from = v["from"].as_str().expect("from").to_string();

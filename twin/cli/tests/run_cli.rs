@@ -23,7 +23,7 @@ fn read_messages(path: &Path, topic: &str) -> Vec<(u64, serde_json::Value)> {
         .map(|m| {
             (
                 m.log_time,
-                serde_json::from_slice(&m.data).expect("JSON message"),
+                twin_recording::read::value_of(&m.channel, &m.data).expect("a message that reads"),
             )
         })
         .collect()
@@ -114,16 +114,23 @@ fn the_recording_opens_in_the_python_mcap_reader() {
         .status
         .success()
     );
+    // The plant's samples decode by field name with PyPI's protobuf support
+    // for MCAP (what Foxglove's and Lichtblick's readers do in their way).
     let script = r#"
 import json, sys
 from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
+from google.protobuf.json_format import MessageToDict
 with open(sys.argv[1], "rb") as f:
-    reader = make_reader(f)
+    reader = make_reader(f, decoder_factories=[DecoderFactory()])
     summary = reader.get_summary()
     counts = {c.topic: summary.statistics.channel_message_counts[i] for i, c in summary.channels.items()}
     schemas = sorted({s.encoding for s in summary.schemas.values()})
     meta = {m.name: m.metadata for m in reader.iter_metadata()}
-print(json.dumps({"counts": counts, "schemas": schemas, "preset": meta["twin.run"]["preset"]}))
+    last = None
+    for _, _, _, sample in reader.iter_decoded_messages(topics=["/plant/sensors"]):
+        last = MessageToDict(sample, preserving_proto_field_name=True)
+print(json.dumps({"counts": counts, "schemas": schemas, "preset": meta["twin.run"]["preset"], "last": last}))
 "#;
     let o = Command::new("python3")
         .arg("-c")
@@ -138,8 +145,30 @@ print(json.dumps({"counts": counts, "schemas": schemas, "preset": meta["twin.run
     );
     let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(v["counts"]["/plant/sensors"], 501);
-    assert_eq!(v["schemas"], serde_json::json!(["jsonschema"]));
+    assert_eq!(v["schemas"], serde_json::json!(["jsonschema", "protobuf"]));
     assert_eq!(v["preset"], "vemodule");
+    // Every field by its name, as the twin's own reader reads it.
+    let ours = read_messages(&out, "/plant/sensors")
+        .pop()
+        .expect("a sample")
+        .1;
+    let theirs = &v["last"];
+    for (name, value) in ours.as_object().expect("fields") {
+        match value {
+            serde_json::Value::Null => {}
+            serde_json::Value::Object(inner) => {
+                for key in inner.keys() {
+                    assert!(!theirs[name][key].is_null(), "{name}.{key} in {theirs}");
+                }
+            }
+            _ => assert!(!theirs[name].is_null(), "{name} in {theirs}"),
+        }
+    }
+    assert_eq!(
+        theirs["battery_volts"].as_f64(),
+        ours["battery_volts"].as_f64()
+    );
+    assert_eq!(theirs["battery_counts"], ours["battery_counts"]);
 }
 
 #[test]

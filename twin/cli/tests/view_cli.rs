@@ -37,7 +37,7 @@ fn mcap_counts(path: &Path) -> (BTreeMap<String, u64>, u64) {
         let m = m.expect("valid message");
         *counts.entry(m.channel.topic.clone()).or_default() += 1;
         if m.channel.topic == "/bus/rs485/frames" {
-            let v: serde_json::Value = serde_json::from_slice(&m.data).unwrap();
+            let v: serde_json::Value = twin_recording::read::value_of(&m.channel, &m.data).unwrap();
             let d = &v["decoded"];
             if v["from"] == "ev1" && d["cmd"] == "EA" && d["data"].as_array().unwrap().len() == 6 {
                 ea_replies += 1;
@@ -236,7 +236,7 @@ fn below_the_light_sensors_limit_every_flag_pass_is_a_detected_dip() {
     for m in mcap::MessageStream::new(&bytes).unwrap() {
         let m = m.unwrap();
         if m.channel.topic == "/plant/sensors" {
-            let v: serde_json::Value = serde_json::from_slice(&m.data).unwrap();
+            let v: serde_json::Value = twin_recording::read::value_of(&m.channel, &m.data).unwrap();
             let now = v["flag_in_beam"].as_bool().unwrap();
             passes += u64::from(now && !in_beam);
             in_beam = now;
@@ -287,7 +287,7 @@ fn a_modbus_rtu_controller_gives_the_same_speed_plot_as_meb() {
     for m in mcap::MessageStream::new(&bytes).unwrap() {
         let m = m.unwrap();
         if m.channel.topic == "/bus/rs485/frames" {
-            let v: serde_json::Value = serde_json::from_slice(&m.data).unwrap();
+            let v: serde_json::Value = twin_recording::read::value_of(&m.channel, &m.data).unwrap();
             if v["from"] == "ev1" && v["decoded"]["function"] == 4 {
                 fc04_replies += 1;
             }

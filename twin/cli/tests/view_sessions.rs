@@ -198,7 +198,8 @@ fn a_serve_session_views_with_the_controllers_readings_and_the_tick_lateness() {
         .filter(|m| m.channel.topic == "/controller/ev1/readings")
         .last()
         .expect("a readings message");
-    let last: serde_json::Value = serde_json::from_slice(&last.data).unwrap();
+    let last: serde_json::Value =
+        twin_recording::read::value_of(&last.channel, &last.data).unwrap();
     assert!(last["hall_rpm"].as_u64().unwrap() > 500, "{last}");
     assert_eq!(last["meb"]["RPM_M"], last["hall_rpm"]);
     assert_eq!(samples["ev1/speed/hall_rpm"], readings, "{text}");
@@ -295,7 +296,8 @@ fn a_supervise_session_views_the_loop_of_each_slave() {
         match m.channel.topic.as_str() {
             "/master/supervisor/loop" => loops += 1,
             "/link/bus/frames" => {
-                let v: serde_json::Value = serde_json::from_slice(&m.data).unwrap();
+                let v: serde_json::Value =
+                    twin_recording::read::value_of(&m.channel, &m.data).unwrap();
                 let d = &v["decoded"];
                 if v["from"] != "twin"
                     && d["cmd"] == "EA"

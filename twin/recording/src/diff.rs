@@ -11,7 +11,7 @@ use serde_json::Value;
 use std::collections::{BTreeMap, HashMap, VecDeque};
 
 use super::Recording;
-use super::read::{Item, Reader};
+use super::read::{Encoding, Item, Message, Reader};
 use super::signals::{leaves, signal_name};
 
 /// The earliest place where two recordings differ.
@@ -36,6 +36,7 @@ struct Waiting {
     log_time_ns: u64,
     sequence: u32,
     data: Vec<u8>,
+    encoding: Encoding,
 }
 
 impl Waiting {
@@ -43,9 +44,18 @@ impl Waiting {
         self.log_time_ns as f64 * 1e-9
     }
 
+    /// Its JSON value, whichever encoding it was recorded in (a replay of
+    /// an older JSON recording is written as protobuf).
     fn value(&self, topic: &str) -> Result<Value> {
-        serde_json::from_slice(&self.data)
-            .map_err(|e| anyhow::anyhow!("message {} on {topic} is not JSON: {e}", self.sequence))
+        Message {
+            channel: 0,
+            topic,
+            sequence: self.sequence,
+            log_time_ns: self.log_time_ns,
+            data: &self.data,
+            encoding: &self.encoding,
+        }
+        .value()
     }
 }
 
@@ -104,6 +114,7 @@ pub fn first_departure(recorded: &Recording, replayed: &Recording) -> Result<Opt
             log_time_ns: m.log_time_ns,
             sequence: m.sequence,
             data: m.data.to_vec(),
+            encoding: m.encoding.clone(),
         });
         while !lane.waiting[0].is_empty() && !lane.waiting[1].is_empty() {
             let (Some(a), Some(b)) = (lane.waiting[0].pop_front(), lane.waiting[1].pop_front())
@@ -165,7 +176,7 @@ fn message_departure(topic: &str, i: usize, a: &Waiting, b: &Waiting) -> Result<
             channels_departing: 0,
         }));
     }
-    if a.data == b.data {
+    if a.data == b.data && a.encoding == b.encoding {
         return Ok(None);
     }
     let (va, vb) = (a.value(topic)?, b.value(topic)?);
@@ -174,12 +185,22 @@ fn message_departure(topic: &str, i: usize, a: &Waiting, b: &Waiting) -> Result<
     }
     let fa = flat(&va);
     let fb = flat(&vb);
+    // A field absent is one written as null: protobuf leaves out the
+    // optional fields JSON wrote as null (a BMS that has not tripped) and
+    // empty lists (no leaves either way), so a replay of an older JSON
+    // recording does not depart on them.
+    let given =
+        |m: &BTreeMap<String, Value>, k: &String| m.get(k).filter(|v| !v.is_null()).cloned();
     let mut differing = fa
         .keys()
         .chain(fb.keys())
-        .filter(|k| fa.get(*k) != fb.get(*k))
+        .filter(|k| given(&fa, k) != given(&fb, k))
         .collect::<std::collections::BTreeSet<_>>()
-        .into_iter();
+        .into_iter()
+        .peekable();
+    if differing.peek().is_none() {
+        return Ok(None);
+    }
     let field = differing.next().cloned().unwrap_or_default();
     let text = |m: &BTreeMap<String, Value>| m.get(&field).map_or_else(absent, |v| v.to_string());
     Ok(Some(Departure {

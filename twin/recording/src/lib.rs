@@ -19,6 +19,7 @@ pub mod disk;
 pub mod export;
 pub mod identity;
 mod mcap_file;
+pub mod proto;
 pub mod read;
 pub mod record;
 pub mod recover;
@@ -26,6 +27,6 @@ pub mod signals;
 pub mod topics;
 mod writer;
 
-pub use read::{Channel, Cut, Event, Frame, Item, Message, Reader, Recording};
+pub use read::{Channel, Cut, Encoding, Event, Frame, Item, Message, Reader, Recording};
 pub use record::Recorder;
 pub use signals::{Signal, Signals};

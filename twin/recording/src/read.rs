@@ -19,8 +19,10 @@ use std::collections::{BTreeMap, HashMap};
 use std::fs::File;
 use std::io::Read;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use crate::chunk::{chunk_damage_in_words, chunk_records, in_words};
+use crate::proto;
 use crate::topics::{self, Topic};
 
 /// One channel of a recording: its topic and how many messages it holds.
@@ -29,6 +31,42 @@ pub struct Channel {
     pub topic: String,
     /// Messages read on it.
     pub message_count: u64,
+    /// How its messages are written.
+    pub encoding: Encoding,
+}
+
+/// How a channel's messages are written: the twin writes the plant's
+/// samples and the frames as protobuf, the rest (and everything, in files
+/// older than that) as JSON; [`Message::json`] reads both.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Encoding {
+    Json,
+    /// Protobuf, with the schema its file gives.
+    Protobuf(Arc<proto::Schema>),
+    /// Protobuf whose schema does not read: why, in words.
+    BadSchema(String),
+    /// Anything else (not written by this twin), by its name.
+    Other(String),
+}
+
+impl Encoding {
+    /// The encoding of a channel of `message_encoding` whose schema record
+    /// (name, encoding, data) is `schema`.
+    fn of(message_encoding: &str, schema: Option<&(String, String, Vec<u8>)>) -> Self {
+        match message_encoding {
+            topics::MESSAGE_ENCODING => Encoding::Json,
+            topics::PROTOBUF => match schema {
+                Some((name, encoding, data)) if encoding == topics::PROTOBUF => {
+                    match proto::descriptor::parse(data, name) {
+                        Ok(schema) => Encoding::Protobuf(Arc::new(schema)),
+                        Err(e) => Encoding::BadSchema(e),
+                    }
+                }
+                _ => Encoding::BadSchema("it has no protobuf schema".into()),
+            },
+            other => Encoding::Other(other.to_string()),
+        }
+    }
 }
 
 /// Why reading stopped before the end of the data.
@@ -110,8 +148,9 @@ pub struct Message<'a> {
     pub sequence: u32,
     /// Log time: simulated time (ns).
     pub log_time_ns: u64,
-    /// The message as recorded (JSON text).
+    /// The message as recorded (JSON text or protobuf, as `encoding` says).
     pub data: &'a [u8],
+    pub encoding: &'a Encoding,
 }
 
 impl Message<'_> {
@@ -121,17 +160,46 @@ impl Message<'_> {
     }
 
     /// The message decoded as `T` (a [`serde_json::Value`], or one of the
-    /// catalogue's sample types).
+    /// catalogue's sample types): a JSON message as it is, a protobuf one as
+    /// the same JSON value (every field by its name).
     pub fn json<'de, T: Deserialize<'de>>(&'de self) -> Result<T> {
-        serde_json::from_slice(self.data)
-            .with_context(|| format!("message {} on {} is not JSON", self.sequence, self.topic))
+        let (sequence, topic) = (self.sequence, self.topic);
+        match self.encoding {
+            Encoding::Json => serde_json::from_slice(self.data)
+                .with_context(|| format!("message {sequence} on {topic} is not JSON")),
+            Encoding::Protobuf(schema) => {
+                let value = proto::to_value(schema, self.data)
+                    .map_err(|e| anyhow!("message {sequence} on {topic} is damaged: {e}"))?;
+                T::deserialize(value).with_context(|| {
+                    format!("message {sequence} on {topic} lacks a field the twin reads")
+                })
+            }
+            Encoding::BadSchema(why) => {
+                bail!("the messages on {topic} cannot be read: {why}")
+            }
+            Encoding::Other(name) => bail!(
+                "the messages on {topic} are `{name}`, which the twin does not read \
+                 (it reads json and protobuf)"
+            ),
+        }
     }
 
-    /// Check that the message is JSON without keeping any of it.
+    /// The message as a JSON value, as [`Message::json`] reads it.
+    pub fn value(&self) -> Result<serde_json::Value> {
+        self.json()
+    }
+
+    /// Check that the message reads without keeping any of it.
     pub fn check_json(&self) -> Result<()> {
-        self.json::<serde::de::IgnoredAny>().map(|_| ())
+        match self.encoding {
+            Encoding::Json => self.json::<serde::de::IgnoredAny>().map(|_| ()),
+            _ => self.value().map(drop),
+        }
     }
 }
+
+/// The encoding of a message whose channel is unknown.
+static JSON: Encoding = Encoding::Json;
 
 /// What [`Reader::next`] hands out, in file order.
 #[derive(Debug, Clone, Copy)]
@@ -167,6 +235,8 @@ pub struct Reader<R = File> {
     chunks_too: bool,
     /// MCAP channel id to index in `recording.channels`.
     by_id: HashMap<u16, usize>,
+    /// Schema records by id: name, encoding, data.
+    schemas: HashMap<u16, (String, String, Vec<u8>)>,
     recording: Recording,
     done: bool,
 }
@@ -232,6 +302,7 @@ impl<R: Read> Reader<R> {
             current: None,
             chunks_too: true,
             by_id: HashMap::new(),
+            schemas: HashMap::new(),
             recording: Recording {
                 path: path.to_path_buf(),
                 metadata: BTreeMap::new(),
@@ -386,11 +457,19 @@ impl<R: Read> Reader<R> {
                 }
                 let index = self.recording.channels.len();
                 self.by_id.insert(c.id, index);
+                let encoding = Encoding::of(&c.message_encoding, self.schemas.get(&c.schema_id));
                 self.recording.channels.push(Channel {
                     topic: c.topic,
                     message_count: 0,
+                    encoding,
                 });
                 Current::Channel(index)
+            }
+            Record::Schema { header, data } => {
+                self.schemas
+                    .entry(header.id)
+                    .or_insert_with(|| (header.name, header.encoding, data.into_owned()));
+                return None;
             }
             Record::Message { header, data } => {
                 let channel = self.by_id.get(&header.channel_id).copied();
@@ -467,6 +546,10 @@ impl Current {
                 sequence: *sequence,
                 log_time_ns: *log_time_ns,
                 data,
+                encoding: recording
+                    .channels
+                    .get(*channel)
+                    .map_or(&JSON, |c| &c.encoding),
             }),
             Current::Message {
                 channel: None,
@@ -604,6 +687,25 @@ impl Recording {
         })?;
         Ok(events)
     }
+}
+
+/// A message read with the MCAP library's own reader (`mcap::MessageStream`),
+/// as a JSON value: JSON as it is, protobuf by its channel's schema.
+pub fn value_of(channel: &mcap::Channel<'_>, data: &[u8]) -> Result<serde_json::Value> {
+    let schema = channel
+        .schema
+        .as_ref()
+        .map(|s| (s.name.clone(), s.encoding.clone(), s.data.to_vec()));
+    let encoding = Encoding::of(&channel.message_encoding, schema.as_ref());
+    Message {
+        channel: 0,
+        topic: &channel.topic,
+        sequence: 0,
+        log_time_ns: 0,
+        data,
+        encoding: &encoding,
+    }
+    .value()
 }
 
 /// A frame as it went on a bus.

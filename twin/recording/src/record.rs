@@ -1,5 +1,7 @@
-//! Recording runs to MCAP: JSON messages on JSON-schema channels (Foxglove and
-//! `mcap` CLI open them), simulated time as log time, and the run's identity
+//! Recording runs to MCAP: the plant's samples and the frames as protobuf
+//! (their schema a `FileDescriptorSet` in the file), the other channels as
+//! JSON on JSON-schema channels (Foxglove, Lichtblick and the `mcap` CLI open
+//! both), simulated time as log time, and the run's identity
 //! (preset, seed, parameters, twin version) in a metadata record so that a
 //! later `replay` can re-run it. No wall-clock time goes into the file: the
 //! same run gives the same bytes. What the channels and metadata are is in
@@ -12,8 +14,10 @@ use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use crate::mcap_file::McapFile;
+use crate::proto;
 use crate::topics;
 use crate::writer::{Appender, Backend, Batch, FileWriter, Job, Queued};
 pub use crate::writer::{Deferred, NoDeferred};
@@ -49,6 +53,8 @@ pub struct Recorder<D: Deferred = NoDeferred> {
     path: PathBuf,
     /// Per channel, in creation order: its next sequence number.
     sequences: Vec<u32>,
+    /// Per channel, in creation order: its protobuf schema (`None`: JSON).
+    protos: Vec<Option<Arc<proto::Schema>>>,
     topics: BTreeMap<String, ChannelId>,
     /// Messages serialised since the last hand-over.
     batch: Batch<D>,
@@ -117,6 +123,7 @@ impl<D: Deferred> Recorder<D> {
         Self {
             path: path.to_path_buf(),
             sequences: Vec::new(),
+            protos: Vec::new(),
             topics: BTreeMap::new(),
             batch: Batch::new(backend.batch_bytes()),
             backend: Some(backend),
@@ -124,23 +131,44 @@ impl<D: Deferred> Recorder<D> {
         }
     }
 
-    /// Add a channel whose messages look like `sample` (its schema the
-    /// catalogue's, where [`topics::described_schema`] has one).
+    /// Add a channel whose messages look like `sample`: protobuf where the
+    /// catalogue has a protobuf schema for it ([`topics::proto_schema`]) and
+    /// `sample` fits it, JSON otherwise (its schema the catalogue's, where
+    /// [`topics::described_schema`] has one, else derived from `sample`).
     pub fn add_channel<T: Serialize>(&mut self, topic: &str, sample: &T) -> Result<ChannelId> {
-        let schema = match topics::described_schema(topic) {
-            Some(schema) => schema,
-            None => schema_of(&serde_json::to_value(sample)?),
+        let proto = topics::proto_schema(topic)
+            .filter(|schema| proto::encode(schema, sample, &mut Vec::new()).is_ok())
+            .map(Arc::new);
+        let job = match &proto {
+            Some(schema) => Job::Channel {
+                topic: topic.to_string(),
+                schema_name: schema.name().to_string(),
+                schema_encoding: topics::PROTOBUF,
+                schema: proto::descriptor::descriptor_set(schema),
+                message_encoding: topics::PROTOBUF,
+                proto: Some(Arc::clone(schema)),
+            },
+            None => {
+                let schema = match topics::described_schema(topic) {
+                    Some(schema) => schema,
+                    None => schema_of(&serde_json::to_value(sample)?),
+                };
+                Job::Channel {
+                    topic: topic.to_string(),
+                    schema_name: topics::schema_name(topic),
+                    schema_encoding: topics::SCHEMA_ENCODING,
+                    schema: serde_json::to_vec(&schema)?,
+                    message_encoding: topics::MESSAGE_ENCODING,
+                    proto: None,
+                }
+            }
         };
-        let schema = serde_json::to_vec(&schema)?;
         // The channel's messages must not reach the writer before it does.
         self.hand_over()?;
-        self.submit(Job::Channel {
-            topic: topic.to_string(),
-            schema_name: topics::schema_name(topic),
-            schema,
-        })?;
+        self.submit(job)?;
         let channel = ChannelId(self.sequences.len());
         self.sequences.push(0);
+        self.protos.push(proto);
         self.topics.insert(topic.to_string(), channel);
         Ok(channel)
     }
@@ -172,9 +200,19 @@ impl<D: Deferred> Recorder<D> {
     ) -> Result<()> {
         self.check(channel)?;
         let start = self.batch.bytes.len();
-        if let Err(e) = serde_json::to_writer(Appender(&mut self.batch.bytes), message) {
+        let written = match self.protos.get(channel.0) {
+            Some(Some(schema)) => {
+                proto::encode(schema, message, &mut self.batch.bytes).map_err(anyhow::Error::from)
+            }
+            _ => serde_json::to_writer(Appender(&mut self.batch.bytes), message)
+                .map_err(anyhow::Error::from),
+        };
+        if let Err(e) = written {
             self.batch.bytes.truncate(start);
-            return Err(e.into());
+            return Err(e.context(format!(
+                "cannot record a message on {}",
+                self.topic_of(channel)
+            )));
         }
         let end = self.batch.bytes.len();
         self.queue(channel, time_s, end, false)
@@ -187,6 +225,14 @@ impl<D: Deferred> Recorder<D> {
         let index = self.batch.deferred.len();
         self.batch.deferred.push(message);
         self.queue(channel, time_s, index, true)
+    }
+
+    /// The topic of `channel`, as errors name it.
+    fn topic_of(&self, channel: ChannelId) -> &str {
+        self.topics
+            .iter()
+            .find(|(_, c)| **c == channel)
+            .map_or("", |(t, _)| t.as_str())
     }
 
     fn check(&self, channel: ChannelId) -> Result<()> {

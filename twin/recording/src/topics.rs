@@ -34,10 +34,12 @@
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 
-/// Message encoding of every channel.
+/// Message encoding of the JSON channels.
 pub const MESSAGE_ENCODING: &str = "json";
-/// Schema encoding of every channel.
+/// Schema encoding of the JSON channels.
 pub const SCHEMA_ENCODING: &str = "jsonschema";
+/// Message and schema encoding of the protobuf channels ([`proto_schema`]).
+pub const PROTOBUF: &str = "protobuf";
 
 /// The run's identity: what `twin replay` re-runs and `twin view` lays out.
 pub const RUN_METADATA: &str = "twin.run";
@@ -267,6 +269,122 @@ pub fn described_schema(topic: &str) -> Option<Value> {
         Topic::ControllerReadings(_) => Some(readings_schema()),
         _ => None,
     }
+}
+
+/// The protobuf schema of `topic`'s channel, where the catalogue records it
+/// as protobuf: the plant's samples and the frames, most of a recording's
+/// messages. Every other channel is JSON. A bus whose frames do not fit
+/// (PWM-capture: per-listener captures, values that may be missing) stays
+/// JSON too: [`crate::record::Recorder::add_channel`] tries its first frame.
+pub fn proto_schema(topic: &str) -> Option<crate::proto::Schema> {
+    match Topic::parse(topic) {
+        Topic::PlantSensors(_) => Some(sensors_proto()),
+        Topic::BusFrames(_) | Topic::LinkFrames(_) => Some(frame_proto()),
+        _ => None,
+    }
+}
+
+/// `twin.PlantSensors`: `plant::Sensors`, field for field.
+fn sensors_proto() -> crate::proto::Schema {
+    use crate::proto::Kind::{Bool, Double, Message, Sint, String, Uint, Uint32};
+    crate::proto::schema(
+        "twin",
+        &[
+            (
+                "PlantSensors",
+                &[
+                    ("time_s", Double, false),
+                    ("battery_volts", Double, false),
+                    ("bus_volts", Double, false),
+                    ("inverter_current", Double, false),
+                    ("battery_current", Double, false),
+                    ("soc", Double, false),
+                    ("charging", Bool, false),
+                    // Absent while the BMS conducts.
+                    ("bms_trip", String, false),
+                    ("battery_counts", Uint32, false),
+                    ("bus_counts", Uint32, false),
+                    ("current_counts", Uint32, false),
+                    ("motor_current", Double, false),
+                    ("motor_tripped", Bool, false),
+                    ("motor_rpm", Double, false),
+                    ("shaft", Message(1), false),
+                    ("wheel_rpm", Double, false),
+                    ("wheel_angle", Double, false),
+                    ("brake_applied", Bool, false),
+                    ("ldr_volts", Double, false),
+                    ("ldr_counts", Uint32, false),
+                    ("flag_in_beam", Bool, false),
+                    ("energy", Message(2), false),
+                ],
+            ),
+            (
+                "Shaft",
+                &[
+                    ("hall", Uint32, false),
+                    ("hall_edges", Uint, false),
+                    ("last_hall_edge_at", Double, false),
+                    ("encoder_a", Bool, false),
+                    ("encoder_b", Bool, false),
+                    ("encoder_count", Sint, false),
+                    ("last_encoder_edge_at", Double, false),
+                ],
+            ),
+            (
+                "Energy",
+                &[
+                    ("battery_out", Double, false),
+                    ("converter_loss", Double, false),
+                    ("bleeder_loss", Double, false),
+                    ("copper_loss", Double, false),
+                    ("friction_loss", Double, false),
+                    ("brake_loss", Double, false),
+                    ("kinetic", Double, false),
+                    ("capacitor", Double, false),
+                    ("magnetic", Double, false),
+                ],
+            ),
+        ],
+    )
+}
+
+/// `twin.Frame`: a frame on a bus or link, its `decoded` fields those of
+/// every protocol the describer knows (a frame has its protocol's).
+fn frame_proto() -> crate::proto::Schema {
+    use crate::proto::Kind::{Double, Message, String, Uint32};
+    crate::proto::schema(
+        "twin",
+        &[
+            (
+                "Frame",
+                &[
+                    ("from", String, false),
+                    ("start_s", Double, false),
+                    ("end_s", Double, false),
+                    ("len", Uint32, false),
+                    ("text", String, false),
+                    ("hex", String, false),
+                    ("decoded", Message(1), false),
+                ],
+            ),
+            (
+                "Decoded",
+                &[
+                    ("protocol", String, false),
+                    ("addr", Uint32, false),
+                    ("cmd", String, false),
+                    ("cnt", Uint32, false),
+                    ("data", Uint32, true),
+                    ("id", Uint32, false),
+                    ("function", Uint32, false),
+                    ("value", Uint32, false),
+                    ("unit", Uint32, false),
+                    ("transaction", Uint32, false),
+                    ("error", String, false),
+                ],
+            ),
+        ],
+    )
 }
 
 /// An event as recorded on [`EVENTS`].

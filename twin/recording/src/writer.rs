@@ -12,9 +12,11 @@ use std::thread::JoinHandle;
 
 use serde::Serialize;
 
+use std::sync::Arc;
+
 use crate::disk::DiskGuard;
 use crate::mcap_file::McapFile;
-use crate::topics;
+use crate::proto;
 
 /// A message type the writer serialises itself: see
 /// [`crate::record::Recorder::write_deferred`].
@@ -106,7 +108,11 @@ pub(crate) enum Job<D> {
     Channel {
         topic: String,
         schema_name: String,
+        schema_encoding: &'static str,
         schema: Vec<u8>,
+        message_encoding: &'static str,
+        /// Its protobuf schema, for the deferred messages (`None`: JSON).
+        proto: Option<Arc<proto::Schema>>,
     },
     Messages(Batch<D>),
     Metadata(Metadata),
@@ -119,7 +125,9 @@ pub(crate) struct FileWriter {
     writer: McapFile<BufWriter<File>>,
     /// MCAP ids of the channels, by creation order.
     ids: Vec<u16>,
-    /// A deferred message's JSON, reused from message to message.
+    /// Protobuf schemas of the channels, by creation order (`None`: JSON).
+    protos: Vec<Option<Arc<proto::Schema>>>,
+    /// A deferred message's bytes, reused from message to message.
     json: Vec<u8>,
     /// The file, as errors name it.
     shown: String,
@@ -131,6 +139,7 @@ impl FileWriter {
         Self {
             writer,
             ids: Vec::new(),
+            protos: Vec::new(),
             json: Vec::new(),
             shown: path.display().to_string(),
             disk: DiskGuard::new(path),
@@ -145,17 +154,21 @@ impl FileWriter {
             Job::Channel {
                 topic,
                 schema_name,
+                schema_encoding,
                 schema,
+                message_encoding,
+                proto,
             } => {
                 let schema_id = self
                     .writer
-                    .add_schema(&schema_name, topics::SCHEMA_ENCODING, &schema)
+                    .add_schema(&schema_name, schema_encoding, &schema)
                     .with_context(cannot_write)?;
                 let id = self
                     .writer
-                    .add_channel(schema_id, &topic, topics::MESSAGE_ENCODING)
+                    .add_channel(schema_id, &topic, message_encoding)
                     .with_context(cannot_write)?;
                 self.ids.push(id);
+                self.protos.push(proto);
                 Ok(None)
             }
             Job::Messages(mut batch) => {
@@ -168,8 +181,14 @@ impl FileWriter {
                     let data = if m.deferred {
                         self.json.clear();
                         if let Some(message) = batch.deferred.get(m.end) {
-                            serde_json::to_writer(Appender(&mut self.json), message)
-                                .with_context(cannot_write)?;
+                            match self.protos.get(m.channel) {
+                                Some(Some(schema)) => {
+                                    proto::encode(schema, message, &mut self.json)
+                                        .with_context(cannot_write)?;
+                                }
+                                _ => serde_json::to_writer(Appender(&mut self.json), message)
+                                    .with_context(cannot_write)?,
+                            }
                         }
                         self.json.as_slice()
                     } else {

@@ -438,3 +438,80 @@ impl<O: Observer + ?Sized> Observer for &mut O {
         (**self).readings(now, node, readings)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use twin_recording::describe::link_frame_fields;
+    use twin_recording::proto;
+
+    /// What `value` reads back as from its protobuf bytes, against its JSON
+    /// (a field JSON writes as null or an empty list is left out).
+    fn round_trip<T: Serialize>(topic: &str, value: &T) -> (Value, Value) {
+        let schema = topics::proto_schema(topic).expect("a protobuf channel");
+        let mut bytes = Vec::new();
+        proto::encode(&schema, value, &mut bytes).expect("it fits its schema");
+        let back = proto::to_value(&schema, &bytes).expect("it reads back");
+        let mut json = serde_json::to_value(value).unwrap();
+        drop_nulls(&mut json);
+        (back, json)
+    }
+
+    fn drop_nulls(v: &mut Value) {
+        if let Value::Object(fields) = v {
+            fields.retain(|_, f| !f.is_null() && f.as_array().is_none_or(|a| !a.is_empty()));
+            fields.values_mut().for_each(drop_nulls);
+        }
+    }
+
+    #[test]
+    fn plant_samples_and_frames_fit_their_protobuf_schemas_field_for_field() {
+        let mut sensors = plant::Sensors {
+            battery_volts: 12.345678901234567,
+            bms_trip: Some(plant::battery::BmsTrip::OverCurrent),
+            ldr_counts: 3280,
+            ..plant::Sensors::default()
+        };
+        sensors.shaft.encoder_count = -41;
+        sensors.shaft.hall_edges = u64::from(u32::MAX) + 7;
+        sensors.energy.capacitor = 0.828245;
+        let (back, json) = round_trip("/plant/ev1/sensors", &sensors);
+        assert_eq!(back, json);
+        sensors.bms_trip = None;
+        let (back, json) = round_trip("/plant/ev1/sensors", &sensors);
+        assert_eq!(back, json);
+
+        let frames: [(&str, &[u8]); 6] = [
+            ("meb", b"@01EA0006FF*\n"),
+            ("meb", b"@01SD0002000E000120*\n"),
+            ("meb", b"@zz"),
+            ("modbus-tcp", &[0, 7, 0, 0, 0, 6, 1, 4, 0, 0, 0, 10]),
+            ("modbus-tcp", &[0, 7, 0]),
+            ("modbus-rtu", &[1, 3, 0, 0, 0, 3, 0x05, 0xcb]),
+        ];
+        for (protocol, bytes) in frames {
+            let message = FrameMessage {
+                from: "client 3",
+                start_s: 0.25,
+                end_s: 0.2501,
+                len: bytes.len(),
+                text: "",
+                hex: "00",
+                decoded: link_frame_fields(protocol, bytes),
+            };
+            let (back, json) = round_trip("/link/modbus-tcp/frames", &message);
+            assert_eq!(back, json, "{protocol} {bytes:?}");
+            let message = FrameMessage {
+                from: "supervisor",
+                start_s: 0.25,
+                end_s: 0.2501,
+                len: bytes.len(),
+                text: "",
+                hex: "00",
+                decoded: decode_frame(bytes),
+            };
+            let (back, json) = round_trip("/bus/rs485/frames", &message);
+            assert_eq!(back, json, "{protocol} {bytes:?}");
+        }
+    }
+}

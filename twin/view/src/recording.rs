@@ -11,7 +11,7 @@ use plant::PlantParams;
 use serde::Deserialize;
 use std::collections::BTreeMap;
 use std::path::Path;
-use twin_recording::read::{Item, NotMcap, Reader};
+use twin_recording::read::{Item, Message, NotMcap, Reader};
 use twin_recording::topics::{self, EventSample, FrameSample, ReadingsSample, Topic};
 
 use super::layout::{
@@ -219,7 +219,7 @@ pub fn replay_into(path: &Path, logger: &mut RerunLogger) -> Result<ReadSummary>
                 summary.messages.insert(m.topic.to_string(), 1);
             }
         }
-        if let Err(e) = feed(logger, session, m.topic, t, m.data) {
+        if let Err(e) = feed(logger, session, &m, t) {
             *summary
                 .skipped
                 .entry(format!("{}: {e}", m.topic))
@@ -238,27 +238,21 @@ pub fn replay_into(path: &Path, logger: &mut RerunLogger) -> Result<ReadSummary>
 }
 
 /// One message to the logger, by topic.
-fn feed(
-    logger: &mut RerunLogger,
-    session: Session,
-    topic: &str,
-    t: f64,
-    data: &[u8],
-) -> Result<()> {
-    match Topic::parse(topic) {
+fn feed(logger: &mut RerunLogger, session: Session, m: &Message<'_>, t: f64) -> Result<()> {
+    match Topic::parse(m.topic) {
         Topic::PlantSensors(module) => {
-            let s: PlantSample = serde_json::from_slice(data)?;
+            let s: PlantSample = m.json()?;
             logger.plant(module.unwrap_or(OPEN_LOOP_MODULE), t, &s);
         }
         Topic::BusFrames(bus) => {
-            let f: FrameSample = serde_json::from_slice(data)?;
+            let f: FrameSample = m.json()?;
             let Some(bytes) = unhex(&f.hex) else {
                 bail!("field `hex` is not hexadecimal");
             };
             logger.frame(bus, &f.from, f.start_s, f.end_s, &bytes);
         }
         Topic::LinkFrames(link) => {
-            let f: FrameSample = serde_json::from_slice(data)?;
+            let f: FrameSample = m.json()?;
             let Some(bytes) = unhex(&f.hex) else {
                 bail!("field `hex` is not hexadecimal");
             };
@@ -270,19 +264,19 @@ fn feed(
             struct Lateness {
                 window: LatenessSample,
             }
-            let l: Lateness = serde_json::from_slice(data)?;
+            let l: Lateness = m.json()?;
             logger.lateness(t, &l.window);
         }
         Topic::Events => {
-            let e: EventSample = serde_json::from_slice(data)?;
+            let e: EventSample = m.json()?;
             logger.event(&e.node, t, &e.kind, &e.detail);
         }
         Topic::MasterLoop(node) => {
-            let report: serde_json::Value = serde_json::from_slice(data)?;
+            let report: serde_json::Value = m.json()?;
             logger.master_loop(node, t, &report);
         }
         Topic::ControllerReadings(node) => {
-            let r: ReadingsSample = serde_json::from_slice(data)?;
+            let r: ReadingsSample = m.json()?;
             logger.readings(node, t, &r);
         }
         // Actuator changes are in the frames that caused them.
