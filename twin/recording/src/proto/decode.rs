@@ -1,8 +1,8 @@
 //! A protobuf message back to the JSON value a JSON recording holds: every
 //! field by its name, a nested message as an object, a repeated field as a
-//! list, a number that is not finite as `null` (as JSON wrote it). A field
-//! not on the wire (an optional one JSON wrote as `null`, an empty list, a
-//! field of another protocol's frame) is left out.
+//! list, a number that is not finite as `null` (as JSON wrote it). A
+//! top-level field not on the wire is `null`, as JSON wrote it; deeper ones
+//! (an empty list, a field of another protocol's frame) are left out.
 
 use serde_json::{Map, Number, Value};
 
@@ -11,7 +11,18 @@ use super::{Kind, Schema, WireValue, next_field, take_varint};
 /// Message `bytes` of `schema`'s first type, as JSON; what is wrong in words
 /// otherwise.
 pub fn to_value(schema: &Schema, bytes: &[u8]) -> Result<Value, String> {
-    message(schema, 0, bytes, 0)
+    let mut value = message(schema, 0, bytes, 0)?;
+    // A top-level value JSON wrote as `null` (the BMS's trip while it
+    // conducts) is `null` again, so every sample has every field and a CSV
+    // of them a column for it, empty or not.
+    if let (Value::Object(out), Some(m)) = (&mut value, schema.messages.first()) {
+        for f in &m.fields {
+            if !f.repeated && !matches!(f.kind, Kind::Message(_)) && !out.contains_key(&f.name) {
+                out.insert(f.name.clone(), Value::Null);
+            }
+        }
+    }
+    Ok(value)
 }
 
 /// Nesting deeper than this is a damaged message, not the twin's.
@@ -188,9 +199,9 @@ mod tests {
         let mut bytes = vec![0xAA];
         encode(&s, &value, &mut bytes).unwrap();
         let back = to_value(&s, &bytes[1..]).unwrap();
-        let mut json = serde_json::to_value(&value).unwrap();
-        // An absent optional field is left out rather than null.
-        json.as_object_mut().unwrap().remove("trip");
+        let json = serde_json::to_value(&value).unwrap();
+        // The absent optional field is `null` again, as JSON wrote it.
+        assert_eq!(back["trip"], Value::Null);
         assert_eq!(back, json);
         assert_eq!(back["inner"], json!({ "count": -3, "at": null }));
         // A field the schema lacks is refused, in words.
