@@ -569,4 +569,12 @@ fn set_changes_an_open_loop_setting() {
         wheel.abs() < 1.0,
         "VEL 0 leaves the wheel still: {wheel} rpm"
     );
+    // Checked as --vel is: a fraction of the 5 V range.
+    let o = twin(&["run", "--open-loop", "--set", "vel_fraction=2"]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("`vel_fraction` is a fraction of VEL's 5 V range: 0 to 1, got 2"),
+        "{err}"
+    );
 }

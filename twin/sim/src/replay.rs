@@ -233,6 +233,17 @@ fn open_loop_from_table(t: &Table) -> Result<Box<OpenLoop>> {
             bail!("`{k}` must be a positive number, got {v}");
         }
     }
+    for (k, v) in [
+        ("vel_fraction", o.vel_fraction),
+        ("vel_before_fraction", o.vel_before_fraction),
+    ] {
+        if !(0.0..=1.0).contains(&v) {
+            bail!("`{k}` is a fraction of VEL's 5 V range: 0 to 1, got {v}");
+        }
+    }
+    if !(o.vel_step_at_s >= 0.0 && o.vel_step_at_s.is_finite()) {
+        bail!("`vel_step_at_s` must be 0 or more, got {}", o.vel_step_at_s);
+    }
     Ok(Box::new(o))
 }
 
