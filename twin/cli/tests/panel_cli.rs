@@ -89,11 +89,20 @@ fn serve_off_the_loopback_prints_a_token_url_and_refuses_requests_without_it() {
         assert_eq!(status, 401, "{body}");
         let (status, _) = http(&host, "POST", "/api/fault", None, r#"{"fault":"no-reply"}"#);
         assert_eq!(status, 401);
-        let (status, body) = http(&host, "GET", "/api/state", Some(&token), "");
-        assert_eq!(status, 200, "{body}");
+        // The first state comes with the engine's first copy (20 a second;
+        // later on a loaded machine): "{}" until then.
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
+        let body = loop {
+            let (status, body) = http(&host, "GET", "/api/state", Some(&token), "");
+            assert_eq!(status, 200, "{body}");
+            if body.contains("\"fault\"") || std::time::Instant::now() > deadline {
+                break body;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        };
         assert!(
             body.contains("\"fault\":null"),
-            "the refused fault changed nothing"
+            "the refused fault changed nothing: {body}"
         );
         tokens.push(token);
         serve.terminate();
@@ -237,14 +246,18 @@ fn supervise_panel_moves_the_set_point_and_steps_the_loop() {
         virtual_runs.push((at, hall));
     }
     let _ = std::fs::remove_dir_all(&out);
+    // Times within two poll periods: 10 ms on the virtual clock, and in
+    // real time as long as the longest gap between two polls was (17 ms
+    // was seen under a cold CI build's load, and moved settling by 21 ms).
+    let gap = step["largest_gap_ms"].as_f64().unwrap_or(f64::INFINITY);
+    let within = 2.0 * gap.max(10.0) / 1000.0;
     let agrees = |hall: &serde_json::Value| {
         (figure(panel, "overshoot_pct") - figure(hall, "overshoot_pct")).abs() <= 1.0
             && ["rise_time_s", "settling_time_s"]
                 .iter()
-                .all(|k| (figure(panel, k) - figure(hall, k)).abs() <= 0.020)
+                .all(|k| (figure(panel, k) - figure(hall, k)).abs() <= within)
     };
     let matched = virtual_runs.iter().find(|(_, hall)| agrees(hall));
-    let gap = step["largest_gap_ms"].as_f64().unwrap_or(f64::INFINITY);
     eprintln!(
         "panel (largest gap between polls {gap:.1} ms): {panel}\ntwin step, matched: {matched:?}"
     );
