@@ -91,14 +91,14 @@ fn serve_off_the_loopback_prints_a_token_url_and_refuses_requests_without_it() {
         assert_eq!(status, 401);
         // The first state comes with the engine's first copy (20 a second;
         // later on a loaded machine): "{}" until then.
-        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
+        let deadline = Instant::now() + Duration::from_secs(10);
         let body = loop {
             let (status, body) = http(&host, "GET", "/api/state", Some(&token), "");
             assert_eq!(status, 200, "{body}");
-            if body.contains("\"fault\"") || std::time::Instant::now() > deadline {
+            if body.contains("\"fault\"") || Instant::now() > deadline {
                 break body;
             }
-            std::thread::sleep(std::time::Duration::from_millis(50));
+            std::thread::sleep(Duration::from_millis(50));
         };
         assert!(
             body.contains("\"fault\":null"),
