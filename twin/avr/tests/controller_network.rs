@@ -4,6 +4,8 @@
 //! the same bench and master; and the motor sketch's encoder count held to
 //! the plant's own edges, one by one.
 
+mod common;
+
 use std::path::PathBuf;
 use std::process::Command;
 use std::sync::OnceLock;
@@ -22,19 +24,7 @@ fn crate_dir() -> PathBuf {
 
 fn build_dir() -> &'static PathBuf {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
-    DIR.get_or_init(|| {
-        let out = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("avr-firmware-nanos");
-        let status = Command::new("make")
-            .arg("-s")
-            .arg("-C")
-            .arg(crate_dir().join("firmware"))
-            .arg(format!("BUILD={}", out.display()))
-            .args(["motor-nano", "light-nano"])
-            .status()
-            .expect("make runs (install gcc-avr, avr-libc, arduino-core-avr: .ci/install)");
-        assert!(status.success(), "the Nano sketches do not build");
-        out
-    })
+    DIR.get_or_init(|| common::make("nanos", "", &["motor-nano", "light-nano"]))
 }
 
 fn out(name: &str) -> PathBuf {

@@ -3,8 +3,9 @@
 //! twin's Rust model of that controller; and the same seed giving the same
 //! recording, byte for byte.
 
+mod common;
+
 use std::path::PathBuf;
-use std::process::Command;
 use std::sync::OnceLock;
 
 use twin_sim::scenario::Scenario;
@@ -12,19 +13,7 @@ use twin_sim::virtual_run;
 
 fn elf() -> &'static PathBuf {
     static ELF: OnceLock<PathBuf> = OnceLock::new();
-    ELF.get_or_init(|| {
-        let out = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("avr-firmware-ev");
-        let status = Command::new("make")
-            .arg("-s")
-            .arg("-C")
-            .arg(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("firmware"))
-            .arg(format!("BUILD={}", out.display()))
-            .arg("ev-controller")
-            .status()
-            .expect("make runs");
-        assert!(status.success(), "the EV controller sketch does not build");
-        out.join("ev-controller.elf")
-    })
+    ELF.get_or_init(|| common::make("ev", "", &["ev-controller"]).join("ev-controller.elf"))
 }
 
 /// The shipped scenario, with the sketch built here and `duration_s`.

@@ -3,6 +3,8 @@
 //! Makefile), loaded into the twin's AVR node and held to what the bench
 //! would show.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::OnceLock;
@@ -25,17 +27,7 @@ fn build(defines: &str) -> PathBuf {
     } else {
         defines.replace(['-', '='], "")
     };
-    let out = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("avr-firmware-{tag}"));
-    let status = Command::new("make")
-        .arg("-s")
-        .arg("-C")
-        .arg(crate_dir().join("firmware"))
-        .arg(format!("BUILD={}", out.display()))
-        .arg(format!("DEFINES={defines}"))
-        .status()
-        .expect("make runs (install gcc-avr, avr-libc, arduino-core-avr: .ci/install)");
-    assert!(status.success(), "the sketches do not build");
-    out
+    common::make(&tag, defines, &[])
 }
 
 fn firmware(name: &str) -> PathBuf {

@@ -8,23 +8,15 @@
     reason = "a real-time test waits on the wall clock for the processes it starts"
 )]
 
+mod common;
+
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 fn sketch() -> PathBuf {
-    let out = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("avr-firmware-serve");
-    let status = Command::new("make")
-        .arg("-s")
-        .arg("-C")
-        .arg(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("firmware"))
-        .arg(format!("BUILD={}", out.display()))
-        .arg("ev-controller")
-        .status()
-        .expect("make runs");
-    assert!(status.success(), "the EV controller sketch does not build");
-    out.join("ev-controller.elf")
+    common::make("serve", "", &["ev-controller"]).join("ev-controller.elf")
 }
 
 fn twin_avr(args: &[&str]) -> Child {
