@@ -91,18 +91,12 @@ fn serve_off_the_loopback_prints_a_token_url_and_refuses_requests_without_it() {
         assert_eq!(status, 401);
         // The first state comes with the engine's first copy (20 a second;
         // later on a loaded machine): "{}" until then.
-        let deadline = Instant::now() + Duration::from_secs(10);
-        let body = loop {
-            let (status, body) = http(&host, "GET", "/api/state", Some(&token), "");
-            assert_eq!(status, 200, "{body}");
-            if body.contains("\"fault\"") || Instant::now() > deadline {
-                break body;
-            }
-            std::thread::sleep(Duration::from_millis(50));
-        };
+        let state = wait_until(&host, Some(&token), "the first state", |s| {
+            s["state"].get("fault").is_some()
+        });
         assert!(
-            body.contains("\"fault\":null"),
-            "the refused fault changed nothing: {body}"
+            state["state"]["fault"].is_null(),
+            "the refused fault changed nothing: {state}"
         );
         tokens.push(token);
         serve.terminate();
@@ -386,7 +380,7 @@ fn the_client_panel_writes_vel_and_the_switches_and_the_wheel_follows() {
     ]);
     // Its own panel labels each signal where the map puts it.
     let (mapped_host, _) = parts(&panel_url(&serve_mapped));
-    wait_until(&mapped_host, "the serve panel's map labels", |s| {
+    wait_until(&mapped_host, None, "the serve panel's map labels", |s| {
         let c = &s["state"]["devices"][0]["controller"];
         c["inputs"]["V1"]["at"] == "EA 00"
             && c["inputs"]["V2"]["at"] == "EA 01"
@@ -411,6 +405,7 @@ fn the_client_panel_writes_vel_and_the_switches_and_the_wheel_follows() {
     assert_eq!(status, 200, "{body}");
     wait_until(
         &serve_host,
+        None,
         "the controller to hold VEL, EN on and BRK off",
         |s| {
             let o = &s["state"]["devices"][0]["controller"]["outputs"];
@@ -465,7 +460,7 @@ fn the_client_panel_writes_vel_and_the_switches_and_the_wheel_follows() {
     );
     // The slave goes away: shown, retried, no crash; it comes back: reconnected.
     serve.terminate();
-    wait_until(&host, "the drop shown", |s| {
+    wait_until(&host, None, "the drop shown", |s| {
         s["state"]["connection"]["connected"] == false
             && s["state"]["connection"]["error"]
                 .as_str()
@@ -475,7 +470,7 @@ fn the_client_panel_writes_vel_and_the_switches_and_the_wheel_follows() {
     assert_eq!(status, 503, "{body}");
     assert!(body.contains("not connected"), "{body}");
     let _serve = start_serve(&meb, false);
-    wait_until(&host, "the connection made again", |s| {
+    wait_until(&host, None, "the connection made again", |s| {
         s["state"]["connection"]["connected"] == true
             && s["state"]["connection"]["counters"]["reconnects"].as_u64() >= Some(1)
     });
@@ -492,7 +487,7 @@ fn the_client_panel_writes_vel_and_the_switches_and_the_wheel_follows() {
         "127.0.0.1:0",
     ]);
     let (host2, _) = parts(&panel_url(&panel2));
-    wait_until(&host2, "V1 from EA 00", |s| {
+    wait_until(&host2, None, "V1 from EA 00", |s| {
         let v1 = &s["state"]["devices"][0]["controller"]["inputs"]["V1"];
         v1["at"] == "EA 00"
             && v1["value"]
@@ -515,13 +510,19 @@ fn the_client_panel_writes_vel_and_the_switches_and_the_wheel_follows() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-fn wait_until(host: &str, what: &str, ok: impl Fn(&serde_json::Value) -> bool) {
+/// The panel's state once `ok` holds (15 s at most), asked with `token`.
+fn wait_until(
+    host: &str,
+    token: Option<&str>,
+    what: &str,
+    ok: impl Fn(&serde_json::Value) -> bool,
+) -> serde_json::Value {
     let start = Instant::now();
     loop {
-        let (_, body) = http(host, "GET", "/api/state", None, "");
+        let (_, body) = http(host, "GET", "/api/state", token, "");
         let s: serde_json::Value = serde_json::from_str(&body).unwrap_or_default();
         if ok(&s) {
-            return;
+            return s;
         }
         assert!(
             start.elapsed() < Duration::from_secs(15),
