@@ -233,16 +233,7 @@ fn the_ev_sketch_answers_the_meb_slave_vectors() {
 
 #[test]
 fn a_crashing_sketch_is_reported_with_its_program_counter_and_time() {
-    let mut node = start(&firmware("crash"), SERIAL_ONLY, 115_200);
-    let mut out = Vec::new();
-    run(
-        &mut node,
-        SimTime::ZERO,
-        ms(20),
-        &Sensors::default(),
-        &mut out,
-    );
-    let why = twin_sim::engine::SimNode::failure(&node).expect("the crash is seen");
+    let why = failure_of("crash").expect("the crash is seen");
     println!("{why}");
     assert!(
         why.contains("crash.elf") && why.contains("crashed"),
@@ -250,17 +241,22 @@ fn a_crashing_sketch_is_reported_with_its_program_counter_and_time() {
     );
     assert!(why.contains("at PC 0x"), "{why}");
     assert!(why.contains(" s simulated"), "{why}");
-    let mut node = start(&firmware("sleepy"), SERIAL_ONLY, 115_200);
+    let why = failure_of("sleepy").expect("the dead sleep is seen");
+    println!("{why}");
+    assert!(why.contains("sleep with interrupts off"), "{why}");
+}
+
+/// What the node says went wrong with `sketch` within 20 ms of its start.
+fn failure_of(sketch: &str) -> Option<String> {
+    let mut node = start(&firmware(sketch), SERIAL_ONLY, 115_200);
     run(
         &mut node,
         SimTime::ZERO,
         ms(20),
         &Sensors::default(),
-        &mut out,
+        &mut Vec::new(),
     );
-    let why = twin_sim::engine::SimNode::failure(&node).expect("the dead sleep is seen");
-    println!("{why}");
-    assert!(why.contains("sleep with interrupts off"), "{why}");
+    twin_sim::engine::SimNode::failure(&node)
 }
 
 #[test]
