@@ -5,7 +5,7 @@ use anyhow::{Result, bail};
 use std::path::Path;
 use tokio_serial::{DataBits, FlowControl, SerialStream, StopBits};
 
-use super::spec::{Parity, SerialSettings};
+use super::spec::{LinkAddr, LinkSpec, Parity, SerialSettings};
 
 /// Refuses a serial path that does not exist, saying it may be a
 /// pseudo-terminal some other program has not created yet (what `open` and
@@ -19,6 +19,15 @@ pub fn present(path: &Path) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// `--check` of a link: its serial port there already, unless the session
+/// waits for ports to appear. A TCP link has nothing to check before binding.
+pub fn check_port(spec: &LinkSpec, wait_for_ports: bool) -> Result<()> {
+    match &spec.addr {
+        LinkAddr::Serial(path) if !wait_for_ports => present(path),
+        _ => Ok(()),
+    }
 }
 
 /// Opens `path` with `settings`. Must run inside a tokio runtime. A path that

@@ -128,12 +128,8 @@ fn check_kind(protocol: ServeProtocol) -> Option<CheckKind> {
 /// opened or bound.
 pub fn check_links(options: &ServeOptions) -> Result<()> {
     for (protocol, spec) in parse_links(options)? {
-        if let LinkAddr::Serial(path) = &spec.addr
-            && !options.session.wait_for_ports
-        {
-            crate::io::serial::present(path)
-                .with_context(|| format!("{} {}", protocol.option(), spec.text))?;
-        }
+        crate::io::serial::check_port(&spec, options.session.wait_for_ports)
+            .with_context(|| format!("{} {}", protocol.option(), spec.text))?;
     }
     Ok(())
 }

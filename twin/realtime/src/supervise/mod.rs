@@ -242,13 +242,8 @@ impl<C: FnOnce(Sender<Inbound>)> Role for Supervising<'_, C> {
 /// opened or bound.
 pub fn check_links(options: &SuperviseOptions) -> Result<()> {
     let (bus, _) = parse_links(options)?;
-    if let LinkAddr::Serial(path) = &bus.addr
-        && !options.session.wait_for_ports
-    {
-        crate::io::serial::present(path)
-            .with_context(|| format!("{} {}", bus_option(options.protocol), options.bus))?;
-    }
-    Ok(())
+    crate::io::serial::check_port(&bus, options.session.wait_for_ports)
+        .with_context(|| format!("{} {}", bus_option(options.protocol), options.bus))
 }
 
 fn parse_links(options: &SuperviseOptions) -> Result<(LinkSpec, Vec<LinkSpec>)> {
