@@ -613,6 +613,28 @@ impl SimNode for AvrNode {
     fn failure(&self) -> Option<String> {
         self.failure.clone()
     }
+
+    fn not_answering(&mut self, now: SimTime, since: SimTime, asked: u32) {
+        self.advance(now);
+        if self.failure.is_some() {
+            return;
+        }
+        let at = self.to_time(self.core.cycle());
+        let message = format!(
+            "firmware {} of board `{}` answered none of the {asked} requests for it since {:.6} s \
+             (it wrote {} bytes in all) and is still running, at PC 0x{:04X}, {:.6} s simulated \
+             (cycle {}); the node is marked dead",
+            self.elf.display(),
+            self.name,
+            since.as_secs_f64(),
+            self.bytes_out,
+            self.core.pc(),
+            at.as_secs_f64(),
+            self.core.cycle()
+        );
+        self.push_event(at, "trip", message.clone());
+        self.failure = Some(message);
+    }
 }
 
 #[cfg(test)]

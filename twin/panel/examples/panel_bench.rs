@@ -77,7 +77,7 @@ fn run(clients: Option<usize>, seconds: f64) -> Run {
         room_after_idle: None,
         read_only: false,
         light_adaptive: true,
-        firmware: None,
+        firmware: Vec::new(),
     };
     let (ready_tx, ready_rx) = channel();
     let addr = panel.as_ref().map(|p| p.running().addr);

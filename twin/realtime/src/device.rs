@@ -16,6 +16,9 @@ pub struct Device {
     /// Inputs the user forced from the console.
     pub forces: Forces,
     pub(super) next_tick: Option<SimTime>,
+    /// Its node has failed (a sketch crashed or stopped answering), and the
+    /// console has been told.
+    pub(super) failed: bool,
 }
 
 impl Device {
@@ -27,6 +30,7 @@ impl Device {
             module,
             forces: Forces::default(),
             next_tick,
+            failed: false,
         }
     }
 }

@@ -36,6 +36,8 @@ use twin_sim::engine::{ModuleSlot, firmware_tick};
 /// lateness p99 of 43-51 µs, 150 µs 5-347 µs, 40 µs 45-72 µs; 60 spins
 /// 6 % of a core instead of 15 %, which the links get back.
 const SPIN: SimDuration = SimDuration::from_micros(60);
+/// How far behind the firmware loops are caught up tick by tick.
+const CATCH_UP: SimDuration = SimDuration::from_millis(50);
 /// How often the engine looks for connections past their idle timeout.
 const IDLE_CHECK_PERIOD: SimDuration = SimDuration::from_millis(100);
 
@@ -400,33 +402,63 @@ impl RtEngine {
     /// At a recording instant (`record`) the module controllers' readings go
     /// to the sink too, beside the plant samples.
     fn firmware_ticks(&mut self, t: SimTime, record: bool) {
-        for device in &mut self.devices {
-            let (Some(m), Some(due)) = (device.module, device.next_tick) else {
-                continue;
+        // Each firmware's loop at its own period, in time order across the
+        // devices: a sketch's pins are fed every 100 µs or so (an encoder's
+        // edges come faster than the engine's 1 ms tick), the Rust nodes'
+        // loops once a tick or less. Ticks the machine delayed are caught up
+        // in order (a sketch's core runs those cycles anyway, and its pins
+        // must see the plant's edges when they came); a loop further behind
+        // than `CATCH_UP` (a stopped process) runs once, at `t`.
+        let behind = SimTime(t.0.saturating_sub(CATCH_UP.0));
+        while let Some((d, due)) = self
+            .devices
+            .iter()
+            .enumerate()
+            .filter(|(_, device)| device.module.is_some())
+            .filter_map(|(d, device)| Some((d, device.next_tick?)))
+            .filter(|&(_, due)| due <= t)
+            .min_by_key(|&(d, due)| (due, d))
+        {
+            let due = if due < behind { t } else { due };
+            let Some(device) = self.devices.get_mut(d) else {
+                break;
             };
-            if due > t {
-                continue;
-            }
+            let Some(m) = device.module else {
+                break;
+            };
             let Some(module) = self.modules.get_mut(m) else {
+                device.next_tick = None;
                 continue;
             };
             let forces = device.forces;
             let sensing = module.plant.params().sensing.clone();
-            let ticked = firmware_tick(device.node.as_mut(), module, self.plant_step, t, |s| {
+            let ticked = firmware_tick(device.node.as_mut(), module, self.plant_step, due, |s| {
                 forces.apply_sensors(s, &sensing)
             });
-            if let Some((next, changed)) = ticked {
-                device.next_tick = Some(next.max(t + self.tick));
-                if let Some(image) = device.node.image_mut() {
-                    forces.apply_words(image);
-                }
-                if changed {
-                    let _ = self.sink.send(SinkMsg::Actuators {
-                        at: t,
-                        module: m,
-                        actuators: module.actuators,
-                    });
-                }
+            let Some((next, changed)) = ticked else {
+                device.next_tick = None;
+                continue;
+            };
+            device.next_tick = Some(next.max(due + SimDuration(1)));
+            if let Some(image) = device.node.image_mut() {
+                forces.apply_words(image);
+            }
+            if changed {
+                let _ = self.sink.send(SinkMsg::Actuators {
+                    at: due,
+                    module: m,
+                    actuators: module.actuators,
+                });
+            }
+            if !device.failed
+                && let Some(why) = device.node.failure()
+            {
+                // Said even with the monitor off: the master's timeouts
+                // from now on have this reason.
+                device.failed = true;
+                let _ = self
+                    .sink
+                    .send(SinkMsg::Say(format!("{}: {why}", device.name)));
             }
         }
         if record {

@@ -27,6 +27,7 @@ pub mod config;
 pub mod device;
 pub mod endpoint;
 pub mod engine;
+pub mod firmware_endpoint;
 pub mod forces;
 pub mod frame_log;
 pub mod frames_to;

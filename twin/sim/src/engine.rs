@@ -63,6 +63,11 @@ pub trait SimNode: Node {
     fn failure(&self) -> Option<String> {
         None
     }
+    /// Requests for the node (`asked` of them, the first at `since`) have
+    /// gone unanswered until `now` (the real-time server's watchdog):
+    /// compiled firmware is marked dead, its [`SimNode::failure`] saying
+    /// where its program is; a node that cannot hang ignores it.
+    fn not_answering(&mut self, _now: SimTime, _since: SimTime, _asked: u32) {}
 }
 
 /// A firmware node's speed estimates, as its registers hold them.

@@ -81,7 +81,7 @@ pub fn serve_on(link: &str, web: &str, access: AccessOptions, seconds: f64) -> S
         room_after_idle: None,
         read_only: false,
         light_adaptive: true,
-        firmware: None,
+        firmware: Vec::new(),
     };
     let (ready_tx, ready_rx) = channel();
     let (engine_tx, engine_rx) = channel();

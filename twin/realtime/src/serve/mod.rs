@@ -16,6 +16,7 @@ use std::collections::BTreeMap;
 use std::sync::mpsc::Sender;
 use tokio::runtime::Runtime;
 
+use crate::firmware_endpoint::{FirmwareEndpoint, RequestFraming};
 use crate::io::{LinkAddr, LinkDefaults, LinkSpec};
 use crate::links::ClientLimit;
 use crate::session::{self, Links, Role, SessionOptions, SessionOutcome};
@@ -86,10 +87,12 @@ pub struct ServeOptions {
     /// The EV controller's light detector at power-up (`LDR_ADAPT`): the
     /// adaptive one follows the wheel far faster than the fixed threshold.
     pub light_adaptive: bool,
-    /// The EV module's controller as compiled firmware (a `firmware` node,
-    /// built by the registered builder: `twin-avr serve --firmware`), in
-    /// place of the Rust controller; its MEB links reach the sketch's UART.
-    pub firmware: Option<twin_sim::scenario::NodeSpec>,
+    /// Controller boards as compiled firmware (`firmware` nodes, built by
+    /// the registered builder: `twin-avr serve --firmware`), each in place
+    /// of the Rust node of its name: `ev1` (its MEB links reach the
+    /// sketch's UART), `motor` and `sensor` (the Controller_network Nanos,
+    /// on the --modbus8 link).
+    pub firmware: Vec<twin_sim::scenario::NodeSpec>,
 }
 
 /// One open link, as printed before `ready`.
@@ -259,6 +262,18 @@ fn build_devices(
 ) -> Result<Served> {
     let wants_ev = specs.iter().any(|(p, _)| *p != ServeProtocol::Modbus8);
     let wants_controller_network = specs.iter().any(|(p, _)| *p == ServeProtocol::Modbus8);
+    for spec in &options.firmware {
+        let (wanted, link) = match spec.name() {
+            "ev1" => (wants_ev, "an --meb link"),
+            _ => (wants_controller_network, "a --modbus8 link"),
+        };
+        if !wanted {
+            bail!(
+                "--firmware {}: its board answers on {link}, and none is given",
+                spec_elf(spec)
+            );
+        }
+    }
     let mut ev = None;
     if wants_ev {
         let module = engine.modules.len();
@@ -267,36 +282,19 @@ fn build_devices(
             twin_sim::virtual_run::derive_seed(options.seed, 100),
         );
         engine.modules.push(ModuleSlot::new("ev1", plant));
-        let node: Box<dyn twin_sim::engine::SimNode + Send> = match &options.firmware {
+        let node: Box<dyn twin_sim::engine::SimNode + Send> = match sketch(options, "ev1") {
             Some(spec) => {
-                if let Some((p, spec)) = specs.iter().find(|(p, _)| *p != ServeProtocol::Meb) {
+                if let Some((p, spec)) = specs
+                    .iter()
+                    .find(|(p, _)| !matches!(p, ServeProtocol::Meb | ServeProtocol::Modbus8))
+                {
                     bail!(
-                        "{} {}: the firmware serves MEB links only (its sketch's own protocol)",
+                        "{} {}: the EV controller's sketch serves MEB links only (its own protocol)",
                         p.option(),
                         spec.text
                     );
                 }
-                // A TCP client's requests are answered on the thread that
-                // reads them; the sketch answers on the engine's ticks, and
-                // back-to-back requests on TCP still lose replies.
-                if let Some((p, spec)) = specs.iter().find(|(_, spec)| spec.is_tcp()) {
-                    bail!(
-                        "{} {}: the firmware answers on serial ports and pseudo-terminals \
-                         (its UART); reach it over TCP through a pty bridge such as socat",
-                        p.option(),
-                        spec.text
-                    );
-                }
-                let bus = twin_sim::scenario::BusSpec {
-                    name: "link".into(),
-                    baud: options.defaults.baud,
-                    bits_per_char: 10,
-                    bit_error_rate: 0.0,
-                    wiring: twin_sim::scenario::WiringSpec::MultiDrop,
-                    medium: Default::default(),
-                    pwmcap: None,
-                };
-                twin_sim::external::build_firmware(spec, Some(&options.params), &bus)?.0
+                build_sketch(spec, &options.params, options.defaults.baud)?
             }
             None => {
                 let mut config = EvControllerConfig::for_plant(&options.params);
@@ -329,18 +327,54 @@ fn build_devices(
             motor.port.silence = silence;
             light.port.silence = silence;
         }
-        let motor = FaultyNode::new(MotorNode::new(motor), CheckKind::Modbus8);
-        let light = FaultyNode::new(LightNode::new(light), CheckKind::Modbus8);
+        let motor: Box<dyn twin_sim::engine::SimNode + Send> = match sketch(options, "motor") {
+            Some(spec) => build_sketch(spec, &params, options.defaults.baud)?,
+            None => Box::new(FaultyNode::new(MotorNode::new(motor), CheckKind::Modbus8)),
+        };
+        let light: Box<dyn twin_sim::engine::SimNode + Send> = match sketch(options, "sensor") {
+            Some(spec) => build_sketch(spec, &params, options.defaults.baud)?,
+            None => Box::new(FaultyNode::new(LightNode::new(light), CheckKind::Modbus8)),
+        };
         let m = engine.devices.len();
         engine
             .devices
-            .push(Device::new("motor", Box::new(motor), Some(module)));
+            .push(Device::new("motor", motor, Some(module)));
         engine
             .devices
-            .push(Device::new("sensor", Box::new(light), Some(module)));
+            .push(Device::new("sensor", light, Some(module)));
         controller_network = Some((m, m + 1));
     }
     Ok((ev, controller_network))
+}
+
+/// The sketch given for device `name`, if any.
+fn sketch<'a>(options: &'a ServeOptions, name: &str) -> Option<&'a twin_sim::scenario::NodeSpec> {
+    options.firmware.iter().find(|spec| spec.name() == name)
+}
+
+fn spec_elf(spec: &twin_sim::scenario::NodeSpec) -> &str {
+    match spec {
+        twin_sim::scenario::NodeSpec::Firmware { elf, .. } => elf,
+        other => other.name(),
+    }
+}
+
+/// A sketch's node, its UART on a line at `baud` (the link's).
+fn build_sketch(
+    spec: &twin_sim::scenario::NodeSpec,
+    params: &PlantParams,
+    baud: u32,
+) -> Result<Box<dyn twin_sim::engine::SimNode + Send>> {
+    let bus = twin_sim::scenario::BusSpec {
+        name: "link".into(),
+        baud,
+        bits_per_char: 10,
+        bit_error_rate: 0.0,
+        wiring: twin_sim::scenario::WiringSpec::MultiDrop,
+        medium: Default::default(),
+        pwmcap: None,
+    };
+    Ok(twin_sim::external::build_firmware(spec, Some(params), &bus)?.0)
 }
 
 /// Unique link names: the protocol, numbered when it repeats.
@@ -371,6 +405,10 @@ async fn open_links(
     controller_network: Option<(usize, usize)>,
 ) -> Result<Vec<OpenLink>> {
     let mut open = Vec::new();
+    let sketches: Vec<&'static str> = ["motor", "sensor"]
+        .into_iter()
+        .filter(|name| sketch(options, name).is_some())
+        .collect();
     for (index, ((protocol, spec), name)) in specs.into_iter().zip(names).enumerate() {
         let link = engine.links.len();
         debug_assert_eq!(link, index);
@@ -403,12 +441,14 @@ async fn open_links(
             match (framing(protocol, &spec), ev, controller_network) {
                 // Compiled firmware answers on its own UART: the link's
                 // bytes go to the sketch as to a node on a bus.
-                (Some(_), Some(device), _) if options.firmware.is_some() => (
+                (Some(_), Some(device), _) if sketch(options, "ev1").is_some() => (
                     Box::new(move |_devices, _peer| {
-                        Box::new(NodeEndpoint {
-                            devices: vec![device],
-                            answers_later: true,
-                        })
+                        Box::new(FirmwareEndpoint::new(
+                            vec![device],
+                            &[(device, id)],
+                            RequestFraming::Meb,
+                            tcp,
+                        ))
                     }),
                     format!("{id:02}"),
                 ),
@@ -429,11 +469,30 @@ async fn open_links(
                     )
                 }
                 (None, _, Some((motor, light))) => (
-                    Box::new(move |_devices, _peer| {
-                        Box::new(NodeEndpoint {
-                            devices: vec![motor, light],
-                            answers_later: false,
-                        })
+                    Box::new({
+                        let sketches = sketches.clone();
+                        move |_devices: &mut [Device], _peer: &str| -> Box<dyn crate::Endpoint> {
+                            let boards: Vec<(usize, u8)> = [
+                                (motor, "motor", nodes::controller_network::MOTOR_ID),
+                                (light, "sensor", nodes::controller_network::LIGHT_ID),
+                            ]
+                            .into_iter()
+                            .filter(|(_, name, _)| sketches.contains(name))
+                            .map(|(d, _, id)| (d, id))
+                            .collect();
+                            if boards.is_empty() {
+                                return Box::new(NodeEndpoint {
+                                    devices: vec![motor, light],
+                                    answers_later: false,
+                                });
+                            }
+                            Box::new(FirmwareEndpoint::new(
+                                vec![motor, light],
+                                &boards,
+                                RequestFraming::Modbus8,
+                                false,
+                            ))
+                        }
                     }),
                     format!(
                         "{:02},{:02}",

@@ -5,6 +5,7 @@ use clap::{ArgMatches, Args};
 use nodes::firmware::LightDetectorConfig;
 use nodes::time::SimDuration;
 use plant::PlantParams;
+use std::collections::BTreeMap;
 use std::io::Write;
 use std::path::PathBuf;
 use twin_realtime::allow::AllowList;
@@ -60,21 +61,18 @@ pub struct ServeArgs {
     /// a pty sees real bus timing.
     #[arg(long)]
     pace: bool,
-    /// The EV module's controller as a compiled Arduino sketch (ELF or Intel
-    /// HEX for the ATmega328P at 16 MHz), run in simavr in real time and
-    /// answering the MEB links on its own UART (`twin-avr serve` only: it
-    /// links simavr, GPL).
-    #[arg(long, value_name = "FILE")]
-    firmware: Option<PathBuf>,
-    /// The sketch's wiring map: a shipped one (ev-controller, motor-nano,
-    /// light-nano) or a TOML file.
-    #[arg(
-        long,
-        value_name = "MAP",
-        default_value = "ev-controller",
-        requires = "firmware"
-    )]
-    wiring: String,
+    /// A controller board as a compiled Arduino sketch (ELF or Intel HEX for
+    /// the ATmega328P at 16 MHz), run in simavr in real time and answering
+    /// on its own UART (`twin-avr serve` only: it links simavr, GPL). FILE
+    /// alone is the EV module's controller (its MEB links); `motor=FILE`
+    /// and `light=FILE` are the Controller_network Nanos (the --modbus8 link).
+    /// Give it once per board.
+    #[arg(long, value_name = "[BOARD=]FILE")]
+    firmware: Vec<String>,
+    /// A sketch's wiring map, `[BOARD=]MAP`: a shipped one (ev-controller,
+    /// motor-nano, light-nano) or a TOML file [default: the board's shipped map].
+    #[arg(long, value_name = "[BOARD=]MAP", requires = "firmware")]
+    wiring: Vec<String>,
     /// Slave id of the EV module's controller (MEB slave number, Modbus unit id).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=99))]
     id: u8,
@@ -239,23 +237,77 @@ pub(super) fn options(args: &ServeArgs, module: Option<&str>) -> Result<ServeOpt
         room_after_idle: super::timeout("--make-room-after", args.make_room_after)?,
         read_only: args.read_only,
         light_adaptive: args.adaptive_light,
-        firmware: match &args.firmware {
-            None => None,
-            Some(_) if !twin_sim::external::available() => anyhow::bail!(
-                "--firmware runs a compiled AVR sketch: use `twin-avr serve`, the build of \
-                 the twin that links simavr (GPL)"
-            ),
-            Some(elf) => Some(twin_sim::scenario::NodeSpec::Firmware {
-                name: "ev1".into(),
-                bus: "link".into(),
-                module: "ev1".into(),
-                elf: elf.display().to_string(),
-                wiring: args.wiring.clone(),
-                mcu: "atmega328p".into(),
-                clock_hz: 16_000_000,
-            }),
-        },
+        firmware: firmware_nodes(&args.firmware, &args.wiring)?,
     })
+}
+
+/// The boards `--firmware` can replace: (name on the command line, device
+/// name in the session, its module, its shipped wiring map).
+const BOARDS: [(&str, &str, &str, &str); 3] = [
+    ("ev1", "ev1", "ev1", "ev-controller"),
+    ("motor", "motor", "bench", "motor-nano"),
+    ("light", "sensor", "bench", "light-nano"),
+];
+
+/// Splits `[BOARD=]VALUE` into the board (`ev1` when not named) and the value.
+fn board_and(text: &str, option: &str) -> Result<(&'static str, String)> {
+    let (board, value) = match text.split_once('=') {
+        Some((b, v)) if !b.contains('/') && !b.contains('.') => (b, v),
+        _ => ("ev1", text),
+    };
+    let Some(&(name, ..)) = BOARDS.iter().find(|(n, ..)| *n == board) else {
+        bail!(
+            "{option} {text}: no board `{board}`; name ev1 (the EV controller, also FILE alone), motor or light"
+        );
+    };
+    Ok((name, value.to_string()))
+}
+
+/// The firmware nodes `--firmware` and `--wiring` describe.
+fn firmware_nodes(
+    firmware: &[String],
+    wiring: &[String],
+) -> Result<Vec<twin_sim::scenario::NodeSpec>> {
+    if !firmware.is_empty() && !twin_sim::external::available() {
+        bail!(
+            "--firmware runs a compiled AVR sketch: use `twin-avr serve`, the build of \
+             the twin that links simavr (GPL)"
+        );
+    }
+    let mut maps = BTreeMap::new();
+    for text in wiring {
+        let (board, map) = board_and(text, "--wiring")?;
+        if maps.insert(board, map).is_some() {
+            bail!("--wiring {text}: board {board} has a map already");
+        }
+    }
+    let mut nodes = Vec::new();
+    for text in firmware {
+        let (board, elf) = board_and(text, "--firmware")?;
+        let &(_, name, module, shipped) = BOARDS
+            .iter()
+            .find(|(n, ..)| *n == board)
+            .unwrap_or(&BOARDS[0]);
+        if nodes
+            .iter()
+            .any(|n: &twin_sim::scenario::NodeSpec| n.name() == name)
+        {
+            bail!("--firmware {text}: board {board} has a sketch already");
+        }
+        nodes.push(twin_sim::scenario::NodeSpec::Firmware {
+            name: name.into(),
+            bus: "link".into(),
+            module: module.into(),
+            elf,
+            wiring: maps.remove(board).unwrap_or_else(|| shipped.into()),
+            mcu: "atmega328p".into(),
+            clock_hz: 16_000_000,
+        });
+    }
+    if let Some(board) = maps.keys().next() {
+        bail!("--wiring: board {board} has no --firmware");
+    }
+    Ok(nodes)
 }
 
 /// The recording plan of `args`; a class's module records in a folder of its name.
@@ -357,8 +409,8 @@ fn serve_one(args: &ServeArgs, options: &ServeOptions) -> Result<()> {
             for l in links {
                 let _ = writeln!(out, "  {} {} {}", l.protocol, l.address, l.ids);
             }
-            if let Some(light) = &light {
-                let _ = writeln!(out, "{light}");
+            for line in &light {
+                let _ = writeln!(out, "{line}");
             }
             if let Some(line) = &panel_line {
                 let _ = writeln!(out, "{line}");
@@ -409,19 +461,34 @@ fn serve_one(args: &ServeArgs, options: &ServeOptions) -> Result<()> {
 }
 
 /// What the EV controller's light detector can see, when an EV link is
-/// served: the first thing a master reading RPM_L needs to know.
-fn light_detector_line(options: &ServeOptions) -> Option<String> {
-    if options
-        .links
+/// served: the first thing a master reading RPM_L needs to know. A board
+/// run as a sketch is named instead: its light detector is its own.
+fn light_detector_line(options: &ServeOptions) -> Vec<String> {
+    let mut lines: Vec<String> = options
+        .firmware
         .iter()
-        .all(|(p, _)| *p == ServeProtocol::Modbus8)
+        .filter_map(|spec| match spec {
+            twin_sim::scenario::NodeSpec::Firmware {
+                name, elf, wiring, ..
+            } => Some(format!(
+                "{name}: the sketch {elf} (wiring {wiring}) in simavr, in place of the twin's own node"
+            )),
+            _ => None,
+        })
+        .collect();
+    let ev_sketch = options.firmware.iter().any(|spec| spec.name() == "ev1");
+    if ev_sketch
+        || options
+            .links
+            .iter()
+            .all(|(p, _)| *p == ServeProtocol::Modbus8)
     {
-        return None;
+        return lines;
     }
     let light = &options.params.light;
     let mut detector = LightDetectorConfig::for_sensor(light);
     detector.adaptive = options.light_adaptive;
-    Some(format!(
+    lines.push(format!(
         "ev1 light detector: {}; it sees the flag up to {:.0} rpm{}",
         detector.describe(light),
         detector.max_rpm(light),
@@ -430,5 +497,6 @@ fn light_detector_line(options: &ServeOptions) -> Option<String> {
         } else {
             " (--adaptive-light, or VD0 LDR_ADAPT from a master, for the adaptive one)"
         }
-    ))
+    ));
+    lines
 }

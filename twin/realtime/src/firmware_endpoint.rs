@@ -1,0 +1,318 @@
+//! The link end of compiled firmware (`twin-avr serve --firmware`): the
+//! link's bytes go to the sketches' UARTs as over a bus, their replies come
+//! back when their cores have written them, and two things a real link
+//! needs from a program that answers on its own time:
+//!
+//! - **One request at a time on TCP.** A TCP client may send its next
+//!   request before the sketch has answered the last (a pipelining client,
+//!   or one whose timeout ran out). A sketch on a serial line would see the
+//!   two run together; here requests wait in order and each goes to the
+//!   sketch once it has answered the one before (or [`REPLY_WAIT`] has
+//!   passed), so the client gets every answer, in order.
+//! - **A watchdog for a board that never answers.** Requests for a board's
+//!   id that it has not answered for [`WATCHDOG`] (two or more, valid, not
+//!   broadcast) mark the board dead: the node says where its program is
+//!   ([`twin_sim::engine::SimNode::not_answering`]), the server keeps serving
+//!   the others, and the master sees timeouts as on the bench.
+
+use std::collections::VecDeque;
+
+use nodes::node::{MAX_FRAME, NodeEvent};
+use nodes::proto::meb::MebFrame;
+use nodes::proto::modbus8::{CrcOrder, Frame};
+use nodes::time::{SimDuration, SimTime};
+
+use super::device::Device;
+use super::endpoint::Endpoint;
+
+/// How requests are cut from the link's bytes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RequestFraming {
+    /// `@` … `*\n`; the id is the two digits after `@`.
+    Meb,
+    /// Eight bytes; the id is the first.
+    Modbus8,
+}
+
+/// How long a queued request waits for the sketch's answer to the one
+/// before it (TCP): far longer than any sketch of ours takes, well inside a
+/// master's patience for a few requests.
+pub const REPLY_WAIT: SimDuration = SimDuration::from_millis(500);
+/// How long a board may leave requests for it unanswered before it is
+/// marked dead.
+pub const WATCHDOG: SimDuration = SimDuration::from_secs(1);
+/// Unanswered requests before the watchdog may bite: one lost request is a
+/// timeout, as on the bench.
+const WATCHDOG_REQUESTS: u32 = 2;
+/// Quiet that drops a partial 8-byte frame (a pty's bytes carry no timing).
+const SILENCE: SimDuration = SimDuration::from_millis(5);
+/// Requests held for a TCP client before more are dropped.
+const QUEUE_MAX: usize = 256;
+
+/// One board the watchdog keeps an eye on.
+#[derive(Debug, Clone)]
+struct Watch {
+    device: usize,
+    id: u8,
+    /// When the oldest request it has not answered came, and how many since.
+    since: Option<SimTime>,
+    asked: u32,
+    fired: bool,
+}
+
+/// The sketches behind one link (see the module's documentation).
+#[derive(Debug, Clone)]
+pub struct FirmwareEndpoint {
+    devices: Vec<usize>,
+    framing: RequestFraming,
+    one_at_a_time: bool,
+    watches: Vec<Watch>,
+    partial: Vec<u8>,
+    last_rx: SimTime,
+    /// Requests waiting for the sketch (TCP): their bytes, and each length.
+    queued: Vec<u8>,
+    lengths: VecDeque<usize>,
+    /// The request handed over last, waiting for its answer since then.
+    outstanding: Option<SimTime>,
+    /// A queued request on its way to the sketch (kept, not allocated each time).
+    next: Vec<u8>,
+}
+
+impl FirmwareEndpoint {
+    /// The nodes `devices` (engine indices) behind one link cut by
+    /// `framing`; `boards` pairs each firmware device with its slave id for
+    /// the watchdog; `one_at_a_time` on TCP.
+    pub fn new(
+        devices: Vec<usize>,
+        boards: &[(usize, u8)],
+        framing: RequestFraming,
+        one_at_a_time: bool,
+    ) -> Self {
+        Self {
+            devices,
+            framing,
+            one_at_a_time,
+            watches: boards
+                .iter()
+                .map(|&(device, id)| Watch {
+                    device,
+                    id,
+                    since: None,
+                    asked: 0,
+                    fired: false,
+                })
+                .collect(),
+            partial: Vec::with_capacity(MAX_FRAME),
+            last_rx: SimTime::ZERO,
+            queued: Vec::new(),
+            lengths: VecDeque::new(),
+            outstanding: None,
+            next: Vec::with_capacity(MAX_FRAME),
+        }
+    }
+
+    /// The slave id a whole, valid request is for; `None` for a broadcast
+    /// or a frame no slave answers.
+    fn addressed(&self, frame: &[u8]) -> Option<u8> {
+        match self.framing {
+            RequestFraming::Meb => {
+                let id = MebFrame::new_checked(frame).ok()?.id();
+                (id != 0).then_some(id)
+            }
+            RequestFraming::Modbus8 => Frame::parse(frame, CrcOrder::HighFirst).ok().map(|f| f.id),
+        }
+    }
+
+    /// Cuts whole requests from `bytes` and hands each to `on_frame`.
+    fn frame(&mut self, devices: &mut [Device], now: SimTime, bytes: &[u8]) {
+        if self.framing == RequestFraming::Modbus8 && now.saturating_since(self.last_rx) > SILENCE {
+            self.partial.clear();
+        }
+        self.last_rx = now;
+        for &b in bytes {
+            match self.framing {
+                RequestFraming::Meb => {
+                    if b == b'@' {
+                        self.partial.clear();
+                    }
+                    if self.partial.is_empty() && b != b'@' {
+                        continue;
+                    }
+                    if self.partial.len() >= MAX_FRAME {
+                        self.partial.clear();
+                        continue;
+                    }
+                    self.partial.push(b);
+                    if b != b'\n' {
+                        continue;
+                    }
+                }
+                RequestFraming::Modbus8 => {
+                    self.partial.push(b);
+                    if self.partial.len() < 8 {
+                        continue;
+                    }
+                }
+            }
+            let frame = std::mem::take(&mut self.partial);
+            self.on_frame(devices, now, &frame);
+            self.partial = frame;
+            self.partial.clear();
+        }
+    }
+
+    fn on_frame(&mut self, devices: &mut [Device], now: SimTime, frame: &[u8]) {
+        if !self.one_at_a_time {
+            // The bytes went to the sketches as they came: only counted.
+            self.asked(now, frame);
+            return;
+        }
+        if self.outstanding.is_some() || !self.lengths.is_empty() {
+            if self.lengths.len() < QUEUE_MAX {
+                self.queued.extend_from_slice(frame);
+                self.lengths.push_back(frame.len());
+            }
+            return;
+        }
+        self.hand_over(devices, now, frame);
+    }
+
+    /// Gives `frame` to the sketches; waits for its answer if one is due.
+    fn hand_over(&mut self, devices: &mut [Device], now: SimTime, frame: &[u8]) {
+        for &d in &self.devices {
+            if let Some(device) = devices.get_mut(d) {
+                device.node.handle_bytes(now, frame);
+            }
+        }
+        if self.asked(now, frame) {
+            self.outstanding = Some(now);
+        }
+    }
+
+    /// Counts a request for a watched board; whether one of the link's
+    /// boards is due to answer it.
+    fn asked(&mut self, now: SimTime, frame: &[u8]) -> bool {
+        let Some(id) = self.addressed(frame) else {
+            return false;
+        };
+        match self.watches.iter_mut().find(|w| w.id == id) {
+            Some(w) => {
+                w.since.get_or_insert(now);
+                w.asked += 1;
+                true
+            }
+            // A Rust node on the same line answers at once.
+            None => false,
+        }
+    }
+
+    /// The next queued request, once the last is answered or given up.
+    fn next_request(&mut self, devices: &mut [Device], now: SimTime) {
+        self.outstanding = None;
+        if let Some(len) = self.lengths.pop_front() {
+            let mut frame = std::mem::take(&mut self.next);
+            frame.clear();
+            frame.extend(self.queued.drain(..len.min(self.queued.len())));
+            self.hand_over(devices, now, &frame);
+            self.next = frame;
+        }
+    }
+
+    fn watchdog_due(w: &Watch) -> Option<SimTime> {
+        (!w.fired && w.asked >= WATCHDOG_REQUESTS)
+            .then(|| w.since.map(|s| s + WATCHDOG))
+            .flatten()
+    }
+
+    fn bite(&mut self, devices: &mut [Device], now: SimTime) {
+        for w in &mut self.watches {
+            if Self::watchdog_due(w).is_some_and(|due| due <= now)
+                && let (Some(since), Some(device)) = (w.since, devices.get_mut(w.device))
+            {
+                w.fired = true;
+                device.node.not_answering(now, since, w.asked);
+            }
+        }
+    }
+}
+
+impl Endpoint for FirmwareEndpoint {
+    fn handle_bytes(&mut self, devices: &mut [Device], now: SimTime, bytes: &[u8]) {
+        if !self.one_at_a_time {
+            for &d in &self.devices {
+                if let Some(device) = devices.get_mut(d) {
+                    device.node.handle_bytes(now, bytes);
+                }
+            }
+        }
+        self.frame(devices, now, bytes);
+        self.bite(devices, now);
+    }
+
+    fn handle_timeout(&mut self, devices: &mut [Device], now: SimTime) {
+        for &d in &self.devices {
+            if let Some(device) = devices.get_mut(d)
+                && device.node.poll_timeout().is_some_and(|t| t <= now)
+            {
+                device.node.handle_timeout(now);
+            }
+        }
+        if self
+            .outstanding
+            .is_some_and(|since| since + REPLY_WAIT <= now)
+        {
+            self.next_request(devices, now);
+        }
+        self.bite(devices, now);
+    }
+
+    fn poll_timeout(&self, devices: &[Device]) -> Option<SimTime> {
+        self.devices
+            .iter()
+            .filter_map(|&d| devices.get(d)?.node.poll_timeout())
+            .chain(self.outstanding.map(|since| since + REPLY_WAIT))
+            .chain(self.watches.iter().filter_map(Self::watchdog_due))
+            .min()
+    }
+
+    fn poll_transmit(
+        &mut self,
+        devices: &mut [Device],
+        now: SimTime,
+        buf: &mut [u8],
+    ) -> Option<usize> {
+        let (d, len) = self.devices.iter().find_map(|&d| {
+            let len = devices.get_mut(d)?.node.poll_transmit(now, buf)?;
+            Some((d, len))
+        })?;
+        if let Some(w) = self.watches.iter_mut().find(|w| w.device == d) {
+            w.since = None;
+            w.asked = 0;
+        }
+        if self.one_at_a_time {
+            self.next_request(devices, now);
+        }
+        Some(len)
+    }
+
+    fn transmit_done(&mut self, devices: &mut [Device], now: SimTime) {
+        for &d in &self.devices {
+            if let Some(device) = devices.get_mut(d) {
+                device.node.transmit_done(now);
+            }
+        }
+    }
+
+    /// The engine drains the devices' own events.
+    fn poll_event(&mut self, _devices: &mut [Device]) -> Option<(String, NodeEvent)> {
+        None
+    }
+
+    fn pending(&self) -> usize {
+        self.partial.len()
+    }
+
+    fn answers_later(&self) -> bool {
+        true
+    }
+}
