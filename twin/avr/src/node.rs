@@ -454,7 +454,11 @@ impl AvrNode {
                 (high.saturating_sub(last_high)) as f64 / span as f64
             };
             let target = duty.clamp(0.0, 1.0) * 5.0;
-            let volts = if tau > 0.0 {
+            let volts = if span == 0 && cycle > 0 {
+                // The core has not run since the last look (in real time it
+                // may have run ahead of the loop ticks): nothing new to filter.
+                filtered
+            } else if tau > 0.0 {
                 filtered + (target - filtered) * (1.0 - (-dt / tau).exp())
             } else {
                 target

@@ -374,7 +374,9 @@ fn build_sketch(
         medium: Default::default(),
         pwmcap: None,
     };
-    Ok(twin_sim::external::build_firmware(spec, Some(params), &bus)?.0)
+    let (node, _) = twin_sim::external::build_firmware(spec, Some(params), &bus)
+        .with_context(|| format!("--firmware {}", spec_elf(spec)))?;
+    Ok(node)
 }
 
 /// Unique link names: the protocol, numbered when it repeats.
