@@ -105,10 +105,12 @@ fn controller_network_master(device: &Path, cycles: u32, wait_ms: u32) -> Value 
 
 /// A vsp pair and `serve --modbus8` on one end with the sketches `boards`
 /// (`motor=FILE`, `light=FILE`), recording to `out`.
-fn serve_nanos(dir: &Path, boards: &[String], out: &Path) -> (Child, Child, String) {
+fn serve_nanos(dir: &Path, boards: &[String], out: &Path) -> (Vsp, Child, String) {
     let (a, b) = (dir.join("ttyV0"), dir.join("ttyV1"));
     let mut vsp = twin_avr(&["vsp", &a.display().to_string(), &b.display().to_string()]);
-    let _ = wait_ready(&mut vsp);
+    // Its stdout stays open: it prints as the master opens and closes its end.
+    let (vsp_out, _) = wait_ready(&mut vsp);
+    let vsp = Vsp(vsp, vsp_out);
     wait_for(&b);
     let mut args = vec![
         "serve".to_string(),
@@ -129,6 +131,19 @@ fn serve_nanos(dir: &Path, boards: &[String], out: &Path) -> (Child, Child, Stri
     let args: Vec<&str> = args.iter().map(String::as_str).collect();
     let serve = twin_avr(&args);
     (vsp, serve, a.display().to_string())
+}
+
+/// The vsp process and its stdout, kept open while it runs.
+struct Vsp(Child, BufReader<std::process::ChildStdout>);
+
+impl Vsp {
+    fn kill(&mut self) -> std::io::Result<()> {
+        self.0.kill()
+    }
+
+    fn wait(&mut self) -> std::io::Result<std::process::ExitStatus> {
+        self.0.wait()
+    }
 }
 
 fn ints(v: &Value) -> Vec<Option<i64>> {

@@ -10,8 +10,8 @@
 //!   sketch once it has answered the one before (or [`REPLY_WAIT`] has
 //!   passed), so the client gets every answer, in order.
 //! - **A watchdog for a board that never answers.** Requests for a board's
-//!   id that it has not answered for [`WATCHDOG`] (two or more, valid, not
-//!   broadcast) mark the board dead: the node says where its program is
+//!   id that it has not answered while its firmware ran for [`WATCHDOG`]
+//!   (two or more, valid, not broadcast) mark the board dead: the node says where its program is
 //!   ([`twin_sim::engine::SimNode::not_answering`]), the server keeps serving
 //!   the others, and the master sees timeouts as on the bench.
 
@@ -164,7 +164,7 @@ impl FirmwareEndpoint {
     fn on_frame(&mut self, devices: &mut [Device], now: SimTime, frame: &[u8]) {
         if !self.one_at_a_time {
             // The bytes went to the sketches as they came: only counted.
-            self.asked(now, frame);
+            self.asked(devices, now, frame);
             return;
         }
         if self.outstanding.is_some() || !self.lengths.is_empty() {
@@ -184,20 +184,21 @@ impl FirmwareEndpoint {
                 device.node.handle_bytes(now, frame);
             }
         }
-        if self.asked(now, frame) {
+        if self.asked(devices, now, frame) {
             self.outstanding = Some(now);
         }
     }
 
     /// Counts a request for a watched board; whether one of the link's
     /// boards is due to answer it.
-    fn asked(&mut self, now: SimTime, frame: &[u8]) -> bool {
+    fn asked(&mut self, devices: &[Device], now: SimTime, frame: &[u8]) -> bool {
         let Some(id) = self.addressed(frame) else {
             return false;
         };
         match self.watches.iter_mut().find(|w| w.id == id) {
             Some(w) => {
-                w.since.get_or_insert(now);
+                let at = devices.get(w.device).map_or(now, |d| firmware_time(d, now));
+                w.since.get_or_insert(at);
                 w.asked += 1;
                 true
             }
@@ -224,16 +225,31 @@ impl FirmwareEndpoint {
             .flatten()
     }
 
+    /// Marks dead the boards whose firmware has run [`WATCHDOG`] past the
+    /// oldest request it has not answered. Looked at as requests come and
+    /// on the link's timers, not on a deadline of its own: the firmware's
+    /// time may lag the wall clock's, and a deadline the firmware has not
+    /// reached yet would only make the engine spin.
     fn bite(&mut self, devices: &mut [Device], now: SimTime) {
         for w in &mut self.watches {
-            if Self::watchdog_due(w).is_some_and(|due| due <= now)
-                && let (Some(since), Some(device)) = (w.since, devices.get_mut(w.device))
+            let Some(device) = devices.get_mut(w.device) else {
+                continue;
+            };
+            if Self::watchdog_due(w).is_some_and(|due| due <= firmware_time(device, now))
+                && let Some(since) = w.since
             {
                 w.fired = true;
                 device.node.not_answering(now, since, w.asked);
             }
         }
     }
+}
+
+/// How far a board's firmware has run: its loop's next tick, which the
+/// engine's ticks move on (not the wall clock's `now` when they lag it: a
+/// busy machine slows the firmware, it does not make it mute).
+fn firmware_time(device: &Device, now: SimTime) -> SimTime {
+    device.next_tick.map_or(now, |tick| tick.min(now))
 }
 
 impl Endpoint for FirmwareEndpoint {
@@ -271,7 +287,6 @@ impl Endpoint for FirmwareEndpoint {
             .iter()
             .filter_map(|&d| devices.get(d)?.node.poll_timeout())
             .chain(self.outstanding.map(|since| since + REPLY_WAIT))
-            .chain(self.watches.iter().filter_map(Self::watchdog_due))
             .min()
     }
 
