@@ -110,7 +110,10 @@ fn serve_nanos(dir: &Path, boards: &[String], out: &Path) -> (Vsp, Child, String
     let mut vsp = twin_avr(&["vsp", &a.display().to_string(), &b.display().to_string()]);
     // Its stdout stays open: it prints as the master opens and closes its end.
     let (vsp_out, _) = wait_ready(&mut vsp);
-    let vsp = Vsp(vsp, vsp_out);
+    let vsp = Vsp {
+        child: vsp,
+        _out: vsp_out,
+    };
     wait_for(&b);
     let mut args = vec![
         "serve".to_string(),
@@ -134,15 +137,19 @@ fn serve_nanos(dir: &Path, boards: &[String], out: &Path) -> (Vsp, Child, String
 }
 
 /// The vsp process and its stdout, kept open while it runs.
-struct Vsp(Child, BufReader<std::process::ChildStdout>);
+struct Vsp {
+    child: Child,
+    /// Held open, never read.
+    _out: BufReader<std::process::ChildStdout>,
+}
 
 impl Vsp {
     fn kill(&mut self) -> std::io::Result<()> {
-        self.0.kill()
+        self.child.kill()
     }
 
     fn wait(&mut self) -> std::io::Result<std::process::ExitStatus> {
-        self.0.wait()
+        self.child.wait()
     }
 }
 
@@ -154,7 +161,9 @@ fn late_symptom(t: &Value) -> bool {
     let reply = t["reply"].as_str().unwrap_or("");
     p.starts_with("no reply")
         || p == "reply to another request"
-        || (p.ends_with("bytes in the one read") && reply.len() > 16 && reply.len() % 16 == 0)
+        || (p.ends_with("bytes in the one read")
+            && reply.len() > 16
+            && reply.len().is_multiple_of(16))
 }
 
 fn ints(v: &Value) -> Vec<Option<i64>> {
@@ -263,7 +272,7 @@ fn a_sketch_that_never_answers_is_marked_dead_and_the_other_board_goes_on() {
         } else if t["problem"].is_null() {
             motor_ok += 1;
         } else {
-            assert!(late_symptom(&t), "{t}");
+            assert!(late_symptom(t), "{t}");
         }
     }
     let motor_asked = log
