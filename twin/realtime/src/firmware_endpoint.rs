@@ -7,8 +7,9 @@
 //!   request before the sketch has answered the last (a pipelining client,
 //!   or one whose timeout ran out). A sketch on a serial line would see the
 //!   two run together; here requests wait in order and each goes to the
-//!   sketch once it has answered the one before (or [`REPLY_WAIT`] has
-//!   passed), so the client gets every answer, in order.
+//!   sketch once it has answered the one before (or its firmware has run
+//!   [`REPLY_WAIT`] without answering), so the client gets every answer, in
+//!   order.
 //! - **A watchdog for a board that never answers.** Requests for a board's
 //!   id that it has not answered while its firmware ran for [`WATCHDOG`]
 //!   (two or more, valid, not broadcast) mark the board dead: the node says where its program is
@@ -185,7 +186,11 @@ impl FirmwareEndpoint {
             }
         }
         if self.asked(devices, now, frame) {
-            self.outstanding = Some(now);
+            // Timed on the firmware's own clock, as the watchdog: a machine
+            // too busy to run the sketch must not hand it the next request
+            // while its answer to this one is still to come (the client
+            // would take that answer for the next one's).
+            self.outstanding = Some(self.firmware_now(devices, now));
         }
     }
 
@@ -217,6 +222,14 @@ impl FirmwareEndpoint {
             self.hand_over(devices, now, &frame);
             self.next = frame;
         }
+    }
+
+    /// How far the link's (first) sketch has run.
+    fn firmware_now(&self, devices: &[Device], now: SimTime) -> SimTime {
+        self.devices
+            .first()
+            .and_then(|&d| devices.get(d))
+            .map_or(now, |d| firmware_time(d, now))
     }
 
     fn watchdog_due(w: &Watch) -> Option<SimTime> {
@@ -273,9 +286,10 @@ impl Endpoint for FirmwareEndpoint {
                 device.node.handle_timeout(now);
             }
         }
+        let at = self.firmware_now(devices, now);
         if self
             .outstanding
-            .is_some_and(|since| since + REPLY_WAIT <= now)
+            .is_some_and(|since| since + REPLY_WAIT <= at)
         {
             self.next_request(devices, now);
         }
