@@ -21,9 +21,10 @@ use nodes::time::{SimDuration, SimTime, TICKS_PER_SECOND};
 use plant::params::SensingParams;
 use plant::{Actuators, Sensors};
 use serde_json::json;
-use twin_sim::engine::SimNode;
+use twin_sim::engine::{SimNode, Streamed};
 
 use crate::ffi::{Core, Image, State};
+use crate::stepper::Stepper;
 use crate::wiring::{Analog, Input, Output, Pwm, Wiring};
 
 /// The ATmega328P's last flash byte address.
@@ -65,7 +66,7 @@ pub struct UartSetting {
 impl UartSetting {
     /// From the registers: UBRR0, U2X0 (UCSR0A bit 1), UCSR0C's character
     /// size, parity and stop bits.
-    fn read(core: &Core, clock_hz: u32) -> Self {
+    fn read(core: &Stepper, clock_hz: u32) -> Self {
         let ubrr = u16::from_le_bytes([core.data(reg::UBRR0L), core.data(reg::UBRR0H) & 0x0F]);
         let u2x = core.data(reg::UCSR0A) & 0b10 != 0;
         let divisor = if u2x { 8.0 } else { 16.0 };
@@ -143,7 +144,7 @@ pub struct Board<'a> {
 pub struct AvrNode {
     name: String,
     elf: PathBuf,
-    core: Core,
+    core: Stepper,
     clock_hz: u32,
     wiring: Wiring,
     sensing: SensingParams,
@@ -156,6 +157,15 @@ pub struct AvrNode {
     pending_end: SimTime,
     /// When the firmware's TX line is free for the next byte.
     line_free: SimTime,
+    /// Bytes go to the bus one by one, at their own wire times (the
+    /// virtual engine), not as frames (the real-time server).
+    streaming: bool,
+    /// Bytes written, with their wire start and end, not yet streamed.
+    stream_out: VecDeque<(u8, SimTime, SimTime)>,
+    /// A streamed frame has begun and not yet ended.
+    stream_open: bool,
+    /// How far the firmware's output has been taken.
+    advanced_to: SimTime,
     ready: Vec<u8>,
     /// Inputs as last driven: per wired input pin.
     input_levels: Vec<bool>,
@@ -201,6 +211,7 @@ impl AvrNode {
         }
         let core =
             Core::start(image, mcu, clock_hz).ok_or_else(|| StartError::NoMcu(mcu.into()))?;
+        let core = Stepper::new(core, crate::builder::threaded(), name);
         let uart = UartSetting::read(&core, clock_hz);
         let mut node = Self {
             name: name.into(),
@@ -217,6 +228,10 @@ impl AvrNode {
             pending: Vec::with_capacity(MAX_FRAME),
             pending_end: SimTime::ZERO,
             line_free: SimTime::ZERO,
+            streaming: false,
+            stream_out: VecDeque::with_capacity(MAX_FRAME),
+            stream_open: false,
+            advanced_to: SimTime::ZERO,
             ready: Vec::with_capacity(MAX_FRAME),
             last_tick: SimTime::ZERO,
             failure: None,
@@ -292,7 +307,7 @@ impl AvrNode {
                 let at = self.to_time(self.core.cycle());
                 let pc = self.core.pc();
                 let why = if state == State::Crashed {
-                    let log = Core::last_log();
+                    let log = self.core.last_log();
                     let log = if log.is_empty() {
                         String::new()
                     } else {
@@ -319,6 +334,7 @@ impl AvrNode {
             }
             _ => {}
         }
+        self.advanced_to = self.to_time(self.core.cycle()).max(now);
         self.take_uart_output();
     }
 
@@ -336,7 +352,11 @@ impl AvrNode {
             self.line_free = start + char_time;
             // The bus's receivers sample it at their own baud.
             let seen = sampled(byte, bit, 1.0 / self.bus_baud);
-            if self.pending.len() < MAX_FRAME {
+            if self.streaming {
+                if self.stream_out.len() < MAX_FRAME {
+                    self.stream_out.push_back((seen, start, self.line_free));
+                }
+            } else if self.pending.len() < MAX_FRAME {
                 self.pending.push(seen);
             }
             self.pending_end = self.line_free;
@@ -363,7 +383,8 @@ impl AvrNode {
     /// When the bytes written so far make a frame: the firmware's line quiet
     /// for two characters after the last.
     fn frame_due(&self) -> Option<SimTime> {
-        if self.pending.is_empty() {
+        let streamed = self.stream_open || !self.stream_out.is_empty();
+        if self.pending.is_empty() && !streamed {
             return None;
         }
         let char_time =
@@ -517,7 +538,13 @@ impl Node for AvrNode {
         if self.failure.is_some() {
             return None;
         }
-        self.frame_due()
+        let due = self.frame_due();
+        // While a streamed frame is on the wire, the firmware is run to the
+        // end of each byte, so the next one it writes goes out on time.
+        if self.streaming && due.is_some() && self.advanced_to < self.pending_end {
+            return Some(self.pending_end);
+        }
+        due
     }
 
     fn poll_event(&mut self) -> Option<NodeEvent> {
@@ -612,6 +639,44 @@ impl SimNode for AvrNode {
 
     fn failure(&self) -> Option<String> {
         self.failure.clone()
+    }
+
+    /// A sketch whose only inputs are analog and its UART: its core can run
+    /// ahead of the bench to the next tick or byte. A digital input's edge
+    /// lands on the core at its own time, in the past of the tick that
+    /// reads it, so such a core stays at its last tick.
+    fn can_run_ahead(&self) -> bool {
+        self.wiring.inputs.is_empty() && self.failure.is_none()
+    }
+
+    fn streams_bytes(&self) -> bool {
+        true
+    }
+
+    fn start_streaming(&mut self) -> bool {
+        self.streaming = true;
+        true
+    }
+
+    fn poll_stream(&mut self, now: SimTime) -> Option<Streamed> {
+        if let Some((byte, start, end)) = self.stream_out.pop_front() {
+            self.stream_open = true;
+            return Some(Streamed::Byte { byte, start, end });
+        }
+        let quiet = self
+            .frame_due()
+            .is_some_and(|due| due <= now && due <= self.advanced_to);
+        if self.stream_open && quiet {
+            self.stream_open = false;
+            return Some(Streamed::End);
+        }
+        None
+    }
+
+    fn run_ahead(&mut self, horizon: SimTime) {
+        if self.can_run_ahead() {
+            self.core.run_ahead(self.to_cycle(horizon));
+        }
     }
 }
 
