@@ -724,6 +724,54 @@ mod tests {
     }
 
     #[test]
+    fn a_streamed_byte_arrives_when_its_stop_bit_ends_or_at_once_if_that_has_passed() {
+        let mut bus = SimBus::new(BusConfig::default()).unwrap();
+        let master = bus.add_port(PortConfig::default());
+        let firmware = bus.add_port(PortConfig {
+            turnaround: SimDuration::ZERO,
+        });
+        let us = |n: u64| SimTime::ZERO + SimDuration::from_micros(n);
+        // Found 40 us after its stop bit ended: delivered at once.
+        bus.stream_byte(us(140), firmware, 0x11, us(15), us(100))
+            .unwrap();
+        // Found before its stop bit ends: delivered when it ends.
+        bus.stream_byte(us(150), firmware, 0x22, us(100), us(185))
+            .unwrap();
+        let mut got = Vec::new();
+        while let Some(at) = bus.poll_timeout() {
+            let Some(event) = bus.poll_event(at) else {
+                break;
+            };
+            got.push(event);
+        }
+        let byte = |b: u8, at: SimTime, index: usize| BusEvent::Byte {
+            to: master,
+            at,
+            byte: b,
+            corrupted: false,
+            from: firmware,
+            index,
+            last: false,
+        };
+        assert_eq!(got, vec![byte(0x11, us(140), 0), byte(0x22, us(185), 1)]);
+        // The frame ends with its last byte, reported no earlier than its end.
+        let (info, bytes, delivered) = bus.end_stream(us(355), firmware).unwrap();
+        assert_eq!((info.start, info.end), (us(15), us(185)));
+        assert_eq!(bytes, &[0x11, 0x22]);
+        assert!(delivered);
+        assert_eq!(bus.poll_timeout(), Some(us(355)));
+        assert_eq!(
+            bus.poll_event(us(355)),
+            Some(BusEvent::TransmitDone {
+                port: firmware,
+                at: us(355)
+            })
+        );
+        assert_eq!(bus.poll_timeout(), None);
+        assert!(bus.end_stream(us(400), firmware).is_none());
+    }
+
+    #[test]
     fn unknown_port_is_an_error() {
         let mut bus = SimBus::new(BusConfig::default()).unwrap();
         assert_eq!(

@@ -116,7 +116,10 @@ pub fn execute(args: &BenchArgs) -> Result<()> {
         );
     }
     if let [one, threaded] = twin_wall[..] {
-        println!("  a thread per firmware node: {:.2}x faster", one / threaded);
+        println!(
+            "  a thread per firmware node: {:.2}x faster",
+            one / threaded
+        );
     }
     Ok(())
 }

@@ -84,6 +84,19 @@ impl UartSetting {
     }
 }
 
+/// Whether a receiver at bit time `rx_bit` finds the stop bit of a byte
+/// sent at `tx_bit` low (a framing error, the AVR's FE0): it samples it in
+/// the middle of its own tenth bit, timed from the start bit's falling edge;
+/// after the sender's stop bit the line idles high.
+pub fn framing_error(byte: u8, tx_bit: f64, rx_bit: f64) -> bool {
+    let t = 9.5 * rx_bit / tx_bit;
+    match t.floor() as i64 {
+        i64::MIN..=0 => true,
+        j @ 1..=8 => byte >> (j - 1) & 1 == 0,
+        _ => false,
+    }
+}
+
 /// What a receiver at bit time `rx_bit` makes of `byte` sent at `tx_bit`
 /// (8 data bits, LSB first): it samples each bit in its own middle, timed
 /// from the start bit's falling edge, so a few per cent of mismatch is
@@ -179,6 +192,11 @@ pub struct AvrNode {
     actuators: Actuators,
     pub bytes_in: u64,
     pub bytes_out: u64,
+    /// Bytes the firmware's receiver took with a framing error (its baud
+    /// and the bus's too far apart).
+    pub framing_errors_in: u64,
+    /// Bytes the firmware sent that the bus's receivers find with one.
+    pub framing_errors_out: u64,
 }
 
 impl AvrNode {
@@ -241,6 +259,8 @@ impl AvrNode {
             actuators: Actuators::from_pins(0x1F, 0x01, 0.0),
             bytes_in: 0,
             bytes_out: 0,
+            framing_errors_in: 0,
+            framing_errors_out: 0,
         };
         // Inputs the plant holds steady from power-up: a healthy driver's
         // fault line reads high.
@@ -352,6 +372,7 @@ impl AvrNode {
             self.line_free = start + char_time;
             // The bus's receivers sample it at their own baud.
             let seen = sampled(byte, bit, 1.0 / self.bus_baud);
+            self.framing_errors_out += u64::from(framing_error(byte, bit, 1.0 / self.bus_baud));
             if self.streaming {
                 if self.stream_out.len() < MAX_FRAME {
                     self.stream_out.push_back((seen, start, self.line_free));
@@ -513,6 +534,16 @@ impl Node for AvrNode {
         for &b in bytes {
             // The firmware's receiver samples the bus's bits at its own baud.
             let seen = sampled(b, 1.0 / self.bus_baud, 1.0 / self.uart.baud);
+            if framing_error(b, 1.0 / self.bus_baud, 1.0 / self.uart.baud) {
+                self.framing_errors_in += 1;
+                if self.framing_errors_in == 1 {
+                    let detail = format!(
+                        "framing error: a byte from the bus at {:.0} baud has no stop bit where UART0 at {:.0} baud samples it",
+                        self.bus_baud, self.uart.baud
+                    );
+                    self.push_event(now, "framing", detail);
+                }
+            }
             self.core.uart_input(seen);
             self.bytes_in += 1;
         }
@@ -624,6 +655,8 @@ impl SimNode for AvrNode {
             "reverse": a.reverse,
             "bytes_in": self.bytes_in,
             "bytes_out": self.bytes_out,
+            "framing_errors_in": self.framing_errors_in,
+            "framing_errors_out": self.framing_errors_out,
         }))
     }
 
@@ -634,6 +667,8 @@ impl SimNode for AvrNode {
             "uart_baud": self.uart.baud.round(),
             "bytes_in": self.bytes_in,
             "bytes_out": self.bytes_out,
+            "framing_errors_in": self.framing_errors_in,
+            "framing_errors_out": self.framing_errors_out,
         }))
     }
 
@@ -700,6 +735,19 @@ mod tests {
         for b in 0..=255u8 {
             assert_eq!(sampled(b, bus, firmware), b);
         }
+    }
+
+    #[test]
+    fn a_receiver_a_few_per_cent_off_finds_every_stop_bit_and_a_far_one_does_not() {
+        let (bus, firmware) = (1.0 / 115_200.0, 1.0 / 117_647.0);
+        assert!((0..=255u8).all(|b| !framing_error(b, bus, firmware)));
+        assert!((0..=255u8).all(|b| !framing_error(b, firmware, bus)));
+        // A fast receiver samples the stop bit inside the slow sender's byte.
+        assert!((0..=255u8).all(|b| framing_error(b, 1.0 / 9600.0, 1.0 / 115_200.0)));
+        let at_half = (0..=255u8)
+            .filter(|b| framing_error(*b, 1.0 / 57_600.0, firmware))
+            .count();
+        assert_eq!(at_half, 128);
     }
 
     #[test]

@@ -84,3 +84,34 @@ fn the_supervisor_polls_the_sketch_as_often_as_the_rust_controller() {
         "the supervisor polled the sketch {sketch_polls:.1} times a second, the Rust controller {model_polls:.1}"
     );
 }
+
+#[test]
+fn a_supervisor_at_another_baud_than_the_sketch_gets_no_answer_and_framing_errors_are_counted() {
+    twin_avr::register();
+    let mut scenario = shipped("ev-meb-avr.toml", &["ev-controller"], 0.6);
+    // The supervisor at 57600; the sketch keeps its own 117 647 (UBRR0 16, U2X0).
+    scenario.buses[0].baud = 57_600;
+    let o = virtual_run::run(&scenario, &out("baud-mismatch.mcap"), |_| {}).expect("runs");
+    let _ = std::fs::remove_file(&o.recording);
+    let (_, sketch) = o
+        .telemetry
+        .iter()
+        .find(|(n, _)| n == "ev1")
+        .expect("sketch");
+    let framing = sketch["framing_errors_in"].as_u64().unwrap_or(0);
+    let bytes_in = sketch["bytes_in"].as_u64().unwrap_or(0);
+    println!("the sketch took {bytes_in} bytes, {framing} with a framing error");
+    assert!(framing > 0 && framing < bytes_in, "{sketch}");
+    assert_eq!(o.events.get("framing").copied(), Some(1), "{:?}", o.events);
+    let (_, sup) = o
+        .telemetry
+        .iter()
+        .find(|(n, _)| n == "supervisor")
+        .expect("supervisor");
+    assert_eq!(sup["loops"][0]["replies"].as_u64(), Some(0), "{sup}");
+    assert!(
+        o.events.get("timeout").copied().unwrap_or(0) > 2,
+        "{:?}",
+        o.events
+    );
+}

@@ -98,7 +98,11 @@ pub trait SimNode: Node {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Streamed {
     /// A byte, on the node's wire during `[start, end)`.
-    Byte { byte: u8, start: SimTime, end: SimTime },
+    Byte {
+        byte: u8,
+        start: SimTime,
+        end: SimTime,
+    },
     /// The node's line has gone quiet: its frame is complete.
     End,
 }
@@ -410,8 +414,7 @@ impl Engine {
         module: Option<usize>,
     ) -> usize {
         let next_tick = node.firmware().map(|_| SimTime::ZERO);
-        let streams =
-            matches!(self.buses[bus].bus, Medium::Serial(_)) && node.start_streaming();
+        let streams = matches!(self.buses[bus].bus, Medium::Serial(_)) && node.start_streaming();
         let index = self.nodes.len();
         self.nodes.push(NodeSlot {
             name: name.into(),
@@ -552,7 +555,9 @@ impl Engine {
                 horizon = horizon.min(t);
             }
             for (m, other) in self.nodes.iter().enumerate() {
-                if m == n || other.bus != slot.bus || !bus.config().wiring.hears(slot.port, other.port)
+                if m == n
+                    || other.bus != slot.bus
+                    || !bus.config().wiring.hears(slot.port, other.port)
                 {
                     continue;
                 }
@@ -718,7 +723,10 @@ impl Engine {
                     }
                     self.frames_sent += 1;
                     let (slot, bus_slot) = (&self.nodes[n], &self.buses[self.nodes[n].bus]);
-                    let sent = bus_slot.sent.get(port.index()).map_or(&[][..], Vec::as_slice);
+                    let sent = bus_slot
+                        .sent
+                        .get(port.index())
+                        .map_or(&[][..], Vec::as_slice);
                     observer.frame(bus_slot, slot, info.start, info.end, sent)?;
                 }
             }
