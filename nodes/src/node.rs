@@ -22,7 +22,7 @@ pub const MAX_FRAME: usize = 520;
 pub struct NodeEvent {
     pub at: SimTime,
     /// Short machine-readable kind: `timeout`, `bad_check`, `retry`, `exception`,
-    /// `state`, `trip`, `dropped`, `log`.
+    /// `state`, `trip`, `dropped`, `log`, `framing` (a UART at another baud).
     pub kind: &'static str,
     /// Human-readable detail (for `log`, the line the real program would print).
     pub detail: String,

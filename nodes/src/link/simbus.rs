@@ -225,6 +225,13 @@ struct Transmission {
     /// The bytes as they are on the wire (collision garbling applied).
     bytes: Vec<u8>,
     garbled: Vec<bool>,
+    /// When each byte's stop bit ends at the listeners.
+    arrivals: Vec<SimTime>,
+    /// A stream (see [`SimBus::stream_byte`]) still taking bytes: its end
+    /// is not known yet.
+    open: bool,
+    /// When a stream was ended: its end is not reported before.
+    closed_at: SimTime,
     /// Next byte to deliver; `bytes.len()` once all are delivered.
     next_byte: usize,
     /// Listener of the next delivery.
@@ -245,6 +252,9 @@ impl Transmission {
             end: SimTime::ZERO,
             bytes: Vec::with_capacity(MAX_FRAME),
             garbled: Vec::with_capacity(MAX_FRAME),
+            arrivals: Vec::with_capacity(MAX_FRAME),
+            open: false,
+            closed_at: SimTime::ZERO,
             next_byte: 0,
             next_listener: 0,
             next_at: SimTime::ZERO,
@@ -373,15 +383,7 @@ impl SimBus {
             .max(port.transmitting_until)
             .max(self.delivered_up_to);
         let end = start + self.wire_time(bytes.len());
-
-        let slot = match self.slots.iter().position(|s| !s.active) {
-            Some(free) => free,
-            None => {
-                // More frames overlap than ever before: grow the pool once.
-                self.slots.push(Transmission::empty());
-                self.slots.len() - 1
-            }
-        };
+        let slot = self.free_slot();
         let first_listener = self.next_listener(from, 0);
         let seq = self.next_seq;
         self.next_seq += 1;
@@ -394,6 +396,9 @@ impl SimBus {
             t.bytes.extend_from_slice(bytes);
             t.garbled.clear();
             t.garbled.resize(bytes.len(), false);
+            t.arrivals.clear();
+            t.open = false;
+            t.closed_at = SimTime::ZERO;
             t.next_byte = if first_listener.is_some() {
                 0
             } else {
@@ -401,8 +406,42 @@ impl SimBus {
             };
             t.next_listener = first_listener.unwrap_or(0);
         }
+        for i in 0..bytes.len() {
+            let at = start + self.wire_time(i + 1);
+            if let Some(t) = self.slots.get_mut(slot) {
+                t.arrivals.push(at);
+            }
+        }
         self.refresh_next_at(slot);
+        self.collide(slot, start, end);
+        if let Some(t) = self.slots.get_mut(slot) {
+            t.active = true;
+        }
+        self.next = self.next_slot();
+        if let Some(p) = self.ports.get_mut(from.index()) {
+            p.transmitting_until = end;
+        }
+        self.busy_until = self.busy_until.max(end);
+        self.stats.frames_sent += 1;
+        self.stats.bytes_sent += bytes.len() as u64;
+        Ok(FrameInfo { from, start, end })
+    }
 
+    /// A free frame slot; the pool grows once when more frames overlap than
+    /// ever before.
+    fn free_slot(&mut self) -> usize {
+        match self.slots.iter().position(|s| !s.active) {
+            Some(free) => free,
+            None => {
+                self.slots.push(Transmission::empty());
+                self.slots.len() - 1
+            }
+        }
+    }
+
+    /// Garbles what frame `slot`, on the wire during `[start, end)`, overlaps
+    /// of the other frames, and they of it.
+    fn collide(&mut self, slot: usize, start: SimTime, end: SimTime) {
         for other in 0..self.slots.len() {
             let Some(t) = self.slots.get(other) else {
                 continue;
@@ -417,18 +456,103 @@ impl SimBus {
                 self.garble(slot, from_time, until);
             }
         }
+    }
 
-        if let Some(t) = self.slots.get_mut(slot) {
-            t.active = true;
+    /// Puts one byte on the line from `from` as a UART that writes its bytes
+    /// one at a time does (compiled firmware): on the wire during
+    /// `[start, end)` at the sender's own bit time, handed over at `now`,
+    /// which may be after `start` (the engine found the byte when it ran the
+    /// firmware). It arrives at `end`, or at `now` if that has passed. The
+    /// bytes of one port make one frame until [`SimBus::end_stream`]; each
+    /// is delivered as it arrives, never marked `last`.
+    pub fn stream_byte(
+        &mut self,
+        now: SimTime,
+        from: PortId,
+        byte: u8,
+        start: SimTime,
+        end: SimTime,
+    ) -> Result<(), BusError> {
+        if self.ports.get(from.index()).is_none() {
+            return Err(BusError::UnknownPort(from));
         }
+        let at = end.max(now).max(self.delivered_up_to);
+        let open = self
+            .slots
+            .iter()
+            .position(|t| t.active && t.open && t.from == from);
+        let slot = match open {
+            Some(slot) => slot,
+            None => {
+                let slot = self.free_slot();
+                let first_listener = self.next_listener(from, 0);
+                let seq = self.next_seq;
+                self.next_seq += 1;
+                if let Some(t) = self.slots.get_mut(slot) {
+                    t.seq = seq;
+                    t.from = from;
+                    t.start = start;
+                    t.bytes.clear();
+                    t.garbled.clear();
+                    t.arrivals.clear();
+                    t.open = true;
+                    t.closed_at = SimTime::ZERO;
+                    t.next_byte = 0;
+                    t.next_listener = first_listener.unwrap_or(0);
+                    t.active = true;
+                }
+                self.stats.frames_sent += 1;
+                slot
+            }
+        };
+        let heard = self.next_listener(from, 0).is_some();
+        let Some(t) = self.slots.get_mut(slot) else {
+            return Ok(());
+        };
+        if t.bytes.len() >= MAX_FRAME {
+            return Ok(());
+        }
+        t.bytes.push(byte);
+        t.garbled.push(false);
+        let at = t.arrivals.last().map_or(at, |last| at.max(*last));
+        t.arrivals.push(at);
+        t.end = at;
+        if !heard {
+            t.next_byte = t.bytes.len();
+        }
+        self.collide(slot, start, at);
+        self.refresh_next_at(slot);
         self.next = self.next_slot();
         if let Some(p) = self.ports.get_mut(from.index()) {
-            p.transmitting_until = end;
+            p.transmitting_until = p.transmitting_until.max(at);
         }
-        self.busy_until = self.busy_until.max(end);
-        self.stats.frames_sent += 1;
-        self.stats.bytes_sent += bytes.len() as u64;
-        Ok(FrameInfo { from, start, end })
+        self.busy_until = self.busy_until.max(at);
+        self.stats.bytes_sent += 1;
+        Ok(())
+    }
+
+    /// Ends the stream of bytes `from` is sending: its frame leaves the wire
+    /// with its last byte. Returns where the frame was on the wire and its
+    /// bytes, and whether every byte has reached its listeners already
+    /// (none of them was marked `last`). `None` if no stream was open.
+    pub fn end_stream(&mut self, now: SimTime, from: PortId) -> Option<(FrameInfo, &[u8], bool)> {
+        let slot = self
+            .slots
+            .iter()
+            .position(|t| t.active && t.open && t.from == from)?;
+        let t = self.slots.get_mut(slot)?;
+        t.open = false;
+        t.closed_at = now;
+        t.end = t.end.max(t.start);
+        let info = FrameInfo {
+            from,
+            start: t.start,
+            end: t.end,
+        };
+        self.refresh_next_at(slot);
+        self.next = self.next_slot();
+        let t = self.slots.get(slot)?;
+        Some((info, &t.bytes, t.next_byte >= t.bytes.len()))
     }
 
     /// Garbles the bytes of frame `slot` on the wire during `[from, until)`.
@@ -473,10 +597,11 @@ impl SimBus {
         let Some(t) = self.slots.get(slot) else {
             return;
         };
-        let at = if t.next_byte < t.bytes.len() {
-            t.start + self.wire_time(t.next_byte + 1)
-        } else {
-            t.end
+        let at = match t.arrivals.get(t.next_byte) {
+            Some(&at) => at,
+            // A stream waits for its next byte, or its end.
+            None if t.open => SimTime(u64::MAX),
+            None => t.end.max(t.closed_at),
         };
         if let Some(t) = self.slots.get_mut(slot) {
             t.next_at = at;
@@ -487,7 +612,11 @@ impl SimBus {
     fn next_slot(&self) -> Option<(usize, SimTime)> {
         let mut best: Option<(usize, SimTime, u64)> = None;
         for (i, t) in self.slots.iter().enumerate() {
-            if t.active && best.is_none_or(|(_, at, seq)| (t.next_at, t.seq) < (at, seq)) {
+            let waiting = t.open && t.next_byte >= t.bytes.len();
+            if t.active
+                && !waiting
+                && best.is_none_or(|(_, at, seq)| (t.next_at, t.seq) < (at, seq))
+            {
                 best = Some((i, t.next_at, t.seq));
             }
         }
@@ -512,6 +641,7 @@ impl SimBus {
         let t = self.slots.get(slot)?;
         let (from, index, listener) = (t.from, t.next_byte, t.next_listener);
         let frame_len = t.bytes.len();
+        let open = t.open;
         let Some(&wire_byte) = t.bytes.get(index) else {
             // All bytes delivered: the frame is done.
             if let Some(t) = self.slots.get_mut(slot) {
@@ -553,7 +683,7 @@ impl SimBus {
             corrupted: collided || noise != 0,
             from,
             index,
-            last: index + 1 == frame_len,
+            last: !open && index + 1 == frame_len,
         })
     }
 }
@@ -591,6 +721,54 @@ mod tests {
             }),
             Some(BusConfigError::BitErrorRate(_))
         ));
+    }
+
+    #[test]
+    fn a_streamed_byte_arrives_when_its_stop_bit_ends_or_at_once_if_that_has_passed() {
+        let mut bus = SimBus::new(BusConfig::default()).unwrap();
+        let master = bus.add_port(PortConfig::default());
+        let firmware = bus.add_port(PortConfig {
+            turnaround: SimDuration::ZERO,
+        });
+        let us = |n: u64| SimTime::ZERO + SimDuration::from_micros(n);
+        // Found 40 us after its stop bit ended: delivered at once.
+        bus.stream_byte(us(140), firmware, 0x11, us(15), us(100))
+            .unwrap();
+        // Found before its stop bit ends: delivered when it ends.
+        bus.stream_byte(us(150), firmware, 0x22, us(100), us(185))
+            .unwrap();
+        let mut got = Vec::new();
+        while let Some(at) = bus.poll_timeout() {
+            let Some(event) = bus.poll_event(at) else {
+                break;
+            };
+            got.push(event);
+        }
+        let byte = |b: u8, at: SimTime, index: usize| BusEvent::Byte {
+            to: master,
+            at,
+            byte: b,
+            corrupted: false,
+            from: firmware,
+            index,
+            last: false,
+        };
+        assert_eq!(got, vec![byte(0x11, us(140), 0), byte(0x22, us(185), 1)]);
+        // The frame ends with its last byte, reported no earlier than its end.
+        let (info, bytes, delivered) = bus.end_stream(us(355), firmware).unwrap();
+        assert_eq!((info.start, info.end), (us(15), us(185)));
+        assert_eq!(bytes, &[0x11, 0x22]);
+        assert!(delivered);
+        assert_eq!(bus.poll_timeout(), Some(us(355)));
+        assert_eq!(
+            bus.poll_event(us(355)),
+            Some(BusEvent::TransmitDone {
+                port: firmware,
+                at: us(355)
+            })
+        );
+        assert_eq!(bus.poll_timeout(), None);
+        assert!(bus.end_stream(us(400), firmware).is_none());
     }
 
     #[test]

@@ -2,7 +2,9 @@
 //! runs the same simulated time twice in one process, in a bare simavr loop
 //! (nothing fed, nothing read) and inside the twin (the scenario's plant,
 //! bus, master and recording), and the two speeds are reported as simulated
-//! cycles per wall second, real-time factors, and their ratio.
+//! cycles per wall second, real-time factors, and their ratio. With two or
+//! more firmware nodes the bare loop runs each core in turn, and the twin
+//! runs twice: all on one thread, and with a thread per firmware node.
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
@@ -13,7 +15,7 @@ use twin_sim::scenario::{NodeSpec, Scenario};
 /// Time a scenario's firmware in a bare simavr loop and inside the twin.
 #[derive(Debug, Args)]
 pub struct BenchArgs {
-    /// A scenario file with one firmware node.
+    /// A scenario file with one or more firmware nodes.
     #[arg(value_name = "SCENARIO")]
     scenario: PathBuf,
     /// Simulated seconds each way.
@@ -32,52 +34,73 @@ pub fn execute(args: &BenchArgs) -> Result<()> {
         .with_context(|| format!("{}: cannot read it", args.scenario.display()))?;
     let mut scenario = Scenario::parse(&text, &args.scenario.display().to_string())?;
     scenario.duration_s = args.seconds;
-    let Some(NodeSpec::Firmware {
-        elf, mcu, clock_hz, ..
-    }) = scenario
+    let boards: Vec<(String, String, u32)> = scenario
         .nodes
         .iter()
-        .find(|n| matches!(n, NodeSpec::Firmware { .. }))
-        .cloned()
-    else {
+        .filter_map(|n| match n {
+            NodeSpec::Firmware {
+                elf, mcu, clock_hz, ..
+            } => Some((elf.clone(), mcu.clone(), *clock_hz)),
+            _ => None,
+        })
+        .collect();
+    if boards.is_empty() {
         bail!("{}: no firmware node to time", args.scenario.display());
-    };
-    let cycles = (args.seconds * f64::from(clock_hz)) as u64;
-    let out = std::env::temp_dir().join(format!("twin-avr-bench-{}.mcap", std::process::id()));
-    let (mut bare_wall, mut twin_wall) = (0.0, 0.0);
-    for _ in 0..args.rounds.max(1) {
-        let image = twin_avr::ffi::Image::read(std::path::Path::new(&elf))
-            .with_context(|| format!("{elf}: simavr cannot read it"))?;
-        let mut core = twin_avr::ffi::Core::start(image, &mcu, clock_hz)
-            .with_context(|| format!("simavr has no MCU {mcu}"))?;
-        let started = Instant::now();
-        // In 1 ms steps, as a host loop with an idle UART would.
-        let step = u64::from(clock_hz / 1000);
-        let mut target = 0;
-        while target < cycles {
-            target = (target + step).min(cycles);
-            core.run_until(target);
-            while core.uart_output().is_some() {}
-        }
-        bare_wall += started.elapsed().as_secs_f64();
-
-        let started = Instant::now();
-        twin_sim::virtual_run::run(&scenario, &out, |_| {})?;
-        twin_wall += started.elapsed().as_secs_f64();
     }
+    // With two or more firmware nodes the twin also runs on one thread,
+    // to show what a thread per node buys.
+    let ways: &[(&str, bool)] = if boards.len() > 1 {
+        &[("twin, one thread", false), ("twin, threaded  ", true)]
+    } else {
+        &[("inside the twin ", true)]
+    };
+    let out = std::env::temp_dir().join(format!("twin-avr-bench-{}.mcap", std::process::id()));
+    let mut bare_wall = 0.0;
+    let mut twin_wall = vec![0.0; ways.len()];
+    let mut cycles = 0u64;
+    for _ in 0..args.rounds.max(1) {
+        // Every firmware node's core in turn, on one thread, in 1 ms steps
+        // as a host loop with an idle UART would, nothing fed, nothing read.
+        cycles = 0;
+        for (elf, mcu, clock_hz) in &boards {
+            let image = twin_avr::ffi::Image::read(std::path::Path::new(elf))
+                .with_context(|| format!("{elf}: simavr cannot read it"))?;
+            let mut core = twin_avr::ffi::Core::start(image, mcu, *clock_hz)
+                .with_context(|| format!("simavr has no MCU {mcu}"))?;
+            let end = (args.seconds * f64::from(*clock_hz)) as u64;
+            cycles += end;
+            let started = Instant::now();
+            let step = u64::from(clock_hz / 1000);
+            let mut target = 0;
+            while target < end {
+                target = (target + step).min(end);
+                core.run_until(target);
+                while core.uart_output().is_some() {}
+            }
+            bare_wall += started.elapsed().as_secs_f64();
+        }
+        for (i, (_, threaded)) in ways.iter().enumerate() {
+            twin_avr::builder::set_threaded(*threaded);
+            let started = Instant::now();
+            twin_sim::virtual_run::run(&scenario, &out, |_| {})?;
+            twin_wall[i] += started.elapsed().as_secs_f64();
+        }
+    }
+    twin_avr::builder::set_threaded(true);
     let _ = std::fs::remove_file(&out);
     let rounds = f64::from(args.rounds.max(1));
     let simulated = args.seconds * rounds;
     let total_cycles = cycles as f64 * rounds;
+    let names: Vec<&str> = boards.iter().map(|(elf, _, _)| elf.as_str()).collect();
     println!(
-        "twin-avr bench: {elf}, {:.1} s simulated each way, {} rounds",
+        "twin-avr bench: {}, {:.1} s simulated each way, {} rounds",
+        names.join(" + "),
         args.seconds,
         args.rounds.max(1)
     );
-    for (what, wall) in [
-        ("bare simavr loop", bare_wall),
-        ("inside the twin ", twin_wall),
-    ] {
+    let mut rows = vec![("bare simavr loop", bare_wall)];
+    rows.extend(ways.iter().map(|(w, _)| *w).zip(twin_wall.iter().copied()));
+    for (what, wall) in &rows {
         println!(
             "  {what}: {:6.1} M cycles per wall second, {:5.2}x real time ({:.2} s wall)",
             total_cycles / wall / 1e6,
@@ -85,9 +108,18 @@ pub fn execute(args: &BenchArgs) -> Result<()> {
             wall
         );
     }
-    println!(
-        "  the twin runs the firmware at {:.2} of the bare loop's speed",
-        bare_wall / twin_wall
-    );
+    for ((what, _), wall) in ways.iter().zip(&twin_wall) {
+        println!(
+            "  {}: the firmware at {:.2} of the bare loop's speed",
+            what.trim_end(),
+            bare_wall / wall
+        );
+    }
+    if let [one, threaded] = twin_wall[..] {
+        println!(
+            "  a thread per firmware node: {:.2}x faster",
+            one / threaded
+        );
+    }
     Ok(())
 }

@@ -15,6 +15,7 @@ pub mod elf;
 )]
 pub mod ffi;
 pub mod node;
+pub mod stepper;
 pub mod wiring;
 
 pub use builder::register;

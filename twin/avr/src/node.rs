@@ -21,9 +21,10 @@ use nodes::time::{SimDuration, SimTime, TICKS_PER_SECOND};
 use plant::params::SensingParams;
 use plant::{Actuators, Sensors};
 use serde_json::json;
-use twin_sim::engine::SimNode;
+use twin_sim::engine::{SimNode, Streamed};
 
 use crate::ffi::{Core, Image, State};
+use crate::stepper::Stepper;
 use crate::wiring::{Analog, Input, Output, Pwm, Wiring};
 
 /// The ATmega328P's last flash byte address.
@@ -65,7 +66,7 @@ pub struct UartSetting {
 impl UartSetting {
     /// From the registers: UBRR0, U2X0 (UCSR0A bit 1), UCSR0C's character
     /// size, parity and stop bits.
-    fn read(core: &Core, clock_hz: u32) -> Self {
+    fn read(core: &Stepper, clock_hz: u32) -> Self {
         let ubrr = u16::from_le_bytes([core.data(reg::UBRR0L), core.data(reg::UBRR0H) & 0x0F]);
         let u2x = core.data(reg::UCSR0A) & 0b10 != 0;
         let divisor = if u2x { 8.0 } else { 16.0 };
@@ -80,6 +81,19 @@ impl UartSetting {
             ubrr,
             u2x,
         }
+    }
+}
+
+/// Whether a receiver at bit time `rx_bit` finds the stop bit of a byte
+/// sent at `tx_bit` low (a framing error, the AVR's FE0): it samples it in
+/// the middle of its own tenth bit, timed from the start bit's falling edge;
+/// after the sender's stop bit the line idles high.
+pub fn framing_error(byte: u8, tx_bit: f64, rx_bit: f64) -> bool {
+    let t = 9.5 * rx_bit / tx_bit;
+    match t.floor() as i64 {
+        i64::MIN..=0 => true,
+        j @ 1..=8 => byte >> (j - 1) & 1 == 0,
+        _ => false,
     }
 }
 
@@ -143,7 +157,7 @@ pub struct Board<'a> {
 pub struct AvrNode {
     name: String,
     elf: PathBuf,
-    core: Core,
+    core: Stepper,
     clock_hz: u32,
     wiring: Wiring,
     sensing: SensingParams,
@@ -156,6 +170,15 @@ pub struct AvrNode {
     pending_end: SimTime,
     /// When the firmware's TX line is free for the next byte.
     line_free: SimTime,
+    /// Bytes go to the bus one by one, at their own wire times (the
+    /// virtual engine), not as frames (the real-time server).
+    streaming: bool,
+    /// Bytes written, with their wire start and end, not yet streamed.
+    stream_out: VecDeque<(u8, SimTime, SimTime)>,
+    /// A streamed frame has begun and not yet ended.
+    stream_open: bool,
+    /// How far the firmware's output has been taken.
+    advanced_to: SimTime,
     ready: Vec<u8>,
     /// Inputs as last driven: per wired input pin.
     input_levels: Vec<bool>,
@@ -169,6 +192,11 @@ pub struct AvrNode {
     actuators: Actuators,
     pub bytes_in: u64,
     pub bytes_out: u64,
+    /// Bytes the firmware's receiver took with a framing error (its baud
+    /// and the bus's too far apart).
+    pub framing_errors_in: u64,
+    /// Bytes the firmware sent that the bus's receivers find with one.
+    pub framing_errors_out: u64,
 }
 
 impl AvrNode {
@@ -201,6 +229,7 @@ impl AvrNode {
         }
         let core =
             Core::start(image, mcu, clock_hz).ok_or_else(|| StartError::NoMcu(mcu.into()))?;
+        let core = Stepper::new(core, crate::builder::threaded(), name);
         let uart = UartSetting::read(&core, clock_hz);
         let mut node = Self {
             name: name.into(),
@@ -217,6 +246,10 @@ impl AvrNode {
             pending: Vec::with_capacity(MAX_FRAME),
             pending_end: SimTime::ZERO,
             line_free: SimTime::ZERO,
+            streaming: false,
+            stream_out: VecDeque::with_capacity(MAX_FRAME),
+            stream_open: false,
+            advanced_to: SimTime::ZERO,
             ready: Vec::with_capacity(MAX_FRAME),
             last_tick: SimTime::ZERO,
             failure: None,
@@ -226,6 +259,8 @@ impl AvrNode {
             actuators: Actuators::from_pins(0x1F, 0x01, 0.0),
             bytes_in: 0,
             bytes_out: 0,
+            framing_errors_in: 0,
+            framing_errors_out: 0,
         };
         // Inputs the plant holds steady from power-up: a healthy driver's
         // fault line reads high.
@@ -292,7 +327,7 @@ impl AvrNode {
                 let at = self.to_time(self.core.cycle());
                 let pc = self.core.pc();
                 let why = if state == State::Crashed {
-                    let log = Core::last_log();
+                    let log = self.core.last_log();
                     let log = if log.is_empty() {
                         String::new()
                     } else {
@@ -319,6 +354,7 @@ impl AvrNode {
             }
             _ => {}
         }
+        self.advanced_to = self.to_time(self.core.cycle()).max(now);
         self.take_uart_output();
     }
 
@@ -336,7 +372,12 @@ impl AvrNode {
             self.line_free = start + char_time;
             // The bus's receivers sample it at their own baud.
             let seen = sampled(byte, bit, 1.0 / self.bus_baud);
-            if self.pending.len() < MAX_FRAME {
+            self.framing_errors_out += u64::from(framing_error(byte, bit, 1.0 / self.bus_baud));
+            if self.streaming {
+                if self.stream_out.len() < MAX_FRAME {
+                    self.stream_out.push_back((seen, start, self.line_free));
+                }
+            } else if self.pending.len() < MAX_FRAME {
                 self.pending.push(seen);
             }
             self.pending_end = self.line_free;
@@ -363,7 +404,8 @@ impl AvrNode {
     /// When the bytes written so far make a frame: the firmware's line quiet
     /// for two characters after the last.
     fn frame_due(&self) -> Option<SimTime> {
-        if self.pending.is_empty() {
+        let streamed = self.stream_open || !self.stream_out.is_empty();
+        if self.pending.is_empty() && !streamed {
             return None;
         }
         let char_time =
@@ -496,6 +538,16 @@ impl Node for AvrNode {
         for &b in bytes {
             // The firmware's receiver samples the bus's bits at its own baud.
             let seen = sampled(b, 1.0 / self.bus_baud, 1.0 / self.uart.baud);
+            if framing_error(b, 1.0 / self.bus_baud, 1.0 / self.uart.baud) {
+                self.framing_errors_in += 1;
+                if self.framing_errors_in == 1 {
+                    let detail = format!(
+                        "framing error: a byte from the bus at {:.0} baud has no stop bit where UART0 at {:.0} baud samples it",
+                        self.bus_baud, self.uart.baud
+                    );
+                    self.push_event(now, "framing", detail);
+                }
+            }
             self.core.uart_input(seen);
             self.bytes_in += 1;
         }
@@ -521,7 +573,13 @@ impl Node for AvrNode {
         if self.failure.is_some() {
             return None;
         }
-        self.frame_due()
+        let due = self.frame_due();
+        // While a streamed frame is on the wire, the firmware is run to the
+        // end of each byte, so the next one it writes goes out on time.
+        if self.streaming && due.is_some() && self.advanced_to < self.pending_end {
+            return Some(self.pending_end);
+        }
+        due
     }
 
     fn poll_event(&mut self) -> Option<NodeEvent> {
@@ -601,6 +659,8 @@ impl SimNode for AvrNode {
             "reverse": a.reverse,
             "bytes_in": self.bytes_in,
             "bytes_out": self.bytes_out,
+            "framing_errors_in": self.framing_errors_in,
+            "framing_errors_out": self.framing_errors_out,
         }))
     }
 
@@ -611,6 +671,8 @@ impl SimNode for AvrNode {
             "uart_baud": self.uart.baud.round(),
             "bytes_in": self.bytes_in,
             "bytes_out": self.bytes_out,
+            "framing_errors_in": self.framing_errors_in,
+            "framing_errors_out": self.framing_errors_out,
         }))
     }
 
@@ -639,6 +701,44 @@ impl SimNode for AvrNode {
         self.push_event(at, "trip", message.clone());
         self.failure = Some(message);
     }
+
+    /// A sketch whose only inputs are analog and its UART: its core can run
+    /// ahead of the bench to the next tick or byte. A digital input's edge
+    /// lands on the core at its own time, in the past of the tick that
+    /// reads it, so such a core stays at its last tick.
+    fn can_run_ahead(&self) -> bool {
+        self.wiring.inputs.is_empty() && self.failure.is_none()
+    }
+
+    fn streams_bytes(&self) -> bool {
+        true
+    }
+
+    fn start_streaming(&mut self) -> bool {
+        self.streaming = true;
+        true
+    }
+
+    fn poll_stream(&mut self, now: SimTime) -> Option<Streamed> {
+        if let Some((byte, start, end)) = self.stream_out.pop_front() {
+            self.stream_open = true;
+            return Some(Streamed::Byte { byte, start, end });
+        }
+        let quiet = self
+            .frame_due()
+            .is_some_and(|due| due <= now && due <= self.advanced_to);
+        if self.stream_open && quiet {
+            self.stream_open = false;
+            return Some(Streamed::End);
+        }
+        None
+    }
+
+    fn run_ahead(&mut self, horizon: SimTime) {
+        if self.can_run_ahead() {
+            self.core.run_ahead(self.to_cycle(horizon));
+        }
+    }
 }
 
 #[cfg(test)]
@@ -661,6 +761,19 @@ mod tests {
         for b in 0..=255u8 {
             assert_eq!(sampled(b, bus, firmware), b);
         }
+    }
+
+    #[test]
+    fn a_receiver_a_few_per_cent_off_finds_every_stop_bit_and_a_far_one_does_not() {
+        let (bus, firmware) = (1.0 / 115_200.0, 1.0 / 117_647.0);
+        assert!((0..=255u8).all(|b| !framing_error(b, bus, firmware)));
+        assert!((0..=255u8).all(|b| !framing_error(b, firmware, bus)));
+        // A fast receiver samples the stop bit inside the slow sender's byte.
+        assert!((0..=255u8).all(|b| framing_error(b, 1.0 / 9600.0, 1.0 / 115_200.0)));
+        let at_half = (0..=255u8)
+            .filter(|b| framing_error(*b, 1.0 / 57_600.0, firmware))
+            .count();
+        assert_eq!(at_half, 128);
     }
 
     #[test]

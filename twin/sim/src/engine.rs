@@ -68,6 +68,48 @@ pub trait SimNode: Node {
     /// compiled firmware is marked dead, its [`SimNode::failure`] saying
     /// where its program is; a node that cannot hang ignores it.
     fn not_answering(&mut self, _now: SimTime, _since: SimTime, _asked: u32) {}
+    /// Whether the node can compute ahead of the engine's clock on its own
+    /// (compiled firmware on a thread of its own) until its next input.
+    fn can_run_ahead(&self) -> bool {
+        false
+    }
+    /// Nothing reaches the node before `horizon` (no byte, no loop tick):
+    /// it may compute up to there now, on its own thread, as long as it
+    /// ends exactly as if it had waited for its next input.
+    fn run_ahead(&mut self, horizon: SimTime) {
+        let _ = horizon;
+    }
+    /// Whether the node hands the bus bytes whose wire time may have begun
+    /// before the engine touched it (compiled firmware, whose bytes are
+    /// found when its core is run): its bytes can arrive at that instant.
+    fn streams_bytes(&self) -> bool {
+        false
+    }
+    /// Asked once, when the node joins a serial bus: whether it will hand
+    /// its bytes over one by one through [`SimNode::poll_stream`] from now
+    /// on, each at its own wire time, instead of whole frames through
+    /// `poll_transmit`.
+    fn start_streaming(&mut self) -> bool {
+        false
+    }
+    /// The next byte the node put on its wire, or the end of its frame.
+    fn poll_stream(&mut self, now: SimTime) -> Option<Streamed> {
+        let _ = now;
+        None
+    }
+}
+
+/// What a streaming node (compiled firmware) hands the bus.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Streamed {
+    /// A byte, on the node's wire during `[start, end)`.
+    Byte {
+        byte: u8,
+        start: SimTime,
+        end: SimTime,
+    },
+    /// The node's line has gone quiet: its frame is complete.
+    End,
 }
 
 /// A firmware node's speed estimates, as its registers hold them.
@@ -162,6 +204,10 @@ pub struct NodeSlot {
     /// changes on an input, and every instant it waits for is an input
     /// through its `poll_timeout`, so the others need not be asked.
     stirred: bool,
+    /// Hands its bytes over one by one ([`SimNode::poll_stream`]).
+    streams: bool,
+    /// In the middle of a streamed frame.
+    stream_open: bool,
 }
 
 /// A bus and its name.
@@ -183,6 +229,8 @@ pub struct BusSlot {
 struct Reception {
     bytes: Vec<u8>,
     corrupted: bool,
+    from: Option<PortId>,
+    counted: bool,
 }
 
 /// What the receivers' checks made of the frames that crossed a bus. The twin
@@ -218,12 +266,32 @@ impl BusSlot {
         if index == 0 {
             rx.bytes.clear();
             rx.corrupted = false;
+            rx.from = Some(from);
+            rx.counted = false;
         }
         rx.bytes.push(byte);
         rx.corrupted |= corrupted;
-        if !last {
-            return;
+        if last {
+            self.count(to, from);
         }
+    }
+
+    /// A streamed frame of `from` ended after every listener had all its
+    /// bytes (none came marked `last`): count it where it was received.
+    fn tally_stream_end(&mut self, from: PortId) {
+        for to in 0..self.receiving.len() {
+            let rx = &self.receiving[to];
+            if rx.from == Some(from) && !rx.counted && !rx.bytes.is_empty() {
+                self.count(PortId(u16::try_from(to).unwrap_or(u16::MAX)), from);
+            }
+        }
+    }
+
+    fn count(&mut self, to: PortId, from: PortId) {
+        let Some(rx) = self.receiving.get_mut(to.index()) else {
+            return;
+        };
+        rx.counted = true;
         self.checks.frames_received += 1;
         if rx.corrupted {
             self.checks.frames_corrupted += 1;
@@ -351,6 +419,7 @@ impl Engine {
         module: Option<usize>,
     ) -> usize {
         let next_tick = node.firmware().map(|_| SimTime::ZERO);
+        let streams = matches!(self.buses[bus].bus, Medium::Serial(_)) && node.start_streaming();
         let index = self.nodes.len();
         self.nodes.push(NodeSlot {
             name: name.into(),
@@ -360,6 +429,8 @@ impl Engine {
             module,
             next_tick,
             stirred: true,
+            streams,
+            stream_open: false,
         });
         let owners = &mut self.buses[bus].owners;
         if owners.len() <= port.index() {
@@ -375,7 +446,7 @@ impl Engine {
             slot.sent.push(Vec::with_capacity(MAX_FRAME));
             slot.receiving.push(Reception {
                 bytes: Vec::with_capacity(MAX_FRAME),
-                corrupted: false,
+                ..Reception::default()
             });
         }
         index
@@ -398,6 +469,7 @@ impl Engine {
         loop {
             self.transmit_all(observer)?;
             self.drain_node_output(observer)?;
+            self.let_firmware_run_ahead();
             let Some(t) = self.next_event() else { break };
             if t > end {
                 break;
@@ -460,6 +532,58 @@ impl Engine {
         }
         self.now = until;
         Ok(())
+    }
+
+    /// Hands each node that can compute ahead (compiled firmware) the
+    /// earliest instant anything can reach it: its next loop tick, the
+    /// bus's next byte, or the first byte of a frame one of the ports it
+    /// hears could start from now on. A firmware node hands its bytes to
+    /// the bus when the engine next touches it; any other node only when
+    /// stirred, a turnaround before its first start bit. Computed from the
+    /// engine's state alone, so the split points never depend on threads.
+    fn let_firmware_run_ahead(&mut self) {
+        let now = self.now;
+        for n in 0..self.nodes.len() {
+            let slot = &self.nodes[n];
+            if !slot.node.can_run_ahead() {
+                continue;
+            }
+            let Some(tick) = slot.next_tick else { continue };
+            let Some(bus_slot) = self.buses.get(slot.bus) else {
+                continue;
+            };
+            let Medium::Serial(bus) = &bus_slot.bus else {
+                continue;
+            };
+            let mut horizon = tick;
+            if let Some(t) = bus.poll_timeout() {
+                horizon = horizon.min(t);
+            }
+            for (m, other) in self.nodes.iter().enumerate() {
+                if m == n
+                    || other.bus != slot.bus
+                    || !bus.config().wiring.hears(slot.port, other.port)
+                {
+                    continue;
+                }
+                let earliest = if other.node.can_run_ahead() || other.node.streams_bytes() {
+                    [other.next_tick, other.node.poll_timeout()]
+                        .into_iter()
+                        .flatten()
+                        .min()
+                        .unwrap_or(now)
+                } else {
+                    let turnaround = bus
+                        .port_config(other.port)
+                        .map_or(SimDuration::ZERO, |p| p.turnaround);
+                    now + turnaround + bus.char_time()
+                };
+                horizon = horizon.min(earliest);
+            }
+            if horizon > now {
+                self.nodes[n].node.run_ahead(horizon);
+            }
+        }
     }
 
     fn next_event(&self) -> Option<SimTime> {
@@ -545,6 +669,9 @@ impl Engine {
             if !self.nodes[n].stirred {
                 continue;
             }
+            if self.nodes[n].streams {
+                self.stream_all(n, observer)?;
+            }
             while let Some(len) = self.nodes[n].node.poll_transmit(t, &mut self.tx) {
                 let len = len.min(self.tx.len());
                 let slot = &self.nodes[n];
@@ -562,6 +689,51 @@ impl Engine {
                     info.end,
                     &self.tx[..len],
                 )?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Hands a streaming node's bytes to its bus as it found them, and
+    /// records its frame when its line goes quiet.
+    fn stream_all(&mut self, n: usize, observer: &mut dyn Observer) -> Result<()> {
+        let t = self.now;
+        while let Some(out) = self.nodes[n].node.poll_stream(t) {
+            let slot = &mut self.nodes[n];
+            let bus_slot = &mut self.buses[slot.bus];
+            let Medium::Serial(bus) = &mut bus_slot.bus else {
+                break;
+            };
+            let port = slot.port;
+            match out {
+                Streamed::Byte { byte, start, end } => {
+                    bus.stream_byte(t, port, byte, start, end)?;
+                    if let Some(sent) = bus_slot.sent.get_mut(port.index()) {
+                        if !slot.stream_open {
+                            sent.clear();
+                        }
+                        if sent.len() < MAX_FRAME {
+                            sent.push(byte);
+                        }
+                    }
+                    slot.stream_open = true;
+                }
+                Streamed::End => {
+                    slot.stream_open = false;
+                    let Some((info, _, delivered)) = bus.end_stream(t, port) else {
+                        continue;
+                    };
+                    if delivered {
+                        bus_slot.tally_stream_end(port);
+                    }
+                    self.frames_sent += 1;
+                    let (slot, bus_slot) = (&self.nodes[n], &self.buses[self.nodes[n].bus]);
+                    let sent = bus_slot
+                        .sent
+                        .get(port.index())
+                        .map_or(&[][..], Vec::as_slice);
+                    observer.frame(bus_slot, slot, info.start, info.end, sent)?;
+                }
             }
         }
         Ok(())
