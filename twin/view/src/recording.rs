@@ -279,6 +279,14 @@ fn feed(logger: &mut RerunLogger, session: Session, m: &Message<'_>, t: f64) -> 
             let r: ReadingsSample = m.json()?;
             logger.readings(node, t, &r);
         }
+        Topic::FirmwareUart(node) => {
+            let b: crate::logger::firmware::UartBurst = m.json()?;
+            logger.firmware_uart(node, &b);
+        }
+        Topic::FirmwareIo(node) => {
+            let io: crate::logger::firmware::FirmwareIo = m.json()?;
+            logger.firmware_io(node, t, &io);
+        }
         // Actuator changes are in the frames that caused them.
         Topic::PlantActuators(_) | Topic::ExperimentStep | Topic::Other(_) => {}
     }
