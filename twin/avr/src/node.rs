@@ -222,7 +222,7 @@ impl AvrNode {
         let core =
             Core::start(image, mcu, clock_hz).ok_or_else(|| StartError::NoMcu(mcu.into()))?;
         let uart = UartSetting::read(&core, clock_hz);
-        let log = crate::record::follow(&wiring);
+        let log = crate::record::follow(&wiring, clock_hz);
         let mut node = Self {
             name: name.into(),
             elf: shown.to_path_buf(),

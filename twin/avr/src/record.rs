@@ -12,9 +12,13 @@ use twin_sim::engine::FirmwareRecord;
 
 /// Bytes a burst holds before it is recorded even if the line stays busy.
 const BURST_BYTES: usize = 1024;
-/// Edges kept between two samples before the buffer grows (a 490 Hz PWM
-/// makes 10 in 10 ms; a software PWM toggled every 100 µs, 200).
-const EDGES: usize = 4096;
+/// Edges listed per pin and sample (10 ms): every edge of a line that
+/// changes up to a kilohertz (the enable lines, a software PWM). A faster
+/// PWM (the EV sketch's 15.6 kHz on D9) is described by its duty, period
+/// and edge count instead: its every edge is a VCD trace's job.
+pub const EDGES_LISTED: u16 = 20;
+/// Edges kept between two samples.
+const EDGES: usize = 24 * EDGES_LISTED as usize;
 
 /// Bytes on the wire in one direction, one after another.
 #[derive(Debug)]
@@ -112,6 +116,13 @@ pub struct FirmwareLog {
     /// Bit per pin index whose edges are recorded.
     pub mask: u32,
     edges: Vec<PinEdge>,
+    /// Per pin index, in this sample period: edges listed, rising edges,
+    /// and the cycles of the first and last rising edge.
+    listed: [u16; 24],
+    rises: [u32; 24],
+    first_rise: [u64; 24],
+    last_rise: [u64; 24],
+    clock_hz: u32,
     pins: Vec<PinState>,
     adc: Vec<AdcInput>,
     cycles: u64,
@@ -120,7 +131,7 @@ pub struct FirmwareLog {
 }
 
 impl FirmwareLog {
-    pub fn new(followed: Vec<Followed>, inputs: Vec<FollowedInput>) -> Self {
+    pub fn new(followed: Vec<Followed>, inputs: Vec<FollowedInput>, clock_hz: u32) -> Self {
         let mut names = [""; 24];
         let mut mask = 0u32;
         for f in &followed {
@@ -140,6 +151,11 @@ impl FirmwareLog {
             names,
             mask,
             edges: Vec::with_capacity(EDGES),
+            listed: [0; 24],
+            rises: [0; 24],
+            first_rise: [0; 24],
+            last_rise: [0; 24],
+            clock_hz: clock_hz.max(1),
             cycles: 0,
             sample_at: None,
         }
@@ -157,10 +173,22 @@ impl FirmwareLog {
 
     /// An edge of a watched pin, if it is one the recording follows.
     pub fn edge(&mut self, cycle: u64, index: u8, level: bool) {
-        if self.mask >> index & 1 != 0 {
+        if self.mask >> index & 1 == 0 {
+            return;
+        }
+        let i = usize::from(index);
+        if level {
+            if self.rises[i] == 0 {
+                self.first_rise[i] = cycle;
+            }
+            self.rises[i] += 1;
+            self.last_rise[i] = cycle;
+        }
+        if self.listed[i] < EDGES_LISTED {
+            self.listed[i] += 1;
             self.edges.push(PinEdge {
                 cycle,
-                pin: self.names[usize::from(index)],
+                pin: self.names[i],
                 level,
             });
         }
@@ -188,6 +216,14 @@ impl FirmwareLog {
             } else {
                 high.saturating_sub(last_high) as f64 / span as f64
             };
+            let p = usize::from(f.index);
+            let period_us = if self.rises[p] >= 2 {
+                let cycles = (self.last_rise[p] - self.first_rise[p]) as f64
+                    / f64::from(self.rises[p] - 1);
+                (cycles / f64::from(self.clock_hz) * 1e9).round() / 1e3
+            } else {
+                0.0
+            };
             self.pins.push(PinState {
                 pin: f.pin,
                 signal: f.signal,
@@ -195,9 +231,12 @@ impl FirmwareLog {
                 // To a part in a million: enough for a duty, and no
                 // floating-point noise in the file.
                 duty: (duty * 1e6).round() / 1e6,
+                period_us,
                 edges: u32::try_from(edges - last_edges).unwrap_or(u32::MAX),
             });
             self.last[i] = (cycle, high, edges);
+            self.listed[p] = 0;
+            self.rises[p] = 0;
         }
         self.adc.clear();
         for a in &self.inputs {
@@ -284,7 +323,7 @@ fn emit(
 
 /// What the recording follows on a board wired by `wiring`: its outputs
 /// and PWM pins, and its analog inputs.
-pub fn follow(wiring: &crate::wiring::Wiring) -> FirmwareLog {
+pub fn follow(wiring: &crate::wiring::Wiring, clock_hz: u32) -> FirmwareLog {
     use crate::wiring::{Analog, Output, Pwm};
     let mut pins: Vec<Followed> = wiring
         .outputs
@@ -330,7 +369,7 @@ pub fn follow(wiring: &crate::wiring::Wiring) -> FirmwareLog {
             },
         })
         .collect();
-    FirmwareLog::new(pins, inputs)
+    FirmwareLog::new(pins, inputs, clock_hz)
 }
 
 /// SHA-256 of `bytes` in lowercase hex, as `sha256sum` prints it.
@@ -352,7 +391,7 @@ mod tests {
 
     #[test]
     fn bytes_a_quiet_line_apart_are_two_bursts_with_every_cycle() {
-        let mut log = FirmwareLog::new(Vec::new(), Vec::new());
+        let mut log = FirmwareLog::new(Vec::new(), Vec::new(), 16_000_000);
         let gap = SimDuration::from_micros(170);
         for (i, b) in b"@01".iter().enumerate() {
             let t = 85 * i as u64;

@@ -23,7 +23,7 @@
 //! | [`REALTIME_LATENESS`] `/realtime/lateness` | a real-time session | each second (and the file is flushed) | `window` and `total`, each `ticks`, `p50_us`, `p99_us`, `p999_us`, `max_us`, `mean_us`, `overruns`: how late the plant's ticks ran |
 //! | [`EXPERIMENT_STEP`] `/experiment/step` | `twin step` (`twin-lab` `step.rs`) | each sample of the experiment | `set_point`, `wheel_rpm`, `motor_rpm`, `light_rpm` |
 //! | [`firmware_uart`] `/firmware/<node>/uart` | a virtual run with compiled firmware (`twin-avr`) | each burst of bytes on the firmware's UART, once the line has been quiet for two characters | [`UartBurst`]: `dir` (`rx` to the firmware, `tx` from it), `baud` (the firmware's own, from UBRR0/U2X0), `start_s`, `end_s`, `len`, `text`, `hex`, `cycles` (the CPU cycle each byte started at) |
-//! | [`firmware_io`] `/firmware/<node>/io` | a virtual run with compiled firmware | every 10 ms of simulated time | [`FirmwareIo`]: `cycles` (run so far), `pins` (each wired output and PWM pin: `pin`, `signal`, `level`, `duty` over the 10 ms, `edges` in them), `adc` (each analog input fed: `pin`, `signal`, `millivolts`, `counts` as the 10-bit ADC converts them), `edges` (every edge of those pins in the 10 ms: `cycle`, `pin`, `level`) |
+//! | [`firmware_io`] `/firmware/<node>/io` | a virtual run with compiled firmware | every 10 ms of simulated time | [`FirmwareIo`]: `cycles` (run so far), `pins` (each wired output and PWM pin: `pin`, `signal`, `level`, `duty` over the 10 ms, `period_us` between its rising edges, `edges` in them), `adc` (each analog input fed: `pin`, `signal`, `millivolts`, `counts` as the 10-bit ADC converts them), `edges` (the edges of those pins in the 10 ms, up to 20 per pin: every edge of a line up to 1 kHz; `cycle`, `pin`, `level`) |
 //!
 //! Metadata records:
 //!
@@ -460,6 +460,10 @@ pub struct PinState {
     pub level: bool,
     /// The fraction of the period it was high.
     pub duty: f64,
+    /// The mean time between its rising edges in the period (µs; 0 with
+    /// fewer than two).
+    pub period_us: f64,
+    /// Its edges in the period (all of them; the sample lists the first 20).
     pub edges: u32,
 }
 
