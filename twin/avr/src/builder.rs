@@ -45,8 +45,9 @@ impl FirmwareBuilder for AvrBuilder {
         // A replay runs the file and map its recording stored.
         let stored = crate::replay::stored(name);
         let wiring = match &stored {
-            Some(s) => Wiring::parse(&s.wiring_text, &s.wiring_origin)
-                .with_context(|| format!("firmware node `{name}`, the wiring map its recording stored"))?,
+            Some(s) => Wiring::parse(&s.wiring_text, &s.wiring_origin).with_context(|| {
+                format!("firmware node `{name}`, the wiring map its recording stored")
+            })?,
             None => Wiring::load(wiring)
                 .with_context(|| format!("firmware node `{name}`, field `wiring`"))?,
         };

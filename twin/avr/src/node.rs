@@ -693,10 +693,10 @@ impl SimNode for AvrNode {
     }
 
     fn firmware_file(&self) -> Option<FirmwareFile> {
-        let file_name = self
-            .elf
-            .file_name()
-            .map_or_else(|| "firmware.elf".into(), |n| n.to_string_lossy().into_owned());
+        let file_name = self.elf.file_name().map_or_else(
+            || "firmware.elf".into(),
+            |n| n.to_string_lossy().into_owned(),
+        );
         let attachment = twin_recording::topics::firmware_attachment(&self.name, &file_name);
         let fields = [
             ("node", self.name.clone()),
@@ -720,9 +720,8 @@ impl SimNode for AvrNode {
         &mut self,
         record: &mut dyn FnMut(FirmwareRecord<'_>) -> anyhow::Result<()>,
     ) -> anyhow::Result<()> {
-        let gap = SimDuration::from_secs_f64(
-            2.0 * f64::from(self.uart.bits_per_char) / self.uart.baud,
-        );
+        let gap =
+            SimDuration::from_secs_f64(2.0 * f64::from(self.uart.bits_per_char) / self.uart.baud);
         let now = self.to_time(self.core.cycle());
         self.log.drain(now, gap, record)
     }

@@ -67,7 +67,15 @@ impl Direction {
 
     /// A byte on the wire from `start` to `end`, started at CPU `cycle`; a
     /// line quiet for `gap` before it starts a new burst.
-    fn push(&mut self, byte: u8, cycle: u64, start: SimTime, end: SimTime, baud: f64, gap: SimDuration) {
+    fn push(
+        &mut self,
+        byte: u8,
+        cycle: u64,
+        start: SimTime,
+        end: SimTime,
+        baud: f64,
+        gap: SimDuration,
+    ) {
         let c = &mut self.current;
         let quiet = !c.bytes.is_empty() && start > c.end + gap;
         if (quiet || c.bytes.len() >= BURST_BYTES) && self.done.bytes.is_empty() {
@@ -162,12 +170,28 @@ impl FirmwareLog {
     }
 
     /// A byte the firmware received.
-    pub fn received(&mut self, byte: u8, cycle: u64, start: SimTime, end: SimTime, baud: f64, gap: SimDuration) {
+    pub fn received(
+        &mut self,
+        byte: u8,
+        cycle: u64,
+        start: SimTime,
+        end: SimTime,
+        baud: f64,
+        gap: SimDuration,
+    ) {
         self.rx.push(byte, cycle, start, end, baud, gap);
     }
 
     /// A byte the firmware sent.
-    pub fn sent(&mut self, byte: u8, cycle: u64, start: SimTime, end: SimTime, baud: f64, gap: SimDuration) {
+    pub fn sent(
+        &mut self,
+        byte: u8,
+        cycle: u64,
+        start: SimTime,
+        end: SimTime,
+        baud: f64,
+        gap: SimDuration,
+    ) {
         self.tx.push(byte, cycle, start, end, baud, gap);
     }
 
@@ -218,8 +242,8 @@ impl FirmwareLog {
             };
             let p = usize::from(f.index);
             let period_us = if self.rises[p] >= 2 {
-                let cycles = (self.last_rise[p] - self.first_rise[p]) as f64
-                    / f64::from(self.rises[p] - 1);
+                let cycles =
+                    (self.last_rise[p] - self.first_rise[p]) as f64 / f64::from(self.rises[p] - 1);
                 (cycles / f64::from(self.clock_hz) * 1e9).round() / 1e3
             } else {
                 0.0

@@ -106,9 +106,10 @@ pub fn load(recording: &Path) -> Result<Extracted> {
                 field("sha256")
             );
         }
-        let file_name = Path::new(&file)
-            .file_name()
-            .map_or_else(|| "firmware.elf".into(), |n| n.to_string_lossy().into_owned());
+        let file_name = Path::new(&file).file_name().map_or_else(
+            || "firmware.elf".into(),
+            |n| n.to_string_lossy().into_owned(),
+        );
         let out = dir.join(node).join(file_name);
         if let Some(parent) = out.parent() {
             std::fs::create_dir_all(parent)

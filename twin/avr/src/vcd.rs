@@ -61,7 +61,11 @@ impl VcdTrace {
             let id = b'!' + n as u8;
             ids[usize::from(pin.index)] = Some(id);
             mask |= 1 << pin.index;
-            head.push_str(&format!("$var wire 1 {} {} $end\n", char::from(id), pin.name));
+            head.push_str(&format!(
+                "$var wire 1 {} {} $end\n",
+                char::from(id),
+                pin.name
+            ));
         }
         head.push_str("$upscope $end\n$enddefinitions $end\n#0\n$dumpvars\n");
         for pin in pins {
@@ -167,7 +171,10 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("twin-vcd-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join("t.vcd");
-        let pins = [crate::wiring::pin("D9").unwrap(), crate::wiring::pin("D2").unwrap()];
+        let pins = [
+            crate::wiring::pin("D9").unwrap(),
+            crate::wiring::pin("D2").unwrap(),
+        ];
         {
             let mut v = VcdTrace::create(&path, &pins, 16_000_000, "ev1", |_| false).unwrap();
             v.edge(16, pins[0].index, true);

@@ -82,7 +82,12 @@ fn a_vcd_trace_of_chosen_pins_parses_and_its_pwm_edges_are_one_period_apart() {
     let vcd = dir().join("pins.vcd");
     let out = dir().join("vcd.mcap");
     let o = Command::new(env!("CARGO_BIN_EXE_twin-avr"))
-        .args(["run", toml.to_str().unwrap(), "--out", out.to_str().unwrap()])
+        .args([
+            "run",
+            toml.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ])
         .args(["--vcd", vcd.to_str().unwrap(), "--vcd-pins", "D9,D5,D2"])
         .output()
         .unwrap();
@@ -124,7 +129,12 @@ fn a_vcd_trace_of_chosen_pins_parses_and_its_pwm_edges_are_one_period_apart() {
     assert!(d2.len() > 10, "{} edges on D2", d2.len());
 
     let bad = Command::new(env!("CARGO_BIN_EXE_twin-avr"))
-        .args(["run", toml.to_str().unwrap(), "--out", out.to_str().unwrap()])
+        .args([
+            "run",
+            toml.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ])
         .args(["--vcd", vcd.to_str().unwrap(), "--vcd-pins", "D9,D22"])
         .output()
         .unwrap();
@@ -145,7 +155,12 @@ fn avr_gdb_breaks_in_loop_reads_a_variable_and_the_run_finishes() {
     // A port of our own: this test binary's process id, above 20000.
     let port = 20_000 + std::process::id() % 20_000;
     let mut run = Command::new(env!("CARGO_BIN_EXE_twin-avr"))
-        .args(["run", toml.to_str().unwrap(), "--out", out.to_str().unwrap()])
+        .args([
+            "run",
+            toml.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ])
         .args(["--gdb", &port.to_string()])
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
@@ -170,8 +185,8 @@ fn avr_gdb_breaks_in_loop_reads_a_variable_and_the_run_finishes() {
         .arg(elf())
         .output()
         .unwrap();
-    let said = String::from_utf8_lossy(&gdb.stdout).into_owned()
-        + &String::from_utf8_lossy(&gdb.stderr);
+    let said =
+        String::from_utf8_lossy(&gdb.stdout).into_owned() + &String::from_utf8_lossy(&gdb.stderr);
     assert!(said.contains("Breakpoint 1, loop ()"), "{said}");
     // The stored settings' light threshold: 1933 (LDR_TH_DEFAULT).
     assert!(said.contains("$1 = 1933"), "{said}");
@@ -181,7 +196,10 @@ fn avr_gdb_breaks_in_loop_reads_a_variable_and_the_run_finishes() {
     let started = Instant::now();
     loop {
         if let Some(status) = run.try_wait().unwrap() {
-            assert!(status.success(), "twin-avr failed after the debugger let go");
+            assert!(
+                status.success(),
+                "twin-avr failed after the debugger let go"
+            );
             break;
         }
         assert!(

@@ -14,7 +14,9 @@ use twin_recording::{Recording, attachment, topics};
 
 fn elf() -> &'static PathBuf {
     static ELF: OnceLock<PathBuf> = OnceLock::new();
-    ELF.get_or_init(|| common::make("rec", "", &["ev-controller", "echo"]).join("ev-controller.elf"))
+    ELF.get_or_init(|| {
+        common::make("rec", "", &["ev-controller", "echo"]).join("ev-controller.elf")
+    })
 }
 
 fn dir() -> PathBuf {
@@ -71,7 +73,12 @@ fn a_firmware_run_stores_its_elf_uart_pins_adc_and_cycles_the_same_way_twice() {
     let toml = scenario("stored.toml", &firmware, 1.0);
     let (a, b) = (dir().join("stored-a.mcap"), dir().join("stored-b.mcap"));
     for out in [&a, &b] {
-        let o = twin_avr(&["run", toml.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+        let o = twin_avr(&[
+            "run",
+            toml.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ]);
         assert!(o.status.success(), "{}", text(&o));
     }
     let bytes = std::fs::read(&a).unwrap();
@@ -146,19 +153,25 @@ fn a_firmware_run_stores_its_elf_uart_pins_adc_and_cycles_the_same_way_twice() {
     })
     .unwrap();
     assert!(replies > 50, "{replies} replies");
-    assert!(requests >= replies, "{requests} requests, {replies} replies");
+    assert!(
+        requests >= replies,
+        "{requests} requests, {replies} replies"
+    );
     // Timer1's 10-bit fast PWM with no prescaler: 1024 cycles, 64 µs (a
     // sample where the duty changed holds a shortened period, or one rise).
-    let at_64 = pwm_period.iter().filter(|p| (*p - 64.0).abs() < 0.002).count();
+    let at_64 = pwm_period
+        .iter()
+        .filter(|p| (*p - 64.0).abs() < 0.002)
+        .count();
     assert!(at_64 * 10 > pwm_period.len() * 8, "{pwm_period:?}");
     // V1 ≈ 40.7 V through the 10:1 divider: 4.07 V, 833 counts of 1024 at 5 V.
-    assert!(v1_counts.iter().all(|c| (820..=840).contains(c)), "{v1_counts:?}");
+    assert!(
+        v1_counts.iter().all(|c| (820..=840).contains(c)),
+        "{v1_counts:?}"
+    );
     // One simulated second is exactly 16 M cycles.
     for (t, c) in cycles {
-        assert!(
-            (c as f64 - t * 16e6).abs() <= 2.0,
-            "{c} cycles at {t} s"
-        );
+        assert!((c as f64 - t * 16e6).abs() <= 2.0, "{c} cycles at {t} s");
     }
 }
 
@@ -167,7 +180,12 @@ fn replay_runs_the_stored_elf_and_refuses_a_damaged_or_missing_one() {
     let firmware = own_copy("replayed.elf");
     let toml = scenario("replayed.toml", &firmware, 0.5);
     let run = dir().join("replayed.mcap");
-    let o = twin_avr(&["run", toml.to_str().unwrap(), "--out", run.to_str().unwrap()]);
+    let o = twin_avr(&[
+        "run",
+        toml.to_str().unwrap(),
+        "--out",
+        run.to_str().unwrap(),
+    ]);
     assert!(o.status.success(), "{}", text(&o));
 
     // The file on disk changes (another sketch): the replay still runs the

@@ -98,8 +98,13 @@ mod tests {
             .unwrap();
         rec.write("/events", 0.5, &serde_json::json!({"a": 2}))
             .unwrap();
-        rec.attach("firmware/ev1.elf", "application/x-elf", 0.0, firmware.clone())
-            .unwrap();
+        rec.attach(
+            "firmware/ev1.elf",
+            "application/x-elf",
+            0.0,
+            firmware.clone(),
+        )
+        .unwrap();
         rec.finish().unwrap();
 
         let found = read(&path).unwrap();

@@ -217,15 +217,18 @@ impl McapObserver {
     /// A firmware node's UART burst or I/O sample, on `/firmware/<node>/…`.
     pub fn record_firmware(&mut self, node: &str, record: FirmwareRecord<'_>) -> Result<()> {
         match record {
-            FirmwareRecord::Uart(at, burst) => {
-                channel_of(&mut self.firmware_uart, node, topics::firmware_uart).write(
-                    &mut self.recorder,
-                    at,
-                    &burst,
-                )
-            }
-            FirmwareRecord::Io(at, io) => channel_of(&mut self.firmware_io, node, topics::firmware_io)
-                .write(&mut self.recorder, at, &io),
+            FirmwareRecord::Uart(at, burst) => channel_of(
+                &mut self.firmware_uart,
+                node,
+                topics::firmware_uart,
+            )
+            .write(&mut self.recorder, at, &burst),
+            FirmwareRecord::Io(at, io) => channel_of(
+                &mut self.firmware_io,
+                node,
+                topics::firmware_io,
+            )
+            .write(&mut self.recorder, at, &io),
         }
     }
 

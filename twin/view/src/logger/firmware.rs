@@ -76,7 +76,11 @@ impl RerunLogger {
         } else {
             b.text.trim_end().to_string()
         };
-        let arrow = if b.dir == "rx" { "→ firmware" } else { "firmware →" };
+        let arrow = if b.dir == "rx" {
+            "→ firmware"
+        } else {
+            "firmware →"
+        };
         let line = format!(
             "{arrow}: {shown}   ({} bytes at {:.0} baud, {:.3} ms, from cycle {})",
             b.hex.len() / 2,
@@ -198,9 +202,7 @@ wiring = "ev-controller"
 
         let layout = layout_of(&path).unwrap();
         assert_eq!(layout.firmware, [("ev1".to_string(), 0)]);
-        let (stream, _storage) = rerun::RecordingStreamBuilder::new("test")
-            .memory()
-            .unwrap();
+        let (stream, _storage) = rerun::RecordingStreamBuilder::new("test").memory().unwrap();
         let mut logger = RerunLogger::new(stream, layout).unwrap();
         replay_into(&path, &mut logger).unwrap();
         for entity in [
@@ -210,7 +212,12 @@ wiring = "ev-controller"
             "ev1/firmware/adc/A2 v1",
             "ev1/firmware/cycles",
         ] {
-            assert_eq!(logger.samples.get(entity), Some(&1), "{entity}: {:?}", logger.samples);
+            assert_eq!(
+                logger.samples.get(entity),
+                Some(&1),
+                "{entity}: {:?}",
+                logger.samples
+            );
         }
         std::fs::remove_dir_all(&dir).unwrap();
     }
