@@ -77,6 +77,22 @@ pub fn set(args: DebugArgs) -> Result<()> {
     Ok(())
 }
 
+/// What to tell the user when the options went to no node (a
+/// `--firmware-node` the scenario does not have, or no firmware node).
+pub fn unused() -> Option<String> {
+    let d = DEBUG.lock().ok()?;
+    let (args, taken) = d.as_ref()?;
+    if taken.is_some() {
+        return None;
+    }
+    Some(match &args.firmware_node {
+        Some(name) => format!(
+            "--firmware-node {name}: the scenario has no firmware node of that name, so --gdb and --vcd did nothing"
+        ),
+        None => "the scenario has no firmware node, so --gdb and --vcd did nothing".into(),
+    })
+}
+
 /// The options for node `name`, if they go to it: to the node named by
 /// `--firmware-node`, else to the first firmware node built (a second one
 /// is an error: the user must say which).
@@ -89,7 +105,10 @@ pub fn for_node(name: &str) -> Result<Option<DebugArgs>> {
     };
     match (&args.firmware_node, taken.as_deref()) {
         (Some(wanted), _) if wanted != name => Ok(None),
-        (Some(_), _) => Ok(Some(args.clone())),
+        (Some(_), _) => {
+            *taken = Some(name.to_string());
+            Ok(Some(args.clone()))
+        }
         (None, Some(first)) => bail!(
             "--gdb and --vcd go to one firmware node, and this scenario has two (`{first}`, \
              `{name}`): name one with --firmware-node"

@@ -92,7 +92,11 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Run(args) => twin_avr::debug::set(args.debug).and_then(|()| {
             commands::finish_recordings_on_signals();
-            commands::run::execute(&args.run)
+            let ran = commands::run::execute(&args.run);
+            if let Some(note) = twin_avr::debug::unused() {
+                eprintln!("twin-avr: {note}");
+            }
+            ran
         }),
         Command::Replay(args) => replay(&args, &given("replay")),
         // `twin serve` itself: a configuration file's options give way to
