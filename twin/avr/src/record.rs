@@ -78,8 +78,15 @@ impl Direction {
     ) {
         let c = &mut self.current;
         let quiet = !c.bytes.is_empty() && start > c.end + gap;
-        if (quiet || c.bytes.len() >= BURST_BYTES) && self.done.bytes.is_empty() {
+        let full = c.bytes.len() >= BURST_BYTES;
+        if full && !self.done.bytes.is_empty() {
+            // Nobody drains this log (a real-time session records no
+            // firmware channels): keep it bounded.
+            self.done.clear();
+        }
+        if (quiet || full) && self.done.bytes.is_empty() {
             std::mem::swap(&mut self.current, &mut self.done);
+            self.current.clear();
         }
         let c = &mut self.current;
         if c.bytes.is_empty() {
@@ -229,6 +236,11 @@ impl FirmwareLog {
         level: impl Fn(u8) -> bool,
         millivolts: impl Fn(u8) -> u32,
     ) {
+        if self.sample_at.is_some() {
+            // The last sample was never drained (a real-time session):
+            // its edges go with it, so the buffer stays bounded.
+            self.edges.clear();
+        }
         self.pins.clear();
         for (i, f) in self.followed.iter().enumerate() {
             let (_, edges, high) = pin_output(f.index);
