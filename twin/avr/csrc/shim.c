@@ -24,7 +24,13 @@
  *   whether or not the interrupt is enabled, so a hall or encoder on D2/D3
  *   read by pin-change interrupts or by polling cost timer callbacks on
  *   every cycle for half the time: most of what the twin cost beyond
- *   simavr itself.
+ *   simavr itself;
+ * - the edges of the pins the twin watches (the wiring map's outputs and
+ *   PWM, a VCD trace's pins) are kept with their cycle in a ring the Rust
+ *   side drains after each run, for the recording and the trace;
+ * - simavr's GDB stub is started only when asked (its run loop polls the
+ *   debugger's socket at every instruction), with the core stopped until
+ *   the debugger says continue, as `simavr -g` does.
  *
  * SPDX-License-Identifier: GPL-3.0-or-later
  */
@@ -42,9 +48,11 @@
 #include <simavr/avr_adc.h>
 #include <simavr/avr_ioport.h>
 #include <simavr/avr_extint.h>
+#include <simavr/sim_gdb.h>
 
 #define TX_RING 512
 #define PORTS 3 /* B, C, D */
+#define EDGE_RING 16384
 
 typedef struct twin_avr {
 	avr_t *avr;
@@ -67,6 +75,12 @@ typedef struct twin_avr {
 	/* The program counter before the last instruction run: where a crash
 	 * happened (simavr moves the PC on when it gives up). */
 	uint32_t last_pc;
+	/* Pins (bit per index) whose edges go into the ring, with their cycle. */
+	uint32_t watch;
+	uint64_t edge_cycle[EDGE_RING];
+	uint8_t edge_pin[EDGE_RING]; /* index, bit 7 the new level */
+	uint32_t edge_head, edge_tail;
+	uint32_t edge_dropped;
 } twin_avr_t;
 
 /* simavr's messages ("Loaded 1638 .text", a crash's reason) would go to
@@ -161,6 +175,47 @@ static void pin_changed(struct avr_irq_t *irq, uint32_t value, void *param) {
 	t->last_edge[i] = now;
 	t->level[i] = v;
 	t->edges[i]++;
+	if (t->watch >> i & 1) {
+		uint32_t next = (t->edge_head + 1) % EDGE_RING;
+		if (next == t->edge_tail) {
+			t->edge_dropped++;
+			return;
+		}
+		t->edge_cycle[t->edge_head] = now;
+		t->edge_pin[t->edge_head] = (uint8_t)(i | (v << 7));
+		t->edge_head = next;
+	}
+}
+
+/* Which pins' edges to keep (bit per pin index, port B from bit 0). */
+void twin_avr_watch(twin_avr_t *t, uint32_t pins) { t->watch = pins; }
+
+/* The next edge kept: its cycle, pin index and new level; 0 when none. */
+int twin_avr_edge(twin_avr_t *t, uint64_t *cycle, uint8_t *pin, uint8_t *level) {
+	if (t->edge_tail == t->edge_head)
+		return 0;
+	*cycle = t->edge_cycle[t->edge_tail];
+	*pin = t->edge_pin[t->edge_tail] & 0x7F;
+	*level = t->edge_pin[t->edge_tail] >> 7;
+	t->edge_tail = (t->edge_tail + 1) % EDGE_RING;
+	return 1;
+}
+
+uint32_t twin_avr_edges_dropped(const twin_avr_t *t) { return t->edge_dropped; }
+
+/* Starts simavr's GDB stub on port and stops the core until a debugger
+ * connects and continues it. Returns 0, or -1 if the port cannot be
+ * listened on. */
+int twin_avr_gdb(twin_avr_t *t, int port) {
+	t->avr->gdb_port = port;
+	if (avr_gdb_init(t->avr) != 0)
+		return -1;
+	fflush(stdout);
+	/* The twin's clock never sleeps on the wall clock; the stub is still
+	 * polled at every instruction by simavr's gdb run loop. */
+	t->avr->sleep = no_sleep;
+	t->avr->state = cpu_Stopped;
+	return 0;
 }
 
 /* Reads an ELF into a firmware record; NULL if simavr cannot read it. The
@@ -358,6 +413,7 @@ void twin_avr_pin_output(const twin_avr_t *t, int pin, uint8_t *level, uint64_t 
 void twin_avr_free(twin_avr_t *t) {
 	if (!t)
 		return;
+	avr_deinit_gdb(t->avr);
 	avr_terminate(t->avr);
 	free(t->fw);
 	free(t->refs);

@@ -43,18 +43,45 @@ impl FirmwareBuilder for AvrBuilder {
                 "firmware node `{name}`: clock_hz {clock_hz}: give the board's clock, 1 to 32 MHz"
             );
         }
-        let wiring = Wiring::load(wiring)
-            .with_context(|| format!("firmware node `{name}`, field `wiring`"))?;
+        // A replay runs the file and map its recording stored.
+        let stored = crate::replay::stored(name);
+        let wiring = match &stored {
+            Some(s) => Wiring::parse(&s.wiring_text, &s.wiring_origin).with_context(|| {
+                format!("firmware node `{name}`, the wiring map its recording stored")
+            })?,
+            None => Wiring::load(wiring)
+                .with_context(|| format!("firmware node `{name}`, field `wiring`"))?,
+        };
         let board = Board {
             name,
-            elf: Path::new(elf),
+            elf: stored.as_ref().map_or(Path::new(elf), |s| s.elf.as_path()),
             mcu,
             clock_hz: *clock_hz,
             bus_baud: bus.baud,
             bus_bits: bus.bits_per_char,
         };
-        let node = AvrNode::start(board, wiring, params.sensing.clone())
+        let shown = stored
+            .as_ref()
+            .map_or(Path::new(elf), |s| Path::new(&s.recorded_file));
+        let mut node = AvrNode::start_as(board, wiring, params.sensing.clone(), shown)
             .with_context(|| format!("firmware node `{name}`, field `elf`"))?;
+        if let Some(debug) = crate::debug::for_node(name)? {
+            if let Some(path) = &debug.vcd {
+                node.trace_vcd(path, &debug.pins()?)?;
+                eprintln!(
+                    "twin-avr: tracing {} of `{name}` to {}",
+                    debug.vcd_pins.join(", "),
+                    path.display()
+                );
+            }
+            if let Some(port) = debug.gdb {
+                node.debug_gdb(port)?;
+                eprintln!(
+                    "twin-avr: `{name}` waits for a debugger on port {port}: avr-gdb {} -ex 'target remote :{port}'",
+                    shown.display()
+                );
+            }
+        }
         Ok((Box::new(node), SimDuration::ZERO))
     }
 }

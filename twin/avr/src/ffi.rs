@@ -36,6 +36,10 @@ unsafe extern "C" {
         high: *mut u64,
     );
     fn twin_avr_free(t: *mut RawCore);
+    fn twin_avr_watch(t: *mut RawCore, pins: u32);
+    fn twin_avr_edge(t: *mut RawCore, cycle: *mut u64, pin: *mut u8, level: *mut u8) -> c_int;
+    fn twin_avr_edges_dropped(t: *const RawCore) -> u32;
+    fn twin_avr_gdb(t: *mut RawCore, port: c_int) -> c_int;
     fn twin_avr_last_log() -> *const c_char;
 }
 
@@ -189,6 +193,34 @@ impl Core {
             )
         };
         (level != 0, edges, high)
+    }
+
+    /// Keep the edges of these pins (bit per pin index) for [`Core::edge`].
+    pub fn watch(&mut self, pins: u32) {
+        // SAFETY: `raw` is a live core.
+        unsafe { twin_avr_watch(self.raw, pins) }
+    }
+
+    /// The next edge of a watched pin: cycle, pin index, new level.
+    pub fn edge(&mut self) -> Option<(u64, u8, bool)> {
+        let (mut cycle, mut pin, mut level) = (0u64, 0u8, 0u8);
+        // SAFETY: `raw` is a live core; the pointers are to locals.
+        let got = unsafe { twin_avr_edge(self.raw, &mut cycle, &mut pin, &mut level) };
+        (got != 0).then_some((cycle, pin, level != 0))
+    }
+
+    /// Edges lost because they were not drained in time.
+    pub fn edges_dropped(&self) -> u32 {
+        // SAFETY: `raw` is a live core.
+        unsafe { twin_avr_edges_dropped(self.raw) }
+    }
+
+    /// Starts simavr's GDB stub on `port`; the core then waits, stopped,
+    /// until a debugger connects and continues it. `false` if the port
+    /// cannot be listened on.
+    pub fn gdb(&mut self, port: u16) -> bool {
+        // SAFETY: `raw` is a live core.
+        unsafe { twin_avr_gdb(self.raw, c_int::from(port)) == 0 }
     }
 
     /// simavr's last warning or error (a crash's reason), if any.

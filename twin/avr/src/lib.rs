@@ -8,6 +8,7 @@
 //! without any AVR tool.
 
 pub mod builder;
+pub mod debug;
 pub mod elf;
 #[allow(
     unsafe_code,
@@ -16,6 +17,9 @@ pub mod elf;
 pub mod ffi;
 pub mod node;
 pub mod stepper;
+pub mod record;
+pub mod replay;
+pub mod vcd;
 pub mod wiring;
 
 pub use builder::register;

@@ -35,11 +35,47 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
-    Run(commands::run::RunArgs),
+    Run(AvrRun),
+    Replay(AvrReplay),
     Serve(commands::serve::ServeArgs),
     Supervise(commands::supervise::SuperviseArgs),
     Vsp(commands::vsp::VspArgs),
     Bench(bench::BenchArgs),
+}
+
+/// Run a scenario on the virtual clock, its firmware nodes in simavr: `twin
+/// run`'s own options, and the firmware debugging extras (simavr's GDB stub,
+/// a VCD trace of chosen pins).
+#[derive(Debug, clap::Args)]
+struct AvrRun {
+    #[command(flatten)]
+    run: commands::run::RunArgs,
+    #[command(flatten)]
+    debug: twin_avr::debug::DebugArgs,
+}
+
+/// Re-run a recording and check that the new run matches it, its firmware
+/// nodes running the ELF files the recording stored (not the files on disk
+/// today): `twin replay`'s own options, and the firmware debugging extras.
+#[derive(Debug, clap::Args)]
+struct AvrReplay {
+    #[command(flatten)]
+    replay: commands::replay::ReplayArgs,
+    #[command(flatten)]
+    debug: twin_avr::debug::DebugArgs,
+}
+
+fn replay(args: &AvrReplay, given: &clap::ArgMatches) -> anyhow::Result<()> {
+    twin_avr::debug::set(args.debug.clone())?;
+    let firmware = match given.get_one::<std::path::PathBuf>("recording") {
+        Some(path) if !args.replay.sends_frames() => Some(twin_avr::replay::load(path)?),
+        _ => None,
+    };
+    for line in firmware.iter().flat_map(|f| &f.lines) {
+        println!("{line}");
+    }
+    commands::finish_recordings_on_signals();
+    commands::replay::execute(&args.replay)
 }
 
 fn main() -> ExitCode {
@@ -54,10 +90,15 @@ fn main() -> ExitCode {
             .unwrap_or_default()
     };
     let result = match cli.command {
-        Command::Run(args) => {
+        Command::Run(args) => twin_avr::debug::set(args.debug).and_then(|()| {
             commands::finish_recordings_on_signals();
-            commands::run::execute(&args)
-        }
+            let ran = commands::run::execute(&args.run);
+            if let Some(note) = twin_avr::debug::unused() {
+                eprintln!("twin-avr: {note}");
+            }
+            ran
+        }),
+        Command::Replay(args) => replay(&args, &given("replay")),
         // `twin serve` itself: a configuration file's options give way to
         // the command line's.
         Command::Serve(args) => commands::serve::execute(&args, &given("serve")),

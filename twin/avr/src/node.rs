@@ -21,17 +21,19 @@ use nodes::time::{SimDuration, SimTime, TICKS_PER_SECOND};
 use plant::params::SensingParams;
 use plant::{Actuators, Sensors};
 use serde_json::json;
-use twin_sim::engine::{SimNode, Streamed};
+use twin_sim::engine::{FirmwareFile, FirmwareRecord, SimNode, Streamed};
 
 use crate::ffi::{Core, Image, State};
+use crate::record::FirmwareLog;
 use crate::stepper::Stepper;
+use crate::vcd::VcdTrace;
 use crate::wiring::{Analog, Input, Output, Pwm, Wiring};
 
 /// The ATmega328P's last flash byte address.
 const FLASH_END: u32 = 0x7FFF;
 /// Events kept for the engine before the oldest is dropped.
 const MAX_PENDING_EVENTS: usize = 64;
-/// Telemetry (pins, ADC inputs, cycles) is recorded this often.
+/// Pins, ADC inputs and cycles are recorded this often.
 const TELEMETRY_EVERY: SimDuration = SimDuration::from_millis(10);
 
 /// I/O registers of the ATmega328P (data-space addresses).
@@ -197,6 +199,13 @@ pub struct AvrNode {
     pub framing_errors_in: u64,
     /// Bytes the firmware sent that the bus's receivers find with one.
     pub framing_errors_out: u64,
+    /// The recording's UART bursts, pins and ADC inputs.
+    log: FirmwareLog,
+    vcd: Option<VcdTrace>,
+    /// The firmware file as loaded, for the recording, and its SHA-256.
+    elf_bytes: Vec<u8>,
+    sha256: String,
+    mcu: String,
 }
 
 impl AvrNode {
@@ -205,6 +214,17 @@ impl AvrNode {
         board: Board<'_>,
         wiring: Wiring,
         sensing: SensingParams,
+    ) -> Result<Self, StartError> {
+        Self::start_as(board, wiring, sensing, board.elf)
+    }
+
+    /// [`AvrNode::start`], the node naming its file `shown` (a replay runs
+    /// the bytes its recording stored, under the name they were recorded by).
+    pub fn start_as(
+        board: Board<'_>,
+        wiring: Wiring,
+        sensing: SensingParams,
+        shown: &Path,
     ) -> Result<Self, StartError> {
         let Board {
             name,
@@ -231,9 +251,10 @@ impl AvrNode {
             Core::start(image, mcu, clock_hz).ok_or_else(|| StartError::NoMcu(mcu.into()))?;
         let core = Stepper::new(core, crate::builder::threaded(), name);
         let uart = UartSetting::read(&core, clock_hz);
+        let log = crate::record::follow(&wiring, clock_hz);
         let mut node = Self {
             name: name.into(),
-            elf: elf.to_path_buf(),
+            elf: shown.to_path_buf(),
             core,
             clock_hz,
             input_levels: vec![false; wiring.inputs.len()],
@@ -261,7 +282,13 @@ impl AvrNode {
             bytes_out: 0,
             framing_errors_in: 0,
             framing_errors_out: 0,
+            log,
+            vcd: None,
+            sha256: crate::record::sha256_hex(&bytes),
+            elf_bytes: Vec::new(),
+            mcu: mcu.into(),
         };
+        node.core.watch(node.log.mask);
         // Inputs the plant holds steady from power-up: a healthy driver's
         // fault line reads high.
         for (i, (pin, input)) in node.wiring.inputs.clone().iter().enumerate() {
@@ -272,7 +299,7 @@ impl AvrNode {
         }
         let detail = format!(
             "{} ({} bytes, FNV-1a {:016x}) on an {} at {} MHz, wiring {}",
-            elf.display(),
+            shown.display(),
             bytes.len(),
             fingerprint(&bytes),
             mcu,
@@ -280,7 +307,39 @@ impl AvrNode {
             node.wiring.origin
         );
         node.push_event(SimTime::ZERO, "state", detail);
+        node.elf_bytes = bytes;
         Ok(node)
+    }
+
+    /// Traces `pins` to a VCD file at `path`, from now on.
+    pub fn trace_vcd(&mut self, path: &Path, pins: &[crate::wiring::Pin]) -> anyhow::Result<()> {
+        let core = &self.core;
+        let trace = VcdTrace::create(path, pins, self.clock_hz, &self.name, |i| {
+            core.pin_output(i).0
+        })?;
+        self.core.watch(self.log.mask | trace.mask);
+        self.vcd = Some(trace);
+        Ok(())
+    }
+
+    /// Starts simavr's GDB stub on `port`: the core waits, stopped, for a
+    /// debugger to connect and continue it.
+    pub fn debug_gdb(&mut self, port: u16) -> anyhow::Result<()> {
+        if !self.core.gdb(port) {
+            anyhow::bail!(
+                "--gdb {port}: cannot listen on that port (in use?{})",
+                match Core::last_log() {
+                    l if l.is_empty() => String::new(),
+                    l => format!("; simavr: {l}"),
+                }
+            );
+        }
+        Ok(())
+    }
+
+    /// The firmware file's SHA-256, as `sha256sum` prints it.
+    pub fn sha256(&self) -> &str {
+        &self.sha256
     }
 
     /// The simulated cycles run so far.
@@ -322,6 +381,15 @@ impl AvrNode {
             return;
         }
         let state = self.core.run_until(self.to_cycle(now));
+        while let Some((cycle, pin, level)) = self.core.edge() {
+            self.log.edge(cycle, pin, level);
+            if let Some(vcd) = &mut self.vcd {
+                vcd.edge(cycle, pin, level);
+            }
+        }
+        if let Some(vcd) = &mut self.vcd {
+            vcd.reached(self.core.cycle());
+        }
         match state {
             State::Crashed | State::Done => {
                 let at = self.to_time(self.core.cycle());
@@ -370,6 +438,15 @@ impl AvrNode {
             let char_time = SimDuration::from_secs_f64(bit * f64::from(self.uart.bits_per_char));
             let start = self.to_time(cycle).max(self.line_free);
             self.line_free = start + char_time;
+            let gap = char_time + char_time;
+            self.log.sent(
+                byte,
+                self.to_cycle(start),
+                start,
+                self.line_free,
+                self.uart.baud,
+                gap,
+            );
             // The bus's receivers sample it at their own baud.
             let seen = sampled(byte, bit, 1.0 / self.bus_baud);
             self.framing_errors_out += u64::from(framing_error(byte, bit, 1.0 / self.bus_baud));
@@ -535,6 +612,7 @@ impl Node for AvrNode {
             self.uart = setting;
             self.note_baud(now);
         }
+        let char_time = SimDuration::from_secs_f64(f64::from(self.bus_bits) / self.bus_baud);
         for &b in bytes {
             // The firmware's receiver samples the bus's bits at its own baud.
             let seen = sampled(b, 1.0 / self.bus_baud, 1.0 / self.uart.baud);
@@ -548,6 +626,15 @@ impl Node for AvrNode {
                     self.push_event(now, "framing", detail);
                 }
             }
+            let start = SimTime(now.0.saturating_sub(char_time.0));
+            self.log.received(
+                seen,
+                self.to_cycle(start),
+                start,
+                now,
+                self.uart.baud,
+                char_time + char_time,
+            );
             self.core.uart_input(seen);
             self.bytes_in += 1;
         }
@@ -624,6 +711,22 @@ impl Firmware for AvrNode {
         }
         self.actuators = self.read_outputs(now);
         self.last_tick = now;
+        if now >= self.next_telemetry {
+            self.next_telemetry = now + TELEMETRY_EVERY;
+            let core = &self.core;
+            let adc = &self.adc_mv;
+            self.log.sample(
+                now,
+                core.cycle(),
+                |i| core.pin_output(i),
+                |i| {
+                    let port = usize::from(i / 8);
+                    let bit = 1u8 << (i % 8);
+                    core.data(reg::DDR[port]) & bit == 0 || core.data(reg::PORT[port]) & bit != 0
+                },
+                |c| adc[usize::from(c)],
+            );
+        }
         self.actuators
     }
 }
@@ -635,33 +738,6 @@ impl SimNode for AvrNode {
 
     fn drives_plant(&self) -> bool {
         self.wiring.board.drives_plant
-    }
-
-    fn telemetry(&mut self) -> Option<serde_json::Value> {
-        if self.last_tick < self.next_telemetry {
-            return None;
-        }
-        self.next_telemetry = self.last_tick + TELEMETRY_EVERY;
-        let a = &self.actuators;
-        let adc: Vec<u32> = self
-            .wiring
-            .analog
-            .iter()
-            .map(|(p, _)| self.adc_mv[usize::from(p.adc.unwrap_or(0))])
-            .collect();
-        Some(json!({
-            "firmware_cycles": self.core.cycle(),
-            "uart_baud": self.uart.baud.round(),
-            "adc_millivolts": adc,
-            "vel_volts": a.vel_volts,
-            "enable": a.enable,
-            "brake": a.brake,
-            "reverse": a.reverse,
-            "bytes_in": self.bytes_in,
-            "bytes_out": self.bytes_out,
-            "framing_errors_in": self.framing_errors_in,
-            "framing_errors_out": self.framing_errors_out,
-        }))
     }
 
     fn final_state(&self) -> Option<serde_json::Value> {
@@ -738,6 +814,40 @@ impl SimNode for AvrNode {
         if self.can_run_ahead() {
             self.core.run_ahead(self.to_cycle(horizon));
         }
+    }
+
+    fn firmware_file(&self) -> Option<FirmwareFile> {
+        let file_name = self.elf.file_name().map_or_else(
+            || "firmware.elf".into(),
+            |n| n.to_string_lossy().into_owned(),
+        );
+        let attachment = twin_recording::topics::firmware_attachment(&self.name, &file_name);
+        let fields = [
+            ("node", self.name.clone()),
+            ("file", self.elf.display().to_string()),
+            ("attachment", attachment.clone()),
+            ("sha256", self.sha256.clone()),
+            ("bytes", self.elf_bytes.len().to_string()),
+            ("mcu", self.mcu.clone()),
+            ("clock_hz", self.clock_hz.to_string()),
+            ("wiring", self.wiring.origin.clone()),
+            ("wiring_toml", self.wiring.text.clone()),
+        ];
+        Some(FirmwareFile {
+            fields: fields.into_iter().map(|(k, v)| (k.into(), v)).collect(),
+            attachment,
+            bytes: self.elf_bytes.clone(),
+        })
+    }
+
+    fn firmware_records(
+        &mut self,
+        record: &mut dyn FnMut(FirmwareRecord<'_>) -> anyhow::Result<()>,
+    ) -> anyhow::Result<()> {
+        let gap =
+            SimDuration::from_secs_f64(2.0 * f64::from(self.uart.bits_per_char) / self.uart.baud);
+        let now = self.to_time(self.core.cycle());
+        self.log.drain(now, gap, record)
     }
 }
 

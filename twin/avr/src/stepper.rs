@@ -154,6 +154,18 @@ impl Stepper {
     pub fn pin_output(&self, pin: u8) -> (bool, u64, u64) {
         self.core().pin_output(pin)
     }
+    pub fn watch(&mut self, pins: u32) {
+        self.core().watch(pins);
+    }
+    pub fn edge(&mut self) -> Option<(u64, u8, bool)> {
+        self.core().edge()
+    }
+    pub fn edges_dropped(&self) -> u32 {
+        self.core().edges_dropped()
+    }
+    pub fn gdb(&mut self, port: u16) -> bool {
+        self.core().gdb(port)
+    }
     /// simavr's last warning or error, from whichever thread ran the core.
     pub fn last_log(&self) -> String {
         drop(self.core());

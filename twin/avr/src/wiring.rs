@@ -143,6 +143,8 @@ pub struct Wiring {
     pub outputs: Vec<(Pin, Output)>,
     pub pwm: Vec<(Pin, Pwm)>,
     pub board: Board,
+    /// The map as written (stored in a recording beside the firmware).
+    pub text: String,
 }
 
 impl Wiring {
@@ -265,6 +267,7 @@ impl Wiring {
             outputs,
             pwm,
             board,
+            text: text.into(),
         })
     }
 }

@@ -9,8 +9,10 @@
 //!   ([`signals`]), comparison against a baseline ([`compare`]), the first
 //!   departure of a replay ([`diff`]) and CSV export ([`export`]).
 //!   `twin replay`, `compare`, `export` and the viewer build on this.
+//! - [`attachment`]: files a recording carries whole (a run's firmware).
 //! - [`identity`]: what a recording says was run, field by field.
 
+pub mod attachment;
 mod chunk;
 pub mod compare;
 pub mod describe;

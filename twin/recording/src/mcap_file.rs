@@ -41,6 +41,8 @@ pub(crate) struct McapFile<W: Write> {
     /// Chunk and metadata index records' bodies, for the summary.
     chunk_indexes: Vec<Vec<u8>>,
     metadata_indexes: Vec<Vec<u8>>,
+    /// Attachment index records' bodies, for the summary.
+    attachment_indexes: Vec<Vec<u8>>,
     stats: Statistics,
 }
 
@@ -54,6 +56,7 @@ struct Schema {
 struct Statistics {
     messages: u64,
     metadata: u32,
+    attachments: u32,
     chunks: u32,
     bounds: Option<(u64, u64)>,
     /// Per channel id with messages: how many.
@@ -154,6 +157,7 @@ impl<W: Write> McapFile<W> {
             channels: Vec::new(),
             chunk_indexes: Vec::new(),
             metadata_indexes: Vec::new(),
+            attachment_indexes: Vec::new(),
             stats: Statistics::default(),
         };
         file.out.put(mcap::MAGIC)?;
@@ -274,6 +278,40 @@ impl<W: Write> McapFile<W> {
         index.str(name);
         self.metadata_indexes.push(index);
         self.stats.metadata += 1;
+        Ok(())
+    }
+
+    /// An attachment record (a file the recording carries whole: the
+    /// firmware a run executed), after the open chunk (which it closes).
+    pub(crate) fn write_attachment(
+        &mut self,
+        log_time: u64,
+        name: &str,
+        media_type: &str,
+        data: &[u8],
+    ) -> io::Result<()> {
+        self.close_chunk()?;
+        let offset = self.out.position;
+        let mut body = Vec::with_capacity(40 + name.len() + media_type.len() + data.len());
+        body.u64(log_time);
+        body.u64(log_time); // create time: simulated too, so the bytes repeat
+        body.str(name);
+        body.str(media_type);
+        body.u64(data.len() as u64);
+        body.extend_from_slice(data);
+        let crc = crc32fast::hash(&body);
+        body.u32(crc);
+        self.out.record(op::ATTACHMENT, &body)?;
+        let mut index = Vec::new();
+        index.u64(offset);
+        index.u64(self.out.position - offset);
+        index.u64(log_time);
+        index.u64(log_time);
+        index.u64(data.len() as u64);
+        index.str(name);
+        index.str(media_type);
+        self.attachment_indexes.push(index);
+        self.stats.attachments += 1;
         Ok(())
     }
 
@@ -399,6 +437,12 @@ impl<W: Write> McapFile<W> {
             op::CHUNK_INDEX,
             &mut chunk_indexes.into_iter(),
         )?;
+        let attachment_indexes = std::mem::take(&mut self.attachment_indexes);
+        group(
+            &mut self.out,
+            op::ATTACHMENT_INDEX,
+            &mut attachment_indexes.into_iter(),
+        )?;
         let metadata_indexes = std::mem::take(&mut self.metadata_indexes);
         group(
             &mut self.out,
@@ -435,7 +479,7 @@ impl<W: Write> McapFile<W> {
         body.u64(stats.messages);
         body.u16(self.schemas.len() as u16);
         body.u32(len32(channel_count));
-        body.u32(0); // attachments
+        body.u32(stats.attachments);
         body.u32(stats.metadata);
         body.u32(stats.chunks);
         body.u64(start);

@@ -279,6 +279,26 @@ impl<D: Deferred> Recorder<D> {
         .map(drop)
     }
 
+    /// Carry a file whole as an MCAP attachment named `name` (the firmware
+    /// a run executed, so that a replay runs the same bytes), stamped with
+    /// simulated time `time_s`.
+    pub fn attach(
+        &mut self,
+        name: &str,
+        media_type: &str,
+        time_s: f64,
+        data: Vec<u8>,
+    ) -> Result<()> {
+        self.hand_over()?;
+        self.submit(Job::Attachment {
+            log_time: (time_s * 1e9).round() as u64,
+            name: name.into(),
+            media_type: media_type.into(),
+            data,
+        })
+        .map(drop)
+    }
+
     /// Close the open chunk and write it out, so that a crash loses at most
     /// what came after (real-time sessions call this every second or so).
     /// Returns once the writer has written it.

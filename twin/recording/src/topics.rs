@@ -22,6 +22,8 @@
 //! | [`master_loop`] `/master/<node>/loop` | a virtual run, a real-time session (`twin supervise`) | every poll cycle of a master | the master's telemetry: set point, measured rpm, error, output, counters (a supervisor: `loops`, one per slave) |
 //! | [`REALTIME_LATENESS`] `/realtime/lateness` | a real-time session | each second (and the file is flushed) | `window` and `total`, each `ticks`, `p50_us`, `p99_us`, `p999_us`, `max_us`, `mean_us`, `overruns`: how late the plant's ticks ran |
 //! | [`EXPERIMENT_STEP`] `/experiment/step` | `twin step` (`twin-lab` `step.rs`) | each sample of the experiment | `set_point`, `wheel_rpm`, `motor_rpm`, `light_rpm` |
+//! | [`firmware_uart`] `/firmware/<node>/uart` | a virtual run with compiled firmware (`twin-avr`) | each burst of bytes on the firmware's UART, once the line has been quiet for two characters | [`UartBurst`]: `dir` (`rx` to the firmware, `tx` from it), `baud` (the firmware's own, from UBRR0/U2X0), `start_s`, `end_s`, `len`, `text`, `hex`, `cycles` (the CPU cycle each byte started at) |
+//! | [`firmware_io`] `/firmware/<node>/io` | a virtual run with compiled firmware | every 10 ms of simulated time | [`FirmwareIo`]: `cycles` (run so far), `pins` (each wired output and PWM pin: `pin`, `signal`, `level`, `duty` over the 10 ms, `period_us` between its rising edges, `edges` in them), `adc` (each analog input fed: `pin`, `signal`, `millivolts`, `counts` as the 10-bit ADC converts them), `edges` (the edges of those pins in the 10 ms, up to 20 per pin: every edge of a line up to 1 kHz; `cycle`, `pin`, `level`) |
 //!
 //! Metadata records:
 //!
@@ -29,6 +31,7 @@
 //! |---|---|---|---|
 //! | [`RUN_METADATA`] `twin.run` | every run and session | first, before any message | `kind` (`scenario`, `open-loop`, `serve`, `supervise`), `twin_version`; a scenario's `scenario`, `scenario_toml`, `seed`, `pwm_calibration`; the open loop's settings and `params_toml`; a step response's `experiment` (`step`), `step_from`, `step_to`, `step_at_s`, and `step_adaptive_light` (open loop) or `step_light_feedback` (closed loop); a session's `links`, `params`, `slaves`, … |
 //! | [`REALTIME_METADATA`] `twin.realtime` | a real-time session | when it ends | the session's totals |
+//! | [`firmware_metadata`] `twin.firmware.<node>` | a virtual run with compiled firmware | before any message | `node`, `file` (as the scenario names it), `attachment` (the MCAP attachment holding the file's bytes), `sha256`, `bytes`, `mcu`, `clock_hz`, `wiring` (the map's name or file) and `wiring_toml` (its text) |
 //! | [`PART_METADATA`] `twin.part` | a real-time session's file that another follows (rotation) | when it is closed | `part` (from 1), `ended_by` (`SIGHUP`, `--rotate-every 1h`, …), `next` (the next file's name); the next file's `twin.run` has `part` and `previous` |
 
 use serde::{Deserialize, Serialize};
@@ -89,6 +92,29 @@ pub fn controller_readings(node: &str) -> String {
     format!("/controller/{node}/readings")
 }
 
+/// A firmware node's UART traffic: `/firmware/<node>/uart`.
+pub fn firmware_uart(node: &str) -> String {
+    format!("/firmware/{node}/uart")
+}
+
+/// A firmware node's pins, ADC inputs and cycles: `/firmware/<node>/io`.
+pub fn firmware_io(node: &str) -> String {
+    format!("/firmware/{node}/io")
+}
+
+/// The metadata record naming a firmware node's file: `twin.firmware.<node>`.
+pub fn firmware_metadata(node: &str) -> String {
+    format!("{FIRMWARE_METADATA}.{node}")
+}
+
+/// The prefix of [`firmware_metadata`] records.
+pub const FIRMWARE_METADATA: &str = "twin.firmware";
+
+/// The attachment holding a firmware node's file: `firmware/<node>/<file name>`.
+pub fn firmware_attachment(node: &str, file_name: &str) -> String {
+    format!("firmware/{node}/{file_name}")
+}
+
 /// The schema name of a topic's channel: `/plant/ev1/sensors` → `plant.ev1.sensors`.
 pub fn schema_name(topic: &str) -> String {
     topic.trim_start_matches('/').replace('/', ".")
@@ -107,6 +133,10 @@ pub enum Topic<'a> {
     MasterLoop(&'a str),
     /// An EV module controller's readings, by node name.
     ControllerReadings(&'a str),
+    /// A firmware node's UART bursts, by node name.
+    FirmwareUart(&'a str),
+    /// A firmware node's pins, ADC inputs and cycles, by node name.
+    FirmwareIo(&'a str),
     RealtimeLateness,
     ExperimentStep,
     /// Anything else (not written by this twin).
@@ -142,6 +172,10 @@ impl<'a> Topic<'a> {
             Topic::MasterLoop(n)
         } else if let Some(n) = named("/controller/", "/readings") {
             Topic::ControllerReadings(n)
+        } else if let Some(n) = named("/firmware/", "/uart") {
+            Topic::FirmwareUart(n)
+        } else if let Some(n) = named("/firmware/", "/io") {
+            Topic::FirmwareIo(n)
         } else {
             Topic::Other(topic)
         }
@@ -387,6 +421,70 @@ fn frame_proto() -> crate::proto::Schema {
     )
 }
 
+/// A burst of bytes on a firmware node's UART, as recorded on [`firmware_uart`].
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct UartBurst<'a> {
+    /// `rx`: to the firmware; `tx`: from it.
+    pub dir: &'a str,
+    /// The firmware's baud, from its own registers.
+    pub baud: f64,
+    /// When the first byte started and the last one ended on the wire (s).
+    pub start_s: f64,
+    pub end_s: f64,
+    pub len: usize,
+    /// The bytes as text when they are printable ASCII (MEB), else empty.
+    pub text: &'a str,
+    pub hex: &'a str,
+    /// The CPU cycle at which each byte started.
+    pub cycles: &'a [u64],
+}
+
+/// A firmware node's pins, ADC inputs and cycles, as recorded on [`firmware_io`].
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct FirmwareIo<'a> {
+    /// CPU cycles run since power-up.
+    pub cycles: u64,
+    pub pins: &'a [PinState],
+    pub adc: &'a [AdcInput],
+    /// Every edge of the pins since the last sample, in order.
+    pub edges: &'a [PinEdge],
+}
+
+/// An output pin over the last sample period.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct PinState {
+    /// The Arduino pin (`D9`).
+    pub pin: &'static str,
+    /// What the wiring map connects it to (`vel`, `en`, `led`).
+    pub signal: &'static str,
+    pub level: bool,
+    /// The fraction of the period it was high.
+    pub duty: f64,
+    /// The mean time between its rising edges in the period (µs; 0 with
+    /// fewer than two).
+    pub period_us: f64,
+    /// Its edges in the period (all of them; the sample lists the first 20).
+    pub edges: u32,
+}
+
+/// An analog input as fed to the ADC.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub struct AdcInput {
+    pub pin: &'static str,
+    pub signal: &'static str,
+    pub millivolts: u32,
+    /// What the 10-bit converter reads at AVcc = 5 V.
+    pub counts: u16,
+}
+
+/// One edge of a pin.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub struct PinEdge {
+    pub cycle: u64,
+    pub pin: &'static str,
+    pub level: bool,
+}
+
 /// An event as recorded on [`EVENTS`].
 #[derive(Debug, Clone, PartialEq, Eq, Deserialize)]
 pub struct EventSample {
@@ -413,6 +511,8 @@ mod tests {
             (controller_readings("ev1"), Topic::ControllerReadings("ev1")),
             (REALTIME_LATENESS.to_string(), Topic::RealtimeLateness),
             (EXPERIMENT_STEP.to_string(), Topic::ExperimentStep),
+            (firmware_uart("ev1"), Topic::FirmwareUart("ev1")),
+            (firmware_io("motor"), Topic::FirmwareIo("motor")),
         ] {
             assert_eq!(Topic::parse(&topic), parsed, "{topic}");
         }

@@ -116,6 +116,13 @@ pub(crate) enum Job<D> {
     },
     Messages(Batch<D>),
     Metadata(Metadata),
+    /// A file carried whole (an MCAP attachment).
+    Attachment {
+        log_time: u64,
+        name: String,
+        media_type: String,
+        data: Vec<u8>,
+    },
     /// Close the open chunk (and, to a thread, say when it is written).
     Flush(Option<SyncSender<()>>),
 }
@@ -209,6 +216,17 @@ impl FileWriter {
             Job::Metadata(metadata) => {
                 self.writer
                     .write_metadata(&metadata.name, &metadata.metadata)
+                    .with_context(cannot_write)?;
+                Ok(None)
+            }
+            Job::Attachment {
+                log_time,
+                name,
+                media_type,
+                data,
+            } => {
+                self.writer
+                    .write_attachment(log_time, &name, &media_type, &data)
                     .with_context(cannot_write)?;
                 Ok(None)
             }

@@ -97,6 +97,37 @@ pub trait SimNode: Node {
         let _ = now;
         None
     }
+    /// The compiled firmware the node runs, to store whole in the
+    /// recording (so that a replay runs the same bytes).
+    fn firmware_file(&self) -> Option<FirmwareFile> {
+        None
+    }
+    /// Hands `record` what the node keeps for its own channels since the
+    /// last call (compiled firmware: UART bursts, pins, ADC inputs, cycles).
+    fn firmware_records(
+        &mut self,
+        record: &mut dyn FnMut(FirmwareRecord<'_>) -> Result<()>,
+    ) -> Result<()> {
+        let _ = record;
+        Ok(())
+    }
+}
+
+/// A compiled firmware file as a recording stores it: its metadata fields
+/// (`twin.firmware.<node>`) and its bytes (the attachment the fields name).
+#[derive(Debug, Clone)]
+pub struct FirmwareFile {
+    pub fields: std::collections::BTreeMap<String, String>,
+    /// The attachment's name.
+    pub attachment: String,
+    pub bytes: Vec<u8>,
+}
+
+/// A record of a firmware node's own channels, at simulated time `at`.
+#[derive(Debug, Clone, Copy)]
+pub enum FirmwareRecord<'a> {
+    Uart(SimTime, twin_recording::topics::UartBurst<'a>),
+    Io(SimTime, twin_recording::topics::FirmwareIo<'a>),
 }
 
 /// What a streaming node (compiled firmware) hands the bus.
@@ -320,6 +351,11 @@ pub trait Observer {
     fn event(&mut self, node: &NodeSlot, event: &NodeEvent) -> Result<()>;
     fn telemetry(&mut self, now: SimTime, node: &NodeSlot, value: &serde_json::Value)
     -> Result<()>;
+    /// A firmware node's own records (UART bursts, pins, ADC inputs).
+    fn firmware(&mut self, node: &str, record: FirmwareRecord<'_>) -> Result<()> {
+        let _ = (node, record);
+        Ok(())
+    }
     /// A module controller's readings, at each recording instant.
     fn readings(&mut self, now: SimTime, node: &NodeSlot, readings: &ReadingsSample) -> Result<()> {
         let _ = (now, node, readings);
@@ -751,6 +787,10 @@ impl Engine {
             if let Some(value) = self.nodes[n].node.telemetry() {
                 observer.telemetry(t, &self.nodes[n], &value)?;
             }
+            let slot = &mut self.nodes[n];
+            let name = slot.name.as_str();
+            slot.node
+                .firmware_records(&mut |record| observer.firmware(name, record))?;
             self.nodes[n].stirred = false;
         }
         Ok(())

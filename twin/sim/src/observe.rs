@@ -8,6 +8,7 @@
 //! | `/events` | as they happen | node, kind (`timeout`, `bad_check`, `retry`, `log`, …), detail |
 //! | `/master/<node>/loop` | every poll cycle | set point, measured rpm, error, output, counters |
 //! | `/controller/<node>/readings` | beside each plant sample | an EV controller's readings, named (`hall_rpm`, `light_rpm`, …) |
+//! | `/firmware/<node>/uart`, `/firmware/<node>/io` | UART bursts; every 10 ms | compiled firmware: its UART bytes with their cycles, its pins, ADC inputs and cycle count |
 
 use anyhow::Result;
 use nodes::node::NodeEvent;
@@ -16,7 +17,7 @@ use serde::Serialize;
 use serde_json::{Value, json};
 use std::collections::{BTreeMap, VecDeque};
 
-use crate::engine::{BusSlot, ModuleSlot, NodeSlot, Observer};
+use crate::engine::{BusSlot, FirmwareRecord, ModuleSlot, NodeSlot, Observer};
 use twin_recording::describe::decode_frame;
 use twin_recording::record::{ChannelId, Recorder};
 use twin_recording::topics::{self, ReadingsSample};
@@ -46,6 +47,8 @@ pub struct McapObserver {
     buses: Vec<LazyChannel>,
     loops: Vec<LazyChannel>,
     readings: Vec<LazyChannel>,
+    firmware_uart: Vec<LazyChannel>,
+    firmware_io: Vec<LazyChannel>,
     event_channel: LazyChannel,
 }
 
@@ -154,6 +157,8 @@ impl McapObserver {
             buses: Vec::new(),
             loops: Vec::new(),
             readings: Vec::new(),
+            firmware_uart: Vec::new(),
+            firmware_io: Vec::new(),
             event_channel: LazyChannel::new("", topics::EVENTS.to_string()),
         }
     }
@@ -207,6 +212,24 @@ impl McapObserver {
             now,
             readings,
         )
+    }
+
+    /// A firmware node's UART burst or I/O sample, on `/firmware/<node>/…`.
+    pub fn record_firmware(&mut self, node: &str, record: FirmwareRecord<'_>) -> Result<()> {
+        match record {
+            FirmwareRecord::Uart(at, burst) => channel_of(
+                &mut self.firmware_uart,
+                node,
+                topics::firmware_uart,
+            )
+            .write(&mut self.recorder, at, &burst),
+            FirmwareRecord::Io(at, io) => channel_of(
+                &mut self.firmware_io,
+                node,
+                topics::firmware_io,
+            )
+            .write(&mut self.recorder, at, &io),
+        }
     }
 
     /// Write `message` to `topic`, creating its channel on first use.
@@ -357,6 +380,10 @@ impl Observer for McapObserver {
     fn readings(&mut self, now: SimTime, node: &NodeSlot, readings: &ReadingsSample) -> Result<()> {
         self.record_readings(now, &node.name, readings)
     }
+
+    fn firmware(&mut self, node: &str, record: FirmwareRecord<'_>) -> Result<()> {
+        self.record_firmware(node, record)
+    }
 }
 
 /// Two observers fed the same run, in order: the recorder and a live view.
@@ -403,6 +430,11 @@ impl<A: Observer, B: Observer> Observer for Tee<A, B> {
         self.first.readings(now, node, readings)?;
         self.second.readings(now, node, readings)
     }
+
+    fn firmware(&mut self, node: &str, record: FirmwareRecord<'_>) -> Result<()> {
+        self.first.firmware(node, record)?;
+        self.second.firmware(node, record)
+    }
 }
 
 /// Either observer borrowed: lets a `Tee` hold `&mut` observers.
@@ -436,6 +468,10 @@ impl<O: Observer + ?Sized> Observer for &mut O {
 
     fn readings(&mut self, now: SimTime, node: &NodeSlot, readings: &ReadingsSample) -> Result<()> {
         (**self).readings(now, node, readings)
+    }
+
+    fn firmware(&mut self, node: &str, record: FirmwareRecord<'_>) -> Result<()> {
+        (**self).firmware(node, record)
     }
 }
 

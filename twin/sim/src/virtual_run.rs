@@ -252,6 +252,13 @@ fn run_observed(
         identity.insert("pwm_calibration".into(), text.join("; "));
     }
     recorder.write_metadata(topics::RUN_METADATA, identity)?;
+    // Compiled firmware is stored whole, so that a replay runs these bytes.
+    for slot in &engine.nodes {
+        if let Some(file) = slot.node.firmware_file() {
+            recorder.write_metadata(&topics::firmware_metadata(&slot.name), file.fields)?;
+            recorder.attach(&file.attachment, "application/x-elf", 0.0, file.bytes)?;
+        }
+    }
     let mut observer = McapObserver::new(recorder);
     let end = SimTime::ZERO + SimDuration::from_secs_f64(scenario.duration_s);
     let mut both = crate::observe::Tee {

@@ -62,6 +62,24 @@ fn module_column(layout: &ViewLayout, m: usize) -> Vertical {
         &format!("/{name}/flag/**"),
     ));
     shares.push(1.0);
+    // Compiled firmware beside the plant: its pins' duty and levels and
+    // the ADC counts fed to it (its UART is with the frames).
+    for (node, _) in layout.firmware.iter().filter(|(_, fm)| *fm == m) {
+        rows.push(
+            Horizontal::new([
+                plot(
+                    &format!("{node} firmware: pins (duty, level)"),
+                    &format!("/{node}/firmware/pins/**"),
+                ),
+                plot(
+                    &format!("{node} firmware: ADC inputs (counts)"),
+                    &format!("/{node}/firmware/adc/**"),
+                ),
+            ])
+            .into(),
+        );
+        shares.push(2.0);
+    }
     Vertical::new(rows)
         .with_name(name.clone())
         .with_row_shares(shares)
@@ -90,17 +108,30 @@ pub fn blueprint(layout: &ViewLayout) -> Blueprint {
     } else {
         plots
     };
-    let logs = Vertical::new([
+    let mut logs: Vec<ContainerLike> = vec![
         TextLogView::new("bus frames")
             .with_origin("/bus")
             .with_contents(["$origin/**"])
             .into(),
+    ];
+    let mut log_shares = vec![3.0];
+    for (node, _) in &layout.firmware {
+        logs.push(
+            TextLogView::new(format!("{node} firmware UART"))
+                .with_origin(format!("/{node}/firmware/uart"))
+                .with_contents(["$origin"])
+                .into(),
+        );
+        log_shares.push(2.0);
+    }
+    logs.push(
         TextLogView::new("events")
             .with_origin(format!("/{EVENTS}"))
             .with_contents(["$origin"])
             .into(),
-    ])
-    .with_row_shares([3.0, 1.0]);
+    );
+    log_shares.push(1.0);
+    let logs = Vertical::new(logs).with_row_shares(log_shares);
     Blueprint::new(Horizontal::new([plots, logs.into()]).with_column_shares([3.0, 2.0]))
         .with_blueprint_panel(BlueprintPanel::new().with_state(PanelState::Collapsed))
         .with_selection_panel(SelectionPanel::new().with_state(PanelState::Collapsed))

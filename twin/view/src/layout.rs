@@ -68,6 +68,9 @@ pub struct ViewLayout {
     /// A real-time session (`twin serve`, `twin supervise`): its tick
     /// lateness is shown too.
     pub realtime: bool,
+    /// Compiled firmware nodes (`twin-avr`) and the module each drives:
+    /// their UART, pins and ADC inputs are shown beside that module.
+    pub firmware: Vec<(String, usize)>,
 }
 
 /// Which Controller_network node a reply comes from.
@@ -125,8 +128,12 @@ impl ViewLayout {
                 NodeSpec::Supervisor { .. }
                 | NodeSpec::ControllerNetworkMaster { .. }
                 | NodeSpec::ParallelMaster { .. }
-                | NodeSpec::PwmSlave { .. }
-                | NodeSpec::Firmware { .. } => {}
+                | NodeSpec::PwmSlave { .. } => {}
+                NodeSpec::Firmware { name, module, .. } => {
+                    if let Some(m) = index(module) {
+                        layout.firmware.push((name.clone(), m));
+                    }
+                }
             }
         }
         let mut slave_module = BTreeMap::new();

@@ -207,6 +207,24 @@ impl Observer for RerunObserver {
         self.logger.readings(&node.name, secs(now), readings);
         Ok(())
     }
+
+    /// A firmware node's records, through the same path `twin view` reads
+    /// them by (their JSON), so the live view and the file agree.
+    fn firmware(&mut self, node: &str, record: twin_sim::engine::FirmwareRecord<'_>) -> Result<()> {
+        use crate::logger::firmware::{FirmwareIo, UartBurst};
+        use twin_sim::engine::FirmwareRecord;
+        match record {
+            FirmwareRecord::Uart(_, burst) => {
+                let b: UartBurst = serde_json::from_value(serde_json::to_value(burst)?)?;
+                self.logger.firmware_uart(node, &b);
+            }
+            FirmwareRecord::Io(at, io) => {
+                let io: FirmwareIo = serde_json::from_value(serde_json::to_value(io)?)?;
+                self.logger.firmware_io(node, secs(at), &io);
+            }
+        }
+        Ok(())
+    }
 }
 
 /// The `.rrd` that `twin view` writes for `recording`: beside it, same stem.

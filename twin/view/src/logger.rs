@@ -17,6 +17,7 @@
 //! | `bus/<bus>/frames` | every frame, as text (a real-time session's links: `bus/<link>/frames`) | frame |
 //! | `realtime/lateness/p99_us`, `max_us` | a real-time session's `/realtime/lateness` | second |
 //! | `events` | every node event | event |
+//! | `<node>/firmware/…` | compiled firmware: its UART, pins, ADC inputs, cycles ([`firmware`]) | burst / 10 ms |
 
 use anyhow::{Context, Result};
 use nodes::firmware::{LightRpm, ea};
@@ -30,6 +31,8 @@ use serde::Deserialize;
 use std::collections::BTreeMap;
 
 use super::layout::{ControllerNetworkRole, ViewLayout};
+
+pub mod firmware;
 use twin_recording::topics::ReadingsSample;
 
 /// The timeline every sample is placed on: simulated seconds.

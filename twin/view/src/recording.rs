@@ -279,6 +279,14 @@ fn feed(logger: &mut RerunLogger, session: Session, m: &Message<'_>, t: f64) -> 
             let r: ReadingsSample = m.json()?;
             logger.readings(node, t, &r);
         }
+        Topic::FirmwareUart(node) => {
+            let b: crate::logger::firmware::UartBurst = m.json()?;
+            logger.firmware_uart(node, &b);
+        }
+        Topic::FirmwareIo(node) => {
+            let io: crate::logger::firmware::FirmwareIo = m.json()?;
+            logger.firmware_io(node, t, &io);
+        }
         // Actuator changes are in the frames that caused them.
         Topic::PlantActuators(_) | Topic::ExperimentStep | Topic::Other(_) => {}
     }
@@ -322,5 +330,107 @@ mod tests {
         assert_eq!(unhex("4"), None);
         assert_eq!(unhex("zz"), None);
         assert_eq!(unhex(""), Some(vec![]));
+    }
+}
+
+#[cfg(test)]
+mod firmware_tests {
+    use super::{layout_of, replay_into};
+    use crate::logger::RerunLogger;
+    use std::collections::BTreeMap;
+    use twin_recording::Recorder;
+    use twin_recording::topics::{self, AdcInput, FirmwareIo, PinEdge, PinState, UartBurst};
+
+    const SCENARIO: &str = r#"
+name = "ev-meb-avr"
+seed = 1
+duration_s = 1.0
+[[module]]
+name = "ev1"
+preset = "vemodule"
+[[bus]]
+name = "rs485"
+baud = 115200
+[[node]]
+kind = "firmware"
+name = "ev1"
+bus = "rs485"
+module = "ev1"
+elf = "ev-controller.elf"
+wiring = "ev-controller"
+"#;
+
+    /// A recording with a firmware node's channels as `twin-avr` writes
+    /// them (the catalogue's own types), shown beside its module.
+    #[test]
+    fn a_firmware_nodes_uart_pins_adc_and_cycles_are_entities_under_its_name() {
+        let dir = std::env::temp_dir().join(format!("twin-view-fw-{}", std::process::id()));
+        let path = dir.join("fw.mcap");
+        let mut rec = Recorder::create(&path).unwrap();
+        let run = BTreeMap::from([
+            ("kind".to_string(), "scenario".to_string()),
+            ("scenario_toml".to_string(), SCENARIO.to_string()),
+        ]);
+        rec.write_metadata(topics::RUN_METADATA, run).unwrap();
+        let burst = UartBurst {
+            dir: "tx",
+            baud: 117_647.0,
+            start_s: 0.3,
+            end_s: 0.3002,
+            len: 2,
+            text: "@0",
+            hex: "4030",
+            cycles: &[4_800_000, 4_801_360],
+        };
+        let uart = topics::firmware_uart("ev1");
+        rec.add_channel(&uart, &burst).unwrap();
+        rec.write(&uart, 0.3, &burst).unwrap();
+        let io = FirmwareIo {
+            cycles: 160_000,
+            pins: &[PinState {
+                pin: "D9",
+                signal: "vel",
+                level: true,
+                duty: 0.25,
+                period_us: 64.0,
+                edges: 312,
+            }],
+            adc: &[AdcInput {
+                pin: "A2",
+                signal: "v1",
+                millivolts: 4070,
+                counts: 833,
+            }],
+            edges: &[PinEdge {
+                cycle: 159_000,
+                pin: "D9",
+                level: true,
+            }],
+        };
+        let io_topic = topics::firmware_io("ev1");
+        rec.add_channel(&io_topic, &io).unwrap();
+        rec.write(&io_topic, 0.01, &io).unwrap();
+        rec.finish().unwrap();
+
+        let layout = layout_of(&path).unwrap();
+        assert_eq!(layout.firmware, [("ev1".to_string(), 0)]);
+        let (stream, _storage) = rerun::RecordingStreamBuilder::new("test").memory().unwrap();
+        let mut logger = RerunLogger::new(stream, layout).unwrap();
+        replay_into(&path, &mut logger).unwrap();
+        for entity in [
+            "ev1/firmware/uart",
+            "ev1/firmware/pins/D9 vel/duty",
+            "ev1/firmware/pins/D9 vel/level",
+            "ev1/firmware/adc/A2 v1",
+            "ev1/firmware/cycles",
+        ] {
+            assert_eq!(
+                logger.samples.get(entity),
+                Some(&1),
+                "{entity}: {:?}",
+                logger.samples
+            );
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }
