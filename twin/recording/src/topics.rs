@@ -3,7 +3,9 @@
 //! Writers name their channels through these functions and readers
 //! recognise them with [`Topic::parse`], so no topic is spelt anywhere else.
 //!
-//! Every channel is JSON (`json` message encoding) with a JSON schema
+//! The plant's samples, the frames, the controllers' readings and the
+//! supervisors' loop reports are protobuf ([`proto_schema`]); every other
+//! channel is JSON (`json` message encoding) with a JSON schema
 //! (`jsonschema`) derived from its first message ([`crate::record::schema_of`])
 //! and named after the topic ([`schema_name`]: `/plant/ev1/sensors` →
 //! `plant.ev1.sensors`). Log time is simulated time (a real-time session's
@@ -18,8 +20,8 @@
 //! | [`bus_frames`] `/bus/<bus>/frames` | a virtual run | every frame sent, at its first byte | [`FrameSample`]: `from` (the sending node), `start_s`, `end_s`, `len`, `text` (printable bytes, else empty), `hex`, `decoded` ([`crate::describe`]; PWM-capture: widths sent and captured per listener, values, pulses lost, values wrong) |
 //! | [`link_frames`] `/link/<link>/frames` | a real-time session (`twin serve`, `twin supervise`) | every frame, both directions | [`FrameSample`], `from` being `twin` or `client N` |
 //! | [`EVENTS`] `/events` | a virtual run, a real-time session | as they happen | [`EventSample`]: `node`, `kind` (`timeout`, `bad_check`, `retry`, `exception`, `dropped`, `fault`, `state`, `log`; a session's `connection`), `detail` |
-//! | [`controller_readings`] `/controller/<node>/readings` | a virtual run, a real-time session (`twin serve`) | beside each plant sample (the scenario's `record_hz`), per EV module controller | [`ReadingsSample`]: what the controller reads, named: `battery_volts` (V1), `bus_volts` (V2), `inverter_amps` (I), `hall_rpm` (RPM_M), `light_rpm` (RPM_L), `flag_dark` (ED0 bit 3), `soc_percent` (SOC), and `meb`, the raw words a master reads by their MEB names (`V2`, `I`, `V1`, `RPM_M`, `RPM_L`, `LDR`, `HALL`, `SOC`, `ERRS`, `STATUS`); its JSON schema describes every field with its unit ([`readings_schema`]) |
-//! | [`master_loop`] `/master/<node>/loop` | a virtual run, a real-time session (`twin supervise`) | every poll cycle of a master | the master's telemetry: set point, measured rpm, error, output, counters (a supervisor: `loops`, one per slave) |
+//! | [`controller_readings`] `/controller/<node>/readings` | a virtual run, a real-time session (`twin serve`) | beside each plant sample (the scenario's `record_hz`), per EV module controller | [`ReadingsSample`]: what the controller reads, named: `battery_volts` (V1), `bus_volts` (V2), `inverter_amps` (I), `hall_rpm` (RPM_M), `light_rpm` (RPM_L), `flag_dark` (ED0 bit 3), `soc_percent` (SOC), and `meb`, the raw words a master reads by their MEB names (`V2`, `I`, `V1`, `RPM_M`, `RPM_L`, `LDR`, `HALL`, `SOC`, `ERRS`, `STATUS`); its schema describes every field with its unit ([`readings_schema`]; in the protobuf descriptor as the fields' comments) |
+//! | [`master_loop`] `/master/<node>/loop` | a virtual run, a real-time session (`twin supervise`) | every poll cycle of a master | [`LoopReport`]: the master's telemetry: set point, measured rpm, error, output, counters (a supervisor: `cycles` and `loops`, one per slave) |
 //! | [`REALTIME_LATENESS`] `/realtime/lateness` | a real-time session | each second (and the file is flushed) | `window` and `total`, each `ticks`, `p50_us`, `p99_us`, `p999_us`, `max_us`, `mean_us`, `overruns`: how late the plant's ticks ran |
 //! | [`EXPERIMENT_STEP`] `/experiment/step` | `twin step` (`twin-lab` `step.rs`) | each sample of the experiment | `set_point`, `wheel_rpm`, `motor_rpm`, `light_rpm` |
 //!
@@ -272,16 +274,164 @@ pub fn described_schema(topic: &str) -> Option<Value> {
 }
 
 /// The protobuf schema of `topic`'s channel, where the catalogue records it
-/// as protobuf: the plant's samples and the frames, most of a recording's
-/// messages. Every other channel is JSON. A bus whose frames do not fit
-/// (PWM-capture: per-listener captures, values that may be missing) stays
-/// JSON too: [`crate::record::Recorder::add_channel`] tries its first frame.
+/// as protobuf: the plant's samples, the frames, the controllers' readings
+/// and the supervisors' loop reports, nearly all of a recording's messages.
+/// Every other channel is JSON. A bus whose frames do not fit (PWM-capture:
+/// per-listener captures, values that may be missing) stays JSON too, as does
+/// a master's loop report other than a supervisor's:
+/// [`crate::record::Recorder::add_channel`] tries the first message.
 pub fn proto_schema(topic: &str) -> Option<crate::proto::Schema> {
     match Topic::parse(topic) {
         Topic::PlantSensors(_) => Some(sensors_proto()),
         Topic::BusFrames(_) | Topic::LinkFrames(_) => Some(frame_proto()),
+        Topic::ControllerReadings(_) => Some(readings_proto()),
+        Topic::MasterLoop(_) => Some(supervisor_loop_proto()),
         _ => None,
     }
+}
+
+/// `twin.ControllerReadings`: [`ReadingsSample`], every field with its
+/// meaning and unit as its comment (as [`readings_schema`] describes them).
+fn readings_proto() -> crate::proto::Schema {
+    use crate::proto::Kind::{Bool, Double, Message, Uint32};
+    let schema = crate::proto::schema(
+        "twin",
+        &[
+            (
+                "ControllerReadings",
+                &[
+                    ("battery_volts", Double, false),
+                    ("bus_volts", Double, false),
+                    ("inverter_amps", Double, false),
+                    ("hall_rpm", Uint32, false),
+                    ("light_rpm", Uint32, false),
+                    ("flag_dark", Bool, false),
+                    ("soc_percent", Double, false),
+                    ("meb", Message(1), false),
+                ],
+            ),
+            (
+                "Meb",
+                &[
+                    ("V2", Uint32, false),
+                    ("I", Uint32, false),
+                    ("V1", Uint32, false),
+                    ("RPM_M", Uint32, false),
+                    ("RPM_L", Uint32, false),
+                    ("LDR", Uint32, false),
+                    ("HALL", Uint32, false),
+                    ("SOC", Uint32, false),
+                    ("ERRS", Uint32, false),
+                    ("STATUS", Uint32, false),
+                ],
+            ),
+        ],
+    );
+    let described = readings_schema();
+    let mut comments = Vec::new();
+    for (message, properties) in [
+        (0, &described["properties"]),
+        (1, &described["properties"]["meb"]["properties"]),
+    ] {
+        if let Some(properties) = properties.as_object() {
+            for (name, field) in properties {
+                if let Some(text) = field["description"].as_str() {
+                    comments.push((message, name.clone(), text.to_string()));
+                }
+            }
+        }
+    }
+    let comments: Vec<(usize, &str, &str)> = comments
+        .iter()
+        .map(|(m, n, t)| (*m, n.as_str(), t.as_str()))
+        .collect();
+    crate::proto::with_comments(schema, &comments)
+}
+
+/// `twin.SupervisorLoop`: [`SupervisorReport`], one `Loop` per slave.
+fn supervisor_loop_proto() -> crate::proto::Schema {
+    use crate::proto::Kind::{Double, Message, Uint, Uint32};
+    crate::proto::schema(
+        "twin",
+        &[
+            (
+                "SupervisorLoop",
+                &[("cycles", Uint, false), ("loops", Message(1), true)],
+            ),
+            (
+                "Loop",
+                &[
+                    ("slave", Uint32, false),
+                    ("set_point_rpm", Double, false),
+                    ("measured_rpm", Double, false),
+                    ("error_rpm", Double, false),
+                    ("output", Uint32, false),
+                    ("integral", Double, false),
+                    ("requests", Uint, false),
+                    ("replies", Uint, false),
+                    ("timeouts", Uint, false),
+                    ("bad_checks", Uint, false),
+                    ("exceptions", Uint, false),
+                    ("retries", Uint, false),
+                    ("lost", Uint, false),
+                ],
+            ),
+        ],
+    )
+}
+
+/// A master's loop report as recorded on [`master_loop`], once per poll
+/// cycle: a supervisor's, typed (written without building a JSON value), or
+/// another master's fields as it gives them.
+#[derive(Debug, Clone, PartialEq)]
+pub enum LoopReport {
+    Supervisor(SupervisorReport),
+    Other(Value),
+}
+
+impl Serialize for LoopReport {
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        match self {
+            LoopReport::Supervisor(report) => report.serialize(serializer),
+            LoopReport::Other(value) => value.serialize(serializer),
+        }
+    }
+}
+
+impl LoopReport {
+    /// The report as the JSON value a recording reads back.
+    pub fn to_value(&self) -> Value {
+        match self {
+            LoopReport::Supervisor(report) => serde_json::to_value(report).unwrap_or(Value::Null),
+            LoopReport::Other(value) => value.clone(),
+        }
+    }
+}
+
+/// A supervisor's poll cycles so far and its loop of every slave it polls.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct SupervisorReport {
+    pub cycles: u64,
+    pub loops: Vec<SlaveLoop>,
+}
+
+/// A supervisor's speed loop of one slave, and that slave's bus counters.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct SlaveLoop {
+    pub slave: u8,
+    pub set_point_rpm: f64,
+    pub measured_rpm: f64,
+    pub error_rpm: f64,
+    /// `VEL`, DAC counts.
+    pub output: u16,
+    pub integral: f64,
+    pub requests: u64,
+    pub replies: u64,
+    pub timeouts: u64,
+    pub bad_checks: u64,
+    pub exceptions: u64,
+    pub retries: u64,
+    pub lost: u64,
 }
 
 /// `twin.PlantSensors`: `plant::Sensors`, field for field.

@@ -48,6 +48,9 @@ pub struct Field {
     pub number: u32,
     pub kind: Kind,
     pub repeated: bool,
+    /// What the field means, with its unit: written as the field's comment
+    /// in the descriptor (empty: none; not read back).
+    pub comment: String,
 }
 
 /// One message type: its full name (`twin.PlantSensors.Shaft`) and fields.
@@ -103,11 +106,27 @@ pub(crate) fn schema(package: &str, messages: &[(&str, &[FieldSpec<'_>])]) -> Sc
                         number: n as u32 + 1,
                         kind: *kind,
                         repeated: *repeated,
+                        comment: String::new(),
                     })
                     .collect(),
             })
             .collect(),
     }
+}
+
+/// `schema` with `comments` (message index, field name, what it means) on
+/// its fields.
+pub(crate) fn with_comments(mut schema: Schema, comments: &[(usize, &str, &str)]) -> Schema {
+    for (message, name, comment) in comments {
+        let field = schema
+            .messages
+            .get_mut(*message)
+            .and_then(|m| m.fields.iter_mut().find(|f| f.name == *name));
+        if let Some(field) = field {
+            field.comment = (*comment).to_string();
+        }
+    }
+    schema
 }
 
 /// Wire types.
