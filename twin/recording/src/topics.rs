@@ -572,4 +572,99 @@ mod tests {
         assert!(!Topic::parse("/plant/ev1/actuators").is_sampled());
         assert_eq!(schema_name("/plant/ev1/sensors"), "plant.ev1.sensors");
     }
+
+    #[test]
+    fn readings_and_a_supervisors_loop_read_back_from_protobuf_as_their_json() {
+        let readings = ReadingsSample {
+            battery_volts: 40.684,
+            bus_volts: 40.683,
+            inverter_amps: 0.104,
+            hall_rpm: 1500,
+            light_rpm: 1498,
+            flag_dark: false,
+            soc_percent: 90.0,
+            meb: MebWords {
+                v2: 3029,
+                rpm_l: 1498,
+                status: 4,
+                ..MebWords::default()
+            },
+        };
+        let slave = SlaveLoop {
+            slave: 1,
+            set_point_rpm: 1500.0,
+            measured_rpm: 1490.5,
+            error_rpm: 9.5,
+            output: 1375,
+            integral: 1374.75,
+            requests: 1239,
+            replies: 1238,
+            timeouts: 1,
+            bad_checks: 0,
+            exceptions: 0,
+            retries: 1,
+            lost: 0,
+        };
+        let report = LoopReport::Supervisor(SupervisorReport {
+            cycles: 1000,
+            loops: vec![slave, SlaveLoop { slave: 2, ..slave }],
+        });
+        let json_of = |v: &dyn erased::Json| v.json();
+        for (topic, value) in [
+            (controller_readings("ev1"), json_of(&readings)),
+            (master_loop("supervisor"), json_of(&report)),
+        ] {
+            let schema = proto_schema(&topic).expect("a protobuf schema");
+            // Twice: the second time through the field names' addresses.
+            for _ in 0..2 {
+                let mut bytes = Vec::new();
+                match Topic::parse(&topic) {
+                    Topic::ControllerReadings(_) => {
+                        crate::proto::encode(&schema, &readings, &mut bytes)
+                    }
+                    _ => crate::proto::encode(&schema, &report, &mut bytes),
+                }
+                .unwrap();
+                assert_eq!(crate::proto::to_value(&schema, &bytes).unwrap(), value);
+                // The same report as a JSON value (a map) gives the same bytes.
+                let mut from_map = Vec::new();
+                crate::proto::encode(&schema, &value, &mut from_map).unwrap();
+                assert_eq!(
+                    crate::proto::to_value(&schema, &from_map).unwrap(),
+                    value,
+                    "{topic}"
+                );
+            }
+        }
+        // Another master's report does not fit a supervisor's: JSON.
+        let other = LoopReport::Other(json!({ "set_point_rpm": 1500.0, "vel": 3 }));
+        let schema = proto_schema(&master_loop("master")).unwrap();
+        assert!(crate::proto::encode(&schema, &other, &mut Vec::new()).is_err());
+        assert_eq!(other.to_value()["vel"], 3);
+        // The readings' descriptor carries every field's meaning.
+        let set = crate::proto::descriptor::descriptor_set(&readings_proto());
+        let text = String::from_utf8_lossy(&set);
+        assert!(text.contains("RPM_L, wheel speed from the photoresistor (rpm)"));
+        assert!(text.contains("FD0, bit 0 battery cut-off"));
+        let read = crate::proto::descriptor::parse(&set, "twin.ControllerReadings").unwrap();
+        let names = |s: &crate::proto::Schema| -> Vec<String> {
+            s.messages
+                .iter()
+                .flat_map(|m| m.fields.iter().map(|f| f.name.clone()))
+                .collect()
+        };
+        assert_eq!(names(&read), names(&readings_proto()));
+    }
+
+    /// Any serialisable value as the JSON value it is.
+    mod erased {
+        pub trait Json {
+            fn json(&self) -> serde_json::Value;
+        }
+        impl<T: serde::Serialize> Json for T {
+            fn json(&self) -> serde_json::Value {
+                serde_json::to_value(self).unwrap()
+            }
+        }
+    }
 }

@@ -301,6 +301,7 @@ fn read_message(mut bytes: &[u8], scope: &str, out: &mut Vec<Read>) -> Option<()
             kind: Kind::Bytes,
             repeated: false,
             comment: String::new(),
+            key: super::KeySeen::default(),
         };
         let mut type_name = String::new();
         let mut known = true;

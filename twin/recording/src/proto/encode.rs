@@ -85,6 +85,23 @@ impl<'a> Fields<'a> {
         Ok(&m.fields[index])
     }
 
+    /// [`Fields::field`] for a struct's field, whose name is static: the
+    /// next field is checked by the name's address first.
+    fn static_field(&mut self, name: &'static str) -> Result<&'a Field, EncodeError> {
+        let schema: &'a Schema = self.schema;
+        let m = &schema.messages[self.message];
+        if let Some(f) = m.fields.get(self.next)
+            && f.key.is(name)
+            && f.name.len() == name.len()
+        {
+            self.next += 1;
+            return Ok(f);
+        }
+        let f = self.field(name)?;
+        f.key.set(name);
+        Ok(f)
+    }
+
     fn end(self) {
         if let Some(start) = self.start {
             close_len(self.out, start);
@@ -101,7 +118,7 @@ impl ser::SerializeStruct for Fields<'_> {
         key: &'static str,
         value: &T,
     ) -> Result<(), EncodeError> {
-        let field = self.field(key)?;
+        let field = self.static_field(key)?;
         value.serialize(Value {
             schema: self.schema,
             field,
