@@ -83,7 +83,13 @@ impl Observer for Memory {
     fn event(&mut self, _: &NodeSlot, _: &NodeEvent) -> anyhow::Result<()> {
         Ok(())
     }
-    fn telemetry(&mut self, at: SimTime, _: &NodeSlot, value: &Value) -> anyhow::Result<()> {
+    fn telemetry(
+        &mut self,
+        at: SimTime,
+        _: &NodeSlot,
+        report: &twin_recording::topics::LoopReport,
+    ) -> anyhow::Result<()> {
+        let value = &report.to_value();
         self.telemetry.push(Telemetry {
             at,
             frames_before: self.frames.len(),

@@ -68,9 +68,10 @@ impl Observer for Capture {
         &mut self,
         now: SimTime,
         node: &NodeSlot,
-        value: &serde_json::Value,
+        report: &twin_recording::topics::LoopReport,
     ) -> Result<()> {
-        self.telemetry.push((now, node.name.clone(), value.clone()));
+        self.telemetry
+            .push((now, node.name.clone(), report.to_value()));
         Ok(())
     }
 }

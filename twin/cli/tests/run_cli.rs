@@ -452,7 +452,8 @@ fn the_default_run_shows_the_light_sensor_following_the_wheel_beside_the_hall_rp
     }
     assert!(tracked > 1000, "{tracked} samples checked");
 
-    // Its schema names and describes every field, for Foxglove.
+    // Its protobuf schema names every field and describes it (the
+    // descriptor's comments), for Foxglove and protoc-made tools.
     let bytes = std::fs::read(&out).unwrap();
     let summary = mcap::Summary::read(&bytes).unwrap().expect("a summary");
     let channel = summary
@@ -461,10 +462,17 @@ fn the_default_run_shows_the_light_sensor_following_the_wheel_beside_the_hall_rp
         .find(|c| c.topic == "/controller/ev1/readings")
         .expect("the readings channel");
     let schema = channel.schema.as_ref().expect("a schema");
-    assert_eq!(schema.encoding, "jsonschema");
-    let schema: serde_json::Value = serde_json::from_slice(&schema.data).unwrap();
-    let light = &schema["properties"]["light_rpm"]["description"];
-    assert!(light.as_str().unwrap().contains("RPM_L"), "{schema}");
+    assert_eq!(schema.encoding, "protobuf");
+    assert_eq!(schema.name, "twin.ControllerReadings");
+    let text = String::from_utf8_lossy(&schema.data);
+    for said in [
+        "light_rpm",
+        "RPM_L, wheel speed from the photoresistor (rpm)",
+        "STATUS",
+        "FD0, bit 0 battery cut-off",
+    ] {
+        assert!(text.contains(said), "{said} not in {text}");
+    }
 
     // `twin export` gives it a CSV of its own, with the named columns.
     let dir = scratch("ev-meb-speeds-csv");

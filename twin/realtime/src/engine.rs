@@ -483,11 +483,11 @@ impl RtEngine {
                 });
             }
             // A master's loop state, once per poll cycle (as in a virtual run).
-            if let Some(value) = device.node.telemetry() {
+            if let Some(report) = device.node.loop_report() {
                 let _ = self.sink.send(SinkMsg::Telemetry {
                     at: t,
                     node: device.name.clone(),
-                    value,
+                    report,
                 });
             }
         }

@@ -21,7 +21,7 @@ use super::lateness::LatenessSummary;
 use super::rotate::{DiskOutcome, Pruned, Recordings};
 use twin_recording::describe::link_frame_fields;
 use twin_recording::disk::DiskNearlyFull;
-use twin_recording::topics::{self, ReadingsSample};
+use twin_recording::topics::{self, LoopReport, ReadingsSample};
 use twin_sim::observe::{LazyChannel, McapObserver, SimRecorder};
 
 /// How often the sink drains its queue (console lines and recording may lag
@@ -59,7 +59,7 @@ pub enum SinkMsg {
     Telemetry {
         at: SimTime,
         node: String,
-        value: Value,
+        report: LoopReport,
     },
     Lateness {
         at: SimTime,
@@ -170,8 +170,8 @@ fn feed(view: &mut dyn LiveView, config: &SinkConfig, message: &SinkMsg) {
         SinkMsg::Event { node, event } => {
             view.event(node, event.at.as_secs_f64(), event.kind, &event.detail);
         }
-        SinkMsg::Telemetry { at, node, value } => {
-            view.master_loop(node, at.as_secs_f64(), value);
+        SinkMsg::Telemetry { at, node, report } => {
+            view.master_loop(node, at.as_secs_f64(), &report.to_value());
         }
         SinkMsg::Lateness { at, window, .. } => {
             view.lateness(at.as_secs_f64(), window.p99_us, window.max_us);
@@ -495,8 +495,8 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
                     None => Ok(()),
                 }
             }
-            SinkMsg::Telemetry { at, node, value } => match &mut observer {
-                Some(o) => o.record_loop(at, &node, &value),
+            SinkMsg::Telemetry { at, node, report } => match &mut observer {
+                Some(o) => o.record_loop(at, &node, &report),
                 None => Ok(()),
             },
             SinkMsg::Lateness { at, window, total } => {

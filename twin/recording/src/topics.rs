@@ -3,7 +3,9 @@
 //! Writers name their channels through these functions and readers
 //! recognise them with [`Topic::parse`], so no topic is spelt anywhere else.
 //!
-//! Every channel is JSON (`json` message encoding) with a JSON schema
+//! The plant's samples, the frames, the controllers' readings and the
+//! supervisors' loop reports are protobuf ([`proto_schema`]); every other
+//! channel is JSON (`json` message encoding) with a JSON schema
 //! (`jsonschema`) derived from its first message ([`crate::record::schema_of`])
 //! and named after the topic ([`schema_name`]: `/plant/ev1/sensors` →
 //! `plant.ev1.sensors`). Log time is simulated time (a real-time session's
@@ -18,8 +20,8 @@
 //! | [`bus_frames`] `/bus/<bus>/frames` | a virtual run | every frame sent, at its first byte | [`FrameSample`]: `from` (the sending node), `start_s`, `end_s`, `len`, `text` (printable bytes, else empty), `hex`, `decoded` ([`crate::describe`]; PWM-capture: widths sent and captured per listener, values, pulses lost, values wrong) |
 //! | [`link_frames`] `/link/<link>/frames` | a real-time session (`twin serve`, `twin supervise`) | every frame, both directions | [`FrameSample`], `from` being `twin` or `client N` |
 //! | [`EVENTS`] `/events` | a virtual run, a real-time session | as they happen | [`EventSample`]: `node`, `kind` (`timeout`, `bad_check`, `retry`, `exception`, `dropped`, `fault`, `state`, `log`; a session's `connection`), `detail` |
-//! | [`controller_readings`] `/controller/<node>/readings` | a virtual run, a real-time session (`twin serve`) | beside each plant sample (the scenario's `record_hz`), per EV module controller | [`ReadingsSample`]: what the controller reads, named: `battery_volts` (V1), `bus_volts` (V2), `inverter_amps` (I), `hall_rpm` (RPM_M), `light_rpm` (RPM_L), `flag_dark` (ED0 bit 3), `soc_percent` (SOC), and `meb`, the raw words a master reads by their MEB names (`V2`, `I`, `V1`, `RPM_M`, `RPM_L`, `LDR`, `HALL`, `SOC`, `ERRS`, `STATUS`); its JSON schema describes every field with its unit ([`readings_schema`]) |
-//! | [`master_loop`] `/master/<node>/loop` | a virtual run, a real-time session (`twin supervise`) | every poll cycle of a master | the master's telemetry: set point, measured rpm, error, output, counters (a supervisor: `loops`, one per slave) |
+//! | [`controller_readings`] `/controller/<node>/readings` | a virtual run, a real-time session (`twin serve`) | beside each plant sample (the scenario's `record_hz`), per EV module controller | [`ReadingsSample`]: what the controller reads, named: `battery_volts` (V1), `bus_volts` (V2), `inverter_amps` (I), `hall_rpm` (RPM_M), `light_rpm` (RPM_L), `flag_dark` (ED0 bit 3), `soc_percent` (SOC), and `meb`, the raw words a master reads by their MEB names (`V2`, `I`, `V1`, `RPM_M`, `RPM_L`, `LDR`, `HALL`, `SOC`, `ERRS`, `STATUS`); its schema describes every field with its unit ([`readings_schema`]; in the protobuf descriptor as the fields' comments) |
+//! | [`master_loop`] `/master/<node>/loop` | a virtual run, a real-time session (`twin supervise`) | every poll cycle of a master | [`LoopReport`]: the master's telemetry: set point, measured rpm, error, output, counters (a supervisor: `cycles` and `loops`, one per slave) |
 //! | [`REALTIME_LATENESS`] `/realtime/lateness` | a real-time session | each second (and the file is flushed) | `window` and `total`, each `ticks`, `p50_us`, `p99_us`, `p999_us`, `max_us`, `mean_us`, `overruns`: how late the plant's ticks ran |
 //! | [`EXPERIMENT_STEP`] `/experiment/step` | `twin step` (`twin-lab` `step.rs`) | each sample of the experiment | `set_point`, `wheel_rpm`, `motor_rpm`, `light_rpm` |
 //! | [`firmware_uart`] `/firmware/<node>/uart` | a virtual run with compiled firmware (`twin-avr`) | each burst of bytes on the firmware's UART, once the line has been quiet for two characters | [`UartBurst`]: `dir` (`rx` to the firmware, `tx` from it), `baud` (the firmware's own, from UBRR0/U2X0), `start_s`, `end_s`, `len`, `text`, `hex`, `cycles` (the CPU cycle each byte started at) |
@@ -306,16 +308,164 @@ pub fn described_schema(topic: &str) -> Option<Value> {
 }
 
 /// The protobuf schema of `topic`'s channel, where the catalogue records it
-/// as protobuf: the plant's samples and the frames, most of a recording's
-/// messages. Every other channel is JSON. A bus whose frames do not fit
-/// (PWM-capture: per-listener captures, values that may be missing) stays
-/// JSON too: [`crate::record::Recorder::add_channel`] tries its first frame.
+/// as protobuf: the plant's samples, the frames, the controllers' readings
+/// and the supervisors' loop reports, nearly all of a recording's messages.
+/// Every other channel is JSON. A bus whose frames do not fit (PWM-capture:
+/// per-listener captures, values that may be missing) stays JSON too, as does
+/// a master's loop report other than a supervisor's:
+/// [`crate::record::Recorder::add_channel`] tries the first message.
 pub fn proto_schema(topic: &str) -> Option<crate::proto::Schema> {
     match Topic::parse(topic) {
         Topic::PlantSensors(_) => Some(sensors_proto()),
         Topic::BusFrames(_) | Topic::LinkFrames(_) => Some(frame_proto()),
+        Topic::ControllerReadings(_) => Some(readings_proto()),
+        Topic::MasterLoop(_) => Some(supervisor_loop_proto()),
         _ => None,
     }
+}
+
+/// `twin.ControllerReadings`: [`ReadingsSample`], every field with its
+/// meaning and unit as its comment (as [`readings_schema`] describes them).
+fn readings_proto() -> crate::proto::Schema {
+    use crate::proto::Kind::{Bool, Double, Message, Uint32};
+    let schema = crate::proto::schema(
+        "twin",
+        &[
+            (
+                "ControllerReadings",
+                &[
+                    ("battery_volts", Double, false),
+                    ("bus_volts", Double, false),
+                    ("inverter_amps", Double, false),
+                    ("hall_rpm", Uint32, false),
+                    ("light_rpm", Uint32, false),
+                    ("flag_dark", Bool, false),
+                    ("soc_percent", Double, false),
+                    ("meb", Message(1), false),
+                ],
+            ),
+            (
+                "Meb",
+                &[
+                    ("V2", Uint32, false),
+                    ("I", Uint32, false),
+                    ("V1", Uint32, false),
+                    ("RPM_M", Uint32, false),
+                    ("RPM_L", Uint32, false),
+                    ("LDR", Uint32, false),
+                    ("HALL", Uint32, false),
+                    ("SOC", Uint32, false),
+                    ("ERRS", Uint32, false),
+                    ("STATUS", Uint32, false),
+                ],
+            ),
+        ],
+    );
+    let described = readings_schema();
+    let mut comments = Vec::new();
+    for (message, properties) in [
+        (0, &described["properties"]),
+        (1, &described["properties"]["meb"]["properties"]),
+    ] {
+        if let Some(properties) = properties.as_object() {
+            for (name, field) in properties {
+                if let Some(text) = field["description"].as_str() {
+                    comments.push((message, name.clone(), text.to_string()));
+                }
+            }
+        }
+    }
+    let comments: Vec<(usize, &str, &str)> = comments
+        .iter()
+        .map(|(m, n, t)| (*m, n.as_str(), t.as_str()))
+        .collect();
+    crate::proto::with_comments(schema, &comments)
+}
+
+/// `twin.SupervisorLoop`: [`SupervisorReport`], one `Loop` per slave.
+fn supervisor_loop_proto() -> crate::proto::Schema {
+    use crate::proto::Kind::{Double, Message, Uint, Uint32};
+    crate::proto::schema(
+        "twin",
+        &[
+            (
+                "SupervisorLoop",
+                &[("cycles", Uint, false), ("loops", Message(1), true)],
+            ),
+            (
+                "Loop",
+                &[
+                    ("slave", Uint32, false),
+                    ("set_point_rpm", Double, false),
+                    ("measured_rpm", Double, false),
+                    ("error_rpm", Double, false),
+                    ("output", Uint32, false),
+                    ("integral", Double, false),
+                    ("requests", Uint, false),
+                    ("replies", Uint, false),
+                    ("timeouts", Uint, false),
+                    ("bad_checks", Uint, false),
+                    ("exceptions", Uint, false),
+                    ("retries", Uint, false),
+                    ("lost", Uint, false),
+                ],
+            ),
+        ],
+    )
+}
+
+/// A master's loop report as recorded on [`master_loop`], once per poll
+/// cycle: a supervisor's, typed (written without building a JSON value), or
+/// another master's fields as it gives them.
+#[derive(Debug, Clone, PartialEq)]
+pub enum LoopReport {
+    Supervisor(SupervisorReport),
+    Other(Value),
+}
+
+impl Serialize for LoopReport {
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        match self {
+            LoopReport::Supervisor(report) => report.serialize(serializer),
+            LoopReport::Other(value) => value.serialize(serializer),
+        }
+    }
+}
+
+impl LoopReport {
+    /// The report as the JSON value a recording reads back.
+    pub fn to_value(&self) -> Value {
+        match self {
+            LoopReport::Supervisor(report) => serde_json::to_value(report).unwrap_or(Value::Null),
+            LoopReport::Other(value) => value.clone(),
+        }
+    }
+}
+
+/// A supervisor's poll cycles so far and its loop of every slave it polls.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct SupervisorReport {
+    pub cycles: u64,
+    pub loops: Vec<SlaveLoop>,
+}
+
+/// A supervisor's speed loop of one slave, and that slave's bus counters.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct SlaveLoop {
+    pub slave: u8,
+    pub set_point_rpm: f64,
+    pub measured_rpm: f64,
+    pub error_rpm: f64,
+    /// `VEL`, DAC counts.
+    pub output: u16,
+    pub integral: f64,
+    pub requests: u64,
+    pub replies: u64,
+    pub timeouts: u64,
+    pub bad_checks: u64,
+    pub exceptions: u64,
+    pub retries: u64,
+    pub lost: u64,
 }
 
 /// `twin.PlantSensors`: `plant::Sensors`, field for field.
@@ -521,5 +671,100 @@ mod tests {
         assert!(Topic::parse("/plant/ev1/sensors").is_sampled());
         assert!(!Topic::parse("/plant/ev1/actuators").is_sampled());
         assert_eq!(schema_name("/plant/ev1/sensors"), "plant.ev1.sensors");
+    }
+
+    #[test]
+    fn readings_and_a_supervisors_loop_read_back_from_protobuf_as_their_json() {
+        let readings = ReadingsSample {
+            battery_volts: 40.684,
+            bus_volts: 40.683,
+            inverter_amps: 0.104,
+            hall_rpm: 1500,
+            light_rpm: 1498,
+            flag_dark: false,
+            soc_percent: 90.0,
+            meb: MebWords {
+                v2: 3029,
+                rpm_l: 1498,
+                status: 4,
+                ..MebWords::default()
+            },
+        };
+        let slave = SlaveLoop {
+            slave: 1,
+            set_point_rpm: 1500.0,
+            measured_rpm: 1490.5,
+            error_rpm: 9.5,
+            output: 1375,
+            integral: 1374.75,
+            requests: 1239,
+            replies: 1238,
+            timeouts: 1,
+            bad_checks: 0,
+            exceptions: 0,
+            retries: 1,
+            lost: 0,
+        };
+        let report = LoopReport::Supervisor(SupervisorReport {
+            cycles: 1000,
+            loops: vec![slave, SlaveLoop { slave: 2, ..slave }],
+        });
+        let json_of = |v: &dyn erased::Json| v.json();
+        for (topic, value) in [
+            (controller_readings("ev1"), json_of(&readings)),
+            (master_loop("supervisor"), json_of(&report)),
+        ] {
+            let schema = proto_schema(&topic).expect("a protobuf schema");
+            // Twice: the second time through the field names' addresses.
+            for _ in 0..2 {
+                let mut bytes = Vec::new();
+                match Topic::parse(&topic) {
+                    Topic::ControllerReadings(_) => {
+                        crate::proto::encode(&schema, &readings, &mut bytes)
+                    }
+                    _ => crate::proto::encode(&schema, &report, &mut bytes),
+                }
+                .unwrap();
+                assert_eq!(crate::proto::to_value(&schema, &bytes).unwrap(), value);
+                // The same report as a JSON value (a map) gives the same bytes.
+                let mut from_map = Vec::new();
+                crate::proto::encode(&schema, &value, &mut from_map).unwrap();
+                assert_eq!(
+                    crate::proto::to_value(&schema, &from_map).unwrap(),
+                    value,
+                    "{topic}"
+                );
+            }
+        }
+        // Another master's report does not fit a supervisor's: JSON.
+        let other = LoopReport::Other(json!({ "set_point_rpm": 1500.0, "vel": 3 }));
+        let schema = proto_schema(&master_loop("master")).unwrap();
+        assert!(crate::proto::encode(&schema, &other, &mut Vec::new()).is_err());
+        assert_eq!(other.to_value()["vel"], 3);
+        // The readings' descriptor carries every field's meaning.
+        let set = crate::proto::descriptor::descriptor_set(&readings_proto());
+        let text = String::from_utf8_lossy(&set);
+        assert!(text.contains("RPM_L, wheel speed from the photoresistor (rpm)"));
+        assert!(text.contains("FD0, bit 0 battery cut-off"));
+        let read = crate::proto::descriptor::parse(&set, "twin.ControllerReadings").unwrap();
+        let names = |s: &crate::proto::Schema| -> Vec<String> {
+            s.messages
+                .iter()
+                .flat_map(|m| m.fields.iter().map(|f| f.name.clone()))
+                .collect()
+        };
+        assert_eq!(names(&read), names(&readings_proto()));
+    }
+
+    /// Any serialisable value as the JSON value it is.
+    mod erased {
+        pub trait Json {
+            fn json(&self) -> serde_json::Value;
+        }
+        impl<T: serde::Serialize> Json for T {
+            fn json(&self) -> serde_json::Value {
+                serde_json::to_value(self).unwrap()
+            }
+        }
     }
 }

@@ -13,7 +13,7 @@ use nodes::link::{BusEvent, Medium, PortId};
 use nodes::node::{Firmware, MAX_FRAME, Node, NodeEvent};
 use nodes::time::{SimDuration, SimTime};
 use plant::{Actuators, EvModule};
-use twin_recording::topics::ReadingsSample;
+use twin_recording::topics::{LoopReport, ReadingsSample};
 
 /// Passes of the loop at one instant after which the engine calls it a stall
 /// (a busy bus with many nodes takes a few dozen).
@@ -30,6 +30,13 @@ pub trait SimNode: Node {
     /// since the last call.
     fn telemetry(&mut self) -> Option<serde_json::Value> {
         None
+    }
+    /// The master's loop report, if changed since the last call: its
+    /// [`SimNode::telemetry`] unless the node gives a typed one (a
+    /// supervisor's, which is recorded without building a JSON value).
+    /// Asked only when an observer keeps it.
+    fn loop_report(&mut self) -> Option<LoopReport> {
+        self.telemetry().map(LoopReport::Other)
     }
     /// Whether the firmware's actuators drive its module (a sensor-only
     /// node, like the Controller_network light sensor, only reads it).
@@ -349,8 +356,13 @@ pub trait Observer {
         bytes: &[u8],
     ) -> Result<()>;
     fn event(&mut self, node: &NodeSlot, event: &NodeEvent) -> Result<()>;
-    fn telemetry(&mut self, now: SimTime, node: &NodeSlot, value: &serde_json::Value)
-    -> Result<()>;
+    /// A master's loop report, once per poll cycle.
+    fn telemetry(&mut self, now: SimTime, node: &NodeSlot, report: &LoopReport) -> Result<()>;
+    /// Whether [`Observer::telemetry`] keeps what it is given: when it does
+    /// not, the masters' reports are not even made.
+    fn wants_loop_reports(&self) -> bool {
+        true
+    }
     /// A firmware node's own records (UART bursts, pins, ADC inputs).
     fn firmware(&mut self, node: &str, record: FirmwareRecord<'_>) -> Result<()> {
         let _ = (node, record);
@@ -380,8 +392,11 @@ impl Observer for DiscardObserver {
     fn event(&mut self, _: &NodeSlot, _: &NodeEvent) -> Result<()> {
         Ok(())
     }
-    fn telemetry(&mut self, _: SimTime, _: &NodeSlot, _: &serde_json::Value) -> Result<()> {
+    fn telemetry(&mut self, _: SimTime, _: &NodeSlot, _: &LoopReport) -> Result<()> {
         Ok(())
+    }
+    fn wants_loop_reports(&self) -> bool {
+        false
     }
 }
 
@@ -777,6 +792,7 @@ impl Engine {
 
     fn drain_node_output(&mut self, observer: &mut dyn Observer) -> Result<()> {
         let t = self.now;
+        let wants_loop_reports = observer.wants_loop_reports();
         for n in 0..self.nodes.len() {
             if !self.nodes[n].stirred {
                 continue;
@@ -784,8 +800,8 @@ impl Engine {
             while let Some(event) = self.nodes[n].node.poll_event() {
                 observer.event(&self.nodes[n], &event)?;
             }
-            if let Some(value) = self.nodes[n].node.telemetry() {
-                observer.telemetry(t, &self.nodes[n], &value)?;
+            if wants_loop_reports && let Some(report) = self.nodes[n].node.loop_report() {
+                observer.telemetry(t, &self.nodes[n], &report)?;
             }
             let slot = &mut self.nodes[n];
             let name = slot.name.as_str();

@@ -20,7 +20,7 @@ use crate::engine::{SimNode, SpeedReadings};
 use crate::scenario::{
     BusSpec, FaultKind, FaultSpec, LightDetectorSpec, NodeSpec, ProtocolSpec, WiringSpec,
 };
-use twin_recording::topics::{MebWords, ReadingsSample};
+use twin_recording::topics::{LoopReport, MebWords, ReadingsSample, SlaveLoop, SupervisorReport};
 
 fn ms(v: f64) -> SimDuration {
     SimDuration::from_secs_f64(v / 1000.0)
@@ -326,22 +326,34 @@ impl SupervisorNode {
         }
     }
 
-    fn loops(&self) -> Value {
-        let loops: Vec<Value> = self
+    fn loops(&self) -> SupervisorReport {
+        let loops = self
             .supervisor
             .slave_ids()
             .filter_map(|id| self.supervisor.loop_state(id).map(|s| (id, s)))
             .map(|(id, s)| {
                 let c = s.counters;
-                json!({
-                    "slave": id, "set_point_rpm": s.set_point_rpm, "measured_rpm": s.measured_rpm,
-                    "error_rpm": s.error_rpm, "output": s.output, "integral": s.integral,
-                    "requests": c.requests, "replies": c.replies, "timeouts": c.timeouts,
-                    "bad_checks": c.bad_checks, "exceptions": c.exceptions, "retries": c.retries, "lost": c.lost,
-                })
+                SlaveLoop {
+                    slave: id,
+                    set_point_rpm: s.set_point_rpm,
+                    measured_rpm: s.measured_rpm,
+                    error_rpm: s.error_rpm,
+                    output: s.output,
+                    integral: s.integral,
+                    requests: c.requests,
+                    replies: c.replies,
+                    timeouts: c.timeouts,
+                    bad_checks: c.bad_checks,
+                    exceptions: c.exceptions,
+                    retries: c.retries,
+                    lost: c.lost,
+                }
             })
             .collect();
-        json!({ "cycles": self.supervisor.cycles(), "loops": loops })
+        SupervisorReport {
+            cycles: self.supervisor.cycles(),
+            loops,
+        }
     }
 }
 
@@ -368,15 +380,18 @@ impl nodes::node::Node for SupervisorNode {
 
 impl SimNode for SupervisorNode {
     fn telemetry(&mut self) -> Option<Value> {
+        self.loop_report().map(|r| r.to_value())
+    }
+    fn loop_report(&mut self) -> Option<LoopReport> {
         let cycles = self.supervisor.cycles();
         if cycles == self.last_cycle {
             return None;
         }
         self.last_cycle = cycles;
-        Some(self.loops())
+        Some(LoopReport::Supervisor(self.loops()))
     }
     fn final_state(&self) -> Option<Value> {
-        Some(self.loops())
+        Some(LoopReport::Supervisor(self.loops()).to_value())
     }
     fn supervisor_mut(&mut self) -> Option<&mut Supervisor> {
         Some(&mut self.supervisor)

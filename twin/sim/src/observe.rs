@@ -20,7 +20,7 @@ use std::collections::{BTreeMap, VecDeque};
 use crate::engine::{BusSlot, FirmwareRecord, ModuleSlot, NodeSlot, Observer};
 use twin_recording::describe::decode_frame;
 use twin_recording::record::{ChannelId, Recorder};
-use twin_recording::topics::{self, ReadingsSample};
+use twin_recording::topics::{self, LoopReport, ReadingsSample};
 
 /// The recording of a run or session. Its plant samples, most of its bytes,
 /// are handed over as values and serialised by the writer (a virtual run's
@@ -192,7 +192,7 @@ impl McapObserver {
     }
 
     /// A master's loop report, on `/master/<node>/loop`.
-    pub fn record_loop(&mut self, now: SimTime, node: &str, report: &Value) -> Result<()> {
+    pub fn record_loop(&mut self, now: SimTime, node: &str, report: &LoopReport) -> Result<()> {
         channel_of(&mut self.loops, node, topics::master_loop).write(
             &mut self.recorder,
             now,
@@ -373,8 +373,8 @@ impl Observer for McapObserver {
         self.record_event(&node.name, event)
     }
 
-    fn telemetry(&mut self, now: SimTime, node: &NodeSlot, value: &Value) -> Result<()> {
-        self.record_loop(now, &node.name, value)
+    fn telemetry(&mut self, now: SimTime, node: &NodeSlot, report: &LoopReport) -> Result<()> {
+        self.record_loop(now, &node.name, report)
     }
 
     fn readings(&mut self, now: SimTime, node: &NodeSlot, readings: &ReadingsSample) -> Result<()> {
@@ -421,9 +421,18 @@ impl<A: Observer, B: Observer> Observer for Tee<A, B> {
         self.second.event(node, event)
     }
 
-    fn telemetry(&mut self, now: SimTime, node: &NodeSlot, value: &Value) -> Result<()> {
-        self.first.telemetry(now, node, value)?;
-        self.second.telemetry(now, node, value)
+    fn telemetry(&mut self, now: SimTime, node: &NodeSlot, report: &LoopReport) -> Result<()> {
+        if self.first.wants_loop_reports() {
+            self.first.telemetry(now, node, report)?;
+        }
+        if self.second.wants_loop_reports() {
+            self.second.telemetry(now, node, report)?;
+        }
+        Ok(())
+    }
+
+    fn wants_loop_reports(&self) -> bool {
+        self.first.wants_loop_reports() || self.second.wants_loop_reports()
     }
 
     fn readings(&mut self, now: SimTime, node: &NodeSlot, readings: &ReadingsSample) -> Result<()> {
@@ -462,8 +471,12 @@ impl<O: Observer + ?Sized> Observer for &mut O {
         (**self).event(node, event)
     }
 
-    fn telemetry(&mut self, now: SimTime, node: &NodeSlot, value: &Value) -> Result<()> {
-        (**self).telemetry(now, node, value)
+    fn telemetry(&mut self, now: SimTime, node: &NodeSlot, report: &LoopReport) -> Result<()> {
+        (**self).telemetry(now, node, report)
+    }
+
+    fn wants_loop_reports(&self) -> bool {
+        (**self).wants_loop_reports()
     }
 
     fn readings(&mut self, now: SimTime, node: &NodeSlot, readings: &ReadingsSample) -> Result<()> {

@@ -192,9 +192,10 @@ impl Observer for RerunObserver {
         &mut self,
         now: SimTime,
         node: &NodeSlot,
-        value: &serde_json::Value,
+        report: &twin_recording::topics::LoopReport,
     ) -> Result<()> {
-        self.logger.master_loop(&node.name, secs(now), value);
+        self.logger
+            .master_loop(&node.name, secs(now), &report.to_value());
         Ok(())
     }
 

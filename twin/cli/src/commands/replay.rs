@@ -165,8 +165,8 @@ pub fn execute(args: &ReplayArgs) -> Result<()> {
         None if written_as_json_before(&recorded, &replayed) => {
             println!(
                 "  every message matches ({} messages); the recording is from a twin that \
-                 wrote every channel as JSON, the replay writes the plant's samples and the \
-                 frames as protobuf, so their bytes differ",
+                 wrote as JSON channels the replay writes as protobuf (the plant's samples, \
+                 the frames, the readings, a supervisor's loop), so their bytes differ",
                 recorded.message_count()
             );
             Ok(())

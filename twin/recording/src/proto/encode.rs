@@ -2,7 +2,8 @@
 //! struct found by name in the schema (the next one first, as the fields come
 //! in the same order every time) and written with its tag. No `Value` and no
 //! allocation: a nested message is written in place and its length put in
-//! front of it after.
+//! front of it after. A map with text keys (a `serde_json::Value` object, as
+//! a master's loop report is) is a message too, its keys the field names.
 
 use serde::Serialize;
 use serde::ser::{self, Impossible};
@@ -61,15 +62,20 @@ struct Fields<'a> {
     next: usize,
     /// Where the message's bytes start, when its length goes in front.
     start: Option<usize>,
+    /// A map's field whose key came and whose value has not yet.
+    pending: Option<&'a Field>,
 }
 
 impl<'a> Fields<'a> {
     fn field(&mut self, name: &str) -> Result<&'a Field, EncodeError> {
         let schema: &'a Schema = self.schema;
         let m = &schema.messages[self.message];
-        let index = match m.fields.get(self.next) {
-            Some(f) if f.name == name => self.next,
-            _ => m
+        // Fields come in the schema's order, some left out (a frame has
+        // only its protocol's): the rest of the message first, then all of it.
+        let later = m.fields.get(self.next..).unwrap_or_default();
+        let index = match later.iter().position(|f| f.name == name) {
+            Some(i) => self.next + i,
+            None => m
                 .fields
                 .iter()
                 .position(|f| f.name == name)
@@ -77,6 +83,23 @@ impl<'a> Fields<'a> {
         };
         self.next = index + 1;
         Ok(&m.fields[index])
+    }
+
+    /// [`Fields::field`] for a struct's field, whose name is static: the
+    /// next field is checked by the name's address first.
+    fn static_field(&mut self, name: &'static str) -> Result<&'a Field, EncodeError> {
+        let schema: &'a Schema = self.schema;
+        let m = &schema.messages[self.message];
+        if let Some(f) = m.fields.get(self.next)
+            && f.key.is(name)
+            && f.name.len() == name.len()
+        {
+            self.next += 1;
+            return Ok(f);
+        }
+        let f = self.field(name)?;
+        f.key.set(name);
+        Ok(f)
     }
 
     fn end(self) {
@@ -95,7 +118,7 @@ impl ser::SerializeStruct for Fields<'_> {
         key: &'static str,
         value: &T,
     ) -> Result<(), EncodeError> {
-        let field = self.field(key)?;
+        let field = self.static_field(key)?;
         value.serialize(Value {
             schema: self.schema,
             field,
@@ -107,6 +130,159 @@ impl ser::SerializeStruct for Fields<'_> {
     fn end(self) -> Result<(), EncodeError> {
         Fields::end(self);
         Ok(())
+    }
+}
+
+impl<'a> ser::SerializeMap for Fields<'a> {
+    type Ok = ();
+    type Error = EncodeError;
+
+    fn serialize_key<T: Serialize + ?Sized>(&mut self, key: &T) -> Result<(), EncodeError> {
+        let field = key.serialize(Key { fields: self })?;
+        self.pending = Some(field);
+        Ok(())
+    }
+
+    fn serialize_value<T: Serialize + ?Sized>(&mut self, value: &T) -> Result<(), EncodeError> {
+        let field = self
+            .pending
+            .take()
+            .ok_or_else(|| EncodeError("a map's value without its key".into()))?;
+        value.serialize(Value {
+            schema: self.schema,
+            field,
+            out: &mut *self.out,
+            in_list: false,
+        })
+    }
+
+    fn end(self) -> Result<(), EncodeError> {
+        Fields::end(self);
+        Ok(())
+    }
+}
+
+/// A map's key: the name of the field it stands for.
+struct Key<'f, 'a> {
+    fields: &'f mut Fields<'a>,
+}
+
+fn not_a_name() -> EncodeError {
+    EncodeError("a map whose keys are not text".into())
+}
+
+/// The key serializer's methods that take what is not text.
+macro_rules! not_names {
+    ($($method:ident($ty:ty)),* $(,)?) => {$(
+        fn $method(self, _: $ty) -> Result<&'a Field, EncodeError> {
+            Err(not_a_name())
+        }
+    )*};
+}
+
+impl<'a> ser::Serializer for Key<'_, 'a> {
+    type Ok = &'a Field;
+    type Error = EncodeError;
+    type SerializeSeq = Impossible<&'a Field, EncodeError>;
+    type SerializeTuple = Impossible<&'a Field, EncodeError>;
+    type SerializeTupleStruct = Impossible<&'a Field, EncodeError>;
+    type SerializeTupleVariant = Impossible<&'a Field, EncodeError>;
+    type SerializeMap = Impossible<&'a Field, EncodeError>;
+    type SerializeStruct = Impossible<&'a Field, EncodeError>;
+    type SerializeStructVariant = Impossible<&'a Field, EncodeError>;
+
+    fn serialize_str(self, v: &str) -> Result<&'a Field, EncodeError> {
+        self.fields.field(v)
+    }
+    fn serialize_unit_variant(
+        self,
+        _: &'static str,
+        _: u32,
+        variant: &'static str,
+    ) -> Result<&'a Field, EncodeError> {
+        self.fields.field(variant)
+    }
+    fn serialize_newtype_struct<T: Serialize + ?Sized>(
+        self,
+        _: &'static str,
+        value: &T,
+    ) -> Result<&'a Field, EncodeError> {
+        value.serialize(self)
+    }
+    not_names!(
+        serialize_bool(bool),
+        serialize_i8(i8),
+        serialize_i16(i16),
+        serialize_i32(i32),
+        serialize_i64(i64),
+        serialize_u8(u8),
+        serialize_u16(u16),
+        serialize_u32(u32),
+        serialize_u64(u64),
+        serialize_f32(f32),
+        serialize_f64(f64),
+        serialize_char(char),
+        serialize_bytes(&[u8]),
+        serialize_unit_struct(&'static str),
+    );
+    fn serialize_none(self) -> Result<&'a Field, EncodeError> {
+        Err(not_a_name())
+    }
+    fn serialize_some<T: Serialize + ?Sized>(self, _: &T) -> Result<&'a Field, EncodeError> {
+        Err(not_a_name())
+    }
+    fn serialize_unit(self) -> Result<&'a Field, EncodeError> {
+        Err(not_a_name())
+    }
+    fn serialize_newtype_variant<T: Serialize + ?Sized>(
+        self,
+        _: &'static str,
+        _: u32,
+        _: &'static str,
+        _: &T,
+    ) -> Result<&'a Field, EncodeError> {
+        Err(not_a_name())
+    }
+    fn serialize_seq(self, _: Option<usize>) -> Result<Self::SerializeSeq, EncodeError> {
+        Err(not_a_name())
+    }
+    fn serialize_tuple(self, _: usize) -> Result<Self::SerializeTuple, EncodeError> {
+        Err(not_a_name())
+    }
+    fn serialize_tuple_struct(
+        self,
+        _: &'static str,
+        _: usize,
+    ) -> Result<Self::SerializeTupleStruct, EncodeError> {
+        Err(not_a_name())
+    }
+    fn serialize_tuple_variant(
+        self,
+        _: &'static str,
+        _: u32,
+        _: &'static str,
+        _: usize,
+    ) -> Result<Self::SerializeTupleVariant, EncodeError> {
+        Err(not_a_name())
+    }
+    fn serialize_map(self, _: Option<usize>) -> Result<Self::SerializeMap, EncodeError> {
+        Err(not_a_name())
+    }
+    fn serialize_struct(
+        self,
+        _: &'static str,
+        _: usize,
+    ) -> Result<Self::SerializeStruct, EncodeError> {
+        Err(not_a_name())
+    }
+    fn serialize_struct_variant(
+        self,
+        _: &'static str,
+        _: u32,
+        _: &'static str,
+        _: usize,
+    ) -> Result<Self::SerializeStructVariant, EncodeError> {
+        Err(not_a_name())
     }
 }
 
@@ -203,7 +379,7 @@ impl<'a> ser::Serializer for Value<'a> {
     type SerializeTuple = List<'a>;
     type SerializeTupleStruct = Impossible<(), EncodeError>;
     type SerializeTupleVariant = Impossible<(), EncodeError>;
-    type SerializeMap = Impossible<(), EncodeError>;
+    type SerializeMap = Fields<'a>;
     type SerializeStruct = Fields<'a>;
     type SerializeStructVariant = Impossible<(), EncodeError>;
 
@@ -323,8 +499,8 @@ impl<'a> ser::Serializer for Value<'a> {
     ) -> Result<Self::SerializeTupleVariant, EncodeError> {
         Err(misfit("a tagged choice", self.field))
     }
-    fn serialize_map(self, _: Option<usize>) -> Result<Self::SerializeMap, EncodeError> {
-        Err(misfit("a map", self.field))
+    fn serialize_map(self, _: Option<usize>) -> Result<Fields<'a>, EncodeError> {
+        self.serialize_struct("", 0)
     }
     fn serialize_struct(self, _: &'static str, _: usize) -> Result<Fields<'a>, EncodeError> {
         let Kind::Message(message) = self.field.kind else {
@@ -341,6 +517,7 @@ impl<'a> ser::Serializer for Value<'a> {
             out: self.out,
             next: 0,
             start: Some(start),
+            pending: None,
         })
     }
     fn serialize_struct_variant(
@@ -406,10 +583,13 @@ impl<'a> ser::Serializer for Root<'a> {
     type SerializeTuple = Impossible<(), EncodeError>;
     type SerializeTupleStruct = Impossible<(), EncodeError>;
     type SerializeTupleVariant = Impossible<(), EncodeError>;
-    type SerializeMap = Impossible<(), EncodeError>;
+    type SerializeMap = Fields<'a>;
     type SerializeStruct = Fields<'a>;
     type SerializeStructVariant = Impossible<(), EncodeError>;
 
+    fn serialize_map(self, _: Option<usize>) -> Result<Fields<'a>, EncodeError> {
+        self.serialize_struct("", 0)
+    }
     fn serialize_struct(self, _: &'static str, _: usize) -> Result<Fields<'a>, EncodeError> {
         if self.schema.messages.is_empty() {
             return Err(EncodeError("the schema has no message type".into()));
@@ -420,6 +600,7 @@ impl<'a> ser::Serializer for Root<'a> {
             out: self.out,
             next: 0,
             start: None,
+            pending: None,
         })
     }
     fn serialize_newtype_struct<T: Serialize + ?Sized>(
@@ -521,9 +702,6 @@ impl<'a> ser::Serializer for Root<'a> {
         _: &'static str,
         _: usize,
     ) -> Result<Self::SerializeTupleVariant, EncodeError> {
-        Err(not_a_message())
-    }
-    fn serialize_map(self, _: Option<usize>) -> Result<Self::SerializeMap, EncodeError> {
         Err(not_a_message())
     }
     fn serialize_struct_variant(

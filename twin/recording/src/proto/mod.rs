@@ -48,7 +48,46 @@ pub struct Field {
     pub number: u32,
     pub kind: Kind,
     pub repeated: bool,
+    /// What the field means, with its unit: written as the field's comment
+    /// in the descriptor (empty: none; not read back).
+    pub comment: String,
+    /// Where the name of the struct field last found to be this one lives
+    /// (a `&'static str` of a serde derive): the encoder's lookup compares
+    /// an address instead of the text.
+    pub key: KeySeen,
 }
+
+/// The address of a `&'static str` field name that matched a [`Field`]:
+/// static text never moves or changes, so the same address and length is
+/// the same name. Shared by the threads that encode with one schema.
+#[derive(Debug, Default)]
+pub struct KeySeen(std::sync::atomic::AtomicUsize);
+
+impl KeySeen {
+    pub(crate) fn is(&self, key: &'static str) -> bool {
+        self.0.load(std::sync::atomic::Ordering::Relaxed) == key.as_ptr() as usize
+    }
+
+    pub(crate) fn set(&self, key: &'static str) {
+        self.0
+            .store(key.as_ptr() as usize, std::sync::atomic::Ordering::Relaxed);
+    }
+}
+
+impl Clone for KeySeen {
+    fn clone(&self) -> Self {
+        Self::default()
+    }
+}
+
+/// A cache, not part of what the field is.
+impl PartialEq for KeySeen {
+    fn eq(&self, _: &Self) -> bool {
+        true
+    }
+}
+
+impl Eq for KeySeen {}
 
 /// One message type: its full name (`twin.PlantSensors.Shaft`) and fields.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -103,11 +142,28 @@ pub(crate) fn schema(package: &str, messages: &[(&str, &[FieldSpec<'_>])]) -> Sc
                         number: n as u32 + 1,
                         kind: *kind,
                         repeated: *repeated,
+                        comment: String::new(),
+                        key: KeySeen::default(),
                     })
                     .collect(),
             })
             .collect(),
     }
+}
+
+/// `schema` with `comments` (message index, field name, what it means) on
+/// its fields.
+pub(crate) fn with_comments(mut schema: Schema, comments: &[(usize, &str, &str)]) -> Schema {
+    for (message, name, comment) in comments {
+        let field = schema
+            .messages
+            .get_mut(*message)
+            .and_then(|m| m.fields.iter_mut().find(|f| f.name == *name));
+        if let Some(field) = field {
+            field.comment = (*comment).to_string();
+        }
+    }
+    schema
 }
 
 /// Wire types.
