@@ -16,9 +16,9 @@ pub mod elf;
 )]
 pub mod ffi;
 pub mod node;
-pub mod stepper;
 pub mod record;
 pub mod replay;
+pub mod stepper;
 pub mod vcd;
 pub mod wiring;
 
