@@ -5,7 +5,6 @@ use anyhow::{Context, Result, bail};
 use nodes::time::SimDuration;
 use plant::PlantParams;
 use std::path::Path;
-use std::sync::atomic::{AtomicBool, Ordering};
 use twin_sim::engine::SimNode;
 use twin_sim::external::FirmwareBuilder;
 use twin_sim::scenario::{BusSpec, NodeSpec};
@@ -86,19 +85,7 @@ impl FirmwareBuilder for AvrBuilder {
     }
 }
 
-static INLINE: AtomicBool = AtomicBool::new(false);
-
-/// Whether firmware nodes built from now on run ahead on threads of their
-/// own (the default) or all on the engine's thread. The run is the same to
-/// the byte either way; one thread is for measuring what the others buy.
-pub fn set_threaded(threaded: bool) {
-    INLINE.store(!threaded, Ordering::Relaxed);
-}
-
-/// See [`set_threaded`].
-pub fn threaded() -> bool {
-    !INLINE.load(Ordering::Relaxed)
-}
+pub use crate::stepper::{set_threaded, threaded};
 
 /// Lets this process's scenarios hold firmware nodes.
 pub fn register() {

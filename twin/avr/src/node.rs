@@ -35,6 +35,11 @@ const FLASH_END: u32 = 0x7FFF;
 const MAX_PENDING_EVENTS: usize = 64;
 /// Pins, ADC inputs and cycles are recorded this often.
 const TELEMETRY_EVERY: SimDuration = SimDuration::from_millis(10);
+/// A sketch that hears this many bytes (a few requests) over
+/// [`SILENT_AFTER`] of its own time and writes nothing is said to be silent:
+/// on the lab's buses every board is polled well within a second.
+const SILENT_BYTES: u32 = 16;
+const SILENT_AFTER: SimDuration = SimDuration::from_secs(1);
 
 /// I/O registers of the ATmega328P (data-space addresses).
 mod reg {
@@ -199,6 +204,11 @@ pub struct AvrNode {
     pub framing_errors_in: u64,
     /// Bytes the firmware sent that the bus's receivers find with one.
     pub framing_errors_out: u64,
+    /// Bytes heard since the sketch last wrote one, the first at
+    /// `silent_since`; `silent_said` once the silence has been reported.
+    heard_since_out: u32,
+    silent_since: SimTime,
+    silent_said: bool,
     /// The recording's UART bursts, pins and ADC inputs.
     log: FirmwareLog,
     vcd: Option<VcdTrace>,
@@ -249,7 +259,7 @@ impl AvrNode {
         }
         let core =
             Core::start(image, mcu, clock_hz).ok_or_else(|| StartError::NoMcu(mcu.into()))?;
-        let core = Stepper::new(core, crate::builder::threaded(), name);
+        let core = Stepper::new(core, crate::stepper::threaded(), name);
         let uart = UartSetting::read(&core, clock_hz);
         let log = crate::record::follow(&wiring, clock_hz);
         let mut node = Self {
@@ -282,6 +292,9 @@ impl AvrNode {
             bytes_out: 0,
             framing_errors_in: 0,
             framing_errors_out: 0,
+            heard_since_out: 0,
+            silent_since: SimTime::ZERO,
+            silent_said: false,
             log,
             vcd: None,
             sha256: crate::record::sha256_hex(&bytes),
@@ -459,7 +472,44 @@ impl AvrNode {
             }
             self.pending_end = self.line_free;
             self.bytes_out += 1;
+            self.heard_since_out = 0;
+            self.silent_said = false;
         }
+    }
+
+    /// A sketch that keeps hearing its bus and never writes (a student's
+    /// sketch with the wrong slave id, a parser that never matches, a
+    /// `Serial.begin` that never ran) is reported once, with where its
+    /// program is, so the master's timeouts have a cause; the node keeps
+    /// running, since a board that is not addressed is silent too.
+    fn note_silence(&mut self, now: SimTime, heard: usize) {
+        if self.heard_since_out == 0 {
+            self.silent_since = now;
+        }
+        let heard = u32::try_from(heard).unwrap_or(u32::MAX);
+        self.heard_since_out = self.heard_since_out.saturating_add(heard);
+        if self.silent_said
+            || self.heard_since_out < SILENT_BYTES
+            || now < self.silent_since + SILENT_AFTER
+        {
+            return;
+        }
+        self.silent_said = true;
+        let at = self.to_time(self.core.cycle());
+        let detail = format!(
+            "firmware {} of `{}` heard {} bytes since {:.6} s and answered none \
+             (it wrote {} bytes in all); it is running, at PC 0x{:04X}, {:.6} s simulated \
+             (cycle {}): a sketch that never answers its bus",
+            self.elf.display(),
+            self.name,
+            self.heard_since_out,
+            self.silent_since.as_secs_f64(),
+            self.bytes_out,
+            self.core.pc(),
+            at.as_secs_f64(),
+            self.core.cycle()
+        );
+        self.push_event(at, "silent", detail);
     }
 
     fn note_baud(&mut self, at: SimTime) {
@@ -638,6 +688,7 @@ impl Node for AvrNode {
             self.core.uart_input(seen);
             self.bytes_in += 1;
         }
+        self.note_silence(now, bytes.len());
     }
 
     fn handle_timeout(&mut self, now: SimTime) {

@@ -11,6 +11,7 @@
 //! instructions to the same cycles, and the recording is the same to the byte.
 
 use std::collections::VecDeque;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 
@@ -20,6 +21,20 @@ use crate::ffi::{Core, State};
 const MAX_QUEUED: usize = 64;
 /// A target this close to the last is not worth a hand-over (25 µs at 16 MHz).
 const MIN_STEP_CYCLES: u64 = 400;
+
+static INLINE: AtomicBool = AtomicBool::new(false);
+
+/// Whether firmware nodes built from now on run ahead on threads of their
+/// own (the default) or all on the engine's thread. The run is the same to
+/// the byte either way; one thread is for measuring what the others buy.
+pub fn set_threaded(threaded: bool) {
+    INLINE.store(!threaded, Ordering::Relaxed);
+}
+
+/// See [`set_threaded`].
+pub fn threaded() -> bool {
+    !INLINE.load(Ordering::Relaxed)
+}
 
 #[derive(Debug, Default)]
 struct Queue {

@@ -316,3 +316,48 @@ fn the_echo_sketch_runs_from_an_intel_hex_file_as_from_its_elf() {
     assert_eq!(String::from_utf8_lossy(&out), String::from_utf8_lossy(text));
     assert_eq!(node.uart().baud.round(), 117_647.0);
 }
+
+#[test]
+fn a_sketch_that_hears_its_bus_and_never_answers_is_reported_with_its_pc() {
+    let mut node = start(&firmware("mute"), SERIAL_ONLY, 115_200);
+    let sensors = Sensors::default();
+    // MEB reads of the inputs, ten a second, as a supervisor polls.
+    let mut t = ms(100);
+    run(&mut node, SimTime::ZERO, t, &sensors, &mut Vec::new());
+    for _ in 0..15 {
+        let end = send(&mut node, t, b"@01EA00*4C\r", 115_200, &sensors);
+        t += SimDuration::from_millis(100);
+        run(&mut node, end, t, &sensors, &mut Vec::new());
+    }
+    let mut silent = Vec::new();
+    while let Some(e) = node.poll_event() {
+        if e.kind == "silent" {
+            silent.push(e.detail);
+        }
+    }
+    println!("{silent:?}");
+    assert_eq!(silent.len(), 1, "reported once: {silent:?}");
+    let said = &silent[0];
+    assert!(said.contains("mute.elf"), "{said}");
+    assert!(said.contains("answered none"), "{said}");
+    assert!(said.contains("at PC 0x"), "{said}");
+    assert!(said.contains("s simulated"), "{said}");
+    // Only a running node is said to be silent: it is not marked dead.
+    assert!(twin_sim::engine::SimNode::failure(&node).is_none());
+}
+
+#[test]
+fn a_sketch_that_answers_is_never_said_to_be_silent() {
+    let mut node = start(&firmware("echo"), SERIAL_ONLY, 115_200);
+    let sensors = Sensors::default();
+    let mut t = ms(100);
+    run(&mut node, SimTime::ZERO, t, &sensors, &mut Vec::new());
+    for _ in 0..15 {
+        let end = send(&mut node, t, b"@01EA00*4C\r", 115_200, &sensors);
+        t += SimDuration::from_millis(100);
+        run(&mut node, end, t, &sensors, &mut Vec::new());
+    }
+    while let Some(e) = node.poll_event() {
+        assert_ne!(e.kind, "silent", "{}", e.detail);
+    }
+}

@@ -36,7 +36,8 @@ pub struct McapObserver {
     pub recorder: SimRecorder,
     pub frames: u64,
     pub events: BTreeMap<String, u64>,
-    /// The last lines the nodes logged (kind `log`), for the summary.
+    /// The last lines the nodes logged (kind `log`), and what firmware that
+    /// never answers its bus was doing (kind `silent`), for the summary.
     pub log_tail: VecDeque<String>,
     /// A frame's hex text, reused from frame to frame.
     hex: String,
@@ -318,7 +319,7 @@ impl McapObserver {
     /// One event a node (or link) noticed.
     pub fn record_event(&mut self, node: &str, event: &NodeEvent) -> Result<()> {
         *self.events.entry(event.kind.to_string()).or_default() += 1;
-        if event.kind == "log" {
+        if event.kind == "log" || event.kind == "silent" {
             if self.log_tail.len() == LOG_TAIL {
                 self.log_tail.pop_front();
             }
