@@ -303,6 +303,18 @@ fn a_sketch_that_never_answers_is_marked_dead_and_the_other_board_goes_on() {
             .any(|e| e.node == "sensor" && e.kind == "trip" && e.detail.contains("marked dead")),
         "{events:?}"
     );
+    // The sketch that ran is in the session's file, whole, as in a run's.
+    let meta = &twin_recording::Recording::read(&recording)
+        .expect("the recording reads")
+        .metadata[&twin_recording::topics::firmware_metadata("sensor")];
+    let elf = std::fs::read(fw.join("mute.elf")).expect("the sketch");
+    assert_eq!(meta["bytes"], elf.len().to_string(), "{meta:?}");
+    let stored = twin_recording::attachment::read(&recording).expect("its attachments");
+    assert_eq!(
+        stored.get(&meta["attachment"]).map(|a| a.data.as_slice()),
+        Some(elf.as_slice()),
+        "the ELF stored whole"
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -21,6 +21,7 @@ use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use twin_recording::disk;
 use twin_recording::topics;
+use twin_sim::engine::FirmwareFile;
 use twin_sim::observe::SimRecorder;
 
 /// Where a session records and when it starts a new file.
@@ -95,6 +96,9 @@ pub struct Recordings {
     kind: &'static str,
     /// The `twin.run` fields every file starts with.
     metadata: BTreeMap<String, String>,
+    /// Compiled firmware the session runs, stored whole in every file (its
+    /// `twin.firmware.<node>` record and the ELF as an attachment).
+    firmware: Vec<FirmwareFile>,
     current: PathBuf,
     /// Session time at which the current file started.
     started: SimTime,
@@ -122,6 +126,18 @@ pub fn resume_free() -> u64 {
 }
 
 impl Recordings {
+    /// Stores the session's compiled firmware in the current file and in
+    /// every file started after it.
+    pub fn keep_firmware(
+        &mut self,
+        files: Vec<FirmwareFile>,
+        current: &mut SimRecorder,
+    ) -> Result<()> {
+        store_firmware(current, &files)?;
+        self.firmware = files;
+        Ok(())
+    }
+
     /// Creates the first file, with its `twin.run` metadata (`kind` and the
     /// twin's version added to `metadata`).
     pub fn start(
@@ -141,6 +157,7 @@ impl Recordings {
                 plan,
                 kind,
                 metadata,
+                firmware: Vec::new(),
                 current: path,
                 started: SimTime::ZERO,
                 part: 1,
@@ -212,7 +229,8 @@ impl Recordings {
             metadata.insert("previous".into(), name.to_string_lossy().into_owned());
         }
         self.finished.push(finished);
-        let recorder = create(&path, metadata)?;
+        let mut recorder = create(&path, metadata)?;
+        store_firmware(&mut recorder, &self.firmware)?;
         self.current = path;
         self.started = now;
         self.part += 1;
@@ -383,6 +401,16 @@ pub enum DiskOutcome {
     /// Waiting for space (having deleted these); the error if a new file
     /// could not be made.
     Paused(Vec<Pruned>, Option<anyhow::Error>),
+}
+
+/// Writes each firmware's record and its bytes into `recorder`.
+fn store_firmware(recorder: &mut SimRecorder, files: &[FirmwareFile]) -> Result<()> {
+    for file in files {
+        let node = file.fields.get("node").map_or("firmware", String::as_str);
+        recorder.write_metadata(&topics::firmware_metadata(node), file.fields.clone())?;
+        recorder.attach(&file.attachment, "application/x-elf", 0.0, file.bytes.clone())?;
+    }
+    Ok(())
 }
 
 /// A new recording at `path` with `metadata` as its `twin.run` record.

@@ -237,7 +237,17 @@ pub fn run<R: Role>(
     let mut metadata = role.metadata()?;
     metadata.insert("command".into(), options.command_line.clone());
     let recording = match &options.record {
-        Some(plan) => Some(Recordings::start(plan.clone(), R::KIND, metadata)?),
+        Some(plan) => {
+            let (mut files, mut recorder) = Recordings::start(plan.clone(), R::KIND, metadata)?;
+            // A sketch's ELF goes into the session's files, as into a run's.
+            let firmware = engine
+                .devices
+                .iter()
+                .filter_map(|d| d.node.firmware_file())
+                .collect();
+            files.keep_firmware(firmware, &mut recorder)?;
+            Some((files, recorder))
+        }
         None => None,
     };
     let modules: Vec<String> = engine.modules.iter().map(|m| m.name.clone()).collect();
