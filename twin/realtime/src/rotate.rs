@@ -408,7 +408,12 @@ fn store_firmware(recorder: &mut SimRecorder, files: &[FirmwareFile]) -> Result<
     for file in files {
         let node = file.fields.get("node").map_or("firmware", String::as_str);
         recorder.write_metadata(&topics::firmware_metadata(node), file.fields.clone())?;
-        recorder.attach(&file.attachment, "application/x-elf", 0.0, file.bytes.clone())?;
+        recorder.attach(
+            &file.attachment,
+            "application/x-elf",
+            0.0,
+            file.bytes.clone(),
+        )?;
     }
     Ok(())
 }
