@@ -129,9 +129,33 @@ impl ViewLayout {
                 | NodeSpec::ControllerNetworkMaster { .. }
                 | NodeSpec::ParallelMaster { .. }
                 | NodeSpec::PwmSlave { .. } => {}
-                NodeSpec::Firmware { name, module, .. } => {
+                NodeSpec::Firmware {
+                    name,
+                    bus,
+                    module,
+                    wiring,
+                    ..
+                } => {
                     if let Some(m) = index(module) {
                         layout.firmware.push((name.clone(), m));
+                        // Our sketches answer as the boards they stand for
+                        // (the EV controller's is MEB slave 1): their
+                        // replies' rpm words go on the module's speed plot.
+                        match wiring.as_str() {
+                            "ev-controller" => {
+                                node_module.insert(name.clone(), m);
+                                bus_slaves.insert((bus.as_str(), 1), m);
+                            }
+                            "motor-nano" => {
+                                controller_network
+                                    .insert(name.clone(), (m, ControllerNetworkRole::Motor));
+                            }
+                            "light-nano" => {
+                                controller_network
+                                    .insert(name.clone(), (m, ControllerNetworkRole::Light));
+                            }
+                            _ => {}
+                        }
                     }
                 }
             }

@@ -414,6 +414,9 @@ wiring = "ev-controller"
 
         let layout = layout_of(&path).unwrap();
         assert_eq!(layout.firmware, [("ev1".to_string(), 0)]);
+        // The sketch stands for the module's controller: its replies' rpm
+        // words are the module's, as the Rust controller's are.
+        assert_eq!(layout.module_of_node("ev1"), Some(0));
         let (stream, _storage) = rerun::RecordingStreamBuilder::new("test").memory().unwrap();
         let mut logger = RerunLogger::new(stream, layout).unwrap();
         replay_into(&path, &mut logger).unwrap();
