@@ -317,18 +317,22 @@ fn the_echo_sketch_runs_from_an_intel_hex_file_as_from_its_elf() {
     assert_eq!(node.uart().baud.round(), 117_647.0);
 }
 
+/// MEB reads of the inputs, ten a second for 1.5 s, as a supervisor polls.
+fn poll_for_a_second_and_a_half(node: &mut AvrNode) {
+    let sensors = Sensors::default();
+    let mut t = ms(100);
+    run(node, SimTime::ZERO, t, &sensors, &mut Vec::new());
+    for _ in 0..15 {
+        let end = send(node, t, b"@01EA00*4C\r", 115_200, &sensors);
+        t += SimDuration::from_millis(100);
+        run(node, end, t, &sensors, &mut Vec::new());
+    }
+}
+
 #[test]
 fn a_sketch_that_hears_its_bus_and_never_answers_is_reported_with_its_pc() {
     let mut node = start(&firmware("mute"), SERIAL_ONLY, 115_200);
-    let sensors = Sensors::default();
-    // MEB reads of the inputs, ten a second, as a supervisor polls.
-    let mut t = ms(100);
-    run(&mut node, SimTime::ZERO, t, &sensors, &mut Vec::new());
-    for _ in 0..15 {
-        let end = send(&mut node, t, b"@01EA00*4C\r", 115_200, &sensors);
-        t += SimDuration::from_millis(100);
-        run(&mut node, end, t, &sensors, &mut Vec::new());
-    }
+    poll_for_a_second_and_a_half(&mut node);
     let mut silent = Vec::new();
     while let Some(e) = node.poll_event() {
         if e.kind == "silent" {
@@ -349,14 +353,7 @@ fn a_sketch_that_hears_its_bus_and_never_answers_is_reported_with_its_pc() {
 #[test]
 fn a_sketch_that_answers_is_never_said_to_be_silent() {
     let mut node = start(&firmware("echo"), SERIAL_ONLY, 115_200);
-    let sensors = Sensors::default();
-    let mut t = ms(100);
-    run(&mut node, SimTime::ZERO, t, &sensors, &mut Vec::new());
-    for _ in 0..15 {
-        let end = send(&mut node, t, b"@01EA00*4C\r", 115_200, &sensors);
-        t += SimDuration::from_millis(100);
-        run(&mut node, end, t, &sensors, &mut Vec::new());
-    }
+    poll_for_a_second_and_a_half(&mut node);
     while let Some(e) = node.poll_event() {
         assert_ne!(e.kind, "silent", "{}", e.detail);
     }
