@@ -61,10 +61,6 @@ pub trait Endpoint: Send {
 #[derive(Debug, Clone)]
 pub struct NodeEndpoint {
     pub devices: Vec<usize>,
-    /// The nodes answer some time after a request's bytes (compiled
-    /// firmware, whose core runs on the engine's ticks): a TCP connection
-    /// then waits for the engine's wake-ups instead of going idle.
-    pub answers_later: bool,
 }
 
 impl Endpoint for NodeEndpoint {
@@ -115,10 +111,6 @@ impl Endpoint for NodeEndpoint {
     /// The engine drains the devices' own events, whatever drives them.
     fn poll_event(&mut self, _devices: &mut [Device]) -> Option<(String, NodeEvent)> {
         None
-    }
-
-    fn answers_later(&self) -> bool {
-        self.answers_later
     }
 }
 

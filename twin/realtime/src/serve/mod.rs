@@ -485,7 +485,6 @@ async fn open_links(
                             if boards.is_empty() {
                                 return Box::new(NodeEndpoint {
                                     devices: vec![motor, light],
-                                    answers_later: false,
                                 });
                             }
                             Box::new(FirmwareEndpoint::new(

@@ -333,7 +333,6 @@ async fn open_links(
         factory: Box::new(|_devices, _peer| {
             Box::new(NodeEndpoint {
                 devices: vec![SUPERVISOR],
-                answers_later: false,
             })
         }),
     });
