@@ -97,6 +97,17 @@ fn send(node: &mut AvrNode, at: SimTime, bytes: &[u8], baud: u32, sensors: &Sens
     t
 }
 
+/// What a freshly started node writes when `request` reaches it at `baud`
+/// 5 ms after power-up, up to `wait_ms` after the request's last byte.
+fn ask(node: &mut AvrNode, request: &[u8], baud: u32, sensors: &Sensors, wait_ms: u64) -> Vec<u8> {
+    let mut out = Vec::new();
+    run(node, SimTime::ZERO, ms(5), sensors, &mut out);
+    let end = send(node, ms(5), request, baud, sensors);
+    let until = end + SimDuration::from_millis(wait_ms);
+    run(node, end, until, sensors, &mut out);
+    out
+}
+
 const SERIAL_ONLY: &str = "[board]\ntick_us = 100\n";
 
 #[test]
@@ -109,16 +120,7 @@ fn the_echo_sketch_answers_every_byte_at_115200_and_at_9600() {
     ] {
         let mut node = start(&elf, SERIAL_ONLY, baud);
         let sensors = Sensors::default();
-        let mut out = Vec::new();
-        run(&mut node, SimTime::ZERO, ms(5), &sensors, &mut out);
-        let end = send(&mut node, ms(5), text, baud, &sensors);
-        run(
-            &mut node,
-            end,
-            end + SimDuration::from_millis(40),
-            &sensors,
-            &mut out,
-        );
+        let out = ask(&mut node, text, baud, &sensors, 40);
         assert_eq!(
             String::from_utf8_lossy(&out),
             String::from_utf8_lossy(text),
@@ -135,16 +137,7 @@ fn a_master_at_another_baud_sees_garbled_bytes() {
     // The sketch runs at 115200; the bus at 9600.
     let mut node = start(&firmware("echo"), SERIAL_ONLY, 9600);
     let sensors = Sensors::default();
-    let mut out = Vec::new();
-    run(&mut node, SimTime::ZERO, ms(5), &sensors, &mut out);
-    let end = send(&mut node, ms(5), b"hello", 9600, &sensors);
-    run(
-        &mut node,
-        end,
-        end + SimDuration::from_millis(40),
-        &sensors,
-        &mut out,
-    );
+    let out = ask(&mut node, b"hello", 9600, &sensors, 40);
     assert_ne!(
         out, b"hello",
         "no byte should survive a 12x baud mismatch intact"
@@ -157,16 +150,7 @@ fn the_adc_sketch_reads_v1_within_one_count_of_the_plant() {
     let mut plant = EvModule::new(&params, 7);
     let sensors = *plant.step(0.001, &plant::Actuators::default());
     let mut node = start(&firmware("adc"), "[analog]\nA2 = \"v1\"\n", 115_200);
-    let mut out = Vec::new();
-    run(&mut node, SimTime::ZERO, ms(5), &sensors, &mut out);
-    let end = send(&mut node, ms(5), b"r", 115_200, &sensors);
-    run(
-        &mut node,
-        end,
-        end + SimDuration::from_millis(20),
-        &sensors,
-        &mut out,
-    );
+    let out = ask(&mut node, b"r", 115_200, &sensors, 20);
     let line = String::from_utf8_lossy(&out).to_string();
     let count: f64 = line
         .trim()
@@ -197,16 +181,7 @@ fn the_ev_sketch_answers_the_meb_slave_vectors() {
         let request = v["request"].as_str().expect("request");
         // A freshly started slave for each, as the vectors say.
         let mut node = start(&firmware("ev-controller"), wiring, 115_200);
-        let mut out = Vec::new();
-        run(&mut node, SimTime::ZERO, ms(5), &sensors, &mut out);
-        let end = send(&mut node, ms(5), request.as_bytes(), 115_200, &sensors);
-        run(
-            &mut node,
-            end,
-            end + SimDuration::from_millis(30),
-            &sensors,
-            &mut out,
-        );
+        let out = ask(&mut node, request.as_bytes(), 115_200, &sensors, 30);
         let reply = String::from_utf8_lossy(&out).to_string();
         let note = v["note"].as_str().unwrap_or("");
         if let Some(shape) = v.get("reply_shape") {
@@ -303,16 +278,7 @@ fn the_echo_sketch_runs_from_an_intel_hex_file_as_from_its_elf() {
     let text = b"@01EA000643*\n";
     let mut node = start(&hex, SERIAL_ONLY, 115_200);
     let sensors = Sensors::default();
-    let mut out = Vec::new();
-    run(&mut node, SimTime::ZERO, ms(5), &sensors, &mut out);
-    let end = send(&mut node, ms(5), text, 115_200, &sensors);
-    run(
-        &mut node,
-        end,
-        end + SimDuration::from_millis(20),
-        &sensors,
-        &mut out,
-    );
+    let out = ask(&mut node, text, 115_200, &sensors, 20);
     assert_eq!(String::from_utf8_lossy(&out), String::from_utf8_lossy(text));
     assert_eq!(node.uart().baud.round(), 117_647.0);
 }
