@@ -239,16 +239,22 @@ impl FirmwareEndpoint {
     }
 
     /// Marks dead the boards whose firmware has run [`WATCHDOG`] past the
-    /// oldest request it has not answered. Looked at as requests come and
-    /// on the link's timers, not on a deadline of its own: the firmware's
-    /// time may lag the wall clock's, and a deadline the firmware has not
-    /// reached yet would only make the engine spin.
+    /// oldest request it has not answered. Looked at once the link has
+    /// taken every reply there was ([`Endpoint::poll_transmit`] finding
+    /// none), not on a deadline of its own: the firmware's time may lag the
+    /// wall clock's, and a deadline the firmware has not reached yet would
+    /// only make the engine spin. A board whose reply is still being
+    /// written (its node waits for the line to go quiet) has answered: after
+    /// a stall of the machine the sketch's loop catches up in one step, and
+    /// the reply it wrote in that step comes out with the watchdog's mark
+    /// already passed.
     fn bite(&mut self, devices: &mut [Device], now: SimTime) {
         for w in &mut self.watches {
             let Some(device) = devices.get_mut(w.device) else {
                 continue;
             };
-            if Self::watchdog_due(w).is_some_and(|due| due <= firmware_time(device, now))
+            if device.node.poll_timeout().is_none()
+                && Self::watchdog_due(w).is_some_and(|due| due <= firmware_time(device, now))
                 && let Some(since) = w.since
             {
                 w.fired = true;
@@ -275,7 +281,6 @@ impl Endpoint for FirmwareEndpoint {
             }
         }
         self.frame(devices, now, bytes);
-        self.bite(devices, now);
     }
 
     fn handle_timeout(&mut self, devices: &mut [Device], now: SimTime) {
@@ -293,7 +298,6 @@ impl Endpoint for FirmwareEndpoint {
         {
             self.next_request(devices, now);
         }
-        self.bite(devices, now);
     }
 
     fn poll_timeout(&self, devices: &[Device]) -> Option<SimTime> {
@@ -310,10 +314,14 @@ impl Endpoint for FirmwareEndpoint {
         now: SimTime,
         buf: &mut [u8],
     ) -> Option<usize> {
-        let (d, len) = self.devices.iter().find_map(|&d| {
+        let Some((d, len)) = self.devices.iter().find_map(|&d| {
             let len = devices.get_mut(d)?.node.poll_transmit(now, buf)?;
             Some((d, len))
-        })?;
+        }) else {
+            // Every reply there was is taken: what is left unanswered is.
+            self.bite(devices, now);
+            return None;
+        };
         if let Some(w) = self.watches.iter_mut().find(|w| w.device == d) {
             w.since = None;
             w.asked = 0;

@@ -41,7 +41,13 @@ static void send_frame(uint8_t id, uint8_t function, uint16_t addr, uint16_t val
 
 // Reads what arrived; answers a whole frame for `id` with a good CRC.
 static void modbus8_poll(uint8_t id, Handler handle) {
-  if (frame_len > 0 && micros() - last_byte_us > SILENCE_US) frame_len = 0;
+  // The quiet that ends a partial frame is timed from the last byte read,
+  // so it only counts while nothing waits in the receive buffer: a loop
+  // busy for longer than 3.5 characters (the light Nano's analogRead and
+  // float maths take 304-324 us once the wheel turns) must not cut a frame
+  // whose rest arrived meanwhile.
+  if (frame_len > 0 && Serial.available() == 0 && micros() - last_byte_us > SILENCE_US)
+    frame_len = 0;
   while (Serial.available() > 0) {
     frame[frame_len++] = (uint8_t)Serial.read();
     last_byte_us = micros();
