@@ -240,7 +240,75 @@ fn the_nano_sketches_answer_a_controller_network_master_over_a_pty() {
     let lights: Vec<i64> = ints(&seen["lights"]).into_iter().flatten().collect();
     assert!(lights.iter().any(|&l| l > 0), "{lights:?}");
     assert!(!rest.contains("marked dead"), "{rest}");
+    firmware_channels_hold_the_session(&dir.join("nanos.mcap"), log);
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The session's recording holds the sketches' own channels, as a virtual
+/// run's does: the motor Nano's pins and cycles every 10 ms, its software
+/// PWM on D9 as Timer1 makes it, the light Nano's A0 as its ADC reads it,
+/// and the bytes each UART sent, the master's replies among them.
+fn firmware_channels_hold_the_session(recording: &Path, log: &[Value]) {
+    const HZ: f64 = 16e6;
+    let (mut io, mut light_adc, mut bursts) = (Vec::new(), Vec::new(), Vec::new());
+    twin_recording::Recording::scan(recording, |m| {
+        match m.topic {
+            "/firmware/motor/io" => io.push((m.time_s(), m.value()?)),
+            "/firmware/sensor/io" => light_adc.push(m.value()?["adc"][0].clone()),
+            "/firmware/motor/uart" | "/firmware/sensor/uart" => bursts.push(m.value()?),
+            _ => {}
+        }
+        Ok(())
+    })
+    .expect("the recording reads");
+    assert!(io.len() > 100, "{} samples of the motor's pins", io.len());
+    let mut last = 0;
+    for (t, sample) in &io {
+        let cycles = sample["cycles"].as_u64().expect("cycles");
+        // The core has run at least to the sample's instant, on and on.
+        assert!(cycles as f64 >= (t * HZ).floor() - 1.0, "{cycles} at {t} s");
+        assert!(cycles > last, "{cycles} after {last}");
+        last = cycles;
+    }
+    // Timer1 toggles D9 every 1600 cycles, 100 steps a period: 10 ms, at
+    // the duty the PI loop sets, never fully on or off.
+    let d9: Vec<&Value> = io
+        .iter()
+        .filter_map(|(_, s)| s["pins"].as_array()?.iter().find(|p| p["pin"] == "D9"))
+        .filter(|p| p["edges"].as_u64().unwrap_or(0) >= 2)
+        .collect();
+    assert!(d9.len() > 50, "D9 switching in {} samples", d9.len());
+    for p in &d9 {
+        assert_eq!(p["signal"], "vel", "{p}");
+        let duty = p["duty"].as_f64().unwrap();
+        assert!(duty > 0.0 && duty < 1.0, "{p}");
+        let period = p["period_us"].as_f64().unwrap();
+        assert!(period == 0.0 || (period - 10_000.0).abs() < 100.0, "{p}");
+    }
+    // The light Nano's A0: the photoresistor's divider, as the 10-bit
+    // converter reads it at AVcc = 5 V.
+    assert!(light_adc.len() > 100, "{}", light_adc.len());
+    for a in &light_adc {
+        assert_eq!(a["pin"], "A0", "{a}");
+        let mv = a["millivolts"].as_u64().unwrap();
+        assert!(mv <= 5000, "{a}");
+        assert_eq!(a["counts"].as_u64().unwrap(), (mv * 1024 / 5000).min(1023));
+    }
+    // Each reply the master read whole left a sketch's UART as one burst,
+    // each byte with the cycle it started at.
+    for t in log.iter().filter(|t| t["problem"].is_null()) {
+        let reply = t["reply"].as_str().unwrap();
+        let burst = bursts
+            .iter()
+            .find(|b| b["dir"] == "tx" && b["hex"] == reply)
+            .unwrap_or_else(|| panic!("no burst {reply}"));
+        let cycles = burst["cycles"].as_array().unwrap();
+        assert_eq!(cycles.len(), 8, "{burst}");
+        assert!(
+            cycles.windows(2).all(|w| w[0].as_u64() < w[1].as_u64()),
+            "{burst}"
+        );
+    }
 }
 
 #[test]

@@ -21,6 +21,7 @@ use std::time::Instant;
 use super::clock::RtClock;
 pub use super::config::{EndpointFactory, LinkConfig, LinkFault};
 pub use super::device::Device;
+use super::firmware_log::FirmwareLog;
 pub use super::forces::Forces;
 pub use super::frame_log::{ConnId, Outgoing};
 pub use super::front::RtCounters;
@@ -82,6 +83,8 @@ pub struct RtEngine {
     /// When the engine next looks for connections past their idle timeout.
     next_idle_check: SimTime,
     sink: Sender<SinkMsg>,
+    /// The sketches' UART bursts and I/O samples on their way to the sink.
+    firmware_log: FirmwareLog,
     lateness: Lateness,
     window: Lateness,
     pub counters: RtCounters,
@@ -115,6 +118,7 @@ impl RtEngine {
             next_second: SimTime::ZERO + SimDuration::from_secs(1),
             next_idle_check: SimTime::ZERO,
             sink,
+            firmware_log: FirmwareLog::default(),
             lateness: Lateness::new(),
             window: Lateness::new(),
             counters: RtCounters::default(),
@@ -473,6 +477,19 @@ impl RtEngine {
                     });
                 }
             }
+        }
+        // The sketches' own channels (UART bursts, pins, ADC inputs,
+        // cycles), as a virtual run records them.
+        for device in &mut self.devices {
+            let log = &mut self.firmware_log;
+            let name = device.name.as_str();
+            let _ = device.node.firmware_records(&mut |record| {
+                log.push(name, record);
+                Ok(())
+            });
+        }
+        if let Some(batch) = self.firmware_log.take() {
+            let _ = self.sink.send(SinkMsg::Firmware(batch));
         }
         // Devices' events (trips, a supervisor's timeouts) whatever drives them.
         for device in &mut self.devices {

@@ -28,6 +28,7 @@ pub mod device;
 pub mod endpoint;
 pub mod engine;
 pub mod firmware_endpoint;
+pub mod firmware_log;
 pub mod forces;
 pub mod frame_log;
 pub mod frames_to;

@@ -16,6 +16,7 @@ use std::sync::mpsc::{Receiver, Sender, TryRecvError, channel};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
+pub use super::firmware_log::FirmwareBatch;
 pub use super::frame_log::{Direction, FrameBatch};
 use super::lateness::LatenessSummary;
 use super::rotate::{DiskOutcome, Pruned, Recordings};
@@ -51,6 +52,9 @@ pub enum SinkMsg {
     },
     /// Bytes on the links: whole frames (tx), chunks as read (rx).
     Frames(FrameBatch),
+    /// Compiled firmware's UART bursts and I/O samples, recorded on
+    /// `/firmware/<node>/uart` and `/firmware/<node>/io`.
+    Firmware(FirmwareBatch),
     Event {
         node: String,
         event: NodeEvent,
@@ -188,6 +192,7 @@ fn feed(view: &mut dyn LiveView, config: &SinkConfig, message: &SinkMsg) {
             &format!("{peer}: {text}"),
         ),
         SinkMsg::Frames(_)
+        | SinkMsg::Firmware(_)
         | SinkMsg::Actuators { .. }
         | SinkMsg::Say(_)
         | SinkMsg::Rotate(_)
@@ -479,6 +484,16 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
                 let taken = frame_sink.take(&config, &batch, &mut out, &mut observer, &mut view);
                 batch.recycle();
                 taken
+            }
+            SinkMsg::Firmware(batch) => {
+                let written = match &mut observer {
+                    Some(o) => batch
+                        .iter()
+                        .try_for_each(|(node, record)| o.record_firmware(node, record)),
+                    None => Ok(()),
+                };
+                batch.recycle();
+                written
             }
             SinkMsg::Event { node, event } => {
                 if config.monitor && event.kind != "log" {
