@@ -226,3 +226,61 @@ fn pymodbus_drives_the_wheel_over_rtu_on_a_pty() {
     let _serve = Serve::start(&["--quiet", "--modbus-rtu", pair.a.to_str().unwrap()]);
     drive_with_pymodbus(&["rtu", pair.b.to_str().unwrap()]);
 }
+
+/// Every frame of four pymodbus masters polling back to back is recorded,
+/// however fast they poll: as many frames on `/link/modbus-tcp/frames` as
+/// requests and replies, and the server says so when it stops.
+#[test]
+fn every_frame_of_pymodbus_masters_polling_back_to_back_is_recorded() {
+    let dir = scratch("pymodbus-flood");
+    let out = dir.join("flood.mcap");
+    let mut serve = Serve::start(&[
+        "--quiet",
+        "--turnaround-ms",
+        "0",
+        "--status-every",
+        "0",
+        "--rate-limit",
+        "0",
+        "--modbus",
+        "tcp://127.0.0.1:0",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let port = serve.port("modbus-tcp").to_string();
+    let flood = run_timeout(
+        Command::new("python3")
+            .arg(script("pymodbus_flood.py"))
+            .args(["127.0.0.1", &port, "4", "3"]),
+        Duration::from_secs(60),
+    );
+    let stderr = String::from_utf8_lossy(&flood.stderr);
+    assert!(flood.status.success(), "pymodbus masters failed: {stderr}");
+    let seen: serde_json::Value =
+        serde_json::from_slice(&flood.stdout).unwrap_or_else(|e| panic!("{e}: {stderr}"));
+    let answered = seen["answered"].as_u64().unwrap();
+    assert!(answered > 100, "the masters were answered: {seen}");
+    assert_eq!(
+        seen["sent"], seen["answered"],
+        "every request answered: {seen} {stderr}"
+    );
+    assert_eq!(seen["errors"], 0, "no Modbus exception: {seen}");
+    serve.terminate();
+    let line = serve.expect_line("frames recorded on the links", Duration::from_secs(5));
+    assert_eq!(
+        line.trim(),
+        format!(
+            "{} frames recorded on the links (requests and replies)",
+            2 * answered
+        ),
+        "{seen}"
+    );
+    let bytes = std::fs::read(&out).expect("recording written");
+    let frames = mcap::MessageStream::new(&bytes)
+        .expect("valid MCAP")
+        .map(|m| m.expect("message"))
+        .filter(|m| m.channel.topic == "/link/modbus-tcp/frames")
+        .count() as u64;
+    assert_eq!(frames, 2 * answered, "{seen}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -445,6 +445,7 @@ fn rate_servers(cli: &Cli, scratch: &std::path::Path) -> Vec<RateServer> {
         dialect,
         command: Box::new(move || myself(&[role])),
         lateness: Vec::new(),
+        recorded: Vec::new(),
         one: Vec::new(),
         many: Vec::new(),
     };
@@ -475,6 +476,7 @@ fn rate_servers(cli: &Cli, scratch: &std::path::Path) -> Vec<RateServer> {
                 dialect: Dialect::ModbusTcp,
                 command: Box::new(move || Ok(setup.command(recording, None))),
                 lateness: Vec::new(),
+                recorded: Vec::new(),
                 one: Vec::new(),
                 many: Vec::new(),
             });

@@ -25,6 +25,9 @@ pub struct RateServer {
     pub command: Box<dyn Fn() -> Result<Command>>,
     /// The plant's tick lateness each of its sessions printed at its end.
     pub lateness: Vec<String>,
+    /// Per recorded session: the frames it said it recorded, and the
+    /// requests its clients sent (each answered or counted bad).
+    pub recorded: Vec<(Option<u64>, u64)>,
     pub one: Vec<Rate>,
     pub many: Vec<Rate>,
 }
@@ -49,7 +52,12 @@ impl RateServer {
             .with_context(|| format!("{what}, {clients} clients"))?;
         self.one.push(one);
         self.many.push(many);
-        let lines = server.stop();
+        // A recording drains its queue before the server exits: give it time.
+        let lines = server.stop_within(STOP_LIMIT);
+        if self.is_twin() && self.recording != "off" {
+            let sent = [one, many].iter().map(|r| r.answered + r.bad_replies).sum();
+            self.recorded.push((frames_recorded(&lines), sent));
+        }
         if self.is_twin() {
             let lateness = lines.iter().find(|l| l.contains("tick lateness"));
             self.lateness.push(
@@ -60,6 +68,20 @@ impl RateServer {
         }
         Ok(())
     }
+}
+
+/// How long a server may take to stop (a recording drains its queue first).
+const STOP_LIMIT: Duration = Duration::from_secs(20);
+
+/// The frame count `twin serve` prints at its end:
+/// `  N frames recorded on the links (requests and replies)`.
+fn frames_recorded(lines: &[String]) -> Option<u64> {
+    lines.iter().find_map(|l| {
+        l.trim()
+            .strip_suffix(" frames recorded on the links (requests and replies)")?
+            .parse()
+            .ok()
+    })
 }
 
 /// Median, lowest and highest of `values` (not empty).
@@ -170,6 +192,67 @@ pub fn goals(servers: &[RateServer]) {
             won(&s.many, &reference.many),
             s.one.len().min(reference.one.len()),
             if ok { "met" } else { "MISSED" }
+        );
+    }
+    recording_goals(servers, reference);
+}
+
+/// What recording every frame costs at many clients, per round: at least
+/// 1.1x tokio-modbus's rate and 0.9x the twin's own rate with recording off,
+/// in every round; and every frame recorded, two per request.
+fn recording_goals(servers: &[RateServer], reference: &RateServer) {
+    let twins = || servers.iter().filter(|s| s.is_twin() && !s.many.is_empty());
+    let Some(off) = twins().find(|s| s.recording == "off") else {
+        return;
+    };
+    for s in twins().filter(|s| s.recording != "off") {
+        let per_round = |base: &RateServer| -> Vec<f64> {
+            s.many
+                .iter()
+                .zip(&base.many)
+                .map(|(t, b)| t.per_second / b.per_second)
+                .collect()
+        };
+        let (vs_tokio, vs_off) = (per_round(reference), per_round(off));
+        let shown = |ratios: &[f64]| {
+            ratios
+                .iter()
+                .map(|r| format!("{r:.2}"))
+                .collect::<Vec<_>>()
+                .join(" ")
+        };
+        let least = |ratios: &[f64]| ratios.iter().copied().fold(f64::INFINITY, f64::min);
+        let ok = least(&vs_tokio) >= 1.1 && least(&vs_off) >= 0.9;
+        println!(
+            "    twin serve, recording {} at many clients, per round: {}x tokio-modbus's rate \
+             (goal >= 1.1), {}x its own rate recording off (goal >= 0.9): {}",
+            s.recording,
+            shown(&vs_tokio),
+            shown(&vs_off),
+            if ok { "met" } else { "MISSED" }
+        );
+        let kept = s
+            .recorded
+            .iter()
+            .filter(|(frames, sent)| *frames == Some(2 * sent))
+            .count();
+        let counts = s
+            .recorded
+            .iter()
+            .map(|(frames, sent)| match frames {
+                Some(f) => format!("{f} of {}", 2 * sent),
+                None => "none printed".into(),
+            })
+            .collect::<Vec<_>>()
+            .join(", ");
+        println!(
+            "    twin serve, recording {}: frames recorded of two per request sent, per session: {counts}: {}",
+            s.recording,
+            if kept == s.recorded.len() {
+                "every frame kept"
+            } else {
+                "FRAMES MISSING"
+            }
         );
     }
 }

@@ -91,6 +91,8 @@ pub struct SessionOutcome {
     pub recording: Option<PathBuf>,
     /// The files finished before it (rotated), oldest first.
     pub earlier_files: Vec<PathBuf>,
+    /// Frames recorded on the links, both directions, over every file.
+    pub frames_recorded: u64,
     /// Samples streamed to the live view (`--view`), if it ran.
     pub view_samples: Option<u64>,
     /// What the live view's viewer did not take, if anything.
@@ -322,6 +324,7 @@ pub fn run<R: Role>(
         stopped_by: summary.stopped_by,
         recording: sunk.recording,
         earlier_files: sunk.earlier_files,
+        frames_recorded: sunk.frames_recorded,
         view_samples: sunk.view_samples,
         view_error: sunk.view_error,
     };

@@ -62,6 +62,10 @@ fn print_session_end(
             path.display(),
             output::Earlier::note(earlier)
         );
+        println!(
+            "  {} frames recorded on the links (requests and replies)",
+            outcome.frames_recorded
+        );
     }
     match (outcome.view_samples, outcome.view_error.as_deref()) {
         (Some(_), Some(e)) => eprintln!("live view: {e}"),

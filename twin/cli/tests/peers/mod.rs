@@ -160,6 +160,19 @@ impl Serve {
         self.stdout.lock().unwrap().clone()
     }
 
+    /// SIGTERM, and waits (up to a minute) for the server to have finished
+    /// its recording and exited; its lines then come with [`Serve::expect_line`].
+    pub fn terminate(&mut self) {
+        let _ = kill_process(Pid::from_child(&self.child), Signal::TERM);
+        let stopped = wait_for(Duration::from_secs(60), Duration::from_millis(20), || {
+            self.child.try_wait().ok().flatten()
+        });
+        assert!(
+            stopped.is_some(),
+            "twin serve did not stop within 60 s of SIGTERM"
+        );
+    }
+
     /// Waits up to `timeout` for a line printed after `ready` that contains
     /// `text`; the line. Fails, showing what was printed, if none comes.
     pub fn expect_line(&self, text: &str, timeout: Duration) -> String {
