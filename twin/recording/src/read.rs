@@ -168,8 +168,11 @@ impl Message<'_> {
             Encoding::Json => serde_json::from_slice(self.data)
                 .with_context(|| format!("message {sequence} on {topic} is not JSON")),
             Encoding::Protobuf(schema) => {
-                let value = proto::to_value(schema, self.data)
+                let mut value = proto::to_value(schema, self.data)
                     .map_err(|e| anyhow!("message {sequence} on {topic} is damaged: {e}"))?;
+                if schema.name() == topics::FRAME_SCHEMA {
+                    topics::complete_frame(&mut value);
+                }
                 T::deserialize(value).with_context(|| {
                     format!("message {sequence} on {topic} lacks a field the twin reads")
                 })

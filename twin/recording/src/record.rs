@@ -173,6 +173,11 @@ impl<D: Deferred> Recorder<D> {
         Ok(channel)
     }
 
+    /// Whether `channel`'s messages are protobuf (else JSON).
+    pub fn is_protobuf(&self, channel: ChannelId) -> bool {
+        self.protos.get(channel.0).is_some_and(Option::is_some)
+    }
+
     /// Whether `topic` has a channel yet.
     pub fn has_channel(&self, topic: &str) -> bool {
         self.topics.contains_key(topic)

@@ -17,7 +17,7 @@
 //! | [`PLANT_SENSORS`] `/plant/sensors` | the open-loop bench (`twin run` without a scenario, `twin-sim` `openloop.rs`) | at its `record_hz` | as above |
 //! | [`plant_actuators`] `/plant/<module>/actuators` | a virtual run, a real-time session | on every change | `plant::Actuators`: `vel_volts`, `enable`, `brake`, `boost`, `discharge`, `reverse`, `charger` |
 //! | [`PLANT_ACTUATORS`] `/plant/actuators` | the open-loop bench | on every change | as above |
-//! | [`bus_frames`] `/bus/<bus>/frames` | a virtual run | every frame sent, at its first byte | [`FrameSample`]: `from` (the sending node), `start_s`, `end_s`, `len`, `text` (printable bytes, else empty), `hex`, `decoded` ([`crate::describe`]; PWM-capture: widths sent and captured per listener, values, pulses lost, values wrong) |
+//! | [`bus_frames`] `/bus/<bus>/frames` | a virtual run | every frame sent, at its first byte | [`FrameSample`]: `from` (the sending node), `start_s`, `end_s`, `len`, `text` (printable bytes, else empty), `hex` (protobuf keeps the bytes once: `text` when printable, else `hex`; [`complete_frame`] gives back both), `decoded` ([`crate::describe`]; PWM-capture: widths sent and captured per listener, values, pulses lost, values wrong) |
 //! | [`link_frames`] `/link/<link>/frames` | a real-time session (`twin serve`, `twin supervise`) | every frame, both directions | [`FrameSample`], `from` being `twin` or `client N` |
 //! | [`EVENTS`] `/events` | a virtual run, a real-time session | as they happen | [`EventSample`]: `node`, `kind` (`timeout`, `bad_check`, `retry`, `exception`, `dropped`, `fault`, `state`, `log`; a session's `connection`), `detail` |
 //! | [`controller_readings`] `/controller/<node>/readings` | a virtual run, a real-time session (`twin serve`) | beside each plant sample (the scenario's `record_hz`), per EV module controller | [`ReadingsSample`]: what the controller reads, named: `battery_volts` (V1), `bus_volts` (V2), `inverter_amps` (I), `hall_rpm` (RPM_M), `light_rpm` (RPM_L), `flag_dark` (ED0 bit 3), `soc_percent` (SOC), and `meb`, the raw words a master reads by their MEB names (`V2`, `I`, `V1`, `RPM_M`, `RPM_L`, `LDR`, `HALL`, `SOC`, `ERRS`, `STATUS`); its schema describes every field with its unit ([`readings_schema`]; in the protobuf descriptor as the fields' comments) |
@@ -532,11 +532,38 @@ fn sensors_proto() -> crate::proto::Schema {
     )
 }
 
+/// The protobuf message type of the frames ([`bus_frames`], [`link_frames`]).
+pub const FRAME_SCHEMA: &str = "twin.Frame";
+
+/// A frame read from a protobuf channel, with both `text` and `hex` as the
+/// JSON recordings (and the protobuf ones before the bytes were kept once)
+/// hold them: the file keeps the bytes once, as `text` when they are
+/// printable (MEB) and as `hex` otherwise.
+pub fn complete_frame(frame: &mut Value) {
+    let Value::Object(fields) = frame else {
+        return;
+    };
+    if !fields.get("hex").is_some_and(Value::is_string) {
+        let text = fields.get("text").and_then(Value::as_str).unwrap_or("");
+        let mut hex = String::with_capacity(2 * text.len());
+        for b in text.bytes() {
+            const DIGITS: &[u8; 16] = b"0123456789abcdef";
+            hex.push(char::from(DIGITS[usize::from(b >> 4)]));
+            hex.push(char::from(DIGITS[usize::from(b & 0x0f)]));
+        }
+        fields.insert("hex".into(), Value::String(hex));
+    }
+    if !fields.get("text").is_some_and(Value::is_string) {
+        fields.insert("text".into(), Value::String(String::new()));
+    }
+}
+
 /// `twin.Frame`: a frame on a bus or link, its `decoded` fields those of
-/// every protocol the describer knows (a frame has its protocol's).
+/// every protocol the describer knows (a frame has its protocol's). The
+/// bytes are there once: `text` or `hex`, as their comments say.
 fn frame_proto() -> crate::proto::Schema {
     use crate::proto::Kind::{Double, Message, String, Uint32};
-    crate::proto::schema(
+    let schema = crate::proto::schema(
         "twin",
         &[
             (
@@ -566,6 +593,29 @@ fn frame_proto() -> crate::proto::Schema {
                     ("transaction", Uint32, false),
                     ("error", String, false),
                 ],
+            ),
+        ],
+    );
+    crate::proto::with_comments(
+        schema,
+        &[
+            (
+                0,
+                "from",
+                "the sending node (a session's link: twin or client N)",
+            ),
+            (0, "start_s", "when the first byte started on the wire (s)"),
+            (0, "end_s", "when the last byte ended (s)"),
+            (0, "len", "bytes in the frame"),
+            (
+                0,
+                "text",
+                "the bytes as text when they are printable ASCII (MEB); absent otherwise",
+            ),
+            (
+                0,
+                "hex",
+                "the bytes, two hex digits each, when they are not printable; absent when text holds them",
             ),
         ],
     )

@@ -108,3 +108,71 @@ fn export_writes_a_sheet_per_channel() {
         Some("0.000000000,master,0103,\"a, \"\"b\"\"\"")
     );
 }
+
+/// A protobuf frame holds its bytes once (`text` for MEB, `hex` for
+/// Modbus); the reader gives back both fields, as the JSON recordings and
+/// the protobuf ones that kept both hold them, and `frames()` the bytes.
+#[test]
+fn frames_kept_once_read_back_with_text_and_hex() {
+    let path = scratch("frames-once.mcap");
+    let mut rec = Recorder::create(&path).unwrap();
+    let bus = topics::bus_frames("rs485");
+    let id = rec
+        .add_channel(
+            &bus,
+            &json!({"from": "", "start_s": 0.0, "end_s": 0.0, "len": 0, "text": "", "hex": ""}),
+        )
+        .unwrap();
+    assert!(rec.is_protobuf(id), "frames are protobuf");
+    let meb = b"@01SD0002000E000120*\n";
+    let rtu = [1u8, 3, 0, 0, 0, 3, 0x05, 0xcb];
+    let frame = |text: Option<&str>, hex: Option<&str>, len: usize| {
+        let mut f = json!({"from": "supervisor", "start_s": 0.5, "end_s": 0.501, "len": len});
+        if let Some(text) = text {
+            f["text"] = json!(text);
+        }
+        if let Some(hex) = hex {
+            f["hex"] = json!(hex);
+        }
+        f
+    };
+    let meb_text = std::str::from_utf8(meb).unwrap();
+    let meb_hex: String = meb.iter().map(|b| format!("{b:02x}")).collect();
+    // Kept once, as the twin writes them now; then both, as before.
+    rec.write(&bus, 0.5, &frame(Some(meb_text), None, meb.len()))
+        .unwrap();
+    rec.write(&bus, 0.6, &frame(None, Some("01030000000305cb"), rtu.len()))
+        .unwrap();
+    rec.write(&bus, 0.7, &frame(Some(meb_text), Some(&meb_hex), meb.len()))
+        .unwrap();
+    rec.write(
+        &bus,
+        0.8,
+        &frame(Some(""), Some("01030000000305cb"), rtu.len()),
+    )
+    .unwrap();
+    rec.finish().unwrap();
+    let recording = Recording::read(&path).unwrap();
+    let frames = recording.frames().unwrap();
+    let bytes: Vec<&[u8]> = frames.iter().map(|f| f.bytes.as_slice()).collect();
+    assert_eq!(bytes, [&meb[..], &rtu, meb, &rtu]);
+    let mut values = Vec::new();
+    Recording::scan(&path, |m| {
+        values.push(m.value()?);
+        Ok(())
+    })
+    .unwrap();
+    for v in &values[..2] {
+        assert!(v["text"].is_string() && v["hex"].is_string(), "{v}");
+    }
+    assert_eq!(values[0]["text"], values[2]["text"]);
+    assert_eq!(values[0]["hex"], values[2]["hex"]);
+    assert_eq!(values[1]["text"], "");
+    assert_eq!(values[1]["hex"], values[3]["hex"]);
+    // Typed, as `twin view` reads a frame.
+    let typed: Vec<topics::FrameSample> = values
+        .iter()
+        .map(|v| serde_json::from_value(v.clone()).unwrap())
+        .collect();
+    assert_eq!(typed[0].hex, meb_hex);
+}

@@ -139,10 +139,22 @@ struct FrameMessage<'a, D> {
     start_s: f64,
     end_s: f64,
     len: usize,
-    /// The bytes as text when they are printable ASCII (MEB), hex otherwise.
-    text: &'a str,
-    hex: &'a str,
+    /// The bytes as text when they are printable ASCII (MEB), else empty;
+    /// left out of a protobuf frame whose bytes are not printable.
+    text: Option<&'a str>,
+    /// The bytes, two lowercase hex digits each; left out of a protobuf
+    /// frame whose `text` holds them.
+    hex: Option<&'a str>,
     decoded: D,
+}
+
+/// `bytes` as two lowercase hex digits each, appended to `hex`.
+fn put_hex(hex: &mut String, bytes: &[u8]) {
+    const DIGITS: &[u8; 16] = b"0123456789abcdef";
+    for b in bytes {
+        hex.push(char::from(DIGITS[usize::from(b >> 4)]));
+        hex.push(char::from(DIGITS[usize::from(b & 0x0f)]));
+    }
 }
 
 impl McapObserver {
@@ -296,24 +308,67 @@ impl McapObserver {
         let text = std::str::from_utf8(bytes).ok().filter(|_| printable);
         let mut hex = std::mem::take(&mut self.hex);
         hex.clear();
-        for b in bytes {
-            const DIGITS: &[u8; 16] = b"0123456789abcdef";
-            hex.push(char::from(DIGITS[usize::from(b >> 4)]));
-            hex.push(char::from(DIGITS[usize::from(b & 0x0f)]));
+        let written = self.write_frame(channel, from, start, end, bytes, text, &mut hex, decoded);
+        self.hex = hex;
+        written
+    }
+
+    /// [`McapObserver::record_frame`] with the text worked out and the hex
+    /// buffer lent. A protobuf channel holds the bytes once, as `text` when
+    /// they are printable (MEB) and as `hex` otherwise (the twin's readers
+    /// give back both: `topics::complete_frame`); a JSON channel (a
+    /// PWM-capture bus's) holds both, as it always did.
+    #[allow(clippy::too_many_arguments)]
+    fn write_frame(
+        &mut self,
+        channel: &mut LazyChannel,
+        from: &str,
+        start: SimTime,
+        end: SimTime,
+        bytes: &[u8],
+        text: Option<&str>,
+        hex: &mut String,
+        decoded: impl Serialize,
+    ) -> Result<()> {
+        let id = match channel.id {
+            Some(id) => id,
+            None => {
+                // The channel is made from a frame with every field.
+                put_hex(hex, bytes);
+                let sample = FrameMessage {
+                    from,
+                    start_s: secs(start),
+                    end_s: secs(end),
+                    len: bytes.len(),
+                    text: Some(text.unwrap_or("")),
+                    hex: Some(hex.as_str()),
+                    decoded: &decoded,
+                };
+                let id = channel.id(&mut self.recorder, &sample)?;
+                hex.clear();
+                id
+            }
+        };
+        let once = self.recorder.is_protobuf(id);
+        let hex_too = !(once && text.is_some());
+        if hex_too {
+            put_hex(hex, bytes);
         }
         let message = FrameMessage {
             from,
             start_s: secs(start),
             end_s: secs(end),
             len: bytes.len(),
-            text: text.unwrap_or(""),
-            hex: &hex,
+            text: if once && text.is_none() {
+                None
+            } else {
+                Some(text.unwrap_or(""))
+            },
+            hex: hex_too.then_some(hex.as_str()),
             decoded,
         };
         self.frames += 1;
-        let written = channel.write(&mut self.recorder, start, &message);
-        self.hex = hex;
-        written
+        self.recorder.write_to(id, start.as_secs_f64(), &message)
     }
 
     /// One event a node (or link) noticed.
@@ -549,8 +604,8 @@ mod tests {
                 start_s: 0.25,
                 end_s: 0.2501,
                 len: bytes.len(),
-                text: "",
-                hex: "00",
+                text: Some(""),
+                hex: Some("00"),
                 decoded: link_frame_fields(protocol, bytes),
             };
             let (back, json) = round_trip("/link/modbus-tcp/frames", &message);
@@ -560,8 +615,8 @@ mod tests {
                 start_s: 0.25,
                 end_s: 0.2501,
                 len: bytes.len(),
-                text: "",
-                hex: "00",
+                text: Some(""),
+                hex: Some("00"),
                 decoded: decode_frame(bytes),
             };
             let (back, json) = round_trip("/bus/rs485/frames", &message);
