@@ -56,13 +56,14 @@ pub fn execute(args: &BenchArgs) -> Result<()> {
     };
     let out = std::env::temp_dir().join(format!("twin-avr-bench-{}.mcap", std::process::id()));
     let mut bare_wall = 0.0;
+    let mut board_wall = vec![0.0; boards.len()];
     let mut twin_wall = vec![0.0; ways.len()];
     let mut cycles = 0u64;
     for _ in 0..args.rounds.max(1) {
         // Every firmware node's core in turn, on one thread, in 1 ms steps
         // as a host loop with an idle UART would, nothing fed, nothing read.
         cycles = 0;
-        for (elf, mcu, clock_hz) in &boards {
+        for (b, (elf, mcu, clock_hz)) in boards.iter().enumerate() {
             let image = twin_avr::ffi::Image::read(std::path::Path::new(elf))
                 .with_context(|| format!("{elf}: simavr cannot read it"))?;
             let mut core = twin_avr::ffi::Core::start(image, mcu, *clock_hz)
@@ -77,7 +78,9 @@ pub fn execute(args: &BenchArgs) -> Result<()> {
                 core.run_until(target);
                 while core.uart_output().is_some() {}
             }
-            bare_wall += started.elapsed().as_secs_f64();
+            let wall = started.elapsed().as_secs_f64();
+            board_wall[b] += wall;
+            bare_wall += wall;
         }
         for (i, (_, threaded)) in ways.iter().enumerate() {
             twin_avr::builder::set_threaded(*threaded);
@@ -106,6 +109,25 @@ pub fn execute(args: &BenchArgs) -> Result<()> {
             total_cycles / wall / 1e6,
             simulated / wall,
             wall
+        );
+    }
+    if boards.len() > 1 {
+        // The most a thread per core can buy: the cores' total over the slowest.
+        let slowest = board_wall.iter().copied().fold(0.0, f64::max);
+        let shares: Vec<String> = boards
+            .iter()
+            .zip(&board_wall)
+            .map(|((elf, _, _), wall)| {
+                let name = std::path::Path::new(elf)
+                    .file_stem()
+                    .map_or_else(|| elf.clone(), |s| s.to_string_lossy().into_owned());
+                format!("{name} {:.0} %", 100.0 * wall / bare_wall)
+            })
+            .collect();
+        println!(
+            "  bare loop's time per core: {}; a core each would be at most {:.2}x faster",
+            shares.join(", "),
+            bare_wall / slowest
         );
     }
     for ((what, _), wall) in ways.iter().zip(&twin_wall) {

@@ -259,7 +259,7 @@ impl AvrNode {
         }
         let core =
             Core::start(image, mcu, clock_hz).ok_or_else(|| StartError::NoMcu(mcu.into()))?;
-        let core = Stepper::new(core, crate::stepper::threaded(), name);
+        let core = Stepper::new(core, crate::stepper::mode(), name);
         let uart = UartSetting::read(&core, clock_hz);
         let log = crate::record::follow(&wiring, clock_hz);
         let mut node = Self {

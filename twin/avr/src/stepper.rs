@@ -11,7 +11,7 @@
 //! instructions to the same cycles, and the recording is the same to the byte.
 
 use std::collections::VecDeque;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU8, AtomicUsize, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 
@@ -21,19 +21,54 @@ use crate::ffi::{Core, State};
 const MAX_QUEUED: usize = 64;
 /// A target this close to the last is not worth a hand-over (25 µs at 16 MHz).
 const MIN_STEP_CYCLES: u64 = 400;
+/// How long the engine spins on a core that is about to reach its target
+/// before it sleeps on the condition variable: waking a sleeping thread costs
+/// tens of microseconds here, about what the core's last stretch takes.
+const SPIN_ROUNDS: u32 = 2_000;
 
-static INLINE: AtomicBool = AtomicBool::new(false);
+/// How firmware cores are run (see [`set_mode`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Mode {
+    /// A core runs ahead on a thread of its own (the default).
+    Threaded,
+    /// A core runs ahead to the same targets, on the engine's thread.
+    OneThread,
+    /// A core never runs ahead: it is run only when the engine hands the
+    /// node an input. The reference the horizons are checked against.
+    NoRunAhead,
+}
+
+static MODE: AtomicU8 = AtomicU8::new(0);
+
+/// How firmware nodes built from now on run their cores. The run is the
+/// same to the byte in every mode; the others are for measuring what the
+/// threads buy and for checking that no core ever ran past an input.
+pub fn set_mode(mode: Mode) {
+    MODE.store(mode as u8, Ordering::Relaxed);
+}
+
+/// See [`set_mode`].
+pub fn mode() -> Mode {
+    match MODE.load(Ordering::Relaxed) {
+        1 => Mode::OneThread,
+        2 => Mode::NoRunAhead,
+        _ => Mode::Threaded,
+    }
+}
 
 /// Whether firmware nodes built from now on run ahead on threads of their
-/// own (the default) or all on the engine's thread. The run is the same to
-/// the byte either way; one thread is for measuring what the others buy.
+/// own (the default) or all on the engine's thread.
 pub fn set_threaded(threaded: bool) {
-    INLINE.store(!threaded, Ordering::Relaxed);
+    set_mode(if threaded {
+        Mode::Threaded
+    } else {
+        Mode::OneThread
+    });
 }
 
 /// See [`set_threaded`].
 pub fn threaded() -> bool {
-    !INLINE.load(Ordering::Relaxed)
+    mode() == Mode::Threaded
 }
 
 #[derive(Debug, Default)]
@@ -50,6 +85,12 @@ struct Shared {
     core: Mutex<Core>,
     queue: Mutex<Queue>,
     changed: Condvar,
+    /// Targets queued and not yet reached, readable without the lock.
+    queued: AtomicUsize,
+    /// Who sleeps on `changed` (set under the queue's lock): a notify is a
+    /// system call, made only when someone is there to wake.
+    worker_asleep: AtomicBool,
+    engine_waits: AtomicBool,
 }
 
 /// A core, stepped inline or by its own thread.
@@ -57,7 +98,7 @@ struct Shared {
 pub struct Stepper {
     shared: Arc<Shared>,
     worker: Option<JoinHandle<()>>,
-    threaded: bool,
+    mode: Mode,
     name: String,
     /// The last target queued.
     ahead: u64,
@@ -69,9 +110,8 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 impl Stepper {
-    /// `threaded`: whether run-ahead targets go to a thread (else they run
-    /// at once, on the caller's).
-    pub fn new(core: Core, threaded: bool, name: &str) -> Self {
+    /// `mode`: where run-ahead targets go (a thread, the caller's, nowhere).
+    pub fn new(core: Core, mode: Mode, name: &str) -> Self {
         Self {
             shared: Arc::new(Shared {
                 core: Mutex::new(core),
@@ -80,9 +120,12 @@ impl Stepper {
                     ..Queue::default()
                 }),
                 changed: Condvar::new(),
+                queued: AtomicUsize::new(0),
+                worker_asleep: AtomicBool::new(false),
+                engine_waits: AtomicBool::new(false),
             }),
             worker: None,
-            threaded,
+            mode,
             name: name.into(),
             ahead: 0,
         }
@@ -90,46 +133,65 @@ impl Stepper {
 
     /// The core, once every queued target is reached.
     fn core(&self) -> MutexGuard<'_, Core> {
-        if self.worker.is_some() {
-            let mut q = lock(&self.shared.queue);
-            while !q.targets.is_empty() {
-                q = self
-                    .shared
-                    .changed
-                    .wait(q)
-                    .unwrap_or_else(std::sync::PoisonError::into_inner);
-            }
+        if self.worker.is_some() && self.shared.queued.load(Ordering::Acquire) > 0 {
+            self.wait_reached();
         }
         lock(&self.shared.core)
+    }
+
+    fn wait_reached(&self) {
+        for _ in 0..SPIN_ROUNDS {
+            if self.shared.queued.load(Ordering::Acquire) == 0 {
+                return;
+            }
+            std::hint::spin_loop();
+        }
+        let mut q = lock(&self.shared.queue);
+        while !q.targets.is_empty() {
+            q = self.sleep(q);
+        }
+    }
+
+    /// The engine's side: sleeps until the thread says something changed.
+    fn sleep<'a>(&'a self, q: MutexGuard<'a, Queue>) -> MutexGuard<'a, Queue> {
+        self.shared.engine_waits.store(true, Ordering::Relaxed);
+        let q = self
+            .shared
+            .changed
+            .wait(q)
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        self.shared.engine_waits.store(false, Ordering::Relaxed);
+        q
     }
 
     /// Runs the core to `target` cycles, after all it was given to reach
     /// before, as soon as it can: on its thread, or here.
     pub fn run_ahead(&mut self, target: u64) {
-        if target < self.ahead + MIN_STEP_CYCLES {
+        if self.mode == Mode::NoRunAhead || target < self.ahead + MIN_STEP_CYCLES {
             return;
         }
         self.ahead = target;
-        if !self.threaded {
+        if self.mode == Mode::OneThread {
             self.core().run_until(target);
             return;
         }
         if self.worker.is_none() && !self.spawn() {
-            self.threaded = false;
+            self.mode = Mode::OneThread;
             self.core().run_until(target);
             return;
         }
         let mut q = lock(&self.shared.queue);
         while q.targets.len() >= MAX_QUEUED {
-            q = self
-                .shared
-                .changed
-                .wait(q)
-                .unwrap_or_else(std::sync::PoisonError::into_inner);
+            q = self.sleep(q);
         }
         q.targets.push_back(target);
+        self.shared.queued.fetch_add(1, Ordering::Release);
+        let wake = self.shared.worker_asleep.load(Ordering::Relaxed);
         drop(q);
-        self.shared.changed.notify_all();
+        // A running thread finds the target when it finishes the one it has.
+        if wake {
+            self.shared.changed.notify_all();
+        }
     }
 
     fn spawn(&mut self) -> bool {
@@ -203,10 +265,12 @@ fn work(shared: &Shared) {
                 if let Some(&t) = q.targets.front() {
                     break t;
                 }
+                shared.worker_asleep.store(true, Ordering::Relaxed);
                 q = shared
                     .changed
                     .wait(q)
                     .unwrap_or_else(std::sync::PoisonError::into_inner);
+                shared.worker_asleep.store(false, Ordering::Relaxed);
             }
         };
         let state = lock(&shared.core).run_until(target);
@@ -215,8 +279,12 @@ fn work(shared: &Shared) {
             q.log = Some(Core::last_log());
         }
         q.targets.pop_front();
+        shared.queued.fetch_sub(1, Ordering::Release);
+        let wake = shared.engine_waits.load(Ordering::Relaxed);
         drop(q);
-        shared.changed.notify_all();
+        if wake {
+            shared.changed.notify_all();
+        }
     }
 }
 

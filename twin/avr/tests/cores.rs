@@ -30,23 +30,55 @@ fn shipped(file: &str, sketches: &[&str], duration_s: f64) -> Scenario {
     s
 }
 
+/// The cycles a firmware node's core ran, from the end-of-run summary.
+fn firmware_cycles(o: &virtual_run::RunOutcome, node: &str) -> u64 {
+    let (_, t) = o
+        .telemetry
+        .iter()
+        .find(|(n, _)| n == node)
+        .unwrap_or_else(|| panic!("node {node} reports"));
+    t["firmware_cycles"].as_u64().unwrap_or(0)
+}
+
 #[test]
 fn two_nanos_on_their_own_threads_record_what_one_thread_records() {
+    use twin_avr::stepper::Mode;
     twin_avr::register();
+    let seconds = 1.5;
     let scenario = shipped(
         "controller-network-avr.toml",
         &["motor-nano", "light-nano"],
-        1.5,
+        seconds,
     );
+    // Threaded twice, then the same split points on one thread, then no
+    // core ever run ahead: a horizon that let the light Nano's core run past
+    // a byte or a tick for it would make the last differ from the others.
+    let modes = [
+        Mode::Threaded,
+        Mode::Threaded,
+        Mode::OneThread,
+        Mode::NoRunAhead,
+    ];
     let mut runs = Vec::new();
-    for (i, threaded) in [true, true, false].into_iter().enumerate() {
-        twin_avr::builder::set_threaded(threaded);
+    for (i, mode) in modes.into_iter().enumerate() {
+        twin_avr::stepper::set_mode(mode);
         let path = out(&format!("cores-{i}.mcap"));
         let outcome = virtual_run::run(&scenario, &path, |_| {}).expect("runs");
         runs.push(std::fs::read(&outcome.recording).expect("recording"));
         let _ = std::fs::remove_file(&outcome.recording);
+        // Every core ends at the run's end, not a horizon past it: 1.5 s
+        // at 16 MHz, to the cycle (the motor Nano's core stops on the
+        // instruction boundary at or after it).
+        let exact = (seconds * 16e6) as u64;
+        for node in ["motor", "sensor"] {
+            let cycles = firmware_cycles(&outcome, node);
+            assert!(
+                (exact..exact + 4).contains(&cycles),
+                "{mode:?}: {node} ran {cycles} cycles in {seconds} s, {exact} expected"
+            );
+        }
     }
-    twin_avr::builder::set_threaded(true);
+    twin_avr::stepper::set_mode(Mode::Threaded);
     assert!(runs[0].len() > 10_000, "{} bytes", runs[0].len());
     assert!(runs[0] == runs[1], "two threaded runs differ");
     assert!(
@@ -54,6 +86,12 @@ fn two_nanos_on_their_own_threads_record_what_one_thread_records() {
         "threaded and one-thread runs differ ({} and {} bytes)",
         runs[0].len(),
         runs[2].len()
+    );
+    assert!(
+        runs[0] == runs[3],
+        "runs with and without cores running ahead differ ({} and {} bytes)",
+        runs[0].len(),
+        runs[3].len()
     );
 }
 

@@ -520,7 +520,7 @@ impl Engine {
         loop {
             self.transmit_all(observer)?;
             self.drain_node_output(observer)?;
-            self.let_firmware_run_ahead();
+            self.let_firmware_run_ahead(end);
             let Some(t) = self.next_event() else { break };
             if t > end {
                 break;
@@ -586,13 +586,15 @@ impl Engine {
     }
 
     /// Hands each node that can compute ahead (compiled firmware) the
-    /// earliest instant anything can reach it: its next loop tick, the
-    /// bus's next byte, or the first byte of a frame one of the ports it
-    /// hears could start from now on. A firmware node hands its bytes to
-    /// the bus when the engine next touches it; any other node only when
-    /// stirred, a turnaround before its first start bit. Computed from the
-    /// engine's state alone, so the split points never depend on threads.
-    fn let_firmware_run_ahead(&mut self) {
+    /// earliest instant anything can reach it, capped at the run's `end`:
+    /// its next loop tick, the bus's next event, or the first byte another
+    /// node it hears could put on the line. A firmware node hands the bus
+    /// its bytes when the engine next touches it (its tick, its timer, a
+    /// byte for it); any other node (a master) sends only when stirred, by
+    /// its own timer or something the bus brings it, and its first byte
+    /// lands a turnaround and a character later. Computed from the engine's
+    /// state alone, so the split points never depend on threads.
+    fn let_firmware_run_ahead(&mut self, end: SimTime) {
         let now = self.now;
         for n in 0..self.nodes.len() {
             let slot = &self.nodes[n];
@@ -606,28 +608,47 @@ impl Engine {
             let Medium::Serial(bus) = &bus_slot.bus else {
                 continue;
             };
-            let mut horizon = tick;
-            if let Some(t) = bus.poll_timeout() {
+            let wiring = bus.config().wiring;
+            let bus_event = bus.poll_timeout();
+            // When a firmware node on this bus is next touched (and may hand
+            // the bus a byte whose wire time has begun).
+            let touched = |o: &NodeSlot| {
+                [o.next_tick, o.node.poll_timeout()]
+                    .into_iter()
+                    .flatten()
+                    .min()
+                    .unwrap_or(now)
+            };
+            let streams = |o: &NodeSlot| o.node.can_run_ahead() || o.node.streams_bytes();
+            let mut horizon = tick.min(end);
+            if let Some(t) = bus_event {
                 horizon = horizon.min(t);
             }
             for (m, other) in self.nodes.iter().enumerate() {
-                if m == n
-                    || other.bus != slot.bus
-                    || !bus.config().wiring.hears(slot.port, other.port)
-                {
+                if m == n || other.bus != slot.bus || !wiring.hears(slot.port, other.port) {
                     continue;
                 }
-                let earliest = if other.node.can_run_ahead() || other.node.streams_bytes() {
-                    [other.next_tick, other.node.poll_timeout()]
+                let earliest = if streams(other) {
+                    touched(other)
+                } else {
+                    // The first instant `other` can be stirred into sending.
+                    let heard = self.nodes.iter().enumerate().filter(|&(k, f)| {
+                        k != m
+                            && f.bus == slot.bus
+                            && streams(f)
+                            && wiring.hears(other.port, f.port)
+                    });
+                    let stirred = [other.next_tick, other.node.poll_timeout(), bus_event]
                         .into_iter()
                         .flatten()
-                        .min()
-                        .unwrap_or(now)
-                } else {
+                        .chain(heard.map(|(_, f)| touched(f)))
+                        .min();
+                    // Nothing can ever stir it: it never sends.
+                    let Some(stirred) = stirred else { continue };
                     let turnaround = bus
                         .port_config(other.port)
                         .map_or(SimDuration::ZERO, |p| p.turnaround);
-                    now + turnaround + bus.char_time()
+                    stirred.max(now) + turnaround + bus.char_time()
                 };
                 horizon = horizon.min(earliest);
             }
