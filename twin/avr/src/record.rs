@@ -328,13 +328,9 @@ fn emit(
     text: &mut String,
     record: &mut dyn FnMut(FirmwareRecord<'_>) -> Result<()>,
 ) -> Result<()> {
-    const DIGITS: &[u8; 16] = b"0123456789abcdef";
     hex.clear();
     text.clear();
-    for &b in &burst.bytes {
-        hex.push(char::from(DIGITS[usize::from(b >> 4)]));
-        hex.push(char::from(DIGITS[usize::from(b & 0x0f)]));
-    }
+    twin_recording::topics::put_hex(hex, &burst.bytes);
     if burst
         .bytes
         .iter()

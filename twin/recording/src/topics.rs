@@ -535,6 +535,16 @@ fn sensors_proto() -> crate::proto::Schema {
 /// The protobuf message type of the frames ([`bus_frames`], [`link_frames`]).
 pub const FRAME_SCHEMA: &str = "twin.Frame";
 
+/// `bytes` as two lowercase hex digits each, appended to `hex`: how a
+/// frame's or a UART burst's `hex` field spells them.
+pub fn put_hex(hex: &mut String, bytes: &[u8]) {
+    const DIGITS: &[u8; 16] = b"0123456789abcdef";
+    for b in bytes {
+        hex.push(char::from(DIGITS[usize::from(b >> 4)]));
+        hex.push(char::from(DIGITS[usize::from(b & 0x0f)]));
+    }
+}
+
 /// A frame read from a protobuf channel, with both `text` and `hex` as the
 /// JSON recordings (and the protobuf ones before the bytes were kept once)
 /// hold them: the file keeps the bytes once, as `text` when they are
@@ -546,11 +556,7 @@ pub fn complete_frame(frame: &mut Value) {
     if !fields.get("hex").is_some_and(Value::is_string) {
         let text = fields.get("text").and_then(Value::as_str).unwrap_or("");
         let mut hex = String::with_capacity(2 * text.len());
-        for b in text.bytes() {
-            const DIGITS: &[u8; 16] = b"0123456789abcdef";
-            hex.push(char::from(DIGITS[usize::from(b >> 4)]));
-            hex.push(char::from(DIGITS[usize::from(b & 0x0f)]));
-        }
+        put_hex(&mut hex, text.as_bytes());
         fields.insert("hex".into(), Value::String(hex));
     }
     if !fields.get("text").is_some_and(Value::is_string) {

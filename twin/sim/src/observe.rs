@@ -20,7 +20,7 @@ use std::collections::{BTreeMap, VecDeque};
 use crate::engine::{BusSlot, FirmwareRecord, ModuleSlot, NodeSlot, Observer};
 use twin_recording::describe::decode_frame;
 use twin_recording::record::{ChannelId, Recorder};
-use twin_recording::topics::{self, LoopReport, ReadingsSample};
+use twin_recording::topics::{self, LoopReport, ReadingsSample, put_hex};
 
 /// The recording of a run or session. Its plant samples, most of its bytes,
 /// are handed over as values and serialised by the writer (a virtual run's
@@ -146,15 +146,6 @@ struct FrameMessage<'a, D> {
     /// frame whose `text` holds them.
     hex: Option<&'a str>,
     decoded: D,
-}
-
-/// `bytes` as two lowercase hex digits each, appended to `hex`.
-fn put_hex(hex: &mut String, bytes: &[u8]) {
-    const DIGITS: &[u8; 16] = b"0123456789abcdef";
-    for b in bytes {
-        hex.push(char::from(DIGITS[usize::from(b >> 4)]));
-        hex.push(char::from(DIGITS[usize::from(b & 0x0f)]));
-    }
 }
 
 impl McapObserver {
