@@ -4,6 +4,7 @@
 //!   records; every writer and reader names topics through it.
 //! - [`record`]: the MCAP writer every run and session records through.
 //! - [`describe`]: the one frame describer (the `decoded` fields of a frame).
+//! - [`typed`]: the busiest messages' protobuf, written by hand.
 //! - [`read`]: the one reader, streamed chunk by chunk ([`Reader`]), and what
 //!   a pass finds ([`Recording`]). On it: named signals as `f64` columns
 //!   ([`signals`]), comparison against a baseline ([`compare`]), the first
@@ -27,6 +28,7 @@ pub mod record;
 pub mod recover;
 pub mod signals;
 pub mod topics;
+pub mod typed;
 mod writer;
 
 pub use read::{Channel, Cut, Encoding, Event, Frame, Item, Message, Reader, Recording};

@@ -20,9 +20,15 @@ use crate::proto;
 
 /// A message type the writer serialises itself: see
 /// [`crate::record::Recorder::write_deferred`].
-pub trait Deferred: Serialize + Send + 'static {}
-
-impl<T: Serialize + Send + 'static> Deferred for T {}
+pub trait Deferred: Serialize + Send + 'static {
+    /// Write the message's protobuf bytes by hand ([`proto::Protobuf`]) for
+    /// a channel of the schema named `schema`; `false` where the type has no
+    /// such writer, and the writer encodes it by the schema instead.
+    fn write_protobuf(&self, schema: &str, out: &mut proto::ProtoOut<'_>) -> bool {
+        let _ = (schema, out);
+        false
+    }
+}
 
 /// No message is deferred: a recorder whose caller serialises everything.
 #[derive(Debug, Clone, Copy)]
@@ -33,6 +39,8 @@ impl Serialize for NoDeferred {
         match *self {}
     }
 }
+
+impl Deferred for NoDeferred {}
 
 /// A threaded writer gets batches of this size: large enough that the
 /// hand-over costs nothing per message.
@@ -190,8 +198,14 @@ impl FileWriter {
                         if let Some(message) = batch.deferred.get(m.end) {
                             match self.protos.get(m.channel) {
                                 Some(Some(schema)) => {
-                                    proto::encode(schema, message, &mut self.json)
-                                        .with_context(cannot_write)?;
+                                    let by_hand = message.write_protobuf(
+                                        schema.name(),
+                                        &mut proto::ProtoOut::new(&mut self.json),
+                                    );
+                                    if !by_hand {
+                                        proto::encode(schema, message, &mut self.json)
+                                            .with_context(cannot_write)?;
+                                    }
                                 }
                                 _ => serde_json::to_writer(Appender(&mut self.json), message)
                                     .with_context(cannot_write)?,

@@ -23,6 +23,9 @@ struct Sample {
     on: bool,
 }
 
+/// Encoded by the writer through serde (it has no protobuf of its own).
+impl twin_recording::record::Deferred for Sample {}
+
 fn sample(i: u32) -> Sample {
     let t = f64::from(i) * 0.001;
     Sample {

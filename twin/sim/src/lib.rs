@@ -16,6 +16,7 @@ pub mod nodes_build;
 pub mod nodes_parallel;
 pub mod observe;
 pub mod openloop;
+mod plant_sample;
 pub mod replay;
 pub mod scenario;
 pub mod scenario_pwm;

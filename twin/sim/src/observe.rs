@@ -19,13 +19,17 @@ use std::collections::{BTreeMap, VecDeque};
 
 use crate::engine::{BusSlot, FirmwareRecord, ModuleSlot, NodeSlot, Observer};
 use twin_recording::describe::decode_frame;
+use twin_recording::proto::Protobuf;
 use twin_recording::record::{ChannelId, Recorder};
 use twin_recording::topics::{self, LoopReport, ReadingsSample, put_hex};
+use twin_recording::typed::{DecodedProtobuf, FrameProto};
+
+pub use crate::plant_sample::PlantSample;
 
 /// The recording of a run or session. Its plant samples, most of its bytes,
 /// are handed over as values and serialised by the writer (a virtual run's
 /// writer thread, off the engine's).
-pub type SimRecorder = Recorder<plant::Sensors>;
+pub type SimRecorder = Recorder<PlantSample>;
 
 /// How many log lines the end-of-run summary shows.
 const LOG_TAIL: usize = 12;
@@ -83,6 +87,17 @@ impl LazyChannel {
         recorder.write_to(id, time.as_secs_f64(), message)
     }
 
+    /// [`LazyChannel::write`] for a message that writes its own protobuf.
+    pub fn write_typed<T: Serialize + Protobuf>(
+        &mut self,
+        recorder: &mut SimRecorder,
+        time: SimTime,
+        message: &T,
+    ) -> Result<()> {
+        let id = self.id(recorder, message)?;
+        recorder.write_typed(id, time.as_secs_f64(), message)
+    }
+
     /// Write a plant sample at `time`, serialised by the writer thread.
     pub fn write_sensors(
         &mut self,
@@ -90,8 +105,9 @@ impl LazyChannel {
         time: SimTime,
         sensors: &plant::Sensors,
     ) -> Result<()> {
-        let id = self.id(recorder, sensors)?;
-        recorder.write_deferred(id, time.as_secs_f64(), *sensors)
+        let sample = PlantSample(*sensors);
+        let id = self.id(recorder, &sample)?;
+        recorder.write_deferred(id, time.as_secs_f64(), sample)
     }
 
     /// The channel's id, made from `sample` on first use.
@@ -132,7 +148,18 @@ struct EventMessage<'a> {
     node: &'a str,
 }
 
-/// One frame on a bus, as recorded.
+/// A frame's own parts, before its fields are written.
+#[derive(Debug, Clone, Copy)]
+struct FrameParts<'a> {
+    from: &'a str,
+    start: SimTime,
+    end: SimTime,
+    bytes: &'a [u8],
+    text: Option<&'a str>,
+}
+
+/// One frame on a bus, as recorded (protobuf frames are written by hand,
+/// [`FrameProto`], in this order).
 #[derive(Debug, Serialize)]
 struct FrameMessage<'a, D> {
     from: &'a str,
@@ -197,11 +224,14 @@ impl McapObserver {
 
     /// A master's loop report, on `/master/<node>/loop`.
     pub fn record_loop(&mut self, now: SimTime, node: &str, report: &LoopReport) -> Result<()> {
-        channel_of(&mut self.loops, node, topics::master_loop).write(
-            &mut self.recorder,
-            now,
-            report,
-        )
+        let channel = channel_of(&mut self.loops, node, topics::master_loop);
+        match report {
+            // The channel is made from the report as a whole: the same fields.
+            LoopReport::Supervisor(typed) if channel.id.is_some() => {
+                channel.write_typed(&mut self.recorder, now, typed)
+            }
+            _ => channel.write(&mut self.recorder, now, report),
+        }
     }
 
     /// A module controller's readings, on `/controller/<node>/readings`.
@@ -211,7 +241,7 @@ impl McapObserver {
         node: &str,
         readings: &ReadingsSample,
     ) -> Result<()> {
-        channel_of(&mut self.readings, node, topics::controller_readings).write(
+        channel_of(&mut self.readings, node, topics::controller_readings).write_typed(
             &mut self.recorder,
             now,
             readings,
@@ -283,14 +313,44 @@ fn secs(t: SimTime) -> f64 {
 impl McapObserver {
     /// One frame on `channel` (`/bus/<bus>/frames`, `/link/<link>/frames`),
     /// sent by `from`, with its decoded fields.
-    pub fn record_frame(
+    pub fn record_frame<D: Serialize + DecodedProtobuf>(
         &mut self,
         channel: &mut LazyChannel,
         from: &str,
         start: SimTime,
         end: SimTime,
         bytes: &[u8],
-        decoded: impl Serialize,
+        decoded: D,
+    ) -> Result<()> {
+        self.record_frame_with(channel, from, start, end, bytes, &decoded, Some(&decoded))
+    }
+
+    /// [`McapObserver::record_frame`] for fields that only serde writes (a
+    /// PWM-capture frame's, on a JSON channel).
+    pub fn record_frame_as_json(
+        &mut self,
+        channel: &mut LazyChannel,
+        from: &str,
+        start: SimTime,
+        end: SimTime,
+        bytes: &[u8],
+        decoded: &impl Serialize,
+    ) -> Result<()> {
+        self.record_frame_with(channel, from, start, end, bytes, decoded, None)
+    }
+
+    /// A frame whose decoded fields are `decoded`, written by hand where
+    /// `by_hand` can and the channel is protobuf.
+    #[allow(clippy::too_many_arguments)]
+    fn record_frame_with(
+        &mut self,
+        channel: &mut LazyChannel,
+        from: &str,
+        start: SimTime,
+        end: SimTime,
+        bytes: &[u8],
+        decoded: &impl Serialize,
+        by_hand: Option<&dyn DecodedProtobuf>,
     ) -> Result<()> {
         let printable = bytes
             .iter()
@@ -299,7 +359,14 @@ impl McapObserver {
         let text = std::str::from_utf8(bytes).ok().filter(|_| printable);
         let mut hex = std::mem::take(&mut self.hex);
         hex.clear();
-        let written = self.write_frame(channel, from, start, end, bytes, text, &mut hex, decoded);
+        let frame = FrameParts {
+            from,
+            start,
+            end,
+            bytes,
+            text,
+        };
+        let written = self.write_frame(channel, &frame, &mut hex, decoded, by_hand);
         self.hex = hex;
         written
     }
@@ -309,18 +376,21 @@ impl McapObserver {
     /// they are printable (MEB) and as `hex` otherwise (the twin's readers
     /// give back both: `topics::complete_frame`); a JSON channel (a
     /// PWM-capture bus's) holds both, as it always did.
-    #[allow(clippy::too_many_arguments)]
     fn write_frame(
         &mut self,
         channel: &mut LazyChannel,
-        from: &str,
-        start: SimTime,
-        end: SimTime,
-        bytes: &[u8],
-        text: Option<&str>,
+        frame: &FrameParts<'_>,
         hex: &mut String,
-        decoded: impl Serialize,
+        decoded: &impl Serialize,
+        by_hand: Option<&dyn DecodedProtobuf>,
     ) -> Result<()> {
+        let FrameParts {
+            from,
+            start,
+            end,
+            bytes,
+            text,
+        } = *frame;
         let id = match channel.id {
             Some(id) => id,
             None => {
@@ -333,7 +403,7 @@ impl McapObserver {
                     len: bytes.len(),
                     text: Some(text.unwrap_or("")),
                     hex: Some(hex.as_str()),
-                    decoded: &decoded,
+                    decoded,
                 };
                 let id = channel.id(&mut self.recorder, &sample)?;
                 hex.clear();
@@ -345,21 +415,41 @@ impl McapObserver {
         if hex_too {
             put_hex(hex, bytes);
         }
+        let text = if once && text.is_none() {
+            None
+        } else {
+            Some(text.unwrap_or(""))
+        };
+        let hex = hex_too.then_some(hex.as_str());
+        self.frames += 1;
+        let time_s = start.as_secs_f64();
+        if let Some(decoded) = by_hand.filter(|_| once) {
+            let message = FrameProto {
+                from,
+                start_s: secs(start),
+                end_s: secs(end),
+                len: bytes.len(),
+                text,
+                hex,
+                decoded,
+            };
+            let written = self
+                .recorder
+                .write_protobuf(id, time_s, topics::FRAME_SCHEMA, |m| message.write(m))?;
+            if written {
+                return Ok(());
+            }
+        }
         let message = FrameMessage {
             from,
             start_s: secs(start),
             end_s: secs(end),
             len: bytes.len(),
-            text: if once && text.is_none() {
-                None
-            } else {
-                Some(text.unwrap_or(""))
-            },
-            hex: hex_too.then_some(hex.as_str()),
+            text,
+            hex,
             decoded,
         };
-        self.frames += 1;
-        self.recorder.write_to(id, start.as_secs_f64(), &message)
+        self.recorder.write_to(id, time_s, &message)
     }
 
     /// One event a node (or link) noticed.
@@ -408,7 +498,7 @@ impl Observer for McapObserver {
         let written = match bus.bus.as_pwm() {
             Some(link) => {
                 let decoded = decode_pwm_frame(link, &bus.port_names);
-                self.record_frame(channel, &from.name, start, end, bytes, decoded)
+                self.record_frame_as_json(channel, &from.name, start, end, bytes, &decoded)
             }
             None => self.record_frame(channel, &from.name, start, end, bytes, decode_frame(bytes)),
         };

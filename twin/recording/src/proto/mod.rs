@@ -13,9 +13,11 @@
 pub(crate) mod decode;
 pub(crate) mod descriptor;
 pub(crate) mod encode;
+pub mod write;
 
 pub use decode::to_value;
 pub use encode::{EncodeError, encode};
+pub use write::{ProtoOut, Protobuf};
 
 /// What a field holds, on the wire and as JSON.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -1,0 +1,356 @@
+//! The busiest channels' messages written as protobuf by hand
+//! ([`crate::proto::write`]): a controller's readings, a supervisor's loop
+//! report and a frame's decoded fields. Field numbers are those of the
+//! schemas in [`crate::topics`], fields in their `Serialize` order; the
+//! tests hold every writer to [`crate::proto::encode`]'s bytes.
+
+use crate::describe::{FrameFields, LinkFrameFields};
+use crate::proto::write::{ProtoOut, Protobuf};
+use crate::topics::{MebWords, ReadingsSample, SlaveLoop, SupervisorReport};
+
+impl Protobuf for ReadingsSample {
+    const SCHEMA: &'static str = "twin.ControllerReadings";
+
+    fn write_protobuf(&self, m: &mut ProtoOut<'_>) {
+        m.double(1, self.battery_volts);
+        m.double(2, self.bus_volts);
+        m.double(3, self.inverter_amps);
+        m.uint(4, self.hall_rpm.into());
+        m.uint(5, self.light_rpm.into());
+        m.bool(6, self.flag_dark);
+        m.double(7, self.soc_percent);
+        m.nested(8, |m| write_meb_words(&self.meb, m));
+    }
+}
+
+fn write_meb_words(w: &MebWords, m: &mut ProtoOut<'_>) {
+    let words = [
+        w.v2, w.i, w.v1, w.rpm_m, w.rpm_l, w.ldr, w.hall, w.soc, w.errs, w.status,
+    ];
+    for (number, word) in (1..).zip(words) {
+        m.uint(number, word.into());
+    }
+}
+
+impl Protobuf for SupervisorReport {
+    const SCHEMA: &'static str = "twin.SupervisorLoop";
+
+    fn write_protobuf(&self, m: &mut ProtoOut<'_>) {
+        m.uint(1, self.cycles);
+        for slave in &self.loops {
+            m.nested(2, |m| write_slave_loop(slave, m));
+        }
+    }
+}
+
+fn write_slave_loop(l: &SlaveLoop, m: &mut ProtoOut<'_>) {
+    m.uint(1, l.slave.into());
+    m.double(2, l.set_point_rpm);
+    m.double(3, l.measured_rpm);
+    m.double(4, l.error_rpm);
+    m.uint(5, l.output.into());
+    m.double(6, l.integral);
+    let counters = [
+        l.requests,
+        l.replies,
+        l.timeouts,
+        l.bad_checks,
+        l.exceptions,
+        l.retries,
+        l.lost,
+    ];
+    for (number, count) in (7..).zip(counters) {
+        m.uint(number, count);
+    }
+}
+
+/// A frame's decoded fields, as the nested `twin.Frame.Decoded` message's
+/// fields (protocol 1, addr 2, cmd 3, cnt 4, data 5, id 6, function 7,
+/// value 8, unit 9, transaction 10, error 11).
+pub trait DecodedProtobuf {
+    fn write_decoded(&self, m: &mut ProtoOut<'_>);
+}
+
+impl DecodedProtobuf for FrameFields {
+    fn write_decoded(&self, m: &mut ProtoOut<'_>) {
+        match self {
+            FrameFields::Meb {
+                addr,
+                cmd,
+                cnt,
+                data,
+                id,
+                protocol,
+            } => {
+                m.uint(2, (*addr).into());
+                let letters = cmd.letters();
+                if letters.is_ascii() {
+                    m.bytes(3, &letters);
+                } else {
+                    m.display(3, cmd);
+                }
+                m.uint(4, (*cnt).into());
+                for word in data.as_slice() {
+                    m.uint(5, (*word).into());
+                }
+                m.uint(6, (*id).into());
+                m.str(1, protocol);
+            }
+            FrameFields::Modbus8 {
+                addr,
+                function,
+                id,
+                protocol,
+                value,
+            } => {
+                m.uint(2, (*addr).into());
+                m.uint(7, (*function).into());
+                m.uint(6, (*id).into());
+                m.str(1, protocol);
+                m.uint(8, (*value).into());
+            }
+            FrameFields::ModbusRtu {
+                function,
+                protocol,
+                unit,
+            } => {
+                m.uint(7, (*function).into());
+                m.str(1, protocol);
+                m.uint(9, (*unit).into());
+            }
+            FrameFields::Broken { error, protocol } => {
+                m.str(11, error);
+                m.str(1, protocol);
+            }
+        }
+    }
+}
+
+impl DecodedProtobuf for LinkFrameFields<'_> {
+    fn write_decoded(&self, m: &mut ProtoOut<'_>) {
+        match self {
+            LinkFrameFields::Modbus {
+                function,
+                protocol,
+                transaction,
+                unit,
+            } => {
+                if let Some(function) = function {
+                    m.uint(7, (*function).into());
+                }
+                m.str(1, protocol);
+                if let Some(transaction) = transaction {
+                    m.uint(10, (*transaction).into());
+                }
+                m.uint(9, (*unit).into());
+            }
+            LinkFrameFields::Broken { error, protocol } => {
+                m.str(11, error);
+                m.str(1, protocol);
+            }
+            LinkFrameFields::Bus(fields) => fields.write_decoded(m),
+        }
+    }
+}
+
+impl<T: DecodedProtobuf + ?Sized> DecodedProtobuf for &T {
+    fn write_decoded(&self, m: &mut ProtoOut<'_>) {
+        (**self).write_decoded(m);
+    }
+}
+
+/// One frame as the frame channels record it (`twin.Frame`): the fields
+/// of the virtual engine's and the real-time sink's frame messages.
+#[derive(Debug)]
+pub struct FrameProto<'a, D: ?Sized> {
+    pub from: &'a str,
+    pub start_s: f64,
+    pub end_s: f64,
+    pub len: usize,
+    pub text: Option<&'a str>,
+    pub hex: Option<&'a str>,
+    pub decoded: &'a D,
+}
+
+impl<D: DecodedProtobuf + ?Sized> FrameProto<'_, D> {
+    pub fn write(&self, m: &mut ProtoOut<'_>) {
+        m.str(1, self.from);
+        m.double(2, self.start_s);
+        m.double(3, self.end_s);
+        m.uint(4, self.len as u64);
+        if let Some(text) = self.text {
+            m.str(5, text);
+        }
+        if let Some(hex) = self.hex {
+            m.str(6, hex);
+        }
+        m.nested(7, |m| self.decoded.write_decoded(m));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::describe::{decode_frame, link_frame_fields};
+    use crate::topics::{LoopReport, proto_schema};
+    use serde::Serialize;
+
+    /// What the schema-driven encoder writes for `value` on `topic`.
+    fn by_schema<T: Serialize>(topic: &str, value: &T) -> Vec<u8> {
+        let schema = proto_schema(topic).expect("a protobuf channel");
+        let mut bytes = Vec::new();
+        crate::proto::encode(&schema, value, &mut bytes).expect("fits its schema");
+        bytes
+    }
+
+    fn by_hand(write: impl FnOnce(&mut ProtoOut<'_>)) -> Vec<u8> {
+        let mut bytes = Vec::new();
+        write(&mut ProtoOut::new(&mut bytes));
+        bytes
+    }
+
+    #[test]
+    fn readings_and_loop_reports_are_the_schema_encoder_s_bytes() {
+        let readings = ReadingsSample {
+            battery_volts: 12.345678901234567,
+            bus_volts: -0.0,
+            inverter_amps: f64::NAN,
+            hall_rpm: 65535,
+            light_rpm: 127,
+            flag_dark: true,
+            soc_percent: 99.5,
+            meb: MebWords {
+                v2: 1,
+                i: 128,
+                v1: 300,
+                rpm_m: 16384,
+                rpm_l: 0,
+                ldr: 3280,
+                hall: 5,
+                soc: 99,
+                errs: 2,
+                status: 0x8001,
+            },
+        };
+        let topic = "/controller/ev1/readings";
+        assert_eq!(
+            by_hand(|m| readings.write_protobuf(m)),
+            by_schema(topic, &readings)
+        );
+        assert_eq!(proto_schema(topic).unwrap().name(), ReadingsSample::SCHEMA);
+
+        let slave = |n: u8| SlaveLoop {
+            slave: n,
+            set_point_rpm: 1500.0,
+            measured_rpm: 1499.25,
+            error_rpm: 0.75,
+            output: 4095,
+            integral: -12.5,
+            requests: u64::from(u32::MAX) + 9,
+            replies: 0,
+            timeouts: 127,
+            bad_checks: 128,
+            exceptions: 3,
+            retries: 4,
+            lost: 5,
+        };
+        // Ten slaves: the report is longer than a one-byte length.
+        for slaves in [0, 1, 10] {
+            let report = SupervisorReport {
+                cycles: 123_456,
+                loops: (1..=slaves).map(slave).collect(),
+            };
+            let topic = "/master/supervisor/loop";
+            assert_eq!(
+                by_hand(|m| report.write_protobuf(m)),
+                by_schema(topic, &LoopReport::Supervisor(report.clone())),
+                "{slaves} slaves"
+            );
+            assert_eq!(
+                proto_schema(topic).unwrap().name(),
+                SupervisorReport::SCHEMA
+            );
+        }
+    }
+
+    /// The frame message as the engine and the sink serialise it.
+    #[derive(Serialize)]
+    struct Frame<'a, D> {
+        from: &'a str,
+        start_s: f64,
+        end_s: f64,
+        len: usize,
+        text: Option<&'a str>,
+        hex: Option<&'a str>,
+        decoded: D,
+    }
+
+    /// A frame carrying `decoded`, written by hand and by the schema.
+    fn frame_both_ways<D: DecodedProtobuf + Serialize>(
+        decoded: &D,
+        len: usize,
+        text: Option<&str>,
+        hex: Option<&str>,
+    ) -> (Vec<u8>, Vec<u8>) {
+        let hand = by_hand(|m| {
+            FrameProto {
+                from: "client 3",
+                start_s: 0.25,
+                end_s: 0.2501,
+                len,
+                text,
+                hex,
+                decoded,
+            }
+            .write(m);
+        });
+        let schema = by_schema(
+            "/link/modbus-tcp/frames",
+            &Frame {
+                from: "client 3",
+                start_s: 0.25,
+                end_s: 0.2501,
+                len,
+                text,
+                hex,
+                decoded,
+            },
+        );
+        (hand, schema)
+    }
+
+    #[test]
+    fn frames_of_every_protocol_are_the_schema_encoder_s_bytes() {
+        let long_error = [b'@'; 150];
+        let frames: [(&str, &[u8]); 11] = [
+            ("meb", b"@01EA0006FF*\n"),
+            ("meb", b"@01SD0002000E000120*\n"),
+            ("meb", b"@zz"),
+            ("meb", &long_error),
+            ("modbus8", &[0x01, 0x06, 0x00, 0x01, 0x27, 0x10, 0x00, 0x00]),
+            ("modbus-tcp", &[0, 7, 0, 0, 0, 6, 1, 4, 0, 0, 0, 10]),
+            ("modbus-tcp", &[0, 7, 0]),
+            ("modbus-rtu", &[1, 3, 0, 0, 0, 3, 0x05, 0xcb]),
+            ("modbus-rtu", &[1, 3, 0]),
+            ("modbus-ascii", b":010300000001FB\r\n"),
+            ("modbus-ascii", b":01"),
+        ];
+        let schema = proto_schema("/link/modbus-tcp/frames").unwrap();
+        assert_eq!(schema.name(), crate::topics::FRAME_SCHEMA);
+        let fields = [
+            (Some("@01"), None),
+            (None, Some("0007")),
+            (Some(""), Some("")),
+        ];
+        for (protocol, bytes) in frames {
+            for (text, hex) in fields {
+                let link = link_frame_fields(protocol, bytes);
+                let (hand, schema) = frame_both_ways(&link, bytes.len(), text, hex);
+                assert_eq!(hand, schema, "{protocol} {bytes:?} on a link");
+                let bus = decode_frame(bytes);
+                let (hand, schema) = frame_both_ways(&bus, bytes.len(), text, hex);
+                assert_eq!(hand, schema, "{protocol} {bytes:?} on a bus");
+            }
+        }
+    }
+}
