@@ -15,6 +15,10 @@ use mcap::records::op;
 use std::collections::BTreeMap;
 use std::io::{self, Write};
 
+/// A message record's bytes before its data: opcode, length, channel,
+/// sequence, log time, publish time.
+const MESSAGE_HEAD: usize = 1 + 8 + 2 + 4 + 8 + 8;
+
 /// The chunks' compression, as the chunk records name it.
 const COMPRESSION: &str = "zstd";
 
@@ -59,8 +63,8 @@ struct Statistics {
     attachments: u32,
     chunks: u32,
     bounds: Option<(u64, u64)>,
-    /// Per channel id with messages: how many.
-    per_channel: BTreeMap<u16, u64>,
+    /// Per channel id: how many messages (a lookup per message, so a list).
+    per_channel: Vec<u64>,
 }
 
 /// The output, with its position and the checksum of what went out since
@@ -238,14 +242,17 @@ impl<W: Write> McapFile<W> {
         if let Some(index) = self.indexes.get_mut(usize::from(channel)) {
             index.push((log_time, offset));
         }
-        let c = &mut self.chunk;
-        c.push(op::MESSAGE);
-        c.u64(2 + 4 + 8 + 8 + data.len() as u64);
-        c.u16(channel);
-        c.u32(sequence);
-        c.u64(log_time);
-        c.u64(publish_time);
-        c.extend_from_slice(data);
+        // The record's head in one copy of a known size (a store, not a
+        // call to `memmove` per field).
+        let mut head = [0u8; MESSAGE_HEAD];
+        head[0] = op::MESSAGE;
+        head[1..9].copy_from_slice(&((MESSAGE_HEAD - 9 + data.len()) as u64).to_le_bytes());
+        head[9..11].copy_from_slice(&channel.to_le_bytes());
+        head[11..15].copy_from_slice(&sequence.to_le_bytes());
+        head[15..23].copy_from_slice(&log_time.to_le_bytes());
+        head[23..31].copy_from_slice(&publish_time.to_le_bytes());
+        self.chunk.extend_from_slice(&head);
+        self.chunk.extend_from_slice(data);
         self.chunk_bounds = Some(match self.chunk_bounds {
             None => (log_time, log_time),
             Some((start, end)) => (start.min(log_time), end.max(log_time)),
@@ -256,7 +263,11 @@ impl<W: Write> McapFile<W> {
             None => (log_time, log_time),
             Some((start, end)) => (start.min(log_time), end.max(log_time)),
         });
-        *stats.per_channel.entry(channel).or_default() += 1;
+        let index = usize::from(channel);
+        if stats.per_channel.len() <= index {
+            stats.per_channel.resize(index + 1, 0);
+        }
+        stats.per_channel[index] += 1;
         Ok(())
     }
 
@@ -484,8 +495,14 @@ impl<W: Write> McapFile<W> {
         body.u32(stats.chunks);
         body.u64(start);
         body.u64(end);
-        body.u32(len32(stats.per_channel.len() * 10));
-        for (&channel, &count) in &stats.per_channel {
+        // Only the channels with messages, in id order.
+        let counted = || {
+            (0u16..)
+                .zip(stats.per_channel.iter().copied())
+                .filter(|(_, count)| *count > 0)
+        };
+        body.u32(len32(counted().count() * 10));
+        for (channel, count) in counted() {
             body.u16(channel);
             body.u64(count);
         }

@@ -189,10 +189,16 @@ pub(crate) fn varint_into(mut v: u64, buf: &mut [u8; 10]) -> usize {
     }
 }
 
-pub(crate) fn put_varint(out: &mut Vec<u8>, v: u64) {
-    let mut buf = [0u8; 10];
-    let n = varint_into(v, &mut buf);
-    out.extend_from_slice(&buf[..n]);
+/// Byte by byte: a copy of a length only known at run time is a call to
+/// `memmove`, which for one or two bytes cost more than the varint (a
+/// recording's engine thread spent half its `memmove` time here).
+#[inline]
+pub(crate) fn put_varint(out: &mut Vec<u8>, mut v: u64) {
+    while v >= 0x80 {
+        out.push(v as u8 | 0x80);
+        v >>= 7;
+    }
+    out.push(v as u8);
 }
 
 pub(crate) fn put_tag(out: &mut Vec<u8>, number: u32, wire: u8) {
