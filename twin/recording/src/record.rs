@@ -292,7 +292,7 @@ impl<D: Deferred> Recorder<D> {
         let Some(sequence) = self.sequences.get_mut(channel.0) else {
             anyhow::bail!("no channel {} in the recording", channel.0);
         };
-        let time_ns = (time_s * 1e9).round() as u64;
+        let time_ns = nanoseconds(time_s);
         let flush_before = time_ns >= self.next_flush_ns;
         if flush_before {
             self.next_flush_ns = (time_ns / FLUSH_EVERY_NS + 1) * FLUSH_EVERY_NS;
@@ -334,7 +334,7 @@ impl<D: Deferred> Recorder<D> {
     ) -> Result<()> {
         self.hand_over()?;
         self.submit(Job::Attachment {
-            log_time: (time_s * 1e9).round() as u64,
+            log_time: nanoseconds(time_s),
             name: name.into(),
             media_type: media_type.into(),
             data,
@@ -412,6 +412,20 @@ impl<D: Deferred> Drop for Recorder<D> {
     }
 }
 
+/// Simulated seconds as MCAP's nanoseconds, the nearest (halves away from
+/// zero, as `f64::round`, whose call into libm a profile found on every
+/// message: the twin's target has no rounding instruction); 0 before 0.
+#[inline]
+fn nanoseconds(time_s: f64) -> u64 {
+    let ns = time_s * 1e9;
+    if ns.is_nan() || ns <= 0.0 {
+        return 0;
+    }
+    // Below 2^53 the fraction is exact; above it, `ns` is a whole number.
+    let whole = ns as u64;
+    whole.saturating_add(u64::from(ns - whole as f64 >= 0.5))
+}
+
 /// The MCAP writer of a new file at `path`.
 fn open(path: &Path) -> Result<FileWriter> {
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
@@ -423,4 +437,20 @@ fn open(path: &Path) -> Result<FileWriter> {
     let writer = McapFile::new(BufWriter::new(file), library, ZSTD_LEVEL, CHUNK_SIZE)
         .with_context(|| format!("cannot start MCAP file {}", path.display()))?;
     Ok(FileWriter::new(writer, path))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::nanoseconds;
+
+    #[test]
+    fn simulated_seconds_round_to_nanoseconds_as_f64_round_does() {
+        let mut times = vec![0.0, -1.0, f64::NAN, 1e-9, 0.5e-9, 1.5e-9, 2.5e-9, 1e12, 3600.0];
+        // Every 10 µs of a 100 s run, and odd steps across it.
+        times.extend((0..10_000_000).step_by(997).map(|i| f64::from(i) * 1e-5));
+        times.extend((0..100_000).map(|i| f64::from(i) * 0.001_234_567_891));
+        for t in times {
+            assert_eq!(nanoseconds(t), (t * 1e9).round() as u64, "{t}");
+        }
+    }
 }

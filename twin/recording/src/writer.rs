@@ -43,7 +43,7 @@ impl Serialize for NoDeferred {
 impl Deferred for NoDeferred {}
 
 /// A threaded writer gets batches of this size: large enough that the
-/// hand-over costs nothing per message.
+/// hand-over costs nothing per message (32 kB ran no faster, pinned).
 const THREADED_BATCH_BYTES: usize = 256 * 1024;
 /// An inline writer's batches stay small enough to be in cache when written.
 const INLINE_BATCH_BYTES: usize = 32 * 1024;
