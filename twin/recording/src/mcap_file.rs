@@ -228,6 +228,23 @@ impl<W: Write> McapFile<W> {
         publish_time: u64,
         data: &[u8],
     ) -> io::Result<()> {
+        self.write_message_with(channel, sequence, log_time, publish_time, |chunk| {
+            chunk.extend_from_slice(data);
+            Ok(())
+        })
+    }
+
+    /// [`McapFile::write_message`] with the message's bytes appended by
+    /// `data` straight into the chunk (no copy of them on the way); if it
+    /// fails, nothing of the message stays.
+    pub(crate) fn write_message_with(
+        &mut self,
+        channel: u16,
+        sequence: u32,
+        log_time: u64,
+        publish_time: u64,
+        data: impl FnOnce(&mut Vec<u8>) -> io::Result<()>,
+    ) -> io::Result<()> {
         if channel == 0 || usize::from(channel) >= self.indexes.len() {
             return Err(io::Error::other(format!(
                 "a message on channel {channel}, which the file never declared"
@@ -238,21 +255,25 @@ impl<W: Write> McapFile<W> {
         if self.chunk.len() > self.chunk_size {
             self.close_chunk()?;
         }
-        let offset = self.chunk.len() as u64;
-        if let Some(index) = self.indexes.get_mut(usize::from(channel)) {
-            index.push((log_time, offset));
-        }
+        let offset = self.chunk.len();
         // The record's head in one copy of a known size (a store, not a
-        // call to `memmove` per field).
+        // call to `memmove` per field), its length put in once the data is.
         let mut head = [0u8; MESSAGE_HEAD];
         head[0] = op::MESSAGE;
-        head[1..9].copy_from_slice(&((MESSAGE_HEAD - 9 + data.len()) as u64).to_le_bytes());
         head[9..11].copy_from_slice(&channel.to_le_bytes());
         head[11..15].copy_from_slice(&sequence.to_le_bytes());
         head[15..23].copy_from_slice(&log_time.to_le_bytes());
         head[23..31].copy_from_slice(&publish_time.to_le_bytes());
         self.chunk.extend_from_slice(&head);
-        self.chunk.extend_from_slice(data);
+        if let Err(e) = data(&mut self.chunk) {
+            self.chunk.truncate(offset);
+            return Err(e);
+        }
+        let length = (self.chunk.len() - offset - 9) as u64;
+        self.chunk[offset + 1..offset + 9].copy_from_slice(&length.to_le_bytes());
+        if let Some(index) = self.indexes.get_mut(usize::from(channel)) {
+            index.push((log_time, offset as u64));
+        }
         self.chunk_bounds = Some(match self.chunk_bounds {
             None => (log_time, log_time),
             Some((start, end)) => (start.min(log_time), end.max(log_time)),

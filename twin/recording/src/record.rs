@@ -445,7 +445,17 @@ mod tests {
 
     #[test]
     fn simulated_seconds_round_to_nanoseconds_as_f64_round_does() {
-        let mut times = vec![0.0, -1.0, f64::NAN, 1e-9, 0.5e-9, 1.5e-9, 2.5e-9, 1e12, 3600.0];
+        let mut times = vec![
+            0.0,
+            -1.0,
+            f64::NAN,
+            1e-9,
+            0.5e-9,
+            1.5e-9,
+            2.5e-9,
+            1e12,
+            3600.0,
+        ];
         // Every 10 µs of a 100 s run, and odd steps across it.
         times.extend((0..10_000_000).step_by(997).map(|i| f64::from(i) * 1e-5));
         times.extend((0..100_000).map(|i| f64::from(i) * 0.001_234_567_891));

@@ -142,8 +142,6 @@ pub(crate) struct FileWriter {
     ids: Vec<u16>,
     /// Protobuf schemas of the channels, by creation order (`None`: JSON).
     protos: Vec<Option<Arc<proto::Schema>>>,
-    /// A deferred message's bytes, reused from message to message.
-    json: Vec<u8>,
     /// The file, as errors name it.
     shown: String,
     disk: DiskGuard,
@@ -155,7 +153,6 @@ impl FileWriter {
             writer,
             ids: Vec::new(),
             protos: Vec::new(),
-            json: Vec::new(),
             shown: path.display().to_string(),
             disk: DiskGuard::new(path),
         }
@@ -193,33 +190,24 @@ impl FileWriter {
                         self.writer.flush().with_context(cannot_write)?;
                     }
                     let channel = self.ids.get(m.channel).copied().unwrap_or_default();
-                    let data = if m.deferred {
-                        self.json.clear();
-                        if let Some(message) = batch.deferred.get(m.end) {
-                            match self.protos.get(m.channel) {
-                                Some(Some(schema)) => {
-                                    let by_hand = message.write_protobuf(
-                                        schema.name(),
-                                        &mut proto::ProtoOut::new(&mut self.json),
-                                    );
-                                    if !by_hand {
-                                        proto::encode(schema, message, &mut self.json)
-                                            .with_context(cannot_write)?;
-                                    }
-                                }
-                                _ => serde_json::to_writer(Appender(&mut self.json), message)
-                                    .with_context(cannot_write)?,
-                            }
-                        }
-                        self.json.as_slice()
+                    if m.deferred {
+                        // Serialised straight into the chunk.
+                        let Some(message) = batch.deferred.get(m.end) else {
+                            continue;
+                        };
+                        let schema = self.protos.get(m.channel).and_then(Option::as_ref);
+                        self.writer
+                            .write_message_with(channel, m.sequence, m.time_ns, m.time_ns, |out| {
+                                serialise(schema.map(Arc::as_ref), message, out)
+                            })
+                            .with_context(cannot_write)?;
                     } else {
                         let data = batch.bytes.get(start..m.end).unwrap_or_default();
                         start = m.end;
-                        data
-                    };
-                    self.writer
-                        .write_message(channel, m.sequence, m.time_ns, m.time_ns, data)
-                        .with_context(cannot_write)?;
+                        self.writer
+                            .write_message(channel, m.sequence, m.time_ns, m.time_ns, data)
+                            .with_context(cannot_write)?;
+                    }
                 }
                 // A deferred message is about 1 kB of JSON.
                 self.disk
@@ -261,6 +249,24 @@ impl FileWriter {
             .map(drop)
             .with_context(|| format!("cannot finish {}", self.shown))?;
         Ok(())
+    }
+}
+
+/// A deferred message's bytes appended to `out`: protobuf by its own
+/// writer or by `schema`, else JSON.
+fn serialise<D: Deferred>(
+    schema: Option<&proto::Schema>,
+    message: &D,
+    out: &mut Vec<u8>,
+) -> std::io::Result<()> {
+    match schema {
+        Some(schema) => {
+            if !message.write_protobuf(schema.name(), &mut proto::ProtoOut::new(out)) {
+                proto::encode(schema, message, out).map_err(std::io::Error::other)?;
+            }
+            Ok(())
+        }
+        None => serde_json::to_writer(Appender(out), message).map_err(std::io::Error::other),
     }
 }
 

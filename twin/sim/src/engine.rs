@@ -38,6 +38,11 @@ pub trait SimNode: Node {
     fn loop_report(&mut self) -> Option<LoopReport> {
         self.telemetry().map(LoopReport::Other)
     }
+    /// A report [`SimNode::loop_report`] gave, handed back once observed,
+    /// so that the next one reuses what it holds.
+    fn recycle_loop_report(&mut self, report: LoopReport) {
+        drop(report);
+    }
     /// Whether the firmware's actuators drive its module (a sensor-only
     /// node, like the Controller_network light sensor, only reads it).
     fn drives_plant(&self) -> bool {
@@ -823,6 +828,7 @@ impl Engine {
             }
             if wants_loop_reports && let Some(report) = self.nodes[n].node.loop_report() {
                 observer.telemetry(t, &self.nodes[n], &report)?;
+                self.nodes[n].node.recycle_loop_report(report);
             }
             let slot = &mut self.nodes[n];
             let name = slot.name.as_str();

@@ -163,13 +163,7 @@ pub fn build_node(
             config.reply_timeout = ms(*reply_timeout_ms);
             config.retries = u8::try_from(*retries).unwrap_or(u8::MAX);
             let supervisor = Supervisor::new(config)?;
-            Ok((
-                Box::new(SupervisorNode {
-                    supervisor,
-                    last_cycle: 0,
-                }),
-                SimDuration::ZERO,
-            ))
+            Ok((Box::new(SupervisorNode::new(supervisor)), SimDuration::ZERO))
         }
         NodeSpec::MotorNode { turnaround_ms, .. } => {
             let motor = MotorNode::new(MotorConfig::default());
@@ -316,6 +310,9 @@ impl SimNode for FaultyNode<ControllerNetworkMaster> {
 pub struct SupervisorNode {
     supervisor: Supervisor,
     last_cycle: u64,
+    /// The last report's list, handed back for the next one (a report per
+    /// poll cycle, no allocation).
+    spare_loops: Vec<SlaveLoop>,
 }
 
 impl SupervisorNode {
@@ -323,33 +320,40 @@ impl SupervisorNode {
         Self {
             supervisor,
             last_cycle: 0,
+            spare_loops: Vec::new(),
         }
     }
 
     fn loops(&self) -> SupervisorReport {
-        let loops = self
-            .supervisor
-            .slave_ids()
-            .filter_map(|id| self.supervisor.loop_state(id).map(|s| (id, s)))
-            .map(|(id, s)| {
-                let c = s.counters;
-                SlaveLoop {
-                    slave: id,
-                    set_point_rpm: s.set_point_rpm,
-                    measured_rpm: s.measured_rpm,
-                    error_rpm: s.error_rpm,
-                    output: s.output,
-                    integral: s.integral,
-                    requests: c.requests,
-                    replies: c.replies,
-                    timeouts: c.timeouts,
-                    bad_checks: c.bad_checks,
-                    exceptions: c.exceptions,
-                    retries: c.retries,
-                    lost: c.lost,
-                }
-            })
-            .collect();
+        self.report_into(Vec::new())
+    }
+
+    /// The report, its list in `loops` (emptied first).
+    fn report_into(&self, mut loops: Vec<SlaveLoop>) -> SupervisorReport {
+        loops.clear();
+        loops.extend(
+            self.supervisor
+                .slave_ids()
+                .filter_map(|id| self.supervisor.loop_state(id).map(|s| (id, s)))
+                .map(|(id, s)| {
+                    let c = s.counters;
+                    SlaveLoop {
+                        slave: id,
+                        set_point_rpm: s.set_point_rpm,
+                        measured_rpm: s.measured_rpm,
+                        error_rpm: s.error_rpm,
+                        output: s.output,
+                        integral: s.integral,
+                        requests: c.requests,
+                        replies: c.replies,
+                        timeouts: c.timeouts,
+                        bad_checks: c.bad_checks,
+                        exceptions: c.exceptions,
+                        retries: c.retries,
+                        lost: c.lost,
+                    }
+                }),
+        );
         SupervisorReport {
             cycles: self.supervisor.cycles(),
             loops,
@@ -388,7 +392,13 @@ impl SimNode for SupervisorNode {
             return None;
         }
         self.last_cycle = cycles;
-        Some(LoopReport::Supervisor(self.loops()))
+        let spare = std::mem::take(&mut self.spare_loops);
+        Some(LoopReport::Supervisor(self.report_into(spare)))
+    }
+    fn recycle_loop_report(&mut self, report: LoopReport) {
+        if let LoopReport::Supervisor(report) = report {
+            self.spare_loops = report.loops;
+        }
     }
     fn final_state(&self) -> Option<Value> {
         Some(LoopReport::Supervisor(self.loops()).to_value())
