@@ -15,6 +15,26 @@ use mcap::records::op;
 use std::collections::BTreeMap;
 use std::io::{self, Write};
 
+/// zstd at `level` with its fastest match finder set for the twin's chunks
+/// (about 100 kB to 1 MB of protobuf plant samples and frames): a 4 kB-entry
+/// hash table (12 bits, in the core's first-level cache) and matches from 4
+/// bytes. `zstd -b` over the chunks of a 200 s ev-meb run and a 60 s
+/// ten-modules run, against plain level 1: 1.3 times as fast, and 3.1 % and
+/// 1.9 % smaller (level -1 was as fast, but 2 % larger on ten-modules).
+fn compressor(level: i32) -> io::Result<zstd::bulk::Compressor<'static>> {
+    use zstd::zstd_safe::{CParameter, Strategy};
+    let mut compressor = zstd::bulk::Compressor::new(level)?;
+    for parameter in [
+        CParameter::Strategy(Strategy::ZSTD_fast),
+        CParameter::HashLog(12),
+        CParameter::MinMatch(4),
+        CParameter::TargetLength(1),
+    ] {
+        compressor.set_parameter(parameter)?;
+    }
+    Ok(compressor)
+}
+
 /// A message record's bytes before its data: opcode, length, channel,
 /// sequence, log time, publish time.
 const MESSAGE_HEAD: usize = 1 + 8 + 2 + 4 + 8 + 8;
@@ -154,7 +174,7 @@ impl<W: Write> McapFile<W> {
             chunk: Vec::with_capacity(chunk_size + 64 * 1024),
             chunk_bounds: None,
             indexes: vec![Vec::new()],
-            compressor: zstd::bulk::Compressor::new(level)?,
+            compressor: compressor(level)?,
             compressed: Vec::new(),
             scratch: Vec::new(),
             schemas: Vec::new(),

@@ -122,8 +122,6 @@ fn create(out: &Path, profile: &str, library: &str) -> Result<FileWriter> {
     let file = File::create(out).with_context(|| format!("cannot create {}", out.display()))?;
     WriteOptions::new()
         .compression(Some(mcap::Compression::Zstd))
-        // The MCAP library takes no negative level: its level 1, which
-        // compresses a recovered file about as well.
         .compression_level(crate::record::ZSTD_LEVEL.unsigned_abs())
         .chunk_size(Some(crate::record::CHUNK_SIZE as u64))
         .profile(profile)
