@@ -7,6 +7,7 @@
 use crate::describe::{FrameFields, LinkFrameFields};
 use crate::proto::write::{ProtoOut, Protobuf};
 use crate::topics::{MebWords, ReadingsSample, SlaveLoop, SupervisorReport};
+use serde::Serialize;
 
 impl Protobuf for ReadingsSample {
     const SCHEMA: &'static str = "twin.ControllerReadings";
@@ -159,20 +160,26 @@ impl<T: DecodedProtobuf + ?Sized> DecodedProtobuf for &T {
     }
 }
 
-/// One frame as the frame channels record it (`twin.Frame`): the fields
-/// of the virtual engine's and the real-time sink's frame messages.
-#[derive(Debug)]
-pub struct FrameProto<'a, D: ?Sized> {
+/// One frame as the frame channels record it (`twin.Frame`), from the
+/// virtual engine and the real-time sink alike: serialised (a JSON channel,
+/// a PWM-capture bus's) or written by [`FrameMessage::write`].
+#[derive(Debug, Serialize)]
+pub struct FrameMessage<'a, D: ?Sized> {
+    /// The sending node (a session's link: `twin` or `client N`).
     pub from: &'a str,
     pub start_s: f64,
     pub end_s: f64,
     pub len: usize,
+    /// The bytes as text when they are printable ASCII (MEB), else empty;
+    /// left out of a protobuf frame whose bytes are not printable.
     pub text: Option<&'a str>,
+    /// The bytes, two lowercase hex digits each; left out of a protobuf
+    /// frame whose `text` holds them.
     pub hex: Option<&'a str>,
     pub decoded: &'a D,
 }
 
-impl<D: DecodedProtobuf + ?Sized> FrameProto<'_, D> {
+impl<D: DecodedProtobuf + ?Sized> FrameMessage<'_, D> {
     pub fn write(&self, m: &mut ProtoOut<'_>) {
         m.str(1, self.from);
         m.double(2, self.start_s);
@@ -193,7 +200,6 @@ mod tests {
     use super::*;
     use crate::describe::{decode_frame, link_frame_fields};
     use crate::topics::{LoopReport, proto_schema};
-    use serde::Serialize;
 
     /// What the schema-driven encoder writes for `value` on `topic`.
     fn by_schema<T: Serialize>(topic: &str, value: &T) -> Vec<u8> {
@@ -273,18 +279,6 @@ mod tests {
         }
     }
 
-    /// The frame message as the engine and the sink serialise it.
-    #[derive(Serialize)]
-    struct Frame<'a, D> {
-        from: &'a str,
-        start_s: f64,
-        end_s: f64,
-        len: usize,
-        text: Option<&'a str>,
-        hex: Option<&'a str>,
-        decoded: D,
-    }
-
     /// A frame carrying `decoded`, written by hand and by the schema.
     fn frame_both_ways<D: DecodedProtobuf + Serialize>(
         decoded: &D,
@@ -293,7 +287,7 @@ mod tests {
         hex: Option<&str>,
     ) -> (Vec<u8>, Vec<u8>) {
         let hand = by_hand(|m| {
-            FrameProto {
+            FrameMessage {
                 from: "client 3",
                 start_s: 0.25,
                 end_s: 0.2501,
@@ -306,7 +300,7 @@ mod tests {
         });
         let schema = by_schema(
             "/link/modbus-tcp/frames",
-            &Frame {
+            &FrameMessage {
                 from: "client 3",
                 start_s: 0.25,
                 end_s: 0.2501,

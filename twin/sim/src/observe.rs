@@ -22,7 +22,7 @@ use twin_recording::describe::decode_frame;
 use twin_recording::proto::Protobuf;
 use twin_recording::record::{ChannelId, Recorder};
 use twin_recording::topics::{self, LoopReport, ReadingsSample, put_hex};
-use twin_recording::typed::{DecodedProtobuf, FrameProto};
+use twin_recording::typed::{DecodedProtobuf, FrameMessage};
 
 pub use crate::plant_sample::PlantSample;
 
@@ -156,23 +156,6 @@ struct FrameParts<'a> {
     end: SimTime,
     bytes: &'a [u8],
     text: Option<&'a str>,
-}
-
-/// One frame on a bus, as recorded (protobuf frames are written by hand,
-/// [`FrameProto`], in this order).
-#[derive(Debug, Serialize)]
-struct FrameMessage<'a, D> {
-    from: &'a str,
-    start_s: f64,
-    end_s: f64,
-    len: usize,
-    /// The bytes as text when they are printable ASCII (MEB), else empty;
-    /// left out of a protobuf frame whose bytes are not printable.
-    text: Option<&'a str>,
-    /// The bytes, two lowercase hex digits each; left out of a protobuf
-    /// frame whose `text` holds them.
-    hex: Option<&'a str>,
-    decoded: D,
 }
 
 impl McapObserver {
@@ -424,7 +407,7 @@ impl McapObserver {
         self.frames += 1;
         let time_s = start.as_secs_f64();
         if let Some(decoded) = by_hand.filter(|_| once) {
-            let message = FrameProto {
+            let message = FrameMessage {
                 from,
                 start_s: secs(start),
                 end_s: secs(end),
@@ -687,7 +670,7 @@ mod tests {
                 len: bytes.len(),
                 text: Some(""),
                 hex: Some("00"),
-                decoded: link_frame_fields(protocol, bytes),
+                decoded: &link_frame_fields(protocol, bytes),
             };
             let (back, json) = round_trip("/link/modbus-tcp/frames", &message);
             assert_eq!(back, json, "{protocol} {bytes:?}");
@@ -698,7 +681,7 @@ mod tests {
                 len: bytes.len(),
                 text: Some(""),
                 hex: Some("00"),
-                decoded: decode_frame(bytes),
+                decoded: &decode_frame(bytes),
             };
             let (back, json) = round_trip("/bus/rs485/frames", &message);
             assert_eq!(back, json, "{protocol} {bytes:?}");
