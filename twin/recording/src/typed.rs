@@ -84,12 +84,8 @@ impl DecodedProtobuf for FrameFields {
                 protocol,
             } => {
                 m.uint(2, (*addr).into());
-                let letters = cmd.letters();
-                if letters.is_ascii() {
-                    m.bytes(3, &letters);
-                } else {
-                    m.display(3, cmd);
-                }
+                // Two ASCII letters (`MebCmd::new`): the text `Display` gives.
+                m.bytes(3, &cmd.letters());
                 m.uint(4, (*cnt).into());
                 for word in data.as_slice() {
                     m.uint(5, (*word).into());
@@ -177,6 +173,21 @@ pub struct FrameMessage<'a, D: ?Sized> {
     /// frame whose `text` holds them.
     pub hex: Option<&'a str>,
     pub decoded: &'a D,
+}
+
+impl<'a, D: ?Sized> FrameMessage<'a, D> {
+    /// The same frame carrying `decoded` instead.
+    pub fn with_decoded<E: ?Sized>(&self, decoded: &'a E) -> FrameMessage<'a, E> {
+        FrameMessage {
+            from: self.from,
+            start_s: self.start_s,
+            end_s: self.end_s,
+            len: self.len,
+            text: self.text,
+            hex: self.hex,
+            decoded,
+        }
+    }
 }
 
 impl<D: DecodedProtobuf + ?Sized> FrameMessage<'_, D> {
@@ -286,31 +297,17 @@ mod tests {
         text: Option<&str>,
         hex: Option<&str>,
     ) -> (Vec<u8>, Vec<u8>) {
-        let hand = by_hand(|m| {
-            FrameMessage {
-                from: "client 3",
-                start_s: 0.25,
-                end_s: 0.2501,
-                len,
-                text,
-                hex,
-                decoded,
-            }
-            .write(m);
-        });
-        let schema = by_schema(
-            "/link/modbus-tcp/frames",
-            &FrameMessage {
-                from: "client 3",
-                start_s: 0.25,
-                end_s: 0.2501,
-                len,
-                text,
-                hex,
-                decoded,
-            },
-        );
-        (hand, schema)
+        let message = FrameMessage {
+            from: "client 3",
+            start_s: 0.25,
+            end_s: 0.2501,
+            len,
+            text,
+            hex,
+            decoded,
+        };
+        let hand = by_hand(|m| message.write(m));
+        (hand, by_schema("/link/modbus-tcp/frames", &message))
     }
 
     #[test]

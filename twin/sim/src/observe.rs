@@ -209,11 +209,8 @@ impl McapObserver {
     pub fn record_loop(&mut self, now: SimTime, node: &str, report: &LoopReport) -> Result<()> {
         let channel = channel_of(&mut self.loops, node, topics::master_loop);
         match report {
-            // The channel is made from the report as a whole: the same fields.
-            LoopReport::Supervisor(typed) if channel.id.is_some() => {
-                channel.write_typed(&mut self.recorder, now, typed)
-            }
-            _ => channel.write(&mut self.recorder, now, report),
+            LoopReport::Supervisor(typed) => channel.write_typed(&mut self.recorder, now, typed),
+            LoopReport::Other(_) => channel.write(&mut self.recorder, now, report),
         }
     }
 
@@ -406,23 +403,6 @@ impl McapObserver {
         let hex = hex_too.then_some(hex.as_str());
         self.frames += 1;
         let time_s = start.as_secs_f64();
-        if let Some(decoded) = by_hand.filter(|_| once) {
-            let message = FrameMessage {
-                from,
-                start_s: secs(start),
-                end_s: secs(end),
-                len: bytes.len(),
-                text,
-                hex,
-                decoded,
-            };
-            let written = self
-                .recorder
-                .write_protobuf(id, time_s, topics::FRAME_SCHEMA, |m| message.write(m))?;
-            if written {
-                return Ok(());
-            }
-        }
         let message = FrameMessage {
             from,
             start_s: secs(start),
@@ -432,6 +412,15 @@ impl McapObserver {
             hex,
             decoded,
         };
+        if let Some(fields) = by_hand.filter(|_| once) {
+            let hand = message.with_decoded(fields);
+            let written = self
+                .recorder
+                .write_protobuf(id, time_s, topics::FRAME_SCHEMA, |m| hand.write(m))?;
+            if written {
+                return Ok(());
+            }
+        }
         self.recorder.write_to(id, time_s, &message)
     }
 

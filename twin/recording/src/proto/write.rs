@@ -76,15 +76,6 @@ impl<'a> ProtoOut<'a> {
         self.out.extend_from_slice(v);
     }
 
-    /// A `string` written by `Display` (an MEB command's two letters).
-    pub fn display(&mut self, number: u32, v: &dyn std::fmt::Display) {
-        use std::io::Write;
-        self.nested(number, |m| {
-            // Writing to a Vec cannot fail.
-            let _ = write!(m.out, "{v}");
-        });
-    }
-
     /// A nested message, its fields written by `fields`. Its length goes in
     /// front once known: one byte is kept for it, as the twin's nested
     /// messages are shorter than 128 bytes, and the bytes move when not.
