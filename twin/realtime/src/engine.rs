@@ -58,6 +58,9 @@ pub struct RtSummary {
     pub lateness: LatenessSummary,
     pub counters: RtCounters,
     pub stopped_by: String,
+    /// How long the connections waited, summed, for the recording to catch
+    /// up (see [`crate::frame_log::Backlog`]).
+    pub waited_for_recording: std::time::Duration,
 }
 
 /// The engine. Build it, add modules, devices and links, then [`RtEngine::run`]
@@ -265,11 +268,12 @@ impl RtEngine {
                 }
             }
         }
-        {
+        let waited_for_recording = {
             let mut shared = front.lock();
             shared.close_all();
             self.swap_front(&mut shared);
-        }
+            shared.backlog().waited()
+        };
         // The last (partial) second's lateness, so even a short session has one.
         let _ = self.sink.send(SinkMsg::Lateness {
             at: self.clock.now(),
@@ -282,6 +286,7 @@ impl RtEngine {
             lateness: self.lateness.summary(),
             counters: self.counters,
             stopped_by: self.stop.take().unwrap_or_default(),
+            waited_for_recording,
         }
     }
 

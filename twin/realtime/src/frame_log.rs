@@ -4,7 +4,7 @@
 
 use nodes::time::SimTime;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::mpsc::{Receiver, Sender, channel};
 
 /// Frames handed to the sink and not yet recorded, shared by the log that
@@ -13,7 +13,15 @@ use std::sync::mpsc::{Receiver, Sender, channel};
 /// behind (the sink runs at a lower priority, and gets little of a saturated
 /// machine) slows its clients down instead of queueing without bound.
 #[derive(Debug, Clone, Default)]
-pub struct Backlog(Arc<AtomicUsize>);
+pub struct Backlog(Arc<BacklogCounts>);
+
+#[derive(Debug, Default)]
+struct BacklogCounts {
+    frames: AtomicUsize,
+    /// Waits of the connections for the recording, in
+    /// [`Backlog::WAIT`]s summed over the connections.
+    waits: AtomicU64,
+}
 
 impl Backlog {
     /// About 15 MB of queue (a frame waits as its bytes, a 40-byte record
@@ -24,9 +32,28 @@ impl Backlog {
     /// the queue's batches reallocated at every size from 0 up.
     pub const LIMIT: usize = 256 * 1024;
 
+    /// How long a connection waits before it looks at the backlog again.
+    pub const WAIT: std::time::Duration = std::time::Duration::from_millis(1);
+
     /// Frames shipped and not recorded yet.
     pub fn frames(&self) -> usize {
-        self.0.load(Ordering::Relaxed)
+        self.0.frames.load(Ordering::Relaxed)
+    }
+
+    /// While the backlog is full, waits [`Backlog::WAIT`] at a time and
+    /// counts the waits.
+    pub fn wait_while_full(&self) {
+        while self.is_full() {
+            std::thread::sleep(Self::WAIT);
+            self.0.waits.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
+    /// How long connections have waited for the recording to catch up,
+    /// summed over the connections.
+    pub fn waited(&self) -> std::time::Duration {
+        Self::WAIT
+            .saturating_mul(u32::try_from(self.0.waits.load(Ordering::Relaxed)).unwrap_or(u32::MAX))
     }
 
     /// Whether a connection should wait before it reads more.
@@ -35,11 +62,11 @@ impl Backlog {
     }
 
     fn add(&self, n: usize) {
-        self.0.fetch_add(n, Ordering::Relaxed);
+        self.0.frames.fetch_add(n, Ordering::Relaxed);
     }
 
     fn sub(&self, n: usize) {
-        self.0.fetch_sub(n, Ordering::Relaxed);
+        self.0.frames.fetch_sub(n, Ordering::Relaxed);
     }
 }
 
@@ -320,5 +347,33 @@ mod tests {
         assert!(backlog.is_full());
         big.recycle();
         assert!(!backlog.is_full());
+    }
+
+    #[test]
+    fn a_connection_waits_while_the_backlog_is_full_and_the_wait_is_counted() {
+        let mut log = FrameLog::default();
+        let backlog = log.backlog();
+        let record = FrameRecord {
+            link: 0,
+            conn: 1,
+            direction: Direction::Rx,
+            start: SimTime::ZERO,
+            end: SimTime::ZERO,
+        };
+        backlog.wait_while_full();
+        assert!(backlog.waited().is_zero(), "no wait while there is room");
+        for _ in 0..=Backlog::LIMIT {
+            log.push(record, b"");
+        }
+        let big = log.take().unwrap();
+        // The sink records the batch a little later.
+        let sink = std::thread::spawn(move || {
+            std::thread::sleep(std::time::Duration::from_millis(20));
+            big.recycle();
+        });
+        backlog.wait_while_full();
+        assert!(!backlog.is_full());
+        assert!(backlog.waited() >= Backlog::WAIT, "{:?}", backlog.waited());
+        sink.join().unwrap();
     }
 }

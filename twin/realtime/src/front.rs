@@ -212,11 +212,16 @@ impl FrontHandle {
 
     /// The count of frames shipped to the sink and not yet recorded.
     pub fn backlog(&self) -> Backlog {
-        self.lock().frames.backlog()
+        self.lock().backlog()
     }
 }
 
 impl Front {
+    /// The count of frames shipped to the sink and not yet recorded.
+    pub(super) fn backlog(&self) -> Backlog {
+        self.frames.backlog()
+    }
+
     pub(super) fn new(sink: Sender<SinkMsg>, clock: RtClock, links: &[LinkConfig]) -> Self {
         Self {
             names: links.iter().map(|l| l.name.clone()).collect(),

@@ -93,6 +93,8 @@ pub struct SessionOutcome {
     pub earlier_files: Vec<PathBuf>,
     /// Frames recorded on the links, both directions, over every file.
     pub frames_recorded: u64,
+    /// How long the connections waited, summed, for the recording to catch up.
+    pub waited_for_recording: Duration,
     /// Samples streamed to the live view (`--view`), if it ran.
     pub view_samples: Option<u64>,
     /// What the live view's viewer did not take, if anything.
@@ -325,6 +327,7 @@ pub fn run<R: Role>(
         recording: sunk.recording,
         earlier_files: sunk.earlier_files,
         frames_recorded: sunk.frames_recorded,
+        waited_for_recording: summary.waited_for_recording,
         view_samples: sunk.view_samples,
         view_error: sunk.view_error,
     };
@@ -468,5 +471,9 @@ pub fn totals(summary: &RtSummary, refused_clients: u64) -> Result<BTreeMap<Stri
         ("counters".into(), serde_json::to_string(&summary.counters)?),
         ("refused_clients".into(), refused_clients.to_string()),
         ("stopped_by".into(), summary.stopped_by.clone()),
+        (
+            "waited_for_recording_s".into(),
+            format!("{:.3}", summary.waited_for_recording.as_secs_f64()),
+        ),
     ]))
 }

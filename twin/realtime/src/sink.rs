@@ -226,13 +226,13 @@ pub fn spawn(config: SinkConfig) -> (Sender<SinkMsg>, JoinHandle<Result<SinkOutc
 pub fn spawn_with(config: SinkConfig, rx: Receiver<SinkMsg>) -> JoinHandle<Result<SinkOutcome>> {
     std::thread::Builder::new()
         .name("twin-sink".into())
-        .spawn(move || {
-            // Recording and printing can wait (the queue holds them); the
-            // links' tasks and the plant cannot. On a machine whose cores are
-            // all busy, the kernel now gives them the time first.
-            let _ = rustix::process::setpriority_process(None, 10);
-            run(config, &rx)
-        })
+        // The thread keeps the process's priority. At nice 10 it was meant
+        // to give the links the cores first, but on a machine whose cores
+        // were all busy it never emptied its queue, preempted at every
+        // wake-up of the others, and eight recorded clients got 0.80x the
+        // rate of eight unrecorded ones where at nice 0 they got 0.91x, the
+        // plant's tick lateness alike (docs/measurements.md).
+        .spawn(move || run(config, &rx))
         .unwrap_or_else(|e| panic!("cannot start the recording thread: {e}"))
 }
 

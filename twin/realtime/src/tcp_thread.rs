@@ -37,9 +37,6 @@ use super::wake::{ThreadWake, Wake};
 /// any frame, so a frame rarely splits.
 pub(super) const READ_CHUNK: usize = 4096;
 
-/// How long a connection waits before it looks at the sink's backlog again.
-const BACKLOG_WAIT: Duration = Duration::from_millis(1);
-
 /// A client that has not taken a reply for this long is dropped, so that
 /// the thread does not wait on it forever.
 pub const WRITE_STALL: Duration = Duration::from_secs(10);
@@ -135,9 +132,7 @@ impl Carrier {
         loop {
             // The recording is behind: let the sink catch up before reading
             // more, so that its queue stays bounded and keeps every frame.
-            while backlog.is_full() {
-                std::thread::sleep(BACKLOG_WAIT);
-            }
+            backlog.wait_while_full();
             if after.listens() {
                 match self.wait(after.reads()) {
                     Ok(true) => {}

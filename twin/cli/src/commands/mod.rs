@@ -66,6 +66,13 @@ fn print_session_end(
             "  {} frames recorded on the links (requests and replies)",
             outcome.frames_recorded
         );
+        let waited = outcome.waited_for_recording;
+        if !waited.is_zero() {
+            println!(
+                "  the connections waited {:.3} s in all for the recording to catch up (the machine was busy; nothing was lost)",
+                waited.as_secs_f64()
+            );
+        }
     }
     match (outcome.view_samples, outcome.view_error.as_deref()) {
         (Some(_), Some(e)) => eprintln!("live view: {e}"),

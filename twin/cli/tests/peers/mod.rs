@@ -195,7 +195,7 @@ impl Drop for Serve {
     fn drop(&mut self) {
         let _ = kill_process(Pid::from_child(&self.child), Signal::TERM);
         // On SIGTERM the server finishes its recording, draining what the
-        // sink thread (at nice 10) still holds: after a flood of frames, in a
+        // sink thread still holds: after a flood of frames, in a
         // debug build on a loaded machine, that has taken more than 5 s. A
         // kill before then leaves a cut file, which the tests would misread
         // as a recording the server broke.
