@@ -145,11 +145,19 @@ fn bench_shows_each_run_it_times() {
     ];
     let (shown, o) = on_a_terminal(&args);
     assert!(o.status.success(), "terminal: {shown}");
+    // The unrecorded and recorded runs take turns.
+    let mut last = 0;
     for run in [
-        "ev-meb, not recorded, run 2 of 2",
+        "ev-meb, not recorded, run 1 of 2",
         "ev-meb, recorded, run 1 of 2",
+        "ev-meb, not recorded, run 2 of 2",
+        "ev-meb, recorded, run 2 of 2",
     ] {
-        assert!(shown.contains(run), "no `{run}` on the terminal: {shown:?}");
+        let at = shown
+            .find(run)
+            .unwrap_or_else(|| panic!("no `{run}` on the terminal: {shown:?}"));
+        assert!(at >= last, "`{run}` came too early: {shown:?}");
+        last = at;
     }
     let table = String::from_utf8_lossy(&o.stdout);
     assert!(table.contains("ev-meb"), "{table}");

@@ -151,17 +151,51 @@ pub fn run_recording(
 /// (what the work costs, which other processes change far less than the
 /// wall clock, read in ticks that a mean blurs).
 pub fn best_of(repeat: u32, mut run: impl FnMut() -> Result<Measurement>) -> Result<Measurement> {
-    let mut best = run()?;
-    let mut cpu_s = best.cpu_s;
-    for _ in 1..repeat {
-        let m = run()?;
-        cpu_s += m.cpu_s;
-        if m.wall_s < best.wall_s {
-            best = m;
+    let mut best = Best::default();
+    for _ in 0..repeat.max(1) {
+        best.add(run()?);
+    }
+    best.take()
+}
+
+/// [`best_of`] for two kinds of run at once, run in turn (`a b a b …`), so
+/// that a machine whose speed drifts over the minutes weighs on both alike
+/// and their ratio is not the drift's.
+pub fn best_of_alternating(
+    repeat: u32,
+    mut a: impl FnMut() -> Result<Measurement>,
+    mut b: impl FnMut() -> Result<Measurement>,
+) -> Result<(Measurement, Measurement)> {
+    let (mut best_a, mut best_b) = (Best::default(), Best::default());
+    for _ in 0..repeat.max(1) {
+        best_a.add(a()?);
+        best_b.add(b()?);
+    }
+    Ok((best_a.take()?, best_b.take()?))
+}
+
+/// The fastest run so far and the CPU time of all of them.
+#[derive(Default)]
+struct Best {
+    fastest: Option<Measurement>,
+    cpu_s: f64,
+    runs: u32,
+}
+
+impl Best {
+    fn add(&mut self, m: Measurement) {
+        self.cpu_s += m.cpu_s;
+        self.runs += 1;
+        if self.fastest.as_ref().is_none_or(|f| m.wall_s < f.wall_s) {
+            self.fastest = Some(m);
         }
     }
-    best.cpu_s = cpu_s / f64::from(repeat.max(1));
-    Ok(best)
+
+    fn take(self) -> Result<Measurement> {
+        let mut best = self.fastest.context("no run was measured")?;
+        best.cpu_s = self.cpu_s / f64::from(self.runs.max(1));
+        Ok(best)
+    }
 }
 
 /// A recording path in the temporary folder that no other process uses.
@@ -212,6 +246,49 @@ mod tests {
             assert!(replies >= cycles, "slave {id}: {replies} replies");
             assert_eq!(l["lost"], 0, "slave {id}");
         }
+    }
+
+    fn measured(wall_s: f64, cpu_s: f64) -> Measurement {
+        Measurement {
+            simulated_s: 10.0,
+            wall_s,
+            cpu_s,
+            frames: 0,
+            events: None,
+            recording_bytes: None,
+        }
+    }
+
+    #[test]
+    fn alternating_runs_take_turns_and_keep_each_kinds_fastest() {
+        let order = std::cell::RefCell::new(String::new());
+        let walls_a = [3.0, 1.0, 2.0];
+        let walls_b = [5.0, 6.0, 4.0];
+        let (mut i, mut j) = (0, 0);
+        let (a, b) = best_of_alternating(
+            3,
+            || {
+                order.borrow_mut().push('a');
+                i += 1;
+                Ok(measured(walls_a[i - 1], 1.0 * i as f64))
+            },
+            || {
+                order.borrow_mut().push('b');
+                j += 1;
+                Ok(measured(walls_b[j - 1], 2.0))
+            },
+        )
+        .unwrap();
+        assert_eq!(order.into_inner(), "ababab");
+        assert_eq!((a.wall_s, b.wall_s), (1.0, 4.0));
+        // CPU time: the mean of each kind's runs.
+        assert_eq!((a.cpu_s, b.cpu_s), (2.0, 2.0));
+        let failed = best_of_alternating(
+            2,
+            || Ok(measured(1.0, 1.0)),
+            || anyhow::bail!("scenario broke"),
+        );
+        assert!(failed.is_err());
     }
 
     #[test]

@@ -13,8 +13,9 @@ use super::progress::Progress;
 /// recording (MCAP to a temporary file, deleted after), and their ratio.
 /// Without --scenario, runs `ev-meb` (one module, 115200 baud, 100 Hz speed
 /// loop; goal 200x) and `ten-modules` (ten modules on one bus, each polled at
-/// 10 Hz; goal 30x). Each figure is the fastest of --repeat runs. Build with
-/// --release.
+/// 10 Hz; goal 30x). Each figure is the fastest of --repeat runs, the
+/// unrecorded and the recorded runs taking turns so that a machine whose
+/// speed drifts weighs on both alike. Build with --release.
 ///
 /// Beside the wall clock, the CPU time the process spent per simulated second
 /// (user and system, every thread; the mean of the runs): on a machine other
@@ -32,7 +33,7 @@ pub struct BenchArgs {
     /// Simulated seconds per run [default: each scenario's duration].
     #[arg(long, value_name = "N", value_parser = super::numbers::above_zero)]
     seconds: Option<f64>,
-    /// Runs per figure; the fastest counts.
+    /// Runs per figure (unrecorded and recorded in turn); the fastest counts.
     #[arg(long, default_value_t = 3, value_name = "N", value_parser = super::numbers::whole::<u32>)]
     repeat: u32,
 }
@@ -74,31 +75,36 @@ pub fn execute(args: &BenchArgs) -> Result<()> {
         }
         // The bar's redraws are few (at most five a second, from the
         // engine's progress hook): they cost the measurement nothing visible.
-        let mut run = 0;
-        let mut new_bar = |recording: &str| {
-            run += 1;
-            let n = args.repeat;
+        // The unrecorded and recorded runs take turns: the k-th of each
+        // kind is pair k.
+        let pair = std::cell::Cell::new(0);
+        let new_bar = |recording: &str| {
             let what = format!(
-                "{}, {recording}, run {} of {n}",
+                "{}, {recording}, run {} of {}",
                 scenario.name,
-                (run - 1) % n + 1
+                pair.get(),
+                args.repeat
             );
             Progress::simulated(&what, scenario.duration_s)
         };
-        let discarded = bench::best_of(args.repeat, || {
-            let bar = new_bar("not recorded");
-            bench::run_discarding(&scenario, |done| bar.show(done))
-        })
-        .with_context(|| format!("scenario {} failed", scenario.name))?;
-        print_row(&scenario.name, "off", &discarded, discarded.events);
         let out = bench::scratch_recording(&scenario.name);
-        let recorded = bench::best_of(args.repeat, || {
-            let bar = new_bar("recorded");
-            bench::run_recording(&scenario, &out, |done| bar.show(done))
-        });
+        let runs = bench::best_of_alternating(
+            args.repeat,
+            || {
+                pair.set(pair.get() + 1);
+                let bar = new_bar("not recorded");
+                bench::run_discarding(&scenario, |done| bar.show(done))
+            },
+            || {
+                let bar = new_bar("recorded");
+                bench::run_recording(&scenario, &out, |done| bar.show(done))
+            },
+        );
         // Remove the scratch file whatever happened, then report.
         let _ = std::fs::remove_file(&out);
-        let recorded = recorded.with_context(|| format!("scenario {} failed", scenario.name))?;
+        let (discarded, recorded) =
+            runs.with_context(|| format!("scenario {} failed", scenario.name))?;
+        print_row(&scenario.name, "off", &discarded, discarded.events);
         // The observer does not steer the engine: a recorded run handles the
         // same events as the discarding one.
         print_row(&scenario.name, "mcap", &recorded, discarded.events);
