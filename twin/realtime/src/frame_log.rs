@@ -10,8 +10,9 @@ use std::sync::mpsc::{Receiver, Sender, channel};
 /// Frames handed to the sink and not yet recorded, shared by the log that
 /// ships them and the batches that carry them. The connections stop reading
 /// while it is above [`Backlog::LIMIT`], so a session whose recording falls
-/// behind (the sink runs at a lower priority, and gets little of a saturated
-/// machine) slows its clients down instead of queueing without bound.
+/// behind (a machine busy with other work leaves the sink little time)
+/// slows its clients down instead of queueing without bound, and the
+/// session says for how long.
 #[derive(Debug, Clone, Default)]
 pub struct Backlog(Arc<BacklogCounts>);
 
