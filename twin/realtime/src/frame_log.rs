@@ -318,17 +318,21 @@ mod tests {
         );
     }
 
-    #[test]
-    fn the_backlog_counts_frames_until_recorded_or_dropped() {
-        let mut log = FrameLog::default();
-        let backlog = log.backlog();
-        let record = FrameRecord {
+    fn a_received_chunk() -> FrameRecord {
+        FrameRecord {
             link: 0,
             conn: 1,
             direction: Direction::Rx,
             start: SimTime::ZERO,
             end: SimTime::ZERO,
-        };
+        }
+    }
+
+    #[test]
+    fn the_backlog_counts_frames_until_recorded_or_dropped() {
+        let mut log = FrameLog::default();
+        let backlog = log.backlog();
+        let record = a_received_chunk();
         log.push(record, b"a");
         log.push(record, b"b");
         let first = log.take().unwrap();
@@ -354,13 +358,7 @@ mod tests {
     fn a_connection_waits_while_the_backlog_is_full_and_the_wait_is_counted() {
         let mut log = FrameLog::default();
         let backlog = log.backlog();
-        let record = FrameRecord {
-            link: 0,
-            conn: 1,
-            direction: Direction::Rx,
-            start: SimTime::ZERO,
-            end: SimTime::ZERO,
-        };
+        let record = a_received_chunk();
         backlog.wait_while_full();
         assert!(backlog.waited().is_zero(), "no wait while there is room");
         for _ in 0..=Backlog::LIMIT {
