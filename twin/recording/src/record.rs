@@ -57,6 +57,10 @@ pub struct Recorder<D: Deferred = NoDeferred> {
     sequences: Vec<u32>,
     /// Per channel, in creation order: its protobuf schema (`None`: JSON).
     protos: Vec<Option<Arc<proto::Schema>>>,
+    /// Per channel: the hand-written message type found to match its
+    /// schema, so that the next message of that type costs a pointer
+    /// compare instead of comparing the names.
+    typed_as: Vec<Option<&'static str>>,
     topics: BTreeMap<String, ChannelId>,
     /// Messages serialised since the last hand-over.
     batch: Batch<D>,
@@ -132,6 +136,7 @@ impl<D: Deferred> Recorder<D> {
             path: path.to_path_buf(),
             sequences: Vec::new(),
             protos: Vec::new(),
+            typed_as: Vec::new(),
             topics: BTreeMap::new(),
             batch: Batch::new(backend.batch_bytes()),
             backend: Some(backend),
@@ -177,6 +182,7 @@ impl<D: Deferred> Recorder<D> {
         let channel = ChannelId(self.sequences.len());
         self.sequences.push(0);
         self.protos.push(proto);
+        self.typed_as.push(None);
         self.topics.insert(topic.to_string(), channel);
         Ok(channel)
     }
@@ -254,17 +260,31 @@ impl<D: Deferred> Recorder<D> {
         &mut self,
         channel: ChannelId,
         time_s: f64,
-        schema: &str,
+        schema: &'static str,
         fields: impl FnOnce(&mut proto::ProtoOut<'_>),
     ) -> Result<bool> {
-        match self.protos.get(channel.0) {
-            Some(Some(s)) if s.name() == schema => {}
-            _ => return Ok(false),
+        if !self.is_typed(channel, schema) {
+            return Ok(false);
         }
         fields(&mut proto::ProtoOut::new(&mut self.batch.bytes));
         let end = self.batch.bytes.len();
         self.queue(channel, time_s, end, false)?;
         Ok(true)
+    }
+
+    /// Whether `channel`'s schema is the protobuf message type `schema`.
+    fn is_typed(&mut self, channel: ChannelId, schema: &'static str) -> bool {
+        let Some(known) = self.typed_as.get_mut(channel.0) else {
+            return false;
+        };
+        if known.is_some_and(|k| std::ptr::eq(k, schema)) {
+            return true;
+        }
+        let matches = matches!(self.protos.get(channel.0), Some(Some(s)) if s.name() == schema);
+        if matches {
+            *known = Some(schema);
+        }
+        matches
     }
 
     /// Write `message` to `channel` at simulated time `time_s`, serialised

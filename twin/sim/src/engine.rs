@@ -364,7 +364,8 @@ pub trait Observer {
     /// A master's loop report, once per poll cycle.
     fn telemetry(&mut self, now: SimTime, node: &NodeSlot, report: &LoopReport) -> Result<()>;
     /// Whether [`Observer::telemetry`] keeps what it is given: when it does
-    /// not, the masters' reports are not even made.
+    /// not, the masters' reports are not even made. Asked once per
+    /// [`Engine::run_until`]: the answer must not change.
     fn wants_loop_reports(&self) -> bool {
         true
     }
@@ -522,9 +523,12 @@ impl Engine {
         let mut handled = 0u64;
         let mut passes_at_this_instant = 0u32;
         let mut until = end;
+        // Asked once: it is the observer's nature, and the question through
+        // a `Tee` of borrowed observers is a chain of calls per event.
+        let wants_loop_reports = observer.wants_loop_reports();
         loop {
             self.transmit_all(observer)?;
-            self.drain_node_output(observer)?;
+            self.drain_node_output(observer, wants_loop_reports)?;
             self.let_firmware_run_ahead(end);
             let Some(t) = self.next_event() else { break };
             if t > end {
@@ -816,9 +820,12 @@ impl Engine {
         Ok(())
     }
 
-    fn drain_node_output(&mut self, observer: &mut dyn Observer) -> Result<()> {
+    fn drain_node_output(
+        &mut self,
+        observer: &mut dyn Observer,
+        wants_loop_reports: bool,
+    ) -> Result<()> {
         let t = self.now;
-        let wants_loop_reports = observer.wants_loop_reports();
         for n in 0..self.nodes.len() {
             if !self.nodes[n].stirred {
                 continue;
