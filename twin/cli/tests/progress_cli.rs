@@ -161,6 +161,10 @@ fn bench_shows_each_run_it_times() {
     }
     let table = String::from_utf8_lossy(&o.stdout);
     assert!(table.contains("ev-meb"), "{table}");
+    assert!(
+        table.contains("pair by pair (2 pairs), the median: "),
+        "{table}"
+    );
     let o = piped(&args);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert_quiet("twin bench", &o.stderr);

@@ -165,13 +165,89 @@ pub fn best_of_alternating(
     repeat: u32,
     mut a: impl FnMut() -> Result<Measurement>,
     mut b: impl FnMut() -> Result<Measurement>,
-) -> Result<(Measurement, Measurement)> {
+) -> Result<Alternated> {
     let (mut best_a, mut best_b) = (Best::default(), Best::default());
+    let mut pairs = Vec::new();
     for _ in 0..repeat.max(1) {
-        best_a.add(a()?);
-        best_b.add(b()?);
+        let (ma, mb) = (a()?, b()?);
+        pairs.push(PairRatio {
+            wall: mb.real_time_factor() / ma.real_time_factor().max(1e-12),
+            // Unknown (no `/proc`): left out of the spread.
+            cpu: if ma.cpu_s > 0.0 && mb.cpu_s > 0.0 {
+                ma.cpu_s / mb.cpu_s
+            } else {
+                f64::NAN
+            },
+        });
+        best_a.add(ma);
+        best_b.add(mb);
     }
-    Ok((best_a.take()?, best_b.take()?))
+    Ok(Alternated {
+        a: best_a.take()?,
+        b: best_b.take()?,
+        pairs,
+    })
+}
+
+/// What [`best_of_alternating`] measured.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Alternated {
+    /// The fastest run of the first kind, with the mean CPU time of its runs.
+    pub a: Measurement,
+    /// The same for the second kind.
+    pub b: Measurement,
+    /// Pair by pair (a run of each kind, one after the other), in order.
+    pub pairs: Vec<PairRatio>,
+}
+
+/// One pair's second run against its first: how fast it went (simulated
+/// seconds per wall-clock second) and how little CPU time it took, each as
+/// a ratio where 1 means "as the first".
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PairRatio {
+    pub wall: f64,
+    pub cpu: f64,
+}
+
+// Two runs one after the other see much the same machine, so their ratio is
+// steadier than the fastest runs': a burst of other work that slows one run
+// weighs on one pair, and the median drops it.
+impl Alternated {
+    /// The median, lowest and highest of the pairs' wall-clock ratios.
+    pub fn wall_spread(&self) -> Option<Spread> {
+        Spread::of(self.pairs.iter().map(|p| p.wall).collect())
+    }
+
+    /// The same of their CPU-time ratios (`None` where CPU time is unknown).
+    pub fn cpu_spread(&self) -> Option<Spread> {
+        Spread::of(self.pairs.iter().map(|p| p.cpu).collect())
+    }
+}
+
+/// Median, lowest and highest of some ratios.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Spread {
+    pub median: f64,
+    pub low: f64,
+    pub high: f64,
+}
+
+impl Spread {
+    fn of(mut values: Vec<f64>) -> Option<Self> {
+        values.retain(|v| v.is_finite());
+        values.sort_by(f64::total_cmp);
+        let n = values.len();
+        let median = match n {
+            0 => return None,
+            _ if n % 2 == 1 => values[n / 2],
+            _ => (values[n / 2 - 1] + values[n / 2]) / 2.0,
+        };
+        Some(Self {
+            median,
+            low: values[0],
+            high: values[n - 1],
+        })
+    }
 }
 
 /// The fastest run so far and the CPU time of all of them.
@@ -265,7 +341,7 @@ mod tests {
         let walls_a = [3.0, 1.0, 2.0];
         let walls_b = [5.0, 6.0, 4.0];
         let (mut i, mut j) = (0, 0);
-        let (a, b) = best_of_alternating(
+        let runs = best_of_alternating(
             3,
             || {
                 order.borrow_mut().push('a');
@@ -280,15 +356,38 @@ mod tests {
         )
         .unwrap();
         assert_eq!(order.into_inner(), "ababab");
-        assert_eq!((a.wall_s, b.wall_s), (1.0, 4.0));
+        assert_eq!((runs.a.wall_s, runs.b.wall_s), (1.0, 4.0));
         // CPU time: the mean of each kind's runs.
-        assert_eq!((a.cpu_s, b.cpu_s), (2.0, 2.0));
+        assert_eq!((runs.a.cpu_s, runs.b.cpu_s), (2.0, 2.0));
+        // Pair by pair: 3/5, 1/6, 2/4 of the rate; 1/2, 2/2, 3/2 of the CPU.
+        let close = |x: f64, y: f64| (x - y).abs() < 1e-12;
+        let expected = [(0.6, 0.5), (1.0 / 6.0, 1.0), (0.5, 1.5)];
+        assert_eq!(runs.pairs.len(), 3);
+        for (p, (wall, cpu)) in runs.pairs.iter().zip(expected) {
+            assert!(close(p.wall, wall) && close(p.cpu, cpu), "{p:?}");
+        }
+        let (wall, cpu) = (runs.wall_spread().unwrap(), runs.cpu_spread().unwrap());
+        assert!(close(wall.median, 0.5) && close(wall.low, 1.0 / 6.0) && close(wall.high, 0.6));
+        assert!(close(cpu.median, 1.0) && close(cpu.low, 0.5) && close(cpu.high, 1.5));
         let failed = best_of_alternating(
             2,
             || Ok(measured(1.0, 1.0)),
             || anyhow::bail!("scenario broke"),
         );
         assert!(failed.is_err());
+        // No CPU time to read: no CPU spread, the wall clock's still.
+        let unknown =
+            best_of_alternating(2, || Ok(measured(1.0, 0.0)), || Ok(measured(2.0, 0.0))).unwrap();
+        assert!(unknown.cpu_spread().is_none());
+        assert_eq!(unknown.wall_spread().map(|s| s.median), Some(0.5));
+    }
+
+    #[test]
+    fn a_spread_of_an_even_count_takes_the_middle_two() {
+        let s = Spread::of(vec![0.9, 0.7, f64::NAN, 0.8, 1.0]).unwrap();
+        assert!((s.median - 0.85).abs() < 1e-12, "{s:?}");
+        assert_eq!((s.low, s.high), (0.7, 1.0));
+        assert!(Spread::of(vec![f64::INFINITY]).is_none());
     }
 
     #[test]

@@ -17,6 +17,11 @@ use super::progress::Progress;
 /// unrecorded and the recorded runs taking turns so that a machine whose
 /// speed drifts weighs on both alike. Build with --release.
 ///
+/// With two runs or more of each, the last line compares them pair by pair
+/// (each recorded run with the unrecorded one just before it) and gives the
+/// median ratio and the range: on a busy or noisy machine, the steadiest
+/// figure of what recording costs.
+///
 /// Beside the wall clock, the CPU time the process spent per simulated second
 /// (user and system, every thread; the mean of the runs): on a machine other
 /// work shares, it moves far less than the wall clock, so the cost of
@@ -102,12 +107,12 @@ pub fn execute(args: &BenchArgs) -> Result<()> {
         );
         // Remove the scratch file whatever happened, then report.
         let _ = std::fs::remove_file(&out);
-        let (discarded, recorded) =
-            runs.with_context(|| format!("scenario {} failed", scenario.name))?;
-        print_row(&scenario.name, "off", &discarded, discarded.events);
+        let runs = runs.with_context(|| format!("scenario {} failed", scenario.name))?;
+        let (discarded, recorded) = (&runs.a, &runs.b);
+        print_row(&scenario.name, "off", discarded, discarded.events);
         // The observer does not steer the engine: a recorded run handles the
         // same events as the discarding one.
-        print_row(&scenario.name, "mcap", &recorded, discarded.events);
+        print_row(&scenario.name, "mcap", recorded, discarded.events);
         if let Some(bytes) = recorded.recording_bytes {
             println!(
                 "  {:<20} {:<10} {:.1} kB per simulated second; recorded at {:.2}x the rate without \
@@ -119,8 +124,32 @@ pub fn execute(args: &BenchArgs) -> Result<()> {
                 discarded.cpu_ms_per_simulated_s() / recorded.cpu_ms_per_simulated_s().max(1e-9)
             );
         }
+        if runs.pairs.len() > 1 {
+            print_pairs(&runs);
+        }
     }
     Ok(())
+}
+
+/// The recorded run over the unrecorded one just before it, pair by pair.
+fn print_pairs(runs: &bench::Alternated) {
+    let spread = |s: Option<bench::Spread>, what: &str| {
+        s.map(|s| format!("{:.2}x {what} ({:.2}x to {:.2}x)", s.median, s.low, s.high))
+    };
+    let figures: Vec<String> = [
+        spread(runs.wall_spread(), "wall clock"),
+        spread(runs.cpu_spread(), "CPU time"),
+    ]
+    .into_iter()
+    .flatten()
+    .collect();
+    println!(
+        "  {:<20} {:<10} pair by pair ({} pairs), the median: {}",
+        "",
+        "",
+        runs.pairs.len(),
+        figures.join(", ")
+    );
 }
 
 fn print_row(scenario: &str, recording: &str, m: &Measurement, events: Option<u64>) {
