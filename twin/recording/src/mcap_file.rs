@@ -24,10 +24,11 @@ pub enum Compression {
     /// the core's first-level cache) and matches from 5 bytes. Over the
     /// chunks of a 200 s ev-meb run and a 60 s ten-modules run, against
     /// plain level 1: 1.3 times as fast, 3.1 % and 1.9 % smaller with
-    /// matches from 4 bytes; from 5, about 1.2 to 1.4 times as fast again
-    /// for 3 % and 2.4 % more bytes. A plant sample's doubles differ from
-    /// the last sample's in their low bytes, so most 4-byte matches are the
-    /// high half of one, short and costly to encode.
+    /// matches from 4 bytes; from 5, about 1.15 times as fast again on
+    /// ev-meb's chunks (1.02 to 1.07 on ten-modules'), for 3.1 % and 2.4 %
+    /// more bytes. A plant sample's doubles differ from the last sample's
+    /// in their low bytes, so most 4-byte matches are the high half of one,
+    /// short and costly to encode.
     Samples,
     /// A real-time session's chunks, 1 MB of a busy link's frames each:
     /// plain level 1, smallest there (the setting above was 12 % faster on

@@ -48,9 +48,10 @@ const THREADED_BATCH_BYTES: usize = 256 * 1024;
 /// An inline writer's batches stay small enough to be in cache when written.
 const INLINE_BATCH_BYTES: usize = 32 * 1024;
 /// Deferred messages per batch, at most: a plant sample is about 250
-/// bytes, so a batch holds about as many bytes of them as of the rest, and
-/// the writer thread wakes every few simulated seconds (each wake-up on a
-/// busy core is two context switches and the engine's cache to refill).
+/// bytes encoded, so in ev-meb a batch holds about as many bytes of them
+/// as of the rest and the writer thread wakes every five simulated seconds
+/// or so (each wake-up on a busy core is two context switches and the
+/// engine's cache to refill).
 const BATCH_DEFERRED: usize = 1024;
 /// Batches in flight to a writer thread: the caller waits when the writer is
 /// this far behind, so a run faster than its compression cannot fill memory.
