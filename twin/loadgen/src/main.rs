@@ -47,8 +47,9 @@ struct Cli {
     /// Clients of the many-client rate figure.
     #[arg(long, default_value_t = 8)]
     clients: usize,
-    /// Rounds of rate figures (each server started afresh in each round;
-    /// the medians are reported).
+    /// Rounds of rate figures (each server started afresh for each figure,
+    /// the recorded twin measured right between tokio-modbus and the
+    /// unrecorded twin; the medians are reported).
     #[arg(long, default_value_t = 3)]
     rounds: usize,
     /// Extra arguments for `twin serve` (repeat it), e.g. `--twin-arg=--turnaround-ms=0`.
@@ -336,9 +337,13 @@ fn bench(cli: &Cli) -> Result<()> {
     let mut rate_servers = rate_servers(cli, &scratch);
     for round in 1..=cli.rounds.max(1) {
         eprintln!("  rates, round {round} of {}", cli.rounds.max(1));
-        for server in &mut rate_servers {
-            server.measure(cli.clients, duration, START_TIMEOUT)?;
-        }
+        rounds::measure_round(
+            &mut rate_servers,
+            round,
+            cli.clients,
+            duration,
+            START_TIMEOUT,
+        )?;
     }
     let _ = std::fs::remove_dir_all(&scratch);
     report(&b, &rate_servers);
@@ -395,6 +400,10 @@ impl TwinSetup {
         }
     }
 
+    fn recording_file(&self) -> PathBuf {
+        self.scratch.join("serve-bench.mcap")
+    }
+
     fn command(&self, recording: &str, rtu: Option<&std::path::Path>) -> Command {
         let mut cmd = Command::new(&self.binary);
         cmd.args([
@@ -411,7 +420,7 @@ impl TwinSetup {
             cmd.arg("--modbus-rtu").arg(path);
         }
         if recording == "mcap" {
-            cmd.arg("--out").arg(self.scratch.join("serve-bench.mcap"));
+            cmd.arg("--out").arg(self.recording_file());
         } else {
             cmd.arg("--no-record");
         }
@@ -444,6 +453,7 @@ fn rate_servers(cli: &Cli, scratch: &std::path::Path) -> Vec<RateServer> {
         link,
         dialect,
         command: Box::new(move || myself(&[role])),
+        recording_file: None,
         lateness: Vec::new(),
         recorded: Vec::new(),
         one: Vec::new(),
@@ -474,6 +484,7 @@ fn rate_servers(cli: &Cli, scratch: &std::path::Path) -> Vec<RateServer> {
                 recording,
                 link: "modbus-tcp",
                 dialect: Dialect::ModbusTcp,
+                recording_file: (recording == "mcap").then(|| setup.recording_file()),
                 command: Box::new(move || Ok(setup.command(recording, None))),
                 lateness: Vec::new(),
                 recorded: Vec::new(),

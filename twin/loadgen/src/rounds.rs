@@ -1,12 +1,16 @@
-//! The request-rate figures, measured in rounds: in each round every server
-//! is started afresh, loaded by one client and then by many, and stopped,
-//! one after the other. On a shared 2-core machine the rate a server gets
-//! drifts by ±15 % over a minute; measured in one block per server, the
-//! last server measured would carry the drift. Interleaved, each round
-//! compares servers seconds apart, and the medians over the rounds are
-//! reported with their ranges.
+//! The request-rate figures, measured in rounds. In each round every
+//! server is started afresh for each figure, loaded (by one client, then,
+//! in a second pass, by many) and stopped, one after the other. On a shared
+//! 2-core machine the rate a server gets drifts by ±15 % over a minute, and
+//! by a few per cent between two sessions a second apart: so the sessions
+//! a goal compares are measured back to back. In each pass the recorded
+//! twin runs right between tokio-modbus and the twin with recording off,
+//! and every other round the order is reversed, so neither reference is
+//! always the one measured first. The medians over the rounds are reported
+//! with their ranges.
 
 use anyhow::{Context, Result};
+use std::path::PathBuf;
 use std::process::Command;
 use std::time::Duration;
 
@@ -23,8 +27,12 @@ pub struct RateServer {
     pub dialect: Dialect,
     /// A fresh command that starts it.
     pub command: Box<dyn Fn() -> Result<Command>>,
-    /// The plant's tick lateness each of its sessions printed at its end.
-    pub lateness: Vec<String>,
+    /// The recording it writes, deleted after each session: its pages are
+    /// then never written back to disk while another server is measured.
+    pub recording_file: Option<PathBuf>,
+    /// The plant's tick lateness each of its sessions printed at its end:
+    /// (round, clients, line).
+    pub lateness: Vec<(usize, usize, String)>,
     /// Per recorded session: the frames it said it recorded, and the
     /// requests its clients sent (each answered or counted bad).
     pub recorded: Vec<(Option<u64>, u64)>,
@@ -37,37 +45,93 @@ impl RateServer {
         self.name.starts_with("twin")
     }
 
-    /// One round: started, one client then `clients`, stopped.
-    pub fn measure(&mut self, clients: usize, duration: Duration, timeout: Duration) -> Result<()> {
+    /// One session: started, loaded by `clients` for `duration`, stopped.
+    fn session(
+        &mut self,
+        round: usize,
+        clients: usize,
+        duration: Duration,
+        timeout: Duration,
+    ) -> Result<Rate> {
         let server = Server::start(&self.name, (self.command)()?, timeout)?;
         let addr = tcp_addr(server.link(self.link)?)?.to_string();
-        let cpu = || server.cpu_time();
-        let connect =
-            |n: usize| -> Result<Vec<_>> { (0..n).map(|_| servers::connect(&addr)).collect() };
         let what = format!("{} (rec. {})", self.name, self.recording);
-        eprintln!("  {what}: request rate, 1 client, then {clients}, {duration:?} each");
-        let one = rate(connect(1)?, self.dialect, duration, cpu)
-            .with_context(|| format!("{what}, one client"))?;
-        let many = rate(connect(clients)?, self.dialect, duration, cpu)
-            .with_context(|| format!("{what}, {clients} clients"))?;
-        self.one.push(one);
-        self.many.push(many);
+        eprintln!(
+            "  {what}: request rate, {} for {duration:?}",
+            clients_text(clients)
+        );
+        let links = (0..clients)
+            .map(|_| servers::connect(&addr))
+            .collect::<Result<Vec<_>>>()?;
+        let figure = rate(links, self.dialect, duration, || server.cpu_time())
+            .with_context(|| format!("{what}, {}", clients_text(clients)))?;
         // A recording drains its queue before the server exits: give it time.
         let lines = server.stop_within(STOP_LIMIT);
+        if let Some(file) = &self.recording_file {
+            let _ = std::fs::remove_file(file);
+        }
         if self.is_twin() && self.recording != "off" {
-            let sent = [one, many].iter().map(|r| r.answered + r.bad_replies).sum();
+            let sent = figure.answered + figure.bad_replies;
             self.recorded.push((frames_recorded(&lines), sent));
         }
         if self.is_twin() {
             let lateness = lines.iter().find(|l| l.contains("tick lateness"));
-            self.lateness.push(
+            self.lateness.push((
+                round,
+                clients,
                 lateness
                     .map_or("no tick lateness printed", |l| l.trim())
                     .to_string(),
-            );
+            ));
         }
-        Ok(())
+        Ok(figure)
     }
+}
+
+fn clients_text(clients: usize) -> String {
+    if clients == 1 {
+        "1 client".into()
+    } else {
+        format!("{clients} clients")
+    }
+}
+
+/// The order of round `round`'s sessions (counted from 1), as indexes into
+/// `servers`: the references in their order, then the recorded twins, then
+/// the twin with recording off; reversed in even rounds. A recorded twin
+/// thus runs right after or right before tokio-modbus (the last reference)
+/// and the unrecorded twin, the two rates its goals compare it with.
+pub fn session_order(servers: &[RateServer], round: usize) -> Vec<usize> {
+    let mut order: Vec<usize> = (0..servers.len()).collect();
+    order.sort_by_key(|&i| {
+        let s = &servers[i];
+        (s.is_twin(), s.is_twin() && s.recording == "off")
+    });
+    if round.is_multiple_of(2) {
+        order.reverse();
+    }
+    order
+}
+
+/// Round `round` (from 1): each server's one-client session in turn, then
+/// each server's session with `clients`, in [`session_order`].
+pub fn measure_round(
+    servers: &mut [RateServer],
+    round: usize,
+    clients: usize,
+    duration: Duration,
+    timeout: Duration,
+) -> Result<()> {
+    let order = session_order(servers, round);
+    for &i in &order {
+        let one = servers[i].session(round, 1, duration, timeout)?;
+        servers[i].one.push(one);
+    }
+    for &i in &order {
+        let many = servers[i].session(round, clients, duration, timeout)?;
+        servers[i].many.push(many);
+    }
+    Ok(())
 }
 
 /// How long a server may take to stop (a recording drains its queue first).
@@ -120,8 +184,11 @@ pub fn report(servers: &[RateServer], clients: usize, rounds: usize) {
     println!(
         "  Modbus TCP request rate (FC04 ten registers and FC03 three, alternating), median of"
     );
-    println!("  {rounds} round(s) and range, each round every server started afresh in turn; the");
-    println!("  server's CPU time (user + system, all threads) per request answered, median");
+    println!(
+        "  {rounds} round(s) and range, each server started afresh for each figure, the recorded"
+    );
+    println!("  twin measured between tokio-modbus and the twin unrecorded; the server's CPU time");
+    println!("  (user + system, all threads) per request answered, median");
     println!(
         "  {:<20} {:<6} {:>24} {:>9} {:>26} {:>9} {:>5}",
         "server",
@@ -154,8 +221,12 @@ pub fn report(servers: &[RateServer], clients: usize, rounds: usize) {
     if !twins.is_empty() {
         println!("  the plant meanwhile (each twin rate session, whole):");
         for s in twins {
-            for (round, line) in s.lateness.iter().enumerate() {
-                println!("    round {}, rec. {}: {line}", round + 1, s.recording);
+            for (round, clients, line) in &s.lateness {
+                println!(
+                    "    round {round}, rec. {}, {}: {line}",
+                    s.recording,
+                    clients_text(*clients)
+                );
             }
         }
     }
@@ -253,6 +324,65 @@ fn recording_goals(servers: &[RateServer], reference: &RateServer) {
             } else {
                 "FRAMES MISSING"
             }
+        );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn server(name: &str, recording: &'static str) -> RateServer {
+        RateServer {
+            name: name.into(),
+            recording,
+            link: "modbus-tcp",
+            dialect: Dialect::ModbusTcp,
+            command: Box::new(|| Ok(Command::new("true"))),
+            recording_file: None,
+            lateness: Vec::new(),
+            recorded: Vec::new(),
+            one: Vec::new(),
+            many: Vec::new(),
+        }
+    }
+
+    fn names(servers: &[RateServer], round: usize) -> Vec<String> {
+        session_order(servers, round)
+            .into_iter()
+            .map(|i| format!("{} {}", servers[i].name, servers[i].recording))
+            .collect()
+    }
+
+    #[test]
+    fn the_recorded_twin_runs_between_the_two_rates_it_is_compared_with() {
+        // In the order `serve-bench` lists them.
+        let servers = [
+            server("echo", "-"),
+            server("echo (tokio)", "-"),
+            server("tokio-modbus 0.17", "-"),
+            server("twin serve", "off"),
+            server("twin serve", "mcap"),
+        ];
+        let odd = [
+            "echo -",
+            "echo (tokio) -",
+            "tokio-modbus 0.17 -",
+            "twin serve mcap",
+            "twin serve off",
+        ];
+        assert_eq!(names(&servers, 1), odd);
+        assert_eq!(names(&servers, 3), odd);
+        let even: Vec<_> = odd.iter().rev().map(|s| s.to_string()).collect();
+        assert_eq!(names(&servers, 2), even);
+        // --twin-only and --no-twin keep what is left in the same order.
+        assert_eq!(
+            names(&servers[3..], 1),
+            ["twin serve mcap", "twin serve off"]
+        );
+        assert_eq!(
+            names(&servers[..3], 2),
+            ["tokio-modbus 0.17 -", "echo (tokio) -", "echo -"]
         );
     }
 }
