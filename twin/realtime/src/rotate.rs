@@ -20,7 +20,6 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use twin_recording::disk;
-use twin_recording::record::Compression;
 use twin_recording::topics;
 use twin_sim::engine::FirmwareFile;
 use twin_sim::observe::SimRecorder;
@@ -421,8 +420,7 @@ fn store_firmware(recorder: &mut SimRecorder, files: &[FirmwareFile]) -> Result<
 
 /// A new recording at `path` with `metadata` as its `twin.run` record.
 fn create(path: &Path, metadata: BTreeMap<String, String>) -> Result<SimRecorder> {
-    // A session's chunks are mostly its links' frames.
-    let mut recorder = SimRecorder::create_inline_for(path, Compression::Frames)?;
+    let mut recorder = SimRecorder::create_inline(path)?;
     recorder.write_metadata(topics::RUN_METADATA, metadata)?;
     Ok(recorder)
 }

@@ -15,40 +15,32 @@ use mcap::records::op;
 use std::collections::BTreeMap;
 use std::io::{self, Write};
 
-/// How the chunks are compressed: zstd level 1 either way, its match
-/// finder set for what they hold.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Compression {
-    /// A virtual run's chunks, a simulated second each (about 100 kB to
-    /// 1 MB, mostly plant samples): a 4 kB-entry hash table (12 bits, in
-    /// the core's first-level cache) and matches from 5 bytes. Over the
-    /// chunks of a 200 s ev-meb run and a 60 s ten-modules run, against
-    /// plain level 1: 1.3 times as fast, 3.1 % and 1.9 % smaller with
-    /// matches from 4 bytes; from 5, about 1.15 times as fast again on
-    /// ev-meb's chunks (1.02 to 1.07 on ten-modules'), for 3.1 % and 2.4 %
-    /// more bytes. A plant sample's doubles differ from the last sample's
-    /// in their low bytes, so most 4-byte matches are the high half of one,
-    /// short and costly to encode.
-    Samples,
-    /// A real-time session's chunks, 1 MB of a busy link's frames each:
-    /// plain level 1, smallest there (the setting above was 12 % faster on
-    /// them but 4.5 % larger).
-    Frames,
-}
-
-/// zstd at `level`, set for `compression`.
-fn compressor(level: i32, compression: Compression) -> io::Result<zstd::bulk::Compressor<'static>> {
+/// zstd at `level`, its match finder set for the twin's chunks: a 4 kB-entry
+/// hash table (12 bits, in the core's first-level cache) and matches from
+/// 5 bytes. A plant sample's doubles differ from the last sample's in their
+/// low bytes, so most 4-byte matches are the high half of one, short and
+/// costly to encode. Against plain level 1:
+///
+/// - a virtual run's chunks (a simulated second each, about 100 kB to 1 MB,
+///   mostly plant samples): 1.3 times as fast and 3.1 % (ev-meb) and 1.9 %
+///   (ten-modules) smaller with matches from 4 bytes; from 5, about 1.15
+///   times as fast again on ev-meb's (1.02 to 1.07 on ten-modules'), for
+///   3.1 % and 2.4 % more bytes;
+/// - a real-time session's chunks (1 MB of a busy link's frames): 1.18
+///   times as fast and 6.5 % larger. The sink compresses beside the
+///   connections it records, so its time per frame is what a recorded
+///   session at eight clients loses, where a file 4 % larger (the message
+///   indexes are not compressed) costs a user nothing they wait for.
+fn compressor(level: i32) -> io::Result<zstd::bulk::Compressor<'static>> {
     use zstd::zstd_safe::{CParameter, Strategy};
     let mut compressor = zstd::bulk::Compressor::new(level)?;
-    if compression == Compression::Samples {
-        for parameter in [
-            CParameter::Strategy(Strategy::ZSTD_fast),
-            CParameter::HashLog(12),
-            CParameter::MinMatch(5),
-            CParameter::TargetLength(1),
-        ] {
-            compressor.set_parameter(parameter)?;
-        }
+    for parameter in [
+        CParameter::Strategy(Strategy::ZSTD_fast),
+        CParameter::HashLog(12),
+        CParameter::MinMatch(5),
+        CParameter::TargetLength(1),
+    ] {
+        compressor.set_parameter(parameter)?;
     }
     Ok(compressor)
 }
@@ -186,13 +178,7 @@ fn too_many(what: &str) -> io::Error {
 
 impl<W: Write> McapFile<W> {
     /// Start the file: magic and header.
-    pub(crate) fn new(
-        inner: W,
-        library: &str,
-        level: i32,
-        compression: Compression,
-        chunk_size: usize,
-    ) -> io::Result<Self> {
+    pub(crate) fn new(inner: W, library: &str, level: i32, chunk_size: usize) -> io::Result<Self> {
         let mut file = Self {
             out: Out {
                 inner,
@@ -203,7 +189,7 @@ impl<W: Write> McapFile<W> {
             chunk: Vec::with_capacity(chunk_size + 64 * 1024),
             chunk_bounds: None,
             indexes: vec![Vec::new()],
-            compressor: compressor(level, compression)?,
+            compressor: compressor(level)?,
             compressed: Vec::new(),
             scratch: Vec::new(),
             schemas: Vec::new(),
@@ -615,8 +601,7 @@ mod tests {
     /// [`McapFile`]: two schemas (one shared), three channels, messages
     /// across size-closed and flushed chunks, metadata in the middle.
     fn both(chunk_size: usize) -> (Vec<u8>, Vec<u8>) {
-        let mut ours =
-            McapFile::new(Vec::new(), "lib", 1, Compression::Frames, chunk_size).unwrap();
+        let mut ours = McapFile::new(Vec::new(), "lib", 1, chunk_size).unwrap();
         let mut theirs = mcap::WriteOptions::new()
             .compression(Some(mcap::Compression::Zstd))
             .compression_level(1)

@@ -16,7 +16,6 @@ use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-pub use crate::mcap_file::Compression;
 use crate::mcap_file::McapFile;
 use crate::proto;
 use crate::topics;
@@ -24,7 +23,7 @@ use crate::writer::{Appender, Backend, Batch, FileWriter, Job, Queued};
 pub use crate::writer::{Deferred, NoDeferred};
 
 /// How the recording is compressed: zstd level 1 with its match finder set
-/// for what the chunks hold ([`Compression`]), one stream per chunk, by
+/// for the twin's chunks (`mcap_file::compressor`), one stream per chunk, by
 /// the writer (see [`Recorder`] for which thread that is). On the twin's
 /// chunks level 1 is both faster and smaller than level 3 (ev-meb 548 kB
 /// against 594 kB for 10 s of JSON, ten-modules 4.07 MB against 4.65 MB).
@@ -115,19 +114,13 @@ impl<D: Deferred> Recorder<D> {
     /// thread: for a caller that is itself off the critical path (a
     /// session's sink), where a second thread would only add the hand-over.
     pub fn create_inline(path: &Path) -> Result<Self> {
-        Self::create_inline_for(path, Compression::Samples)
-    }
-
-    /// [`Recorder::create_inline`] with the chunks compressed for
-    /// `compression` (a real-time session's: [`Compression::Frames`]).
-    pub fn create_inline_for(path: &Path, compression: Compression) -> Result<Self> {
-        let writer = open(path, compression)?;
+        let writer = open(path)?;
         Ok(Self::with_backend(path, Backend::inline(writer)))
     }
 
     /// Create `path` (and its parent folders), written by a thread of its own.
     pub fn create_threaded(path: &Path) -> Result<Self> {
-        let writer = open(path, Compression::Samples)?;
+        let writer = open(path)?;
         Ok(Self::with_backend(path, Backend::threaded(writer)?))
     }
 
@@ -453,21 +446,15 @@ fn nanoseconds(time_s: f64) -> u64 {
 }
 
 /// The MCAP writer of a new file at `path`.
-fn open(path: &Path, compression: Compression) -> Result<FileWriter> {
+fn open(path: &Path) -> Result<FileWriter> {
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir)
             .with_context(|| format!("cannot create folder {}", dir.display()))?;
     }
     let file = File::create(path).with_context(|| format!("cannot create {}", path.display()))?;
     let library = concat!("ev-lab-twin ", env!("CARGO_PKG_VERSION"));
-    let writer = McapFile::new(
-        BufWriter::new(file),
-        library,
-        ZSTD_LEVEL,
-        compression,
-        CHUNK_SIZE,
-    )
-    .with_context(|| format!("cannot start MCAP file {}", path.display()))?;
+    let writer = McapFile::new(BufWriter::new(file), library, ZSTD_LEVEL, CHUNK_SIZE)
+        .with_context(|| format!("cannot start MCAP file {}", path.display()))?;
     Ok(FileWriter::new(writer, path))
 }
 

@@ -538,10 +538,15 @@ pub const FRAME_SCHEMA: &str = "twin.Frame";
 /// `bytes` as two lowercase hex digits each, appended to `hex`: how a
 /// frame's or a UART burst's `hex` field spells them.
 pub fn put_hex(hex: &mut String, bytes: &[u8]) {
-    const DIGITS: &[u8; 16] = b"0123456789abcdef";
-    for b in bytes {
-        hex.push(char::from(DIGITS[usize::from(b >> 4)]));
-        hex.push(char::from(DIGITS[usize::from(b & 0x0f)]));
+    // Spelled on the stack and appended a run at a time: a `push` per
+    // digit (a capacity check and a UTF-8 encoding each) cost about 30
+    // instructions a byte.
+    let mut digits = [0u8; 128];
+    for run in bytes.chunks(digits.len() / 2) {
+        let spelled = &mut digits[..2 * run.len()];
+        crate::proto::write::spell_hex(spelled, run);
+        // Hex digits are ASCII: never an error.
+        hex.push_str(std::str::from_utf8(spelled).unwrap_or_default());
     }
 }
 
@@ -702,6 +707,18 @@ pub struct EventSample {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn hex_spells_every_byte_in_two_lowercase_digits_at_any_length() {
+        let every: Vec<u8> = (0..=255).collect();
+        for len in [0, 1, 63, 64, 65, 256] {
+            let bytes = &every[..len];
+            let mut hex = String::from("kept:");
+            put_hex(&mut hex, bytes);
+            let expected: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
+            assert_eq!(hex, format!("kept:{expected}"), "{len} bytes");
+        }
+    }
 
     #[test]
     fn every_topic_parses_back_to_what_named_it() {

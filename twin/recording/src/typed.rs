@@ -156,6 +156,35 @@ impl<T: DecodedProtobuf + ?Sized> DecodedProtobuf for &T {
     }
 }
 
+/// A frame's `hex` field: its bytes, two lowercase hex digits each,
+/// spelled already or spelled where the field is written (no string is
+/// made for a frame written by hand).
+#[derive(Debug, Clone, Copy)]
+pub enum Hex<'a> {
+    Spelled(&'a str),
+    Of(&'a [u8]),
+}
+
+impl Serialize for Hex<'_> {
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        match self {
+            Hex::Spelled(hex) => serializer.serialize_str(hex),
+            Hex::Of(bytes) => serializer.collect_str(&HexDigits(bytes)),
+        }
+    }
+}
+
+/// Bytes displayed as their hex digits.
+struct HexDigits<'a>(&'a [u8]);
+
+impl std::fmt::Display for HexDigits<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let mut hex = String::with_capacity(2 * self.0.len());
+        crate::topics::put_hex(&mut hex, self.0);
+        f.write_str(&hex)
+    }
+}
+
 /// One frame as the frame channels record it (`twin.Frame`), from the
 /// virtual engine and the real-time sink alike: serialised (a JSON channel,
 /// a PWM-capture bus's) or written by [`FrameMessage::write`].
@@ -171,7 +200,7 @@ pub struct FrameMessage<'a, D: ?Sized> {
     pub text: Option<&'a str>,
     /// The bytes, two lowercase hex digits each; left out of a protobuf
     /// frame whose `text` holds them.
-    pub hex: Option<&'a str>,
+    pub hex: Option<Hex<'a>>,
     pub decoded: &'a D,
 }
 
@@ -199,8 +228,10 @@ impl<D: DecodedProtobuf + ?Sized> FrameMessage<'_, D> {
         if let Some(text) = self.text {
             m.str(5, text);
         }
-        if let Some(hex) = self.hex {
-            m.str(6, hex);
+        match self.hex {
+            Some(Hex::Spelled(hex)) => m.str(6, hex),
+            Some(Hex::Of(bytes)) => m.hex(6, bytes),
+            None => {}
         }
         m.nested(7, |m| self.decoded.write_decoded(m));
     }
@@ -295,7 +326,7 @@ mod tests {
         decoded: &D,
         len: usize,
         text: Option<&str>,
-        hex: Option<&str>,
+        hex: Option<Hex<'_>>,
     ) -> (Vec<u8>, Vec<u8>) {
         let message = FrameMessage {
             from: "client 3",
@@ -330,8 +361,10 @@ mod tests {
         assert_eq!(schema.name(), crate::topics::FRAME_SCHEMA);
         let fields = [
             (Some("@01"), None),
-            (None, Some("0007")),
-            (Some(""), Some("")),
+            (None, Some(Hex::Spelled("0007"))),
+            (None, Some(Hex::Of(&[0, 7, 0xab, 0xff]))),
+            (Some(""), Some(Hex::Of(&[]))),
+            (Some(""), Some(Hex::Spelled(""))),
         ];
         for (protocol, bytes) in frames {
             for (text, hex) in fields {

@@ -21,8 +21,8 @@ use crate::engine::{BusSlot, FirmwareRecord, ModuleSlot, NodeSlot, Observer};
 use twin_recording::describe::decode_frame;
 use twin_recording::proto::Protobuf;
 use twin_recording::record::{ChannelId, Recorder};
-use twin_recording::topics::{self, LoopReport, ReadingsSample, put_hex};
-use twin_recording::typed::{DecodedProtobuf, FrameMessage};
+use twin_recording::topics::{self, LoopReport, ReadingsSample};
+use twin_recording::typed::{DecodedProtobuf, FrameMessage, Hex};
 
 pub use crate::plant_sample::PlantSample;
 
@@ -43,8 +43,6 @@ pub struct McapObserver {
     /// The last lines the nodes logged (kind `log`), and what firmware that
     /// never answers its bus was doing (kind `silent`), for the summary.
     pub log_tail: VecDeque<String>,
-    /// A frame's hex text, reused from frame to frame.
-    hex: String,
     /// Channels by the name of what writes them (a run has a few of each):
     /// a message's topic is formatted once, not per message.
     sensors: Vec<LazyChannel>,
@@ -165,7 +163,6 @@ impl McapObserver {
             frames: 0,
             events: BTreeMap::new(),
             log_tail: VecDeque::new(),
-            hex: String::with_capacity(2 * nodes::node::MAX_FRAME),
             sensors: Vec::new(),
             actuators: Vec::new(),
             buses: Vec::new(),
@@ -335,10 +332,9 @@ impl McapObserver {
         let printable = bytes
             .iter()
             .all(|b| b.is_ascii_graphic() || *b == b'\n' || *b == b'\r');
-        // Printable bytes are ASCII, so this never fails when it is used.
-        let text = std::str::from_utf8(bytes).ok().filter(|_| printable);
-        let mut hex = std::mem::take(&mut self.hex);
-        hex.clear();
+        // Printable bytes are ASCII, so this never fails when it is used
+        // (and binary frames are not checked for UTF-8 at all).
+        let text = printable.then(|| std::str::from_utf8(bytes).ok()).flatten();
         let frame = FrameParts {
             from,
             start,
@@ -346,13 +342,10 @@ impl McapObserver {
             bytes,
             text,
         };
-        let written = self.write_frame(channel, &frame, &mut hex, decoded, by_hand);
-        self.hex = hex;
-        written
+        self.write_frame(channel, &frame, decoded, by_hand)
     }
 
-    /// [`McapObserver::record_frame`] with the text worked out and the hex
-    /// buffer lent. A protobuf channel holds the bytes once, as `text` when
+    /// [`McapObserver::record_frame`] with the text worked out. A protobuf channel holds the bytes once, as `text` when
     /// they are printable (MEB) and as `hex` otherwise (the twin's readers
     /// give back both: `topics::complete_frame`); a JSON channel (a
     /// PWM-capture bus's) holds both, as it always did.
@@ -360,7 +353,6 @@ impl McapObserver {
         &mut self,
         channel: &mut LazyChannel,
         frame: &FrameParts<'_>,
-        hex: &mut String,
         decoded: &impl Serialize,
         by_hand: Option<&dyn DecodedProtobuf>,
     ) -> Result<()> {
@@ -375,32 +367,26 @@ impl McapObserver {
             Some(id) => id,
             None => {
                 // The channel is made from a frame with every field.
-                put_hex(hex, bytes);
                 let sample = FrameMessage {
                     from,
                     start_s: secs(start),
                     end_s: secs(end),
                     len: bytes.len(),
                     text: Some(text.unwrap_or("")),
-                    hex: Some(hex.as_str()),
+                    hex: Some(Hex::Of(bytes)),
                     decoded,
                 };
-                let id = channel.id(&mut self.recorder, &sample)?;
-                hex.clear();
-                id
+                channel.id(&mut self.recorder, &sample)?
             }
         };
         let once = self.recorder.is_protobuf(id);
         let hex_too = !(once && text.is_some());
-        if hex_too {
-            put_hex(hex, bytes);
-        }
         let text = if once && text.is_none() {
             None
         } else {
             Some(text.unwrap_or(""))
         };
-        let hex = hex_too.then_some(hex.as_str());
+        let hex = hex_too.then_some(Hex::Of(bytes));
         self.frames += 1;
         let time_s = start.as_secs_f64();
         let message = FrameMessage {
@@ -658,7 +644,7 @@ mod tests {
                 end_s: 0.2501,
                 len: bytes.len(),
                 text: Some(""),
-                hex: Some("00"),
+                hex: Some(Hex::Spelled("00")),
                 decoded: &link_frame_fields(protocol, bytes),
             };
             let (back, json) = round_trip("/link/modbus-tcp/frames", &message);
@@ -669,7 +655,7 @@ mod tests {
                 end_s: 0.2501,
                 len: bytes.len(),
                 text: Some(""),
-                hex: Some("00"),
+                hex: Some(Hex::Spelled("00")),
                 decoded: &decode_frame(bytes),
             };
             let (back, json) = round_trip("/bus/rs485/frames", &message);

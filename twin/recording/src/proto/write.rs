@@ -8,6 +8,26 @@
 
 use super::{I64, LEN, VARINT, put_varint, varint_into};
 
+/// Fills `digits` (two bytes per byte of `bytes`) with `bytes` in
+/// lowercase hex.
+pub fn spell_hex(digits: &mut [u8], bytes: &[u8]) {
+    for (pair, &b) in digits.chunks_exact_mut(2).zip(bytes) {
+        pair.copy_from_slice(&HEX_PAIRS[usize::from(b)]);
+    }
+}
+
+/// Every byte's two hex digits, so a byte is spelled in one copy.
+const HEX_PAIRS: [[u8; 2]; 256] = {
+    const DIGITS: &[u8; 16] = b"0123456789abcdef";
+    let mut pairs = [[0u8; 2]; 256];
+    let mut b = 0;
+    while b < 256 {
+        pairs[b] = [DIGITS[b >> 4], DIGITS[b & 0x0f]];
+        b += 1;
+    }
+    pairs
+};
+
 /// A message's fields appended to `out`, each with its tag, in the order
 /// they are given (the order its `Serialize` gives them, so that the bytes
 /// are those [`super::encode`] writes).
@@ -66,6 +86,19 @@ impl<'a> ProtoOut<'a> {
     #[inline]
     pub fn str(&mut self, number: u32, v: &str) {
         self.bytes(number, v.as_bytes());
+    }
+
+    /// A `string` field holding `v` spelled in hex, two lowercase digits a
+    /// byte, with no string made first.
+    #[inline]
+    pub fn hex(&mut self, number: u32, v: &[u8]) {
+        self.tag(number, LEN);
+        put_varint(self.out, 2 * v.len() as u64);
+        let start = self.out.len();
+        self.out.resize(start + 2 * v.len(), 0);
+        if let Some(digits) = self.out.get_mut(start..) {
+            spell_hex(digits, v);
+        }
     }
 
     /// A `string` or `bytes` field from bytes.
