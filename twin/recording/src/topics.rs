@@ -538,16 +538,14 @@ pub const FRAME_SCHEMA: &str = "twin.Frame";
 /// `bytes` as two lowercase hex digits each, appended to `hex`: how a
 /// frame's or a UART burst's `hex` field spells them.
 pub fn put_hex(hex: &mut String, bytes: &[u8]) {
-    // Spelled on the stack and appended a run at a time: a `push` per
-    // digit (a capacity check and a UTF-8 encoding each) cost about 30
-    // instructions a byte.
-    let mut digits = [0u8; 128];
-    for run in bytes.chunks(digits.len() / 2) {
-        let spelled = &mut digits[..2 * run.len()];
-        crate::proto::write::spell_hex(spelled, run);
-        // Hex digits are ASCII: never an error.
-        hex.push_str(std::str::from_utf8(spelled).unwrap_or_default());
-    }
+    // Appended a run at a time: a `push` per digit (a capacity check and a
+    // UTF-8 encoding each) cost about 30 instructions a byte.
+    let appended: Result<(), std::convert::Infallible> =
+        crate::proto::write::hex_runs(bytes, |run| {
+            hex.push_str(run);
+            Ok(())
+        });
+    let Ok(()) = appended;
 }
 
 /// A frame read from a protobuf channel, with both `text` and `hex` as the

@@ -179,9 +179,7 @@ struct HexDigits<'a>(&'a [u8]);
 
 impl std::fmt::Display for HexDigits<'_> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let mut hex = String::with_capacity(2 * self.0.len());
-        crate::topics::put_hex(&mut hex, self.0);
-        f.write_str(&hex)
+        crate::proto::write::hex_runs(self.0, |run| f.write_str(run))
     }
 }
 
@@ -339,6 +337,19 @@ mod tests {
         };
         let hand = by_hand(|m| message.write(m));
         (hand, by_schema("/link/modbus-tcp/frames", &message))
+    }
+
+    #[test]
+    fn hex_reads_the_same_in_json_spelled_or_not() {
+        let bytes: Vec<u8> = (0..=200).collect();
+        let mut spelled = String::new();
+        crate::topics::put_hex(&mut spelled, &bytes);
+        assert_eq!(spelled.len(), 2 * bytes.len());
+        assert!(spelled.starts_with("000102") && spelled.ends_with("c6c7c8"));
+        let of = serde_json::to_string(&Hex::Of(&bytes)).unwrap();
+        assert_eq!(of, format!("\"{spelled}\""));
+        let already = serde_json::to_string(&Hex::Spelled(&spelled)).unwrap();
+        assert_eq!(of, already);
     }
 
     #[test]

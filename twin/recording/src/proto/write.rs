@@ -16,6 +16,19 @@ pub fn spell_hex(digits: &mut [u8], bytes: &[u8]) {
     }
 }
 
+/// `bytes` in lowercase hex, handed to `each` a run of up to 128 digits at
+/// a time, spelled on the stack: no string is made for them.
+pub fn hex_runs<E>(bytes: &[u8], mut each: impl FnMut(&str) -> Result<(), E>) -> Result<(), E> {
+    let mut digits = [0u8; 128];
+    for run in bytes.chunks(digits.len() / 2) {
+        let spelled = &mut digits[..2 * run.len()];
+        spell_hex(spelled, run);
+        // Hex digits are ASCII: never an error.
+        each(std::str::from_utf8(spelled).unwrap_or_default())?;
+    }
+    Ok(())
+}
+
 /// Every byte's two hex digits, so a byte is spelled in one copy.
 const HEX_PAIRS: [[u8; 2]; 256] = {
     const DIGITS: &[u8; 16] = b"0123456789abcdef";
