@@ -156,21 +156,14 @@ impl<T: DecodedProtobuf + ?Sized> DecodedProtobuf for &T {
     }
 }
 
-/// A frame's `hex` field: its bytes, two lowercase hex digits each,
-/// spelled already or spelled where the field is written (no string is
-/// made for a frame written by hand).
+/// A frame's bytes as its `hex` field holds them: two lowercase hex digits
+/// each, spelled where the field is written, so no string is made for them.
 #[derive(Debug, Clone, Copy)]
-pub enum Hex<'a> {
-    Spelled(&'a str),
-    Of(&'a [u8]),
-}
+pub struct Hex<'a>(pub &'a [u8]);
 
 impl Serialize for Hex<'_> {
     fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
-        match self {
-            Hex::Spelled(hex) => serializer.serialize_str(hex),
-            Hex::Of(bytes) => serializer.collect_str(&HexDigits(bytes)),
-        }
+        serializer.collect_str(&HexDigits(self.0))
     }
 }
 
@@ -226,10 +219,8 @@ impl<D: DecodedProtobuf + ?Sized> FrameMessage<'_, D> {
         if let Some(text) = self.text {
             m.str(5, text);
         }
-        match self.hex {
-            Some(Hex::Spelled(hex)) => m.str(6, hex),
-            Some(Hex::Of(bytes)) => m.hex(6, bytes),
-            None => {}
+        if let Some(Hex(bytes)) = self.hex {
+            m.hex(6, bytes);
         }
         m.nested(7, |m| self.decoded.write_decoded(m));
     }
@@ -340,16 +331,14 @@ mod tests {
     }
 
     #[test]
-    fn hex_reads_the_same_in_json_spelled_or_not() {
+    fn hex_in_json_is_the_string_of_its_digits() {
         let bytes: Vec<u8> = (0..=200).collect();
         let mut spelled = String::new();
         crate::topics::put_hex(&mut spelled, &bytes);
         assert_eq!(spelled.len(), 2 * bytes.len());
         assert!(spelled.starts_with("000102") && spelled.ends_with("c6c7c8"));
-        let of = serde_json::to_string(&Hex::Of(&bytes)).unwrap();
-        assert_eq!(of, format!("\"{spelled}\""));
-        let already = serde_json::to_string(&Hex::Spelled(&spelled)).unwrap();
-        assert_eq!(of, already);
+        let json = serde_json::to_string(&Hex(&bytes)).unwrap();
+        assert_eq!(json, format!("\"{spelled}\""));
     }
 
     #[test]
@@ -372,10 +361,9 @@ mod tests {
         assert_eq!(schema.name(), crate::topics::FRAME_SCHEMA);
         let fields = [
             (Some("@01"), None),
-            (None, Some(Hex::Spelled("0007"))),
-            (None, Some(Hex::Of(&[0, 7, 0xab, 0xff]))),
-            (Some(""), Some(Hex::Of(&[]))),
-            (Some(""), Some(Hex::Spelled(""))),
+            (None, Some(Hex(&[0, 7]))),
+            (None, Some(Hex(&[0, 7, 0xab, 0xff]))),
+            (Some(""), Some(Hex(&[]))),
         ];
         for (protocol, bytes) in frames {
             for (text, hex) in fields {

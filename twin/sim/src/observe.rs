@@ -345,8 +345,9 @@ impl McapObserver {
         self.write_frame(channel, &frame, decoded, by_hand)
     }
 
-    /// [`McapObserver::record_frame`] with the text worked out. A protobuf channel holds the bytes once, as `text` when
-    /// they are printable (MEB) and as `hex` otherwise (the twin's readers
+    /// [`McapObserver::record_frame`] with the text worked out. A protobuf
+    /// channel holds the bytes once, as `text` when they are printable
+    /// (MEB) and as `hex` otherwise (the twin's readers
     /// give back both: `topics::complete_frame`); a JSON channel (a
     /// PWM-capture bus's) holds both, as it always did.
     fn write_frame(
@@ -373,7 +374,7 @@ impl McapObserver {
                     end_s: secs(end),
                     len: bytes.len(),
                     text: Some(text.unwrap_or("")),
-                    hex: Some(Hex::Of(bytes)),
+                    hex: Some(Hex(bytes)),
                     decoded,
                 };
                 channel.id(&mut self.recorder, &sample)?
@@ -386,7 +387,7 @@ impl McapObserver {
         } else {
             Some(text.unwrap_or(""))
         };
-        let hex = hex_too.then_some(Hex::Of(bytes));
+        let hex = hex_too.then_some(Hex(bytes));
         self.frames += 1;
         let time_s = start.as_secs_f64();
         let message = FrameMessage {
@@ -644,7 +645,7 @@ mod tests {
                 end_s: 0.2501,
                 len: bytes.len(),
                 text: Some(""),
-                hex: Some(Hex::Spelled("00")),
+                hex: Some(Hex(&[0])),
                 decoded: &link_frame_fields(protocol, bytes),
             };
             let (back, json) = round_trip("/link/modbus-tcp/frames", &message);
@@ -655,7 +656,7 @@ mod tests {
                 end_s: 0.2501,
                 len: bytes.len(),
                 text: Some(""),
-                hex: Some(Hex::Spelled("00")),
+                hex: Some(Hex(&[0])),
                 decoded: &decode_frame(bytes),
             };
             let (back, json) = round_trip("/bus/rs485/frames", &message);
