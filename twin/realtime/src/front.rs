@@ -328,6 +328,8 @@ impl Front {
     pub(super) fn closed(&mut self, id: ConnId, why: &str) {
         if let Some(c) = self.conns.remove(&id) {
             self.note(c.link, &c.peer, &format!("closed: {why}"));
+            // After the note, which shipped the connection's last frames.
+            self.send(SinkMsg::Gone(id));
         }
     }
 
@@ -335,6 +337,7 @@ impl Front {
         if let Some(conn) = self.conns.remove(&id) {
             conn.task.close(why.into(), conn.due);
             self.note(conn.link, &conn.peer, &format!("closed by the twin: {why}"));
+            self.send(SinkMsg::Gone(id));
         }
     }
 

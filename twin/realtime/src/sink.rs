@@ -77,6 +77,9 @@ pub enum SinkMsg {
         peer: String,
         text: String,
     },
+    /// A connection has closed and its frames are all sent: what the sink
+    /// kept for it (a half-received request among it) can go.
+    Gone(crate::frame_log::ConnId),
     /// A line for the console (status, a command's answer).
     Say(String),
     /// Finish the recording's file and go on in a new one (SIGHUP): why.
@@ -194,6 +197,7 @@ fn feed(view: &mut dyn LiveView, config: &SinkConfig, message: &SinkMsg) {
         SinkMsg::Frames(_)
         | SinkMsg::Firmware(_)
         | SinkMsg::Actuators { .. }
+        | SinkMsg::Gone(_)
         | SinkMsg::Say(_)
         | SinkMsg::Rotate(_)
         | SinkMsg::Replan(_)
@@ -345,6 +349,13 @@ impl FrameSink {
             .iter()
             .map(|(name, _)| LazyChannel::new(name, topics::link_frames(name)))
             .collect()
+    }
+
+    /// Connection `conn` has closed: its reassembly buffer and name go, so
+    /// a long session whose clients come and go holds only the connections
+    /// still open.
+    fn forget(&mut self, conn: u64) {
+        self.conns.remove(&conn);
     }
 
     /// A new file has begun: its channels are made afresh on first use (a
@@ -566,6 +577,10 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
                         Ok(())
                     }
                 }
+            }
+            SinkMsg::Gone(conn) => {
+                frame_sink.forget(conn);
+                Ok(())
             }
             SinkMsg::Replan(plan) => {
                 if let Some(f) = &mut files {
@@ -791,5 +806,60 @@ fn say_pruned(out: &mut impl Write, pruned: &[Pruned]) {
             p.bytes as f64 / 1e6,
             p.reason
         );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame_log::{Direction, FrameBatch, FrameRecord};
+
+    fn received(conn: u64, bytes: &[u8], batch: &mut FrameBatch) {
+        let at = SimTime::ZERO;
+        let record = FrameRecord {
+            link: 0,
+            conn,
+            direction: Direction::Rx,
+            start: at,
+            end: at,
+        };
+        batch.push(record, bytes);
+    }
+
+    #[test]
+    fn a_closed_connection_is_forgotten_and_the_others_kept() {
+        let config = SinkConfig {
+            modules: Vec::new(),
+            links: vec![("modbus".into(), "modbus-tcp")],
+            monitor: true,
+            recording: None,
+            view: None,
+        };
+        let mut sink = FrameSink::new(&config);
+        let request = [0, 7, 0, 0, 0, 6, 1, 4, 0, 0, 0, 10];
+        let mut batch = FrameBatch::default();
+        for conn in 1..=100 {
+            received(conn, &request, &mut batch);
+        }
+        // The last one hangs up halfway through a request.
+        received(101, &request[..5], &mut batch);
+        let mut shown = Vec::new();
+        sink.take(&config, &batch, &mut shown, &mut None, &mut None)
+            .unwrap();
+        let shown = String::from_utf8(shown).unwrap();
+        assert_eq!(shown.lines().count(), 100, "{shown}");
+        assert_eq!(sink.conns.len(), 101);
+        for conn in 2..=101 {
+            sink.forget(conn);
+        }
+        assert_eq!(sink.conns.keys().collect::<Vec<_>>(), [&1]);
+        // A connection still open goes on being reassembled.
+        let mut batch = FrameBatch::default();
+        received(1, &request[..3], &mut batch);
+        received(1, &request[3..], &mut batch);
+        let mut shown = Vec::new();
+        sink.take(&config, &batch, &mut shown, &mut None, &mut None)
+            .unwrap();
+        assert!(String::from_utf8(shown).unwrap().contains("modbus #1 <-"));
     }
 }
