@@ -170,6 +170,28 @@ fn bench_shows_each_run_it_times() {
     assert_quiet("twin bench", &o.stderr);
 }
 
+/// Users profile the bench with valgrind (callgrind counts instructions,
+/// which this noisy machine's clocks cannot): it must run there too. It
+/// once died at its first CPU-time reading, in rustix's own reading of the
+/// process's auxiliary vector, which valgrind's loader lays out otherwise.
+#[test]
+fn bench_runs_under_valgrind() {
+    let twin = env!("CARGO_BIN_EXE_twin");
+    let o = Command::new("valgrind")
+        .args(["--tool=none", "--error-exitcode=99", twin])
+        .args(["bench", "--scenario", "ev-meb", "--seconds", "0.2"])
+        .args(["--repeat", "1"])
+        .output()
+        .expect("valgrind runs (bash .ci/install installs it)");
+    let table = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        o.status.success(),
+        "{table}\n{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(table.contains("ev-meb               mcap"), "{table}");
+}
+
 #[test]
 fn the_parallel_experiment_shows_each_variant() {
     let dir = scratch("parallel");
