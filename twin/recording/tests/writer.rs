@@ -37,8 +37,9 @@ fn sample(i: u32) -> Sample {
 }
 
 /// Five simulated seconds: a sample each millisecond (as JSON or deferred),
-/// a frame every 10 ms, metadata, a flush at 2.5 s: several batches of
-/// either writer and a chunk per simulated second.
+/// a frame every 10 ms (through serde and written by hand, in turn),
+/// metadata, a flush at 2.5 s: several batches of either writer and a chunk
+/// per simulated second.
 fn write(path: &Path, threaded: bool, deferred: bool) {
     let mut rec: Recorder<Sample> = if threaded {
         Recorder::create_threaded(path).unwrap()
@@ -52,20 +53,34 @@ fn write(path: &Path, threaded: bool, deferred: bool) {
     .unwrap();
     let sensors = rec.add_channel("/plant/ev1/sensors", &sample(0)).unwrap();
     let mut frames = None;
-    for i in 0..5000 {
+    for i in 0..5000u32 {
         let t = f64::from(i) * 0.001;
-        if deferred {
-            rec.write_deferred(sensors, t, sample(i)).unwrap();
-        } else {
-            rec.write_to(sensors, t, &sample(i)).unwrap();
-        }
         if i.is_multiple_of(10) {
             let frame = json!({"from": "master", "hex": format!("{i:04x}")});
             let channel = match frames {
                 Some(c) => c,
                 None => *frames.insert(rec.add_channel("/bus/rs485/frames", &frame).unwrap()),
             };
-            rec.write_to(channel, t, &frame).unwrap();
+            if i.is_multiple_of(20) {
+                // Written by hand, as the twin writes its frames; each
+                // second's first message is one of them, so a chunk closes
+                // before one.
+                let bytes = i.to_be_bytes();
+                let typed = rec
+                    .write_protobuf(channel, t, "twin.Frame", |m| {
+                        m.str(1, "master");
+                        m.hex(6, &bytes);
+                    })
+                    .unwrap();
+                assert!(typed, "the frames' channel is twin.Frame");
+            } else {
+                rec.write_to(channel, t, &frame).unwrap();
+            }
+        }
+        if deferred {
+            rec.write_deferred(sensors, t, sample(i)).unwrap();
+        } else {
+            rec.write_to(sensors, t, &sample(i)).unwrap();
         }
         if i == 2500 {
             rec.flush().unwrap();
