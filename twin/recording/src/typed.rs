@@ -163,14 +163,11 @@ pub struct Hex<'a>(pub &'a [u8]);
 
 impl Serialize for Hex<'_> {
     fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
-        serializer.collect_str(&HexDigits(self.0))
+        serializer.collect_str(self)
     }
 }
 
-/// Bytes displayed as their hex digits.
-struct HexDigits<'a>(&'a [u8]);
-
-impl std::fmt::Display for HexDigits<'_> {
+impl std::fmt::Display for Hex<'_> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         crate::proto::write::hex_runs(self.0, |run| f.write_str(run))
     }

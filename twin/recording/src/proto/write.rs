@@ -10,7 +10,7 @@ use super::{I64, LEN, VARINT, put_varint, varint_into};
 
 /// Fills `digits` (two bytes per byte of `bytes`) with `bytes` in
 /// lowercase hex.
-pub fn spell_hex(digits: &mut [u8], bytes: &[u8]) {
+pub(crate) fn spell_hex(digits: &mut [u8], bytes: &[u8]) {
     for (pair, &b) in digits.chunks_exact_mut(2).zip(bytes) {
         pair.copy_from_slice(&HEX_PAIRS[usize::from(b)]);
     }
@@ -18,7 +18,10 @@ pub fn spell_hex(digits: &mut [u8], bytes: &[u8]) {
 
 /// `bytes` in lowercase hex, handed to `each` a run of up to 128 digits at
 /// a time, spelled on the stack: no string is made for them.
-pub fn hex_runs<E>(bytes: &[u8], mut each: impl FnMut(&str) -> Result<(), E>) -> Result<(), E> {
+pub(crate) fn hex_runs<E>(
+    bytes: &[u8],
+    mut each: impl FnMut(&str) -> Result<(), E>,
+) -> Result<(), E> {
     let mut digits = [0u8; 128];
     for run in bytes.chunks(digits.len() / 2) {
         let spelled = &mut digits[..2 * run.len()];
