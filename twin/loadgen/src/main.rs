@@ -461,7 +461,12 @@ fn rate_servers(cli: &Cli, scratch: &std::path::Path) -> Vec<RateServer> {
     };
     let mut list = Vec::new();
     if !cli.twin_only {
-        list.push(reference("echo", "echo-tcp", "echo-tcp", Dialect::EchoTcp));
+        list.push(reference(
+            rounds::ECHO,
+            "echo-tcp",
+            "echo-tcp",
+            Dialect::EchoTcp,
+        ));
         // The same echo on tokio: what a readiness loop costs by itself.
         list.push(reference(
             "echo (tokio)",

@@ -265,6 +265,7 @@ pub fn goals(servers: &[RateServer]) {
             if ok { "met" } else { "MISSED" }
         );
     }
+    echo_ceiling(servers, reference);
     recording_goals(servers, reference);
 }
 
@@ -283,6 +284,36 @@ fn rounds_and_median(ratios: &[f64]) -> String {
     format!("{each}x (median {:.2}x)", spread(ratios.to_vec()).0)
 }
 
+/// Each round's ratio of `server`'s many-client rate to `base`'s.
+fn many_per_round(server: &RateServer, base: &RateServer) -> Vec<f64> {
+    server
+        .many
+        .iter()
+        .zip(&base.many)
+        .map(|(s, b)| s.per_second / b.per_second)
+        .collect()
+}
+
+/// The bare echo (a thread per connection, no Modbus, no plant) against
+/// tokio-modbus, round by round: the most any server could get here, so
+/// the ceiling of the goal lines that follow it, in the same run.
+fn echo_ceiling(servers: &[RateServer], reference: &RateServer) {
+    let Some(echo) = servers
+        .iter()
+        .find(|s| s.name == ECHO && !s.many.is_empty())
+    else {
+        return;
+    };
+    println!(
+        "    the bare echo (the least work a server can do per request) at many clients, \
+         per round: {} tokio-modbus's rate",
+        rounds_and_median(&many_per_round(echo, reference))
+    );
+}
+
+/// The name of the thread-per-connection echo server.
+pub const ECHO: &str = "echo";
+
 /// What recording every frame costs at many clients, per round: at least
 /// 1.1x tokio-modbus's rate and 0.9x the twin's own rate with recording off,
 /// in every round; and every frame recorded, two per request.
@@ -292,14 +323,7 @@ fn recording_goals(servers: &[RateServer], reference: &RateServer) {
         return;
     };
     for s in twins().filter(|s| s.recording != "off") {
-        let per_round = |base: &RateServer| -> Vec<f64> {
-            s.many
-                .iter()
-                .zip(&base.many)
-                .map(|(t, b)| t.per_second / b.per_second)
-                .collect()
-        };
-        let (vs_tokio, vs_off) = (per_round(reference), per_round(off));
+        let (vs_tokio, vs_off) = (many_per_round(s, reference), many_per_round(s, off));
         let least = |ratios: &[f64]| ratios.iter().copied().fold(f64::INFINITY, f64::min);
         let ok = least(&vs_tokio) >= 1.1 && least(&vs_off) >= 0.9;
         println!(
@@ -369,6 +393,29 @@ mod tests {
             "1.09 0.96 1.20 1.01x (median 1.05x)"
         );
         assert_eq!(rounds_and_median(&[]), "no rounds");
+    }
+
+    fn with_rates(mut server: RateServer, rates: &[f64]) -> RateServer {
+        server.many = rates
+            .iter()
+            .map(|&per_second| Rate {
+                answered: 1,
+                per_second,
+                bad_replies: 0,
+                server_cpu: None,
+            })
+            .collect();
+        server
+    }
+
+    #[test]
+    fn each_round_is_compared_with_the_same_round_of_the_reference() {
+        let tokio = with_rates(server("tokio-modbus 0.17", "-"), &[80.0, 100.0, 90.0]);
+        let echo = with_rates(server(ECHO, "-"), &[100.0, 110.0, 90.0]);
+        assert_eq!(many_per_round(&echo, &tokio), [1.25, 1.1, 1.0]);
+        // A round one of them lacks (a run cut short) is left out.
+        let short = with_rates(server(ECHO, "-"), &[88.0]);
+        assert_eq!(many_per_round(&short, &tokio), [1.1]);
     }
 
     #[test]
