@@ -18,6 +18,9 @@ use crate::child::{Server, tcp_addr};
 use crate::measure::{Dialect, Rate, rate};
 use crate::servers;
 
+/// The name of the thread-per-connection echo server.
+pub const ECHO: &str = "echo";
+
 /// A server the rates are measured on.
 pub struct RateServer {
     pub name: String,
@@ -310,9 +313,6 @@ fn echo_ceiling(servers: &[RateServer], reference: &RateServer) {
         rounds_and_median(&many_per_round(echo, reference))
     );
 }
-
-/// The name of the thread-per-connection echo server.
-pub const ECHO: &str = "echo";
 
 /// What recording every frame costs at many clients, per round: at least
 /// 1.1x tokio-modbus's rate and 0.9x the twin's own rate with recording off,
