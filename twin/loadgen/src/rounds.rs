@@ -299,7 +299,10 @@ fn many_per_round(server: &RateServer, base: &RateServer) -> Vec<f64> {
 
 /// The bare echo (a thread per connection, no Modbus, no plant) against
 /// tokio-modbus, round by round: the most any server could get here, so
-/// the ceiling of the goal lines that follow it, in the same run.
+/// the ceiling of the goal lines that follow it, in the same run. Then each
+/// twin against the echo of its round: how far below that ceiling it runs,
+/// a figure that moves far less from round to round than tokio-modbus's
+/// own rate does.
 fn echo_ceiling(servers: &[RateServer], reference: &RateServer) {
     let Some(echo) = servers
         .iter()
@@ -312,6 +315,13 @@ fn echo_ceiling(servers: &[RateServer], reference: &RateServer) {
          per round: {} tokio-modbus's rate",
         rounds_and_median(&many_per_round(echo, reference))
     );
+    for twin in servers.iter().filter(|s| s.is_twin() && !s.many.is_empty()) {
+        println!(
+            "    twin serve, recording {} at many clients, per round: {} the bare echo's rate",
+            twin.recording,
+            rounds_and_median(&many_per_round(twin, echo))
+        );
+    }
 }
 
 /// What recording every frame costs at many clients, per round: at least
