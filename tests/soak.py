@@ -16,7 +16,7 @@ SIGTERM, as a service manager would, and its recording is deleted unless
 Run it by hand on an idle machine for the real figure (an hour):
     cargo build --release -p twin
     python3 tests/soak.py --twin target/release/twin --seconds 3600
-CI runs a 30-second one (twin/cli/tests/soak_cli.rs). --json prints the
+CI runs a 30-second one (twin/cli/tests/it/soak.rs). --json prints the
 figures as JSON on the last line. A reply later than 2 s is counted late (a
 real master would have timed out and asked again); one still missing after
 12 s is lost. The exit status is 1 if any reply was lost or wrong, or the

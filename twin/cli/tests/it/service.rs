@@ -1,0 +1,519 @@
+//! `twin serve` and `twin supervise` as services: configuration files good
+//! and broken (`--config`, `--check`), flags over the file, SIGHUP's
+//! reread, the allowed client addresses (a client from 127.0.0.2 refused,
+//! one from 127.0.0.1 served), systemd's readiness protocol on a socket the
+//! test holds, the units in deploy/systemd verified by systemd-analyze
+//! against the real binary, and a class of five modules in one process,
+//! each reached by its own pymodbus client.
+
+use std::os::unix::net::UnixDatagram;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use crate::support;
+use support::{Proc, text, twin};
+
+fn folder(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("twin-service-cli-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    dir
+}
+
+fn repo() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+fn signal(proc: &Proc, name: &str) {
+    let pid = proc.child.id().to_string();
+    assert!(
+        Command::new("kill")
+            .args([&format!("-{name}"), &pid])
+            .status()
+            .expect("kill runs")
+            .success()
+    );
+}
+
+#[test]
+fn the_example_configurations_check_and_flags_override_them() {
+    let config = repo().join("deploy/config");
+    for (command, file, says) in [
+        (
+            "serve",
+            "serve.toml",
+            "serves meb tcp://0.0.0.0:5700, modbus-tcp tcp://0.0.0.0:5020 to 10.0.3.0/24, 127.0.0.1/32; records to ./serve-START.mcap, a new file every 1h, keeping at most 30d, 20G",
+        ),
+        (
+            "serve",
+            "student01.toml",
+            "serves meb tcp://0.0.0.0:5701, modbus-tcp tcp://0.0.0.0:5021 to 10.0.3.101/32",
+        ),
+        ("serve", "class.toml", "a class of 3 modules"),
+        (
+            "supervise",
+            "supervise.toml",
+            "supervises /dev/ttyUSB0?baud=115200 over MEB; serves MEB clients on tcp://0.0.0.0:5701 from 10.0.3.0/24; records to ./supervise-START.mcap, a new file every 1d, keeping at most 90d",
+        ),
+    ] {
+        let path = config.join(file);
+        let o = twin(&[command, "--config", path.to_str().unwrap(), "--check"]);
+        assert!(o.status.success(), "{file}: {}", text(&o));
+        assert!(text(&o).contains(says), "{file}: {}", text(&o));
+    }
+    let class = twin(&[
+        "serve",
+        "--config",
+        config.join("class.toml").to_str().unwrap(),
+        "--check",
+    ]);
+    let class = text(&class);
+    assert!(
+        class.contains("student03: serves meb tcp://0.0.0.0:5703 to 10.0.3.103/32; records to ./student03/serve-START.mcap, a new file every 1h, keeping at most 14d, 2G"),
+        "{class}"
+    );
+    // The command line replaces the file's options, a repeated one whole.
+    let o = twin(&[
+        "serve",
+        "--config",
+        config.join("serve.toml").to_str().unwrap(),
+        "--check",
+        "--meb",
+        "tcp://127.0.0.1:9",
+        "--no-record",
+        "--allow",
+        "127.0.0.1",
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(
+        text(&o).contains("serves meb tcp://127.0.0.1:9, modbus-tcp tcp://0.0.0.0:5020 to 127.0.0.1/32; not recorded"),
+        "{}",
+        text(&o)
+    );
+}
+
+#[test]
+fn broken_configurations_are_named_by_file_line_and_key() {
+    let dir = folder("broken");
+    let cases: &[(&str, &str, &str)] = &[
+        (
+            "serve",
+            "meb = [\"tcp://127.0.0.1:0\"]\nbaud = \"fast\"\n",
+            ":2: `baud` must be a whole number, got `fast`",
+        ),
+        (
+            "serve",
+            "meb = [\"tcp://127.0.0.1:0\"]\n\nkee-files = 3\n",
+            ":3: unknown option `kee-files` (did you mean `keep-files`?)",
+        ),
+        (
+            "serve",
+            "quiet = \"yes\"\n",
+            ":1: `quiet` must be true or false, got the string \"yes\"",
+        ),
+        (
+            "serve",
+            "rotate-every = \"1 fortnight\"\n",
+            ":1: `rotate-every`: give a time like 30m, 1h, 7d or seconds above 0, got `1 fortnight`",
+        ),
+        (
+            "serve",
+            "allow = [\"10.0.3.0/33\"]\n",
+            ":1: `allow`: `10.0.3.0/33`: the prefix length must be 0 to 32",
+        ),
+        ("serve", "id = 300\n", ":1: `id`: 300 is not in 1..=99"),
+        ("serve", "meb = [\n", ":1: unclosed array, expected `]`"),
+        (
+            "serve",
+            "meb = [\"tcp://127.0.0.1:0\"]\nrotate-size = \"lots\"\n",
+            ":2: `rotate-size`: give a size like 512M, 2G or bytes above 0, got `lots`",
+        ),
+        (
+            "serve",
+            "seed = [1, 2]\n",
+            ":1: `seed` takes one value, got a list",
+        ),
+        (
+            "serve",
+            "check = true\n",
+            ":1: `check` is an option of the command line",
+        ),
+        (
+            "serve",
+            "[[module]]\nmeb = [\"tcp://127.0.0.1:0\"]\n",
+            ":1: a [[module]] needs a `name`",
+        ),
+        (
+            "serve",
+            "[[module]]\nname = \"a\"\n[[module]]\nname = \"a\"\n",
+            ":3: `name`: module `a` is named twice (first on line 1)",
+        ),
+        (
+            "serve",
+            "[[module]]\nname = \"a\"\nmeb = [\"tcp://127.0.0.1:0\"]\nbaud = -5\n",
+            ":4: `baud` must be a whole number",
+        ),
+        (
+            "supervise",
+            "meb = \"/tmp/x\"\n[[module]]\nname = \"a\"\n",
+            ":2: `module`: only `twin serve` serves a class of modules",
+        ),
+    ];
+    for (n, (command, body, says)) in cases.iter().enumerate() {
+        let path = dir.join(format!("bad{n}.toml"));
+        std::fs::write(&path, body).unwrap();
+        let o = twin(&[command, "--config", path.to_str().unwrap(), "--check"]);
+        let printed = text(&o);
+        assert!(!o.status.success(), "{body}: {printed}");
+        let expected = format!("{}{says}", path.display());
+        assert!(
+            printed.contains(&expected),
+            "{body}: wanted {expected:?} in {printed}"
+        );
+        assert!(!printed.contains("panicked"), "{printed}");
+    }
+    let o = twin(&[
+        "serve",
+        "--config",
+        dir.join("missing.toml").to_str().unwrap(),
+    ]);
+    assert!(
+        text(&o).contains("cannot read the configuration"),
+        "{}",
+        text(&o)
+    );
+}
+
+/// Runs the pymodbus student client: connects from `source`, writes `vel`.
+fn student(source: &str, addr: &str, vel: u16) -> serde_json::Value {
+    let (host, port) = addr.rsplit_once(':').expect("host:port");
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/peers/pymodbus_class.py");
+    let o = Command::new("python3")
+        .arg(script)
+        .args([source, host, port, &vel.to_string()])
+        .output()
+        .expect("python3 runs");
+    assert!(o.status.success(), "pymodbus client: {}", text(&o));
+    serde_json::from_slice(&o.stdout).expect("one JSON object")
+}
+
+#[test]
+fn sighup_rereads_the_allowed_addresses_and_starts_a_new_file() {
+    let dir = folder("hup");
+    let config = dir.join("serve.toml");
+    let body = |allow: &str, seed: u32| {
+        format!(
+            "modbus = [\"tcp://127.0.0.1:0\"]\nallow = [\"{allow}\"]\nseed = {seed}\nquiet = true\nstatus-every = 0\nrecord-dir = \"{}\"\n",
+            dir.display()
+        )
+    };
+    std::fs::write(&config, body("127.0.0.1/32", 1)).unwrap();
+    let server = Proc::start(&["serve", "--config", config.to_str().unwrap()]);
+    let addr = server.tcp_of("modbus-tcp");
+    let from_2 = student("127.0.0.2", &addr, 1000);
+    assert!(
+        from_2.get("error").is_some(),
+        "127.0.0.2 is not allowed: {from_2}"
+    );
+    assert!(
+        server.printed("127.0.0.2")
+            && server.printed("refused, not an allowed address (--allow 127.0.0.1/32)"),
+        "{}",
+        server.output()
+    );
+    let from_1 = student("127.0.0.1", &addr, 1000);
+    assert_eq!(
+        from_1["vel_readback"],
+        serde_json::json!([1000, 1000]),
+        "{from_1}"
+    );
+
+    std::fs::write(&config, body("127.0.0.2/32", 7)).unwrap();
+    signal(&server, "HUP");
+    assert!(
+        server.printed(
+            "applied `allow`; not reread while serving: `seed` (they take effect at the next start"
+        ),
+        "{}",
+        server.output()
+    );
+    assert!(server.printed("finished (SIGHUP)"), "{}", server.output());
+    let from_2 = student("127.0.0.2", &addr, 1200);
+    assert_eq!(
+        from_2["vel_readback"],
+        serde_json::json!([1200, 1200]),
+        "{from_2}"
+    );
+    let from_1 = student("127.0.0.1", &addr, 1300);
+    assert!(
+        from_1.get("error").is_some(),
+        "127.0.0.1 no longer allowed: {from_1}"
+    );
+
+    // A file broken meanwhile is not applied, and says why.
+    std::fs::write(&config, "modbus = [\n").unwrap();
+    signal(&server, "HUP");
+    assert!(
+        server.printed("not reread, serving on as before"),
+        "{}",
+        server.output()
+    );
+    let printed = server.terminate();
+    let refused: u64 = printed
+        .split(" refused by --allow")
+        .next()
+        .and_then(|head| head.rsplit(' ').next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("no count of refusals: {printed}"));
+    assert!(
+        refused >= 2,
+        "one from 127.0.0.2, one from 127.0.0.1: {printed}"
+    );
+    let files: Vec<_> = std::fs::read_dir(&dir)
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .filter(|e| e.file_name().to_string_lossy().starts_with("serve-"))
+        .collect();
+    assert_eq!(files.len(), 3, "two SIGHUPs, three files: {printed}");
+}
+
+/// Receives one datagram on `socket` within 30 s.
+fn datagram(socket: &UnixDatagram) -> String {
+    socket
+        .set_read_timeout(Some(Duration::from_secs(30)))
+        .unwrap();
+    let mut buf = [0u8; 4096];
+    let n = socket.recv(&mut buf).expect("a datagram from twin");
+    String::from_utf8_lossy(&buf[..n]).into_owned()
+}
+
+#[test]
+fn ready_and_stopping_reach_the_notify_socket() {
+    let dir = folder("notify");
+    let path = dir.join("notify.sock");
+    let socket = UnixDatagram::bind(&path).expect("bind the notify socket");
+    // An abstract one too, as systemd may hand out.
+    let abstract_name = format!("twin-test-notify-{}", std::process::id());
+    let abstract_socket = {
+        use std::os::linux::net::SocketAddrExt;
+        let addr = std::os::unix::net::SocketAddr::from_abstract_name(&abstract_name).unwrap();
+        UnixDatagram::bind_addr(&addr).expect("bind the abstract socket")
+    };
+    for (notify, socket) in [
+        (path.to_str().unwrap().to_string(), &socket),
+        (format!("@{abstract_name}"), &abstract_socket),
+    ] {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_twin"))
+            .args([
+                "serve",
+                "--meb",
+                "tcp://127.0.0.1:0",
+                "--quiet",
+                "--no-record",
+            ])
+            .env("NOTIFY_SOCKET", &notify)
+            .stdout(std::process::Stdio::piped())
+            .spawn()
+            .expect("twin starts");
+        let ready = datagram(socket);
+        assert!(
+            ready.starts_with("READY=1\nSTATUS=serving meb tcp://127.0.0.1:"),
+            "{ready:?}"
+        );
+        let started = Instant::now();
+        assert!(
+            Command::new("kill")
+                .args(["-TERM", &child.id().to_string()])
+                .status()
+                .unwrap()
+                .success()
+        );
+        let stopping = datagram(socket);
+        assert_eq!(
+            stopping,
+            "STOPPING=1\nSTATUS=SIGTERM: finishing the recording"
+        );
+        let status = child.wait().unwrap();
+        assert!(status.success(), "{status}");
+        assert!(started.elapsed() < Duration::from_secs(20));
+    }
+}
+
+#[test]
+fn the_systemd_units_verify_against_the_real_binary() {
+    let Some(version) = Command::new("systemd-analyze")
+        .arg("--version")
+        .output()
+        .ok()
+        .filter(|o| o.status.success())
+    else {
+        eprintln!(
+            "SKIPPED: systemd-analyze is not installed here (Debian: apt-get install systemd; .ci/install does it)"
+        );
+        return;
+    };
+    let _ = version;
+    let dir = folder("units");
+    // The man pages the units' Documentation= names, as `twin man` writes them.
+    let man = dir.join("man/man1");
+    let o = twin(&["man", "--out", man.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    let binary = env!("CARGO_BIN_EXE_twin");
+    let units = repo().join("deploy/systemd");
+    let mut written = Vec::new();
+    for (file, instance) in [
+        ("twin-serve.service", "twin-serve.service"),
+        ("twin-serve@.service", "twin-serve@student01.service"),
+        ("twin-supervise.service", "twin-supervise.service"),
+    ] {
+        let unit = std::fs::read_to_string(units.join(file)).expect("unit in deploy/systemd");
+        // What a careful administrator's unit says.
+        for line in [
+            "Type=notify",
+            "ExecReload=/bin/kill -HUP $MAINPID",
+            "DynamicUser=yes",
+            "Restart=on-failure",
+            "StandardOutput=journal",
+            "Environment=NO_COLOR=1",
+            "NoNewPrivileges=yes",
+            "ProtectSystem=strict",
+        ] {
+            assert!(unit.lines().any(|l| l == line), "{file} lacks {line}");
+        }
+        assert!(unit.contains("ExecStart=/usr/local/bin/twin "), "{file}");
+        let path = dir.join(instance);
+        std::fs::write(&path, unit.replace("/usr/local/bin/twin", binary)).unwrap();
+        written.push(path);
+    }
+    let verify = |paths: &[PathBuf]| {
+        Command::new("systemd-analyze")
+            .arg("verify")
+            .args(paths)
+            .env("MANPATH", dir.join("man"))
+            .output()
+            .expect("systemd-analyze runs")
+    };
+    let o = verify(&written);
+    let said = text(&o);
+    if !o.status.success() && said.contains("Failed to") && said.contains("bus") {
+        eprintln!("SKIPPED: systemd-analyze verify cannot run in this container: {said}");
+        return;
+    }
+    assert!(o.status.success(), "systemd-analyze verify: {said}");
+    for path in &written {
+        let name = path.file_name().unwrap().to_string_lossy();
+        assert!(!said.contains(&*name), "{name}: {said}");
+    }
+    // It does check ExecStart: a missing binary fails it.
+    if !Path::new("/usr/local/bin/twin").exists() {
+        let original = dir.join("original/twin-serve.service");
+        std::fs::create_dir_all(original.parent().unwrap()).unwrap();
+        std::fs::copy(units.join("twin-serve.service"), &original).unwrap();
+        let o = verify(&[original]);
+        assert!(!o.status.success(), "{}", text(&o));
+        assert!(text(&o).contains("/usr/local/bin/twin"), "{}", text(&o));
+    }
+}
+
+#[test]
+fn a_class_of_five_modules_each_reached_by_its_own_pymodbus_client() {
+    let dir = folder("class");
+    let mut config = format!(
+        "quiet = true\nstatus-every = 0\nrecord-dir = \"{}\"\nallow = [\"127.0.0.1\"]\n",
+        dir.display()
+    );
+    for n in 1..=5 {
+        config.push_str(&format!(
+            "\n[[module]]\nname = \"student{n:02}\"\nmodbus = [\"tcp://127.0.0.1:0\"]\nseed = {n}\n"
+        ));
+    }
+    let path = dir.join("class.toml");
+    std::fs::write(&path, config).unwrap();
+    let server = Proc::start(&["serve", "--config", path.to_str().unwrap()]);
+    let links = server.links();
+    assert_eq!(links.len(), 5, "{links:?}");
+    let mut addrs = Vec::new();
+    for n in 1..=5 {
+        let name = format!("student{n:02}");
+        let link = links
+            .iter()
+            .find(|l| l.get(3) == Some(&name))
+            .unwrap_or_else(|| panic!("{name} not among {links:?}"));
+        assert_eq!(link[0], "modbus-tcp");
+        addrs.push(link[1].strip_prefix("tcp://").unwrap().to_string());
+    }
+    // All five at once, each writing its own VEL.
+    let students: Vec<_> = addrs
+        .iter()
+        .enumerate()
+        .map(|(n, addr)| {
+            let addr = addr.clone();
+            std::thread::spawn(move || student("127.0.0.1", &addr, 1000 + 100 * n as u16))
+        })
+        .collect();
+    for (n, s) in students.into_iter().enumerate() {
+        let seen = s.join().unwrap();
+        let vel = 1000 + 100 * n as u64;
+        assert_eq!(
+            seen["vel_readback"],
+            serde_json::json!([vel, vel]),
+            "student{:02} sees only its own module: {seen}",
+            n + 1
+        );
+        assert_eq!(seen["inputs"].as_array().map(Vec::len), Some(6), "{seen}");
+    }
+    // Another machine (127.0.0.2) reaches none of them.
+    let stranger = student("127.0.0.2", &addrs[2], 4000);
+    assert!(stranger.get("error").is_some(), "{stranger}");
+    assert!(
+        server.printed("refused, not an allowed address"),
+        "{}",
+        server.output()
+    );
+    let printed = server.terminate();
+    for n in 1..=5 {
+        let name = format!("student{n:02}");
+        assert!(
+            printed
+                .lines()
+                .any(|l| l.starts_with(&format!("{name}: stopped (SIGTERM)"))),
+            "{printed}"
+        );
+        let recordings: Vec<_> = std::fs::read_dir(dir.join(&name))
+            .unwrap_or_else(|e| panic!("{name}'s folder: {e}"))
+            .filter_map(|e| e.ok())
+            .collect();
+        assert_eq!(recordings.len(), 1, "{name}: {recordings:?}");
+        let bytes = std::fs::read(recordings[0].path()).unwrap();
+        let summary = mcap::Summary::read(&bytes).unwrap().expect("finished");
+        assert!(summary.stats.unwrap().message_count > 0);
+    }
+    assert!(
+        printed.contains("student03: stopped (SIGTERM)") && printed.contains("1 refused (--allow)"),
+        "{printed}"
+    );
+}
+
+#[test]
+fn check_refuses_a_serial_port_that_is_not_there_unless_told_to_wait() {
+    let missing = folder("ports").join("ttyGone");
+    let missing = missing.to_str().unwrap();
+    for args in [
+        vec!["serve", "--modbus-rtu", missing, "--check"],
+        vec!["supervise", "--meb", missing, "--check"],
+    ] {
+        let o = twin(&args);
+        assert!(!o.status.success(), "{args:?}: {}", text(&o));
+        assert!(
+            text(&o).contains(&format!("serial port {missing} does not exist")),
+            "{args:?}: {}",
+            text(&o)
+        );
+        assert!(text(&o).contains("--wait-for-ports"), "{}", text(&o));
+        let mut waiting = args.clone();
+        waiting.push("--wait-for-ports");
+        let o = twin(&waiting);
+        assert!(o.status.success(), "{waiting:?}: {}", text(&o));
+    }
+}

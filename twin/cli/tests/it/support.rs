@@ -1,0 +1,208 @@
+//! The real `twin` binary as the CLI tests start it: run to its end
+//! ([`twin`]), or a subcommand that prints its links and then `ready`, its
+//! stdout collected in the background, stopped by SIGTERM, by its own
+//! `--duration`, or killed when the test drops it ([`Proc`]); and the scratch
+//! folders the tests write in.
+
+use std::io::{BufRead, BufReader, Read};
+use std::path::PathBuf;
+use std::process::{Child, Command, Output, Stdio};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+/// A running `twin` subcommand.
+pub struct Proc {
+    pub child: Child,
+    lines: Arc<Mutex<Vec<String>>>,
+    what: String,
+}
+
+impl Proc {
+    /// Starts `twin ARGS` with stdin closed and waits for its `ready` line.
+    pub fn start(args: &[&str]) -> Proc {
+        Self::spawn(args, Stdio::null())
+    }
+
+    /// Starts `twin ARGS` with `stdin` and waits for its `ready` line (30 s
+    /// at most: then the test fails with what the program printed).
+    pub fn spawn(args: &[&str], stdin: Stdio) -> Proc {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_twin"))
+            .args(args)
+            .stdin(stdin)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("twin starts");
+        let stdout = child.stdout.take().expect("stdout");
+        let lines = Arc::new(Mutex::new(Vec::new()));
+        let (ready_tx, ready_rx) = std::sync::mpsc::channel();
+        let collected = lines.clone();
+        std::thread::spawn(move || {
+            let mut ready = Some(ready_tx);
+            for line in BufReader::new(stdout).lines() {
+                let Ok(line) = line else { break };
+                collected.lock().unwrap().push(line.clone());
+                if line == "ready"
+                    && let Some(tx) = ready.take()
+                {
+                    let _ = tx.send(());
+                }
+            }
+        });
+        let what = format!("twin {}", args.join(" "));
+        if ready_rx.recv_timeout(Duration::from_secs(30)).is_err() {
+            let _ = child.kill();
+            let mut err = String::new();
+            if let Some(mut e) = child.stderr.take() {
+                let _ = e.read_to_string(&mut err);
+            }
+            panic!(
+                "no `ready` from {what}: stdout {:?}, stderr {err}",
+                lines.lock().unwrap()
+            );
+        }
+        Proc { child, lines, what }
+    }
+
+    /// Everything printed so far.
+    pub fn output(&self) -> String {
+        self.lines.lock().unwrap().join("\n")
+    }
+
+    /// The link lines printed before `ready` (two spaces, the protocol, the
+    /// address, the rest), split into their fields.
+    pub fn links(&self) -> Vec<Vec<String>> {
+        self.lines
+            .lock()
+            .unwrap()
+            .iter()
+            .take_while(|l| *l != "ready")
+            .filter_map(|l| l.strip_prefix("  "))
+            .map(|l| l.split_whitespace().map(str::to_string).collect())
+            .collect()
+    }
+
+    /// The HOST:PORT of the first link line `  PROTOCOL tcp://HOST:PORT …`.
+    pub fn tcp_of(&self, protocol: &str) -> String {
+        let links = self.links();
+        let link = links
+            .iter()
+            .find(|f| f.first().is_some_and(|p| p == protocol))
+            .unwrap_or_else(|| panic!("no {protocol} link printed by {}: {links:?}", self.what));
+        link[1]
+            .strip_prefix("tcp://")
+            .unwrap_or_else(|| panic!("the {protocol} link of {} is not tcp", self.what))
+            .to_string()
+    }
+
+    /// Whether stdout shows `needle` within a few seconds (the printing
+    /// thread runs behind the sockets).
+    pub fn printed(&self, needle: &str) -> bool {
+        let deadline = Instant::now() + Duration::from_secs(5);
+        while Instant::now() < deadline {
+            if self.output().contains(needle) {
+                return true;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        false
+    }
+
+    /// SIGTERM, a clean exit within 20 s, and everything it printed.
+    pub fn terminate(mut self) -> String {
+        let pid = self.child.id().to_string();
+        assert!(
+            Command::new("kill")
+                .args(["-TERM", &pid])
+                .status()
+                .expect("kill runs")
+                .success()
+        );
+        self.exit_within(Duration::from_secs(20), "on SIGTERM");
+        // Let the reader thread take the last lines.
+        std::thread::sleep(Duration::from_millis(100));
+        self.output()
+    }
+
+    /// Waits for the process to end by itself (its `--duration`).
+    pub fn wait(mut self) {
+        self.exit_within(Duration::from_secs(30), "by itself");
+    }
+
+    fn exit_within(&mut self, limit: Duration, how: &str) {
+        let deadline = Instant::now() + limit;
+        loop {
+            if let Some(status) = self.child.try_wait().expect("wait") {
+                assert!(
+                    status.success(),
+                    "{} exited {status}: {}",
+                    self.what,
+                    self.output()
+                );
+                return;
+            }
+            assert!(
+                Instant::now() < deadline,
+                "{} did not stop {how}: {}",
+                self.what,
+                self.output()
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// `twin ARGS`, run to its end with its output collected.
+pub fn twin(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_twin"))
+        .args(args)
+        .output()
+        .expect("twin runs")
+}
+
+/// What a finished `twin` printed, stdout then stderr.
+pub fn text(o: &Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
+}
+
+/// The file `name` in this test binary's scratch folder,
+/// `$TMPDIR/twin-TEST-PID`. The first call removes the folders of `TEST`
+/// that earlier runs left (their process gone), so runs do not pile up.
+pub fn scratch(test: &str, name: &str) -> PathBuf {
+    static SWEPT: std::sync::Once = std::sync::Once::new();
+    let tmp = std::env::temp_dir();
+    let prefix = format!("twin-{test}-");
+    SWEPT.call_once(|| {
+        let Ok(entries) = std::fs::read_dir(&tmp) else {
+            return;
+        };
+        for e in entries.flatten() {
+            let file_name = e.file_name();
+            let Some(pid) = file_name
+                .to_str()
+                .and_then(|n| n.strip_prefix(&prefix))
+                .and_then(|rest| rest.parse::<u32>().ok())
+            else {
+                continue;
+            };
+            if pid != std::process::id() && !std::path::Path::new(&format!("/proc/{pid}")).exists()
+            {
+                let _ = std::fs::remove_dir_all(e.path());
+            }
+        }
+    });
+    let dir = tmp.join(format!("{prefix}{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("scratch folder");
+    dir.join(name)
+}

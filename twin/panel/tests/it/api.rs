@@ -1,0 +1,207 @@
+//! The panel's API on a real `twin serve` session: access rules, commands
+//! and their refusals, many stream clients at once.
+
+use crate::common;
+
+use common::{ClientAddr, http, serve, wait_for};
+use std::io::{BufRead, BufReader, Write};
+use std::time::{Duration, Instant};
+use twin_panel::AccessOptions;
+
+fn state(session: &common::Session) -> serde_json::Value {
+    let (_, body) = http(&session.panel, "GET", "/api/state", None, true);
+    serde_json::from_str(&body).expect("the state is JSON")
+}
+
+fn forced_v1(session: &common::Session) -> serde_json::Value {
+    state(session)["state"]["devices"][0]["controller"]["forced"]["v1"].clone()
+}
+
+#[test]
+fn a_panel_off_the_loopback_needs_its_token_and_refuses_without_changing_anything() {
+    let session = serve("0.0.0.0:0", AccessOptions::default(), 30.0);
+    let token = common::token_of(&session.panel).expect("a token in the URL printed");
+    assert!(
+        session.panel.url.contains("/?token="),
+        "{}",
+        session.panel.url
+    );
+    assert!(token.len() >= 32);
+    for path in ["/", "/api/state", "/api/info", "/api/stream", "/panel.js"] {
+        let (status, body) = http(&session.panel, "GET", path, None, false);
+        assert_eq!(status, 401, "{path} without the token: {body}");
+        assert!(body.contains("token"), "{body}");
+    }
+    let (status, _) = http(
+        &session.panel,
+        "POST",
+        "/api/force",
+        Some(r#"{"input":"v1","value":12}"#),
+        false,
+    );
+    assert_eq!(status, 401);
+    let (status, _) = http(
+        &session.panel,
+        "GET",
+        &format!("/?token={}x", token),
+        None,
+        false,
+    );
+    assert_eq!(status, 401, "a wrong token");
+    std::thread::sleep(Duration::from_millis(200));
+    assert!(
+        forced_v1(&session).is_null(),
+        "a refused command changed nothing"
+    );
+    let (status, page) = http(
+        &session.panel,
+        "GET",
+        &format!("/?token={token}"),
+        None,
+        false,
+    );
+    assert_eq!(status, 200);
+    assert!(page.contains("panel.js"));
+    let (status, _) = http(
+        &session.panel,
+        "POST",
+        "/api/force",
+        Some(r#"{"input":"v1","value":12}"#),
+        true,
+    );
+    assert_eq!(status, 200);
+    wait_for(Duration::from_secs(3), "v1 forced", || {
+        forced_v1(&session) == 12.0
+    });
+}
+
+#[test]
+fn bad_commands_get_a_4xx_naming_the_field_and_change_nothing() {
+    let session = serve("127.0.0.1:0", AccessOptions::default(), 30.0);
+    for (body, status, field) in [
+        (r#"{"input":"v1","value":1e9}"#, 422, Some("value")),
+        (r#"{"input":"vel","value":1}"#, 422, Some("input")),
+        (r#"{"input":"v1"}"#, 422, Some("value")),
+        (r#"{"input":"v1","value":"high"}"#, 422, Some("value")),
+        (r#"{"input":"v1","value":3,"extra":1}"#, 422, Some("extra")),
+        ("{not json", 400, None),
+        ("[1,2]", 400, None),
+    ] {
+        let (got, answer) = http(&session.panel, "POST", "/api/force", Some(body), true);
+        assert_eq!(got, status, "{body}: {answer}");
+        let answer: serde_json::Value = serde_json::from_str(&answer).expect("a JSON refusal");
+        let message = answer["error"].as_str().unwrap_or_default();
+        match field {
+            Some(f) => {
+                assert_eq!(answer["field"], f, "{body}: {answer}");
+                assert!(message.starts_with(f), "{message}");
+            }
+            None => assert!(!message.is_empty()),
+        }
+    }
+    let (got, answer) = http(
+        &session.panel,
+        "POST",
+        "/api/fault",
+        Some(r#"{"fault":"bad-check","link":"rs485"}"#),
+        true,
+    );
+    assert_eq!(got, 404, "{answer}");
+    assert!(
+        answer.contains("no link `rs485`") && answer.contains("meb"),
+        "{answer}"
+    );
+    let (got, answer) = http(
+        &session.panel,
+        "POST",
+        "/api/fault",
+        Some(r#"{"fault":"smoke"}"#),
+        true,
+    );
+    assert_eq!(got, 422, "{answer}");
+    let (got, _) = http(
+        &session.panel,
+        "POST",
+        "/api/loop",
+        Some(r#"{"set_point_rpm":1000}"#),
+        true,
+    );
+    assert_eq!(got, 409, "a set point on a session with no supervisor");
+    std::thread::sleep(Duration::from_millis(200));
+    let now = state(&session);
+    assert!(
+        now["state"]["fault"].is_null(),
+        "no fault switched on: {}",
+        now["state"]["fault"]
+    );
+    assert!(forced_v1(&session).is_null());
+}
+
+#[test]
+fn a_read_only_panel_shows_and_changes_nothing() {
+    let session = serve(
+        "127.0.0.1:0",
+        AccessOptions {
+            token_file: None,
+            read_only: true,
+        },
+        30.0,
+    );
+    let (status, info) = http(&session.panel, "GET", "/api/info", None, true);
+    assert_eq!(status, 200);
+    assert!(info.contains("\"read_only\":true"), "{info}");
+    let (status, body) = http(
+        &session.panel,
+        "POST",
+        "/api/fault",
+        Some(r#"{"fault":"no-reply"}"#),
+        true,
+    );
+    assert_eq!(status, 403, "{body}");
+    assert!(state(&session)["state"]["fault"].is_null());
+}
+
+/// Reads one stream for `seconds`: the updates it got.
+fn stream_updates(addr: std::net::SocketAddr, seconds: f64) -> usize {
+    let mut s = std::net::TcpStream::connect(addr).expect("connects");
+    s.set_read_timeout(Some(Duration::from_millis(500)))
+        .unwrap();
+    s.write_all(b"GET /api/stream HTTP/1.1\r\nHost: panel\r\nAccept: text/event-stream\r\n\r\n")
+        .unwrap();
+    let mut reader = BufReader::new(s);
+    let end = Instant::now() + Duration::from_secs_f64(seconds);
+    let mut updates = 0;
+    let mut line = String::new();
+    while Instant::now() < end {
+        line.clear();
+        match reader.read_line(&mut line) {
+            Ok(0) => break,
+            Ok(_) if line.starts_with("event: update") => updates += 1,
+            _ => {}
+        }
+    }
+    updates
+}
+
+#[test]
+fn thirty_stream_clients_are_all_served() {
+    let session = serve("127.0.0.1:0", AccessOptions::default(), 30.0);
+    let addr = session.panel.addr_for_clients();
+    let clients: Vec<_> = (0..30)
+        .map(|_| std::thread::spawn(move || stream_updates(addr, 3.0)))
+        .collect();
+    wait_for(Duration::from_secs(5), "30 stream clients counted", || {
+        state(&session)["stream_clients"].as_u64() == Some(30)
+    });
+    let counts: Vec<usize> = clients.into_iter().map(|c| c.join().unwrap()).collect();
+    // 20 updates a second for 3 s; every client got a steady share of them.
+    for (i, n) in counts.iter().enumerate() {
+        assert!(
+            *n >= 20,
+            "client {i} got only {n} updates in 3 s: {counts:?}"
+        );
+    }
+    wait_for(Duration::from_secs(5), "the clients counted out", || {
+        state(&session)["stream_clients"].as_u64() == Some(0)
+    });
+}

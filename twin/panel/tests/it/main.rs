@@ -1,0 +1,15 @@
+//! The panel's API and the page in a real browser.
+//!
+//! One test binary for the crate: each module is one area, and the
+//! shared helpers are compiled once.
+
+#![allow(
+    clippy::disallowed_methods,
+    reason = "the tests drive a real server and a real browser in real time"
+)]
+
+mod api;
+mod browser;
+mod client_browser;
+mod common;
+mod supervise_browser;
