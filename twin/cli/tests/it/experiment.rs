@@ -17,26 +17,9 @@ fn run(args: &[&str]) -> String {
 }
 
 #[test]
-fn prints_table2_reliability_and_cable_length() {
+fn table2_has_an_initial_and_a_calibrated_row_per_impedance() {
+    // The whole table, as it prints it: tests/cmd/experiment-pwmcap.trycmd.
     let out = run(&["--cable-limit-m", "200"]);
-    for expected in [
-        "Table 2",
-        "64.000 µs",
-        "92.000 µs",
-        "13.653 µs",
-        "14.320 µs",
-        "4.69×",
-        "6.42×",
-        "accuracy",
-        "precision",
-        "recall",
-        "sent 1 read 1 = TP",
-        "calibrated",
-        "paper (1, 5, 20 Ω rows)",
-        "Longest cable without a bit error",
-    ] {
-        assert!(out.contains(expected), "missing {expected:?} in:\n{out}");
-    }
     // One initial and one calibrated row for each of the three impedances:
     // "+R Ω", "τ ticks", mode, then four figures.
     let mode_rows = |mode: &str| {
@@ -62,30 +45,5 @@ fn output_is_determined_by_the_seed() {
     assert_ne!(run(&args), run(&["--cable-limit-m", "0", "--seed", "12"]));
 }
 
-#[test]
-fn bad_options_fail_cleanly() {
-    let output = Command::new(env!("CARGO_BIN_EXE_twin"))
-        .args(["experiment", "pwmcap", "--signals", "0"])
-        .output()
-        .expect("twin runs");
-    assert!(!output.status.success());
-    assert!(String::from_utf8_lossy(&output.stderr).contains("--signals"));
-}
-
-#[test]
-fn the_cable_can_be_a_distributed_line() {
-    let lumped = run(&["--cable-limit-m", "0", "--signals", "20"]);
-    let elmore = run(&[
-        "--cable-limit-m",
-        "0",
-        "--signals",
-        "20",
-        "--cable-model",
-        "elmore",
-    ]);
-    assert!(elmore.contains("distributed RC line"), "{elmore}");
-    assert!(!lumped.contains("distributed RC line"), "{lumped}");
-    // The 20 Ω row's time constant: 138.0 ticks lumped, 136.5 distributed.
-    assert!(lumped.contains("138.0"), "{lumped}");
-    assert!(elmore.contains("136.5"), "{elmore}");
-}
+// Bad options fail cleanly, and the cable can be a distributed RC line:
+// tests/cmd/experiment-pwmcap.trycmd.

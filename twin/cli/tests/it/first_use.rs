@@ -4,6 +4,11 @@
 //! says first when two recordings come from different runs, runs say what
 //! they replace, real-time sessions never write over the last one, `twin
 //! step` leaves its figures, `twin export` one time column.
+//!
+//! What the commands that end on their own print there (replays, compares,
+//! baselines, what a run replaced) is checked whole by the cases
+//! `tests/cmd/first-use-*.trycmd`; here are the checks of files, and of the
+//! sessions that need a second process or are named by the clock.
 
 use crate::support;
 
@@ -36,10 +41,6 @@ fn folder(name: &str) -> PathBuf {
     dir
 }
 
-fn s(p: &Path) -> &str {
-    p.to_str().expect("utf-8 path")
-}
-
 /// The files in `dir` whose names start with `prefix`.
 fn files_starting(dir: &Path, prefix: &str) -> Vec<String> {
     let mut names: Vec<String> = std::fs::read_dir(dir)
@@ -49,88 +50,6 @@ fn files_starting(dir: &Path, prefix: &str) -> Vec<String> {
         .collect();
     names.sort();
     names
-}
-
-#[test]
-fn a_step_recording_replays_byte_for_byte_closed_and_open_loop() {
-    let dir = folder("step-replay");
-    ok_in(
-        &dir,
-        &["step", "--duration", "2", "--at", "0.5", "--out", "closed"],
-    );
-    let o = ok_in(&dir, &["replay", "closed/step.mcap"]);
-    assert!(
-        o.contains("step response, scenario ev-meb, set point 100 → 200 rpm at 0.5 s")
-            && o.contains("byte-identical"),
-        "{o}"
-    );
-    ok_in(
-        &dir,
-        &[
-            "step",
-            "--open-loop",
-            "--duration",
-            "2",
-            "--at",
-            "0.5",
-            "--adaptive-light",
-            "--out",
-            "open",
-        ],
-    );
-    let o = ok_in(&dir, &["replay", "open/step.mcap"]);
-    assert!(
-        o.contains("VEL 2.5 → 4.5 % at 0.5 s") && o.contains("byte-identical"),
-        "{o}"
-    );
-    // A change to the bench is named where the replay departs.
-    let o = twin_in(
-        &dir,
-        &[
-            "replay",
-            "open/step.mcap",
-            "--set",
-            "vel_fraction=0.05",
-            "--out",
-            "faster.mcap",
-        ],
-    );
-    assert!(
-        !o.status.success() && text(&o).contains("DEPARTS at"),
-        "{}",
-        text(&o)
-    );
-    // The step itself changes too: its set point after the step.
-    let o = twin_in(
-        &dir,
-        &[
-            "replay",
-            "closed/step.mcap",
-            "--set",
-            "step.to=300",
-            "--out",
-            "to-300.mcap",
-        ],
-    );
-    assert!(
-        text(&o).contains("changed: step.to=300")
-            && text(&o).contains(
-                "DEPARTS at 0.500000 s on /experiment/step.set_point: recorded 200.0, replayed 300.0"
-            ),
-        "{}",
-        text(&o)
-    );
-    let o = twin_in(
-        &dir,
-        &["replay", "closed/step.mcap", "--set", "step.size=3"],
-    );
-    assert!(
-        !o.status.success()
-            && text(&o)
-                .contains("the step has `step.from`, `step.to` and `step.at_s`, not `step.size`"),
-        "{}",
-        text(&o)
-    );
 }
 
 /// A step recording made before the step's settings were stored: its
@@ -167,40 +86,6 @@ fn an_earlier_step_recording_is_refused_in_words() {
         err.contains("a step response recorded by an earlier twin") && !err.contains("absent"),
         "{err}"
     );
-}
-
-#[test]
-fn the_runs_of_a_sweep_replay() {
-    let dir = folder("sweep-replay");
-    ok_in(
-        &dir,
-        &[
-            "sweep",
-            "--detector",
-            "fixed",
-            "--points",
-            "2",
-            "--rpm",
-            "100",
-            "200",
-            "--settle",
-            "0.5",
-            "--measure",
-            "0.5",
-            "--out",
-            "sweep",
-        ],
-    );
-    let runs = dir.join("sweep/runs/fixed");
-    let first = files_starting(&runs, "sweep-")
-        .into_iter()
-        .next()
-        .expect("a run recorded");
-    let o = ok_in(
-        &dir,
-        &["replay", s(&runs.join(first)), "--out", "again.mcap"],
-    );
-    assert!(o.contains("byte-identical"), "{o}");
 }
 
 #[test]
@@ -322,56 +207,12 @@ fn a_supervise_session_is_refused_in_words_too() {
     );
 }
 
+/// Recording never starts a new set of baselines by mistake: no folder is
+/// made. What `twin baseline` prints, from anywhere, with the repository's
+/// baselines or a folder that lacks one, is `tests/cmd/first-use-baselines.trycmd`.
 #[test]
-fn a_run_says_what_it_replaced() {
-    let dir = folder("replaced");
-    let first = ok_in(&dir, &["run", "--duration", "2"]);
-    assert!(
-        first.lines().any(|l| l == "recording: ev-meb.mcap"),
-        "{first}"
-    );
-    let second = ok_in(&dir, &["run", "--duration", "1"]);
-    assert!(
-        second.contains(
-            "recording: ev-meb.mcap (replaced the one there before: a scenario run of ev-meb, seed 1, 2 s)"
-        ),
-        "{second}"
-    );
-    let open = ok_in(&dir, &["run", "--open-loop", "--duration", "0.5"]);
-    assert!(
-        open.lines().any(|l| l == "recording: twin-run.mcap"),
-        "{open}"
-    );
-    let open = ok_in(
-        &dir,
-        &["run", "--open-loop", "--duration", "0.5", "--seed", "2"],
-    );
-    assert!(
-        open.contains("(replaced the one there before: an open-loop run on the vemodule preset, seed 1, 0.5 s)"),
-        "{open}"
-    );
-}
-
-#[test]
-fn baselines_are_the_repositorys_wherever_twin_runs() {
+fn recording_a_baseline_never_makes_its_folder() {
     let dir = folder("baselines");
-    let o = ok_in(&dir, &["baseline", "controller-network"]);
-    let repository = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../recordings/baselines")
-        .canonicalize()
-        .expect("the repository's baselines");
-    assert!(
-        o.contains(&format!("the baselines in {}", repository.display())),
-        "{o}"
-    );
-    assert!(
-        o.lines().any(|l| l
-            .split_whitespace()
-            .take(2)
-            .eq(["controller-network", "pass"])),
-        "{o}"
-    );
-    // Recording never starts a new set of baselines by mistake.
     let o = twin_in(
         &dir,
         &[
@@ -382,190 +223,56 @@ fn baselines_are_the_repositorys_wherever_twin_runs() {
             "recordings/baselines",
         ],
     );
-    assert!(!o.status.success());
-    assert!(text(&o).contains("create the folder first"), "{}", text(&o));
+    assert!(!o.status.success(), "{}", text(&o));
     assert!(!dir.join("recordings").exists(), "a folder was created");
-    // A folder that lacks a baseline says it is missing, not that it passes.
-    std::fs::create_dir(dir.join("mine")).expect("folder");
-    let o = twin_in(&dir, &["baseline", "controller-network", "--dir", "mine"]);
-    assert!(!o.status.success());
-    let t = text(&o);
-    assert!(
-        t.contains("controller-network       MISSING")
-            && t.contains("have no baseline in mine (controller-network)")
-            && t.contains("twin baseline --record controller-network --dir mine")
-            && !t.contains(" pass "),
-        "{t}"
-    );
-    let o = twin_in(&dir, &["baseline", "--dir", "no-such-folder"]);
-    assert!(!o.status.success());
-    assert!(
-        text(&o).contains("no folder no-such-folder"),
-        "{}",
-        text(&o)
-    );
 }
 
-#[test]
-fn compare_says_first_that_recordings_come_from_different_runs() {
-    let dir = folder("compare");
-    ok_in(&dir, &["run", "ev-meb", "--duration", "1"]);
-    ok_in(&dir, &["run", "controller-network", "--duration", "1"]);
-    let o = twin_in(&dir, &["compare", "controller-network.mcap", "ev-meb.mcap"]);
-    assert!(!o.status.success());
-    let out = String::from_utf8_lossy(&o.stdout);
-    let lines: Vec<&str> = out.lines().collect();
-    assert_eq!(
-        lines[1], "  the recordings come from different runs:",
-        "{out}"
-    );
-    assert!(
-        out.contains("    run       a scenario run of controller-network, seed 1, 1 s")
-            && out.contains("    baseline  a scenario run of ev-meb, seed 1, 1 s"),
-        "{out}"
-    );
-    assert!(
-        !out.contains("missing"),
-        "no table of missing signals: {out}"
-    );
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(
-        err.contains("different runs")
-            && err.contains("scenario (controller-network, baseline ev-meb)"),
-        "{err}"
-    );
-    let forced = twin_in(
-        &dir,
-        &[
-            "compare",
-            "controller-network.mcap",
-            "ev-meb.mcap",
-            "--force",
-        ],
-    );
-    assert!(
-        String::from_utf8_lossy(&forced.stdout).contains("missing"),
-        "{}",
-        text(&forced)
-    );
-    // The same scenario with another seed and length: said first, then compared.
-    ok_in(
-        &dir,
-        &[
-            "run",
-            "ev-meb",
-            "--duration",
-            "0.8",
-            "--seed",
-            "2",
-            "--out",
-            "seed2.mcap",
-        ],
-    );
-    let o = twin_in(&dir, &["compare", "seed2.mcap", "ev-meb.mcap"]);
-    let out = String::from_utf8_lossy(&o.stdout);
-    let lines: Vec<&str> = out.lines().collect();
-    assert_eq!(
-        lines[1], "  the run's settings differ from the baseline's:",
-        "{out}"
-    );
-    assert!(
-        lines[2].trim_start().starts_with("seed") && lines[2].ends_with("run 2, baseline 1"),
-        "{out}"
-    );
-    assert!(
-        lines[3].trim_start().starts_with("duration_s")
-            && lines[3].ends_with("run 0.8, baseline 1.0"),
-        "{out}"
-    );
-    assert!(out.contains("signals"), "then compared: {out}");
-}
-
+/// What it prints, and the second time what it replaced:
+/// `tests/cmd/first-use-step-here.trycmd`.
 #[test]
 fn step_without_out_leaves_its_figures_here() {
     let dir = folder("step-here");
-    let o = ok_in(
+    ok_in(
         &dir,
         &["step", "--open-loop", "--duration", "2", "--at", "0.5"],
     );
-    for (line, file) in [
-        ("figures:", "step.json"),
-        ("plot:", "step.png"),
-        ("recording:", "step.mcap"),
-    ] {
-        assert!(o.lines().any(|l| l == format!("{line} {file}")), "{o}");
-        assert!(dir.join(file).is_file(), "no {file}: {o}");
+    for file in ["step.json", "step.png", "step.mcap"] {
+        assert!(dir.join(file).is_file(), "no {file}");
     }
-    let again = ok_in(
-        &dir,
-        &["step", "--open-loop", "--duration", "2", "--at", "0.5"],
-    );
-    assert!(
-        again.contains("plot: step.png (replaced the one there before)"),
-        "{again}"
-    );
 }
 
+/// What it prints, and the second time what it replaced:
+/// `tests/cmd/first-use-sweep-here.trycmd`.
 #[test]
 fn sweep_without_out_leaves_its_figures_here() {
     let dir = folder("sweep-here");
-    let sweep = [
-        "sweep",
-        "--detector",
-        "fixed",
-        "--points",
-        "2",
-        "--rpm",
-        "100",
-        "200",
-        "--settle",
-        "0.5",
-        "--measure",
-        "0.5",
-    ];
-    let o = ok_in(&dir, &sweep);
-    for (line, file) in [("figures:", "sweep.json"), ("plot:", "sweep.png")] {
-        assert!(o.lines().any(|l| l == format!("{line} {file}")), "{o}");
-        assert!(dir.join(file).is_file(), "no {file}: {o}");
+    ok_in(
+        &dir,
+        &[
+            "sweep",
+            "--detector",
+            "fixed",
+            "--points",
+            "2",
+            "--rpm",
+            "100",
+            "200",
+            "--settle",
+            "0.5",
+            "--measure",
+            "0.5",
+        ],
+    );
+    for file in ["sweep.json", "sweep.png"] {
+        assert!(dir.join(file).is_file(), "no {file}");
     }
-    assert!(!o.contains("recordings:"), "{o}");
-    let again = ok_in(&dir, &sweep);
-    assert!(
-        again.contains("figures: sweep.json (replaced the one there before)"),
-        "{again}"
-    );
-}
-
-#[test]
-fn the_parallel_experiment_says_it_replaced_its_recordings_and_they_replay() {
-    let dir = folder("parallel");
-    let parallel = [
-        "experiment",
-        "parallel",
-        "--duration",
-        "0.3",
-        "--out-dir",
-        "p",
-    ];
-    let first = ok_in(&dir, &parallel);
-    assert!(first.lines().any(|l| l == "recordings: p"), "{first}");
-    let again = ok_in(&dir, &parallel);
-    assert!(
-        again
-            .lines()
-            .any(|l| l == "recordings: p (replaced the 4 there before)"),
-        "{again}"
-    );
-    let o = ok_in(&dir, &["replay", "p/parallel-rtu-1m.mcap"]);
-    assert!(o.contains("byte-identical"), "{o}");
 }
 
 #[test]
 fn export_writes_one_time_column() {
     let dir = folder("export");
     ok_in(&dir, &["run", "--duration", "0.5"]);
-    let o = ok_in(&dir, &["export", "ev-meb.mcap", "--csv", "csv"]);
-    assert!(!o.contains("replaced"), "{o}");
+    ok_in(&dir, &["export", "ev-meb.mcap", "--csv", "csv"]);
     let sensors = std::fs::read_to_string(dir.join("csv/plant_ev1_sensors.csv")).expect("csv");
     let header: Vec<&str> = sensors.lines().next().expect("header").split(',').collect();
     assert_eq!(
@@ -576,9 +283,6 @@ fn export_writes_one_time_column() {
     assert_eq!(header[0], "time_s");
     let row: Vec<&str> = sensors.lines().nth(2).expect("a row").split(',').collect();
     assert_eq!(row.len(), header.len());
-    let o = ok_in(&dir, &["export", "ev-meb.mcap", "--csv", "csv"]);
-    assert!(
-        o.contains("plant_ev1_sensors.csv (replaced the one there before)"),
-        "{o}"
-    );
+    // What it prints, and the second time what it replaced:
+    // tests/cmd/first-use-export.trycmd.
 }

@@ -88,16 +88,7 @@ fn zsh_fish_elvish_and_powershell_get_scripts_of_their_own() {
     }
 }
 
-#[test]
-fn an_unknown_shell_is_refused_with_the_ones_there_are() {
-    let o = twin(&["completions", "tcsh"]);
-    assert_eq!(o.status.code(), Some(2));
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(
-        err.contains("tcsh") && err.contains("bash") && err.contains("zsh"),
-        "{err}"
-    );
-}
+// An unknown shell is refused with the ones there are: tests/cmd/install-refusals.trycmd.
 
 /// Formats a page with groff as man does, warnings on: what it prints, and
 /// its complaints.

@@ -10,6 +10,7 @@
 
 mod batch;
 mod book;
+mod cmd;
 mod experiment;
 mod experiment_parallel;
 mod first_use;
@@ -33,6 +34,5 @@ mod soak;
 mod step;
 mod supervise;
 mod support;
-mod user_words;
 mod view;
 mod view_sessions;

@@ -150,10 +150,6 @@ impl Serve {
         }
     }
 
-    pub fn stderr(&self) -> String {
-        self.stderr.lock().unwrap().clone()
-    }
-
     /// What it printed after `ready` so far.
     pub fn stdout(&self) -> String {
         self.stdout.lock().unwrap().clone()

@@ -165,20 +165,8 @@ fn a_truncated_recording_is_shown_up_to_its_last_complete_chunk() {
     assert!(wheel > 100 && wheel < 2001, "{wheel} samples of 2001");
 }
 
-#[test]
-fn a_file_that_is_not_a_recording_is_refused_with_its_name() {
-    let junk = scratch("junk.mcap");
-    std::fs::write(&junk, b"this is not an MCAP file\n").unwrap();
-    let o = twin(&["view", junk.to_str().unwrap(), "--save"]);
-    assert!(!o.status.success());
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(err.contains("junk.mcap"), "{err}");
-    assert!(!err.contains("panicked"), "{err}");
-
-    let o = twin(&["view", scratch("missing.mcap").to_str().unwrap()]);
-    assert!(!o.status.success());
-    assert!(String::from_utf8_lossy(&o.stderr).contains("no recording"));
-}
+// A file that is not a recording refused with its name, one not there said
+// to be missing: tests/cmd/view-refusals.trycmd.
 
 #[test]
 fn run_view_without_a_viewer_says_so_and_still_records() {
