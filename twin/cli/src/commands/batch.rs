@@ -210,10 +210,9 @@ fn check(manifest: &Manifest, indices: &[usize], path: &Path) -> Result<()> {
             indices.len()
         );
     }
-    println!(
-        "{shown}: {} entries checked, every one would run",
-        indices.len()
-    );
+    let n = indices.len();
+    let entries = if n == 1 { "entry" } else { "entries" };
+    println!("{shown}: {n} {entries} checked, every one would run");
     Ok(())
 }
 

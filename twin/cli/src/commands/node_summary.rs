@@ -10,9 +10,13 @@ pub fn print(node: &str, state: &Value, simulated_s: f64) {
         return;
     }
     if let Some(taken) = state["frames_taken"].as_u64() {
+        // A slave that never took a frame holds no VEL at all.
+        let vel = match &state["vel"] {
+            Value::Null => "none".to_string(),
+            v => v.to_string(),
+        };
         println!(
-            "  {node}: VEL {} from {taken} frames taken, {} for others, {} bad, {} cut short, {} answers",
-            state["vel"],
+            "  {node}: VEL {vel} from {taken} frames taken, {} for others, {} bad, {} cut short, {} answers",
             state["frames_ignored"],
             state["bad_frames"],
             state["incomplete_frames"],
