@@ -62,6 +62,35 @@ fn copy_tree(from: &Path, to: &Path) {
     }
 }
 
+/// trycmd runs a fence with no language as a case; on the pages such a
+/// fence is plain text (a frame's layout, a file's lines). Line for line, so
+/// trycmd's line numbers are the page's.
+fn label_bare_fences(text: &str) -> String {
+    let mut open: Option<&str> = None;
+    let mut out = String::with_capacity(text.len() + 64);
+    for line in text.split_inclusive('\n') {
+        let bare = line.trim_end();
+        let ticks = bare.len() - bare.trim_start_matches('`').len();
+        match open {
+            Some(fence) if bare.starts_with(fence) && bare.trim_start_matches('`').is_empty() => {
+                open = None;
+            }
+            None if ticks >= 3 => {
+                open = Some(&bare[..ticks]);
+                if bare.len() == ticks {
+                    out.push_str(bare);
+                    out.push_str("text");
+                    out.push_str(&line[bare.len()..]);
+                    continue;
+                }
+            }
+            _ => {}
+        }
+        out.push_str(line);
+    }
+    out
+}
+
 /// A page's copy (`NAME.md`), the folder its commands start from
 /// (`NAME.in`), and an empty `NAME.out`, which asks trycmd to run them in a
 /// fresh copy of `NAME.in` and to check no file there.
@@ -69,7 +98,8 @@ fn lay_out(root: &Path, page: &Path, scratch: &Path) -> PathBuf {
     let name = page.to_string_lossy().replace('/', "--");
     let name = name.trim_end_matches(".md");
     let copy = scratch.join(format!("{name}.md"));
-    std::fs::copy(root.join(page), &copy).unwrap();
+    let text = std::fs::read_to_string(root.join(page)).unwrap();
+    std::fs::write(&copy, label_bare_fences(&text)).unwrap();
     let start = scratch.join(format!("{name}.in"));
     for dir in FILES_THE_PAGES_USE {
         if root.join(dir).is_dir() {
@@ -91,6 +121,7 @@ fn every_console_block_of_the_readme_and_the_book_prints_what_it_shows() {
     // twin-avr is another package's binary (GPL, built by `cargo test
     // --workspace`): its chapter runs only where it has been built.
     let twin_avr = twin.with_file_name("twin-avr");
+    let _cores = crate::support::cores_to_myself();
     let cases = trycmd::TestCases::new();
     cases.register_bin("twin", &twin);
     for page in pages(&root) {

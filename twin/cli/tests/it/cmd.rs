@@ -25,6 +25,7 @@ fn every_case_prints_what_it_shows() {
         .to_str()
         .expect("a UTF-8 path")
         .to_owned();
+    let _cores = crate::support::cores_to_myself();
     trycmd::TestCases::new()
         .register_bin("twin", Path::new(env!("CARGO_BIN_EXE_twin")))
         // clap wraps help at the terminal's width (100 columns at most):

@@ -3,6 +3,7 @@
 //! from socat, peers run with a time limit. Every wait is bounded, so a broken
 //! server fails a test instead of hanging CI.
 
+use crate::support::RealTime;
 use rustix::process::{Pid, Signal, kill_process};
 use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
@@ -29,10 +30,12 @@ pub struct Serve {
     stderr: Arc<Mutex<String>>,
     /// Every line printed after `ready` (the monitor, status lines).
     stdout: Arc<Mutex<String>>,
+    _real_time: RealTime,
 }
 
 impl Serve {
     pub fn start(args: &[&str]) -> Serve {
+        let real_time = RealTime::share_the_cores();
         // Never the default serve.mcap in the working directory.
         let record: &[&str] = if args.contains(&"--out") {
             &[]
@@ -116,6 +119,7 @@ impl Serve {
             links,
             stderr,
             stdout: after_ready,
+            _real_time: real_time,
         }
     }
 

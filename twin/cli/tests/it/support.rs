@@ -2,19 +2,74 @@
 //! ([`twin`]), or a subcommand that prints its links and then `ready`, its
 //! stdout collected in the background, stopped by SIGTERM, by its own
 //! `--duration`, or killed when the test drops it ([`Proc`]); and the scratch
-//! folders the tests write in.
+//! folders the tests write in; and the machine's cores, shared between the
+//! tests of this binary ([`RealTime`], [`cores_to_myself`]).
 
+use std::cell::RefCell;
 use std::io::{BufRead, BufReader, Read};
+use std::marker::PhantomData;
 use std::path::PathBuf;
 use std::process::{Child, Command, Output, Stdio};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, PoisonError, RwLock, RwLockReadGuard, RwLockWriteGuard};
 use std::time::{Duration, Instant};
+
+/// The two cores, as the tests of this one binary share them. The trycmd
+/// runs (the book's pages, the command cases) start dozens of processes on
+/// every core at once and take the cores to themselves; a test with a live
+/// server that it times to the millisecond shares them with the other such
+/// tests (as it did when each file was a binary of its own), never with a
+/// trycmd run.
+static CORES: RwLock<()> = RwLock::new(());
+
+thread_local! {
+    /// This thread's share of [`CORES`] and how many [`RealTime`]s hold it:
+    /// a test that starts two servers takes it once (a second read of a
+    /// lock a writer waits for would wait for ever).
+    static SHARE: RefCell<(usize, Option<RwLockReadGuard<'static, ()>>)> =
+        const { RefCell::new((0, None)) };
+}
+
+/// Held by every live server a test starts ([`Proc`], `peers::Serve`): the
+/// cores are shared with other real-time tests, not with a trycmd run. Not
+/// `Send`: it is given back on the thread that took it.
+#[derive(Debug)]
+pub struct RealTime(PhantomData<*const ()>);
+
+impl RealTime {
+    pub fn share_the_cores() -> RealTime {
+        SHARE.with_borrow_mut(|(n, guard)| {
+            if *n == 0 {
+                *guard = Some(CORES.read().unwrap_or_else(PoisonError::into_inner));
+            }
+            *n += 1;
+        });
+        RealTime(PhantomData)
+    }
+}
+
+impl Drop for RealTime {
+    fn drop(&mut self) {
+        SHARE.with_borrow_mut(|(n, guard)| {
+            *n -= 1;
+            if *n == 0 {
+                *guard = None;
+            }
+        });
+    }
+}
+
+/// For a test that loads every core (a trycmd run): it waits for the live
+/// servers of other tests to end, and none starts while it holds this.
+pub fn cores_to_myself() -> RwLockWriteGuard<'static, ()> {
+    CORES.write().unwrap_or_else(PoisonError::into_inner)
+}
 
 /// A running `twin` subcommand.
 pub struct Proc {
     pub child: Child,
     lines: Arc<Mutex<Vec<String>>>,
     what: String,
+    _real_time: RealTime,
 }
 
 impl Proc {
@@ -26,6 +81,7 @@ impl Proc {
     /// Starts `twin ARGS` with `stdin` and waits for its `ready` line (30 s
     /// at most: then the test fails with what the program printed).
     pub fn spawn(args: &[&str], stdin: Stdio) -> Proc {
+        let real_time = RealTime::share_the_cores();
         let mut child = Command::new(env!("CARGO_BIN_EXE_twin"))
             .args(args)
             .stdin(stdin)
@@ -61,7 +117,12 @@ impl Proc {
                 lines.lock().unwrap()
             );
         }
-        Proc { child, lines, what }
+        Proc {
+            child,
+            lines,
+            what,
+            _real_time: real_time,
+        }
     }
 
     /// Everything printed so far.
