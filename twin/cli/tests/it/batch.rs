@@ -380,7 +380,11 @@ fn the_gnu_parallel_example_of_the_docs_runs() {
     let block = &block[block.find('\n').unwrap() + 1..];
     let block = &block[..block.find("```").unwrap()];
     let dir = scratch("parallel");
-    std::fs::copy(root.join("docs/batch/sweep.jsonl"), dir.join("sweep.jsonl")).unwrap();
+    std::fs::copy(
+        root.join("docs/examples/sweep.jsonl"),
+        dir.join("sweep.jsonl"),
+    )
+    .unwrap();
     let bin = Path::new(env!("CARGO_BIN_EXE_twin")).parent().unwrap();
     let path = format!(
         "{}:{}",
