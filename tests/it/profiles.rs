@@ -1,4 +1,4 @@
-//! The build profiles, as the README's "Install" promises them: `cargo
+//! The build profiles, as the manual's "Getting started" promises them: `cargo
 //! install` (the release profile) makes a small binary with no debug info,
 //! and the `profiling` and `bench` profiles keep the line tables that perf
 //! needs to name lines and inlined calls.

@@ -70,7 +70,12 @@ pub fn check(path: &Path, mcu: &str) -> Result<(), ElfError> {
     let expected = architecture_of(mcu).ok_or_else(|| ElfError::UnsupportedMcu(mcu.into()))?;
     let bytes = std::fs::read(path).map_err(|e| ElfError::Unreadable {
         file: file.clone(),
-        why: e.kind().to_string(),
+        // The usual cause: the lab's sketches ship as sources, not built.
+        why: if e.kind() == std::io::ErrorKind::NotFound {
+            "no such file; `make -C twin/avr/firmware` builds the lab's sketches".into()
+        } else {
+            e.kind().to_string()
+        },
     })?;
     if bytes.first() == Some(&b':') {
         return check_hex(&file, &bytes, mcu);

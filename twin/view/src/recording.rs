@@ -1,7 +1,7 @@
 //! Reading a twin recording (MCAP) into a [`RerunLogger`]: the channels of
-//! README "What a recording holds", or of a real-time session (`twin serve`,
-//! `twin supervise`: `/link/<link>/frames`, `/realtime/lateness`), the layout
-//! from the `twin.run` metadata. The file is read by twin-recording's
+//! a run (`docs/recordings.md`, "What a recording holds"), or of a real-time
+//! session (`twin serve`, `twin supervise`: `/link/<link>/frames`,
+//! `/realtime/lateness`), the layout from the `twin.run` metadata. The file is read by twin-recording's
 //! streaming [`Reader`], the one reader of recordings, and its topics
 //! recognised by the catalogue ([`twin_recording::topics`]).
 //! A truncated file (the run killed) is read up to its last complete chunk.

@@ -10,9 +10,10 @@ use twin_realtime::rotate::{self, RecordPlan, Retention};
 #[derive(Debug, Args)]
 pub struct RecordArgs {
     /// Where to write the recording (replaced if it exists) [default: a file
-    /// named by the session's start time in UTC in --record-dir, e.g.
-    /// serve-2026-12-03T07-35-44.mcap, so that a restart never writes over
-    /// the last one]. Files after a rotation go beside it, named
+    /// named by the command and the session's start time in UTC in
+    /// --record-dir, e.g. serve-2026-12-03T07-35-44.mcap or
+    /// supervise-2026-12-03T07-35-44.mcap, so that a restart never writes
+    /// over the last one]. Files after a rotation go beside it, named
     /// STEM-START.mcap.
     #[arg(long, value_name = "PATH", conflicts_with = "record_dir")]
     pub out: Option<PathBuf>,

@@ -1,5 +1,5 @@
 //! What a new user meets first, run from a folder outside the repository as
-//! the README's commands are: every kind of recording replays or is refused
+//! the manual's commands are: every kind of recording replays or is refused
 //! in words, baselines are found from anywhere and never made up, compare
 //! says first when two recordings come from different runs, runs say what
 //! they replace, real-time sessions never write over the last one, `twin

@@ -1,7 +1,7 @@
 //! The soak script (`tests/soak.py`) for 30 seconds, as CI runs it: an
 //! MEB-TCP, a Modbus TCP and a pty Modbus RTU master poll `twin serve` at
 //! 100 Hz each, every reply checked. The hour-long run is by hand (see the
-//! script); its figures are in the README.
+//! script); its figures are in docs/measurements.md.
 
 use std::path::Path;
 use std::process::Command;

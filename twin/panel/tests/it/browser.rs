@@ -56,7 +56,7 @@ async fn eventually(
 }
 
 /// Where screenshots go: `docs/` when TWIN_PANEL_SCREENSHOTS is set (to
-/// refresh the README's), else the temporary folder.
+/// refresh the manual's), else the temporary folder.
 fn screenshot_path(name: &str) -> std::path::PathBuf {
     match std::env::var_os("TWIN_PANEL_SCREENSHOTS") {
         Some(_) => std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
