@@ -1,10 +1,10 @@
-//! Reading a twin recording (MCAP) into a [`RerunLogger`]: the channels of
-//! a run (`docs/recordings.md`, "What a recording holds"), or of a real-time
+//! Reading a twin recording (MCAP) into a [`RerunLogger`]: the channels of a
+//! run (`docs/recordings.md`, "What a recording holds"), or of a real-time
 //! session (`twin serve`, `twin supervise`: `/link/<link>/frames`,
-//! `/realtime/lateness`), the layout from the `twin.run` metadata. The file is read by twin-recording's
-//! streaming [`Reader`], the one reader of recordings, and its topics
-//! recognised by the catalogue ([`twin_recording::topics`]).
-//! A truncated file (the run killed) is read up to its last complete chunk.
+//! `/realtime/lateness`), the layout from the `twin.run` metadata. The file is
+//! read by twin-recording's streaming [`Reader`], the one reader of recordings,
+//! and its topics recognised by the catalogue ([`twin_recording::topics`]). A
+//! truncated file (the run killed) is read up to its last complete chunk.
 
 use anyhow::{Context, Result, bail};
 use plant::PlantParams;
