@@ -15,31 +15,43 @@ use std::time::{Duration, Instant};
 
 /// The two cores, as the tests of this one binary share them. The trycmd
 /// runs (the book's pages, the command cases) start dozens of processes on
-/// every core at once and take the cores to themselves; a test with a live
-/// server that it times to the millisecond shares them with the other such
-/// tests (as it did when each file was a binary of its own), never with a
-/// trycmd run.
+/// every core at once, and a few tests time a live server to the
+/// millisecond: those take the cores to themselves ([`cores_to_myself`]).
+/// Any other test with a live server shares them with the other such tests
+/// (as it did when each file was a binary of its own), never with those.
 static CORES: RwLock<()> = RwLock::new(());
 
-thread_local! {
-    /// This thread's share of [`CORES`] and how many [`RealTime`]s hold it:
-    /// a test that starts two servers takes it once (a second read of a
-    /// lock a writer waits for would wait for ever).
-    static SHARE: RefCell<(usize, Option<RwLockReadGuard<'static, ()>>)> =
-        const { RefCell::new((0, None)) };
+/// What this thread holds of [`CORES`].
+enum Hold {
+    Nothing,
+    Shared {
+        _guard: RwLockReadGuard<'static, ()>,
+    },
+    Whole {
+        _guard: RwLockWriteGuard<'static, ()>,
+    },
 }
 
-/// Held by every live server a test starts ([`Proc`], `peers::Serve`): the
-/// cores are shared with other real-time tests, not with a trycmd run. Not
+thread_local! {
+    /// This thread's hold on [`CORES`] and how many [`RealTime`]s count on
+    /// it: a test that starts two servers takes its share once (a second
+    /// read of a lock that a writer waits for would wait for ever), and a
+    /// test that has the cores to itself takes no share at all.
+    static HELD: RefCell<(usize, Hold)> = const { RefCell::new((0, Hold::Nothing)) };
+}
+
+/// Held by every live server a test starts ([`Proc`], `peers::Serve`). Not
 /// `Send`: it is given back on the thread that took it.
 #[derive(Debug)]
 pub struct RealTime(PhantomData<*const ()>);
 
 impl RealTime {
     pub fn share_the_cores() -> RealTime {
-        SHARE.with_borrow_mut(|(n, guard)| {
-            if *n == 0 {
-                *guard = Some(CORES.read().unwrap_or_else(PoisonError::into_inner));
+        HELD.with_borrow_mut(|(n, hold)| {
+            if matches!(hold, Hold::Nothing) {
+                *hold = Hold::Shared {
+                    _guard: CORES.read().unwrap_or_else(PoisonError::into_inner),
+                };
             }
             *n += 1;
         });
@@ -49,19 +61,38 @@ impl RealTime {
 
 impl Drop for RealTime {
     fn drop(&mut self) {
-        SHARE.with_borrow_mut(|(n, guard)| {
+        HELD.with_borrow_mut(|(n, hold)| {
             *n -= 1;
-            if *n == 0 {
-                *guard = None;
+            if *n == 0 && matches!(hold, Hold::Shared { .. }) {
+                *hold = Hold::Nothing;
             }
         });
     }
 }
 
-/// For a test that loads every core (a trycmd run): it waits for the live
-/// servers of other tests to end, and none starts while it holds this.
-pub fn cores_to_myself() -> RwLockWriteGuard<'static, ()> {
-    CORES.write().unwrap_or_else(PoisonError::into_inner)
+/// The cores to this test alone, until it drops this: it waits for the
+/// live servers of other tests to end, and none starts meanwhile. Taken
+/// first thing in the test, before any server of its own.
+#[derive(Debug)]
+pub struct CoresToMyself(PhantomData<*const ()>);
+
+pub fn cores_to_myself() -> CoresToMyself {
+    HELD.with_borrow_mut(|(n, hold)| {
+        assert!(
+            *n == 0 && matches!(hold, Hold::Nothing),
+            "take the cores before starting a server"
+        );
+        *hold = Hold::Whole {
+            _guard: CORES.write().unwrap_or_else(PoisonError::into_inner),
+        };
+    });
+    CoresToMyself(PhantomData)
+}
+
+impl Drop for CoresToMyself {
+    fn drop(&mut self) {
+        HELD.with_borrow_mut(|(_, hold)| *hold = Hold::Nothing);
+    }
 }
 
 /// A running `twin` subcommand.
