@@ -12,7 +12,7 @@ fn scratch(name: &str) -> PathBuf {
     support::scratch("view-cli", name)
 }
 
-fn ok(o: &Output) -> String {
+pub(crate) fn ok(o: &Output) -> String {
     assert!(
         o.status.success(),
         "failed: {}\n{}",
@@ -44,7 +44,7 @@ fn mcap_counts(path: &Path) -> (BTreeMap<String, u64>, u64) {
 
 /// Rows per entity of the recording (not the blueprint) in an `.rrd`, as
 /// `rerun rrd print` lists its chunks.
-fn rrd_rows(path: &Path) -> BTreeMap<String, u64> {
+pub(crate) fn rrd_rows(path: &Path) -> BTreeMap<String, u64> {
     let o = Command::new("rerun")
         .args(["rrd", "print"])
         .arg(path)

@@ -10,24 +10,15 @@ use std::collections::BTreeMap;
 use std::io::{Read, Write};
 use std::net::TcpStream;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output, Stdio};
+use std::process::{Command, Stdio};
 use std::time::Duration;
 
 use crate::support;
+use crate::view::ok;
 use support::Proc;
 
 fn scratch(name: &str) -> PathBuf {
     support::scratch("view-sessions", name)
-}
-
-fn ok(o: &Output) -> String {
-    assert!(
-        o.status.success(),
-        "failed: {}\n{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    );
-    String::from_utf8_lossy(&o.stdout).into_owned()
 }
 
 /// `twin view RECORDING --save RRD`: its printed samples per entity, and
@@ -52,30 +43,13 @@ fn view(recording: &Path, rrd: &Path) -> (BTreeMap<String, u64>, String) {
     (samples, text)
 }
 
-/// Rows per entity of the recording in an `.rrd`, from `rerun rrd print`.
+/// Rows per entity of the recording in an `.rrd`, named as the session's
+/// samples name them (without the leading `/`).
 fn rrd_rows(path: &Path) -> BTreeMap<String, u64> {
-    let o = Command::new("rerun")
-        .args(["rrd", "print"])
-        .arg(path)
-        .output()
-        .expect("the rerun CLI runs: pip install rerun-sdk==0.36.3");
-    let text = ok(&o);
-    let mut rows = BTreeMap::new();
-    // Chunk(chunk_…) with 2001 rows (40.1 KiB) - /ev1/speed/wheel_rpm - data columns: [Scalars:scalars]
-    for line in text.lines().filter(|l| l.starts_with("Chunk(")) {
-        let Some((_, rest)) = line.split_once(" with ") else {
-            continue;
-        };
-        let n: u64 = rest.split(' ').next().unwrap().parse().unwrap();
-        let parts: Vec<&str> = line.split(" - ").collect();
-        let (entity, columns) = (parts[1], parts[2]);
-        if columns.contains("Scalars:scalars") || columns.contains("TextLog:text") {
-            *rows
-                .entry(entity.trim_start_matches('/').to_string())
-                .or_default() += n;
-        }
-    }
-    rows
+    crate::view::rrd_rows(path)
+        .into_iter()
+        .map(|(entity, n)| (entity.trim_start_matches('/').to_string(), n))
+        .collect()
 }
 
 /// Messages per topic, read with the mcap crate up to where the file ends.
