@@ -37,10 +37,7 @@ fn ok(dir: &Path, args: &[&str]) -> String {
 }
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("twin-batch-cli-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).expect("scratch folder");
-    dir
+    crate::support::folder("batch", name)
 }
 
 /// Twenty short runs of the EV module's speed loop, a sweep of the

@@ -35,10 +35,7 @@ fn ok_in(dir: &Path, args: &[&str]) -> String {
 
 /// A fresh folder outside the repository.
 fn folder(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("twin-first-use-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    dir
+    support::folder("first-use", name)
 }
 
 /// The files in `dir` whose names start with `prefix`.

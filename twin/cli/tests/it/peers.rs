@@ -216,10 +216,7 @@ impl Drop for Serve {
 
 /// A fresh directory for one test's files.
 pub fn scratch(test: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("twin-peers-{}-{test}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    dir
+    crate::support::folder("peers", test)
 }
 
 /// A crossed pseudo-terminal pair from socat: bytes written to `a` are read

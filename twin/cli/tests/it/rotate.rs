@@ -14,10 +14,7 @@ use crate::support;
 use support::Proc;
 
 fn folder(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("twin-rotate-cli-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    dir
+    support::folder("rotate", name)
 }
 
 fn signal(proc: &Proc, name: &str) {

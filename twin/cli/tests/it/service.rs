@@ -15,10 +15,7 @@ use crate::support;
 use support::{Proc, text, twin};
 
 fn folder(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("twin-service-cli-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).expect("temp dir");
-    dir
+    support::folder("service", name)
 }
 
 fn repo() -> PathBuf {

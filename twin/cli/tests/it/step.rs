@@ -19,7 +19,7 @@ fn ok(args: &[&str]) -> String {
 }
 
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("twin-step-cli-{}-{name}", std::process::id()));
+    let dir = crate::support::scratch("step", name);
     let _ = std::fs::remove_dir_all(&dir);
     dir
 }

@@ -268,13 +268,13 @@ pub fn text(o: &Output) -> String {
     )
 }
 
-/// The file `name` in this test binary's scratch folder,
-/// `$TMPDIR/twin-TEST-PID`. The first call removes the folders of `TEST`
-/// that earlier runs left (their process gone), so runs do not pile up.
-pub fn scratch(test: &str, name: &str) -> PathBuf {
+/// The file `name` in this test binary's scratch folder for `area`,
+/// `$TMPDIR/twin-AREA-PID`. The first call of the process removes the
+/// scratch folders that earlier runs left, of every area (their process
+/// gone), so runs do not pile up.
+pub fn scratch(area: &str, name: &str) -> PathBuf {
     static SWEPT: std::sync::Once = std::sync::Once::new();
     let tmp = std::env::temp_dir();
-    let prefix = format!("twin-{test}-");
     SWEPT.call_once(|| {
         let Ok(entries) = std::fs::read_dir(&tmp) else {
             return;
@@ -283,8 +283,9 @@ pub fn scratch(test: &str, name: &str) -> PathBuf {
             let file_name = e.file_name();
             let Some(pid) = file_name
                 .to_str()
-                .and_then(|n| n.strip_prefix(&prefix))
-                .and_then(|rest| rest.parse::<u32>().ok())
+                .and_then(|n| n.strip_prefix("twin-"))
+                .and_then(|rest| rest.rsplit_once('-'))
+                .and_then(|(_, pid)| pid.parse::<u32>().ok())
             else {
                 continue;
             };
@@ -294,7 +295,15 @@ pub fn scratch(test: &str, name: &str) -> PathBuf {
             }
         }
     });
-    let dir = tmp.join(format!("{prefix}{}", std::process::id()));
+    let dir = tmp.join(format!("twin-{area}-{}", std::process::id()));
     std::fs::create_dir_all(&dir).expect("scratch folder");
     dir.join(name)
+}
+
+/// A fresh, empty folder `name` in the scratch folder for `area`.
+pub fn folder(area: &str, name: &str) -> PathBuf {
+    let dir = scratch(area, name);
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).expect("scratch folder");
+    dir
 }
