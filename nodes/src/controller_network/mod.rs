@@ -14,6 +14,8 @@ pub use light::{LightConfig, LightNode};
 pub use master::{ControllerNetworkMaster, MasterConfig, MasterPhase};
 pub use motor::{MotorConfig, MotorNode, MotorState};
 
+use std::collections::VecDeque;
+
 use crate::proto::modbus::Exception;
 use crate::proto::modbus8::{self, CrcOrder, FRAME_LEN, Frame, Modbus8Decoder};
 use crate::time::{SimDuration, SimTime};
@@ -95,13 +97,18 @@ impl Default for PortConfig {
     }
 }
 
-/// A slave's serial port: frames in, at most one reply waiting to go out.
+/// Replies a port is made room for at first: every request of one read is
+/// answered, in order (a master on a pty or TCP may write several at once,
+/// as the sketch's loop would answer them one after another).
+const FIRST_REPLIES: usize = 16;
+
+/// A slave's serial port: frames in, the replies waiting to go out.
 #[derive(Debug, Clone)]
 struct SlavePort {
     id: u8,
     config: PortConfig,
     decoder: Modbus8Decoder,
-    reply: Option<[u8; FRAME_LEN]>,
+    replies: VecDeque<[u8; FRAME_LEN]>,
     /// The port is closed (reset communication) until then: bytes are lost.
     closed_until: Option<SimTime>,
 }
@@ -112,7 +119,7 @@ impl SlavePort {
             id,
             config,
             decoder: Modbus8Decoder::new(config.crc_order, config.silence),
-            reply: None,
+            replies: VecDeque::with_capacity(FIRST_REPLIES),
             closed_until: None,
         }
     }
@@ -137,7 +144,7 @@ impl SlavePort {
                 if self.config.corrupt_reply_crc {
                     corrupt_crc(&mut reply, self.config.crc_order);
                 }
-                self.reply = Some(reply);
+                self.replies.push_back(reply);
             }
         }
     }
@@ -146,15 +153,14 @@ impl SlavePort {
     /// reply are lost, as when the Arduino calls `Serial.end()`.
     fn close_for(&mut self, now: SimTime, pause: SimDuration) {
         self.decoder = Modbus8Decoder::new(self.config.crc_order, self.config.silence);
-        self.reply = None;
+        self.replies.clear();
         self.closed_until = Some(now + pause);
     }
 
     fn poll_transmit(&mut self, buf: &mut [u8]) -> Option<usize> {
-        let reply = self.reply?;
         let slot = buf.get_mut(..FRAME_LEN)?;
+        let reply = self.replies.pop_front()?;
         slot.copy_from_slice(&reply);
-        self.reply = None;
         Some(FRAME_LEN)
     }
 

@@ -180,6 +180,18 @@ impl SlaveFrontend {
         }
     }
 
+    /// Bytes thrown away so far as noise: outside any frame, neither part of
+    /// a request nor of a frame in progress (MEB bytes before an `@`,
+    /// Modbus ASCII bytes before a `:`). A binary framing has none: any
+    /// byte may start a frame.
+    pub fn noise_bytes(&self) -> u64 {
+        match &self.decoder {
+            Decoder::Meb(d) => d.stats().noise_bytes,
+            Decoder::Ascii(d) => d.drops().noise.bytes,
+            Decoder::Rtu(_) | Decoder::Tcp(_) => 0,
+        }
+    }
+
     /// When [`SlaveFrontend::handle_timeout`] is due (RTU's silence rule).
     pub fn poll_timeout(&self) -> Option<SimTime> {
         match &self.decoder {

@@ -210,3 +210,56 @@ fn an_io_map_moves_signals_and_keeps_the_checks() {
     assert_eq!(sd0 & 0b1, 0, "EN applied (active low): {sd0:#06x}");
     assert_eq!(sd0 & 0b1_0000, 0b1_0000, "FR set: {sd0:#06x}");
 }
+
+/// A CRC-valid RTU request whose byte count does not match its quantity is
+/// a whole frame with a bad value: exception 03, as over Modbus TCP.
+#[test]
+fn a_write_whose_count_and_quantity_disagree_gets_exception_03_on_rtu_and_tcp() {
+    // Write multiple registers at 0: quantity 2 with a byte count of 2,
+    // quantity 1 with a count of 4 (the data as long as the count says).
+    for pdu in [
+        &[0x10, 0x00, 0x00, 0x00, 0x02, 0x02, 0x12, 0x34][..],
+        &[0x10, 0x00, 0x00, 0x00, 0x01, 0x04, 0x12, 0x34, 0x56, 0x78],
+        &[0x0F, 0x00, 0x00, 0x00, 0x09, 0x01, 0xFF],
+    ] {
+        mismatched_write(pdu);
+    }
+}
+
+fn mismatched_write(pdu: &[u8]) {
+    let mut rtu = vec![0x01];
+    rtu.extend_from_slice(pdu);
+    let crc = protocols_crc(&rtu);
+    rtu.extend_from_slice(&crc.to_le_bytes());
+    let mut tcp = vec![0x00, 0x01, 0x00, 0x00, 0x00, 1 + pdu.len() as u8, 0x01];
+    tcp.extend_from_slice(pdu);
+    for (framing, bytes) in [
+        (Framing::ModbusRtu(SimDuration::from_millis(5)), rtu),
+        (Framing::ModbusTcp, tcp),
+    ] {
+        let mut controller = EvController::new(EvControllerConfig::default());
+        let mut frontend = SlaveFrontend::new(framing, 1);
+        let reply = reply_of(&mut frontend, &mut controller, &bytes);
+        let reply = reply.unwrap_or_else(|| panic!("{framing:?}: no reply"));
+        let got = match framing {
+            Framing::ModbusTcp => &reply[7..],
+            _ => &reply[1..reply.len() - 2],
+        };
+        assert_eq!(got, [pdu[0] | 0x80, 0x03], "{framing:?} {pdu:02x?}");
+    }
+}
+
+fn protocols_crc(bytes: &[u8]) -> u16 {
+    let mut crc = 0xFFFFu16;
+    for &b in bytes {
+        crc ^= u16::from(b);
+        for _ in 0..8 {
+            crc = if crc & 1 != 0 {
+                (crc >> 1) ^ 0xA001
+            } else {
+                crc >> 1
+            };
+        }
+    }
+    crc
+}

@@ -10,8 +10,10 @@
 //!   [`SlaveFrontend`] (framing and reply queue per connection, one image
 //!   for all): MEB and Modbus TCP clients, RTU or ASCII on a port.
 
+use std::collections::VecDeque;
+
 use nodes::firmware::SlaveFrontend;
-use nodes::node::NodeEvent;
+use nodes::node::{MAX_FRAME, NodeEvent};
 use nodes::time::SimTime;
 
 use super::device::Device;
@@ -39,6 +41,11 @@ pub trait Endpoint: Send {
     fn pending(&self) -> usize {
         0
     }
+    /// Bytes thrown away so far as noise, outside any frame: a connection
+    /// that sends only these is as quiet as one that sends nothing.
+    fn noise_bytes(&self) -> u64 {
+        0
+    }
     /// The slave front end, for faults and read-only switches.
     fn frontend_mut(&mut self) -> Option<&mut SlaveFrontend> {
         None
@@ -58,17 +65,60 @@ pub trait Endpoint: Send {
 
 /// Drives the nodes of `devices` (indices into the engine's devices) over
 /// one link, as the simulated bus does: every node hears every byte.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Default)]
 pub struct NodeEndpoint {
     pub devices: Vec<usize>,
+    /// Replies taken from the nodes in the order their requests came (see
+    /// `handle_bytes`), back to back, and their lengths.
+    replies: Vec<u8>,
+    lengths: VecDeque<usize>,
+}
+
+impl NodeEndpoint {
+    /// Drives `devices` over one link.
+    pub fn new(devices: Vec<usize>) -> Self {
+        NodeEndpoint {
+            devices,
+            ..Self::default()
+        }
+    }
+
+    /// Takes every frame the nodes have ready, in node order.
+    fn collect(&mut self, devices: &mut [Device], now: SimTime) {
+        let mut buf = [0u8; MAX_FRAME];
+        for &d in &self.devices {
+            let Some(device) = devices.get_mut(d) else {
+                continue;
+            };
+            while let Some(n) = device.node.poll_transmit(now, &mut buf) {
+                self.replies
+                    .extend_from_slice(buf.get(..n).unwrap_or_default());
+                self.lengths.push_back(n);
+            }
+        }
+    }
 }
 
 impl Endpoint for NodeEndpoint {
     fn handle_bytes(&mut self, devices: &mut [Device], now: SimTime, bytes: &[u8]) {
-        for &d in &self.devices {
-            if let Some(device) = devices.get_mut(d) {
+        if let [one] = self.devices[..] {
+            if let Some(device) = devices.get_mut(one) {
                 device.node.handle_bytes(now, bytes);
             }
+            return;
+        }
+        // Several nodes on one line, and a write of several requests (a
+        // pty or TCP has no line timing to space them): each node is fed a
+        // byte at a time and its replies are taken as they come, so the
+        // line answers in the order it was asked, as on the bench, where
+        // each board answers its request before the next one arrives.
+        for &byte in bytes {
+            for &d in &self.devices {
+                if let Some(device) = devices.get_mut(d) {
+                    device.node.handle_bytes(now, &[byte]);
+                }
+            }
+            self.collect(devices, now);
         }
     }
 
@@ -95,6 +145,12 @@ impl Endpoint for NodeEndpoint {
         now: SimTime,
         buf: &mut [u8],
     ) -> Option<usize> {
+        if let Some(len) = self.lengths.pop_front() {
+            let n = len.min(buf.len()).min(self.replies.len());
+            buf.get_mut(..n)?.copy_from_slice(self.replies.get(..n)?);
+            self.replies.drain(..len.min(self.replies.len()));
+            return Some(n);
+        }
         self.devices
             .iter()
             .find_map(|&d| devices.get_mut(d)?.node.poll_transmit(now, buf))
@@ -162,6 +218,10 @@ impl Endpoint for SlaveEndpoint {
 
     fn pending(&self) -> usize {
         self.frontend.pending()
+    }
+
+    fn noise_bytes(&self) -> u64 {
+        self.frontend.noise_bytes()
     }
 
     fn frontend_mut(&mut self) -> Option<&mut SlaveFrontend> {

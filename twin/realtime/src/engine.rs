@@ -583,11 +583,12 @@ pub enum Inbound {
     /// Run this on the engine's thread (console commands, other front ends).
     Command(Box<dyn FnOnce(&mut RtEngine) + Send>),
     /// Link `link` has `max` clients and a newcomer: close the one quiet
-    /// longest if it has been for `min_idle`; `made` says whether it was.
+    /// longest if it has been for `min_idle` (never if `None`), else the one
+    /// holding a partial frame longest; `made` says whether one was.
     MakeRoom {
         link: usize,
         max: usize,
-        min_idle: SimDuration,
+        min_idle: Option<SimDuration>,
         made: tokio::sync::oneshot::Sender<bool>,
     },
     /// Stop the session (SIGINT, SIGTERM).

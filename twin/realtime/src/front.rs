@@ -86,7 +86,9 @@ pub(super) struct Conn {
     partial_since: Option<SimTime>,
     rate_window: SimTime,
     rate_bytes: u64,
-    /// When its last bytes came (or it opened).
+    /// When it last sent bytes of a frame, whole or partial (or opened):
+    /// noise outside any frame does not count, so a connection that sends
+    /// only that ages out and makes room as a quiet one does.
     last_rx: SimTime,
 }
 
@@ -377,9 +379,14 @@ impl Front {
     }
 
     /// Closes the connection on `link` that has been quiet longest, if it
-    /// has been for at least `min_idle`, to make room for a newcomer; says
-    /// whether it did.
-    pub(super) fn make_room(&mut self, link: usize, min_idle: SimDuration, max: usize) -> bool {
+    /// has been for at least `min_idle`, or else the one that has held a
+    /// partial frame longest, to make room for a newcomer; says whether it did.
+    pub(super) fn make_room(
+        &mut self,
+        link: usize,
+        min_idle: Option<SimDuration>,
+        max: usize,
+    ) -> bool {
         let now = self.now();
         let quietest = self
             .conns
@@ -388,7 +395,7 @@ impl Front {
             .min_by_key(|(_, c)| c.last_rx)
             .map(|(&id, c)| (id, now.saturating_since(c.last_rx)));
         match quietest {
-            Some((id, quiet)) if quiet >= min_idle => {
+            Some((id, quiet)) if min_idle.is_some_and(|min| quiet >= min) => {
                 let why = format!("idle for {:.0} s", quiet.as_secs_f64());
                 self.close_for_room(id, &why, max);
                 true
@@ -432,7 +439,6 @@ impl Front {
             return;
         };
         self.counters.bytes_in += bytes.len() as u64;
-        conn.last_rx = at;
         let record = FrameRecord {
             link: conn.link,
             conn: id,
@@ -456,7 +462,12 @@ impl Front {
                 return;
             }
         }
+        let noise_before = conn.endpoint.noise_bytes();
         conn.endpoint.handle_bytes(&mut self.devices, at, bytes);
+        let noise = conn.endpoint.noise_bytes().saturating_sub(noise_before);
+        if noise < bytes.len() as u64 {
+            conn.last_rx = at;
+        }
         if let Some(why) = conn.endpoint.close_request() {
             // Replies already owed go out first.
             self.drain(id, at);

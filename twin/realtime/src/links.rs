@@ -225,15 +225,14 @@ impl ClientLimit {
     }
 }
 
-/// How long a newcomer to a full listener waits for a place to free up
-/// (a client closing, a partial frame timing out) before it is refused.
-const ROOM_WAIT: Duration = Duration::from_secs(1);
-
 /// Accepts clients on `listener` for link `link`. When `limit.max` are
 /// connected, a newcomer gets the place of a client whose peer has gone, or
-/// of the one quiet longest if it has been for `limit.room_after_idle` (the
-/// engine closes it, saying so), or waits [`ROOM_WAIT`] for a place; if
-/// none comes, it is refused (closed at once).
+/// of the one quiet longest if it has been for `limit.room_after_idle`, or
+/// of the one holding a partial frame longest if for over a second (the
+/// engine closes it, saying so); if none, it is refused: closed at once,
+/// as libmodbus does, since neither MEB nor Modbus can say "busy" before a
+/// request. A newcomer is never kept waiting for a place: that queued the
+/// next ones behind it, a second each.
 /// A client from outside `allow` is closed at once, and the refusal logged.
 #[allow(
     clippy::too_many_arguments,
@@ -250,6 +249,7 @@ pub async fn accept_loop(
     refused: Refused,
 ) {
     let slots = Arc::new(Slots::default());
+    let mut quiet_refusals = Refusals::default();
     loop {
         let Ok((socket, peer)) = listener.accept().await else {
             // Out of file descriptors and the like: wait and go on.
@@ -263,11 +263,7 @@ pub async fn accept_loop(
                 "{peer}: refused, not an allowed address (--allow {})",
                 allow.shown()
             );
-            let _ = engine.send(Inbound::Command(Box::new(move |e| {
-                let name = e.links.get(link).map_or("?", |l| l.name.as_str());
-                let line = format!("[{:12.6} s] {name} {text}", e.clock.now().as_secs_f64());
-                e.say(line);
-            })));
+            say(&engine, link, text);
             continue;
         }
         if let Some(limit) = limit
@@ -275,14 +271,9 @@ pub async fn accept_loop(
         {
             refused.over_limit.fetch_add(1, Ordering::Relaxed);
             drop(socket);
-            let max = limit.max;
-            let text =
-                format!("{peer}: refused, {max} client(s) already connected (--max-clients)");
-            let _ = engine.send(Inbound::Command(Box::new(move |e| {
-                let name = e.links.get(link).map_or("?", |l| l.name.as_str());
-                let line = format!("[{:12.6} s] {name} {text}", e.clock.now().as_secs_f64());
-                e.say(line);
-            })));
+            if let Some(text) = quiet_refusals.refused(peer, limit.max) {
+                say(&engine, link, text);
+            }
             continue;
         }
         // Replies are single small writes: send them at once.
@@ -302,42 +293,70 @@ pub async fn accept_loop(
         });
         if let Err(e) = carried {
             slots.free(conn);
-            let text = format!("{peer}: refused, no thread for it: {e}");
-            let _ = engine.send(Inbound::Command(Box::new(move |e| {
-                let name = e.links.get(link).map_or("?", |l| l.name.as_str());
-                let line = format!("[{:12.6} s] {name} {text}", e.clock.now().as_secs_f64());
-                e.say(line);
-            })));
+            say(
+                &engine,
+                link,
+                format!("{peer}: refused, no thread for it: {e}"),
+            );
         }
     }
 }
 
-/// Whether a newcomer has a place among `max` (see [`accept_loop`]).
+/// Has the engine print `text` about link `link`, stamped with its clock.
+fn say(engine: &Sender<Inbound>, link: usize, text: String) {
+    let _ = engine.send(Inbound::Command(Box::new(move |e| {
+        let name = e.links.get(link).map_or("?", |l| l.name.as_str());
+        let line = format!("[{:12.6} s] {name} {text}", e.clock.now().as_secs_f64());
+        e.say(line);
+    })));
+}
+
+/// The lines a listener prints about newcomers refused over its limit: the
+/// first of a burst in full, then at most one a second with the count
+/// since, so that a flood of connections does not flood the console.
+#[derive(Debug, Default)]
+struct Refusals {
+    last_said: Option<std::time::Instant>,
+    unsaid: u64,
+}
+
+impl Refusals {
+    fn refused(&mut self, peer: std::net::SocketAddr, max: usize) -> Option<String> {
+        let now = std::time::Instant::now();
+        if self
+            .last_said
+            .is_some_and(|at| now.duration_since(at) < Duration::from_secs(1))
+        {
+            self.unsaid += 1;
+            return None;
+        }
+        self.last_said = Some(now);
+        let more = std::mem::take(&mut self.unsaid);
+        let also = if more > 0 {
+            format!(" ({more} more refused since the last line)")
+        } else {
+            String::new()
+        };
+        Some(format!(
+            "{peer}: refused, {max} client(s) already connected (--max-clients){also}"
+        ))
+    }
+}
+
+/// Whether a newcomer has a place among `max` now (see [`accept_loop`]).
 async fn room(slots: &Slots, limit: ClientLimit, link: usize, engine: &Sender<Inbound>) -> bool {
     let max = limit.max;
     if slots.in_use() < max {
         return true;
     }
-    if let Some(min_idle) = limit.room_after_idle {
-        let (made, answer) = tokio::sync::oneshot::channel();
-        let asked = engine.send(Inbound::MakeRoom {
-            link,
-            max,
-            min_idle,
-            made,
-        });
-        if asked.is_ok() && answer.await.unwrap_or(false) {
-            return true;
-        }
-    }
-    let deadline = tokio::time::Instant::now() + ROOM_WAIT;
-    while tokio::time::Instant::now() < deadline {
-        tokio::time::sleep(Duration::from_millis(10)).await;
-        if slots.in_use() < max {
-            return true;
-        }
-    }
-    false
+    let (made, answer) = tokio::sync::oneshot::channel();
+    let asked = engine.send(Inbound::MakeRoom {
+        link,
+        max,
+        min_idle: limit.room_after_idle,
+        made,
+    });
+    asked.is_ok() && answer.await.unwrap_or(false)
 }
 
 /// Carries serial port `path` for link `link` for the whole session: when

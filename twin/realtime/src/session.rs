@@ -26,7 +26,7 @@ use super::allow::AllowList;
 use super::io::{SerialSettings, serial, tcp};
 use super::links::{ClientLimit, ConnIds, Refused, accept_loop, serial_loop};
 use super::rotate::{RecordPlan, Recordings};
-use super::sink::{self, SinkConfig, SinkMsg, ViewOpener};
+use super::sink::{self, SinkConfig, SinkLink, SinkMsg, ViewOpener};
 use super::{Inbound, LatenessSummary, RtClock, RtEngine, RtSummary};
 
 /// What every session is told, beside what its role is told (the role's
@@ -349,11 +349,15 @@ pub fn links_runtime() -> Result<Runtime> {
 }
 
 /// Each link's name and protocol, as the sink labels its frames.
-pub fn link_labels(engine: &RtEngine) -> Vec<(String, &'static str)> {
+pub fn link_labels(engine: &RtEngine) -> Vec<SinkLink> {
     engine
         .links
         .iter()
-        .map(|l| (l.name.clone(), l.protocol))
+        .map(|l| SinkLink {
+            name: l.name.clone(),
+            protocol: l.protocol,
+            silence: l.spec.silence(),
+        })
         .collect()
 }
 

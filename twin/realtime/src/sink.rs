@@ -7,7 +7,10 @@
 
 use anyhow::Result;
 use nodes::node::NodeEvent;
-use nodes::time::SimTime;
+use nodes::proto::modbus::rtu;
+use nodes::proto::modbus::serial::FrameLen;
+use nodes::proto::modbus8;
+use nodes::time::{SimDuration, SimTime};
 use serde_json::{Value, json};
 use std::collections::{BTreeMap, HashMap};
 use std::io::Write;
@@ -95,14 +98,25 @@ pub enum SinkMsg {
 #[derive(Debug)]
 pub struct SinkConfig {
     pub modules: Vec<String>,
-    /// Per link: its name and protocol.
-    pub links: Vec<(String, &'static str)>,
+    /// Per link: its name, protocol and line silence.
+    pub links: Vec<SinkLink>,
     /// Print every frame.
     pub monitor: bool,
     /// The session's recordings and the first file's recorder.
     pub recording: Option<(Recordings, SimRecorder)>,
     /// A live view, fed what is recorded (`--view`).
     pub view: Option<Box<dyn LiveView>>,
+}
+
+/// What the sink knows of one link.
+#[derive(Debug, Clone)]
+pub struct SinkLink {
+    pub name: String,
+    /// As printed: `meb`, `modbus-tcp`, `modbus-rtu`, `modbus-ascii`, `modbus8`.
+    pub protocol: &'static str,
+    /// The line quiet that ends a partial frame on a serial link (the
+    /// nodes' own rule), so that the frames shown are those they took.
+    pub silence: SimDuration,
 }
 
 /// A live view of a session, fed by the sink what it records. The viewer
@@ -240,11 +254,18 @@ pub fn spawn_with(config: SinkConfig, rx: Receiver<SinkMsg>) -> JoinHandle<Resul
         .unwrap_or_else(|e| panic!("cannot start the recording thread: {e}"))
 }
 
-/// Reassembles received chunks into frames for display and recording.
+/// Reassembles received chunks into frames for display and recording, by
+/// the rule the twin's own end of the link frames them with: a line feed
+/// (MEB, ASCII), the MBAP length (Modbus TCP), the length a request's
+/// header implies (RTU, the 8-byte variant); a partial binary frame that the
+/// line's silence ends is shown as it is, as the node dropped it. A chunk
+/// split by the writer (a frame written as 4 + 4 bytes) is one frame.
 #[derive(Default)]
 struct Framer {
     buf: Vec<u8>,
     started: Option<SimTime>,
+    /// When the last chunk came.
+    last: Option<SimTime>,
 }
 
 /// A received frame is complete when the protocol says so; garbage longer
@@ -256,18 +277,29 @@ impl Framer {
     /// `frame` (the buffer is reused: nothing is allocated per frame).
     fn push(
         &mut self,
-        protocol: &str,
+        link: &SinkLink,
         at: SimTime,
         bytes: &[u8],
         mut frame: impl FnMut(SimTime, &[u8]),
     ) {
+        let binary = matches!(link.protocol, "modbus8" | "modbus-rtu");
+        if binary
+            && !self.buf.is_empty()
+            && self
+                .last
+                .is_some_and(|last| at.saturating_since(last) >= link.silence)
+        {
+            frame(self.started.unwrap_or(at), &self.buf);
+            self.buf.clear();
+        }
+        self.last = Some(at);
         if self.buf.is_empty() {
             self.started = Some(at);
         }
         self.buf.extend_from_slice(bytes);
         let mut taken = 0;
         while let Some(rest) = self.buf.get(taken..).filter(|r| !r.is_empty()) {
-            let end = match protocol {
+            let end = match link.protocol {
                 "meb" | "modbus-ascii" => rest.iter().position(|&b| b == b'\n').map(|i| i + 1),
                 "modbus-tcp" => match rest.get(4..6) {
                     Some(&[hi, lo]) => {
@@ -276,7 +308,13 @@ impl Framer {
                     }
                     _ => None,
                 },
-                // Binary serial framings: a read on a pty is one frame.
+                "modbus8" => (rest.len() >= modbus8::FRAME_LEN).then_some(modbus8::FRAME_LEN),
+                // The twin is the slave on its RTU links: what it reads are requests.
+                "modbus-rtu" => match rtu::frame_len(rtu::Direction::Request, rest) {
+                    FrameLen::Known(n) => (rest.len() >= n).then_some(n),
+                    FrameLen::NeedAtLeast(_) => None,
+                    FrameLen::UntilSilence => Some(rest.len()),
+                },
                 _ => Some(rest.len()),
             };
             let Some(end) = end.or((rest.len() > MAX_SHOWN).then_some(rest.len())) else {
@@ -347,7 +385,7 @@ impl FrameSink {
         config
             .links
             .iter()
-            .map(|(name, _)| LazyChannel::new(name, topics::link_frames(name)))
+            .map(|link| LazyChannel::new(&link.name, topics::link_frames(&link.name)))
             .collect()
     }
 
@@ -378,12 +416,13 @@ impl FrameSink {
         }
         let mut result = Ok(());
         for (record, bytes) in batch.iter() {
-            let (Some((name, protocol)), Some(channel)) = (
+            let (Some(link), Some(channel)) = (
                 config.links.get(record.link),
                 self.channels.get_mut(record.link),
             ) else {
                 continue;
             };
+            let (name, protocol) = (&link.name, link.protocol);
             let conn = record.conn;
             let state = self.conns.entry(conn).or_insert_with(|| ConnFrames {
                 client: format!("client {conn}"),
@@ -417,11 +456,9 @@ impl FrameSink {
                 Direction::Rx => {
                     state.last_request = Some(record.end);
                     let client = &state.client;
-                    state
-                        .framer
-                        .push(protocol, record.start, bytes, |at, frame| {
-                            show(at, at, frame, client, "");
-                        });
+                    state.framer.push(link, record.start, bytes, |at, frame| {
+                        show(at, at, frame, client, "");
+                    });
                 }
                 Direction::Tx => {
                     // Only the monitor shows it: not formatted for the recording.
@@ -830,7 +867,11 @@ mod tests {
     fn a_closed_connection_is_forgotten_and_the_others_kept() {
         let config = SinkConfig {
             modules: Vec::new(),
-            links: vec![("modbus".into(), "modbus-tcp")],
+            links: vec![SinkLink {
+                name: "modbus".into(),
+                protocol: "modbus-tcp",
+                silence: SimDuration::ZERO,
+            }],
             monitor: true,
             recording: None,
             view: None,

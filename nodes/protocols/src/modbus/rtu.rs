@@ -83,8 +83,9 @@ pub enum Direction {
     Response,
 }
 
-/// The frame length an RTU header implies.
-fn frame_len(direction: Direction, buf: &[u8]) -> FrameLen {
+/// The frame length an RTU header implies (`buf` holds the frame's first
+/// bytes, however many have come).
+pub fn frame_len(direction: Direction, buf: &[u8]) -> FrameLen {
     let Some(&fc) = buf.get(1) else {
         return FrameLen::NeedAtLeast(2);
     };

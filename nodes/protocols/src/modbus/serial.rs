@@ -52,7 +52,7 @@ pub enum Timing {
 
 /// What the header in the buffer says about the frame's length.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) enum FrameLen {
+pub enum FrameLen {
     /// The frame is this long.
     Known(usize),
     /// At least this many bytes are needed to tell.

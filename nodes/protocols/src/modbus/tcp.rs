@@ -50,18 +50,32 @@ impl<'a> TcpFrame<'a> {
     }
 }
 
-/// Reads the MBAP header at the start of `bytes` and returns the whole
-/// frame's length, or why no Modbus frame can start there.
+/// The header's bytes up to the end of its protocol id, and of its length.
+const PROTOCOL_END: usize = 4;
+const LENGTH_END: usize = 6;
+
+/// Why a header starting with `bytes` (at least [`PROTOCOL_END`] of them)
+/// cannot be Modbus, judged by its protocol id alone.
+fn protocol_fault(bytes: &[u8]) -> Option<FrameError> {
+    let &[_, _, p_hi, p_lo, ..] = bytes else {
+        return None;
+    };
+    let protocol = u16::from_be_bytes([p_hi, p_lo]);
+    (protocol != 0).then_some(FrameError::ProtocolId(protocol))
+}
+
+/// Reads the MBAP header at the start of `bytes` (its first six bytes are
+/// enough) and returns the whole frame's length, or why no Modbus frame can
+/// start there.
 fn header_len(bytes: &[u8]) -> Result<usize, FrameError> {
-    let &[_, _, p_hi, p_lo, l_hi, l_lo, ..] = bytes else {
+    let &[_, _, _, _, l_hi, l_lo, ..] = bytes else {
         return Err(FrameError::TooShort {
             len: bytes.len(),
             min: MIN_ADU_LEN,
         });
     };
-    let protocol = u16::from_be_bytes([p_hi, p_lo]);
-    if protocol != 0 {
-        return Err(FrameError::ProtocolId(protocol));
+    if let Some(fault) = protocol_fault(bytes) {
+        return Err(fault);
     }
     let length = u16::from_be_bytes([l_hi, l_lo]);
     if !(2..=(1 + MAX_PDU_LEN as u16)).contains(&length) {
@@ -195,8 +209,26 @@ impl TcpDecoder {
             self.yielded = 0;
         }
         loop {
-            let wanted = if self.len < MBAP_LEN {
-                MBAP_LEN
+            // The protocol id and the length field are checked as soon as
+            // they are in (4 and 6 bytes), not when the unit id comes: a
+            // header that cannot be Modbus must not hold a connection open
+            // waiting for a byte that changes nothing.
+            let wanted = if self.len < PROTOCOL_END {
+                PROTOCOL_END
+            } else if self.len < LENGTH_END {
+                match protocol_fault(&self.buf[..self.len]) {
+                    Some(fault) if self.stop_on_bad_header => {
+                        self.drops.malformed.add(self.len);
+                        return Some(Err(fault));
+                    }
+                    Some(_) => {
+                        self.drops.malformed.add(1);
+                        self.buf.copy_within(1..self.len, 0);
+                        self.len -= 1;
+                        continue;
+                    }
+                    None => LENGTH_END,
+                }
             } else {
                 match header_len(&self.buf[..self.len]) {
                     Ok(total) if self.len >= total => {
@@ -253,6 +285,23 @@ mod tests {
         let mut out = [0u8; MAX_ADU_LEN];
         let n = emit(1, 0x11, &request, &mut out).unwrap();
         assert_eq!(&out[..n], adu);
+    }
+
+    #[test]
+    fn a_server_refuses_a_bad_header_before_its_unit_id() {
+        // Length 0 is known at six bytes, a protocol id at four: no seventh
+        // byte is waited for.
+        for header in [&[0, 1, 0, 0, 0, 0][..], &[0, 1, 0, 7]] {
+            let mut decoder = TcpDecoder::for_server();
+            let mut input = header;
+            assert!(
+                matches!(decoder.decode(&mut input), Some(Err(_))),
+                "{header:?}"
+            );
+        }
+        let mut decoder = TcpDecoder::for_server();
+        let mut input: &[u8] = &[0, 1, 0, 0, 0, 6];
+        assert!(decoder.decode(&mut input).is_none(), "a good header waits");
     }
 
     #[test]

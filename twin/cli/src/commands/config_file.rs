@@ -164,14 +164,8 @@ fn read_modules(
                 let Some(n) = value.get_ref().as_str() else {
                     bail!("{origin}:{key_line}: `name` must be a string, the module's name");
                 };
-                let ok = !n.is_empty()
-                    && n.len() <= 64
-                    && n.chars()
-                        .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_');
-                if !ok {
-                    bail!(
-                        "{origin}:{key_line}: `name` must be 1 to 64 letters, digits, `-` or `_` (it names the module's recordings), got \"{n}\""
-                    );
+                if let Err(why) = twin_sim::scenario::check_name(n) {
+                    bail!("{origin}:{key_line}: `name` {why} (it names the module's recordings)");
                 }
                 name = Some(n.to_string());
                 continue;

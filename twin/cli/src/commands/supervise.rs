@@ -88,16 +88,16 @@ pub struct SuperviseArgs {
     #[arg(long, default_value_t = 10, value_name = "N", value_parser = super::numbers::whole::<u32>)]
     status_poll: u32,
     /// Remote clients at once. A newcomer beyond them takes the place of
-    /// the client quiet longest if that one has sent nothing for
+    /// the client quiet longest if that one has sent nothing but noise for
     /// --make-room-after, or of the one holding a partial frame longest if
-    /// for over 1 s, else waits up to 1 s for a place, else is refused.
+    /// for over 1 s, else is refused (closed at once).
     #[arg(long, default_value_t = 8, value_name = "N", value_parser = super::numbers::whole::<usize>)]
     max_clients: usize,
     /// How long a client must have been quiet for a newcomer beyond
     /// --max-clients to take its place (0: never).
     #[arg(long, default_value_t = 30.0, value_name = "SECONDS", value_parser = super::numbers::number)]
     make_room_after: f64,
-    /// Close a remote client that has sent nothing for this long (0: never;
+    /// Close a remote client that has sent nothing but noise for this long (0: never;
     /// quiet connections stay open, as the MEB protocol page says).
     #[arg(long, default_value_t = 0.0, value_name = "SECONDS", value_parser = super::numbers::number)]
     idle_timeout: f64,

@@ -483,9 +483,7 @@ async fn open_links(
                             .map(|(d, _, id)| (d, id))
                             .collect();
                             if boards.is_empty() {
-                                return Box::new(NodeEndpoint {
-                                    devices: vec![motor, light],
-                                });
+                                return Box::new(NodeEndpoint::new(vec![motor, light]));
                             }
                             Box::new(FirmwareEndpoint::new(
                                 vec![motor, light],

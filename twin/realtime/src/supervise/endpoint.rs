@@ -81,6 +81,12 @@ impl Endpoint for ImageEndpoint {
         self.server.pending(self.client)
     }
 
+    fn noise_bytes(&self) -> u64 {
+        self.server
+            .decoder_stats(self.client)
+            .map_or(0, |stats| stats.noise_bytes)
+    }
+
     /// A write is answered once the slave has answered it on the bus.
     fn answers_later(&self) -> bool {
         true
