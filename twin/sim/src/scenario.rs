@@ -444,7 +444,7 @@ impl Scenario {
         let scenario: Scenario = toml_errors::deserialize(&root).map_err(|e| {
             // serde lists aliases among the kinds it expected; the old name
             // of a kind is still read but not offered.
-            let message = e.message.replace(&format!(", `{LEGACY_MASTER_KIND}`"), "");
+            let message = clip_quoted(&e.message.replace(&format!(", `{LEGACY_MASTER_KIND}`"), ""));
             // The key at fault, unless the path ends at a whole table (a
             // `[[node]]`), which the line already points at.
             let field = e.path.rsplit('.').next().unwrap_or_default();
@@ -545,6 +545,15 @@ impl Scenario {
     }
 
     fn validate(&self) -> std::result::Result<(), (String, String)> {
+        let named = std::iter::once(&self.name)
+            .chain(self.modules.iter().map(|m| &m.name))
+            .chain(self.buses.iter().map(|b| &b.name));
+        for name in named
+            .map(String::as_str)
+            .chain(self.nodes.iter().map(NodeSpec::name))
+        {
+            check_name(name).map_err(|why| (format!("name@{name}"), why))?;
+        }
         let mut names = std::collections::BTreeSet::new();
         for n in &self.nodes {
             if !names.insert(n.name()) {
@@ -710,6 +719,61 @@ impl Scenario {
 /// The line setting `key = …` in the block (up to the next `[[…]]`) of a
 /// line that sets `name = "owner"`; else that name line. A module and a node
 /// may share a name: the block that has the key is the one meant.
+/// `message` with every backquoted value longer than a line cut to its
+/// start and its length: a file's wrong value is quoted back, and a value of
+/// a megabyte must not become a message of a megabyte.
+fn clip_quoted(message: &str) -> String {
+    const LONGEST: usize = 60;
+    let mut out = String::with_capacity(message.len().min(400));
+    for (i, part) in message.split('`').enumerate() {
+        if i > 0 {
+            out.push('`');
+        }
+        let chars = part.chars().count();
+        if i % 2 == 1 && chars > LONGEST {
+            out.extend(part.chars().take(20));
+            out.push_str(&format!("… ({chars} characters)"));
+        } else {
+            out.push_str(part);
+        }
+    }
+    out
+}
+
+/// The longest name a scenario's nodes, buses and modules may have: it
+/// goes into topics, file names, monitor lines and the panel.
+pub const MAX_NAME_LEN: usize = 64;
+
+/// Why `name` cannot name a scenario, node, bus or module (of a scenario or
+/// of a class file): 1 to [`MAX_NAME_LEN`] ASCII letters, digits, `-` or
+/// `_`, starting with a letter or digit.
+pub fn check_name(name: &str) -> std::result::Result<(), String> {
+    const RULE: &str =
+        "a name is 1 to 64 letters, digits, `-` or `_`, starting with a letter or digit";
+    let chars = name.chars().count();
+    if chars == 0 {
+        return Err(format!("is empty: {RULE}"));
+    }
+    if chars > MAX_NAME_LEN {
+        let start: String = name.chars().take(20).collect();
+        return Err(format!("\"{start}…\" is {chars} characters long: {RULE}"));
+    }
+    let allowed = |c: char| c.is_ascii_alphanumeric() || matches!(c, '-' | '_');
+    let shown = |c: char| match c {
+        ' ' => "a space".to_string(),
+        c if c.is_control() || c.is_whitespace() => format!("U+{:04X}", u32::from(c)),
+        c => format!("`{c}`"),
+    };
+    if let Some(bad) = name.chars().find(|&c| !allowed(c)) {
+        let name = name.escape_default();
+        return Err(format!("\"{name}\" holds {}: {RULE}", shown(bad)));
+    }
+    if let Some(first) = name.chars().next().filter(|c| !c.is_ascii_alphanumeric()) {
+        return Err(format!("\"{name}\" starts with {}: {RULE}", shown(first)));
+    }
+    Ok(())
+}
+
 fn find_line_after(text: &str, owner: &str, key: &str) -> Option<usize> {
     let quoted = format!("\"{owner}\"");
     let lines: Vec<&str> = text.lines().collect();

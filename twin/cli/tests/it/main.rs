@@ -19,6 +19,7 @@ mod install;
 mod panel;
 mod peers;
 mod peers_hardening;
+mod peers_limits;
 mod peers_meb;
 mod peers_modbus;
 mod peers_modbus8;

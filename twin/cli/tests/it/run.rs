@@ -475,3 +475,51 @@ fn set_changes_an_open_loop_setting() {
     );
     // Checked as --vel is, a fraction of the 5 V range: tests/cmd/run-refusals.trycmd.
 }
+
+/// A node, bus or module name has a length and characters that fit where it
+/// goes (topics, monitor lines, file names): a name of 100 000 characters is
+/// refused with its line and its start, not accepted and printed in full;
+/// so is a name with a space, and a wrong value of any field is clipped.
+#[test]
+fn names_have_a_sensible_length_and_character_set() {
+    let dir = support::folder("run-cli", "names");
+    let scenario = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../recordings/scenarios/ev-meb.toml"),
+    )
+    .unwrap();
+    let long = "x".repeat(100_000);
+    let cases = [
+        (
+            "long",
+            scenario.replace("name = \"supervisor\"", &format!("name = \"{long}\"")),
+            "`name` \"xxxxxxxxxxxxxxxxxxxx…\" is 100000 characters long",
+        ),
+        (
+            "space",
+            scenario.replace("name = \"rs485\"", "name = \"rs 485\""),
+            "`name` \"rs 485\" holds a space",
+        ),
+        (
+            "kind",
+            scenario.replace("kind = \"supervisor\"", &format!("kind = \"{long}\"")),
+            "unknown variant `xxxxxxxxxxxxxxxxxxxx… (100000 characters)`",
+        ),
+    ];
+    for (name, text, expected) in cases {
+        let file = dir.join(format!("{name}.toml"));
+        std::fs::write(&file, text).unwrap();
+        let out = twin(&["run", file.to_str().unwrap(), "--duration", "0.1"]);
+        let said = support::text(&out);
+        assert!(!out.status.success(), "{name}: refused");
+        assert!(said.contains(expected), "{name}: {said}");
+        assert!(
+            said.len() < 600,
+            "{name}: a short message, {} bytes",
+            said.len()
+        );
+        assert!(
+            said.contains(&format!("{name}.toml:")),
+            "{name}: the line: {said}"
+        );
+    }
+}
