@@ -41,6 +41,11 @@ pub trait Endpoint: Send {
     fn pending(&self) -> usize {
         0
     }
+    /// Well-formed requests taken so far (`None`: the endpoint does not
+    /// count them); a newcomer on probation earns its place with the first.
+    fn requests(&self) -> Option<u64> {
+        None
+    }
     /// Bytes thrown away so far as noise, outside any frame: a connection
     /// that sends only these is as quiet as one that sends nothing.
     fn noise_bytes(&self) -> u64 {
@@ -222,6 +227,10 @@ impl Endpoint for SlaveEndpoint {
 
     fn noise_bytes(&self) -> u64 {
         self.frontend.noise_bytes()
+    }
+
+    fn requests(&self) -> Option<u64> {
+        Some(self.frontend.stats().requests)
     }
 
     fn frontend_mut(&mut self) -> Option<&mut SlaveFrontend> {

@@ -25,7 +25,7 @@ use super::firmware_log::FirmwareLog;
 pub use super::forces::Forces;
 pub use super::frame_log::{ConnId, Outgoing};
 pub use super::front::RtCounters;
-use super::front::{Conn, Front, FrontHandle};
+use super::front::{Conn, Front, FrontHandle, Probation};
 pub use super::front::{LinkTask, Outbound};
 use super::lateness::{Lateness, LatenessSummary};
 use super::sink::SinkMsg;
@@ -331,16 +331,16 @@ impl RtEngine {
                 conn,
                 peer,
                 task,
-            } => self.open(link, conn, peer, task, front),
+                probation,
+            } => self.open(link, conn, peer, task, probation, front),
             Inbound::Closed { conn, why } => front.lock().closed(conn, &why),
             Inbound::Command(command) => self.with_front(front, command),
-            Inbound::MakeRoom {
+            Inbound::Room {
                 link,
-                max,
                 min_idle,
-                made,
+                answer,
             } => {
-                let _ = made.send(front.lock().make_room(link, min_idle, max));
+                let _ = answer.send(front.lock().room_possible(link, min_idle));
             }
             // The loop looks at the connections' deadlines again.
             Inbound::Wake => {}
@@ -350,7 +350,15 @@ impl RtEngine {
         }
     }
 
-    fn open(&mut self, link: usize, id: ConnId, peer: String, task: LinkTask, front: &FrontHandle) {
+    fn open(
+        &mut self,
+        link: usize,
+        id: ConnId,
+        peer: String,
+        task: LinkTask,
+        probation: Option<Probation>,
+        front: &FrontHandle,
+    ) {
         let Some(config) = self.links.get_mut(link) else {
             task.close(format!("no link {link}"), Outgoing::default());
             return;
@@ -368,6 +376,9 @@ impl RtEngine {
         // The task answers this connection's requests itself from now on.
         let _ = task.out.send(Outbound::Direct(front.clone()));
         shared.open(config, link, id, peer, endpoint, task);
+        if let Some(probation) = probation {
+            shared.on_probation(id, probation);
+        }
     }
 
     /// One plant tick at `t`: firmware loops, the plants, recording.
@@ -574,6 +585,8 @@ pub enum Inbound {
         conn: ConnId,
         peer: String,
         task: LinkTask,
+        /// Let in beyond a full listener's limit (see [`Probation`]).
+        probation: Option<Probation>,
     },
     /// The connection is gone (peer closed, port vanished).
     Closed { conn: ConnId, why: String },
@@ -582,14 +595,14 @@ pub enum Inbound {
     Wake,
     /// Run this on the engine's thread (console commands, other front ends).
     Command(Box<dyn FnOnce(&mut RtEngine) + Send>),
-    /// Link `link` has `max` clients and a newcomer: close the one quiet
-    /// longest if it has been for `min_idle` (never if `None`), else the one
-    /// holding a partial frame longest; `made` says whether one was.
-    MakeRoom {
+    /// Link `link` is full and has a newcomer: `answer` says whether a
+    /// client there could make room for it (quiet for `min_idle`, never if
+    /// `None`, or holding a partial frame too long); if so, the newcomer is
+    /// let in on [`Probation`].
+    Room {
         link: usize,
-        max: usize,
         min_idle: Option<SimDuration>,
-        made: tokio::sync::oneshot::Sender<bool>,
+        answer: tokio::sync::oneshot::Sender<bool>,
     },
     /// Stop the session (SIGINT, SIGTERM).
     Stop(String),
@@ -601,7 +614,7 @@ impl std::fmt::Debug for Inbound {
             Inbound::Opened { link, conn, .. } => write!(f, "Opened({link}, {conn})"),
             Inbound::Closed { conn, why } => write!(f, "Closed({conn}, {why})"),
             Inbound::Command(_) => write!(f, "Command"),
-            Inbound::MakeRoom { link, .. } => write!(f, "MakeRoom({link})"),
+            Inbound::Room { link, .. } => write!(f, "Room({link})"),
             Inbound::Wake => write!(f, "Wake"),
             Inbound::Stop(why) => write!(f, "Stop({why})"),
         }

@@ -86,6 +86,8 @@ pub(super) struct Conn {
     partial_since: Option<SimTime>,
     rate_window: SimTime,
     rate_bytes: u64,
+    /// Let in beyond a full listener's limit, since then: see [`Probation`].
+    probation: Option<(Probation, SimTime)>,
     /// When it last sent bytes of a frame, whole or partial (or opened):
     /// noise outside any frame does not count, so a connection that sends
     /// only that ages out and makes room as a quiet one does.
@@ -134,13 +136,38 @@ pub enum After {
     Closed,
 }
 
+/// A newcomer let in beyond a full listener's `--max-clients` because a
+/// client there could make room (quiet for `min_idle`, or holding a partial
+/// frame). It earns that client's place with its first whole request (a
+/// partial frame must have been held over [`ROOM_AFTER_PARTIAL`] by then);
+/// one that sends none within [`PROBATION`] is closed. So a client in place is displaced only by one that has shown it
+/// speaks the protocol: connections that never finish a frame (slowloris,
+/// reconnecting as fast as they are closed) displace nobody, each other
+/// included, and a real client gets through however many there are.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Probation {
+    pub max: usize,
+    pub min_idle: Option<SimDuration>,
+}
+
+/// Newcomers a link keeps on probation at once; the one there longest
+/// makes way for the next (it has been there longest without a request).
+pub const ON_PROBATION_MAX: usize = 64;
+
 /// Replies a connection may owe before its carrier stops reading.
 pub const OWED_MAX: usize = 64;
 
 /// How long a partial frame must have been held for its connection to make
-/// room for a newcomer on a full listener (a frame typed by hand in a
-/// terminal takes longer: it is closed only when the listener is full).
-pub const ROOM_AFTER_PARTIAL: SimDuration = SimDuration::from_secs(1);
+/// room for a newcomer that has sent a whole request, on a full listener. A
+/// frame's pieces over TCP come milliseconds apart; a frame typed by hand
+/// in a terminal takes longer, and is displaced only when the listener is
+/// full and a client that speaks the protocol is waiting. Slowloris clients
+/// that reconnect before a second is up used to keep every place this fresh
+/// (the threshold was 1 s) and lock everyone out.
+pub const ROOM_AFTER_PARTIAL: SimDuration = SimDuration::from_millis(100);
+
+/// How long a newcomer on [`Probation`] has to send a whole request.
+pub const PROBATION: SimDuration = SimDuration::from_secs(1);
 
 impl After {
     /// Whether the carrier must listen for the engine's wake-ups.
@@ -321,10 +348,23 @@ impl Front {
                 partial_since: None,
                 rate_window: now,
                 rate_bytes: 0,
+                probation: None,
                 last_rx: now,
             },
         );
         self.note(link_index, &peer, "connected");
+    }
+
+    /// Connection `id`, just opened, came beyond its listener's limit: it
+    /// is on probation (see [`Probation`]).
+    pub(super) fn on_probation(&mut self, id: ConnId, probation: Probation) {
+        let now = self.now();
+        let Some(conn) = self.conns.get_mut(&id) else {
+            return;
+        };
+        conn.probation = Some((probation, now));
+        let link = conn.link;
+        self.limit_probation(link);
     }
 
     pub(super) fn closed(&mut self, id: ConnId, why: &str) {
@@ -361,10 +401,26 @@ impl Front {
         let mut ids = std::mem::take(&mut self.ids);
         ids.clear();
         ids.extend(self.conns.iter().filter_map(|(&id, c)| {
+            if let Some((_, since)) = c.probation {
+                // A newcomer's half frame held as long as would let it be
+                // displaced shows it is no faster than those it would displace.
+                let slow = c
+                    .partial_since
+                    .is_some_and(|p| now.saturating_since(p) >= ROOM_AFTER_PARTIAL);
+                return (slow || now.saturating_since(since) >= PROBATION).then_some(id);
+            }
             let timeout = c.rules.idle_timeout?;
             (now.saturating_since(c.last_rx) >= timeout).then_some(id)
         }));
         for &id in &ids {
+            if self.conns.get(&id).is_some_and(|c| c.probation.is_some()) {
+                self.counters.closed_for_room += 1;
+                self.close(
+                    id,
+                    "arrived over --max-clients and sent no whole request in time",
+                );
+                continue;
+            }
             self.counters.closed_idle += 1;
             let quiet = self
                 .conns
@@ -378,60 +434,106 @@ impl Front {
         self.ids = ids;
     }
 
-    /// Closes the connection on `link` that has been quiet longest, if it
-    /// has been for at least `min_idle`, or else the one that has held a
-    /// partial frame longest, to make room for a newcomer; says whether it did.
-    pub(super) fn make_room(
-        &mut self,
+    /// The client on `link` a newcomer may displace, and why: the one quiet
+    /// longest if it has been for at least `min_idle`, else the one that has
+    /// held a partial frame longest if for at least `min_partial` (places
+    /// held by frames that never end would otherwise lock everyone out).
+    /// Newcomers still on probation are never displaced: they have no place.
+    fn displaceable(
+        &self,
         link: usize,
         min_idle: Option<SimDuration>,
-        max: usize,
-    ) -> bool {
+        min_partial: SimDuration,
+    ) -> Option<(ConnId, String)> {
         let now = self.now();
-        let quietest = self
-            .conns
-            .iter()
-            .filter(|(_, c)| c.link == link)
+        let members = || {
+            self.conns
+                .iter()
+                .filter(move |(_, c)| c.link == link && c.probation.is_none())
+        };
+        let quietest = members()
             .min_by_key(|(_, c)| c.last_rx)
             .map(|(&id, c)| (id, now.saturating_since(c.last_rx)));
-        match quietest {
-            Some((id, quiet)) if min_idle.is_some_and(|min| quiet >= min) => {
-                let why = format!("idle for {:.0} s", quiet.as_secs_f64());
-                self.close_for_room(id, &why, max);
-                true
-            }
-            _ => self.make_room_from_a_slow_frame(link, now, max),
+        if let Some((id, quiet)) = quietest
+            && min_idle.is_some_and(|min| quiet >= min)
+        {
+            return Some((id, format!("idle for {:.0} s", quiet.as_secs_f64())));
         }
-    }
-
-    /// Closes the connection on `link` that has held a partial frame
-    /// longest, if for at least [`ROOM_AFTER_PARTIAL`]: a whole frame takes
-    /// milliseconds to send, and a full listener whose places are held by
-    /// frames that never end (slowloris) would otherwise refuse everyone.
-    fn make_room_from_a_slow_frame(&mut self, link: usize, now: SimTime, max: usize) -> bool {
-        let slowest = self
-            .conns
-            .iter()
-            .filter(|(_, c)| c.link == link)
+        let (id, since) = members()
             .filter_map(|(&id, c)| Some((id, c.partial_since?)))
-            .min_by_key(|&(_, since)| since)
-            .map(|(id, since)| (id, now.saturating_since(since)));
-        match slowest {
-            Some((id, held)) if held >= ROOM_AFTER_PARTIAL => {
-                let why = format!("held a partial frame for {:.1} s", held.as_secs_f64());
-                self.close_for_room(id, &why, max);
-                true
-            }
-            _ => false,
-        }
+            .min_by_key(|&(_, since)| since)?;
+        let held = now.saturating_since(since);
+        (held >= min_partial).then(|| {
+            let why = format!("held a partial frame for {:.1} s", held.as_secs_f64());
+            (id, why)
+        })
     }
 
-    fn close_for_room(&mut self, id: ConnId, why: &str, max: usize) {
+    /// Whether a newcomer to `link`, full, could displace a client there
+    /// (see [`Front::displaceable`]): then it is let in on [`Probation`].
+    /// A partial frame of any age counts here: by the newcomer's first
+    /// request, it may have been held long enough.
+    pub(super) fn room_possible(&self, link: usize, min_idle: Option<SimDuration>) -> bool {
+        self.displaceable(link, min_idle, SimDuration::ZERO)
+            .is_some()
+    }
+
+    /// Closes the client a newcomer may displace on `link`, if there is
+    /// one; says whether there was.
+    fn make_room(&mut self, link: usize, min_idle: Option<SimDuration>, max: usize) -> bool {
+        let Some((id, why)) = self.displaceable(link, min_idle, ROOM_AFTER_PARTIAL) else {
+            return false;
+        };
         self.counters.closed_for_room += 1;
         self.close(
             id,
             &format!("{why}, the longest of {max} (--max-clients): made room for a new client"),
         );
+        true
+    }
+
+    /// Keeps at most [`ON_PROBATION_MAX`] newcomers on probation on `link`:
+    /// the one there longest goes.
+    fn limit_probation(&mut self, link: usize) {
+        let on_probation = || {
+            self.conns
+                .iter()
+                .filter(|(_, c)| c.link == link)
+                .filter_map(|(&id, c)| Some((id, c.probation?.1)))
+        };
+        if on_probation().count() <= ON_PROBATION_MAX {
+            return;
+        }
+        if let Some((oldest, _)) = on_probation().min_by_key(|&(_, since)| since) {
+            self.counters.closed_for_room += 1;
+            self.close(
+                oldest,
+                "sent no whole request while newer clients arrived over --max-clients",
+            );
+        }
+    }
+
+    /// A newcomer on probation has sent its first whole request: it takes
+    /// the place of the client it may displace, or, if none is left (they
+    /// were active again), it is refused. Says whether it stays.
+    fn settle_probation(&mut self, id: ConnId) -> bool {
+        let Some(conn) = self.conns.get_mut(&id) else {
+            return false;
+        };
+        let Some((probation, _)) = conn.probation.take() else {
+            return true;
+        };
+        let link = conn.link;
+        if self.make_room(link, probation.min_idle, probation.max) {
+            return true;
+        }
+        self.counters.closed_for_room += 1;
+        let max = probation.max;
+        self.close(
+            id,
+            &format!("refused, {max} client(s) already connected and none quiet (--max-clients)"),
+        );
+        false
     }
 
     pub(super) fn receive(&mut self, id: ConnId, at: SimTime, bytes: &[u8]) {
@@ -468,6 +570,14 @@ impl Front {
         if noise < bytes.len() as u64 {
             conn.last_rx = at;
         }
+        let earned = conn.probation.is_some()
+            && conn.endpoint.requests().is_none_or(|requests| requests > 0);
+        if earned && !self.settle_probation(id) {
+            return;
+        }
+        let Some(conn) = self.conns.get_mut(&id) else {
+            return;
+        };
         if let Some(why) = conn.endpoint.close_request() {
             // Replies already owed go out first.
             self.drain(id, at);

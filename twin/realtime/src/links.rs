@@ -24,7 +24,7 @@ use super::allow::AllowList;
 use super::clock::RtClock;
 use super::engine::{ConnId, Inbound, LinkTask, Outbound};
 use super::frame_log::Outgoing;
-use super::front::After;
+use super::front::{After, Probation};
 use super::slots::Slots;
 use super::tcp_thread::{READ_CHUNK, serve_tcp};
 use super::wake::Wake;
@@ -67,6 +67,7 @@ where
                 out,
                 wake: Wake::Task(ready.clone()),
             },
+            probation: None,
         })
         .is_err()
     {
@@ -226,13 +227,14 @@ impl ClientLimit {
 }
 
 /// Accepts clients on `listener` for link `link`. When `limit.max` are
-/// connected, a newcomer gets the place of a client whose peer has gone, or
-/// of the one quiet longest if it has been for `limit.room_after_idle`, or
-/// of the one holding a partial frame longest if for over a second (the
-/// engine closes it, saying so); if none, it is refused: closed at once,
-/// as libmodbus does, since neither MEB nor Modbus can say "busy" before a
-/// request. A newcomer is never kept waiting for a place: that queued the
-/// next ones behind it, a second each.
+/// connected, a newcomer gets the place of a client whose peer has gone; or,
+/// if a client there could make room (quiet for `limit.room_after_idle`, or
+/// holding a partial frame for over a second), it is let in on probation and
+/// takes that client's place with its first whole request (see
+/// [`Probation`]); else it is refused: closed at once, as libmodbus does,
+/// since neither MEB nor Modbus can say "busy" before a request. A newcomer
+/// is never kept waiting for a place: that queued the next ones behind it,
+/// a second each.
 /// A client from outside `allow` is closed at once, and the refusal logged.
 #[allow(
     clippy::too_many_arguments,
@@ -266,16 +268,24 @@ pub async fn accept_loop(
             say(&engine, link, text);
             continue;
         }
-        if let Some(limit) = limit
-            && !room(&slots, limit, link, &engine).await
-        {
-            refused.over_limit.fetch_add(1, Ordering::Relaxed);
-            drop(socket);
-            if let Some(text) = quiet_refusals.refused(peer, limit.max) {
-                say(&engine, link, text);
-            }
-            continue;
-        }
+        let probation = match limit {
+            Some(limit) => match room(&slots, limit, link, &engine).await {
+                Room::Free => None,
+                Room::OnProbation => Some(Probation {
+                    max: limit.max,
+                    min_idle: limit.room_after_idle,
+                }),
+                Room::None => {
+                    refused.over_limit.fetch_add(1, Ordering::Relaxed);
+                    drop(socket);
+                    if let Some(text) = quiet_refusals.refused(peer, limit.max) {
+                        say(&engine, link, text);
+                    }
+                    continue;
+                }
+            },
+            None => None,
+        };
         // Replies are single small writes: send them at once.
         let _ = socket.set_nodelay(true);
         let conn = ids.next();
@@ -287,7 +297,7 @@ pub async fn accept_loop(
             std::thread::Builder::new()
                 .name("twin-tcp".into())
                 .spawn(move || {
-                    serve_tcp(s, link, conn, peer.to_string(), clock, engine);
+                    serve_tcp(s, link, conn, peer.to_string(), probation, clock, engine);
                     slots.free(conn);
                 })
         });
@@ -343,20 +353,32 @@ impl Refusals {
     }
 }
 
-/// Whether a newcomer has a place among `max` now (see [`accept_loop`]).
-async fn room(slots: &Slots, limit: ClientLimit, link: usize, engine: &Sender<Inbound>) -> bool {
-    let max = limit.max;
-    if slots.in_use() < max {
-        return true;
+/// Where a newcomer stands on a listener with a client limit.
+enum Room {
+    /// A place is free.
+    Free,
+    /// None is, but a client could make room: in on probation.
+    OnProbation,
+    /// None is, and none can be made: refused.
+    None,
+}
+
+/// Where a newcomer stands among `limit.max` now (see [`accept_loop`]).
+async fn room(slots: &Slots, limit: ClientLimit, link: usize, engine: &Sender<Inbound>) -> Room {
+    if slots.in_use() < limit.max {
+        return Room::Free;
     }
-    let (made, answer) = tokio::sync::oneshot::channel();
-    let asked = engine.send(Inbound::MakeRoom {
+    let (answer, answered) = tokio::sync::oneshot::channel();
+    let asked = engine.send(Inbound::Room {
         link,
-        max,
         min_idle: limit.room_after_idle,
-        made,
+        answer,
     });
-    asked.is_ok() && answer.await.unwrap_or(false)
+    if asked.is_ok() && answered.await.unwrap_or(false) {
+        Room::OnProbation
+    } else {
+        Room::None
+    }
 }
 
 /// Carries serial port `path` for link `link` for the whole session: when

@@ -30,7 +30,7 @@ use tokio::sync::mpsc::{UnboundedReceiver, unbounded_channel};
 use super::clock::RtClock;
 use super::engine::Inbound;
 use super::frame_log::{ConnId, Outgoing};
-use super::front::{After, FrontHandle, LinkTask, Outbound};
+use super::front::{After, FrontHandle, LinkTask, Outbound, Probation};
 use super::wake::{ThreadWake, Wake};
 
 /// Bytes read at once, here and by the serial ports' tasks: larger than
@@ -47,6 +47,7 @@ pub fn serve_tcp(
     link: usize,
     conn: ConnId,
     peer: String,
+    probation: Option<Probation>,
     clock: RtClock,
     engine: Sender<Inbound>,
 ) -> String {
@@ -66,6 +67,7 @@ pub fn serve_tcp(
             conn,
             peer,
             task,
+            probation,
         })
         .is_err()
     {

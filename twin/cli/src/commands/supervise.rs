@@ -87,10 +87,11 @@ pub struct SuperviseArgs {
     /// cycles, so clients can read them from the image (0: never).
     #[arg(long, default_value_t = 10, value_name = "N", value_parser = super::numbers::whole::<u32>)]
     status_poll: u32,
-    /// Remote clients at once. A newcomer beyond them takes the place of
-    /// the client quiet longest if that one has sent nothing but noise for
-    /// --make-room-after, or of the one holding a partial frame longest if
-    /// for over 1 s, else is refused (closed at once).
+    /// Remote clients at once. A newcomer beyond them takes, with its first
+    /// whole request, the place of the client quiet longest if that one has
+    /// sent nothing but noise for --make-room-after, or of the one holding a
+    /// partial frame longest if for over 0.1 s; if there is no such client, it
+    /// is refused (closed at once).
     #[arg(long, default_value_t = 8, value_name = "N", value_parser = super::numbers::whole::<usize>)]
     max_clients: usize,
     /// How long a client must have been quiet for a newcomer beyond

@@ -314,3 +314,88 @@ fn rtu_and_tcp_answer_a_malformed_write_alike() {
     let reply = over_rtu(&read);
     assert_eq!(reply.get(..2), Some(&[0x04, 0x02][..]), "{reply:02x?}");
 }
+
+/// Connections that never finish a frame displace nobody: a newcomer that
+/// could take the place of a stale partial frame is let in on probation and
+/// takes it only with a whole request. Slowloris clients reconnecting as
+/// fast as they are closed (they used to displace one another, keeping every
+/// place fresh and refusing everyone else) leave real clients served.
+#[test]
+fn only_a_whole_request_earns_a_place_on_a_full_listener() {
+    let serve = Serve::start(&["--meb", "tcp://127.0.0.1:0", "--max-clients", "2"]);
+    let addr = serve.tcp("meb");
+    let members: Vec<TcpStream> = (0..2)
+        .map(|_| {
+            let s = connect(&addr);
+            (&s).write_all(b"@01EA").unwrap();
+            s
+        })
+        .collect();
+    std::thread::sleep(Duration::from_millis(1200));
+    // On probation with half a frame: closed after a second, nobody displaced.
+    let slow = connect(&addr);
+    (&slow).write_all(b"@01").unwrap();
+    let mut got = Vec::new();
+    (&slow).read_to_end(&mut got).expect("closed on probation");
+    let line = serve.expect_line("sent no whole request in time", WAIT);
+    assert!(line.contains("over --max-clients"), "{line}");
+    assert!(
+        !serve.stdout().contains("made room"),
+        "no member made room for it:\n{}",
+        serve.stdout()
+    );
+    drop(members);
+
+    // Forty slowloris clients, each holding its half frame until the server
+    // closes it, and back 10 ms later.
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let attackers: Vec<_> = (0..40)
+        .map(|_| {
+            let (addr, stop) = (addr.clone(), stop.clone());
+            std::thread::spawn(move || {
+                while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                    if let Ok(s) = TcpStream::connect(&addr) {
+                        let _ = (&s).write_all(b"@01EA");
+                        s.set_read_timeout(Some(Duration::from_millis(200)))
+                            .unwrap();
+                        let mut sink = [0u8; 16];
+                        while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                            match (&s).read(&mut sink) {
+                                Ok(0) => break,
+                                Err(e) if e.kind() != std::io::ErrorKind::WouldBlock => break,
+                                _ => {}
+                            }
+                        }
+                    }
+                    std::thread::sleep(Duration::from_millis(10));
+                }
+            })
+        })
+        .collect();
+    std::thread::sleep(Duration::from_millis(1500));
+    let served = (0..10)
+        .filter(|_| {
+            std::thread::sleep(Duration::from_millis(200));
+            meb_ask(&addr).is_ok_and(|l| l.starts_with("@01EA0001"))
+        })
+        .count();
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    for a in attackers {
+        a.join().unwrap();
+    }
+    // What the server said, for a failure's message.
+    let out = serve.stdout();
+    let said: Vec<String> = ["made room", "none quiet", "in time", "newer clients"]
+        .iter()
+        .map(|what| {
+            format!(
+                "{what}: {}",
+                out.lines().filter(|l| l.contains(what)).count()
+            )
+        })
+        .collect();
+    assert!(
+        served >= 8,
+        "real clients served among slowloris: {served} of 10 ({said:?})"
+    );
+}

@@ -81,6 +81,14 @@ impl Endpoint for ImageEndpoint {
         self.server.pending(self.client)
     }
 
+    fn requests(&self) -> Option<u64> {
+        Some(
+            self.server
+                .client_stats(self.client)
+                .map_or(0, |stats| stats.requests),
+        )
+    }
+
     fn noise_bytes(&self) -> u64 {
         self.server
             .decoder_stats(self.client)

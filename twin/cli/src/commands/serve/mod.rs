@@ -103,10 +103,11 @@ pub struct ServeArgs {
     #[arg(long, default_value_t = 1.0, value_name = "SECONDS", value_parser = super::numbers::zero_or_more)]
     status_every: f64,
     /// TCP clients per link (each has a thread of its own; 0: no limit). A
-    /// newcomer beyond it takes the place of the client quiet longest if
-    /// that one has sent nothing but noise for --make-room-after, or of the
-    /// one holding a partial frame longest if for over 1 s, else is refused
-    /// (closed at once).
+    /// newcomer beyond it takes, with its first whole request, the place of
+    /// the client quiet longest if that one has sent nothing but noise for
+    /// --make-room-after, or of the one holding a partial frame longest if
+    /// for over 0.1 s; if there is no such client, it is refused (closed at
+    /// once).
     #[arg(long, default_value_t = 8, value_name = "N", value_parser = super::numbers::whole::<usize>)]
     max_clients: usize,
     /// How long a client must have been quiet for a newcomer beyond
