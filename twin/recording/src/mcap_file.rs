@@ -13,7 +13,7 @@
 
 use mcap::records::op;
 use std::collections::BTreeMap;
-use std::io::{self, Write};
+use std::io::{self, Seek, SeekFrom, Write};
 
 /// zstd at `level`, its match finder set for the twin's chunks: a 4 kB-entry
 /// hash table (12 bits, in the core's first-level cache) and matches from
@@ -53,7 +53,7 @@ const MESSAGE_HEAD: usize = 1 + 8 + 2 + 4 + 8 + 8;
 const COMPRESSION: &str = "zstd";
 
 /// An MCAP file being written to `W`.
-pub(crate) struct McapFile<W: Write> {
+pub(crate) struct McapFile<W: Write + Seek> {
     out: Out<W>,
     /// Closes a chunk once it holds more than this many uncompressed bytes.
     chunk_size: usize,
@@ -65,7 +65,6 @@ pub(crate) struct McapFile<W: Write> {
     /// messages (log time, offset in the chunk).
     indexes: Vec<Vec<(u64, u64)>>,
     compressor: zstd::bulk::Compressor<'static>,
-    compressed: Vec<u8>,
     /// A record's body, built before its length is known.
     scratch: Vec<u8>,
     /// Schema records (id order), for the summary and their deduplication.
@@ -102,34 +101,148 @@ struct Statistics {
     per_channel: Vec<u64>,
 }
 
-/// The output, with its position and the checksum of what went out since
-/// the checksum was last taken.
+/// The output: the records not yet in the file, where they go, and the
+/// checksum of what went out since the checksum was last taken.
+///
+/// Records are gathered in `pending` and land in the file together, each
+/// time followed by a provisional end: a data end record and a footer saying
+/// there is no summary (`summary_start` 0) and the closing magic. So the
+/// file always ends as an MCAP file does, and a run killed (kill -9, a
+/// crash) leaves one that every reader reads up to its last whole chunk: a
+/// reader looking for the summary finds none and reads the file through, as
+/// Python's `mcap` `make_reader` does. The next records overwrite that end,
+/// and at the close the summary does.
 struct Out<W> {
     inner: W,
-    position: u64,
+    /// Where the records in `pending` go: the end of the records in the file,
+    /// where its provisional end starts.
+    landed: u64,
+    /// Bytes of the provisional end after `landed` (0 before the first).
+    end_len: usize,
+    pending: Vec<u8>,
+    /// How much of `pending` the checksum has taken in.
+    summed: usize,
     crc: crc32fast::Hasher,
 }
 
-impl<W: Write> Out<W> {
-    fn put(&mut self, bytes: &[u8]) -> io::Result<()> {
-        self.inner.write_all(bytes)?;
-        self.crc.update(bytes);
-        self.position += bytes.len() as u64;
-        Ok(())
+/// The provisional end: a data end record (opcode, length, checksum), a
+/// footer (opcode, length, summary start, summary offsets start, checksum)
+/// and the closing magic.
+const PROVISIONAL_END: usize = 13 + 29 + 8;
+
+/// The final end: footer and closing magic.
+const FINAL_END: usize = 29 + 8;
+
+/// A footer naming no summary (summary start, summary offsets start and
+/// summary checksum 0), and the closing magic.
+const NO_SUMMARY: [u8; FINAL_END] = {
+    let mut end = [0u8; FINAL_END];
+    end[0] = op::FOOTER;
+    end[1] = 20;
+    let mut i = 0;
+    while i < 8 {
+        end[29 + i] = mcap::MAGIC[i];
+        i += 1;
+    }
+    end
+};
+
+impl<W: Write + Seek> Out<W> {
+    fn position(&self) -> u64 {
+        self.landed + self.pending.len() as u64
+    }
+
+    fn put(&mut self, bytes: &[u8]) {
+        self.pending.extend_from_slice(bytes);
     }
 
     /// A record: opcode, length, body.
-    fn record(&mut self, opcode: u8, body: &[u8]) -> io::Result<()> {
+    fn record(&mut self, opcode: u8, body: &[u8]) {
         let mut head = [0u8; 9];
         head[0] = opcode;
         head[1..].copy_from_slice(&(body.len() as u64).to_le_bytes());
-        self.put(&head)?;
-        self.put(body)
+        self.put(&head);
+        self.put(body);
+    }
+
+    fn sum(&mut self) {
+        self.crc.update(&self.pending[self.summed..]);
+        self.summed = self.pending.len();
     }
 
     /// The checksum so far, starting a new one.
     fn take_crc(&mut self) -> u32 {
+        self.sum();
         std::mem::take(&mut self.crc).finalize()
+    }
+
+    /// The pending records into the file, ended by a provisional end.
+    fn land(&mut self) -> io::Result<()> {
+        // Records shorter than the end they would overwrite (an empty
+        // metadata record) wait for the next: the end could not be kept
+        // readable while they land.
+        if self.pending.len() < self.end_len || self.pending.is_empty() {
+            return Ok(());
+        }
+        self.sum();
+        // The data section's checksum so far, so that a reader checking it
+        // finds it right.
+        let mut end = [0u8; PROVISIONAL_END];
+        end[0] = op::DATA_END;
+        end[1..9].copy_from_slice(&4u64.to_le_bytes());
+        end[9..13].copy_from_slice(&self.crc.clone().finalize().to_le_bytes());
+        end[13..].copy_from_slice(&NO_SUMMARY);
+        let records = std::mem::take(&mut self.pending);
+        let landed = self.write(&records, &end);
+        self.pending = records;
+        landed?;
+        self.landed += self.pending.len() as u64;
+        self.end_len = PROVISIONAL_END;
+        self.pending.clear();
+        self.summed = 0;
+        Ok(())
+    }
+
+    /// The pending records, which end with the footer and the closing magic,
+    /// into the file: it is complete. Returns the output.
+    fn land_last(mut self) -> io::Result<W> {
+        self.sum();
+        let pending = std::mem::take(&mut self.pending);
+        let (records, end) = pending.split_at(pending.len() - FINAL_END);
+        // The file is never longer than this: the summary (its statistics
+        // record alone) is longer than the provisional end it replaces.
+        // A footer naming the summary goes in once the summary is whole:
+        // until then, one naming none.
+        self.write(records, &NO_SUMMARY)?;
+        self.inner
+            .seek(SeekFrom::Start(self.landed + records.len() as u64))?;
+        self.inner.write_all(end)?;
+        self.inner.flush()?;
+        Ok(self.inner)
+    }
+
+    /// `records` then `end` written at `landed`, over the provisional end,
+    /// in an order that keeps the file readable wherever a kill stops it:
+    /// `end` first, past the old end; then the records after the old end's
+    /// bytes; then, last, the records' first bytes over the old end. Until
+    /// that last write, a reader reading through stops at the old end's
+    /// footer, and one looking at the file's last bytes finds a footer
+    /// there. A kill cuts a write short only between two pages, so the
+    /// long middle write may stop anywhere (behind the old end, which still
+    /// reads); the two short ones at worst at one page boundary.
+    fn write(&mut self, records: &[u8], end: &[u8]) -> io::Result<()> {
+        // Never more than the records: `land` keeps shorter ones back, and
+        // the summary is longer than the provisional end.
+        let old = self.end_len.min(records.len());
+        let at = self.landed;
+        self.inner
+            .seek(SeekFrom::Start(at + records.len() as u64))?;
+        self.inner.write_all(end)?;
+        self.inner.seek(SeekFrom::Start(at + old as u64))?;
+        self.inner.write_all(&records[old..])?;
+        self.inner.seek(SeekFrom::Start(at))?;
+        self.inner.write_all(&records[..old])?;
+        self.inner.flush()
     }
 }
 
@@ -176,13 +289,17 @@ fn too_many(what: &str) -> io::Error {
     io::Error::other(format!("too many {what} for one MCAP file"))
 }
 
-impl<W: Write> McapFile<W> {
-    /// Start the file: magic and header.
+impl<W: Write + Seek> McapFile<W> {
+    /// Start the file: magic and header (and a provisional end, so that a
+    /// run killed before its first chunk leaves an MCAP file of no message).
     pub(crate) fn new(inner: W, library: &str, level: i32, chunk_size: usize) -> io::Result<Self> {
         let mut file = Self {
             out: Out {
                 inner,
-                position: 0,
+                landed: 0,
+                end_len: 0,
+                pending: Vec::with_capacity(chunk_size + 64 * 1024),
+                summed: 0,
                 crc: crc32fast::Hasher::new(),
             },
             chunk_size,
@@ -190,7 +307,6 @@ impl<W: Write> McapFile<W> {
             chunk_bounds: None,
             indexes: vec![Vec::new()],
             compressor: compressor(level)?,
-            compressed: Vec::new(),
             scratch: Vec::new(),
             schemas: Vec::new(),
             channels: Vec::new(),
@@ -200,11 +316,12 @@ impl<W: Write> McapFile<W> {
             attachment_indexes: Vec::new(),
             stats: Statistics::default(),
         };
-        file.out.put(mcap::MAGIC)?;
+        file.out.put(mcap::MAGIC);
         let mut header = Vec::new();
         header.str(""); // profile
         header.str(library);
-        file.out.record(op::HEADER, &header)?;
+        file.out.record(op::HEADER, &header);
+        file.out.land()?;
         Ok(file)
     }
 
@@ -335,18 +452,18 @@ impl<W: Write> McapFile<W> {
         metadata: &BTreeMap<String, String>,
     ) -> io::Result<()> {
         self.close_chunk()?;
-        let offset = self.out.position;
+        let offset = self.out.position();
         let mut body = Vec::new();
         body.str(name);
         body.map(metadata);
-        self.out.record(op::METADATA, &body)?;
+        self.out.record(op::METADATA, &body);
         let mut index = Vec::new();
         index.u64(offset);
-        index.u64(self.out.position - offset);
+        index.u64(self.out.position() - offset);
         index.str(name);
         self.metadata_indexes.push(index);
         self.stats.metadata += 1;
-        Ok(())
+        self.out.land()
     }
 
     /// An attachment record (a file the recording carries whole: the
@@ -359,7 +476,7 @@ impl<W: Write> McapFile<W> {
         data: &[u8],
     ) -> io::Result<()> {
         self.close_chunk()?;
-        let offset = self.out.position;
+        let offset = self.out.position();
         let mut body = Vec::with_capacity(40 + name.len() + media_type.len() + data.len());
         body.u64(log_time);
         body.u64(log_time); // create time: simulated too, so the bytes repeat
@@ -369,10 +486,10 @@ impl<W: Write> McapFile<W> {
         body.extend_from_slice(data);
         let crc = crc32fast::hash(&body);
         body.u32(crc);
-        self.out.record(op::ATTACHMENT, &body)?;
+        self.out.record(op::ATTACHMENT, &body);
         let mut index = Vec::new();
         index.u64(offset);
-        index.u64(self.out.position - offset);
+        index.u64(self.out.position() - offset);
         index.u64(log_time);
         index.u64(log_time);
         index.u64(data.len() as u64);
@@ -380,46 +497,55 @@ impl<W: Write> McapFile<W> {
         index.str(media_type);
         self.attachment_indexes.push(index);
         self.stats.attachments += 1;
-        Ok(())
+        self.out.land()
     }
 
-    /// Close the open chunk and push what is written to the file.
+    /// Close the open chunk, into the file.
     pub(crate) fn flush(&mut self) -> io::Result<()> {
-        self.close_chunk()?;
-        self.out.inner.flush()
+        self.close_chunk()
     }
 
     /// Close the open chunk, if it holds anything: compressed whole, then its
-    /// message indexes.
+    /// message indexes, into the file.
     fn close_chunk(&mut self) -> io::Result<()> {
         if self.chunk.is_empty() {
             return Ok(());
         }
         let uncompressed_crc = crc32fast::hash(&self.chunk);
-        self.compressed.clear();
-        self.compressed
-            .reserve(zstd::zstd_safe::compress_bound(self.chunk.len()));
-        self.compressor
-            .compress_to_buffer(&self.chunk, &mut self.compressed)?;
         let (start, end) = self.chunk_bounds.take().unwrap_or((0, 0));
-        let chunk_start = self.out.position;
+        let chunk_start = self.out.position();
+        let at = self.out.pending.len();
         let mut head = std::mem::take(&mut self.scratch);
         head.clear();
+        head.push(op::CHUNK);
+        head.u64(0); // the record's length, once the compressed size is known
         head.u64(start);
         head.u64(end);
         head.u64(self.chunk.len() as u64);
         head.u32(uncompressed_crc);
         head.str(COMPRESSION);
-        head.u64(self.compressed.len() as u64);
-        let mut record = [0u8; 9];
-        record[0] = op::CHUNK;
-        record[1..].copy_from_slice(&((head.len() + self.compressed.len()) as u64).to_le_bytes());
-        self.out.put(&record)?;
-        self.out.put(&head)?;
-        self.out.put(&self.compressed)?;
-        let chunk_length = self.out.position - chunk_start;
+        head.u64(0); // the compressed size
+        self.out.put(&head);
+        // Compressed straight after its head, no copy on the way.
+        let pending = &mut self.out.pending;
+        let head_end = pending.len();
+        pending.reserve(zstd::zstd_safe::compress_bound(self.chunk.len()));
+        let mut cursor = io::Cursor::new(&mut *pending);
+        cursor.set_position(head_end as u64);
+        let compressed = match self.compressor.compress_to_buffer(&self.chunk, &mut cursor) {
+            Ok(n) => n as u64,
+            Err(e) => {
+                pending.truncate(at);
+                self.scratch = head;
+                return Err(e);
+            }
+        };
+        pending[head_end - 8..head_end].copy_from_slice(&compressed.to_le_bytes());
+        let record_length = (head_end - at - 9) as u64 + compressed;
+        pending[at + 1..at + 9].copy_from_slice(&record_length.to_le_bytes());
+        let chunk_length = self.out.position() - chunk_start;
 
-        let indexes_start = self.out.position;
+        let indexes_start = self.out.position();
         self.index_offsets.clear();
         for (channel, entries) in self.indexes.iter_mut().enumerate() {
             if entries.is_empty() {
@@ -427,7 +553,7 @@ impl<W: Write> McapFile<W> {
             }
             let channel = channel as u16;
             // In channel order, as the chunk index lists them.
-            self.index_offsets.push((channel, self.out.position));
+            self.index_offsets.push((channel, self.out.position()));
             head.clear();
             head.u16(channel);
             head.u32(len32(entries.len() * 16));
@@ -435,10 +561,10 @@ impl<W: Write> McapFile<W> {
                 head.u64(time);
                 head.u64(offset);
             }
-            self.out.record(op::MESSAGE_INDEX, &head)?;
+            self.out.record(op::MESSAGE_INDEX, &head);
             entries.clear();
         }
-        let indexes_length = self.out.position - indexes_start;
+        let indexes_length = self.out.position() - indexes_start;
 
         let index = &mut head;
         index.clear();
@@ -453,7 +579,7 @@ impl<W: Write> McapFile<W> {
         }
         index.u64(indexes_length);
         index.str(COMPRESSION);
-        index.u64(self.compressed.len() as u64);
+        index.u64(compressed);
         index.u64(self.chunk.len() as u64);
         self.chunk_index_records.push(op::CHUNK_INDEX);
         self.chunk_index_records.u64(index.len() as u64);
@@ -461,77 +587,49 @@ impl<W: Write> McapFile<W> {
         self.stats.chunks += 1;
         self.chunk.clear();
         self.scratch = head;
-        Ok(())
+        self.out.land()
     }
 
     /// Close the data section and write the summary, the footer and the
-    /// closing magic; returns the output.
+    /// closing magic over the provisional end; returns the output.
     pub(crate) fn finish(mut self) -> io::Result<W> {
         self.close_chunk()?;
         let data_crc = self.out.take_crc();
         let mut body = Vec::new();
         body.u32(data_crc);
-        self.out.record(op::DATA_END, &body)?;
+        self.out.record(op::DATA_END, &body);
         let _ = self.out.take_crc();
 
-        let summary_start = self.out.position;
-        let mut groups: Vec<(u8, u64, u64)> = Vec::new();
-        let mut group =
-            |out: &mut Out<W>, opcode: u8, write: &mut dyn FnMut(&mut Out<W>) -> io::Result<()>| {
-                let start = out.position;
-                write(out)?;
-                if out.position > start {
-                    groups.push((opcode, start, out.position - start));
-                }
-                io::Result::Ok(())
-            };
-        let records = |opcode: u8, bodies: Vec<Vec<u8>>| {
-            move |out: &mut Out<W>| bodies.iter().try_for_each(|b| out.record(opcode, b))
-        };
+        let summary_start = self.out.position();
+        let mut groups = Vec::new();
         let schemas: Vec<Vec<u8>> = self
             .schemas
             .iter()
             .enumerate()
             .map(|(i, s)| schema_body(i as u16 + 1, &s.name, &s.encoding, &s.data))
             .collect();
-        group(&mut self.out, op::SCHEMA, &mut records(op::SCHEMA, schemas))?;
-        let channels = std::mem::take(&mut self.channels);
-        let channel_count = channels.len();
-        group(
-            &mut self.out,
-            op::CHANNEL,
-            &mut records(op::CHANNEL, channels),
-        )?;
-        let statistics = vec![self.statistics(channel_count)];
-        group(
-            &mut self.out,
-            op::STATISTICS,
-            &mut records(op::STATISTICS, statistics),
-        )?;
-        let chunk_index_records = std::mem::take(&mut self.chunk_index_records);
-        group(&mut self.out, op::CHUNK_INDEX, &mut |out| {
-            out.put(&chunk_index_records)
-        })?;
-        let attachment_indexes = std::mem::take(&mut self.attachment_indexes);
-        group(
-            &mut self.out,
-            op::ATTACHMENT_INDEX,
-            &mut records(op::ATTACHMENT_INDEX, attachment_indexes),
-        )?;
-        let metadata_indexes = std::mem::take(&mut self.metadata_indexes);
-        group(
-            &mut self.out,
-            op::METADATA_INDEX,
-            &mut records(op::METADATA_INDEX, metadata_indexes),
-        )?;
+        let out = &mut self.out;
+        group(out, &mut groups, op::SCHEMA, records(op::SCHEMA, &schemas));
+        let channels = &self.channels;
+        group(out, &mut groups, op::CHANNEL, records(op::CHANNEL, channels));
+        let statistics = [statistics(&self.stats, self.schemas.len(), channels.len())];
+        let statistics = records(op::STATISTICS, &statistics);
+        group(out, &mut groups, op::STATISTICS, statistics);
+        // Whole records already, back to back.
+        let chunk_indexes = &self.chunk_index_records;
+        group(out, &mut groups, op::CHUNK_INDEX, |out| out.put(chunk_indexes));
+        let attachments = records(op::ATTACHMENT_INDEX, &self.attachment_indexes);
+        group(out, &mut groups, op::ATTACHMENT_INDEX, attachments);
+        let metadata = records(op::METADATA_INDEX, &self.metadata_indexes);
+        group(out, &mut groups, op::METADATA_INDEX, metadata);
 
-        let summary_offset_start = self.out.position;
+        let summary_offset_start = self.out.position();
         for (opcode, start, length) in groups {
             let mut body = Vec::with_capacity(17);
             body.push(opcode);
             body.u64(start);
             body.u64(length);
-            self.out.record(op::SUMMARY_OFFSET, &body)?;
+            self.out.record(op::SUMMARY_OFFSET, &body);
         }
         // The summary's checksum covers the footer up to itself.
         let mut footer = Vec::with_capacity(29);
@@ -539,39 +637,57 @@ impl<W: Write> McapFile<W> {
         footer.u64(20);
         footer.u64(summary_start);
         footer.u64(summary_offset_start);
-        self.out.put(&footer)?;
+        self.out.put(&footer);
         let summary_crc = self.out.take_crc();
-        self.out.put(&summary_crc.to_le_bytes())?;
-        self.out.put(mcap::MAGIC)?;
-        self.out.inner.flush()?;
-        Ok(self.out.inner)
+        self.out.put(&summary_crc.to_le_bytes());
+        self.out.put(mcap::MAGIC);
+        self.out.land_last()
     }
+}
 
-    fn statistics(&self, channel_count: usize) -> Vec<u8> {
-        let stats = &self.stats;
-        let (start, end) = stats.bounds.unwrap_or((0, 0));
-        let mut body = Vec::new();
-        body.u64(stats.messages);
-        body.u16(self.schemas.len() as u16);
-        body.u32(len32(channel_count));
-        body.u32(stats.attachments);
-        body.u32(stats.metadata);
-        body.u32(stats.chunks);
-        body.u64(start);
-        body.u64(end);
-        // Only the channels with messages, in id order.
-        let counted = || {
-            (0u16..)
-                .zip(stats.per_channel.iter().copied())
-                .filter(|(_, count)| *count > 0)
-        };
-        body.u32(len32(counted().count() * 10));
-        for (channel, count) in counted() {
-            body.u16(channel);
-            body.u64(count);
-        }
-        body
+/// The summary's records of one kind, `write`, and their group for the
+/// summary offsets (none where there are no such records).
+fn group<W: Write + Seek>(
+    out: &mut Out<W>,
+    groups: &mut Vec<(u8, u64, u64)>,
+    opcode: u8,
+    write: impl FnOnce(&mut Out<W>),
+) {
+    let start = out.position();
+    write(out);
+    if out.position() > start {
+        groups.push((opcode, start, out.position() - start));
     }
+}
+
+/// Writes records of `opcode` with `bodies`.
+fn records<W: Write + Seek>(opcode: u8, bodies: &[Vec<u8>]) -> impl FnOnce(&mut Out<W>) + '_ {
+    move |out| bodies.iter().for_each(|b| out.record(opcode, b))
+}
+
+fn statistics(stats: &Statistics, schema_count: usize, channel_count: usize) -> Vec<u8> {
+    let (start, end) = stats.bounds.unwrap_or((0, 0));
+    let mut body = Vec::new();
+    body.u64(stats.messages);
+    body.u16(schema_count as u16);
+    body.u32(len32(channel_count));
+    body.u32(stats.attachments);
+    body.u32(stats.metadata);
+    body.u32(stats.chunks);
+    body.u64(start);
+    body.u64(end);
+    // Only the channels with messages, in id order.
+    let counted = || {
+        (0u16..)
+            .zip(stats.per_channel.iter().copied())
+            .filter(|(_, count)| *count > 0)
+    };
+    body.u32(len32(counted().count() * 10));
+    for (channel, count) in counted() {
+        body.u16(channel);
+        body.u64(count);
+    }
+    body
 }
 
 fn schema_body(id: u16, name: &str, encoding: &str, data: &[u8]) -> Vec<u8> {
@@ -594,14 +710,16 @@ fn chunk_record(chunk: &mut Vec<u8>, opcode: u8, body: &[u8]) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::read::{Cut, Reader};
     use mcap::records::MessageHeader;
     use std::io::Cursor;
+    use std::path::Path;
 
     /// The same recording through the MCAP library's writer and through
     /// [`McapFile`]: two schemas (one shared), three channels, messages
     /// across size-closed and flushed chunks, metadata in the middle.
     fn both(chunk_size: usize) -> (Vec<u8>, Vec<u8>) {
-        let mut ours = McapFile::new(Vec::new(), "lib", 1, chunk_size).unwrap();
+        let mut ours = McapFile::new(Cursor::new(Vec::new()), "lib", 1, chunk_size).unwrap();
         let mut theirs = mcap::WriteOptions::new()
             .compression(Some(mcap::Compression::Zstd))
             .compression_level(1)
@@ -657,7 +775,7 @@ mod tests {
                     .unwrap();
             }
         }
-        let ours = ours.finish().unwrap();
+        let ours = ours.finish().unwrap().into_inner();
         theirs.finish().unwrap();
         (ours, theirs.into_inner().into_inner())
     }
@@ -738,5 +856,129 @@ mod tests {
             }
             assert_eq!(seen, 3000);
         }
+    }
+
+    /// An output that keeps every write and where it went, so that the file
+    /// can be seen as a kill would leave it after any of them.
+    #[derive(Default)]
+    struct Tape {
+        position: u64,
+        writes: Vec<(u64, Vec<u8>)>,
+    }
+
+    impl Write for Tape {
+        fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
+            self.writes.push((self.position, buf.to_vec()));
+            self.position += buf.len() as u64;
+            Ok(buf.len())
+        }
+        fn flush(&mut self) -> io::Result<()> {
+            Ok(())
+        }
+    }
+
+    impl Seek for Tape {
+        fn seek(&mut self, to: SeekFrom) -> io::Result<u64> {
+            match to {
+                SeekFrom::Start(p) => self.position = p,
+                other => panic!("the writer seeks only from the start: {other:?}"),
+            }
+            Ok(self.position)
+        }
+    }
+
+    /// The file after `writes`, the last of them cut to its first `cut` bytes.
+    fn file_after(writes: &[(u64, Vec<u8>)], cut: usize) -> Vec<u8> {
+        let mut file = Vec::new();
+        for (i, (at, bytes)) in writes.iter().enumerate() {
+            let bytes = match i + 1 == writes.len() {
+                true => &bytes[..cut.min(bytes.len())],
+                false => &bytes[..],
+            };
+            let at = *at as usize;
+            if file.len() < at + bytes.len() {
+                file.resize(at + bytes.len(), 0);
+            }
+            file[at..at + bytes.len()].copy_from_slice(bytes);
+        }
+        file
+    }
+
+    /// Messages a reader reading `file` through finds, checking every CRC,
+    /// the end magic and the footer at the file's end (where an indexed
+    /// reader looks first); and whether that footer names a summary.
+    fn read_through(file: &[u8]) -> (usize, bool) {
+        let footer = mcap::read::footer(file).expect("a footer at the file's end");
+        let count = records(file)
+            .iter()
+            .filter(|r| r.starts_with("Message {"))
+            .count();
+        (count, footer.summary_start != 0)
+    }
+
+    #[test]
+    fn a_file_cut_after_any_write_reads_to_its_last_whole_chunk() {
+        let mut file = McapFile::new(Tape::default(), "lib", 1, 4096).unwrap();
+        let schema = file.add_schema("a", "jsonschema", b"{}").unwrap();
+        let channel = file.add_channel(schema, "/a", "json").unwrap();
+        for i in 0..2000u32 {
+            let data = format!("{{\"i\":{i},\"x\":{}}}", f64::from(i) * 0.37);
+            let time = u64::from(i) * 1_000_000;
+            file.write_message(channel, i, time, time, data.as_bytes())
+                .unwrap();
+            if i % 300 == 299 {
+                file.flush().unwrap();
+            }
+            if i == 700 {
+                file.write_metadata("run", &BTreeMap::new()).unwrap();
+            }
+            if i == 1200 {
+                file.write_attachment(time, "fw.hex", "text/plain", &[b':'; 3000])
+                    .unwrap();
+            }
+        }
+        let tape = file.finish().unwrap();
+        let writes = &tape.writes;
+        let mut last = 0;
+        for k in 1..=writes.len() {
+            let whole = file_after(&writes[..k], usize::MAX);
+            if !whole.starts_with(mcap::MAGIC) {
+                // Before the header landed: nothing was recorded yet.
+                assert!(k < 3, "write {k}");
+                continue;
+            }
+            let (count, summary) = read_through(&whole);
+            assert!(count >= last, "write {k}: {count} messages after {last}");
+            last = count;
+            assert_eq!(summary, k == writes.len(), "write {k}");
+            // Before the footer naming it, the summary landed whole after
+            // the data end: the twin reads that as a complete file.
+            let closed = k + 1 >= writes.len();
+            let mut r = Reader::from_bytes(&whole, Path::new("cut.mcap")).unwrap();
+            while r.next().unwrap().is_some() {}
+            let r = r.finish();
+            assert_eq!(r.message_count(), count as u64, "write {k}");
+            match closed {
+                true => assert_eq!(r.truncated, None),
+                false => assert_eq!(r.truncated, Some(Cut::NoSummary), "write {k}"),
+            }
+            // A kill stops a long write between two pages of the file: cut
+            // there, it reads as before it.
+            let (at, bytes) = &writes[k - 1];
+            if bytes.len() > PROVISIONAL_END {
+                let before = file_after(&writes[..k], 0);
+                let (before, _) = read_through(&before);
+                let pages = (at / 4096 + 1) * 4096..at + bytes.len() as u64;
+                for page in pages.step_by(4096) {
+                    let cut = file_after(&writes[..k], (page - at) as usize);
+                    assert_eq!(read_through(&cut), (before, false), "write {k} cut at {page}");
+                }
+            }
+        }
+        assert_eq!(last, 2000);
+        // Closed, the file is what it would be written at once.
+        let closed = file_after(writes, usize::MAX);
+        let summary = mcap::Summary::read(&closed).unwrap().expect("a summary");
+        assert_eq!(summary.stats.unwrap().message_count, 2000);
     }
 }

@@ -77,7 +77,8 @@ pub enum Cut {
     /// Chunk `chunk` (1-based) does not decompress or decode.
     DamagedChunk { chunk: u64, error: String },
     /// Every record is whole, but the summary never came: the run did not
-    /// finish (the process stopped between two chunks).
+    /// finish (the process stopped between two chunks, leaving the
+    /// provisional end the writer puts after each).
     NoSummary,
 }
 
@@ -399,7 +400,17 @@ impl<R: Read> Reader<R> {
             };
             match record {
                 Record::DataEnd(_) => {
-                    self.stop(None);
+                    // The twin's writer ends the file after every chunk with
+                    // a data end and a footer naming no summary, which the
+                    // summary replaces at the close: a file that still ends
+                    // so was cut before it.
+                    let cut = match self.raw()? {
+                        Some(Ok(Raw::Record(Record::Footer(f)))) if f.summary_start == 0 => {
+                            Some(Cut::NoSummary)
+                        }
+                        _ => None,
+                    };
+                    self.stop(cut);
                     return Ok(None);
                 }
                 other => return Ok(Some(other)),

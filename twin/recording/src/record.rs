@@ -12,7 +12,6 @@ use serde::Serialize;
 use serde_json::{Map, Value, json};
 use std::collections::BTreeMap;
 use std::fs::File;
-use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -453,7 +452,7 @@ fn open(path: &Path) -> Result<FileWriter> {
     }
     let file = File::create(path).with_context(|| format!("cannot create {}", path.display()))?;
     let library = concat!("ev-lab-twin ", env!("CARGO_PKG_VERSION"));
-    let writer = McapFile::new(BufWriter::new(file), library, ZSTD_LEVEL, CHUNK_SIZE)
+    let writer = McapFile::new(file, library, ZSTD_LEVEL, CHUNK_SIZE)
         .with_context(|| format!("cannot start MCAP file {}", path.display()))?;
     Ok(FileWriter::new(writer, path))
 }

@@ -33,7 +33,9 @@ pub struct Recovered {
     pub damaged_chunks: Vec<u64>,
     /// Messages on a channel the file never declares (left out).
     pub strays: u64,
-    /// The file had its data end record: it was complete already.
+    /// The file had its data end record and no footer naming no summary
+    /// after it (the end the writer puts after every chunk until the
+    /// close): it was complete already.
     pub was_complete: bool,
     /// Why reading stopped before a data end record, if it did: the end of
     /// the file, or the reader's error where the file is damaged.
@@ -87,7 +89,15 @@ pub fn recover(damaged: &Path, out: &Path) -> Result<Recovered> {
         let cannot_write = || format!("cannot write {}", out.display());
         match record {
             Outer::Record(Record::DataEnd(_)) => {
-                copy.found.was_complete = true;
+                // Followed by a footer naming no summary, it is the end the
+                // twin's writer puts after every chunk until the close: the
+                // run was cut.
+                match next_record(&mut reader, &mut source) {
+                    Ok(Some(Outer::Record(Record::Footer(f)))) if f.summary_start == 0 => {
+                        copy.found.stopped = Some("the file ends without its summary".into());
+                    }
+                    _ => copy.found.was_complete = true,
+                }
                 break;
             }
             Outer::Record(other) => copy.take(writer, other).with_context(cannot_write)?,

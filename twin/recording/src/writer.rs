@@ -5,7 +5,6 @@
 use anyhow::{Context, Result};
 use mcap::records::Metadata;
 use std::fs::File;
-use std::io::BufWriter;
 use std::path::Path;
 use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
 use std::thread::JoinHandle;
@@ -141,7 +140,7 @@ pub(crate) enum Job<D> {
 
 /// The MCAP file and what writing to it needs.
 pub(crate) struct FileWriter {
-    writer: McapFile<BufWriter<File>>,
+    writer: McapFile<File>,
     /// MCAP ids of the channels, by creation order.
     ids: Vec<u16>,
     /// Protobuf schemas of the channels, by creation order (`None`: JSON).
@@ -152,7 +151,7 @@ pub(crate) struct FileWriter {
 }
 
 impl FileWriter {
-    pub(crate) fn new(writer: McapFile<BufWriter<File>>, path: &Path) -> Self {
+    pub(crate) fn new(writer: McapFile<File>, path: &Path) -> Self {
         Self {
             writer,
             ids: Vec::new(),
