@@ -11,6 +11,7 @@
 mod batch;
 mod book;
 mod cmd;
+mod cut_recording;
 mod experiment;
 mod experiment_parallel;
 mod first_use;

@@ -1,0 +1,154 @@
+//! A recording cut by SIGKILL, read by a reader we did not write: Python's
+//! `mcap` package (`make_reader`, on the file and on a stream), against what
+//! `twin recover` finds in it; and a recording closed as usual, which keeps
+//! its summary.
+
+use crate::peers::script;
+use crate::support::{Proc, scratch, text, twin};
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+fn s(p: &Path) -> &str {
+    p.to_str().expect("a UTF-8 path")
+}
+
+/// What `tests/peers/mcap_read.py` found in `path`.
+fn python_reads(path: &Path) -> serde_json::Value {
+    let o = Command::new("python3")
+        .arg(script("mcap_read.py"))
+        .arg(path)
+        .output()
+        .expect("python3 runs");
+    assert!(
+        o.status.success(),
+        "the Python `mcap` package must be installed (pip install mcap): {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    serde_json::from_slice(&o.stdout).expect("one JSON object")
+}
+
+/// The messages both Python readers iterated, the same count from each and
+/// no error from either.
+fn python_messages(path: &Path) -> (u64, serde_json::Value) {
+    let v = python_reads(path);
+    for reader in ["seeking", "streaming"] {
+        assert_eq!(v[reader]["error"], serde_json::Value::Null, "{reader}: {v}");
+    }
+    let n = v["seeking"]["messages"].as_u64().expect("a count");
+    assert_eq!(v["streaming"]["messages"].as_u64(), Some(n), "{v}");
+    (n, v)
+}
+
+/// The messages `twin recover` copies out of `path`.
+fn recovered(path: &Path) -> u64 {
+    let out = path.with_extension("recovered.mcap");
+    let o = twin(&["recover", s(path), "--out", s(&out)]);
+    assert!(o.status.success(), "{}", text(&o));
+    let said = text(&o);
+    assert!(
+        said.contains("the data stops there: the file ends without its summary"),
+        "{said}"
+    );
+    message_count(&said)
+}
+
+/// The messages `twin recover` copies out of the complete file `path`.
+fn messages_of_complete(path: &Path) -> u64 {
+    let out = path.with_extension("copy.mcap");
+    let o = twin(&["recover", s(path), "--out", s(&out)]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("complete already"), "{}", text(&o));
+    message_count(&text(&o))
+}
+
+/// The `N messages` `twin recover` printed.
+fn message_count(said: &str) -> u64 {
+    let words: Vec<&str> = said.split_whitespace().collect();
+    let count = words
+        .windows(2)
+        .find(|w| w[1] == "messages")
+        .and_then(|w| w[0].parse().ok());
+    count.unwrap_or_else(|| panic!("no message count in {said}"))
+}
+
+/// Waits (30 s at most) until `path` holds `bytes`.
+fn wait_for_size(path: &Path, bytes: u64) {
+    let started = Instant::now();
+    while std::fs::metadata(path).map_or(0, |m| m.len()) < bytes {
+        assert!(
+            started.elapsed() < Duration::from_secs(30),
+            "{} never reached {bytes} bytes",
+            path.display()
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+#[test]
+fn a_served_session_killed_reads_in_python_as_far_as_it_got() {
+    let path = scratch("cut-recording", "killed-serve.mcap");
+    let _ = std::fs::remove_file(&path);
+    let mut serve = Proc::start(&["serve", "--modbus", "tcp://127.0.0.1:0", "--out", s(&path)]);
+    // A session closes a chunk about every second: a few of them.
+    wait_for_size(&path, 24 * 1024);
+    serve.child.kill().expect("SIGKILL");
+    serve.child.wait().expect("reaped");
+
+    let (n, v) = python_messages(&path);
+    assert!(n > 0, "{v}");
+    assert_eq!(v["summary"], false, "a cut file has no summary: {v}");
+    assert_eq!(v["metadata"], serde_json::json!(["twin.run"]), "{v}");
+    assert_eq!(recovered(&path), n, "{v}");
+    // The twin still sees that the session never finished.
+    let o = twin(&["compare", s(&path), s(&path)]);
+    assert!(!o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("twin recover"), "{}", text(&o));
+}
+
+#[test]
+fn a_virtual_run_killed_while_it_writes_reads_in_python_as_far_as_it_got() {
+    // A run on the virtual clock writes a chunk every few milliseconds, so
+    // a kill lands anywhere: in the compression, in a write, between two.
+    for (i, after) in [0u64, 120, 350].into_iter().enumerate() {
+        let path = scratch("cut-recording", &format!("killed-run-{i}.mcap"));
+        let _ = std::fs::remove_file(&path);
+        let mut child = Command::new(env!("CARGO_BIN_EXE_twin"))
+            .args(["run", "ev-meb", "--duration", "600", "--out", s(&path)])
+            .stdout(Stdio::null())
+            .spawn()
+            .expect("twin starts");
+        // The header and metadata are about 2 kB; a simulated second's
+        // chunk about 60 kB.
+        wait_for_size(&path, 8 * 1024);
+        std::thread::sleep(Duration::from_millis(after));
+        child.kill().expect("SIGKILL");
+        child.wait().expect("reaped");
+
+        let (n, v) = python_messages(&path);
+        assert!(n > 0, "kill {i}: {v}");
+        assert_eq!(v["summary"], false, "kill {i}: {v}");
+        assert_eq!(recovered(&path), n, "kill {i}: {v}");
+    }
+}
+
+#[test]
+fn a_recording_closed_as_usual_keeps_its_summary() {
+    let run = scratch("cut-recording", "whole-run.mcap");
+    let o = twin(&["run", "ev-meb", "--duration", "3", "--out", s(&run)]);
+    assert!(o.status.success(), "{}", text(&o));
+    let served = scratch("cut-recording", "whole-serve.mcap");
+    let _ = std::fs::remove_file(&served);
+    let serve = Proc::start(&["serve", "--modbus", "tcp://127.0.0.1:0", "--out", s(&served)]);
+    wait_for_size(&served, 24 * 1024);
+    serve.terminate();
+    for path in [&run, &served] {
+        let (n, v) = python_messages(path);
+        assert_eq!(v["summary"], true, "{v}");
+        assert_eq!(v["summary_messages"].as_u64(), Some(n), "{v}");
+        assert!(n > 0, "{v}");
+        // The summary's statistics count what the twin reads, and the twin
+        // reads the file as complete.
+        assert_eq!(messages_of_complete(path), n, "{v}");
+    }
+}
