@@ -611,13 +611,20 @@ impl<W: Write + Seek> McapFile<W> {
         let out = &mut self.out;
         group(out, &mut groups, op::SCHEMA, records(op::SCHEMA, &schemas));
         let channels = &self.channels;
-        group(out, &mut groups, op::CHANNEL, records(op::CHANNEL, channels));
+        group(
+            out,
+            &mut groups,
+            op::CHANNEL,
+            records(op::CHANNEL, channels),
+        );
         let statistics = [statistics(&self.stats, self.schemas.len(), channels.len())];
         let statistics = records(op::STATISTICS, &statistics);
         group(out, &mut groups, op::STATISTICS, statistics);
         // Whole records already, back to back.
         let chunk_indexes = &self.chunk_index_records;
-        group(out, &mut groups, op::CHUNK_INDEX, |out| out.put(chunk_indexes));
+        group(out, &mut groups, op::CHUNK_INDEX, |out| {
+            out.put(chunk_indexes)
+        });
         let attachments = records(op::ATTACHMENT_INDEX, &self.attachment_indexes);
         group(out, &mut groups, op::ATTACHMENT_INDEX, attachments);
         let metadata = records(op::METADATA_INDEX, &self.metadata_indexes);
@@ -971,7 +978,11 @@ mod tests {
                 let pages = (at / 4096 + 1) * 4096..at + bytes.len() as u64;
                 for page in pages.step_by(4096) {
                     let cut = file_after(&writes[..k], (page - at) as usize);
-                    assert_eq!(read_through(&cut), (before, false), "write {k} cut at {page}");
+                    assert_eq!(
+                        read_through(&cut),
+                        (before, false),
+                        "write {k} cut at {page}"
+                    );
                 }
             }
         }

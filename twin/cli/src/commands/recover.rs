@@ -7,10 +7,11 @@ use twin_recording::recover;
 
 /// Turn a recording cut short into a complete MCAP file every reader opens.
 ///
-/// A run killed before it finished (kill -9, a crash, power lost) leaves its
-/// recording without the summary at its end: the twin reads it up to its last
-/// complete chunk, but other MCAP readers (the Python `mcap` package, Foxglove)
-/// refuse it. This copies every record that can still be read (schemas,
+/// A run killed before it finished (kill -9, a crash) leaves its recording
+/// without the summary at its end: readers read it through, up to its last
+/// whole chunk, but those that go by the summary find none. A file cut in the
+/// middle of a record (power lost, a copy taken half-way) only the twin reads;
+/// other MCAP readers (the Python `mcap` package, Foxglove) refuse it. This copies every record that can still be read (schemas,
 /// channels, messages, metadata, attachments, with their ids, sequence numbers
 /// and times) into a new file with its summary, as `mcap recover` of the MCAP
 /// tools does: a damaged chunk is left out and the copy goes on after it.

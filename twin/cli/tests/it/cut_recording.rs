@@ -139,7 +139,13 @@ fn a_recording_closed_as_usual_keeps_its_summary() {
     assert!(o.status.success(), "{}", text(&o));
     let served = scratch("cut-recording", "whole-serve.mcap");
     let _ = std::fs::remove_file(&served);
-    let serve = Proc::start(&["serve", "--modbus", "tcp://127.0.0.1:0", "--out", s(&served)]);
+    let serve = Proc::start(&[
+        "serve",
+        "--modbus",
+        "tcp://127.0.0.1:0",
+        "--out",
+        s(&served),
+    ]);
     wait_for_size(&served, 24 * 1024);
     serve.terminate();
     for path in [&run, &served] {
