@@ -299,7 +299,8 @@ impl PlantParams {
 /// Why a parameter file was refused.
 #[derive(Debug, thiserror::Error)]
 pub enum ParamsError {
-    #[error("cannot read {}: {source}", file.display())]
+    // The reason is the source, which error reports print after this.
+    #[error("cannot read {}", file.display())]
     Read {
         file: PathBuf,
         source: std::io::Error,

@@ -68,11 +68,23 @@ impl Command {
     }
 }
 
+/// The command line of `twin`. `serve` shares its options with `twin-avr
+/// serve`, but a compiled sketch runs only in `twin-avr` (it links simavr):
+/// `--firmware` and `--wiring` are not offered here (given anyway, they get
+/// a message that names `twin-avr serve`).
+fn twin_command() -> clap::Command {
+    Cli::command().mut_subcommand("serve", |serve| {
+        serve
+            .mut_arg("firmware", |a| a.hide(true))
+            .mut_arg("wiring", |a| a.hide(true))
+    })
+}
+
 fn main() -> ExitCode {
     exit_quietly_on_broken_pipe();
     // Negative numbers are values, never flags: the parsers say which
     // options cannot take them.
-    let command = commands::take_negative_numbers(Cli::command());
+    let command = commands::take_negative_numbers(twin_command());
     let matches = command.get_matches();
     let cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
     // What the command line itself gave (a configuration file's options
@@ -104,8 +116,8 @@ fn main() -> ExitCode {
         Command::Sweep(args) => commands::sweep::execute(&args),
         Command::Experiment(args) => commands::experiment::execute(&args),
         Command::Bench(args) => commands::bench::execute(&args),
-        Command::Completions(args) => commands::completions::execute(&args, Cli::command()),
-        Command::Man(args) => commands::man::execute(&args, Cli::command()),
+        Command::Completions(args) => commands::completions::execute(&args, twin_command()),
+        Command::Man(args) => commands::man::execute(&args, twin_command()),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

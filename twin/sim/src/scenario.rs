@@ -361,6 +361,84 @@ fn default_retries() -> u32 {
     2
 }
 
+/// A master polling an id that no node on its bus has: it can only time out.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct UnansweredId {
+    pub master: String,
+    pub bus: String,
+    pub id: u8,
+    /// The slave ids the bus has.
+    pub ids_there: Vec<u8>,
+}
+
+impl std::fmt::Display for UnansweredId {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let there: Vec<String> = self.ids_there.iter().map(u8::to_string).collect();
+        let there = if there.is_empty() {
+            "none".to_string()
+        } else {
+            there.join(", ")
+        };
+        write!(
+            f,
+            "no node on bus {} has id {} (ids there: {there}): `{}` polls it and can only time out",
+            self.bus, self.id, self.master
+        )
+    }
+}
+
+impl Scenario {
+    /// Every id a master polls that no slave on its bus has. A bus with a
+    /// compiled sketch is left out: the sketch's id is in its code.
+    pub fn unanswered_ids(&self) -> Vec<UnansweredId> {
+        let mut found = Vec::new();
+        for master in &self.nodes {
+            let slaves = match master {
+                NodeSpec::Supervisor { slaves, .. } | NodeSpec::ParallelMaster { slaves, .. } => {
+                    slaves
+                }
+                _ => continue,
+            };
+            let on_bus = self.nodes.iter().filter(|n| n.bus() == master.bus());
+            let mut ids_there = Vec::new();
+            for node in on_bus {
+                match node {
+                    NodeSpec::EvController { id, .. } | NodeSpec::PwmSlave { id, .. } => {
+                        ids_there.push(*id);
+                    }
+                    NodeSpec::MotorNode { .. } => {
+                        ids_there.push(nodes::controller_network::MOTOR_ID)
+                    }
+                    NodeSpec::LightNode { .. } => {
+                        ids_there.push(nodes::controller_network::LIGHT_ID)
+                    }
+                    _ => {}
+                }
+            }
+            let has_sketch = self
+                .nodes
+                .iter()
+                .any(|n| n.bus() == master.bus() && matches!(n, NodeSpec::Firmware { .. }));
+            if has_sketch {
+                continue;
+            }
+            ids_there.sort_unstable();
+            ids_there.dedup();
+            for &id in slaves {
+                if !ids_there.contains(&id) {
+                    found.push(UnansweredId {
+                        master: master.name().to_string(),
+                        bus: master.bus().to_string(),
+                        id,
+                        ids_there: ids_there.clone(),
+                    });
+                }
+            }
+        }
+        found
+    }
+}
+
 impl NodeSpec {
     pub fn name(&self) -> &str {
         match self {
@@ -525,8 +603,21 @@ impl Scenario {
                 names.join(", ")
             );
         }
-        let text = std::fs::read_to_string(&path)
-            .with_context(|| format!("cannot read {}", path.display()))?;
+        let bytes =
+            std::fs::read(&path).with_context(|| format!("cannot read {}", path.display()))?;
+        if bytes.starts_with(MCAP_MAGIC) {
+            let shown = path.display();
+            bail!(
+                "{shown} is a recording, not a scenario: replay it with `twin replay {shown}`, \
+                 or look at it with `twin view {shown}`"
+            );
+        }
+        let text = String::from_utf8(bytes).map_err(|_| {
+            anyhow::anyhow!(
+                "{} is not a scenario: a scenario is a TOML text file, and this one is not text",
+                path.display()
+            )
+        })?;
         Self::parse(&text, &path.display().to_string())
     }
 
@@ -739,6 +830,9 @@ fn clip_quoted(message: &str) -> String {
     }
     out
 }
+
+/// How an MCAP file (a recording) begins.
+const MCAP_MAGIC: &[u8] = b"\x89MCAP0\r\n";
 
 /// The longest name a scenario's nodes, buses and modules may have: it
 /// goes into topics, file names, monitor lines and the panel.

@@ -165,6 +165,9 @@ pub fn execute(args: &RunArgs) -> Result<()> {
     for (node, state) in &outcome.telemetry {
         super::node_summary::print(node, state, outcome.simulated_s);
     }
+    for unanswered in scenario.unanswered_ids() {
+        println!("  {unanswered}");
+    }
     for (bus, c) in &outcome.pwm_calibrations {
         println!(
             "  calibrated at initialisation: {}",

@@ -523,3 +523,55 @@ fn names_have_a_sensible_length_and_character_set() {
         );
     }
 }
+
+/// A master polling an id no node on its bus has can only time out: the
+/// summary says so, naming the ids that are there.
+#[test]
+fn a_master_polling_an_id_no_node_has_is_named_in_the_summary() {
+    let dir = support::folder("run-cli", "unanswered");
+    let scenario = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../recordings/scenarios/ev-meb.toml"),
+    )
+    .unwrap();
+    let file = dir.join("two.toml");
+    std::fs::write(&file, scenario.replace("slaves = [1]", "slaves = [1, 2]")).unwrap();
+    let out = twin(&[
+        "run",
+        file.to_str().unwrap(),
+        "--duration",
+        "0.5",
+        "--no-record",
+    ]);
+    let said = support::text(&out);
+    assert!(out.status.success(), "{said}");
+    assert!(
+        said.contains(
+            "no node on bus rs485 has id 2 (ids there: 1): `supervisor` polls it and can only time out"
+        ),
+        "{said}"
+    );
+    let out = twin(&["run", "ev-meb", "--duration", "0.5", "--no-record"]);
+    assert!(
+        !support::text(&out).contains("no node on bus"),
+        "none in the default run"
+    );
+}
+
+/// What a user gives in a scenario's place by mistake gets words that say
+/// what it is and what to do: a recording, or a parameter file that is not
+/// there (its reason said once).
+#[test]
+fn a_recording_or_a_missing_file_in_place_of_a_scenario_is_named() {
+    let recording =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../docs/examples/cut-short.mcap");
+    let out = twin(&["run", recording.to_str().unwrap()]);
+    let said = support::text(&out);
+    assert!(!out.status.success());
+    assert!(said.contains("is a recording, not a scenario"), "{said}");
+    assert!(said.contains("twin replay"), "{said}");
+    assert!(!said.contains("UTF-8"), "{said}");
+    let out = twin(&["run", "--open-loop", "--params", "no-such-params.toml"]);
+    let said = support::text(&out);
+    assert!(!out.status.success());
+    assert_eq!(said.matches("(os error 2)").count(), 1, "{said}");
+}
