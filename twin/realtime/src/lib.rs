@@ -27,6 +27,7 @@ pub mod config;
 pub mod device;
 pub mod endpoint;
 pub mod engine;
+pub mod fd_limit;
 pub mod firmware_endpoint;
 pub mod firmware_log;
 pub mod forces;

@@ -228,6 +228,11 @@ pub fn run<R: Role>(
     mut role: R,
     ready: impl FnOnce(&[R::Link]),
 ) -> Result<(SessionOutcome, R::End)> {
+    // Every client is a descriptor: a service's soft limit of 1024 would
+    // cap the links long before the machine does.
+    if let Some(Err(e)) = super::fd_limit::raise_once() {
+        eprintln!("warning: {e}");
+    }
     let runtime = links_runtime()?;
     let clock = RtClock::start();
     let record_period = SimDuration::from_secs_f64(1.0 / options.record_hz.max(1.0));

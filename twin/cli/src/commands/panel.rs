@@ -73,6 +73,10 @@ pub fn execute(args: &PanelArgs) -> Result<()> {
         Some(path) => format!("I/O map {}", path.display()),
         None => "default I/O map".into(),
     };
+    // The panel's share of connections comes from the limit it starts with.
+    if let Some(Err(e)) = twin_realtime::fd_limit::raise_once() {
+        eprintln!("warning: {e}");
+    }
     let panel = Panel::bind(PanelOptions {
         role: PanelRole::Client,
         addr: args.web,
