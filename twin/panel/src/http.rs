@@ -49,6 +49,8 @@ pub struct AppState {
     pub written: outputs::Written,
     /// The I/O map's places (`twin serve --map`), for the labels.
     pub layout: Option<Arc<crate::remote::layout::Layout>>,
+    /// What the server allows a client.
+    pub limits: crate::server::Limits,
 }
 
 /// Serves until the session ends (the engine stops taking commands).
@@ -64,10 +66,10 @@ pub async fn serve(listener: std::net::TcpListener, state: AppState) {
         Backend::Engine(engine) => tokio::spawn(produce(state.clone(), engine.clone())),
         Backend::Remote(remote) => tokio::spawn(produce_remote(state.clone(), remote.clone())),
     };
-    let app = router(state);
-    let server = axum::serve(listener, app);
+    let limits = state.limits;
+    let say: crate::server::Say = Arc::new(|line| eprintln!("--web: {line}"));
     tokio::select! {
-        r = server => if let Err(e) = r { eprintln!("--web: the panel stopped: {e}") },
+        () = crate::server::run(listener, router(state), limits, say) => {}
         _ = producer => {}
     }
 }
@@ -89,6 +91,12 @@ pub fn router(state: AppState) -> Router {
         .route("/api/outputs", post(set_outputs))
         .fallback(|| async { error(404, json!({ "error": "no such page: the panel is at / and its API under /api/ (docs/panel-api.md)" })) })
         .layer(middleware::from_fn_with_state(state.clone(), guard))
+        // Outside the guard: an oversized or endless body is refused before
+        // anything else is looked at.
+        .layer(middleware::from_fn_with_state(
+            state.limits,
+            crate::server::bounded_body,
+        ))
         .with_state(state)
 }
 

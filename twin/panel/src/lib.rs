@@ -22,6 +22,12 @@
 //! Every 50 ms one message is built and handed to every stream client
 //! ([`hub`]); a client too slow to take it is told how many it missed.
 //! The JSON API is documented in `docs/panel-api.md`.
+//!
+//! The panel keeps within a budget of its own ([`server`]): all panels of a
+//! process hold at most a quarter of its open files (at most 256
+//! connections), a newcomer over that is refused at once, and a request
+//! must send its head and its body in time, so browsers, however many or
+//! slow, never take the descriptors the links serve their clients with.
 
 #![allow(
     clippy::disallowed_methods,
@@ -35,6 +41,7 @@ pub mod http;
 pub mod hub;
 pub mod outputs;
 pub mod remote;
+pub mod server;
 pub mod snapshot;
 pub mod step;
 pub mod view;
@@ -46,6 +53,7 @@ use std::sync::mpsc::Sender;
 
 pub use access::{Access, AccessOptions};
 pub use hub::Hub;
+pub use server::Limits;
 use twin_realtime::Inbound;
 pub use twin_realtime::sink::LiveView;
 
@@ -92,6 +100,8 @@ pub struct Panel {
     addr: SocketAddr,
     /// Where the MEB links place each signal (`--map`), for the labels.
     layout: Option<Arc<remote::layout::Layout>>,
+    /// What the server allows a client (connections, timeouts, body).
+    limits: Limits,
 }
 
 impl Panel {
@@ -111,12 +121,20 @@ impl Panel {
             listener: Arc::new(std::sync::Mutex::new(Some(listener))),
             addr,
             layout: None,
+            limits: Limits::from_env(),
         })
     }
 
     /// Labels each signal where `map` places it (`twin serve --map`).
     pub fn with_map(mut self, map: &nodes::firmware::MebMap) -> Self {
         self.layout = Some(Arc::new(remote::layout::Layout::new(map)));
+        self
+    }
+
+    /// Serves within `limits` instead of the defaults (tests shorten the
+    /// timeouts).
+    pub fn with_limits(mut self, limits: Limits) -> Self {
+        self.limits = limits;
         self
     }
 
@@ -178,6 +196,7 @@ impl Panel {
             rate_hz: self.options.rate_hz.clamp(1.0, 100.0),
             written: Default::default(),
             layout: self.layout.clone(),
+            limits: self.limits,
         };
         std::thread::Builder::new()
             .name("twin-panel".into())

@@ -35,9 +35,20 @@ pub struct CannotRaise {
     pub source: std::io::Error,
 }
 
-/// The soft open-file limit now (`None`: unlimited).
-pub fn soft_limit() -> Option<u64> {
-    getrlimit(Resource::Nofile).current
+/// The open-file limits now (`None`: unlimited).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct OpenFiles {
+    pub soft: Option<u64>,
+    pub hard: Option<u64>,
+}
+
+/// The process's open-file limits now.
+pub fn open_files() -> OpenFiles {
+    let Rlimit { current, maximum } = getrlimit(Resource::Nofile);
+    OpenFiles {
+        soft: current,
+        hard: maximum,
+    }
 }
 
 /// [`raise_to_hard`], the first time a process asks: `None` after that, so
@@ -94,7 +105,10 @@ mod tests {
     fn the_soft_limit_ends_at_the_hard_one() {
         let hard = getrlimit(Resource::Nofile).maximum;
         match raise_to_hard() {
-            Ok(_) => assert_eq!(soft_limit(), hard.or(soft_limit())),
+            Ok(_) => {
+                let now = open_files();
+                assert_eq!(now.soft, hard.or(now.soft));
+            }
             Err(e) => panic!("{e}"),
         }
     }
