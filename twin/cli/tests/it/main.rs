@@ -18,6 +18,7 @@ mod first_use;
 mod frames_to;
 mod install;
 mod panel;
+mod panel_budget;
 mod peers;
 mod peers_hardening;
 mod peers_limits;
