@@ -227,6 +227,10 @@ pub async fn run(listener: TcpListener, app: Router, limits: Limits, say: Say) {
                         tokio::spawn(connection(socket, app.clone(), limits, place));
                     }
                     Err(_) => {
+                        // What the client already sent is read first, so that
+                        // the close is a plain end of stream and not a reset
+                        // that could discard the 503 before it is read.
+                        let _ = socket.try_read(&mut [0u8; 4096]);
                         let _ = socket.try_write(BUSY);
                         drop(socket);
                         refusals.refused();

@@ -4,7 +4,9 @@
 //! 413 at once, and one that stops short 408 at the body timeout; under a
 //! low open-file limit a flood of bare connections to the panel leaves the
 //! MEB clients served, and the panel serves again once the flood is gone;
-//! and a session raises its soft open-file limit to the hard one.
+//! a kept-alive connection waiting for a next request is closed while an
+//! open event stream goes on; and a session raises its soft open-file
+//! limit to the hard one.
 //!
 //! The shortened timeouts come from the `TWIN_PANEL_*_TIMEOUT_MS` knobs; a
 //! lowered open-file limit from util-linux's `prlimit`, which sets it and
@@ -254,6 +256,59 @@ fn a_body_too_large_is_refused_at_once_and_one_that_stops_short_at_the_body_time
         "POST /api/force HTTP/1.1\r\nHost: panel\r\nContent-Type: application/json\r\nContent-Length: 2\r\nConnection: close\r\n\r\n{}",
     );
     assert!(status != 413 && status != 408 && status != 0, "{status} {body}");
+}
+
+#[test]
+fn a_kept_alive_connection_is_closed_when_idle_and_an_open_event_stream_is_not() {
+    let served = Served::start(
+        &[
+            ("TWIN_PANEL_HEADER_TIMEOUT_MS", "1000"),
+            ("TWIN_PANEL_IDLE_TIMEOUT_MS", "1000"),
+        ],
+        None,
+    );
+    let mut stream = TcpStream::connect(served.web).unwrap();
+    stream.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    stream
+        .write_all(b"GET /api/stream HTTP/1.1\r\nHost: panel\r\n\r\n")
+        .unwrap();
+    let mut kept = TcpStream::connect(served.web).unwrap();
+    kept.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    kept.write_all(b"GET /api/info HTTP/1.1\r\nHost: panel\r\n\r\n")
+        .unwrap();
+    let started = Instant::now();
+    // The answer, then the end of the connection: it waited idle for a next
+    // request no longer than the header timeout.
+    let mut answer = Vec::new();
+    kept.read_to_end(&mut answer)
+        .expect("the idle connection is closed, not left open");
+    let idle_for = started.elapsed();
+    assert!(
+        String::from_utf8_lossy(&answer).starts_with("HTTP/1.1 200"),
+        "{}",
+        String::from_utf8_lossy(&answer)
+    );
+    assert!(
+        (Duration::from_millis(900)..Duration::from_secs(4)).contains(&idle_for),
+        "closed {idle_for:?} after its answer, not at the 1 s timeout"
+    );
+    // The stream, three times both timeouts later, still brings updates.
+    let mut seen = Vec::new();
+    let mut buf = [0u8; 65536];
+    while started.elapsed() < Duration::from_secs(3) {
+        let n = stream.read(&mut buf).expect("the stream goes on");
+        assert!(n > 0, "the stream was closed after {:?}", started.elapsed());
+        seen.extend_from_slice(&buf[..n]);
+    }
+    seen.clear();
+    let late = Instant::now();
+    while late.elapsed() < Duration::from_millis(500) {
+        let n = stream.read(&mut buf).expect("the stream goes on");
+        assert!(n > 0, "the stream was closed after {:?}", started.elapsed());
+        seen.extend_from_slice(&buf[..n]);
+    }
+    let updates = String::from_utf8_lossy(&seen).matches("event: update").count();
+    assert!(updates >= 3, "{updates} updates in the last 0.5 s of 3.5 s");
 }
 
 /// The twin's own soft limit raised to its hard one, so that the flood
