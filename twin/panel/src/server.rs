@@ -413,7 +413,9 @@ pub async fn bounded_body(State(limits): State<Limits>, request: Request, next: 
     let too_large = || {
         closing(
             StatusCode::PAYLOAD_TOO_LARGE,
-            format!("the body is larger than the panel takes ({most} bytes): its commands are small JSON objects"),
+            format!(
+                "the body is larger than the panel takes ({most} bytes): its commands are small JSON objects"
+            ),
         )
     };
     if declared.is_some_and(|n| n > most as u64) {

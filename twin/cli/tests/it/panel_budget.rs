@@ -45,7 +45,13 @@ impl Served {
             None => Command::new(twin),
         };
         command
-            .args(["serve", "--meb", "tcp://127.0.0.1:0", "--web", "127.0.0.1:0"])
+            .args([
+                "serve",
+                "--meb",
+                "tcp://127.0.0.1:0",
+                "--web",
+                "127.0.0.1:0",
+            ])
             .args(["--no-record", "--quiet", "--status-every", "0"])
             .envs(env.iter().copied())
             .stdin(Stdio::null())
@@ -147,7 +153,12 @@ fn get(web: SocketAddr, path: &str) -> (u16, String, Duration) {
 
 /// Connections that send a request head one byte per `every`; how long
 /// each lasted before the panel closed it (`None`: still open at `give_up`).
-fn slow_heads(web: SocketAddr, n: usize, every: Duration, give_up: Duration) -> Vec<Option<Duration>> {
+fn slow_heads(
+    web: SocketAddr,
+    n: usize,
+    every: Duration,
+    give_up: Duration,
+) -> Vec<Option<Duration>> {
     let head = b"GET /api/info HTTP/1.1\r\nHost: panel\r\nX-Slow: ";
     let started = Instant::now();
     let mut open: Vec<Option<TcpStream>> = (0..n)
@@ -210,12 +221,7 @@ fn slow_heads_are_closed_at_a_shortened_header_timeout_and_others_are_served_mea
         std::thread::sleep(Duration::from_millis(500));
         get(web, "/api/info")
     });
-    let lasted = slow_heads(
-        web,
-        20,
-        Duration::from_millis(100),
-        Duration::from_secs(10),
-    );
+    let lasted = slow_heads(web, 20, Duration::from_millis(100), Duration::from_secs(10));
     for l in &lasted {
         let l = l.expect("every slow head closed within 10 s");
         assert!(
@@ -237,7 +243,10 @@ fn a_body_too_large_is_refused_at_once_and_one_that_stops_short_at_the_body_time
     );
     assert_eq!(status, 413, "{body}");
     assert!(body.contains("small JSON objects"), "said in words: {body}");
-    assert!(took < Duration::from_secs(2), "answered and closed after {took:?}");
+    assert!(
+        took < Duration::from_secs(2),
+        "answered and closed after {took:?}"
+    );
     // 100 bytes declared, 2 sent: the panel waits the body timeout, no more.
     let (status, body, took) = request(
         served.web,
@@ -255,7 +264,10 @@ fn a_body_too_large_is_refused_at_once_and_one_that_stops_short_at_the_body_time
         served.web,
         "POST /api/force HTTP/1.1\r\nHost: panel\r\nContent-Type: application/json\r\nContent-Length: 2\r\nConnection: close\r\n\r\n{}",
     );
-    assert!(status != 413 && status != 408 && status != 0, "{status} {body}");
+    assert!(
+        status != 413 && status != 408 && status != 0,
+        "{status} {body}"
+    );
 }
 
 #[test]
@@ -268,12 +280,15 @@ fn a_kept_alive_connection_is_closed_when_idle_and_an_open_event_stream_is_not()
         None,
     );
     let mut stream = TcpStream::connect(served.web).unwrap();
-    stream.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    stream
+        .set_read_timeout(Some(Duration::from_secs(5)))
+        .unwrap();
     stream
         .write_all(b"GET /api/stream HTTP/1.1\r\nHost: panel\r\n\r\n")
         .unwrap();
     let mut kept = TcpStream::connect(served.web).unwrap();
-    kept.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    kept.set_read_timeout(Some(Duration::from_secs(10)))
+        .unwrap();
     kept.write_all(b"GET /api/info HTTP/1.1\r\nHost: panel\r\n\r\n")
         .unwrap();
     let started = Instant::now();
@@ -307,7 +322,9 @@ fn a_kept_alive_connection_is_closed_when_idle_and_an_open_event_stream_is_not()
         assert!(n > 0, "the stream was closed after {:?}", started.elapsed());
         seen.extend_from_slice(&buf[..n]);
     }
-    let updates = String::from_utf8_lossy(&seen).matches("event: update").count();
+    let updates = String::from_utf8_lossy(&seen)
+        .matches("event: update")
+        .count();
     assert!(updates >= 3, "{updates} updates in the last 0.5 s of 3.5 s");
 }
 
@@ -399,12 +416,19 @@ fn a_flood_of_panel_connections_leaves_the_meb_clients_their_descriptors() {
     let again = crate::peers::wait_for(Duration::from_secs(10), Duration::from_millis(100), || {
         (get(served.web, "/api/info").0 == 200).then_some(())
     });
-    assert!(again.is_some(), "the panel serves again once the flood is gone");
+    assert!(
+        again.is_some(),
+        "the panel serves again once the flood is gone"
+    );
     let said = crate::peers::wait_for(Duration::from_secs(15), Duration::from_millis(100), || {
         served.stderr().contains("refused").then_some(())
     });
     assert!(said.is_some(), "refusals said: {}", served.stderr());
-    let lines = served.stderr().lines().filter(|l| l.contains("refused")).count();
+    let lines = served
+        .stderr()
+        .lines()
+        .filter(|l| l.contains("refused"))
+        .count();
     assert!(
         lines <= 3,
         "refusals counted, not a line each: {}",
@@ -417,8 +441,14 @@ fn a_session_raises_its_soft_open_file_limit_to_the_hard_one() {
     if !has_prlimit() {
         return;
     }
-    let hard = getrlimit(Resource::Nofile).maximum.unwrap_or(4096).min(4096);
-    assert!(hard > 256, "the hard limit here ({hard}) leaves nothing to raise");
+    let hard = getrlimit(Resource::Nofile)
+        .maximum
+        .unwrap_or(4096)
+        .min(4096);
+    assert!(
+        hard > 256,
+        "the hard limit here ({hard}) leaves nothing to raise"
+    );
     let served = Served::start(&[], Some((256, hard)));
     let limits = std::fs::read_to_string(format!("/proc/{}/limits", served.child.id()))
         .expect("the twin's limits");
