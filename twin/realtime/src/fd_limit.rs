@@ -96,20 +96,3 @@ fn nr_open() -> u64 {
         .and_then(|s| s.trim().parse().ok())
         .unwrap_or(NR_OPEN_DEFAULT)
 }
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn the_soft_limit_ends_at_the_hard_one() {
-        let hard = getrlimit(Resource::Nofile).maximum;
-        match raise_to_hard() {
-            Ok(_) => {
-                let now = open_files();
-                assert_eq!(now.soft, hard.or(now.soft));
-            }
-            Err(e) => panic!("{e}"),
-        }
-    }
-}
