@@ -535,12 +535,14 @@ fn a_master_polling_an_id_no_node_has_is_named_in_the_summary() {
     .unwrap();
     let file = dir.join("two.toml");
     std::fs::write(&file, scenario.replace("slaves = [1]", "slaves = [1, 2]")).unwrap();
+    let recording = dir.join("two.mcap");
     let out = twin(&[
         "run",
         file.to_str().unwrap(),
         "--duration",
         "0.5",
-        "--no-record",
+        "--out",
+        recording.to_str().unwrap(),
     ]);
     let said = support::text(&out);
     assert!(out.status.success(), "{said}");
@@ -550,7 +552,15 @@ fn a_master_polling_an_id_no_node_has_is_named_in_the_summary() {
         ),
         "{said}"
     );
-    let out = twin(&["run", "ev-meb", "--duration", "0.5", "--no-record"]);
+    let recording = dir.join("ev-meb.mcap");
+    let out = twin(&[
+        "run",
+        "ev-meb",
+        "--duration",
+        "0.5",
+        "--out",
+        recording.to_str().unwrap(),
+    ]);
     assert!(
         !support::text(&out).contains("no node on bus"),
         "none in the default run"
