@@ -229,9 +229,9 @@ impl ClientLimit {
 /// Accepts clients on `listener` for link `link`. When `limit.max` are
 /// connected, a newcomer gets the place of a client whose peer has gone; or,
 /// if a client there could make room (quiet for `limit.room_after_idle`, or
-/// holding a partial frame for over a second), it is let in on probation and
-/// takes that client's place with its first whole request (see
-/// [`Probation`]); else it is refused: closed at once, as libmodbus does,
+/// holding a partial frame), it is let in on probation and takes that
+/// client's place with its first whole request (see [`Probation`]); else it
+/// is refused: closed at once, as libmodbus does,
 /// since neither MEB nor Modbus can say "busy" before a request. A newcomer
 /// is never kept waiting for a place: that queued the next ones behind it,
 /// a second each.
