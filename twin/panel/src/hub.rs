@@ -152,7 +152,8 @@ impl Hub {
     }
 
     /// Publishes one message to every client and as the latest state.
-    pub fn publish(&self, message: String, trend: [Option<f64>; 5]) {
+    pub fn publish(&self, message: String, mut trend: [Option<f64>; 5]) {
+        trend[0] = trend[0].map(crate::http::seconds);
         let message: Arc<str> = Arc::from(message);
         if let Ok(mut latest) = self.latest.write() {
             *latest = message.clone();

@@ -205,3 +205,33 @@ fn thirty_stream_clients_are_all_served() {
         state(&session)["stream_clients"].as_u64() == Some(0)
     });
 }
+
+/// Session times in the API are whole microseconds (`1.522848`), never a
+/// float's last digits (`1.5228476739999999`): in the state, its frames
+/// and the trend.
+#[test]
+fn session_times_are_whole_microseconds() {
+    let session = serve("127.0.0.1:0", AccessOptions::default(), 30.0);
+    let decimals = |v: &serde_json::Value| {
+        let text = v.to_string();
+        text.split_once('.').map_or(0, |(_, d)| d.len())
+    };
+    let mut checked = 0;
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while checked < 20 && Instant::now() < deadline {
+        let s = state(&session);
+        if s["t"].as_f64().is_some_and(|t| t > 0.0) {
+            assert!(decimals(&s["t"]) <= 6, "state t {}", s["t"]);
+            checked += 1;
+        }
+        std::thread::sleep(Duration::from_millis(60));
+    }
+    assert!(checked >= 20, "the state carries its time");
+    let (_, body) = http(&session.panel, "GET", "/api/trend", None, true);
+    let trend: serde_json::Value = serde_json::from_str(&body).expect("the trend is JSON");
+    let rows = trend["rows"].as_array().expect("rows");
+    assert!(!rows.is_empty(), "{body}");
+    for row in rows {
+        assert!(decimals(&row[0]) <= 6, "trend t {}", row[0]);
+    }
+}
