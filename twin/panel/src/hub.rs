@@ -119,7 +119,7 @@ impl Hub {
         }
         held.events.push_back(HeldEvent {
             node: node.into(),
-            t,
+            t: crate::http::seconds(t),
             kind: kind.into(),
             detail: detail.into(),
         });
