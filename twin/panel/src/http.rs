@@ -148,9 +148,25 @@ fn token_of(request: &Request) -> Option<String> {
 
 /// Every request passes here: without the token, 401 and nothing changes;
 /// on a read-only panel, commands get 403.
+/// What a browser shows when the panel is opened without its token.
+const NEEDS_TOKEN_HTML: &str = "<!doctype html><html lang=\"en\"><head><meta charset=\"utf-8\">\
+<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\
+<title>twin panel: token needed</title></head><body style=\"font-family:sans-serif;max-width:40em;margin:2em auto\">\
+<h1>This panel needs its token</h1>\
+<p>Open the address twin printed when it started: it ends in <code>/?token=…</code>. \
+The browser then keeps the token for this panel.</p>\
+<p>A program sends it as <code>Authorization: Bearer TOKEN</code>.</p></body></html>";
+
 async fn guard(State(state): State<AppState>, request: Request, next: Next) -> Response {
     let token = token_of(&request);
     let is_command = request.method() == axum::http::Method::POST;
+    // A person opening the page in a browser gets a page, not JSON.
+    let browser = !is_command
+        && request
+            .headers()
+            .get(header::ACCEPT)
+            .and_then(|a| a.to_str().ok())
+            .is_some_and(|a| a.contains("text/html"));
     let checked = if is_command {
         state.access.check_command(token.as_deref())
     } else {
@@ -170,6 +186,15 @@ async fn guard(State(state): State<AppState>, request: Request, next: Next) -> R
             }
             response
         }
+        Err(Refused::Token) if browser => (
+            StatusCode::UNAUTHORIZED,
+            [(
+                header::CONTENT_TYPE,
+                HeaderValue::from_static("text/html; charset=utf-8"),
+            )],
+            NEEDS_TOKEN_HTML,
+        )
+            .into_response(),
         Err(Refused::Token) => error(
             401,
             json!({ "error": "this panel needs its token: open the URL twin printed when it started (…/?token=…), or send Authorization: Bearer TOKEN" }),

@@ -235,3 +235,35 @@ fn session_times_are_whole_microseconds() {
         assert!(decimals(&row[0]) <= 6, "trend t {}", row[0]);
     }
 }
+
+/// A person who opens the panel in a browser without its token reads a page
+/// that says what to do, not raw JSON; a program still gets JSON.
+#[test]
+fn a_browser_without_the_token_gets_a_page_in_words() {
+    let session = serve("0.0.0.0:0", AccessOptions::default(), 30.0);
+    let mut stream =
+        std::net::TcpStream::connect(session.panel.addr_for_clients()).expect("connects");
+    stream
+        .set_read_timeout(Some(Duration::from_secs(5)))
+        .unwrap();
+    stream
+        .write_all(
+            b"GET / HTTP/1.1\r\nHost: panel\r\nAccept: text/html,application/xhtml+xml\r\nConnection: close\r\n\r\n",
+        )
+        .unwrap();
+    let mut response = String::new();
+    let _ = std::io::Read::read_to_string(&mut stream, &mut response);
+    assert!(response.starts_with("HTTP/1.1 401"), "{response}");
+    assert!(response.contains("text/html"), "{response}");
+    assert!(
+        response.contains("<h1>This panel needs its token</h1>"),
+        "{response}"
+    );
+    assert!(!response.contains("{\"error\""), "{response}");
+    let (status, body) = http(&session.panel, "GET", "/api/state", None, false);
+    assert_eq!(status, 401);
+    assert!(
+        body.starts_with("{\"error\""),
+        "a program gets JSON: {body}"
+    );
+}
