@@ -229,7 +229,7 @@ fn a_write_whose_count_and_quantity_disagree_gets_exception_03_on_rtu_and_tcp() 
 fn mismatched_write(pdu: &[u8]) {
     let mut rtu = vec![0x01];
     rtu.extend_from_slice(pdu);
-    let crc = protocols_crc(&rtu);
+    let crc = nodes::proto::crc::crc16_modbus(&rtu);
     rtu.extend_from_slice(&crc.to_le_bytes());
     let mut tcp = vec![0x00, 0x01, 0x00, 0x00, 0x00, 1 + pdu.len() as u8, 0x01];
     tcp.extend_from_slice(pdu);
@@ -247,19 +247,4 @@ fn mismatched_write(pdu: &[u8]) {
         };
         assert_eq!(got, [pdu[0] | 0x80, 0x03], "{framing:?} {pdu:02x?}");
     }
-}
-
-fn protocols_crc(bytes: &[u8]) -> u16 {
-    let mut crc = 0xFFFFu16;
-    for &b in bytes {
-        crc ^= u16::from(b);
-        for _ in 0..8 {
-            crc = if crc & 1 != 0 {
-                (crc >> 1) ^ 0xA001
-            } else {
-                crc >> 1
-            };
-        }
-    }
-    crc
 }

@@ -292,7 +292,7 @@ pub fn supervise_loop(map: &Map<String, Value>) -> Result<EngineCommand, Rejecte
                     s.set_mode(id, mode);
                 }
             }
-            return Ok(json!({ "ok": true, "t": crate::http::seconds(now.as_secs_f64()) }));
+            return Ok(json!({ "ok": true, "t": crate::seconds(now.as_secs_f64()) }));
         }
         Err(Rejected {
             status: 409,

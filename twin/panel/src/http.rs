@@ -100,12 +100,6 @@ pub fn router(state: AppState) -> Router {
         .with_state(state)
 }
 
-/// A session time for the API: whole microseconds, so that a client reads
-/// `1.522848`, not the float's last digits (`1.5228476739999999`).
-pub(crate) fn seconds(t: f64) -> f64 {
-    (t * 1e6).round() / 1e6
-}
-
 fn page(body: &'static str, kind: &'static str) -> Response {
     (
         [
@@ -396,7 +390,7 @@ impl Monitor {
             if frames.len() < FRAMES_PER_MESSAGE {
                 frames.push(json!({
                     "link": f.link, "from": f.from, "dir": if out { "out" } else { "in" },
-                    "t": seconds(f.start), "end": seconds(f.end), "text": shown(&f.bytes),
+                    "t": crate::seconds(f.start), "end": crate::seconds(f.end), "text": shown(&f.bytes),
                     "decoded": decoded, "bad": bad,
                 }));
             } else {
@@ -462,7 +456,7 @@ async fn produce(state: AppState, engine: Arc<Mutex<Sender<Inbound>>>) {
             }
         }
         let mut message = json!({
-            "t": seconds(snap.t),
+            "t": crate::seconds(snap.t),
             "role": state.role,
             "state": shown,
             "links": link_stats,
@@ -498,7 +492,7 @@ async fn produce_remote(state: AppState, remote: Arc<Remote>) {
         let connected = usize::from(snapshot["connection"]["connected"] == true);
         let link_stats = monitor.links(std::iter::once((crate::remote::LINK, connected)), t);
         let message = json!({
-            "t": seconds(t),
+            "t": crate::seconds(t),
             "role": state.role,
             "state": snapshot,
             "links": link_stats,

@@ -119,7 +119,7 @@ impl Hub {
         }
         held.events.push_back(HeldEvent {
             node: node.into(),
-            t: crate::http::seconds(t),
+            t: crate::seconds(t),
             kind: kind.into(),
             detail: detail.into(),
         });
@@ -153,7 +153,7 @@ impl Hub {
 
     /// Publishes one message to every client and as the latest state.
     pub fn publish(&self, message: String, mut trend: [Option<f64>; 5]) {
-        trend[0] = trend[0].map(crate::http::seconds);
+        trend[0] = trend[0].map(crate::seconds);
         let message: Arc<str> = Arc::from(message);
         if let Ok(mut latest) = self.latest.write() {
             *latest = message.clone();

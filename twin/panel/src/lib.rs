@@ -80,6 +80,12 @@ pub struct PanelOptions {
     pub rate_hz: f64,
 }
 
+/// A session time for the API: whole microseconds, so that a client reads
+/// `1.522848`, not the float's last digits (`1.5228476739999999`).
+pub(crate) fn seconds(t: f64) -> f64 {
+    (t * 1e6).round() / 1e6
+}
+
 /// A panel being served: its address and the URL to open.
 #[derive(Debug, Clone)]
 pub struct Running {

@@ -240,7 +240,7 @@ fn loop_json(l: &SlaveLoop) -> Value {
             Some(LoopMode::Open { vel }) => json!({ "manual": vel }),
             None => Value::Null,
         },
-        "measured_at": s.measured_at.map(|t| crate::http::seconds(t.as_secs_f64())),
+        "measured_at": s.measured_at.map(|t| crate::seconds(t.as_secs_f64())),
         "started": s.started,
         "counters": {
             "requests": c.requests, "replies": c.replies, "timeouts": c.timeouts,
@@ -309,7 +309,7 @@ impl EngineSnapshot {
             .map(|l| json!({ "name": l.name, "protocol": l.protocol, "address": l.address, "clients": l.clients }))
             .collect();
         json!({
-            "t": crate::http::seconds(self.t),
+            "t": crate::seconds(self.t),
             "modules": modules,
             "devices": devices,
             "links": links,

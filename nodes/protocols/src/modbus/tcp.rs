@@ -213,39 +213,28 @@ impl TcpDecoder {
             // they are in (4 and 6 bytes), not when the unit id comes: a
             // header that cannot be Modbus must not hold a connection open
             // waiting for a byte that changes nothing.
-            let wanted = if self.len < PROTOCOL_END {
-                PROTOCOL_END
+            let header = if self.len < PROTOCOL_END {
+                Ok(PROTOCOL_END)
             } else if self.len < LENGTH_END {
-                match protocol_fault(&self.buf[..self.len]) {
-                    Some(fault) if self.stop_on_bad_header => {
-                        self.drops.malformed.add(self.len);
-                        return Some(Err(fault));
-                    }
-                    Some(_) => {
-                        self.drops.malformed.add(1);
-                        self.buf.copy_within(1..self.len, 0);
-                        self.len -= 1;
-                        continue;
-                    }
-                    None => LENGTH_END,
-                }
+                protocol_fault(&self.buf[..self.len]).map_or(Ok(LENGTH_END), Err)
             } else {
-                match header_len(&self.buf[..self.len]) {
-                    Ok(total) if self.len >= total => {
-                        self.yielded = total;
-                        return Some(Ok(total));
-                    }
-                    Ok(total) => total,
-                    Err(fault) if self.stop_on_bad_header => {
-                        self.drops.malformed.add(self.len);
-                        return Some(Err(fault));
-                    }
-                    Err(_) => {
-                        self.drops.malformed.add(1);
-                        self.buf.copy_within(1..self.len, 0);
-                        self.len -= 1;
-                        continue;
-                    }
+                header_len(&self.buf[..self.len])
+            };
+            let wanted = match header {
+                Ok(total) if self.len >= total => {
+                    self.yielded = total;
+                    return Some(Ok(total));
+                }
+                Ok(wanted) => wanted,
+                Err(fault) if self.stop_on_bad_header => {
+                    self.drops.malformed.add(self.len);
+                    return Some(Err(fault));
+                }
+                Err(_) => {
+                    self.drops.malformed.add(1);
+                    self.buf.copy_within(1..self.len, 0);
+                    self.len -= 1;
+                    continue;
                 }
             };
             if input.is_empty() {

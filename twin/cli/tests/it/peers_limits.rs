@@ -7,6 +7,7 @@
 
 use crate::peers;
 
+use nodes::proto::crc::crc16_modbus;
 use peers::{DirectPty, Serve, readable};
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
@@ -152,27 +153,12 @@ fn a_modbus_tcp_header_of_length_0_closes_without_a_seventh_byte() {
     assert!(line.contains("closed by the twin"), "{line}");
 }
 
-fn crc16(bytes: &[u8]) -> u16 {
-    let mut crc = 0xFFFFu16;
-    for &b in bytes {
-        crc ^= u16::from(b);
-        for _ in 0..8 {
-            crc = if crc & 1 != 0 {
-                (crc >> 1) ^ 0xA001
-            } else {
-                crc >> 1
-            };
-        }
-    }
-    crc
-}
-
 /// A Controller_network request (CRC high byte first).
 fn modbus8(id: u8, function: u8, addr: u16, value: u16) -> [u8; 8] {
     let [a0, a1] = addr.to_be_bytes();
     let [v0, v1] = value.to_be_bytes();
     let body = [id, function, a0, a1, v0, v1];
-    let [c0, c1] = crc16(&body).to_be_bytes();
+    let [c0, c1] = crc16_modbus(&body).to_be_bytes();
     [id, function, a0, a1, v0, v1, c0, c1]
 }
 
@@ -237,7 +223,7 @@ fn the_8_byte_modbus_link_answers_every_request_of_a_write() {
         for (request, reply) in requests.iter().zip(replies.chunks(8)) {
             assert_eq!(reply[..4], request[..4], "in order: {replies:02x?}");
             let crc = u16::from_be_bytes([reply[6], reply[7]]);
-            assert_eq!(crc, crc16(&reply[..6]), "{reply:02x?}");
+            assert_eq!(crc, crc16_modbus(&reply[..6]), "{reply:02x?}");
         }
     }
     std::thread::sleep(Duration::from_millis(300));
@@ -285,7 +271,7 @@ fn rtu_and_tcp_answer_a_malformed_write_alike() {
     let over_rtu = |pdu: &[u8]| -> Vec<u8> {
         let mut adu = vec![1u8];
         adu.extend_from_slice(pdu);
-        let crc = crc16(&adu);
+        let crc = crc16_modbus(&adu);
         adu.extend_from_slice(&crc.to_le_bytes());
         (&*link).write_all(&adu).unwrap();
         let reply = read_reply(link);

@@ -381,7 +381,7 @@ impl Remote {
                 slot.1 = Some(value);
             }
         }
-        Ok(json!({ "ok": true, "t": crate::http::seconds(self.now()) }))
+        Ok(json!({ "ok": true, "t": crate::seconds(self.now()) }))
     }
 
     /// The SD word `addr` as last written, or every switch it holds off

@@ -100,7 +100,7 @@ pub fn message_state(remote: &Remote) -> (Value, [Option<f64>; 5]) {
     });
     let o = &remote.options;
     let state = json!({
-        "t": crate::http::seconds(t),
+        "t": crate::seconds(t),
         "modules": [],
         "devices": [{
             "name": format!("slave {:02}", o.id),
