@@ -4,8 +4,6 @@
 //! against `twin serve` over a `twin vsp` pair. (The page itself is tested
 //! in a real browser in twin/panel/tests/it/browser.rs.)
 
-use std::io::{Read, Write};
-use std::net::TcpStream;
 use std::time::{Duration, Instant};
 
 use crate::support;
@@ -32,8 +30,6 @@ fn parts(url: &str) -> (String, Option<String>) {
 }
 
 fn http(host: &str, method: &str, path: &str, token: Option<&str>, body: &str) -> (u16, String) {
-    let mut s = TcpStream::connect(host).expect("the panel answers");
-    s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
     let auth = token
         .map(|t| format!("Authorization: Bearer {t}\r\n"))
         .unwrap_or_default();
@@ -41,19 +37,7 @@ fn http(host: &str, method: &str, path: &str, token: Option<&str>, body: &str) -
         "{method} {path} HTTP/1.1\r\nHost: panel\r\n{auth}Content-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
         body.len()
     );
-    s.write_all(request.as_bytes()).unwrap();
-    let mut response = String::new();
-    let _ = s.read_to_string(&mut response);
-    let status = response
-        .split_whitespace()
-        .nth(1)
-        .and_then(|c| c.parse().ok())
-        .unwrap_or(0);
-    let body = response
-        .split_once("\r\n\r\n")
-        .map(|(_, b)| b.to_string())
-        .unwrap_or_default();
-    (status, body)
+    support::http_exchange(host, &request)
 }
 
 #[test]

@@ -127,20 +127,7 @@ impl Drop for Served {
 /// The status and body of one request sent whole on a fresh connection.
 fn request(web: SocketAddr, raw: &str) -> (u16, String, Duration) {
     let started = Instant::now();
-    let mut s = TcpStream::connect(web).expect("the panel answers");
-    s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
-    s.write_all(raw.as_bytes()).unwrap();
-    let mut response = String::new();
-    let _ = s.read_to_string(&mut response);
-    let status = response
-        .split_whitespace()
-        .nth(1)
-        .and_then(|c| c.parse().ok())
-        .unwrap_or(0);
-    let body = response
-        .split_once("\r\n\r\n")
-        .map(|(_, b)| b.to_string())
-        .unwrap_or_default();
+    let (status, body) = crate::support::http_exchange(web, raw);
     (status, body, started.elapsed())
 }
 
