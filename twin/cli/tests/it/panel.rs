@@ -122,7 +122,7 @@ fn supervise_panel_moves_the_set_point_and_steps_the_loop() {
     // The step's figures are held to the virtual ones within two poll
     // periods: beside the other tests' live servers on two cores, a
     // settling time once came 40 ms late.
-    let _cores = crate::support::cores_to_myself();
+    let _cores = support::cores_to_myself();
     let base = std::env::temp_dir().join(format!("twin-{}-panel", std::process::id()));
     let (a, b) = (base.with_extension("V0"), base.with_extension("V1"));
     let _vsp = Proc::start(&["vsp", a.to_str().unwrap(), b.to_str().unwrap()]);
