@@ -483,10 +483,7 @@ fn set_changes_an_open_loop_setting() {
 #[test]
 fn names_have_a_sensible_length_and_character_set() {
     let dir = support::folder("run-cli", "names");
-    let scenario = std::fs::read_to_string(
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../recordings/scenarios/ev-meb.toml"),
-    )
-    .unwrap();
+    let scenario = ev_meb_toml();
     let long = "x".repeat(100_000);
     let cases = [
         (
@@ -529,10 +526,7 @@ fn names_have_a_sensible_length_and_character_set() {
 #[test]
 fn a_master_polling_an_id_no_node_has_is_named_in_the_summary() {
     let dir = support::folder("run-cli", "unanswered");
-    let scenario = std::fs::read_to_string(
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../recordings/scenarios/ev-meb.toml"),
-    )
-    .unwrap();
+    let scenario = ev_meb_toml();
     let file = dir.join("two.toml");
     std::fs::write(&file, scenario.replace("slaves = [1]", "slaves = [1, 2]")).unwrap();
     let recording = dir.join("two.mcap");
@@ -584,4 +578,12 @@ fn a_recording_or_a_missing_file_in_place_of_a_scenario_is_named() {
     let said = support::text(&out);
     assert!(!out.status.success());
     assert_eq!(said.matches("(os error 2)").count(), 1, "{said}");
+}
+
+/// The default scenario's file, for tests that run an edited copy of it.
+fn ev_meb_toml() -> String {
+    std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../recordings/scenarios/ev-meb.toml"),
+    )
+    .expect("the default scenario's file")
 }
