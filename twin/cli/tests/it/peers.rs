@@ -52,20 +52,7 @@ impl Serve {
             .spawn()
             .expect("twin serve starts");
         let stdout = child.stdout.take().unwrap();
-        let mut stderr_pipe = child.stderr.take().unwrap();
-        let stderr = Arc::new(Mutex::new(String::new()));
-        let sink = stderr.clone();
-        std::thread::spawn(move || {
-            let mut buf = [0u8; 4096];
-            while let Ok(n) = stderr_pipe.read(&mut buf) {
-                if n == 0 {
-                    break;
-                }
-                sink.lock()
-                    .unwrap()
-                    .push_str(&String::from_utf8_lossy(&buf[..n]));
-            }
-        });
+        let stderr = gather(child.stderr.take().unwrap());
         let (tx, rx) = mpsc::channel();
         let after_ready = Arc::new(Mutex::new(String::new()));
         let kept = after_ready.clone();
@@ -344,4 +331,23 @@ pub fn readable(link: &std::fs::File, wait: Duration) -> bool {
     };
     let mut fds = [PollFd::new(link, PollFlags::IN)];
     poll(&mut fds, Some(&t)).unwrap() > 0
+}
+
+/// Everything `pipe` (a child's standard error) says, gathered on a thread
+/// of its own so that the child never blocks on a full pipe.
+pub fn gather(mut pipe: impl Read + Send + 'static) -> Arc<Mutex<String>> {
+    let said = Arc::new(Mutex::new(String::new()));
+    let sink = said.clone();
+    std::thread::spawn(move || {
+        let mut buf = [0u8; 4096];
+        while let Ok(n) = pipe.read(&mut buf) {
+            if n == 0 {
+                break;
+            }
+            sink.lock()
+                .unwrap()
+                .push_str(&String::from_utf8_lossy(&buf[..n]));
+        }
+    });
+    said
 }
