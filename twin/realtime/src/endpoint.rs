@@ -77,6 +77,8 @@ pub struct NodeEndpoint {
     /// `handle_bytes`), back to back, and their lengths.
     replies: Vec<u8>,
     lengths: VecDeque<usize>,
+    /// Where a node writes a frame, made once: `collect` runs for every byte.
+    scratch: Vec<u8>,
 }
 
 impl NodeEndpoint {
@@ -84,20 +86,20 @@ impl NodeEndpoint {
     pub fn new(devices: Vec<usize>) -> Self {
         NodeEndpoint {
             devices,
+            scratch: vec![0; MAX_FRAME],
             ..Self::default()
         }
     }
 
     /// Takes every frame the nodes have ready, in node order.
     fn collect(&mut self, devices: &mut [Device], now: SimTime) {
-        let mut buf = [0u8; MAX_FRAME];
         for &d in &self.devices {
             let Some(device) = devices.get_mut(d) else {
                 continue;
             };
-            while let Some(n) = device.node.poll_transmit(now, &mut buf) {
-                self.replies
-                    .extend_from_slice(buf.get(..n).unwrap_or_default());
+            while let Some(n) = device.node.poll_transmit(now, &mut self.scratch) {
+                let frame = self.scratch.get(..n).unwrap_or_default();
+                self.replies.extend_from_slice(frame);
                 self.lengths.push_back(n);
             }
         }
