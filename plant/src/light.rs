@@ -63,7 +63,10 @@ const FLICKER_CELL_MAX_S: f64 = 1e-3;
 pub struct LightParams {
     /// Angle the flag covers on the wheel (deg). 30: the lab's paper flag (NOTES.md).
     pub flag_arc_deg: f64,
-    /// Wheel angle at which the flag's middle is in the beam (deg). 180 (argument): a wheel resting at
+    /// Flags on the wheel, evenly spaced, each `flag_arc_deg` wide (1 on the lab's
+    /// wheels; the Controller_network bench's log shows three marks a turn).
+    pub flags: u32,
+    /// Wheel angle at which the (first) flag's middle is in the beam (deg). 180 (argument): a wheel resting at
     /// angle 0 leaves the cell lit, matching the lit state a new sensor starts in.
     pub flag_center_deg: f64,
     /// Illuminance on the cell with the beam clear (lx). 200 (argument): a small lamp a few cm from a
@@ -106,6 +109,7 @@ impl Default for LightParams {
     fn default() -> Self {
         Self {
             flag_arc_deg: 30.0,
+            flags: 1,
             flag_center_deg: 180.0,
             lit_lux: 200.0,
             shaded_lux: 1.0,
@@ -150,6 +154,11 @@ impl LightParams {
             // have been wider. 60° (a 34 mm paper strip on the 65 mm wheel)
             // keeps the signal below 3.0 V for about 60 ms per turn at 100 rpm.
             flag_arc_deg: 60.0,
+            // The bench's log: the light reading steps every 0.205 s while the
+            // motor reads 9850 rpm (the wheel turns in 0.609 s), and it settles
+            // at the motor's value: three marks a turn, which the firmware
+            // divides by.
+            flags: 3,
             divider_fixed_ohm: 39e3,
             adc_bits: 10,
             // Argument: about 1 LSB of the Arduino's 10-bit ADC, referenced to a USB-fed 5 V rail.
@@ -202,6 +211,12 @@ impl LightParams {
             "in 0..=360",
         )?;
         check("flag_center_deg", centre, centre.is_finite(), "finite")?;
+        check(
+            "flags",
+            f64::from(self.flags),
+            self.flags >= 1 && f64::from(self.flags) * arc <= 360.0,
+            "at least 1, and flags x flag_arc_deg at most 360",
+        )?;
         check(
             "flicker_depth",
             depth,
@@ -308,9 +323,12 @@ pub struct LightSensor {
     /// Steady log-conductance with the beam clear / blocked, DC lamp.
     x_lit: f64,
     x_shaded: f64,
-    /// Flag arc (clamped to a full turn) and the wheel angle of its middle, rad.
+    /// Flag arc (clamped to a full turn) and the wheel angle of its middle, rad,
+    /// both measured in "flag angle": the wheel angle times the number of
+    /// flags, in which evenly spaced flags are one flag a turn.
     arc_rad: f64,
     centre_rad: f64,
+    flags: f64,
     /// Lamp light is constant on cells of this length when it flickers (s); 0 for a DC lamp.
     flicker_cell_s: f64,
     /// Present log-conductance, `-ln(R / 1 ohm)`.
@@ -334,8 +352,10 @@ impl LightSensor {
             params: params.clone(),
             x_lit,
             x_shaded: params.steady_log_conductance(params.shaded_lux),
-            arc_rad: params.flag_arc_deg.to_radians().clamp(0.0, TAU),
-            centre_rad: params.flag_center_deg.to_radians(),
+            arc_rad: (params.flag_arc_deg.to_radians() * f64::from(params.flags.max(1)))
+                .clamp(0.0, TAU),
+            centre_rad: params.flag_center_deg.to_radians() * f64::from(params.flags.max(1)),
+            flags: f64::from(params.flags.max(1)),
             flicker_cell_s,
             log_conductance: x_lit,
             flag_in_beam: false,
@@ -347,6 +367,7 @@ impl LightSensor {
     /// Advance from time `t` by `dt` s while the wheel angle moves LINEARLY from `angle_start` to `angle_end`
     /// (radians, unwrapped, either direction; may cover several turns in one step).
     pub fn step(&mut self, t: f64, dt: f64, angle_start: f64, angle_end: f64) {
+        let (angle_start, angle_end) = (angle_start * self.flags, angle_end * self.flags);
         let travel = angle_end - angle_start;
         let has_edges = self.arc_rad > 0.0 && self.arc_rad < TAU;
         if dt > 0.0 && dt.is_finite() {

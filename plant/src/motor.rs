@@ -68,6 +68,25 @@ pub struct MotorParams {
     pub overcurrent_trip_s: f64,
     /// `VEL` volts to duty.
     pub throttle: ThrottleMap,
+    /// What the drive does with the current between its PWM pulses.
+    pub pwm_decay: PwmDecay,
+}
+
+/// What a drive does with the winding current between PWM pulses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum PwmDecay {
+    /// The current recirculates through the low-side switches (an inverter's
+    /// synchronous rectification, a fast PWM): the motor sees duty × bus.
+    #[default]
+    Slow,
+    /// The current decays into the supply and the motor coasts until the
+    /// next pulse. With a PWM period far longer than L/R (the Controller_network
+    /// Nano's 10 ms software PWM against about 0.75 ms) the current falls to
+    /// zero in every period, so each pulse applies the whole bus: the mean
+    /// torque is duty × k·(V − k·ω)/R, and a lightly loaded motor runs close
+    /// to its no-load speed at any duty that overcomes its friction.
+    Fast,
 }
 
 impl Default for MotorParams {
@@ -85,26 +104,35 @@ impl Default for MotorParams {
             // The module's DAC drives the controller's speed input directly:
             // 0–5 V is 0–100 % duty.
             throttle: ThrottleMap(vec![[0.0, 0.0], [5.0, 1.0]]),
+            pwm_decay: PwmDecay::Slow,
         }
     }
 }
 
 impl MotorParams {
     /// The Controller_network bench: a 12 V geared DC motor with a 7-pulse encoder
-    /// (JGB37-520-class: 12 V, ≈ 10 000 rpm at the motor before its 1:100
-    /// gearbox, 2 Ω, stall current ≈ 6 A), driven by a MOSFET H-bridge.
+    /// (JGB37-520 class, ≈ 10 000 rpm at the motor before its 1:100 gearbox),
+    /// driven by an H-bridge whose input the motor Nano switches with a 10 ms
+    /// software PWM: fast decay, see [`PwmDecay::Fast`]. The motor constant,
+    /// resistance and rotor inertia are fitted to the bench's step response
+    /// by `twin calibrate` (`docs/models.md` has the table of where each
+    /// value comes from); the rest is from datasheets or assumed.
     pub fn controller_network() -> Self {
         Self {
-            resistance_ohm: 2.0,
+            // Fitted (datasheet class: 2 Ω).
+            resistance_ohm: 1.58,
             inductance_henry: 1.5e-3,
-            torque_constant: 12.0 / (11_500.0 * std::f64::consts::TAU / 60.0),
+            // Fitted: 12 V at 10 550 rpm (datasheet class: 12 V at ≈ 11 500 rpm).
+            torque_constant: 0.01086,
             pole_pairs: 1,
             encoder_pulses_per_turn: 7,
-            rotor_inertia: 5.0e-7,
+            // Fitted (datasheet class: 5e-7 kg·m²).
+            rotor_inertia: 3.64e-7,
             current_limit_amps: 6.0,
             overcurrent_trip_amps: 8.0,
             overcurrent_trip_s: 0.05,
             throttle: ThrottleMap(vec![[0.0, 0.0], [5.0, 1.0]]),
+            pwm_decay: PwmDecay::Fast,
         }
     }
 }
@@ -143,7 +171,10 @@ pub struct MotorStep {
 #[derive(Debug, Clone)]
 pub struct Motor {
     params: MotorParams,
+    /// The winding current; with fast decay, the current during a pulse.
     current: f64,
+    /// The share of time the current flows: the duty with fast decay, else 1.
+    conducting: f64,
     over_limit_for: f64,
     tripped: bool,
 }
@@ -153,6 +184,7 @@ impl Motor {
         Self {
             params: params.clone(),
             current: 0.0,
+            conducting: 1.0,
             over_limit_for: 0.0,
             tripped: false,
         }
@@ -162,14 +194,19 @@ impl Motor {
         &self.params
     }
 
-    /// Motor current (A, signed: positive drives clockwise).
+    /// Motor current (A, signed: positive drives clockwise), the mean over
+    /// a PWM period.
     pub fn current(&self) -> f64 {
-        self.current
+        self.conducting * self.current
     }
 
-    /// Magnetic energy in the winding inductance (J).
+    /// Magnetic energy in the winding inductance (J). With fast decay it goes
+    /// back to the supply in every PWM period, so none is kept.
     pub fn stored_energy(&self) -> f64 {
-        0.5 * self.params.inductance_henry * self.current * self.current
+        match self.params.pwm_decay {
+            PwmDecay::Slow => 0.5 * self.params.inductance_henry * self.current * self.current,
+            PwmDecay::Fast => 0.0,
+        }
     }
 
     /// Whether the over-current protection holds the gates off.
@@ -192,9 +229,14 @@ impl Motor {
         let gates_on = drive.enabled && !self.tripped;
         // With the gates off the terminals follow the back-EMF through the
         // freewheeling diodes; current flows only if the EMF exceeds the bus.
+        let duty = drive.duty.clamp(0.0, 1.0);
+        let fast = gates_on && p.pwm_decay == PwmDecay::Fast;
+        // With fast decay the winding carries current only during pulses,
+        // each applying the whole bus; what follows is scaled by the duty.
+        self.conducting = if fast { duty } else { 1.0 };
         let requested = if gates_on {
             let sign = if drive.reverse { -1.0 } else { 1.0 };
-            sign * drive.duty.clamp(0.0, 1.0) * bus
+            sign * if fast { bus } else { duty * bus }
         } else {
             emf.clamp(-bus, bus)
         };
@@ -247,9 +289,20 @@ impl Motor {
             self.over_limit_for = 0.0;
         }
 
-        let electrical_energy = v_int_i;
-        let copper_loss = r * i_sq_int;
-        let magnetic_change = 0.5 * l * (i1 * i1 - i0 * i0);
+        let share = self.conducting;
+        let magnetic_change = share * 0.5 * l * (i1 * i1 - i0 * i0);
+        let copper_loss = share * r * i_sq_int;
+        // With fast decay the pulses' magnetic energy goes back to the supply.
+        let electrical_energy = if fast {
+            share * v_int_i - magnetic_change
+        } else {
+            v_int_i
+        };
+        let (i_int, magnetic_change) = if fast {
+            (share * i_int, 0.0)
+        } else {
+            (i_int, magnetic_change)
+        };
         MotorStep {
             mean_current: i_int / h,
             bus_current: if bus > 0.0 {

@@ -72,9 +72,10 @@ impl WheelParams {
         Self {
             radius_m: 0.0325,
             mass_kg: 0.05,
-            // Gearbox and bearing drag referred to the output shaft: the
-            // no-load current of a JGB37-520 (≈ 0.12 A) times k times N.
-            coulomb_friction_nm: 0.1,
+            // Gearbox and bearing drag referred to the output shaft, fitted
+            // to the bench's step response (the datasheet's no-load current
+            // of a JGB37-520, ≈ 0.12 A, times k times N gives 0.1).
+            coulomb_friction_nm: 0.0565,
             viscous_friction_nms: 1.0e-3,
             brake_torque_nm: 5.0,
             step_s: 0.002,

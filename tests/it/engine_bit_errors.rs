@@ -540,8 +540,16 @@ fn controller_network_network_uses_no_corrupted_value_and_still_settles() {
     assert_eq!(run.master["phase"], "running");
     assert!(phases.len() >= 3, "{phases:?}");
     for (set_point, mean) in phases {
+        // At 5000 rpm the whole-percent duty swings the motor between 1 %
+        // and 2 % (about 3400 and 7000 rpm), as on the bench: the project's
+        // printout reads 3857 to 8142 rpm there.
+        let tolerance = if set_point < 6_000.0 {
+            1_000.0
+        } else {
+            RPM_STEP
+        };
         assert!(
-            (mean - set_point).abs() < RPM_STEP,
+            (mean - set_point).abs() < tolerance,
             "{mean} rpm for {set_point}"
         );
     }

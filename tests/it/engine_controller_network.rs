@@ -244,8 +244,10 @@ fn motor_readings_alternate_between_neighbouring_steps_and_track_the_true_speed(
 
 /// The light sensor's rpm as `docs/protocols/modbus8.md` defines it, replayed from the
 /// photoresistor counts the plant showed at each of the node's 20 ms samples.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 struct LightModel {
+    /// Marks on the wheel (the preset's `light.flags`): rpm = 60000 / (marks × Δt).
+    marks: f64,
     dark: bool,
     last_edge_ms: Option<u64>,
     timeout_from_ms: u64,
@@ -257,6 +259,22 @@ struct LightModel {
 }
 
 impl LightModel {
+    /// At reset, as the firmware's `lastRoundTime = 0`: a first edge within
+    /// 5 s is timed from reset.
+    fn new(marks: u32) -> Self {
+        LightModel {
+            marks: f64::from(marks),
+            dark: false,
+            last_edge_ms: Some(0),
+            timeout_from_ms: 0,
+            rpm: 0.0,
+            raw_rpm: 0.0,
+            ring: [0.0; 5],
+            ring_filled: 0,
+            ring_next: 0,
+        }
+    }
+
     fn sample(&mut self, now_ms: u64, ldr_counts: u16) {
         // 10-bit ADC on a 5 V reference; below 3.0 V is dark.
         let dark = f64::from(ldr_counts) * 5.0 / 1023.0 < 3.0;
@@ -264,7 +282,7 @@ impl LightModel {
             if let Some(last) = self.last_edge_ms {
                 let interval = now_ms - last;
                 assert_eq!(interval % 20, 0, "edges fall on the 20 ms grid");
-                self.raw_rpm = 60_000.0 / interval as f64;
+                self.raw_rpm = 60_000.0 / (self.marks * interval as f64);
                 self.rpm = self.raw_rpm;
             }
             self.last_edge_ms = Some(now_ms);
@@ -298,7 +316,7 @@ fn light_register_holds_the_smoothed_rpm_times_100() {
     // The node samples at 0, 20, 40 … ms; the plant is recorded every 5 ms
     // on the same instants, after the firmware's tick.
     let sample_period = SimDuration::from_millis(20);
-    let mut model = LightModel::default();
+    let mut model = LightModel::new(plant::PlantParams::controller_network().light.flags);
     // After each sample: when, the register, and the true wheel speed.
     let mut registers: Vec<(SimTime, u16, f64)> = Vec::new();
     for (t, sensors) in &capture.plant {

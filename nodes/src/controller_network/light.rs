@@ -26,6 +26,8 @@ pub struct LightConfig {
     pub adc_reference_volts: f64,
     /// No edge for this long: rpm is 0 and timing restarts.
     pub edge_timeout: SimDuration,
+    /// Marks on the wheel: a turn is this many edges, so rpm = 60000 / (marks × Δt).
+    pub marks_per_turn: u32,
 }
 
 impl Default for LightConfig {
@@ -37,6 +39,17 @@ impl Default for LightConfig {
             adc_full_scale: 1023,
             adc_reference_volts: 5.0,
             edge_timeout: SimDuration::from_secs(5),
+            marks_per_turn: 1,
+        }
+    }
+}
+
+impl LightConfig {
+    /// The project's firmware, written for the marks the wheel of `light` carries.
+    pub fn for_sensor(light: &plant::light::LightParams) -> Self {
+        LightConfig {
+            marks_per_turn: light.flags.max(1),
+            ..LightConfig::default()
         }
     }
 }
@@ -71,8 +84,9 @@ pub struct LightNode {
     port: SlavePort,
     registers: LightRegisters,
     dark: bool,
-    /// `millis()` of the last light→dark edge; `None` after a timeout (and at
-    /// boot): the next edge only restarts timing.
+    /// `millis()` of the last light→dark edge; `None` after a timeout: the
+    /// next edge only restarts timing. At boot it is 0, as the firmware's
+    /// `lastRoundTime` starts: a first edge within 5 s is timed from reset.
     last_edge_ms: Option<u64>,
     /// When timing (re)started or the last edge came: the 5 s timeout runs from here.
     timeout_from_ms: u64,
@@ -92,7 +106,7 @@ impl LightNode {
             port: SlavePort::new(LIGHT_ID, config.port),
             registers: LightRegisters { rpm: 0.0 },
             dark: false,
-            last_edge_ms: None,
+            last_edge_ms: Some(0),
             timeout_from_ms: 0,
             raw_rpm: 0.0,
             last_interval_ms: None,
@@ -145,7 +159,8 @@ impl LightNode {
             if let Some(last) = self.last_edge_ms {
                 let interval = now_ms.saturating_sub(last);
                 if interval > 0 {
-                    self.raw_rpm = 60_000.0 / interval as f64;
+                    let marks = f64::from(self.config.marks_per_turn.max(1));
+                    self.raw_rpm = 60_000.0 / (marks * interval as f64);
                     self.registers.rpm = self.raw_rpm;
                     self.last_interval_ms = Some(interval);
                 }

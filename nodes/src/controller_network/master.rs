@@ -1,7 +1,9 @@
 //! The Raspberry Pi master of the Controller_network project: a state
 //! handshake with the motor, then a loop reading the motor's rpm and the light
 //! sensor, toggling the set point between 5000 and 10000 every 20th cycle,
-//! printing what it does.
+//! printing what it does. Its step-response program is the other program the
+//! project ran on the Pi: no handshake, and a loop that reads both nodes and
+//! writes the motor's state to operational, so that its first write is the step.
 
 use std::collections::VecDeque;
 
@@ -18,9 +20,37 @@ use super::{
 /// Events kept for the engine to take; older ones are dropped beyond this.
 const EVENT_QUEUE: usize = 64;
 
+/// Which of the project's two Pi programs runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum MasterProgram {
+    /// `main.cpp`: the handshake, then read rpm, toggle the set point every
+    /// `toggle_every` cycles, read the sensor, sleep.
+    #[default]
+    Loop,
+    /// `main_step_response.cpp`: from the start, read rpm, read the sensor,
+    /// write the state operational, again and again with no sleep. It never
+    /// writes the set point, so the motor's power-up target is the step.
+    StepResponse,
+}
+
+impl MasterProgram {
+    /// The program in the lab's words.
+    pub fn name(self) -> &'static str {
+        match self {
+            MasterProgram::Loop => "loop",
+            MasterProgram::StepResponse => "step-response",
+        }
+    }
+}
+
 /// Settings of the master; the defaults are the project's program.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MasterConfig {
+    /// Which program runs.
+    pub program: MasterProgram,
+    /// The program starts (sends its first request) at this time: the Pi
+    /// started after the Nanos had booted.
+    pub start: SimDuration,
     /// CRC byte order (the project's own: high byte first).
     pub crc_order: CrcOrder,
     /// Line quiet that ends a partial reply.
@@ -47,6 +77,8 @@ pub struct MasterConfig {
 impl Default for MasterConfig {
     fn default() -> Self {
         MasterConfig {
+            program: MasterProgram::Loop,
+            start: SimDuration::ZERO,
             crc_order: CrcOrder::HighFirst,
             silence: crate::proto::modbus::serial::silence_3_5_chars(BAUD, 10),
             reply_wait: SimDuration::from_millis(100),
@@ -57,6 +89,19 @@ impl Default for MasterConfig {
             set_point_high: 10_000,
             log: true,
             corrupt_request_crc: false,
+        }
+    }
+}
+
+impl MasterConfig {
+    /// The step-response program as the project built it: it reads each
+    /// reply 10 ms after its request (`usleep(10000)`), where the loop waits 100 ms.
+    pub fn step_response() -> Self {
+        MasterConfig {
+            program: MasterProgram::StepResponse,
+            reply_wait: SimDuration::from_millis(10),
+            cycle_sleep: SimDuration::ZERO,
+            ..MasterConfig::default()
         }
     }
 }
@@ -138,14 +183,18 @@ pub struct ControllerNetworkMaster {
 }
 
 impl ControllerNetworkMaster {
-    /// A master about to start its handshake at time zero.
+    /// A master about to start its program at `config.start`.
     pub fn new(config: MasterConfig) -> Self {
+        let (phase, step) = match config.program {
+            MasterProgram::Loop => (MasterPhase::Handshake, Step::ReadState),
+            MasterProgram::StepResponse => (MasterPhase::Running, Step::ReadRpm),
+        };
         ControllerNetworkMaster {
             config,
             decoder: Modbus8Decoder::new(config.crc_order, config.silence),
-            phase: MasterPhase::Handshake,
-            step: Step::ReadState,
-            wait: Wait::Send(SimTime::ZERO),
+            phase,
+            step,
+            wait: Wait::Send(SimTime::ZERO + config.start),
             reply: None,
             cycle: 0,
             set_point: config.set_point_high,
@@ -313,6 +362,10 @@ impl ControllerNetworkMaster {
 
     /// The next step after the current one, given the value it got (if usable).
     fn advance(&mut self, now: SimTime, value: Option<u16>) {
+        if self.config.program == MasterProgram::StepResponse {
+            self.advance_step_response(now, value);
+            return;
+        }
         let next = match (self.step, value) {
             (Step::ReadState, Some(state)) => {
                 self.motor_state = Some(state);
@@ -367,6 +420,32 @@ impl ControllerNetworkMaster {
     fn start_cycle(&mut self) -> Step {
         self.cycle += 1;
         Step::ReadRpm
+    }
+
+    /// The step-response program: rpm, sensor, state operational, at once
+    /// one after the other (its only pause is the wait for each reply).
+    fn advance_step_response(&mut self, now: SimTime, value: Option<u16>) {
+        self.step = match (self.step, value) {
+            (Step::ReadRpm, v) => {
+                if let Some(v) = v {
+                    self.motor_rpm = Some(v as i16);
+                }
+                Step::ReadSensor
+            }
+            (Step::ReadSensor, v) => {
+                if let Some(v) = v {
+                    self.sensor_value = Some(v);
+                }
+                Step::WriteState(MotorState::Operational.code())
+            }
+            (_, v) => {
+                if let Some(v) = v {
+                    self.motor_state = Some(v);
+                }
+                self.start_cycle()
+            }
+        };
+        self.wait = Wait::Send(now);
     }
 }
 

@@ -11,7 +11,7 @@ mod master;
 mod motor;
 
 pub use light::{LightConfig, LightNode};
-pub use master::{ControllerNetworkMaster, MasterConfig, MasterPhase};
+pub use master::{ControllerNetworkMaster, MasterConfig, MasterPhase, MasterProgram};
 pub use motor::{MotorConfig, MotorNode, MotorState};
 
 use std::collections::VecDeque;

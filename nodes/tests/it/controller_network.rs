@@ -471,7 +471,11 @@ fn set_point_toggles_every_20th_cycle_and_the_motor_and_wheel_follow() {
     assert_eq!(bench.master.set_point(), 5_000);
     let mean = late.iter().sum::<f64>() / late.len() as f64;
     eprintln!("motor mean {mean:.1} rpm at set point 5000");
-    assert!((mean - 5_000.0).abs() < 250.0, "{mean}");
+    // The whole-percent duty and the driver's fast decay leave 5000 rpm
+    // between 1 % (about 3400 rpm) and 2 % (about 7000 rpm): the PI swings
+    // between them, as on the bench, whose printout at this set point reads
+    // 3857 to 8142 rpm, 4940 on average (the project's printOut.txt).
+    assert!((mean - 5_000.0).abs() < 1_000.0, "{mean}");
     // At ≈ 50 wheel rpm the shadow spans several samples: every turn is
     // timed, raw = 60000 / dt within one 20 ms sample of the true period.
     // The smoothed value lags a turn behind, so the window starts once the
@@ -489,22 +493,22 @@ fn set_point_toggles_every_20th_cycle_and_the_motor_and_wheel_follow() {
     };
     let turns = steady.check();
     assert!(turns.len() >= 5, "{turns:?}");
-    // The five-sample blend pulls each new reading towards the previous ones,
-    // so after the step from ≈ 100 rpm the smoothed value closes in on the
-    // wheel's speed turn by turn and ends within 2 % of it.
-    let mut last_error = f64::INFINITY;
-    for (&(k, true_rpm), &smoothed) in turns.iter().zip(&steady.smoothed[1..]) {
+    // At 5000 rpm the PI swings the duty between 1 % and 2 % (see above), so
+    // the wheel speeds up and slows down from turn to turn; the five-sample
+    // blend follows it: every turn is timed, and on average the smoothed
+    // value is the wheel's speed.
+    for &(k, _) in &turns {
         assert_eq!(k, 1, "every turn timed");
-        let error = (smoothed - true_rpm).abs() / true_rpm;
-        assert!(
-            error <= last_error + 0.005,
-            "smoothed {smoothed} wheel {true_rpm}: error grows"
-        );
-        last_error = error;
     }
+    let mean = |v: &mut dyn Iterator<Item = f64>| {
+        let v: Vec<f64> = v.collect();
+        v.iter().sum::<f64>() / v.len() as f64
+    };
+    let wheel = mean(&mut turns.iter().map(|t| t.1));
+    let smoothed = mean(&mut steady.smoothed[1..=turns.len()].iter().copied());
     assert!(
-        last_error < 0.02,
-        "smoothed ends {last_error:.3} away from the wheel speed"
+        (smoothed - wheel).abs() / wheel < 0.05,
+        "smoothed {smoothed:.1} against the wheel's {wheel:.1} on average"
     );
     check_sensor_replies(&bench);
 }

@@ -41,6 +41,7 @@ enum Command {
     Baseline(commands::baseline::BaselineArgs),
     Batch(commands::batch::BatchArgs),
     Step(commands::step::StepArgs),
+    Calibrate(commands::calibrate::CalibrateArgs),
     Sweep(commands::sweep::SweepArgs),
     Experiment(commands::experiment::ExperimentArgs),
     Bench(commands::bench::BenchArgs),
@@ -61,6 +62,7 @@ impl Command {
                 | Command::Baseline(_)
                 | Command::Batch(_)
                 | Command::Step(_)
+                | Command::Calibrate(_)
                 | Command::Sweep(_)
                 | Command::Experiment(_)
                 | Command::Bench(_)
@@ -113,6 +115,7 @@ fn main() -> ExitCode {
         Command::Baseline(args) => commands::baseline::execute(&args),
         Command::Batch(args) => commands::batch::execute(&args),
         Command::Step(args) => commands::step::execute(&args),
+        Command::Calibrate(args) => commands::calibrate::execute(&args),
         Command::Sweep(args) => commands::sweep::execute(&args),
         Command::Experiment(args) => commands::experiment::execute(&args),
         Command::Bench(args) => commands::bench::execute(&args),

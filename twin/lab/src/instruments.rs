@@ -74,7 +74,7 @@ fn instruments(params: &PlantParams, preset: &str, adaptive: bool) -> Vec<Box<dy
                 CheckKind::Modbus8,
             )),
             Box::new(FaultyNode::new(
-                LightNode::new(LightConfig::default()),
+                LightNode::new(LightConfig::for_sensor(&params.light)),
                 CheckKind::Modbus8,
             )),
         ]

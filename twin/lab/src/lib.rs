@@ -11,6 +11,7 @@
 
 pub mod batch;
 pub mod bench;
+pub mod calibrate;
 pub mod instruments;
 pub mod parallel;
 pub mod plot;

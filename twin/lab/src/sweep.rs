@@ -68,6 +68,9 @@ pub struct SweepReport {
 
 /// `VEL` (fraction of 5 V) for a steady wheel speed: the DC motor's steady
 /// state against the wheel's Coulomb and viscous friction, at `bus_volts`.
+/// With fast decay each pulse applies the whole bus, so the duty scales the
+/// torque, not the voltage; a speed beyond the no-load speed needs more than
+/// the whole range (the result is above 1).
 pub fn vel_for_rpm(p: &PlantParams, rpm: f64, bus_volts: f64) -> f64 {
     let omega = rpm * std::f64::consts::TAU / 60.0;
     let (k, r, n) = (
@@ -76,7 +79,17 @@ pub fn vel_for_rpm(p: &PlantParams, rpm: f64, bus_volts: f64) -> f64 {
         p.gearbox.ratio,
     );
     let torque = p.wheel.coulomb_friction_nm + p.wheel.viscous_friction_nms * omega;
-    (k * n * omega + r * torque / (k * n)) / bus_volts
+    match p.motor.pwm_decay {
+        plant::motor::PwmDecay::Slow => (k * n * omega + r * torque / (k * n)) / bus_volts,
+        plant::motor::PwmDecay::Fast => {
+            let headroom = bus_volts - k * n * omega;
+            if headroom > 0.0 {
+                r * torque / (k * n * headroom)
+            } else {
+                f64::INFINITY
+            }
+        }
+    }
 }
 
 /// Run the sweep; `progress` gets the fraction done. Each run is recorded in

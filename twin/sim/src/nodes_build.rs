@@ -18,7 +18,8 @@ use serde_json::{Value, json};
 
 use crate::engine::{SimNode, SpeedReadings};
 use crate::scenario::{
-    BusSpec, FaultKind, FaultSpec, LightDetectorSpec, NodeSpec, ProtocolSpec, WiringSpec,
+    BusSpec, FaultKind, FaultSpec, LightDetectorSpec, MasterProgramSpec, NodeSpec, ProtocolSpec,
+    WiringSpec,
 };
 use twin_recording::topics::{LoopReport, MebWords, ReadingsSample, SlaveLoop, SupervisorReport};
 
@@ -171,16 +172,26 @@ pub fn build_node(
             Ok((Box::new(node), ms(*turnaround_ms)))
         }
         NodeSpec::LightNode { turnaround_ms, .. } => {
-            let light = LightNode::new(LightConfig::default());
+            let config =
+                module.map_or_else(LightConfig::default, |p| LightConfig::for_sensor(&p.light));
+            let light = LightNode::new(config);
             let node = FaultyNode::with_schedule(light, CheckKind::Modbus8, windows);
             Ok((Box::new(node), ms(*turnaround_ms)))
         }
         NodeSpec::ControllerNetworkMaster {
-            reply_timeout_ms, ..
+            reply_timeout_ms,
+            program,
+            start_s,
+            ..
         } => {
+            let base = match program {
+                MasterProgramSpec::Loop => MasterConfig::default(),
+                MasterProgramSpec::StepResponse => MasterConfig::step_response(),
+            };
             let config = MasterConfig {
                 reply_timeout: reply_timeout_ms.map(ms),
-                ..MasterConfig::default()
+                start: SimDuration::from_secs_f64(*start_s),
+                ..base
             };
             let node = FaultyNode::with_schedule(
                 ControllerNetworkMaster::new(config),

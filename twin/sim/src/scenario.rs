@@ -125,6 +125,17 @@ fn default_preset() -> String {
     "vemodule".into()
 }
 
+/// Which Pi program a `controller-network-master` runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum MasterProgramSpec {
+    /// The handshake, then the loop that toggles the set point.
+    #[default]
+    Loop,
+    /// The step-response program: reads both nodes and writes operational.
+    StepResponse,
+}
+
 /// How a bus is wired.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -268,6 +279,13 @@ pub enum NodeSpec {
         /// Reply timeout (ms); the original has none and hangs on a lost reply.
         #[serde(default)]
         reply_timeout_ms: Option<f64>,
+        /// Which of the project's Pi programs runs: `loop` (its `main.cpp`)
+        /// or `step-response` (its step-response program).
+        #[serde(default)]
+        program: MasterProgramSpec,
+        /// When the program starts (s): the Pi starts after the Nanos have booted.
+        #[serde(default)]
+        start_s: f64,
     },
     /// The master of parallel modules: closes the speed loop on its own
     /// module's wheel and sends the resulting VEL to the slave modules.

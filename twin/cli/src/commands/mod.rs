@@ -3,6 +3,7 @@
 pub mod baseline;
 pub mod batch;
 pub mod bench;
+pub mod calibrate;
 pub mod client;
 pub mod compare;
 pub mod completions;

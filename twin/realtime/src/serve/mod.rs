@@ -322,7 +322,7 @@ fn build_devices(
             .find(|(p, _)| *p == ServeProtocol::Modbus8)
             .map(|(_, spec)| spec.silence());
         let mut motor = MotorConfig::default();
-        let mut light = LightConfig::default();
+        let mut light = LightConfig::for_sensor(&params.light);
         if let Some(silence) = silence {
             motor.port.silence = silence;
             light.port.silence = silence;

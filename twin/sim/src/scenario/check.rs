@@ -47,6 +47,7 @@ const GAP_MS: Range = range(0.0, 60_000.0, true, "a minute at most");
 const DELAY_MS: Range = range(0.0, 60_000.0, true, "a minute at most");
 const GAIN: Range = range(-1e6, 1e6, true, "a PI gain");
 const RPM: Range = range(-100_000.0, 100_000.0, true, "far beyond any bench motor");
+const START_S: Range = range(0.0, MAX_DURATION_S, true, "within the run");
 const RETRIES: u32 = 100;
 
 impl Range {
@@ -162,11 +163,14 @@ fn node(n: &NodeSpec) -> Result<(), Fault> {
             check_set_points(name, set_points)?;
         }
         NodeSpec::ControllerNetworkMaster {
-            reply_timeout_ms, ..
+            reply_timeout_ms,
+            start_s,
+            ..
         } => {
             if let Some(t) = reply_timeout_ms {
                 at("reply_timeout_ms", &PERIOD_MS, *t)?;
             }
+            at("start_s", &START_S, *start_s)?;
         }
         NodeSpec::ParallelMaster {
             update_period_ms,

@@ -1,0 +1,300 @@
+//! The fit: Nelder–Mead (argmin) on the bounded parameters, mapped to an
+//! unbounded space, minimising the weighted squared difference between what
+//! the bench's master read and what the twin's master reads.
+//!
+//! Why Nelder–Mead: what a master reads is quantised (the motor node's
+//! 428.57-rpm steps, its 20 ms windows, the light node's 20 ms grid), so the
+//! objective is a staircase in every parameter: a finite-difference gradient
+//! is zero or huge, and gradient and Gauss–Newton methods stall on it. A
+//! simplex method compares costs only. Two simplexes start from different
+//! points, one per core, and the better end wins.
+
+use anyhow::{Result, bail};
+use argmin::core::{CostFunction, Executor, State, TerminationReason, TerminationStatus};
+use argmin::solver::neldermead::NelderMead;
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use super::apply;
+use super::job::{Job, Parameter};
+use super::twin_run::{self, TwinReads};
+
+/// A bounded parameter seen through an unbounded coordinate `u`: a logistic
+/// curve between the bounds, on a log scale where both bounds are positive
+/// (inertias and resistances span decades). Bounds hold by construction.
+fn to_value(p: &Parameter, u: f64) -> f64 {
+    let s = 1.0 / (1.0 + (-u).exp());
+    if p.min > 0.0 {
+        (p.min.ln() + s * (p.max.ln() - p.min.ln()))
+            .exp()
+            .clamp(p.min, p.max)
+    } else {
+        (p.min + s * (p.max - p.min)).clamp(p.min, p.max)
+    }
+}
+
+fn to_coordinate(p: &Parameter, v: f64) -> f64 {
+    let s = if p.min > 0.0 {
+        (v.ln() - p.min.ln()) / (p.max.ln() - p.min.ln())
+    } else {
+        (v - p.min) / (p.max - p.min)
+    };
+    let s = s.clamp(1e-6, 1.0 - 1e-6);
+    (s / (1.0 - s)).ln()
+}
+
+/// The twin's curve as the bench's plot draws one: the master's samples
+/// joined by straight lines.
+pub fn curve_at(samples: &[(f64, f64)], t: f64) -> f64 {
+    let i = samples.partition_point(|p| p.0 <= t);
+    match (
+        i.checked_sub(1).and_then(|j| samples.get(j)),
+        samples.get(i),
+    ) {
+        (Some(a), Some(b)) => a.1 + (b.1 - a.1) * (t - a.0) / (b.0 - a.0),
+        (Some(a), None) => a.1,
+        (None, Some(b)) => b.1,
+        (None, None) => 0.0,
+    }
+}
+
+/// The experiment with trial values, and how it compares with the log.
+#[derive(Debug)]
+pub struct Model<'a> {
+    pub job: &'a Job,
+    paths: Vec<String>,
+    /// Per signal: the spread of its measured values in the fit window, so
+    /// that signals in different units weigh alike.
+    scales: Vec<f64>,
+    evaluations: AtomicU64,
+    failures: AtomicU64,
+}
+
+impl<'a> Model<'a> {
+    pub fn new(job: &'a Job) -> Result<Self> {
+        let (a, b) = job.fit_window;
+        let mut scales = Vec::new();
+        for s in &job.signals {
+            let v: Vec<f64> = s
+                .samples
+                .iter()
+                .filter(|p| p.0 >= a && p.0 <= b)
+                .map(|p| p.1)
+                .collect();
+            if v.len() < 2 {
+                bail!(
+                    "column `{}` has fewer than two values in the fit window [{a}, {b}] s",
+                    s.column
+                );
+            }
+            let mean = v.iter().sum::<f64>() / v.len() as f64;
+            let sd = (v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / v.len() as f64).sqrt();
+            if sd == 0.0 {
+                bail!(
+                    "column `{}` is constant in the fit window: nothing to identify from it",
+                    s.column
+                );
+            }
+            scales.push(sd);
+        }
+        Ok(Model {
+            job,
+            paths: job.parameters.iter().map(|p| p.path.clone()).collect(),
+            scales,
+            evaluations: AtomicU64::new(0),
+            failures: AtomicU64::new(0),
+        })
+    }
+
+    /// Simulations run so far.
+    pub fn evaluations(&self) -> u64 {
+        self.evaluations.load(Ordering::Relaxed)
+    }
+
+    /// The experiment with `values` (in the order of the job's parameters).
+    pub fn simulate(&self, values: &[f64]) -> Result<TwinReads> {
+        self.evaluations.fetch_add(1, Ordering::Relaxed);
+        let scenario = apply::with_values(&self.job.scenario, &self.paths, values);
+        twin_run::run(&scenario, self.job.end_s() + 0.1, self.job.step_at_s)
+    }
+
+    /// Weighted, scaled residuals of `reads` in `window` (every signal's
+    /// measured rows there, in order).
+    pub fn residuals(&self, reads: &TwinReads, window: (f64, f64)) -> Vec<f64> {
+        let mut out = Vec::new();
+        for (s, scale) in self.job.signals.iter().zip(&self.scales) {
+            let twin = reads.of(s.twin);
+            let w = s.weight.sqrt() / scale;
+            for &(t, y) in s
+                .samples
+                .iter()
+                .filter(|p| p.0 >= window.0 && p.0 <= window.1)
+            {
+                out.push((curve_at(twin, t) - y) * w);
+            }
+        }
+        out
+    }
+
+    /// The cost of `values`: the sum of squared residuals in the fit window.
+    pub fn cost_of(&self, values: &[f64]) -> Result<f64> {
+        let reads = self.simulate(values)?;
+        Ok(self
+            .residuals(&reads, self.job.fit_window)
+            .iter()
+            .map(|r| r * r)
+            .sum())
+    }
+}
+
+/// The optimiser's view: unbounded coordinates.
+struct Problem<'m, 'a> {
+    model: &'m Model<'a>,
+    progress: &'m (dyn Fn(u64) + Sync),
+}
+
+/// A cost for values the plant refuses (a simulation that fails): worse
+/// than any real fit, finite so that the simplex arithmetic stays finite.
+const REFUSED: f64 = 1e30;
+
+impl CostFunction for Problem<'_, '_> {
+    type Param = Vec<f64>;
+    type Output = f64;
+
+    fn cost(&self, u: &Vec<f64>) -> std::result::Result<f64, argmin::core::Error> {
+        let values: Vec<f64> = self
+            .model
+            .job
+            .parameters
+            .iter()
+            .zip(u)
+            .map(|(p, &u)| to_value(p, u))
+            .collect();
+        let cost = match self.model.cost_of(&values) {
+            Ok(c) if c.is_finite() => c,
+            _ => {
+                self.model.failures.fetch_add(1, Ordering::Relaxed);
+                REFUSED
+            }
+        };
+        (self.progress)(self.model.evaluations());
+        Ok(cost)
+    }
+}
+
+/// How one simplex ended.
+#[derive(Debug, Clone)]
+pub struct Search {
+    pub values: Vec<f64>,
+    pub cost: f64,
+    pub iterations: u64,
+    /// Why it stopped, in words.
+    pub stopped: String,
+    pub converged: bool,
+}
+
+/// One Nelder–Mead search from `start` (values).
+fn search(
+    model: &Model<'_>,
+    start: &[f64],
+    max_iterations: u64,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Result<Search> {
+    let params = &model.job.parameters;
+    let u0: Vec<f64> = params
+        .iter()
+        .zip(start)
+        .map(|(p, &v)| to_coordinate(p, v))
+        .collect();
+    let mut simplex = vec![u0.clone()];
+    for i in 0..u0.len() {
+        let mut u = u0.clone();
+        // A step of about a fifth of the bounds' span around the middle.
+        u[i] += if u[i] > 0.0 { -0.8 } else { 0.8 };
+        simplex.push(u);
+    }
+    let solver = NelderMead::new(simplex)
+        .with_sd_tolerance(1e-6)
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let problem = Problem { model, progress };
+    let result = Executor::new(problem, solver)
+        .configure(|state| state.max_iters(max_iterations))
+        .timer(false)
+        .run()
+        .map_err(|e| anyhow::anyhow!("the optimiser failed: {e}"))?;
+    let state = result.state();
+    let Some(best) = state.get_best_param() else {
+        bail!("the optimiser found no parameters at all");
+    };
+    let values: Vec<f64> = params
+        .iter()
+        .zip(best)
+        .map(|(p, &u)| to_value(p, u))
+        .collect();
+    let (stopped, converged) = match state.get_termination_status() {
+        TerminationStatus::Terminated(TerminationReason::SolverConverged) => (
+            "converged: the simplex's costs agree to 1e-6".to_string(),
+            true,
+        ),
+        TerminationStatus::Terminated(TerminationReason::MaxItersReached) => (
+            format!(
+                "stopped after {max_iterations} iterations, the most allowed, before converging"
+            ),
+            false,
+        ),
+        TerminationStatus::Terminated(other) => (other.text().to_string(), false),
+        TerminationStatus::NotTerminated => ("did not finish".to_string(), false),
+    };
+    Ok(Search {
+        values,
+        cost: state.get_best_cost(),
+        iterations: state.get_iter(),
+        stopped,
+        converged,
+    })
+}
+
+/// The fit: two searches in parallel, from the job's start and from the
+/// middle of the bounds, the better one kept.
+pub fn fit(
+    model: &Model<'_>,
+    max_iterations: u64,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Result<Search> {
+    let params = &model.job.parameters;
+    let start: Vec<f64> = params.iter().map(|p| p.start).collect();
+    if model.cost_of(&start).is_err() {
+        // Say why the start itself cannot run, in the simulation's own words.
+        model.cost_of(&start)?;
+    }
+    let middle: Vec<f64> = params.iter().map(|p| to_value(p, 0.0)).collect();
+    let found: Mutex<Vec<Result<Search>>> = Mutex::new(Vec::new());
+    std::thread::scope(|scope| {
+        for from in [&start, &middle] {
+            let found = &found;
+            scope.spawn(move || {
+                let s = search(model, from, max_iterations, progress);
+                found.lock().unwrap_or_else(|e| e.into_inner()).push(s);
+            });
+        }
+    });
+    let mut best: Option<Search> = None;
+    for s in found.into_inner().unwrap_or_else(|e| e.into_inner()) {
+        let s = s?;
+        if best.as_ref().is_none_or(|b| s.cost < b.cost) {
+            best = Some(s);
+        }
+    }
+    let Some(best) = best else {
+        bail!("no search finished");
+    };
+    if best.cost >= REFUSED {
+        bail!("the plant refused every trial: no parameters in the bounds give a run");
+    }
+    Ok(best)
+}
+
+/// Simulations that failed during the fit.
+pub fn failures(model: &Model<'_>) -> u64 {
+    model.failures.load(Ordering::Relaxed)
+}

@@ -1,0 +1,323 @@
+//! A calibration job: the measured log (a CSV file), what its columns are,
+//! the scenario that ran the experiment, and the parameters to fit. Every
+//! mistake in it is reported with the file, line and column or field.
+
+use anyhow::{Context, Result, bail};
+use serde::Deserialize;
+use std::path::{Path, PathBuf};
+use twin_sim::scenario::Scenario;
+
+use super::signal::{TwinSignal, Unit};
+
+/// The job file as written.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct JobFile {
+    /// The CSV file, relative to the job file.
+    log: String,
+    /// Scenario file (relative to the job file) or embedded scenario name.
+    scenario: String,
+    #[serde(default = "default_time_column")]
+    time_column: String,
+    #[serde(default = "default_time_unit")]
+    time_unit: String,
+    step: StepFile,
+    #[serde(rename = "signal")]
+    signals: Vec<SignalFile>,
+    #[serde(rename = "fit")]
+    parameters: Vec<ParameterFile>,
+    /// `[from, to]` (s): the part of the log the fit uses.
+    fit_window_s: Option<[f64; 2]>,
+    /// `[from, to]` (s): a part left out of the fit, to check it on.
+    check_window_s: Option<[f64; 2]>,
+}
+
+fn default_time_column() -> String {
+    "time_s".into()
+}
+fn default_time_unit() -> String {
+    "s".into()
+}
+
+/// The command: a step of the set point.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct StepFile {
+    at_s: f64,
+    from: f64,
+    to: f64,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SignalFile {
+    column: String,
+    unit: String,
+    twin: String,
+    /// `skip`: an empty cell is a row where the signal was not measured
+    /// (a curve read off a plot); otherwise an empty cell is an error.
+    #[serde(default)]
+    empty: Option<String>,
+    #[serde(default = "one")]
+    weight: f64,
+}
+
+fn one() -> f64 {
+    1.0
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ParameterFile {
+    path: String,
+    min: f64,
+    max: f64,
+    start: f64,
+}
+
+/// One measured signal: its samples in the twin's unit.
+#[derive(Debug, Clone)]
+pub struct Measured {
+    pub column: String,
+    pub twin: TwinSignal,
+    pub unit: Unit,
+    pub weight: f64,
+    /// `(time s, value in the twin's unit)`.
+    pub samples: Vec<(f64, f64)>,
+}
+
+/// One parameter to fit.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Parameter {
+    /// Its path in a plant parameter file (`motor.rotor_inertia`).
+    pub path: String,
+    pub min: f64,
+    pub max: f64,
+    pub start: f64,
+}
+
+/// A calibration job, checked.
+#[derive(Debug, Clone)]
+pub struct Job {
+    pub path: PathBuf,
+    pub log: PathBuf,
+    pub scenario: Scenario,
+    pub step_at_s: f64,
+    pub step_from: f64,
+    pub step_to: f64,
+    pub signals: Vec<Measured>,
+    pub parameters: Vec<Parameter>,
+    pub fit_window: (f64, f64),
+    pub check_window: Option<(f64, f64)>,
+}
+
+/// Shortest log the fit accepts after the step (s).
+const MIN_AFTER_STEP_S: f64 = 0.2;
+
+/// `file:line:col` of a byte offset.
+fn at(path: &Path, text: &str, offset: usize) -> String {
+    let (line, col) = plant::toml_errors::line_col(text, offset);
+    format!("{}:{line}:{col}", path.display())
+}
+
+impl Job {
+    /// Reads and checks a job file and the log and scenario it names.
+    pub fn load(path: &Path) -> Result<Job> {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("cannot read the calibration file {}", path.display()))?;
+        let doc = plant::toml_errors::parse(&text).map_err(|e| {
+            let place = e
+                .span
+                .map_or(path.display().to_string(), |s| at(path, &text, s.start));
+            anyhow::anyhow!("{place}: {}", plant::toml_errors::in_words(&e.message))
+        })?;
+        let file: JobFile = plant::toml_errors::deserialize(&doc).map_err(|e| {
+            let place = e
+                .span
+                .map_or(path.display().to_string(), |s| at(path, &text, s.start));
+            let field = if e.path.is_empty() {
+                String::new()
+            } else {
+                format!(" `{}`:", e.path)
+            };
+            anyhow::anyhow!(
+                "{place}:{field} {}",
+                plant::toml_errors::in_words(&e.message)
+            )
+        })?;
+        let place = |key: &str| {
+            plant::toml_errors::span_of(&doc, key)
+                .map_or(path.display().to_string(), |s| at(path, &text, s.start))
+        };
+        let dir = path.parent().unwrap_or(Path::new("."));
+        let scenario_path = dir.join(&file.scenario);
+        let scenario = if scenario_path.is_file() {
+            Scenario::load(&scenario_path.display().to_string())
+        } else {
+            Scenario::load(&file.scenario)
+        }
+        .with_context(|| format!("{}: the scenario `{}`", place("scenario"), file.scenario))?;
+        let time_scale = match file.time_unit.as_str() {
+            "s" => 1.0,
+            "ms" => 1e-3,
+            "us" | "µs" => 1e-6,
+            other => bail!(
+                "{}: time unit `{other}` is not one the twin knows: s, ms or us",
+                place("time_unit")
+            ),
+        };
+        let step = &file.step;
+        if step.from == step.to {
+            bail!(
+                "{}: the step goes from {} to {}: a constant command excites nothing, \
+                 so there is nothing to identify",
+                place("step"),
+                step.from,
+                step.to
+            );
+        }
+        if file.signals.is_empty() {
+            bail!(
+                "{}: no `[[signal]]`: name at least one measured column",
+                path.display()
+            );
+        }
+        if file.parameters.is_empty() {
+            bail!(
+                "{}: no `[[fit]]`: name at least one parameter to fit",
+                path.display()
+            );
+        }
+        let parameters = check_parameters(&file.parameters, |i| place(&format!("fit.{i}")))?;
+        let log = dir.join(&file.log);
+        let table = super::csv_log::read(&log, &file.time_column, time_scale)?;
+        let mut signals = Vec::new();
+        for (i, s) in file.signals.iter().enumerate() {
+            let where_ = place(&format!("signal.{i}"));
+            let twin = TwinSignal::from_name(&s.twin).with_context(|| where_.clone())?;
+            let unit = Unit::parse(&s.unit, twin).with_context(|| where_.clone())?;
+            let skip_empty = match s.empty.as_deref() {
+                None => false,
+                Some("skip") => true,
+                Some(other) => bail!("{where_}: `empty = \"{other}\"`: the one choice is \"skip\""),
+            };
+            if !(s.weight.is_finite() && s.weight > 0.0) {
+                bail!(
+                    "{where_}: `weight` must be a number above 0, not {}",
+                    s.weight
+                );
+            }
+            let samples = table.column(&s.column, skip_empty)?;
+            let samples = samples
+                .into_iter()
+                .map(|(t, v)| (t, unit.to_twin(v)))
+                .collect();
+            signals.push(Measured {
+                column: s.column.clone(),
+                twin,
+                unit,
+                weight: s.weight,
+                samples,
+            });
+        }
+        let (first, last) = table.time_span();
+        if step.at_s < first || step.at_s > last {
+            bail!(
+                "{}: the step at {} s is outside the log, which runs from {first} s to {last} s",
+                place("step"),
+                step.at_s
+            );
+        }
+        if last - step.at_s < MIN_AFTER_STEP_S {
+            bail!(
+                "{}: the log ends {:.3} s after the step: too short to identify anything \
+                 (at least {MIN_AFTER_STEP_S} s)",
+                log.display(),
+                last - step.at_s
+            );
+        }
+        let window = |w: Option<[f64; 2]>, key: &str, default: (f64, f64)| -> Result<(f64, f64)> {
+            let Some([a, b]) = w else {
+                return Ok(default);
+            };
+            if !(a.is_finite() && b.is_finite() && a < b) {
+                bail!("{}: `{key}` must be [from, to] with from < to", place(key));
+            }
+            if b <= step.at_s || a >= last {
+                bail!(
+                    "{}: `{key}` [{a}, {b}] holds nothing after the step at {} s in a log ending at {last} s",
+                    place(key),
+                    step.at_s
+                );
+            }
+            Ok((a, b))
+        };
+        let fit_window = window(file.fit_window_s, "fit_window_s", (first, last))?;
+        let check_window = match file.check_window_s {
+            None => None,
+            Some(w) => Some(window(Some(w), "check_window_s", (first, last))?),
+        };
+        Ok(Job {
+            path: path.to_path_buf(),
+            log,
+            scenario,
+            step_at_s: step.at_s,
+            step_from: step.from,
+            step_to: step.to,
+            signals,
+            parameters,
+            fit_window,
+            check_window,
+        })
+    }
+
+    /// The last time the log covers (s).
+    pub fn end_s(&self) -> f64 {
+        self.signals
+            .iter()
+            .filter_map(|s| s.samples.last().map(|p| p.0))
+            .fold(self.step_at_s, f64::max)
+    }
+}
+
+/// Bounds that hold their start, and paths the plant knows.
+fn check_parameters(
+    files: &[ParameterFile],
+    place: impl Fn(usize) -> String,
+) -> Result<Vec<Parameter>> {
+    let mut out: Vec<Parameter> = Vec::new();
+    for (i, p) in files.iter().enumerate() {
+        let here = place(i);
+        if !(p.min.is_finite() && p.max.is_finite() && p.start.is_finite()) {
+            bail!("{here}: `{}`: min, max and start must be numbers", p.path);
+        }
+        if p.min >= p.max {
+            bail!(
+                "{here}: `{}`: min {} is not below max {}",
+                p.path,
+                p.min,
+                p.max
+            );
+        }
+        if p.start < p.min || p.start > p.max {
+            bail!(
+                "{here}: `{}`: the start {} is outside its bounds [{}, {}]",
+                p.path,
+                p.start,
+                p.min,
+                p.max
+            );
+        }
+        if out.iter().any(|o| o.path == p.path) {
+            bail!("{here}: `{}` is fitted twice", p.path);
+        }
+        super::apply::check_path(&p.path).with_context(|| here.clone())?;
+        out.push(Parameter {
+            path: p.path.clone(),
+            min: p.min,
+            max: p.max,
+            start: p.start,
+        });
+    }
+    Ok(out)
+}

@@ -1,0 +1,354 @@
+//! `twin calibrate`: the plant's parameters fitted to a log of the real bench.
+//!
+//! A job file names the log (CSV), what its columns are, the scenario that
+//! ran the experiment and the parameters to fit with their bounds. The same
+//! experiment runs on the virtual clock with trial values, the node code the
+//! bench ran reading the plant as the bench's master read it, until the
+//! readings match the log's (see `fit` for the method and why).
+
+pub mod apply;
+pub mod csv_log;
+pub mod fit;
+pub mod job;
+pub mod report;
+pub mod signal;
+pub mod twin_run;
+pub mod uncertainty;
+
+use anyhow::{Context, Result};
+use serde::Serialize;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+pub use job::Job;
+use report::{SignalFit, StepFigures};
+use twin_run::TwinReads;
+
+/// How long the fit may search.
+#[derive(Debug, Clone, Copy)]
+pub struct Options {
+    /// Most Nelder–Mead iterations per search.
+    pub max_iterations: u64,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options {
+            max_iterations: 150,
+        }
+    }
+}
+
+/// One fitted parameter.
+#[derive(Debug, Clone, Serialize)]
+pub struct Fitted {
+    pub path: String,
+    pub start: f64,
+    pub value: f64,
+    /// One standard error; `None` where the log does not determine it.
+    pub std_error: Option<f64>,
+    pub min: f64,
+    pub max: f64,
+    /// Within 1 % (of the log span) of a bound: the bound, not the log, set it.
+    pub at_bound: bool,
+}
+
+/// Two parameters the log cannot tell apart.
+#[derive(Debug, Clone, Serialize)]
+pub struct Entangled {
+    pub a: String,
+    pub b: String,
+    pub correlation: f64,
+    /// What measurement would separate them, in words.
+    pub separate_by: String,
+}
+
+/// What a calibration found.
+#[derive(Debug, Clone, Serialize)]
+pub struct Outcome {
+    pub job: String,
+    pub log: String,
+    pub parameters: Vec<Fitted>,
+    pub cost_start: f64,
+    pub cost: f64,
+    pub converged: bool,
+    pub stopped: String,
+    pub iterations: u64,
+    pub simulations: u64,
+    pub refused_simulations: u64,
+    pub fit: Vec<SignalFit>,
+    pub check: Vec<SignalFit>,
+    pub fit_at_start: Vec<SignalFit>,
+    pub steps: Vec<StepFigures>,
+    pub entangled: Vec<Entangled>,
+    /// Parameters no reading depends on.
+    pub unseen: Vec<String>,
+    #[serde(skip)]
+    pub reads_start: TwinReads,
+    #[serde(skip)]
+    pub reads: TwinReads,
+}
+
+/// What would separate two parameters, judged by their names.
+fn separate_by(a: &str, b: &str) -> String {
+    let has = |k: &str| a.contains(k) || b.contains(k);
+    if has("inertia") && (has("friction") || has("mass")) {
+        "a coast-down (the drive switched off at speed) separates inertia from friction".into()
+    } else if has("torque_constant") && has("resistance") {
+        "the current at stall, or steps of two sizes, separate the motor constant from the resistance".into()
+    } else {
+        "a second log with a different step (another size or set point) would separate them".into()
+    }
+}
+
+/// Runs the calibration of `job`; `progress` gets the simulations run so far.
+pub fn calibrate(job: &Job, options: Options, progress: &(dyn Fn(u64) + Sync)) -> Result<Outcome> {
+    let model = fit::Model::new(job)?;
+    let start: Vec<f64> = job.parameters.iter().map(|p| p.start).collect();
+    let reads_start = model
+        .simulate(&start)
+        .context("the twin with the starting values")?;
+    check_magnitudes(job, &reads_start)?;
+    let cost_start = model.cost_of(&start)?;
+    let search = fit::fit(&model, options.max_iterations, progress)?;
+    let reads = model.simulate(&search.values)?;
+    let readings = job
+        .signals
+        .iter()
+        .map(|s| {
+            reads
+                .of(s.twin)
+                .iter()
+                .filter(|p| p.0 >= job.fit_window.0 && p.0 <= job.fit_window.1)
+                .count()
+        })
+        .sum();
+    let spread = uncertainty::estimate(&model, &search.values, readings)?;
+    let parameters: Vec<Fitted> = job
+        .parameters
+        .iter()
+        .zip(&search.values)
+        .zip(&spread.std_errors)
+        .map(|((p, &value), &std_error)| {
+            let near = |bound: f64| {
+                if p.min > 0.0 {
+                    (value.ln() - bound.ln()).abs() < 0.01 * (p.max.ln() - p.min.ln())
+                } else {
+                    (value - bound).abs() < 0.01 * (p.max - p.min)
+                }
+            };
+            Fitted {
+                path: p.path.clone(),
+                start: p.start,
+                value,
+                std_error,
+                min: p.min,
+                max: p.max,
+                at_bound: near(p.min) || near(p.max),
+            }
+        })
+        .collect();
+    let name = |i: usize| job.parameters[i].path.clone();
+    let entangled = spread
+        .entangled
+        .iter()
+        .map(|&(i, j, r)| Entangled {
+            a: name(i),
+            b: name(j),
+            correlation: r,
+            separate_by: separate_by(&name(i), &name(j)),
+        })
+        .collect();
+    let levels = [4300.0, 6400.0, 9000.0];
+    Ok(Outcome {
+        job: job.path.display().to_string(),
+        log: job.log.display().to_string(),
+        parameters,
+        cost_start,
+        cost: search.cost,
+        converged: search.converged,
+        stopped: search.stopped.clone(),
+        iterations: search.iterations,
+        simulations: model.evaluations(),
+        refused_simulations: fit::failures(&model),
+        fit: report::signal_fits(job, &reads, job.fit_window),
+        check: job
+            .check_window
+            .map(|w| report::signal_fits(job, &reads, w))
+            .unwrap_or_default(),
+        fit_at_start: report::signal_fits(job, &reads_start, job.fit_window),
+        steps: report::step_figures(job, &reads, &levels),
+        entangled,
+        unseen: spread.unseen.iter().map(|&i| name(i)).collect(),
+        reads_start,
+        reads,
+    })
+}
+
+/// Refuses a column whose values are orders of magnitude from the twin's:
+/// most likely a wrong unit (rad/s given as rpm, register counts as rpm).
+fn check_magnitudes(job: &Job, reads: &TwinReads) -> Result<()> {
+    for s in &job.signals {
+        let after = |v: &[(f64, f64)]| -> f64 {
+            let x: Vec<f64> = v
+                .iter()
+                .filter(|p| p.0 > job.step_at_s)
+                .map(|p| p.1.abs())
+                .collect();
+            x.iter().sum::<f64>() / x.len().max(1) as f64
+        };
+        let (measured, twin) = (after(&s.samples), after(reads.of(s.twin)));
+        if measured > 0.0 && twin > 0.0 {
+            let ratio = measured / twin;
+            if !(0.03..=30.0).contains(&ratio) {
+                anyhow::bail!(
+                    "{}: column `{}` ({}) averages {measured:.4} after the step, {ratio:.3}× what \
+                     the twin's {} gives ({twin:.4}): is the unit right?",
+                    job.log.display(),
+                    s.column,
+                    s.unit.name,
+                    s.twin.describe()
+                );
+            }
+        }
+    }
+    Ok(())
+}
+
+/// The fitted values as a plant parameter file, for `--params` and a
+/// scenario module's `params`.
+pub fn params_toml(outcome: &Outcome) -> Result<String> {
+    let mut table = toml::Table::new();
+    for p in &outcome.parameters {
+        apply::set(&mut table, &p.path, p.value);
+    }
+    let mut text = format!(
+        "# Fitted by `twin calibrate {}` to {}.\n",
+        outcome.job, outcome.log
+    );
+    for p in &outcome.parameters {
+        let _ = writeln!(
+            text,
+            "#   {} = {} ± {}",
+            p.path,
+            short(p.value),
+            p.std_error.map_or("(not determined)".into(), short)
+        );
+    }
+    text.push_str(&toml::to_string(&table)?);
+    Ok(text)
+}
+
+/// Four significant digits.
+pub fn short(v: f64) -> String {
+    if v == 0.0 || !v.is_finite() {
+        return format!("{v}");
+    }
+    let magnitude = v.abs().log10().floor() as i32;
+    if (-3..5).contains(&magnitude) {
+        let decimals = (3 - magnitude).max(0) as usize;
+        format!("{v:.decimals$}")
+    } else {
+        format!("{v:.3e}")
+    }
+}
+
+/// Plots of the measured and the twin's curves and their residuals into
+/// `dir`: `calibrate.png` and `calibrate-residual.png`.
+pub fn draw(job: &Job, outcome: &Outcome, dir: &Path) -> Result<Vec<PathBuf>> {
+    use crate::plot::{self, Axes, Series};
+    let colors = [plot::MOTOR, plot::LIGHT, plot::EXTRA];
+    let (x0, x1) = (
+        job.signals
+            .iter()
+            .filter_map(|s| s.samples.first().map(|p| p.0))
+            .fold(f64::INFINITY, f64::min),
+        job.end_s(),
+    );
+    let mut curves = Vec::new();
+    let mut residuals = Vec::new();
+    let names: Vec<(String, String, String)> = job
+        .signals
+        .iter()
+        .map(|s| {
+            (
+                format!("{} (bench)", s.column),
+                format!("{} (twin)", s.column),
+                format!("{}: twin − bench", s.column),
+            )
+        })
+        .collect();
+    for (k, s) in job.signals.iter().enumerate() {
+        let color = colors[k % colors.len()];
+        let twin: Vec<(f64, f64)> = outcome
+            .reads
+            .of(s.twin)
+            .iter()
+            .copied()
+            .filter(|p| p.0 >= x0 && p.0 <= x1)
+            .collect();
+        curves.push(Series {
+            name: &names[k].0,
+            color: plot::SET_POINT,
+            points: s.samples.clone(),
+            dots: false,
+            width: 2,
+        });
+        curves.push(Series {
+            name: &names[k].1,
+            color,
+            points: twin,
+            dots: false,
+            width: 2,
+        });
+        residuals.push(Series {
+            name: &names[k].2,
+            color,
+            points: s
+                .samples
+                .iter()
+                .map(|&(t, y)| (t, fit::curve_at(outcome.reads.of(s.twin), t) - y))
+                .collect(),
+            dots: false,
+            width: 1,
+        });
+    }
+    let y_range = plot::fit_range(
+        curves.iter().flat_map(|s| s.points.iter().map(|p| p.1)),
+        0.05,
+    );
+    let r_range = plot::fit_range(
+        residuals.iter().flat_map(|s| s.points.iter().map(|p| p.1)),
+        0.05,
+    );
+    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    let main = dir.join("calibrate.png");
+    plot::line_plot(
+        &main,
+        &Axes {
+            title: "Bench and calibrated twin",
+            x_label: "time (s)",
+            y_label: "reading",
+            x_range: (x0, x1),
+            y_range,
+            legend_upper_left: false,
+        },
+        &curves,
+        (1000, 560),
+    )?;
+    let resid = dir.join("calibrate-residual.png");
+    plot::line_plot(
+        &resid,
+        &Axes {
+            title: "Residual: twin − bench",
+            x_label: "time (s)",
+            y_label: "reading",
+            x_range: (x0, x1),
+            y_range: r_range,
+            legend_upper_left: false,
+        },
+        &residuals,
+        (1000, 360),
+    )?;
+    Ok(vec![main, resid])
+}
