@@ -1,8 +1,9 @@
 // The Controller_network project's light-sensor Nano (slave 02), written
-// from the 8-byte Modbus protocol page: a photoresistor on A0 sees one
-// paper marker per wheel turn; every 20 ms the sketch samples it (below
-// 3.0 V is dark) and times light-to-dark edges in milliseconds. Register
-// 0006 reads the wheel rpm x 100, smoothed over a 5-slot ring.
+// from the 8-byte Modbus protocol page: a photoresistor on A0 sees the
+// wheel's marks (three a turn on the bench); every 20 ms the sketch samples
+// it (below 3.0 V is dark) and times light-to-dark edges in milliseconds,
+// the first one from reset. Register 0006 reads the wheel rpm x 100,
+// smoothed over a 5-slot ring.
 //
 // Pins (wiring map `light-nano`): A0 photoresistor divider, Serial 115200 8N1.
 
@@ -13,10 +14,11 @@ static const uint16_t REG_VALUE = 0x0006;
 static const uint32_t SAMPLE_MS = 20;
 static const uint32_t EDGE_TIMEOUT_MS = 5000;
 static const uint8_t RING = 5;
+static const float MARKS = 3.0f;
 
 static float rpm;
 static bool dark;
-static bool timing;          // an edge has been seen since boot or the last timeout
+static bool timing = true;   // false after a timeout: the next edge only restarts timing
 static uint32_t last_edge_ms, timeout_from_ms, next_sample_ms;
 static float ring[RING];
 static uint8_t ring_filled, ring_next;
@@ -32,7 +34,7 @@ static void sample(uint32_t now) {
   float volts = analogRead(A0) * 5.0f / 1023.0f;
   bool d = volts < 3.0f;
   if (d && !dark) {
-    if (timing && now > last_edge_ms) rpm = 60000.0f / (float)(now - last_edge_ms);
+    if (timing && now > last_edge_ms) rpm = 60000.0f / (MARKS * (float)(now - last_edge_ms));
     timing = true;
     last_edge_ms = now;
     timeout_from_ms = now;
