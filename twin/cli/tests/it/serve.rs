@@ -758,3 +758,113 @@ fn a_missing_serial_port_is_a_clear_error() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("Modbus TCP needs tcp://"), "{err}");
 }
+
+/// An interactive shell on a pseudo-terminal of its own (`script`), so
+/// that `&` and `fg` are the shell's job control, as at a lab PC.
+struct Shell {
+    child: std::process::Child,
+    stdin: std::process::ChildStdin,
+}
+
+impl Shell {
+    fn start() -> Shell {
+        let mut child = Command::new("script")
+            .args(["-qfec", "bash --norc --noprofile -i", "/dev/null"])
+            .env("TERM", "dumb")
+            .env("PS1", "$ ")
+            .stdin(Stdio::piped())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("script (util-linux) runs an interactive bash");
+        let stdin = child.stdin.take().expect("stdin");
+        Shell { child, stdin }
+    }
+
+    fn type_line(&mut self, line: &str) {
+        writeln!(self.stdin, "{line}").expect("the shell reads its terminal");
+        self.stdin.flush().expect("flush");
+    }
+}
+
+impl Drop for Shell {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Waits up to 30 s for `file` to contain `needle`, then returns it whole.
+fn file_shows(file: &std::path::Path, needle: &str, what: &str) -> String {
+    let deadline = Instant::now() + Duration::from_secs(30);
+    loop {
+        let text = std::fs::read_to_string(file).unwrap_or_default();
+        if text.contains(needle) {
+            return text;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "{what}: no `{needle}` in {text:?}"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+#[test]
+fn started_with_an_ampersand_it_serves_and_fg_gives_it_the_console() {
+    let _cores = support::RealTime::share_the_cores();
+    let out = scratch("background.out");
+    let _ = std::fs::remove_file(&out);
+    let mut shell = Shell::start();
+    shell.type_line(&format!(
+        "'{}' serve --meb tcp://127.0.0.1:0 --quiet --no-record --status-every 0 --duration 60 > '{}' 2>&1 &",
+        env!("CARGO_BIN_EXE_twin"),
+        out.display()
+    ));
+    // Before, the console's first read of the terminal stopped the whole
+    // process (SIGTTIN) and the master below got nothing but timeouts.
+    let started = file_shows(&out, "ready", "twin serve started with &");
+    assert!(
+        started.contains("in the background: `fg` for its commands"),
+        "{started}"
+    );
+    let addr = started
+        .lines()
+        .find_map(|l| l.trim().strip_prefix("meb tcp://"))
+        .and_then(|l| l.split_whitespace().next())
+        .unwrap_or_else(|| panic!("no meb link in {started:?}"))
+        .to_string();
+    let slave = format!("tcp://{addr}");
+    let supervised = support::twin(&[
+        "supervise",
+        "--meb",
+        &slave,
+        "--duration",
+        "1.5",
+        "--quiet",
+        "--no-record",
+        "--status-every",
+        "0",
+    ]);
+    let printed = support::text(&supervised);
+    assert!(supervised.status.success(), "{printed}");
+    let slave_line = printed
+        .lines()
+        .find(|l| l.trim_start().starts_with("slave 01:"))
+        .unwrap_or_else(|| panic!("no slave line in {printed}"));
+    assert!(slave_line.contains(" 0 timeouts"), "{slave_line}");
+    assert!(!slave_line.contains(" 0 replies"), "{slave_line}");
+    // Brought to the foreground, it reads the terminal: commands work.
+    shell.type_line("fg");
+    std::thread::sleep(Duration::from_millis(300));
+    shell.type_line("status");
+    file_shows(&out, "ev1: wheel", "the `status` typed after fg");
+    shell.type_line("stop");
+    let ended = file_shows(
+        &out,
+        "twin serve: stopped (console)",
+        "the `stop` typed after fg",
+    );
+    assert!(ended.contains("stopping"), "{ended}");
+    shell.type_line("exit");
+}

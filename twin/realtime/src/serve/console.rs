@@ -209,9 +209,17 @@ pub fn spawn_stdin(engine: Sender<Inbound>) {
         .name("twin-console".into())
         .spawn(move || {
             let stdin = std::io::stdin();
-            for line in stdin.lock().lines() {
-                let Ok(line) = line else { break };
-                let message = match parse(&line) {
+            let mut line = String::new();
+            loop {
+                line.clear();
+                if !wait_for_a_line(&stdin) {
+                    break;
+                }
+                match stdin.lock().read_line(&mut line) {
+                    Ok(0) | Err(_) => break,
+                    Ok(_) => {}
+                }
+                let message = match parse(line.trim_end_matches(['\n', '\r'])) {
                     Ok(Some(command)) => Inbound::Command(command),
                     Ok(None) => continue,
                     Err(why) => Inbound::Command(Box::new(move |e: &mut RtEngine| e.say(why))),
@@ -221,6 +229,59 @@ pub fn spawn_stdin(engine: Sender<Inbound>) {
                 }
             }
         });
+}
+
+/// Whether this process is in the foreground of the terminal `stdin` is,
+/// or `stdin` is no terminal (a pipe, a file, /dev/null). A process in the
+/// background that reads its terminal is stopped by it (SIGTTIN: "Stopped
+/// (tty input)"), and stopped it would serve nobody.
+pub fn stdin_is_ours(stdin: &std::io::Stdin) -> bool {
+    if !rustix::termios::isatty(stdin) {
+        return true;
+    }
+    rustix::termios::tcgetpgrp(stdin).is_ok_and(|group| group == rustix::process::getpgrp())
+}
+
+/// Waits until a line can be read without the terminal stopping the
+/// process: at once from a pipe or file; from a terminal only while in its
+/// foreground, so a session started with `&` reads nothing until `fg`
+/// brings it forward, and one sent back with `bg` stops reading. A
+/// terminal's line is whole when poll says so (canonical mode), so the read
+/// that follows does not wait. False when the terminal went away.
+fn wait_for_a_line(stdin: &std::io::Stdin) -> bool {
+    use rustix::event::{PollFd, PollFlags, Timespec, poll};
+    if !rustix::termios::isatty(stdin) {
+        return true;
+    }
+    let half_a_second = Timespec {
+        tv_sec: 0,
+        tv_nsec: 500_000_000,
+    };
+    loop {
+        if !stdin_is_ours(stdin) {
+            // Not polled: a line waiting for the shell would wake it at once.
+            let _ = poll(&mut [], Some(&half_a_second));
+            continue;
+        }
+        let mut fds = [PollFd::new(stdin, PollFlags::IN)];
+        match poll(&mut fds, Some(&half_a_second)) {
+            Ok(0) => continue,
+            Ok(_) => {
+                let got = fds[0].revents();
+                if got.intersects(PollFlags::HUP | PollFlags::ERR | PollFlags::NVAL)
+                    && !got.contains(PollFlags::IN)
+                {
+                    return false;
+                }
+                // Sent to the background between the two checks: wait again.
+                if stdin_is_ours(stdin) {
+                    return true;
+                }
+            }
+            Err(rustix::io::Errno::INTR) => continue,
+            Err(_) => return false,
+        }
+    }
 }
 
 #[cfg(test)]

@@ -24,7 +24,9 @@ mod class;
 /// Give any number of links; all serve the same module. After every link is
 /// open it prints one line per link (protocol, address, slave id) and `ready`.
 /// While it runs: a frame monitor, a status line each second, and commands on
-/// stdin (`help`). It stops on SIGINT/SIGTERM, `stop`, or after --duration,
+/// stdin (`help`). Started in the background of a terminal (`twin serve … &`)
+/// it reads no commands, so the terminal never stops it ("Stopped (tty
+/// input)"), until `fg` brings it to the foreground. It stops on SIGINT/SIGTERM, `stop`, or after --duration,
 /// and finishes its MCAP recording; SIGHUP starts a new recording file.
 ///
 /// As a service: --config FILE holds the options (a `[[module]]` table per
@@ -404,8 +406,13 @@ fn serve_one(args: &ServeArgs, options: &ServeOptions) -> Result<()> {
             let mut out = std::io::stdout().lock();
             let _ = writeln!(
                 out,
-                "twin serve: {} link(s); type `help` for commands",
-                links.len()
+                "twin serve: {} link(s); {}",
+                links.len(),
+                if console::stdin_is_ours(&std::io::stdin()) {
+                    "type `help` for commands"
+                } else {
+                    "in the background: `fg` for its commands"
+                }
             );
             for l in links {
                 let _ = writeln!(out, "  {} {} {}", l.protocol, l.address, l.ids);
