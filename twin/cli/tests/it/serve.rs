@@ -280,13 +280,8 @@ fn spin_and_read_speeds(server: &Server, vel: u16) -> (u16, u16) {
 
 #[test]
 fn adaptive_light_lets_rpm_l_follow_the_wheel_and_says_its_limit() {
-    let server = Server::start(&[
-        "--meb",
-        "tcp://127.0.0.1:0",
-        "--quiet",
-        "--no-record",
-        "--adaptive-light",
-    ]);
+    // The adaptive detector is the default, as in the default scenario.
+    let server = Server::start(&["--meb", "tcp://127.0.0.1:0", "--quiet", "--no-record"]);
     assert!(
         server.printed(
             "ev1 light detector: adaptive (swing ≥ 0.244 V); it sees the flag up to 1793 rpm"
@@ -302,12 +297,19 @@ fn adaptive_light_lets_rpm_l_follow_the_wheel_and_says_its_limit() {
     );
     server.terminate();
 
-    // Without it the controller starts on the fixed threshold, says so, and
-    // its light sensor loses the flag at that speed.
-    let server = Server::start(&["--meb", "tcp://127.0.0.1:0", "--quiet", "--no-record"]);
+    // On the fixed threshold the controller says so, and its light sensor
+    // loses the flag at that speed.
+    let server = Server::start(&[
+        "--meb",
+        "tcp://127.0.0.1:0",
+        "--quiet",
+        "--no-record",
+        "--light-detector",
+        "fixed",
+    ]);
     assert!(
         server.printed(
-            "ev1 light detector: fixed 2.36 V; it sees the flag up to 260 rpm (--adaptive-light"
+            "ev1 light detector: fixed 2.36 V; it sees the flag up to 260 rpm (--light-detector adaptive"
         ),
         "{}",
         server.output()
@@ -867,4 +869,47 @@ fn started_with_an_ampersand_it_serves_and_fg_gives_it_the_console() {
     );
     assert!(ended.contains("stopping"), "{ended}");
     shell.type_line("exit");
+}
+
+/// What a run prints after `light detector: ` (to the end of the line).
+fn light_detector_of(printed: &str) -> String {
+    printed
+        .lines()
+        .find_map(|l| l.split_once("light detector: ").map(|(_, d)| d.to_string()))
+        .unwrap_or_else(|| panic!("no light detector named in {printed}"))
+}
+
+#[test]
+fn serve_starts_on_the_light_detector_of_the_default_scenario() {
+    let dir = support::folder("serve", "light-default");
+    let run = support::twin(&[
+        "run",
+        "--duration",
+        "0.2",
+        "--out",
+        dir.join("run.mcap").to_str().expect("a UTF-8 path"),
+    ]);
+    let virtual_clock = support::text(&run);
+    assert!(run.status.success(), "{virtual_clock}");
+    let _cores = support::RealTime::share_the_cores();
+    let serve = support::twin(&[
+        "serve",
+        "--meb",
+        "tcp://127.0.0.1:0",
+        "--duration",
+        "0.3",
+        "--quiet",
+        "--status-every",
+        "0",
+        "--no-record",
+    ]);
+    let real_time = support::text(&serve);
+    assert!(serve.status.success(), "{real_time}");
+    // Before, `twin serve` started on the fixed threshold: RPM_L 0 at
+    // 2500 rpm where `twin run` read the wheel.
+    assert_eq!(
+        light_detector_of(&real_time),
+        light_detector_of(&virtual_clock),
+        "twin serve and twin run start the EV controller on different light detectors"
+    );
 }

@@ -130,11 +130,15 @@ pub struct ServeArgs {
     /// Remote clients may read but not write (MEB ER 01, Modbus exception 01).
     #[arg(long)]
     read_only: bool,
-    /// Start the EV controller's light detector in adaptive mode (`LDR_ADAPT`
-    /// set), which follows the wheel up to about 1800 rpm; the fixed threshold
-    /// loses the flag above about 260 rpm. A master can switch it either way
-    /// by writing VD0 (LDR_ADAPT).
-    #[arg(long)]
+    /// The EV controller's light detector at start: `adaptive` (`LDR_ADAPT`
+    /// set, as the default scenario of `twin run` has it) follows the wheel up
+    /// to about 1800 rpm; `fixed`, the firmware's threshold at power-up, loses
+    /// the flag above about 260 rpm. A master can switch it either way by
+    /// writing VD0 (LDR_ADAPT).
+    #[arg(long, value_enum, value_name = "DETECTOR", default_value_t = LightDetector::Adaptive)]
+    light_detector: LightDetector,
+    /// The adaptive light detector: the default now (--light-detector).
+    #[arg(long, hide = true, conflicts_with = "light_detector")]
     adaptive_light: bool,
     /// Run the plant thread under the real-time FIFO scheduler at this
     /// priority, and the links' thread one below (1-99; needs root or
@@ -154,6 +158,20 @@ pub struct ServeArgs {
     view: Option<String>,
     #[command(flatten)]
     web: super::web_args::WebArgs,
+}
+
+/// How the EV controller's light detector starts (`light_detector` in a
+/// scenario's `ev-controller` node).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum LightDetector {
+    Fixed,
+    Adaptive,
+}
+
+impl ServeArgs {
+    fn light_adaptive(&self) -> bool {
+        self.adaptive_light || self.light_detector == LightDetector::Adaptive
+    }
 }
 
 /// The session `args` describe; `module` names a class's module, whose
@@ -212,7 +230,7 @@ pub(super) fn options(args: &ServeArgs, module: Option<&str>) -> Result<ServeOpt
             rt_priority: args.rt_priority,
             view: args.view.as_deref().map(|target| {
                 let params = params_for_view.clone();
-                let light_adaptive = args.adaptive_light;
+                let light_adaptive = args.light_adaptive();
                 super::live_view::opener(target, "twin serve", Session::Serve, move |modules| {
                     let has = |name: &str| modules.iter().any(|m| m == name);
                     ViewLayout::of_serve(&params, has("ev1"), has("bench"), light_adaptive)
@@ -239,7 +257,7 @@ pub(super) fn options(args: &ServeArgs, module: Option<&str>) -> Result<ServeOpt
         idle_timeout: super::timeout("--idle-timeout", args.idle_timeout)?,
         room_after_idle: super::timeout("--make-room-after", args.make_room_after)?,
         read_only: args.read_only,
-        light_adaptive: args.adaptive_light,
+        light_adaptive: args.light_adaptive(),
         firmware: firmware_nodes(&args.firmware, &args.wiring)?,
     })
 }
@@ -503,7 +521,7 @@ fn light_detector_line(options: &ServeOptions) -> Vec<String> {
         if options.light_adaptive {
             ""
         } else {
-            " (--adaptive-light, or VD0 LDR_ADAPT from a master, for the adaptive one)"
+            " (--light-detector adaptive, or VD0 LDR_ADAPT from a master, for the adaptive one)"
         }
     ));
     lines
