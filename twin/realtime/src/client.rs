@@ -97,10 +97,14 @@ impl MebClient {
             let left = deadline.saturating_duration_since(Instant::now());
             if left.is_zero() {
                 bail!(
-                    "no reply from {} within {} ms to {}",
+                    "no reply from {} within {} ms to {}: is a module with id {} there? A \
+                     slave answers only its own id (--id; `twin serve --id {}`, the M3CVME \
+                     tool's slave number)",
                     self.peer,
                     self.timeout.as_millis(),
-                    describe(request)
+                    describe(request),
+                    request.id,
+                    request.id
                 );
             }
             self.stream.set_read_timeout(Some(left))?;

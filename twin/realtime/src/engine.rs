@@ -92,7 +92,14 @@ pub struct RtEngine {
     window: Lateness,
     pub counters: RtCounters,
     stop: Option<String>,
+    /// A line said (even with the monitor off) for a device's event, when
+    /// the session's role has one to say: `twin supervise`'s hint at its
+    /// first timeout from each slave.
+    pub event_hint: Option<EventHint>,
 }
+
+/// What a role says about a device's event, if anything.
+pub type EventHint = Box<dyn FnMut(&nodes::node::NodeEvent) -> Option<String> + Send>;
 
 impl RtEngine {
     /// An engine whose plants step by `plant_step` on a 1 ms tick, recording
@@ -126,6 +133,7 @@ impl RtEngine {
             window: Lateness::new(),
             counters: RtCounters::default(),
             stop: None,
+            event_hint: None,
         }
     }
 
@@ -510,6 +518,9 @@ impl RtEngine {
         // Devices' events (trips, a supervisor's timeouts) whatever drives them.
         for device in &mut self.devices {
             while let Some(event) = device.node.poll_event() {
+                if let Some(line) = self.event_hint.as_mut().and_then(|hint| hint(&event)) {
+                    let _ = self.sink.send(SinkMsg::Say(line));
+                }
                 let _ = self.sink.send(SinkMsg::Event {
                     node: device.name.clone(),
                     event,

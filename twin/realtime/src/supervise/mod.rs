@@ -152,6 +152,35 @@ pub fn status_lines(supervisor: &Supervisor, now: SimTime) -> Vec<String> {
         .collect()
 }
 
+/// The line said at the first timeout of each slave: a real bus's ids are
+/// the twin's to guess, so it asks rather than tells (`twin run` knows its
+/// scenario's nodes and names an id no node has).
+fn first_timeout_hint(options: &SuperviseOptions) -> crate::engine::EventHint {
+    let bus = options.bus.clone();
+    let within = options.reply_timeout.as_secs_f64() * 1e3;
+    let mut hinted = std::collections::BTreeSet::new();
+    Box::new(move |event| {
+        if event.kind != "timeout" {
+            return None;
+        }
+        // The supervisor's detail: `slave ID: TRANSACTION not answered`.
+        let id: u8 = event
+            .detail
+            .strip_prefix("slave ")?
+            .split_once(':')?
+            .0
+            .parse()
+            .ok()?;
+        hinted.insert(id).then(|| {
+            format!(
+                "no reply from id {id} within {within:.0} ms on {bus}: is a module with id {id} \
+                 on this link? A slave answers only its own id (`twin serve --id {id}`, the \
+                 M3CVME tool's slave number); the status lines count the timeouts from now on"
+            )
+        })
+    })
+}
+
 /// Index of the supervisor among the engine's devices.
 const SUPERVISOR: usize = 0;
 
@@ -179,6 +208,7 @@ impl<C: FnOnce(Sender<Inbound>)> Role for Supervising<'_, C> {
         // The status lines are the supervisor's (`status_loop`), not the
         // engine's; and no plant here: the module is on the other end of the bus.
         engine.set_status_period(SimDuration::ZERO);
+        engine.event_hint = Some(first_timeout_hint(self.options));
         engine.devices.push(Device::new(
             "supervisor",
             Box::new(SupervisorNode::new(supervisor)),
