@@ -11,10 +11,9 @@ use twin_realtime::rotate::{self, RecordPlan, Retention};
 pub struct RecordArgs {
     /// Where to write the recording (replaced if it exists) [default: a file
     /// named by the command and the session's start time in UTC in
-    /// --record-dir, e.g. serve-2026-12-03T07-35-44.mcap or
-    /// supervise-2026-12-03T07-35-44.mcap, so that a restart never writes
-    /// over the last one]. Files after a rotation go beside it, named
-    /// STEM-START.mcap.
+    /// --record-dir, e.g. COMMAND-2026-12-03T07-35-44.mcap, so that a restart
+    /// never writes over the last one]. Files after a rotation go beside it,
+    /// named STEM-START.mcap.
     #[arg(long, value_name = "PATH", conflicts_with = "record_dir")]
     pub out: Option<PathBuf>,
     /// The folder the recordings go to, each named by its start time (UTC)
@@ -48,6 +47,26 @@ pub struct RecordArgs {
     /// recordings and goes on recording instead of stopping.
     #[arg(long, value_name = "SIZE", value_parser = size)]
     pub keep_size: Option<u64>,
+}
+
+/// Names the command's own files in the help of `--out`, shared by
+/// `twin serve` and `twin supervise`: `#[command(mut_arg("out", named("serve")))]`.
+pub fn named(command: &'static str) -> impl FnOnce(clap::Arg) -> clap::Arg {
+    move |arg| {
+        let own = |text: &clap::builder::StyledStr| {
+            text.to_string()
+                .replace("COMMAND-2026", &format!("{command}-2026"))
+        };
+        let (help, long_help) = (arg.get_help().map(own), arg.get_long_help().map(own));
+        let arg = match help {
+            Some(help) => arg.help(help),
+            None => arg,
+        };
+        match long_help {
+            Some(long_help) => arg.long_help(long_help),
+            None => arg,
+        }
+    }
 }
 
 fn duration(text: &str) -> Result<std::time::Duration, String> {

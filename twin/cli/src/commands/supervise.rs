@@ -27,6 +27,7 @@ use twin_view::{Session, ViewLayout};
 /// SIGINT/SIGTERM or after --duration.
 #[derive(Debug, Args)]
 #[command(
+    mut_arg("out", super::record_args::named("supervise")),
     after_help = "Examples:\n  twin vsp /tmp/ttyV0 /tmp/ttyV1 &\n  twin serve --meb /tmp/ttyV1 &\n  twin supervise --meb /tmp/ttyV0 --listen tcp://127.0.0.1:5701 --set-point 1500\n  twin supervise --meb tcp://127.0.0.1:5700 --listen tcp://127.0.0.1:0 --open-loop 2048\n  twin client tcp://127.0.0.1:5701 read EA 3 1"
 )]
 pub struct SuperviseArgs {

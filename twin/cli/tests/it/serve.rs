@@ -841,6 +841,7 @@ fn started_with_an_ampersand_it_serves_and_fg_gives_it_the_console() {
         "supervise",
         "--meb",
         &slave,
+        "--no-server",
         "--duration",
         "1.5",
         "--quiet",

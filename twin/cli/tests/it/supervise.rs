@@ -691,3 +691,76 @@ fn quiet_remote_clients_time_out_and_make_room() {
         String::from_utf8_lossy(&bad.stderr)
     );
 }
+
+#[test]
+fn an_id_no_module_answers_gets_a_hint_from_supervise_and_client() {
+    // `twin serve` answers id 01 only: id 02 is the slip of a student whose
+    // module has another number.
+    let serve = Proc::start(&[
+        "serve",
+        "--meb",
+        "tcp://127.0.0.1:0",
+        "--quiet",
+        "--no-record",
+        "--status-every",
+        "0",
+    ]);
+    let slave = format!("tcp://{}", server_tcp(&serve));
+    let supervised = support::twin(&[
+        "supervise",
+        "--meb",
+        &slave,
+        "--id",
+        "2",
+        "--no-server",
+        "--duration",
+        "1.5",
+        "--quiet",
+        "--no-record",
+        "--status-every",
+        "0",
+    ]);
+    let printed = support::text(&supervised);
+    assert!(supervised.status.success(), "{printed}");
+    let hint = format!(
+        "no reply from id 2 within 100 ms on {slave}: is a module with id 2 on this link? \
+         A slave answers only its own id (`twin serve --id 2`"
+    );
+    // Said once, at the first timeout, though every poll times out.
+    assert_eq!(printed.matches(&hint).count(), 1, "{printed}");
+    assert!(!printed.contains(" 0 timeouts"), "{printed}");
+
+    let asked = client(&[
+        &slave,
+        "--id",
+        "2",
+        "--timeout-ms",
+        "300",
+        "read",
+        "EA",
+        "0",
+        "1",
+    ]);
+    assert_eq!(asked.status.code(), Some(1));
+    let said = String::from_utf8_lossy(&asked.stderr);
+    assert!(said.contains("no reply from"), "{said}");
+    assert!(
+        said.contains("is a module with id 2 there? A slave answers only its own id (--id"),
+        "{said}"
+    );
+}
+
+#[test]
+fn help_names_the_recording_the_command_writes() {
+    for command in ["serve", "supervise"] {
+        let help = support::text(&support::twin(&[command, "--help"]));
+        let own = format!(" {command}-2026-12-03T07-35-44.mcap");
+        assert!(help.contains(&own), "twin {command} --help: {help}");
+        let other = if command == "serve" {
+            " supervise-2026"
+        } else {
+            " serve-2026"
+        };
+        assert!(!help.contains(other), "twin {command} --help: {help}");
+    }
+}

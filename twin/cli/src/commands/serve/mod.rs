@@ -34,6 +34,7 @@ mod class;
 /// systemd (Type=notify) it reports when it is ready.
 #[derive(Debug, Args)]
 #[command(
+    mut_arg("out", super::record_args::named("serve")),
     after_help = "Examples:\n  twin serve --meb tcp://127.0.0.1:5700\n  twin serve --meb /tmp/ttyV1 --baud 115200\n  twin serve --modbus tcp://127.0.0.1:5020 --meb tcp://127.0.0.1:5700\n  twin serve --modbus-rtu /tmp/ttyV1?parity=E\n  twin serve --modbus8 /tmp/ttyV1    (Controller_network: motor 01, light sensor 02)"
 )]
 pub struct ServeArgs {
