@@ -85,6 +85,17 @@ pub fn execute(args: &CompareArgs) -> Result<()> {
     if let Some(note) = &c.span_note {
         println!("  {note}");
     }
+    // Said before any figure: of runs of different lengths only the
+    // stretch both cover is compared, and they cannot pass as one.
+    let like_the_baseline = c.span_mismatch.as_ref().map(|m| {
+        println!(
+            "  the lengths differ: {m}; compared over the first {:.3} s, which both cover",
+            c.compared_until_s
+        );
+        let how = rerun_like(&run.recording, &baseline.recording);
+        println!("  {how}");
+        how
+    });
     let failures = c.failures().count();
     if failures > 0 || args.all {
         print!("{}", compare::table(&c, args.all));
@@ -114,8 +125,14 @@ pub fn execute(args: &CompareArgs) -> Result<()> {
             "nothing was compared: no signal of the baseline has a sample the tolerances do not ignore"
         );
     }
-    if let Some(m) = &c.span_mismatch {
-        println!("  time span differs: {m}");
+    if let Some(how) = like_the_baseline
+        && c.failures().next().is_none()
+    {
+        bail!(
+            "the run and the baseline differ in length, so the run cannot pass for the \
+             baseline, though over the first {:.3} s every signal is within tolerance; {how}",
+            c.compared_until_s
+        );
     }
     if !c.passed() {
         let first = c
@@ -128,6 +145,54 @@ pub fn execute(args: &CompareArgs) -> Result<()> {
     }
     println!("  PASS");
     Ok(())
+}
+
+/// How to record a run as long as the baseline, with its settings: the
+/// baseline's own duration, seed and `--set`s, read from its `twin.run`
+/// record (a baseline is a cut-down of its scenario).
+fn rerun_like(run: &Recording, baseline: &Recording) -> String {
+    let (a, b) = (Identity::of(run), Identity::of(baseline));
+    let duration = b.get("duration_s").and_then(|d| d.parse::<f64>().ok());
+    let (Some(scenario), Some(duration), Some("scenario"), None) = (
+        b.get("scenario"),
+        duration,
+        b.get("kind"),
+        b.get("experiment"),
+    ) else {
+        return match duration {
+            Some(d) => {
+                format!("to compare like with like, record the run {d} s long, as the baseline")
+            }
+            None => "to compare like with like, record the run as long as the baseline".into(),
+        };
+    };
+    let mut words = vec![format!("twin run {scenario} --duration {duration}")];
+    let differences = a.differences(&b);
+    // Of another scenario or kind of run, every setting differs: the
+    // scenario's own are the baseline's then, with its seed.
+    let of_another_run = differences.iter().any(|d| d.of_what_ran());
+    for d in &differences {
+        if d.field == "duration_s" || (of_another_run && d.field != "seed") {
+            continue;
+        }
+        // A setting the run's record lacks is no setting it changed.
+        let (Some(_), Some(value)) = (&d.first, &d.second) else {
+            continue;
+        };
+        let plain = value
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || "._-".contains(c));
+        words.push(match (d.field.as_str(), plain) {
+            ("seed", _) => format!("--seed {value}"),
+            (field, true) => format!("--set {field}={value}"),
+            (field, false) => format!("--set '{field}={value}'"),
+        });
+    }
+    words.push("--out run.mcap".into());
+    format!(
+        "to compare like with like, record the run as the baseline was: `{}`",
+        words.join(" ")
+    )
 }
 
 /// Say first what differs between the two runs; refuse recordings of

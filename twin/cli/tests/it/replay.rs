@@ -490,3 +490,62 @@ fn replay_of_a_recording_whose_frames_stored_their_bytes_twice_matches_and_says_
         std::fs::read(&out).unwrap()
     );
 }
+
+#[test]
+fn compare_of_runs_of_different_lengths_says_so_first_and_how_to_match_the_baseline() {
+    let dir = support::folder("replay", "lengths");
+    let path = |name: &str| dir.join(name).to_str().expect("a UTF-8 path").to_string();
+    let (base, run, again) = (path("base.mcap"), path("run.mcap"), path("again.mcap"));
+    for args in [
+        vec![
+            "run",
+            "--duration",
+            "0.6",
+            "--set",
+            "record_hz=20",
+            "--out",
+            &base,
+        ],
+        vec!["run", "--duration", "0.4", "--out", &run],
+    ] {
+        let o = twin(&args);
+        assert!(o.status.success(), "{}", text(&o));
+    }
+    let compared = twin(&["compare", &run, &base]);
+    let printed = text(&compared);
+    assert_eq!(compared.status.code(), Some(1), "{printed}");
+    // Before, it said "85 within tolerance, 0 beyond", then that the run
+    // departs from the baseline, and only then that the lengths differ.
+    let lengths = printed
+        .find("the lengths differ: the run ends at 0.40")
+        .unwrap_or_else(|| panic!("the lengths are not said: {printed}"));
+    let counts = printed.find(" samples compared").expect("the counts");
+    assert!(
+        lengths < counts,
+        "the lengths come after the counts: {printed}"
+    );
+    assert!(
+        printed.contains("compared over the first 0.40"),
+        "{printed}"
+    );
+    assert!(!printed.contains("departs"), "{printed}");
+    assert!(printed.contains("differ in length"), "{printed}");
+    let advice = "`twin run ev-meb --duration 0.6 --set record_hz=20.0 --out run.mcap`";
+    assert!(printed.contains(advice), "{printed}");
+    // The advice, followed, makes a run that passes.
+    let o = twin(&[
+        "run",
+        "ev-meb",
+        "--duration",
+        "0.6",
+        "--set",
+        "record_hz=20.0",
+        "--out",
+        &again,
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    let compared = twin(&["compare", &again, &base]);
+    let printed = text(&compared);
+    assert!(compared.status.success(), "{printed}");
+    assert!(printed.contains("PASS"), "{printed}");
+}
