@@ -32,8 +32,9 @@ pub struct PanelArgs {
     #[arg(long, value_name = "FILE")]
     map: Option<PathBuf>,
     /// Serve the panel to browsers at ADDR (0.0.0.0:8080 for phones on the
-    /// lab's network; any address but a loopback one needs the token printed
-    /// in the URL at start).
+    /// lab's network; any address but a loopback one needs a token, shown in
+    /// the URL at start on a terminal and otherwise kept in a file only:
+    /// --web-token-file, or panel.token here).
     #[arg(long, value_name = "ADDR", default_value = "127.0.0.1:8080")]
     web: std::net::SocketAddr,
     /// Keep the panel's token in FILE (made if missing), so its URL stays
@@ -77,11 +78,12 @@ pub fn execute(args: &PanelArgs) -> Result<()> {
     if let Some(Err(e)) = twin_realtime::fd_limit::raise_once() {
         eprintln!("warning: {e}");
     }
+    let token_file = super::web_args::token_file(args.web, args.web_token_file.as_ref(), "panel");
     let panel = Panel::bind(PanelOptions {
         role: PanelRole::Client,
         addr: args.web,
         access: AccessOptions {
-            token_file: args.web_token_file.clone(),
+            token_file: token_file.clone(),
             read_only: args.web_read_only,
         },
         rate_hz: 20.0,
@@ -101,7 +103,10 @@ pub fn execute(args: &PanelArgs) -> Result<()> {
         "twin panel: MEB client of {}, slave {:02}, {map_said}",
         args.url, args.id
     );
-    println!("{}", super::web_args::panel_line(&panel));
+    println!(
+        "{}",
+        super::web_args::panel_line(&panel, token_file.as_deref())
+    );
     println!("ready");
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()

@@ -311,10 +311,14 @@ pub fn execute(args: &SuperviseArgs, matches: &ArgMatches) -> Result<()> {
             .hook(),
         );
     }
-    let panel = args
-        .web
-        .bind(twin_panel::PanelRole::Supervise, &mut options.session)?;
-    let panel_line = panel.as_ref().map(super::web_args::panel_line);
+    let panel = args.web.bind(
+        twin_panel::PanelRole::Supervise,
+        &mut options.session,
+        "panel",
+    )?;
+    let panel_line = panel
+        .as_ref()
+        .map(|p| super::web_args::panel_line(p, args.web.token_file("panel").as_deref()));
     let earlier = options
         .session
         .record

@@ -3,6 +3,8 @@
 
 use anyhow::Result;
 use clap::Args;
+use std::io::IsTerminal;
+use std::net::SocketAddr;
 use std::path::PathBuf;
 use twin_panel::{AccessOptions, Panel, PanelOptions, PanelRole, view::Tee};
 use twin_realtime::session::SessionOptions;
@@ -12,10 +14,11 @@ use twin_realtime::sink::ViewOpener;
 pub struct WebArgs {
     /// Serve the panel (gauges, controls, trend, frame monitor) to browsers
     /// at ADDR, e.g. 127.0.0.1:8080 or 0.0.0.0:8080 for phones on the lab's
-    /// network; any address but a loopback one needs the token printed in
-    /// the URL at start.
+    /// network; any address but a loopback one needs a token, shown in the
+    /// URL at start on a terminal and otherwise kept in a file only
+    /// (--web-token-file, or panel.token here; a class's module: NAME.token).
     #[arg(long, value_name = "ADDR")]
-    pub web: Option<std::net::SocketAddr>,
+    pub web: Option<SocketAddr>,
     /// Keep the panel's token in FILE (made if missing), so its URL stays
     /// the same across restarts; a loopback panel then needs it too.
     #[arg(long, value_name = "FILE", requires = "web")]
@@ -26,8 +29,35 @@ pub struct WebArgs {
 }
 
 impl WebArgs {
-    /// Binds the panel, if asked for, and makes the session feed it.
-    pub fn bind(&self, role: PanelRole, session: &mut SessionOptions) -> Result<Option<Panel>> {
+    /// The file the panel's token is kept in (see [`token_file`]); `name`
+    /// names the panel (`panel`, a class's module).
+    pub fn token_file(&self, name: &str) -> Option<PathBuf> {
+        token_file(self.web?, self.web_token_file.as_ref(), name)
+    }
+
+    /// What `--check` says of the panel, if one is asked for.
+    pub fn described(&self, name: &str) -> Option<String> {
+        let addr = self.web?;
+        let token = match self.token_file(name) {
+            Some(file) => format!("its token in {}", file.display()),
+            None => "no token (this machine only)".into(),
+        };
+        let read_only = if self.web_read_only {
+            ", read-only"
+        } else {
+            ""
+        };
+        Some(format!("a panel on {addr} ({token}{read_only})"))
+    }
+
+    /// Binds the panel, if asked for, and makes the session feed it; `name`
+    /// names its token file when it needs one of its own.
+    pub fn bind(
+        &self,
+        role: PanelRole,
+        session: &mut SessionOptions,
+        name: &str,
+    ) -> Result<Option<Panel>> {
         let Some(addr) = self.web else {
             return Ok(None);
         };
@@ -35,7 +65,7 @@ impl WebArgs {
             role,
             addr,
             access: AccessOptions {
-                token_file: self.web_token_file.clone(),
+                token_file: self.token_file(name),
                 read_only: self.web_read_only,
             },
             rate_hz: 20.0,
@@ -53,12 +83,31 @@ impl WebArgs {
     }
 }
 
-/// The line printed before `ready`: where to open the panel.
-pub fn panel_line(panel: &Panel) -> String {
+/// Where a panel's token is kept: `given` (--web-token-file), or, for a
+/// panel that needs a token (any address but a loopback one) while standard
+/// output is no terminal, `NAME.token` here: the token is printed only to a
+/// terminal, never to a service's journal, which keeps what it is given.
+pub fn token_file(addr: SocketAddr, given: Option<&PathBuf>, name: &str) -> Option<PathBuf> {
+    given.cloned().or_else(|| {
+        (!addr.ip().is_loopback() && !std::io::stdout().is_terminal())
+            .then(|| PathBuf::from(format!("{name}.token")))
+    })
+}
+
+/// The line printed before `ready`: where to open the panel. Its token is
+/// in the URL only on a terminal; otherwise the line says which file holds it.
+pub fn panel_line(panel: &Panel, token_file: Option<&std::path::Path>) -> String {
     let running = panel.running();
+    let url = match (running.url.split_once("?token="), token_file) {
+        (Some((bare, _)), Some(file)) if !std::io::stdout().is_terminal() => format!(
+            "{bare} (add ?token= and the token in {}; it is shown only on a terminal)",
+            file.display()
+        ),
+        _ => running.url.clone(),
+    };
     format!(
         "panel: {}{}",
-        running.url,
+        url,
         if running.read_only {
             " (read-only)"
         } else {

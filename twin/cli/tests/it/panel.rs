@@ -41,7 +41,7 @@ fn http(host: &str, method: &str, path: &str, token: Option<&str>, body: &str) -
 }
 
 #[test]
-fn serve_off_the_loopback_prints_a_token_url_and_refuses_requests_without_it() {
+fn serve_off_the_loopback_keeps_its_token_in_its_file_and_refuses_requests_without_it() {
     let dir = std::env::temp_dir().join(format!("twin-{}-panel-token", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
@@ -62,8 +62,12 @@ fn serve_off_the_loopback_prints_a_token_url_and_refuses_requests_without_it() {
             "0",
         ]);
         let url = panel_url(&serve);
-        let (host, token) = parts(&url);
-        let token = token.unwrap_or_else(|| panic!("no token in {url}"));
+        let (host, shown) = parts(&url);
+        assert!(shown.is_none(), "a token printed to a pipe: {url}");
+        let token = std::fs::read_to_string(&token_file)
+            .unwrap()
+            .trim()
+            .to_string();
         let (status, body) = http(&host, "GET", "/api/state", None, "");
         assert_eq!(status, 401, "{body}");
         let (status, _) = http(&host, "POST", "/api/fault", None, r#"{"fault":"no-reply"}"#);
@@ -258,38 +262,93 @@ fn each_module_of_a_class_has_its_own_panel_and_token() {
     let dir = std::env::temp_dir().join(format!("twin-{}-panel-class", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
+    // student01's link is a pty that appears a while after the start, so
+    // student02 opens first.
+    let (late, other_end) = (dir.join("ttyA"), dir.join("ttyB"));
     let mut config = format!(
         "quiet = true\nstatus-every = 0\nrecord-dir = \"{}\"\n",
         dir.display()
     );
-    for n in 1..=2 {
+    for (n, link) in [
+        (1, late.display().to_string()),
+        (2, "tcp://127.0.0.1:0".into()),
+    ] {
         config.push_str(&format!(
-            "\n[[module]]\nname = \"student{n:02}\"\nmeb = [\"tcp://127.0.0.1:0\"]\nweb = \"127.0.0.1:0\"\nweb-token-file = \"{}\"\n",
+            "\n[[module]]\nname = \"student{n:02}\"\nmeb = [\"{link}\"]\nwait-for-ports = true\nweb = \"127.0.0.1:0\"\nweb-token-file = \"{}\"\n",
             dir.join(format!("student{n:02}.token")).display()
         ));
     }
     let path = dir.join("class.toml");
     std::fs::write(&path, config).unwrap();
+    let checked = support::twin(&["serve", "--config", path.to_str().unwrap(), "--check"]);
+    let said = support::text(&checked);
+    assert!(checked.status.success(), "{said}");
+    for n in 1..=2 {
+        let panel = format!(
+            "a panel on 127.0.0.1:0 (its token in {})",
+            dir.join(format!("student{n:02}.token")).display()
+        );
+        assert!(
+            said.lines()
+                .any(|l| l.starts_with(&format!("  student{n:02}: ")) && l.ends_with(&panel)),
+            "--check names student{n:02}'s panel: {said}"
+        );
+    }
+    let vsp = {
+        let (a, b) = (late.clone(), other_end.clone());
+        std::thread::spawn(move || {
+            std::thread::sleep(Duration::from_millis(1500));
+            std::process::Command::new(env!("CARGO_BIN_EXE_twin"))
+                .args(["vsp", a.to_str().unwrap(), b.to_str().unwrap()])
+                .stdout(std::process::Stdio::null())
+                .spawn()
+                .expect("twin vsp starts")
+        })
+    };
     let server = Proc::start(&["serve", "--config", path.to_str().unwrap()]);
-    // `  panel: URL NAME`, one per module, before `ready`.
+    let mut vsp = vsp.join().unwrap();
+    let printed = server.output();
+    // `  LINK… NAME` and `  panel: URL (…) NAME`, in the file's order.
+    let names: Vec<String> = server
+        .links()
+        .iter()
+        .filter_map(|l| l.last().cloned())
+        .collect();
+    assert!(
+        names.iter().rposition(|n| n == "student01") < names.iter().position(|n| n == "student02"),
+        "the modules' lines come in the class file's order, not the order their links opened: {printed}"
+    );
     let panels: Vec<(String, String)> = server
         .links()
         .into_iter()
         .filter(|l| l.first().map(String::as_str) == Some("panel:"))
-        .map(|l| (l[2].clone(), l[1].clone()))
+        .map(|l| (l.last().unwrap().clone(), l[1].clone()))
         .collect();
-    assert_eq!(panels.len(), 2, "{}", server.output());
-    let (host1, token1) = parts(&panels[0].1);
-    let (host2, token2) = parts(&panels[1].1);
-    let (token1, token2) = (token1.unwrap(), token2.unwrap());
-    assert_ne!(host1, host2, "two panels, two ports");
+    assert_eq!(panels.len(), 2, "{printed}");
+    let token = |name: &str| {
+        let saved = std::fs::read_to_string(dir.join(format!("{name}.token"))).unwrap();
+        saved.trim().to_string()
+    };
+    let (token1, token2) = (token("student01"), token("student02"));
     assert_ne!(token1, token2, "each module its own token");
+    // Standard output is a pipe here, as a service's journal: no token.
+    for t in [&token1, &token2] {
+        assert!(!printed.contains(t.as_str()), "a token printed: {printed}");
+    }
+    let (host1, _) = parts(&panels[0].1);
+    let (host2, _) = parts(&panels[1].1);
+    assert_ne!(host1, host2, "two panels, two ports");
     for (name, host, own, other) in [
         (&panels[0].0, &host1, &token1, &token2),
         (&panels[1].0, &host2, &token2, &token1),
     ] {
-        let saved = std::fs::read_to_string(dir.join(format!("{name}.token"))).unwrap();
-        assert_eq!(saved.trim(), own.as_str(), "{name}'s token file");
+        assert!(
+            printed.contains(&format!(
+                "the token in {}",
+                dir.join(format!("{name}.token")).display()
+            )),
+            "{printed}"
+        );
         let (status, body) = http(host, "GET", "/api/state", Some(own), "");
         assert_eq!(status, 200, "{name}: {body}");
         let (status, _) = http(host, "GET", "/api/state", Some(other), "");
@@ -299,7 +358,42 @@ fn each_module_of_a_class_has_its_own_panel_and_token() {
         );
     }
     server.terminate();
+    let _ = vsp.kill();
+    let _ = vsp.wait();
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn off_the_loopback_without_a_terminal_the_token_goes_to_a_file_not_to_stdout() {
+    let dir = support::folder("panel", "token-here");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_twin"))
+        .args([
+            "serve",
+            "--meb",
+            "tcp://127.0.0.1:0",
+            "--web",
+            "0.0.0.0:0",
+            "--duration",
+            "0.5",
+            "--quiet",
+            "--status-every",
+            "0",
+            "--no-record",
+        ])
+        .current_dir(&dir)
+        .stdin(std::process::Stdio::null())
+        .output()
+        .expect("twin serve runs");
+    let printed = support::text(&out);
+    assert!(out.status.success(), "{printed}");
+    let token = std::fs::read_to_string(dir.join("panel.token")).expect("panel.token written");
+    let token = token.trim();
+    assert_eq!(token.len(), 48, "{token}");
+    assert!(!printed.contains(token), "the token printed: {printed}");
+    assert!(
+        printed.contains("/ (add ?token= and the token in panel.token"),
+        "{printed}"
+    );
 }
 
 /// The serve panel's state (the plant's true wheel, the outputs the controller holds).

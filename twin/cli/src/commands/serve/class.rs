@@ -65,8 +65,13 @@ pub fn execute(
     }
     if check {
         println!("{}: a class of {} modules", file.origin, modules.len());
-        for (name, _, options) in &modules {
-            println!("  {name}: {}", super::described(options));
+        for (name, args, options) in &modules {
+            let panel = args.web.described(name);
+            println!(
+                "  {name}: {}{}",
+                super::described(options),
+                panel.map(|p| format!("; {p}")).unwrap_or_default()
+            );
         }
         return Ok(());
     }
@@ -96,7 +101,7 @@ pub fn execute(
     for (name, args, options) in &mut modules {
         panels.push(
             args.web
-                .bind(twin_panel::PanelRole::Serve, &mut options.session)
+                .bind(twin_panel::PanelRole::Serve, &mut options.session, name)
                 .map_err(|e| anyhow!("module {name}: {e:#}"))?,
         );
     }
@@ -141,38 +146,39 @@ fn run(
             }
         }
         drop(tx);
-        let mut ready = 0;
+        // The modules' lines wait for the last to open, then come in the
+        // file's order: the order their threads opened links in is chance.
+        let mut opened: Vec<Option<Vec<OpenLink>>> = vec![None; modules.len()];
         let mut failed = None;
         let mut outcomes: Vec<Option<twin_realtime::session::SessionOutcome>> =
             (0..modules.len()).map(|_| None).collect();
         while let Ok(report) = rx.recv() {
             match report {
                 Report::Ready(n, links) => {
+                    opened[n] = Some(links);
+                    if opened.iter().any(Option::is_none) {
+                        continue;
+                    }
                     let mut out = std::io::stdout().lock();
-                    for l in links {
-                        let _ = writeln!(
-                            out,
-                            "  {} {} {} {}",
-                            l.protocol, l.address, l.ids, modules[n].0
-                        );
+                    for (n, links) in opened.iter().enumerate() {
+                        let (name, args, _) = &modules[n];
+                        for l in links.iter().flatten() {
+                            let _ =
+                                writeln!(out, "  {} {} {} {name}", l.protocol, l.address, l.ids);
+                        }
+                        if let Some(panel) = &panels[n] {
+                            let file = args.web.token_file(name);
+                            let line = super::super::web_args::panel_line(panel, file.as_deref());
+                            let _ = writeln!(out, "  {line} {name}");
+                        }
                     }
-                    if let Some(panel) = &panels[n] {
-                        let _ = writeln!(
-                            out,
-                            "  {} {}",
-                            super::super::web_args::panel_line(panel),
-                            modules[n].0
-                        );
-                    }
-                    ready += 1;
-                    if ready == modules.len() {
-                        let _ = writeln!(out, "twin serve: a class of {ready} modules");
-                        let _ = writeln!(out, "ready");
-                        twin_realtime::notify::ready(&format!(
-                            "serving a class of {ready} modules"
-                        ));
-                    }
+                    let _ = writeln!(out, "twin serve: a class of {} modules", modules.len());
+                    let _ = writeln!(out, "ready");
                     let _ = out.flush();
+                    twin_realtime::notify::ready(&format!(
+                        "serving a class of {} modules",
+                        modules.len()
+                    ));
                 }
                 Report::Console(n, engine) => stoppers[n] = Some(engine),
                 Report::Done(n, outcome) => match *outcome {

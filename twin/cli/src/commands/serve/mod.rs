@@ -363,7 +363,12 @@ pub fn execute(args: &ServeArgs, matches: &ArgMatches) -> Result<()> {
     let mut options = options(args, None)?;
     if args.service.check {
         serve::check_links(&options)?;
-        println!("{}", described(&options));
+        let panel = args.web.described("panel");
+        println!(
+            "{}{}",
+            described(&options),
+            panel.map(|p| format!("; {p}")).unwrap_or_default()
+        );
         return Ok(());
     }
     if let (Some(f), Some(path)) = (file, &args.service.config) {
@@ -406,12 +411,14 @@ fn serve_one(args: &ServeArgs, options: &ServeOptions) -> Result<()> {
     let mut options = options.clone();
     let panel = args
         .web
-        .bind(twin_panel::PanelRole::Serve, &mut options.session)?
+        .bind(twin_panel::PanelRole::Serve, &mut options.session, "panel")?
         .map(|p| match &options.meb_map {
             Some(map) => p.with_map(map),
             None => p,
         });
-    let panel_line = panel.as_ref().map(super::web_args::panel_line);
+    let panel_line = panel
+        .as_ref()
+        .map(|p| super::web_args::panel_line(p, args.web.token_file("panel").as_deref()));
     let earlier = options
         .session
         .record
