@@ -573,9 +573,21 @@ fn the_client_panel_writes_vel_and_the_switches_and_the_wheel_follows() {
     });
     panel2.terminate();
     // Off the loopback, the same token rules as every panel.
-    let panel3 = Proc::start(&["panel", &mapped, "--web", "0.0.0.0:0"]);
-    let (host3, token3) = parts(&panel_url(&panel3));
-    let token3 = token3.expect("a token in the URL off the loopback");
+    let token_file = dir.join("panel3.token");
+    let panel3 = Proc::start(&[
+        "panel",
+        &mapped,
+        "--web",
+        "0.0.0.0:0",
+        "--web-token-file",
+        token_file.to_str().unwrap(),
+    ]);
+    let (host3, shown) = parts(&panel_url(&panel3));
+    assert!(shown.is_none(), "a token printed to a pipe");
+    let token3 = std::fs::read_to_string(&token_file)
+        .unwrap()
+        .trim()
+        .to_string();
     let (status, _) = http(&host3, "GET", "/api/state", None, "");
     assert_eq!(status, 401);
     let (status, _) = http(&host3, "POST", "/api/outputs", None, r#"{"vel":10}"#);
