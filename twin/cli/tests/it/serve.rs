@@ -855,8 +855,18 @@ fn started_with_an_ampersand_it_serves_and_fg_gives_it_the_console() {
         .lines()
         .find(|l| l.trim_start().starts_with("slave 01:"))
         .unwrap_or_else(|| panic!("no slave line in {printed}"));
-    assert!(slave_line.contains(" 0 timeouts"), "{slave_line}");
-    assert!(!slave_line.contains(" 0 replies"), "{slave_line}");
+    // A stopped server answers nothing: every poll times out. (A busy
+    // machine may cost a timeout or two; that is not what is checked.)
+    let count = |what: &str| -> u64 {
+        slave_line
+            .split([';', ','])
+            .find_map(|part| part.trim().strip_suffix(what)?.trim().parse().ok())
+            .unwrap_or_else(|| panic!("no `{what}` in {slave_line}"))
+    };
+    assert!(
+        count(" replies") > count(" timeouts"),
+        "the server started with & did not serve: {slave_line}"
+    );
     // Brought to the foreground, it reads the terminal: commands work.
     shell.type_line("fg");
     std::thread::sleep(Duration::from_millis(300));
