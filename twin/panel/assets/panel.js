@@ -41,8 +41,26 @@ function say(text, bad) {
   while ($("events").children.length > 200) $("events").lastChild.remove();
 }
 
-async function send(path, body) {
-  try { await api(path, body); } catch (e) { say("refused: " + e.message, true); }
+// A refusal is said beside the control that was refused (an ARIA live
+// region, so a screen reader says it too) and kept in the events.
+function refuse(where, text) {
+  const box = where && $("refusal-" + where);
+  if (box) box.textContent = "refused: " + text;
+  say("refused: " + text, true);
+}
+function clearRefusal(where) {
+  const box = where && $("refusal-" + where);
+  if (box) box.textContent = "";
+}
+async function send(path, body, where, explain) {
+  try {
+    const answer = await api(path, body);
+    clearRefusal(where);
+    return answer;
+  } catch (e) {
+    refuse(where, e.message + (explain ? " — " + explain : ""));
+    return null;
+  }
 }
 
 // ---- gauges --------------------------------------------------------------
@@ -108,6 +126,37 @@ function renderGauges(m) {
   }
   if (mod) gauge("wheel", Math.abs(mod.wheel_rpm), 0, "the plant's wheel");
   else if (lp) gauge("wheel", lp.measured_rpm, 0, "measured by the loop");
+  renderLightNote(dev, mod);
+  renderStale(st);
+}
+
+// The fixed detector loses the flag above a few hundred rpm: light rpm then
+// reads 0, which must not look like a stopped wheel.
+function renderLightNote(dev, mod) {
+  const note = $("light-note");
+  const d = dev && dev.controller.light_detector;
+  const fixed = d && !d.adaptive;
+  note.classList.toggle("hidden", !fixed);
+  if (!fixed) return;
+  const wheel = mod ? Math.abs(mod.wheel_rpm) : dev.readings ? dev.readings.hall_rpm : 0;
+  const beyond = wheel > d.max_rpm;
+  note.classList.toggle("warn", beyond);
+  note.textContent = "Light rpm: the " + d.description + " detector sees the flag only up to " + d.max_rpm.toFixed(0) + " rpm" +
+    (beyond ? "; the wheel turns at " + wheel.toFixed(0) + " rpm, so light rpm reads 0" : "; faster, light rpm reads 0") +
+    ". The adaptive detector (VD0 LDR_ADAPT = 1 from a master, or --adaptive-light) follows faster wheels.";
+  const g = $("g-light");
+  if (g && beyond) g.querySelector(".raw").textContent += " · beyond the fixed detector (" + d.max_rpm.toFixed(0) + " rpm)";
+}
+
+// A client panel that lost its slave shows the last values read, and says so.
+function renderStale(st) {
+  const c = st.connection, note = $("stale-note");
+  const stale = !!c && !c.connected;
+  $("gauges").classList.toggle("stale", stale);
+  note.classList.toggle("hidden", !stale);
+  note.classList.toggle("warn", stale);
+  if (stale) note.textContent = "Not connected: the values are the last read" +
+    (c.last_reply_age_s === null || c.last_reply_age_s === undefined ? "" : ", " + c.last_reply_age_s.toFixed(1) + " s ago") + ", not the module's now.";
 }
 
 function firstLoop(st) {
@@ -135,19 +184,15 @@ function renderOutputs(m) {
       out.append(r);
     };
     const where = (v) => (v.at ? " · " + v.at : "");
-    row("VEL", o.VEL.counts === null ? "not set yet" : o.VEL.value.toFixed(2) + " V (" + o.VEL.counts + " / " + o.VEL.max + ")", "speed command, DAC" + where(o.VEL), o.VEL.counts > 0);
+    const unset = info.role === "client" ? "not written since connecting" : "not set yet";
+    row("VEL", o.VEL.counts === null ? unset : o.VEL.value.toFixed(2) + " V (" + o.VEL.counts + " / " + o.VEL.max + ")", "speed command, DAC" + where(o.VEL), o.VEL.counts > 0);
     for (const k of SWITCH_NAMES) {
       const b = o[k];
       const sense = k === "FR" ? "pin 1 = reverse" : "active low";
-      row(k, b.on === null ? "not set yet" : b.on ? "on" : "off", SWITCH_LABELS[k] + " · " + sense + (b.pin === null ? "" : ": pin " + b.pin) + where(b), b.on);
+      row(k, b.on === null ? unset : b.on ? "on" : "off", SWITCH_LABELS[k] + " · " + sense + (b.pin === null ? "" : ": pin " + b.pin) + where(b), b.on);
     }
-    const flags = $("flags"); flags.replaceChildren();
-    const s = dev.controller.status;
-    const lamp = (name, on, bad) => {
-      const w = el("span"); w.append(el("span", "lamp " + (on ? (bad ? "bad" : "on") : "off")), name); flags.append(w);
-    };
-    lamp("BMS cut-off", s.battery_cut_off, true); lamp("over-current", s.over_current, true);
-    lamp("stall", s.stalled, true); lamp("brake", s.brake); lamp("charging", s.charging); lamp("CCW", s.ccw);
+    drawFlags(dev.controller.status);
+    renderPowerUp(dev.controller, st);
     const v = dev.controller.variables;
     if (!v) {
       kv($("variables"), [["ED0 hall code", dev.controller.ED0 === null ? "–" : "0b" + (dev.controller.ED0 >>> 0).toString(2).padStart(4, "0")],
@@ -165,9 +210,37 @@ function renderOutputs(m) {
     out.append(r);
     kv($("variables"), [["set point", fmt(lp.set_point_rpm, 0) + " rpm"], ["measured", fmt(lp.measured_rpm, 0) + " rpm"],
       ["error", fmt(lp.error_rpm, 0) + " rpm"], ["Kp / Ki", lp.kp + " / " + lp.ki], ["mode", typeof lp.mode === "string" ? "loop" : "manual VEL " + (lp.mode && lp.mode.manual)]]);
-    $("flags").replaceChildren();
+    drawFlags(lp.status.lamps, "FD 00 not read yet (status words are polled every few cycles)");
   }
 }
+// The status word's lamps, each with its word: colour alone is not enough.
+function drawFlags(s, missing) {
+  const flags = $("flags"); flags.replaceChildren();
+  if (!s) { flags.append(el("span", "note", missing || "not read yet")); return; }
+  const lamp = (id, name, on, bad, onText, offText) => {
+    const w = el("span"); w.id = "flag-" + id; w.dataset.on = on ? "1" : "0";
+    w.append(el("span", "lamp " + (on === null ? "off" : on ? (bad ? "bad" : "on") : "off")), name + " ",
+      el("span", "lamp-text", on === null ? "?" : on ? onText || "on" : offText || "off"));
+    flags.append(w);
+  };
+  lamp("bms", "BMS cut-off", s.battery_cut_off, true); lamp("oc", "over-current", s.over_current, true);
+  lamp("stall", "stall", s.stalled, true); lamp("brake", "brake", s.brake); lamp("charging", "charging", s.charging);
+  lamp("ccw", "direction", s.ccw, false, "CCW (reverse)", "CW (forward)");
+}
+// At power-up SD0 = 0x001F: every pin high. Every active-low switch is off,
+// but FR's high pin is reverse: FR reads on and CCW lights while the wheel stands.
+function renderPowerUp(c, st) {
+  const note = $("powerup-note");
+  const frUnwritten = c.sd0 === undefined && c.outputs.FR.on === null;
+  const show = (c.sd0 === 0x1f || frUnwritten) && c.status.ccw === true;
+  note.classList.toggle("hidden", !show);
+  if (show) note.textContent = "FR on and CCW lit" + (frUnwritten ? " (FR not written by this panel)" : "") +
+    ": the module's power-up outputs are SD0 = 0x001F, every pin high. The other switches are active low, so high is off, " +
+    "but FR's high pin selects reverse: the wheel stands, turned to counter-clockwise, until a master writes SD0.";
+}
+// What each forced input takes, said with a refusal.
+const FORCE_RANGES = { v1: "V1 takes 0 to 100 V", v2: "V2 takes 0 to 100 V", i: "I takes -100 to 100 A",
+  rpm_m: "RPM_M takes 0 to 65535 counts", rpm_l: "RPM_L takes 0 to 65535 counts", ldr: "LDR takes 0 to 65535 counts" };
 const SWITCH_NAMES = ["EN", "BRK", "PRO", "DES", "FR", "CHG"];
 const SWITCH_LABELS = { EN: "inverter enable", BRK: "brake", PRO: "converter boost", DES: "bus bleeder", FR: "reverse", CHG: "charger" };
 
@@ -181,7 +254,7 @@ function buildSwitches() {
     c.onchange = async () => {
       switchPending[k] = true;
       const body = {}; body[k] = c.checked;
-      await send("/api/outputs", body);
+      await send("/api/outputs", body, "switch");
       delete switchPending[k];
     };
     l.append(c, el("b", "", k), el("span", "at", SWITCH_LABELS[k]));
@@ -193,6 +266,11 @@ function renderSwitches(m) {
   if (info.role === "client") {
     const dev = ((m.state && m.state.devices) || []).find((d) => d.controller);
     if (dev) states = dev.controller.outputs;
+    const ov = $("out-vel"), vel = states && states.VEL.counts;
+    if (states && document.activeElement !== ov) {
+      ov.value = vel === null ? 0 : vel;
+      $("out-vel-out").textContent = vel === null ? "not written since connecting" : vel;
+    }
   } else if (info.role === "supervise") {
     const lp = firstLoop(m.state);
     if (lp) {
@@ -203,7 +281,11 @@ function renderSwitches(m) {
   for (const k of SWITCH_NAMES) {
     const c = $("sw-" + k);
     c.disabled = !!locked;
-    if (states && states[k] && states[k].on !== null && !switchPending[k]) c.checked = !!states[k].on;
+    if (states && states[k] && !switchPending[k]) {
+      // Unknown (not written since connecting): neither ticked nor not.
+      c.indeterminate = states[k].on === null;
+      c.checked = states[k].on === true;
+    }
   }
   $("switch-note").textContent = locked || "On: the lab's active sense (pin 0), but FR: on is reverse (pin 1). MEB outputs cannot be read back: shown as last set here.";
 }
@@ -220,6 +302,17 @@ function renderConnection(m) {
 const fmt = (v, d) => (typeof v === "number" && isFinite(v) ? v.toFixed(d) : "–");
 
 // ---- supervise: per-slave lights --------------------------------------------
+// Exchanges and failures per slave over the last few seconds: a lamp shows
+// the recent state, so one timeout long ago does not keep it amber, and a
+// loaded machine's odd timeout does not either (amber past one in five).
+const RECENT_S = 5;
+let slaveHistory = {};
+function recentFailures(id, t, failed, requests) {
+  const h = (slaveHistory[id] = slaveHistory[id] || []);
+  h.push([t, failed, requests]);
+  while (h.length > 1 && h[1][0] <= t - RECENT_S) h.shift();
+  return [failed - h[0][1], requests - h[0][2]];
+}
 function renderSlaves(m) {
   const box = $("loop-slaves");
   box.replaceChildren();
@@ -228,8 +321,12 @@ function renderSlaves(m) {
     const c = l.counters;
     const r = el("div", "out-row");
     const left = el("span");
-    const lampCls = age === null || age > 1 ? "bad" : c.bad_checks || c.timeouts ? "warn" : "on";
-    left.append(el("span", "lamp " + lampCls), el("b", "", "slave " + String(l.id).padStart(2, "0")));
+    const [failed, asked] = recentFailures(l.id, m.t, c.bad_checks + c.timeouts + c.exceptions, c.requests);
+    const share = failed ? " (" + failed + " of " + asked + " exchanges failed in the last " + RECENT_S + " s)" : "";
+    const [lampCls, word] = age === null ? ["bad", "no reply yet"] : age > 1 ? ["bad", "no reply for " + age.toFixed(1) + " s"]
+      : failed * 5 > asked ? ["warn", "replying, with failures" + share] : ["on", "replying" + share];
+    left.dataset.state = lampCls;
+    left.append(el("span", "lamp " + lampCls), el("b", "", "slave " + String(l.id).padStart(2, "0") + " "), el("span", "lamp-text", word));
     left.id = "slave-" + l.id;
     left.dataset.badChecks = c.bad_checks; left.dataset.timeouts = c.timeouts;
     r.append(left, el("span", "", "timeouts " + c.timeouts + " · bad checks " + c.bad_checks + " · last reply " + (age === null ? "never" : (age * 1000).toFixed(0) + " ms ago")));
@@ -249,8 +346,9 @@ function renderLinks(m) {
     const s = (m.links || {})[l.name] || {};
     const tr = el("tr");
     const age = s.last_frame_age_s;
-    const lampCls = age === null || age === undefined ? "off" : s.errors_recent ? "bad" : age < 1 ? "on" : "warn";
-    const lampTd = el("td"); lampTd.append(el("span", "lamp " + lampCls));
+    const [lampCls, word] = linkLamp(s, age);
+    const lampTd = el("td"); lampTd.id = "lamp-" + l.name; lampTd.dataset.state = lampCls;
+    lampTd.append(el("span", "lamp " + lampCls), el("span", "lamp-text", word));
     tr.append(lampTd, el("td", "", l.name), el("td", "", l.address), el("td", "", String(l.clients)),
       el("td", "", String(s.frames_in || 0)), el("td", "", String(s.frames_out || 0)), el("td", "", String(s.errors || 0)),
       el("td", "", age === null || age === undefined ? "never" : age < 1 ? (age * 1000).toFixed(0) + " ms ago" : age.toFixed(1) + " s ago"));
@@ -266,27 +364,44 @@ function renderLinks(m) {
     b.classList.toggle("on", !!on);
   });
 }
+// Red: frames fail their check and none has passed for a second; amber:
+// errors among good frames, or a quiet link. Errors count over the last 5 s.
+function linkLamp(s, age) {
+  if (age === null || age === undefined) return ["off", "no frames yet"];
+  const good = s.last_good_age_s;
+  if (s.errors_recent && (good === null || good === undefined || good > 1))
+    return ["bad", s.errors_recent + " errors, no good frame " + (good === null || good === undefined ? "yet" : "for " + good.toFixed(1) + " s")];
+  if (s.errors_recent) return ["warn", s.errors_recent + " errors in the last 5 s"];
+  if (age >= 1) return ["warn", "quiet for " + age.toFixed(1) + " s"];
+  return ["on", "ok"];
+}
 function buildFaults(names) {
   const box = $("faults");
   box.replaceChildren();
   for (const name of names) {
     const r = el("div", "fault-row");
     r.append(el("b", "", name));
+    const code = el("select"); code.id = "fault-code-" + name; code.setAttribute("aria-label", "exception code");
+    for (const [n, what] of [[1, "illegal command"], [2, "illegal address"], [3, "illegal data"], [4, "device failure"]]) {
+      const o = el("option", "", "0" + n + " " + what); o.value = n; code.append(o);
+    }
+    code.value = 4;
     for (const [kind, label] of [["bad-check", "bad check"], ["no-reply", "no reply"], ["exception", "exception"]]) {
       const b = el("button", "", label);
       b.dataset.fault = kind; b.dataset.link = name;
       b.id = "fault-" + kind + "-" + name;
-      b.onclick = () => send("/api/fault", { fault: kind, link: name });
+      b.onclick = () => send("/api/fault", kind === "exception" ? { fault: kind, link: name, code: +code.value } : { fault: kind, link: name }, "fault");
+      if (kind === "exception") r.append(code);
       r.append(b);
     }
     const ms = el("input"); ms.type = "number"; ms.value = 50; ms.min = 0; ms.max = 60000; ms.style.width = "5rem";
     ms.setAttribute("aria-label", "delay ms");
     const d = el("button", "", "delay ms");
     d.dataset.fault = "delay"; d.dataset.link = name;
-    d.onclick = () => send("/api/fault", { fault: "delay", link: name, delay_ms: +ms.value });
+    d.onclick = () => send("/api/fault", { fault: "delay", link: name, delay_ms: +ms.value }, "fault", "the delay takes 0 to 60000 ms");
     const off = el("button", "", "off");
     off.id = "fault-off-" + name;
-    off.onclick = () => send("/api/fault", { fault: "off" });
+    off.onclick = () => send("/api/fault", { fault: "off" }, "fault");
     r.append(ms, d, off);
     box.append(r);
   }
@@ -314,7 +429,7 @@ function matches(f) {
   const link = $("filter-link").value, node = $("filter-node").value.trim().toLowerCase();
   if (link && f.link !== link) return false;
   if (!node) return true;
-  return frameNode(f) === node.replace(/^0+(?=\d)/, "") || f.text.toLowerCase().includes(node) || (f.from || "").includes(node);
+  return frameNode(f) === node.replace(/^0+(?=\d)/, "") || f.text.toLowerCase().includes(node) || (f.from || "").includes(node) || (f.to || "").includes(node);
 }
 function takeFrames(list) {
   for (const f of list) {
@@ -331,7 +446,7 @@ function renderFrames() {
   const rows = shown.map((f) => {
     const tr = el("tr", (f.bad ? "bad " : "") + f.dir);
     tr.append(el("td", "", f.t.toFixed(4)), el("td", "", f.gap_ms === null ? "" : f.gap_ms.toFixed(1)), el("td", "", f.link),
-      el("td", "dir", f.dir === "out" ? "→ " + "twin" : "← " + f.from), el("td", "text", f.text), el("td", "dec", decodedText(f)));
+      el("td", "dir", f.from + " → " + f.to), el("td", "text", f.text), el("td", "dec", decodedText(f)));
     return tr;
   });
   tb.replaceChildren(...rows);
@@ -339,9 +454,9 @@ function renderFrames() {
 }
 function exportCsv() {
   const esc = (s) => '"' + String(s).replace(/"/g, '""') + '"';
-  const lines = ["t_s,end_s,link,direction,from,frame,decoded,bad"];
+  const lines = ["t_s,end_s,link,direction,from,to,frame,decoded,bad"];
   for (const f of frames.filter(matches))
-    lines.push([f.t, f.end, f.link, f.dir, f.from, esc(f.text), esc(decodedText(f)), f.bad].join(","));
+    lines.push([f.t, f.end, f.link, f.dir, esc(f.from), esc(f.to), esc(f.text), esc(decodedText(f)), f.bad].join(","));
   const a = el("a");
   a.href = URL.createObjectURL(new Blob([lines.join("\n") + "\n"], { type: "text/csv" }));
   a.download = "frames.csv";
@@ -408,8 +523,28 @@ function render() {
   if (!paused) renderFrames();
   drawTrend();
   const lp = firstLoop(m.state);
-  if (lp && document.activeElement !== $("set-point")) { $("set-point").value = lp.set_point_rpm || 0; $("sp-out").textContent = fmt(lp.set_point_rpm, 0); }
-  if (lp && document.activeElement !== $("kp") && document.activeElement !== $("ki") && !$("kp").value) { $("kp").value = lp.kp; $("ki").value = lp.ki; }
+  if (lp) renderLoopControls(lp);
+}
+
+// Every loop control shows what the supervisor holds now, unless the user
+// is changing it (focused, or edited and not yet sent).
+let edited = {};
+let loopPending = false;
+function renderLoopControls(lp) {
+  const shows = (id, value, text) => {
+    const e = $(id);
+    if (document.activeElement === e || edited[id]) return;
+    e.value = value;
+    if (text) $(text).textContent = e.value;
+  };
+  shows("set-point", lp.set_point_rpm || 0, "sp-out");
+  shows("kp", lp.kp === null ? "" : lp.kp);
+  shows("ki", lp.ki === null ? "" : lp.ki);
+  const manual = lp.mode && typeof lp.mode === "object" ? lp.mode.manual : null;
+  shows("vel", manual !== null ? manual : lp.vel_written === null ? lp.output : lp.vel_written, "vel-out");
+  if (!loopPending) $("loop-on").checked = lp.mode === "loop";
+  $("vel").disabled = lp.mode === "loop";
+  $("loop-mode").textContent = lp.mode === "loop" ? "the loop sets VEL" : manual !== null ? "manual: VEL held at " + manual + " counts" : "";
 }
 function connect() {
   const es = new EventSource("/api/stream" + q);
@@ -423,24 +558,52 @@ function connect() {
 
 // ---- controls ---------------------------------------------------------------
 function wire() {
-  $("force-form").onsubmit = (e) => { e.preventDefault(); send("/api/force", { input: $("force-input").value, value: +$("force-value").value }); };
-  $("release").onclick = () => send("/api/release", { input: $("force-input").value });
-  $("release-all").onclick = () => send("/api/release", { input: "all" });
+  $("force-form").onsubmit = (e) => {
+    e.preventDefault();
+    const input = $("force-input").value, text = $("force-value").value.trim();
+    const range = FORCE_RANGES[input];
+    if (text === "" || !isFinite(+text)) { refuse("force", "value: enter a number — " + range); return; }
+    send("/api/force", { input, value: +text }, "force", range);
+  };
+  $("release").onclick = () => send("/api/release", { input: $("force-input").value }, "force");
+  $("release-all").onclick = () => send("/api/release", { input: "all" }, "force");
   $("pause").onclick = () => { paused = !paused; $("pause").textContent = paused ? "Resume" : "Pause"; $("pause").classList.toggle("on", paused); renderFrames(); };
   $("csv").onclick = exportCsv;
   $("filter-link").onchange = renderFrames;
   $("filter-node").oninput = renderFrames;
   const sp = $("set-point");
   sp.oninput = () => { $("sp-out").textContent = sp.value; };
-  sp.onchange = () => send("/api/loop", { set_point_rpm: +sp.value });
-  $("gains").onclick = () => send("/api/loop", { kp: +$("kp").value, ki: +$("ki").value });
-  $("loop-on").onchange = () => send("/api/loop", $("loop-on").checked ? { mode: "loop" } : { mode: "manual", vel: +$("vel").value });
+  sp.onchange = () => send("/api/loop", { set_point_rpm: +sp.value }, "loop");
+  // Typed into, cleared or changed by any means: the box is the user's until sent.
+  for (const id of ["kp", "ki"]) { $(id).oninput = () => { edited[id] = true; }; $(id).onchange = $(id).oninput; }
+  $("gains").onclick = async () => {
+    // Only the gains typed in are sent; an empty box is refused here, not sent as 0.
+    const body = {};
+    for (const id of ["kp", "ki"]) {
+      if (!edited[id]) continue;
+      const text = $(id).value.trim();
+      if (text === "" || !isFinite(+text)) { refuse("loop", (id === "kp" ? "Kp" : "Ki") + ": enter a number from 0 to 1000"); return; }
+      body[id] = +text;
+    }
+    if (!Object.keys(body).length) { refuse("loop", "nothing to set: type a new Kp or Ki first"); return; }
+    if (await send("/api/loop", body, "loop", "gains take 0 to 1000")) { delete edited.kp; delete edited.ki; }
+  };
+  $("loop-on").onchange = async () => {
+    // Off holds the VEL the slave has (as a client's VD 10 0 does): a
+    // turning wheel keeps turning until the manual VEL is moved.
+    loopPending = true;
+    await send("/api/loop", { mode: $("loop-on").checked ? "loop" : "manual" }, "loop");
+    loopPending = false;
+  };
   const ov = $("out-vel");
   ov.oninput = () => { $("out-vel-out").textContent = ov.value; };
-  ov.onchange = () => send("/api/outputs", { vel: +ov.value });
+  ov.onchange = () => send("/api/outputs", { vel: +ov.value }, "switch");
   const vel = $("vel");
-  vel.oninput = () => { $("vel-out").textContent = vel.value; };
-  vel.onchange = () => { if (!$("loop-on").checked) send("/api/loop", { mode: "manual", vel: +vel.value }); };
+  vel.oninput = () => { $("vel-out").textContent = vel.value; edited.vel = true; };
+  vel.onchange = async () => {
+    if (!$("loop-on").checked) await send("/api/loop", { mode: "manual", vel: +vel.value }, "loop");
+    delete edited.vel;
+  };
   $("step").onclick = async () => {
     $("step").disabled = true; kv($("step-result"), [["step", "running…"]]);
     try {
@@ -454,8 +617,10 @@ function wire() {
           [name + " settling", fmt(mm.settling_time_s, 3) + " s"], [name + " steady error", fmt(mm.steady_state_error, 1) + " rpm"]);
         if (s.delay_s !== undefined && s.delay_s !== null) rows.push([name + " delay", fmt(s.delay_s * 1000, 0) + " ms"]);
       }
+      if (r.loop_closes_on) rows.push(["loop", "closes on the " + r.loop_closes_on + " (its figures above)"]);
       kv($("step-result"), rows);
-    } catch (e) { kv($("step-result"), [["step", e.message]]); }
+      clearRefusal("loop");
+    } catch (e) { kv($("step-result"), []); refuse("loop", "step: " + e.message); }
     $("step").disabled = false;
   };
 }
@@ -479,7 +644,12 @@ async function start() {
     document.querySelectorAll(".legend .sp, .legend .wheel").forEach((e) => e.classList.add("hidden"));
   }
   $("ro").classList.toggle("hidden", !info.read_only);
-  if (info.role === "supervise") { $("outputs-card").querySelector("h2").textContent = "Master's outputs"; $("g-wheel").querySelector(".label span").textContent = "Wheel rpm (loop)"; }
+  if (info.role === "supervise") {
+    $("outputs-card").querySelector("h2").textContent = "Master's outputs";
+    // A supervisor has no plant: its "wheel" is the reading the loop closes on.
+    $("g-wheel").querySelector(".label span").textContent = "Loop's measurement";
+    $("legend-wheel").textContent = "loop's measurement (a reading, not the true wheel)";
+  }
   try { const t = await api("/api/trend?seconds=30"); trend = t.rows; } catch (e) { /* the stream fills it */ }
   wire();
   connect();

@@ -235,7 +235,8 @@ pub fn fault(map: &Map<String, Value>) -> Result<EngineCommand, Rejected> {
 }
 
 /// `POST /api/loop {"slave": 1, "set_point_rpm": 2000, "kp": .., "ki": ..,
-/// "mode": "loop" | "manual", "vel": counts}`: the supervisor's controls.
+/// "mode": "loop" | "manual", "vel": counts}`: the supervisor's controls;
+/// `manual` without `vel` holds the VEL the slave has.
 pub fn supervise_loop(map: &Map<String, Value>) -> Result<EngineCommand, Rejected> {
     only(map, &["slave", "set_point_rpm", "kp", "ki", "mode", "vel"])?;
     let slave = number(map, "slave", 1.0..=99.0)?;
@@ -243,12 +244,12 @@ pub fn supervise_loop(map: &Map<String, Value>) -> Result<EngineCommand, Rejecte
     let kp = number(map, "kp", 0.0..=1000.0)?;
     let ki = number(map, "ki", 0.0..=1000.0)?;
     let vel = number(map, "vel", 0.0..=nodes::master::VEL_MAX)?.map(|v| v.round() as u16);
-    let mode = match text(map, "mode")? {
-        None => vel.map(|vel| LoopMode::Open { vel }),
-        Some("loop") => Some(LoopMode::Closed),
-        Some("manual") => Some(LoopMode::Open {
-            vel: required(vel, "vel")?,
-        }),
+    // `Some(None)`: manual at the VEL the slave holds, as a client's
+    // `VD 10 0` does (a switch ticked off must not stop a turning wheel).
+    let mode: Option<Option<LoopMode>> = match text(map, "mode")? {
+        None => vel.map(|vel| Some(LoopMode::Open { vel })),
+        Some("loop") => Some(Some(LoopMode::Closed)),
+        Some("manual") => Some(vel.map(|vel| LoopMode::Open { vel })),
         Some(other) => {
             return Err(Rejected::field(
                 "mode",
@@ -288,7 +289,12 @@ pub fn supervise_loop(map: &Map<String, Value>) -> Result<EngineCommand, Rejecte
                     let (old_kp, old_ki) = s.gains(id).unwrap_or((0.0, 0.0));
                     s.set_gains(id, kp.unwrap_or(old_kp), ki.unwrap_or(old_ki));
                 }
-                if let Some(mode) = mode {
+                let held = || {
+                    s.loop_state(id).map(|st| LoopMode::Open {
+                        vel: st.vel_written.unwrap_or(st.output),
+                    })
+                };
+                if let Some(mode) = mode.and_then(|m| m.or_else(held)) {
                     s.set_mode(id, mode);
                 }
             }
@@ -375,9 +381,6 @@ mod tests {
             field_of(supervise_loop(&map(r#"{"vel":99999}"#))),
             Some("vel".into())
         );
-        assert_eq!(
-            field_of(supervise_loop(&map(r#"{"mode":"manual"}"#))),
-            Some("vel".into())
-        );
+        assert!(supervise_loop(&map(r#"{"mode":"manual"}"#)).is_ok());
     }
 }

@@ -23,11 +23,11 @@ use tokio::sync::broadcast::error::RecvError;
 use crate::access::{Access, Refused};
 use crate::commands::{self, EngineCommand, Rejected};
 use crate::hub::Hub;
+use crate::monitor::Monitor;
 use crate::remote::Remote;
 use crate::snapshot::{self, EngineSnapshot};
 use crate::{PanelRole, assets, outputs};
 use twin_realtime::Inbound;
-use twin_recording::describe::link_frame_fields;
 
 /// What the panel fronts: a session's engine, or (`twin panel`) its own
 /// MEB-TCP connection to a slave.
@@ -331,105 +331,12 @@ async fn stream(
     Sse::new(events).keep_alive(KeepAlive::default())
 }
 
-/// What the producer keeps per link.
-#[derive(Default)]
-struct LinkStats {
-    frames_in: u64,
-    frames_out: u64,
-    errors: u64,
-    last_t: Option<f64>,
-}
-
-/// Shown bytes: the text of an ASCII frame (MEB, Modbus ASCII), else hex.
-fn shown(bytes: &[u8]) -> String {
-    let text = bytes
-        .iter()
-        .all(|&b| b == b'\r' || b == b'\n' || (0x20..0x7f).contains(&b));
-    if text && !bytes.is_empty() {
-        String::from_utf8_lossy(bytes).trim_end().to_string()
-    } else {
-        bytes
-            .iter()
-            .map(|b| format!("{b:02X}"))
-            .collect::<Vec<_>>()
-            .join(" ")
-    }
-}
-
-/// Frames one message carries at most; the rest are counted as skipped.
-const FRAMES_PER_MESSAGE: usize = 400;
-
-/// The frame monitor's side of the producer: frames decoded and counted per link.
-#[derive(Default)]
-struct Monitor {
-    stats: BTreeMap<String, LinkStats>,
-    protocols: BTreeMap<String, &'static str>,
-    cut: u64,
-}
-
-impl Monitor {
-    /// The frames and events held since the last message.
-    fn take(&mut self, hub: &Hub) -> (Vec<Value>, Vec<crate::hub::HeldEvent>, Option<(f64, f64)>) {
-        let mut frames = Vec::new();
-        let (events, lateness) = hub.take(|f| {
-            let protocol = self.protocols.get(&f.link).copied().unwrap_or("meb");
-            let decoded =
-                serde_json::to_value(link_frame_fields(protocol, &f.bytes)).unwrap_or(Value::Null);
-            let bad = decoded.get("error").is_some();
-            let out = f.from == "twin";
-            let s = self.stats.entry(f.link.clone()).or_default();
-            if out {
-                s.frames_out += 1
-            } else {
-                s.frames_in += 1
-            }
-            if bad {
-                s.errors += 1
-            }
-            s.last_t = Some(f.end);
-            if frames.len() < FRAMES_PER_MESSAGE {
-                frames.push(json!({
-                    "link": f.link, "from": f.from, "dir": if out { "out" } else { "in" },
-                    "t": crate::seconds(f.start), "end": crate::seconds(f.end), "text": shown(&f.bytes),
-                    "decoded": decoded, "bad": bad,
-                }));
-            } else {
-                self.cut += 1;
-            }
-        });
-        (frames, events, lateness)
-    }
-
-    /// Per link: clients, frames, errors, age of the last frame at `now`.
-    fn links<'a>(
-        &self,
-        links: impl Iterator<Item = (&'a str, usize)>,
-        now: f64,
-    ) -> BTreeMap<&'a str, Value> {
-        links
-            .map(|(name, clients)| {
-                let s = self.stats.get(name);
-                (
-                    name,
-                    json!({
-                        "clients": clients,
-                        "frames_in": s.map_or(0, |s| s.frames_in),
-                        "frames_out": s.map_or(0, |s| s.frames_out),
-                        "errors": s.map_or(0, |s| s.errors),
-                        "last_frame_age_s": s.and_then(|s| s.last_t).map(|t| (now - t).max(0.0)),
-                    }),
-                )
-            })
-            .collect()
-    }
-}
-
 /// Every stream period: the engine's state, the frames and events since the
 /// last message, one message for every client.
 async fn produce(state: AppState, engine: Arc<Mutex<Sender<Inbound>>>) {
     let mut interval = tokio::time::interval(Duration::from_secs_f64(1.0 / state.rate_hz));
     interval.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
-    let mut monitor = Monitor::default();
+    let mut monitor = Monitor::new(state.role);
     loop {
         interval.tick().await;
         let snap = match read_snapshot(&engine).await {
@@ -482,7 +389,7 @@ async fn produce(state: AppState, engine: Arc<Mutex<Sender<Inbound>>>) {
 async fn produce_remote(state: AppState, remote: Arc<Remote>) {
     let mut interval = tokio::time::interval(Duration::from_secs_f64(1.0 / state.rate_hz));
     interval.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
-    let mut monitor = Monitor::default();
+    let mut monitor = Monitor::new(state.role);
     loop {
         interval.tick().await;
         let (snapshot, trend) = crate::remote::message_state(&remote);

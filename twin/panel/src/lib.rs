@@ -39,6 +39,7 @@ pub mod assets;
 pub mod commands;
 pub mod http;
 pub mod hub;
+pub mod monitor;
 pub mod outputs;
 pub mod remote;
 pub mod server;

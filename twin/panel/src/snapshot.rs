@@ -2,7 +2,7 @@
 //! copies the few values needed (no JSON on the engine's thread); the panel
 //! turns them into the stream's `state` object on its own thread.
 
-use nodes::firmware::{RegisterImage, ea, sd, status};
+use nodes::firmware::{LightDetectorConfig, RegisterImage, ea, sd, status};
 use nodes::master::{LoopMode, LoopState};
 use serde_json::{Value, json};
 use twin_realtime::engine::RtCounters;
@@ -38,6 +38,9 @@ pub struct DeviceState {
     pub forces: Forces,
     pub readings: Option<ReadingsSample>,
     pub loops: Vec<SlaveLoop>,
+    /// The light detector in use: its description and the fastest wheel
+    /// it sees the flag at, rpm (a controller on a plant only).
+    pub light: Option<(String, f64, bool)>,
 }
 
 #[derive(Debug, Clone)]
@@ -80,6 +83,7 @@ pub fn read(engine: &mut RtEngine) -> EngineSnapshot {
             }
         })
         .collect();
+    let light_params = engine.modules.first().map(|m| m.plant.params().light.clone());
     let devices = engine
         .devices
         .iter_mut()
@@ -101,9 +105,19 @@ pub fn read(engine: &mut RtEngine) -> EngineSnapshot {
                 }
                 None => Vec::new(),
             };
+            let image = d.node.image_mut().map(|i| i.clone());
+            // As the controller runs it now: a master may have changed
+            // LDR_TH or LDR_ADAPT since the console said it at start.
+            let light = image.as_ref().zip(light_params.as_ref()).map(|(i, p)| {
+                let mut detector = LightDetectorConfig::for_sensor(p);
+                detector.threshold_counts = i.stored.ldr_threshold;
+                detector.adaptive = i.stored.ldr_adaptive & 1 != 0;
+                (detector.describe(p), detector.max_rpm(p), detector.adaptive)
+            });
             DeviceState {
                 name: d.name.clone(),
-                image: d.node.image_mut().map(|i| i.clone()),
+                image,
+                light,
                 forces: d.forces,
                 readings: d.node.controller_readings(),
                 loops,
@@ -150,6 +164,18 @@ fn bit(word: u16, mask: u16) -> Value {
     json!({ "on": word & mask == 0, "pin": if word & mask == 0 { 0 } else { 1 } })
 }
 
+/// The status word `FD 00` as the lab's lamps.
+pub fn lamps(word: u16) -> Value {
+    json!({
+        "battery_cut_off": word & status::BATTERY_CUT_OFF != 0,
+        "over_current": word & status::OVER_CURRENT != 0,
+        "brake": word & status::BRAKE != 0,
+        "stalled": word & status::STALLED != 0,
+        "charging": word & status::CHARGING != 0,
+        "ccw": word & status::CCW != 0,
+    })
+}
+
 /// An MEB word with its engineering value.
 fn analog(counts: u16, value: f64, unit: &str) -> Value {
     json!({ "counts": counts, "value": value, "unit": unit })
@@ -171,14 +197,10 @@ fn image_json(image: &RegisterImage, readings: Option<&ReadingsSample>, forces: 
         },
         "ED0": image.hall,
         "ERRS": image.errs,
-        "status": {
-            "battery_cut_off": image.status & status::BATTERY_CUT_OFF != 0,
-            "over_current": image.status & status::OVER_CURRENT != 0,
-            "brake": image.status & status::BRAKE != 0,
-            "stalled": image.status & status::STALLED != 0,
-            "charging": image.status & status::CHARGING != 0,
-            "ccw": image.status & status::CCW != 0,
-        },
+        "status": lamps(image.status),
+        // The power-up outputs (SD0 = 0x001F, every pin high) for the page
+        // to explain FR and CCW before any master wrote them.
+        "sd0": stored.sd0,
         "outputs": {
             "VEL": { "counts": stored.vel, "max": image.dac_max(),
                      "value": f64::from(stored.vel) * 5.0 / f64::from(image.dac_max().max(1)), "unit": "V" },
@@ -247,7 +269,8 @@ fn loop_json(l: &SlaveLoop) -> Value {
             "bad_checks": c.bad_checks, "exceptions": c.exceptions, "retries": c.retries,
             "lost": c.lost,
         },
-        "status": { "hall": s.status.hall, "flags": s.status.flags, "status": s.status.status },
+        "status": { "hall": s.status.hall, "flags": s.status.flags, "status": s.status.status,
+                    "lamps": s.status.status.map(lamps) },
     })
 }
 
@@ -289,6 +312,11 @@ impl EngineSnapshot {
                 let mut v = json!({ "name": d.name });
                 if let Some(image) = &d.image {
                     v["controller"] = image_json(image, d.readings.as_ref(), &d.forces);
+                    if let Some((description, max_rpm, adaptive)) = &d.light {
+                        v["controller"]["light_detector"] = json!({
+                            "description": description, "max_rpm": max_rpm.round(), "adaptive": adaptive,
+                        });
+                    }
                 }
                 if let Some(r) = &d.readings {
                     v["readings"] = json!({

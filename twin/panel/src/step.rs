@@ -50,14 +50,26 @@ pub async fn step(
     let seconds = field("seconds", 2.0, MAX_SECONDS)?.unwrap_or(6.0);
     let slave = field("slave", 1.0, 99.0)?;
     let before: Value = serde_json::from_str(&hub.latest()).unwrap_or(Value::Null);
-    let from = before["state"]["devices"]
+    let stepped = before["state"]["devices"]
         .as_array()
         .into_iter()
         .flatten()
         .flat_map(|d| d["loops"].as_array().into_iter().flatten())
-        .next()
+        .find(|l| slave.is_none_or(|s| l["id"].as_f64() == Some(s)));
+    let from = stepped
         .and_then(|l| l["set_point_rpm"].as_f64())
         .unwrap_or(0.0);
+    // A set point moves nothing while the loop is open: say so rather
+    // than measure a signal that cannot follow.
+    if let Some(vel) = stepped.and_then(|l| l["mode"]["manual"].as_u64()) {
+        return Err(Rejected {
+            status: 409,
+            field: None,
+            message: format!(
+                "the loop is off (manual VEL {vel}): tick \"loop on\" to step the set point"
+            ),
+        });
+    }
     let mut body = Map::new();
     body.insert("set_point_rpm".into(), json!(to));
     if let Some(s) = slave {
@@ -82,11 +94,20 @@ pub async fn step(
     let (hall, light, wheel) = (col(1), col(2), col(3));
     let options = twin_sim::step_metrics::StepOptions::default();
     let mut signals = Map::new();
-    for (name, y) in [
-        ("wheel (loop)", &wheel),
-        ("hall rpm", &hall),
-        ("light rpm", &light),
-    ] {
+    // The loop closes on one of the two readings: its own figures would
+    // repeat that reading's, so it is named instead.
+    let closes_on = if wheel == hall {
+        Some("hall rpm")
+    } else if wheel == light {
+        Some("light rpm")
+    } else {
+        None
+    };
+    let mut shown = vec![("hall rpm", &hall), ("light rpm", &light)];
+    if closes_on.is_none() {
+        shown.insert(0, ("wheel (loop)", &wheel));
+    }
+    for (name, y) in shown {
         let figures = twin_sim::step_metrics::step_metrics(&t, y, at, Some(to), &options);
         let delay = (name == "light rpm")
             .then(|| twin_sim::step_metrics::delay(&t, &hall, y, at, 2.0).ok())
@@ -108,6 +129,7 @@ pub async fn step(
         // A busy machine delays the polls, and the figures with them.
         "largest_gap_ms": t.windows(2).map(|w| (w[1] - w[0]) * 1000.0).fold(0.0, f64::max),
         "signals": signals,
+        "loop_closes_on": closes_on,
         "note": "figures as `twin step` computes them, on every measurement the supervisor's polls brought; the light reading's delay is measured behind the hall reading",
     }))
 }

@@ -186,7 +186,16 @@ impl Remote {
                 }
                 match MebClient::connect(&self.options.url, self.options.timeout) {
                     Ok(c) => {
-                        lock(&self.state).counters.reconnects += 1;
+                        let mut s = lock(&self.state);
+                        s.counters.reconnects += 1;
+                        // The slave may have restarted meanwhile (power-up
+                        // outputs) or another master written them: what this
+                        // panel wrote before is no longer known to hold.
+                        s.vel = None;
+                        for word in &mut s.sd {
+                            word.1 = None;
+                        }
+                        drop(s);
                         hub.push_event("panel", self.now(), "connected", &self.options.url);
                         client = Some(c);
                     }

@@ -55,6 +55,18 @@ pub fn serve(web: &str, access: AccessOptions, seconds: f64) -> Session {
 
 /// `twin serve --meb LINK --adaptive-light --web WEB` for at most `seconds`.
 pub fn serve_on(link: &str, web: &str, access: AccessOptions, seconds: f64) -> Session {
+    serve_with(link, web, access, seconds, true)
+}
+
+/// `twin serve --meb LINK --web WEB`, with the adaptive light detector or
+/// the fixed one, for at most `seconds`.
+pub fn serve_with(
+    link: &str,
+    web: &str,
+    access: AccessOptions,
+    seconds: f64,
+    light_adaptive: bool,
+) -> Session {
     let panel = Panel::bind(PanelOptions {
         role: PanelRole::Serve,
         addr: web.parse().unwrap(),
@@ -78,7 +90,7 @@ pub fn serve_on(link: &str, web: &str, access: AccessOptions, seconds: f64) -> S
         idle_timeout: None,
         room_after_idle: None,
         read_only: false,
-        light_adaptive: true,
+        light_adaptive,
         firmware: Vec::new(),
     };
     let (ready_tx, ready_rx) = channel();

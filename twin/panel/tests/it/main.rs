@@ -11,5 +11,9 @@
 mod api;
 mod browser;
 mod client_browser;
+mod client_truth;
 mod common;
+mod page;
+mod serve_truth;
 mod supervise_browser;
+mod supervise_truth;

@@ -1,0 +1,99 @@
+//! The client panel (`twin panel tcp://…`) after its slave goes away and
+//! comes back: the gauges say they are the last values read while it is
+//! gone, and the outputs this panel wrote before are not shown as the
+//! module's after the reconnect (the module restarted with its power-up
+//! outputs). Its frames are named like every panel's.
+
+use crate::common::{Session, chromedriver, http, serve_on};
+use crate::page::{click, frame_rows, js, open, runtime, text, until};
+use std::time::Duration;
+use twin_panel::remote::{Remote, RemoteOptions};
+use twin_panel::{AccessOptions, Panel, PanelOptions, PanelRole};
+
+const LIMIT: Duration = Duration::from_secs(30);
+
+fn outputs(session: &Session) -> serde_json::Value {
+    let (_, body) = http(&session.panel, "GET", "/api/state", None, true);
+    let s: serde_json::Value = serde_json::from_str(&body).unwrap_or_default();
+    s["state"]["devices"][0]["controller"]["outputs"].clone()
+}
+
+#[test]
+fn the_client_panel_forgets_its_writes_across_a_reconnect_and_says_when_it_is_stale() {
+    let first = serve_on("tcp://127.0.0.1:0", "127.0.0.1:0", AccessOptions::default(), 120.0);
+    let url = first.meb.clone();
+    let panel = Panel::bind(PanelOptions {
+        role: PanelRole::Client,
+        addr: "127.0.0.1:0".parse().unwrap(),
+        access: AccessOptions::default(),
+        rate_hz: 20.0,
+    })
+    .unwrap();
+    let remote = Remote::start(
+        RemoteOptions {
+            url: url.clone(),
+            id: 1,
+            map: Default::default(),
+            poll: Duration::from_millis(50),
+            timeout: Duration::from_millis(500),
+        },
+        panel.hub(),
+    )
+    .unwrap();
+    panel.start_remote(remote).unwrap();
+    let page_url = panel.running().url;
+    let driver = chromedriver();
+    runtime().block_on(async {
+        let c = open(&driver, "client-truth", &page_url).await;
+        until("the first reads", LIMIT, async || {
+            let conn = text(&c, "#conn").await;
+            (conn.contains("MEB client of"), format!("`{conn}`"))
+        })
+        .await;
+        // Its frames: the panel's requests to slave 01 and the replies.
+        until("the frames named", LIMIT, async || {
+            let rows = frame_rows(&c).await;
+            let sent = rows.iter().any(|(d, f)| d == "twin → slave 01" && f.starts_with("@01"));
+            let got = rows.iter().any(|(d, _)| d == "slave 01 → twin");
+            (sent && got, format!("{:?}", rows.iter().take(4).collect::<Vec<_>>()))
+        })
+        .await;
+        // The inverter enabled from the page, then the slave goes away.
+        click(&c, "#sw-EN").await;
+        until("EN written", LIMIT, async || {
+            let o = outputs(&first);
+            (o["EN"]["on"] == true, format!("{o}"))
+        })
+        .await;
+        until("EN shown on", LIMIT, async || {
+            let on = js(&c, "document.getElementById('sw-EN').checked").await;
+            (on == true, format!("{on}"))
+        })
+        .await;
+        drop(first);
+        until("the gauges said stale", LIMIT, async || {
+            let note = text(&c, "#stale-note").await;
+            let stale = js(&c, "document.getElementById('gauges').classList.contains('stale')").await;
+            (stale == true && note.contains("last read"), format!("{stale} `{note}`"))
+        })
+        .await;
+
+        // A fresh module on the same address: power-up outputs, EN off.
+        let second = serve_on(&url, "127.0.0.1:0", AccessOptions::default(), 60.0);
+        assert_eq!(outputs(&second)["EN"]["on"], false);
+        until("the reconnect, with nothing claimed of the outputs", LIMIT, async || {
+            let conn = text(&c, "#conn").await;
+            let en = js(&c, "[document.getElementById('sw-EN').checked, document.getElementById('sw-EN').indeterminate]").await;
+            let rows = text(&c, "#outputs").await;
+            let stale = js(&c, "document.getElementById('gauges').classList.contains('stale')").await;
+            (
+                conn.contains("MEB client of") && en == serde_json::json!([false, true])
+                    && rows.contains("not written since connecting") && stale == false,
+                format!("`{conn}`, EN (checked, unknown) {en}, stale {stale}, outputs `{rows}`"),
+            )
+        })
+        .await;
+        c.close().await.unwrap();
+        drop(second);
+    });
+}
