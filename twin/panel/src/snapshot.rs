@@ -83,7 +83,10 @@ pub fn read(engine: &mut RtEngine) -> EngineSnapshot {
             }
         })
         .collect();
-    let light_params = engine.modules.first().map(|m| m.plant.params().light.clone());
+    let light_params = engine
+        .modules
+        .first()
+        .map(|m| m.plant.params().light.clone());
     let devices = engine
         .devices
         .iter_mut()

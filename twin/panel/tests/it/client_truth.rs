@@ -20,7 +20,12 @@ fn outputs(session: &Session) -> serde_json::Value {
 
 #[test]
 fn the_client_panel_forgets_its_writes_across_a_reconnect_and_says_when_it_is_stale() {
-    let first = serve_on("tcp://127.0.0.1:0", "127.0.0.1:0", AccessOptions::default(), 120.0);
+    let first = serve_on(
+        "tcp://127.0.0.1:0",
+        "127.0.0.1:0",
+        AccessOptions::default(),
+        120.0,
+    );
     let url = first.meb.clone();
     let panel = Panel::bind(PanelOptions {
         role: PanelRole::Client,

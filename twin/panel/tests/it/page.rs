@@ -30,11 +30,14 @@ pub async fn js(c: &Client, expression: &str) -> Value {
 /// by one call may be gone by the next.
 pub async fn text(c: &Client, css: &str) -> String {
     let css = serde_json::to_string(css).unwrap();
-    js(c, &format!("document.querySelector({css})?.textContent ?? ''"))
-        .await
-        .as_str()
-        .unwrap_or_default()
-        .to_string()
+    js(
+        c,
+        &format!("document.querySelector({css})?.textContent ?? ''"),
+    )
+    .await
+    .as_str()
+    .unwrap_or_default()
+    .to_string()
 }
 
 pub async fn click(c: &Client, css: &str) {
@@ -54,7 +57,10 @@ pub async fn until(what: &str, limit: Duration, mut ok: impl AsyncFnMut() -> (bo
         if good {
             return;
         }
-        assert!(start.elapsed() < limit, "timed out waiting for {what}: {seen}");
+        assert!(
+            start.elapsed() < limit,
+            "timed out waiting for {what}: {seen}"
+        );
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
 }

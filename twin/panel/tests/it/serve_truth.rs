@@ -23,7 +23,13 @@ fn state(session: &Session) -> Value {
 #[test]
 fn the_serve_page_explains_light_power_up_refusals_and_exceptions() {
     // The fixed detector, whatever `twin serve`'s default.
-    let serve = serve_with("tcp://127.0.0.1:0", "127.0.0.1:0", AccessOptions::default(), 120.0, false);
+    let serve = serve_with(
+        "tcp://127.0.0.1:0",
+        "127.0.0.1:0",
+        AccessOptions::default(),
+        120.0,
+        false,
+    );
     let driver = chromedriver();
     runtime().block_on(async {
         let c = open(&driver, "serve-truth", &serve.panel.url).await;
@@ -31,7 +37,10 @@ fn the_serve_page_explains_light_power_up_refusals_and_exceptions() {
         // Power-up: FR on and CCW lit while the wheel stands, explained.
         until("the power-up note", LIMIT, async || {
             let note = text(&c, "#powerup-note").await;
-            (note.contains("0x001F") && note.contains("reverse"), format!("`{note}`"))
+            (
+                note.contains("0x001F") && note.contains("reverse"),
+                format!("`{note}`"),
+            )
         })
         .await;
         let ccw = text(&c, "#flag-ccw").await;
@@ -42,18 +51,35 @@ fn the_serve_page_explains_light_power_up_refusals_and_exceptions() {
         let forward_enabled = sd::BRK | sd::PRO | sd::DES; // EN on (low), FR forward (low)
         master.write(1, MebCmd::SD, 0, &[forward_enabled]).unwrap();
         master.write(1, MebCmd::SA, 0, &[3000]).unwrap();
-        until("the light note at speed", Duration::from_secs(40), async || {
-            let note = text(&c, "#light-note").await;
-            let warn = js(&c, "document.getElementById('light-note').classList.contains('warn')").await;
-            let light = text(&c, "#g-light .num").await;
-            (
-                warn == true && note.contains("sees the flag only up to") && note.contains("reads 0"),
-                format!("light rpm {light}, note `{note}`"),
-            )
-        })
+        until(
+            "the light note at speed",
+            Duration::from_secs(40),
+            async || {
+                let note = text(&c, "#light-note").await;
+                let warn = js(
+                    &c,
+                    "document.getElementById('light-note').classList.contains('warn')",
+                )
+                .await;
+                let light = text(&c, "#g-light .num").await;
+                (
+                    warn == true
+                        && note.contains("sees the flag only up to")
+                        && note.contains("reads 0"),
+                    format!("light rpm {light}, note `{note}`"),
+                )
+            },
+        )
         .await;
-        let power_up = js(&c, "document.getElementById('powerup-note').classList.contains('hidden')").await;
-        assert_eq!(power_up, true, "the power-up note stays once a master wrote SD0");
+        let power_up = js(
+            &c,
+            "document.getElementById('powerup-note').classList.contains('hidden')",
+        )
+        .await;
+        assert_eq!(
+            power_up, true,
+            "the power-up note stays once a master wrote SD0"
+        );
 
         // 500 V forced: refused beside the form, with the range, in a live region.
         let value = c.find(Locator::Css("#force-value")).await.unwrap();
@@ -62,12 +88,22 @@ fn the_serve_page_explains_light_power_up_refusals_and_exceptions() {
         click(&c, "#force-form button[type=submit]").await;
         until("the refusal beside the force form", LIMIT, async || {
             let said = text(&c, "#refusal-force").await;
-            (said.contains("500") && said.contains("0 to 100 V"), format!("`{said}`"))
+            (
+                said.contains("500") && said.contains("0 to 100 V"),
+                format!("`{said}`"),
+            )
         })
         .await;
-        let live = js(&c, "document.getElementById('refusal-force').getAttribute('aria-live')").await;
+        let live = js(
+            &c,
+            "document.getElementById('refusal-force').getAttribute('aria-live')",
+        )
+        .await;
         assert_eq!(live, "assertive", "refusals are an ARIA live region");
-        assert_eq!(state(&serve)["state"]["devices"][0]["controller"]["forced"]["v1"], Value::Null);
+        assert_eq!(
+            state(&serve)["state"]["devices"][0]["controller"]["forced"]["v1"],
+            Value::Null
+        );
         // A good force clears the refusal.
         value.clear().await.unwrap();
         value.send_keys("30").await.unwrap();
@@ -75,14 +111,29 @@ fn the_serve_page_explains_light_power_up_refusals_and_exceptions() {
         until("the refusal cleared", LIMIT, async || {
             let said = text(&c, "#refusal-force").await;
             let forced = state(&serve)["state"]["devices"][0]["controller"]["forced"]["v1"].clone();
-            (said.is_empty() && forced == 30.0, format!("`{said}`, forced {forced}"))
+            (
+                said.is_empty() && forced == 30.0,
+                format!("`{said}`, forced {forced}"),
+            )
         })
         .await;
 
         // The exception code chosen on the page is the one in force.
-        let (_, _) = http(&serve.panel, "POST", "/api/fault", Some(r#"{"fault":"exception","link":"meb","code":2}"#), true);
+        let (_, _) = http(
+            &serve.panel,
+            "POST",
+            "/api/fault",
+            Some(r#"{"fault":"exception","link":"meb","code":2}"#),
+            true,
+        );
         let code_two = state(&serve)["state"]["fault"]["fault"].clone();
-        let (_, _) = http(&serve.panel, "POST", "/api/fault", Some(r#"{"fault":"off"}"#), true);
+        let (_, _) = http(
+            &serve.panel,
+            "POST",
+            "/api/fault",
+            Some(r#"{"fault":"off"}"#),
+            true,
+        );
         c.find(Locator::Css("#fault-code-meb"))
             .await
             .unwrap()

@@ -37,28 +37,46 @@ fn post(session: &Session, path: &str, body: &str) {
 #[test]
 fn the_supervise_page_shows_what_the_supervisor_and_the_bus_hold() {
     let [a, b] = vsp("supervise-truth");
-    let serve = serve_on(b.to_str().unwrap(), "127.0.0.1:0", AccessOptions::default(), 150.0);
+    let serve = serve_on(
+        b.to_str().unwrap(),
+        "127.0.0.1:0",
+        AccessOptions::default(),
+        150.0,
+    );
     let sup = supervise(a.to_str().unwrap(), "127.0.0.1:0", 150.0);
     let driver = chromedriver();
     runtime().block_on(async {
         let c = open(&driver, "supervise-truth", &sup.panel.url).await;
         post(&sup, "/api/loop", r#"{"set_point_rpm": 2000}"#);
-        until("the wheel near 2000 rpm", Duration::from_secs(40), async || {
-            let w = true_wheel(&serve);
-            (w > 1500.0, format!("true wheel {w}"))
-        })
+        until(
+            "the wheel near 2000 rpm",
+            Duration::from_secs(40),
+            async || {
+                let w = true_wheel(&serve);
+                (w > 1500.0, format!("true wheel {w}"))
+            },
+        )
         .await;
 
         // The frame monitor: the supervisor's requests go from the twin to
         // slave 01, the replies come back from it; no "client" on a bus
         // where the twin is the master.
-        until("the bus's frames, each with its sender", LIMIT, async || {
-            let rows = frame_rows(&c).await;
-            let request = rows.iter().any(|(dir, f)| dir == "twin → slave 01" && f.starts_with("@01EA"));
-            let reply = rows.iter().any(|(dir, _)| dir == "slave 01 → twin");
-            let client = rows.iter().any(|(dir, _)| dir.contains("client"));
-            (request && reply && !client, format!("{:?}", rows.iter().take(6).collect::<Vec<_>>()))
-        })
+        until(
+            "the bus's frames, each with its sender",
+            LIMIT,
+            async || {
+                let rows = frame_rows(&c).await;
+                let request = rows
+                    .iter()
+                    .any(|(dir, f)| dir == "twin → slave 01" && f.starts_with("@01EA"));
+                let reply = rows.iter().any(|(dir, _)| dir == "slave 01 → twin");
+                let client = rows.iter().any(|(dir, _)| dir.contains("client"));
+                (
+                    request && reply && !client,
+                    format!("{:?}", rows.iter().take(6).collect::<Vec<_>>()),
+                )
+            },
+        )
         .await;
         // The same words on the serve end of the bus: there the twin is the slave.
         let serve_page = open(&driver, "supervise-truth-serve", &serve.panel.url).await;
@@ -67,8 +85,13 @@ fn the_supervise_page_shows_what_the_supervisor_and_the_bus_hold() {
             let request = rows.iter().any(|(dir, f)| {
                 dir.starts_with("client ") && dir.ends_with(" → twin") && f.starts_with("@01EA")
             });
-            let reply = rows.iter().any(|(dir, _)| dir.starts_with("twin → client "));
-            (request && reply, format!("{:?}", rows.iter().take(6).collect::<Vec<_>>()))
+            let reply = rows
+                .iter()
+                .any(|(dir, _)| dir.starts_with("twin → client "));
+            (
+                request && reply,
+                format!("{:?}", rows.iter().take(6).collect::<Vec<_>>()),
+            )
         })
         .await;
         serve_page.close().await.unwrap();
@@ -82,12 +105,21 @@ fn the_supervise_page_shows_what_the_supervisor_and_the_bus_hold() {
         .await;
         // The loop opened by another master at the VEL it had (as a
         // client's VD 10 0 does): the box follows.
-        let held = the_loop(&sup)["vel_written"].as_u64().expect("a VEL written");
-        post(&sup, "/api/loop", &format!(r#"{{"mode": "manual", "vel": {held}}}"#));
+        let held = the_loop(&sup)["vel_written"]
+            .as_u64()
+            .expect("a VEL written");
+        post(
+            &sup,
+            "/api/loop",
+            &format!(r#"{{"mode": "manual", "vel": {held}}}"#),
+        );
         until("loop on unticked", LIMIT, async || {
             let on = js(&c, "document.getElementById('loop-on').checked").await;
             let mode = text(&c, "#loop-mode").await;
-            (on == false && mode.contains("manual"), format!("ticked {on}, `{mode}`"))
+            (
+                on == false && mode.contains("manual"),
+                format!("ticked {on}, `{mode}`"),
+            )
         })
         .await;
         // Ticked, then unticked by the user: the loop closes, then opens
@@ -103,7 +135,10 @@ fn the_supervise_page_shows_what_the_supervisor_and_the_bus_hold() {
         until("the loop open at the slave's VEL", LIMIT, async || {
             let l = the_loop(&sup);
             let manual = l["mode"]["manual"].as_u64();
-            (manual.is_some_and(|v| v > 100), format!("mode {}", l["mode"]))
+            (
+                manual.is_some_and(|v| v > 100),
+                format!("mode {}", l["mode"]),
+            )
         })
         .await;
         tokio::time::sleep(Duration::from_secs(2)).await;
@@ -117,7 +152,10 @@ fn the_supervise_page_shows_what_the_supervisor_and_the_bus_hold() {
         click(&c, "#gains").await;
         until("the refusal beside the gains", LIMIT, async || {
             let said = text(&c, "#refusal-loop").await;
-            (said.contains("Kp") && said.contains("number"), format!("`{said}`"))
+            (
+                said.contains("Kp") && said.contains("number"),
+                format!("`{said}`"),
+            )
         })
         .await;
         assert_eq!(the_loop(&sup)["kp"], 0.6, "an empty box changed Kp");
@@ -125,14 +163,23 @@ fn the_supervise_page_shows_what_the_supervisor_and_the_bus_hold() {
         // The status word's lamps, with words: direction, then the brake.
         until("the direction lamp", LIMIT, async || {
             let dir = text(&c, "#flag-ccw").await;
-            (dir.contains("CW"), format!("`{dir}`, status words {}", the_loop(&sup)["status"]))
+            (
+                dir.contains("CW"),
+                format!("`{dir}`, status words {}", the_loop(&sup)["status"]),
+            )
         })
         .await;
         // A busy machine may lose the write on the pty pair: the answer
         // says so (502), and the page's user would click again.
         let mut tries = 0;
         loop {
-            let (status, answer) = http(&sup.panel, "POST", "/api/outputs", Some(r#"{"BRK": true}"#), true);
+            let (status, answer) = http(
+                &sup.panel,
+                "POST",
+                "/api/outputs",
+                Some(r#"{"BRK": true}"#),
+                true,
+            );
             tries += 1;
             if status == 200 {
                 break;
@@ -146,7 +193,10 @@ fn the_supervise_page_shows_what_the_supervisor_and_the_bus_hold() {
         })
         .await;
         let legend = text(&c, "#legend-wheel").await;
-        assert!(legend.contains("loop's measurement"), "the trend's legend: {legend}");
+        assert!(
+            legend.contains("loop's measurement"),
+            "the trend's legend: {legend}"
+        );
         // A step while the loop is off is refused, saying so.
         click(&c, "#step").await;
         until("the step refused", LIMIT, async || {
@@ -162,7 +212,10 @@ fn the_supervise_page_shows_what_the_supervisor_and_the_bus_hold() {
             let link = js(&c, "document.getElementById('lamp-bus')?.dataset.state").await;
             let words = text(&c, "#lamp-bus").await;
             let slave = js(&c, "document.getElementById('slave-1')?.dataset.state").await;
-            (link == "bad" && words.contains("errors") && slave == "bad", format!("bus {link} `{words}`, slave {slave}"))
+            (
+                link == "bad" && words.contains("errors") && slave == "bad",
+                format!("bus {link} `{words}`, slave {slave}"),
+            )
         })
         .await;
         post(&serve, "/api/fault", r#"{"fault": "off"}"#);
@@ -170,7 +223,13 @@ fn the_supervise_page_shows_what_the_supervisor_and_the_bus_hold() {
             let link = js(&c, "document.getElementById('lamp-bus')?.dataset.state").await;
             let slave = js(&c, "document.getElementById('slave-1')?.dataset.state").await;
             let words = text(&c, "#slave-1").await;
-            (link == "on" && slave == "on" && words.contains("replying"), format!("bus {link}, slave {slave} `{words}` {}", the_loop(&sup)["counters"]))
+            (
+                link == "on" && slave == "on" && words.contains("replying"),
+                format!(
+                    "bus {link}, slave {slave} `{words}` {}",
+                    the_loop(&sup)["counters"]
+                ),
+            )
         })
         .await;
         c.close().await.unwrap();
