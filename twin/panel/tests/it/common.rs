@@ -3,6 +3,7 @@
 
 use std::io::{Read, Write};
 use std::net::TcpStream;
+use std::os::unix::process::CommandExt;
 use std::sync::mpsc::{Sender, channel};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
@@ -204,6 +205,11 @@ pub struct Driver {
 
 impl Drop for Driver {
     fn drop(&mut self) {
+        // Chromium is chromedriver's child, in its process group: a test
+        // that failed before closing its browser would leave it running.
+        let _ = std::process::Command::new("kill")
+            .args(["-KILL", "--", &format!("-{}", self.child.id())])
+            .status();
         let _ = self.child.kill();
         let _ = self.child.wait();
     }
@@ -217,6 +223,8 @@ pub fn chromedriver() -> Driver {
         .port();
     let child = std::process::Command::new("chromedriver")
         .arg(format!("--port={port}"))
+        // A group of its own, ended whole with the driver (see `Drop`).
+        .process_group(0)
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::null())
         .spawn()
