@@ -713,10 +713,14 @@ mod tests {
     fn fixed_threshold_limit_is_within_ten_percent() {
         let vemodule = quiet(LightParams::default());
         let mid_way = 0.5 * (vemodule.lit_volts() + vemodule.shaded_volts());
-        for (params, threshold) in [
-            (quiet(LightParams::controller_network()), 3.0),
-            (vemodule, mid_way),
-        ] {
+        // The formula assumes the cell recovers fully between dips: one flag.
+        // (The geared bench's three marks leave 60° gaps, over which the cell
+        // recovers to within a few mV of lit at the limit.)
+        let one_mark = LightParams {
+            flags: 1,
+            ..LightParams::controller_network()
+        };
+        for (params, threshold) in [(quiet(one_mark), 3.0), (vemodule, mid_way)] {
             let limit = fixed_threshold_max_rpm(&params, threshold);
             assert!(limit > 50.0 && limit < 1000.0, "{limit}");
             let slower = lowest_voltage(&params, 0.9 * limit, 3.0, 2e-5);
@@ -1006,7 +1010,7 @@ mod tests {
     fn params_load_from_toml_and_validate() {
         let loaded: LightParams =
             toml::from_str(
-                "flag_arc_deg = 60.0\nadc_bits = 10\ndivider_fixed_ohm = 39000.0\nnoise_rms_volts = 0.005",
+                "flag_arc_deg = 60.0\nflags = 3\nadc_bits = 10\ndivider_fixed_ohm = 39000.0\nnoise_rms_volts = 0.005",
             )
                 .unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(loaded, LightParams::controller_network());

@@ -120,14 +120,14 @@ impl MotorParams {
     pub fn controller_network() -> Self {
         Self {
             // Fitted (datasheet class: 2 Ω).
-            resistance_ohm: 1.58,
+            resistance_ohm: 1.326,
             inductance_henry: 1.5e-3,
-            // Fitted: 12 V at 10 550 rpm (datasheet class: 12 V at ≈ 11 500 rpm).
-            torque_constant: 0.01086,
+            // Fitted: 12 V at 10 050 rpm (datasheet class: 12 V at ≈ 11 500 rpm).
+            torque_constant: 0.0114,
             pole_pairs: 1,
             encoder_pulses_per_turn: 7,
             // Fitted (datasheet class: 5e-7 kg·m²).
-            rotor_inertia: 3.64e-7,
+            rotor_inertia: 2.81e-7,
             current_limit_amps: 6.0,
             overcurrent_trip_amps: 8.0,
             overcurrent_trip_s: 0.05,

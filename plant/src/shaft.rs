@@ -41,13 +41,19 @@ impl EdgeCounter {
     /// Shaft moved linearly from `a0` at `t0` to `a1` at `t0 + h`.
     fn advance(&mut self, t0: f64, h: f64, a0: f64, a1: f64) {
         let sector = (a1 * self.edges_per_turn / TAU).floor() as i64;
-        let crossed = sector - self.sector;
+        // Saturating: a runaway shaft (parameters far outside a bench's)
+        // gives meaningless counts, never an overflow.
+        let crossed = sector.saturating_sub(self.sector);
         if crossed == 0 {
             return;
         }
         // The last boundary crossed: moving up it is the new sector's lower
         // edge, moving down the old sector's lower edge.
-        let boundary = if crossed > 0 { sector } else { sector + 1 };
+        let boundary = if crossed > 0 {
+            sector
+        } else {
+            sector.saturating_add(1)
+        };
         let boundary_angle = boundary as f64 * TAU / self.edges_per_turn;
         let span = a1 - a0;
         let frac = if span != 0.0 {
@@ -56,8 +62,8 @@ impl EdgeCounter {
             1.0
         };
         self.last_edge_at = t0 + frac * h;
-        self.edges += crossed.unsigned_abs();
-        self.net_edges += crossed;
+        self.edges = self.edges.saturating_add(crossed.unsigned_abs());
+        self.net_edges = self.net_edges.saturating_add(crossed);
         self.sector = sector;
     }
 }

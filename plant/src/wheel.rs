@@ -75,7 +75,7 @@ impl WheelParams {
             // Gearbox and bearing drag referred to the output shaft, fitted
             // to the bench's step response (the datasheet's no-load current
             // of a JGB37-520, ≈ 0.12 A, times k times N gives 0.1).
-            coulomb_friction_nm: 0.0565,
+            coulomb_friction_nm: 0.0357,
             viscous_friction_nms: 1.0e-3,
             brake_torque_nm: 5.0,
             step_s: 0.002,

@@ -5,6 +5,7 @@
 
 mod architecture;
 mod baselines;
+mod calibrate;
 mod engine_bit_errors;
 mod engine_controller_network;
 mod engine_loop;

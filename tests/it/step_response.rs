@@ -119,7 +119,7 @@ fn ev_module_light_sensor_fails_where_plant_says_for_both_detectors() {
 
 #[test]
 fn controller_network_light_node_fails_below_the_formulas_speed_and_never_above() {
-    // The geared bench tops out near 113 rpm; a 20:1 gearbox lets the wheel
+    // The geared bench tops out near 105 rpm; a 20:1 gearbox lets the wheel
     // pass the light sensor's limit.
     let mut p = PlantParams::controller_network();
     p.gearbox.ratio = 20.0;

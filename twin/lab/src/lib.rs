@@ -17,4 +17,5 @@ pub mod parallel;
 pub mod plot;
 pub mod pwmcap;
 pub mod step;
+pub mod step_against;
 pub mod sweep;

@@ -637,6 +637,11 @@ fn run_closed_loop(
 /// The plot of `step.png`: set point (closed loop), true wheel, motor and
 /// light rpm against time.
 pub fn plot(report: &StepReport, path: &Path) -> Result<()> {
+    plot_with(report, Vec::new(), path)
+}
+
+/// [`plot`], with `extra` curves drawn after the twin's (a bench's own).
+pub fn plot_with(report: &StepReport, extra: Vec<Series<'_>>, path: &Path) -> Result<()> {
     let tr = &report.trace;
     let pts = |y: &[f64]| -> Vec<(f64, f64)> {
         tr.time_s
@@ -677,6 +682,7 @@ pub fn plot(report: &StepReport, path: &Path) -> Result<()> {
         dots: false,
         width: 2,
     });
+    series.extend(extra);
     let y_range = plot::fit_range(
         series
             .iter()

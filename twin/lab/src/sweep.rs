@@ -82,9 +82,10 @@ pub fn vel_for_rpm(p: &PlantParams, rpm: f64, bus_volts: f64) -> f64 {
     match p.motor.pwm_decay {
         plant::motor::PwmDecay::Slow => (k * n * omega + r * torque / (k * n)) / bus_volts,
         plant::motor::PwmDecay::Fast => {
-            let headroom = bus_volts - k * n * omega;
-            if headroom > 0.0 {
-                r * torque / (k * n * headroom)
+            // The pulse current, held at the controller's limit near standstill.
+            let pulse_amps = ((bus_volts - k * n * omega) / r).min(p.motor.current_limit_amps);
+            if pulse_amps > 0.0 {
+                torque / (k * n * pulse_amps)
             } else {
                 f64::INFINITY
             }

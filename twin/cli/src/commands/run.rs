@@ -33,8 +33,7 @@ use super::progress::Progress;
 /// (`vel_fraction`) or a plant parameter (`params.motor.current_limit_amps=8`).
 #[derive(Debug, Args)]
 #[command(
-    mut_arg("preset", |a| a.requires("open_loop")),
-    mut_arg("params", |a| a.requires("open_loop"))
+    mut_arg("preset", |a| a.requires("open_loop"))
 )]
 pub struct RunArgs {
     /// Embedded scenario name or scenario file.
@@ -113,7 +112,11 @@ pub fn execute(args: &RunArgs) -> Result<()> {
         return execute_open_loop(args);
     }
     let name = args.scenario.as_deref().unwrap_or("ev-meb");
-    let mut scenario = RunSpec::scenario_with_overrides(Scenario::load(name)?, &args.overrides)?;
+    let mut scenario = Scenario::load(name)?;
+    if let Some(file) = &args.plant.params {
+        super::plant_args::apply_to_scenario(&mut scenario, file)?;
+    }
+    let mut scenario = RunSpec::scenario_with_overrides(scenario, &args.overrides)?;
     if let Some(d) = args.duration {
         check_duration(d)?;
         scenario.duration_s = d;

@@ -31,8 +31,7 @@ use twin_lab::step::short;
 /// replacing those there.
 #[derive(Debug, Args)]
 #[command(
-    mut_arg("preset", |a| a.requires("open_loop")),
-    mut_arg("params", |a| a.requires("open_loop"))
+    mut_arg("preset", |a| a.requires("open_loop"))
 )]
 pub struct StepArgs {
     /// Embedded scenario name or scenario file with a supervisor [default: ev-meb].
@@ -69,6 +68,15 @@ pub struct StepArgs {
     /// the light-sensor rpm.
     #[arg(long, value_enum, default_value_t = Feedback::Hall, conflicts_with = "open_loop")]
     feedback: Feedback,
+    /// A real bench's step log to compare with: a CSV file in the layout of
+    /// the Controller_network step log (`time_s`, `motor_value`,
+    /// `sensor_value`, as recordings/calibration/controller-network-step.csv).
+    /// Its curves are drawn over the twin's and its figures printed beside them.
+    #[arg(long, value_name = "FILE.csv", conflicts_with = "open_loop")]
+    against: Option<PathBuf>,
+    /// When the step came in the --against log, on its own clock (s).
+    #[arg(long, value_name = "SECONDS", default_value_t = 1.0, requires = "against", value_parser = super::numbers::zero_or_more)]
+    against_step_at: f64,
     /// Folder for step.json, step.png and step.mcap (created if needed) [default: the
     /// current folder].
     #[arg(long, value_name = "DIR")]
@@ -91,8 +99,12 @@ pub fn execute(args: &StepArgs) -> Result<()> {
         }
     } else {
         let name = args.scenario.as_deref().unwrap_or("ev-meb");
+        let mut scenario = Scenario::load(name)?;
+        if let Some(file) = &args.plant.params {
+            super::plant_args::apply_to_scenario(&mut scenario, file)?;
+        }
         StepDrive::ClosedLoop {
-            scenario: Box::new(Scenario::load(name)?),
+            scenario: Box::new(scenario),
             on_light: args.feedback == Feedback::Light,
         }
     };
@@ -141,6 +153,13 @@ pub fn execute(args: &StepArgs) -> Result<()> {
     let report = step::run(&config, &recording, |f| progress.show(f))?;
     progress.clear();
     print_report(&report);
+    let against = match &args.against {
+        Some(file) => Some(twin_lab::step_against::load(file, args.against_step_at, &report)?),
+        None => None,
+    };
+    if let Some(a) = &against {
+        print_against(a);
+    }
     std::fs::write(&json, serde_json::to_string_pretty(&report)? + "\n")
         .with_context(|| format!("cannot write {}", json.display()))?;
     println!(
@@ -148,7 +167,11 @@ pub fn execute(args: &StepArgs) -> Result<()> {
         json.display(),
         Earlier::note(earlier[0].as_ref())
     );
-    step::plot(&report, &png)?;
+    let extra = against
+        .as_ref()
+        .map(|a| twin_lab::step_against::series(a).to_vec())
+        .unwrap_or_default();
+    step::plot_with(&report, extra, &png)?;
     println!(
         "plot: {}{}",
         png.display(),
@@ -160,6 +183,32 @@ pub fn execute(args: &StepArgs) -> Result<()> {
         Earlier::note(earlier[2].as_ref())
     );
     Ok(())
+}
+
+/// The bench's figures, in the columns of the twin's table.
+fn print_against(a: &twin_lab::step_against::Against) {
+    println!("  the bench ({}), its step laid on the twin's:", a.name);
+    let secs = |v: Option<f64>| v.map_or("—".to_string(), |s| format!("{s:.3} s"));
+    for (signal, m) in [
+        ("motor (encoder)", &a.motor_figures),
+        ("light sensor", &a.light_figures),
+    ] {
+        match m {
+            Some(m) => println!(
+                "  {:16} {:>9.1} {:>9.1} {:>11} {:>8.1} % {:>12} {:>13} {:>10}",
+                signal,
+                m.initial,
+                m.final_value,
+                secs(m.rise_time_s),
+                m.overshoot_pct,
+                secs(m.settling_time_s),
+                m.steady_state_error
+                    .map_or("—".to_string(), |e| format!("{e:.1}")),
+                "—"
+            ),
+            None => println!("  {signal:16} no step figures"),
+        }
+    }
 }
 
 fn print_report(r: &StepReport) {

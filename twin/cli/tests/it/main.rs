@@ -10,6 +10,7 @@
 
 mod batch;
 mod book;
+mod calibrate;
 mod cmd;
 mod cut_recording;
 mod experiment;

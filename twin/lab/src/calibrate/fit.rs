@@ -43,6 +43,9 @@ fn to_coordinate(p: &Parameter, v: f64) -> f64 {
     (s / (1.0 - s)).ln()
 }
 
+/// Width of the bins the residuals are averaged over (s).
+pub const BIN_S: f64 = 0.05;
+
 /// The twin's curve as the bench's plot draws one: the master's samples
 /// joined by straight lines.
 pub fn curve_at(samples: &[(f64, f64)], t: f64) -> f64 {
@@ -118,19 +121,39 @@ impl<'a> Model<'a> {
         twin_run::run(&scenario, self.job.end_s() + 0.1, self.job.step_at_s)
     }
 
-    /// Weighted, scaled residuals of `reads` in `window` (every signal's
-    /// measured rows there, in order).
+    /// Weighted, scaled residuals of `reads` in `window`: per signal, the
+    /// difference of bench and twin averaged over consecutive [`BIN_S`] bins
+    /// of the measured rows.
+    ///
+    /// Why averages: the motor node's PI acts on quantised readings, so a
+    /// small change of a parameter changes which reading comes when, and
+    /// the raw difference jumps by whole 428.57-rpm steps: a cost made of
+    /// it is a needle at the exact answer in a field of noise. Averaged
+    /// over 50 ms (one and a half master cycles) the readings keep the rise
+    /// and the level and lose most of that noise, so the cost has a slope a
+    /// search can follow.
     pub fn residuals(&self, reads: &TwinReads, window: (f64, f64)) -> Vec<f64> {
         let mut out = Vec::new();
         for (s, scale) in self.job.signals.iter().zip(&self.scales) {
             let twin = reads.of(s.twin);
             let w = s.weight.sqrt() / scale;
-            for &(t, y) in s
+            let rows: Vec<(f64, f64)> = s
                 .samples
                 .iter()
+                .copied()
                 .filter(|p| p.0 >= window.0 && p.0 <= window.1)
-            {
-                out.push((curve_at(twin, t) - y) * w);
+                .collect();
+            let mut i = 0;
+            while i < rows.len() {
+                let bin = ((rows[i].0 - window.0) / BIN_S).floor();
+                let mut j = i;
+                let mut sum = 0.0;
+                while j < rows.len() && ((rows[j].0 - window.0) / BIN_S).floor() == bin {
+                    sum += curve_at(twin, rows[j].0) - rows[j].1;
+                    j += 1;
+                }
+                out.push(sum / (j - i) as f64 * w);
+                i = j;
             }
         }
         out
@@ -193,10 +216,40 @@ pub struct Search {
     pub converged: bool,
 }
 
-/// One Nelder–Mead search from `start` (values).
+/// Restarts of a search from its own best point, each with a simplex half
+/// the size of the one before: on a staircase a simplex can shrink onto a
+/// step's edge, and a fresh one around the best point walks on.
+const RESTARTS: usize = 3;
+
+/// Nelder–Mead from `start`, restarted from its best while that improves.
 fn search(
     model: &Model<'_>,
     start: &[f64],
+    max_iterations: u64,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Result<Search> {
+    let mut size = 0.8;
+    let mut best = simplex_search(model, start, size, max_iterations, progress)?;
+    for _ in 0..RESTARTS {
+        size /= 2.0;
+        let next = simplex_search(model, &best.values, size, max_iterations, progress)?;
+        let iterations = best.iterations + next.iterations;
+        if next.cost < best.cost * (1.0 - 1e-9) {
+            best = Search { iterations, ..next };
+        } else {
+            best.iterations = iterations;
+            break;
+        }
+    }
+    Ok(best)
+}
+
+/// One Nelder–Mead search from `start` (values), its simplex `size` wide in
+/// the unbounded coordinates.
+fn simplex_search(
+    model: &Model<'_>,
+    start: &[f64],
+    size: f64,
     max_iterations: u64,
     progress: &(dyn Fn(u64) + Sync),
 ) -> Result<Search> {
@@ -209,8 +262,8 @@ fn search(
     let mut simplex = vec![u0.clone()];
     for i in 0..u0.len() {
         let mut u = u0.clone();
-        // A step of about a fifth of the bounds' span around the middle.
-        u[i] += if u[i] > 0.0 { -0.8 } else { 0.8 };
+        // Towards the middle of the bounds: 0.8 is about a fifth of their span.
+        u[i] += if u[i] > 0.0 { -size } else { size };
         simplex.push(u);
     }
     let solver = NelderMead::new(simplex)
@@ -254,8 +307,30 @@ fn search(
     })
 }
 
-/// The fit: two searches in parallel, from the job's start and from the
-/// middle of the bounds, the better one kept.
+/// Points of the quasi-random scan that picks the searches' starts.
+const SCAN: usize = 24;
+
+/// The `i`-th point of the Halton sequence in `dims` dimensions, in (0, 1).
+fn halton(i: usize, dims: usize) -> Vec<f64> {
+    const PRIMES: [usize; 12] = [2, 3, 5, 7, 11, 13, 17, 19, 23, 29, 31, 37];
+    (0..dims)
+        .map(|d| {
+            let base = PRIMES[d % PRIMES.len()];
+            let (mut f, mut r, mut n) = (1.0, 0.0, i + 1);
+            while n > 0 {
+                f /= base as f64;
+                r += f * (n % base) as f64;
+                n /= base;
+            }
+            r
+        })
+        .collect()
+}
+
+/// The fit: a quasi-random scan of the bounds (the job's start among its
+/// points, on both cores), then two searches in parallel from the two best
+/// points, the better end kept. The staircase has many flat steps; starting
+/// where the scan found the lowest ones keeps a search off the far ones.
 pub fn fit(
     model: &Model<'_>,
     max_iterations: u64,
@@ -263,23 +338,53 @@ pub fn fit(
 ) -> Result<Search> {
     let params = &model.job.parameters;
     let start: Vec<f64> = params.iter().map(|p| p.start).collect();
-    if model.cost_of(&start).is_err() {
-        // Say why the start itself cannot run, in the simulation's own words.
-        model.cost_of(&start)?;
+    // Say why the start itself cannot run, in the simulation's own words.
+    model.cost_of(&start)?;
+    let mut points: Vec<Vec<f64>> = vec![start];
+    for i in 0..SCAN {
+        let h = halton(i, params.len());
+        // Over the middle 90 % of each parameter's range (in its coordinate).
+        points.push(
+            params
+                .iter()
+                .zip(h)
+                .map(|(p, x)| to_value(p, (x - 0.5) * 6.0))
+                .collect(),
+        );
     }
-    let middle: Vec<f64> = params.iter().map(|p| to_value(p, 0.0)).collect();
-    let found: Mutex<Vec<Result<Search>>> = Mutex::new(Vec::new());
+    let costs: Mutex<Vec<(usize, f64)>> = Mutex::new(Vec::new());
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     std::thread::scope(|scope| {
-        for from in [&start, &middle] {
-            let found = &found;
+        for lane in 0..cores {
+            let (points, costs) = (&points, &costs);
             scope.spawn(move || {
-                let s = search(model, from, max_iterations, progress);
-                found.lock().unwrap_or_else(|e| e.into_inner()).push(s);
+                for (i, p) in points.iter().enumerate().skip(lane).step_by(cores) {
+                    let c = model.cost_of(p).unwrap_or(REFUSED);
+                    costs.lock().unwrap_or_else(|e| e.into_inner()).push((i, c));
+                    progress(model.evaluations());
+                }
             });
         }
     });
+    let mut costs = costs.into_inner().unwrap_or_else(|e| e.into_inner());
+    // Ties go to the earlier point, so the result does not depend on threads.
+    costs.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
+    let starts: Vec<&Vec<f64>> = costs.iter().take(2).map(|&(i, _)| &points[i]).collect();
+    let found: Mutex<Vec<(usize, Result<Search>)>> = Mutex::new(Vec::new());
+    std::thread::scope(|scope| {
+        for (k, from) in starts.iter().enumerate() {
+            let found = &found;
+            scope.spawn(move || {
+                let s = search(model, from, max_iterations, progress);
+                found.lock().unwrap_or_else(|e| e.into_inner()).push((k, s));
+            });
+        }
+    });
+    let mut found = found.into_inner().unwrap_or_else(|e| e.into_inner());
+    found.sort_by_key(|(k, _)| *k);
+    let found: Vec<Result<Search>> = found.into_iter().map(|(_, s)| s).collect();
     let mut best: Option<Search> = None;
-    for s in found.into_inner().unwrap_or_else(|e| e.into_inner()) {
+    for s in found {
         let s = s?;
         if best.as_ref().is_none_or(|b| s.cost < b.cost) {
             best = Some(s);

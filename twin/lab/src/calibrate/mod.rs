@@ -92,7 +92,14 @@ pub struct Outcome {
 /// What would separate two parameters, judged by their names.
 fn separate_by(a: &str, b: &str) -> String {
     let has = |k: &str| a.contains(k) || b.contains(k);
-    if has("inertia") && (has("friction") || has("mass")) {
+    let mass = |p: &str| p.contains("inertia") || p.contains("mass_kg") || p.contains("radius");
+    if mass(a) && mass(b) {
+        "they add up to one inertia, so no run of this bench separates them: take one from a \
+         datasheet or weigh it"
+            .into()
+    } else if a.contains("friction") && b.contains("friction") {
+        "a log at a second speed (another set point) separates Coulomb from viscous friction".into()
+    } else if has("inertia") && (has("friction") || has("mass")) {
         "a coast-down (the drive switched off at speed) separates inertia from friction".into()
     } else if has("torque_constant") && has("resistance") {
         "the current at stall, or steps of two sizes, separate the motor constant from the resistance".into()
@@ -112,17 +119,9 @@ pub fn calibrate(job: &Job, options: Options, progress: &(dyn Fn(u64) + Sync)) -
     let cost_start = model.cost_of(&start)?;
     let search = fit::fit(&model, options.max_iterations, progress)?;
     let reads = model.simulate(&search.values)?;
-    let readings = job
-        .signals
-        .iter()
-        .map(|s| {
-            reads
-                .of(s.twin)
-                .iter()
-                .filter(|p| p.0 >= job.fit_window.0 && p.0 <= job.fit_window.1)
-                .count()
-        })
-        .sum();
+    // Independent values in the fit: the residuals' bins (each holds one or
+    // two master readings).
+    let readings = model.residuals(&reads, job.fit_window).len();
     let spread = uncertainty::estimate(&model, &search.values, readings)?;
     let parameters: Vec<Fitted> = job
         .parameters
@@ -185,7 +184,7 @@ pub fn calibrate(job: &Job, options: Options, progress: &(dyn Fn(u64) + Sync)) -
     })
 }
 
-/// Refuses a column whose values are orders of magnitude from the twin's:
+/// Refuses a column whose values are five times the twin's or more, or a fifth or less:
 /// most likely a wrong unit (rad/s given as rpm, register counts as rpm).
 fn check_magnitudes(job: &Job, reads: &TwinReads) -> Result<()> {
     for s in &job.signals {
@@ -200,14 +199,16 @@ fn check_magnitudes(job: &Job, reads: &TwinReads) -> Result<()> {
         let (measured, twin) = (after(&s.samples), after(reads.of(s.twin)));
         if measured > 0.0 && twin > 0.0 {
             let ratio = measured / twin;
-            if !(0.03..=30.0).contains(&ratio) {
+            if !(0.2..=5.0).contains(&ratio) {
                 anyhow::bail!(
-                    "{}: column `{}` ({}) averages {measured:.4} after the step, {ratio:.3}× what \
-                     the twin's {} gives ({twin:.4}): is the unit right?",
+                    "{}: column `{}` ({}) averages {} after the step, {ratio:.1} times what \
+                     the twin's {} gives ({}): is the unit right?",
                     job.log.display(),
                     s.column,
                     s.unit.name,
-                    s.twin.describe()
+                    short(measured),
+                    s.twin.describe(),
+                    short(twin)
                 );
             }
         }

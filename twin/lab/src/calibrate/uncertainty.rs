@@ -13,8 +13,10 @@ use serde::Serialize;
 
 use super::fit::Model;
 
-/// Relative step of the sensitivity.
-const STEP: f64 = 0.05;
+/// Relative steps of the sensitivity, each taken up and down: the slope is
+/// a least-squares line through the six, so that the jumps of single
+/// readings (the PI acting on quantised readings) average out of it.
+const STEPS: [f64; 3] = [0.03, 0.06, 0.12];
 /// Correlation above which two parameters are reported as not separable.
 pub const ENTANGLED: f64 = 0.9;
 
@@ -30,7 +32,7 @@ pub struct Uncertainty {
     pub unseen: Vec<usize>,
 }
 
-/// The uncertainty at `values`; the 2 × p simulations run on every core.
+/// The uncertainty at `values`; the 6 × p simulations run on every core.
 pub fn estimate(model: &Model<'_>, values: &[f64], readings: usize) -> Result<Uncertainty> {
     let p = values.len();
     let window = model.job.fit_window;
@@ -39,7 +41,11 @@ pub fn estimate(model: &Model<'_>, values: &[f64], readings: usize) -> Result<Un
     let ssr: f64 = base.iter().map(|r| r * r).sum();
     // Each parameter's ± trial, on as many threads as there are cores.
     let trials: Vec<(usize, f64)> = (0..p)
-        .flat_map(|i| [(i, 1.0 + STEP), (i, 1.0 - STEP)])
+        .flat_map(|i| {
+            STEPS
+                .iter()
+                .flat_map(move |&h| [(i, 1.0 + h), (i, 1.0 - h)])
+        })
         .collect();
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let chunk = trials.len().div_ceil(cores).max(1);
@@ -67,14 +73,26 @@ pub fn estimate(model: &Model<'_>, values: &[f64], readings: usize) -> Result<Un
         }
     });
     let mut jacobian = DMatrix::<f64>::zeros(n, p);
+    let per = 2 * STEPS.len();
     for i in 0..p {
-        let (plus, minus) = (&results[2 * i], &results[2 * i + 1]);
-        let (Ok(plus), Ok(minus)) = (plus, minus) else {
+        let trials = &results[per * i..per * (i + 1)];
+        let offsets: Vec<f64> = STEPS.iter().flat_map(|&h| [h, -h]).collect();
+        if trials.iter().any(Result::is_err) {
             continue;
-        };
-        let h = 2.0 * STEP * values[i];
-        for k in 0..n.min(plus.len()).min(minus.len()) {
-            jacobian[(k, i)] = (plus[k] - minus[k]) / h;
+        }
+        // Least squares through the origin's value: Σ h·Δr / Σ h², with
+        // h the change of the value itself.
+        let h2: f64 = offsets.iter().map(|h| (h * values[i]).powi(2)).sum();
+        for k in 0..n {
+            let mut sum = 0.0;
+            for (trial, &h) in trials.iter().zip(&offsets) {
+                if let Ok(r) = trial
+                    && let Some(rk) = r.get(k)
+                {
+                    sum += h * values[i] * (rk - base[k]);
+                }
+            }
+            jacobian[(k, i)] = sum / h2;
         }
     }
     let unseen: Vec<usize> = (0..p)
@@ -88,7 +106,24 @@ pub fn estimate(model: &Model<'_>, values: &[f64], readings: usize) -> Result<Un
     let normal = sub.transpose() * &sub;
     let mut std_errors = vec![None; p];
     let mut entangled = Vec::new();
-    if let Some(inverse) = normal.try_inverse() {
+    // Columns that point the same way: the log moves with the two alike. A
+    // singular normal matrix (an exact tie) leaves only this to tell.
+    let cosine = |i: usize, j: usize| {
+        let (a, b) = (jacobian.column(i), jacobian.column(j));
+        a.dot(&b) / (a.norm() * b.norm())
+    };
+    let inverse = normal.try_inverse();
+    if inverse.is_none() {
+        for (a, &i) in seen.iter().enumerate() {
+            for &j in seen.iter().skip(a + 1) {
+                let r = cosine(i, j);
+                if r.abs() >= ENTANGLED {
+                    entangled.push((i, j, r));
+                }
+            }
+        }
+    }
+    if let Some(inverse) = inverse {
         let cov = inverse * variance;
         for (a, &i) in seen.iter().enumerate() {
             if cov[(a, a)] > 0.0 {

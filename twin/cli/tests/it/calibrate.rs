@@ -1,0 +1,233 @@
+//! `twin calibrate` from the command line: every kind of bad log or
+//! calibration file refused with the file, the line and what is wrong; a
+//! search cut short says so; the fitted parameter file goes to `--params`
+//! of a closed-loop run.
+
+use std::path::{Path, PathBuf};
+
+use crate::support::{scratch, text, twin};
+
+/// The shipped log and scenario, for jobs in a scratch folder.
+fn repo() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+const HEADER: &str = "time_s,motor_value,sensor_value\n";
+
+/// A scratch folder with `csv` as `log.csv` and a job file whose step and
+/// fit are `step` and `fit` (TOML), and whose motor column is in `unit`.
+fn job(name: &str, csv: &str, step: &str, unit: &str, fit: &str) -> PathBuf {
+    let dir = scratch("calibrate", name);
+    std::fs::create_dir_all(&dir).expect("scratch");
+    std::fs::write(dir.join("log.csv"), csv).expect("csv");
+    let scenario = repo().join("recordings/calibration/controller-network-step-scenario.toml");
+    let text = format!(
+        "log = \"log.csv\"\nscenario = \"{}\"\n\n[step]\n{step}\n\n\
+         [[signal]]\ncolumn = \"motor_value\"\nunit = \"{unit}\"\ntwin = \"motor-rpm-read\"\n\n\
+         [[fit]]\n{fit}\n",
+        scenario.display()
+    );
+    let file = dir.join("job.toml");
+    std::fs::write(&file, text).expect("job");
+    file
+}
+
+const STEP: &str = "at_s = 1.0\nfrom = 0.0\nto = 10000.0";
+const FIT: &str = "path = \"motor.torque_constant\"\nmin = 0.005\nmax = 0.03\nstart = 0.0114";
+
+/// A plausible log: 0 before the step, 9500 rpm after it, to `end` s.
+fn log(end: f64) -> String {
+    let mut csv = String::from(HEADER);
+    let mut t = 0.0;
+    while t <= end {
+        let v = if t < 1.05 { 0.0 } else { 9500.0 };
+        csv.push_str(&format!("{t:.3},{v},\n"));
+        t += 0.01;
+    }
+    csv
+}
+
+fn refused(job: &Path) -> String {
+    let o = twin(&["calibrate", job.to_str().expect("utf-8 path")]);
+    assert!(!o.status.success(), "accepted: {}", text(&o));
+    let err = String::from_utf8_lossy(&o.stderr).to_string();
+    assert!(!err.contains("panicked"), "{err}");
+    err
+}
+
+#[test]
+fn bad_logs_and_files_are_refused_with_where_and_why() {
+    let good = log(3.0);
+    let cases: Vec<(&str, PathBuf, &[&str])> = vec![
+        (
+            "constant",
+            job(
+                "constant",
+                &good,
+                "at_s = 1.0\nfrom = 10000.0\nto = 10000.0",
+                "rpm",
+                FIT,
+            ),
+            &["job.toml:", "a constant command excites nothing"],
+        ),
+        (
+            "short",
+            job("short", &log(1.1), STEP, "rpm", FIT),
+            &["log.csv", "too short to identify"],
+        ),
+        (
+            "nan",
+            job(
+                "nan",
+                &good.replacen(",9500,", ",NaN,", 1),
+                STEP,
+                "rpm",
+                FIT,
+            ),
+            &["log.csv:", "column `motor_value`: `NaN`"],
+        ),
+        (
+            "empty",
+            job("empty", &good.replacen(",9500,", ",,", 1), STEP, "rpm", FIT),
+            &[
+                "log.csv:",
+                "column `motor_value` is empty",
+                "empty = \"skip\"",
+            ],
+        ),
+        (
+            "backwards",
+            job("backwards", &format!("{good}0.5,9500,\n"), STEP, "rpm", FIT),
+            &["log.csv:", "time goes backwards"],
+        ),
+        (
+            "column",
+            job(
+                "column",
+                &good.replace("motor_value", "rpm"),
+                STEP,
+                "rpm",
+                FIT,
+            ),
+            &[
+                "log.csv",
+                "no column `motor_value`",
+                "columns: time_s, rpm, sensor_value",
+            ],
+        ),
+        (
+            "unit",
+            job("unit", &good, STEP, "V", FIT),
+            &["job.toml:", "unit `V` is not a speed"],
+        ),
+        (
+            "magnitude",
+            job("magnitude", &good, STEP, "rad/s", FIT),
+            &["log.csv", "is the unit right?"],
+        ),
+        (
+            "bounds",
+            job(
+                "bounds",
+                &good,
+                STEP,
+                "rpm",
+                "path = \"motor.torque_constant\"\nmin = 0.005\nmax = 0.03\nstart = 0.05",
+            ),
+            &[
+                "job.toml:",
+                "the start 0.05 is outside its bounds [0.005, 0.03]",
+            ],
+        ),
+        (
+            "path",
+            job(
+                "path",
+                &good,
+                STEP,
+                "rpm",
+                "path = \"motor.torque\"\nmin = 0.005\nmax = 0.03\nstart = 0.01",
+            ),
+            &["job.toml:", "`motor.torque` is no parameter of the plant"],
+        ),
+    ];
+    for (name, file, expected) in cases {
+        let err = refused(&file);
+        for e in expected {
+            assert!(err.contains(e), "{name}: `{e}` not in: {err}");
+        }
+    }
+}
+
+#[test]
+fn a_search_cut_short_says_so_and_its_parameters_drive_a_closed_loop_run() {
+    let file = job("short-search", &log(3.0), STEP, "rpm", FIT);
+    let out = file.parent().expect("folder").join("out");
+    let o = twin(&[
+        "calibrate",
+        file.to_str().expect("utf-8"),
+        "--max-iterations",
+        "2",
+        "--out",
+        out.to_str().expect("utf-8"),
+    ]);
+    let printed = text(&o);
+    assert!(o.status.success(), "{printed}");
+    assert!(printed.contains("before converging"), "{printed}");
+    let params = out.join("calibrated-params.toml");
+    let fitted = std::fs::read_to_string(&params).expect("params written");
+    assert!(fitted.contains("torque_constant = "), "{fitted}");
+    // The file drives a closed-loop run of the embedded scenario: the motor
+    // runs at the speed its fitted motor constant allows.
+    let run = twin(&[
+        "run",
+        "controller-network",
+        "--duration",
+        "2",
+        "--params",
+        params.to_str().expect("utf-8"),
+        "--out",
+        out.join("run.mcap").to_str().expect("utf-8"),
+    ]);
+    assert!(run.status.success(), "{}", text(&run));
+}
+
+#[test]
+fn params_change_every_module_of_a_closed_loop_run() {
+    let dir = scratch("calibrate", "closed-loop-params");
+    std::fs::create_dir_all(&dir).expect("scratch");
+    // Half the preset's gearbox: the master still holds the motor at
+    // 10000 rpm, so the wheel turns twice as fast (about 200 rpm, not 100).
+    let params = dir.join("half-gearbox.toml");
+    std::fs::write(&params, "[gearbox]\nratio = 50.0\n").expect("params");
+    let wheel = |extra: &[&str]| -> f64 {
+        let mut args = vec!["run", "controller-network", "--duration", "3"];
+        args.extend_from_slice(extra);
+        let out = dir.join("run.mcap");
+        args.extend_from_slice(&["--out", out.to_str().expect("utf-8")]);
+        let o = twin(&args);
+        let printed = text(&o);
+        assert!(o.status.success(), "{printed}");
+        let at = printed.find("wheel ").expect("a wheel speed") + "wheel ".len();
+        printed[at..]
+            .split_whitespace()
+            .next()
+            .and_then(|v| v.parse().ok())
+            .expect("a number")
+    };
+    let preset = wheel(&[]);
+    let fast = wheel(&["--params", params.to_str().expect("utf-8")]);
+    assert!((90.0..110.0).contains(&preset), "{preset}");
+    assert!((180.0..220.0).contains(&fast), "{fast}");
+    // A mistake in the file is named with its line, as for an open-loop run.
+    std::fs::write(&params, "[gearbox]\nratio = \"fifty\"\n").expect("params");
+    let o = twin(&[
+        "run",
+        "controller-network",
+        "--params",
+        params.to_str().expect("utf-8"),
+    ]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("half-gearbox.toml:2"), "{err}");
+}
