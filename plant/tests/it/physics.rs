@@ -23,6 +23,8 @@ fn driving(vel_volts: f64) -> Actuators {
 
 /// Steady state of a DC motor on bus `v2` at duty `d` against Coulomb `tc` and
 /// viscous `b` friction at the wheel: `k·ω·N = d·V2 − R·i`, `k·N·i = tc + b·ω`.
+/// With fast decay each pulse applies the whole bus and the mean current is
+/// `i = d·(V2 − k·N·ω)/R`.
 fn analytic_wheel_speed(p: &PlantParams, duty: f64, v2: f64) -> f64 {
     let (k, r, n) = (
         p.motor.torque_constant,
@@ -31,7 +33,10 @@ fn analytic_wheel_speed(p: &PlantParams, duty: f64, v2: f64) -> f64 {
     );
     let (tc, b) = (p.wheel.coulomb_friction_nm, p.wheel.viscous_friction_nms);
     let kn = k * n;
-    (duty * v2 - r * tc / kn) / (kn + r * b / kn)
+    match p.motor.pwm_decay {
+        plant::motor::PwmDecay::Slow => (duty * v2 - r * tc / kn) / (kn + r * b / kn),
+        plant::motor::PwmDecay::Fast => (duty * kn * v2 / r - tc) / (duty * kn * kn / r + b),
+    }
 }
 
 #[test]

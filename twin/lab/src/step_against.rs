@@ -32,7 +32,8 @@ const REGISTER_PER_WHEEL_RPM: f64 = 100.0;
 /// Reads `path`, whose step came at `bench_step_s` on its own clock, and
 /// lays it over `report` (its step at the twin's `step_at_s`).
 pub fn load(path: &Path, bench_step_s: f64, report: &StepReport) -> Result<Against> {
-    if report.mode != "closed-loop" || !report.signals.iter().any(|s| s.signal == "motor (encoder)") {
+    if report.mode != "closed-loop" || !report.signals.iter().any(|s| s.signal == "motor (encoder)")
+    {
         bail!(
             "--against compares with a Controller_network bench's step log: give the \
              controller-network scenario (or one with its motor and light-sensor nodes)"
@@ -54,11 +55,21 @@ pub fn load(path: &Path, bench_step_s: f64, report: &StepReport) -> Result<Again
         // has no row before it (a curve read off a plot).
         let mut t = vec![report.step_at_s - 1e-3];
         let mut y = vec![report.from];
-        for &(ti, yi) in curve.iter().filter(|p| p.0 > report.step_at_s && p.0 <= report.figures_until_s) {
+        for &(ti, yi) in curve
+            .iter()
+            .filter(|p| p.0 > report.step_at_s && p.0 <= report.figures_until_s)
+        {
             t.push(ti);
             y.push(yi);
         }
-        step_metrics(&t, &y, report.step_at_s - 5e-4, Some(report.to), &StepOptions::default()).ok()
+        step_metrics(
+            &t,
+            &y,
+            report.step_at_s - 5e-4,
+            Some(report.to),
+            &StepOptions::default(),
+        )
+        .ok()
     };
     Ok(Against {
         name: path.display().to_string(),

@@ -154,7 +154,11 @@ pub fn execute(args: &StepArgs) -> Result<()> {
     progress.clear();
     print_report(&report);
     let against = match &args.against {
-        Some(file) => Some(twin_lab::step_against::load(file, args.against_step_at, &report)?),
+        Some(file) => Some(twin_lab::step_against::load(
+            file,
+            args.against_step_at,
+            &report,
+        )?),
         None => None,
     };
     if let Some(a) = &against {
