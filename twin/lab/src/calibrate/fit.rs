@@ -6,8 +6,10 @@
 //! 428.57-rpm steps, its 20 ms windows, the light node's 20 ms grid), so the
 //! objective is a staircase in every parameter: a finite-difference gradient
 //! is zero or huge, and gradient and Gauss–Newton methods stall on it. A
-//! simplex method compares costs only. Two simplexes start from different
-//! points, one per core, and the better end wins.
+//! simplex method compares costs only. The residuals are 50 ms averages (see
+//! [`Model::residuals`]); a quasi-random scan picks two starts, two simplexes
+//! run from them, one per core, each restarted smaller from its best, and
+//! the better end wins.
 
 use anyhow::{Result, bail};
 use argmin::core::{CostFunction, Executor, State, TerminationReason, TerminationStatus};
