@@ -116,9 +116,16 @@ pub fn run(
     let n = config.target_rpm.len();
     for (i, &rpm) in config.target_rpm.iter().enumerate() {
         let vel = vel_for_rpm(&config.params, rpm, bus);
+        if !vel.is_finite() {
+            bail!(
+                "{rpm:.1} rpm is beyond what the {} bench's motor reaches at full VEL (its no-load \
+                 speed on this supply): give a lower --rpm range",
+                config.preset
+            );
+        }
         if !(0.0..=1.0).contains(&vel) {
             bail!(
-                "{rpm} rpm needs VEL at {:.0} % of its range: the {} bench cannot reach it",
+                "{rpm:.1} rpm needs VEL at {:.0} % of its range: the {} bench cannot reach it",
                 vel * 100.0,
                 config.preset
             );
