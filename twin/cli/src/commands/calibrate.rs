@@ -34,7 +34,8 @@ pub struct CalibrateArgs {
     /// The calibration file (TOML).
     #[arg(value_name = "JOB")]
     job: PathBuf,
-    /// Most Nelder–Mead iterations per search.
+    /// Most Nelder–Mead iterations of each simplex (a search restarts its
+    /// simplex, smaller, up to three times while that improves).
     #[arg(long, default_value_t = 150, value_name = "N", value_parser = clap::value_parser!(u64).range(1..=100_000))]
     max_iterations: u64,
     /// Folder for the results (created if needed) [default: the current folder].

@@ -27,7 +27,7 @@ use twin_run::TwinReads;
 /// How long the fit may search.
 #[derive(Debug, Clone, Copy)]
 pub struct Options {
-    /// Most Nelder–Mead iterations per search.
+    /// Most Nelder–Mead iterations of each simplex.
     pub max_iterations: u64,
 }
 
