@@ -7,6 +7,7 @@ use clap::{Args, ValueEnum};
 use std::path::PathBuf;
 use twin_lab::step::{self, StepConfig, StepDrive, StepReport};
 use twin_sim::scenario::{NodeSpec, Scenario};
+use twin_sim::step_metrics::StepMetrics;
 
 use super::output::Earlier;
 use super::progress::Progress;
@@ -192,26 +193,27 @@ pub fn execute(args: &StepArgs) -> Result<()> {
 /// The bench's figures, in the columns of the twin's table.
 fn print_against(a: &twin_lab::step_against::Against) {
     println!("  the bench ({}), its step laid on the twin's:", a.name);
+    print_row("motor (encoder)", a.motor_figures.as_ref(), None);
+    print_row("light sensor", a.light_figures.as_ref(), None);
+}
+
+/// One signal's row of the table.
+fn print_row(signal: &str, metrics: Option<&StepMetrics>, delay_s: Option<f64>) {
     let secs = |v: Option<f64>| v.map_or("—".to_string(), |s| format!("{s:.3} s"));
-    for (signal, m) in [
-        ("motor (encoder)", &a.motor_figures),
-        ("light sensor", &a.light_figures),
-    ] {
-        match m {
-            Some(m) => println!(
-                "  {:16} {:>9.1} {:>9.1} {:>11} {:>8.1} % {:>12} {:>13} {:>10}",
-                signal,
-                m.initial,
-                m.final_value,
-                secs(m.rise_time_s),
-                m.overshoot_pct,
-                secs(m.settling_time_s),
-                m.steady_state_error
-                    .map_or("—".to_string(), |e| format!("{e:.1}")),
-                "—"
-            ),
-            None => println!("  {signal:16} no step figures"),
-        }
+    match metrics {
+        Some(m) => println!(
+            "  {:16} {:>9.1} {:>9.1} {:>11} {:>8.1} % {:>12} {:>13} {:>10}",
+            signal,
+            m.initial,
+            m.final_value,
+            secs(m.rise_time_s),
+            m.overshoot_pct,
+            secs(m.settling_time_s),
+            m.steady_state_error
+                .map_or("—".to_string(), |e| format!("{e:.1}")),
+            secs(delay_s)
+        ),
+        None => println!("  {signal:16} no step figures"),
     }
 }
 
@@ -251,23 +253,8 @@ fn print_report(r: &StepReport) {
         "steady error",
         "delay"
     );
-    let secs = |v: Option<f64>| v.map_or("—".to_string(), |s| format!("{s:.3} s"));
     for s in &r.signals {
-        match &s.metrics {
-            Some(m) => println!(
-                "  {:16} {:>9.1} {:>9.1} {:>11} {:>8.1} % {:>12} {:>13} {:>10}",
-                s.signal,
-                m.initial,
-                m.final_value,
-                secs(m.rise_time_s),
-                m.overshoot_pct,
-                secs(m.settling_time_s),
-                m.steady_state_error
-                    .map_or("—".to_string(), |e| format!("{e:.1}")),
-                secs(s.delay_s)
-            ),
-            None => println!("  {:16} no step figures", s.signal),
-        }
+        print_row(s.signal, s.metrics.as_ref(), s.delay_s);
         if let Some(note) = &s.note {
             println!("  {:16} ({note})", "");
         }
