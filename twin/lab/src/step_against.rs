@@ -51,17 +51,12 @@ pub fn load(path: &Path, bench_step_s: f64, report: &StepReport) -> Result<Again
     };
     let (motor, light) = (column("motor_value")?, column("sensor_value")?);
     let figures = |curve: &[(f64, f64)]| {
-        // The level before the step is the set point's start where the log
-        // has no row before it (a curve read off a plot).
-        let mut t = vec![report.step_at_s - 1e-3];
-        let mut y = vec![report.from];
-        for &(ti, yi) in curve
-            .iter()
-            .filter(|p| p.0 > report.step_at_s && p.0 <= report.figures_until_s)
-        {
-            t.push(ti);
-            y.push(yi);
-        }
+        let (t, y) = crate::calibrate::report::after_step(
+            curve,
+            report.step_at_s,
+            report.from,
+            report.figures_until_s,
+        );
         step_metrics(
             &t,
             &y,

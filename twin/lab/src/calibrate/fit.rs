@@ -80,12 +80,7 @@ impl<'a> Model<'a> {
         let (a, b) = job.fit_window;
         let mut scales = Vec::new();
         for s in &job.signals {
-            let v: Vec<f64> = s
-                .samples
-                .iter()
-                .filter(|p| p.0 >= a && p.0 <= b)
-                .map(|p| p.1)
-                .collect();
+            let v: Vec<f64> = s.rows_in((a, b)).iter().map(|p| p.1).collect();
             if v.len() < 2 {
                 bail!(
                     "column `{}` has fewer than two values in the fit window [{a}, {b}] s",
@@ -139,12 +134,7 @@ impl<'a> Model<'a> {
         for (s, scale) in self.job.signals.iter().zip(&self.scales) {
             let twin = reads.of(s.twin);
             let w = s.weight.sqrt() / scale;
-            let rows: Vec<(f64, f64)> = s
-                .samples
-                .iter()
-                .copied()
-                .filter(|p| p.0 >= window.0 && p.0 <= window.1)
-                .collect();
+            let rows = s.rows_in(window);
             let mut i = 0;
             while i < rows.len() {
                 let bin = ((rows[i].0 - window.0) / BIN_S).floor();

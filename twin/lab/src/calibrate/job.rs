@@ -86,6 +86,17 @@ pub struct Measured {
     pub samples: Vec<(f64, f64)>,
 }
 
+impl Measured {
+    /// The samples within `window` (s), both ends included.
+    pub fn rows_in(&self, window: (f64, f64)) -> Vec<(f64, f64)> {
+        self.samples
+            .iter()
+            .copied()
+            .filter(|p| p.0 >= window.0 && p.0 <= window.1)
+            .collect()
+    }
+}
+
 /// One parameter to fit.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Parameter {

@@ -70,12 +70,7 @@ pub fn signal_fits(job: &Job, reads: &TwinReads, window: (f64, f64)) -> Vec<Sign
     job.signals
         .iter()
         .map(|s| {
-            let rows: Vec<(f64, f64)> = s
-                .samples
-                .iter()
-                .copied()
-                .filter(|p| p.0 >= window.0 && p.0 <= window.1)
-                .collect();
+            let rows = s.rows_in(window);
             let t: Vec<f64> = rows.iter().map(|p| p.0).collect();
             let y: Vec<f64> = rows.iter().map(|p| p.1).collect();
             let m: Vec<f64> = t.iter().map(|&t| curve_at(reads.of(s.twin), t)).collect();
@@ -95,6 +90,24 @@ pub fn signal_fits(job: &Job, reads: &TwinReads, window: (f64, f64)) -> Vec<Sign
         .collect()
 }
 
+/// The times and values of a curve from just before a step at `step_at_s`
+/// to `until_s`: a curve read off a plot has no row before its step, so it
+/// starts at the set point's level there, `from`.
+pub fn after_step(
+    curve: &[(f64, f64)],
+    step_at_s: f64,
+    from: f64,
+    until_s: f64,
+) -> (Vec<f64>, Vec<f64>) {
+    let mut t = vec![step_at_s - 1e-3];
+    let mut y = vec![from];
+    for &(ti, yi) in curve.iter().filter(|p| p.0 > step_at_s && p.0 <= until_s) {
+        t.push(ti);
+        y.push(yi);
+    }
+    (t, y)
+}
+
 /// Step figures of the bench and the twin for one signal, both taken from
 /// the curves at the log's rows.
 #[derive(Debug, Clone, Serialize)]
@@ -112,22 +125,7 @@ pub fn step_figures(job: &Job, reads: &TwinReads, levels: &[f64]) -> Vec<StepFig
     job.signals
         .iter()
         .map(|s| {
-            // The level before the step is the set point's start where the
-            // log has no row before it (a curve read off a plot).
-            let mut t: Vec<f64> = vec![job.step_at_s - 1e-3];
-            let mut y: Vec<f64> = vec![job.step_from];
-            t.extend(
-                s.samples
-                    .iter()
-                    .filter(|p| p.0 > job.step_at_s)
-                    .map(|p| p.0),
-            );
-            y.extend(
-                s.samples
-                    .iter()
-                    .filter(|p| p.0 > job.step_at_s)
-                    .map(|p| p.1),
-            );
+            let (t, y) = after_step(&s.samples, job.step_at_s, job.step_from, f64::INFINITY);
             let m: Vec<f64> = t.iter().map(|&t| curve_at(reads.of(s.twin), t)).collect();
             let reference = Some(job.step_to);
             let crossing = |v: &[f64], level: f64| {

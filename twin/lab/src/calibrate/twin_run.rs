@@ -6,7 +6,9 @@
 //! smoothing and the master's own schedule all shape the curve.
 
 use anyhow::{Result, bail};
-use nodes::controller_network::{LIGHT_ID, MOTOR_ID, REG_LIGHT_VALUE, REG_RPM, REG_STATE};
+use nodes::controller_network::{
+    LIGHT_ID, MOTOR_ID, MasterConfig, REG_LIGHT_VALUE, REG_RPM, REG_STATE,
+};
 use nodes::node::NodeEvent;
 use nodes::proto::modbus8::{self, CrcOrder, FRAME_LEN, Frame};
 use nodes::time::{SimDuration, SimTime};
@@ -120,11 +122,13 @@ impl Observer for ReadsObserver<'_> {
 fn master_of(scenario: &Scenario) -> Result<(&str, f64)> {
     for node in &scenario.nodes {
         if let NodeSpec::ControllerNetworkMaster { name, program, .. } = node {
-            let wait = match program {
-                twin_sim::scenario::MasterProgramSpec::Loop => 0.1,
-                twin_sim::scenario::MasterProgramSpec::StepResponse => 0.01,
+            let config = match program {
+                twin_sim::scenario::MasterProgramSpec::Loop => MasterConfig::default(),
+                twin_sim::scenario::MasterProgramSpec::StepResponse => {
+                    MasterConfig::step_response()
+                }
             };
-            return Ok((name, wait));
+            return Ok((name, config.reply_wait.as_secs_f64()));
         }
     }
     bail!(
