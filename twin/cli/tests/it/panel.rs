@@ -232,11 +232,16 @@ fn supervise_panel_moves_the_set_point_and_steps_the_loop() {
     // was seen under a cold CI build's load, and moved settling by 21 ms).
     let gap = step["largest_gap_ms"].as_f64().unwrap_or(f64::INFINITY);
     let within = 2.0 * gap.max(10.0) / 1000.0;
+    // Settling is read where the hall count's slow tail enters the 2 % band,
+    // so a reading one count either side of the band's edge moves it by a
+    // whole 100 ms window: a cold CI build's load once moved it by 60 ms
+    // with the rise time 1 ms off. It may differ by that one window more.
+    let window = 0.1;
     let agrees = |hall: &serde_json::Value| {
         (figure(panel, "overshoot_pct") - figure(hall, "overshoot_pct")).abs() <= 1.0
-            && ["rise_time_s", "settling_time_s"]
-                .iter()
-                .all(|k| (figure(panel, k) - figure(hall, k)).abs() <= within)
+            && (figure(panel, "rise_time_s") - figure(hall, "rise_time_s")).abs() <= within
+            && (figure(panel, "settling_time_s") - figure(hall, "settling_time_s")).abs()
+                <= within + window
     };
     let matched = virtual_runs.iter().find(|(_, hall)| agrees(hall));
     eprintln!(
