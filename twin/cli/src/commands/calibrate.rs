@@ -10,9 +10,11 @@ use super::progress::Progress;
 
 /// Fit the plant's parameters to a log of the real bench (system identification).
 ///
-/// JOB is a calibration file (TOML): the measured log (a CSV file), which of
-/// its columns is the time and which are the measured signals (and in what
-/// units), the step that was applied, the scenario that ran the experiment,
+/// JOB is a calibration file (TOML): the measured log (a CSV file, or an MCAP
+/// recording that `twin supervise` made of a real module), which of its
+/// columns or signals are the measured ones (and in what units), the step
+/// that was applied or the signal holding the set point, the scenario that
+/// ran the experiment,
 /// and the parameters to fit, each by its path in a plant parameter file
 /// with bounds and a starting value. The twin runs the same experiment on
 /// the virtual clock with the node code the bench ran, and a Nelder–Mead
@@ -28,7 +30,10 @@ use super::progress::Progress;
 /// module's `params`) into the current folder or `--out DIR`.
 ///
 /// The Controller_network bench's step response is shipped as an example:
-/// `twin calibrate recordings/calibration/controller-network-step.toml`.
+/// `twin calibrate recordings/calibration/controller-network-step.toml`; so
+/// is a calibration of the EV module from a supervisor's recording,
+/// `recordings/calibration/ev-module-step.toml` (give it the recording with
+/// `--log`).
 #[derive(Debug, Args)]
 pub struct CalibrateArgs {
     /// The calibration file (TOML).
@@ -38,13 +43,18 @@ pub struct CalibrateArgs {
     /// simplex, smaller, up to three times while that improves).
     #[arg(long, default_value_t = 150, value_name = "N", value_parser = clap::value_parser!(u64).range(1..=100_000))]
     max_iterations: u64,
+    /// The measured log to fit, in place of the one the calibration file
+    /// names: a CSV file, or an MCAP recording (`twin supervise` of a real
+    /// module, or a run of the twin) if its name ends in `.mcap`.
+    #[arg(long, value_name = "FILE")]
+    log: Option<PathBuf>,
     /// Folder for the results (created if needed) [default: the current folder].
     #[arg(long, value_name = "DIR")]
     out: Option<PathBuf>,
 }
 
 pub fn execute(args: &CalibrateArgs) -> Result<()> {
-    let job = Job::load(&args.job)?;
+    let job = Job::load_with_log(&args.job, args.log.as_deref())?;
     let dir = args.out.clone().unwrap_or_default();
     if args.out.is_some() {
         std::fs::create_dir_all(&dir)
@@ -59,11 +69,11 @@ pub fn execute(args: &CalibrateArgs) -> Result<()> {
     let [json, params, png, residual] = names.map(|f| dir.join(f));
     let earlier = [&json, &params, &png, &residual].map(|p| Earlier::at(p));
     println!(
-        "twin calibrate: {} parameters of scenario {} against {} ({} signals)",
-        job.parameters.len(),
+        "twin calibrate: {} of scenario {} against {} ({})",
+        count(job.parameters.len(), "parameter"),
         job.scenario.name,
         job.log.display(),
-        job.signals.len()
+        count(job.signals.len(), "signal")
     );
     let options = Options {
         max_iterations: args.max_iterations,
@@ -100,6 +110,15 @@ pub fn execute(args: &CalibrateArgs) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// `1 signal`, `2 signals`.
+fn count(n: usize, what: &str) -> String {
+    if n == 1 {
+        format!("1 {what}")
+    } else {
+        format!("{n} {what}s")
+    }
 }
 
 fn print_outcome(o: &Outcome) {
@@ -140,8 +159,14 @@ fn print_outcome(o: &Outcome) {
     for u in &o.unseen {
         println!("  not determined: no reading in the log changes with {u}");
     }
+    // A recording's signals have long names; the column is as wide as they.
+    let w = o
+        .fit
+        .iter()
+        .map(|f| "check ".len() + f.column.chars().count())
+        .fold(18, usize::max);
     println!(
-        "  {:18} {:>14} {:>10} {:>12} {:>12} {:>11}",
+        "  {:w$} {:>14} {:>10} {:>12} {:>12} {:>11}",
         "fit (NRMSE FIT %)", "window (s)", "raw", "100 ms avg", "bench mean", "twin mean"
     );
     let pct = |v: Option<f64>| v.map_or("—".to_string(), |v| format!("{v:.1} %"));
@@ -152,7 +177,7 @@ fn print_outcome(o: &Outcome) {
     ] {
         for f in fits {
             println!(
-                "  {:18} {:>14} {:>10} {:>12} {:>12.0} {:>11.0}",
+                "  {:w$} {:>14} {:>10} {:>12} {:>12.0} {:>11.0}",
                 format!("{label} {}", f.column),
                 format!("{:.2}–{:.2}", f.window_s.0, f.window_s.1),
                 pct(f.fit_raw_pct),

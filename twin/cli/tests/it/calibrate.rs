@@ -1,7 +1,9 @@
 //! `twin calibrate` from the command line: every kind of bad log or
 //! calibration file refused with the file, the line and what is wrong; a
 //! search cut short says so; the fitted parameter file goes to `--params`
-//! of a closed-loop run.
+//! of a closed-loop run; the EV module calibrated from a supervisor's
+//! recording (one the twin made with parameters it is not told), and
+//! parameters that make one inertia reported as not told apart.
 
 use std::path::{Path, PathBuf};
 
@@ -230,4 +232,220 @@ fn params_change_every_module_of_a_closed_loop_run() {
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("half-gearbox.toml:2"), "{err}");
+}
+
+/// The stand-in for a supervisor's recording of a real EV module, made by
+/// the twin with parameters the calibration is not told, in `dir`.
+fn stand_in_recording(dir: &Path) -> PathBuf {
+    std::fs::create_dir_all(dir).expect("scratch");
+    let shipped = repo().join("recordings/calibration");
+    let mcap = dir.join("ev1-step.mcap");
+    let o = twin(&[
+        "run",
+        shipped
+            .join("ev-module-stand-in.toml")
+            .to_str()
+            .expect("utf-8"),
+        "--params",
+        shipped
+            .join("ev-module-stand-in-params.toml")
+            .to_str()
+            .expect("utf-8"),
+        "--out",
+        mcap.to_str().expect("utf-8"),
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    mcap
+}
+
+#[test]
+fn the_ev_module_is_calibrated_from_a_supervisors_recording() {
+    let dir = scratch("calibrate", "ev-module");
+    let mcap = stand_in_recording(&dir);
+    let out = dir.join("out");
+    let job = repo().join("recordings/calibration/ev-module-step.toml");
+    let o = twin(&[
+        "calibrate",
+        job.to_str().expect("utf-8"),
+        "--log",
+        mcap.to_str().expect("utf-8"),
+        "--out",
+        out.to_str().expect("utf-8"),
+    ]);
+    let printed = text(&o);
+    assert!(o.status.success(), "{printed}");
+    // The step is found in the recorded set point: 1000 -> 1500 rpm.
+    assert!(
+        printed.contains("passes (bench / twin): 1250 at"),
+        "{printed}"
+    );
+    let figures: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(out.join("calibrate.json")).expect("figures"),
+    )
+    .expect("json");
+    // Without noise, each value within 3 % of the stand-in's.
+    let truth = std::fs::read_to_string(
+        repo().join("recordings/calibration/ev-module-stand-in-params.toml"),
+    )
+    .expect("stand-in params");
+    let truth: toml::Table = truth.parse().expect("toml");
+    for p in figures["parameters"].as_array().expect("parameters") {
+        let path = p["path"].as_str().expect("path");
+        let (table, key) = path.split_once('.').expect("dotted");
+        let want = truth[table][key].as_float().expect("a number");
+        let got = p["value"].as_f64().expect("value");
+        assert!(
+            (got - want).abs() <= 0.03 * want,
+            "{path}: fitted {got}, the stand-in has {want}\n{printed}"
+        );
+    }
+    for f in figures["fit"].as_array().expect("fit") {
+        let pct = f["fit_averaged_pct"].as_f64().expect("FIT %");
+        assert!(pct > 99.0, "{f}");
+    }
+}
+
+#[test]
+fn parameters_that_make_one_inertia_are_reported_as_not_told_apart() {
+    let dir = scratch("calibrate", "ev-module-apart");
+    let mcap = stand_in_recording(&dir);
+    // The wheel's mass and radius reach the speed only through its inertia
+    // (½ m r²): a recording of the loop cannot tell them apart.
+    let job = dir.join("apart.toml");
+    std::fs::write(
+        &job,
+        "scenario = \"ev-meb\"\n\
+         set_point = \"/master/supervisor/loop.loops.0.set_point_rpm\"\n\n\
+         [[signal]]\ncolumn = \"/master/supervisor/loop.loops.0.measured_rpm\"\n\
+         unit = \"rpm\"\ntwin = \"supervisor-rpm\"\n\n\
+         [[fit]]\npath = \"wheel.mass_kg\"\nmin = 0.1\nmax = 2.0\nstart = 0.5\n\n\
+         [[fit]]\npath = \"wheel.radius_m\"\nmin = 0.05\nmax = 0.2\nstart = 0.1\n",
+    )
+    .expect("job");
+    let o = twin(&[
+        "calibrate",
+        job.to_str().expect("utf-8"),
+        "--log",
+        mcap.to_str().expect("utf-8"),
+        "--max-iterations",
+        "8",
+        "--out",
+        dir.join("out").to_str().expect("utf-8"),
+    ]);
+    let printed = text(&o);
+    assert!(o.status.success(), "{printed}");
+    assert!(
+        printed.contains("cannot tell apart: wheel.mass_kg and wheel.radius_m"),
+        "{printed}"
+    );
+    assert!(printed.contains("weigh it"), "{printed}");
+}
+
+#[test]
+fn a_recording_that_does_not_fit_the_job_is_refused_with_why() {
+    let dir = scratch("calibrate", "ev-module-bad");
+    let mcap = stand_in_recording(&dir);
+    let write = |name: &str, body: &str| -> PathBuf {
+        let file = dir.join(name);
+        std::fs::write(&file, body).expect("job");
+        file
+    };
+    let signal = "[[signal]]\ncolumn = \"/master/supervisor/loop.loops.0.measured_rpm\"\n\
+                  unit = \"rpm\"\ntwin = \"supervisor-rpm\"\n";
+    let fit = "[[fit]]\npath = \"wheel.mass_kg\"\nmin = 0.1\nmax = 2.0\nstart = 0.5\n";
+    let set_point = "set_point = \"/master/supervisor/loop.loops.0.set_point_rpm\"\n";
+    let cases: Vec<(PathBuf, &[&str])> = vec![
+        // A signal the recording does not have: its loop's signals listed.
+        (
+            write(
+                "no-signal.toml",
+                &format!(
+                    "scenario = \"ev-meb\"\n{set_point}\n[[signal]]\n\
+                     column = \"/master/supervisor/loop.loops.0.measured\"\n\
+                     unit = \"rpm\"\ntwin = \"supervisor-rpm\"\n\n{fit}"
+                ),
+            ),
+            &[
+                "ev1-step.mcap: no signal `/master/supervisor/loop.loops.0.measured`",
+                "loops.0.measured_rpm",
+            ],
+        ),
+        // No step and no set point: nothing says when the command changed.
+        (
+            write(
+                "no-step.toml",
+                &format!("scenario = \"ev-meb\"\n\n{signal}\n{fit}"),
+            ),
+            &["no `[step]` and no `set_point`"],
+        ),
+        // A set point that never changes.
+        (
+            write(
+                "constant.toml",
+                &format!(
+                    "scenario = \"ev-meb\"\nset_point = \"/master/supervisor/loop.loops.0.slave\"\n\n\
+                     {signal}\n{fit}"
+                ),
+            ),
+            &["constant.toml:2:", "never changes", "nothing to identify"],
+        ),
+        // Empty cells are a CSV file's.
+        (
+            write(
+                "empty.toml",
+                &format!("scenario = \"ev-meb\"\n{set_point}\n{signal}empty = \"skip\"\n\n{fit}"),
+            ),
+            &["empty.toml:", "a recording has no empty cells"],
+        ),
+        // VEL in rpm: a unit the signal cannot have.
+        (
+            write(
+                "vel-unit.toml",
+                &format!(
+                    "scenario = \"ev-meb\"\n{set_point}\n[[signal]]\n\
+                     column = \"/master/supervisor/loop.loops.0.output\"\n\
+                     unit = \"rpm\"\ntwin = \"supervisor-vel\"\n\n{fit}"
+                ),
+            ),
+            &["vel-unit.toml:", "unit `rpm`", "counts, V"],
+        ),
+    ];
+    for (job, expected) in cases {
+        let o = twin(&[
+            "calibrate",
+            job.to_str().expect("utf-8"),
+            "--log",
+            mcap.to_str().expect("utf-8"),
+        ]);
+        assert!(
+            !o.status.success(),
+            "accepted {}: {}",
+            job.display(),
+            text(&o)
+        );
+        let err = String::from_utf8_lossy(&o.stderr).to_string();
+        assert!(!err.contains("panicked"), "{err}");
+        for e in expected {
+            assert!(err.contains(e), "{}: no `{e}` in: {err}", job.display());
+        }
+    }
+    // Both a log and a recording in the file: one of them, please.
+    let both = write(
+        "both.toml",
+        &format!(
+            "log = \"a.csv\"\nrecording = \"b.mcap\"\nscenario = \"ev-meb\"\n{set_point}\n{signal}\n{fit}"
+        ),
+    );
+    let err = refused(&both);
+    assert!(err.contains("both `log` and `recording`"), "{err}");
+    // A file that is no recording.
+    let o = twin(&[
+        "calibrate",
+        both.to_str().expect("utf-8"),
+        "--log",
+        both.with_extension("mcap").to_str().expect("utf-8"),
+    ]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr).to_string();
+    assert!(err.contains("cannot read the recording"), "{err}");
 }

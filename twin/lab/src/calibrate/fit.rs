@@ -115,7 +115,12 @@ impl<'a> Model<'a> {
     pub fn simulate(&self, values: &[f64]) -> Result<TwinReads> {
         self.evaluations.fetch_add(1, Ordering::Relaxed);
         let scenario = apply::with_values(&self.job.scenario, &self.paths, values);
-        twin_run::run(&scenario, self.job.end_s() + 0.1, self.job.step_at_s)
+        twin_run::run(
+            &scenario,
+            self.job.end_s() + 0.1,
+            self.job.step_at_s,
+            (self.job.step_from, self.job.step_to),
+        )
     }
 
     /// Weighted, scaled residuals of `reads` in `window`: per signal, the

@@ -1,27 +1,63 @@
-//! A calibration job: the measured log (a CSV file), what its columns are,
-//! the scenario that ran the experiment, and the parameters to fit. Every
+//! A calibration job: the measured log (a CSV file, or a recording that
+//! `twin supervise` or the twin made), what its columns or signals are, the
+//! scenario that ran the experiment, and the parameters to fit. Every
 //! mistake in it is reported with the file, line and column or field.
 
 use anyhow::{Context, Result, bail};
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
-use twin_sim::scenario::Scenario;
+use twin_sim::scenario::{NodeSpec, Scenario};
 
+use super::csv_log::Table;
+use super::recorded::Recorded;
 use super::signal::{TwinSignal, Unit};
+
+/// Where the measured samples come from.
+enum Source {
+    Csv(Table),
+    Recording(Recorded),
+}
+
+impl Source {
+    /// `(time s, value)` of a column or signal.
+    fn column(&self, name: &str, skip_empty: bool) -> Result<Vec<(f64, f64)>> {
+        match self {
+            Source::Csv(table) => table.column(name, skip_empty),
+            Source::Recording(recorded) => recorded.signal(name),
+        }
+    }
+}
+
+/// `scenario` whose supervisors step their set point as the log's did.
+fn follow_schedule(mut scenario: Scenario, schedule: &[(f64, f64)]) -> Scenario {
+    for node in &mut scenario.nodes {
+        if let NodeSpec::Supervisor { set_points, .. } = node {
+            *set_points = schedule.iter().map(|&(t, v)| [t, v]).collect();
+        }
+    }
+    scenario
+}
 
 /// The job file as written.
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct JobFile {
     /// The CSV file, relative to the job file.
-    log: String,
+    log: Option<String>,
+    /// Or an MCAP recording, relative to the job file.
+    recording: Option<String>,
     /// Scenario file (relative to the job file) or embedded scenario name.
     scenario: String,
     #[serde(default = "default_time_column")]
     time_column: String,
     #[serde(default = "default_time_unit")]
     time_unit: String,
-    step: StepFile,
+    step: Option<StepFile>,
+    /// The column or signal that holds the set point: the step is its first
+    /// change, and a supervisor in the scenario follows its schedule.
+    set_point: Option<String>,
+    /// Levels whose first crossing after the step the report compares.
+    crossings: Option<Vec<f64>>,
     #[serde(rename = "signal")]
     signals: Vec<SignalFile>,
     #[serde(rename = "fit")]
@@ -40,7 +76,7 @@ fn default_time_unit() -> String {
 }
 
 /// The command: a step of the set point.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Clone, Copy, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct StepFile {
     at_s: f64,
@@ -120,6 +156,11 @@ pub struct Job {
     pub parameters: Vec<Parameter>,
     pub fit_window: (f64, f64),
     pub check_window: Option<(f64, f64)>,
+    /// Levels whose first crossing after the step the report compares.
+    pub crossings: Vec<f64>,
+    /// The set point's next change after the step (s), where the step's
+    /// figures end; infinite when there is none.
+    pub step_end_s: f64,
 }
 
 /// Shortest log the fit accepts after the step (s).
@@ -134,6 +175,12 @@ fn at(path: &Path, text: &str, offset: usize) -> String {
 impl Job {
     /// Reads and checks a job file and the log and scenario it names.
     pub fn load(path: &Path) -> Result<Job> {
+        Job::load_with_log(path, None)
+    }
+
+    /// Reads and checks a job file, with `log` (a CSV file, or a recording
+    /// if it ends in `.mcap`) in place of the log it names, if given.
+    pub fn load_with_log(path: &Path, log: Option<&Path>) -> Result<Job> {
         let text = std::fs::read_to_string(path)
             .with_context(|| format!("cannot read the calibration file {}", path.display()))?;
         let doc = plant::toml_errors::parse(&text).map_err(|e| {
@@ -177,16 +224,6 @@ impl Job {
                 place("time_unit")
             ),
         };
-        let step = &file.step;
-        if step.from == step.to {
-            bail!(
-                "{}: the step goes from {} to {}: a constant command excites nothing, \
-                 so there is nothing to identify",
-                place("step"),
-                step.from,
-                step.to
-            );
-        }
         if file.signals.is_empty() {
             bail!(
                 "{}: no `[[signal]]`: name at least one measured column",
@@ -200,8 +237,32 @@ impl Job {
             );
         }
         let parameters = check_parameters(&file.parameters, |i| place(&format!("fit.{i}")))?;
-        let log = dir.join(&file.log);
-        let table = super::csv_log::read(&log, &file.time_column, time_scale)?;
+        let given = log.map(|p| (p.to_path_buf(), p.extension().is_some_and(|x| x == "mcap")));
+        let (log, source) = match (given, &file.log, &file.recording) {
+            (Some((mcap, true)), ..) => (mcap.clone(), Source::Recording(Recorded::read(&mcap)?)),
+            (Some((csv, false)), ..) => {
+                let table = super::csv_log::read(&csv, &file.time_column, time_scale)?;
+                (csv, Source::Csv(table))
+            }
+            (None, Some(csv), None) => {
+                let log = dir.join(csv);
+                let table = super::csv_log::read(&log, &file.time_column, time_scale)?;
+                (log, Source::Csv(table))
+            }
+            (None, None, Some(mcap)) => {
+                let log = dir.join(mcap);
+                (log.clone(), Source::Recording(Recorded::read(&log)?))
+            }
+            (None, Some(_), Some(_)) => bail!(
+                "{}: both `log` and `recording`: name one measured log",
+                place("recording")
+            ),
+            (None, None, None) => bail!(
+                "{}: no measured log: name a CSV file as `log = \"…\"` or an MCAP \
+                 recording as `recording = \"…\"` (or give one with --log)",
+                path.display()
+            ),
+        };
         let mut signals = Vec::new();
         for (i, s) in file.signals.iter().enumerate() {
             let where_ = place(&format!("signal.{i}"));
@@ -212,13 +273,18 @@ impl Job {
                 Some("skip") => true,
                 Some(other) => bail!("{where_}: `empty = \"{other}\"`: the one choice is \"skip\""),
             };
+            if skip_empty && matches!(source, Source::Recording(_)) {
+                bail!(
+                    "{where_}: `empty` is for a CSV file's cells; a recording has no empty cells"
+                );
+            }
             if !(s.weight.is_finite() && s.weight > 0.0) {
                 bail!(
                     "{where_}: `weight` must be a number above 0, not {}",
                     s.weight
                 );
             }
-            let samples = table.column(&s.column, skip_empty)?;
+            let samples = source.column(&s.column, skip_empty)?;
             let samples = samples
                 .into_iter()
                 .map(|(t, v)| (t, unit.to_twin(v)))
@@ -231,7 +297,59 @@ impl Job {
                 samples,
             });
         }
-        let (first, last) = table.time_span();
+        let (first, last) = match &source {
+            Source::Csv(table) => table.time_span(),
+            Source::Recording(_) => Recorded::time_span(
+                &signals
+                    .iter()
+                    .map(|s| s.samples.clone())
+                    .collect::<Vec<_>>(),
+            ),
+        };
+        let set_point = match &file.set_point {
+            Some(name) => source
+                .column(name, true)
+                .with_context(|| place("set_point"))?,
+            None => Vec::new(),
+        };
+        let schedule = super::recorded::changes(&set_point);
+        let step = match (&file.step, schedule.get(1)) {
+            (Some(step), _) => *step,
+            // At the first reading of the new set point, as the twin's
+            // master reports its own step.
+            (None, Some(&(_, to))) => StepFile {
+                at_s: set_point.iter().find(|p| p.1 == to).map_or(0.0, |p| p.0),
+                from: schedule[0].1,
+                to,
+            },
+            (None, None) if file.set_point.is_some() => bail!(
+                "{}: the set point `{}` never changes in {}: a constant command excites \
+                 nothing, so there is nothing to identify",
+                place("set_point"),
+                file.set_point.as_deref().unwrap_or(""),
+                log.display()
+            ),
+            (None, None) => bail!(
+                "{}: no `[step]` and no `set_point`: say when the command stepped, \
+                 or which column holds the set point",
+                path.display()
+            ),
+        };
+        let step = &step;
+        if step.from == step.to {
+            bail!(
+                "{}: the step goes from {} to {}: a constant command excites nothing, \
+                 so there is nothing to identify",
+                place("step"),
+                step.from,
+                step.to
+            );
+        }
+        let scenario = if schedule.is_empty() {
+            scenario
+        } else {
+            follow_schedule(scenario, &schedule)
+        };
         if step.at_s < first || step.at_s > last {
             bail!(
                 "{}: the step at {} s is outside the log, which runs from {first} s to {last} s",
@@ -279,6 +397,17 @@ impl Job {
             parameters,
             fit_window,
             check_window,
+            step_end_s: schedule
+                .iter()
+                .map(|p| p.0)
+                .find(|&t| t > step.at_s)
+                .unwrap_or(f64::INFINITY),
+            crossings: file.crossings.clone().unwrap_or_else(|| {
+                vec![
+                    step.from + 0.5 * (step.to - step.from),
+                    step.from + 0.9 * (step.to - step.from),
+                ]
+            }),
         })
     }
 

@@ -1,7 +1,8 @@
 //! `twin calibrate`: the plant's parameters fitted to a log of the real bench.
 //!
-//! A job file names the log (CSV), what its columns are, the scenario that
-//! ran the experiment and the parameters to fit with their bounds. The same
+//! A job file names the log (a CSV file, or an MCAP recording), what its
+//! columns or signals are, the scenario that ran the experiment and the
+//! parameters to fit with their bounds. The same
 //! experiment runs on the virtual clock with trial values, the node code the
 //! bench ran reading the plant as the bench's master read it, until the
 //! readings match the log's (see `fit` for the method and why).
@@ -10,6 +11,7 @@ pub mod apply;
 pub mod csv_log;
 pub mod fit;
 pub mod job;
+pub mod recorded;
 pub mod report;
 pub mod signal;
 pub mod twin_run;
@@ -158,7 +160,6 @@ pub fn calibrate(job: &Job, options: Options, progress: &(dyn Fn(u64) + Sync)) -
             separate_by: separate_by(&name(i), &name(j)),
         })
         .collect();
-    let levels = [4300.0, 6400.0, 9000.0];
     Ok(Outcome {
         job: job.path.display().to_string(),
         log: job.log.display().to_string(),
@@ -176,7 +177,7 @@ pub fn calibrate(job: &Job, options: Options, progress: &(dyn Fn(u64) + Sync)) -
             .map(|w| report::signal_fits(job, &reads, w))
             .unwrap_or_default(),
         fit_at_start: report::signal_fits(job, &reads_start, job.fit_window),
-        steps: report::step_figures(job, &reads, &levels),
+        steps: report::step_figures(job, &reads, &job.crossings),
         entangled,
         unseen: spread.unseen.iter().map(|&i| name(i)).collect(),
         reads_start,

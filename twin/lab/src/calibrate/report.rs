@@ -125,7 +125,7 @@ pub fn step_figures(job: &Job, reads: &TwinReads, levels: &[f64]) -> Vec<StepFig
     job.signals
         .iter()
         .map(|s| {
-            let (t, y) = after_step(&s.samples, job.step_at_s, job.step_from, f64::INFINITY);
+            let (t, y) = after_step(&s.samples, job.step_at_s, job.step_from, job.step_end_s);
             let m: Vec<f64> = t.iter().map(|&t| curve_at(reads.of(s.twin), t)).collect();
             let reference = Some(job.step_to);
             let crossing = |v: &[f64], level: f64| {

@@ -1,4 +1,5 @@
-//! The twin's signals a measured column can be compared with, and their units.
+//! The twin's signals a measured column (or a recording's signal) can be
+//! compared with, and their units.
 
 use anyhow::{Result, bail};
 
@@ -9,12 +10,19 @@ pub enum TwinSignal {
     MotorRpmRead,
     /// The Controller_network light node's register 0006 (wheel rpm × 100).
     SensorValueRead,
+    /// The speed an MEB supervisor read to close its loop (the EV module's
+    /// `RPM_M` or `RPM_L`), once per poll cycle.
+    SupervisorRpm,
+    /// The `VEL` (DAC counts) an MEB supervisor's PI wrote, once per poll cycle.
+    SupervisorVel,
 }
 
 /// The names a calibration file uses.
-const NAMES: [(&str, TwinSignal); 2] = [
+const NAMES: [(&str, TwinSignal); 4] = [
     ("motor-rpm-read", TwinSignal::MotorRpmRead),
     ("sensor-value-read", TwinSignal::SensorValueRead),
+    ("supervisor-rpm", TwinSignal::SupervisorRpm),
+    ("supervisor-vel", TwinSignal::SupervisorVel),
 ];
 
 impl TwinSignal {
@@ -43,6 +51,8 @@ impl TwinSignal {
         match self {
             TwinSignal::MotorRpmRead => "motor rpm (register 0005, as the master read it)",
             TwinSignal::SensorValueRead => "light sensor (register 0006, as the master read it)",
+            TwinSignal::SupervisorRpm => "speed the supervisor's loop read (RPM_M or RPM_L)",
+            TwinSignal::SupervisorVel => "VEL the supervisor's loop wrote (DAC counts)",
         }
     }
 }
@@ -59,12 +69,14 @@ impl Unit {
     /// is wheel rpm × 100, so plain wheel rpm is scaled by 100).
     pub fn parse(text: &str, signal: TwinSignal) -> Result<Unit> {
         let speeds: &[(&str, f64)] = match signal {
-            TwinSignal::MotorRpmRead => &[
+            TwinSignal::MotorRpmRead | TwinSignal::SupervisorRpm => &[
                 ("rpm", 1.0),
                 ("rps", 60.0),
                 ("rad/s", 60.0 / std::f64::consts::TAU),
             ],
             TwinSignal::SensorValueRead => &[("rpm*100", 1.0), ("rpm×100", 1.0), ("rpm", 100.0)],
+            // 12 bits over the DAC's 0–5 V.
+            TwinSignal::SupervisorVel => &[("counts", 1.0), ("V", 4095.0 / 5.0)],
         };
         if let Some((name, factor)) = speeds.iter().find(|(n, _)| *n == text) {
             return Ok(Unit {
@@ -73,8 +85,9 @@ impl Unit {
             });
         }
         let known: Vec<&str> = speeds.iter().map(|(n, _)| *n).collect();
-        let kind = match text {
-            "V" | "mV" | "A" | "mA" | "W" | "counts" | "%" => " is not a speed, and",
+        let kind = match (text, signal) {
+            (_, TwinSignal::SupervisorVel) => "",
+            ("V" | "mV" | "A" | "mA" | "W" | "counts" | "%", _) => " is not a speed, and",
             _ => "",
         };
         bail!(

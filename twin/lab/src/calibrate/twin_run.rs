@@ -3,7 +3,10 @@
 //!
 //! The twin is compared with the bench on what a master saw, not on an ideal
 //! signal: the motor node's 20 ms encoder windows, its PI, the light node's
-//! smoothing and the master's own schedule all shape the curve.
+//! smoothing and the master's own schedule all shape the curve. Two masters
+//! are read: the Controller_network Raspberry Pi (its requests and the
+//! nodes' replies on the bus) and the EV module's MEB supervisor (its loop
+//! report, once per poll cycle, as `twin supervise` records it).
 
 use anyhow::{Result, bail};
 use nodes::controller_network::{
@@ -12,6 +15,7 @@ use nodes::controller_network::{
 use nodes::node::NodeEvent;
 use nodes::proto::modbus8::{self, CrcOrder, FRAME_LEN, Frame};
 use nodes::time::{SimDuration, SimTime};
+use twin_recording::topics::LoopReport;
 use twin_sim::engine::{BusSlot, ModuleSlot, NodeSlot, Observer};
 use twin_sim::scenario::{NodeSpec, Scenario};
 use twin_sim::virtual_run;
@@ -24,8 +28,11 @@ use super::signal::TwinSignal;
 pub struct TwinReads {
     pub motor_rpm: Vec<(f64, f64)>,
     pub sensor_value: Vec<(f64, f64)>,
-    /// When the master wrote the motor operational for the first time
-    /// (simulated s, before the shift).
+    pub supervisor_rpm: Vec<(f64, f64)>,
+    pub supervisor_vel: Vec<(f64, f64)>,
+    /// When the master made the step (simulated s, before the shift): the
+    /// Pi's first write of the motor to operational, or the supervisor's
+    /// first poll cycle at the step's new set point.
     pub step_at_s: Option<f64>,
 }
 
@@ -35,15 +42,37 @@ impl TwinReads {
         match signal {
             TwinSignal::MotorRpmRead => &self.motor_rpm,
             TwinSignal::SensorValueRead => &self.sensor_value,
+            TwinSignal::SupervisorRpm => &self.supervisor_rpm,
+            TwinSignal::SupervisorVel => &self.supervisor_vel,
         }
     }
 }
 
-/// Collects the master's reads from the frames on the bus.
+/// The master whose reads are compared.
+enum Master<'a> {
+    /// The Controller_network Pi; it reads its reply this long (s) after
+    /// its request (`usleep`).
+    ControllerNetwork { name: &'a str, reply_wait: f64 },
+    /// An MEB supervisor; its first slave's loop is read.
+    Supervisor { name: &'a str },
+}
+
+impl Master<'_> {
+    fn name(&self) -> &str {
+        match self {
+            Master::ControllerNetwork { name, .. } | Master::Supervisor { name } => name,
+        }
+    }
+}
+
+/// Collects the master's reads: from the frames on the bus (the Pi), or
+/// from its loop reports (a supervisor).
 struct ReadsObserver<'a> {
-    master: &'a str,
-    /// The Pi reads its reply this long after its request (`usleep`).
-    reply_wait: f64,
+    master: Master<'a>,
+    /// The step: from this set point to that one (a supervisor's).
+    step: (f64, f64),
+    /// The supervisor's set point in its last report.
+    last_set_point: Option<f64>,
     /// The last request the master sent, and when its last bit left.
     request: Option<(Frame, f64)>,
     reads: TwinReads,
@@ -70,8 +99,11 @@ impl Observer for ReadsObserver<'_> {
         else {
             return Ok(());
         };
+        let Master::ControllerNetwork { name, reply_wait } = self.master else {
+            return Ok(());
+        };
         let end = end.as_secs_f64();
-        if from.name == self.master {
+        if from.name == name {
             if frame.function == modbus8::WRITE
                 && frame.addr == REG_STATE
                 && frame.value == 0x01
@@ -89,7 +121,7 @@ impl Observer for ReadsObserver<'_> {
             return Ok(());
         }
         // The Pi has the value once its wait is over.
-        let at = sent + self.reply_wait;
+        let at = sent + reply_wait;
         match (frame.id, frame.addr) {
             (MOTOR_ID, REG_RPM) => self
                 .reads
@@ -105,61 +137,102 @@ impl Observer for ReadsObserver<'_> {
     fn event(&mut self, _: &NodeSlot, _: &NodeEvent) -> Result<()> {
         Ok(())
     }
-    fn telemetry(
-        &mut self,
-        _: SimTime,
-        _: &NodeSlot,
-        _: &twin_recording::topics::LoopReport,
-    ) -> Result<()> {
+    fn telemetry(&mut self, now: SimTime, node: &NodeSlot, report: &LoopReport) -> Result<()> {
+        if node.name != self.master.name() {
+            return Ok(());
+        }
+        let LoopReport::Supervisor(report) = report else {
+            return Ok(());
+        };
+        let Some(slave) = report.loops.first() else {
+            return Ok(());
+        };
+        let t = now.as_secs_f64();
+        let (from, to) = self.step;
+        if self.reads.step_at_s.is_none()
+            && slave.set_point_rpm == to
+            && self.last_set_point == Some(from)
+        {
+            self.reads.step_at_s = Some(t);
+        }
+        self.last_set_point = Some(slave.set_point_rpm);
+        self.reads.supervisor_rpm.push((t, slave.measured_rpm));
+        self.reads.supervisor_vel.push((t, f64::from(slave.output)));
         Ok(())
     }
     fn wants_loop_reports(&self) -> bool {
-        false
+        matches!(self.master, Master::Supervisor { .. })
     }
 }
 
-/// The Controller_network master of `scenario`, and how long it waits for a reply.
-fn master_of(scenario: &Scenario) -> Result<(&str, f64)> {
+/// The master of `scenario` whose reads are compared.
+fn master_of(scenario: &Scenario) -> Result<Master<'_>> {
     for node in &scenario.nodes {
-        if let NodeSpec::ControllerNetworkMaster { name, program, .. } = node {
-            let config = match program {
-                twin_sim::scenario::MasterProgramSpec::Loop => MasterConfig::default(),
-                twin_sim::scenario::MasterProgramSpec::StepResponse => {
-                    MasterConfig::step_response()
-                }
-            };
-            return Ok((name, config.reply_wait.as_secs_f64()));
+        match node {
+            NodeSpec::ControllerNetworkMaster { name, program, .. } => {
+                let config = match program {
+                    twin_sim::scenario::MasterProgramSpec::Loop => MasterConfig::default(),
+                    twin_sim::scenario::MasterProgramSpec::StepResponse => {
+                        MasterConfig::step_response()
+                    }
+                };
+                return Ok(Master::ControllerNetwork {
+                    name,
+                    reply_wait: config.reply_wait.as_secs_f64(),
+                });
+            }
+            NodeSpec::Supervisor { name, .. } => return Ok(Master::Supervisor { name }),
+            _ => {}
         }
     }
     bail!(
-        "scenario {} has no `controller-network-master`: calibration compares what a master read",
+        "scenario {} has no master the calibration can read (a `controller-network-master` \
+         or a `supervisor`): calibration compares what a master read",
         scenario.name
     )
 }
 
 /// Runs `scenario` (its parameters already set) to `until_s` and returns what
-/// its master read, shifted so that its first operational write is at `step_at_s`.
-pub fn run(scenario: &Scenario, until_s: f64, step_at_s: f64) -> Result<TwinReads> {
-    let (master, reply_wait) = master_of(scenario)?;
+/// its master read, shifted so that its step (from `step.0` to `step.1`)
+/// is at `step_at_s`.
+pub fn run(
+    scenario: &Scenario,
+    until_s: f64,
+    step_at_s: f64,
+    step: (f64, f64),
+) -> Result<TwinReads> {
+    let master = master_of(scenario)?;
     let mut engine = virtual_run::build(scenario)?;
     let mut observer = ReadsObserver {
         master,
-        reply_wait,
+        step,
+        last_set_point: None,
         request: None,
         reads: TwinReads::default(),
     };
     let end = SimTime::ZERO + SimDuration::from_secs_f64(until_s);
     engine.run_until(end, &mut observer, |_| {})?;
     let mut reads = observer.reads;
-    let Some(step) = reads.step_at_s else {
+    let Some(step_s) = reads.step_at_s else {
+        let what = match observer.master {
+            Master::ControllerNetwork { .. } => "wrote the motor operational".to_string(),
+            Master::Supervisor { .. } => {
+                format!("stepped its set point from {} to {} rpm", step.0, step.1)
+            }
+        };
         bail!(
-            "in scenario {}, the master never wrote the motor operational within {until_s} s: \
+            "in scenario {}, the master never {what} within {until_s} s: \
              there is no step to compare",
             scenario.name
         );
     };
-    let shift = step_at_s - step;
-    for series in [&mut reads.motor_rpm, &mut reads.sensor_value] {
+    let shift = step_at_s - step_s;
+    for series in [
+        &mut reads.motor_rpm,
+        &mut reads.sensor_value,
+        &mut reads.supervisor_rpm,
+        &mut reads.supervisor_vel,
+    ] {
         for (t, _) in series.iter_mut() {
             *t += shift;
         }
