@@ -119,11 +119,12 @@ pub struct StepFigures {
     pub crossings: Vec<(f64, Option<f64>, Option<f64>)>,
 }
 
-/// The step figures of every signal, and when each passes `levels`.
+/// The step figures of every speed signal, and when each passes `levels`.
 pub fn step_figures(job: &Job, reads: &TwinReads, levels: &[f64]) -> Vec<StepFigures> {
     let options = StepOptions::default();
     job.signals
         .iter()
+        .filter(|s| s.twin.is_speed())
         .map(|s| {
             let (t, y) = after_step(&s.samples, job.step_at_s, job.step_from, job.step_end_s);
             let m: Vec<f64> = t.iter().map(|&t| curve_at(reads.of(s.twin), t)).collect();

@@ -46,6 +46,12 @@ impl TwinSignal {
             .map_or("?", |(n, _)| n)
     }
 
+    /// Whether it is a speed, in the set point's unit: a step's figures
+    /// (rise, overshoot, the set point's levels) are a speed's.
+    pub fn is_speed(self) -> bool {
+        !matches!(self, TwinSignal::SupervisorVel)
+    }
+
     /// In the lab's words, for reports and plots.
     pub fn describe(self) -> &'static str {
         match self {
