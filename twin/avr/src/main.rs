@@ -40,6 +40,7 @@ enum Command {
     Serve(commands::serve::ServeArgs),
     Supervise(commands::supervise::SuperviseArgs),
     Vsp(commands::vsp::VspArgs),
+    Calibrate(commands::calibrate::CalibrateArgs),
     Bench(bench::BenchArgs),
 }
 
@@ -104,6 +105,7 @@ fn main() -> ExitCode {
         Command::Serve(args) => commands::serve::execute(&args, &given("serve")),
         Command::Supervise(args) => commands::supervise::execute(&args, &given("supervise")),
         Command::Vsp(args) => commands::vsp::execute(&args),
+        Command::Calibrate(args) => commands::calibrate::execute(&args),
         Command::Bench(args) => bench::execute(&args),
     };
     match result {
