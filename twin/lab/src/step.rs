@@ -399,13 +399,22 @@ pub fn run(config: &StepConfig, recording: &Path, progress: impl FnMut(f64)) -> 
             (None, Some(last)) => last.abs() < 1.0,
             (None, None) => false,
         };
-        if signal.starts_with("light") && reads_zero {
+        // Above the detector's limit a reading is no measurement, whether
+        // it fell to 0 (the fixed threshold) or counts the dips the wheel
+        // still makes (the adaptive one misses some and reads far too low).
+        let beyond = wheel_final.filter(|&w| w > light_limit_rpm);
+        if signal.starts_with("light") && (reads_zero || beyond.is_some()) {
+            let last = metrics
+                .as_ref()
+                .map(|m| m.final_value)
+                .or(y.last().copied())
+                .unwrap_or(0.0);
             metrics = None;
-            note = Some(match wheel_final {
-                Some(w) if w > light_limit_rpm => format!(
-                    "reads 0 at the end: the wheel runs at {w:.0} rpm, above the {light_limit_rpm:.0} rpm the detector can see"
+            note = Some(match beyond {
+                Some(w) => format!(
+                    "reads {last:.0} at the end: the wheel runs at {w:.0} rpm, above the {light_limit_rpm:.0} rpm the detector can see"
                 ),
-                _ => "reads 0 at the end: it does not see the flag".to_string(),
+                None => "reads 0 at the end: it does not see the flag".to_string(),
             });
         }
         let delay_s = match metrics {

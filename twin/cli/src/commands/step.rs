@@ -11,6 +11,7 @@ use twin_sim::step_metrics::StepMetrics;
 
 use super::output::Earlier;
 use super::progress::Progress;
+use super::serve::LightDetector;
 use twin_lab::step::short;
 
 /// Step response of the wheel, the hall rpm and the light-sensor rpm: rise, overshoot, settling, delay.
@@ -62,8 +63,20 @@ pub struct StepArgs {
     seed: u64,
     #[command(flatten)]
     plant: super::plant_args::PlantArgs,
-    /// Open loop: run the EV controller's light detector in adaptive mode.
-    #[arg(long, requires = "open_loop")]
+    /// Open loop: the EV controller's light detector, `adaptive` (the
+    /// default, as `twin serve` and the `ev-meb` scenario have it: it follows
+    /// the wheel up to about 1800 rpm) or `fixed` (the firmware's threshold
+    /// at power-up: about 260 rpm). The Controller_network light-sensor Nano
+    /// has its fixed threshold only.
+    #[arg(long, value_enum, value_name = "DETECTOR", requires = "open_loop")]
+    light_detector: Option<LightDetector>,
+    /// The adaptive light detector: the default now (--light-detector).
+    #[arg(
+        long,
+        hide = true,
+        requires = "open_loop",
+        conflicts_with = "light_detector"
+    )]
     adaptive_light: bool,
     /// Closed loop: the speed the supervisor's PI closes on, the hall rpm or
     /// the light-sensor rpm.
@@ -93,10 +106,19 @@ enum Feedback {
 pub fn execute(args: &StepArgs) -> Result<()> {
     let drive = if args.open_loop {
         let params = args.plant.load()?;
+        let geared = args.plant.preset == "controller-network";
+        let adaptive_light = match (args.light_detector, args.adaptive_light) {
+            (Some(LightDetector::Adaptive), _) | (None, true) if geared => bail!(
+                "the Controller_network light-sensor Nano has its fixed threshold only: \
+                 leave out --light-detector, or give `fixed`"
+            ),
+            (Some(detector), _) => detector == LightDetector::Adaptive,
+            (None, adaptive) => adaptive || !geared,
+        };
         StepDrive::OpenLoop {
             params: Box::new(params),
             preset: args.plant.preset.clone(),
-            adaptive_light: args.adaptive_light,
+            adaptive_light,
         }
     } else {
         let name = args.scenario.as_deref().unwrap_or("ev-meb");

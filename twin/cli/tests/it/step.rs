@@ -153,3 +153,64 @@ fn a_missing_font_says_what_to_install_and_keeps_the_figures() {
     assert!(out.join("step.json").exists() && out.join("step.mcap").exists());
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn the_open_loop_light_detector_defaults_as_twin_serve_and_ev_meb_have_it() {
+    // `twin serve`'s default, read from its help (the real-time module).
+    let serve = ok(&["serve", "--help"]);
+    let at = serve
+        .find("--light-detector")
+        .expect("serve has --light-detector");
+    assert!(
+        serve[at..].contains("[default: adaptive]"),
+        "twin serve's default light detector changed: {}",
+        &serve[at..at + 600]
+    );
+    // `twin step --open-loop`'s, from its report: the same, and `fixed`
+    // when asked.
+    let dir = scratch("detector");
+    let d = dir.to_str().expect("utf-8 path");
+    let default = ok(&[
+        "step",
+        "--open-loop",
+        "--duration",
+        "1",
+        "--at",
+        "0.5",
+        "--out",
+        d,
+    ]);
+    assert!(
+        default.contains("light detector: EV controller, adaptive"),
+        "{default}"
+    );
+    let fixed = ok(&[
+        "step",
+        "--open-loop",
+        "--duration",
+        "1",
+        "--at",
+        "0.5",
+        "--light-detector",
+        "fixed",
+        "--out",
+        d,
+    ]);
+    assert!(
+        fixed.contains("light detector: EV controller, fixed"),
+        "{fixed}"
+    );
+    // The Controller_network light Nano has no adaptive detector: asked for
+    // one, the step says so instead of running the fixed one silently.
+    let o = twin(&[
+        "step",
+        "--open-loop",
+        "--preset",
+        "controller-network",
+        "--light-detector",
+        "adaptive",
+    ]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("has its fixed threshold only"), "{err}");
+}
