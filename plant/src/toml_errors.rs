@@ -171,9 +171,22 @@ fn blame<T: DeserializeOwned>(
     })
 }
 
-/// Whether `value` is what serde's `message` says it found; `true` when
-/// the message says nothing of it.
+/// Whether `value` is, or holds, what serde's `message` says it found;
+/// `true` when the message says nothing of it.
+///
+/// Why "holds": an item of a list (`set_points = [0.45, 1000.0]`, where
+/// pairs are expected) is found inside the key's value, and a key beside
+/// it with the very same value (`kp = 0.45`) must not take the blame alone.
 fn is_what_was_found(value: &DeValue<'_>, message: &str) -> bool {
+    let inside = match value {
+        DeValue::Array(a) => a.iter().any(|v| is_what_was_found(v.get_ref(), message)),
+        DeValue::Table(t) => t.values().any(|v| is_what_was_found(v.get_ref(), message)),
+        _ => false,
+    };
+    inside || is_what_was_found_here(value, message)
+}
+
+fn is_what_was_found_here(value: &DeValue<'_>, message: &str) -> bool {
     if let Some(variant) = backticked(message, "unknown variant `") {
         return matches!(value, DeValue::String(s) if s == variant);
     }

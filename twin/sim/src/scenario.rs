@@ -986,6 +986,19 @@ mod tests {
     }
 
     #[test]
+    fn a_bad_item_of_a_list_points_at_the_list_not_a_key_with_the_same_value() {
+        // `set_points` wants [time, rpm] pairs; its 0.45 is also `kp`'s value.
+        let text = ev_meb_with("set_points = [", "set_points = [0.45, 1000.0] #");
+        let e = Scenario::parse(&text, "s.toml").unwrap_err().to_string();
+        let line = line_of(&text, "set_points = [0.45");
+        assert_ne!(line, line_of(&text, "kp = 0.45"));
+        assert_eq!(
+            e,
+            format!("s.toml:{line}:1: `set_points`: expected an array of length 2, found 0.45")
+        );
+    }
+
+    #[test]
     fn an_undeclared_bus_points_at_the_node_that_names_it() {
         // The second node's bus, not the first `bus =` line of the file.
         let text = ev_meb_with("bus = \"rs485\"\nslaves", "bus = \"rs458\"\nslaves");
