@@ -33,7 +33,7 @@ fn own_log(
     let scenario = Scenario::load(&repo().join(SCENARIO).display().to_string()).expect("scenario");
     let paths: Vec<String> = paths.iter().map(|p| p.to_string()).collect();
     let scenario = apply::with_values(&scenario, &paths, truth);
-    let reads = twin_run::run(&scenario, 4.2, 1.0).expect("the twin runs");
+    let reads = twin_run::run(&scenario, 4.2, 1.0, (0.0, 10000.0)).expect("the twin runs");
     let mut rows: Vec<(f64, String)> = Vec::new();
     // A fixed pseudo-random sequence (a linear congruential generator):
     // the same noise on every run of the test.

@@ -15,11 +15,10 @@ use std::collections::{BTreeMap, HashSet};
 
 use nodes::controller_network::{ControllerNetworkMaster, MasterConfig};
 use nodes::link::{CheckKind, FaultyNode};
-use nodes::node::NodeEvent;
 use nodes::proto::meb::MebRepr;
 use nodes::time::{SimDuration, SimTime};
 use serde_json::Value;
-use twin_sim::engine::{BusSlot, Engine, ModuleSlot, NodeSlot, Observer};
+use twin_sim::engine::{BusSlot, Engine, NodeSlot, Observer};
 use twin_sim::scenario::Scenario;
 
 #[path = "engine_bit_errors/meb_fcs.rs"]
@@ -59,12 +58,6 @@ struct Memory {
 }
 
 impl Observer for Memory {
-    fn plant(&mut self, _: SimTime, _: &ModuleSlot) -> anyhow::Result<()> {
-        Ok(())
-    }
-    fn actuators(&mut self, _: SimTime, _: &ModuleSlot) -> anyhow::Result<()> {
-        Ok(())
-    }
     fn frame(
         &mut self,
         _: &BusSlot,
@@ -78,9 +71,6 @@ impl Observer for Memory {
             end,
             bytes: bytes.to_vec(),
         });
-        Ok(())
-    }
-    fn event(&mut self, _: &NodeSlot, _: &NodeEvent) -> anyhow::Result<()> {
         Ok(())
     }
     fn telemetry(

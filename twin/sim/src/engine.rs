@@ -348,10 +348,21 @@ impl BusSlot {
     }
 }
 
-/// Everything the engine reports as it runs, for the recorder.
+/// Everything the engine reports as it runs, for the recorder. Every
+/// method keeps nothing unless an observer says otherwise, so one that
+/// wants the frames alone writes only [`Observer::frame`].
 pub trait Observer {
-    fn plant(&mut self, now: SimTime, module: &ModuleSlot) -> Result<()>;
-    fn actuators(&mut self, now: SimTime, module: &ModuleSlot) -> Result<()>;
+    /// A plant sample of `module`.
+    fn plant(&mut self, now: SimTime, module: &ModuleSlot) -> Result<()> {
+        let _ = (now, module);
+        Ok(())
+    }
+    /// A change of `module`'s actuators.
+    fn actuators(&mut self, now: SimTime, module: &ModuleSlot) -> Result<()> {
+        let _ = (now, module);
+        Ok(())
+    }
+    /// A frame `from` sent on `bus`, its first bit at `start`, its last at `end`.
     fn frame(
         &mut self,
         bus: &BusSlot,
@@ -359,10 +370,20 @@ pub trait Observer {
         start: SimTime,
         end: SimTime,
         bytes: &[u8],
-    ) -> Result<()>;
-    fn event(&mut self, node: &NodeSlot, event: &NodeEvent) -> Result<()>;
+    ) -> Result<()> {
+        let _ = (bus, from, start, end, bytes);
+        Ok(())
+    }
+    /// Something a node reports (a timeout, a trip, a fault).
+    fn event(&mut self, node: &NodeSlot, event: &NodeEvent) -> Result<()> {
+        let _ = (node, event);
+        Ok(())
+    }
     /// A master's loop report, once per poll cycle.
-    fn telemetry(&mut self, now: SimTime, node: &NodeSlot, report: &LoopReport) -> Result<()>;
+    fn telemetry(&mut self, now: SimTime, node: &NodeSlot, report: &LoopReport) -> Result<()> {
+        let _ = (now, node, report);
+        Ok(())
+    }
     /// Whether [`Observer::telemetry`] keeps what it is given: when it does
     /// not, the masters' reports are not even made. Asked once per
     /// [`Engine::run_until`]: the answer must not change.
@@ -386,21 +407,6 @@ pub trait Observer {
 pub struct DiscardObserver;
 
 impl Observer for DiscardObserver {
-    fn plant(&mut self, _: SimTime, _: &ModuleSlot) -> Result<()> {
-        Ok(())
-    }
-    fn actuators(&mut self, _: SimTime, _: &ModuleSlot) -> Result<()> {
-        Ok(())
-    }
-    fn frame(&mut self, _: &BusSlot, _: &NodeSlot, _: SimTime, _: SimTime, _: &[u8]) -> Result<()> {
-        Ok(())
-    }
-    fn event(&mut self, _: &NodeSlot, _: &NodeEvent) -> Result<()> {
-        Ok(())
-    }
-    fn telemetry(&mut self, _: SimTime, _: &NodeSlot, _: &LoopReport) -> Result<()> {
-        Ok(())
-    }
     fn wants_loop_reports(&self) -> bool {
         false
     }

@@ -165,10 +165,6 @@ impl Observer for RerunObserver {
         Ok(())
     }
 
-    fn actuators(&mut self, _now: SimTime, _module: &ModuleSlot) -> Result<()> {
-        Ok(())
-    }
-
     fn frame(
         &mut self,
         bus: &BusSlot,

@@ -12,11 +12,10 @@ use anyhow::{Result, bail};
 use nodes::controller_network::{
     LIGHT_ID, MOTOR_ID, MasterConfig, REG_LIGHT_VALUE, REG_RPM, REG_STATE,
 };
-use nodes::node::NodeEvent;
 use nodes::proto::modbus8::{self, CrcOrder, FRAME_LEN, Frame};
 use nodes::time::{SimDuration, SimTime};
 use twin_recording::topics::LoopReport;
-use twin_sim::engine::{BusSlot, ModuleSlot, NodeSlot, Observer};
+use twin_sim::engine::{BusSlot, NodeSlot, Observer};
 use twin_sim::scenario::{NodeSpec, Scenario};
 use twin_sim::virtual_run;
 
@@ -79,12 +78,6 @@ struct ReadsObserver<'a> {
 }
 
 impl Observer for ReadsObserver<'_> {
-    fn plant(&mut self, _: SimTime, _: &ModuleSlot) -> Result<()> {
-        Ok(())
-    }
-    fn actuators(&mut self, _: SimTime, _: &ModuleSlot) -> Result<()> {
-        Ok(())
-    }
     fn frame(
         &mut self,
         _bus: &BusSlot,
@@ -132,9 +125,6 @@ impl Observer for ReadsObserver<'_> {
             }
             _ => {}
         }
-        Ok(())
-    }
-    fn event(&mut self, _: &NodeSlot, _: &NodeEvent) -> Result<()> {
         Ok(())
     }
     fn telemetry(&mut self, now: SimTime, node: &NodeSlot, report: &LoopReport) -> Result<()> {
