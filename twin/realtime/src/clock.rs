@@ -42,10 +42,24 @@ impl RtClock {
     }
 }
 
+/// How a session is given real-time priority, for the notices that say it
+/// has none: the flag, what the host must allow, and the shipped units.
+pub const HOW_TO_GRANT: &str = "--rt-priority N (1-99) as root, with CAP_SYS_NICE, or within an \
+rtprio limit (`ulimit -r`, limits.conf); the systemd units in deploy/systemd grant it";
+
+/// What a session started without `--rt-priority` says once: `risk` is what
+/// a busy machine does to this role, in its own words.
+pub fn without_priority(risk: &str) -> String {
+    format!(
+        "no real-time priority: when this machine is busy, {risk}; ask for it with {HOW_TO_GRANT}"
+    )
+}
+
 /// Puts the calling thread under the real-time FIFO scheduler at
 /// `priority` (1-99), so a busy machine cannot delay its ticks: Linux only,
-/// and only where permitted (root or CAP_SYS_NICE). Uses `chrt` on the
-/// thread's id, which keeps the twin free of unsafe code.
+/// and only where permitted (root, CAP_SYS_NICE, or an RLIMIT_RTPRIO of at
+/// least `priority`). Uses `chrt` on the thread's id, which keeps the twin
+/// free of unsafe code.
 pub fn raise_this_thread(priority: u8) -> Result<(), String> {
     let link = std::fs::read_link("/proc/thread-self")
         .map_err(|e| format!("cannot find this thread's id (/proc/thread-self): {e}"))?;
@@ -62,7 +76,7 @@ pub fn raise_this_thread(priority: u8) -> Result<(), String> {
         Ok(())
     } else {
         Err(format!(
-            "chrt -f -p {priority} {tid} failed: {} (run as root or grant CAP_SYS_NICE)",
+            "chrt -f -p {priority} {tid} failed: {}",
             String::from_utf8_lossy(&out.stderr).trim()
         ))
     }

@@ -15,7 +15,7 @@ use std::collections::BTreeMap;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::sync::atomic::Ordering;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::{Receiver, Sender, channel};
 use std::thread::JoinHandle;
 use std::time::Duration;
@@ -282,7 +282,16 @@ pub fn run<R: Role>(
     let end = options
         .duration
         .map(|s| SimTime::ZERO + SimDuration::from_secs_f64(s));
-    let engine_thread = spawn_engine(engine, inbound_rx, end, options.rt_priority)?;
+    // Both threads ask for the priority; when the host refuses it, it
+    // refuses both, and one warning says so.
+    let refused = Arc::new(AtomicBool::new(false));
+    let engine_thread = spawn_engine_with(
+        engine,
+        inbound_rx,
+        end,
+        options.rt_priority,
+        Arc::clone(&refused),
+    )?;
     for start in std::mem::take(&mut links.starters) {
         start(runtime.handle(), inbound_tx.clone());
     }
@@ -290,10 +299,9 @@ pub fn run<R: Role>(
     // The links' runtime runs on this thread: a reply waits for it too.
     if let Some(priority) = options.rt_priority
         && let Err(why) = super::clock::raise_this_thread(priority.saturating_sub(1).max(1))
+        && !refused.swap(true, Ordering::Relaxed)
     {
-        let _ = sink_tx.send(SinkMsg::Say(format!(
-            "warning: links at normal priority: {why}"
-        )));
+        let _ = sink_tx.send(SinkMsg::Say(refused_warning(priority, &why)));
     }
 
     let (summary, mut engine) = run_until_stopped(
@@ -369,18 +377,41 @@ pub fn link_labels(engine: &RtEngine) -> Vec<SinkLink> {
 /// Runs `engine` on its own thread until `end` or a stop, under SCHED_FIFO at
 /// `priority` when one is given (a warning in the monitor if it cannot be had).
 pub fn spawn_engine(
+    engine: RtEngine,
+    inbound: Receiver<Inbound>,
+    end: Option<SimTime>,
+    priority: Option<u8>,
+) -> Result<JoinHandle<(RtSummary, RtEngine)>> {
+    spawn_engine_with(engine, inbound, end, priority, Arc::default())
+}
+
+/// What a refused `--rt-priority` says: what the session risks, and how
+/// the host grants it.
+fn refused_warning(priority: u8, why: &str) -> String {
+    format!(
+        "warning: no real-time priority, so a busy machine can delay ticks, edges and \
+         replies ({why}); run as root, grant CAP_SYS_NICE, or raise the rtprio limit to \
+         {priority} (`ulimit -r`, LimitRTPRIO= in a systemd unit)"
+    )
+}
+
+/// [`spawn_engine`], the warning of a refused priority said only if
+/// `refused` was not set already (by the links' thread).
+fn spawn_engine_with(
     mut engine: RtEngine,
     inbound: Receiver<Inbound>,
     end: Option<SimTime>,
     priority: Option<u8>,
+    refused: Arc<AtomicBool>,
 ) -> Result<JoinHandle<(RtSummary, RtEngine)>> {
     std::thread::Builder::new()
         .name("twin-realtime".into())
         .spawn(move || {
             if let Some(priority) = priority
                 && let Err(why) = super::clock::raise_this_thread(priority)
+                && !refused.swap(true, Ordering::Relaxed)
             {
-                engine.say(format!("warning: no real-time priority: {why}"));
+                engine.say(refused_warning(priority, &why));
             }
             let summary = engine.run(&inbound, end);
             (summary, engine)

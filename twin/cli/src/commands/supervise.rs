@@ -129,6 +129,12 @@ pub struct SuperviseArgs {
     /// Wait for a serial path that does not exist yet instead of failing.
     #[arg(long)]
     wait_for_ports: bool,
+    /// Run the master's thread under the real-time FIFO scheduler at this
+    /// priority, and the links' thread one below (1-99; needs root,
+    /// CAP_SYS_NICE or an rtprio limit), so a busy machine cannot delay
+    /// polls and replies.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u8).range(1..=99))]
+    rt_priority: Option<u8>,
     /// Stream the session live to rerun, beside the recording: `--view`
     /// opens a viewer (or uses the one already running), `--view
     /// rerun+http://HOST:PORT/proxy` streams to a running viewer, `--view
@@ -214,10 +220,9 @@ fn options(args: &SuperviseArgs) -> Result<SuperviseOptions> {
             monitor: !args.quiet,
             status_every: args.status_every.max(0.0),
             wait_for_ports: args.wait_for_ports,
-            // No plant here (the module is on the other end of the bus), and
-            // no real-time priority.
+            // No plant here: the module is on the other end of the bus.
             record_hz: 1.0,
-            rt_priority: None,
+            rt_priority: args.rt_priority,
             view,
             command_line: std::env::args().collect::<Vec<_>>().join(" "),
             allow: AllowList::new(args.service.allow.clone()),
@@ -346,6 +351,15 @@ pub fn execute(args: &SuperviseArgs, matches: &ArgMatches) -> Result<()> {
             }
             if let Some(line) = &panel_line {
                 let _ = writeln!(out, "{line}");
+            }
+            if args.rt_priority.is_none() {
+                let _ = writeln!(
+                    out,
+                    "{}",
+                    twin_realtime::clock::without_priority(
+                        "polls go out late and remote clients are answered late"
+                    )
+                );
             }
             let _ = writeln!(out, "ready");
             let _ = out.flush();

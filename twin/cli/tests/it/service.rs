@@ -3,8 +3,9 @@
 //! reread, the allowed client addresses (a client from 127.0.0.2 refused,
 //! one from 127.0.0.1 served), systemd's readiness protocol on a socket the
 //! test holds, the units in deploy/systemd verified by systemd-analyze
-//! against the real binary, and a class of five modules in one process,
-//! each reached by its own pymodbus client.
+//! against the real binary (with the real-time priority they grant, and
+//! what a session without it says), and a class of five modules in one
+//! process, each reached by its own pymodbus client.
 
 use std::os::unix::net::UnixDatagram;
 use std::path::{Path, PathBuf};
@@ -234,6 +235,32 @@ fn the_systemd_units_verify_against_the_real_binary() {
             assert!(unit.lines().any(|l| l == line), "{file} lacks {line}");
         }
         assert!(unit.contains("ExecStart=/usr/local/bin/twin "), "{file}");
+        // Real-time priority where the host allows it: the flag, within the
+        // limit the unit sets, and a sandbox that lets the scheduler be asked.
+        for line in [
+            "RestrictRealtime=no",
+            "AmbientCapabilities=CAP_SYS_NICE",
+            "CapabilityBoundingSet=CAP_SYS_NICE",
+        ] {
+            assert!(unit.lines().any(|l| l == line), "{file} lacks {line}");
+        }
+        let setting = |prefix: &str| -> u8 {
+            let line = unit
+                .lines()
+                .find(|l| l.starts_with(prefix) || l.contains(prefix))
+                .unwrap_or_else(|| panic!("{file} lacks {prefix}"));
+            let after = &line[line.find(prefix).unwrap() + prefix.len()..];
+            let number = after.split_whitespace().next().unwrap_or_default();
+            number
+                .parse()
+                .unwrap_or_else(|_| panic!("{file}: {prefix}{number} is not a priority"))
+        };
+        let asked = setting("--rt-priority ");
+        let limit = setting("LimitRTPRIO=");
+        assert!(
+            (1..=limit).contains(&asked),
+            "{file}: --rt-priority {asked} beyond LimitRTPRIO={limit}"
+        );
         let path = dir.join(instance);
         std::fs::write(&path, unit.replace("/usr/local/bin/twin", binary)).unwrap();
         written.push(path);
@@ -265,6 +292,135 @@ fn the_systemd_units_verify_against_the_real_binary() {
         let o = verify(&[original]);
         assert!(!o.status.success(), "{}", text(&o));
         assert!(text(&o).contains("/usr/local/bin/twin"), "{}", text(&o));
+    }
+}
+
+/// Lines of `out` that say the session has no real-time priority.
+fn priority_notices(out: &str) -> Vec<&str> {
+    out.lines()
+        .filter(|l| l.contains("no real-time priority"))
+        .collect()
+}
+
+#[test]
+fn a_session_without_real_time_priority_says_once_what_it_risks_and_how_to_grant_it() {
+    let _cores = support::RealTime::share_the_cores();
+    let base = [
+        "serve",
+        "--modbus",
+        "tcp://127.0.0.1:0",
+        "--no-record",
+        "--duration",
+        "0.3",
+        "--status-every",
+        "0",
+    ];
+    // Under --quiet too: it drops the frame monitor, not the notices.
+    for quiet in [false, true] {
+        let mut args = base.to_vec();
+        if quiet {
+            args.push("--quiet");
+        }
+        let o = twin(&args);
+        assert!(o.status.success(), "{}", text(&o));
+        let out = text(&o);
+        let said = priority_notices(&out);
+        assert_eq!(said.len(), 1, "{out}");
+        for words in [
+            "encoder edges",
+            "replies come late",
+            "--rt-priority N",
+            "CAP_SYS_NICE",
+            "deploy/systemd",
+        ] {
+            assert!(said[0].contains(words), "{words}: {}", said[0]);
+        }
+        // Said before `ready`, where a user reads what the session is.
+        let ready = out.lines().position(|l| l == "ready").expect("ready");
+        let notice = out.lines().position(|l| l == said[0]).unwrap();
+        assert!(notice < ready, "{out}");
+    }
+
+    // A class says it once, not once per module.
+    let dir = folder("class-priority");
+    let mut config =
+        "quiet = true\nstatus-every = 0\nno-record = true\nduration = 0.3\n".to_string();
+    for n in 1..=3 {
+        config.push_str(&format!(
+            "\n[[module]]\nname = \"m{n}\"\nmodbus = [\"tcp://127.0.0.1:0\"]\n"
+        ));
+    }
+    let path = dir.join("class.toml");
+    std::fs::write(&path, config).unwrap();
+    let o = twin(&["serve", "--config", path.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert_eq!(priority_notices(&text(&o)).len(), 1, "{}", text(&o));
+}
+
+/// The grant the units give, tried where the test runs as root: an
+/// ordinary user holding only CAP_SYS_NICE (as `AmbientCapabilities=`
+/// gives the service's user) gets the priority and says nothing; the same
+/// user without it is refused, and told once what that risks and how to
+/// grant it.
+#[test]
+fn the_units_grant_is_enough_and_a_refusal_is_said_once() {
+    let root = Command::new("id")
+        .arg("-u")
+        .output()
+        .is_ok_and(|o| String::from_utf8_lossy(&o.stdout).trim() == "0");
+    let setpriv = Command::new("setpriv")
+        .arg("--version")
+        .output()
+        .is_ok_and(|o| o.status.success());
+    // Root itself may be denied SCHED_FIFO in a container.
+    let fifo = Command::new("chrt")
+        .args(["-f", "1", "true"])
+        .output()
+        .is_ok_and(|o| o.status.success());
+    if !(root && setpriv && fifo) {
+        eprintln!(
+            "SKIPPED: needs root allowed SCHED_FIFO, and setpriv (util-linux) to run the twin as another user"
+        );
+        return;
+    }
+    let _cores = support::RealTime::share_the_cores();
+    let session = |caps: &[&str]| {
+        let o = Command::new("setpriv")
+            .args(["--reuid=nobody", "--regid=nogroup", "--clear-groups"])
+            .args(caps)
+            .args([
+                env!("CARGO_BIN_EXE_twin"),
+                "serve",
+                "--modbus",
+                "tcp://127.0.0.1:0",
+                "--no-record",
+                "--quiet",
+                "--duration",
+                "0.3",
+                "--status-every",
+                "0",
+                "--rt-priority",
+                "40",
+            ])
+            .current_dir("/")
+            .output()
+            .expect("setpriv runs");
+        assert!(o.status.success(), "{}", text(&o));
+        text(&o)
+    };
+    let granted = session(&["--inh-caps=+sys_nice", "--ambient-caps=+sys_nice"]);
+    assert!(priority_notices(&granted).is_empty(), "{granted}");
+    let refused = session(&["--inh-caps=-all", "--bounding-set=-all"]);
+    let said = priority_notices(&refused);
+    // The plant's thread and the links' are both refused: one warning.
+    assert_eq!(said.len(), 1, "{refused}");
+    for words in [
+        "delay ticks",
+        "CAP_SYS_NICE",
+        "rtprio limit to 40",
+        "LimitRTPRIO=",
+    ] {
+        assert!(said[0].contains(words), "{words}: {}", said[0]);
     }
 }
 

@@ -173,6 +173,13 @@ fn run(
                         }
                     }
                     let _ = writeln!(out, "twin serve: a class of {} modules", modules.len());
+                    // Said once for the class, not once per module.
+                    if modules
+                        .iter()
+                        .any(|(_, args, _)| args.rt_priority.is_none())
+                    {
+                        let _ = writeln!(out, "{}", super::without_priority());
+                    }
                     let _ = writeln!(out, "ready");
                     let _ = out.flush();
                     twin_realtime::notify::ready(&format!(

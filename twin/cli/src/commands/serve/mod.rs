@@ -142,8 +142,9 @@ pub struct ServeArgs {
     #[arg(long, hide = true, conflicts_with = "light_detector")]
     adaptive_light: bool,
     /// Run the plant thread under the real-time FIFO scheduler at this
-    /// priority, and the links' thread one below (1-99; needs root or
-    /// CAP_SYS_NICE), so a busy machine cannot delay ticks and replies.
+    /// priority, and the links' thread one below (1-99; needs root,
+    /// CAP_SYS_NICE or an rtprio limit), so a busy machine cannot delay
+    /// ticks and replies.
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u8).range(1..=99))]
     rt_priority: Option<u8>,
     /// Wait for serial paths that do not exist yet (a pty another program
@@ -449,6 +450,9 @@ fn serve_one(args: &ServeArgs, options: &ServeOptions) -> Result<()> {
             if let Some(line) = &panel_line {
                 let _ = writeln!(out, "{line}");
             }
+            if args.rt_priority.is_none() {
+                let _ = writeln!(out, "{}", without_priority());
+            }
             let _ = writeln!(out, "ready");
             let _ = out.flush();
             let served: Vec<String> = links
@@ -477,8 +481,9 @@ fn serve_one(args: &ServeArgs, options: &ServeOptions) -> Result<()> {
     );
     if l.p99_us > 250.0 {
         match args.rt_priority {
+            // How to grant it was said at the start.
             None => println!(
-                "  (ticks ran late: the machine was busy; --rt-priority 50 gives the plant thread a real-time priority)"
+                "  (ticks ran late: the machine was busy, and the plant thread ran at normal priority)"
             ),
             Some(_) => {
                 println!("  (ticks ran late even at real-time priority: the machine was busy)")
@@ -492,6 +497,15 @@ fn serve_one(args: &ServeArgs, options: &ServeOptions) -> Result<()> {
     }
     super::print_session_end(&outcome, earlier.as_ref());
     Ok(())
+}
+
+/// What `twin serve` says once when started without `--rt-priority`: the
+/// plant's 1 ms tick is what samples the encoders, so a late tick loses
+/// edges, not just time.
+pub(super) fn without_priority() -> String {
+    twin_realtime::clock::without_priority(
+        "ticks run late, so firmware and controllers can miss encoder edges, and replies come late",
+    )
 }
 
 /// What the EV controller's light detector can see, when an EV link is
