@@ -29,6 +29,7 @@ impl FirmwareBuilder for AvrBuilder {
             wiring,
             mcu,
             clock_hz,
+            boot_ms,
             ..
         } = spec
         else {
@@ -64,6 +65,7 @@ impl FirmwareBuilder for AvrBuilder {
             .map_or(Path::new(elf), |s| Path::new(&s.recorded_file));
         let mut node = AvrNode::start_as(board, wiring, params.sensing.clone(), shown)
             .with_context(|| format!("firmware node `{name}`, field `elf`"))?;
+        node.hold_in_boot(SimDuration::from_secs_f64(boot_ms / 1000.0));
         if let Some(debug) = crate::debug::for_node(name)? {
             if let Some(path) = &debug.vcd {
                 node.trace_vcd(path, &debug.pins()?)?;

@@ -216,6 +216,11 @@ pub struct AvrNode {
     elf_bytes: Vec<u8>,
     sha256: String,
     mcu: String,
+    /// When the sketch starts: the board is in reset and its bootloader
+    /// before, its core at cycle 0 and its UART deaf.
+    boot: SimTime,
+    /// Bytes the bus sent it before then, which it never heard.
+    pub bytes_before_boot: u64,
 }
 
 impl AvrNode {
@@ -300,6 +305,8 @@ impl AvrNode {
             sha256: crate::record::sha256_hex(&bytes),
             elf_bytes: Vec::new(),
             mcu: mcu.into(),
+            boot: SimTime::ZERO,
+            bytes_before_boot: 0,
         };
         node.core.watch(node.log.mask);
         // Inputs the plant holds steady from power-up: a healthy driver's
@@ -322,6 +329,23 @@ impl AvrNode {
         node.push_event(SimTime::ZERO, "state", detail);
         node.elf_bytes = bytes;
         Ok(node)
+    }
+
+    /// Holds the board in reset and its bootloader for `boot` from power-up
+    /// (a scenario's `boot_ms`): its core runs its first cycle then, and
+    /// bytes that reach its UART before are lost, as on a board whose
+    /// sketch has not started. Called before the node first runs.
+    pub fn hold_in_boot(&mut self, boot: SimDuration) {
+        debug_assert_eq!(self.core.cycle(), 0, "the board has started already");
+        self.boot = SimTime::ZERO + boot;
+        if boot > SimDuration::ZERO {
+            let detail = format!(
+                "in reset and its bootloader until {:.6} s (boot_ms): the sketch starts then, \
+                 and bytes before are not heard",
+                self.boot.as_secs_f64()
+            );
+            self.push_event(SimTime::ZERO, "state", detail);
+        }
     }
 
     /// Traces `pins` to a VCD file at `path`, from now on.
@@ -371,14 +395,18 @@ impl AvrNode {
         self.uart
     }
 
+    /// The core's cycle at `t`: 0 until the sketch starts at `boot`.
     fn to_cycle(&self, t: SimTime) -> u64 {
-        (u128::from(t.0) * u128::from(self.clock_hz) / u128::from(TICKS_PER_SECOND)) as u64
+        let since = t.saturating_since(self.boot);
+        (u128::from(since.0) * u128::from(self.clock_hz) / u128::from(TICKS_PER_SECOND)) as u64
     }
 
     fn to_time(&self, cycle: u64) -> SimTime {
-        SimTime(
-            (u128::from(cycle) * u128::from(TICKS_PER_SECOND) / u128::from(self.clock_hz)) as u64,
-        )
+        self.boot
+            + SimDuration(
+                (u128::from(cycle) * u128::from(TICKS_PER_SECOND) / u128::from(self.clock_hz))
+                    as u64,
+            )
     }
 
     fn push_event(&mut self, at: SimTime, kind: &'static str, detail: String) {
@@ -657,6 +685,11 @@ impl Node for AvrNode {
         if self.failure.is_some() {
             return;
         }
+        if now < self.boot {
+            // No sketch yet to enable the receiver: the bytes are lost.
+            self.bytes_before_boot += bytes.len() as u64;
+            return;
+        }
         let setting = UartSetting::read(&self.core, self.clock_hz);
         if setting != self.uart {
             self.uart = setting;
@@ -760,6 +793,13 @@ impl Firmware for AvrNode {
                 self.core.adc(channel, simavr_millivolts(mv));
             }
         }
+        if now < self.boot {
+            // Its pins float until the sketch sets them: the driver rests, as
+            // for a board that has stopped.
+            self.actuators = Actuators::from_pins(0x1F, 0x01, 0.0);
+            self.last_tick = now;
+            return self.actuators;
+        }
         self.actuators = self.read_outputs(now);
         self.last_tick = now;
         if now >= self.next_telemetry {
@@ -801,6 +841,14 @@ impl SimNode for AvrNode {
             "framing_errors_in": self.framing_errors_in,
             "framing_errors_out": self.framing_errors_out,
         }))
+        .map(|mut state| {
+            // Only for a board that boots, so earlier recordings read the same.
+            if self.boot > SimTime::ZERO {
+                state["boot_s"] = json!(self.boot.as_secs_f64());
+                state["bytes_before_boot"] = json!(self.bytes_before_boot);
+            }
+            state
+        })
     }
 
     fn failure(&self) -> Option<String> {

@@ -190,7 +190,7 @@ pub fn build_node(
             };
             let config = MasterConfig {
                 reply_timeout: reply_timeout_ms.map(ms),
-                start: SimDuration::from_secs_f64(*start_s),
+                start: SimDuration::from_secs_f64(start_s.unwrap_or_default()),
                 ..base
             };
             let node = FaultyNode::with_schedule(

@@ -283,9 +283,12 @@ pub enum NodeSpec {
         /// or `step-response` (its step-response program).
         #[serde(default)]
         program: MasterProgramSpec,
-        /// When the program starts (s): the Pi starts after the Nanos have booted.
-        #[serde(default)]
-        start_s: f64,
+        /// When the program starts (s): the Pi starts after the Nanos have
+        /// booted. Unset, it is [`Scenario::masters_start_s`]: the longest
+        /// `boot_ms` of the scenario's firmware nodes and [`SETUP_S`] (0
+        /// without any), filled in by [`Scenario::parse`].
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        start_s: Option<f64>,
     },
     /// The master of parallel modules: closes the speed loop on its own
     /// module's wheel and sends the resulting VEL to the slave modules.
@@ -328,6 +331,13 @@ pub enum NodeSpec {
         /// Its clock (Hz).
         #[serde(default = "default_clock_hz")]
         clock_hz: u32,
+        /// From power-up to the sketch's first instruction (ms): the reset
+        /// and the bootloader's wait, during which the core does not run and
+        /// its UART hears nothing. An Arduino Nano with optiboot takes
+        /// [`NANO_BOOT_MS`]. 0 (the default, so recordings made before it
+        /// replay the same): the sketch starts at once.
+        #[serde(default, skip_serializing_if = "is_zero")]
+        boot_ms: f64,
     },
     /// A slave module's controller on a PWM-capture link.
     PwmSlave {
@@ -348,6 +358,25 @@ fn default_update_ms() -> f64 {
 }
 fn default_pwm_timeout_ms() -> f64 {
     0.5
+}
+
+/// An Arduino Nano's start-up after a reset, ms: 65 ms of start-up delay
+/// its fuses set (low fuse 0xFF: a crystal, 16K cycles + 65 ms), then
+/// optiboot's 1 s watchdog (`watchdogConfig(WATCHDOG_1S)` in its `main`),
+/// which waits for a programmer and, hearing none, resets into the sketch.
+/// A Nano resets when the port to it is opened (DTR), as on the bench.
+pub const NANO_BOOT_MS: f64 = 1065.0;
+
+/// What a master waits beyond the boards' boot for their sketches to set
+/// themselves up (s). The sketch's start-up runs as cycles after its boot:
+/// the C runtime clearing RAM, the core's `init()`, then `setup()` up to
+/// `Serial.begin`, under a millisecond for the Nanos here, while a master
+/// sending at the boot's last instant loses its first bytes. 100 ms leaves
+/// room for a `setup()` that waits a little, as many do.
+pub const SETUP_S: f64 = 0.1;
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
 }
 
 fn default_mcu() -> String {
@@ -406,6 +435,36 @@ impl std::fmt::Display for UnansweredId {
 }
 
 impl Scenario {
+    /// The longest boot of the scenario's firmware nodes (s): when every
+    /// board runs its sketch.
+    pub fn boards_booted_s(&self) -> f64 {
+        self.nodes
+            .iter()
+            .filter_map(|n| match n {
+                NodeSpec::Firmware { boot_ms, .. } => Some(boot_ms / 1000.0),
+                _ => None,
+            })
+            .fold(0.0, f64::max)
+    }
+
+    /// When a master whose start is unset starts (s): once every board has
+    /// booted and set itself up, as on the bench, where the Raspberry Pi
+    /// boots long after the Nanos. 0 without boards that boot, so scenarios
+    /// without them run as they always did.
+    pub fn masters_start_s(&self) -> f64 {
+        let booted = self.boards_booted_s();
+        if booted > 0.0 { booted + SETUP_S } else { 0.0 }
+    }
+
+    fn start_masters_after_boot(&mut self) {
+        let start = self.masters_start_s();
+        for node in &mut self.nodes {
+            if let NodeSpec::ControllerNetworkMaster { start_s, .. } = node {
+                start_s.get_or_insert(start);
+            }
+        }
+    }
+
     /// Every id a master polls that no slave on its bus has. A bus with a
     /// compiled sketch is left out: the sketch's id is in its code.
     pub fn unanswered_ids(&self) -> Vec<UnansweredId> {
@@ -554,6 +613,8 @@ impl Scenario {
             };
             anyhow::anyhow!("{origin}{}: {message}", place(e.span))
         })?;
+        let mut scenario = scenario;
+        scenario.start_masters_after_boot();
         scenario.check_module_params(&root, text, origin)?;
         scenario.validate().map_err(|(field, msg)| {
             // A field of one node or bus is found after the line naming it.
@@ -1076,5 +1137,57 @@ mod tests {
         let e = Scenario::parse(&wrong, "w.toml").unwrap_err().to_string();
         assert!(e.contains("controller-network-master"), "{e}");
         assert!(!e.contains(LEGACY_MASTER_KIND), "{e}");
+    }
+
+    /// The embedded controller-network scenario with a firmware board of
+    /// `boot` (a line `boot_ms = …`, or none) beside its Rust nodes.
+    fn controller_network_with_a_board(boot: &str) -> String {
+        let (_, _, text) = EMBEDDED
+            .iter()
+            .find(|(name, _, _)| *name == "controller-network")
+            .expect("embedded");
+        format!(
+            "{text}\n[[node]]\nkind = \"firmware\"\nname = \"nano\"\nbus = \"serial\"\n\
+             module = \"bench\"\nelf = \"nano.elf\"\nwiring = \"motor-nano\"\n{boot}\n"
+        )
+    }
+
+    fn master_start(s: &Scenario) -> Option<f64> {
+        s.nodes.iter().find_map(|n| match n {
+            NodeSpec::ControllerNetworkMaster { start_s, .. } => Some(start_s.unwrap_or(f64::NAN)),
+            _ => None,
+        })
+    }
+
+    #[test]
+    fn a_master_starts_once_the_boards_have_booted_unless_told() {
+        // No board that boots: the master starts at 0 s, as it always did.
+        let plain = Scenario::load("controller-network").expect("embedded");
+        assert_eq!(master_start(&plain), Some(0.0));
+        let unbooted = controller_network_with_a_board("");
+        let s = Scenario::parse(&unbooted, "s.toml").expect("parses");
+        assert_eq!(s.boards_booted_s(), 0.0);
+        assert_eq!(master_start(&s), Some(0.0));
+        // A Nano's boot: the master waits for it and the sketch's setup().
+        let booted = controller_network_with_a_board(&format!("boot_ms = {NANO_BOOT_MS:.1}"));
+        let s = Scenario::parse(&booted, "s.toml").expect("parses");
+        assert_eq!(s.boards_booted_s(), 1.065);
+        assert_eq!(master_start(&s), Some(1.065 + SETUP_S));
+        // A start of its own wins.
+        let told = booted.replace(
+            "kind = \"controller-network-master\"",
+            "kind = \"controller-network-master\"\nstart_s = 0.25",
+        );
+        let s = Scenario::parse(&told, "s.toml").expect("parses");
+        assert_eq!(master_start(&s), Some(0.25));
+    }
+
+    #[test]
+    fn a_boot_out_of_range_names_its_line() {
+        let text = controller_network_with_a_board("boot_ms = -5.0");
+        let e = Scenario::parse(&text, "s.toml").unwrap_err().to_string();
+        let line = line_of(&text, "boot_ms");
+        assert!(e.starts_with(&format!("s.toml:{line}: `boot_ms`")), "{e}");
+        assert!(e.contains("node `nano`"), "{e}");
     }
 }

@@ -48,6 +48,8 @@ const DELAY_MS: Range = range(0.0, 60_000.0, true, "a minute at most");
 const GAIN: Range = range(-1e6, 1e6, true, "a PI gain");
 const RPM: Range = range(-100_000.0, 100_000.0, true, "far beyond any bench motor");
 const START_S: Range = range(0.0, MAX_DURATION_S, true, "within the run");
+// A board that takes longer to start is not booting: it is broken.
+const BOOT_MS: Range = range(0.0, 60_000.0, true, "at most a minute");
 const RETRIES: u32 = 100;
 
 impl Range {
@@ -170,7 +172,9 @@ fn node(n: &NodeSpec) -> Result<(), Fault> {
             if let Some(t) = reply_timeout_ms {
                 at("reply_timeout_ms", &PERIOD_MS, *t)?;
             }
-            at("start_s", &START_S, *start_s)?;
+            if let Some(t) = start_s {
+                at("start_s", &START_S, *t)?;
+            }
         }
         NodeSpec::ParallelMaster {
             update_period_ms,
@@ -202,7 +206,7 @@ fn node(n: &NodeSpec) -> Result<(), Fault> {
         }
         // The firmware's own file, map and clock are checked where it is
         // loaded, which names the file and the field.
-        NodeSpec::Firmware { .. } => {}
+        NodeSpec::Firmware { boot_ms, .. } => at("boot_ms", &BOOT_MS, *boot_ms)?,
     }
     Ok(())
 }

@@ -325,6 +325,8 @@ fn firmware_nodes(
             wiring: maps.remove(board).unwrap_or_else(|| shipped.into()),
             mcu: "atmega328p".into(),
             clock_hz: 16_000_000,
+            // The sketch starts with the session; its master, after `ready`.
+            boot_ms: 0.0,
         });
     }
     if let Some(board) = maps.keys().next() {
