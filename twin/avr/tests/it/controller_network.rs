@@ -15,7 +15,7 @@ use nodes::time::{SimDuration, SimTime};
 use plant::{Actuators, EvModule, PlantParams};
 use twin_avr::node::Board;
 use twin_avr::{AvrNode, Wiring};
-use twin_sim::scenario::{NodeSpec, Scenario};
+use twin_sim::scenario::Scenario;
 use twin_sim::virtual_run;
 
 fn crate_dir() -> PathBuf {
@@ -54,18 +54,11 @@ fn the_nano_sketches_run_the_bench_as_the_rust_motor_and_light_nodes_do() {
             &format!("{}/", build_dir().display()),
         );
     let mut sketches = Scenario::parse(&text, "controller-network-avr.toml").expect("parses");
-    sketches.duration_s = seconds;
+    // Its master starts once the Nanos have booted: both are compared the
+    // same time after their master's start.
+    sketches.duration_s = seconds + sketches.masters_start_s();
     let mut model = Scenario::load("controller-network").expect("controller-network");
     model.duration_s = seconds;
-    // The same master on both: it asks again after 300 ms without a reply.
-    for node in &mut model.nodes {
-        if let NodeSpec::ControllerNetworkMaster {
-            reply_timeout_ms, ..
-        } = node
-        {
-            *reply_timeout_ms = Some(300.0);
-        }
-    }
     let a = virtual_run::run(&sketches, &out("cn-avr.mcap"), |_| {}).expect("runs the sketches");
     let b = virtual_run::run(&model, &out("cn-rust.mcap"), |_| {}).expect("runs the Rust nodes");
     let (a_motor, a_sensor) = master_reads(&a);
@@ -99,9 +92,10 @@ fn the_nano_sketches_run_the_bench_as_the_rust_motor_and_light_nodes_do() {
         (a_sensor / b_sensor - 1.0).abs() < 0.03,
         "sensor {a_sensor} vs {b_sensor}"
     );
-    // Only the first request, sent while the Nanos boot, may go unanswered.
-    assert!(
-        a.events.get("timeout").copied().unwrap_or(0) <= 1,
+    // The Nanos booted before the master's first request: none unanswered.
+    assert_eq!(
+        a.events.get("timeout").copied().unwrap_or(0),
+        0,
         "{:?}",
         a.events
     );

@@ -44,12 +44,16 @@ fn firmware_cycles(o: &virtual_run::RunOutcome, node: &str) -> u64 {
 fn two_nanos_on_their_own_threads_record_what_one_thread_records() {
     use twin_avr::stepper::Mode;
     twin_avr::register();
-    let seconds = 1.5;
+    // The Nanos boot for 1.065 s and the master starts at 1.165 s: a
+    // second and a half of traffic after.
+    let seconds = 2.5;
     let scenario = shipped(
         "controller-network-avr.toml",
         &["motor-nano", "light-nano"],
         seconds,
     );
+    let booted = scenario.boards_booted_s();
+    assert!(booted > 0.0, "the Nanos boot");
     // Threaded twice, then the same split points on one thread, then no
     // core ever run ahead: a horizon that let the light Nano's core run past
     // a byte or a tick for it would make the last differ from the others.
@@ -66,10 +70,10 @@ fn two_nanos_on_their_own_threads_record_what_one_thread_records() {
         let outcome = virtual_run::run(&scenario, &path, |_| {}).expect("runs");
         runs.push(std::fs::read(&outcome.recording).expect("recording"));
         let _ = std::fs::remove_file(&outcome.recording);
-        // Every core ends at the run's end, not a horizon past it: 1.5 s
-        // at 16 MHz, to the cycle (the motor Nano's core stops on the
-        // instruction boundary at or after it).
-        let exact = (seconds * 16e6) as u64;
+        // Every core ends at the run's end, not a horizon past it: the
+        // time since its boot at 16 MHz, to the cycle (the motor Nano's
+        // core stops on the instruction boundary at or after it).
+        let exact = ((seconds - booted) * 16e6).round() as u64;
         for node in ["motor", "sensor"] {
             let cycles = firmware_cycles(&outcome, node);
             assert!(
