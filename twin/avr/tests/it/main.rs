@@ -8,6 +8,7 @@
     reason = "the tests drive real firmware, processes and sockets in real time"
 )]
 
+mod boot;
 mod calibrate;
 mod common;
 mod controller_network;

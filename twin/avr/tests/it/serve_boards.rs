@@ -3,7 +3,9 @@
 //! light-nano, both in one server) answering a master that behaves like
 //! that project's Raspberry Pi (write 8 bytes, wait 100 ms, read once) over
 //! a crossed pair of pseudo-terminals; a sketch that never answers marked
-//! dead while the other board (the twin's own motor node) goes on; the EV sketch over TCP answering
+//! dead while the other board (the twin's own motor node) goes on; the
+//! motor Nano's naive-receive test sketch answering a master started after
+//! `ready`; the EV sketch over TCP answering
 //! every request of a client that sends ten at once, in order.
 
 use crate::common;
@@ -23,7 +25,13 @@ fn sketches() -> PathBuf {
     common::make(
         "serve-boards",
         "",
-        &["motor-nano", "light-nano", "mute", "ev-controller"],
+        &[
+            "motor-nano",
+            "motor-nano-naive",
+            "light-nano",
+            "mute",
+            "ev-controller",
+        ],
     )
 }
 
@@ -236,6 +244,57 @@ fn the_nano_sketches_answer_a_controller_network_master_over_a_pty() {
     assert!(lights.iter().any(|&l| l > 0), "{lights:?}");
     assert!(!rest.contains("marked dead"), "{rest}");
     firmware_channels_hold_the_session(&dir.join("nanos.mcap"), log);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The naive receive routine (`Serial.readBytes` of eight bytes, no
+/// resynchronisation) answers a master that starts after `ready`, as the
+/// sketch's board has set itself up by then: every request answered
+/// whole, and the motor driven to the set point.
+#[test]
+fn the_naive_motor_sketch_answers_a_master_started_after_ready() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let fw = sketches();
+    let dir = scratch("naive");
+    let (mut vsp, mut serve, master_end) = serve_nanos(
+        &dir,
+        &[format!(
+            "motor={}",
+            fw.join("motor-nano-naive.elf").display()
+        )],
+        &dir.join("naive.mcap"),
+    );
+    let (out, head) = wait_ready(&mut serve);
+    assert!(
+        head.contains("motor-nano-naive.elf (wiring motor-nano)"),
+        "{head}"
+    );
+    let seen = controller_network_master(Path::new(&master_end), 12, 100);
+    let rest = stop(serve, out);
+    let _ = vsp.kill();
+    let _ = vsp.wait();
+    println!("{seen}\n{rest}");
+    let log = seen["log"].as_array().unwrap();
+    let problems: Vec<&Value> = log.iter().filter(|t| !t["problem"].is_null()).collect();
+    // As for our own sketches: only a reply a loaded machine made late.
+    assert!(
+        problems.iter().all(|t| late_symptom(t)) && problems.len() * 4 <= log.len(),
+        "{} of {} transactions failed: {problems:#?}",
+        problems.len(),
+        log.len()
+    );
+    let states = ints(&seen["states"]);
+    assert_eq!(
+        states.last(),
+        Some(&Some(0x01)),
+        "goes operational: {states:?}"
+    );
+    let rpms: Vec<i64> = ints(&seen["rpms"]).into_iter().flatten().collect();
+    assert!(
+        rpms.iter().any(|&r| r >= 3000),
+        "the motor turns once operational: {rpms:?}"
+    );
+    assert!(!rest.contains("marked dead"), "{rest}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 
