@@ -8,8 +8,10 @@ use nodes::proto::meb::{
     MebErrorCode, MebRepr, MebWords,
 };
 use nodes::time::SimTime;
+
+use crate::io::spec::{LinkAddr, LinkSpec};
 use std::io::{ErrorKind, Read, Write};
-use std::net::{SocketAddr, TcpStream, ToSocketAddrs};
+use std::net::{SocketAddr, TcpStream};
 use std::time::{Duration, Instant};
 
 /// Which way a frame went, for the monitor.
@@ -40,13 +42,21 @@ impl std::fmt::Debug for MebClient {
     }
 }
 
-/// `tcp://HOST:PORT` (or `HOST:PORT`) to a socket address.
+/// `tcp://HOST:PORT` (or `HOST:PORT`) to a socket address, read as every
+/// link of the twin is ([`LinkSpec`]), so a mistake gets the same words.
 pub fn parse_url(url: &str) -> Result<SocketAddr> {
-    let rest = url.strip_prefix("tcp://").unwrap_or(url);
-    rest.to_socket_addrs()
-        .with_context(|| format!("`{url}` is not tcp://HOST:PORT"))?
-        .next()
-        .ok_or_else(|| anyhow!("`{url}` names no address"))
+    // HOST:PORT alone is a TCP address; anything with a slash is read as
+    // written, so a misspelt `tcp:/…` gets the links' own suggestion.
+    let text = if url.contains('/') {
+        url.to_string()
+    } else {
+        format!("tcp://{url}")
+    };
+    let spec = LinkSpec::parse_without_options(&text, "a client's address takes no options")?;
+    match spec.addr {
+        LinkAddr::Tcp(addr) => Ok(addr),
+        LinkAddr::Serial(_) => bail!("`{url}` is not tcp://HOST:PORT"),
+    }
 }
 
 impl MebClient {

@@ -316,7 +316,9 @@ impl RtEngine {
     ) -> Option<Inbound> {
         let wake = self.clock.instant(deadline);
         let ahead = if spin { self.spin.0 } else { 0 };
-        let sleep_until = self.clock.instant(SimTime(deadline.0.saturating_sub(ahead)));
+        let sleep_until = self
+            .clock
+            .instant(SimTime(deadline.0.saturating_sub(ahead)));
         let now = Instant::now();
         if sleep_until > now {
             match inbound.recv_timeout(sleep_until - now) {

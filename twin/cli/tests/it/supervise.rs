@@ -464,6 +464,25 @@ fn client_reports_a_server_that_is_not_there_and_bad_arguments() {
     assert!(
         String::from_utf8_lossy(&missing.stderr).contains("cannot connect to tcp://127.0.0.1:1")
     );
+    // Addresses are read as every link is, with the links' own words.
+    for (url, says) in [
+        (
+            "tcp:/127.0.0.1:1",
+            "misspelt TCP address, not a serial device: write `tcp://127.0.0.1:1`",
+        ),
+        ("tcp://127.0.0.1:70000", "port `70000` is not 0-65535"),
+        ("127.0.0.1", "is not HOST:PORT (no port)"),
+        (
+            "tcp://127.0.0.1:1?baud=9600",
+            "option `baud` is not taken here",
+        ),
+        ("/dev/ttyUSB0", "`/dev/ttyUSB0` is not tcp://HOST:PORT"),
+    ] {
+        let o = client(&[url, "read", "EA", "0", "1"]);
+        assert_eq!(o.status.code(), Some(1), "{url}");
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(err.contains(says), "{url}: {err}");
+    }
     let (_serve, _supervise, addr) = supervisor_over_tcp(&[]);
     let url = format!("tcp://{addr}");
     let bad = client(&[&url, "read", "EA", "zz", "1"]);
