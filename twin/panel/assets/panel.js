@@ -629,8 +629,7 @@ async function start() {
   buildGauges();
   buildSwitches();
   try { info = await api("/api/info"); } catch (e) { say("cannot reach the twin: " + e.message, true); }
-  $("role").textContent = info.role === "supervise" || info.role === "client" ? info.role : "serve";
-  document.title = "EV lab twin — " + $("role").textContent;
+  // The title and heading (module and role) come with the page itself.
   // A card shows if one of its roles is this panel's (and it can change things).
   document.querySelectorAll(".control").forEach((e) => {
     const roles = ["serve", "supervise", "client"].filter((r) => e.classList.contains(r + "-only"));

@@ -51,6 +51,73 @@ pub struct AppState {
     pub layout: Option<Arc<crate::remote::layout::Layout>>,
     /// What the server allows a client.
     pub limits: crate::server::Limits,
+    /// The page as this panel serves it, and its cookie.
+    pub page: Arc<Page>,
+}
+
+/// What makes one panel's page its own: the module and role it names, and
+/// the cookie that keeps its token.
+#[derive(Debug)]
+pub struct Page {
+    /// `index.html` with the module and role in its title and heading.
+    pub html: String,
+    /// What a browser without the token is shown.
+    pub needs_token: String,
+    /// The cookie's name: one per panel port, because a browser keeps
+    /// cookies per host, not per port, so two students' panels on one
+    /// server (a class) would otherwise overwrite each other's token.
+    pub cookie: String,
+    pub module: Option<String>,
+}
+
+impl Page {
+    pub fn new(role: PanelRole, module: Option<&str>, port: u16) -> Self {
+        let role_text = role.described();
+        let (title, heading) = match module {
+            Some(m) => {
+                let m = escape(m);
+                (
+                    format!("{m} · {role_text} — EV lab twin"),
+                    format!("<span id=\"module\">{m}</span> <span id=\"role\">{role_text}</span>"),
+                )
+            }
+            None => (
+                format!("{role_text} — EV lab twin"),
+                format!("EV lab twin <span id=\"role\">{role_text}</span>"),
+            ),
+        };
+        let html = assets::INDEX_HTML
+            .replace(
+                "<title>EV lab twin — panel</title>",
+                &format!("<title>{title}</title>"),
+            )
+            .replace(
+                "<h1>EV lab twin <span id=\"role\">panel</span></h1>",
+                &format!("<h1>{heading}</h1>"),
+            );
+        let whose = module.map_or_else(
+            || "This panel".to_string(),
+            |m| format!("The panel of {}", escape(m)),
+        );
+        let needs_token = NEEDS_TOKEN_HTML
+            .replace("{title}", &title)
+            .replace("{whose}", &whose);
+        Page {
+            html,
+            needs_token,
+            cookie: format!("twin_panel_token_{port}"),
+            module: module.map(str::to_string),
+        }
+    }
+}
+
+/// Text for HTML: a module's name is letters, digits, `-` and `_`, but the
+/// page does not rely on it.
+pub(crate) fn escape(text: &str) -> String {
+    text.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+        .replace('"', "&quot;")
 }
 
 /// Serves until the session ends (the engine stops taking commands).
@@ -76,7 +143,7 @@ pub async fn serve(listener: std::net::TcpListener, state: AppState) {
 
 pub fn router(state: AppState) -> Router {
     Router::new()
-        .route("/", get(|| async { page(assets::INDEX_HTML, "text/html; charset=utf-8") }))
+        .route("/", get(|State(s): State<AppState>| async move { own_page(&s.page.html) }))
         .route("/panel.css", get(|| async { page(assets::PANEL_CSS, "text/css; charset=utf-8") }))
         .route("/panel.js", get(|| async { page(assets::PANEL_JS, "text/javascript; charset=utf-8") }))
         .route("/api/info", get(info))
@@ -111,13 +178,29 @@ fn page(body: &'static str, kind: &'static str) -> Response {
         .into_response()
 }
 
-fn error(status: u16, body: Value) -> Response {
+/// The page of this panel (its module and role in it).
+fn own_page(html: &str) -> Response {
+    (
+        [
+            (
+                header::CONTENT_TYPE,
+                HeaderValue::from_static("text/html; charset=utf-8"),
+            ),
+            (header::CACHE_CONTROL, HeaderValue::from_static("no-cache")),
+        ],
+        html.to_string(),
+    )
+        .into_response()
+}
+
+pub(crate) fn error(status: u16, body: Value) -> Response {
     let status = StatusCode::from_u16(status).unwrap_or(StatusCode::BAD_REQUEST);
     (status, axum::Json(body)).into_response()
 }
 
-/// The token a request carries: `?token=`, `Authorization: Bearer`, or the cookie.
-fn token_of(request: &Request) -> Option<String> {
+/// The token a request carries: `?token=`, `Authorization: Bearer`, or the
+/// cookie named `cookie` (the panel's own).
+pub(crate) fn token_of(request: &Request, cookie: &str) -> Option<String> {
     let from_query = request.uri().query().and_then(|q| {
         q.split('&')
             .find_map(|kv| kv.strip_prefix("token="))
@@ -134,25 +217,27 @@ fn token_of(request: &Request) -> Option<String> {
         .and_then(|v| v.to_str().ok())
         .and_then(|c| {
             c.split(';')
-                .find_map(|kv| kv.trim().strip_prefix("twin_panel_token="))
+                .find_map(|kv| kv.trim().strip_prefix(cookie)?.strip_prefix('='))
                 .map(str::to_string)
         });
     from_query.or(from_header).or(from_cookie)
 }
 
-/// Every request passes here: without the token, 401 and nothing changes;
-/// on a read-only panel, commands get 403.
-/// What a browser shows when the panel is opened without its token.
+/// What a browser shows when the panel is opened without its token
+/// (`{title}` and `{whose}` name the panel).
 const NEEDS_TOKEN_HTML: &str = "<!doctype html><html lang=\"en\"><head><meta charset=\"utf-8\">\
 <meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\
-<title>twin panel: token needed</title></head><body style=\"font-family:sans-serif;max-width:40em;margin:2em auto\">\
-<h1>This panel needs its token</h1>\
+<title>token needed: {title}</title></head><body style=\"font-family:sans-serif;max-width:40em;margin:2em auto\">\
+<h1>{whose} needs its token</h1>\
 <p>Open the address twin printed when it started: it ends in <code>/?token=…</code>. \
-The browser then keeps the token for this panel.</p>\
+The browser then keeps the token for this panel alone, so other panels of the \
+same server stay open beside it.</p>\
 <p>A program sends it as <code>Authorization: Bearer TOKEN</code>.</p></body></html>";
 
+/// Every request passes here: without the token, 401 and nothing changes;
+/// on a read-only panel, commands get 403.
 async fn guard(State(state): State<AppState>, request: Request, next: Next) -> Response {
-    let token = token_of(&request);
+    let token = token_of(&request, &state.page.cookie);
     let is_command = request.method() == axum::http::Method::POST;
     // A person opening the page in a browser gets a page, not JSON.
     let browser = !is_command
@@ -173,7 +258,8 @@ async fn guard(State(state): State<AppState>, request: Request, next: Next) -> R
             // the query keeps working through the cookie.
             if let (Some(t), true) = (token, state.access.token().is_some())
                 && let Ok(v) = HeaderValue::from_str(&format!(
-                    "twin_panel_token={t}; Path=/; HttpOnly; SameSite=Strict"
+                    "{}={t}; Path=/; HttpOnly; SameSite=Strict",
+                    state.page.cookie
                 ))
             {
                 response.headers_mut().insert(header::SET_COOKIE, v);
@@ -186,7 +272,7 @@ async fn guard(State(state): State<AppState>, request: Request, next: Next) -> R
                 header::CONTENT_TYPE,
                 HeaderValue::from_static("text/html; charset=utf-8"),
             )],
-            NEEDS_TOKEN_HTML,
+            state.page.needs_token.clone(),
         )
             .into_response(),
         Err(Refused::Token) => error(
@@ -203,6 +289,7 @@ async fn guard(State(state): State<AppState>, request: Request, next: Next) -> R
 async fn info(State(state): State<AppState>) -> Response {
     axum::Json(json!({
         "role": state.role,
+        "module": state.page.module,
         "read_only": state.access.read_only(),
         "rate_hz": state.rate_hz,
         "version": env!("CARGO_PKG_VERSION"),
@@ -385,6 +472,14 @@ async fn produce(state: AppState, engine: Arc<Mutex<Sender<Inbound>>>) {
     }
 }
 
+/// A module's feed with no page (`Panel::unserved`): the producer alone,
+/// until the session ends.
+pub async fn feed(state: AppState) {
+    if let Backend::Engine(engine) = state.backend.clone() {
+        produce(state, engine).await;
+    }
+}
+
 /// The client panel's producer: its connection's state instead of an engine's.
 async fn produce_remote(state: AppState, remote: Arc<Remote>) {
     let mut interval = tokio::time::interval(Duration::from_secs_f64(1.0 / state.rate_hz));
@@ -433,5 +528,63 @@ async fn read_snapshot(engine: &Mutex<Sender<Inbound>>) -> Result<Option<EngineS
         Ok(Ok(s)) => Ok(Some(s)),
         Ok(Err(_)) => Err(Gone),
         Err(_) => Ok(None),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn each_page_names_its_module_and_role() {
+        let p = Page::new(PanelRole::Supervise, Some("student07"), 8107);
+        assert!(
+            p.html
+                .contains("<title>student07 · supervisor (twin supervise) — EV lab twin</title>"),
+            "the title is replaced in index.html"
+        );
+        assert!(p.html.contains(
+            "<h1><span id=\"module\">student07</span> <span id=\"role\">supervisor (twin supervise)</span></h1>"
+        ));
+        assert!(
+            p.needs_token
+                .contains("The panel of student07 needs its token")
+        );
+        let alone = Page::new(PanelRole::Client, None, 8080);
+        assert!(
+            alone
+                .html
+                .contains("<title>client (twin panel) — EV lab twin</title>")
+        );
+        assert!(
+            alone
+                .html
+                .contains("<h1>EV lab twin <span id=\"role\">client (twin panel)</span></h1>")
+        );
+    }
+
+    #[test]
+    fn a_panel_reads_its_own_cookie_only() {
+        let p = Page::new(PanelRole::Serve, Some("student02"), 8102);
+        assert_eq!(p.cookie, "twin_panel_token_8102");
+        let request = |cookie: &str| {
+            Request::builder()
+                .uri("/api/state")
+                .header(header::COOKIE, cookie)
+                .body(axum::body::Body::empty())
+                .unwrap()
+        };
+        let both = request("twin_panel_token_8101=one; twin_panel_token_8102=two");
+        assert_eq!(token_of(&both, &p.cookie).as_deref(), Some("two"));
+        assert_eq!(
+            token_of(&both, "twin_panel_token_8101").as_deref(),
+            Some("one")
+        );
+        // A name that only starts like the panel's is another panel's.
+        let longer = request("twin_panel_token_81020=three");
+        assert_eq!(token_of(&longer, &p.cookie), None);
+        // The one name every panel shared before is no panel's now.
+        let shared = request("twin_panel_token=four");
+        assert_eq!(token_of(&shared, &p.cookie), None);
     }
 }

@@ -36,6 +36,7 @@
 
 pub mod access;
 pub mod assets;
+pub mod class_index;
 pub mod commands;
 pub mod http;
 pub mod hub;
@@ -53,6 +54,7 @@ use std::sync::Arc;
 use std::sync::mpsc::Sender;
 
 pub use access::{Access, AccessOptions};
+pub use class_index::{ClassIndex, ClassModule};
 pub use hub::Hub;
 pub use server::Limits;
 use twin_realtime::Inbound;
@@ -68,6 +70,18 @@ pub enum PanelRole {
     Supervise,
     /// `twin panel`: a remote MEB-TCP client; outputs set, inputs shown.
     Client,
+}
+
+impl PanelRole {
+    /// The part of the lab the page stands for, as its title and heading
+    /// say it: a teacher with several pages open tells them apart by it.
+    pub fn described(self) -> &'static str {
+        match self {
+            PanelRole::Serve => "module (twin serve)",
+            PanelRole::Supervise => "supervisor (twin supervise)",
+            PanelRole::Client => "client (twin panel)",
+        }
+    }
 }
 
 /// Everything the panel is told.
@@ -107,6 +121,8 @@ pub struct Panel {
     addr: SocketAddr,
     /// Where the MEB links place each signal (`--map`), for the labels.
     layout: Option<Arc<remote::layout::Layout>>,
+    /// The module the page names (a class file's `name`).
+    name: Option<String>,
     /// What the server allows a client (connections, timeouts, body).
     limits: Limits,
 }
@@ -128,8 +144,53 @@ impl Panel {
             listener: Arc::new(std::sync::Mutex::new(Some(listener))),
             addr,
             layout: None,
+            name: None,
             limits: Limits::from_env(),
         })
+    }
+
+    /// A feed with no page of its own: the state and frames of a class's
+    /// module that has no panel, for the class's index ([`ClassIndex`]).
+    pub fn unserved(role: PanelRole) -> Self {
+        Self {
+            hub: Arc::new(Hub::new(role)),
+            options: PanelOptions {
+                role,
+                addr: SocketAddr::from(([127, 0, 0, 1], 0)),
+                access: AccessOptions::default(),
+                rate_hz: 20.0,
+            },
+            access: Arc::new(Access::with(None, true)),
+            listener: Arc::new(std::sync::Mutex::new(None)),
+            addr: SocketAddr::from(([127, 0, 0, 1], 0)),
+            layout: None,
+            name: None,
+            limits: Limits::from_env(),
+        }
+    }
+
+    /// Names the module on the page (its title and heading): a class's
+    /// module, `student07`.
+    pub fn named(mut self, name: &str) -> Self {
+        self.name = Some(name.to_string());
+        self
+    }
+
+    /// Whether the panel serves a page (an [`unserved`](Panel::unserved) one
+    /// only feeds the class's index).
+    pub fn served(&self) -> bool {
+        self.addr.port() != 0
+    }
+
+    /// The module's token, if its panel needs one (the class's index links
+    /// to the panel with it).
+    pub fn token(&self) -> Option<&str> {
+        self.access.token()
+    }
+
+    /// The panel's role.
+    pub fn role(&self) -> PanelRole {
+        self.options.role
     }
 
     /// Labels each signal where `map` places it (`twin serve --map`).
@@ -193,8 +254,10 @@ impl Panel {
             .listener
             .lock()
             .map_err(|_| anyhow::anyhow!("panel listener poisoned"))?
-            .take()
-            .context("the panel was started twice")?;
+            .take();
+        if listener.is_none() && self.served() {
+            anyhow::bail!("the panel was started twice");
+        }
         let state = http::AppState {
             hub: self.hub.clone(),
             access: self.access.clone(),
@@ -204,6 +267,11 @@ impl Panel {
             written: Default::default(),
             layout: self.layout.clone(),
             limits: self.limits,
+            page: Arc::new(http::Page::new(
+                self.options.role,
+                self.name.as_deref(),
+                self.addr.port(),
+            )),
         };
         std::thread::Builder::new()
             .name("twin-panel".into())
@@ -221,7 +289,10 @@ impl Panel {
                         return;
                     }
                 };
-                runtime.block_on(http::serve(listener, state));
+                match listener {
+                    Some(listener) => runtime.block_on(http::serve(listener, state)),
+                    None => runtime.block_on(http::feed(state)),
+                }
             })
             .context("cannot start the panel's thread")?;
         Ok(())

@@ -27,6 +27,9 @@ struct LinkStats {
     last_t: Option<f64>,
     /// The end of the last frame received that passed its check.
     last_good_t: Option<f64>,
+    /// The end of the last frame received, good or not: on `twin serve`, a
+    /// client's last request (the class's index shows it).
+    last_in_t: Option<f64>,
     /// Errors per whole second of session time, the last few seconds only
     /// (a noisy line makes thousands: one entry per second, not per error).
     recent: VecDeque<(i64, u64)>,
@@ -149,6 +152,7 @@ impl Monitor {
                 s.frames_out += 1;
             } else {
                 s.frames_in += 1;
+                s.last_in_t = Some(f.end);
             }
             // Who a frame of unknown party is with: the one the twin last
             // addressed as a master, the one it last heard as a slave.
@@ -204,11 +208,13 @@ impl Monitor {
                             "errors_recent": s.errors_since(now - RECENT_S),
                             "last_frame_age_s": age(s.last_t),
                             "last_good_age_s": age(s.last_good_t),
+                            "last_in_age_s": age(s.last_in_t),
                         })
                     }
                     None => json!({
                         "clients": clients, "frames_in": 0, "frames_out": 0, "errors": 0,
                         "errors_recent": 0, "last_frame_age_s": null, "last_good_age_s": null,
+                        "last_in_age_s": null,
                     }),
                 };
                 (name, value)

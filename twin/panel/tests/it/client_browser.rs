@@ -58,7 +58,7 @@ fn the_client_panel_shows_the_slave_and_its_clicks_drive_the_module() {
                     .text()
                     .await
                     .unwrap(),
-                "client"
+                "client (twin panel)"
             );
             let start = Instant::now();
             loop {
