@@ -7,7 +7,9 @@
 //! command line replaces the file's (all its values, for a repeated one).
 //!
 //! `twin serve` also reads `[[module]]` tables: a class, one module per
-//! table, each with its `name` and its own options over the file's.
+//! table, each with its `name` and its own options over the file's; and an
+//! `[index]` table: the class's index page for its teacher (`web`,
+//! `web-token-file`), which belongs to the class, not to any module.
 
 use anyhow::{Result, anyhow, bail};
 use clap::parser::ValueSource;
@@ -34,6 +36,19 @@ pub struct ModuleTable {
     pub settings: Vec<Setting>,
 }
 
+/// The `[index]` table: where the class's index is served, and the file
+/// that keeps the teacher's token.
+#[derive(Debug, Clone, PartialEq)]
+pub struct IndexTable {
+    pub web: std::net::SocketAddr,
+    pub token_file: std::path::PathBuf,
+    pub line: usize,
+}
+
+/// Where the teacher's token is kept when `[index]` names no file: in the
+/// working folder, where a module's `NAME.token` is kept.
+pub const TEACHER_TOKEN: &str = "teacher.token";
+
 /// A configuration file, read and checked.
 #[derive(Debug, Clone)]
 pub struct ConfigFile {
@@ -41,6 +56,7 @@ pub struct ConfigFile {
     pub origin: String,
     pub settings: Vec<Setting>,
     pub modules: Vec<ModuleTable>,
+    pub index: Option<IndexTable>,
 }
 
 /// Options that stand for one choice: given on the command line, one of
@@ -81,6 +97,7 @@ impl ConfigFile {
             origin: origin.to_string(),
             settings: Vec::new(),
             modules: Vec::new(),
+            index: None,
         };
         for (key, value) in table.iter() {
             let line = line_col(text, key.span().start).0;
@@ -92,8 +109,20 @@ impl ConfigFile {
                 file.modules = read_modules(text, origin, command, value)?;
                 continue;
             }
+            if name == "index" && modules {
+                file.index = Some(read_index(text, origin, value)?);
+                continue;
+            }
             file.settings
                 .push(setting(origin, command, name, line, value)?);
+        }
+        if let Some(index) = &file.index
+            && file.modules.is_empty()
+        {
+            bail!(
+                "{origin}:{}: `index`: the index lists a class's modules; give each a [[module]] table",
+                index.line
+            );
         }
         let mut names = std::collections::BTreeMap::new();
         for m in &file.modules {
@@ -185,6 +214,49 @@ fn read_modules(
         });
     }
     Ok(modules)
+}
+
+/// The `[index]` table: `web = "ADDR"` and, if wanted, `web-token-file`.
+fn read_index(text: &str, origin: &str, value: &Spanned<DeValue<'_>>) -> Result<IndexTable> {
+    let line = line_col(text, value.span().start).0;
+    let DeValue::Table(entries) = value.get_ref() else {
+        bail!(
+            "{origin}:{line}: `index`: give the class's index as an [index] table (web, web-token-file)"
+        );
+    };
+    let mut web = None;
+    let mut token_file = None;
+    for (key, value) in entries.iter() {
+        let key_line = line_col(text, key.span().start).0;
+        let key = key.get_ref().as_ref();
+        let Some(text) = value.get_ref().as_str() else {
+            bail!(
+                "{origin}:{key_line}: `{key}` must be a string, got {}",
+                shown(value.get_ref())
+            );
+        };
+        match key {
+            "web" => {
+                web = Some(text.parse::<std::net::SocketAddr>().map_err(|_| {
+                    anyhow!(
+                        "{origin}:{key_line}: `web`: `{text}` is not an address and port (0.0.0.0:8100, 127.0.0.1:8100)"
+                    )
+                })?);
+            }
+            "web-token-file" => token_file = Some(std::path::PathBuf::from(text)),
+            other => bail!(
+                "{origin}:{key_line}: `index`: unknown key `{other}`; the index takes `web` and `web-token-file`"
+            ),
+        }
+    }
+    let Some(web) = web else {
+        bail!("{origin}:{line}: `index` needs `web`, the address its page is served on");
+    };
+    Ok(IndexTable {
+        web,
+        token_file: token_file.unwrap_or_else(|| TEACHER_TOKEN.into()),
+        line,
+    })
 }
 
 /// The option `key = value` as command-line words, checked by the option's

@@ -6,7 +6,7 @@ use clap::Args;
 use std::io::IsTerminal;
 use std::net::SocketAddr;
 use std::path::PathBuf;
-use twin_panel::{AccessOptions, Panel, PanelOptions, PanelRole, view::Tee};
+use twin_panel::{AccessOptions, Panel, PanelOptions, PanelRole, Running, view::Tee};
 use twin_realtime::session::SessionOptions;
 use twin_realtime::sink::ViewOpener;
 
@@ -70,17 +70,23 @@ impl WebArgs {
             },
             rate_hz: 20.0,
         })?;
-        let rerun = session.view.take();
-        let feeds = panel.clone();
-        session.view = Some(ViewOpener::new(move |modules| {
-            let view = feeds.view();
-            Some(match rerun.as_ref().and_then(|r| r.open(modules)) {
-                Some(rerun) => Box::new(Tee(rerun, view)),
-                None => view,
-            })
-        }));
+        feed(&panel, session);
         Ok(Some(panel))
     }
+}
+
+/// Makes the session feed `panel` its frames and events, beside a rerun
+/// view if it has one.
+pub fn feed(panel: &Panel, session: &mut SessionOptions) {
+    let rerun = session.view.take();
+    let feeds = panel.clone();
+    session.view = Some(ViewOpener::new(move |modules| {
+        let view = feeds.view();
+        Some(match rerun.as_ref().and_then(|r| r.open(modules)) {
+            Some(rerun) => Box::new(Tee(rerun, view)),
+            None => view,
+        })
+    }));
 }
 
 /// Where a panel's token is kept: `given` (--web-token-file), or, for a
@@ -98,13 +104,7 @@ pub fn token_file(addr: SocketAddr, given: Option<&PathBuf>, name: &str) -> Opti
 /// in the URL only on a terminal; otherwise the line says which file holds it.
 pub fn panel_line(panel: &Panel, token_file: Option<&std::path::Path>) -> String {
     let running = panel.running();
-    let url = match (running.url.split_once("?token="), token_file) {
-        (Some((bare, _)), Some(file)) if !std::io::stdout().is_terminal() => format!(
-            "{bare} (add ?token= and the token in {}; it is shown only on a terminal)",
-            file.display()
-        ),
-        _ => running.url.clone(),
-    };
+    let url = url_shown(&running, token_file);
     format!(
         "panel: {}{}",
         url,
@@ -114,4 +114,16 @@ pub fn panel_line(panel: &Panel, token_file: Option<&std::path::Path>) -> String
             ""
         }
     )
+}
+
+/// The URL to open as printed: with its token only on a terminal, and
+/// otherwise with the file that holds the token.
+pub fn url_shown(running: &Running, token_file: Option<&std::path::Path>) -> String {
+    match (running.url.split_once("?token="), token_file) {
+        (Some((bare, _)), Some(file)) if !std::io::stdout().is_terminal() => format!(
+            "{bare} (add ?token= and the token in {}; it is shown only on a terminal)",
+            file.display()
+        ),
+        _ => running.url.clone(),
+    }
 }

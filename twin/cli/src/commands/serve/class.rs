@@ -4,7 +4,9 @@
 //! by side in one process. Each module is the session `twin serve` would
 //! run for it alone, on threads of its own; the process prints every
 //! module's links, then `ready` once all are open, and stops them all on
-//! SIGTERM, each finishing its recording.
+//! SIGTERM, each finishing its recording. An `[index]` table serves the
+//! class's index, the teacher's page of every module, behind a token of its
+//! own.
 
 use anyhow::{Result, anyhow, bail};
 use clap::{ArgMatches, Command};
@@ -63,6 +65,20 @@ pub fn execute(
         links.map_err(|e| anyhow!("{}:{}: module {}: {e:#}", file.origin, m.line, m.name))?;
         modules.push((m.name.clone(), args, options));
     }
+    if let Some(index) = &file.index {
+        // The teacher's token must not be a student's: a file shared with a
+        // module would open the index to that student.
+        for (name, args, _) in &modules {
+            if args.web.token_file(name).as_deref() == Some(index.token_file.as_path()) {
+                bail!(
+                    "{}:{}: `index`: its token file {} is also module {name}'s; give the index a `web-token-file` of its own",
+                    file.origin,
+                    index.line,
+                    index.token_file.display()
+                );
+            }
+        }
+    }
     if check {
         println!("{}: a class of {} modules", file.origin, modules.len());
         for (name, args, options) in &modules {
@@ -71,6 +87,13 @@ pub fn execute(
                 "  {name}: {}{}",
                 super::described(options),
                 panel.map(|p| format!("; {p}")).unwrap_or_default()
+            );
+        }
+        if let Some(index) = &file.index {
+            println!(
+                "  index: the class's page on {} (the teacher's token in {})",
+                index.web,
+                index.token_file.display()
             );
         }
         return Ok(());
@@ -99,18 +122,57 @@ pub fn execute(
     // table), bound only once the whole class has been checked.
     let mut panels = Vec::with_capacity(modules.len());
     for (name, args, options) in &mut modules {
-        panels.push(
-            args.web
-                .bind(twin_panel::PanelRole::Serve, &mut options.session, name)
-                .map_err(|e| anyhow!("module {name}: {e:#}"))?,
-        );
+        let panel = args
+            .web
+            .bind(twin_panel::PanelRole::Serve, &mut options.session, name)
+            .map_err(|e| anyhow!("module {name}: {e:#}"))?
+            .map(|p| p.named(name));
+        let panel = match (panel, &options.meb_map) {
+            (Some(p), Some(map)) => Some(p.with_map(map)),
+            (panel, _) => panel,
+        };
+        // A module without a panel still feeds the index what it shows.
+        let panel = match (panel, &file.index) {
+            (None, Some(_)) => {
+                let feed = twin_panel::Panel::unserved(twin_panel::PanelRole::Serve).named(name);
+                super::super::web_args::feed(&feed, &mut options.session);
+                Some(feed)
+            }
+            (panel, _) => panel,
+        };
+        panels.push(panel);
     }
-    run(&modules, &panels)
+    let index = match &file.index {
+        Some(index) => {
+            let bound = twin_panel::ClassIndex::bind(index.web, &index.token_file)?;
+            let running = bound.running();
+            bound.start(
+                modules
+                    .iter()
+                    .zip(&panels)
+                    .filter_map(|((name, _, options), panel)| {
+                        Some(twin_panel::ClassModule {
+                            name: name.clone(),
+                            panel: panel.clone()?,
+                            record: options.session.record.clone(),
+                        })
+                    })
+                    .collect(),
+            )?;
+            Some(super::super::web_args::url_shown(
+                &running,
+                Some(&index.token_file),
+            ))
+        }
+        None => None,
+    };
+    run(&modules, &panels, index.as_deref())
 }
 
 fn run(
     modules: &[(String, ServeArgs, ServeOptions)],
     panels: &[Option<twin_panel::Panel>],
+    index: Option<&str>,
 ) -> Result<()> {
     let (tx, rx) = channel::<Report>();
     let mut stoppers: Vec<Option<Sender<Inbound>>> = vec![None; modules.len()];
@@ -166,11 +228,14 @@ fn run(
                             let _ =
                                 writeln!(out, "  {} {} {} {name}", l.protocol, l.address, l.ids);
                         }
-                        if let Some(panel) = &panels[n] {
+                        if let Some(panel) = panels[n].as_ref().filter(|p| p.served()) {
                             let file = args.web.token_file(name);
                             let line = super::super::web_args::panel_line(panel, file.as_deref());
                             let _ = writeln!(out, "  {line} {name}");
                         }
+                    }
+                    if let Some(url) = index {
+                        let _ = writeln!(out, "  index: {url} class");
                     }
                     let _ = writeln!(out, "twin serve: a class of {} modules", modules.len());
                     // Said once for the class, not once per module.
