@@ -645,3 +645,186 @@ fn the_client_panel_says_what_is_wrong_with_its_address() {
         assert!(!err.contains("panicked") && !err.contains("Os {"), "{err}");
     }
 }
+
+/// One MEB request to slave 01 over TCP at `addr`, and its reply line.
+fn meb_request(addr: &str) -> String {
+    use std::io::{BufRead, Write};
+    let mut s = std::net::TcpStream::connect(addr).expect("the module's MEB link answers");
+    s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    let body = "@01EA0001";
+    let fcs = body.bytes().fold(0u8, |x, b| x ^ b);
+    s.write_all(format!("{body}{fcs:02X}*\n").as_bytes())
+        .unwrap();
+    let mut line = String::new();
+    let _ = std::io::BufReader::new(&s).read_line(&mut line);
+    line
+}
+
+#[test]
+fn the_class_index_lists_every_module_for_the_teacher_alone() {
+    let dir = support::folder("panel", "class-index");
+    let token_file = |name: &str| dir.join(format!("{name}.token"));
+    let mut config = format!(
+        "quiet = true\nstatus-every = 0\nrecord-dir = \"{}\"\n\n[index]\nweb = \"127.0.0.1:0\"\nweb-token-file = \"{}\"\n",
+        dir.display(),
+        token_file("teacher").display()
+    );
+    for name in ["student01", "student02"] {
+        config.push_str(&format!(
+            "\n[[module]]\nname = \"{name}\"\nmeb = [\"tcp://127.0.0.1:0\"]\nweb = \"127.0.0.1:0\"\nweb-token-file = \"{}\"\n",
+            token_file(name).display()
+        ));
+    }
+    let path = dir.join("class.toml");
+    std::fs::write(&path, &config).unwrap();
+    let checked = support::twin(&["serve", "--config", path.to_str().unwrap(), "--check"]);
+    let said = support::text(&checked);
+    assert!(checked.status.success(), "{said}");
+    assert!(
+        said.contains(&format!(
+            "\n  index: the class's page on 127.0.0.1:0 (the teacher's token in {})",
+            token_file("teacher").display()
+        )),
+        "--check names the index and its token file: {said}"
+    );
+    // A teacher's token file shared with a module is refused.
+    let shared = dir.join("shared.toml");
+    std::fs::write(
+        &shared,
+        config.replace(
+            &token_file("teacher").display().to_string(),
+            &token_file("student02").display().to_string(),
+        ),
+    )
+    .unwrap();
+    let refused = support::twin(&["serve", "--config", shared.to_str().unwrap(), "--check"]);
+    assert_eq!(
+        refused.status.code(),
+        Some(1),
+        "{}",
+        support::text(&refused)
+    );
+    assert!(
+        support::text(&refused).contains("is also module student02's"),
+        "{}",
+        support::text(&refused)
+    );
+
+    let server = Proc::start(&["serve", "--config", path.to_str().unwrap()]);
+    let printed = server.output();
+    let teacher = std::fs::read_to_string(token_file("teacher"))
+        .expect("the teacher's token is written to its file")
+        .trim()
+        .to_string();
+    let students: Vec<String> = ["student01", "student02"]
+        .iter()
+        .map(|n| {
+            std::fs::read_to_string(token_file(n))
+                .unwrap()
+                .trim()
+                .to_string()
+        })
+        .collect();
+    assert!(
+        !printed.contains(&teacher),
+        "the teacher's token printed to a pipe: {printed}"
+    );
+    // `  index: URL (…) class`, among the panels' lines, before `ready`.
+    let index = server
+        .links()
+        .into_iter()
+        .find(|l| l.first().map(String::as_str) == Some("index:"))
+        .unwrap_or_else(|| panic!("no index line with the panels: {printed}"));
+    assert_eq!(index.last().map(String::as_str), Some("class"), "{printed}");
+    assert!(
+        printed.contains(&format!("the token in {}", token_file("teacher").display())),
+        "the index line says where the teacher's token is: {printed}"
+    );
+    let (host, _) = parts(&index[1]);
+    // Refused without a token, and with a student's.
+    let (status, _) = http(&host, "GET", "/api/class", None, "");
+    assert_eq!(status, 401);
+    for t in &students {
+        let (status, body) = http(&host, "GET", "/api/class", Some(t), "");
+        assert_eq!(status, 401, "a student's token opens the index: {body}");
+        let (status, _) = http(&host, "GET", "/", Some(t), "");
+        assert_eq!(status, 401);
+    }
+    // A request to student01's link shows as its last request; student02
+    // has had none.
+    let meb1 = server
+        .links()
+        .into_iter()
+        .find(|l| {
+            l.first().map(String::as_str) == Some("meb")
+                && l.last().map(String::as_str) == Some("student01")
+        })
+        .map(|l| l[1].trim_start_matches("tcp://").to_string())
+        .unwrap_or_else(|| panic!("no link line for student01: {printed}"));
+    let reply = meb_request(&meb1);
+    assert!(reply.starts_with("@01EA00"), "{reply:?}");
+    let start = Instant::now();
+    let class = loop {
+        let (status, body) = http(&host, "GET", "/api/class", Some(&teacher), "");
+        assert_eq!(status, 200, "{body}");
+        let class: serde_json::Value = serde_json::from_str(&body).unwrap();
+        if class["modules"][0]["last_request_age_s"].is_number() {
+            break class;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(15),
+            "student01's request never shown: {class}"
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    let modules = class["modules"].as_array().unwrap();
+    let names: Vec<&str> = modules.iter().filter_map(|m| m["name"].as_str()).collect();
+    assert_eq!(names, ["student01", "student02"], "{class}");
+    assert!(modules[1]["last_request_age_s"].is_null(), "{class}");
+    for (m, token) in modules.iter().zip(&students) {
+        let name = m["name"].as_str().unwrap();
+        assert_eq!(m["errors"], 0, "{class}");
+        let recording = m["recording"].as_str().unwrap_or_default();
+        assert!(
+            recording.starts_with(&dir.join(name).join("serve-").display().to_string())
+                && recording.ends_with(".mcap"),
+            "{name} records in its folder: {class}"
+        );
+        // The link opens the module's panel, with its token, and the page
+        // names the module and its role.
+        let link = m["panel"].as_str().unwrap_or_default();
+        let (panel_host, shown) = parts(link);
+        assert_eq!(shown.as_deref(), Some(token.as_str()), "{link}");
+        let (status, page) = http(&panel_host, "GET", "/", shown.as_deref(), "");
+        assert_eq!(status, 200, "{name}'s link: {page}");
+        assert!(
+            page.contains(&format!(
+                "<title>{name} · module (twin serve) — EV lab twin</title>"
+            )),
+            "{name}'s page is titled with its name and role: {page}"
+        );
+        assert!(
+            page.contains(&format!("<span id=\"module\">{name}</span>")),
+            "{page}"
+        );
+        let (_, info) = http(&panel_host, "GET", "/api/info", shown.as_deref(), "");
+        assert!(info.contains(&format!("\"module\":\"{name}\"")), "{info}");
+    }
+    // The page, as the teacher's browser gets it: a row per module, each
+    // with the link to its panel.
+    let (status, page) = http(&host, "GET", "/", Some(&teacher), "");
+    assert_eq!(status, 200, "{page}");
+    for m in modules {
+        let name = m["name"].as_str().unwrap();
+        assert!(
+            page.contains(&format!("<tr id=\"module-{name}\">")),
+            "{page}"
+        );
+        assert!(
+            page.contains(&format!("href=\"{}\"", m["panel"].as_str().unwrap())),
+            "{page}"
+        );
+    }
+    server.terminate();
+    let _ = std::fs::remove_dir_all(&dir);
+}

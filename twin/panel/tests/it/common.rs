@@ -21,6 +21,8 @@ pub struct Session {
     /// `tcp://127.0.0.1:PORT` of the MEB link.
     pub meb: String,
     pub panel: Running,
+    /// The panel itself (a class's index reads its feed).
+    pub feed: Panel,
     thread: Option<JoinHandle<()>>,
 }
 
@@ -68,6 +70,19 @@ pub fn serve_with(
     seconds: f64,
     light_adaptive: bool,
 ) -> Session {
+    serve_module(link, web, access, seconds, light_adaptive, None)
+}
+
+/// `twin serve --meb LINK --web WEB` as a class's module `name` runs it
+/// (its panel names it), or as a session of its own (`None`).
+pub fn serve_module(
+    link: &str,
+    web: &str,
+    access: AccessOptions,
+    seconds: f64,
+    light_adaptive: bool,
+    name: Option<&str>,
+) -> Session {
     let panel = Panel::bind(PanelOptions {
         role: PanelRole::Serve,
         addr: web.parse().unwrap(),
@@ -75,8 +90,13 @@ pub fn serve_with(
         rate_hz: 20.0,
     })
     .expect("the panel binds");
+    let panel = match name {
+        Some(name) => panel.named(name),
+        None => panel,
+    };
     let running = panel.running();
     let feeds = panel.clone();
+    let feed = panel.clone();
     let options = ServeOptions {
         session: session_options(Some(ViewOpener::new(move |_| Some(feeds.view()))), seconds),
         links: vec![(ServeProtocol::Meb, link.into())],
@@ -124,6 +144,7 @@ pub fn serve_with(
         engine,
         meb,
         panel: running,
+        feed,
         thread: Some(thread),
     };
     wait_for(Duration::from_secs(10), "the panel's first update", || {
@@ -340,6 +361,7 @@ pub fn supervise(bus: &str, web: &str, seconds: f64) -> Session {
     .expect("the panel binds");
     let running = panel.running();
     let feeds = panel.clone();
+    let feed = panel.clone();
     let options = SuperviseOptions {
         session: session_options(Some(ViewOpener::new(move |_| Some(feeds.view()))), seconds),
         bus: bus.into(),
@@ -382,6 +404,7 @@ pub fn supervise(bus: &str, web: &str, seconds: f64) -> Session {
         engine,
         meb: bus.into(),
         panel: running,
+        feed,
         thread: Some(thread),
     };
     wait_for(

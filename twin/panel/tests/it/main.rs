@@ -10,6 +10,7 @@
 
 mod api;
 mod browser;
+mod class_browser;
 mod client_browser;
 mod client_truth;
 mod common;
