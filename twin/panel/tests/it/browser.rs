@@ -57,7 +57,7 @@ async fn eventually(
 
 /// Where screenshots go: `docs/` when TWIN_PANEL_SCREENSHOTS is set (to
 /// refresh the manual's), else the temporary folder.
-fn screenshot_path(name: &str) -> std::path::PathBuf {
+pub(crate) fn screenshot_path(name: &str) -> std::path::PathBuf {
     match std::env::var_os("TWIN_PANEL_SCREENSHOTS") {
         Some(_) => std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
             .join("../../docs")

@@ -6,11 +6,14 @@
 //! for every panel, logging in to the second module's panel replaced the
 //! first's token and its bookmark (the URL without `?token=`) got 401.
 
+use crate::browser::screenshot_path;
 use crate::common::{self, ClientAddr, chromedriver, http, serve_module};
 use crate::page::{js, open, text, until};
 use fantoccini::Client;
+use nodes::proto::meb::MebCmd;
 use std::time::Duration;
 use twin_panel::{AccessOptions, ClassIndex, ClassModule};
+use twin_realtime::client::MebClient;
 
 /// The panel's address without its token: a student's bookmark.
 fn bare(url: &str) -> String {
@@ -131,8 +134,27 @@ fn two_students_panels_stay_open_side_by_side_and_the_teachers_index_links_both(
                 .unwrap();
             let refused = text(&c, "h1").await;
             assert!(refused.contains("teacher's token"), "{refused}");
+            // A request on student01's link: the index says how long ago.
+            let mut meb =
+                MebClient::connect(&one.meb, Duration::from_secs(2)).expect("MEB connects");
+            meb.read(1, MebCmd::EA, 0, 6).expect("EA reads");
             // With it: both modules, each with a link that opens its panel.
             c.goto(&index_url).await.unwrap();
+            until(
+                "student01's last request on the index",
+                Duration::from_secs(15),
+                async || {
+                    let last = text(&c, "#module-student01 .last").await;
+                    let none = text(&c, "#module-student02 .last").await;
+                    (
+                        last.ends_with(" ago") && none == "none yet",
+                        format!("`{last}`, `{none}`"),
+                    )
+                },
+            )
+            .await;
+            let png = c.screenshot().await.unwrap();
+            std::fs::write(screenshot_path("class-index-laptop.png"), png).unwrap();
             let rows = js(
                 &c,
                 "[...document.querySelectorAll('#modules tbody tr')].map(r => r.id)",
