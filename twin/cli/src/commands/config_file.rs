@@ -109,7 +109,12 @@ impl ConfigFile {
                 file.modules = read_modules(text, origin, command, value)?;
                 continue;
             }
-            if name == "index" && modules {
+            if name == "index" {
+                if !modules {
+                    bail!(
+                        "{origin}:{line}: `index`: only `twin serve` serves a class and its index"
+                    );
+                }
                 file.index = Some(read_index(text, origin, value)?);
                 continue;
             }
@@ -461,6 +466,42 @@ impl ConfigFile {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn serve(text: &str) -> Result<ConfigFile> {
+        let command = super::super::service::command_of::<super::super::serve::ServeArgs>("serve");
+        ConfigFile::parse(text, "class.toml", &command, true)
+    }
+
+    #[test]
+    fn the_index_table_belongs_to_a_class() {
+        let module = "\n[[module]]\nname = \"student01\"\nmeb = [\"tcp://0.0.0.0:5701\"]\n";
+        let file = serve(&format!("[index]\nweb = \"0.0.0.0:8100\"\n{module}")).unwrap();
+        let index = file.index.unwrap();
+        assert_eq!(index.web, "0.0.0.0:8100".parse().unwrap());
+        assert_eq!(index.token_file, std::path::PathBuf::from(TEACHER_TOKEN));
+        assert!(file.settings.is_empty(), "the index is no module's option");
+        for (text, said) in [
+            (
+                "[index]\nweb = \"0.0.0.0:8100\"\n",
+                "give each a [[module]] table",
+            ),
+            (
+                &format!("[index]\nweb-token-file = \"t\"\n{module}"),
+                "needs `web`",
+            ),
+            (
+                &format!("[index]\nweb = \"8100\"\n{module}"),
+                "not an address and port",
+            ),
+            (
+                &format!("[index]\nweb = \"0.0.0.0:8100\"\nallow = \"x\"\n{module}"),
+                "unknown key `allow`",
+            ),
+        ] {
+            let err = format!("{:#}", serve(text).unwrap_err());
+            assert!(err.contains(said), "{text}: {err}");
+        }
+    }
 
     #[test]
     fn misspelt_options_are_matched_to_the_closest() {
