@@ -266,4 +266,41 @@ fn a_browser_without_the_token_gets_a_page_in_words() {
         body.starts_with("{\"error\""),
         "a program gets JSON: {body}"
     );
+    // The token from the URL is kept in the panel's own cookie, named after
+    // its port, and a reload without the query is let in by that cookie only.
+    let raw = |request: String| {
+        let mut stream =
+            std::net::TcpStream::connect(session.panel.addr_for_clients()).expect("connects");
+        stream
+            .set_read_timeout(Some(Duration::from_secs(5)))
+            .unwrap();
+        stream.write_all(request.as_bytes()).unwrap();
+        let mut response = String::new();
+        let _ = std::io::Read::read_to_string(&mut stream, &mut response);
+        response
+    };
+    let token = common::token_of(&session.panel).unwrap();
+    let cookie = format!(
+        "twin_panel_token_{}",
+        session.panel.addr_for_clients().port()
+    );
+    let first = raw(format!(
+        "GET /api/info?token={token} HTTP/1.1\r\nHost: panel\r\nConnection: close\r\n\r\n"
+    ));
+    assert!(first.starts_with("HTTP/1.1 200"), "{first}");
+    assert!(
+        first
+            .to_ascii_lowercase()
+            .contains(&format!("set-cookie: {cookie}={token}; path=/; httponly")),
+        "{first}"
+    );
+    for (name, status) in [(cookie.as_str(), "200"), ("twin_panel_token", "401")] {
+        let again = raw(format!(
+            "GET /api/info HTTP/1.1\r\nHost: panel\r\nCookie: {name}={token}\r\nConnection: close\r\n\r\n"
+        ));
+        assert!(
+            again.starts_with(&format!("HTTP/1.1 {status}")),
+            "cookie {name}: {again}"
+        );
+    }
 }
