@@ -31,6 +31,11 @@ use twin_sim::observe::{LazyChannel, McapObserver, SimRecorder};
 /// How often the sink drains its queue (console lines and recording may lag
 /// by this much; the engine never waits for them).
 const DRAIN_EVERY: Duration = Duration::from_millis(2);
+/// The longest a sink that keeps finding its queue empty waits between
+/// looks: an idle module's sink then wakes a few times per batch of plant
+/// ticks instead of 500 times a second, and the first message after a quiet
+/// spell waits at most this long.
+const DRAIN_IDLE: Duration = Duration::from_millis(16);
 
 /// What the engine hands the sink.
 #[derive(Debug)]
@@ -507,15 +512,20 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
     let mut failed: Option<anyhow::Error> = None;
     let mut finish = None;
     let mut view = config.view.take();
+    let mut drain_every = DRAIN_EVERY;
     loop {
         // Polled on a short timer rather than parked in `recv`: a parked
         // receiver costs the engine thread a futex wake-up, and the cores a
         // context switch, for every frame it sends here (serve-bench: the
         // median Modbus TCP reply latency went from about 45 to 25 µs).
         let message = match rx.try_recv() {
-            Ok(message) => message,
+            Ok(message) => {
+                drain_every = DRAIN_EVERY;
+                message
+            }
             Err(TryRecvError::Empty) => {
-                std::thread::sleep(DRAIN_EVERY);
+                std::thread::sleep(drain_every);
+                drain_every = (drain_every * 2).min(DRAIN_IDLE);
                 continue;
             }
             Err(TryRecvError::Disconnected) => break,
