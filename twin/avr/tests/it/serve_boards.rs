@@ -325,21 +325,34 @@ fn firmware_channels_hold_the_session(recording: &Path, log: &[Value]) {
         assert!(last.is_none_or(|l| cycles > l), "{cycles} after {last:?}");
         last = Some(cycles);
     }
-    // Timer1 toggles D9 every 1600 cycles, 100 steps a period: 10 ms, at
-    // the duty the PI loop sets, never fully on or off.
+    // Timer1 steps the software PWM every 1600 cycles, 100 steps a period:
+    // 10 ms, at the duty the PI loop sets, never fully on or off. A duty
+    // raised while the step counter lies between the old and the new duty
+    // switches D9 on a second time in that period, as on the real board:
+    // that sample's rises are a whole number of 100 µs steps apart, fewer
+    // than 100. Most samples see the plain 10 ms period.
     let d9: Vec<&Value> = io
         .iter()
         .filter_map(|(_, s)| s["pins"].as_array()?.iter().find(|p| p["pin"] == "D9"))
         .filter(|p| p["edges"].as_u64().unwrap_or(0) >= 2)
         .collect();
     assert!(d9.len() > 50, "D9 switching in {} samples", d9.len());
+    let mut plain = 0;
     for p in &d9 {
         assert_eq!(p["signal"], "vel", "{p}");
         let duty = p["duty"].as_f64().unwrap();
         assert!(duty > 0.0 && duty < 1.0, "{p}");
         let period = p["period_us"].as_f64().unwrap();
-        assert!(period == 0.0 || (period - 10_000.0).abs() < 100.0, "{p}");
+        assert!(period <= 10_100.0, "{p}");
+        if period == 0.0 || (period - 10_000.0).abs() < 100.0 {
+            plain += 1;
+        }
     }
+    assert!(
+        plain * 10 >= d9.len() * 9,
+        "{plain} of {} samples at 10 ms",
+        d9.len()
+    );
     // The light Nano's A0: the photoresistor's divider, as the 10-bit
     // converter reads it at AVcc = 5 V.
     assert!(light_adc.len() > 100, "{}", light_adc.len());
