@@ -1,16 +1,33 @@
 //! The wall clock as nodes see it: a monotonic [`Instant`] origin mapped onto
 //! [`SimTime`], so the same node code runs on the virtual and the real clock.
+//!
+//! The clock can slip: when the machine stops the twin for longer than the
+//! engine catches up (a stopped process, a busy machine), the session's time
+//! is held back by what could not be caught up, so every tick still runs in
+//! order and no node sees a jump in its inputs. Every copy of the clock (the
+//! carriers', the panel's) sees the slip at once.
 
 use nodes::time::{SimDuration, SimTime, TICKS_PER_SECOND};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
+
+/// How far behind the wall the engine catches up, tick by tick, in a
+/// burst; time lost beyond it slips the clock. A burst of 50 ms is 50 plant
+/// ticks and, for a sketch, 800 000 AVR cycles: a few tens of milliseconds
+/// of work at most.
+pub(crate) const CATCH_UP: SimDuration = SimDuration::from_millis(50);
 
 /// Ticks per nanosecond: 72 GHz / 1 GHz.
 const TICKS_PER_NANO: u64 = TICKS_PER_SECOND / 1_000_000_000;
 
-/// A monotonic clock whose zero is the start of the session.
-#[derive(Debug, Clone, Copy)]
+/// A monotonic clock whose zero is the start of the session, less the time
+/// it slipped.
+#[derive(Debug, Clone)]
 pub struct RtClock {
     origin: Instant,
+    /// Nanoseconds the session's time has slipped behind the wall.
+    slipped_ns: Arc<AtomicU64>,
 }
 
 impl RtClock {
@@ -18,17 +35,17 @@ impl RtClock {
     pub fn start() -> Self {
         Self {
             origin: Instant::now(),
+            slipped_ns: Arc::new(AtomicU64::new(0)),
         }
     }
 
     /// The session time of `instant` (zero before the origin).
     pub fn at(&self, instant: Instant) -> SimTime {
         let ns = instant.saturating_duration_since(self.origin).as_nanos();
-        SimTime(
-            u64::try_from(ns)
-                .unwrap_or(u64::MAX)
-                .saturating_mul(TICKS_PER_NANO),
-        )
+        let ns = u64::try_from(ns)
+            .unwrap_or(u64::MAX)
+            .saturating_sub(self.slipped_ns.load(Ordering::Acquire));
+        SimTime(ns.saturating_mul(TICKS_PER_NANO))
     }
 
     /// The session time now.
@@ -38,7 +55,24 @@ impl RtClock {
 
     /// The instant of session time `t`.
     pub fn instant(&self, t: SimTime) -> Instant {
-        self.origin + Duration::from_nanos(t.0 / TICKS_PER_NANO)
+        self.origin
+            + Duration::from_nanos(self.slipped_ns.load(Ordering::Acquire))
+            + Duration::from_nanos(t.0 / TICKS_PER_NANO)
+    }
+
+    /// Holds the session's time back by `by` (whole nanoseconds of it).
+    pub fn slip(&self, by: SimDuration) {
+        self.slipped_ns
+            .fetch_add(by.0 / TICKS_PER_NANO, Ordering::AcqRel);
+    }
+
+    /// How far the session's time has slipped behind the wall, in all.
+    pub fn slipped(&self) -> SimDuration {
+        SimDuration(
+            self.slipped_ns
+                .load(Ordering::Acquire)
+                .saturating_mul(TICKS_PER_NANO),
+        )
     }
 }
 
@@ -97,6 +131,15 @@ mod tests {
         let t = SimTime::ZERO + SimDuration::from_millis(1500);
         assert_eq!(clock.at(clock.instant(t)), t);
         assert!(clock.now() < SimTime::ZERO + SimDuration::from_secs(5));
+        // A copy sees the slip: the same instant is a quarter of a second
+        // earlier in the session, and the session's time comes that much later.
+        let before = clock.instant(t);
+        let copy = clock.clone();
+        clock.slip(SimDuration::from_millis(250));
+        assert_eq!(copy.slipped(), SimDuration::from_millis(250));
+        assert_eq!(copy.at(before + Duration::from_millis(250)), t);
+        assert_eq!(copy.instant(t), before + Duration::from_millis(250));
+        assert_eq!(clock.at(clock.instant(t)), t);
         assert_eq!(
             to_std(SimDuration::from_micros(250)),
             Duration::from_micros(250)

@@ -37,8 +37,10 @@ use twin_sim::engine::{ModuleSlot, firmware_tick};
 /// lateness p99 of 43-51 µs, 150 µs 5-347 µs, 40 µs 45-72 µs; 60 spins
 /// 6 % of a core instead of 15 %, which the links get back.
 const SPIN: SimDuration = SimDuration::from_micros(60);
-/// How far behind the firmware loops are caught up tick by tick.
-const CATCH_UP: SimDuration = SimDuration::from_millis(50);
+/// The name real time lost is recorded under, as an event.
+pub const SLIP_NODE: &str = "clock";
+/// Ticks per nanosecond.
+const TICKS_PER_NANO: u64 = nodes::time::TICKS_PER_SECOND / 1_000_000_000;
 /// While no one is connected, the plant ticks in batches this long.
 const IDLE_BATCH: SimDuration = SimDuration::from_millis(10);
 /// How often the engine looks for connections past their idle timeout.
@@ -234,7 +236,7 @@ impl RtEngine {
         let _ = rustix::thread::set_current_timer_slack(std::num::NonZeroU64::new(1));
         let front = FrontHandle(Arc::new(Mutex::new(Front::new(
             self.sink.clone(),
-            self.clock,
+            self.clock.clone(),
             &self.links,
         ))));
         self.swap_front(&mut front.lock());
@@ -246,7 +248,8 @@ impl RtEngine {
             let now = self.clock.now();
             if now >= next_tick {
                 self.tick_through(now, &mut next_tick, aimed, &front);
-                if end.is_some_and(|e| now >= e) && self.stop.is_none() {
+                // On the session's clock, which may have slipped.
+                if end.is_some_and(|e| self.clock.now() >= e) && self.stop.is_none() {
                     self.stop = Some("duration reached".into());
                 }
             }
@@ -410,12 +413,13 @@ impl RtEngine {
         }
     }
 
-    /// One plant tick at `t`: firmware loops, the plants, recording.
-    /// The ticks due at `now` from `next_tick` on. Lateness is measured
-    /// against `aimed`, the tick the wait was for; a batch's ticks run in
-    /// order, and a wake later than one tick past `aimed` (the machine was
-    /// busy) skips to the latest tick due rather than run a burst of stale
-    /// ones.
+    /// The ticks due at `now` from `next_tick` on, every one in order.
+    /// Lateness is measured against `aimed`, the tick the wait was for. A
+    /// wake more than `CATCH_UP` behind (a stopped process, a machine too
+    /// busy to keep up) slips the session's clock by the excess rather than
+    /// skip ticks: the plant and every node, a sketch's pins included, step
+    /// through the whole interval at their own resolution, a little late,
+    /// and never compute from a jump in their inputs.
     fn tick_through(
         &mut self,
         now: SimTime,
@@ -425,7 +429,7 @@ impl RtEngine {
     ) {
         if now >= aimed {
             let late = now.saturating_since(aimed);
-            let ns = late.0 / (nodes::time::TICKS_PER_SECOND / 1_000_000_000);
+            let ns = late.0 / TICKS_PER_NANO;
             self.lateness.record(ns);
             self.window.record(ns);
             if late > self.tick {
@@ -433,17 +437,21 @@ impl RtEngine {
                 self.window.overruns += 1;
             }
         }
-        let tick = self.tick.0;
-        let last_due = SimTime(now.0 - now.0.saturating_sub(next_tick.0) % tick);
-        let batch_end = aimed.min(last_due);
-        while *next_tick <= batch_end {
+        // Behind by more than `CATCH_UP`, the clock slips (here, or a
+        // carrier did when bytes came after the stall).
+        let now = {
+            let mut shared = front.lock();
+            let now = shared.hold_clock(now);
+            let slips = std::mem::take(&mut shared.slips);
+            self.lateness.slipped(slips.count, slips.ns);
+            self.window.slipped(slips.count, slips.ns);
+            now
+        };
+        while *next_tick <= now {
             self.plant_tick(*next_tick, front);
             *next_tick += self.tick;
         }
-        if *next_tick <= last_due {
-            self.plant_tick(last_due, front);
-            *next_tick = last_due + self.tick;
-        }
+        front.lock().ticked_to = *next_tick;
     }
 
     fn plant_tick(&mut self, t: SimTime, front: &FrontHandle) {
@@ -472,14 +480,37 @@ impl RtEngine {
             self.next_idle_check = t + IDLE_CHECK_PERIOD;
         }
         if t >= self.next_second {
+            let window = self.window.summary();
+            if window.slips > 0 {
+                self.say_slip(t, window.slipped_ms);
+            }
             let _ = self.sink.send(SinkMsg::Lateness {
                 at: t,
-                window: self.window.summary(),
+                window,
                 total: self.lateness.summary(),
             });
             self.window.clear();
             self.next_second += SimDuration::from_secs(1);
         }
+    }
+
+    /// Real time lost in the last second, said once for it: on the console
+    /// (even with the monitor off), as an event of the recording and the
+    /// panel's list.
+    fn say_slip(&self, t: SimTime, slipped_ms: f64) {
+        let detail = format!(
+            "real time lost: {slipped_ms:.0} ms (the machine stopped the twin or was too busy to \
+             keep up; its clock slipped so that no step of the plant or the firmware was skipped)"
+        );
+        let _ = self.sink.send(SinkMsg::Say(detail.clone()));
+        let _ = self.sink.send(SinkMsg::Event {
+            node: SLIP_NODE.into(),
+            event: nodes::node::NodeEvent {
+                at: t,
+                kind: "slip",
+                detail,
+            },
+        });
     }
 
     /// The firmware loops due at `t`, the devices' events, the status line.
@@ -491,9 +522,7 @@ impl RtEngine {
         // edges come faster than the engine's 1 ms tick), the Rust nodes'
         // loops once a tick or less. Ticks the machine delayed are caught up
         // in order (a sketch's core runs those cycles anyway, and its pins
-        // must see the plant's edges when they came); a loop further behind
-        // than `CATCH_UP` (a stopped process) runs once, at `t`.
-        let behind = SimTime(t.0.saturating_sub(CATCH_UP.0));
+        // must see the plant's edges when they came).
         while let Some((d, due)) = self
             .devices
             .iter()
@@ -503,7 +532,6 @@ impl RtEngine {
             .filter(|&(_, due)| due <= t)
             .min_by_key(|&(d, due)| (due, d))
         {
-            let due = if due < behind { t } else { due };
             let Some(device) = self.devices.get_mut(d) else {
                 break;
             };

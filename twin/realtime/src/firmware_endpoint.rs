@@ -182,7 +182,12 @@ impl FirmwareEndpoint {
     fn hand_over(&mut self, devices: &mut [Device], now: SimTime, frame: &[u8]) {
         for &d in &self.devices {
             if let Some(device) = devices.get_mut(d) {
-                device.node.handle_bytes(now, frame);
+                // Where the engine's ticks have brought the core: at the
+                // wall's `now` the core would run ahead of its pins, and
+                // the encoder edges of that stretch would never reach it (a
+                // counting window read as 0 after a stall).
+                let at = firmware_time(device, now);
+                device.node.handle_bytes(at, frame);
             }
         }
         if self.asked(devices, now, frame) {
@@ -266,7 +271,9 @@ impl FirmwareEndpoint {
 
 /// How far a board's firmware has run: its loop's next tick, which the
 /// engine's ticks move on (not the wall clock's `now` when they lag it: a
-/// busy machine slows the firmware, it does not make it mute).
+/// busy machine slows the firmware, it does not make it mute). A link's
+/// bytes and timers reach the core there, never beyond: a core run ahead of
+/// the ticks would miss its pins' edges in between.
 fn firmware_time(device: &Device, now: SimTime) -> SimTime {
     device.next_tick.map_or(now, |tick| tick.min(now))
 }
@@ -276,7 +283,9 @@ impl Endpoint for FirmwareEndpoint {
         if !self.one_at_a_time {
             for &d in &self.devices {
                 if let Some(device) = devices.get_mut(d) {
-                    device.node.handle_bytes(now, bytes);
+                    // As in `hand_over`: the core stays with its pins.
+                    let at = firmware_time(device, now);
+                    device.node.handle_bytes(at, bytes);
                 }
             }
         }
@@ -285,10 +294,11 @@ impl Endpoint for FirmwareEndpoint {
 
     fn handle_timeout(&mut self, devices: &mut [Device], now: SimTime) {
         for &d in &self.devices {
-            if let Some(device) = devices.get_mut(d)
-                && device.node.poll_timeout().is_some_and(|t| t <= now)
-            {
-                device.node.handle_timeout(now);
+            if let Some(device) = devices.get_mut(d) {
+                let at = firmware_time(device, now);
+                if device.node.poll_timeout().is_some_and(|t| t <= at) {
+                    device.node.handle_timeout(at);
+                }
             }
         }
         let at = self.firmware_now(devices, now);
@@ -301,9 +311,15 @@ impl Endpoint for FirmwareEndpoint {
     }
 
     fn poll_timeout(&self, devices: &[Device]) -> Option<SimTime> {
+        // Not before the engine has ticked the firmware there (see
+        // `firmware_time`).
         self.devices
             .iter()
-            .filter_map(|&d| devices.get(d)?.node.poll_timeout())
+            .filter_map(|&d| {
+                let device = devices.get(d)?;
+                let t = device.node.poll_timeout()?;
+                Some(device.next_tick.map_or(t, |tick| t.max(tick)))
+            })
             .chain(self.outstanding.map(|since| since + REPLY_WAIT))
             .min()
     }
@@ -315,7 +331,9 @@ impl Endpoint for FirmwareEndpoint {
         buf: &mut [u8],
     ) -> Option<usize> {
         let Some((d, len)) = self.devices.iter().find_map(|&d| {
-            let len = devices.get_mut(d)?.node.poll_transmit(now, buf)?;
+            let device = devices.get_mut(d)?;
+            let at = firmware_time(device, now);
+            let len = device.node.poll_transmit(at, buf)?;
             Some((d, len))
         }) else {
             // Every reply there was is taken: what is left unanswered is.

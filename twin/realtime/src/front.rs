@@ -25,7 +25,7 @@ use std::collections::{BTreeMap, VecDeque};
 use std::sync::mpsc::Sender;
 use std::sync::{Arc, Mutex, MutexGuard};
 
-use super::clock::RtClock;
+use super::clock::{CATCH_UP, RtClock};
 use super::config::{LinkConfig, LinkFault};
 use super::device::Device;
 use super::endpoint::Endpoint;
@@ -110,6 +110,17 @@ pub struct Front {
     clock: Option<RtClock>,
     buf: Vec<u8>,
     ids: Vec<ConnId>,
+    /// The session time the engine has ticked the plants and the firmware
+    /// up to (its next tick), and the clock's slips since it last took them.
+    pub(super) ticked_to: SimTime,
+    pub(super) slips: Slips,
+}
+
+/// Slips of the clock: how many, and the nanoseconds lost in all.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub(super) struct Slips {
+    pub(super) count: u64,
+    pub(super) ns: u64,
 }
 
 /// Where a connection stands once its due frames are taken.
@@ -232,6 +243,7 @@ impl FrontHandle {
     pub fn receive(&self, conn: ConnId, at: SimTime, bytes: &[u8], out: &mut Outgoing) -> After {
         let mut guard = self.lock();
         let front = &mut *guard;
+        let at = front.hold_clock(at);
         front.receive(conn, at, bytes);
         front.take_due(conn, out)
     }
@@ -282,8 +294,32 @@ impl Front {
         }
     }
 
+    /// The time `at` (read from the clock before the lock was taken) on
+    /// the clock as it stands, slipping the clock first if `at` is further
+    /// ahead of the engine's ticks than it catches up in a burst: after a
+    /// stall, whoever looks first (the engine, or a carrier with the bytes
+    /// that came meanwhile) holds the session's time back, so no node is
+    /// handed a time beyond what the plant and the firmware will step
+    /// through in order.
+    pub(super) fn hold_clock(&mut self, at: SimTime) -> SimTime {
+        let Some(clock) = &self.clock else {
+            return at;
+        };
+        // Stamped before an earlier slip: it came at most now.
+        let at = at.min(clock.now());
+        let ahead = at.saturating_since(self.ticked_to);
+        if ahead <= CATCH_UP {
+            return at;
+        }
+        let slip = SimDuration(ahead.0 - CATCH_UP.0);
+        clock.slip(slip);
+        self.slips.count += 1;
+        self.slips.ns += slip.0 / (nodes::time::TICKS_PER_SECOND / 1_000_000_000);
+        SimTime(at.0 - slip.0)
+    }
+
     fn now(&self) -> SimTime {
-        self.clock.map_or(SimTime::ZERO, |c| c.now())
+        self.clock.as_ref().map_or(SimTime::ZERO, |c| c.now())
     }
 
     fn send(&self, message: SinkMsg) {

@@ -15,8 +15,12 @@ pub struct Lateness {
     ticks: u64,
     max_ns: u64,
     sum_ns: u128,
-    /// Ticks more than one period late: the loop skipped to catch up.
+    /// Ticks more than one period late: the loop caught up a burst.
     pub overruns: u64,
+    /// Times the clock slipped (the loop was further behind than it
+    /// catches up), and by how much in all.
+    slips: u64,
+    slipped_ns: u64,
 }
 
 /// A summary of [`Lateness`], as printed and recorded.
@@ -29,6 +33,25 @@ pub struct LatenessSummary {
     pub max_us: f64,
     pub mean_us: f64,
     pub overruns: u64,
+    /// Times the session's clock slipped, and the time lost in all (ms):
+    /// the machine stopped the twin longer than it could catch up.
+    pub slips: u64,
+    pub slipped_ms: f64,
+}
+
+impl LatenessSummary {
+    /// The real time the session lost, in words, if it lost any.
+    pub fn slip_line(&self) -> Option<String> {
+        (self.slips > 0).then(|| {
+            format!(
+                "real time lost: {:.0} ms in {} slip{} (the machine stopped the twin or was too \
+                 busy; its clock slipped rather than skip a step of the plant or the firmware)",
+                self.slipped_ms,
+                self.slips,
+                if self.slips == 1 { "" } else { "s" }
+            )
+        })
+    }
 }
 
 impl Default for Lateness {
@@ -45,6 +68,8 @@ impl Lateness {
             max_ns: 0,
             sum_ns: 0,
             overruns: 0,
+            slips: 0,
+            slipped_ns: 0,
         }
     }
 
@@ -69,6 +94,14 @@ impl Lateness {
         self.max_ns = 0;
         self.sum_ns = 0;
         self.overruns = 0;
+        self.slips = 0;
+        self.slipped_ns = 0;
+    }
+
+    /// The clock slipped `count` times, by `ns` in all.
+    pub fn slipped(&mut self, count: u64, ns: u64) {
+        self.slips += count;
+        self.slipped_ns = self.slipped_ns.saturating_add(ns);
     }
 
     pub fn ticks(&self) -> u64 {
@@ -109,6 +142,9 @@ impl Lateness {
                 self.sum_ns as f64 / self.ticks as f64 / 1e3
             },
             overruns: self.overruns,
+            slips: self.slips,
+            // To the microsecond: no floating-point noise in the file.
+            slipped_ms: (self.slipped_ns as f64 / 1e3).round() / 1e3,
         }
     }
 }
@@ -131,6 +167,9 @@ mod tests {
         assert!((s.mean_us - 500.0).abs() < 1e-9);
         l.record(50_000_000);
         assert_eq!(l.summary().max_us, 50_000.0);
+        l.slipped(1, 250_000_400);
+        l.slipped(1, 62_000_000);
+        assert_eq!((l.summary().slips, l.summary().slipped_ms), (2, 312.0));
         l.clear();
         assert_eq!(l.summary(), LatenessSummary::default());
     }

@@ -293,7 +293,7 @@ pub async fn accept_loop(
         let carried = socket.into_std().and_then(|s| {
             s.set_nonblocking(false)?;
             slots.take(conn, OwnedFd::from(s.try_clone()?));
-            let (engine, slots) = (engine.clone(), slots.clone());
+            let (engine, slots, clock) = (engine.clone(), slots.clone(), clock.clone());
             std::thread::Builder::new()
                 .name("twin-tcp".into())
                 .spawn(move || {
@@ -408,7 +408,16 @@ pub async fn serial_loop(
         let peer = path.display().to_string();
         let eof =
             "the port closed (a pty whose other side went away?); reopening it when it is back";
-        let why = serve_stream(stream, link, ids.next(), peer, clock, engine.clone(), eof).await;
+        let why = serve_stream(
+            stream,
+            link,
+            ids.next(),
+            peer,
+            clock.clone(),
+            engine.clone(),
+            eof,
+        )
+        .await;
         if why == "server stopping" {
             return;
         }

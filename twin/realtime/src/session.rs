@@ -188,7 +188,7 @@ impl Links {
     ) -> Result<SocketAddr> {
         let listener = tcp::bind(addr).await?;
         let local = listener.local_addr()?;
-        let (ids, clock, refused) = (self.ids.clone(), self.clock, self.refused.clone());
+        let (ids, clock, refused) = (self.ids.clone(), self.clock.clone(), self.refused.clone());
         self.start(move |rt, inbound| {
             rt.spawn(accept_loop(
                 listener, link, limit, allow, ids, clock, inbound, refused,
@@ -212,7 +212,7 @@ impl Links {
             }
         }
         let port = serial::open(path, &settings)?;
-        let (ids, clock, path) = (self.ids.clone(), self.clock, path.to_path_buf());
+        let (ids, clock, path) = (self.ids.clone(), self.clock.clone(), path.to_path_buf());
         self.start(move |rt, inbound| {
             rt.spawn(serial_loop(path, settings, port, link, ids, clock, inbound));
         });
@@ -239,7 +239,12 @@ pub fn run<R: Role>(
     // The sink starts once the links are open and named; its channel is made
     // first so the engine can hold its sender.
     let (tx, rx) = channel::<SinkMsg>();
-    let mut engine = RtEngine::new(clock, SimDuration::from_millis(1), record_period, tx);
+    let mut engine = RtEngine::new(
+        clock.clone(),
+        SimDuration::from_millis(1),
+        record_period,
+        tx,
+    );
     role.build(&mut engine)?;
     let mut links = Links::new(clock, options.wait_for_ports);
     let open = runtime.block_on(role.open(&mut engine, &mut links))?;

@@ -19,3 +19,4 @@ mod firmware;
 mod recording;
 mod serve;
 mod serve_boards;
+mod stall;

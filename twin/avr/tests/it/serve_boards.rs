@@ -19,9 +19,9 @@ use std::time::{Duration, Instant};
 use serde_json::Value;
 
 /// Two sketches in real time take most of a core: one test at a time.
-static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
+pub(crate) static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
 
-fn sketches() -> PathBuf {
+pub(crate) fn sketches() -> PathBuf {
     common::make(
         "serve-boards",
         "",
@@ -35,7 +35,7 @@ fn sketches() -> PathBuf {
     )
 }
 
-fn scratch(name: &str) -> PathBuf {
+pub(crate) fn scratch(name: &str) -> PathBuf {
     let dir =
         PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
@@ -54,7 +54,7 @@ fn twin_avr(args: &[&str]) -> Child {
 }
 
 /// Reads `child`'s stdout up to its `ready` line; the lines before it.
-fn wait_ready(child: &mut Child) -> (BufReader<std::process::ChildStdout>, String) {
+pub(crate) fn wait_ready(child: &mut Child) -> (BufReader<std::process::ChildStdout>, String) {
     let mut out = BufReader::new(child.stdout.take().expect("stdout"));
     let mut seen = String::new();
     let mut line = String::new();
@@ -80,7 +80,7 @@ fn wait_for(path: &Path) {
 
 /// Stops `child` with SIGINT (it finishes its recording) and returns the
 /// rest of its stdout.
-fn stop(mut child: Child, mut out: BufReader<std::process::ChildStdout>) -> String {
+pub(crate) fn stop(mut child: Child, mut out: BufReader<std::process::ChildStdout>) -> String {
     let _ = Command::new("kill")
         .args(["-INT", &child.id().to_string()])
         .status();
@@ -92,7 +92,7 @@ fn stop(mut child: Child, mut out: BufReader<std::process::ChildStdout>) -> Stri
 
 /// The Controller_network master of `twin`'s peer tests: for every
 /// transaction it opens the port, writes 8 bytes, waits WAIT_MS, reads once.
-fn controller_network_master(device: &Path, cycles: u32, wait_ms: u32) -> Value {
+pub(crate) fn controller_network_master(device: &Path, cycles: u32, wait_ms: u32) -> Value {
     let script = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
         .join("../cli/tests/peers/controller_network_master.py");
     let out: Output = Command::new("python3")
@@ -108,7 +108,7 @@ fn controller_network_master(device: &Path, cycles: u32, wait_ms: u32) -> Value 
 
 /// A vsp pair and `serve --modbus8` on one end with the sketches `boards`
 /// (`motor=FILE`, `light=FILE`), recording to `out`.
-fn serve_nanos(dir: &Path, boards: &[String], out: &Path) -> (Vsp, Child, String) {
+pub(crate) fn serve_nanos(dir: &Path, boards: &[String], out: &Path) -> (Vsp, Child, String) {
     let (a, b) = (dir.join("ttyV0"), dir.join("ttyV1"));
     let mut vsp = twin_avr(&["vsp", &a.display().to_string(), &b.display().to_string()]);
     // Its stdout stays open: it prints as the master opens and closes its end.
@@ -140,18 +140,18 @@ fn serve_nanos(dir: &Path, boards: &[String], out: &Path) -> (Vsp, Child, String
 }
 
 /// The vsp process and its stdout, kept open while it runs.
-struct Vsp {
+pub(crate) struct Vsp {
     child: Child,
     /// Held open, never read.
     _out: BufReader<std::process::ChildStdout>,
 }
 
 impl Vsp {
-    fn kill(&mut self) -> std::io::Result<()> {
+    pub(crate) fn kill(&mut self) -> std::io::Result<()> {
         self.child.kill()
     }
 
-    fn wait(&mut self) -> std::io::Result<std::process::ExitStatus> {
+    pub(crate) fn wait(&mut self) -> std::io::Result<std::process::ExitStatus> {
         self.child.wait()
     }
 }

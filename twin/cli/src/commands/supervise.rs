@@ -386,6 +386,9 @@ pub fn execute(args: &SuperviseArgs, matches: &ArgMatches) -> Result<()> {
         "  tick lateness over {} ticks: p50 {:.0} µs, p99 {:.0} µs, max {:.0} µs",
         l.ticks, l.p50_us, l.p99_us, l.max_us
     );
+    if let Some(line) = l.slip_line() {
+        println!("  {line}");
+    }
     let mut session_end = outcome.session;
     if args.view.is_none() {
         // The panel's feed is not a rerun view.

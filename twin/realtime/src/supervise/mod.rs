@@ -335,7 +335,7 @@ async fn open_links(
             let first = tokio::net::TcpStream::connect(addr).await.with_context(|| {
                 format!("--meb {}: cannot connect to an MEB slave at {addr} (is `twin serve --meb tcp://{addr}` running?)", bus.text)
             })?;
-            let (ids, clock) = (links.ids.clone(), links.clock);
+            let (ids, clock) = (links.ids.clone(), links.clock.clone());
             links.start(move |rt, inbound| {
                 rt.spawn(tcp_bus_loop(addr, first, ids, clock, inbound));
             });
@@ -450,7 +450,7 @@ async fn tcp_bus_loop(
             0,
             ids.next(),
             format!("tcp://{addr}"),
-            clock,
+            clock.clone(),
             engine.clone(),
             "the slave closed the connection (reconnecting)",
         )

@@ -286,6 +286,9 @@ fn run(
                     .as_ref()
                     .map_or_else(|| "none".into(), |p| p.display().to_string())
             );
+            if let Some(line) = l.slip_line() {
+                println!("{}: {line}", modules[n].0);
+            }
         }
         match failed {
             Some(e) => Err(e),

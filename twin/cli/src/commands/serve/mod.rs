@@ -481,6 +481,9 @@ fn serve_one(args: &ServeArgs, options: &ServeOptions) -> Result<()> {
         "  tick lateness over {} ticks: p50 {:.0} µs, p99 {:.0} µs, p99.9 {:.0} µs, max {:.0} µs; {} overruns",
         l.ticks, l.p50_us, l.p99_us, l.p999_us, l.max_us, l.overruns
     );
+    if let Some(line) = l.slip_line() {
+        println!("  {line}");
+    }
     if l.p99_us > 250.0 {
         match args.rt_priority {
             // How to grant it was said at the start.
