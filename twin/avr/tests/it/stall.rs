@@ -63,7 +63,12 @@ fn a_stopped_server_slips_its_clock_and_the_motor_sketch_reads_only_true_speeds(
     println!("{seen}\n{rest}");
     assert!(stalls >= 3, "{stalls} stalls");
 
-    let (motor, readings, slips, slip_events) = read_back(&recording);
+    let ReadBack {
+        motor,
+        readings,
+        slips,
+        slip_events,
+    } = read_back(&recording);
     // Every reading the sketch sent is within one pulse of the motor's
     // speed over the window it counted, that window stretched or shrunk by
     // up to 2 ms (10 %): `millis()` steps by 1.024 ms and the loop latches
@@ -109,18 +114,27 @@ fn a_stopped_server_slips_its_clock_and_the_motor_sketch_reads_only_true_speeds(
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// The motor's speed at each plant sample; the motor sketch's rpm replies
-/// (time, rpm); the slips (count, ms) of the last lateness record; and the
-/// details of the slip events.
-fn read_back(recording: &Path) -> (Vec<(f64, f64)>, Vec<(f64, f64)>, (usize, f64), Vec<String>) {
-    let (mut motor, mut readings, mut slips, mut events) =
-        (Vec::new(), Vec::new(), (0, 0.0), Vec::new());
+/// What the session's recording says.
+#[derive(Default)]
+struct ReadBack {
+    /// The motor's speed at each plant sample: (time, rpm).
+    motor: Vec<(f64, f64)>,
+    /// The motor sketch's rpm replies: (time, rpm).
+    readings: Vec<(f64, f64)>,
+    /// The slips of the last lateness record: count, ms lost.
+    slips: (usize, f64),
+    /// The details of the slip events.
+    slip_events: Vec<String>,
+}
+
+fn read_back(recording: &Path) -> ReadBack {
+    let mut back = ReadBack::default();
     twin_recording::Recording::scan(recording, |m| {
         let topic = m.topic;
         if topic.starts_with("/plant/") && topic.ends_with("/sensors") {
             let v = m.value()?;
             if let Some(rpm) = v["motor_rpm"].as_f64() {
-                motor.push((m.time_s(), rpm));
+                back.motor.push((m.time_s(), rpm));
             }
         } else if topic == "/firmware/motor/uart" {
             let v = m.value()?;
@@ -128,22 +142,24 @@ fn read_back(recording: &Path) -> (Vec<(f64, f64)>, Vec<(f64, f64)>, (usize, f64
             // A read of register 5, the speed: 01 03 00 05 HH LL CRC.
             if v["dir"] == "tx" && hex.len() == 16 && hex.starts_with("01030005") {
                 let rpm = i64::from_str_radix(&hex[8..12], 16).unwrap_or(-1) as f64;
-                readings.push((v["start_s"].as_f64().unwrap_or(m.time_s()), rpm));
+                back.readings
+                    .push((v["start_s"].as_f64().unwrap_or(m.time_s()), rpm));
             }
         } else if topic == "/realtime/lateness" {
             let v: Value = m.value()?;
-            slips = (
+            back.slips = (
                 v["total"]["slips"].as_u64().unwrap_or(0) as usize,
                 v["total"]["slipped_ms"].as_f64().unwrap_or(0.0),
             );
         } else if topic == "/events" {
             let v = m.value()?;
             if v["kind"] == "slip" {
-                events.push(v["detail"].as_str().unwrap_or("").to_string());
+                back.slip_events
+                    .push(v["detail"].as_str().unwrap_or("").to_string());
             }
         }
         Ok(())
     })
     .expect("the recording reads");
-    (motor, readings, slips, events)
+    back
 }
