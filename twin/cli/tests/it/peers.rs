@@ -141,6 +141,11 @@ impl Serve {
         }
     }
 
+    /// The server's process id (to stop and continue it).
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
     /// What it printed after `ready` so far.
     pub fn stdout(&self) -> String {
         self.stdout.lock().unwrap().clone()
