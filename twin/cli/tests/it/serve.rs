@@ -320,6 +320,83 @@ fn adaptive_light_lets_rpm_l_follow_the_wheel_and_says_its_limit() {
     server.terminate();
 }
 
+/// The server stopped (SIGSTOP) for 300 ms every 2 s while the wheel turns
+/// and a client polls: each stall slips the session's clock and every tick
+/// still runs, so the light sensor sees the flag at every turn and RPM_L
+/// keeps following the wheel. In the recording, every light reading once
+/// the wheel is up to speed is within 10 % of the hall reading beside it
+/// (the ticks a stall skipped once read as drops from 1200 to 300-600 rpm).
+#[test]
+fn under_stalls_rpm_l_keeps_following_the_wheel() {
+    let dir = scratch("light-stall");
+    let recording = dir.join("light.mcap");
+    let server = Server::start(&[
+        "--meb",
+        "tcp://127.0.0.1:0",
+        "--quiet",
+        "--out",
+        recording.to_str().unwrap(),
+    ]);
+    let (hall, light) = spin_and_read_speeds(&server, 1100);
+    assert!(
+        hall > 800 && light.abs_diff(hall) < hall / 20,
+        "RPM_L {light} follows RPM_M {hall} before any stall"
+    );
+    let pid = server.proc.child.id().to_string();
+    let mut m = connect(&server.tcp(0));
+    let mut stalls = 0;
+    for _ in 0..3 {
+        let until = Instant::now() + Duration::from_secs(2);
+        while Instant::now() < until {
+            read_ea(&mut m);
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        let _ = Command::new("kill").args(["-STOP", &pid]).status();
+        std::thread::sleep(Duration::from_millis(300));
+        let _ = Command::new("kill").args(["-CONT", &pid]).status();
+        stalls += 1;
+    }
+    read_ea(&mut m);
+    let said = server.terminate();
+    let mut readings = Vec::new();
+    let mut slips = 0;
+    twin_recording::Recording::scan(&recording, |msg| {
+        if msg.topic == "/controller/ev1/readings" {
+            let v = msg.value()?;
+            let (hall, light) = (v["hall_rpm"].as_f64(), v["light_rpm"].as_f64());
+            if let (Some(hall), Some(light)) = (hall, light) {
+                readings.push((msg.time_s(), hall, light));
+            }
+        } else if msg.topic == "/realtime/lateness" {
+            slips = msg.value()?["total"]["slips"].as_u64().unwrap_or(0);
+        }
+        Ok(())
+    })
+    .expect("the recording reads");
+    // Up to speed: from half a second after the hall reading first came
+    // within 3 % of where it ends.
+    let end = readings.last().expect("readings").1;
+    let reached = readings
+        .iter()
+        .find(|&&(_, h, _)| (h - end).abs() < end * 0.03)
+        .expect("the wheel reaches its speed")
+        .0;
+    let settled = readings
+        .iter()
+        .position(|&(t, _, _)| t >= reached + 0.5)
+        .expect("readings after it");
+    let after = &readings[settled..];
+    assert!(after.len() > 500, "{} readings", after.len());
+    for &(t, hall, light) in after {
+        assert!(
+            (light - hall).abs() < hall / 10.0,
+            "at {t:.3} s RPM_L read {light} while RPM_M read {hall}: {said}"
+        );
+    }
+    assert!(slips >= stalls, "{slips} slips for {stalls} stalls: {said}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 #[test]
 fn console_commands_force_inputs_and_switch_faults() {
     let (server, mut console) = Server::with_console(&[
