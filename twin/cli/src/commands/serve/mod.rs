@@ -509,7 +509,7 @@ fn serve_one(args: &ServeArgs, options: &ServeOptions) -> Result<()> {
 /// edges, not just time.
 pub(super) fn without_priority() -> String {
     twin_realtime::clock::without_priority(
-        "ticks run late, so firmware and controllers can miss encoder edges, and replies come late",
+        "ticks run late and replies come late, and a stall longer than the twin catches up holds its clock back (real time lost)",
     )
 }
 
