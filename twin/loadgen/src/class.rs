@@ -246,7 +246,9 @@ pub fn measure(run: &ClassRun, variant: Variant, round: usize) -> Result<ClassFi
     let machine_before = cpu_jiffies();
     let stop = Arc::new(AtomicBool::new(false));
     let start = Instant::now() + Duration::from_millis(200);
-    let clients: Vec<_> = addrs
+    // An idle class (no rate) has no client.
+    let polled = if run.hz > 0.0 { addrs.as_slice() } else { &[] };
+    let clients: Vec<_> = polled
         .iter()
         .enumerate()
         .map(|(n, (_, _, addr))| {
@@ -262,6 +264,9 @@ pub fn measure(run: &ClassRun, variant: Variant, round: usize) -> Result<ClassFi
     std::thread::sleep(Duration::from_secs_f64(run.seconds) + Duration::from_millis(200));
     stop.store(true, Ordering::Relaxed);
     let mut modules = Vec::new();
+    if polled.is_empty() {
+        modules.resize(addrs.len(), ModuleFigures::default());
+    }
     for c in clients {
         let (mut figures, mut latencies) = c
             .join()
@@ -348,15 +353,23 @@ pub fn summary(f: &ClassFigures) -> String {
     let bad: u64 = f.modules.iter().map(|m| m.bad).sum();
     let lost: u64 = f.modules.iter().map(|m| m.lost).sum();
     let late: u64 = f.modules.iter().map(|m| m.late_sends).sum();
+    let replies = if expected == 0 {
+        "idle: no client".to_string()
+    } else {
+        format!(
+            "reply p99 per module: median {:>6.0} µs, worst {:>6.0} µs",
+            median(&lat),
+            lat_max
+        )
+    };
     format!(
-        "{:<15} reply p99 per module: median {:>6.0} µs, worst {:>6.0} µs | tick lateness p99 per module: median {:>5.0} µs, worst {:>6.0} µs | {answered}/{expected} answered, {lost} lost, {bad} wrong, {late} sent late | server CPU {:.0} % of a core, RSS {:.0} MiB | machine busy {:.0} %, load {:.1}",
+        "{:<15} {replies} | tick lateness p99 per module: median {:>5.0} µs, worst {:>6.0} µs | {answered}/{expected} answered, {lost} lost, {bad} wrong, {late} sent late | server CPU {:.1} % of a core, RSS {:.0} MiB ({:.1} per module) | machine busy {:.0} %, load {:.1}",
         f.variant.name(),
-        median(&lat),
-        lat_max,
         median(&tick),
         tick_max,
         f.server_cpu * 100.0,
         f.rss_mib,
+        f.rss_mib / f.modules.len().max(1) as f64,
         f.machine_busy * 100.0,
         f.load_avg
     )

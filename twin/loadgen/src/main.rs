@@ -107,7 +107,8 @@ enum Role {
         /// Modules (students).
         #[arg(long, default_value_t = 35)]
         modules: usize,
-        /// Requests per second per module.
+        /// Requests per second per module; 0 leaves the class idle (no
+        /// client connects), to measure what an idle class costs.
         #[arg(long, default_value_t = 100.0)]
         hz: f64,
         /// Seconds each variant is loaded per round.
@@ -243,9 +244,17 @@ fn class_bench(run: &class::ClassRun, rounds: usize, temporary: bool) -> Result<
     };
     let lat = |m: &class::ModuleFigures| m.latency_p99_us;
     let tick = |m: &class::ModuleFigures| m.tick_p99_us.unwrap_or(f64::NAN);
+    // An idle class has no replies to compare.
+    let replies = if run.hz > 0.0 {
+        format!(
+            "reply p99 per module (median) {:.2}, ",
+            figure(ProcessPerModule, lat) / figure(OneProcess, lat)
+        )
+    } else {
+        String::new()
+    };
     println!(
-        "a process each / one process: reply p99 per module (median) {:.2}, tick lateness p99 per module (median) {:.2}, server CPU {:.2}",
-        figure(ProcessPerModule, lat) / figure(OneProcess, lat),
+        "a process each / one process: {replies}tick lateness p99 per module (median) {:.2}, server CPU {:.2}",
         figure(ProcessPerModule, tick) / figure(OneProcess, tick),
         cpu(ProcessPerModule) / cpu(OneProcess)
     );

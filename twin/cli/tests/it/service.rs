@@ -327,7 +327,7 @@ fn a_session_without_real_time_priority_says_once_what_it_risks_and_how_to_grant
         let said = priority_notices(&out);
         assert_eq!(said.len(), 1, "{out}");
         for words in [
-            "encoder edges",
+            "real time lost",
             "replies come late",
             "--rt-priority N",
             "CAP_SYS_NICE",
@@ -501,6 +501,51 @@ fn a_class_of_five_modules_each_reached_by_its_own_pymodbus_client() {
         printed.contains("student03: stopped (SIGTERM)") && printed.contains("1 refused (--allow)"),
         "{printed}"
     );
+}
+
+/// CPU time (user and system) `pid` has used so far, in seconds, from
+/// `/proc`: only this process's, however busy the machine.
+fn cpu_seconds(pid: u32) -> f64 {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).expect("its /proc stat");
+    // After the command's name in parentheses: state is field 3, utime 14.
+    let rest = &stat[stat.rfind(')').expect("(comm)") + 1..];
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    let ticks: f64 = fields[11].parse::<f64>().unwrap() + fields[12].parse::<f64>().unwrap();
+    let per_second = Command::new("getconf")
+        .arg("CLK_TCK")
+        .output()
+        .expect("getconf");
+    ticks / text(&per_second).trim().parse::<f64>().expect("CLK_TCK")
+}
+
+/// A class of 35 modules that no one uses costs little: no client, no
+/// recording, nothing moving, the whole process under half a core over 5 s
+/// (this debug build; the release build's figure, and its goal, are in the
+/// measurements chapter).
+#[test]
+fn a_class_of_thirty_five_idle_modules_costs_under_half_a_core() {
+    let dir = folder("idle-class");
+    let mut config = String::from("quiet = true\nstatus-every = 0\n");
+    for n in 1..=35 {
+        config.push_str(&format!(
+            "\n[[module]]\nname = \"student{n:02}\"\nmeb = [\"tcp://127.0.0.1:0\"]\nno-record = true\n"
+        ));
+    }
+    let path = dir.join("class.toml");
+    std::fs::write(&path, config).unwrap();
+    let server = Proc::start(&["serve", "--config", path.to_str().unwrap()]);
+    assert_eq!(server.links().len(), 35, "{}", server.output());
+    let pid = server.child.id();
+    std::thread::sleep(Duration::from_secs(1));
+    let (before, since) = (cpu_seconds(pid), Instant::now());
+    std::thread::sleep(Duration::from_secs(5));
+    let share = (cpu_seconds(pid) - before) / since.elapsed().as_secs_f64();
+    println!(
+        "an idle class of 35 modules: {:.1} % of one core",
+        share * 100.0
+    );
+    assert!(share < 0.5, "{:.1} % of one core", share * 100.0);
+    server.terminate();
 }
 
 #[test]
