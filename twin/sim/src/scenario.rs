@@ -617,10 +617,10 @@ impl Scenario {
         scenario.start_masters_after_boot();
         scenario.check_module_params(&root, text, origin)?;
         scenario.validate().map_err(|(field, msg)| {
-            // A field of one node or bus is found after the line naming it.
+            // A field of one node or bus is found in the table naming it.
             let place = match field.split_once('@') {
-                Some((key, owner)) => find_line_after(text, owner, key),
-                None => find_line(text, &field),
+                Some((key, owner)) => locate(&root, text, key, Some(owner)),
+                None => locate(&root, text, &field, None),
             };
             let field = field.split('@').next().unwrap_or_default().to_string();
             let place = place.map_or_else(String::new, |l| format!(":{l}"));
@@ -947,38 +947,60 @@ pub fn check_name(name: &str) -> std::result::Result<(), String> {
     Ok(())
 }
 
-fn find_line_after(text: &str, owner: &str, key: &str) -> Option<usize> {
-    let quoted = format!("\"{owner}\"");
-    let lines: Vec<&str> = text.lines().collect();
-    let sets = |l: &str, key: &str, value: Option<&str>| {
-        l.split_once('=')
-            .is_some_and(|(k, v)| k.trim() == key && value.is_none_or(|want| v.trim() == want))
+/// The line of `key` where the file sets it, from the parsed file's spans:
+/// with an `owner`, in the table whose `name` is `owner` (that table's name
+/// line if it does not set the key); else the first table, in file order,
+/// that sets it.
+fn locate(
+    root: &toml::Spanned<toml::de::DeValue<'_>>,
+    text: &str,
+    key: &str,
+    owner: Option<&str>,
+) -> Option<usize> {
+    let mut tables = Vec::new();
+    tables_in(root, &mut tables);
+    let owns = |table: &toml::Spanned<toml::de::DeValue<'_>>| match (owner, table.get_ref()) {
+        (None, _) => true,
+        (Some(owner), toml::de::DeValue::Table(t)) => t.get("name").is_some_and(
+            |n| matches!(n.get_ref(), toml::de::DeValue::String(name) if name == owner),
+        ),
+        _ => false,
     };
-    let names: Vec<usize> = (0..lines.len())
-        .filter(|&i| sets(lines[i], "name", Some(&quoted)))
-        .collect();
-    for &start in &names {
-        let found = lines[start..]
-            .iter()
-            .enumerate()
-            .take_while(|(n, l)| *n == 0 || !l.trim_start().starts_with("[["))
-            .find(|(_, l)| sets(l, key, None));
-        if let Some((n, _)) = found {
-            return Some(start + n + 1);
+    tables
+        .into_iter()
+        .filter(|t| owns(t))
+        .filter_map(|t| {
+            toml_errors::span_of(t, key)
+                .or_else(|| owner.and_then(|_| toml_errors::span_of(t, "name")))
+        })
+        .map(|span| span.start)
+        .min()
+        .map(|offset| line_col(text, offset).0)
+}
+
+/// Every table in `value`, itself included, arrays of tables entered.
+fn tables_in<'v, 'a>(
+    value: &'v toml::Spanned<toml::de::DeValue<'a>>,
+    out: &mut Vec<&'v toml::Spanned<toml::de::DeValue<'a>>>,
+) {
+    match value.get_ref() {
+        toml::de::DeValue::Table(t) => {
+            out.push(value);
+            for (_, child) in t.iter() {
+                tables_in(child, out);
+            }
         }
+        toml::de::DeValue::Array(a) => {
+            for child in a.iter() {
+                tables_in(child, out);
+            }
+        }
+        _ => {}
     }
-    names.first().map(|n| n + 1)
 }
 
 fn crate_time_ticks() -> u64 {
     nodes::time::TICKS_PER_SECOND
-}
-
-/// First line that sets `key = …` (good enough to point a user at the field).
-fn find_line(text: &str, key: &str) -> Option<usize> {
-    text.lines()
-        .position(|l| l.split('=').next().is_some_and(|k| k.trim() == key) && l.contains('='))
-        .map(|n| n + 1)
 }
 
 #[cfg(test)]
@@ -1007,6 +1029,12 @@ mod tests {
         let text = "name = \"x\"\nduration_s = 1.0\n[[bus]]\nname = \"b\"\nbaud = 115201\n";
         let e = Scenario::parse(text, "s.toml").unwrap_err().to_string();
         assert!(e.starts_with("s.toml:5: `baud`"), "{e}");
+        // Found where the file sets it, not where its text first appears (a
+        // multi-line description quoting a bus's settings).
+        let text = "name = \"x\"\ndescription = \"\"\"\nbaud = 9600\n\"\"\"\nduration_s = 1.0\n\
+                    [[bus]]\nname = \"b\"\nbaud = 115201\n";
+        let e = Scenario::parse(text, "s.toml").unwrap_err().to_string();
+        assert!(e.starts_with("s.toml:8: `baud`"), "{e}");
     }
 
     /// The embedded ev-meb scenario with `from` replaced by `to` (once).
