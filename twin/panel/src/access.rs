@@ -87,7 +87,8 @@ impl Access {
 /// Compares without stopping at the first difference, so the time a
 /// refusal takes says nothing about how much of a guess was right.
 fn same(a: &[u8], b: &[u8]) -> bool {
-    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+    use subtle::ConstantTimeEq;
+    a.ct_eq(b).into()
 }
 
 /// 24 random bytes from the kernel, as 48 hex digits.

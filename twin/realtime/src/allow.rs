@@ -7,35 +7,27 @@
 use std::net::IpAddr;
 use std::sync::{Arc, RwLock};
 
-/// One allowed network: an address and how many of its leading bits must
-/// match (`10.0.3.0/24`, `127.0.0.1/32`, `::1/128`; no prefix: the one address).
+use ipnet::IpNet;
+
+/// One allowed network (`10.0.3.0/24`, `127.0.0.1/32`, `::1/128`; no
+/// prefix: the one address).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Network {
-    addr: IpAddr,
-    prefix: u8,
-}
+pub struct Network(IpNet);
 
 impl Network {
     /// Parses `ADDRESS[/PREFIX]`; the error says what was wrong in words.
     pub fn parse(text: &str) -> Result<Self, String> {
         let text = text.trim();
-        let (addr, prefix) = match text.split_once('/') {
-            Some((a, p)) => (a, Some(p)),
-            None => (text, None),
+        let net = match text.split_once('/') {
+            Some((addr, _)) => {
+                let addr: IpAddr = addr.parse().map_err(|_| not_a_network(text))?;
+                let max = if addr.is_ipv4() { 32 } else { 128 };
+                text.parse::<IpNet>()
+                    .map_err(|_| format!("`{text}`: the prefix length must be 0 to {max}"))?
+            }
+            None => IpNet::from(text.parse::<IpAddr>().map_err(|_| not_a_network(text))?),
         };
-        let addr: IpAddr = addr.parse().map_err(|_| {
-            format!("`{text}` is not an address or network like 10.0.3.0/24 or 127.0.0.1")
-        })?;
-        let max = if addr.is_ipv4() { 32 } else { 128 };
-        let prefix = match prefix {
-            None => max,
-            Some(p) => p
-                .parse::<u8>()
-                .ok()
-                .filter(|&p| p <= max)
-                .ok_or_else(|| format!("`{text}`: the prefix length must be 0 to {max}"))?,
-        };
-        Ok(Self { addr, prefix })
+        Ok(Self(net))
     }
 
     /// Whether `ip` is in this network (an IPv4 client seen as
@@ -45,27 +37,17 @@ impl Network {
             IpAddr::V6(v6) => v6.to_ipv4_mapped().map_or(ip, IpAddr::V4),
             v4 => v4,
         };
-        match (self.addr, ip) {
-            (IpAddr::V4(net), IpAddr::V4(ip)) => {
-                let mask = u32::MAX
-                    .checked_shl(32 - u32::from(self.prefix))
-                    .unwrap_or(0);
-                u32::from(net) & mask == u32::from(ip) & mask
-            }
-            (IpAddr::V6(net), IpAddr::V6(ip)) => {
-                let mask = u128::MAX
-                    .checked_shl(128 - u32::from(self.prefix))
-                    .unwrap_or(0);
-                u128::from(net) & mask == u128::from(ip) & mask
-            }
-            _ => false,
-        }
+        self.0.contains(&ip)
     }
+}
+
+fn not_a_network(text: &str) -> String {
+    format!("`{text}` is not an address or network like 10.0.3.0/24 or 127.0.0.1")
 }
 
 impl std::fmt::Display for Network {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "{}/{}", self.addr, self.prefix)
+        self.0.fmt(f)
     }
 }
 
