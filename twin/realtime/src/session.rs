@@ -9,7 +9,7 @@
 //! totals. A role supplies what differs; [`SessionOptions`] and
 //! [`SessionOutcome`] hold what every session is told and reports.
 
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
 use nodes::time::{SimDuration, SimTime};
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
@@ -207,8 +207,23 @@ impl Links {
     ) -> Result<()> {
         if self.wait_for_ports && !path.exists() {
             println!("waiting for {} to appear ...", path.display());
+            // A stop while waiting ends the wait: once another module of a
+            // class has taken SIGTERM and SIGINT over, their default action
+            // no longer ends the process.
+            let (mut term, mut int) = (
+                signal(SignalKind::terminate()).ok(),
+                signal(SignalKind::interrupt()).ok(),
+            );
             while !path.exists() {
-                tokio::time::sleep(Duration::from_millis(100)).await;
+                tokio::select! {
+                    () = tokio::time::sleep(Duration::from_millis(100)) => {}
+                    Some(()) = next(&mut term) => {
+                        bail!("stopped (SIGTERM) while waiting for {} to appear", path.display())
+                    }
+                    Some(()) = next(&mut int) => {
+                        bail!("stopped (SIGINT) while waiting for {} to appear", path.display())
+                    }
+                }
             }
         }
         let port = serial::open(path, &settings)?;

@@ -548,6 +548,66 @@ fn a_class_of_thirty_five_idle_modules_costs_under_half_a_core() {
     server.terminate();
 }
 
+/// A class whose module waits for a port (`--wait-for-ports`) stops on
+/// SIGTERM: the other module has taken the signal over by then, so the
+/// wait itself must listen for it.
+#[test]
+fn a_class_waiting_for_a_port_stops_on_sigterm() {
+    let _cores = support::RealTime::share_the_cores();
+    let dir = folder("class-waits");
+    let missing = dir.join("ttyV-not-yet");
+    let config = format!(
+        "quiet = true\nstatus-every = 0\n\n[[module]]\nname = \"student01\"\n\
+         meb = [\"tcp://127.0.0.1:0\"]\nno-record = true\n\n[[module]]\nname = \"student02\"\n\
+         modbus8 = [\"{}\"]\nno-record = true\n",
+        missing.display()
+    );
+    let path = dir.join("class.toml");
+    std::fs::write(&path, config).unwrap();
+    let out = dir.join("out.txt");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_twin"))
+        .args([
+            "serve",
+            "--config",
+            path.to_str().unwrap(),
+            "--wait-for-ports",
+        ])
+        .stdout(std::fs::File::create(&out).unwrap())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("twin starts");
+    let waiting = Instant::now() + Duration::from_secs(30);
+    while !std::fs::read_to_string(&out)
+        .unwrap_or_default()
+        .contains("waiting for")
+    {
+        assert!(Instant::now() < waiting, "never said it waits");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    // The other module is up and has the signals by now.
+    std::thread::sleep(Duration::from_millis(500));
+    let _ = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status();
+    let until = Instant::now() + Duration::from_secs(10);
+    let status = loop {
+        if let Some(status) = child.try_wait().expect("try_wait") {
+            break status;
+        }
+        if Instant::now() > until {
+            let _ = child.kill();
+            panic!("still waiting 10 s after SIGTERM");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    let mut err = String::new();
+    let _ = std::io::Read::read_to_string(&mut child.stderr.take().unwrap(), &mut err);
+    assert!(
+        err.contains("stopped (SIGTERM) while waiting for"),
+        "{status}: {err}"
+    );
+}
+
 #[test]
 fn check_refuses_a_serial_port_that_is_not_there_unless_told_to_wait() {
     let missing = folder("ports").join("ttyGone");
