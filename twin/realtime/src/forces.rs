@@ -1,8 +1,250 @@
-//! Inputs forced from the console (`force v1 30.5`): measured values
-//! replaced before the firmware samples them, or input words after it
-//! computed them. The plant itself is untouched.
+//! Inputs forced by hand, from the console (`force v1 30.5`) or the panel's
+//! sliders and switches, as the M3CVME tool's simulator lets one set every
+//! input: measured values replaced before the firmware samples them, or
+//! input words after it computed them. The plant itself is untouched.
+//!
+//! [`Input`] names each input once, with its unit and the range it takes,
+//! so the console and the panel check a value alike and say its range in
+//! the same words.
 
 use nodes::firmware::{RegisterImage, ea};
+use std::ops::RangeInclusive;
+
+/// An input that can be forced.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Input {
+    V1,
+    V2,
+    I,
+    RpmM,
+    RpmL,
+    Ldr,
+    /// The hall sensors' code, ED0 bits 0–2.
+    Hall,
+    /// The photoresistor sees the paper flag (dark), ED0 bit 3.
+    Flag,
+    /// The motor driver reports a fault (the inverter's protection trips).
+    DriverFault,
+}
+
+/// What kind of control sets an input.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum InputKind {
+    /// A measured value or a word: a number in a range.
+    Analog,
+    /// A code of a few bits (the hall code).
+    Code,
+    /// On or off.
+    Switch,
+}
+
+impl Input {
+    /// Every input, in the order the console's help and the panel show them.
+    pub const ALL: [Input; 9] = [
+        Input::V1,
+        Input::V2,
+        Input::I,
+        Input::RpmM,
+        Input::RpmL,
+        Input::Ldr,
+        Input::Hall,
+        Input::Flag,
+        Input::DriverFault,
+    ];
+
+    /// Its name in commands (`force v1 30`, `{"input": "v1"}`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Input::V1 => "v1",
+            Input::V2 => "v2",
+            Input::I => "i",
+            Input::RpmM => "rpm_m",
+            Input::RpmL => "rpm_l",
+            Input::Ldr => "ldr",
+            Input::Hall => "hall",
+            Input::Flag => "flag",
+            Input::DriverFault => "driver_fault",
+        }
+    }
+
+    /// The input named `name` (any case).
+    pub fn parse(name: &str) -> Result<Input, ForceError> {
+        let lower = name.trim().to_ascii_lowercase();
+        Input::ALL
+            .into_iter()
+            .find(|i| i.name() == lower)
+            .ok_or_else(|| ForceError::Unknown(name.to_string()))
+    }
+
+    /// What it is, in the lab's words.
+    pub fn label(self) -> &'static str {
+        match self {
+            Input::V1 => "V1 battery voltage",
+            Input::V2 => "V2 DC-bus voltage",
+            Input::I => "I inverter current",
+            Input::RpmM => "RPM_M word (hall rpm)",
+            Input::RpmL => "RPM_L word (light rpm)",
+            Input::Ldr => "LDR word (photoresistor)",
+            Input::Hall => "hall code (ED0 bits 0-2: A, B, C)",
+            Input::Flag => "flag in the beam (ED0 bit 3, photoresistor dark)",
+            Input::DriverFault => "motor driver fault (inverter trips)",
+        }
+    }
+
+    pub fn kind(self) -> InputKind {
+        match self {
+            Input::Hall => InputKind::Code,
+            Input::Flag | Input::DriverFault => InputKind::Switch,
+            _ => InputKind::Analog,
+        }
+    }
+
+    /// Its unit, as the range is said.
+    pub fn unit(self) -> &'static str {
+        match self {
+            Input::V1 | Input::V2 => "V",
+            Input::I => "A",
+            Input::RpmM | Input::RpmL => "rpm",
+            Input::Ldr => "counts",
+            Input::Hall => "code",
+            Input::Flag | Input::DriverFault => "",
+        }
+    }
+
+    /// The values it takes (a switch: 0 off, 1 on).
+    pub fn range(self) -> RangeInclusive<f64> {
+        match self {
+            Input::V1 | Input::V2 => 0.0..=100.0,
+            Input::I => -100.0..=100.0,
+            Input::RpmM | Input::RpmL | Input::Ldr => 0.0..=65535.0,
+            Input::Hall => 0.0..=7.0,
+            Input::Flag | Input::DriverFault => 0.0..=1.0,
+        }
+    }
+
+    /// The smallest change that means something: a word's count, a code.
+    pub fn step(self) -> f64 {
+        match self {
+            Input::V1 | Input::V2 | Input::I => 0.1,
+            _ => 1.0,
+        }
+    }
+
+    /// What it takes, in words: `V1 takes 0 to 100 V`.
+    pub fn takes(self) -> String {
+        let name = self.name().to_ascii_uppercase();
+        match self.kind() {
+            InputKind::Switch => format!("{name} takes on or off (1 or 0)"),
+            InputKind::Code => {
+                format!("{name} takes a code from 0 to 7 (bit 0 A, bit 1 B, bit 2 C)")
+            }
+            InputKind::Analog => {
+                let r = self.range();
+                format!("{name} takes {} to {} {}", r.start(), r.end(), self.unit())
+            }
+        }
+    }
+
+    /// `value` checked against the input's range.
+    pub fn value(self, value: f64) -> Result<Forced, ForceError> {
+        if !value.is_finite() || !self.range().contains(&value) {
+            let shown = match self.unit() {
+                "" | "code" => format!("{value}"),
+                unit => format!("{value} {unit}"),
+            };
+            return Err(ForceError::OutOfRange {
+                value: shown,
+                takes: self.takes(),
+            });
+        }
+        let word = value.round() as u16;
+        Ok(match self {
+            Input::V1 => Forced::V1(value),
+            Input::V2 => Forced::V2(value),
+            Input::I => Forced::I(value),
+            Input::RpmM => Forced::RpmM(word),
+            Input::RpmL => Forced::RpmL(word),
+            Input::Ldr => Forced::Ldr(word),
+            Input::Hall => Forced::Hall(word as u8),
+            Input::Flag => Forced::Flag(word != 0),
+            Input::DriverFault => Forced::DriverFault(word != 0),
+        })
+    }
+
+    /// A value typed on the console: a number, or for a switch `on`/`off`.
+    pub fn value_text(self, text: &str) -> Result<Forced, ForceError> {
+        let number = match text.trim().to_ascii_lowercase().as_str() {
+            "on" | "true" if self.kind() == InputKind::Switch => 1.0,
+            "off" | "false" if self.kind() == InputKind::Switch => 0.0,
+            t => t.parse::<f64>().map_err(|_| ForceError::NotANumber {
+                text: text.to_string(),
+                takes: self.takes(),
+            })?,
+        };
+        self.value(number)
+    }
+}
+
+/// Why a force was refused, in the user's words.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum ForceError {
+    #[error("cannot force `{0}`: v1, v2, i, rpm_m, rpm_l, ldr, hall, flag or driver_fault")]
+    Unknown(String),
+    #[error("{value} is out of range: {takes}")]
+    OutOfRange { value: String, takes: String },
+    #[error("`{text}` is not a value: {takes}")]
+    NotANumber { text: String, takes: String },
+}
+
+/// One input's forced value, checked.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Forced {
+    V1(f64),
+    V2(f64),
+    I(f64),
+    RpmM(u16),
+    RpmL(u16),
+    Ldr(u16),
+    Hall(u8),
+    Flag(bool),
+    DriverFault(bool),
+}
+
+impl Forced {
+    pub fn input(self) -> Input {
+        match self {
+            Forced::V1(_) => Input::V1,
+            Forced::V2(_) => Input::V2,
+            Forced::I(_) => Input::I,
+            Forced::RpmM(_) => Input::RpmM,
+            Forced::RpmL(_) => Input::RpmL,
+            Forced::Ldr(_) => Input::Ldr,
+            Forced::Hall(_) => Input::Hall,
+            Forced::Flag(_) => Input::Flag,
+            Forced::DriverFault(_) => Input::DriverFault,
+        }
+    }
+}
+
+impl std::fmt::Display for Forced {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let on = |b: bool| if b { "on" } else { "off" };
+        match *self {
+            Forced::V1(v) | Forced::V2(v) | Forced::I(v) => write!(f, "{v}"),
+            Forced::RpmM(w) | Forced::RpmL(w) | Forced::Ldr(w) => write!(f, "{w}"),
+            Forced::Hall(c) => write!(f, "{c} (0b{c:03b})"),
+            Forced::Flag(b) | Forced::DriverFault(b) => f.write_str(on(b)),
+        }
+    }
+}
+
+/// The flag forced: in the beam or not, and the photoresistor's reading
+/// for it (the plant's steady shaded or lit level, worked out when forced).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FlagForce {
+    pub in_beam: bool,
+    pub ldr_counts: u16,
+}
 
 /// Inputs forced by hand: measured values replaced before the firmware
 /// samples them (`force v1 30.5`), or input words after it computed them.
@@ -18,6 +260,12 @@ pub struct Forces {
     pub rpm_m: Option<u16>,
     pub rpm_l: Option<u16>,
     pub ldr: Option<u16>,
+    /// The hall sensors' code (bit 0 A, bit 1 B, bit 2 C).
+    pub hall: Option<u8>,
+    /// The paper flag in the photoresistor's beam, or out of it.
+    pub flag: Option<FlagForce>,
+    /// The motor driver's fault line.
+    pub driver_fault: Option<bool>,
 }
 
 /// What is forced, as the console's `force` command names it:
@@ -33,6 +281,11 @@ impl std::fmt::Display for Forces {
             ("rpm_m", self.rpm_m),
             ("rpm_l", self.rpm_l),
             ("ldr", self.ldr),
+            ("hall", self.hall.map(u16::from)),
+        ];
+        let switches = [
+            ("flag", self.flag.map(|f| f.in_beam)),
+            ("driver_fault", self.driver_fault),
         ];
         let mut first = true;
         let mut sep = |f: &mut std::fmt::Formatter<'_>| {
@@ -52,6 +305,12 @@ impl std::fmt::Display for Forces {
                 write!(f, "{name} {v}")?;
             }
         }
+        for (name, value) in switches {
+            if let Some(v) = value {
+                sep(f)?;
+                write!(f, "{name} {}", if v { "on" } else { "off" })?;
+            }
+        }
         Ok(())
     }
 }
@@ -60,6 +319,50 @@ impl Forces {
     /// Whether anything is forced.
     pub fn any(&self) -> bool {
         *self != Forces::default()
+    }
+
+    /// Forces `value`; `light` is the module's photoresistor (the flag's
+    /// levels come from it; without one the flag changes only ED0 bit 3).
+    pub fn force(&mut self, value: Forced, light: Option<&plant::light::LightParams>) {
+        match value {
+            Forced::V1(v) => self.v1 = Some(v),
+            Forced::V2(v) => self.v2 = Some(v),
+            Forced::I(v) => self.i = Some(v),
+            Forced::RpmM(w) => self.rpm_m = Some(w),
+            Forced::RpmL(w) => self.rpm_l = Some(w),
+            Forced::Ldr(w) => self.ldr = Some(w),
+            Forced::Hall(c) => self.hall = Some(c & 0b111),
+            Forced::Flag(in_beam) => {
+                let ldr_counts = light.map_or(0, |p| {
+                    let volts = if in_beam {
+                        p.shaded_volts()
+                    } else {
+                        p.lit_volts()
+                    };
+                    p.adc_counts_for(volts)
+                });
+                self.flag = Some(FlagForce {
+                    in_beam,
+                    ldr_counts,
+                });
+            }
+            Forced::DriverFault(on) => self.driver_fault = Some(on),
+        }
+    }
+
+    /// Returns `input` to the plant.
+    pub fn release(&mut self, input: Input) {
+        match input {
+            Input::V1 => self.v1 = None,
+            Input::V2 => self.v2 = None,
+            Input::I => self.i = None,
+            Input::RpmM => self.rpm_m = None,
+            Input::RpmL => self.rpm_l = None,
+            Input::Ldr => self.ldr = None,
+            Input::Hall => self.hall = None,
+            Input::Flag => self.flag = None,
+            Input::DriverFault => self.driver_fault = None,
+        }
     }
 
     pub(super) fn apply_sensors(
@@ -79,8 +382,21 @@ impl Forces {
             sensors.inverter_current = a;
             sensors.current_counts = s.counts(s.current_zero_volts + a * s.current_volts_per_amp);
         }
+        if let Some(code) = self.hall {
+            sensors.shaft.hall = code;
+        }
+        if let Some(flag) = self.flag {
+            // The detector then sees the flag come and go as a wheel would
+            // show it: toggled by hand, RPM_L follows.
+            sensors.flag_in_beam = flag.in_beam;
+            sensors.ldr_counts = flag.ldr_counts;
+        }
+        // LDR forced by its own word wins over the flag's level.
         if let Some(c) = self.ldr {
             sensors.ldr_counts = c;
+        }
+        if let Some(fault) = self.driver_fault {
+            sensors.motor_tripped = fault;
         }
     }
 
@@ -91,5 +407,67 @@ impl Forces {
         if let Some(w) = self.rpm_l {
             image.inputs[ea::RPM_L] = w;
         }
+        if let Some(flag) = self.flag {
+            // ED0 bit 3 is the detector's verdict, and the adaptive one
+            // forgets a flag held still in the beam: the bit the master
+            // reads is the one set by hand, as on the tool's simulator.
+            let dark = u16::from(flag.in_beam) << 3;
+            image.hall = (image.hall & !(1 << 3)) | dark;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_input_is_checked_and_says_its_range() {
+        assert_eq!(Input::parse("V1"), Ok(Input::V1));
+        assert!(matches!(Input::parse("v9"), Err(ForceError::Unknown(_))));
+        let e = Input::V1.value(500.0).unwrap_err().to_string();
+        assert_eq!(e, "500 V is out of range: V1 takes 0 to 100 V");
+        let e = Input::Hall.value(8.0).unwrap_err().to_string();
+        assert!(e.contains("0 to 7"), "{e}");
+        assert_eq!(Input::Hall.value(5.0), Ok(Forced::Hall(5)));
+        assert_eq!(Input::Flag.value_text("on"), Ok(Forced::Flag(true)));
+        assert_eq!(
+            Input::DriverFault.value_text("0"),
+            Ok(Forced::DriverFault(false))
+        );
+        assert!(
+            Input::RpmM
+                .value(-3.0)
+                .unwrap_err()
+                .to_string()
+                .contains("0 to 65535")
+        );
+        assert!(matches!(
+            Input::V1.value_text("x"),
+            Err(ForceError::NotANumber { .. })
+        ));
+    }
+
+    #[test]
+    fn digital_inputs_reach_the_sensors_and_ed0() {
+        let light = plant::PlantParams::default().light;
+        let mut forces = Forces::default();
+        forces.force(Forced::Hall(0b101), None);
+        forces.force(Forced::Flag(true), Some(&light));
+        forces.force(Forced::DriverFault(true), None);
+        let mut sensors = plant::Sensors::default();
+        forces.apply_sensors(&mut sensors, &plant::params::SensingParams::default());
+        assert_eq!(sensors.shaft.hall, 0b101);
+        assert!(sensors.flag_in_beam && sensors.motor_tripped);
+        assert_eq!(
+            sensors.ldr_counts,
+            light.adc_counts_for(light.shaded_volts())
+        );
+        let mut image = RegisterImage::new(12, 12, 500, 100);
+        forces.apply_words(&mut image);
+        assert_eq!(image.hall & 0b1000, 0b1000);
+        assert_eq!(forces.to_string(), "hall 5, flag on, driver_fault on");
+        forces.release(Input::Flag);
+        assert_eq!(forces.flag, None);
     }
 }

@@ -22,6 +22,9 @@ commands:
   force v1|v2 VOLTS            the controller measures this battery / bus voltage
   force i AMPS                 ... this inverter current
   force rpm_m|rpm_l|ldr COUNTS the input word reads this
+  force hall CODE              the hall sensors read this code (0-7: bit 0 A, 1 B, 2 C)
+  force flag on|off            the photoresistor sees the flag (dark) or not
+  force driver_fault on|off    the motor driver reports a fault (the inverter trips)
   release NAME|all             measure NAME again
   read-only on|off             refuse writes from every client
   stop                         end the session (as SIGINT)
@@ -137,64 +140,41 @@ pub fn parse(line: &str) -> Result<Option<Command>, String> {
             )
         }
         ["force", name, value] => {
-            let name = name.to_ascii_lowercase();
-            let v = number(Some(value), "value")?;
-            let counts = || -> Result<u16, String> {
-                (0.0..=65535.0)
-                    .contains(&v)
-                    .then_some(v.round() as u16)
-                    .ok_or_else(|| "counts must be 0-65535".to_string())
-            };
-            let set: Box<dyn Fn(&mut crate::Forces) + Send> = match name.as_str() {
-                "v1" => Box::new(move |f| f.v1 = Some(v)),
-                "v2" => Box::new(move |f| f.v2 = Some(v)),
-                "i" => Box::new(move |f| f.i = Some(v)),
-                "rpm_m" => {
-                    let c = counts()?;
-                    Box::new(move |f| f.rpm_m = Some(c))
-                }
-                "rpm_l" => {
-                    let c = counts()?;
-                    Box::new(move |f| f.rpm_l = Some(c))
-                }
-                "ldr" => {
-                    let c = counts()?;
-                    Box::new(move |f| f.ldr = Some(c))
-                }
-                _ => {
-                    return Err(format!(
-                        "cannot force `{name}`: v1, v2, i, rpm_m, rpm_l or ldr"
-                    ));
-                }
-            };
+            let forced = crate::forces::Input::parse(name)
+                .and_then(|input| input.value_text(value))
+                .map_err(|e| e.to_string())?;
+            let name = forced.input().name();
             Box::new(move |e: &mut RtEngine| {
-                for d in &mut e.devices {
-                    set(&mut d.forces);
+                let RtEngine {
+                    devices, modules, ..
+                } = e;
+                for d in devices.iter_mut() {
+                    let light = d
+                        .module
+                        .and_then(|m| modules.get(m))
+                        .map(|m| &m.plant.params().light);
+                    d.forces.force(forced, light);
                 }
-                e.say(format!("forced {name} = {v}"));
+                e.say(format!("forced {name} = {forced}"));
             })
         }
         ["release", name] => {
-            let name = name.to_ascii_lowercase();
-            let clear: Box<dyn Fn(&mut crate::Forces) + Send> = match name.as_str() {
-                "v1" => Box::new(|f| f.v1 = None),
-                "v2" => Box::new(|f| f.v2 = None),
-                "i" => Box::new(|f| f.i = None),
-                "rpm_m" => Box::new(|f| f.rpm_m = None),
-                "rpm_l" => Box::new(|f| f.rpm_l = None),
-                "ldr" => Box::new(|f| f.ldr = None),
-                "all" => Box::new(|f| *f = Default::default()),
-                _ => {
-                    return Err(format!(
-                        "cannot release `{name}`: v1, v2, i, rpm_m, rpm_l, ldr or all"
-                    ));
-                }
+            let input = match name.to_ascii_lowercase().as_str() {
+                "all" => None,
+                _ => Some(crate::forces::Input::parse(name).map_err(|_| {
+                    format!(
+                        "cannot release `{name}`: v1, v2, i, rpm_m, rpm_l, ldr, hall, flag, driver_fault or all"
+                    )
+                })?),
             };
             Box::new(move |e: &mut RtEngine| {
                 for d in &mut e.devices {
-                    clear(&mut d.forces);
+                    match input {
+                        Some(input) => d.forces.release(input),
+                        None => d.forces = Default::default(),
+                    }
                 }
-                e.say(format!("released {name}"));
+                e.say(format!("released {}", input.map_or("all", |i| i.name())));
             })
         }
         _ => return Err(format!("unknown command `{}`; try `help`", line.trim())),
@@ -299,6 +279,10 @@ mod tests {
             "fault exception 2",
             "fault off",
             "force v1 30.5",
+            "force hall 5",
+            "force flag on",
+            "force driver_fault off",
+            "release flag",
             "release all",
             "read-only on",
         ] {
@@ -308,7 +292,11 @@ mod tests {
             ("fault delay soon", "must be a number"),
             ("fault exception 9", "1, 2, 3 or 4"),
             ("force v9 1", "cannot force `v9`"),
-            ("force rpm_m -3", "0-65535"),
+            ("force rpm_m -3", "RPM_M takes 0 to 65535 rpm"),
+            ("force v1 500", "V1 takes 0 to 100 V"),
+            ("force hall 9", "0 to 7"),
+            ("force flag maybe", "on or off"),
+            ("release v9", "cannot release `v9`"),
             ("frobnicate", "unknown command"),
         ] {
             let e = parse(bad).err().unwrap_or_default();
