@@ -148,6 +148,12 @@ impl SlaveFrontend {
         self.map = map.filter(|m| !m.is_default()).map(Box::new);
     }
 
+    /// Answer as slave `id` from the next request on (the M3CVME tool's
+    /// device number, changed while the slave runs).
+    pub fn set_id(&mut self, id: u8) {
+        self.id = id;
+    }
+
     /// The framing.
     pub fn framing(&self) -> Framing {
         self.framing

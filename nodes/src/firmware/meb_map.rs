@@ -64,6 +64,14 @@ const FIXED: [Tag; 2] = [
     tag("STATUS", Flags, Digital, 0, None),
 ];
 
+/// A signal's place in the default map's order: [`TAGS`], then [`FIXED`].
+fn order(tag: &Tag) -> usize {
+    TAGS.iter()
+        .chain(FIXED.iter())
+        .position(|t| t == tag)
+        .unwrap_or(usize::MAX)
+}
+
 /// Highest word address a map may use (CNT and ADDR are two digits).
 pub const MAX_ADDRESS: u8 = 98;
 
@@ -205,7 +213,28 @@ impl MebMap {
             });
         }
         self.placed.push(Placement { tag, address, bit });
+        // In the signals' own order, whatever the order they were placed
+        // in: two maps that place alike compare equal.
+        self.placed.sort_by_key(|p| order(&p.tag));
         Ok(())
+    }
+
+    /// Every signal the user can place, in the order of [`TAGS`]: its
+    /// block (`EA`, `SD`, …), name, address and bit.
+    pub fn placements(
+        &self,
+    ) -> impl Iterator<Item = (&'static str, &'static str, u8, Option<u8>)> + '_ {
+        self.placed
+            .iter()
+            .filter(|p| !FIXED.contains(&p.tag))
+            .map(|p| {
+                (
+                    block_name(p.tag.block, p.tag.word_type),
+                    p.tag.name,
+                    p.address,
+                    p.bit,
+                )
+            })
     }
 
     /// Words the block holds: one past its highest address in use.

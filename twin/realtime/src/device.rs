@@ -13,8 +13,12 @@ pub struct Device {
     pub name: String,
     pub node: Box<dyn SimNode + Send>,
     pub module: Option<usize>,
-    /// Inputs the user forced from the console.
+    /// Inputs the user forced from the console or the panel.
     pub forces: Forces,
+    /// Where its slave answers (id and MEB I/O map), when the session lets
+    /// the user change it while it runs (`twin serve`'s EV controller);
+    /// each new connection's front end is made with it.
+    pub address: Option<SlaveAddress>,
     pub(super) next_tick: Option<SimTime>,
     /// Its node has failed (a sketch crashed or stopped answering), and the
     /// console has been told.
@@ -29,10 +33,21 @@ impl Device {
             node,
             module,
             forces: Forces::default(),
+            address: None,
             next_tick,
             failed: false,
         }
     }
+}
+
+/// A slave's device number and I/O map (the M3CVME tool's "device number"
+/// and "mapping of the I/O signals").
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SlaveAddress {
+    /// MEB slave number, Modbus unit id.
+    pub id: u8,
+    /// Where MEB links place the signals (the default map when `None`).
+    pub meb_map: Option<nodes::firmware::MebMap>,
 }
 
 impl std::fmt::Debug for Device {

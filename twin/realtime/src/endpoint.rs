@@ -55,6 +55,10 @@ pub trait Endpoint: Send {
     fn frontend_mut(&mut self) -> Option<&mut SlaveFrontend> {
         None
     }
+    /// The device whose image its front end serves, if it has one.
+    fn served_device(&self) -> Option<usize> {
+        None
+    }
     /// Whether a reply may become due with neither new bytes nor a deadline
     /// of [`Endpoint::poll_timeout`] (it waits on another link): then the
     /// engine's passes look for it, and its connection's carrier listens for
@@ -237,6 +241,10 @@ impl Endpoint for SlaveEndpoint {
 
     fn frontend_mut(&mut self) -> Option<&mut SlaveFrontend> {
         Some(&mut self.frontend)
+    }
+
+    fn served_device(&self) -> Option<usize> {
+        Some(self.device)
     }
 
     fn close_request(&self) -> Option<String> {

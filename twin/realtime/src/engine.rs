@@ -170,6 +170,12 @@ impl RtEngine {
         }
     }
 
+    /// Every open connection's endpoint, for a command that changes how
+    /// they answer (the panel's slave id and I/O map).
+    pub fn endpoints_mut(&mut self) -> impl Iterator<Item = &mut Box<dyn crate::Endpoint>> {
+        self.conns.values_mut().map(|c| &mut c.endpoint)
+    }
+
     /// Whether every slave front end refuses writes.
     pub fn read_only(&self) -> bool {
         self.read_only

@@ -32,13 +32,30 @@ pub fn load(path: &Path) -> Result<MebMap> {
 
 /// Parses a map from `text` (read from `path`, for the messages).
 pub fn parse(text: &str, path: &Path) -> Result<MebMap> {
-    let shown = path.display();
+    parse_text(text).map_err(|e| anyhow!("{}:{}: {}", path.display(), e.line, e.message))
+}
+
+/// A mistake in a map's text: its line and what is wrong.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("line {line}: {message}")]
+pub struct MapTextError {
+    pub line: usize,
+    pub message: String,
+}
+
+/// Parses a map's text, with the checks `--map` makes (the panel's map box
+/// is checked by this too).
+pub fn parse_text(text: &str) -> Result<MebMap, MapTextError> {
+    let at = |line: usize, message: String| MapTextError { line, message };
     let tables: BTreeMap<String, BTreeMap<String, Spanned<Value>>> =
         toml::from_str(text).map_err(|e| {
             let line = e.span().map_or(1, |s| line_of(text, s.start));
-            anyhow!(
-                "{shown}:{line}: {} (the map is one table per block, e.g. [EA] with V1 = 0)",
-                plant::toml_errors::in_words(e.message().trim())
+            at(
+                line,
+                format!(
+                    "{} (the map is one table per block, e.g. [EA] with V1 = 0)",
+                    plant::toml_errors::in_words(e.message().trim())
+                ),
             )
         })?;
     let mut map = MebMap::default();
@@ -56,16 +73,38 @@ pub fn parse(text: &str, path: &Path) -> Result<MebMap> {
                 _ => (None, None),
             };
             let (Some(address), bit) = (address, bit) else {
-                return Err(anyhow!(
-                    "{shown}:{line}: `{tag}` needs an address (a number) or \"WORD.BIT\""
+                return Err(at(
+                    line,
+                    format!("`{tag}` needs an address (a number) or \"WORD.BIT\""),
                 ));
             };
             let bit = bit.flatten();
             map.place(&block, tag, address, bit)
-                .map_err(|e| anyhow!("{shown}:{line}: [{block}] {e}"))?;
+                .map_err(|e| at(line, format!("[{block}] {e}")))?;
         }
     }
     Ok(map)
+}
+
+/// The map as the text of a map file: every block, every signal, so what
+/// it shows is the whole map (and reads back as the same map).
+pub fn to_text(map: &MebMap) -> String {
+    let mut text = String::new();
+    let mut block = "";
+    for (name, tag, address, bit) in map.placements() {
+        if name != block {
+            if !text.is_empty() {
+                text.push('\n');
+            }
+            text.push_str(&format!("[{name}]\n"));
+            block = name;
+        }
+        match bit {
+            Some(b) => text.push_str(&format!("{tag} = \"{address}.{b}\"\n")),
+            None => text.push_str(&format!("{tag} = {address}\n")),
+        }
+    }
+    text
 }
 
 #[cfg(test)]
@@ -100,5 +139,21 @@ mod tests {
         );
         assert!(e.contains("expected a table, found 0"), "{e}");
         assert!(!e.contains("a map"), "{e}");
+    }
+
+    #[test]
+    fn a_map_shown_as_text_reads_back_as_itself() {
+        let path = Path::new("map.toml");
+        let default = MebMap::default();
+        let text = to_text(&default);
+        assert!(text.starts_with("[EA]\nV2 = 0\nI = 1\n"), "{text}");
+        assert!(text.contains("[SD]\nEN = \"0.0\"\n"), "{text}");
+        assert_eq!(parse(&text, path).unwrap(), default);
+        assert!(parse(&text, path).unwrap().is_default());
+        let moved = parse("[EA]\nV1 = 0\nV2 = 1\n[SD]\nEN = \"0.3\"\n", path).unwrap();
+        assert_eq!(parse(&to_text(&moved), path).unwrap(), moved);
+        let e = parse_text("[EA]\nV1 = 0\nV2 = 0\n").unwrap_err();
+        assert_eq!(e.line, 3);
+        assert!(e.to_string().starts_with("line 3: [EA]"), "{e}");
     }
 }

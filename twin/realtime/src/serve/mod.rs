@@ -16,12 +16,29 @@ use std::collections::BTreeMap;
 use std::sync::mpsc::Sender;
 use tokio::runtime::Runtime;
 
+use crate::device::SlaveAddress;
 use crate::firmware_endpoint::{FirmwareEndpoint, RequestFraming};
 use crate::io::{LinkAddr, LinkDefaults, LinkSpec};
 use crate::links::ClientLimit;
 use crate::session::{self, Links, Role, SessionOptions, SessionOutcome};
 use crate::{Device, Inbound, LinkConfig, NodeEndpoint, RtEngine, SlaveEndpoint};
 use twin_sim::engine::ModuleSlot;
+
+/// The slave ids `--id` takes, and the panel's id box: MEB's two digits,
+/// and Modbus's unicast addresses below 100 (0 is a broadcast).
+pub const SLAVE_IDS: std::ops::RangeInclusive<u8> = 1..=99;
+
+/// An id checked as `--id` checks it.
+pub fn check_id(id: f64) -> Result<u8, String> {
+    let (lo, hi) = (*SLAVE_IDS.start(), *SLAVE_IDS.end());
+    if id.fract() == 0.0 && (f64::from(lo)..=f64::from(hi)).contains(&id) {
+        Ok(id as u8)
+    } else {
+        Err(format!(
+            "{id} is not a slave id: it takes a whole number from {lo} to {hi} (as --id)"
+        ))
+    }
+}
 
 /// The protocols `twin serve` speaks, as its options name them.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -304,7 +321,16 @@ fn build_devices(
             }
         };
         ev = Some(engine.devices.len());
-        engine.devices.push(Device::new("ev1", node, Some(module)));
+        let mut device = Device::new("ev1", node, Some(module));
+        // A sketch's id and map are compiled into it: only the Rust
+        // controller's can change while it runs.
+        if sketch(options, "ev1").is_none() {
+            device.address = Some(SlaveAddress {
+                id: options.id,
+                meb_map: options.meb_map.clone(),
+            });
+        }
+        engine.devices.push(device);
     }
     let mut controller_network = None;
     if wants_controller_network {
@@ -456,17 +482,24 @@ async fn open_links(
                 ),
                 (Some(framing), Some(device), _) => {
                     let label = format!("ev1 {name}");
-                    let map = options.meb_map.clone().filter(|_| framing == Framing::Meb);
                     (
-                        Box::new(move |_devices, peer| {
-                            let mut frontend = SlaveFrontend::new(framing, id);
-                            frontend.set_meb_map(map.clone());
-                            Box::new(SlaveEndpoint {
-                                device,
-                                frontend,
-                                name: format!("{label} {peer}"),
-                            })
-                        }),
+                        Box::new(
+                            move |devices: &mut [Device], peer: &str| -> Box<dyn crate::Endpoint> {
+                                // The address in force when the client came
+                                // (the panel may have changed it since start).
+                                let (id, map) = devices
+                                    .get(device)
+                                    .and_then(|d| d.address.clone())
+                                    .map_or((id, None), |a| (a.id, a.meb_map));
+                                let mut frontend = SlaveFrontend::new(framing, id);
+                                frontend.set_meb_map(map.filter(|_| framing == Framing::Meb));
+                                Box::new(SlaveEndpoint {
+                                    device,
+                                    frontend,
+                                    name: format!("{label} {peer}"),
+                                })
+                            },
+                        ),
                         format!("{id:02}"),
                     )
                 }
@@ -519,6 +552,57 @@ async fn open_links(
         });
     }
     Ok(open)
+}
+
+/// Why the slave's address cannot change.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{0}")]
+pub struct CannotReaddress(pub String);
+
+/// Gives the module's controller a new id and/or I/O map while the session
+/// runs: every open connection answers at the new ones from its next
+/// request (the old id gets no answer, as any other slave's), and every
+/// new connection is made with them. `id` and `map` are checked already
+/// ([`check_id`], [`map::parse_text`]). Returns the address now in force.
+pub fn readdress(
+    engine: &mut RtEngine,
+    id: Option<u8>,
+    map: Option<nodes::firmware::MebMap>,
+) -> Result<SlaveAddress, CannotReaddress> {
+    let Some(device) = engine.devices.iter().position(|d| d.address.is_some()) else {
+        let why = if engine.devices.iter().any(|d| d.name == "ev1") {
+            "the module's controller is compiled firmware (--firmware): its slave id and I/O map are its own"
+        } else {
+            "this session serves no EV module controller (only --modbus8's Controller_network nodes, whose ids are fixed)"
+        };
+        return Err(CannotReaddress(why.into()));
+    };
+    let Some(address) = engine
+        .devices
+        .get_mut(device)
+        .and_then(|d| d.address.as_mut())
+    else {
+        return Err(CannotReaddress("the controller went away".into()));
+    };
+    if let Some(id) = id {
+        address.id = id;
+    }
+    if let Some(map) = map {
+        address.meb_map = (!map.is_default()).then_some(map);
+    }
+    let address = address.clone();
+    for endpoint in engine.endpoints_mut() {
+        if endpoint.served_device() != Some(device) {
+            continue;
+        }
+        if let Some(f) = endpoint.frontend_mut() {
+            f.set_id(address.id);
+            if f.framing() == Framing::Meb {
+                f.set_meb_map(address.meb_map.clone());
+            }
+        }
+    }
+    Ok(address)
 }
 
 /// Runs a session. `ready` gets the open links once they all are (the

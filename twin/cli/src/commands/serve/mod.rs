@@ -77,7 +77,8 @@ pub struct ServeArgs {
     #[arg(long, value_name = "[BOARD=]MAP", requires = "firmware")]
     wiring: Vec<String>,
     /// Slave id of the EV module's controller (MEB slave number, Modbus unit id).
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=99))]
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8)
+          .range(i64::from(*serve::SLAVE_IDS.start())..=i64::from(*serve::SLAVE_IDS.end())))]
     id: u8,
     /// I/O map of the MEB links (TOML, one table per block: `[EA]` with
     /// `V1 = 0`, `[SD]` with `EN = "0.0"`); blocks not named keep docs/protocols/meb.md's map.
