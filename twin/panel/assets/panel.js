@@ -238,9 +238,106 @@ function renderPowerUp(c, st) {
     ": the module's power-up outputs are SD0 = 0x001F, every pin high. The other switches are active low, so high is off, " +
     "but FR's high pin selects reverse: the wheel stands, turned to counter-clockwise, until a master writes SD0.";
 }
-// What each forced input takes, said with a refusal.
-const FORCE_RANGES = { v1: "V1 takes 0 to 100 V", v2: "V2 takes 0 to 100 V", i: "I takes -100 to 100 A",
-  rpm_m: "RPM_M takes 0 to 65535 counts", rpm_l: "RPM_L takes 0 to 65535 counts", ldr: "LDR takes 0 to 65535 counts" };
+// ---- the inputs (twin serve): every input set by a slider, a code or a switch
+// What each input takes comes from the server (/api/info `inputs`), which
+// checks every value again and says its range in a refusal.
+let inputEdited = {};
+function buildInputs(list) {
+  const box = $("inputs-set");
+  box.replaceChildren();
+  for (const inp of list || []) {
+    const n = inp.name;
+    const row = el("div", "input-row"); row.id = "in-" + n;
+    row.append(el("b", "", n.toUpperCase()), el("span", "what", inp.label));
+    const ctl = el("div", "ctl");
+    let value;
+    const force = (v) => send("/api/force", { input: n, value: v }, "in-" + n).then((a) => { if (a) delete inputEdited[n]; });
+    if (inp.kind === "switch") {
+      const l = el("label", "switch");
+      value = el("input"); value.type = "checkbox";
+      l.append(value, n === "flag" ? " in the beam (dark)" : " fault");
+      value.onchange = () => { inputEdited[n] = true; force(value.checked); };
+      ctl.append(l);
+    } else if (inp.kind === "code") {
+      value = el("select");
+      for (let c = inp.min; c <= inp.max; c++) {
+        const o = el("option", "", c + " = " + c.toString(2).padStart(3, "0") + " (C B A)"); o.value = c; value.append(o);
+      }
+      value.onchange = () => { inputEdited[n] = true; force(+value.value); };
+      ctl.append(value);
+    } else {
+      const slider = el("input"); slider.type = "range"; slider.id = "slider-" + n;
+      slider.min = inp.min; slider.max = inp.max; slider.step = inp.step;
+      slider.setAttribute("aria-label", n + " slider");
+      value = el("input"); value.type = "number"; value.step = "any";
+      slider.oninput = () => { inputEdited[n] = true; value.value = slider.value; };
+      slider.onchange = () => force(+slider.value);
+      value.oninput = () => { inputEdited[n] = true; };
+      value.onkeydown = (e) => { if (e.key === "Enter") { e.preventDefault(); set.click(); } };
+      ctl.append(slider);
+      const set = el("button", "", "Set"); set.type = "button"; set.id = "force-" + n;
+      set.onclick = () => {
+        const text = value.value.trim();
+        // An empty box is no value: said here, the server never sees it.
+        if (text === "" || !isFinite(+text)) { refuse("in-" + n, "value: enter a number — " + inp.takes); return; }
+        force(+text);
+      };
+      ctl.append(value, el("span", "unit", inp.unit + " (" + inp.min + " to " + inp.max + ")"), set);
+    }
+    value.id = "value-" + n;
+    value.setAttribute("aria-label", n);
+    const release = el("button", "", "Release"); release.type = "button"; release.id = "release-" + n;
+    release.onclick = () => send("/api/release", { input: n }, "in-" + n).then(() => { delete inputEdited[n]; });
+    ctl.append(release, el("span", "now", ""));
+    row.append(ctl);
+    const refusal = el("p", "refusal"); refusal.id = "refusal-in-" + n;
+    refusal.setAttribute("role", "alert"); refusal.setAttribute("aria-live", "assertive");
+    row.append(refusal);
+    box.append(row);
+  }
+}
+// Each control shows the value in force: the one set here, else the
+// plant's, unless the user is changing it.
+function renderInputs(dev, mod) {
+  if (!dev) return;
+  const c = dev.controller, x = c.inputs, f = c.forced, ed0 = c.ED0 >>> 0;
+  const plant = { v1: x.V1.value, v2: x.V2.value, i: x.I.value, rpm_m: x.RPM_M.counts, rpm_l: x.RPM_L.counts,
+    ldr: x.LDR.counts, hall: ed0 & 7, flag: (ed0 & 8) !== 0, driver_fault: mod ? !!mod.motor_tripped : null };
+  for (const n of Object.keys(plant)) {
+    const row = $("in-" + n);
+    if (!row) continue;
+    const forced = f[n] !== null && f[n] !== undefined;
+    const v = forced ? f[n] : plant[n];
+    row.classList.toggle("forced", forced);
+    const shown = typeof v === "boolean" ? (v ? "on" : "off") : typeof v === "number" ? (Number.isInteger(v) ? String(v) : v.toFixed(2)) : "–";
+    row.querySelector(".now").textContent = (forced ? "set: " : "plant: ") + shown;
+    const value = $("value-" + n), slider = $("slider-" + n);
+    const busy = inputEdited[n] || document.activeElement === value || document.activeElement === slider;
+    if (busy || v === null || v === undefined) continue;
+    if (value.type === "checkbox") value.checked = !!v;
+    else {
+      value.value = typeof v === "number" && !Number.isInteger(v) ? v.toFixed(2) : v;
+      if (slider) slider.value = v;
+    }
+  }
+}
+
+// ---- the module's device number and I/O map (twin serve) ------------------
+let mapEdited = false;
+function renderSlave(m) {
+  const dev = ((m.state && m.state.devices) || []).find((d) => d.slave);
+  const card = $("slave-card");
+  if (!dev) {
+    $("slave-now").textContent = "Set at start: this session's controller keeps its own (compiled firmware, or only --modbus8 nodes).";
+    card.querySelectorAll("input, textarea, button").forEach((e) => { e.disabled = true; });
+    return;
+  }
+  const s = dev.slave;
+  $("slave-now").textContent = "The module answers as slave " + String(s.id).padStart(2, "0") + ", " +
+    (s.map_is_default ? "with the default I/O map (docs/protocols/meb.md)" : "with the I/O map below") + ".";
+  if (document.activeElement !== $("slave-id") && !inputEdited.slaveId) $("slave-id").value = s.id;
+  if (document.activeElement !== $("slave-map") && !mapEdited) $("slave-map").value = s.map;
+}
 const SWITCH_NAMES = ["EN", "BRK", "PRO", "DES", "FR", "CHG"];
 const SWITCH_LABELS = { EN: "inverter enable", BRK: "brake", PRO: "converter boost", DES: "bus bleeder", FR: "reverse", CHG: "charger" };
 
@@ -519,6 +616,11 @@ function render() {
   if (!m) return;
   $("clock").textContent = "t = " + m.t.toFixed(1) + " s";
   renderGauges(m); renderOutputs(m); renderLinks(m); renderSlaves(m);
+  if (info.role === "serve") {
+    const st = m.state || {};
+    renderInputs((st.devices || []).find((d) => d.controller), (st.modules || [])[0]);
+    renderSlave(m);
+  }
   if (info.role !== "serve") { renderSwitches(m); renderConnection(m); }
   if (!paused) renderFrames();
   drawTrend();
@@ -558,15 +660,21 @@ function connect() {
 
 // ---- controls ---------------------------------------------------------------
 function wire() {
-  $("force-form").onsubmit = (e) => {
-    e.preventDefault();
-    const input = $("force-input").value, text = $("force-value").value.trim();
-    const range = FORCE_RANGES[input];
-    if (text === "" || !isFinite(+text)) { refuse("force", "value: enter a number — " + range); return; }
-    send("/api/force", { input, value: +text }, "force", range);
+  $("release-all").onclick = () => send("/api/release", { input: "all" }, "force").then(() => { inputEdited = {}; });
+  $("slave-id").oninput = () => { inputEdited.slaveId = true; };
+  $("slave-id").onkeydown = (e) => { if (e.key === "Enter") { e.preventDefault(); $("slave-id-set").click(); } };
+  $("slave-id-set").onclick = async () => {
+    const text = $("slave-id").value.trim();
+    if (text === "" || !isFinite(+text)) { refuse("slave-id", "id: enter a number from 1 to 99"); return; }
+    if (await send("/api/slave", { id: +text }, "slave-id")) delete inputEdited.slaveId;
   };
-  $("release").onclick = () => send("/api/release", { input: $("force-input").value }, "force");
-  $("release-all").onclick = () => send("/api/release", { input: "all" }, "force");
+  $("slave-map").oninput = () => { mapEdited = true; };
+  $("slave-map-set").onclick = async () => {
+    if (await send("/api/slave", { map: $("slave-map").value }, "slave-map")) mapEdited = false;
+  };
+  $("slave-map-default").onclick = async () => {
+    if (await send("/api/slave", { map: "" }, "slave-map")) mapEdited = false;
+  };
   $("pause").onclick = () => { paused = !paused; $("pause").textContent = paused ? "Resume" : "Pause"; $("pause").classList.toggle("on", paused); renderFrames(); };
   $("csv").onclick = exportCsv;
   $("filter-link").onchange = renderFrames;
@@ -629,6 +737,7 @@ async function start() {
   buildGauges();
   buildSwitches();
   try { info = await api("/api/info"); } catch (e) { say("cannot reach the twin: " + e.message, true); }
+  if (info.role === "serve") buildInputs(info.inputs);
   // The title and heading (module and role) come with the page itself.
   // A card shows if one of its roles is this panel's (and it can change things).
   document.querySelectorAll(".control").forEach((e) => {

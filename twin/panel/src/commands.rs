@@ -9,6 +9,8 @@ use serde_json::{Map, Value, json};
 use std::sync::Mutex;
 use std::sync::mpsc::Sender;
 use std::time::Duration;
+use twin_realtime::forces::{Input, InputKind};
+use twin_realtime::serve;
 use twin_realtime::{Forces, Inbound, LinkFault, RtEngine};
 
 /// A command refused: the HTTP status, the field at fault and why.
@@ -120,75 +122,136 @@ fn link_index(engine: &RtEngine, name: &str) -> Result<usize, Rejected> {
         })
 }
 
-const INPUTS: &str = "v1, v2, i, rpm_m, rpm_l or ldr";
-
 /// `POST /api/force {"input": "v1", "value": 30.5}`: the controller measures
-/// this value (V, A, or counts for the words) until released.
+/// this value (V, A, rpm or counts for the words, a code for the hall
+/// sensors, `true`/`false` or 1/0 for the flag and the driver fault) until
+/// released. The range is the console's (`twin_realtime::forces::Input`).
 pub fn force(map: &Map<String, Value>) -> Result<EngineCommand, Rejected> {
     only(map, &["input", "value"])?;
-    let input = required(text(map, "input")?, "input")?.to_ascii_lowercase();
-    let set: Box<dyn Fn(&mut Forces) + Send> = match input.as_str() {
-        "v1" | "v2" => {
-            let v = required(number(map, "value", 0.0..=100.0)?, "value")?;
-            if input == "v1" {
-                Box::new(move |f| f.v1 = Some(v))
-            } else {
-                Box::new(move |f| f.v2 = Some(v))
-            }
-        }
-        "i" => {
-            let v = required(number(map, "value", -100.0..=100.0)?, "value")?;
-            Box::new(move |f| f.i = Some(v))
-        }
-        "rpm_m" | "rpm_l" | "ldr" => {
-            let c = required(number(map, "value", 0.0..=65535.0)?, "value")?.round() as u16;
-            match input.as_str() {
-                "rpm_m" => Box::new(move |f| f.rpm_m = Some(c)),
-                "rpm_l" => Box::new(move |f| f.rpm_l = Some(c)),
-                _ => Box::new(move |f| f.ldr = Some(c)),
-            }
-        }
-        other => {
-            return Err(Rejected::field(
-                "input",
-                format!("cannot force `{other}`: {INPUTS}"),
-            ));
-        }
+    let name = required(text(map, "input")?, "input")?;
+    let input = Input::parse(name).map_err(|e| Rejected::field("input", e.to_string()))?;
+    let value = match map.get("value") {
+        None | Some(Value::Null) => return Err(Rejected::field("value", "missing")),
+        Some(Value::Bool(b)) if input.kind() == InputKind::Switch => f64::from(u8::from(*b)),
+        Some(v) => v.as_f64().ok_or_else(|| {
+            Rejected::field("value", format!("must be a number: {}", input.takes()))
+        })?,
     };
+    let forced = input
+        .value(value)
+        .map_err(|e| Rejected::field("value", e.to_string()))?;
     Ok(Box::new(move |e: &mut RtEngine| {
-        for d in &mut e.devices {
-            set(&mut d.forces);
+        let RtEngine {
+            devices, modules, ..
+        } = e;
+        for d in devices.iter_mut() {
+            let light = d
+                .module
+                .and_then(|m| modules.get(m))
+                .map(|m| &m.plant.params().light);
+            d.forces.force(forced, light);
         }
-        e.say(format!("panel: forced {input}"));
-        Ok(json!({ "forced": input }))
+        let name = input.name();
+        e.say(format!("panel: forced {name} = {forced}"));
+        Ok(json!({ "forced": name }))
     }))
 }
 
 /// `POST /api/release {"input": "v1" | "all"}`.
 pub fn release(map: &Map<String, Value>) -> Result<EngineCommand, Rejected> {
     only(map, &["input"])?;
-    let input = required(text(map, "input")?, "input")?.to_ascii_lowercase();
-    let clear: Box<dyn Fn(&mut Forces) + Send> = match input.as_str() {
-        "v1" => Box::new(|f| f.v1 = None),
-        "v2" => Box::new(|f| f.v2 = None),
-        "i" => Box::new(|f| f.i = None),
-        "rpm_m" => Box::new(|f| f.rpm_m = None),
-        "rpm_l" => Box::new(|f| f.rpm_l = None),
-        "ldr" => Box::new(|f| f.ldr = None),
-        "all" => Box::new(|f| *f = Forces::default()),
-        other => {
-            return Err(Rejected::field(
+    let name = required(text(map, "input")?, "input")?.to_ascii_lowercase();
+    let input = match name.as_str() {
+        "all" => None,
+        other => Some(Input::parse(other).map_err(|_| {
+            Rejected::field(
                 "input",
-                format!("cannot release `{other}`: {INPUTS} or all"),
-            ));
-        }
+                format!(
+                    "cannot release `{other}`: v1, v2, i, rpm_m, rpm_l, ldr, hall, flag, driver_fault or all"
+                ),
+            )
+        })?),
     };
     Ok(Box::new(move |e: &mut RtEngine| {
         for d in &mut e.devices {
-            clear(&mut d.forces);
+            match input {
+                Some(input) => d.forces.release(input),
+                None => d.forces = Forces::default(),
+            }
         }
-        e.say(format!("panel: released {input}"));
-        Ok(json!({ "released": input }))
+        e.say(format!("panel: released {name}"));
+        Ok(json!({ "released": name }))
+    }))
+}
+
+/// The inputs the panel can force, with what each takes: the page builds
+/// its sliders and switches from this (`GET /api/info`, `inputs`).
+pub fn inputs_json() -> Value {
+    Value::Array(
+        Input::ALL
+            .iter()
+            .map(|i| {
+                let r = i.range();
+                json!({
+                    "name": i.name(),
+                    "label": i.label(),
+                    "kind": match i.kind() {
+                        InputKind::Analog => "analog",
+                        InputKind::Code => "code",
+                        InputKind::Switch => "switch",
+                    },
+                    "unit": i.unit(),
+                    "min": r.start(),
+                    "max": r.end(),
+                    "step": i.step(),
+                    "takes": i.takes(),
+                })
+            })
+            .collect(),
+    )
+}
+
+/// `POST /api/slave {"id": 5, "map": "[EA]\nV1 = 0\n..."}`: the module's
+/// device number and I/O map, as `twin serve --id` and `--map` set them at
+/// start, with their checks (the map's text is a map file's; empty: the
+/// default map). Either may be left out.
+pub fn slave(map: &Map<String, Value>) -> Result<EngineCommand, Rejected> {
+    only(map, &["id", "map"])?;
+    let id = match map.get("id") {
+        None | Some(Value::Null) => None,
+        Some(v) => {
+            let n = v.as_f64().ok_or_else(|| {
+                Rejected::field("id", "must be a number: a slave id takes 1 to 99 (as --id)")
+            })?;
+            Some(serve::check_id(n).map_err(|e| Rejected::field("id", e))?)
+        }
+    };
+    let meb_map = match text(map, "map")? {
+        None => None,
+        Some(t) if t.trim().is_empty() => Some(nodes::firmware::MebMap::default()),
+        Some(t) => {
+            Some(serve::map::parse_text(t).map_err(|e| Rejected::field("map", e.to_string()))?)
+        }
+    };
+    if id.is_none() && meb_map.is_none() {
+        return Err(Rejected::body("nothing to change: give id, map or both"));
+    }
+    Ok(Box::new(move |e: &mut RtEngine| {
+        let changed_map = meb_map.is_some();
+        let a = serve::readdress(e, id, meb_map).map_err(|why| Rejected {
+            status: 409,
+            field: None,
+            message: why.to_string(),
+        })?;
+        let mut said = format!("panel: the module answers as slave {:02}", a.id);
+        if changed_map {
+            said += match a.meb_map {
+                Some(_) => " with the I/O map set on the page",
+                None => " with the default I/O map",
+            };
+        }
+        e.say(said);
+        Ok(json!({ "id": a.id, "map_is_default": a.meb_map.is_none() }))
     }))
 }
 
@@ -382,5 +445,18 @@ mod tests {
             Some("vel".into())
         );
         assert!(supervise_loop(&map(r#"{"mode":"manual"}"#)).is_ok());
+        assert!(force(&map(r#"{"input":"hall","value":5}"#)).is_ok());
+        assert!(force(&map(r#"{"input":"flag","value":true}"#)).is_ok());
+        assert_eq!(
+            field_of(force(&map(r#"{"input":"hall","value":true}"#))),
+            Some("value".into())
+        );
+        assert!(slave(&map(r#"{"id":7,"map":""}"#)).is_ok());
+        assert_eq!(field_of(slave(&map(r#"{"id":0}"#))), Some("id".into()));
+        assert_eq!(
+            field_of(slave(&map(r#"{"map":"[EA]\nV1 = 0\nV2 = 0\n"}"#))),
+            Some("map".into())
+        );
+        assert_eq!(slave(&map("{}")).err().map(|e| e.status), Some(400));
     }
 }

@@ -154,6 +154,7 @@ pub fn router(state: AppState) -> Router {
         .route("/api/release", post(|s, h, b| command(s, h, b, commands::release)))
         .route("/api/fault", post(|s, h, b| command(s, h, b, commands::fault)))
         .route("/api/loop", post(|s, h, b| command(s, h, b, commands::supervise_loop)))
+        .route("/api/slave", post(|s, h, b| command(s, h, b, commands::slave)))
         .route("/api/step", post(step))
         .route("/api/outputs", post(set_outputs))
         .fallback(|| async { error(404, json!({ "error": "no such page: the panel is at / and its API under /api/ (docs/panel-api.md)" })) })
@@ -294,6 +295,8 @@ async fn info(State(state): State<AppState>) -> Response {
         "rate_hz": state.rate_hz,
         "version": env!("CARGO_PKG_VERSION"),
         "stream_clients": state.hub.clients.load(Ordering::Relaxed),
+        // What each input takes, for the serve page's sliders and switches.
+        "inputs": (state.role == PanelRole::Serve).then(commands::inputs_json),
     }))
     .into_response()
 }
@@ -444,9 +447,21 @@ async fn produce(state: AppState, engine: Arc<Mutex<Sender<Inbound>>>) {
             snap.t,
         );
         let mut shown = snap.to_json();
-        if let (Some(layout), Some(devices)) = (&state.layout, shown["devices"].as_array_mut()) {
-            for d in devices.iter_mut().filter_map(|d| d.get_mut("controller")) {
-                crate::remote::layout::label(d, layout);
+        if let Some(devices) = shown["devices"].as_array_mut() {
+            for (d, device) in devices.iter_mut().zip(&snap.devices) {
+                // The map in force now (the page may have changed it),
+                // else the one the session started with.
+                let now = device
+                    .address
+                    .as_ref()
+                    .map(|a| a.meb_map.as_ref().map(crate::remote::layout::Layout::new));
+                let layout = match now {
+                    Some(map) => map.map(Arc::new),
+                    None => state.layout.clone(),
+                };
+                if let (Some(layout), Some(c)) = (layout, d.get_mut("controller")) {
+                    crate::remote::layout::label(c, &layout);
+                }
             }
         }
         let mut message = json!({

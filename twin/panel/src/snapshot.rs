@@ -5,6 +5,7 @@
 use nodes::firmware::{LightDetectorConfig, RegisterImage, ea, sd, status};
 use nodes::master::{LoopMode, LoopState};
 use serde_json::{Value, json};
+use twin_realtime::device::SlaveAddress;
 use twin_realtime::engine::RtCounters;
 use twin_realtime::{Forces, RtEngine};
 use twin_recording::topics::ReadingsSample;
@@ -41,6 +42,8 @@ pub struct DeviceState {
     /// The light detector in use: its description and the fastest wheel
     /// it sees the flag at, rpm (a controller on a plant only).
     pub light: Option<(String, f64, bool)>,
+    /// Its slave id and I/O map, when the page may change them.
+    pub address: Option<SlaveAddress>,
 }
 
 #[derive(Debug, Clone)]
@@ -122,6 +125,7 @@ pub fn read(engine: &mut RtEngine) -> EngineSnapshot {
                 image,
                 light,
                 forces: d.forces,
+                address: d.address.clone(),
                 readings: d.node.controller_readings(),
                 loops,
             }
@@ -229,6 +233,7 @@ fn forces_json(f: &Forces) -> Value {
     json!({
         "v1": f.v1, "v2": f.v2, "i": f.i,
         "rpm_m": f.rpm_m, "rpm_l": f.rpm_l, "ldr": f.ldr,
+        "hall": f.hall, "flag": f.flag.map(|f| f.in_beam), "driver_fault": f.driver_fault,
     })
 }
 
@@ -326,6 +331,14 @@ impl EngineSnapshot {
                         "hall_rpm": r.hall_rpm, "light_rpm": r.light_rpm,
                         "flag_dark": r.flag_dark, "soc_percent": r.soc_percent,
                         "battery_volts": r.battery_volts,
+                    });
+                }
+                if let Some(a) = &d.address {
+                    let map = a.meb_map.clone().unwrap_or_default();
+                    v["slave"] = json!({
+                        "id": a.id,
+                        "map": twin_realtime::serve::map::to_text(&map),
+                        "map_is_default": map.is_default(),
                     });
                 }
                 if !d.loops.is_empty() {

@@ -96,7 +96,8 @@ pub fn message_state(remote: &Remote) -> (Value, [Option<f64>; 5]) {
             "ccw": lamp(status::CCW),
         },
         "outputs": outputs,
-        "forced": { "v1": null, "v2": null, "i": null, "rpm_m": null, "rpm_l": null, "ldr": null },
+        "forced": { "v1": null, "v2": null, "i": null, "rpm_m": null, "rpm_l": null, "ldr": null,
+                    "hall": null, "flag": null, "driver_fault": null },
     });
     let o = &remote.options;
     let state = json!({

@@ -16,5 +16,6 @@ mod client_truth;
 mod common;
 mod page;
 mod serve_truth;
+mod sim_inputs;
 mod supervise_browser;
 mod supervise_truth;

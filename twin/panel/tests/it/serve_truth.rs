@@ -6,6 +6,7 @@
 use crate::common::{Session, chromedriver, http, serve_with};
 use crate::page::{click, js, open, runtime, text, until};
 use fantoccini::Locator;
+use fantoccini::key::Key;
 use nodes::firmware::sd;
 use nodes::proto::meb::MebCmd;
 use serde_json::Value;
@@ -81,13 +82,20 @@ fn the_serve_page_explains_light_power_up_refusals_and_exceptions() {
             "the power-up note stays once a master wrote SD0"
         );
 
-        // 500 V forced: refused beside the form, with the range, in a live region.
-        let value = c.find(Locator::Css("#force-value")).await.unwrap();
-        value.clear().await.unwrap();
-        value.send_keys("500").await.unwrap();
-        click(&c, "#force-form button[type=submit]").await;
-        until("the refusal beside the force form", LIMIT, async || {
-            let said = text(&c, "#refusal-force").await;
+        // 500 V forced: refused beside V1's control, with the range, in a live region.
+        // Typed over as a person does (WebDriver's clear leaves the box,
+        // and the page refills a box no one is in with the value in force).
+        let value = c.find(Locator::Css("#value-v1")).await.unwrap();
+        let type_over = async |text: &str| {
+            value.click().await.unwrap();
+            value.send_keys(&(Key::Control + "a")).await.unwrap();
+            value.send_keys(&Key::Backspace).await.unwrap();
+            value.send_keys(text).await.unwrap();
+        };
+        type_over("500").await;
+        click(&c, "#force-v1").await;
+        until("the refusal beside V1's control", LIMIT, async || {
+            let said = text(&c, "#refusal-in-v1").await;
             (
                 said.contains("500") && said.contains("0 to 100 V"),
                 format!("`{said}`"),
@@ -96,7 +104,7 @@ fn the_serve_page_explains_light_power_up_refusals_and_exceptions() {
         .await;
         let live = js(
             &c,
-            "document.getElementById('refusal-force').getAttribute('aria-live')",
+            "document.getElementById('refusal-in-v1').getAttribute('aria-live')",
         )
         .await;
         assert_eq!(live, "assertive", "refusals are an ARIA live region");
@@ -105,11 +113,10 @@ fn the_serve_page_explains_light_power_up_refusals_and_exceptions() {
             Value::Null
         );
         // A good force clears the refusal.
-        value.clear().await.unwrap();
-        value.send_keys("30").await.unwrap();
-        click(&c, "#force-form button[type=submit]").await;
+        type_over("30").await;
+        click(&c, "#force-v1").await;
         until("the refusal cleared", LIMIT, async || {
-            let said = text(&c, "#refusal-force").await;
+            let said = text(&c, "#refusal-in-v1").await;
             let forced = state(&serve)["state"]["devices"][0]["controller"]["forced"]["v1"].clone();
             (
                 said.is_empty() && forced == 30.0,
