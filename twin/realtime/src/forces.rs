@@ -243,6 +243,8 @@ impl std::fmt::Display for Forced {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct FlagForce {
     pub in_beam: bool,
+    /// The divider's volts (a sketch's analog pin) and their ADC counts.
+    pub ldr_millivolts: u16,
     pub ldr_counts: u16,
 }
 
@@ -333,17 +335,17 @@ impl Forces {
             Forced::Ldr(w) => self.ldr = Some(w),
             Forced::Hall(c) => self.hall = Some(c & 0b111),
             Forced::Flag(in_beam) => {
-                let ldr_counts = light.map_or(0, |p| {
-                    let volts = if in_beam {
+                let volts = light.map_or(0.0, |p| {
+                    if in_beam {
                         p.shaded_volts()
                     } else {
                         p.lit_volts()
-                    };
-                    p.adc_counts_for(volts)
+                    }
                 });
                 self.flag = Some(FlagForce {
                     in_beam,
-                    ldr_counts,
+                    ldr_millivolts: (volts * 1000.0).round().clamp(0.0, 65535.0) as u16,
+                    ldr_counts: light.map_or(0, |p| p.adc_counts_for(volts)),
                 });
             }
             Forced::DriverFault(on) => self.driver_fault = Some(on),
@@ -389,6 +391,7 @@ impl Forces {
             // The detector then sees the flag come and go as a wheel would
             // show it: toggled by hand, RPM_L follows.
             sensors.flag_in_beam = flag.in_beam;
+            sensors.ldr_volts = f64::from(flag.ldr_millivolts) / 1000.0;
             sensors.ldr_counts = flag.ldr_counts;
         }
         // LDR forced by its own word wins over the flag's level.
@@ -463,6 +466,7 @@ mod tests {
             sensors.ldr_counts,
             light.adc_counts_for(light.shaded_volts())
         );
+        assert!((sensors.ldr_volts - light.shaded_volts()).abs() < 1e-3);
         let mut image = RegisterImage::new(12, 12, 500, 100);
         forces.apply_words(&mut image);
         assert_eq!(image.hall & 0b1000, 0b1000);
