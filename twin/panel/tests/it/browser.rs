@@ -145,6 +145,8 @@ fn the_panel_shows_the_bench_in_a_browser_and_its_monitor_shows_a_bad_check() {
         )
         .await;
         assert!(bad.contains('✗'), "{bad}");
+        // The page's top for the picture: the click scrolled to the fault's row.
+        c.execute("window.scrollTo(0, 0)", vec![]).await.unwrap();
         tokio::time::sleep(Duration::from_millis(300)).await;
         let png = c.screenshot().await.unwrap();
         std::fs::write(screenshot_path("panel-laptop.png"), png).unwrap();

@@ -151,6 +151,19 @@ fn digital_inputs_and_a_slider_set_on_the_page_reach_a_client() {
         .await;
         let unit = text(&c, "#in-v1 .unit").await;
         assert_eq!(unit, "V (0 to 100)", "unit and range beside the slider");
+        c.execute(
+            "document.getElementById('force-card').scrollIntoView()",
+            vec![],
+        )
+        .await
+        .unwrap();
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        let png = c.screenshot().await.unwrap();
+        std::fs::write(
+            crate::browser::screenshot_path("panel-serve-inputs.png"),
+            png,
+        )
+        .unwrap();
         c.close().await.unwrap();
     });
 }
