@@ -573,7 +573,7 @@ pub fn readdress(
         let why = if engine.devices.iter().any(|d| d.name == "ev1") {
             "the module's controller is compiled firmware (--firmware): its slave id and I/O map are its own"
         } else {
-            "this session serves no EV module controller (only --modbus8's Controller_network nodes, whose ids are fixed)"
+            "no slave of this session changes its id or map: twin serve's EV module controller does (the --modbus8 Controller_network nodes' ids are fixed)"
         };
         return Err(CannotReaddress(why.into()));
     };
