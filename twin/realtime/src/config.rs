@@ -56,6 +56,9 @@ pub struct LinkConfig {
     pub protocol: &'static str,
     /// Resolved address (real port, device path).
     pub address: String,
+    /// The twin is the master here (the supervisor's bus): the frames that
+    /// come in are slaves' replies, not clients' requests.
+    pub twin_is_master: bool,
     pub spec: LinkSpec,
     /// Where a bad-check fault spoils a reply.
     pub check: Option<CheckKind>,

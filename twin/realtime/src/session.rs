@@ -391,6 +391,7 @@ pub fn link_labels(engine: &RtEngine) -> Vec<SinkLink> {
             name: l.name.clone(),
             protocol: l.protocol,
             silence: l.spec.silence(),
+            twin_is_master: l.twin_is_master,
         })
         .collect()
 }

@@ -126,6 +126,8 @@ pub struct SinkLink {
     /// The line quiet that ends a partial frame on a serial link (the
     /// nodes' own rule), so that the frames shown are those they took.
     pub silence: SimDuration,
+    /// The twin is the master here: what comes in is a slave's reply.
+    pub twin_is_master: bool,
 }
 
 /// A live view of a session, fed by the sink what it records. The viewer
@@ -140,7 +142,8 @@ pub trait LiveView: Send + std::fmt::Debug {
     fn readings(&mut self, node: &str, t: f64, readings: &ReadingsSample);
     /// The engine's tick lateness over the last second.
     fn lateness(&mut self, t: f64, p99_us: f64, max_us: f64);
-    /// One reassembled frame on `link`, sent by `from` (`twin`, `client N`).
+    /// One reassembled frame on `link`, sent by `from` (`twin`, `client N`,
+    /// `slave NN` on a supervisor's bus).
     fn frame(&mut self, link: &str, from: &str, start: f64, end: f64, bytes: &[u8]);
     /// Close the view: the samples it streamed, and what its viewer did
     /// not take, if anything.
@@ -466,7 +469,17 @@ impl FrameSink {
                     state.last_request = Some(record.end);
                     let client = &state.client;
                     state.framer.push(link, record.start, bytes, |at, frame| {
-                        show(at, at, frame, client, "");
+                        if link.twin_is_master {
+                            // A slave's reply on the twin's bus: the slave
+                            // it names, not the port's connection.
+                            let from = match link_frame_fields(protocol, frame).node_id() {
+                                Some(id) => format!("slave {id:02}"),
+                                None => "a slave".to_string(),
+                            };
+                            show(at, at, frame, &from, "");
+                        } else {
+                            show(at, at, frame, client, "");
+                        }
                     });
                 }
                 Direction::Tx => {
@@ -899,6 +912,7 @@ mod tests {
                 name: "modbus".into(),
                 protocol: "modbus-tcp",
                 silence: SimDuration::ZERO,
+                twin_is_master: false,
             }],
             monitor: true,
             recording: None,

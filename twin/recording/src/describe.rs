@@ -177,6 +177,23 @@ pub enum LinkFrameFields<'a> {
     Bus(FrameFields),
 }
 
+impl LinkFrameFields<'_> {
+    /// The slave (MEB id, Modbus unit) the frame is addressed to or sent
+    /// by, if it decodes.
+    pub fn node_id(&self) -> Option<u8> {
+        match self {
+            LinkFrameFields::Modbus { unit, .. } => Some(*unit),
+            LinkFrameFields::Bus(FrameFields::Meb { id, .. } | FrameFields::Modbus8 { id, .. }) => {
+                Some(*id)
+            }
+            LinkFrameFields::Bus(FrameFields::ModbusRtu { unit, .. }) => Some(*unit),
+            LinkFrameFields::Broken { .. } | LinkFrameFields::Bus(FrameFields::Broken { .. }) => {
+                None
+            }
+        }
+    }
+}
+
 pub fn link_frame_fields<'a>(protocol: &'a str, bytes: &[u8]) -> LinkFrameFields<'a> {
     let modbus = |f: Result<modbus::Frame<'_>, modbus::FrameError>| match f {
         Ok(f) => LinkFrameFields::Modbus {

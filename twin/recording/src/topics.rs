@@ -18,7 +18,7 @@
 //! | [`plant_actuators`] `/plant/<module>/actuators` | a virtual run, a real-time session | on every change | `plant::Actuators`: `vel_volts`, `enable`, `brake`, `boost`, `discharge`, `reverse`, `charger` |
 //! | [`PLANT_ACTUATORS`] `/plant/actuators` | the open-loop bench | on every change | as above |
 //! | [`bus_frames`] `/bus/<bus>/frames` | a virtual run | every frame sent, at its first byte | [`FrameSample`]: `from` (the sending node), `start_s`, `end_s`, `len`, `text` (printable bytes, else empty), `hex` (protobuf keeps the bytes once: `text` when printable, else `hex`; [`complete_frame`] gives back both), `decoded` ([`crate::describe`]; PWM-capture: widths sent and captured per listener, values, pulses lost, values wrong) |
-//! | [`link_frames`] `/link/<link>/frames` | a real-time session (`twin serve`, `twin supervise`) | every frame, both directions | [`FrameSample`], `from` being `twin` or `client N` |
+//! | [`link_frames`] `/link/<link>/frames` | a real-time session (`twin serve`, `twin supervise`) | every frame, both directions | [`FrameSample`], `from` being `twin`, `client N`, or on `twin supervise`'s `bus` the slave that answered (`slave 01`) |
 //! | [`EVENTS`] `/events` | a virtual run, a real-time session | as they happen | [`EventSample`]: `node`, `kind` (`timeout`, `bad_check`, `retry`, `exception`, `dropped`, `fault`, `state`, `log`; a session's `connection`, and `slip` from the node `clock` each second real time was lost), `detail` |
 //! | [`controller_readings`] `/controller/<node>/readings` | a virtual run, a real-time session (`twin serve`) | beside each plant sample (the scenario's `record_hz`), per EV module controller | [`ReadingsSample`]: what the controller reads, named: `battery_volts` (V1), `bus_volts` (V2), `inverter_amps` (I), `hall_rpm` (RPM_M), `light_rpm` (RPM_L), `flag_dark` (ED0 bit 3), `soc_percent` (SOC), and `meb`, the raw words a master reads by their MEB names (`V2`, `I`, `V1`, `RPM_M`, `RPM_L`, `LDR`, `HALL`, `SOC`, `ERRS`, `STATUS`); its schema describes every field with its unit ([`readings_schema`]; in the protobuf descriptor as the fields' comments) |
 //! | [`master_loop`] `/master/<node>/loop` | a virtual run, a real-time session (`twin supervise`) | every poll cycle of a master | [`LoopReport`]: the master's telemetry: set point, measured rpm, error, output, counters (a supervisor: `cycles` and `loops`, one per slave) |
@@ -195,7 +195,8 @@ impl<'a> Topic<'a> {
 /// reader takes; `len`, `text` and `decoded` are for people and tools).
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 pub struct FrameSample {
-    /// The sending node (a session's link: `twin` or `client N`).
+    /// The sending node (a session's link: `twin`, `client N`, or on a
+    /// supervisor's bus `slave NN`).
     pub from: String,
     /// When its first and last byte went (s).
     pub start_s: f64,
@@ -611,7 +612,7 @@ fn frame_proto() -> crate::proto::Schema {
             (
                 0,
                 "from",
-                "the sending node (a session's link: twin or client N)",
+                "the sending node (a session's link: twin, client N, or on a supervisor's bus slave NN)",
             ),
             (0, "start_s", "when the first byte started on the wire (s)"),
             (0, "end_s", "when the last byte ended (s)"),

@@ -178,7 +178,8 @@ impl std::fmt::Display for Hex<'_> {
 /// a PWM-capture bus's) or written by [`FrameMessage::write`].
 #[derive(Debug, Serialize)]
 pub struct FrameMessage<'a, D: ?Sized> {
-    /// The sending node (a session's link: `twin` or `client N`).
+    /// The sending node (a session's link: `twin`, `client N`, or on a
+    /// supervisor's bus `slave NN`).
     pub from: &'a str,
     pub start_s: f64,
     pub end_s: f64,

@@ -948,9 +948,8 @@ pub fn check_name(name: &str) -> std::result::Result<(), String> {
 }
 
 /// The line of `key` where the file sets it, from the parsed file's spans:
-/// with an `owner`, in the table whose `name` is `owner` (that table's name
-/// line if it does not set the key); else the first table, in file order,
-/// that sets it.
+/// with an `owner`, in a table whose `name` is `owner` (its name line if
+/// none sets the key); else the first table, in file order, that sets it.
 fn locate(
     root: &toml::Spanned<toml::de::DeValue<'_>>,
     text: &str,
@@ -966,15 +965,17 @@ fn locate(
         ),
         _ => false,
     };
-    tables
-        .into_iter()
-        .filter(|t| owns(t))
-        .filter_map(|t| {
-            toml_errors::span_of(t, key)
-                .or_else(|| owner.and_then(|_| toml_errors::span_of(t, "name")))
-        })
-        .map(|span| span.start)
-        .min()
+    let first = |key: &str| {
+        tables
+            .iter()
+            .filter(|t| owns(t))
+            .filter_map(|t| toml_errors::span_of(t, key))
+            .map(|span| span.start)
+            .min()
+    };
+    // A module and a node may share a name: the table that sets the key.
+    first(key)
+        .or_else(|| owner.and_then(|_| first("name")))
         .map(|offset| line_col(text, offset).0)
 }
 
@@ -1035,6 +1036,12 @@ mod tests {
                     [[bus]]\nname = \"b\"\nbaud = 115201\n";
         let e = Scenario::parse(text, "s.toml").unwrap_err().to_string();
         assert!(e.starts_with("s.toml:8: `baud`"), "{e}");
+        // A module and a node of one name: the node's table sets the key.
+        let text = "name = \"x\"\nduration_s = 1.0\n[[module]]\nname = \"ev1\"\n[[bus]]\n\
+                    name = \"b\"\nbaud = 115200\n[[node]]\nkind = \"ev-controller\"\n\
+                    name = \"ev1\"\nbus = \"nowhere\"\nmodule = \"ev1\"\n";
+        let e = Scenario::parse(text, "s.toml").unwrap_err().to_string();
+        assert!(e.starts_with("s.toml:11: `bus`"), "{e}");
     }
 
     /// The embedded ev-meb scenario with `from` replaced by `to` (once).

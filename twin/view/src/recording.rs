@@ -143,7 +143,7 @@ pub enum Session {
     /// `twin serve`: `twin` is the slave(s) answering, `client N` a master.
     Serve,
     /// `twin supervise`: on the `bus` link `twin` is the supervisor polling
-    /// and `client N` the slave(s) answering.
+    /// and `slave NN` the slave answering (`client N` in older recordings).
     Supervise,
 }
 
@@ -158,7 +158,7 @@ impl Session {
     }
 
     /// The node of the layout that sent `bytes` on `link`, recorded as
-    /// `from` (`twin`, or `client N` for the other side).
+    /// `from` (`twin`, `client N` or `slave NN` for the other side).
     pub fn sender(self, link: &str, from: &str, bytes: &[u8]) -> String {
         let name = match (self, link, from) {
             (Self::Serve, _, "twin") if link.starts_with("modbus8") => match bytes.first() {

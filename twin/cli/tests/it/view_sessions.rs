@@ -268,7 +268,8 @@ fn a_supervise_session_views_the_loop_of_each_slave() {
                 let v: serde_json::Value =
                     twin_recording::read::value_of(&m.channel, &m.data).unwrap();
                 let d = &v["decoded"];
-                if v["from"] != "twin"
+                // The reply is the slave's, named by the id it answers with.
+                if v["from"] == "slave 01"
                     && d["cmd"] == "EA"
                     && d["data"].as_array().unwrap().len() == 6
                 {

@@ -543,6 +543,7 @@ async fn open_links(
             name,
             protocol: protocol.name(),
             address,
+            twin_is_master: false,
             check: check_kind(protocol),
             partial_timeout: if tcp { options.partial_timeout } else { None },
             rate_limit: if tcp { options.rate_limit } else { None },
