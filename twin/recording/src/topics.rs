@@ -612,7 +612,9 @@ fn frame_proto() -> crate::proto::Schema {
             (
                 0,
                 "from",
-                "the sending node (a session's link: twin, client N, or on a supervisor's bus slave NN)",
+                // Kept as it was when `slave NN` came: the schema's text is in every
+                // recording, and a changed one would make old runs replay differently.
+                "the sending node (a session's link: twin or client N)",
             ),
             (0, "start_s", "when the first byte started on the wire (s)"),
             (0, "end_s", "when the last byte ended (s)"),
