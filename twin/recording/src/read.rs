@@ -742,14 +742,9 @@ pub struct Event {
     pub detail: String,
 }
 
-fn unhex(hex: &str) -> Vec<u8> {
-    hex.as_bytes()
-        .chunks_exact(2)
-        .filter_map(|p| {
-            let d = |c: u8| (c as char).to_digit(16);
-            Some((d(p[0])? * 16 + d(p[1])?) as u8)
-        })
-        .collect()
+/// The bytes a frame's `hex` field spells (none if it is not hex).
+fn unhex(digits: &str) -> Vec<u8> {
+    hex::decode(digits).unwrap_or_default()
 }
 
 #[cfg(test)]

@@ -191,14 +191,8 @@ fn reply_id(bytes: &[u8]) -> Option<u8> {
     }
 }
 
-fn unhex(hex: &str) -> Option<Vec<u8>> {
-    if !hex.len().is_multiple_of(2) {
-        return None;
-    }
-    (0..hex.len())
-        .step_by(2)
-        .map(|i| u8::from_str_radix(hex.get(i..i + 2)?, 16).ok())
-        .collect()
+fn unhex(digits: &str) -> Option<Vec<u8>> {
+    hex::decode(digits).ok()
 }
 
 /// Feed every message of the recording at `path` to `logger`.

@@ -11,9 +11,9 @@ use super::{I64, LEN, VARINT, put_varint, varint_into};
 /// Fills `digits` (two bytes per byte of `bytes`) with `bytes` in
 /// lowercase hex.
 pub(crate) fn spell_hex(digits: &mut [u8], bytes: &[u8]) {
-    for (pair, &b) in digits.chunks_exact_mut(2).zip(bytes) {
-        pair.copy_from_slice(&HEX_PAIRS[usize::from(b)]);
-    }
+    // The lengths always agree here (two digits a byte, made so by the
+    // callers); a mismatch would leave the digits as they were.
+    let _ = hex::encode_to_slice(bytes, digits);
 }
 
 /// `bytes` in lowercase hex, handed to `each` a run of up to 128 digits at
@@ -31,18 +31,6 @@ pub(crate) fn hex_runs<E>(
     }
     Ok(())
 }
-
-/// Every byte's two hex digits, so a byte is spelled in one copy.
-const HEX_PAIRS: [[u8; 2]; 256] = {
-    const DIGITS: &[u8; 16] = b"0123456789abcdef";
-    let mut pairs = [[0u8; 2]; 256];
-    let mut b = 0;
-    while b < 256 {
-        pairs[b] = [DIGITS[b >> 4], DIGITS[b & 0x0f]];
-        b += 1;
-    }
-    pairs
-};
 
 /// A message's fields appended to `out`, each with its tag, in the order
 /// they are given (the order its `Serialize` gives them, so that the bytes
