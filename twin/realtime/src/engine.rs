@@ -38,7 +38,7 @@ use twin_sim::engine::{ModuleSlot, firmware_tick};
 /// 6 % of a core instead of 15 %, which the links get back.
 const SPIN: SimDuration = SimDuration::from_micros(60);
 /// The name real time lost is recorded under, as an event.
-pub const SLIP_NODE: &str = "clock";
+const SLIP_NODE: &str = "clock";
 /// Ticks per nanosecond.
 const TICKS_PER_NANO: u64 = nodes::time::TICKS_PER_SECOND / 1_000_000_000;
 /// While no one is connected, the plant ticks in batches this long: well
@@ -147,7 +147,6 @@ impl RtEngine {
         }
     }
 
-    /// Status lines every `period` (zero: never).
     /// Whether the plant samples and the controllers' readings go to the
     /// sink: not when the session neither records nor shows them (an idle
     /// class's sinks woke a hundred times a second each for nothing).
@@ -155,6 +154,7 @@ impl RtEngine {
         self.samples_wanted = wanted;
     }
 
+    /// Status lines every `period` (zero: never).
     pub fn set_status_period(&mut self, period: SimDuration) {
         self.status_period = period;
         self.next_status = SimTime::ZERO + period;
