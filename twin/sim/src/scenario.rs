@@ -948,8 +948,9 @@ pub fn check_name(name: &str) -> std::result::Result<(), String> {
 }
 
 /// The line of `key` where the file sets it, from the parsed file's spans:
-/// with an `owner`, in a table whose `name` is `owner` (its name line if
-/// none sets the key); else the first table, in file order, that sets it.
+/// with an `owner`, in a table whose `name` is `owner` or in one of its
+/// sub-tables (`[bus.pwmcap]`), else at its name line; without, the first
+/// table, in file order, that sets it.
 fn locate(
     root: &toml::Spanned<toml::de::DeValue<'_>>,
     text: &str,
@@ -958,25 +959,54 @@ fn locate(
 ) -> Option<usize> {
     let mut tables = Vec::new();
     tables_in(root, &mut tables);
-    let owns = |table: &toml::Spanned<toml::de::DeValue<'_>>| match (owner, table.get_ref()) {
-        (None, _) => true,
-        (Some(owner), toml::de::DeValue::Table(t)) => t.get("name").is_some_and(
+    let named = |table: &toml::Spanned<toml::de::DeValue<'_>>, owner: &str| match table.get_ref() {
+        toml::de::DeValue::Table(t) => t.get("name").is_some_and(
             |n| matches!(n.get_ref(), toml::de::DeValue::String(name) if name == owner),
         ),
         _ => false,
     };
-    let first = |key: &str| {
-        tables
+    let first_of = |within: &[&toml::Spanned<toml::de::DeValue<'_>>], key: &str| {
+        within
             .iter()
-            .filter(|t| owns(t))
-            .filter_map(|t| toml_errors::span_of(t, key))
+            .filter_map(|t| setting(t, key))
             .map(|span| span.start)
             .min()
     };
-    // A module and a node may share a name: the table that sets the key.
-    first(key)
-        .or_else(|| owner.and_then(|_| first("name")))
-        .map(|offset| line_col(text, offset).0)
+    let offset = match owner {
+        None => first_of(&tables, key),
+        Some(owner) => {
+            let owners: Vec<_> = tables.iter().copied().filter(|t| named(t, owner)).collect();
+            let mut within = Vec::new();
+            for table in &owners {
+                tables_in(table, &mut within);
+            }
+            // A module and a node may share a name: the table that sets the key.
+            first_of(&within, key).or_else(|| first_of(&owners, "name"))
+        }
+    };
+    offset.map(|offset| line_col(text, offset).0)
+}
+
+/// The span of `key = value` in `table`, a value and not a table (the root
+/// table's `node` key is every `[[node]]`, which is not where a field is set).
+fn setting(
+    table: &toml::Spanned<toml::de::DeValue<'_>>,
+    key: &str,
+) -> Option<std::ops::Range<usize>> {
+    use toml::de::DeValue;
+    let DeValue::Table(t) = table.get_ref() else {
+        return None;
+    };
+    t.iter()
+        .find(|(k, v)| {
+            let nested = match v.get_ref() {
+                DeValue::Table(_) => true,
+                DeValue::Array(a) => a.iter().any(|e| matches!(e.get_ref(), DeValue::Table(_))),
+                _ => false,
+            };
+            k.get_ref() == key && !nested
+        })
+        .map(|(k, _)| k.span())
 }
 
 /// Every table in `value`, itself included, arrays of tables entered.
