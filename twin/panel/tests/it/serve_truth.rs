@@ -133,7 +133,13 @@ fn the_serve_page_explains_light_power_up_refusals_and_exceptions() {
             Some(r#"{"fault":"exception","link":"meb","code":2}"#),
             true,
         );
-        let code_two = state(&serve)["state"]["fault"]["fault"].clone();
+        // The state is a snapshot made a few times a second: wait for it.
+        let mut code_two = Value::Null;
+        until("exception 02 set through the API", LIMIT, async || {
+            code_two = state(&serve)["state"]["fault"]["fault"].clone();
+            (!code_two.is_null(), format!("{code_two}"))
+        })
+        .await;
         let (_, _) = http(
             &serve.panel,
             "POST",
