@@ -514,14 +514,17 @@ impl RtEngine {
     }
 
     /// Real time lost in the last second, said once for it: on the console
-    /// (even with the monitor off), as an event of the recording and the
-    /// panel's list.
+    /// beside the status lines (even with the monitor off; with the status
+    /// lines off, only in the session's last lines), as an event of the
+    /// recording and the panel's list.
     fn say_slip(&self, t: SimTime, slipped_ms: f64) {
         let detail = format!(
             "real time lost: {slipped_ms:.0} ms (the machine stopped the twin or was too busy to \
              keep up; its clock slipped so that no step of the plant or the firmware was skipped)"
         );
-        let _ = self.sink.send(SinkMsg::Say(detail.clone()));
+        if self.status_period > SimDuration::ZERO {
+            let _ = self.sink.send(SinkMsg::Say(detail.clone()));
+        }
         let _ = self.sink.send(SinkMsg::Event {
             node: SLIP_NODE.into(),
             event: nodes::node::NodeEvent {

@@ -610,7 +610,8 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
                 written
             }
             SinkMsg::Event { node, event } => {
-                if config.monitor && event.kind != "log" {
+                // A slip is said beside the status lines (see the engine).
+                if config.monitor && event.kind != "log" && event.kind != "slip" {
                     let _ = writeln!(
                         out,
                         "[{:12.6} s] {node}: {} {}",

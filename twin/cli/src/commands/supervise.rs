@@ -123,7 +123,8 @@ pub struct SuperviseArgs {
     /// No frame monitor (status lines stay).
     #[arg(long)]
     quiet: bool,
-    /// Seconds between status lines (0: none).
+    /// Seconds between status lines (0: none, and real time lost is then
+    /// said only in the session's last lines).
     #[arg(long, default_value_t = 1.0, value_name = "SECONDS", value_parser = super::numbers::zero_or_more)]
     status_every: f64,
     /// Wait for a serial path that does not exist yet instead of failing.

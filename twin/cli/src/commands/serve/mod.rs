@@ -103,7 +103,8 @@ pub struct ServeArgs {
     /// No frame monitor (status lines stay).
     #[arg(long)]
     quiet: bool,
-    /// Seconds between status lines (0: none).
+    /// Seconds between status lines (0: none, and real time lost is then
+    /// said only in the session's last lines).
     #[arg(long, default_value_t = 1.0, value_name = "SECONDS", value_parser = super::numbers::zero_or_more)]
     status_every: f64,
     /// TCP clients per link (each has a thread of its own; 0: no limit). A
