@@ -141,16 +141,7 @@ pub fn force(map: &Map<String, Value>) -> Result<EngineCommand, Rejected> {
         .value(value)
         .map_err(|e| Rejected::field("value", e.to_string()))?;
     Ok(Box::new(move |e: &mut RtEngine| {
-        let RtEngine {
-            devices, modules, ..
-        } = e;
-        for d in devices.iter_mut() {
-            let light = d
-                .module
-                .and_then(|m| modules.get(m))
-                .map(|m| &m.plant.params().light);
-            d.forces.force(forced, light);
-        }
+        e.force(forced);
         let name = input.name();
         e.say(format!("panel: forced {name} = {forced}"));
         Ok(json!({ "forced": name }))

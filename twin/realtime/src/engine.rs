@@ -170,6 +170,22 @@ impl RtEngine {
         }
     }
 
+    /// Forces `forced` on every device, each with its module's light
+    /// sensor (a forced flag sets the photoresistor's volts too): the
+    /// console's `force` and the panel's alike.
+    pub fn force(&mut self, forced: crate::forces::Forced) {
+        let Self {
+            devices, modules, ..
+        } = self;
+        for d in devices.iter_mut() {
+            let light = d
+                .module
+                .and_then(|m| modules.get(m))
+                .map(|m| &m.plant.params().light);
+            d.forces.force(forced, light);
+        }
+    }
+
     /// Every open connection's endpoint, for a command that changes how
     /// they answer (the panel's slave id and I/O map).
     pub fn endpoints_mut(&mut self) -> impl Iterator<Item = &mut Box<dyn crate::Endpoint>> {

@@ -145,16 +145,7 @@ pub fn parse(line: &str) -> Result<Option<Command>, String> {
                 .map_err(|e| e.to_string())?;
             let name = forced.input().name();
             Box::new(move |e: &mut RtEngine| {
-                let RtEngine {
-                    devices, modules, ..
-                } = e;
-                for d in devices.iter_mut() {
-                    let light = d
-                        .module
-                        .and_then(|m| modules.get(m))
-                        .map(|m| &m.plant.params().light);
-                    d.forces.force(forced, light);
-                }
+                e.force(forced);
                 e.say(format!("forced {name} = {forced}"));
             })
         }
