@@ -34,6 +34,18 @@ fn run_master(device: &str, cycles: u32, wait_ms: u32) -> Value {
     serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("{e}: {stderr}"))
 }
 
+/// The master's end of `pair`, held open: the master closes its end after
+/// every transaction, and holding it here too keeps socat from seeing a
+/// hang-up (a real port has no such problem).
+fn hold_open(pair: &PtyPair) -> std::fs::File {
+    OpenOptions::new()
+        .read(true)
+        .write(true)
+        .custom_flags(OFlags::NOCTTY.bits() as i32)
+        .open(&pair.b)
+        .expect("open the master's end")
+}
+
 fn assert_every_reply_whole(seen: &Value) {
     let log = seen["log"].as_array().unwrap();
     assert!(!log.is_empty());
@@ -61,14 +73,7 @@ fn controller_network_master_reopening_the_port_is_never_left_hanging() {
         .collect();
     assert!(!ids.is_empty(), "a modbus8 link: {:?}", serve.links);
 
-    // The master closes its end after every transaction; holding it open here
-    // too keeps socat from seeing a hang-up (a real port has no such problem).
-    let _held = OpenOptions::new()
-        .read(true)
-        .write(true)
-        .custom_flags(OFlags::NOCTTY.bits() as i32)
-        .open(&pair.b)
-        .expect("open the master's end");
+    let _held = hold_open(&pair);
 
     let device = pair.b.to_str().unwrap();
     let fast = run_master(device, 45, 10);
@@ -131,12 +136,7 @@ fn a_stopped_server_slips_its_clock_and_reads_only_true_speeds() {
         "--out",
         recording.to_str().unwrap(),
     ]);
-    let _held = OpenOptions::new()
-        .read(true)
-        .write(true)
-        .custom_flags(OFlags::NOCTTY.bits() as i32)
-        .open(&pair.b)
-        .expect("open the master's end");
+    let _held = hold_open(&pair);
     let done = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
     let stopper = {
         let (done, pid) = (done.clone(), serve.pid().to_string());
