@@ -10,6 +10,7 @@ use std::sync::{Arc, Mutex, MutexGuard, RwLock};
 use tokio::sync::broadcast;
 
 use crate::PanelRole;
+use twin_realtime::sink::LiveFrame;
 
 /// Frames held between two stream messages; past this the oldest are
 /// dropped and counted as skipped (a bus faster than a page can show).
@@ -25,8 +26,10 @@ const TREND_POINTS: usize = 1500;
 #[derive(Debug, Default, Clone)]
 pub struct HeldFrame {
     pub link: String,
-    /// `twin`, or the peer that sent it (`client 3`).
+    /// `twin`, or the peer that sent it (`client 3`, `slave 01`).
     pub from: String,
+    /// Who it was for: `twin`, or the peer it went to.
+    pub to: String,
     pub start: f64,
     pub end: f64,
     pub bytes: Vec<u8>,
@@ -92,7 +95,7 @@ impl Hub {
     }
 
     /// Holds one frame (the live view's side).
-    pub fn push_frame(&self, link: &str, from: &str, start: f64, end: f64, bytes: &[u8]) {
+    pub fn push_frame(&self, f: &LiveFrame<'_>) {
         self.frames_total.fetch_add(1, Ordering::Relaxed);
         let mut held = lock(&self.held);
         let mut frame = if held.frames.len() >= FRAMES_HELD {
@@ -102,13 +105,15 @@ impl Hub {
             held.spare.pop().unwrap_or_default()
         };
         frame.link.clear();
-        frame.link.push_str(link);
+        frame.link.push_str(f.link);
         frame.from.clear();
-        frame.from.push_str(from);
-        frame.start = start;
-        frame.end = end;
+        frame.from.push_str(f.from);
+        frame.to.clear();
+        frame.to.push_str(f.to);
+        frame.start = f.start;
+        frame.end = f.end;
         frame.bytes.clear();
-        frame.bytes.extend_from_slice(bytes);
+        frame.bytes.extend_from_slice(f.bytes);
         held.frames.push_back(frame);
     }
 

@@ -33,8 +33,8 @@ struct LinkStats {
     /// Errors per whole second of session time, the last few seconds only
     /// (a noisy line makes thousands: one entry per second, not per error).
     recent: VecDeque<(i64, u64)>,
-    /// The party the twin last heard on this link: a reply goes to it.
-    last_peer: String,
+    /// The slave the twin last sent a request to, as a master on this link.
+    last_asked: String,
 }
 
 impl LinkStats {
@@ -84,15 +84,6 @@ pub fn shown(bytes: &[u8]) -> String {
 /// Frames one message carries at most; the rest are counted as skipped.
 const FRAMES_PER_MESSAGE: usize = 400;
 
-/// The slave a frame names (`slave 01`), from its decoded address.
-fn slave_of(decoded: &Value) -> Option<String> {
-    let id = decoded
-        .get("id")
-        .or_else(|| decoded.get("unit"))
-        .and_then(Value::as_u64)?;
-    Some(format!("slave {id:02}"))
-}
-
 /// Frames decoded and counted per link.
 #[derive(Debug)]
 pub struct Monitor {
@@ -136,28 +127,26 @@ impl Monitor {
             let out = f.from == "twin";
             let master = self.twin_is_master(&f.link);
             let s = self.stats.entry(f.link.clone()).or_default();
-            // The other party: a slave named by the frame's address where
-            // the twin is the master (a garbled reply: the slave it last
-            // asked), else the connection the sink named (a reply: the
-            // connection last heard).
-            let last = (!s.last_peer.is_empty()).then(|| s.last_peer.clone());
-            let peer = match (master, out) {
-                (true, _) => slave_of(&decoded)
-                    .or(last)
-                    .unwrap_or_else(|| "a slave".into()),
-                (false, true) => last.unwrap_or_else(|| "a client".into()),
-                (false, false) => f.from.clone(),
+            // The parties come with the frame; only a reply too garbled to
+            // carry its id is put down to the slave the twin last asked.
+            if master && out {
+                s.last_asked.clone_from(&f.to);
+            }
+            let unnamed = |party: &str| party.is_empty() || party == "a slave";
+            let peer = match (out, master) {
+                (true, true) if f.to.is_empty() => "a slave".to_string(),
+                (true, false) if f.to.is_empty() => "a client".to_string(),
+                (true, _) => f.to.clone(),
+                (false, true) if unnamed(&f.from) && !s.last_asked.is_empty() => {
+                    s.last_asked.clone()
+                }
+                (false, _) => f.from.clone(),
             };
             if out {
                 s.frames_out += 1;
             } else {
                 s.frames_in += 1;
                 s.last_in_t = Some(f.end);
-            }
-            // Who a frame of unknown party is with: the one the twin last
-            // addressed as a master, the one it last heard as a slave.
-            if out == master {
-                s.last_peer.clone_from(&peer);
             }
             if bad {
                 s.errors += 1;

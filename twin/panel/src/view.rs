@@ -7,7 +7,7 @@ use serde_json::Value;
 use std::sync::Arc;
 
 use crate::hub::Hub;
-use twin_realtime::sink::LiveView;
+use twin_realtime::sink::{LiveFrame, LiveView};
 use twin_recording::topics::ReadingsSample;
 
 /// Feeds a [`Hub`].
@@ -40,8 +40,8 @@ impl LiveView for PanelView {
         self.hub.set_lateness(p99_us, max_us);
     }
 
-    fn frame(&mut self, link: &str, from: &str, start: f64, end: f64, bytes: &[u8]) {
-        self.hub.push_frame(link, from, start, end, bytes);
+    fn frame(&mut self, f: &LiveFrame<'_>) {
+        self.hub.push_frame(f);
     }
 
     fn finish(self: Box<Self>) -> (u64, Option<String>) {
@@ -75,9 +75,9 @@ impl LiveView for Tee {
         self.0.lateness(t, p99_us, max_us);
         self.1.lateness(t, p99_us, max_us);
     }
-    fn frame(&mut self, link: &str, from: &str, start: f64, end: f64, bytes: &[u8]) {
-        self.0.frame(link, from, start, end, bytes);
-        self.1.frame(link, from, start, end, bytes);
+    fn frame(&mut self, f: &LiveFrame<'_>) {
+        self.0.frame(f);
+        self.1.frame(f);
     }
     fn finish(self: Box<Self>) -> (u64, Option<String>) {
         let _ = self.1.finish();

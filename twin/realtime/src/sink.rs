@@ -130,6 +130,20 @@ pub struct SinkLink {
     pub twin_is_master: bool,
 }
 
+/// One frame on a link, with both its parties: `twin`, `client N` (a
+/// connection), `slave NN` (on the twin's own bus, by the id the frame
+/// carries), `every slave` (a broadcast), `a slave` (a reply too garbled to
+/// name its sender).
+#[derive(Debug, Clone, Copy)]
+pub struct LiveFrame<'a> {
+    pub link: &'a str,
+    pub from: &'a str,
+    pub to: &'a str,
+    pub start: f64,
+    pub end: f64,
+    pub bytes: &'a [u8],
+}
+
 /// A live view of a session, fed by the sink what it records. The viewer
 /// crate's rerun view is one; the binary opens it and hands it in, so this
 /// crate never links rerun.
@@ -142,9 +156,8 @@ pub trait LiveView: Send + std::fmt::Debug {
     fn readings(&mut self, node: &str, t: f64, readings: &ReadingsSample);
     /// The engine's tick lateness over the last second.
     fn lateness(&mut self, t: f64, p99_us: f64, max_us: f64);
-    /// One reassembled frame on `link`, sent by `from` (`twin`, `client N`,
-    /// `slave NN` on a supervisor's bus).
-    fn frame(&mut self, link: &str, from: &str, start: f64, end: f64, bytes: &[u8]);
+    /// One reassembled frame.
+    fn frame(&mut self, frame: &LiveFrame<'_>);
     /// Close the view: the samples it streamed, and what its viewer did
     /// not take, if anything.
     fn finish(self: Box<Self>) -> (u64, Option<String>);
@@ -440,30 +453,39 @@ impl FrameSink {
                 client: format!("client {conn}"),
                 ..ConnFrames::default()
             });
-            let mut show = |at: SimTime, end: SimTime, frame: &[u8], from: &str, after: &str| {
-                let arrow = if from == "twin" { "->" } else { "<-" };
-                let decoded = (config.monitor || observer.is_some())
-                    .then(|| link_frame_fields(protocol, frame));
-                if config.monitor {
-                    let shown_decoded = decoded
-                        .as_ref()
-                        .and_then(|d| serde_json::to_string(d).ok())
-                        .unwrap_or_default();
-                    let _ = writeln!(
-                        out,
-                        "[{:12.6} s] {name} #{conn} {arrow} {}{after}  {shown_decoded}",
-                        at.as_secs_f64(),
-                        shown(frame),
-                    );
-                }
-                if let Some(v) = view.as_mut() {
-                    v.frame(name, from, at.as_secs_f64(), end.as_secs_f64(), frame);
-                }
-                if let (Some(o), Some(decoded)) = (observer.as_mut(), decoded) {
-                    let recorded = o.record_frame(channel, from, at, end, frame, &decoded);
-                    result = std::mem::replace(&mut result, Ok(())).and(recorded);
-                }
-            };
+            let viewing = view.is_some();
+            let mut show =
+                |at: SimTime, end: SimTime, frame: &[u8], from: &str, to: &str, after: &str| {
+                    let arrow = if from == "twin" { "->" } else { "<-" };
+                    let decoded = (config.monitor || observer.is_some())
+                        .then(|| link_frame_fields(protocol, frame));
+                    if config.monitor {
+                        let shown_decoded = decoded
+                            .as_ref()
+                            .and_then(|d| serde_json::to_string(d).ok())
+                            .unwrap_or_default();
+                        let _ = writeln!(
+                            out,
+                            "[{:12.6} s] {name} #{conn} {arrow} {}{after}  {shown_decoded}",
+                            at.as_secs_f64(),
+                            shown(frame),
+                        );
+                    }
+                    if let Some(v) = view.as_mut() {
+                        v.frame(&LiveFrame {
+                            link: name,
+                            from,
+                            to,
+                            start: at.as_secs_f64(),
+                            end: end.as_secs_f64(),
+                            bytes: frame,
+                        });
+                    }
+                    if let (Some(o), Some(decoded)) = (observer.as_mut(), decoded) {
+                        let recorded = o.record_frame(channel, from, at, end, frame, &decoded);
+                        result = std::mem::replace(&mut result, Ok(())).and(recorded);
+                    }
+                };
             match record.direction {
                 Direction::Rx => {
                     state.last_request = Some(record.end);
@@ -472,13 +494,13 @@ impl FrameSink {
                         if link.twin_is_master {
                             // A slave's reply on the twin's bus: the slave
                             // it names, not the port's connection.
-                            let from = match link_frame_fields(protocol, frame).node_id() {
+                            let from = match slave_of(protocol, frame) {
                                 Some(id) => format!("slave {id:02}"),
                                 None => "a slave".to_string(),
                             };
-                            show(at, at, frame, &from, "");
+                            show(at, at, frame, &from, "twin", "");
                         } else {
-                            show(at, at, frame, client, "");
+                            show(at, at, frame, client, "twin", "");
                         }
                     });
                 }
@@ -491,12 +513,31 @@ impl FrameSink {
                         }
                         None => String::new(),
                     };
-                    show(record.start, record.end, bytes, "twin", &after);
+                    // A slave's reply goes back on the connection that
+                    // asked; the twin's request as a master, to the slave
+                    // it addresses. Named only for a live view: the
+                    // recording's frames carry their sender alone.
+                    let to = match (link.twin_is_master, viewing) {
+                        (_, false) => String::new(),
+                        (true, true) => match slave_of(protocol, bytes) {
+                            Some(0) => "every slave".to_string(),
+                            Some(id) => format!("slave {id:02}"),
+                            None => "a slave".to_string(),
+                        },
+                        (false, true) => state.client.clone(),
+                    };
+                    show(record.start, record.end, bytes, "twin", &to, &after);
                 }
             }
         }
         result
     }
+}
+
+/// The slave a frame on the twin's own bus is from or for: the id it
+/// carries, if it decodes (0 is a broadcast).
+fn slave_of(protocol: &str, frame: &[u8]) -> Option<u8> {
+    link_frame_fields(protocol, frame).node_id()
 }
 
 /// The frame as the monitor shows it: text for MEB and ASCII, hex otherwise.

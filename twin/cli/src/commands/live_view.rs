@@ -3,7 +3,7 @@
 //! because the binary is the one place that links both: the real-time crate
 //! never links rerun, and the viewer knows nothing of real time.
 
-use twin_realtime::sink::{LiveView, ViewOpener};
+use twin_realtime::sink::{LiveFrame, LiveView, ViewOpener};
 use twin_view::logger::{LatenessSample, PlantSample};
 use twin_view::{RerunObserver, Session, ViewLayout, ViewTarget};
 
@@ -40,9 +40,11 @@ impl LiveView for RerunSession {
             .lateness(t, &LatenessSample { p99_us, max_us });
     }
 
-    fn frame(&mut self, link: &str, from: &str, start: f64, end: f64, bytes: &[u8]) {
-        let from = self.session.sender(link, from, bytes);
-        self.observer.logger.frame(link, &from, start, end, bytes);
+    fn frame(&mut self, f: &LiveFrame<'_>) {
+        let from = self.session.sender(f.link, f.from, f.bytes);
+        self.observer
+            .logger
+            .frame(f.link, &from, f.start, f.end, f.bytes);
     }
 
     fn finish(self: Box<Self>) -> (u64, Option<String>) {

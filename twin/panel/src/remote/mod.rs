@@ -20,6 +20,7 @@ use layout::{Layout, SWITCHES};
 use nodes::firmware::MebMap;
 use nodes::proto::meb::MebCmd;
 use twin_realtime::client::{MebClient, Way};
+use twin_realtime::sink::LiveFrame;
 
 pub use state::message_state;
 
@@ -205,14 +206,21 @@ impl Remote {
             };
             let monitor_hub = hub.clone();
             let started = self.started;
-            let from = format!("slave {:02}", self.options.id);
+            let slave = format!("slave {:02}", self.options.id);
             c.set_monitor(move |way, _, bytes| {
                 let t = started.elapsed().as_secs_f64();
-                let who = match way {
-                    Way::Sent => "twin",
-                    Way::Received => from.as_str(),
+                let (from, to) = match way {
+                    Way::Sent => ("twin", slave.as_str()),
+                    Way::Received => (slave.as_str(), "twin"),
                 };
-                monitor_hub.push_frame(LINK, who, t, t, bytes);
+                monitor_hub.push_frame(&LiveFrame {
+                    link: LINK,
+                    from,
+                    to,
+                    start: t,
+                    end: t,
+                    bytes,
+                });
             });
             {
                 let mut s = lock(&self.state);

@@ -4,7 +4,7 @@
 //! the exception code chosen on the page.
 
 use crate::common::{Session, chromedriver, http, serve_with};
-use crate::page::{click, js, open, runtime, text, until};
+use crate::page::{click, frame_rows, js, open, runtime, text, until};
 use fantoccini::Locator;
 use fantoccini::key::Key;
 use nodes::firmware::sd;
@@ -157,6 +157,89 @@ fn the_serve_page_explains_light_power_up_refusals_and_exceptions() {
         until("exception 02 in force", LIMIT, async || {
             let fault = state(&serve)["state"]["fault"]["fault"].clone();
             (fault == code_two, format!("{fault}, wanted {code_two}"))
+        })
+        .await;
+        c.close().await.unwrap();
+    });
+}
+
+fn meb_frame(body: &str) -> Vec<u8> {
+    let fcs = body.bytes().fold(0u8, |x, b| x ^ b);
+    format!("{body}{fcs:02X}*\n").into_bytes()
+}
+
+/// Two clients ask at once, their replies held back 100 ms by a delay
+/// fault so that both requests are in before either reply goes out: the
+/// frame monitor shows each reply going to the client that asked (by the
+/// connection it went out on, not the one heard last).
+#[test]
+fn the_serve_page_names_the_client_each_reply_goes_to() {
+    use std::io::{BufRead, BufReader, Write};
+    let serve = serve_with(
+        "tcp://127.0.0.1:0",
+        "127.0.0.1:0",
+        AccessOptions::default(),
+        60.0,
+        false,
+    );
+    let (status, body) = http(
+        &serve.panel,
+        "POST",
+        "/api/fault",
+        Some(r#"{"fault": "delay", "delay_ms": 100}"#),
+        true,
+    );
+    assert_eq!(status, 200, "{body}");
+    let driver = chromedriver();
+    runtime().block_on(async {
+        let c = open(&driver, "serve-parties", &serve.panel.url).await;
+        // The monitor shows what comes after the page opens.
+        until("the stream", LIMIT, async || {
+            let note = text(&c, "#powerup-note").await;
+            (note.contains("0x001F"), format!("`{note}`"))
+        })
+        .await;
+        let addr = serve.meb.trim_start_matches("tcp://").to_string();
+        let connect = || {
+            let s = std::net::TcpStream::connect(&addr).unwrap();
+            s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+            s
+        };
+        let (mut first, mut second) = (connect(), connect());
+        // One word for the first, two for the second: their replies differ.
+        first.write_all(&meb_frame("@01EA0001")).unwrap();
+        second.write_all(&meb_frame("@01EA0002")).unwrap();
+        let reply = |s: &std::net::TcpStream| {
+            let mut line = String::new();
+            BufReader::new(s).read_line(&mut line).unwrap();
+            line.trim_end().to_string()
+        };
+        let (to_first, to_second) = (reply(&first), reply(&second));
+        assert_ne!(to_first, to_second);
+        until("both exchanges named", LIMIT, async || {
+            let rows = frame_rows(&c).await;
+            let sender = |body: &str| {
+                let request = String::from_utf8(meb_frame(body)).unwrap_or_default();
+                rows.iter()
+                    .find(|(_, f)| f == request.trim_end())
+                    .and_then(|(d, _)| d.strip_suffix(" → twin"))
+                    .map(str::to_string)
+            };
+            let receiver = |text: &str| {
+                rows.iter()
+                    .find(|(_, f)| f == text)
+                    .and_then(|(d, _)| d.strip_prefix("twin → "))
+                    .map(str::to_string)
+            };
+            let pairs = [
+                (sender("@01EA0001"), receiver(&to_first)),
+                (sender("@01EA0002"), receiver(&to_second)),
+            ];
+            let ok = pairs
+                .iter()
+                .all(|(asked, answered)| asked.is_some() && asked == answered)
+                && pairs[0].0 != pairs[1].0;
+            (ok, format!("{pairs:?} in {rows:?}"))
         })
         .await;
         c.close().await.unwrap();
