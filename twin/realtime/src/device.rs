@@ -4,7 +4,7 @@
 
 use nodes::time::SimTime;
 
-use super::forces::Forces;
+use super::forces::{Forces, HallLines};
 use twin_sim::engine::SimNode;
 
 /// A node with a plant or an image: the EV controller, a Controller_network Nano,
@@ -15,6 +15,8 @@ pub struct Device {
     pub module: Option<usize>,
     /// Inputs the user forced from the console or the panel.
     pub forces: Forces,
+    /// The hall lines the controller sees, once a code has been forced.
+    pub(super) hall_lines: HallLines,
     /// Where its slave answers (id and MEB I/O map), when the session lets
     /// the user change it while it runs (`twin serve`'s EV controller);
     /// each new connection's front end is made with it.
@@ -33,6 +35,7 @@ impl Device {
             node,
             module,
             forces: Forces::default(),
+            hall_lines: HallLines::default(),
             address: None,
             next_tick,
             failed: false,

@@ -582,8 +582,10 @@ impl RtEngine {
             };
             let forces = device.forces;
             let sensing = module.plant.params().sensing.clone();
+            let hall_lines = &mut device.hall_lines;
             let ticked = firmware_tick(device.node.as_mut(), module, self.plant_step, due, |s| {
-                forces.apply_sensors(s, &sensing)
+                forces.apply_sensors(s, &sensing);
+                hall_lines.apply(forces.hall, due.as_secs_f64(), &mut s.shaft);
             });
             let Some((next, changed)) = ticked else {
                 device.next_tick = None;

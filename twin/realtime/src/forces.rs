@@ -384,9 +384,6 @@ impl Forces {
             sensors.inverter_current = a;
             sensors.current_counts = s.counts(s.current_zero_volts + a * s.current_volts_per_amp);
         }
-        if let Some(code) = self.hall {
-            sensors.shaft.hall = code;
-        }
         if let Some(flag) = self.flag {
             // The detector then sees the flag come and go as a wheel would
             // show it: toggled by hand, RPM_L follows.
@@ -417,6 +414,86 @@ impl Forces {
             let dark = u16::from(flag.in_beam) << 3;
             image.hall = (image.hall & !(1 << 3)) | dark;
         }
+    }
+}
+
+/// The hall lines as the controller sees them once a code has been forced:
+/// held at the code set by hand, they change only when that code does, and
+/// each line that changes is an edge the controller counts (RPM_M follows
+/// the hand, as on the bench's lines); released, they are the motor's again,
+/// counted on from where the controller was, so no burst of the edges the
+/// motor made meanwhile.
+#[derive(Debug, Clone, Copy)]
+pub struct HallLines {
+    /// A code has been forced since power-up: the lines are counted here.
+    touched: bool,
+    /// The lines were held at a forced code at the last tick.
+    held: bool,
+    /// The code, edge count and latest edge time the controller saw last.
+    code: u8,
+    count: u64,
+    edge_at: f64,
+    /// The controller's count minus the motor's, once released (wrapping).
+    offset: u64,
+}
+
+impl Default for HallLines {
+    fn default() -> Self {
+        Self {
+            touched: false,
+            held: false,
+            code: 0,
+            count: 0,
+            edge_at: f64::NAN,
+            offset: 0,
+        }
+    }
+}
+
+impl HallLines {
+    /// The lines at `now` (s): the motor's in `shaft`, replaced by what the
+    /// controller sees with `forced` held (or released).
+    pub fn apply(&mut self, forced: Option<u8>, now: f64, shaft: &mut plant::shaft::ShaftReading) {
+        if !self.touched {
+            if forced.is_none() {
+                return;
+            }
+            self.touched = true;
+            self.code = shaft.hall;
+            self.count = shaft.hall_edges;
+            self.edge_at = shaft.last_hall_edge_at;
+        }
+        let to = |code: u8, lines: &mut Self| {
+            let changes = u64::from((lines.code ^ code).count_ones());
+            if changes > 0 {
+                lines.count = lines.count.wrapping_add(changes);
+                lines.edge_at = now;
+                lines.code = code;
+            }
+        };
+        match forced {
+            Some(code) => {
+                to(code & 0b111, self);
+                self.held = true;
+            }
+            None => {
+                if self.held {
+                    // Released: each line that differs from the motor's
+                    // changes once.
+                    to(shaft.hall, self);
+                    self.offset = self.count.wrapping_sub(shaft.hall_edges);
+                    self.held = false;
+                }
+                self.count = shaft.hall_edges.wrapping_add(self.offset);
+                self.code = shaft.hall;
+                if self.edge_at.is_nan() || shaft.last_hall_edge_at > self.edge_at {
+                    self.edge_at = shaft.last_hall_edge_at;
+                }
+            }
+        }
+        shaft.hall = self.code;
+        shaft.hall_edges = self.count;
+        shaft.last_hall_edge_at = self.edge_at;
     }
 }
 
@@ -460,6 +537,7 @@ mod tests {
         forces.force(Forced::DriverFault(true), None);
         let mut sensors = plant::Sensors::default();
         forces.apply_sensors(&mut sensors, &plant::params::SensingParams::default());
+        HallLines::default().apply(forces.hall, 0.0, &mut sensors.shaft);
         assert_eq!(sensors.shaft.hall, 0b101);
         assert!(sensors.flag_in_beam && sensors.motor_tripped);
         assert_eq!(
@@ -473,5 +551,81 @@ mod tests {
         assert_eq!(forces.to_string(), "hall 5, flag on, driver_fault on");
         forces.release(Input::Flag);
         assert_eq!(forces.flag, None);
+    }
+
+    /// The motor at `code` with `edges` counted, its latest edge at `at`.
+    fn shaft(code: u8, edges: u64, at: f64) -> plant::shaft::ShaftReading {
+        plant::shaft::ShaftReading {
+            hall: code,
+            hall_edges: edges,
+            last_hall_edge_at: at,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn a_forced_hall_code_changes_by_hand_and_is_counted_as_edges() {
+        let mut lines = HallLines::default();
+        let seen = |lines: &mut HallLines, forced, now, motor| {
+            let mut s = motor;
+            lines.apply(forced, now, &mut s);
+            (s.hall, s.hall_edges, s.last_hall_edge_at)
+        };
+        // Never forced: the motor's own lines.
+        assert_eq!(
+            seen(&mut lines, None, 0.5, shaft(1, 100, 0.4)),
+            (1, 100, 0.4)
+        );
+        // 1 -> 3: one line changes, at the moment it is set.
+        assert_eq!(
+            seen(&mut lines, Some(3), 1.0, shaft(1, 100, 0.9)),
+            (3, 101, 1.0)
+        );
+        // Held: the motor turns on, the controller sees nothing of it.
+        assert_eq!(
+            seen(&mut lines, Some(3), 1.5, shaft(5, 300, 1.49)),
+            (3, 101, 1.0)
+        );
+        // 3 -> 4: three lines change.
+        assert_eq!(
+            seen(&mut lines, Some(4), 2.0, shaft(6, 400, 1.99)),
+            (4, 104, 2.0)
+        );
+        // Released onto the motor's 6: one line changes, and the count goes
+        // on from the controller's, not the motor's 500.
+        assert_eq!(
+            seen(&mut lines, None, 3.0, shaft(6, 500, 2.99)),
+            (6, 105, 3.0)
+        );
+        assert_eq!(
+            seen(&mut lines, None, 3.1, shaft(2, 501, 3.05)),
+            (2, 106, 3.05)
+        );
+    }
+
+    #[test]
+    fn rpm_m_follows_a_hall_code_stepped_by_hand() {
+        use nodes::firmware::HallRpm;
+        use nodes::time::{SimDuration, SimTime};
+        // One pole pair, no gear: 6 edges a turn. The sequence 1 3 2 6 4 5
+        // changes one line a step; 60 steps a second is 10 turns a second.
+        let mut hall = HallRpm::new(1, 1.0, SimDuration::from_millis(250));
+        let mut lines = HallLines::default();
+        let codes = [1, 3, 2, 6, 4, 5];
+        let mut rpm = 0.0;
+        for ms in 0..2000u64 {
+            let now = ms as f64 / 1000.0;
+            let code = codes[(ms / 16) as usize % 6];
+            // The motor stands still at code 1 the whole time.
+            let mut s = shaft(1, 0, f64::NAN);
+            lines.apply(Some(code), now, &mut s);
+            rpm = hall.tick(
+                SimTime::ZERO + SimDuration::from_millis(ms),
+                SimDuration::from_millis(100),
+                &s,
+            );
+        }
+        // A step every 16 ms: 62.5 edges/s, 625 rpm.
+        assert!((rpm - 625.0).abs() < 25.0, "RPM_M {rpm}");
     }
 }
