@@ -593,7 +593,9 @@ impl AvrNode {
             Input::HallC => s.shaft.hall & 4 != 0,
             Input::EncoderA => s.shaft.encoder_a,
             Input::EncoderB => s.shaft.encoder_b,
-            Input::DriverFault => true,
+            // Active low, as the driver's fault output: low while the
+            // driver has tripped (or a fault is forced from the console or panel).
+            Input::DriverFault => !s.motor_tripped,
         }
     }
 

@@ -10,7 +10,7 @@
 
 use crate::common;
 
-use std::io::{BufRead, BufReader, Read};
+use std::io::{BufRead, BufReader, Read, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 use std::sync::Mutex;
@@ -44,9 +44,14 @@ pub(crate) fn scratch(name: &str) -> PathBuf {
 }
 
 fn twin_avr(args: &[&str]) -> Child {
+    twin_avr_with(args, Stdio::null())
+}
+
+/// `twin-avr ARGS` whose console reads `stdin`.
+fn twin_avr_with(args: &[&str], stdin: Stdio) -> Child {
     Command::new(env!("CARGO_BIN_EXE_twin-avr"))
         .args(args)
-        .stdin(Stdio::null())
+        .stdin(stdin)
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
@@ -109,6 +114,16 @@ pub(crate) fn controller_network_master(device: &Path, cycles: u32, wait_ms: u32
 /// A vsp pair and `serve --modbus8` on one end with the sketches `boards`
 /// (`motor=FILE`, `light=FILE`), recording to `out`.
 pub(crate) fn serve_nanos(dir: &Path, boards: &[String], out: &Path) -> (Vsp, Child, String) {
+    serve_nanos_with(dir, boards, out, Stdio::null())
+}
+
+/// [`serve_nanos`], its console reading `stdin`.
+fn serve_nanos_with(
+    dir: &Path,
+    boards: &[String],
+    out: &Path,
+    stdin: Stdio,
+) -> (Vsp, Child, String) {
     let (a, b) = (dir.join("ttyV0"), dir.join("ttyV1"));
     let mut vsp = twin_avr(&["vsp", &a.display().to_string(), &b.display().to_string()]);
     // Its stdout stays open: it prints as the master opens and closes its end.
@@ -135,7 +150,7 @@ pub(crate) fn serve_nanos(dir: &Path, boards: &[String], out: &Path) -> (Vsp, Ch
         args.push(board.clone());
     }
     let args: Vec<&str> = args.iter().map(String::as_str).collect();
-    let serve = twin_avr(&args);
+    let serve = twin_avr_with(&args, stdin);
     (vsp, serve, a.display().to_string())
 }
 
@@ -244,6 +259,64 @@ fn the_nano_sketches_answer_a_controller_network_master_over_a_pty() {
     assert!(lights.iter().any(|&l| l > 0), "{lights:?}");
     assert!(!rest.contains("marked dead"), "{rest}");
     firmware_channels_hold_the_session(&dir.join("nanos.mcap"), log);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The driver's fault forced from the console reaches the motor Nano's D4,
+/// its fault line (active low, as the driver's): the Controller_network
+/// sketch stops the motor after 5 ms of it, as on the bench, and the master
+/// reads the stopped state; released, the sketch can be started again.
+#[test]
+fn a_driver_fault_forced_from_the_console_stops_the_motor_sketch() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let fw = sketches();
+    let dir = scratch("driver-fault");
+    let (mut vsp, mut serve, master_end) = serve_nanos_with(
+        &dir,
+        &[
+            format!("motor={}", fw.join("motor-nano.elf").display()),
+            format!("light={}", fw.join("light-nano.elf").display()),
+        ],
+        &dir.join("fault.mcap"),
+        Stdio::piped(),
+    );
+    let mut console = serve.stdin.take().expect("the console's pipe");
+    let (out, _) = wait_ready(&mut serve);
+    let healthy = controller_network_master(Path::new(&master_end), 12, 100);
+    let states = ints(&healthy["states"]);
+    assert_eq!(states.last(), Some(&Some(0x01)), "operational: {states:?}");
+    assert!(
+        !states.contains(&Some(0x02)),
+        "stopped while healthy: {states:?}"
+    );
+
+    writeln!(console, "force driver_fault on").unwrap();
+    console.flush().unwrap();
+    let faulted = controller_network_master(Path::new(&master_end), 12, 100);
+    writeln!(console, "release driver_fault").unwrap();
+    console.flush().unwrap();
+    let released = controller_network_master(Path::new(&master_end), 12, 100);
+    let rest = stop(serve, out);
+    let _ = vsp.kill();
+    let _ = vsp.wait();
+    let states = ints(&faulted["states"]);
+    // The master starts a stopped board again (81, then 01); the fault
+    // stops it again each time it comes up.
+    assert!(
+        states.contains(&Some(0x02)),
+        "never stopped: {states:?}\n{rest}"
+    );
+    let rpms: Vec<i64> = ints(&faulted["rpms"]).into_iter().flatten().collect();
+    assert!(
+        rpms.iter().rev().take(3).all(|&r| r == 0),
+        "still turning: {rpms:?}"
+    );
+    let states = ints(&released["states"]);
+    assert_eq!(
+        states.last(),
+        Some(&Some(0x01)),
+        "operational again: {states:?}"
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }
 
