@@ -249,9 +249,14 @@ impl Remote {
         let mut failures = 0u32;
         let mut next = Instant::now();
         loop {
-            // Writes first: the page waits for them.
+            // Writes first: the page waits for them. But only until the
+            // poll is due: a slider dragged sends writes back to back, and
+            // the inputs and status must still be read between them.
             loop {
                 let left = next.saturating_duration_since(Instant::now());
+                if left.is_zero() {
+                    break;
+                }
                 match commands.recv_timeout(left) {
                     Ok((request, answer)) => {
                         let result = self.apply(c, &request);

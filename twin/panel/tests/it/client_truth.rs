@@ -102,3 +102,82 @@ fn the_client_panel_forgets_its_writes_across_a_reconnect_and_says_when_it_is_st
         drop(second);
     });
 }
+
+/// A VEL slider dragged sends writes back to back; the panel still reads
+/// the module's inputs and status between them, as often as it polls.
+#[test]
+fn the_client_panel_keeps_reading_while_vel_is_written_back_to_back() {
+    let module = serve_on(
+        "tcp://127.0.0.1:0",
+        "127.0.0.1:0",
+        AccessOptions::default(),
+        60.0,
+    );
+    let panel = Panel::bind(PanelOptions {
+        role: PanelRole::Client,
+        addr: "127.0.0.1:0".parse().unwrap(),
+        access: AccessOptions::default(),
+        rate_hz: 20.0,
+    })
+    .unwrap();
+    let remote = Remote::start(
+        RemoteOptions {
+            url: module.meb.clone(),
+            id: 1,
+            map: Default::default(),
+            poll: Duration::from_millis(50),
+            timeout: Duration::from_millis(500),
+        },
+        panel.hub(),
+    )
+    .unwrap();
+    panel.start_remote(remote).unwrap();
+    let running = panel.running();
+    let connection = || {
+        let (_, body) = http(&running, "GET", "/api/state", None, true);
+        let s: serde_json::Value = serde_json::from_str(&body).unwrap_or_default();
+        s["state"]["connection"].clone()
+    };
+    crate::common::wait_for(LIMIT, "the first reads", || {
+        connection()["last_reply_age_s"].is_number()
+    });
+    // A dragged slider's writes overlap (the page does not wait for one
+    // to be acknowledged before it sends the next): four writers at once.
+    let started = std::time::Instant::now();
+    let writers: Vec<_> = (0..4u32)
+        .map(|w| {
+            let running = running.clone();
+            std::thread::spawn(move || {
+                let mut writes = 0u32;
+                while started.elapsed() < Duration::from_millis(1500) {
+                    let body = format!("{{\"vel\": {}}}", 100 + w * 500 + writes % 400);
+                    let (status, answer) =
+                        http(&running, "POST", "/api/outputs", Some(&body), true);
+                    assert_eq!(status, 200, "{answer}");
+                    writes += 1;
+                }
+                writes
+            })
+        })
+        .collect();
+    let mut oldest = 0.0f64;
+    while started.elapsed() < Duration::from_millis(1500) {
+        let age = connection()["last_reply_age_s"]
+            .as_f64()
+            .unwrap_or(f64::INFINITY);
+        oldest = oldest.max(age);
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let writes: u32 = writers.into_iter().map(|w| w.join().unwrap()).sum();
+    eprintln!("{writes} writes; the inputs read at most {oldest:.3} s before");
+    assert!(
+        writes >= 30,
+        "only {writes} writes in 1.5 s: not back to back"
+    );
+    // A poll every 50 ms, each four exchanges on a loopback: a read is
+    // never older than a few polls, however busy the writes keep it.
+    assert!(
+        oldest < 0.4,
+        "the inputs went unread for {oldest:.3} s while {writes} writes went through"
+    );
+}
