@@ -4,6 +4,7 @@ pub mod baseline;
 pub mod batch;
 pub mod bench;
 pub mod calibrate;
+pub mod check;
 pub mod client;
 pub mod compare;
 pub mod completions;

@@ -11,6 +11,7 @@
 mod batch;
 mod book;
 mod calibrate;
+mod check;
 mod cmd;
 mod cut_recording;
 mod experiment;

@@ -1,0 +1,24 @@
+//! `twin check`: a student's program checked against the protocol it must
+//! speak. A suite ([`suite`]) is a TOML file of checks, each a few steps
+//! (send a frame, expect a reply of a shape or silence within a time),
+//! each tied to the requirement it checks and worth some points; the
+//! built-in suites are written in the same format a teacher uses for their
+//! own. [`run`] plays a suite over a real link (a serial port, a
+//! pseudo-terminal or TCP), [`report`] says what passed and, for what did
+//! not, the frames that show it.
+//!
+//! The fence: no engine, no plant. The checked program is outside the twin;
+//! this crate only talks to it over the wire.
+
+#![allow(
+    clippy::disallowed_methods,
+    reason = "a check talks to a real program in real time: its replies are timed by the wall clock"
+)]
+
+pub mod report;
+pub mod run;
+pub mod suite;
+pub mod wire;
+
+pub use run::{CheckOutcome, Outcome, SuiteRun, run_suite};
+pub use suite::{BUILT_IN, Suite, SuiteError};

@@ -1,0 +1,79 @@
+//! A suite's run as a student or a teacher reads it: one line per check,
+//! for a failure why and the frames that show it, and the score; or as
+//! JSON for scripts.
+
+use crate::run::{Outcome, SuiteRun, Way};
+use std::fmt::Write;
+
+/// The terminal's report.
+pub fn text(run: &SuiteRun) -> String {
+    let mut out = String::new();
+    let _ = writeln!(
+        out,
+        "{} suite, slave {:02} on {}",
+        run.suite, run.id, run.link
+    );
+    for check in &run.checks {
+        match &check.outcome {
+            Outcome::Pass => {
+                let _ = writeln!(out, "  pass  {}  ({})", check.name, check.requirement);
+            }
+            Outcome::Fail(why) => {
+                let _ = writeln!(out, "  FAIL  {}  ({})", check.name, check.requirement);
+                let _ = writeln!(out, "        {why}");
+                for f in &check.frames {
+                    let way = match f.way {
+                        Way::Sent => "sent    ",
+                        Way::Received => "received",
+                    };
+                    let _ = writeln!(out, "        {:8.3} s  {way}  {}", f.at, f.text);
+                }
+            }
+        }
+    }
+    let heard = run
+        .checks
+        .iter()
+        .flat_map(|c| &c.frames)
+        .any(|f| f.way == Way::Received);
+    if !heard {
+        let _ = writeln!(
+            out,
+            "nothing came back at all: is slave {:02} there, on {}? (--id is its device number)",
+            run.id, run.link
+        );
+    }
+    let passed = run.passed().count();
+    let _ = write!(
+        out,
+        "score: {} of {} points ({passed} of {} checks passed) in {:.1} s",
+        run.score(),
+        run.points(),
+        run.checks.len(),
+        run.seconds
+    );
+    let mut replies: Vec<f64> = run
+        .checks
+        .iter()
+        .flat_map(|c| c.reply_ms.iter().copied())
+        .collect();
+    replies.sort_by(f64::total_cmp);
+    if let (Some(median), Some(max)) = (replies.get(replies.len() / 2), replies.last()) {
+        let _ = write!(
+            out,
+            "; replies began {median:.1} ms after the request (median), {max:.1} ms at most"
+        );
+    }
+    out.push('\n');
+    out
+}
+
+/// The run as JSON: the suite, the link, every check with its frames.
+pub fn json(run: &SuiteRun) -> String {
+    let mut value = serde_json::to_value(run).unwrap_or_default();
+    if let Some(map) = value.as_object_mut() {
+        map.insert("score".into(), run.score().into());
+        map.insert("points".into(), run.points().into());
+    }
+    serde_json::to_string_pretty(&value).unwrap_or_default()
+}

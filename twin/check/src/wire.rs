@@ -1,0 +1,158 @@
+//! The checked program's end of the line: a TCP connection or a serial
+//! port (a pseudo-terminal included), opened from a link spec as every
+//! link of the twin is (`tcp://HOST:PORT`, `PATH?baud=9600`).
+
+use std::io::{ErrorKind, Read, Write};
+use std::net::TcpStream;
+use std::time::{Duration, Instant};
+use twin_realtime::io::{LinkAddr, LinkDefaults, LinkSpec, Parity};
+
+/// Why the link cannot be used.
+#[derive(Debug, thiserror::Error)]
+pub enum WireError {
+    #[error("{0}")]
+    Spec(#[from] twin_realtime::io::spec::LinkSpecError),
+    #[error("cannot connect to {link}: {why} (is the program listening there?)")]
+    Connect { link: String, why: std::io::Error },
+    #[error("cannot open {link}: {why}")]
+    Open { link: String, why: String },
+    #[error("{link}: {why}")]
+    Io { link: String, why: std::io::Error },
+    #[error("{link} closed the connection")]
+    Closed { link: String },
+}
+
+enum Line {
+    Tcp(TcpStream),
+    Serial(Box<dyn serialport::SerialPort>),
+}
+
+/// An open link to the checked program.
+pub struct Wire {
+    line: Line,
+    link: String,
+    started: Instant,
+}
+
+impl std::fmt::Debug for Wire {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Wire")
+            .field("link", &self.link)
+            .finish_non_exhaustive()
+    }
+}
+
+impl Wire {
+    /// Opens `link` (`tcp://HOST:PORT`, or a serial path with its options).
+    pub fn open(link: &str) -> Result<Self, WireError> {
+        let spec = LinkSpec::parse(link, &LinkDefaults::default())?;
+        let line = match &spec.addr {
+            LinkAddr::Tcp(addr) => {
+                let stream =
+                    TcpStream::connect_timeout(addr, Duration::from_secs(3)).map_err(|why| {
+                        WireError::Connect {
+                            link: link.into(),
+                            why,
+                        }
+                    })?;
+                let _ = stream.set_nodelay(true);
+                Line::Tcp(stream)
+            }
+            LinkAddr::Serial(path) => {
+                let s = &spec.serial;
+                let port = serialport::new(path.to_string_lossy(), s.baud)
+                    .data_bits(if s.data_bits == 7 {
+                        serialport::DataBits::Seven
+                    } else {
+                        serialport::DataBits::Eight
+                    })
+                    .parity(match s.parity {
+                        Parity::None => serialport::Parity::None,
+                        Parity::Even => serialport::Parity::Even,
+                        Parity::Odd => serialport::Parity::Odd,
+                    })
+                    .stop_bits(if s.stop_bits == 2 {
+                        serialport::StopBits::Two
+                    } else {
+                        serialport::StopBits::One
+                    })
+                    .timeout(Duration::from_millis(10))
+                    .open()
+                    .map_err(|e| WireError::Open {
+                        link: link.into(),
+                        why: e.to_string(),
+                    })?;
+                Line::Serial(port)
+            }
+        };
+        Ok(Self {
+            line,
+            link: link.into(),
+            started: Instant::now(),
+        })
+    }
+
+    /// Seconds since the link was opened: the times of a report.
+    pub fn now(&self) -> f64 {
+        self.started.elapsed().as_secs_f64()
+    }
+
+    pub fn link(&self) -> &str {
+        &self.link
+    }
+
+    pub fn send(&mut self, bytes: &[u8]) -> Result<(), WireError> {
+        let result = match &mut self.line {
+            Line::Tcp(s) => s.write_all(bytes).and_then(|()| s.flush()),
+            Line::Serial(p) => p.write_all(bytes).and_then(|()| p.flush()),
+        };
+        result.map_err(|why| self.io(why))
+    }
+
+    /// Whatever comes in before `deadline`, appended to `into`; returns as
+    /// soon as some bytes came (0 when none came in time).
+    pub fn receive(&mut self, into: &mut Vec<u8>, deadline: Instant) -> Result<usize, WireError> {
+        let mut buf = [0u8; 512];
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                return Ok(0);
+            }
+            let slice = left.min(Duration::from_millis(10));
+            let read = match &mut self.line {
+                Line::Tcp(s) => s
+                    .set_read_timeout(Some(slice))
+                    .and_then(|()| s.read(&mut buf)),
+                Line::Serial(p) => p
+                    .set_timeout(slice)
+                    .map_err(std::io::Error::other)
+                    .and_then(|()| p.read(&mut buf)),
+            };
+            match read {
+                Ok(0) if matches!(self.line, Line::Tcp(_)) => {
+                    return Err(WireError::Closed {
+                        link: self.link.clone(),
+                    });
+                }
+                Ok(0) => {}
+                Ok(n) => {
+                    into.extend_from_slice(buf.get(..n).unwrap_or_default());
+                    return Ok(n);
+                }
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        ErrorKind::WouldBlock | ErrorKind::TimedOut | ErrorKind::Interrupted
+                    ) => {}
+                Err(why) => return Err(self.io(why)),
+            }
+        }
+    }
+
+    fn io(&self, why: std::io::Error) -> WireError {
+        WireError::Io {
+            link: self.link.clone(),
+            why,
+        }
+    }
+}
