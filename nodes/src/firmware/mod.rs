@@ -32,7 +32,7 @@ use crate::time::{SimDuration, SimTime};
 pub use estimators::{HallRpm, LightDetectorConfig, LightRpm};
 pub use frontend::{Framing, FrontendStats, SlaveFrontend};
 pub use image::{EA_WORDS, Protection, Refusal, RegisterImage, Settings, WriteSet, ea, sd, status};
-pub use meb_map::{MapError, MebMap, TAGS};
+pub use meb_map::{MapError, MebMap, TAGS, block_name};
 pub use modbus_slave::{COILS, DISCRETE_INPUTS, HOLDING_REGISTERS, INPUT_REGISTERS};
 pub use readings::Readings;
 

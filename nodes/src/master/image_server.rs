@@ -491,6 +491,9 @@ fn answer(
                 Err(ForwardError::UnknownSlave(_)) => error(request, MebErrorCode::IllegalAddress),
                 Err(ForwardError::QueueFull) => error(request, DEVICE_FAILURE),
                 Err(ForwardError::NotAWrite) => error(request, MebErrorCode::IllegalData),
+                // The default map's address has no place, or no single
+                // place, in the slave's map.
+                Err(ForwardError::Map(_)) => error(request, MebErrorCode::IllegalAddress),
             }
         }
     }

@@ -5,14 +5,17 @@
 //! inputs (MEB `EA 00 06`, RTU FC 04 from 0, quantity 6), takes the hall rpm
 //! (`RPM_M`) or the light-sensor rpm (`RPM_L`) as the measurement, and writes
 //! the controller's output to `VEL` (MEB `SA 00`, RTU holding register 0) when
-//! it changed. Like every node it is a sans-IO state machine: it sees only `now`
+//! it changed; on MEB, at the addresses of the slave's I/O map
+//! ([`MebLayout`], the default being the protocol page's). Like every node it is a sans-IO state machine: it sees only `now`
 //! and bytes, so the virtual-time engine and a real-time one drive it alike.
 
 pub mod image_server;
+mod layout;
 mod pi;
 mod supervisor;
 pub(crate) mod wire;
 
+pub use layout::{LayoutError, MebLayout, TranslateError};
 pub use pi::{SpeedPi, VEL_MAX, VEL_MIN};
 pub use supervisor::{
     ForwardError, LoopState, PollCounters, StatusWords, Supervisor, WriteOutcome, WriteTicket,
@@ -45,6 +48,14 @@ impl SpeedSource {
         match self {
             SpeedSource::Hall => 3,
             SpeedSource::Light => 4,
+        }
+    }
+
+    /// The reading's name in the I/O map.
+    pub const fn name(self) -> &'static str {
+        match self {
+            SpeedSource::Hall => "RPM_M",
+            SpeedSource::Light => "RPM_L",
         }
     }
 }
@@ -158,6 +169,9 @@ pub struct SupervisorConfig {
     /// (`ED 00`, `FA 00`–`01`, `FD 00`) for the image a server answers from.
     /// MEB only; 0 (the default) never, which keeps a cycle one read and one write.
     pub status_every: u32,
+    /// Where the slaves' signals sit on MEB (their I/O map); the default is
+    /// `docs/protocols/meb.md`'s. Modbus RTU takes only the default.
+    pub layout: MebLayout,
 }
 
 impl SupervisorConfig {
@@ -175,6 +189,7 @@ impl SupervisorConfig {
             startup_outputs: Some(StartupOutputs::ENABLED_BRAKE_RELEASED),
             rtu_silence: SimDuration::from_micros(1_750),
             status_every: 0,
+            layout: MebLayout::default(),
         }
     }
 }
@@ -206,4 +221,10 @@ pub enum SupervisorConfigError {
         /// `kp`, `ki` or `set_points`.
         field: &'static str,
     },
+    /// An I/O map is MEB's: a Modbus RTU bus has its own register map.
+    #[error("an I/O map places MEB's signals; a Modbus RTU bus uses docs/protocols/modbus-map.md")]
+    MapNeedsMeb,
+    /// The map lacks a signal the loop needs.
+    #[error("{0}")]
+    Map(LayoutError),
 }

@@ -9,6 +9,7 @@ pub use forward::{ForwardError, WriteOutcome, WriteTicket};
 use crate::node::{Node, NodeEvent};
 use crate::time::{SimDuration, SimTime};
 
+use super::layout::MebLayout;
 use super::pi::{SpeedPi, VEL_MAX};
 use super::wire::{INPUT_WORDS, Reply, ReplyDecoder, StatusBlock, Transaction};
 use super::{
@@ -89,6 +90,11 @@ struct Slave {
     /// A set point written at run time (the image's `VA 10`), over the schedule.
     set_point_override: Option<f64>,
     state: LoopState,
+    /// The inputs of this cycle's read so far (a mapped slave may need several).
+    reading: [u16; INPUT_WORDS],
+    /// The switches' words as the default map has them, as last written:
+    /// what a client's write of some switches leaves the others at.
+    switches: [u16; 2],
 }
 
 /// Where the supervisor is in its exchange.
@@ -134,6 +140,7 @@ pub struct Supervisor {
     /// after stray bytes): where a forwarded write may go out.
     line_free_at: SimTime,
     forwarding: forward::Forwarding,
+    layout: MebLayout,
 }
 
 impl Supervisor {
@@ -150,6 +157,7 @@ impl Supervisor {
             startup_outputs,
             rtu_silence,
             status_every,
+            layout,
         } = config;
         if slaves.is_empty() {
             return Err(SupervisorConfigError::NoSlaves);
@@ -158,6 +166,9 @@ impl Supervisor {
             Protocol::Meb => (1, crate::proto::meb::MEB_MAX_ID),
             Protocol::ModbusRtu => (1, 247),
         };
+        if protocol != Protocol::Meb && !layout.is_default() {
+            return Err(SupervisorConfigError::MapNeedsMeb);
+        }
         let mut checked: Vec<Slave> = Vec::with_capacity(slaves.len());
         for mut slave in slaves {
             let id = slave.id;
@@ -177,6 +188,10 @@ impl Supervisor {
             if slave.set_points.iter().any(|step| !step.rpm.is_finite()) {
                 return Err(not_finite("set_points"));
             }
+            let source = slave.speed_source;
+            layout
+                .check(source.input_index(), source.name())
+                .map_err(SupervisorConfigError::Map)?;
             // Stable, so steps given at the same instant keep their order and
             // the last one wins.
             slave.set_points.sort_by_key(|step| step.at);
@@ -184,6 +199,8 @@ impl Supervisor {
                 pi: SpeedPi::new(slave.kp, slave.ki),
                 set_point_override: None,
                 state: LoopState::default(),
+                reading: [0; INPUT_WORDS],
+                switches: startup_outputs.map_or([0; 2], |o| [o.sd0, o.sd1]),
                 config: slave,
             });
         }
@@ -199,7 +216,7 @@ impl Supervisor {
             phase: Phase::Waiting { at: first_poll_at },
             pending: Pending {
                 slave: 0,
-                transaction: Transaction::ReadInputs,
+                transaction: Transaction::ReadInputs(0),
                 attempt: 0,
             },
             cycle_start: first_poll_at,
@@ -214,6 +231,7 @@ impl Supervisor {
             },
             line_free_at: first_poll_at,
             forwarding: forward::Forwarding::default(),
+            layout,
         };
         supervisor.pending.transaction = supervisor.first_transaction(0);
         Ok(supervisor)
@@ -339,14 +357,16 @@ impl Supervisor {
     /// The status round's first read, if this cycle has one.
     fn status_round(&self) -> Option<Transaction> {
         (self.status_every > 0 && self.cycles.is_multiple_of(u64::from(self.status_every)))
-            .then_some(Transaction::ReadStatus(StatusBlock::Hall))
+            .then_some(Transaction::ReadStatus(StatusBlock::first(&self.layout)))
     }
 
     fn first_transaction(&self, slave: usize) -> Transaction {
         let started = self.slaves.get(slave).is_some_and(|s| s.state.started);
+        // A map that places no switch leaves nothing to start up.
+        let switches = self.layout.sd_spans().get(0).is_some();
         match self.startup {
-            Some(outputs) if !started => Transaction::Startup(outputs),
-            _ => Transaction::ReadInputs,
+            Some(outputs) if !started && switches => Transaction::Startup(outputs, 0),
+            _ => Transaction::ReadInputs(0),
         }
     }
 
@@ -453,10 +473,10 @@ impl Supervisor {
         // A lost start-up write does not stop the read: the telemetry still
         // flows, and the write is tried again next cycle.
         let next = match transaction {
-            Transaction::Startup(_) => Some(Transaction::ReadInputs),
+            Transaction::Startup(..) => Some(Transaction::ReadInputs(0)),
             // A forwarded write was handled above; a lost status read
             // ends the round, the next one comes in `status_every` cycles.
-            Transaction::ReadInputs
+            Transaction::ReadInputs(_)
             | Transaction::WriteVel(_)
             | Transaction::Forward { .. }
             | Transaction::ReadStatus(_) => None,
@@ -522,10 +542,14 @@ impl Supervisor {
                         self.finish_forward(now, WriteOutcome::Acknowledged);
                         return;
                     }
-                    (Transaction::Startup(_), Some(slave)) => {
+                    (Transaction::Startup(outputs, part), Some(slave)) => {
                         slave.state.counters.replies += 1;
-                        slave.state.started = true;
-                        Some(Transaction::ReadInputs)
+                        if self.layout.sd_spans().is_last(part) {
+                            slave.state.started = true;
+                            Some(Transaction::ReadInputs(0))
+                        } else {
+                            Some(Transaction::Startup(outputs, part + 1))
+                        }
                     }
                     (Transaction::WriteVel(vel), Some(slave)) => {
                         slave.state.counters.replies += 1;
@@ -533,30 +557,55 @@ impl Supervisor {
                         self.status_round()
                     }
                     // Never classified as an acknowledgement.
-                    (Transaction::ReadInputs | Transaction::ReadStatus(_), Some(_)) => None,
+                    (Transaction::ReadInputs(_) | Transaction::ReadStatus(_), Some(_)) => None,
                 };
                 self.advance(now, next);
             }
-            Reply::Inputs(words) => {
+            Reply::Inputs(words, count) => {
+                let part = match transaction {
+                    Transaction::ReadInputs(part) => part,
+                    _ => 0,
+                };
+                let spans = self.layout.input_spans();
+                let first = spans.get(part).map_or(0, |(first, _)| first);
+                let last = spans.is_last(part);
                 let default_dt = self.poll_period;
-                let write = self
-                    .slaves
-                    .get_mut(self.pending.slave)
-                    .and_then(|slave| slave.measure(now, words, default_dt));
-                let next = write.or_else(|| self.status_round());
+                let Some(slave) = self.slaves.get_mut(self.pending.slave) else {
+                    self.advance(now, None);
+                    return;
+                };
+                let got = words.get(..usize::from(count)).unwrap_or_default();
+                self.layout.place_inputs(first, got, &mut slave.reading);
+                let next = if last {
+                    let reading = slave.reading;
+                    slave
+                        .measure(now, reading, default_dt)
+                        .or_else(|| self.status_round())
+                } else {
+                    slave.state.counters.replies += 1;
+                    Some(Transaction::ReadInputs(part + 1))
+                };
                 self.advance(now, next);
             }
             Reply::Status(block, words) => {
+                let flags = self.layout.flags_read();
                 if let Some(slave) = self.slaves.get_mut(self.pending.slave) {
                     slave.state.counters.replies += 1;
                     let status = &mut slave.state.status;
-                    match block {
-                        StatusBlock::Hall => status.hall = Some(words[0]),
-                        StatusBlock::Flags => status.flags = Some(words),
-                        StatusBlock::Status => status.status = Some(words[0]),
+                    let [soc, errs] = status.flags.unwrap_or_default();
+                    match (block, flags) {
+                        (StatusBlock::Hall, _) => status.hall = Some(words[0]),
+                        (StatusBlock::Flags, Some((_, 2, Some(1)))) => {
+                            status.flags = Some([words[1], words[0]]);
+                        }
+                        (StatusBlock::Flags, Some((_, 2, _))) => status.flags = Some(words),
+                        (StatusBlock::Flags, _) => status.flags = Some([words[0], errs]),
+                        (StatusBlock::Errs, _) => status.flags = Some([soc, words[0]]),
+                        (StatusBlock::Status, _) => status.status = Some(words[0]),
                     }
                 }
-                self.advance(now, block.next().map(Transaction::ReadStatus));
+                let next = block.next(&self.layout).map(Transaction::ReadStatus);
+                self.advance(now, next);
             }
         }
     }
@@ -622,7 +671,10 @@ impl Node for Supervisor {
         let mut input = bytes;
         loop {
             let pending = (self.pending_id(), self.pending.transaction);
-            let Some(reply) = self.decoder.next_reply(now, &mut input, pending) else {
+            let Some(reply) = self
+                .decoder
+                .next_reply(now, &mut input, pending, &self.layout)
+            else {
                 break;
             };
             // Bytes after the awaited reply (noise, a late duplicate) are still
@@ -658,10 +710,10 @@ impl Node for Supervisor {
             .current
             .as_ref()
             .map_or(&[][..], |forward| forward.data.as_slice());
-        let Some(len) = self
-            .pending
-            .transaction
-            .emit(self.protocol, id, forwarded, buf)
+        let Some(len) =
+            self.pending
+                .transaction
+                .emit(self.protocol, id, &self.layout, forwarded, buf)
         else {
             // Only an engine with a buffer below `MAX_FRAME` gets here: give
             // the exchange up rather than ask for the same instant forever.

@@ -9,18 +9,20 @@ use crate::proto::modbus::serial::Timing;
 use crate::proto::modbus::{Bits, ExceptionResponse, PduError, Request, Response};
 use crate::time::{SimDuration, SimTime};
 
+use super::layout::MebLayout;
 use super::{Protocol, StartupOutputs};
 
-/// The analog inputs read every cycle: V2, I, V1, RPM_M, RPM_L, LDR.
-pub(crate) const INPUT_WORDS: usize = 6;
+pub(crate) use super::layout::INPUT_WORDS;
 
 /// One request/reply exchange with a slave.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) enum Transaction {
-    /// Enable the module: write `SD0`, `SD1` (RTU: coils 0–5).
-    Startup(StartupOutputs),
-    /// Read the six analog inputs.
-    ReadInputs,
+    /// Enable the module: write `SD0`, `SD1` (RTU: coils 0–5); on MEB, the
+    /// slave's map's span of `SD` words numbered by the second field.
+    Startup(StartupOutputs, u8),
+    /// Read the six analog inputs: on MEB, the slave's map's span of `EA`
+    /// addresses numbered by the field.
+    ReadInputs(u8),
     /// Write `VEL`.
     WriteVel(u16),
     /// One block of the slave's status words (MEB only).
@@ -34,8 +36,8 @@ impl Transaction {
     /// A short name for events.
     pub(crate) fn name(self) -> &'static str {
         match self {
-            Transaction::Startup(_) => "startup write",
-            Transaction::ReadInputs => "input read",
+            Transaction::Startup(..) => "startup write",
+            Transaction::ReadInputs(_) => "input read",
             Transaction::WriteVel(_) => "VEL write",
             Transaction::Forward { .. } => "forwarded write",
             Transaction::ReadStatus(_) => "status read",
@@ -49,6 +51,7 @@ impl Transaction {
         self,
         protocol: Protocol,
         id: u8,
+        layout: &MebLayout,
         forwarded: &[u16],
         out: &mut [u8],
     ) -> Option<usize> {
@@ -62,36 +65,46 @@ impl Transaction {
             }
             .emit(out)
             .ok(),
-            (Protocol::Meb, _) => self.meb_request(id).emit(out).ok(),
+            (Protocol::Meb, _) => self.meb_request(id, layout).emit(out).ok(),
             (Protocol::ModbusRtu, _) => rtu::emit(id, &self.rtu_request()?, out).ok(),
         }
     }
 
     /// The request's header (a forwarded write's words are not held here).
-    fn meb_request(self, id: u8) -> MebRepr {
-        let (cmd, addr, cnt, words): (MebCmd, u8, u8, &[u16]) = match self {
-            Transaction::Startup(outputs) => (MebCmd::SD, 0, 2, &[outputs.sd0, outputs.sd1]),
-            Transaction::ReadInputs => (MebCmd::EA, 0, INPUT_WORDS as u8, &[]),
-            Transaction::WriteVel(vel) => (MebCmd::SA, 0, 1, &[vel]),
-            Transaction::Forward { cmd, addr, cnt } => (cmd, addr, cnt, &[]),
-            Transaction::ReadStatus(block) => {
-                let (cmd, addr, cnt) = block.header();
-                (cmd, addr, cnt, &[])
+    fn meb_request(self, id: u8, layout: &MebLayout) -> MebRepr {
+        let mut data = MebWords::new();
+        let (cmd, addr, cnt) = match self {
+            Transaction::Startup(outputs, part) => {
+                let (first, count) = layout.sd_spans().get(part).unwrap_or((0, 0));
+                for word in first..first + count {
+                    let _ = data.push(layout.sd_word(word, [outputs.sd0, outputs.sd1]));
+                }
+                (MebCmd::SD, first, count)
             }
+            Transaction::ReadInputs(part) => {
+                let (first, count) = layout.input_spans().get(part).unwrap_or((0, 0));
+                (MebCmd::EA, first, count)
+            }
+            Transaction::WriteVel(vel) => {
+                let _ = data.push(vel);
+                (MebCmd::SA, layout.vel(), 1)
+            }
+            Transaction::Forward { cmd, addr, cnt } => (cmd, addr, cnt),
+            Transaction::ReadStatus(block) => block.header(layout).unwrap_or((MebCmd::FD, 0, 1)),
         };
         MebRepr {
             id,
             cmd,
             addr,
             cnt,
-            data: MebWords::from_slice(words).unwrap_or_default(),
+            data,
         }
     }
 
     /// `None` for a forwarded MEB write, which has no Modbus form.
     fn rtu_request(self) -> Option<Request> {
         Some(match self {
-            Transaction::Startup(outputs) => {
+            Transaction::Startup(outputs, _) => {
                 let bit = |word: u16, n: u8| word & (1 << n) != 0;
                 let coils = [
                     bit(outputs.sd0, 0),
@@ -106,7 +119,7 @@ impl Transaction {
                     coils: Bits::from_bools(&coils).unwrap_or_default(),
                 }
             }
-            Transaction::ReadInputs => Request::ReadInputRegisters {
+            Transaction::ReadInputs(_) => Request::ReadInputRegisters {
                 address: 0,
                 quantity: INPUT_WORDS as u16,
             },
@@ -120,8 +133,8 @@ impl Transaction {
 
     fn rtu_function(self) -> u8 {
         match self {
-            Transaction::Startup(_) => function::WRITE_MULTIPLE_COILS,
-            Transaction::ReadInputs => function::READ_INPUT_REGISTERS,
+            Transaction::Startup(..) => function::WRITE_MULTIPLE_COILS,
+            Transaction::ReadInputs(_) => function::READ_INPUT_REGISTERS,
             Transaction::WriteVel(_) => function::WRITE_SINGLE_REGISTER,
             // Never sent on a Modbus bus; no function code answers it.
             Transaction::Forward { .. } | Transaction::ReadStatus(_) => 0,
@@ -134,27 +147,48 @@ impl Transaction {
 pub(crate) enum StatusBlock {
     /// `ED 00`: hall code and flag bit.
     Hall,
-    /// `FA 00`–`01`: SOC and ERRS.
+    /// `FA 00`–`01`: SOC and ERRS (SOC alone where the map puts it apart).
     Flags,
+    /// `FA 01`: ERRS, when the map puts SOC apart from it.
+    Errs,
     /// `FD 00`: STATUS.
     Status,
 }
 
 impl StatusBlock {
-    pub(crate) fn header(self) -> (MebCmd, u8, u8) {
+    /// The read, or `None` where the map places nothing to read.
+    pub(crate) fn header(self, layout: &MebLayout) -> Option<(MebCmd, u8, u8)> {
         match self {
-            StatusBlock::Hall => (MebCmd::ED, 0, 1),
-            StatusBlock::Flags => (MebCmd::FA, 0, 2),
-            StatusBlock::Status => (MebCmd::FD, 0, 1),
+            StatusBlock::Hall => layout.hall().map(|a| (MebCmd::ED, a, 1)),
+            StatusBlock::Flags => layout.flags_read().map(|(a, n, _)| (MebCmd::FA, a, n)),
+            StatusBlock::Errs => layout.errs_apart().then_some((MebCmd::FA, 1, 1)),
+            StatusBlock::Status => Some((MebCmd::FD, 0, 1)),
+        }
+    }
+
+    /// The first block of a status round.
+    pub(crate) fn first(layout: &MebLayout) -> StatusBlock {
+        match StatusBlock::Hall.header(layout) {
+            Some(_) => StatusBlock::Hall,
+            None => StatusBlock::Hall
+                .next(layout)
+                .unwrap_or(StatusBlock::Status),
         }
     }
 
     /// The block read after this one in a status round.
-    pub(crate) fn next(self) -> Option<StatusBlock> {
-        match self {
-            StatusBlock::Hall => Some(StatusBlock::Flags),
-            StatusBlock::Flags => Some(StatusBlock::Status),
-            StatusBlock::Status => None,
+    pub(crate) fn next(self, layout: &MebLayout) -> Option<StatusBlock> {
+        let mut block = self;
+        loop {
+            block = match block {
+                StatusBlock::Hall => StatusBlock::Flags,
+                StatusBlock::Flags => StatusBlock::Errs,
+                StatusBlock::Errs => StatusBlock::Status,
+                StatusBlock::Status => return None,
+            };
+            if block.header(layout).is_some() {
+                return Some(block);
+            }
         }
     }
 }
@@ -162,8 +196,8 @@ impl StatusBlock {
 /// What a frame that reached the supervisor means for the pending request.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) enum Reply {
-    /// The six analog inputs asked for.
-    Inputs([u16; INPUT_WORDS]),
+    /// The analog inputs asked for: the words and how many.
+    Inputs([u16; INPUT_WORDS], u8),
     /// The words of a status block (the second unused for one-word blocks).
     Status(StatusBlock, [u16; 2]),
     /// The write was acknowledged.
@@ -213,6 +247,7 @@ impl ReplyDecoder {
         now: SimTime,
         input: &mut &[u8],
         pending: (u8, Transaction),
+        layout: &MebLayout,
     ) -> Option<Reply> {
         match self {
             ReplyDecoder::Meb(decoder) => loop {
@@ -221,7 +256,7 @@ impl ReplyDecoder {
                 }
                 let (used, event) = decoder.push(now, input);
                 let reply = event.map(|event| match event {
-                    Ok(frame) => classify_meb(&MebRepr::from_frame(&frame), pending),
+                    Ok(frame) => classify_meb(&MebRepr::from_frame(&frame), pending, layout),
                     // A new `@` before `\n`: the bytes were cut, which is all a
                     // master can tell of a corrupted terminator.
                     Err(MebDecodeError::Interrupted | MebDecodeError::Malformed(_)) => Reply::Bad,
@@ -244,7 +279,11 @@ impl ReplyDecoder {
     }
 }
 
-fn classify_meb(reply: &MebRepr, (id, transaction): (u8, Transaction)) -> Reply {
+fn classify_meb(
+    reply: &MebRepr,
+    (id, transaction): (u8, Transaction),
+    layout: &MebLayout,
+) -> Reply {
     if reply.id != id {
         return Reply::Unexpected;
     }
@@ -254,24 +293,21 @@ fn classify_meb(reply: &MebRepr, (id, transaction): (u8, Transaction)) -> Reply 
             _ => Reply::Bad,
         };
     }
-    let expected = transaction.meb_request(id);
+    let expected = transaction.meb_request(id, layout);
     if reply.cmd != expected.cmd || reply.addr != expected.addr || reply.cnt != expected.cnt {
         return Reply::Unexpected;
     }
     match transaction {
-        Transaction::ReadInputs => match <[u16; INPUT_WORDS]>::try_from(reply.data.as_slice()) {
-            Ok(words) => Reply::Inputs(words),
-            Err(_) => Reply::Unexpected,
-        },
+        Transaction::ReadInputs(_) => inputs(reply.data.as_slice(), expected.cnt),
         Transaction::ReadStatus(block) => {
             let words = reply.data.as_slice();
-            match (words.len() == usize::from(block.header().2), words) {
+            match (words.len() == usize::from(expected.cnt), words) {
                 (true, &[a]) => Reply::Status(block, [a, 0]),
                 (true, &[a, b]) => Reply::Status(block, [a, b]),
                 _ => Reply::Unexpected,
             }
         }
-        Transaction::Startup(_) | Transaction::WriteVel(_) | Transaction::Forward { .. }
+        Transaction::Startup(..) | Transaction::WriteVel(_) | Transaction::Forward { .. }
             if reply.data.is_empty() =>
         {
             Reply::Ack
@@ -293,14 +329,11 @@ fn classify_rtu(
         Ok(Ok(response)) => response,
     };
     match (transaction, response) {
-        (Transaction::ReadInputs, Response::ReadInputRegisters(values)) => {
-            match <[u16; INPUT_WORDS]>::try_from(values.as_slice()) {
-                Ok(words) => Reply::Inputs(words),
-                Err(_) => Reply::Unexpected,
-            }
+        (Transaction::ReadInputs(_), Response::ReadInputRegisters(values)) => {
+            inputs(values.as_slice(), INPUT_WORDS as u8)
         }
         (
-            Transaction::Startup(_),
+            Transaction::Startup(..),
             Response::WriteMultipleCoils {
                 address: 0,
                 quantity: 6,
@@ -310,6 +343,18 @@ fn classify_rtu(
             if value == vel =>
         {
             Reply::Ack
+        }
+        _ => Reply::Unexpected,
+    }
+}
+
+/// The words of an input read, if they are as many as asked for.
+fn inputs(words: &[u16], count: u8) -> Reply {
+    let mut out = [0; INPUT_WORDS];
+    match out.get_mut(..words.len()) {
+        Some(slots) if words.len() == usize::from(count) => {
+            slots.copy_from_slice(words);
+            Reply::Inputs(out, count)
         }
         _ => Reply::Unexpected,
     }

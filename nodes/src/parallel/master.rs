@@ -137,6 +137,8 @@ pub struct ParallelMaster {
     pwm_rx: PwmReceiver,
     rtu_rx: ReplyDecoder,
     tx: [u8; 64],
+    /// Unused on Modbus RTU, which has one register map; the wire asks for one.
+    layout: crate::master::MebLayout,
     counters: Vec<SlaveCounters>,
     events: VecDeque<NodeEvent>,
 }
@@ -208,6 +210,7 @@ impl ParallelMaster {
             pwm_rx: PwmReceiver::new(&config.coding, config.period_ticks),
             rtu_rx: ReplyDecoder::new(Protocol::ModbusRtu, config.rtu_silence),
             tx: [0; 64],
+            layout: crate::master::MebLayout::default(),
             counters,
             events: VecDeque::with_capacity(MAX_PENDING_EVENTS),
             config,
@@ -354,7 +357,7 @@ impl ParallelMaster {
                 self.advance();
             }
             // The parallel master never asks for inputs or status words.
-            Reply::Unexpected | Reply::Inputs(_) | Reply::Status(..) => {}
+            Reply::Unexpected | Reply::Inputs(..) | Reply::Status(..) => {}
         }
     }
 }
@@ -380,13 +383,15 @@ impl Node for ParallelMaster {
                 self.quiet_until = Some(now + self.config.rtu_silence);
                 let mut input = bytes;
                 let transaction = if self.sent_startup {
-                    Transaction::Startup(StartupOutputs::ENABLED_BRAKE_RELEASED)
+                    Transaction::Startup(StartupOutputs::ENABLED_BRAKE_RELEASED, 0)
                 } else {
                     Transaction::WriteVel(self.sent_vel)
                 };
                 while matches!(self.stage, Stage::Waiting { .. }) {
                     let id = self.config.slaves[self.cursor];
-                    let Some(reply) = self.rtu_rx.next_reply(now, &mut input, (id, transaction))
+                    let Some(reply) =
+                        self.rtu_rx
+                            .next_reply(now, &mut input, (id, transaction), &self.layout)
                     else {
                         break;
                     };
@@ -437,13 +442,13 @@ impl Node for ParallelMaster {
                 let id = self.config.slaves[self.cursor];
                 self.sent_startup = !self.started[self.cursor];
                 let transaction = if self.sent_startup {
-                    Transaction::Startup(StartupOutputs::ENABLED_BRAKE_RELEASED)
+                    Transaction::Startup(StartupOutputs::ENABLED_BRAKE_RELEASED, 0)
                 } else {
                     Transaction::WriteVel(vel)
                 };
                 self.rtu_rx.reset();
                 (
-                    transaction.emit(Protocol::ModbusRtu, id, &[], &mut self.tx)?,
+                    transaction.emit(Protocol::ModbusRtu, id, &self.layout, &[], &mut self.tx)?,
                     true,
                 )
             }

@@ -13,6 +13,7 @@ use std::collections::VecDeque;
 use crate::proto::meb::{MebCmd, MebWords};
 use crate::time::SimTime;
 
+use super::super::layout::TranslateError;
 use super::super::wire::Transaction;
 use super::super::{LoopMode, Protocol};
 use super::{Pending, Phase, Supervisor};
@@ -52,6 +53,9 @@ pub enum ForwardError {
     /// Not a write command, or the words do not match the count.
     #[error("not a write request")]
     NotAWrite,
+    /// The slave's I/O map cannot take the write as it is.
+    #[error("{0}")]
+    Map(TranslateError),
 }
 
 #[derive(Debug, Clone)]
@@ -105,6 +109,17 @@ impl Supervisor {
         if self.forwarding.queue.len() >= FORWARD_QUEUE_LEN {
             return Err(ForwardError::QueueFull);
         }
+        // Clients write in the protocol page's map; the slave may keep
+        // its signals elsewhere.
+        let Some(held) = self.slaves.get_mut(slave) else {
+            return Err(ForwardError::UnknownSlave(id));
+        };
+        let mut switches = held.switches;
+        let (addr, data) = self
+            .layout
+            .translate(cmd, addr, data.as_slice(), &mut switches)
+            .map_err(ForwardError::Map)?;
+        held.switches = switches;
         let ticket = WriteTicket(self.forwarding.next_ticket);
         self.forwarding.next_ticket += 1;
         self.forwarding.queue.push_back(Forward {

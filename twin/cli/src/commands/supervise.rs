@@ -6,6 +6,7 @@ use nodes::master::SpeedSource;
 use nodes::master::image_server::ImageServerConfig;
 use nodes::time::SimDuration;
 use std::io::Write;
+use std::path::PathBuf;
 use twin_realtime::allow::AllowList;
 use twin_realtime::session::SessionOptions;
 use twin_realtime::supervise::{self, SuperviseOptions};
@@ -59,6 +60,12 @@ pub struct SuperviseArgs {
     #[arg(long = "id", default_value = "1", value_name = "ID",
           value_parser = clap::value_parser!(u8).range(1..=99))]
     ids: Vec<u8>,
+    /// I/O map of the slaves (TOML, one table per block: `[EA]` with `V1 = 0`,
+    /// `[SD]` with `EN = "0.0"`, the file `twin serve --map` reads); blocks not
+    /// named keep docs/protocols/meb.md's map. Remote clients of --listen
+    /// still read and write in that default map.
+    #[arg(long, value_name = "FILE", conflicts_with = "modbus_rtu")]
+    map: Option<PathBuf>,
     /// Set point of the speed loop from the start, rpm (clients change it through VA 10).
     #[arg(long, default_value_t = 0.0, value_name = "RPM", value_parser = super::numbers::number)]
     set_point: f64,
@@ -162,6 +169,26 @@ fn millis(name: &str, ms: f64) -> Result<SimDuration> {
     Ok(SimDuration::from_secs_f64(ms / 1000.0))
 }
 
+/// The `--map` file, checked for what the loop needs besides its form.
+fn map(args: &SuperviseArgs) -> Result<Option<nodes::firmware::MebMap>> {
+    let Some(path) = &args.map else {
+        return Ok(None);
+    };
+    let map = twin_realtime::serve::map::load(path)?;
+    let source = speed_source(args);
+    nodes::master::MebLayout::from_map(&map)
+        .check(source.input_index(), source.name())
+        .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+    Ok(Some(map))
+}
+
+fn speed_source(args: &SuperviseArgs) -> SpeedSource {
+    match args.speed_source {
+        Source::Hall => SpeedSource::Hall,
+        Source::Light => SpeedSource::Light,
+    }
+}
+
 fn options(args: &SuperviseArgs) -> Result<SuperviseOptions> {
     // Either link will do, so clap is not told one is required: it would
     // name only the first.
@@ -250,14 +277,12 @@ fn options(args: &SuperviseArgs) -> Result<SuperviseOptions> {
         open_loop: args.open_loop,
         kp: args.kp,
         ki: args.ki,
-        speed_source: match args.speed_source {
-            Source::Hall => SpeedSource::Hall,
-            Source::Light => SpeedSource::Light,
-        },
+        speed_source: speed_source(args),
         poll_period: millis("poll-ms", args.poll_ms)?,
         reply_timeout: millis("timeout-ms", args.timeout_ms)?,
         retries: args.retries,
         status_poll: args.status_poll,
+        meb_map: map(args)?,
         server,
         // Far above any frame rate allowed: only a flood of garbage hits it.
         rate_limit_bytes: Some((args.rate_limit * 1.5 * 410.0) as u64 + 4096),

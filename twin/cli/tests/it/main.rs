@@ -38,6 +38,7 @@ mod service;
 mod soak;
 mod step;
 mod supervise;
+mod supervise_map;
 mod support;
 mod view;
 mod view_sessions;

@@ -16,7 +16,7 @@ use support::Proc;
 
 /// The first `tcp://` address `proc` printed before `ready`, as HOST:PORT
 /// (for `twin supervise`, its server's, not the bus's `master` line).
-fn server_tcp(proc: &Proc) -> String {
+pub(crate) fn server_tcp(proc: &Proc) -> String {
     let link = proc
         .links()
         .into_iter()
@@ -27,12 +27,12 @@ fn server_tcp(proc: &Proc) -> String {
 }
 
 /// Paths for a vsp pair unique to this test run.
-fn pair_paths(name: &str) -> (PathBuf, PathBuf) {
+pub(crate) fn pair_paths(name: &str) -> (PathBuf, PathBuf) {
     let base = std::env::temp_dir().join(format!("twin-{}-{name}", std::process::id()));
     (base.with_extension("V0"), base.with_extension("V1"))
 }
 
-fn s(path: &Path) -> &str {
+pub(crate) fn s(path: &Path) -> &str {
     path.to_str().unwrap()
 }
 
@@ -45,7 +45,7 @@ fn wait_polled(url: &str) {
     }
 }
 
-fn client(args: &[&str]) -> Output {
+pub(crate) fn client(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_twin"))
         .arg("client")
         .args(args)
@@ -55,13 +55,13 @@ fn client(args: &[&str]) -> Output {
 }
 
 /// A raw MEB connection: frames written as the spec spells them.
-struct Raw {
+pub(crate) struct Raw {
     stream: TcpStream,
     decoder: MebDecoder,
 }
 
 impl Raw {
-    fn connect(addr: &str) -> Raw {
+    pub(crate) fn connect(addr: &str) -> Raw {
         let stream = TcpStream::connect(addr).expect("connects");
         stream
             .set_read_timeout(Some(Duration::from_secs(3)))
@@ -72,12 +72,12 @@ impl Raw {
         }
     }
 
-    fn send(&mut self, bytes: &[u8]) {
+    pub(crate) fn send(&mut self, bytes: &[u8]) {
         self.stream.write_all(bytes).expect("write");
     }
 
     /// The next `n` frames, as text.
-    fn frames(&mut self, n: usize) -> Vec<String> {
+    pub(crate) fn frames(&mut self, n: usize) -> Vec<String> {
         let mut out = Vec::new();
         let mut buf = [0u8; 512];
         while out.len() < n {
@@ -97,12 +97,12 @@ impl Raw {
 }
 
 /// `@…FCS*\n`, the XOR computed here again.
-fn frame(body: &str) -> Vec<u8> {
+pub(crate) fn frame(body: &str) -> Vec<u8> {
     let fcs = body.bytes().fold(0u8, |acc, b| acc ^ b);
     format!("{body}{fcs:02X}*\n").into_bytes()
 }
 
-fn reply_words(reply: &str) -> Vec<u16> {
+pub(crate) fn reply_words(reply: &str) -> Vec<u16> {
     MebRepr::parse(reply.as_bytes())
         .expect("a well-formed reply")
         .data

@@ -378,6 +378,7 @@ pub fn supervise(bus: &str, web: &str, seconds: f64) -> Session {
         reply_timeout: SimDuration::from_millis(100),
         retries: 2,
         status_poll: 10,
+        meb_map: None,
         server: ImageServerConfig::default(),
         rate_limit_bytes: None,
         idle_timeout: None,

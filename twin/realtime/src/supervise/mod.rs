@@ -52,6 +52,9 @@ pub struct SuperviseOptions {
     pub retries: u8,
     /// Read the status words (ED 00, FA 00-01, FD 00) every this many cycles (0: never).
     pub status_poll: u32,
+    /// Where the slaves keep their signals on MEB (`--map`; `None`:
+    /// `docs/protocols/meb.md`'s map). Remote clients still see that map.
+    pub meb_map: Option<nodes::firmware::MebMap>,
     pub server: ImageServerConfig,
     /// Close a client sending more bytes than this in one second.
     pub rate_limit_bytes: Option<u64>,
@@ -102,6 +105,9 @@ pub fn build_supervisor(options: &SuperviseOptions) -> Result<Supervisor> {
     config.reply_timeout = options.reply_timeout;
     config.retries = options.retries;
     config.status_every = options.status_poll;
+    if let Some(map) = &options.meb_map {
+        config.layout = nodes::master::MebLayout::from_map(map);
+    }
     if options.protocol == Protocol::ModbusRtu {
         // A pty carries no timing: the silence that ends a frame must be
         // longer than the gaps between the chunks it arrives in. A bus spec's
