@@ -114,7 +114,7 @@ function renderGauges(m) {
     gauge("hall", x.RPM_M.value, 0, at(x.RPM_M, "EA RPM_M"), f.rpm_m !== null);
     gauge("light", x.RPM_L.value, 0, at(x.RPM_L, "EA RPM_L") + " · LDR " + counts(x.LDR), f.rpm_l !== null);
   }
-  const lp = firstLoop(st);
+  const lp = shownLoop(st);
   if (!dev && lp) {
     gauge("v1", lp.volts.V1, 2, lp.inputs[2] + " counts read");
     gauge("v2", lp.volts.V2, 2, lp.inputs[0] + " counts read");
@@ -159,9 +159,43 @@ function renderStale(st) {
     (c.last_reply_age_s === null || c.last_reply_age_s === undefined ? "" : ", " + c.last_reply_age_s.toFixed(1) + " s ago") + ", not the module's now.";
 }
 
-function firstLoop(st) {
-  for (const d of st.devices || []) if (d.loops && d.loops.length) return d.loops[0];
-  return null;
+// The supervisor's slave that the gauges, loop controls and switches show
+// and act on: the one chosen, or the first polled.
+let loopSlave = null;
+function loopsOf(st) {
+  const out = [];
+  for (const d of (st && st.devices) || []) for (const l of d.loops || []) out.push(l);
+  return out;
+}
+function shownLoop(st) {
+  const loops = loopsOf(st);
+  return loops.find((l) => l.id === loopSlave) || loops[0] || null;
+}
+// A control's body names the slave shown, so it acts on that slave only.
+function forSlave(body) {
+  if (info.role === "supervise" && loopSlave !== null) body.slave = loopSlave;
+  return body;
+}
+const slaveName = (id) => "slave " + String(id).padStart(2, "0");
+function chooseSlave(id) {
+  if (id === loopSlave) return;
+  loopSlave = id;
+  // What was typed or being sent belonged to the other slave.
+  edited = {}; switchPending = {}; loopPending = false;
+  clearRefusal("loop"); clearRefusal("switch");
+}
+function renderSlaveChoice(m) {
+  const loops = loopsOf(m.state);
+  const ids = loops.map((l) => l.id);
+  if (ids.length && !ids.includes(loopSlave)) loopSlave = ids[0];
+  const sel = $("loop-slave");
+  if (sel.dataset.ids !== ids.join(",")) {
+    sel.replaceChildren(...ids.map((id) => { const o = el("option", "", slaveName(id)); o.value = id; return o; }));
+    sel.dataset.ids = ids.join(",");
+  }
+  if (document.activeElement !== sel && loopSlave !== null) sel.value = loopSlave;
+  $("loop-slave-box").classList.toggle("hidden", ids.length < 2);
+  $("loop-of").textContent = loopSlave === null ? "" : " · " + slaveName(loopSlave);
 }
 
 // ---- outputs, flags, variables ---------------------------------------------
@@ -203,7 +237,7 @@ function renderOutputs(m) {
     const forced = Object.entries(dev.controller.forced).filter(([, v]) => v !== null).map(([k, v]) => k + " = " + v);
     $("forced").textContent = forced.length ? "forced: " + forced.join(", ") : "nothing forced";
   }
-  const lp = firstLoop(st);
+  const lp = shownLoop(st);
   if (!dev && lp) {
     const r = el("div", "out-row");
     r.append(el("b", "", "VEL written"), el("span", "", lp.vel_written === null ? "–" : lp.vel_written + " counts (PI output " + lp.output + ")"));
@@ -351,7 +385,7 @@ function buildSwitches() {
     c.onchange = async () => {
       switchPending[k] = true;
       const body = {}; body[k] = c.checked;
-      await send("/api/outputs", body, "switch");
+      await send("/api/outputs", forSlave(body), "switch");
       delete switchPending[k];
     };
     l.append(c, el("b", "", k), el("span", "at", SWITCH_LABELS[k]));
@@ -369,7 +403,7 @@ function renderSwitches(m) {
       $("out-vel-out").textContent = vel === null ? "not written since connecting" : vel;
     }
   } else if (info.role === "supervise") {
-    const lp = firstLoop(m.state);
+    const lp = shownLoop(m.state);
     if (lp) {
       states = (m.switches || {})[String(lp.id)] || null;
       if (lp.mode === "loop") locked = "the loop is on: switch it off (manual VEL) to set the switches";
@@ -412,23 +446,32 @@ function recentFailures(id, t, failed, requests) {
 }
 function renderSlaves(m) {
   const box = $("loop-slaves");
-  box.replaceChildren();
-  for (const d of (m.state && m.state.devices) || []) for (const l of d.loops || []) {
+  const shown = new Set();
+  for (const l of loopsOf(m.state)) {
     const age = l.measured_at === null ? null : m.t - l.measured_at;
     const c = l.counters;
-    const r = el("div", "out-row");
+    // A row lasts while its slave is polled, so a click on it is not lost
+    // to a redraw between the press and the release.
+    let r = box.querySelector('.out-row[data-id="' + l.id + '"]');
+    if (!r) {
+      r = el("div", "out-row"); r.dataset.id = l.id; r.title = "show and set this slave's loop";
+      r.onclick = () => chooseSlave(l.id);
+      box.append(r);
+    }
+    r.classList.toggle("chosen", l.id === loopSlave);
+    shown.add(String(l.id));
     const left = el("span");
     const [failed, asked] = recentFailures(l.id, m.t, c.bad_checks + c.timeouts + c.exceptions, c.requests);
     const share = failed ? " (" + failed + " of " + asked + " exchanges failed in the last " + RECENT_S + " s)" : "";
     const [lampCls, word] = age === null ? ["bad", "no reply yet"] : age > 1 ? ["bad", "no reply for " + age.toFixed(1) + " s"]
       : failed * 5 > asked ? ["warn", "replying, with failures" + share] : ["on", "replying" + share];
     left.dataset.state = lampCls;
-    left.append(el("span", "lamp " + lampCls), el("b", "", "slave " + String(l.id).padStart(2, "0") + " "), el("span", "lamp-text", word));
+    left.append(el("span", "lamp " + lampCls), el("b", "", slaveName(l.id) + " "), el("span", "lamp-text", word));
     left.id = "slave-" + l.id;
     left.dataset.badChecks = c.bad_checks; left.dataset.timeouts = c.timeouts;
-    r.append(left, el("span", "", "timeouts " + c.timeouts + " · bad checks " + c.bad_checks + " · last reply " + (age === null ? "never" : (age * 1000).toFixed(0) + " ms ago")));
-    box.append(r);
+    r.replaceChildren(left, el("span", "", "timeouts " + c.timeouts + " · bad checks " + c.bad_checks + " · last reply " + (age === null ? "never" : (age * 1000).toFixed(0) + " ms ago")));
   }
+  for (const r of [...box.children]) if (!shown.has(r.dataset.id)) r.remove();
 }
 
 // ---- links and faults -------------------------------------------------------
@@ -602,7 +645,7 @@ function onMessage(m) {
   skipped = m.skipped_frames || 0;
   if (!paused) takeFrames(m.frames || []);
   for (const e of m.events || []) say(e.t.toFixed(3) + " s " + e.node + ": " + e.kind + " " + e.detail, /trip|timeout|bad/.test(e.kind));
-  const st = m.state, lp = firstLoop(st), dev = (st.devices || []).find((d) => d.readings), mod = (st.modules || [])[0];
+  const st = m.state, lp = shownLoop(st), dev = (st.devices || []).find((d) => d.readings), mod = (st.modules || [])[0];
   trend.push([m.t, lp ? lp.set_point_rpm : null,
     dev ? dev.readings.hall_rpm : lp ? lp.inputs[3] : null,
     dev ? dev.readings.light_rpm : lp ? lp.inputs[4] : null,
@@ -615,7 +658,7 @@ function render() {
   const m = last;
   if (!m) return;
   $("clock").textContent = "t = " + m.t.toFixed(1) + " s";
-  renderGauges(m); renderOutputs(m); renderLinks(m); renderSlaves(m);
+  renderSlaveChoice(m); renderGauges(m); renderOutputs(m); renderLinks(m); renderSlaves(m);
   if (info.role === "serve") {
     const st = m.state || {};
     renderInputs((st.devices || []).find((d) => d.controller), (st.modules || [])[0]);
@@ -624,7 +667,7 @@ function render() {
   if (info.role !== "serve") { renderSwitches(m); renderConnection(m); }
   if (!paused) renderFrames();
   drawTrend();
-  const lp = firstLoop(m.state);
+  const lp = shownLoop(m.state);
   if (lp) renderLoopControls(lp);
 }
 
@@ -681,7 +724,8 @@ function wire() {
   $("filter-node").oninput = renderFrames;
   const sp = $("set-point");
   sp.oninput = () => { $("sp-out").textContent = sp.value; };
-  sp.onchange = () => send("/api/loop", { set_point_rpm: +sp.value }, "loop");
+  sp.onchange = () => send("/api/loop", forSlave({ set_point_rpm: +sp.value }), "loop");
+  $("loop-slave").onchange = () => chooseSlave(+$("loop-slave").value);
   // Typed into, cleared or changed by any means: the box is the user's until sent.
   for (const id of ["kp", "ki"]) { $(id).oninput = () => { edited[id] = true; }; $(id).onchange = $(id).oninput; }
   $("gains").onclick = async () => {
@@ -694,13 +738,13 @@ function wire() {
       body[id] = +text;
     }
     if (!Object.keys(body).length) { refuse("loop", "nothing to set: type a new Kp or Ki first"); return; }
-    if (await send("/api/loop", body, "loop", "gains take 0 to 1000")) { delete edited.kp; delete edited.ki; }
+    if (await send("/api/loop", forSlave(body), "loop", "gains take 0 to 1000")) { delete edited.kp; delete edited.ki; }
   };
   $("loop-on").onchange = async () => {
     // Off holds the VEL the slave has (as a client's VD 10 0 does): a
     // turning wheel keeps turning until the manual VEL is moved.
     loopPending = true;
-    await send("/api/loop", { mode: $("loop-on").checked ? "loop" : "manual" }, "loop");
+    await send("/api/loop", forSlave({ mode: $("loop-on").checked ? "loop" : "manual" }), "loop");
     loopPending = false;
   };
   const ov = $("out-vel");
@@ -709,13 +753,13 @@ function wire() {
   const vel = $("vel");
   vel.oninput = () => { $("vel-out").textContent = vel.value; edited.vel = true; };
   vel.onchange = async () => {
-    if (!$("loop-on").checked) await send("/api/loop", { mode: "manual", vel: +vel.value }, "loop");
+    if (!$("loop-on").checked) await send("/api/loop", forSlave({ mode: "manual", vel: +vel.value }), "loop");
     delete edited.vel;
   };
   $("step").onclick = async () => {
     $("step").disabled = true; kv($("step-result"), [["step", "running…"]]);
     try {
-      const r = await api("/api/step", { to_rpm: +$("step-to").value, seconds: +$("step-s").value });
+      const r = await api("/api/step", forSlave({ to_rpm: +$("step-to").value, seconds: +$("step-s").value }));
       const rows = [["from → to", fmt(r.from_rpm, 0) + " → " + fmt(r.to_rpm, 0) + " rpm"],
         ["measurements", r.samples + ", largest gap " + fmt(r.largest_gap_ms, 0) + " ms" + (r.largest_gap_ms > 50 ? " (a busy machine: polls were late)" : "")]];
       for (const [name, s] of Object.entries(r.signals)) {

@@ -83,6 +83,23 @@ pub fn serve_module(
     light_adaptive: bool,
     name: Option<&str>,
 ) -> Session {
+    serve_slave(link, web, access, seconds, light_adaptive, name, 1)
+}
+
+/// `twin serve --meb LINK --web WEB --id ID` for at most `seconds`.
+pub fn serve_id(id: u8, link: &str, web: &str, seconds: f64) -> Session {
+    serve_slave(link, web, AccessOptions::default(), seconds, true, None, id)
+}
+
+fn serve_slave(
+    link: &str,
+    web: &str,
+    access: AccessOptions,
+    seconds: f64,
+    light_adaptive: bool,
+    name: Option<&str>,
+    id: u8,
+) -> Session {
     let panel = Panel::bind(PanelOptions {
         role: PanelRole::Serve,
         addr: web.parse().unwrap(),
@@ -101,7 +118,7 @@ pub fn serve_module(
         session: session_options(Some(ViewOpener::new(move |_| Some(feeds.view()))), seconds),
         links: vec![(ServeProtocol::Meb, link.into())],
         defaults: LinkDefaults::default(),
-        id: 1,
+        id,
         meb_map: None,
         params: PlantParams::preset("vemodule").unwrap(),
         seed: 1,
@@ -265,6 +282,14 @@ pub fn chrome_capabilities(
     profile: &std::path::Path,
     phone: bool,
 ) -> serde_json::Map<String, serde_json::Value> {
+    chrome_at(profile, phone.then_some((360, 740)))
+}
+
+/// [`chrome_capabilities`] on a phone of `(width, height)` CSS px, or a laptop.
+pub fn chrome_at(
+    profile: &std::path::Path,
+    phone: Option<(u32, u32)>,
+) -> serde_json::Map<String, serde_json::Value> {
     let mut args = vec![
         "--headless".to_string(),
         "--no-sandbox".into(),
@@ -278,9 +303,9 @@ pub fn chrome_capabilities(
         format!("--user-data-dir={}", profile.display()),
     ];
     let mut options = serde_json::json!({});
-    if phone {
+    if let Some((width, height)) = phone {
         options["mobileEmulation"] = serde_json::json!({
-            "deviceMetrics": { "width": 360, "height": 740, "pixelRatio": 2.0, "touch": true }
+            "deviceMetrics": { "width": width, "height": height, "pixelRatio": 2.0, "touch": true }
         });
     } else {
         // A laptop: the trend must show above the fold.
@@ -349,6 +374,11 @@ pub fn vsp(name: &str) -> [std::path::PathBuf; 2] {
 /// `twin supervise --meb BUS --no-server --web WEB` (a PI loop on slave 01,
 /// polled every 10 ms, status words every 10 cycles) for at most `seconds`.
 pub fn supervise(bus: &str, web: &str, seconds: f64) -> Session {
+    supervise_ids(bus, web, seconds, &[1])
+}
+
+/// [`supervise`] polling the slaves `ids` (`--id` repeated), each with its loop.
+pub fn supervise_ids(bus: &str, web: &str, seconds: f64, ids: &[u8]) -> Session {
     use nodes::master::image_server::ImageServerConfig;
     use nodes::time::SimDuration;
     use twin_realtime::supervise::{SuperviseOptions, supervise_with};
@@ -368,7 +398,7 @@ pub fn supervise(bus: &str, web: &str, seconds: f64) -> Session {
         protocol: nodes::master::Protocol::Meb,
         listen: Vec::new(),
         baud: 115_200,
-        slaves: vec![1],
+        slaves: ids.to_vec(),
         set_point: 0.0,
         open_loop: None,
         kp: 0.45,
