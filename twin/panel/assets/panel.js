@@ -476,6 +476,13 @@ function renderSlaves(m) {
 
 // ---- links and faults -------------------------------------------------------
 let faultsBuilt = "";
+// On a phone a table's rows are stacked, each cell under its column's name
+// (panel.css): the names come from the table's own header.
+const columnNames = {};
+function labelCells(tr, table) {
+  const names = (columnNames[table] = columnNames[table] || [...$(table).querySelectorAll("thead th")].map((th) => th.textContent));
+  [...tr.cells].forEach((td, i) => { td.dataset.label = names[i] || ""; });
+}
 function renderLinks(m) {
   const tb = $("links").querySelector("tbody");
   tb.replaceChildren();
@@ -492,6 +499,7 @@ function renderLinks(m) {
     tr.append(lampTd, el("td", "", l.name), el("td", "", l.address), el("td", "", String(l.clients)),
       el("td", "", String(s.frames_in || 0)), el("td", "", String(s.frames_out || 0)), el("td", "", String(s.errors || 0)),
       el("td", "", age === null || age === undefined ? "never" : age < 1 ? (age * 1000).toFixed(0) + " ms ago" : age.toFixed(1) + " s ago"));
+    labelCells(tr, "links");
     tb.append(tr);
   }
   const key = names.join(",");
@@ -587,6 +595,7 @@ function renderFrames() {
     const tr = el("tr", (f.bad ? "bad " : "") + f.dir);
     tr.append(el("td", "", f.t.toFixed(4)), el("td", "", f.gap_ms === null ? "" : f.gap_ms.toFixed(1)), el("td", "", f.link),
       el("td", "dir", f.from + " → " + f.to), el("td", "text", f.text), el("td", "dec", decodedText(f)));
+    labelCells(tr, "frames");
     return tr;
   });
   tb.replaceChildren(...rows);

@@ -16,6 +16,7 @@ mod client_truth;
 mod common;
 mod meb_bus;
 mod page;
+mod phone_layout;
 mod serve_truth;
 mod sim_inputs;
 mod supervise_browser;
