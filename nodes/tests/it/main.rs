@@ -10,6 +10,7 @@ mod firmware_meb_slave;
 mod firmware_modbus_slave;
 mod firmware_plant;
 mod master_image_server;
+mod master_layout;
 mod master_pi;
 mod master_props;
 mod master_supervisor;
