@@ -2,24 +2,25 @@
 //! written from the pins' own edges with the exact cycle of each: the
 //! trace GTKWave, PulseView or a Python VCD reader opens, as `simavr -t`
 //! users expect. Time is in picoseconds (a 16 MHz cycle is 62 500 ps, so
-//! every edge falls on its cycle exactly).
+//! every edge falls on its cycle exactly). The file's syntax is the `vcd`
+//! crate's writer, the workspace's one VCD writer.
 
 use std::fs::File;
-use std::io::{BufWriter, Write};
+use std::io::{self, BufWriter};
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
+use vcd::{IdCode, SimulationCommand, TimescaleUnit, Value};
 
 use crate::wiring::Pin;
 
 /// An open trace.
-#[derive(Debug)]
 pub struct VcdTrace {
-    out: BufWriter<File>,
+    out: vcd::Writer<BufWriter<File>>,
     path: PathBuf,
     clock_hz: u32,
-    /// Per pin index: its identifier character in the file.
-    ids: [Option<u8>; 24],
+    /// Per pin index: its identifier in the file.
+    ids: [Option<IdCode>; 24],
     /// Bit per pin index traced.
     pub mask: u32,
     /// The time of the last `#` line written, in ps.
@@ -27,6 +28,17 @@ pub struct VcdTrace {
     /// The last cycle the core reached (the trace's end).
     last_cycle: u64,
     failed: Option<String>,
+}
+
+impl std::fmt::Debug for VcdTrace {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        // vcd::Writer has no Debug of its own.
+        f.debug_struct("VcdTrace")
+            .field("path", &self.path)
+            .field("mask", &self.mask)
+            .field("last_cycle", &self.last_cycle)
+            .finish_non_exhaustive()
+    }
 }
 
 impl VcdTrace {
@@ -40,45 +52,10 @@ impl VcdTrace {
     ) -> Result<Self> {
         let file = File::create(path)
             .with_context(|| format!("--vcd {}: cannot create it", path.display()))?;
-        let mut out = BufWriter::new(file);
-        let mut ids = [None; 24];
-        let mut mask = 0u32;
-        let mut head = String::new();
-        head.push_str("$date simulated $end\n");
-        head.push_str(&format!(
-            "$version twin-avr {} (simavr) $end\n",
-            env!("CARGO_PKG_VERSION")
-        ));
-        head.push_str(&format!(
-            "$comment {board}: ATmega328P pins at {} MHz, one cycle = {} ps $end\n",
-            f64::from(clock_hz) / 1e6,
-            1e12 / f64::from(clock_hz)
-        ));
-        head.push_str("$timescale 1 ps $end\n");
-        head.push_str(&format!("$scope module {board} $end\n"));
-        for (n, pin) in pins.iter().enumerate() {
-            // Printable identifiers from `!`.
-            let id = b'!' + n as u8;
-            ids[usize::from(pin.index)] = Some(id);
-            mask |= 1 << pin.index;
-            head.push_str(&format!(
-                "$var wire 1 {} {} $end\n",
-                char::from(id),
-                pin.name
-            ));
-        }
-        head.push_str("$upscope $end\n$enddefinitions $end\n#0\n$dumpvars\n");
-        for pin in pins {
-            let id = ids[usize::from(pin.index)].unwrap_or(b'!');
-            head.push_str(&format!(
-                "{}{}\n",
-                u8::from(level(pin.index)),
-                char::from(id)
-            ));
-        }
-        head.push_str("$end\n");
-        out.write_all(head.as_bytes())
+        let mut out = vcd::Writer::new(BufWriter::new(file));
+        let ids = header(&mut out, pins, clock_hz, board, level)
             .with_context(|| format!("--vcd {}: cannot write it", path.display()))?;
+        let mask = pins.iter().fold(0u32, |m, pin| m | 1 << pin.index);
         Ok(Self {
             out,
             path: path.to_path_buf(),
@@ -104,16 +81,14 @@ impl VcdTrace {
             return;
         }
         let t = self.ps(cycle);
-        let mut line = [0u8; 48];
-        let mut n = 0;
-        if self.written != Some(t) {
-            n = format_time(&mut line, t);
-            self.written = Some(t);
-        }
-        line[n] = if level { b'1' } else { b'0' };
-        line[n + 1] = id;
-        line[n + 2] = b'\n';
-        if let Err(e) = self.out.write_all(&line[..n + 3]) {
+        let mut write = || {
+            if self.written != Some(t) {
+                self.out.timestamp(t)?;
+                self.written = Some(t);
+            }
+            self.out.change_scalar(id, Value::from(level))
+        };
+        if let Err(e) = write() {
             self.failed = Some(format!("--vcd {}: {e}", self.path.display()));
         }
         self.last_cycle = self.last_cycle.max(cycle);
@@ -130,25 +105,39 @@ impl VcdTrace {
     }
 }
 
-/// `#<t>\n` into `buf`; returns its length.
-fn format_time(buf: &mut [u8; 48], t: u64) -> usize {
-    let mut digits = [0u8; 20];
-    let mut v = t;
-    let mut k = 0;
-    loop {
-        digits[k] = b'0' + (v % 10) as u8;
-        v /= 10;
-        k += 1;
-        if v == 0 {
-            break;
+/// The definitions and every pin's level at time 0; returns each pin
+/// index's identifier.
+fn header(
+    out: &mut vcd::Writer<BufWriter<File>>,
+    pins: &[Pin],
+    clock_hz: u32,
+    board: &str,
+    level: impl Fn(u8) -> bool,
+) -> io::Result<[Option<IdCode>; 24]> {
+    out.date("simulated")?;
+    out.version(&format!("twin-avr {} (simavr)", env!("CARGO_PKG_VERSION")))?;
+    out.comment(&format!(
+        "{board}: ATmega328P pins at {} MHz, one cycle = {} ps",
+        f64::from(clock_hz) / 1e6,
+        1e12 / f64::from(clock_hz)
+    ))?;
+    out.timescale(1, TimescaleUnit::PS)?;
+    out.add_module(board)?;
+    let mut ids = [None; 24];
+    for pin in pins {
+        ids[usize::from(pin.index)] = Some(out.add_wire(1, pin.name)?);
+    }
+    out.upscope()?;
+    out.enddefinitions()?;
+    out.timestamp(0)?;
+    out.begin(SimulationCommand::Dumpvars)?;
+    for pin in pins {
+        if let Some(id) = ids[usize::from(pin.index)] {
+            out.change_scalar(id, Value::from(level(pin.index)))?;
         }
     }
-    buf[0] = b'#';
-    for i in 0..k {
-        buf[1 + i] = digits[k - 1 - i];
-    }
-    buf[1 + k] = b'\n';
-    k + 2
+    out.end()?;
+    Ok(ids)
 }
 
 impl Drop for VcdTrace {
@@ -156,12 +145,11 @@ impl Drop for VcdTrace {
         // The trace ends where the run did, so a viewer shows the last level.
         let end = self.ps(self.last_cycle);
         if self.failed.is_none() && self.written.is_none_or(|w| w < end) {
-            let _ = writeln!(self.out, "#{end}");
+            let _ = self.out.timestamp(end);
         }
         let _ = self.out.flush();
     }
 }
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -184,6 +172,7 @@ mod tests {
             v.reached(100);
         }
         let text = std::fs::read_to_string(&path).unwrap();
+        assert!(text.contains("$timescale 1 ps $end"), "{text}");
         assert!(text.contains("$var wire 1 ! D9 $end"), "{text}");
         assert!(text.contains("$var wire 1 \" D2 $end"), "{text}");
         let body = text.split("$end\n").last().unwrap();
