@@ -4,6 +4,11 @@
 
 use std::path::Path;
 
+use ihex::{ReaderError, Record};
+use object::elf::{self, FileFlags};
+use object::read::elf::FileHeader;
+use object::{Endianness, FileKind};
+
 /// Why a firmware file is refused.
 #[derive(Debug, thiserror::Error)]
 pub enum ElfError {
@@ -46,21 +51,19 @@ pub enum ElfError {
     UnsupportedMcu(String),
 }
 
-/// `EM_AVR`.
-const EM_AVR: u16 = 83;
-
 /// The avr-gcc architecture of each MCU this build runs.
-fn architecture_of(mcu: &str) -> Option<u32> {
+fn architecture_of(mcu: &str) -> Option<FileFlags> {
     match mcu {
-        "atmega328p" | "atmega328" | "atmega168" | "atmega168p" => Some(5),
+        "atmega328p" | "atmega328" | "atmega168" | "atmega168p" => Some(elf::EF_AVR_ARCH_AVR5),
         _ => None,
     }
 }
 
-fn architecture_name(arch: u32) -> String {
-    match arch {
-        100..=107 => format!("xmega{}", arch - 100),
-        _ => format!("avr{arch}"),
+fn architecture_name(arch: FileFlags) -> String {
+    match arch.0 {
+        100 => "avrtiny".into(),
+        a @ 101..=107 => format!("xmega{}", a - 100),
+        a => format!("avr{a}"),
     }
 }
 
@@ -80,24 +83,31 @@ pub fn check(path: &Path, mcu: &str) -> Result<(), ElfError> {
     if bytes.first() == Some(&b':') {
         return check_hex(&file, &bytes, mcu);
     }
-    if bytes.get(..4) != Some(b"\x7fELF") {
+    if bytes.get(..4) != Some(&elf::ELFMAG[..]) {
         return Err(ElfError::NotElf {
             file,
             start: bytes.iter().take(4).copied().collect(),
         });
     }
-    // 32-bit little-endian header: e_machine at 18, e_flags at 36.
-    let (Some(machine), Some(flags)) = (bytes.get(18..20), bytes.get(36..40)) else {
+    // A host program given by mistake is often a 64-bit ELF: it is still
+    // named by its machine rather than refused as cut short.
+    let header = match FileKind::parse(&bytes[..]) {
+        Ok(FileKind::Elf64) => machine_and_flags::<elf::FileHeader64<Endianness>>(&bytes),
+        _ => machine_and_flags::<elf::FileHeader32<Endianness>>(&bytes),
+    };
+    let Some((machine, flags)) = header else {
         return Err(ElfError::Short {
             file,
             len: bytes.len(),
         });
     };
-    let machine = u16::from_le_bytes([machine[0], machine[1]]);
-    if machine != EM_AVR {
-        return Err(ElfError::NotAvr { file, machine });
+    if machine != elf::EM_AVR {
+        return Err(ElfError::NotAvr {
+            file,
+            machine: machine.0,
+        });
     }
-    let arch = u32::from_le_bytes([flags[0], flags[1], flags[2], flags[3]]) & 0x7f;
+    let arch = flags.avr_arch();
     if arch != expected {
         return Err(ElfError::WrongArchitecture {
             file,
@@ -107,6 +117,15 @@ pub fn check(path: &Path, mcu: &str) -> Result<(), ElfError> {
         });
     }
     Ok(())
+}
+
+/// The header's `e_machine` and `e_flags`, if it is whole and well formed.
+fn machine_and_flags<H: FileHeader<Endian = Endianness>>(
+    bytes: &[u8],
+) -> Option<(elf::Machine, FileFlags)> {
+    let header = H::parse(bytes).ok()?;
+    let endian = header.endian().ok()?;
+    Some((header.e_machine(endian), header.e_flags(endian)))
 }
 
 /// An Intel HEX file (avr-objcopy's or the Arduino IDE's `.hex`): every
@@ -120,39 +139,21 @@ fn check_hex(file: &str, bytes: &[u8], mcu: &str) -> Result<(), ElfError> {
     };
     let text = std::str::from_utf8(bytes).map_err(|_| bad(1, "not text"))?;
     let (mut base, mut end, mut saw_eof) = (0u32, 0u32, false);
+    // Record by record rather than ihex's Reader, so an error names its line.
     for (n, line) in text.lines().enumerate().map(|(i, l)| (i + 1, l.trim())) {
         if line.is_empty() {
             continue;
         }
-        let hex = line
-            .strip_prefix(':')
-            .ok_or_else(|| bad(n, "no ':' at its start"))?;
-        if hex.len() % 2 != 0 || hex.len() < 10 {
-            return Err(bad(n, "too short or an odd number of digits"));
-        }
-        let record: Vec<u8> = (0..hex.len() / 2)
-            .map(|i| u8::from_str_radix(&hex[2 * i..2 * i + 2], 16))
-            .collect::<Result<_, _>>()
-            .map_err(|_| bad(n, "not hexadecimal"))?;
-        if record.len() != usize::from(record[0]) + 5 {
-            return Err(bad(n, "its length byte does not match"));
-        }
-        if record.iter().fold(0u8, |a, b| a.wrapping_add(*b)) != 0 {
-            return Err(bad(n, "bad checksum"));
-        }
-        let addr = u32::from(u16::from_be_bytes([record[1], record[2]]));
-        let data = &record[4..record.len() - 1];
-        match record[3] {
-            0x00 => end = end.max(base + addr + data.len() as u32),
-            0x01 => saw_eof = true,
-            0x02 if data.len() == 2 => {
-                base = u32::from(u16::from_be_bytes([data[0], data[1]])) << 4
+        let record = Record::from_record_string(line).map_err(|e| bad(n, hex_why(&e)))?;
+        match record {
+            Record::Data { offset, value } => {
+                let last = base.saturating_add(u32::from(offset) + value.len() as u32);
+                end = end.max(last);
             }
-            0x04 if data.len() == 2 => {
-                base = u32::from(u16::from_be_bytes([data[0], data[1]])) << 16
-            }
-            0x03 | 0x05 => {}
-            _ => return Err(bad(n, "unknown record type")),
+            Record::EndOfFile => saw_eof = true,
+            Record::ExtendedSegmentAddress(segment) => base = u32::from(segment) << 4,
+            Record::ExtendedLinearAddress(upper) => base = u32::from(upper) << 16,
+            Record::StartSegmentAddress { .. } | Record::StartLinearAddress(_) => {}
         }
     }
     if !saw_eof {
@@ -169,6 +170,22 @@ fn check_hex(file: &str, bytes: &[u8], mcu: &str) -> Result<(), ElfError> {
         });
     }
     Ok(())
+}
+
+/// What is wrong with a record, in the words this tool has always used.
+fn hex_why(e: &ReaderError) -> &'static str {
+    match e {
+        ReaderError::MissingStartCode => "no ':' at its start",
+        ReaderError::ContainsInvalidCharacters => "not hexadecimal",
+        ReaderError::RecordTooShort | ReaderError::RecordNotEvenLength => {
+            "too short or an odd number of digits"
+        }
+        ReaderError::RecordTooLong => "more than 255 bytes of data",
+        ReaderError::ChecksumMismatch(..) => "bad checksum",
+        ReaderError::PayloadLengthMismatch => "its length byte does not match",
+        ReaderError::UnsupportedRecordType(_) => "unknown record type",
+        ReaderError::InvalidLengthForType => "a length its record type does not allow",
+    }
 }
 
 #[cfg(test)]
@@ -192,6 +209,27 @@ mod tests {
     }
 
     #[test]
+    fn a_host_program_and_a_cut_elf_are_named_as_such() {
+        // This test's own program: a 64-bit ELF for the host's processor.
+        let me = std::env::current_exe().unwrap();
+        let err = check(&me, "atmega328p").unwrap_err().to_string();
+        assert!(
+            err.contains("built for another processor (ELF field e_machine = "),
+            "{err}"
+        );
+        let dir = std::env::temp_dir().join(format!("twin-avr-cut-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("cut.elf");
+        std::fs::write(&path, b"\x7fELF\x01\x01\x01\0\0\0").unwrap();
+        let err = check(&path, "atmega328p").unwrap_err().to_string();
+        assert!(
+            err.ends_with("cut.elf: ELF header cut short (10 bytes)"),
+            "{err}"
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
     fn an_intel_hex_file_is_checked_record_by_record() {
         let dir = std::env::temp_dir().join(format!("twin-avr-hex-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
@@ -208,5 +246,23 @@ mod tests {
         std::fs::write(&path, ":100000000C945C000C946E000C946E000C946E00CA\n").unwrap();
         let err = check(&path, "atmega328p").unwrap_err().to_string();
         assert!(err.contains("no end-of-file record"), "{err}");
+        std::fs::write(
+            &path,
+            ":100000000C945C000C946E000C946E000C946E00CA\n:0000ZZ01FF\n",
+        )
+        .unwrap();
+        let err = check(&path, "atmega328p").unwrap_err().to_string();
+        assert!(
+            err.contains("line 2: not an Intel HEX record (not hexadecimal)"),
+            "{err}"
+        );
+        // Flash at 64 KiB, through an extended linear address.
+        std::fs::write(&path, ":020000040001F9\n:0100000000FF\n:00000001FF\n").unwrap();
+        let err = check(&path, "atmega328p").unwrap_err().to_string();
+        assert!(
+            err.contains("65537 bytes of flash, more than the atmega328p's 32 KB"),
+            "{err}"
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }
