@@ -224,7 +224,9 @@ impl Alternated {
     }
 }
 
-/// Median, lowest and highest of some ratios.
+/// Median, lowest and highest of some ratios. The median is serve-bench's
+/// (`measure::median`: the mean of the two middle values), written again
+/// here because that binary's crate builds codecs only and is no library.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Spread {
     pub median: f64,

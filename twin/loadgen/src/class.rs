@@ -16,7 +16,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use crate::child::{Server, tcp_addr};
-use crate::measure::Dialect;
+use crate::measure::{Dialect, quantile};
 
 /// The two ways to serve a class.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -182,14 +182,6 @@ fn poll_module(
     Ok((figures, latencies))
 }
 
-fn percentile(sorted: &[u32], p: f64) -> f64 {
-    if sorted.is_empty() {
-        return f64::NAN;
-    }
-    let rank = ((p / 100.0) * (sorted.len() - 1) as f64).round() as usize;
-    f64::from(sorted[rank.min(sorted.len() - 1)])
-}
-
 /// Busy and total jiffies of the whole machine, from /proc/stat.
 fn cpu_jiffies() -> Option<(u64, u64)> {
     let stat = std::fs::read_to_string("/proc/stat").ok()?;
@@ -272,8 +264,9 @@ pub fn measure(run: &ClassRun, variant: Variant, round: usize) -> Result<ClassFi
             .join()
             .map_err(|_| anyhow::anyhow!("a client thread failed"))??;
         latencies.sort_unstable();
-        figures.latency_p50_us = percentile(&latencies, 50.0);
-        figures.latency_p99_us = percentile(&latencies, 99.0);
+        let us = |q| quantile(&latencies, q).map_or(f64::NAN, f64::from);
+        figures.latency_p50_us = us(0.5);
+        figures.latency_p99_us = us(0.99);
         figures.latency_max_us = latencies.last().map_or(f64::NAN, |&m| f64::from(m));
         modules.push(figures);
     }
@@ -329,14 +322,9 @@ fn number_after(text: &str, label: &str) -> Option<f64> {
         .ok()
 }
 
-/// Median of the finite `values`.
+/// Median of the finite `values` (NaN if none).
 pub fn median(values: &[f64]) -> f64 {
-    let mut v: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
+    crate::measure::median(values.iter().copied()).unwrap_or(f64::NAN)
 }
 
 /// One line of the report: the variant's modules summed up.

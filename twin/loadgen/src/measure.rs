@@ -131,6 +131,27 @@ fn read_rest<S: Read + AsFd>(
     }
 }
 
+/// The value below which `q` of a sorted sample falls: its nearest rank,
+/// the definition of the server's tick lateness (hdrhistogram's), so the
+/// two kinds of p99 this tool prints mean the same.
+pub fn quantile<T: Copy>(sorted: &[T], q: f64) -> Option<T> {
+    let rank = (q * sorted.len() as f64).ceil() as usize;
+    sorted.get(rank.clamp(1, sorted.len().max(1)) - 1).copied()
+}
+
+/// The median of the finite `values`: the middle one, or the mean of the
+/// two in the middle.
+pub fn median(values: impl IntoIterator<Item = f64>) -> Option<f64> {
+    let mut v: Vec<f64> = values.into_iter().filter(|x| x.is_finite()).collect();
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    match n {
+        0 => None,
+        _ if n % 2 == 1 => Some(v[n / 2]),
+        _ => Some((v[n / 2 - 1] + v[n / 2]) / 2.0),
+    }
+}
+
 #[derive(Debug, Clone)]
 pub struct Latency {
     /// From the request's last byte written: sorted, in nanoseconds.
@@ -145,9 +166,7 @@ pub struct Samples(Vec<u64>);
 
 impl Samples {
     fn quantile(&self, q: f64) -> Duration {
-        let n = self.0.len();
-        let idx = ((q * n as f64).ceil() as usize).clamp(1, n) - 1;
-        Duration::from_nanos(self.0[idx])
+        Duration::from_nanos(quantile(&self.0, q).unwrap_or(0))
     }
     pub fn median(&self) -> Duration {
         self.quantile(0.5)
@@ -272,4 +291,22 @@ pub fn rate<S: Read + Write + AsFd + Send + 'static>(
         bad_replies: bad.load(Ordering::Relaxed),
         server_cpu: cpu.map(|c| c / u32::try_from(done.max(1)).unwrap_or(u32::MAX)),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_quantile_is_the_nearest_rank_and_a_median_the_middle() {
+        let sorted: Vec<u32> = (1..=1000).collect();
+        assert_eq!(quantile(&sorted, 0.5), Some(500));
+        assert_eq!(quantile(&sorted, 0.99), Some(990));
+        assert_eq!(quantile(&sorted, 0.0), Some(1));
+        assert_eq!(quantile(&sorted, 1.0), Some(1000));
+        assert_eq!(quantile::<u32>(&[], 0.99), None);
+        assert_eq!(median([3.0, f64::NAN, 1.0, 2.0]), Some(2.0));
+        assert_eq!(median([4.0, 1.0, 3.0, 2.0]), Some(2.5));
+        assert_eq!(median([f64::NAN]), None);
+    }
 }

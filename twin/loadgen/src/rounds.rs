@@ -155,11 +155,7 @@ fn frames_recorded(lines: &[String]) -> Option<u64> {
 fn spread(mut values: Vec<f64>) -> (f64, f64, f64) {
     values.sort_by(f64::total_cmp);
     let n = values.len();
-    let median = if n % 2 == 1 {
-        values[n / 2]
-    } else {
-        (values[n / 2 - 1] + values[n / 2]) / 2.0
-    };
+    let median = crate::measure::median(values.iter().copied()).unwrap_or(f64::NAN);
     (median, values[0], values[n - 1])
 }
 
