@@ -4,8 +4,10 @@
 //! `  <protocol> <address> [...]` lines, then `ready`.
 
 use anyhow::{Context, Result, bail};
+use protocols::link::LinkSpec;
 use rustix::process::{Pid, Signal, kill_process};
 use std::io::{BufRead, BufReader, Read};
+use std::net::SocketAddr;
 use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
@@ -141,8 +143,11 @@ impl Server {
     }
 }
 
-/// `tcp://127.0.0.1:40123` → `127.0.0.1:40123`.
-pub fn tcp_addr(link: &str) -> Result<&str> {
-    link.strip_prefix("tcp://")
-        .with_context(|| format!("`{link}` is not a tcp:// address"))
+/// `tcp://127.0.0.1:40123` → `127.0.0.1:40123`, read as the twin reads
+/// its links.
+pub fn tcp_addr(link: &str) -> Result<SocketAddr> {
+    Ok(LinkSpec::parse_tcp_peer(
+        link,
+        "a server's address takes no options",
+    )?)
 }

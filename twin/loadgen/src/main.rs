@@ -177,9 +177,9 @@ fn main() -> ExitCode {
 fn load(address: &str, clients: usize, seconds: f64, echo: bool) -> Result<()> {
     let duration = Duration::try_from_secs_f64(seconds)
         .context("--seconds must be a number of seconds, 0 or more")?;
-    let addr = address.strip_prefix("tcp://").unwrap_or(address);
+    let addr = tcp_addr(address)?.to_string();
     let links = (0..clients.max(1))
-        .map(|_| servers::connect(addr))
+        .map(|_| servers::connect(&addr))
         .collect::<Result<Vec<_>>>()?;
     let dialect = if echo {
         Dialect::EchoTcp

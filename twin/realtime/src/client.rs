@@ -9,7 +9,7 @@ use nodes::proto::meb::{
 };
 use nodes::time::SimTime;
 
-use crate::io::spec::{LinkAddr, LinkSpec};
+use crate::io::spec::LinkSpec;
 use std::io::{ErrorKind, Read, Write};
 use std::net::{SocketAddr, TcpStream};
 use std::time::{Duration, Instant};
@@ -45,18 +45,10 @@ impl std::fmt::Debug for MebClient {
 /// `tcp://HOST:PORT` (or `HOST:PORT`) to a socket address, read as every
 /// link of the twin is ([`LinkSpec`]), so a mistake gets the same words.
 pub fn parse_url(url: &str) -> Result<SocketAddr> {
-    // HOST:PORT alone is a TCP address; anything with a slash is read as
-    // written, so a misspelt `tcp:/…` gets the links' own suggestion.
-    let text = if url.contains('/') {
-        url.to_string()
-    } else {
-        format!("tcp://{url}")
-    };
-    let spec = LinkSpec::parse_without_options(&text, "a client's address takes no options")?;
-    match spec.addr {
-        LinkAddr::Tcp(addr) => Ok(addr),
-        LinkAddr::Serial(_) => bail!("`{url}` is not tcp://HOST:PORT"),
-    }
+    Ok(LinkSpec::parse_tcp_peer(
+        url,
+        "a client's address takes no options",
+    )?)
 }
 
 impl MebClient {

@@ -6,6 +6,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 use twin_panel::remote::{Remote, RemoteOptions};
 use twin_panel::{AccessOptions, Panel, PanelOptions, PanelRole};
+use twin_realtime::io::spec::{LinkSpec, LinkSpecError};
 
 /// A panel in a browser for an MEB slave over TCP, as the M3CVME tool's TCP client.
 ///
@@ -56,12 +57,18 @@ pub struct PanelArgs {
 }
 
 pub fn execute(args: &PanelArgs) -> Result<()> {
-    if !args.url.starts_with("tcp://") {
-        bail!(
+    let spec = LinkSpec::parse_without_options(&args.url, "the panel's address takes no options");
+    match spec {
+        Ok(spec) if spec.is_tcp() => {}
+        // A TCP address with a fault of its own: the links' words for it.
+        Err(e @ (LinkSpecError::BadTcp { .. } | LinkSpecError::NotTaken { .. })) => {
+            return Err(e.into());
+        }
+        _ => bail!(
             "`{}` is not tcp://HOST:PORT: the panel talks MEB over TCP to a supervisor \
              (twin supervise --listen) or a slave (twin serve --meb tcp://…)",
             args.url
-        );
+        ),
     }
     if !(1..=60_000).contains(&args.poll_ms) || !(1..=60_000).contains(&args.timeout_ms) {
         bail!("--poll-ms and --timeout-ms must be 1-60000 ms");

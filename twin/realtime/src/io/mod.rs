@@ -3,7 +3,9 @@
 //! `/tmp/ttyV1?baud=9600&parity=E&stop=2`), parsed by [`LinkSpec::parse`].
 
 pub mod serial;
-pub mod spec;
 pub mod tcp;
+
+/// The link grammar, from `protocols` (serve-bench reads it too).
+pub use nodes::proto::link as spec;
 
 pub use spec::{LinkAddr, LinkDefaults, LinkSpec, Parity, SerialSettings};

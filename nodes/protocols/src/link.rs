@@ -1,4 +1,7 @@
-//! Link specs: where a link is and how it is set up.
+//! Link specs: where a link is and how it is set up, the one reading of
+//! `tcp://HOST:PORT` for the real-time links, `twin client` and `twin
+//! panel`, and serve-bench (which builds codecs only, so the grammar lives
+//! here rather than beside the links).
 //!
 //! ```text
 //! tcp://HOST:PORT[?turnaround_ms=0]           a TCP listener (port 0: any free port),
@@ -20,7 +23,7 @@
 //! `--pace`); a link that takes none (`twin replay --frames-to`) is parsed
 //! by [`LinkSpec::parse_without_options`].
 
-use nodes::time::SimDuration;
+use crate::time::SimDuration;
 use std::fmt;
 use std::net::{SocketAddr, ToSocketAddrs};
 use std::path::{Path, PathBuf};
@@ -120,7 +123,7 @@ pub struct LinkSpec {
     pub silence: Option<SimDuration>,
 }
 
-pub use nodes::proto::modbus::serial::PTY_SILENCE;
+pub use crate::modbus::serial::PTY_SILENCE;
 /// The quiet that ends a partial frame on a serial port: longer than the
 /// 16 ms a USB adapter may hold bytes for.
 pub const SERIAL_PORT_SILENCE: SimDuration = SimDuration::from_millis(20);
@@ -138,6 +141,8 @@ pub enum LinkSpecError {
         "link `{spec}` looks like a misspelt TCP address, not a serial device: write `{suggestion}`"
     )]
     MisspeltTcp { spec: String, suggestion: String },
+    #[error("`{spec}` is not tcp://HOST:PORT")]
+    NotTcp { spec: String },
     #[error("link `{spec}`: `{host}` is not HOST:PORT ({why})")]
     BadTcp {
         spec: String,
@@ -321,6 +326,23 @@ impl LinkSpec {
         Self::parse(text, &LinkDefaults::default())
     }
 
+    /// The address of a peer only ever reached over TCP (a supervisor's
+    /// clients, a load generator's server): `tcp://HOST:PORT`, or
+    /// `HOST:PORT` alone; no options (`why` says why if some are given).
+    pub fn parse_tcp_peer(text: &str, why: &'static str) -> Result<SocketAddr, LinkSpecError> {
+        // Anything with a slash is read as written, so a misspelt `tcp:/…`
+        // gets the links' own suggestion.
+        let spec = if text.contains('/') {
+            Self::parse_without_options(text, why)?
+        } else {
+            Self::parse_without_options(&format!("tcp://{text}"), why)?
+        };
+        match spec.addr {
+            LinkAddr::Tcp(addr) => Ok(addr),
+            LinkAddr::Serial(_) => Err(LinkSpecError::NotTcp { spec: text.into() }),
+        }
+    }
+
     /// Whether this is a TCP link.
     pub fn is_tcp(&self) -> bool {
         matches!(self.addr, LinkAddr::Tcp(_))
@@ -494,5 +516,27 @@ mod tests {
         );
         let e = LinkSpec::parse_without_options("udp://x", "as it is").unwrap_err();
         assert!(e.to_string().starts_with("unknown link `udp://x`"), "{e}");
+    }
+
+    #[test]
+    fn a_tcp_peer_may_leave_out_the_scheme_and_nothing_else() {
+        let local: SocketAddr = "127.0.0.1:5701".parse().unwrap();
+        assert_eq!(
+            LinkSpec::parse_tcp_peer("tcp://127.0.0.1:5701", "x"),
+            Ok(local)
+        );
+        assert_eq!(LinkSpec::parse_tcp_peer("127.0.0.1:5701", "x"), Ok(local));
+        let e = LinkSpec::parse_tcp_peer("/dev/ttyUSB0", "x").unwrap_err();
+        assert_eq!(e.to_string(), "`/dev/ttyUSB0` is not tcp://HOST:PORT");
+        let e = LinkSpec::parse_tcp_peer("tcp:/127.0.0.1:5701", "x").unwrap_err();
+        assert!(
+            e.to_string().contains("write `tcp://127.0.0.1:5701`"),
+            "{e}"
+        );
+        let e = LinkSpec::parse_tcp_peer("127.0.0.1:5701?pace", "no options").unwrap_err();
+        assert!(
+            e.to_string().ends_with("is not taken here (no options)"),
+            "{e}"
+        );
     }
 }
