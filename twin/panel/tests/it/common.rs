@@ -282,7 +282,7 @@ pub fn chrome_capabilities(
     profile: &std::path::Path,
     phone: bool,
 ) -> serde_json::Map<String, serde_json::Value> {
-    chrome_at(profile, phone.then_some((360, 740)))
+    chrome_at(profile, phone.then_some((390, 844)))
 }
 
 /// [`chrome_capabilities`] on a phone of `(width, height)` CSS px, or a laptop.

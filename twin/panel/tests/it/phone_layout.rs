@@ -131,6 +131,12 @@ fn on_a_phone_every_page_shows_whole_frames_and_the_links_errors() {
         ] {
             let c = phone(&driver, &format!("phone-{role}"), &url).await;
             readable_on_a_phone(&c, role).await;
+            if std::env::var_os("TWIN_PANEL_SCREENSHOTS").is_some() {
+                // The page as it opens: the manual shows each role's.
+                js(&c, "window.scrollTo(0, 0)").await;
+                let png = c.screenshot().await.unwrap();
+                std::fs::write(screenshot_path(&format!("panel-{role}-phone.png")), png).unwrap();
+            }
             if role == "supervise" && std::env::var_os("TWIN_PANEL_SCREENSHOTS").is_some() {
                 js(&c, "document.getElementById('links-card').scrollIntoView()").await;
                 let png = c.screenshot().await.unwrap();
