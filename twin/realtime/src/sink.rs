@@ -23,7 +23,7 @@ pub use super::firmware_log::FirmwareBatch;
 pub use super::frame_log::{Direction, FrameBatch};
 use super::lateness::LatenessSummary;
 use super::rotate::{DiskOutcome, Pruned, Recordings};
-use twin_recording::describe::link_frame_fields;
+use twin_recording::describe::{LinkFrameFields, link_frame_fields};
 use twin_recording::disk::DiskNearlyFull;
 use twin_recording::topics::{self, LoopReport, ReadingsSample};
 use twin_sim::observe::{LazyChannel, McapObserver, SimRecorder};
@@ -454,38 +454,45 @@ impl FrameSink {
                 ..ConnFrames::default()
             });
             let viewing = view.is_some();
-            let mut show =
-                |at: SimTime, end: SimTime, frame: &[u8], from: &str, to: &str, after: &str| {
-                    let arrow = if from == "twin" { "->" } else { "<-" };
-                    let decoded = (config.monitor || observer.is_some())
-                        .then(|| link_frame_fields(protocol, frame));
-                    if config.monitor {
-                        let shown_decoded = decoded
-                            .as_ref()
-                            .and_then(|d| serde_json::to_string(d).ok())
-                            .unwrap_or_default();
-                        let _ = writeln!(
-                            out,
-                            "[{:12.6} s] {name} #{conn} {arrow} {}{after}  {shown_decoded}",
-                            at.as_secs_f64(),
-                            shown(frame),
-                        );
-                    }
-                    if let Some(v) = view.as_mut() {
-                        v.frame(&LiveFrame {
-                            link: name,
-                            from,
-                            to,
-                            start: at.as_secs_f64(),
-                            end: end.as_secs_f64(),
-                            bytes: frame,
-                        });
-                    }
-                    if let (Some(o), Some(decoded)) = (observer.as_mut(), decoded) {
-                        let recorded = o.record_frame(channel, from, at, end, frame, &decoded);
-                        result = std::mem::replace(&mut result, Ok(())).and(recorded);
-                    }
-                };
+            // A frame is decoded once: to name its slave, or for the
+            // monitor and the recording, whichever asks first.
+            let mut show = |at: SimTime,
+                            end: SimTime,
+                            frame: &[u8],
+                            fields: Option<LinkFrameFields<'_>>,
+                            from: &str,
+                            to: &str,
+                            after: &str| {
+                let arrow = if from == "twin" { "->" } else { "<-" };
+                let decoded = (config.monitor || observer.is_some())
+                    .then(|| fields.unwrap_or_else(|| link_frame_fields(protocol, frame)));
+                if config.monitor {
+                    let shown_decoded = decoded
+                        .as_ref()
+                        .and_then(|d| serde_json::to_string(d).ok())
+                        .unwrap_or_default();
+                    let _ = writeln!(
+                        out,
+                        "[{:12.6} s] {name} #{conn} {arrow} {}{after}  {shown_decoded}",
+                        at.as_secs_f64(),
+                        shown(frame),
+                    );
+                }
+                if let Some(v) = view.as_mut() {
+                    v.frame(&LiveFrame {
+                        link: name,
+                        from,
+                        to,
+                        start: at.as_secs_f64(),
+                        end: end.as_secs_f64(),
+                        bytes: frame,
+                    });
+                }
+                if let (Some(o), Some(decoded)) = (observer.as_mut(), decoded) {
+                    let recorded = o.record_frame(channel, from, at, end, frame, &decoded);
+                    result = std::mem::replace(&mut result, Ok(())).and(recorded);
+                }
+            };
             match record.direction {
                 Direction::Rx => {
                     state.last_request = Some(record.end);
@@ -494,13 +501,14 @@ impl FrameSink {
                         if link.twin_is_master {
                             // A slave's reply on the twin's bus: the slave
                             // it names, not the port's connection.
-                            let from = match slave_of(protocol, frame) {
+                            let fields = link_frame_fields(protocol, frame);
+                            let from = match fields.node_id() {
                                 Some(id) => format!("slave {id:02}"),
                                 None => "a slave".to_string(),
                             };
-                            show(at, at, frame, &from, "twin", "");
+                            show(at, at, frame, Some(fields), &from, "twin", "");
                         } else {
-                            show(at, at, frame, client, "twin", "");
+                            show(at, at, frame, None, client, "twin", "");
                         }
                     });
                 }
@@ -517,27 +525,23 @@ impl FrameSink {
                     // asked; the twin's request as a master, to the slave
                     // it addresses. Named only for a live view: the
                     // recording's frames carry their sender alone.
-                    let to = match (link.twin_is_master, viewing) {
+                    let fields = (link.twin_is_master && viewing)
+                        .then(|| link_frame_fields(protocol, bytes));
+                    let to = match (&fields, viewing) {
                         (_, false) => String::new(),
-                        (true, true) => match slave_of(protocol, bytes) {
+                        (Some(f), true) => match f.node_id() {
                             Some(0) => "every slave".to_string(),
                             Some(id) => format!("slave {id:02}"),
                             None => "a slave".to_string(),
                         },
-                        (false, true) => state.client.clone(),
+                        (None, true) => state.client.clone(),
                     };
-                    show(record.start, record.end, bytes, "twin", &to, &after);
+                    show(record.start, record.end, bytes, fields, "twin", &to, &after);
                 }
             }
         }
         result
     }
-}
-
-/// The slave a frame on the twin's own bus is from or for: the id it
-/// carries, if it decodes (0 is a broadcast).
-fn slave_of(protocol: &str, frame: &[u8]) -> Option<u8> {
-    link_frame_fields(protocol, frame).node_id()
 }
 
 /// The frame as the monitor shows it: text for MEB and ASCII, hex otherwise.
