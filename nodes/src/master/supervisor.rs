@@ -393,6 +393,9 @@ impl Supervisor {
     /// Schedules `transaction` on the same slave after the gap, or, with `None`,
     /// moves to the next slave or the next cycle.
     fn advance(&mut self, now: SimTime, next: Option<Transaction>) {
+        // The exchange done (or given up) settles what a forwarded write
+        // owed the polls.
+        self.forwarding.owed = false;
         let after_gap = now + self.inter_frame_gap;
         self.line_free_at = self.line_free_at.max(after_gap);
         let (slave, at) = match next {

@@ -41,7 +41,7 @@ fn gapped_map() -> MebMap {
 
 /// One exchange: the supervisor's next request (waking it as it asks) and
 /// the front end's reply handed back 1 ms later. Returns the request.
-fn exchange(
+pub(crate) fn exchange(
     master: &mut Supervisor,
     slave: &mut SlaveFrontend,
     controller: &mut EvController,
@@ -150,4 +150,55 @@ fn a_map_without_the_measured_speed_or_vel_is_refused_and_modbus_takes_no_map() 
     config.protocol = Protocol::ModbusRtu;
     let e = Supervisor::new(config).unwrap_err().to_string();
     assert!(e.contains("Modbus RTU"), "{e}");
+}
+
+/// A remote client that writes VEL back to back (two writes always waiting)
+/// does not starve the supervisor's own polls: each forwarded write goes
+/// out between two of them, and the inputs and the status word are still
+/// read.
+#[test]
+fn forwarded_writes_back_to_back_leave_the_polls_their_turn() {
+    let mut config = SupervisorConfig::new(Protocol::Meb, vec![SlaveLoopConfig::new(1)]);
+    config.status_every = 1;
+    let mut master = Supervisor::new(config).unwrap();
+    let mut controller = EvController::new(EvControllerConfig::default());
+    let mut slave = SlaveFrontend::new(Framing::Meb, 1);
+    let mut now = SimTime::ZERO;
+    // Start-up and a first cycle.
+    for _ in 0..8 {
+        exchange(&mut master, &mut slave, &mut controller, &mut now);
+    }
+    // The client's writes carry 3000 and up; the loop's own VEL is its PI
+    // output (0 at a set point of 0).
+    let mut seen = Vec::new();
+    for n in 0..40u16 {
+        while master.forwards_in_flight() < 2 {
+            master
+                .forward_write(now, 1, MebCmd::SA, 0, &[3000 + n])
+                .unwrap();
+        }
+        let r = exchange(&mut master, &mut slave, &mut controller, &mut now);
+        let client = r.cmd == MebCmd::SA && r.data.as_slice().first() >= Some(&3000);
+        seen.push(if client {
+            "client"
+        } else if r.cmd == MebCmd::EA {
+            "EA"
+        } else if r.cmd == MebCmd::FD {
+            "FD"
+        } else {
+            "another poll"
+        });
+    }
+    let count = |what: &str| seen.iter().filter(|&&c| c == what).count();
+    assert!(
+        count("client") >= 15,
+        "the client's writes go out: {seen:?}"
+    );
+    assert!(count("EA") >= 3, "the inputs are still read: {seen:?}");
+    assert!(count("FD") >= 3, "the status word is still read: {seen:?}");
+    // Never two of the client's writes in a row while a poll waits.
+    assert!(
+        seen.windows(2).all(|w| w != ["client", "client"]),
+        "{seen:?}"
+    );
 }

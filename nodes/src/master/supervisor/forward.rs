@@ -3,7 +3,8 @@
 //!
 //! A forwarded write goes out at the first moment the line is free: between
 //! two transactions of a cycle, or at once while the supervisor waits for its
-//! next cycle. The exchange it displaced resumes after it. It is retried like
+//! next cycle. The exchange it displaced resumes after it, and runs before
+//! the next forwarded write goes out. It is retried like
 //! the supervisor's own requests when the reply is missing or fails its check,
 //! but not when the slave refuses it (an `ER` reply is the slave's answer and
 //! goes back to the client as it is).
@@ -75,6 +76,10 @@ pub(super) struct Forwarding {
     pub(super) current: Option<Forward>,
     /// The exchange a forwarded write displaced and when it was due.
     pub(super) resume: Option<(Pending, SimTime)>,
+    /// A displaced exchange was resumed and has not run yet: the next
+    /// write waits for it, or a client writing back to back would starve
+    /// the polls (inputs and status words never read again).
+    pub(super) owed: bool,
     pub(super) outcomes: VecDeque<(WriteTicket, WriteOutcome)>,
     pub(super) next_ticket: u64,
 }
@@ -174,7 +179,7 @@ impl Supervisor {
         let Phase::Waiting { at } = self.phase else {
             return;
         };
-        if self.forwarding.current.is_some() || self.pending.attempt > 0 {
+        if self.forwarding.current.is_some() || self.forwarding.owed || self.pending.attempt > 0 {
             return;
         }
         let Some(forward) = self.forwarding.queue.pop_front() else {
@@ -218,6 +223,7 @@ impl Supervisor {
                 self.phase = Phase::Waiting {
                     at: at.max(self.line_free_at),
                 };
+                self.forwarding.owed = true;
             }
             // Only if a forward was started without a displaced exchange,
             // which `start_forward` never does.
