@@ -8,31 +8,12 @@ use common::{chrome_capabilities, chromedriver, fresh_dir, http, serve};
 use fantoccini::key::Key;
 use fantoccini::{ClientBuilder, Locator};
 use std::time::{Duration, Instant};
-use twin_panel::remote::{Remote, RemoteOptions};
-use twin_panel::{AccessOptions, Panel, PanelOptions, PanelRole};
+use twin_panel::AccessOptions;
 
 #[test]
 fn the_client_panel_shows_the_slave_and_its_clicks_drive_the_module() {
     let session = serve("127.0.0.1:0", AccessOptions::default(), 60.0);
-    let panel = Panel::bind(PanelOptions {
-        role: PanelRole::Client,
-        addr: "127.0.0.1:0".parse().unwrap(),
-        access: AccessOptions::default(),
-        rate_hz: 20.0,
-    })
-    .unwrap();
-    let remote = Remote::start(
-        RemoteOptions {
-            url: session.meb.clone(),
-            id: 1,
-            map: Default::default(),
-            poll: Duration::from_millis(50),
-            timeout: Duration::from_millis(500),
-        },
-        panel.hub(),
-    )
-    .unwrap();
-    panel.start_remote(remote).unwrap();
+    let panel = common::client_panel(&session.meb);
     let url = panel.running().url;
     let driver = chromedriver();
     let outputs = || {

@@ -4,11 +4,10 @@
 //! module's after the reconnect (the module restarted with its power-up
 //! outputs). Its frames are named like every panel's.
 
-use crate::common::{Session, chromedriver, http, serve_on};
+use crate::common::{Session, chromedriver, client_panel, http, serve_on};
 use crate::page::{click, frame_rows, js, open, runtime, text, until};
 use std::time::Duration;
-use twin_panel::remote::{Remote, RemoteOptions};
-use twin_panel::{AccessOptions, Panel, PanelOptions, PanelRole};
+use twin_panel::AccessOptions;
 
 const LIMIT: Duration = Duration::from_secs(30);
 
@@ -27,25 +26,7 @@ fn the_client_panel_forgets_its_writes_across_a_reconnect_and_says_when_it_is_st
         120.0,
     );
     let url = first.meb.clone();
-    let panel = Panel::bind(PanelOptions {
-        role: PanelRole::Client,
-        addr: "127.0.0.1:0".parse().unwrap(),
-        access: AccessOptions::default(),
-        rate_hz: 20.0,
-    })
-    .unwrap();
-    let remote = Remote::start(
-        RemoteOptions {
-            url: url.clone(),
-            id: 1,
-            map: Default::default(),
-            poll: Duration::from_millis(50),
-            timeout: Duration::from_millis(500),
-        },
-        panel.hub(),
-    )
-    .unwrap();
-    panel.start_remote(remote).unwrap();
+    let panel = client_panel(&url);
     let page_url = panel.running().url;
     let driver = chromedriver();
     runtime().block_on(async {
@@ -113,25 +94,7 @@ fn the_client_panel_keeps_reading_while_vel_is_written_back_to_back() {
         AccessOptions::default(),
         60.0,
     );
-    let panel = Panel::bind(PanelOptions {
-        role: PanelRole::Client,
-        addr: "127.0.0.1:0".parse().unwrap(),
-        access: AccessOptions::default(),
-        rate_hz: 20.0,
-    })
-    .unwrap();
-    let remote = Remote::start(
-        RemoteOptions {
-            url: module.meb.clone(),
-            id: 1,
-            map: Default::default(),
-            poll: Duration::from_millis(50),
-            timeout: Duration::from_millis(500),
-        },
-        panel.hub(),
-    )
-    .unwrap();
-    panel.start_remote(remote).unwrap();
+    let panel = client_panel(&module.meb);
     let running = panel.running();
     let connection = || {
         let (_, body) = http(&running, "GET", "/api/state", None, true);

@@ -448,3 +448,29 @@ pub fn supervise_ids(bus: &str, web: &str, seconds: f64, ids: &[u8]) -> Session 
     );
     session
 }
+
+/// `twin panel` in this process: the client panel of slave 01 at `url`
+/// (`tcp://…`), polling every 50 ms, its page served on a free port.
+pub fn client_panel(url: &str) -> Panel {
+    use twin_panel::remote::{Remote, RemoteOptions};
+    let panel = Panel::bind(PanelOptions {
+        role: PanelRole::Client,
+        addr: "127.0.0.1:0".parse().unwrap(),
+        access: AccessOptions::default(),
+        rate_hz: 20.0,
+    })
+    .unwrap();
+    let remote = Remote::start(
+        RemoteOptions {
+            url: url.to_string(),
+            id: 1,
+            map: Default::default(),
+            poll: Duration::from_millis(50),
+            timeout: Duration::from_millis(500),
+        },
+        panel.hub(),
+    )
+    .unwrap();
+    panel.start_remote(remote).unwrap();
+    panel
+}

@@ -3,14 +3,15 @@
 //! and nothing scrolls sideways.
 
 use crate::browser::screenshot_path;
-use crate::common::{self, chrome_at, chromedriver, fresh_dir, serve, serve_on, supervise, vsp};
+use crate::common::{
+    self, chrome_at, chromedriver, client_panel, fresh_dir, serve, serve_on, supervise, vsp,
+};
 use crate::page::{js, runtime, until};
 use fantoccini::{Client, ClientBuilder};
 use nodes::proto::meb::MebCmd;
 use serde_json::Value;
 use std::time::Duration;
-use twin_panel::remote::{Remote, RemoteOptions};
-use twin_panel::{AccessOptions, Panel, PanelOptions, PanelRole};
+use twin_panel::AccessOptions;
 use twin_realtime::client::MebClient;
 
 const PHONE: (u32, u32) = (390, 844);
@@ -103,25 +104,7 @@ fn on_a_phone_every_page_shows_whole_frames_and_the_links_errors() {
     );
     let supervised = supervise(a.to_str().unwrap(), "127.0.0.1:0", 90.0);
     // twin panel, an MEB client of the first.
-    let panel = Panel::bind(PanelOptions {
-        role: PanelRole::Client,
-        addr: "127.0.0.1:0".parse().unwrap(),
-        access: AccessOptions::default(),
-        rate_hz: 20.0,
-    })
-    .unwrap();
-    let remote = Remote::start(
-        RemoteOptions {
-            url: served.meb.clone(),
-            id: 1,
-            map: Default::default(),
-            poll: Duration::from_millis(50),
-            timeout: Duration::from_millis(500),
-        },
-        panel.hub(),
-    )
-    .unwrap();
-    panel.start_remote(remote).unwrap();
+    let panel = client_panel(&served.meb);
     let client_url = panel.running().url;
     runtime().block_on(async {
         for (role, url) in [
