@@ -437,14 +437,15 @@ fn the_client_panel_writes_vel_and_the_switches_and_the_wheel_follows() {
     let meb = format!("tcp://127.0.0.1:{}", free_port());
     let serve = start_serve(&meb, true);
     let (serve_host, _) = parts(&panel_url(&serve));
-    // A moved signal: the client reads V1 where the map puts it.
+    // Moved signals, with gaps: the client reads V1 where the map puts it,
+    // and reads around the empty words (the slave refuses those).
     let dir = std::env::temp_dir().join(format!("twin-{}-panel-client", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     let map = dir.join("map.toml");
     std::fs::write(
         &map,
-        "[EA]\nV1 = 0\nV2 = 1\nI = 2\nRPM_M = 3\nRPM_L = 4\nLDR = 5\n",
+        "[EA]\nV1 = 0\nV2 = 1\nI = 2\nRPM_M = 5\nRPM_L = 6\nLDR = 7\n[FA]\nSOC = 3\n",
     )
     .unwrap();
     let serve_mapped = Proc::start(&[
@@ -569,12 +570,18 @@ fn the_client_panel_writes_vel_and_the_switches_and_the_wheel_follows() {
         "127.0.0.1:0",
     ]);
     let (host2, _) = parts(&panel_url(&panel2));
-    wait_until(&host2, None, "V1 from EA 00", |s| {
-        let v1 = &s["state"]["devices"][0]["controller"]["inputs"]["V1"];
+    wait_until(&host2, None, "V1 from EA 00 and SOC from FA 03", |s| {
+        let inputs = &s["state"]["devices"][0]["controller"]["inputs"];
+        let v1 = &inputs["V1"];
         v1["at"] == "EA 00"
             && v1["value"]
                 .as_f64()
                 .is_some_and(|v| (20.0..60.0).contains(&v))
+            && inputs["SOC"]["at"] == "FA 03"
+            && inputs["SOC"]["value"]
+                .as_f64()
+                .is_some_and(|v| (50.0..=100.0).contains(&v))
+            && s["state"]["connection"]["counters"]["refused"] == 0
     });
     panel2.terminate();
     // Off the loopback, the same token rules as every panel.

@@ -38,13 +38,15 @@ pub struct BitPlace {
 pub struct Layout {
     /// `EA` word of each of [`INPUTS`], if the map places it.
     pub inputs: [Option<u8>; 6],
-    /// Words read from `EA 00` on.
-    pub ea_len: u8,
+    /// What a poll reads of each block, as runs of neighbouring mapped
+    /// addresses `(first, count)`: a mapped slave refuses (`ER 02`) a read
+    /// that touches an address its map leaves empty.
+    pub ea_reads: Vec<(u8, u8)>,
     pub hall: Option<u8>,
-    pub ed_len: u8,
+    pub ed_reads: Vec<(u8, u8)>,
     pub soc: Option<u8>,
-    /// `FA` words read: SOC and ERRS (ERRS keeps `FA 01`).
-    pub fa_len: u8,
+    /// SOC and ERRS (ERRS keeps `FA 01` in every map).
+    pub fa_reads: Vec<(u8, u8)>,
     pub vel: Option<u8>,
     pub switches: [Option<BitPlace>; 6],
     /// The SD words that hold a switch.
@@ -53,6 +55,26 @@ pub struct Layout {
 
 /// The highest word address a map may use (CNT and ADDR are two digits).
 const LAST: usize = 98;
+
+/// Where the slave's error count sits, whatever the map (the firmware's own).
+const ERRS: usize = 1;
+
+/// `addresses` as runs of neighbours, lowest first: `(first, count)`.
+fn runs(addresses: impl Iterator<Item = usize>) -> Vec<(u8, u8)> {
+    let mut sorted: Vec<u8> = addresses.filter_map(|a| u8::try_from(a).ok()).collect();
+    sorted.sort_unstable();
+    sorted.dedup();
+    let mut runs: Vec<(u8, u8)> = Vec::new();
+    for a in sorted {
+        match runs.last_mut() {
+            Some((first, count)) if u16::from(*first) + u16::from(*count) == u16::from(a) => {
+                *count += 1;
+            }
+            _ => runs.push((a, 1)),
+        }
+    }
+    runs
+}
 
 fn word_of(map: &MebMap, block: MebBlock, kind: MebWordType, home: usize) -> Option<u8> {
     (0..=LAST)
@@ -82,14 +104,15 @@ impl Layout {
         let mut sd_words: Vec<u8> = switches.iter().flatten().map(|p| p.word).collect();
         sd_words.sort_unstable();
         sd_words.dedup();
-        let len = |b, k| map.block_len(b, k).min(LAST + 1) as u8;
+        let mapped = |b, k| (0..=LAST).filter(move |&a| map.word(b, k, a).is_some());
+        let soc = word_of(map, Flags, Analog, 0);
         Self {
             inputs,
-            ea_len: len(Inputs, Analog),
+            ea_reads: runs(mapped(Inputs, Analog)),
             hall: word_of(map, Inputs, Digital, 0),
-            ed_len: len(Inputs, Digital),
-            soc: word_of(map, Flags, Analog, 0),
-            fa_len: len(Flags, Analog),
+            ed_reads: runs(mapped(Inputs, Digital)),
+            soc,
+            fa_reads: runs(soc.map(usize::from).into_iter().chain([ERRS])),
             vel: word_of(map, Outputs, Analog, 0),
             switches,
             sd_words,
@@ -140,8 +163,12 @@ mod tests {
             [Some(0), Some(1), Some(2), Some(3), Some(4), Some(5)]
         );
         assert_eq!(
-            (d.ea_len, d.vel, d.soc, d.hall),
-            (6, Some(0), Some(0), Some(0))
+            (d.ea_reads.as_slice(), d.vel, d.soc, d.hall),
+            (&[(0, 6)][..], Some(0), Some(0), Some(0))
+        );
+        assert_eq!(
+            (d.ed_reads.as_slice(), d.fa_reads.as_slice()),
+            (&[(0, 1)][..], &[(0, 2)][..])
         );
         assert_eq!(d.switches[1], Some(BitPlace { word: 0, bit: 1 }));
         assert_eq!(d.switches[5], Some(BitPlace { word: 1, bit: 0 }));
@@ -156,7 +183,7 @@ mod tests {
         assert_eq!(m.inputs[2], Some(0));
         assert_eq!(m.inputs[3], Some(7));
         assert_eq!(m.inputs[0], None, "V2 is not placed");
-        assert_eq!(m.ea_len, 8);
+        assert_eq!(m.ea_reads, vec![(0, 1), (7, 1)], "only what the map places");
         assert_eq!(m.switch_label(0).as_deref(), Some("SD 02 bit 5"));
         assert_eq!(m.switches[1], None);
         assert_eq!(m.sd_words, vec![2]);

@@ -330,17 +330,9 @@ impl Remote {
     fn poll_once(&self, c: &mut MebClient) -> Result<(), Failed> {
         let id = self.options.id;
         let l = &self.layout;
-        let ea = if l.ea_len > 0 {
-            self.exchange(c, |c| c.read(id, MebCmd::EA, 0, l.ea_len))?
-        } else {
-            Vec::new()
-        };
-        let ed = if l.ed_len > 0 {
-            self.exchange(c, |c| c.read(id, MebCmd::ED, 0, l.ed_len))?
-        } else {
-            Vec::new()
-        };
-        let fa = self.exchange(c, |c| c.read(id, MebCmd::FA, 0, l.fa_len.max(2)))?;
+        let ea = self.read_runs(c, MebCmd::EA, &l.ea_reads)?;
+        let ed = self.read_runs(c, MebCmd::ED, &l.ed_reads)?;
+        let fa = self.read_runs(c, MebCmd::FA, &l.fa_reads)?;
         let status = self.exchange(c, |c| c.read(id, MebCmd::FD, 0, 1))?;
         let at = self.now();
         let mut s = lock(&self.state);
@@ -351,6 +343,30 @@ impl Remote {
         s.read_at = Some(at);
         s.error = None;
         Ok(())
+    }
+
+    /// The words of `cmd` at every address of `runs`, read a run at a
+    /// time, placed by address (0 where the map places nothing).
+    fn read_runs(
+        &self,
+        c: &mut MebClient,
+        cmd: MebCmd,
+        runs: &[(u8, u8)],
+    ) -> Result<Vec<u16>, Failed> {
+        let id = self.options.id;
+        let end = runs
+            .iter()
+            .map(|&(a, n)| usize::from(a) + usize::from(n))
+            .max()
+            .unwrap_or(0);
+        let mut words = vec![0; end];
+        for &(first, count) in runs {
+            let read = self.exchange(c, |c| c.read(id, cmd, first, count))?;
+            for (slot, word) in words.iter_mut().skip(usize::from(first)).zip(read) {
+                *slot = word;
+            }
+        }
+        Ok(words)
     }
 
     fn apply(&self, c: &mut MebClient, request: &OutputRequest) -> Result<Value, Failed> {
