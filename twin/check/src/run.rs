@@ -83,6 +83,7 @@ pub fn run_suite(suite: &Suite, wire: &mut Wire, id: u8) -> Result<SuiteRun, Wir
         let mut play = Play {
             wire: &mut *wire,
             id,
+            timeout_ms: suite.timeout_ms,
             frames: Vec::new(),
             pending: Vec::new(),
             pending_since: None,
@@ -94,7 +95,11 @@ pub fn run_suite(suite: &Suite, wire: &mut Wire, id: u8) -> Result<SuiteRun, Wir
         let mut outcome = Outcome::Pass;
         for step in &check.steps {
             if let Err(why) = play.step(step)? {
-                outcome = Outcome::Fail(why);
+                // What comes after the failure is part of its story (a
+                // reply too late), and must not be taken for the next
+                // check's.
+                let late = play.late(Duration::from_millis(3 * suite.timeout_ms.max(100)))?;
+                outcome = Outcome::Fail(why + &late);
                 break;
             }
         }
@@ -119,6 +124,8 @@ pub fn run_suite(suite: &Suite, wire: &mut Wire, id: u8) -> Result<SuiteRun, Wir
 struct Play<'a> {
     wire: &'a mut Wire,
     id: u8,
+    /// A reply's deadline where a step sets none.
+    timeout_ms: u64,
     frames: Vec<Exchange>,
     /// Received and not yet taken as a reply, and when its first byte came.
     pending: Vec<u8>,
@@ -221,12 +228,12 @@ impl Play<'_> {
                 within_ms,
             } => {
                 let pattern = self.fill(pattern);
-                self.expect(&pattern, *words, *within_ms)
+                self.expect(&pattern, *words, within_ms.unwrap_or(self.timeout_ms))
             }
             Step::Error { code, within_ms } => {
                 let addr = self.last_body.get(5..7).unwrap_or("##").to_string();
                 let pattern = format!("@{:02}ER{addr}01{code:04X}", self.id);
-                self.expect(&pattern, 0, *within_ms)
+                self.expect(&pattern, 0, within_ms.unwrap_or(self.timeout_ms))
             }
             Step::Silence { ms } => {
                 let until = Instant::now() + Duration::from_millis(*ms);
@@ -251,6 +258,32 @@ impl Play<'_> {
                 Ok(Ok(()))
             }
         }
+    }
+
+    /// Whatever comes within `wait` of now, noted as received: `""`, or
+    /// how long after the last request it came.
+    fn late(&mut self, wait: Duration) -> Result<String, WireError> {
+        let sent = self.sent_at;
+        let until = Instant::now() + wait;
+        let mut came = None;
+        while Instant::now() < until {
+            if self.receive(until)? && came.is_none() {
+                came = sent.map(|s| s.elapsed());
+            }
+        }
+        if self.pending.is_empty() {
+            return Ok(String::new());
+        }
+        let got = std::mem::take(&mut self.pending);
+        self.note_received(&got);
+        Ok(match came {
+            Some(after) => format!(
+                "; then `{}` came, {:.0} ms after the request",
+                shown(&got),
+                after.as_secs_f64() * 1e3
+            ),
+            None => format!("; then `{}` came", shown(&got)),
+        })
     }
 
     /// The next frame, held to `pattern` and `words` data words.

@@ -81,16 +81,17 @@ pub enum Step {
     /// Bytes as they are (garbage, a partial frame).
     Raw(String),
     /// A reply whose text up to the FCS matches `pattern` (`#`: any hex
-    /// digit) followed by `words` data words, within `within_ms`.
+    /// digit) followed by `words` data words, within `within_ms` (the
+    /// suite's `timeout_ms` if not given).
     Expect {
         pattern: String,
         words: u8,
-        within_ms: u64,
+        within_ms: Option<u64>,
     },
     /// An error reply of `code` to the last request sent.
     Error {
         code: u8,
-        within_ms: u64,
+        within_ms: Option<u64>,
     },
     /// Nothing at all for this long.
     Silence {
@@ -177,12 +178,10 @@ impl Suite {
             let mut sent = false;
             for spanned in check.steps {
                 let line = line_of(spanned.span().start);
-                let step = step(spanned.into_inner(), raw.timeout_ms, sent).map_err(|why| {
-                    SuiteError::Step {
-                        path: path.into(),
-                        line,
-                        why: format!("check `{}`: {why}", check.name),
-                    }
+                let step = step(spanned.into_inner(), sent).map_err(|why| SuiteError::Step {
+                    path: path.into(),
+                    line,
+                    why: format!("check `{}`: {why}", check.name),
                 })?;
                 sent |= matches!(step, Step::Send { .. } | Step::Raw(_));
                 steps.push(step);
@@ -219,7 +218,7 @@ impl Suite {
 }
 
 /// The one action of a step, checked.
-fn step(s: StepToml, timeout_ms: u64, sent: bool) -> Result<Step, String> {
+fn step(s: StepToml, sent: bool) -> Result<Step, String> {
     let actions = [
         s.send.is_some(),
         s.raw.is_some(),
@@ -251,7 +250,7 @@ fn step(s: StepToml, timeout_ms: u64, sent: bool) -> Result<Step, String> {
     if s.expect.is_none() && s.error.is_none() {
         only_with(s.within_ms.is_some(), "within_ms", "expect or error")?;
     }
-    let within_ms = s.within_ms.unwrap_or(timeout_ms);
+    let within_ms = s.within_ms;
     if let Some(body) = s.send {
         if !body.starts_with('@') {
             return Err(format!("send `{body}`: a frame starts with @"));

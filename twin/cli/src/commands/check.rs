@@ -43,6 +43,11 @@ struct SlaveArgs {
     /// The suite: a built-in one's name (--list) or a TOML file.
     #[arg(long, default_value = "meb-slave", value_name = "NAME|FILE")]
     suite: String,
+    /// A reply's deadline in ms where the suite's steps set none (the suite's
+    /// own otherwise: 100 ms for the built-in one, the MEB page's master
+    /// timeout). Give a slow board more.
+    #[arg(long, value_name = "MS", value_parser = clap::value_parser!(u64).range(1..=60_000))]
+    timeout_ms: Option<u64>,
     /// Also write the run as JSON (every check, its frames and times).
     #[arg(long, value_name = "FILE")]
     json: Option<PathBuf>,
@@ -56,7 +61,10 @@ pub fn execute(args: &CheckArgs) -> Result<()> {
     let Some(Role::Slave(slave)) = &args.role else {
         bail!("say what to check: `twin check slave LINK`, or `twin check --list`");
     };
-    let suite = Suite::load(&slave.suite)?;
+    let mut suite = Suite::load(&slave.suite)?;
+    if let Some(ms) = slave.timeout_ms {
+        suite.timeout_ms = ms;
+    }
     let mut wire = Wire::open(&slave.link)?;
     let run = run_suite(&suite, &mut wire, slave.id)?;
     print!("{}", report::text(&run));
