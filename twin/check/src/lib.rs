@@ -5,7 +5,7 @@
 //! built-in suites are written in the same format a teacher uses for their
 //! own. [`run`] plays a suite over a real link (a serial port, a
 //! pseudo-terminal or TCP), [`report`] says what passed and, for what did
-//! not, the frames that show it.
+//! not, the frames that show it, as text, JSON, JUnit XML or a page.
 //!
 //! The fence: no engine, no plant. The checked program is outside the twin;
 //! this crate only talks to it over the wire.

@@ -1,9 +1,29 @@
 //! A suite's run as a student or a teacher reads it: one line per check,
 //! for a failure why and the frames that show it, and the score; or as
-//! JSON for scripts.
+//! JSON for scripts, JUnit XML for CI systems and learning platforms, or
+//! a page for a browser.
 
-use crate::run::{Outcome, SuiteRun, Way};
+mod html;
+mod junit;
+
+use crate::run::{CheckOutcome, Outcome, SuiteRun, Way};
 use std::fmt::Write;
+
+pub use html::html;
+pub use junit::junit;
+
+/// A check's frames, one a line: when, which way, the bytes.
+pub(crate) fn frames(check: &CheckOutcome) -> String {
+    let mut out = String::new();
+    for f in &check.frames {
+        let way = match f.way {
+            Way::Sent => "sent    ",
+            Way::Received => "received",
+        };
+        let _ = writeln!(out, "{:8.3} s  {way}  {}", f.at, f.text);
+    }
+    out
+}
 
 /// The terminal's report.
 pub fn text(run: &SuiteRun) -> String {
@@ -21,12 +41,8 @@ pub fn text(run: &SuiteRun) -> String {
             Outcome::Fail(why) => {
                 let _ = writeln!(out, "  FAIL  {}  ({})", check.name, check.requirement);
                 let _ = writeln!(out, "        {why}");
-                for f in &check.frames {
-                    let way = match f.way {
-                        Way::Sent => "sent    ",
-                        Way::Received => "received",
-                    };
-                    let _ = writeln!(out, "        {:8.3} s  {way}  {}", f.at, f.text);
+                for line in frames(check).lines() {
+                    let _ = writeln!(out, "        {line}");
                 }
             }
         }
@@ -46,12 +62,12 @@ pub fn text(run: &SuiteRun) -> String {
     let passed = run.passed().count();
     let _ = write!(
         out,
-        "score: {} of {} points ({passed} of {} checks passed) in {:.1} s",
+        "score: {} of {} points ({passed} of {} checks passed)",
         run.score(),
         run.points(),
         run.checks.len(),
-        run.seconds
     );
+    let _ = write!(out, " in {:.1} s", run.seconds);
     let mut replies: Vec<f64> = run
         .checks
         .iter()

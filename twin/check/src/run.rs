@@ -47,6 +47,9 @@ pub struct CheckOutcome {
     /// From the last byte of a request to the first of its reply, ms.
     pub reply_ms: Vec<f64>,
     pub frames: Vec<Exchange>,
+    /// From the check's first step to its verdict (the quiet line before
+    /// it not counted).
+    pub seconds: f64,
 }
 
 /// A suite as it went against one program.
@@ -92,6 +95,7 @@ pub fn run_suite(suite: &Suite, wire: &mut Wire, id: u8) -> Result<SuiteRun, Wir
             reply_ms: Vec::new(),
         };
         play.settle()?;
+        let began = play.wire.now();
         let mut outcome = Outcome::Pass;
         for step in &check.steps {
             if let Err(why) = play.step(step)? {
@@ -103,6 +107,7 @@ pub fn run_suite(suite: &Suite, wire: &mut Wire, id: u8) -> Result<SuiteRun, Wir
                 break;
             }
         }
+        let seconds = play.wire.now() - began;
         checks.push(CheckOutcome {
             name: check.name.clone(),
             requirement: check.requirement.clone(),
@@ -110,6 +115,7 @@ pub fn run_suite(suite: &Suite, wire: &mut Wire, id: u8) -> Result<SuiteRun, Wir
             outcome,
             reply_ms: play.reply_ms,
             frames: play.frames,
+            seconds,
         });
     }
     Ok(SuiteRun {

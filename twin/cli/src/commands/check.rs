@@ -3,7 +3,7 @@
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use twin_check::{Suite, report, run_suite, wire::Wire};
 
 /// Check a program against the protocol it must speak, and grade it.
@@ -16,7 +16,7 @@ use twin_check::{Suite, report, run_suite, wire::Wire};
 /// Exits 1 when a check fails.
 #[derive(Debug, Args)]
 #[command(
-    after_help = "Examples:\n  twin check slave tcp://127.0.0.1:5700\n  twin check slave /dev/ttyUSB0?baud=9600 --id 3 --json report.json\n  twin check slave /tmp/ttyV0 --suite my-suite.toml\n  twin check --list"
+    after_help = "Examples:\n  twin check slave tcp://127.0.0.1:5700\n  twin check slave /dev/ttyUSB0?baud=9600 --id 3 --json report.json\n  twin check slave /tmp/ttyV0 --suite my-suite.toml --html report.html\n  twin check --list"
 )]
 pub struct CheckArgs {
     #[command(subcommand)]
@@ -51,6 +51,13 @@ struct SlaveArgs {
     /// Also write the run as JSON (every check, its frames and times).
     #[arg(long, value_name = "FILE")]
     json: Option<PathBuf>,
+    /// Also write the run as JUnit XML, for CI systems and learning
+    /// platforms (a test case per check).
+    #[arg(long, value_name = "FILE")]
+    junit: Option<PathBuf>,
+    /// Also write the run as one HTML page, to open in a browser.
+    #[arg(long, value_name = "FILE")]
+    html: Option<PathBuf>,
 }
 
 pub fn execute(args: &CheckArgs) -> Result<()> {
@@ -68,15 +75,25 @@ pub fn execute(args: &CheckArgs) -> Result<()> {
     let mut wire = Wire::open(&slave.link)?;
     let run = run_suite(&suite, &mut wire, slave.id)?;
     print!("{}", report::text(&run));
-    if let Some(path) = &slave.json {
-        std::fs::write(path, report::json(&run))
-            .with_context(|| format!("cannot write {}", path.display()))?;
+    let outputs = [
+        (&slave.json, report::json(&run)),
+        (&slave.junit, report::junit(&run)),
+        (&slave.html, report::html(&run, None)),
+    ];
+    for (path, contents) in outputs {
+        if let Some(path) = path {
+            write(path, &contents)?;
+        }
     }
     let failed = run.checks.len() - run.passed().count();
     if failed > 0 {
         bail!("{failed} of {} checks failed", run.checks.len());
     }
     Ok(())
+}
+
+fn write(path: &Path, contents: &str) -> Result<()> {
+    std::fs::write(path, contents).with_context(|| format!("cannot write {}", path.display()))
 }
 
 fn list() -> Result<String> {

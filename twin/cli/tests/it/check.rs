@@ -1,7 +1,8 @@
 //! `twin check slave`: the built-in MEB slave suite against the twin's own
 //! slave (every check passes) and against a student's slave written
 //! outside the twin (a Python program), once correct and once per planted
-//! bug: each bug found, and nothing else reported.
+//! bug: each bug found, and nothing else reported; the JUnit and HTML
+//! reports read back.
 
 use crate::support::{Proc, scratch, text, twin};
 use std::path::Path;
@@ -235,4 +236,162 @@ fn the_books_report_is_what_twin_check_prints() {
     let slave = student("book", &["answers-bad-fcs", "answers-broadcast"]);
     let out = twin(&["check", "slave", &slave.link, "--timeout-ms", "1000"]);
     assert_eq!(comparable(&text(&out)), comparable(shown));
+}
+
+/// A JUnit file as a JUnit reader sees it (Python's XML parser, which
+/// refuses a badly escaped file): the suite's counts and every case.
+fn junit_read(path: &Path) -> serde_json::Value {
+    let script = r#"
+import json, sys, xml.etree.ElementTree as ET
+root = ET.parse(sys.argv[1]).getroot()
+suite = root.find("testsuite")
+cases = []
+for c in suite.findall("testcase"):
+    f = c.find("failure")
+    cases.append({"name": c.get("name"), "classname": c.get("classname"), "time": float(c.get("time")),
+                  "message": None if f is None else f.get("message"), "text": None if f is None else f.text})
+print(json.dumps({"name": suite.get("name"), "tests": int(suite.get("tests")),
+                  "failures": int(suite.get("failures")), "time": float(suite.get("time")), "cases": cases}))
+"#;
+    let out = Command::new("python3")
+        .args(["-c", script])
+        .arg(path)
+        .output()
+        .expect("python3 runs");
+    assert!(out.status.success(), "{}", text(&out));
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+#[test]
+fn the_junit_report_counts_the_checks_and_holds_a_failures_frames() {
+    let junit = scratch("check", "broadcast.junit.xml");
+    let slave = student("junit", &["answers-broadcast"]);
+    let out = twin(&[
+        "check",
+        "slave",
+        &slave.link,
+        "--junit",
+        junit.to_str().unwrap(),
+    ]);
+    assert!(!out.status.success(), "{}", text(&out));
+    let read = junit_read(&junit);
+    assert_eq!(read["name"], "MEB slave");
+    assert_eq!(read["tests"], 25);
+    assert_eq!(read["failures"], 1, "{}", text(&out));
+    assert!(
+        read["time"].as_f64().unwrap() > 0.3,
+        "the silences alone take longer"
+    );
+    let cases = read["cases"].as_array().unwrap();
+    assert_eq!(cases.len(), 25);
+    let failed: Vec<_> = cases.iter().filter(|c| !c["message"].is_null()).collect();
+    assert_eq!(failed.len(), 1);
+    let case = failed[0];
+    assert_eq!(case["name"], "a broadcast write (id 00) is not answered");
+    assert_eq!(case["classname"], "MEB page, Data model and commands");
+    assert!(
+        case["time"].as_f64().unwrap() >= 0.15,
+        "it waits 150 ms: {case}"
+    );
+    assert_eq!(
+        case["message"],
+        "answered `@01SD000157*\\n` where it must stay silent for 150 ms"
+    );
+    let frames = case["text"].as_str().unwrap();
+    assert!(
+        frames.contains(" s  sent      @00SD0001001F21*\\n\n"),
+        "{frames}"
+    );
+    assert!(
+        frames.contains(" s  received  @01SD000157*\\n\n"),
+        "{frames}"
+    );
+}
+
+/// A teacher's suite whose failing check sends markup and ampersands: the
+/// page and the XML show them as sent, escaped.
+#[test]
+fn markup_from_the_suite_and_the_wire_is_escaped_in_the_page_and_the_xml() {
+    let suite = scratch("check", "markup.toml");
+    std::fs::write(
+        &suite,
+        r#"name = "Tags & <b>bold</b>"
+protocol = "meb"
+
+[[check]]
+name = "reads the status word"
+requirement = "MEB page"
+steps = [{ send = "@{id}FD0001" }, { expect = "@{id}FD0001", words = 1 }]
+
+[[check]]
+name = "reads <EA> & more"
+requirement = 'M3CVME paper, Table "3"'
+points = 3
+steps = [
+  { raw = "<b>&amp;'x'</b>\n" },
+  { send = "@{id}EA0001" },
+  { expect = "@{id}EA0002", words = 1 },
+]
+"#,
+    )
+    .unwrap();
+    let (html, junit) = (
+        scratch("check", "markup.html"),
+        scratch("check", "markup.xml"),
+    );
+    let slave = student("markup", &[]);
+    let out = twin(&[
+        "check",
+        "slave",
+        &slave.link,
+        "--suite",
+        suite.to_str().unwrap(),
+        "--html",
+        html.to_str().unwrap(),
+        "--junit",
+        junit.to_str().unwrap(),
+    ]);
+    assert!(!out.status.success(), "{}", text(&out));
+    let page = std::fs::read_to_string(&html).unwrap();
+    assert!(page.starts_with("<!DOCTYPE html>"), "{page}");
+    assert!(
+        !page.contains("src=") && !page.contains("href="),
+        "self-contained: {page}"
+    );
+    assert!(
+        page.contains("Score: 1 of 4 points (1 of 2 checks passed)"),
+        "{page}"
+    );
+    assert!(
+        page.contains("<h1>Tags &amp; &lt;b&gt;bold&lt;/b&gt; on tcp://"),
+        "{page}"
+    );
+    assert!(page.contains("reads &lt;EA&gt; &amp; more"), "{page}");
+    assert!(page.contains("M3CVME paper, Table &quot;3&quot;"), "{page}");
+    assert!(
+        page.contains(" s  sent      &lt;b&gt;&amp;amp;&#39;x&#39;&lt;/b&gt;\\n\n"),
+        "{page}"
+    );
+    assert!(page.contains("the reply was `@01EA0001"), "{page}");
+    assert!(
+        !page.contains("<b>&amp;") && !page.contains("<EA>"),
+        "{page}"
+    );
+
+    let read = junit_read(&junit);
+    assert_eq!(read["name"], "Tags & <b>bold</b>");
+    assert_eq!(
+        (read["tests"].as_u64(), read["failures"].as_u64()),
+        (Some(2), Some(1))
+    );
+    let case = &read["cases"][1];
+    assert_eq!(case["name"], "reads <EA> & more");
+    assert_eq!(case["classname"], "M3CVME paper, Table \"3\"");
+    assert!(
+        case["text"]
+            .as_str()
+            .unwrap()
+            .contains("sent      <b>&amp;'x'</b>\\n\n"),
+        "{case}"
+    );
 }
