@@ -6,6 +6,7 @@
 //! own. [`run`] plays a suite over a real link (a serial port, a
 //! pseudo-terminal or TCP), [`report`] says what passed and, for what did
 //! not, the frames that show it, as text, JSON, JUnit XML or a page.
+//! [`class`] runs a suite against a whole class's programs at once.
 //!
 //! The fence: no engine, no plant. The checked program is outside the twin;
 //! this crate only talks to it over the wire.
@@ -15,6 +16,7 @@
     reason = "a check talks to a real program in real time: its replies are timed by the wall clock"
 )]
 
+pub mod class;
 pub mod report;
 pub mod run;
 pub mod suite;

@@ -33,7 +33,10 @@ pub fn text(run: &SuiteRun) -> String {
         "{} suite, slave {:02} on {}",
         run.suite, run.id, run.link
     );
-    for check in &run.checks {
+    if let Some(why) = &run.error {
+        let _ = writeln!(out, "  could not be checked: {why}");
+    }
+    for check in run.checks.iter().filter(|_| run.error.is_none()) {
         match &check.outcome {
             Outcome::Pass => {
                 let _ = writeln!(out, "  pass  {}  ({})", check.name, check.requirement);
@@ -52,7 +55,7 @@ pub fn text(run: &SuiteRun) -> String {
         .iter()
         .flat_map(|c| &c.frames)
         .any(|f| f.way == Way::Received);
-    if !heard {
+    if !heard && run.error.is_none() {
         let _ = writeln!(
             out,
             "nothing came back at all: is slave {:02} there, on {}? (--id is its device number)",
@@ -67,7 +70,9 @@ pub fn text(run: &SuiteRun) -> String {
         run.points(),
         run.checks.len(),
     );
-    let _ = write!(out, " in {:.1} s", run.seconds);
+    if run.error.is_none() {
+        let _ = write!(out, " in {:.1} s", run.seconds);
+    }
     let mut replies: Vec<f64> = run
         .checks
         .iter()

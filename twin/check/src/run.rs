@@ -60,6 +60,10 @@ pub struct SuiteRun {
     pub id: u8,
     pub checks: Vec<CheckOutcome>,
     pub seconds: f64,
+    /// Why no check could be run (the program unreachable, or it hung up):
+    /// every check then fails with this.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
 }
 
 impl SuiteRun {
@@ -73,6 +77,37 @@ impl SuiteRun {
 
     pub fn passed(&self) -> impl Iterator<Item = &CheckOutcome> {
         self.checks.iter().filter(|c| c.outcome == Outcome::Pass)
+    }
+
+    /// The first check that failed, if one did.
+    pub fn first_failure(&self) -> Option<&CheckOutcome> {
+        self.checks.iter().find(|c| c.outcome != Outcome::Pass)
+    }
+
+    /// A run that never got to its checks: each fails with `why`, so the
+    /// score and the reports say 0 of the suite's points.
+    pub fn unreachable(suite: &Suite, link: &str, id: u8, why: String) -> Self {
+        let checks = suite
+            .checks
+            .iter()
+            .map(|check| CheckOutcome {
+                name: check.name.clone(),
+                requirement: check.requirement.clone(),
+                points: check.points,
+                outcome: Outcome::Fail(why.clone()),
+                reply_ms: Vec::new(),
+                frames: Vec::new(),
+                seconds: 0.0,
+            })
+            .collect();
+        SuiteRun {
+            suite: suite.name.clone(),
+            link: link.into(),
+            id,
+            checks,
+            seconds: 0.0,
+            error: Some(why),
+        }
     }
 }
 
@@ -124,6 +159,7 @@ pub fn run_suite(suite: &Suite, wire: &mut Wire, id: u8) -> Result<SuiteRun, Wir
         id,
         checks,
         seconds: wire.now() - started,
+        error: None,
     })
 }
 

@@ -13,7 +13,7 @@ pub enum WireError {
     #[error("{0}")]
     Spec(#[from] twin_realtime::io::spec::LinkSpecError),
     #[error("cannot connect to {link}: {why} (is the program listening there?)")]
-    Connect { link: String, why: std::io::Error },
+    Connect { link: String, why: String },
     #[error("cannot open {link}: {why}")]
     Open { link: String, why: String },
     #[error("{link}: {why}")]
@@ -49,10 +49,10 @@ impl Wire {
         let line = match &spec.addr {
             LinkAddr::Tcp(addr) => {
                 let stream =
-                    TcpStream::connect_timeout(addr, Duration::from_secs(3)).map_err(|why| {
+                    TcpStream::connect_timeout(addr, Duration::from_secs(3)).map_err(|e| {
                         WireError::Connect {
                             link: link.into(),
-                            why,
+                            why: refused(&e),
                         }
                     })?;
                 let _ = stream.set_nodelay(true);
@@ -154,5 +154,16 @@ impl Wire {
             link: self.link.clone(),
             why,
         }
+    }
+}
+
+/// Why a connection failed, as a teacher reads it in a class's scores
+/// (`connection refused`, not the OS's error number).
+fn refused(e: &std::io::Error) -> String {
+    match e.kind() {
+        ErrorKind::ConnectionRefused => "connection refused".into(),
+        ErrorKind::TimedOut => "no answer within 3 s".into(),
+        ErrorKind::HostUnreachable | ErrorKind::NetworkUnreachable => "host unreachable".into(),
+        _ => e.to_string(),
     }
 }

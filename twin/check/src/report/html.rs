@@ -45,6 +45,13 @@ pub fn html(run: &SuiteRun, student: Option<&str>) -> String {
         run.points(),
         run.checks.len()
     );
+    if let Some(why) = &run.error {
+        let _ = writeln!(
+            out,
+            "<p class=\"fail\">Could not be checked: {}</p>",
+            esc(why)
+        );
+    }
     out.push_str(
         "<table>\n<thead><tr><th>Check</th><th>Points</th><th>Result</th></tr></thead>\n<tbody>\n",
     );
@@ -63,6 +70,9 @@ pub fn html(run: &SuiteRun, student: Option<&str>) -> String {
         let Outcome::Fail(why) = &check.outcome else {
             continue;
         };
+        if run.error.is_some() {
+            continue;
+        }
         let frames = super::frames(check);
         let _ = writeln!(
             out,

@@ -13,16 +13,23 @@ use std::fmt::Write;
 /// The run as a JUnit XML document.
 pub fn junit(run: &SuiteRun) -> String {
     let failures = run.checks.len() - run.passed().count();
+    // A program that could not be reached is an error (nothing ran), not
+    // a failed check.
+    let (failures, errors) = if run.error.is_some() {
+        (0, failures)
+    } else {
+        (failures, 0)
+    };
     let mut out = String::from("<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n");
     let _ = writeln!(
         out,
-        "<testsuites name=\"twin check\" tests=\"{}\" failures=\"{failures}\" errors=\"0\" time=\"{:.3}\">",
+        "<testsuites name=\"twin check\" tests=\"{}\" failures=\"{failures}\" errors=\"{errors}\" time=\"{:.3}\">",
         run.checks.len(),
         run.seconds
     );
     let _ = writeln!(
         out,
-        "  <testsuite name=\"{}\" tests=\"{}\" failures=\"{failures}\" errors=\"0\" skipped=\"0\" time=\"{:.3}\">",
+        "  <testsuite name=\"{}\" tests=\"{}\" failures=\"{failures}\" errors=\"{errors}\" skipped=\"0\" time=\"{:.3}\">",
         attr(&run.suite),
         run.checks.len(),
         run.seconds
@@ -47,11 +54,21 @@ pub fn junit(run: &SuiteRun) -> String {
             out.push_str("/>\n");
             continue;
         };
+        let element = if run.error.is_some() {
+            "error"
+        } else {
+            "failure"
+        };
         let frames = super::frames(check);
         let _ = writeln!(
             out,
-            ">\n      <failure message=\"{}\" type=\"protocol\">{}</failure>\n    </testcase>",
+            ">\n      <{element} message=\"{}\" type=\"{}\">{}</{element}>\n    </testcase>",
             attr(why),
+            if run.error.is_some() {
+                "unreachable"
+            } else {
+                "protocol"
+            },
             text(&frames)
         );
     }

@@ -4,7 +4,9 @@
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
 use std::path::{Path, PathBuf};
-use twin_check::{Suite, report, run_suite, wire::Wire};
+use std::time::Instant;
+use twin_check::class::{self, Student};
+use twin_check::{Suite, SuiteRun, report, run_suite, wire::Wire};
 
 /// Check a program against the protocol it must speak, and grade it.
 ///
@@ -13,10 +15,11 @@ use twin_check::{Suite, report, run_suite, wire::Wire};
 /// pseudo-terminal or TCP, and prints one line per check, the frames that
 /// show each failure, and a score. Suites are TOML files; the built-in ones
 /// (--list) are written the same way a teacher writes their own (--suite).
-/// Exits 1 when a check fails.
+/// A class is checked at once from a roster (--roster): a report per
+/// student and the scores side by side. Exits 1 when a check fails.
 #[derive(Debug, Args)]
 #[command(
-    after_help = "Examples:\n  twin check slave tcp://127.0.0.1:5700\n  twin check slave /dev/ttyUSB0?baud=9600 --id 3 --json report.json\n  twin check slave /tmp/ttyV0 --suite my-suite.toml --html report.html\n  twin check --list"
+    after_help = "Examples:\n  twin check slave tcp://127.0.0.1:5700\n  twin check slave /dev/ttyUSB0?baud=9600 --id 3 --json report.json\n  twin check slave /tmp/ttyV0 --suite my-suite.toml --html report.html\n  twin check slave --roster class.csv --out grades/\n  twin check --list"
 )]
 pub struct CheckArgs {
     #[command(subcommand)]
@@ -36,8 +39,10 @@ enum Role {
 struct SlaveArgs {
     /// Where the slave is: tcp://HOST:PORT, or a serial device or
     /// pseudo-terminal (PATH?baud=9600&parity=E).
-    link: String,
-    /// The slave's id (the M3CVME tool's device number).
+    #[arg(required_unless_present = "roster", conflicts_with = "roster")]
+    link: Option<String>,
+    /// The slave's id (the M3CVME tool's device number); with --roster,
+    /// of every student whose line gives none.
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=99))]
     id: u8,
     /// The suite: a built-in one's name (--list) or a TOML file.
@@ -58,6 +63,17 @@ struct SlaveArgs {
     /// Also write the run as one HTML page, to open in a browser.
     #[arg(long, value_name = "FILE")]
     html: Option<PathBuf>,
+    /// Check a class instead of one LINK: a CSV file with the columns
+    /// student,link[,id], or TOML [[student]] tables of name, link, id.
+    #[arg(long, value_name = "FILE", conflicts_with_all = ["json", "junit", "html"])]
+    roster: Option<PathBuf>,
+    /// Where a class's reports and scores.csv go [default:
+    /// check-SUITE-reports].
+    #[arg(long, value_name = "DIR", requires = "roster")]
+    out: Option<PathBuf>,
+    /// How many students of a class are checked at once.
+    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u16).range(1..=64))]
+    jobs: u16,
 }
 
 pub fn execute(args: &CheckArgs) -> Result<()> {
@@ -72,7 +88,11 @@ pub fn execute(args: &CheckArgs) -> Result<()> {
     if let Some(ms) = slave.timeout_ms {
         suite.timeout_ms = ms;
     }
-    let mut wire = Wire::open(&slave.link)?;
+    if let Some(roster) = &slave.roster {
+        return class(slave, &suite, roster);
+    }
+    let link = slave.link.as_deref().unwrap_or_default();
+    let mut wire = Wire::open(link)?;
     let run = run_suite(&suite, &mut wire, slave.id)?;
     print!("{}", report::text(&run));
     let outputs = [
@@ -94,6 +114,96 @@ pub fn execute(args: &CheckArgs) -> Result<()> {
 
 fn write(path: &Path, contents: &str) -> Result<()> {
     std::fs::write(path, contents).with_context(|| format!("cannot write {}", path.display()))
+}
+
+/// Every student of the roster checked, a line each as they finish, their
+/// reports and the class's scores.csv written to the out folder.
+fn class(slave: &SlaveArgs, suite: &Suite, roster: &Path) -> Result<()> {
+    let students = class::load_roster(roster, slave.id)?;
+    let out = slave.out.clone().unwrap_or_else(|| {
+        let name = Path::new(&slave.suite)
+            .file_stem()
+            .map_or_else(|| slave.suite.clone(), |s| s.to_string_lossy().into_owned());
+        PathBuf::from(format!("check-{name}-reports"))
+    });
+    std::fs::create_dir_all(&out)
+        .with_context(|| format!("cannot make the folder {}", out.display()))?;
+    let width = students
+        .iter()
+        .map(|s| s.name.chars().count())
+        .max()
+        .unwrap_or(0);
+    println!(
+        "{} suite: {} students, {} at once",
+        suite.name,
+        students.len(),
+        usize::from(slave.jobs).min(students.len())
+    );
+    let started = Instant::now();
+    let mut unwritten = None;
+    let runs = class::run_class(suite, &students, slave.jobs.into(), |student, run| {
+        println!("  {:width$}  {}", student.name, verdict(run));
+        if let Err(e) = reports(&out, student, run) {
+            unwritten.get_or_insert(e);
+        }
+    });
+    if let Some(e) = unwritten {
+        return Err(e);
+    }
+    write(
+        &out.join("scores.csv"),
+        &class::scores_csv(&students, &runs),
+    )?;
+    let unreachable = runs.iter().filter(|r| r.error.is_some()).count();
+    let failed = runs
+        .iter()
+        .filter(|r| r.error.is_none() && r.first_failure().is_some())
+        .count();
+    println!(
+        "{} students in {:.1} s: {} passed every check, {failed} failed a check, {unreachable} could not be checked; reports and scores.csv in {}",
+        students.len(),
+        started.elapsed().as_secs_f64(),
+        students.len() - failed - unreachable,
+        out.display()
+    );
+    if failed + unreachable > 0 {
+        bail!(
+            "{} of {} students did not pass every check",
+            failed + unreachable,
+            students.len()
+        );
+    }
+    Ok(())
+}
+
+/// A student's line: the score, or why it could not be checked.
+fn verdict(run: &SuiteRun) -> String {
+    if let Some(why) = &run.error {
+        return format!("could not be checked: {why}");
+    }
+    let score = format!(
+        "{} of {} points, {} of {} checks",
+        run.score(),
+        run.points(),
+        run.passed().count(),
+        run.checks.len()
+    );
+    match run.first_failure() {
+        Some(check) => format!("{score}; first failed: {}", check.name),
+        None => score,
+    }
+}
+
+fn reports(out: &Path, student: &Student, run: &SuiteRun) -> Result<()> {
+    let stem = student.file_stem();
+    let file = |ext: &str| out.join(format!("{stem}.{ext}"));
+    write(
+        &file("txt"),
+        &format!("{}\n{}", student.name, report::text(run)),
+    )?;
+    write(&file("json"), &report::json(run))?;
+    write(&file("html"), &report::html(run, Some(&student.name)))?;
+    write(&file("junit.xml"), &report::junit(run))
 }
 
 fn list() -> Result<String> {

@@ -2,7 +2,9 @@
 //! slave (every check passes) and against a student's slave written
 //! outside the twin (a Python program), once correct and once per planted
 //! bug: each bug found, and nothing else reported; the JUnit and HTML
-//! reports read back.
+//! reports read back; and a class ([`class`]).
+
+mod class;
 
 use crate::support::{Proc, scratch, text, twin};
 use std::path::Path;
@@ -10,9 +12,9 @@ use std::process::{Child, Command};
 use std::time::{Duration, Instant};
 
 /// The student's slave with `bugs` planted, listening on a free port.
-struct Student {
+pub(crate) struct Student {
     child: Child,
-    link: String,
+    pub(crate) link: String,
 }
 
 impl Drop for Student {
@@ -22,7 +24,7 @@ impl Drop for Student {
     }
 }
 
-fn student(name: &str, bugs: &[&str]) -> Student {
+pub(crate) fn student(name: &str, bugs: &[&str]) -> Student {
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/peers/meb_student_slave.py");
     let port_file = scratch("check", &format!("{name}.port"));
     let _ = std::fs::remove_file(&port_file);
@@ -239,8 +241,9 @@ fn the_books_report_is_what_twin_check_prints() {
 }
 
 /// A JUnit file as a JUnit reader sees it (Python's XML parser, which
-/// refuses a badly escaped file): the suite's counts and every case.
-fn junit_read(path: &Path) -> serde_json::Value {
+/// refuses a badly escaped file): the suite's counts and every case, a
+/// failure's or an error's message and text.
+pub(crate) fn junit_read(path: &Path) -> serde_json::Value {
     let script = r#"
 import json, sys, xml.etree.ElementTree as ET
 root = ET.parse(sys.argv[1]).getroot()
@@ -248,10 +251,12 @@ suite = root.find("testsuite")
 cases = []
 for c in suite.findall("testcase"):
     f = c.find("failure")
+    if f is None:
+        f = c.find("error")
     cases.append({"name": c.get("name"), "classname": c.get("classname"), "time": float(c.get("time")),
                   "message": None if f is None else f.get("message"), "text": None if f is None else f.text})
 print(json.dumps({"name": suite.get("name"), "tests": int(suite.get("tests")),
-                  "failures": int(suite.get("failures")), "time": float(suite.get("time")), "cases": cases}))
+                  "failures": int(suite.get("failures")), "errors": int(suite.get("errors")), "time": float(suite.get("time")), "cases": cases}))
 "#;
     let out = Command::new("python3")
         .args(["-c", script])

@@ -1,0 +1,405 @@
+//! A class: one suite run against every student's program, each on its
+//! own link, several at once, and the scores side by side. The roster is a
+//! CSV file (`student,link[,id]`, as a spreadsheet exports it) or TOML
+//! (`[[student]] name, link, id`).
+
+use crate::run::{SuiteRun, run_suite};
+use crate::suite::Suite;
+use crate::wire::Wire;
+use serde::Deserialize;
+use std::path::Path;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use twin_realtime::io::{LinkDefaults, LinkSpec};
+
+/// One student of the roster.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Student {
+    pub name: String,
+    pub link: String,
+    pub id: u8,
+    /// The roster's line, for messages.
+    pub line: usize,
+}
+
+impl Student {
+    /// The student's reports' file name, without extension: the name with
+    /// anything a file system might refuse or read as a folder replaced.
+    pub fn file_stem(&self) -> String {
+        let stem: String = self
+            .name
+            .chars()
+            .map(|c| {
+                if c.is_alphanumeric() || matches!(c, '-' | '_' | '.') {
+                    c
+                } else {
+                    '_'
+                }
+            })
+            .collect();
+        match stem.strip_prefix('.') {
+            Some(rest) => format!("_{rest}"),
+            None => stem,
+        }
+    }
+}
+
+/// A roster that cannot be used, with the file and the line.
+#[derive(Debug, thiserror::Error)]
+pub enum RosterError {
+    #[error("cannot read the roster {path}: {why}")]
+    Read { path: String, why: std::io::Error },
+    #[error("{path}, line {line}: {why}")]
+    At {
+        path: String,
+        line: usize,
+        why: String,
+    },
+    #[error("{path}: {why}")]
+    Whole { path: String, why: String },
+}
+
+/// Reads a roster: TOML if the file's name ends in `.toml`, CSV otherwise.
+/// `default_id` is the slave id of a student whose line gives none.
+pub fn load_roster(path: &Path, default_id: u8) -> Result<Vec<Student>, RosterError> {
+    let shown = path.display().to_string();
+    let text = std::fs::read_to_string(path).map_err(|why| RosterError::Read {
+        path: shown.clone(),
+        why,
+    })?;
+    if path.extension().is_some_and(|e| e == "toml") {
+        parse_toml(&text, &shown, default_id)
+    } else {
+        parse_csv(&text, &shown, default_id)
+    }
+}
+
+/// A CSV roster: a header naming `student` and `link` (and `id`, if some
+/// students' slaves have another device number); other columns are left
+/// alone, `#` starts a comment line.
+pub fn parse_csv(text: &str, path: &str, default_id: u8) -> Result<Vec<Student>, RosterError> {
+    let at = |line: usize, why: String| RosterError::At {
+        path: path.into(),
+        line,
+        why,
+    };
+    let mut reader = csv::ReaderBuilder::new()
+        .trim(csv::Trim::All)
+        .comment(Some(b'#'))
+        .from_reader(text.as_bytes());
+    let header = reader.headers().map_err(|e| csv_error(&e, path))?.clone();
+    let column = |name: &str| header.iter().position(|h| h.eq_ignore_ascii_case(name));
+    let header_line = text
+        .lines()
+        .position(|l| !l.trim().is_empty() && !l.starts_with('#'))
+        .map_or(1, |i| i + 1);
+    let missing = |name: &str| {
+        at(
+            header_line,
+            format!(
+                "no `{name}` column: the first line names the columns, student,link[,id] (this one: {})",
+                header.iter().collect::<Vec<_>>().join(",")
+            ),
+        )
+    };
+    let (Some(name_at), Some(link_at)) = (column("student"), column("link")) else {
+        return Err(missing(if column("student").is_none() {
+            "student"
+        } else {
+            "link"
+        }));
+    };
+    let id_at = column("id");
+    let mut students = Vec::new();
+    for record in reader.records() {
+        let record = record.map_err(|e| csv_error(&e, path))?;
+        let line = record.position().map_or(0, |p| p.line() as usize);
+        let field = |i: usize| record.get(i).unwrap_or("").to_string();
+        let id = match id_at.map(field).filter(|s| !s.is_empty()) {
+            None => default_id,
+            Some(text) => id(&text).map_err(|why| at(line, why))?,
+        };
+        students.push(Student {
+            name: field(name_at),
+            link: field(link_at),
+            id,
+            line,
+        });
+    }
+    checked(students, path)
+}
+
+fn csv_error(e: &csv::Error, path: &str) -> RosterError {
+    let line = e.position().map_or(0, |p| p.line() as usize);
+    let why = match e.kind() {
+        csv::ErrorKind::UnequalLengths {
+            expected_len, len, ..
+        } => format!("{len} fields where the header has {expected_len}"),
+        csv::ErrorKind::Utf8 { .. } => "not UTF-8 text (save the roster as UTF-8 CSV)".into(),
+        _ => e.to_string(),
+    };
+    if line == 0 {
+        return RosterError::Whole {
+            path: path.into(),
+            why,
+        };
+    }
+    RosterError::At {
+        path: path.into(),
+        line,
+        why,
+    }
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RosterToml {
+    #[serde(default)]
+    student: Vec<toml::Spanned<StudentToml>>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct StudentToml {
+    name: String,
+    link: String,
+    id: Option<u8>,
+}
+
+/// A TOML roster: `[[student]]` tables of `name`, `link` and `id`.
+pub fn parse_toml(text: &str, path: &str, default_id: u8) -> Result<Vec<Student>, RosterError> {
+    let raw: RosterToml = toml::from_str(text).map_err(|e| RosterError::Whole {
+        path: path.into(),
+        why: e.to_string().trim_end().to_string(),
+    })?;
+    // A table's span may begin on the blank line before its header.
+    let line_of = |offset: usize| {
+        let rest = text.get(offset..).unwrap_or("");
+        let start = offset + (rest.len() - rest.trim_start().len());
+        text.get(..start).unwrap_or(text).matches('\n').count() + 1
+    };
+    let mut students = Vec::new();
+    for spanned in raw.student {
+        let line = line_of(spanned.span().start);
+        let s = spanned.into_inner();
+        let id = match s.id {
+            None => default_id,
+            Some(n) => id(&n.to_string()).map_err(|why| RosterError::At {
+                path: path.into(),
+                line,
+                why,
+            })?,
+        };
+        students.push(Student {
+            name: s.name.trim().into(),
+            link: s.link.trim().into(),
+            id,
+            line,
+        });
+    }
+    checked(students, path)
+}
+
+fn id(text: &str) -> Result<u8, String> {
+    match text.parse::<u8>() {
+        Ok(n) if (1..=99).contains(&n) => Ok(n),
+        _ => Err(format!("id `{text}`: a slave's device number is 1 to 99")),
+    }
+}
+
+/// Every student named once, with a link the twin can open.
+fn checked(students: Vec<Student>, path: &str) -> Result<Vec<Student>, RosterError> {
+    let at = |line: usize, why: String| RosterError::At {
+        path: path.into(),
+        line,
+        why,
+    };
+    if students.is_empty() {
+        return Err(RosterError::Whole {
+            path: path.into(),
+            why: "no students in it".into(),
+        });
+    }
+    for (i, s) in students.iter().enumerate() {
+        if s.name.is_empty() {
+            return Err(at(s.line, "the student's name is empty".into()));
+        }
+        if let Some(first) = students[..i].iter().find(|o| {
+            o.name == s.name || o.file_stem().to_lowercase() == s.file_stem().to_lowercase()
+        }) {
+            let why = if first.name == s.name {
+                format!("`{}` is on line {} already", s.name, first.line)
+            } else {
+                format!(
+                    "`{}` and `{}` (line {}) would share a report file: name them apart",
+                    s.name, first.name, first.line
+                )
+            };
+            return Err(at(s.line, why));
+        }
+        if s.link.is_empty() {
+            return Err(at(s.line, format!("`{}` has no link", s.name)));
+        }
+        if let Err(e) = LinkSpec::parse(&s.link, &LinkDefaults::default()) {
+            return Err(at(s.line, format!("`{}`'s link: {e}", s.name)));
+        }
+    }
+    Ok(students)
+}
+
+/// Plays `suite` against every student, `jobs` at once (each on its own
+/// link, so they do not wait for one another), and calls `done` with each
+/// run as it ends, on the caller's thread. A student whose program cannot
+/// be reached, or hangs up, gets a run whose checks all fail with why
+/// ([`SuiteRun::unreachable`]); the others go on. The runs come back in
+/// the roster's order.
+pub fn run_class(
+    suite: &Suite,
+    students: &[Student],
+    jobs: usize,
+    mut done: impl FnMut(&Student, &SuiteRun),
+) -> Vec<SuiteRun> {
+    let next = AtomicUsize::new(0);
+    let (tx, rx) = std::sync::mpsc::channel();
+    let mut runs: Vec<Option<SuiteRun>> = vec![None; students.len()];
+    std::thread::scope(|scope| {
+        for _ in 0..jobs.clamp(1, students.len().max(1)) {
+            let (tx, next) = (tx.clone(), &next);
+            scope.spawn(move || {
+                while let Some(student) = students.get(next.fetch_add(1, Ordering::Relaxed)) {
+                    let run = check(suite, student);
+                    if tx.send((student, run)).is_err() {
+                        break;
+                    }
+                }
+            });
+        }
+        drop(tx);
+        for (student, run) in rx {
+            done(student, &run);
+            if let Some(slot) = students
+                .iter()
+                .position(|s| std::ptr::eq(s, student))
+                .and_then(|i| runs.get_mut(i))
+            {
+                *slot = Some(run);
+            }
+        }
+    });
+    runs.into_iter().flatten().collect()
+}
+
+fn check(suite: &Suite, student: &Student) -> SuiteRun {
+    let run =
+        Wire::open(&student.link).and_then(|mut wire| run_suite(suite, &mut wire, student.id));
+    run.unwrap_or_else(|e| SuiteRun::unreachable(suite, &student.link, student.id, e.to_string()))
+}
+
+/// The class's scores as CSV, one row per student in the roster's order:
+/// the score, the points, the checks passed, the checks, and the first
+/// failing check or why the program could not be checked.
+pub fn scores_csv(students: &[Student], runs: &[SuiteRun]) -> String {
+    let mut out = csv::Writer::from_writer(Vec::new());
+    let _ = out.write_record([
+        "student",
+        "score",
+        "points",
+        "checks_passed",
+        "checks",
+        "first_failure",
+    ]);
+    for (student, run) in students.iter().zip(runs) {
+        let first = match (&run.error, run.first_failure()) {
+            (Some(why), _) => why.clone(),
+            (None, Some(check)) => check.name.clone(),
+            (None, None) => String::new(),
+        };
+        let _ = out.write_record([
+            student.name.clone(),
+            run.score().to_string(),
+            run.points().to_string(),
+            run.passed().count().to_string(),
+            run.checks.len().to_string(),
+            first,
+        ]);
+    }
+    String::from_utf8(out.into_inner().unwrap_or_default()).unwrap_or_default()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn csv_err(text: &str) -> String {
+        parse_csv(text, "class.csv", 1).unwrap_err().to_string()
+    }
+
+    #[test]
+    fn a_csv_roster_reads_names_links_and_ids() {
+        let students = parse_csv(
+            "student,link,id\n# the morning group\nAnna Müller, tcp://127.0.0.1:5701 ,\nBen,/dev/ttyUSB0?baud=9600,3\n",
+            "class.csv",
+            1,
+        )
+        .unwrap();
+        assert_eq!(students.len(), 2);
+        assert_eq!(students[0].name, "Anna Müller");
+        assert_eq!(students[0].link, "tcp://127.0.0.1:5701");
+        assert_eq!((students[0].id, students[1].id), (1, 3));
+        assert_eq!(students[1].line, 4);
+        assert_eq!(students[0].file_stem(), "Anna_Müller");
+    }
+
+    #[test]
+    fn roster_mistakes_name_the_file_and_line() {
+        assert_eq!(
+            csv_err("name,link\nAnna,tcp://127.0.0.1:1\n"),
+            "class.csv, line 1: no `student` column: the first line names the columns, student,link[,id] (this one: name,link)"
+        );
+        assert_eq!(
+            csv_err("student,link\nAnna,tcp://127.0.0.1:1\n,tcp://127.0.0.1:2\n"),
+            "class.csv, line 3: the student's name is empty"
+        );
+        assert_eq!(
+            csv_err(
+                "student,link\nAnna,tcp://127.0.0.1:1\nBen,tcp://127.0.0.1:2\nAnna,tcp://127.0.0.1:3\n"
+            ),
+            "class.csv, line 4: `Anna` is on line 2 already"
+        );
+        assert_eq!(
+            csv_err("student,link\nAnna/B,tcp://127.0.0.1:1\nanna_b,tcp://127.0.0.1:2\n"),
+            "class.csv, line 3: `anna_b` and `Anna/B` (line 2) would share a report file: name them apart"
+        );
+        assert!(
+            csv_err("student,link\nAnna,tcp://127.0.0.1\n")
+                .starts_with("class.csv, line 2: `Anna`'s link: "),
+            "{}",
+            csv_err("student,link\nAnna,tcp://127.0.0.1\n")
+        );
+        assert_eq!(
+            csv_err("student,link,id\nAnna,tcp://127.0.0.1:1,100\n"),
+            "class.csv, line 2: id `100`: a slave's device number is 1 to 99"
+        );
+        assert_eq!(
+            csv_err("student,link\nAnna,tcp://127.0.0.1:1,3\n"),
+            "class.csv, line 2: 3 fields where the header has 2"
+        );
+        assert_eq!(csv_err("student,link\n"), "class.csv: no students in it");
+    }
+
+    #[test]
+    fn a_toml_roster_reads_the_same_and_names_its_lines() {
+        let text = "[[student]]\nname = \"Anna\"\nlink = \"tcp://127.0.0.1:5701\"\n\n[[student]]\nname = \"Ben\"\nlink = \"tcp://127.0.0.1:5702\"\nid = 4\n";
+        let students = parse_toml(text, "class.toml", 1).unwrap();
+        assert_eq!(students[1].id, 4);
+        let dup = text.replace("Ben", "Anna");
+        assert_eq!(
+            parse_toml(&dup, "class.toml", 1).unwrap_err().to_string(),
+            "class.toml, line 5: `Anna` is on line 1 already"
+        );
+        let missing = "[[student]]\nname = \"Anna\"\n";
+        let e = parse_toml(missing, "class.toml", 1)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("missing field `link`"), "{e}");
+    }
+}
