@@ -275,6 +275,8 @@ fn the_junit_report_counts_the_checks_and_holds_a_failures_frames() {
         "check",
         "slave",
         &slave.link,
+        "--timeout-ms",
+        "1000",
         "--junit",
         junit.to_str().unwrap(),
     ]);
@@ -349,6 +351,8 @@ steps = [
         "check",
         "slave",
         &slave.link,
+        "--timeout-ms",
+        "1000",
         "--suite",
         suite.to_str().unwrap(),
         "--html",
