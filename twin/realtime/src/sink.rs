@@ -619,7 +619,7 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
             } => {
                 last_at = at;
                 match (&mut observer, config.modules.get(module)) {
-                    (Some(o), Some(name)) => o.record_sensors(at, name, &sensors),
+                    (Some(o), Some(name)) => o.record(at, name, &*sensors),
                     _ => Ok(()),
                 }
             }
@@ -628,7 +628,7 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
                 module,
                 actuators,
             } => match (&mut observer, config.modules.get(module)) {
-                (Some(o), Some(name)) => o.record_actuators(at, name, &actuators),
+                (Some(o), Some(name)) => o.record(at, name, &actuators),
                 _ => Ok(()),
             },
             SinkMsg::Readings {
@@ -636,7 +636,7 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
                 module,
                 readings,
             } => match (&mut observer, config.modules.get(module)) {
-                (Some(o), Some(name)) => o.record_readings(at, name, &readings),
+                (Some(o), Some(name)) => o.record(at, name, &readings),
                 _ => Ok(()),
             },
             SinkMsg::Frames(batch) => {
@@ -671,7 +671,7 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
                 }
             }
             SinkMsg::Telemetry { at, node, report } => match &mut observer {
-                Some(o) => o.record_loop(at, &node, &report),
+                Some(o) => o.record(at, &node, &report),
                 None => Ok(()),
             },
             SinkMsg::Lateness { at, window, total } => {

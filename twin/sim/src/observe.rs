@@ -19,9 +19,10 @@ use std::collections::{BTreeMap, VecDeque};
 
 use crate::engine::{BusSlot, FirmwareRecord, ModuleSlot, NodeSlot, Observer};
 use twin_recording::describe::decode_frame;
+use twin_recording::describe::{FrameFields, LinkFrameFields};
 use twin_recording::proto::Protobuf;
 use twin_recording::record::{ChannelId, Recorder};
-use twin_recording::topics::{self, LoopReport, ReadingsSample};
+use twin_recording::topics::{self, FirmwareIo, LoopReport, ReadingsSample, UartBurst};
 use twin_recording::typed::{DecodedProtobuf, FrameMessage, Hex};
 
 pub use crate::plant_sample::PlantSample;
@@ -45,13 +46,8 @@ pub struct McapObserver {
     pub log_tail: VecDeque<String>,
     /// Channels by the name of what writes them (a run has a few of each):
     /// a message's topic is formatted once, not per message.
-    sensors: Vec<LazyChannel>,
-    actuators: Vec<LazyChannel>,
+    channels: [Vec<LazyChannel>; Kind::COUNT],
     buses: Vec<LazyChannel>,
-    loops: Vec<LazyChannel>,
-    readings: Vec<LazyChannel>,
-    firmware_uart: Vec<LazyChannel>,
-    firmware_io: Vec<LazyChannel>,
     event_channel: LazyChannel,
 }
 
@@ -137,6 +133,173 @@ fn channel_of<'c>(
     &mut channels[index]
 }
 
+/// Which of [`McapObserver`]'s lists holds a payload's channels: one per
+/// kind, so a message finds its channel among the few its kind has.
+#[derive(Debug, Clone, Copy)]
+pub enum Kind {
+    Sensors,
+    Actuators,
+    Loop,
+    Readings,
+    FirmwareUart,
+    FirmwareIo,
+}
+
+impl Kind {
+    const COUNT: usize = 6;
+}
+
+/// What [`McapObserver::record`] writes, one channel per owner: its kind,
+/// its topic and its encoding. Each keeps the encoding its channel has
+/// always had, so recordings stay the same byte for byte.
+pub trait Recorded {
+    const KIND: Kind;
+    /// The topic of `owner`'s channel.
+    fn topic(owner: &str) -> String;
+    fn write(
+        &self,
+        channel: &mut LazyChannel,
+        recorder: &mut SimRecorder,
+        now: SimTime,
+    ) -> Result<()>;
+}
+
+/// On `/plant/<module>/sensors`, serialised by the writer thread.
+impl Recorded for plant::Sensors {
+    const KIND: Kind = Kind::Sensors;
+    fn topic(module: &str) -> String {
+        topics::plant_sensors(module)
+    }
+    fn write(
+        &self,
+        channel: &mut LazyChannel,
+        recorder: &mut SimRecorder,
+        now: SimTime,
+    ) -> Result<()> {
+        channel.write_sensors(recorder, now, self)
+    }
+}
+
+/// What drives a module, on `/plant/<module>/actuators`, on every change.
+impl Recorded for plant::Actuators {
+    const KIND: Kind = Kind::Actuators;
+    fn topic(module: &str) -> String {
+        topics::plant_actuators(module)
+    }
+    fn write(
+        &self,
+        channel: &mut LazyChannel,
+        recorder: &mut SimRecorder,
+        now: SimTime,
+    ) -> Result<()> {
+        channel.write(recorder, now, self)
+    }
+}
+
+/// A master's loop report, on `/master/<node>/loop`: a supervisor's writes
+/// its own protobuf, any other master's goes through serde.
+impl Recorded for LoopReport {
+    const KIND: Kind = Kind::Loop;
+    fn topic(node: &str) -> String {
+        topics::master_loop(node)
+    }
+    fn write(
+        &self,
+        channel: &mut LazyChannel,
+        recorder: &mut SimRecorder,
+        now: SimTime,
+    ) -> Result<()> {
+        match self {
+            LoopReport::Supervisor(typed) => channel.write_typed(recorder, now, typed),
+            LoopReport::Other(_) => channel.write(recorder, now, self),
+        }
+    }
+}
+
+/// A module controller's readings, on `/controller/<node>/readings`.
+impl Recorded for ReadingsSample {
+    const KIND: Kind = Kind::Readings;
+    fn topic(node: &str) -> String {
+        topics::controller_readings(node)
+    }
+    fn write(
+        &self,
+        channel: &mut LazyChannel,
+        recorder: &mut SimRecorder,
+        now: SimTime,
+    ) -> Result<()> {
+        channel.write_typed(recorder, now, self)
+    }
+}
+
+/// A firmware node's UART burst, on `/firmware/<node>/uart`.
+impl Recorded for UartBurst<'_> {
+    const KIND: Kind = Kind::FirmwareUart;
+    fn topic(node: &str) -> String {
+        topics::firmware_uart(node)
+    }
+    fn write(
+        &self,
+        channel: &mut LazyChannel,
+        recorder: &mut SimRecorder,
+        now: SimTime,
+    ) -> Result<()> {
+        channel.write(recorder, now, self)
+    }
+}
+
+/// A firmware node's pins, ADC inputs and cycles, on `/firmware/<node>/io`.
+impl Recorded for FirmwareIo<'_> {
+    const KIND: Kind = Kind::FirmwareIo;
+    fn topic(node: &str) -> String {
+        topics::firmware_io(node)
+    }
+    fn write(
+        &self,
+        channel: &mut LazyChannel,
+        recorder: &mut SimRecorder,
+        now: SimTime,
+    ) -> Result<()> {
+        channel.write(recorder, now, self)
+    }
+}
+
+impl McapObserver {
+    /// A firmware node's UART burst or I/O sample, each at its own time.
+    pub fn record_firmware(&mut self, node: &str, record: FirmwareRecord<'_>) -> Result<()> {
+        match record {
+            FirmwareRecord::Uart(at, burst) => self.record(at, node, &burst),
+            FirmwareRecord::Io(at, io) => self.record(at, node, &io),
+        }
+    }
+}
+
+/// A frame's decoded fields, as [`McapObserver::record_frame`] writes them.
+pub trait Decoded: Serialize {
+    /// How the fields write their own protobuf, if they do; a channel that
+    /// is protobuf then gets them written by hand.
+    fn by_hand(&self) -> Option<&dyn DecodedProtobuf>;
+}
+
+impl Decoded for FrameFields {
+    fn by_hand(&self) -> Option<&dyn DecodedProtobuf> {
+        Some(self)
+    }
+}
+
+impl Decoded for LinkFrameFields<'_> {
+    fn by_hand(&self) -> Option<&dyn DecodedProtobuf> {
+        Some(self)
+    }
+}
+
+/// A PWM-capture frame's fields, which only serde writes (on a JSON channel).
+impl Decoded for Value {
+    fn by_hand(&self) -> Option<&dyn DecodedProtobuf> {
+        None
+    }
+}
+
 /// A node's event, as recorded on `/events`.
 #[derive(Debug, Serialize)]
 struct EventMessage<'a> {
@@ -163,84 +326,21 @@ impl McapObserver {
             frames: 0,
             events: BTreeMap::new(),
             log_tail: VecDeque::new(),
-            sensors: Vec::new(),
-            actuators: Vec::new(),
+            channels: Default::default(),
             buses: Vec::new(),
-            loops: Vec::new(),
-            readings: Vec::new(),
-            firmware_uart: Vec::new(),
-            firmware_io: Vec::new(),
             event_channel: LazyChannel::new("", topics::EVENTS.to_string()),
         }
     }
 
-    /// A module's sensors, on `/plant/<module>/sensors`.
-    pub fn record_sensors(
-        &mut self,
-        now: SimTime,
-        module: &str,
-        sensors: &plant::Sensors,
-    ) -> Result<()> {
-        channel_of(&mut self.sensors, module, topics::plant_sensors).write_sensors(
+    /// `payload` of `owner` (a module or node) at `now`, on the channel
+    /// its kind gives `owner` (see [`Recorded`]).
+    pub fn record<P: Recorded>(&mut self, now: SimTime, owner: &str, payload: &P) -> Result<()> {
+        let channels = &mut self.channels[P::KIND as usize];
+        payload.write(
+            channel_of(channels, owner, P::topic),
             &mut self.recorder,
             now,
-            sensors,
         )
-    }
-
-    /// What drives a module, on `/plant/<module>/actuators`.
-    pub fn record_actuators(
-        &mut self,
-        now: SimTime,
-        module: &str,
-        actuators: &plant::Actuators,
-    ) -> Result<()> {
-        channel_of(&mut self.actuators, module, topics::plant_actuators).write(
-            &mut self.recorder,
-            now,
-            actuators,
-        )
-    }
-
-    /// A master's loop report, on `/master/<node>/loop`.
-    pub fn record_loop(&mut self, now: SimTime, node: &str, report: &LoopReport) -> Result<()> {
-        let channel = channel_of(&mut self.loops, node, topics::master_loop);
-        match report {
-            LoopReport::Supervisor(typed) => channel.write_typed(&mut self.recorder, now, typed),
-            LoopReport::Other(_) => channel.write(&mut self.recorder, now, report),
-        }
-    }
-
-    /// A module controller's readings, on `/controller/<node>/readings`.
-    pub fn record_readings(
-        &mut self,
-        now: SimTime,
-        node: &str,
-        readings: &ReadingsSample,
-    ) -> Result<()> {
-        channel_of(&mut self.readings, node, topics::controller_readings).write_typed(
-            &mut self.recorder,
-            now,
-            readings,
-        )
-    }
-
-    /// A firmware node's UART burst or I/O sample, on `/firmware/<node>/…`.
-    pub fn record_firmware(&mut self, node: &str, record: FirmwareRecord<'_>) -> Result<()> {
-        match record {
-            FirmwareRecord::Uart(at, burst) => channel_of(
-                &mut self.firmware_uart,
-                node,
-                topics::firmware_uart,
-            )
-            .write(&mut self.recorder, at, &burst),
-            FirmwareRecord::Io(at, io) => channel_of(
-                &mut self.firmware_io,
-                node,
-                topics::firmware_io,
-            )
-            .write(&mut self.recorder, at, &io),
-        }
     }
 
     /// Write `message` to `topic`, creating its channel on first use.
@@ -290,30 +390,16 @@ fn secs(t: SimTime) -> f64 {
 impl McapObserver {
     /// One frame on `channel` (`/bus/<bus>/frames`, `/link/<link>/frames`),
     /// sent by `from`, with its decoded fields.
-    pub fn record_frame<D: Serialize + DecodedProtobuf>(
+    pub fn record_frame<D: Decoded>(
         &mut self,
         channel: &mut LazyChannel,
         from: &str,
         start: SimTime,
         end: SimTime,
         bytes: &[u8],
-        decoded: D,
+        decoded: &D,
     ) -> Result<()> {
-        self.record_frame_with(channel, from, start, end, bytes, &decoded, Some(&decoded))
-    }
-
-    /// [`McapObserver::record_frame`] for fields that only serde writes (a
-    /// PWM-capture frame's, on a JSON channel).
-    pub fn record_frame_as_json(
-        &mut self,
-        channel: &mut LazyChannel,
-        from: &str,
-        start: SimTime,
-        end: SimTime,
-        bytes: &[u8],
-        decoded: &impl Serialize,
-    ) -> Result<()> {
-        self.record_frame_with(channel, from, start, end, bytes, decoded, None)
+        self.record_frame_with(channel, from, start, end, bytes, decoded, decoded.by_hand())
     }
 
     /// A frame whose decoded fields are `decoded`, written by hand where
@@ -437,11 +523,11 @@ impl McapObserver {
 
 impl Observer for McapObserver {
     fn plant(&mut self, now: SimTime, module: &ModuleSlot) -> Result<()> {
-        self.record_sensors(now, &module.name, module.plant.sensors())
+        self.record(now, &module.name, module.plant.sensors())
     }
 
     fn actuators(&mut self, now: SimTime, module: &ModuleSlot) -> Result<()> {
-        self.record_actuators(now, &module.name, &module.actuators)
+        self.record(now, &module.name, &module.actuators)
     }
 
     fn frame(
@@ -457,9 +543,9 @@ impl Observer for McapObserver {
         let written = match bus.bus.as_pwm() {
             Some(link) => {
                 let decoded = decode_pwm_frame(link, &bus.port_names);
-                self.record_frame_as_json(channel, &from.name, start, end, bytes, &decoded)
+                self.record_frame(channel, &from.name, start, end, bytes, &decoded)
             }
-            None => self.record_frame(channel, &from.name, start, end, bytes, decode_frame(bytes)),
+            None => self.record_frame(channel, &from.name, start, end, bytes, &decode_frame(bytes)),
         };
         self.buses = channels;
         written
@@ -470,11 +556,11 @@ impl Observer for McapObserver {
     }
 
     fn telemetry(&mut self, now: SimTime, node: &NodeSlot, report: &LoopReport) -> Result<()> {
-        self.record_loop(now, &node.name, report)
+        self.record(now, &node.name, report)
     }
 
     fn readings(&mut self, now: SimTime, node: &NodeSlot, readings: &ReadingsSample) -> Result<()> {
-        self.record_readings(now, &node.name, readings)
+        self.record(now, &node.name, readings)
     }
 
     fn firmware(&mut self, node: &str, record: FirmwareRecord<'_>) -> Result<()> {
