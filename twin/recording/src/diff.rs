@@ -6,12 +6,13 @@
 //! read next: a channel's messages wait only until the other file's
 //! counterpart arrives, and none is kept once the channel has departed.
 
-use anyhow::{Context, Result};
 use serde_json::Value;
 use std::collections::{BTreeMap, HashMap, VecDeque};
 
 use super::Recording;
-use super::read::{Encoding, Item, Message, Reader};
+use super::read::{Encoding, Item, Message, ReadError, Reader};
+
+type Result<T, E = ReadError> = std::result::Result<T, E>;
 use super::signals::{leaves, signal_name};
 
 /// The earliest place where two recordings differ.
@@ -251,17 +252,20 @@ fn flat(v: &Value) -> BTreeMap<String, Value> {
 
 /// Whether two files hold the same bytes, read a block at a time.
 pub fn same_bytes(a: &std::path::Path, b: &std::path::Path) -> Result<bool> {
-    let open = |p: &std::path::Path| -> Result<std::fs::File> {
-        std::fs::File::open(p).map_err(|e| anyhow::anyhow!("cannot read {}: {e}", p.display()))
+    let cannot_read = |p: &std::path::Path| {
+        let path = p.to_path_buf();
+        move |source| ReadError::Io { path, source }
     };
+    let open = |p: &std::path::Path| std::fs::File::open(p).map_err(cannot_read(p));
     let (mut fa, mut fb) = (open(a)?, open(b)?);
-    if fa.metadata()?.len() != fb.metadata()?.len() {
+    let len = |f: &std::fs::File| f.metadata().map(|m| m.len()).map_err(ReadError::Source);
+    if len(&fa)? != len(&fb)? {
         return Ok(false);
     }
     let (mut ba, mut bb) = (vec![0u8; 64 * 1024], vec![0u8; 64 * 1024]);
     loop {
-        let n = fill(&mut fa, &mut ba).with_context(|| format!("cannot read {}", a.display()))?;
-        let m = fill(&mut fb, &mut bb).with_context(|| format!("cannot read {}", b.display()))?;
+        let n = fill(&mut fa, &mut ba).map_err(cannot_read(a))?;
+        let m = fill(&mut fb, &mut bb).map_err(cannot_read(b))?;
         if n != m || ba[..n] != bb[..m] {
             return Ok(false);
         }
@@ -272,14 +276,14 @@ pub fn same_bytes(a: &std::path::Path, b: &std::path::Path) -> Result<bool> {
 }
 
 /// Read until `buf` is full or the file ends; the bytes read.
-fn fill(file: &mut impl std::io::Read, buf: &mut [u8]) -> Result<usize> {
+fn fill(file: &mut impl std::io::Read, buf: &mut [u8]) -> std::io::Result<usize> {
     let mut got = 0;
     while got < buf.len() {
         match file.read(&mut buf[got..]) {
             Ok(0) => break,
             Ok(n) => got += n,
             Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
-            Err(e) => return Err(e.into()),
+            Err(e) => return Err(e),
         }
     }
     Ok(got)

@@ -31,6 +31,6 @@ pub mod topics;
 pub mod typed;
 mod writer;
 
-pub use read::{Channel, Cut, Encoding, Event, Frame, Item, Message, Reader, Recording};
+pub use read::{Channel, Cut, Encoding, Event, Frame, Item, Message, ReadError, Reader, Recording};
 pub use record::Recorder;
 pub use signals::{Signal, Signals};

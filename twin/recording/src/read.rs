@@ -11,7 +11,6 @@
 //! (`twin export`), the frames of `twin replay --frames-to`, and the viewer
 //! (`twin view`).
 
-use anyhow::{Context, Result, anyhow, bail};
 use mcap::records::Record;
 use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader, LinearReaderOptions};
 use serde::Deserialize;
@@ -109,18 +108,67 @@ impl std::fmt::Display for Cut {
     }
 }
 
-/// The error of a file that is not MCAP at all (find it with
-/// `error.root_cause().downcast_ref::<NotMcap>()`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct NotMcap;
-
-impl std::fmt::Display for NotMcap {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str("it does not start with the MCAP magic bytes")
-    }
+/// Why a recording, or a message in it, cannot be read. A file cut short
+/// is not one of these: it reads up to its cut (see [`Recording::truncated`]).
+#[derive(Debug, thiserror::Error)]
+pub enum ReadError {
+    /// The file cannot be opened, or reading it failed part way.
+    #[error("cannot read {}", path.display())]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The file is not MCAP at all: `twin view` says so in its own words.
+    #[error(
+        "{} is not a readable recording: it does not start with the MCAP magic bytes",
+        path.display()
+    )]
+    NotMcap { path: PathBuf },
+    /// What [`Recording::scan`] met part way through `path` (a message that
+    /// does not read, or one its visitor refused).
+    #[error("{} is not a readable recording", path.display())]
+    Unreadable {
+        path: PathBuf,
+        #[source]
+        source: Box<ReadError>,
+    },
+    /// An I/O error in the system's own words, where the file is named by
+    /// what wraps it or not at all.
+    #[error(transparent)]
+    Source(std::io::Error),
+    #[error("message {sequence} on {topic} is not JSON")]
+    NotJson {
+        sequence: u32,
+        topic: String,
+        #[source]
+        source: serde_json::Error,
+    },
+    #[error("message {sequence} on {topic} is damaged: {why}")]
+    Damaged {
+        sequence: u32,
+        topic: String,
+        why: String,
+    },
+    #[error("message {sequence} on {topic} lacks a field the twin reads")]
+    LacksField {
+        sequence: u32,
+        topic: String,
+        #[source]
+        source: serde_json::Error,
+    },
+    #[error("the messages on {topic} cannot be read: {why}")]
+    BadSchema { topic: String, why: String },
+    #[error(
+        "the messages on {topic} are `{encoding}`, which the twin does not read \
+         (it reads json and protobuf)"
+    )]
+    OtherEncoding { topic: String, encoding: String },
+    #[error("message {sequence} refers to channel {channel_id}, which was never declared")]
+    Stray { sequence: u32, channel_id: u16 },
 }
 
-impl std::error::Error for NotMcap {}
+type Result<T, E = ReadError> = std::result::Result<T, E>;
 
 /// What a pass through a recording found (everything but the messages).
 #[derive(Debug, Clone, PartialEq)]
@@ -164,27 +212,40 @@ impl Message<'_> {
     /// catalogue's sample types): a JSON message as it is, a protobuf one as
     /// the same JSON value (every field by its name).
     pub fn json<'de, T: Deserialize<'de>>(&'de self) -> Result<T> {
-        let (sequence, topic) = (self.sequence, self.topic);
+        let sequence = self.sequence;
+        let topic = || self.topic.to_string();
         match self.encoding {
-            Encoding::Json => serde_json::from_slice(self.data)
-                .with_context(|| format!("message {sequence} on {topic} is not JSON")),
+            Encoding::Json => {
+                serde_json::from_slice(self.data).map_err(|source| ReadError::NotJson {
+                    sequence,
+                    topic: topic(),
+                    source,
+                })
+            }
             Encoding::Protobuf(schema) => {
-                let mut value = proto::to_value(schema, self.data)
-                    .map_err(|e| anyhow!("message {sequence} on {topic} is damaged: {e}"))?;
+                let mut value =
+                    proto::to_value(schema, self.data).map_err(|why| ReadError::Damaged {
+                        sequence,
+                        topic: topic(),
+                        why,
+                    })?;
                 if schema.name() == topics::FRAME_SCHEMA {
                     topics::complete_frame(&mut value);
                 }
-                T::deserialize(value).with_context(|| {
-                    format!("message {sequence} on {topic} lacks a field the twin reads")
+                T::deserialize(value).map_err(|source| ReadError::LacksField {
+                    sequence,
+                    topic: topic(),
+                    source,
                 })
             }
-            Encoding::BadSchema(why) => {
-                bail!("the messages on {topic} cannot be read: {why}")
-            }
-            Encoding::Other(name) => bail!(
-                "the messages on {topic} are `{name}`, which the twin does not read \
-                 (it reads json and protobuf)"
-            ),
+            Encoding::BadSchema(why) => Err(ReadError::BadSchema {
+                topic: topic(),
+                why: why.clone(),
+            }),
+            Encoding::Other(name) => Err(ReadError::OtherEncoding {
+                topic: topic(),
+                encoding: name.clone(),
+            }),
         }
     }
 
@@ -258,13 +319,13 @@ impl Reader<File> {
     /// Open `path`. A file that is not MCAP is an error; one cut short is not
     /// (see [`Recording::truncated`]).
     pub fn open(path: &Path) -> Result<Self> {
-        let file = File::open(path).with_context(|| format!("cannot read {}", path.display()))?;
-        let len = file
-            .metadata()
-            .with_context(|| format!("cannot read {}", path.display()))?
-            .len();
+        let io = |source| ReadError::Io {
+            path: path.to_path_buf(),
+            source,
+        };
+        let file = File::open(path).map_err(io)?;
+        let len = file.metadata().map_err(io)?.len();
         Self::new(file, len, path)
-            .with_context(|| format!("{} is not a readable recording", path.display()))
     }
 }
 
@@ -272,12 +333,12 @@ impl<'a> Reader<&'a [u8]> {
     /// Read a recording held in memory; `path` names it.
     pub fn from_bytes(bytes: &'a [u8], path: &Path) -> Result<Self> {
         Self::new(bytes, bytes.len() as u64, path)
-            .with_context(|| format!("{} is not a readable recording", path.display()))
     }
 }
 
 impl<R: Read> Reader<R> {
-    /// Read the recording `source` of `len` bytes; `path` names it.
+    /// Read the recording `source` of `len` bytes; `path` names it. A file
+    /// that is not MCAP is [`ReadError::NotMcap`].
     pub fn new(mut source: R, len: u64, path: &Path) -> Result<Self> {
         let mut magic = [0u8; 8];
         let mut got = 0;
@@ -286,11 +347,18 @@ impl<R: Read> Reader<R> {
                 Ok(0) => break,
                 Ok(n) => got += n,
                 Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
-                Err(e) => return Err(e.into()),
+                Err(e) => {
+                    return Err(ReadError::Unreadable {
+                        path: path.to_path_buf(),
+                        source: Box::new(ReadError::Source(e)),
+                    });
+                }
             }
         }
         if magic[..got] != *mcap::MAGIC {
-            return Err(NotMcap.into());
+            return Err(ReadError::NotMcap {
+                path: path.to_path_buf(),
+            });
         }
         // As `mcap::read::LinearReader` reads a whole file: chunks whole, no
         // record longer than the file, the end magic not required.
@@ -435,11 +503,11 @@ impl<R: Read> Reader<R> {
                         match self.source.read(buf) {
                             Ok(n) => break n,
                             Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
-                            Err(e) => {
-                                return Err(anyhow!(e).context(format!(
-                                    "cannot read {}",
-                                    self.recording.path.display()
-                                )));
+                            Err(source) => {
+                                return Err(ReadError::Io {
+                                    path: self.recording.path.clone(),
+                                    source,
+                                });
                             }
                         }
                     };
@@ -588,9 +656,10 @@ impl<'a> Item<'a> {
             Item::Stray {
                 channel_id,
                 sequence,
-            } => {
-                bail!("message {sequence} refers to channel {channel_id}, which was never declared")
-            }
+            } => Err(ReadError::Stray {
+                sequence,
+                channel_id,
+            }),
             _ => Ok(None),
         }
     }
@@ -617,7 +686,10 @@ impl Recording {
             }
             Ok(())
         })();
-        read.with_context(|| format!("{} is not a readable recording", path.display()))?;
+        read.map_err(|e| ReadError::Unreadable {
+            path: path.to_path_buf(),
+            source: Box::new(e),
+        })?;
         Ok(reader.finish())
     }
 
@@ -849,14 +921,41 @@ pub(crate) mod tests {
         );
 
         let e = Recording::read(&scratch("missing.mcap")).unwrap_err();
-        assert!(format!("{e:#}").contains("cannot read"), "{e:#}");
+        assert!(matches!(e, ReadError::Io { .. }), "{e:?}");
+        assert!(e.to_string().contains("cannot read"), "{e}");
         let junk = scratch("junk.mcap");
         std::fs::write(&junk, b"not a recording").unwrap();
         let e = Recording::read(&junk).unwrap_err();
-        assert!(e.root_cause().downcast_ref::<NotMcap>().is_some(), "{e:#}");
-        assert!(
-            format!("{e:#}").contains("is not a readable recording"),
-            "{e:#}"
+        assert!(matches!(e, ReadError::NotMcap { .. }), "{e:?}");
+        assert_eq!(
+            e.to_string(),
+            format!(
+                "{} is not a readable recording: it does not start with the MCAP magic bytes",
+                junk.display()
+            )
+        );
+    }
+
+    #[test]
+    fn a_message_that_does_not_read_says_which_and_why() {
+        let message = |data: &'static [u8], encoding: &'static Encoding| Message {
+            channel: 0,
+            topic: "/events",
+            sequence: 3,
+            log_time_ns: 0,
+            data,
+            encoding,
+        };
+        let e = message(b"{", &Encoding::Json).value().unwrap_err();
+        assert!(matches!(e, ReadError::NotJson { sequence: 3, .. }), "{e:?}");
+        assert_eq!(e.to_string(), "message 3 on /events is not JSON");
+        static CBOR: std::sync::LazyLock<Encoding> =
+            std::sync::LazyLock::new(|| Encoding::Other("cbor".into()));
+        let e = message(b"", &CBOR).value().unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "the messages on /events are `cbor`, which the twin does not read \
+             (it reads json and protobuf)"
         );
     }
 

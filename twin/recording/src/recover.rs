@@ -8,17 +8,60 @@
 //! times, and metadata and attachments come along, so the recovered file is
 //! the recording as far as it was written, not a re-encoding of it.
 
-use anyhow::{Context, Result, anyhow, bail};
 use mcap::records::Record;
 use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader, LinearReaderOptions};
 use mcap::{Attachment, WriteOptions, Writer};
 use std::collections::BTreeSet;
 use std::fs::File;
 use std::io::{BufWriter, Read};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use crate::chunk::{chunk_records, in_words};
-use crate::read::NotMcap;
+
+/// Why a recovery could not be made.
+#[derive(Debug, thiserror::Error)]
+pub enum RecoverError {
+    /// The damaged file cannot be opened or read.
+    #[error("cannot read {}", path.display())]
+    Read {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error(
+        "{} is not a recording: it does not start with the MCAP magic bytes",
+        path.display()
+    )]
+    NotMcap { path: PathBuf },
+    #[error("{} holds nothing after its first bytes: there is nothing to recover", path.display())]
+    Empty { path: PathBuf },
+    #[error("cannot create {}", path.display())]
+    Create {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("cannot start MCAP file {}", path.display())]
+    Start {
+        path: PathBuf,
+        #[source]
+        source: mcap::McapError,
+    },
+    #[error("cannot write {}", path.display())]
+    Write {
+        path: PathBuf,
+        #[source]
+        source: mcap::McapError,
+    },
+    #[error("cannot finish {}", path.display())]
+    Finish {
+        path: PathBuf,
+        #[source]
+        source: mcap::McapError,
+    },
+}
+
+type Result<T, E = RecoverError> = std::result::Result<T, E>;
 
 /// What a recovery copied and what it could not.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
@@ -44,15 +87,17 @@ pub struct Recovered {
 
 /// Copy what `damaged` holds into a complete MCAP file at `out`.
 pub fn recover(damaged: &Path, out: &Path) -> Result<Recovered> {
-    let shown = damaged.display();
-    let mut source = File::open(damaged).with_context(|| format!("cannot read {shown}"))?;
-    let len = source
-        .metadata()
-        .with_context(|| format!("cannot read {shown}"))?
-        .len();
+    let cannot_read = |source| RecoverError::Read {
+        path: damaged.to_path_buf(),
+        source,
+    };
+    let mut source = File::open(damaged).map_err(cannot_read)?;
+    let len = source.metadata().map_err(cannot_read)?.len();
     let mut magic = [0u8; 8];
     if source.read_exact(&mut magic).is_err() || magic != *mcap::MAGIC {
-        return Err(anyhow!(NotMcap).context(format!("{shown} is not a recording")));
+        return Err(RecoverError::NotMcap {
+            path: damaged.to_path_buf(),
+        });
     }
     let options = LinearReaderOptions::default()
         .with_skip_start_magic(true)
@@ -69,7 +114,7 @@ pub fn recover(damaged: &Path, out: &Path) -> Result<Recovered> {
                 copy.found.stopped = Some("the file ends without its summary".into());
                 break;
             }
-            Err(Stop::Io(e)) => return Err(e.context(format!("cannot read {shown}"))),
+            Err(Stop::Io(e)) => return Err(cannot_read(e)),
             Err(Stop::Damaged(e)) => {
                 copy.found.stopped = Some(format!(
                     "after {} complete chunk(s), {}",
@@ -86,7 +131,10 @@ pub fn recover(damaged: &Path, out: &Path) -> Result<Recovered> {
             }
             (None, _) => writer.insert(create(out, "", "")?),
         };
-        let cannot_write = || format!("cannot write {}", out.display());
+        let cannot_write = |source| RecoverError::Write {
+            path: out.to_path_buf(),
+            source,
+        };
         match record {
             Outer::Record(Record::DataEnd(_)) => {
                 // Followed by a footer naming no summary, it is the end the
@@ -100,11 +148,11 @@ pub fn recover(damaged: &Path, out: &Path) -> Result<Recovered> {
                 }
                 break;
             }
-            Outer::Record(other) => copy.take(writer, other).with_context(cannot_write)?,
+            Outer::Record(other) => copy.take(writer, other).map_err(cannot_write)?,
             Outer::Chunk(Ok(records)) => {
                 copy.found.chunks += 1;
                 for r in records {
-                    copy.take(writer, r).with_context(cannot_write)?;
+                    copy.take(writer, r).map_err(cannot_write)?;
                 }
             }
             // A damaged chunk's neighbours are whole: leave it out and go
@@ -117,11 +165,16 @@ pub fn recover(damaged: &Path, out: &Path) -> Result<Recovered> {
     }
     let mut writer = match writer {
         Some(w) => w,
-        None => bail!("{shown} holds nothing after its first bytes: there is nothing to recover"),
+        None => {
+            return Err(RecoverError::Empty {
+                path: damaged.to_path_buf(),
+            });
+        }
     };
-    writer
-        .finish()
-        .with_context(|| format!("cannot finish {}", out.display()))?;
+    writer.finish().map_err(|source| RecoverError::Finish {
+        path: out.to_path_buf(),
+        source,
+    })?;
     copy.found.channels = copy.channels.len();
     Ok(copy.found)
 }
@@ -129,7 +182,10 @@ pub fn recover(damaged: &Path, out: &Path) -> Result<Recovered> {
 type FileWriter = Writer<BufWriter<File>>;
 
 fn create(out: &Path, profile: &str, library: &str) -> Result<FileWriter> {
-    let file = File::create(out).with_context(|| format!("cannot create {}", out.display()))?;
+    let file = File::create(out).map_err(|source| RecoverError::Create {
+        path: out.to_path_buf(),
+        source,
+    })?;
     WriteOptions::new()
         .compression(Some(mcap::Compression::Zstd))
         .compression_level(crate::record::ZSTD_LEVEL.unsigned_abs())
@@ -137,7 +193,10 @@ fn create(out: &Path, profile: &str, library: &str) -> Result<FileWriter> {
         .profile(profile)
         .library(library)
         .create(BufWriter::new(file))
-        .with_context(|| format!("cannot start MCAP file {}", out.display()))
+        .map_err(|source| RecoverError::Start {
+            path: out.to_path_buf(),
+            source,
+        })
 }
 
 /// Ids declared so far, and the tally.
@@ -203,7 +262,7 @@ impl Copy {
 }
 
 enum Stop {
-    Io(anyhow::Error),
+    Io(std::io::Error),
     /// The MCAP reader's error: the file is damaged from here on.
     Damaged(mcap::McapError),
 }
@@ -225,7 +284,7 @@ fn next_record(reader: &mut LinearReader, source: &mut File) -> Result<Option<Ou
                     match source.read(buf) {
                         Ok(n) => break n,
                         Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
-                        Err(e) => return Err(Stop::Io(e.into())),
+                        Err(e) => return Err(Stop::Io(e)),
                     }
                 };
                 reader.notify_read(n);
@@ -249,6 +308,29 @@ mod tests {
     use super::*;
     use crate::read::Recording;
     use crate::read::tests::{damage_chunk, scratch, write};
+
+    #[test]
+    fn a_file_that_is_not_mcap_or_holds_nothing_is_refused_with_its_name() {
+        let junk = scratch("junk-to-recover.mcap");
+        std::fs::write(&junk, b"not a recording").unwrap();
+        let e = recover(&junk, &scratch("junk-recovered.mcap")).unwrap_err();
+        assert!(matches!(e, RecoverError::NotMcap { .. }), "{e:?}");
+        assert_eq!(
+            e.to_string(),
+            format!(
+                "{} is not a recording: it does not start with the MCAP magic bytes",
+                junk.display()
+            )
+        );
+        let bare = scratch("bare-to-recover.mcap");
+        std::fs::write(&bare, mcap::MAGIC).unwrap();
+        let e = recover(&bare, &scratch("bare-recovered.mcap")).unwrap_err();
+        assert!(matches!(e, RecoverError::Empty { .. }), "{e:?}");
+        assert!(
+            e.to_string().ends_with("there is nothing to recover"),
+            "{e}"
+        );
+    }
 
     #[test]
     fn recover_leaves_a_damaged_chunk_out_and_copies_the_rest() {

@@ -12,12 +12,12 @@
 //! [`Signals::read`] streams the recording and keeps only the numbers: a time
 //! and a value column of `f64` per signal.
 
-use anyhow::Result;
 use serde_json::Value;
 use std::collections::BTreeMap;
 use std::path::Path;
 
 use super::Recording;
+use crate::read::ReadError;
 use crate::topics::Topic;
 
 /// One signal: its samples (time in seconds, value), in file order.
@@ -123,7 +123,7 @@ pub struct Signals {
 
 impl Signals {
     /// Read every numeric signal of the recording at `path`.
-    pub fn read(path: &Path) -> Result<Self> {
+    pub fn read(path: &Path) -> Result<Self, ReadError> {
         // Per channel (by index): field path to signal, so that the topic
         // prefix is put on once, at the end.
         let mut per_channel: Vec<BTreeMap<String, Signal>> = Vec::new();

@@ -11,7 +11,7 @@ use plant::PlantParams;
 use serde::Deserialize;
 use std::collections::BTreeMap;
 use std::path::Path;
-use twin_recording::read::{Item, Message, NotMcap, Reader};
+use twin_recording::read::{Item, Message, ReadError, Reader};
 use twin_recording::topics::{self, EventSample, FrameSample, ReadingsSample, Topic};
 
 use super::layout::{
@@ -52,14 +52,13 @@ pub fn run_metadata(path: &Path) -> Option<BTreeMap<String, String>> {
 /// The view layout the recording at `path` was made with: its scenario's,
 /// or the open loop's preset.
 pub fn layout_of(path: &Path) -> Result<ViewLayout> {
-    if let Err(e) = Reader::open(path) {
-        if e.root_cause().downcast_ref::<NotMcap>().is_some() {
-            bail!(
-                "{} is not an MCAP recording (it does not start with the MCAP magic bytes)",
-                path.display()
-            );
-        }
-        return Err(e);
+    match Reader::open(path) {
+        Err(ReadError::NotMcap { .. }) => bail!(
+            "{} is not an MCAP recording (it does not start with the MCAP magic bytes)",
+            path.display()
+        ),
+        Err(e) => return Err(e.into()),
+        Ok(_) => {}
     }
     let Some(meta) = run_metadata(path) else {
         bail!(
