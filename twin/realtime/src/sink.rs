@@ -24,7 +24,7 @@ pub use super::frame_log::{Direction, FrameBatch};
 use super::lateness::LatenessSummary;
 use super::rotate::{DiskOutcome, Pruned, Recordings};
 use twin_recording::describe::{LinkFrameFields, link_frame_fields};
-use twin_recording::disk::DiskNearlyFull;
+use twin_recording::record::WriteError;
 use twin_recording::topics::{self, LoopReport, ReadingsSample};
 use twin_sim::observe::{LazyChannel, McapObserver, SimRecorder};
 
@@ -435,7 +435,7 @@ impl FrameSink {
         out: &mut impl Write,
         observer: &mut Option<McapObserver>,
         view: &mut Option<Box<dyn LiveView>>,
-    ) -> Result<()> {
+    ) -> Result<(), WriteError> {
         if !config.monitor && observer.is_none() && view.is_none() {
             return Ok(());
         }
@@ -611,7 +611,7 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
         }
         let mut out = stdout.lock();
         let mut rotate = None;
-        let recorded: Result<()> = match message {
+        let recorded: Result<(), WriteError> = match message {
             SinkMsg::Plant {
                 at,
                 module,
@@ -765,7 +765,7 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
                 &reason,
                 &mut out,
             ),
-            (recorded, _, _) => recorded,
+            (recorded, _, _) => recorded.map_err(anyhow::Error::from),
         };
         if let Err(e) = recorded {
             if let Some(o) = observer.take() {
@@ -774,7 +774,7 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
             match &mut files {
                 // A service's recording goes on in a new file, after the
                 // old ones the retention rules let go.
-                Some(f) if e.downcast_ref::<DiskNearlyFull>().is_some() => {
+                Some(f) if matches!(e.downcast_ref(), Some(WriteError::DiskFull(_))) => {
                     let _ = writeln!(out, "warning: recording {}: {e:#}", f.current().display());
                     match f.disk_full(last_at) {
                         DiskOutcome::Resumed(recorder, pruned) => {

@@ -32,5 +32,5 @@ pub mod typed;
 mod writer;
 
 pub use read::{Channel, Cut, Encoding, Event, Frame, Item, Message, ReadError, Reader, Recording};
-pub use record::Recorder;
+pub use record::{Recorder, WriteError};
 pub use signals::{Signal, Signals};

@@ -7,7 +7,6 @@
 //! same run gives the same bytes. What the channels and metadata are is in
 //! [`crate::topics`].
 
-use anyhow::{Context, Result};
 use serde::Serialize;
 use serde_json::{Map, Value, json};
 use std::collections::BTreeMap;
@@ -15,6 +14,7 @@ use std::fs::File;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
+use crate::disk::DiskNearlyFull;
 use crate::mcap_file::McapFile;
 use crate::proto;
 use crate::topics;
@@ -100,6 +100,73 @@ pub fn schema_of(sample: &Value) -> Value {
         }
     }
 }
+
+/// Why a recording could not be written. After any of these but a message
+/// refused ([`WriteError::Encode`], [`WriteError::NoChannel`]) the recorder
+/// is closed: what it was given before is on disk, whole.
+#[derive(Debug, thiserror::Error)]
+pub enum WriteError {
+    #[error("cannot create folder {}", path.display())]
+    CreateFolder {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("cannot create {}", path.display())]
+    Create {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("cannot start MCAP file {}", path.display())]
+    Start {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("cannot write {}", path.display())]
+    Write {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("cannot finish {}", path.display())]
+    Finish {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The disk guard stopped the recording: a session rotating its files
+    /// goes on in a new one once space is freed.
+    #[error(transparent)]
+    DiskFull(#[from] DiskNearlyFull),
+    /// `channel` is a topic, or a channel's number where a caller named it
+    /// by its id.
+    #[error("no channel {channel} in the recording")]
+    NoChannel { channel: String },
+    /// A message that does not fit its channel (its protobuf schema, or
+    /// JSON); the recording goes on without it.
+    #[error("cannot record a message on {topic}")]
+    Encode {
+        topic: String,
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
+    /// A channel's sample that serde_json cannot write, or its schema.
+    #[error(transparent)]
+    Json(#[from] serde_json::Error),
+    #[error("cannot start the recording's writer thread")]
+    Thread(#[source] std::io::Error),
+    /// The writer thread stopped; its own error comes from finishing it.
+    #[error("the recording's writer stopped")]
+    WriterStopped,
+    #[error("the recording's writer thread failed")]
+    WriterPanicked,
+    #[error("the recording {} stopped after an earlier error", path.display())]
+    Closed { path: PathBuf },
+}
+
+type Result<T, E = WriteError> = std::result::Result<T, E>;
 
 impl Recorder {
     /// Create `path` (and its parent folders), written on the caller's thread.
@@ -197,7 +264,9 @@ impl<D: Deferred> Recorder<D> {
     /// Write one message at simulated time `time_s`.
     pub fn write<T: Serialize>(&mut self, topic: &str, time_s: f64, message: &T) -> Result<()> {
         let Some(channel) = self.channel(topic) else {
-            anyhow::bail!("no channel {topic} in the recording");
+            return Err(WriteError::NoChannel {
+                channel: topic.to_string(),
+            });
         };
         self.write_to(channel, time_s, message)
     }
@@ -211,19 +280,20 @@ impl<D: Deferred> Recorder<D> {
     ) -> Result<()> {
         self.check(channel)?;
         let start = self.batch.bytes.len();
-        let written = match self.protos.get(channel.0) {
-            Some(Some(schema)) => {
-                proto::encode(schema, message, &mut self.batch.bytes).map_err(anyhow::Error::from)
-            }
-            _ => serde_json::to_writer(Appender(&mut self.batch.bytes), message)
-                .map_err(anyhow::Error::from),
-        };
-        if let Err(e) = written {
+        let written: Result<(), Box<dyn std::error::Error + Send + Sync>> =
+            match self.protos.get(channel.0) {
+                Some(Some(schema)) => {
+                    proto::encode(schema, message, &mut self.batch.bytes).map_err(Into::into)
+                }
+                _ => serde_json::to_writer(Appender(&mut self.batch.bytes), message)
+                    .map_err(Into::into),
+            };
+        if let Err(source) = written {
             self.batch.bytes.truncate(start);
-            return Err(e.context(format!(
-                "cannot record a message on {}",
-                self.topic_of(channel)
-            )));
+            return Err(WriteError::Encode {
+                topic: self.topic_of(channel).to_string(),
+                source,
+            });
         }
         let end = self.batch.bytes.len();
         self.queue(channel, time_s, end, false)
@@ -300,7 +370,9 @@ impl<D: Deferred> Recorder<D> {
         if channel.0 < self.sequences.len() {
             Ok(())
         } else {
-            anyhow::bail!("no channel {} in the recording", channel.0)
+            Err(WriteError::NoChannel {
+                channel: channel.0.to_string(),
+            })
         }
     }
 
@@ -308,7 +380,9 @@ impl<D: Deferred> Recorder<D> {
     fn queue(&mut self, channel: ChannelId, time_s: f64, end: usize, deferred: bool) -> Result<()> {
         // Checked by the callers before they add to the batch.
         let Some(sequence) = self.sequences.get_mut(channel.0) else {
-            anyhow::bail!("no channel {} in the recording", channel.0);
+            return Err(WriteError::NoChannel {
+                channel: channel.0.to_string(),
+            });
         };
         let time_ns = nanoseconds(time_s);
         let flush_before = time_ns >= self.next_flush_ns;
@@ -404,18 +478,17 @@ impl<D: Deferred> Recorder<D> {
 
     /// Close the writer after `e`: a writer thread's own error, if it
     /// stopped on one, says more than the hand-over's.
-    fn fail(&mut self, e: anyhow::Error) -> anyhow::Error {
+    fn fail(&mut self, e: WriteError) -> WriteError {
         match self.backend.take().map(Backend::finish) {
             Some(Err(cause)) => cause,
             _ => e,
         }
     }
 
-    fn closed(&self) -> anyhow::Error {
-        anyhow::anyhow!(
-            "the recording {} stopped after an earlier error",
-            self.path.display()
-        )
+    fn closed(&self) -> WriteError {
+        WriteError::Closed {
+            path: self.path.clone(),
+        }
     }
 }
 
@@ -447,13 +520,22 @@ fn nanoseconds(time_s: f64) -> u64 {
 /// The MCAP writer of a new file at `path`.
 fn open(path: &Path) -> Result<FileWriter> {
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir)
-            .with_context(|| format!("cannot create folder {}", dir.display()))?;
+        std::fs::create_dir_all(dir).map_err(|source| WriteError::CreateFolder {
+            path: dir.to_path_buf(),
+            source,
+        })?;
     }
-    let file = File::create(path).with_context(|| format!("cannot create {}", path.display()))?;
+    let file = File::create(path).map_err(|source| WriteError::Create {
+        path: path.to_path_buf(),
+        source,
+    })?;
     let library = concat!("ev-lab-twin ", env!("CARGO_PKG_VERSION"));
-    let writer = McapFile::new(file, library, ZSTD_LEVEL, CHUNK_SIZE)
-        .with_context(|| format!("cannot start MCAP file {}", path.display()))?;
+    let writer = McapFile::new(file, library, ZSTD_LEVEL, CHUNK_SIZE).map_err(|source| {
+        WriteError::Start {
+            path: path.to_path_buf(),
+            source,
+        }
+    })?;
     Ok(FileWriter::new(writer, path))
 }
 

@@ -2,10 +2,9 @@
 //! messages, and the MCAP writer that frames, compresses and writes them, on
 //! the recorder's thread or on one of its own.
 
-use anyhow::{Context, Result};
 use mcap::records::Metadata;
 use std::fs::File;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
 use std::thread::JoinHandle;
 
@@ -16,6 +15,9 @@ use std::sync::Arc;
 use crate::disk::DiskGuard;
 use crate::mcap_file::McapFile;
 use crate::proto;
+use crate::record::WriteError;
+
+type Result<T, E = WriteError> = std::result::Result<T, E>;
 
 /// A message type the writer serialises itself: see
 /// [`crate::record::Recorder::write_deferred`].
@@ -34,7 +36,7 @@ pub trait Deferred: Serialize + Send + 'static {
 pub enum NoDeferred {}
 
 impl Serialize for NoDeferred {
-    fn serialize<S: serde::Serializer>(&self, _: S) -> Result<S::Ok, S::Error> {
+    fn serialize<S: serde::Serializer>(&self, _: S) -> std::result::Result<S::Ok, S::Error> {
         match *self {}
     }
 }
@@ -146,7 +148,7 @@ pub(crate) struct FileWriter {
     /// Protobuf schemas of the channels, by creation order (`None`: JSON).
     protos: Vec<Option<Arc<proto::Schema>>>,
     /// The file, as errors name it.
-    shown: String,
+    path: PathBuf,
     disk: DiskGuard,
 }
 
@@ -156,15 +158,18 @@ impl FileWriter {
             writer,
             ids: Vec::new(),
             protos: Vec::new(),
-            shown: path.display().to_string(),
+            path: path.to_path_buf(),
             disk: DiskGuard::new(path),
         }
     }
 
     /// Carry out `job`; a batch comes back emptied, for reuse.
     fn apply<D: Deferred>(&mut self, job: Job<D>) -> Result<Option<Batch<D>>> {
-        let shown = &self.shown;
-        let cannot_write = || format!("cannot write {shown}");
+        let path = &self.path;
+        let cannot_write = |source| WriteError::Write {
+            path: path.clone(),
+            source,
+        };
         match job {
             Job::Channel {
                 topic,
@@ -177,11 +182,11 @@ impl FileWriter {
                 let schema_id = self
                     .writer
                     .add_schema(&schema_name, schema_encoding, &schema)
-                    .with_context(cannot_write)?;
+                    .map_err(cannot_write)?;
                 let id = self
                     .writer
                     .add_channel(schema_id, &topic, message_encoding)
-                    .with_context(cannot_write)?;
+                    .map_err(cannot_write)?;
                 self.ids.push(id);
                 self.protos.push(proto);
                 Ok(None)
@@ -190,7 +195,7 @@ impl FileWriter {
                 let mut start = 0;
                 for m in &batch.messages {
                     if m.flush_before {
-                        self.writer.flush().with_context(cannot_write)?;
+                        self.writer.flush().map_err(cannot_write)?;
                     }
                     let channel = self.ids.get(m.channel).copied().unwrap_or_default();
                     if m.deferred {
@@ -203,13 +208,13 @@ impl FileWriter {
                             .write_message_with(channel, m.sequence, m.time_ns, m.time_ns, |out| {
                                 serialise(schema.map(Arc::as_ref), message, out)
                             })
-                            .with_context(cannot_write)?;
+                            .map_err(cannot_write)?;
                     } else {
                         let data = batch.bytes.get(start..m.end).unwrap_or_default();
                         start = m.end;
                         self.writer
                             .write_message(channel, m.sequence, m.time_ns, m.time_ns, data)
-                            .with_context(cannot_write)?;
+                            .map_err(cannot_write)?;
                     }
                 }
                 // A deferred message is about 1 kB of JSON.
@@ -221,7 +226,7 @@ impl FileWriter {
             Job::Metadata(metadata) => {
                 self.writer
                     .write_metadata(&metadata.name, &metadata.metadata)
-                    .with_context(cannot_write)?;
+                    .map_err(cannot_write)?;
                 Ok(None)
             }
             Job::Attachment {
@@ -232,11 +237,11 @@ impl FileWriter {
             } => {
                 self.writer
                     .write_attachment(log_time, &name, &media_type, &data)
-                    .with_context(cannot_write)?;
+                    .map_err(cannot_write)?;
                 Ok(None)
             }
             Job::Flush(done) => {
-                self.writer.flush().with_context(cannot_write)?;
+                self.writer.flush().map_err(cannot_write)?;
                 if let Some(done) = done {
                     let _ = done.send(());
                 }
@@ -250,8 +255,10 @@ impl FileWriter {
         self.writer
             .finish()
             .map(drop)
-            .with_context(|| format!("cannot finish {}", self.shown))?;
-        Ok(())
+            .map_err(|source| WriteError::Finish {
+                path: self.path,
+                source,
+            })
     }
 }
 
@@ -315,7 +322,7 @@ impl<D: Deferred> Backend<D> {
                 }
                 writer.finish()
             })
-            .context("cannot start the recording's writer thread")?;
+            .map_err(WriteError::Thread)?;
         Ok(Backend::Thread(WriterThread {
             jobs,
             spent,
@@ -372,14 +379,14 @@ impl<D: Deferred> Backend<D> {
 }
 
 /// A writer thread that stopped: its own error comes from [`Backend::finish`].
-fn stopped() -> anyhow::Error {
-    anyhow::anyhow!("the recording's writer stopped")
+fn stopped() -> WriteError {
+    WriteError::WriterStopped
 }
 
 fn join(handle: JoinHandle<Result<()>>) -> Result<()> {
     handle
         .join()
-        .unwrap_or_else(|_| Err(anyhow::anyhow!("the recording's writer thread failed")))
+        .unwrap_or_else(|_| Err(WriteError::WriterPanicked))
 }
 
 /// The batch's bytes as serde_json writes them. Most of its writes are a

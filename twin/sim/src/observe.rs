@@ -21,7 +21,7 @@ use crate::engine::{BusSlot, FirmwareRecord, ModuleSlot, NodeSlot, Observer};
 use twin_recording::describe::decode_frame;
 use twin_recording::describe::{FrameFields, LinkFrameFields};
 use twin_recording::proto::Protobuf;
-use twin_recording::record::{ChannelId, Recorder};
+use twin_recording::record::{ChannelId, Recorder, WriteError};
 use twin_recording::topics::{self, FirmwareIo, LoopReport, ReadingsSample, UartBurst};
 use twin_recording::typed::{DecodedProtobuf, FrameMessage, Hex};
 
@@ -76,7 +76,7 @@ impl LazyChannel {
         recorder: &mut SimRecorder,
         time: SimTime,
         message: &T,
-    ) -> Result<()> {
+    ) -> Result<(), WriteError> {
         let id = self.id(recorder, message)?;
         recorder.write_to(id, time.as_secs_f64(), message)
     }
@@ -87,7 +87,7 @@ impl LazyChannel {
         recorder: &mut SimRecorder,
         time: SimTime,
         message: &T,
-    ) -> Result<()> {
+    ) -> Result<(), WriteError> {
         let id = self.id(recorder, message)?;
         recorder.write_typed(id, time.as_secs_f64(), message)
     }
@@ -98,14 +98,18 @@ impl LazyChannel {
         recorder: &mut SimRecorder,
         time: SimTime,
         sensors: &plant::Sensors,
-    ) -> Result<()> {
+    ) -> Result<(), WriteError> {
         let sample = PlantSample(*sensors);
         let id = self.id(recorder, &sample)?;
         recorder.write_deferred(id, time.as_secs_f64(), sample)
     }
 
     /// The channel's id, made from `sample` on first use.
-    fn id<T: Serialize>(&mut self, recorder: &mut SimRecorder, sample: &T) -> Result<ChannelId> {
+    fn id<T: Serialize>(
+        &mut self,
+        recorder: &mut SimRecorder,
+        sample: &T,
+    ) -> Result<ChannelId, WriteError> {
         if let Some(id) = self.id {
             return Ok(id);
         }
@@ -161,7 +165,7 @@ pub trait Recorded {
         channel: &mut LazyChannel,
         recorder: &mut SimRecorder,
         now: SimTime,
-    ) -> Result<()>;
+    ) -> Result<(), WriteError>;
 }
 
 /// On `/plant/<module>/sensors`, serialised by the writer thread.
@@ -175,7 +179,7 @@ impl Recorded for plant::Sensors {
         channel: &mut LazyChannel,
         recorder: &mut SimRecorder,
         now: SimTime,
-    ) -> Result<()> {
+    ) -> Result<(), WriteError> {
         channel.write_sensors(recorder, now, self)
     }
 }
@@ -191,7 +195,7 @@ impl Recorded for plant::Actuators {
         channel: &mut LazyChannel,
         recorder: &mut SimRecorder,
         now: SimTime,
-    ) -> Result<()> {
+    ) -> Result<(), WriteError> {
         channel.write(recorder, now, self)
     }
 }
@@ -208,7 +212,7 @@ impl Recorded for LoopReport {
         channel: &mut LazyChannel,
         recorder: &mut SimRecorder,
         now: SimTime,
-    ) -> Result<()> {
+    ) -> Result<(), WriteError> {
         match self {
             LoopReport::Supervisor(typed) => channel.write_typed(recorder, now, typed),
             LoopReport::Other(_) => channel.write(recorder, now, self),
@@ -227,7 +231,7 @@ impl Recorded for ReadingsSample {
         channel: &mut LazyChannel,
         recorder: &mut SimRecorder,
         now: SimTime,
-    ) -> Result<()> {
+    ) -> Result<(), WriteError> {
         channel.write_typed(recorder, now, self)
     }
 }
@@ -243,7 +247,7 @@ impl Recorded for UartBurst<'_> {
         channel: &mut LazyChannel,
         recorder: &mut SimRecorder,
         now: SimTime,
-    ) -> Result<()> {
+    ) -> Result<(), WriteError> {
         channel.write(recorder, now, self)
     }
 }
@@ -259,14 +263,18 @@ impl Recorded for FirmwareIo<'_> {
         channel: &mut LazyChannel,
         recorder: &mut SimRecorder,
         now: SimTime,
-    ) -> Result<()> {
+    ) -> Result<(), WriteError> {
         channel.write(recorder, now, self)
     }
 }
 
 impl McapObserver {
     /// A firmware node's UART burst or I/O sample, each at its own time.
-    pub fn record_firmware(&mut self, node: &str, record: FirmwareRecord<'_>) -> Result<()> {
+    pub fn record_firmware(
+        &mut self,
+        node: &str,
+        record: FirmwareRecord<'_>,
+    ) -> Result<(), WriteError> {
         match record {
             FirmwareRecord::Uart(at, burst) => self.record(at, node, &burst),
             FirmwareRecord::Io(at, io) => self.record(at, node, &io),
@@ -334,7 +342,12 @@ impl McapObserver {
 
     /// `payload` of `owner` (a module or node) at `now`, on the channel
     /// its kind gives `owner` (see [`Recorded`]).
-    pub fn record<P: Recorded>(&mut self, now: SimTime, owner: &str, payload: &P) -> Result<()> {
+    pub fn record<P: Recorded>(
+        &mut self,
+        now: SimTime,
+        owner: &str,
+        payload: &P,
+    ) -> Result<(), WriteError> {
         let channels = &mut self.channels[P::KIND as usize];
         payload.write(
             channel_of(channels, owner, P::topic),
@@ -344,7 +357,12 @@ impl McapObserver {
     }
 
     /// Write `message` to `topic`, creating its channel on first use.
-    pub fn put<T: Serialize>(&mut self, topic: &str, time: SimTime, message: &T) -> Result<()> {
+    pub fn put<T: Serialize>(
+        &mut self,
+        topic: &str,
+        time: SimTime,
+        message: &T,
+    ) -> Result<(), WriteError> {
         let channel = match self.recorder.channel(topic) {
             Some(channel) => channel,
             None => self.recorder.add_channel(topic, message)?,
@@ -398,7 +416,7 @@ impl McapObserver {
         end: SimTime,
         bytes: &[u8],
         decoded: &D,
-    ) -> Result<()> {
+    ) -> Result<(), WriteError> {
         self.record_frame_with(channel, from, start, end, bytes, decoded, decoded.by_hand())
     }
 
@@ -414,7 +432,7 @@ impl McapObserver {
         bytes: &[u8],
         decoded: &impl Serialize,
         by_hand: Option<&dyn DecodedProtobuf>,
-    ) -> Result<()> {
+    ) -> Result<(), WriteError> {
         let printable = bytes
             .iter()
             .all(|b| b.is_ascii_graphic() || *b == b'\n' || *b == b'\r');
@@ -442,7 +460,7 @@ impl McapObserver {
         frame: &FrameParts<'_>,
         decoded: &impl Serialize,
         by_hand: Option<&dyn DecodedProtobuf>,
-    ) -> Result<()> {
+    ) -> Result<(), WriteError> {
         let FrameParts {
             from,
             start,
@@ -498,7 +516,7 @@ impl McapObserver {
     }
 
     /// One event a node (or link) noticed.
-    pub fn record_event(&mut self, node: &str, event: &NodeEvent) -> Result<()> {
+    pub fn record_event(&mut self, node: &str, event: &NodeEvent) -> Result<(), WriteError> {
         *self.events.entry(event.kind.to_string()).or_default() += 1;
         if event.kind == "log" || event.kind == "silent" {
             if self.log_tail.len() == LOG_TAIL {
@@ -523,11 +541,11 @@ impl McapObserver {
 
 impl Observer for McapObserver {
     fn plant(&mut self, now: SimTime, module: &ModuleSlot) -> Result<()> {
-        self.record(now, &module.name, module.plant.sensors())
+        Ok(self.record(now, &module.name, module.plant.sensors())?)
     }
 
     fn actuators(&mut self, now: SimTime, module: &ModuleSlot) -> Result<()> {
-        self.record(now, &module.name, &module.actuators)
+        Ok(self.record(now, &module.name, &module.actuators)?)
     }
 
     fn frame(
@@ -548,23 +566,23 @@ impl Observer for McapObserver {
             None => self.record_frame(channel, &from.name, start, end, bytes, &decode_frame(bytes)),
         };
         self.buses = channels;
-        written
+        Ok(written?)
     }
 
     fn event(&mut self, node: &NodeSlot, event: &NodeEvent) -> Result<()> {
-        self.record_event(&node.name, event)
+        Ok(self.record_event(&node.name, event)?)
     }
 
     fn telemetry(&mut self, now: SimTime, node: &NodeSlot, report: &LoopReport) -> Result<()> {
-        self.record(now, &node.name, report)
+        Ok(self.record(now, &node.name, report)?)
     }
 
     fn readings(&mut self, now: SimTime, node: &NodeSlot, readings: &ReadingsSample) -> Result<()> {
-        self.record(now, &node.name, readings)
+        Ok(self.record(now, &node.name, readings)?)
     }
 
     fn firmware(&mut self, node: &str, record: FirmwareRecord<'_>) -> Result<()> {
-        self.record_firmware(node, record)
+        Ok(self.record_firmware(node, record)?)
     }
 }
 

@@ -6,7 +6,7 @@ use serde::Serialize;
 use serde_json::json;
 use std::path::{Path, PathBuf};
 use twin_recording::Recording;
-use twin_recording::record::Recorder;
+use twin_recording::record::{Recorder, WriteError};
 
 fn scratch(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("twin-recording-writer-{}", std::process::id()));
@@ -151,7 +151,7 @@ fn a_write_that_fails_is_reported_by_either_writer() {
         return;
     }
     for threaded in [false, true] {
-        let attempt = || -> anyhow::Result<()> {
+        let attempt = || -> Result<(), WriteError> {
             let mut rec: Recorder<Sample> = if threaded {
                 Recorder::create_threaded(full)?
             } else {
@@ -165,7 +165,15 @@ fn a_write_that_fails_is_reported_by_either_writer() {
             Ok(())
         };
         let error = attempt().expect_err("a full device cannot hold the file");
-        let text = format!("{error:#}");
+        // Refused by the disk, not taken for a bad message.
+        assert!(
+            matches!(
+                error,
+                WriteError::Write { .. } | WriteError::Start { .. } | WriteError::Finish { .. }
+            ),
+            "threaded {threaded}: {error:?}"
+        );
+        let text = error.to_string();
         assert!(text.contains("/dev/full"), "threaded {threaded}: {text}");
     }
 }
