@@ -2,8 +2,20 @@
 //! firmware a run executed, so that `twin-avr replay` runs the very bytes
 //! that were recorded, not whatever file is on disk today.
 
-use anyhow::{Context, Result};
-use std::path::Path;
+use std::path::{Path, PathBuf};
+
+/// Why a recording's attachments cannot be read.
+#[derive(Debug, thiserror::Error)]
+pub enum AttachmentError {
+    #[error("cannot read {}", path.display())]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{} is not an MCAP recording", path.display())]
+    NotMcap { path: PathBuf },
+}
 
 /// An attachment as stored.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -33,11 +45,16 @@ impl Attachments {
 /// Every attachment of the recording at `path`, read through record by
 /// record (a recording cut short keeps those before the cut). An
 /// attachment whose checksum fails is listed as damaged, not returned.
-pub fn read(path: &Path) -> Result<Attachments> {
-    let bytes = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
+pub fn read(path: &Path) -> Result<Attachments, AttachmentError> {
+    let bytes = std::fs::read(path).map_err(|source| AttachmentError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
     let mut found = Attachments::default();
     let Some(mut rest) = bytes.strip_prefix(mcap::MAGIC) else {
-        anyhow::bail!("{} is not an MCAP recording", path.display());
+        return Err(AttachmentError::NotMcap {
+            path: path.to_path_buf(),
+        });
     };
     // Record by record: opcode, length, body. Chunks are skipped unopened.
     while rest.len() >= 9 {

@@ -7,7 +7,6 @@
 //! A sample passes when its deviation is at most `abs + rel·|b|`. The table
 //! keeps, per signal, the sample that used most of its tolerance.
 
-use anyhow::{Context, Result, bail};
 use serde::Deserialize;
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -82,6 +81,31 @@ struct TolerancesFile {
     signals: Vec<Rule>,
 }
 
+/// Why a tolerance file was refused, in its own terms (file, line, field).
+#[derive(Debug, thiserror::Error)]
+pub enum ToleranceError {
+    #[error("cannot read tolerance file {}", path.display())]
+    Read {
+        path: std::path::PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// TOML that does not parse or fit; `place` is `:LINE` where known.
+    #[error("{origin}{place}: {message}")]
+    Syntax {
+        origin: String,
+        place: String,
+        message: String,
+    },
+    #[error("{origin}: {what}: `{name}` must be a number ≥ 0, got {value}")]
+    Negative {
+        origin: String,
+        what: String,
+        name: &'static str,
+        value: f64,
+    },
+}
+
 /// Tolerances per signal: a default and glob-like rules (`*` matches any run
 /// of characters, `?` one). The last rule that matches a signal wins.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -92,7 +116,7 @@ pub struct Tolerances {
 
 impl Tolerances {
     /// Parse a tolerance file's text; `origin` names it in errors.
-    pub fn parse(text: &str, origin: &str) -> Result<Self> {
+    pub fn parse(text: &str, origin: &str) -> Result<Self, ToleranceError> {
         let file: TolerancesFile = toml::from_str(text).map_err(|e| {
             let line = e
                 .span()
@@ -104,10 +128,14 @@ impl Tolerances {
                 .message()
                 .trim()
                 .replace("expected f64", "expected a number");
-            anyhow::anyhow!("{origin}{place}: {message}")
+            ToleranceError::Syntax {
+                origin: origin.to_string(),
+                place,
+                message,
+            }
         })?;
         let default = file.default.unwrap_or_default();
-        let check = |what: &str, t: &PartialTolerance| -> Result<()> {
+        let check = |what: &str, t: &PartialTolerance| -> Result<(), ToleranceError> {
             for (name, v) in [
                 ("abs", t.abs),
                 ("rel", t.rel),
@@ -116,7 +144,12 @@ impl Tolerances {
                 if let Some(v) = v
                     && !(v.is_finite() && v >= 0.0)
                 {
-                    bail!("{origin}: {what}: `{name}` must be a number ≥ 0, got {v}");
+                    return Err(ToleranceError::Negative {
+                        origin: origin.to_string(),
+                        what: what.to_string(),
+                        name,
+                        value: v,
+                    });
                 }
             }
             Ok(())
@@ -144,9 +177,11 @@ impl Tolerances {
     }
 
     /// Read a tolerance file.
-    pub fn load(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path)
-            .with_context(|| format!("cannot read tolerance file {}", path.display()))?;
+    pub fn load(path: &Path) -> Result<Self, ToleranceError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ToleranceError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
         Self::parse(&text, &path.display().to_string())
     }
 
@@ -482,13 +517,18 @@ mod tests {
         assert_eq!((w.abs, w.rel, w.time_shift_s), (0.5, 1e-9, 0.02));
         let m = t.of("/plant/ev1/sensors.motor_rpm");
         assert_eq!((m.abs, m.rel, m.time_shift_s), (0.5, 0.01, 0.0));
-        let e = Tolerances::parse("[[signal]]\npattern = \"x\"\nabs = -1\n", "t.toml")
-            .unwrap_err()
-            .to_string();
-        assert!(e.contains("`abs` must be"), "{e}");
-        let e = Tolerances::parse("[default]\nabz = 1\n", "t.toml")
-            .unwrap_err()
-            .to_string();
+        let e = Tolerances::parse("[[signal]]\npattern = \"x\"\nabs = -1\n", "t.toml").unwrap_err();
+        assert!(
+            matches!(e, ToleranceError::Negative { name: "abs", .. }),
+            "{e:?}"
+        );
+        assert_eq!(
+            e.to_string(),
+            "t.toml: signal `x`: `abs` must be a number ≥ 0, got -1"
+        );
+        let e = Tolerances::parse("[default]\nabz = 1\n", "t.toml").unwrap_err();
+        assert!(matches!(e, ToleranceError::Syntax { .. }), "{e:?}");
+        let e = e.to_string();
         assert!(e.starts_with("t.toml:2"), "{e}");
         let e = Tolerances::parse("[default]\nabs = \"small\"\n", "t.toml")
             .unwrap_err()

@@ -5,7 +5,6 @@
 //! `loops.0.measured_rpm`). Numbers are written as recorded, booleans as 1
 //! and 0, text quoted when it needs to be; a field a message lacks is empty.
 
-use anyhow::{Context, Result};
 use serde_json::Value;
 use std::collections::HashMap;
 use std::fs::File;
@@ -13,7 +12,7 @@ use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
 use super::Recording;
-use super::read::Reader;
+use super::read::{ReadError, Reader};
 use super::signals::leaves;
 
 /// One CSV file written.
@@ -88,9 +87,36 @@ struct Sheet {
     row: Vec<String>,
 }
 
+/// Why a recording was not exported.
+#[derive(Debug, thiserror::Error)]
+pub enum ExportError {
+    #[error(transparent)]
+    Read(#[from] ReadError),
+    /// The recording holds no message (`why` says so, with where a file cut
+    /// short stops: [`Recording::holds_no_messages`]).
+    #[error("{why}: no CSV file was written")]
+    NoMessages { why: String },
+    #[error("cannot create folder {}", path.display())]
+    CreateFolder {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("cannot write {}", path.display())]
+    Write {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+}
+
 /// Write every channel of the recording at `path` into `dir` (created if
 /// needed). Two passes, streamed: the columns of every channel, then the rows.
-pub fn to_csv(path: &Path, dir: &Path) -> Result<(Recording, Vec<Written>)> {
+pub fn to_csv(path: &Path, dir: &Path) -> Result<(Recording, Vec<Written>), ExportError> {
+    let cannot_write = |path: &Path| {
+        let path = path.to_path_buf();
+        move |source| ExportError::Write { path, source }
+    };
     let mut columns: Vec<Columns> = Vec::new();
     let mut buf = String::new();
     let recording = Recording::scan(path, |m| {
@@ -117,16 +143,19 @@ pub fn to_csv(path: &Path, dir: &Path) -> Result<(Recording, Vec<Written>)> {
     })?;
     columns.iter_mut().for_each(Columns::settle_own_time);
     if recording.message_count() == 0 {
-        anyhow::bail!("{}: no CSV file was written", recording.holds_no_messages());
+        return Err(ExportError::NoMessages {
+            why: recording.holds_no_messages(),
+        });
     }
     columns.resize_with(recording.channels.len(), Columns::default);
-    std::fs::create_dir_all(dir)
-        .with_context(|| format!("cannot create folder {}", dir.display()))?;
+    std::fs::create_dir_all(dir).map_err(|source| ExportError::CreateFolder {
+        path: dir.to_path_buf(),
+        source,
+    })?;
     let mut sheets = Vec::with_capacity(recording.channels.len());
     for (channel, c) in recording.channels.iter().zip(&columns) {
         let file = dir.join(file_name(&channel.topic));
-        let sheet = header(&file, c, channel.message_count)
-            .with_context(|| format!("cannot write {}", file.display()))?;
+        let sheet = header(&file, c, channel.message_count).map_err(cannot_write(&file))?;
         sheets.push(sheet);
     }
     // The second pass stops where the first did, should the file have
@@ -151,15 +180,11 @@ pub fn to_csv(path: &Path, dir: &Path) -> Result<(Recording, Vec<Written>)> {
                 sheet.row[i] = cell(leaf);
             }
         });
-        row(sheet, m.log_time_ns)
-            .with_context(|| format!("cannot write {}", sheet.path.display()))?;
+        row(sheet, m.log_time_ns).map_err(cannot_write(&sheet.path))?;
     }
     let mut written = Vec::with_capacity(sheets.len());
     for ((channel, c), mut sheet) in recording.channels.iter().zip(&columns).zip(sheets) {
-        sheet
-            .out
-            .flush()
-            .with_context(|| format!("cannot write {}", sheet.path.display()))?;
+        sheet.out.flush().map_err(cannot_write(&sheet.path))?;
         written.push(Written {
             topic: channel.topic.clone(),
             path: sheet.path,
@@ -171,7 +196,7 @@ pub fn to_csv(path: &Path, dir: &Path) -> Result<(Recording, Vec<Written>)> {
 }
 
 /// Create a channel's file and write its header line.
-fn header(path: &Path, columns: &Columns, rows: u64) -> Result<Sheet> {
+fn header(path: &Path, columns: &Columns, rows: u64) -> std::io::Result<Sheet> {
     let mut out = BufWriter::new(File::create(path)?);
     write!(out, "{TIME}")?;
     for c in &columns.names {
@@ -191,7 +216,7 @@ fn header(path: &Path, columns: &Columns, rows: u64) -> Result<Sheet> {
 }
 
 /// Write the sheet's row at `log_time_ns`.
-fn row(sheet: &mut Sheet, log_time_ns: u64) -> Result<()> {
+fn row(sheet: &mut Sheet, log_time_ns: u64) -> std::io::Result<()> {
     write!(
         sheet.out,
         "{}.{:09}",
