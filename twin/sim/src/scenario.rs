@@ -24,8 +24,8 @@
 
 pub mod check;
 
-use anyhow::{Context, Result, bail};
 use plant::PlantParams;
+use plant::params::ParamsError;
 use plant::toml_errors::{self, line_col};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -583,6 +583,51 @@ pub enum FaultKind {
 /// The Controller_network master's old kind name, still read (`serde(alias)`).
 const LEGACY_MASTER_KIND: &str = "seed002-master"; // the serde alias above
 
+/// Why a scenario was refused, in the file's words: its name, the line
+/// (and column) and the field at fault.
+#[derive(Debug, thiserror::Error)]
+pub enum ScenarioError {
+    /// Text that does not parse, fit the scenario's fields, or hold
+    /// together; `place` is `:LINE` or `:LINE:COL` where known.
+    #[error("{origin}{place}: {message}")]
+    At {
+        origin: String,
+        place: String,
+        message: String,
+    },
+    /// A module's `params` the plant refused (they name their own line).
+    #[error("{error} (in the params of module `{module}`)")]
+    ModuleParams { module: String, error: ParamsError },
+    #[error("no scenario `{name}`: not a file, and the embedded ones are {embedded}")]
+    NotFound { name: String, embedded: String },
+    #[error("cannot read {}", path.display())]
+    Read {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error(
+        "{0} is a recording, not a scenario: replay it with `twin replay {0}`, \
+         or look at it with `twin view {0}`",
+        path.display()
+    )]
+    Recording { path: PathBuf },
+    #[error(
+        "{} is not a scenario: a scenario is a TOML text file, and this one is not text",
+        path.display()
+    )]
+    NotText { path: PathBuf },
+    #[error("module `{module}`: unknown preset `{preset}`")]
+    UnknownPreset { module: String, preset: String },
+    /// A module's params as the scenario holds them, read again.
+    #[error(transparent)]
+    Params(#[from] ParamsError),
+    #[error(transparent)]
+    Toml(#[from] toml::ser::Error),
+}
+
+type Result<T, E = ScenarioError> = std::result::Result<T, E>;
+
 impl Scenario {
     /// Parse scenario text; `origin` names it in errors, which give the
     /// line of the key at fault (inside a `[[node]]` or a module's `params`
@@ -594,8 +639,11 @@ impl Scenario {
                 format!(":{l}:{c}")
             })
         };
-        let root = toml_errors::parse(text)
-            .map_err(|e| anyhow::anyhow!("{origin}{}: {}", place(e.span), e.message))?;
+        let root = toml_errors::parse(text).map_err(|e| ScenarioError::At {
+            origin: origin.to_string(),
+            place: place(e.span),
+            message: e.message,
+        })?;
         let scenario: Scenario = toml_errors::deserialize(&root).map_err(|e| {
             // serde lists aliases among the kinds it expected; the old name
             // of a kind is still read but not offered.
@@ -611,7 +659,11 @@ impl Scenario {
             } else {
                 format!("`{field}`: {message}")
             };
-            anyhow::anyhow!("{origin}{}: {message}", place(e.span))
+            ScenarioError::At {
+                origin: origin.to_string(),
+                place: place(e.span),
+                message,
+            }
         })?;
         let mut scenario = scenario;
         scenario.start_masters_after_boot();
@@ -624,7 +676,11 @@ impl Scenario {
             };
             let field = field.split('@').next().unwrap_or_default().to_string();
             let place = place.map_or_else(String::new, |l| format!(":{l}"));
-            anyhow::anyhow!("{origin}{place}: `{field}` {msg}")
+            ScenarioError::At {
+                origin: origin.to_string(),
+                place,
+                message: format!("`{field}` {msg}"),
+            }
         })?;
         Ok(scenario)
     }
@@ -649,12 +705,16 @@ impl Scenario {
             let Some(base) = PlantParams::preset(&module.preset) else {
                 let line = toml_errors::span_of(table, "preset")
                     .map_or_else(String::new, |s| format!(":{}", line_col(text, s.start).0));
-                bail!(
-                    "{origin}{line}: `preset` of module `{}`: unknown preset `{}`; the presets are {}",
-                    module.name,
-                    module.preset,
-                    plant::params::PRESETS.join(", ")
-                );
+                return Err(ScenarioError::At {
+                    origin: origin.to_string(),
+                    place: line,
+                    message: format!(
+                        "`preset` of module `{}`: unknown preset `{}`; the presets are {}",
+                        module.name,
+                        module.preset,
+                        plant::params::PRESETS.join(", ")
+                    ),
+                });
             };
             let params = match table.get_ref() {
                 toml::de::DeValue::Table(t) => t.get("params"),
@@ -662,7 +722,10 @@ impl Scenario {
             };
             if let Some(params) = params {
                 PlantParams::from_toml_value(params, text, Path::new(origin), &base).map_err(
-                    |e| anyhow::anyhow!("{e} (in the params of module `{}`)", module.name),
+                    |error| ScenarioError::ModuleParams {
+                        module: module.name.clone(),
+                        error,
+                    },
                 )?;
             }
         }
@@ -677,37 +740,31 @@ impl Scenario {
         let path = PathBuf::from(name_or_path);
         if !path.exists() {
             let names: Vec<_> = EMBEDDED.iter().map(|(n, _, _)| *n).collect();
-            bail!(
-                "no scenario `{name_or_path}`: not a file, and the embedded ones are {}",
-                names.join(", ")
-            );
+            return Err(ScenarioError::NotFound {
+                name: name_or_path.to_string(),
+                embedded: names.join(", "),
+            });
         }
-        let bytes =
-            std::fs::read(&path).with_context(|| format!("cannot read {}", path.display()))?;
+        let bytes = match std::fs::read(&path) {
+            Ok(bytes) => bytes,
+            Err(source) => return Err(ScenarioError::Read { path, source }),
+        };
         if bytes.starts_with(MCAP_MAGIC) {
-            let shown = path.display();
-            bail!(
-                "{shown} is a recording, not a scenario: replay it with `twin replay {shown}`, \
-                 or look at it with `twin view {shown}`"
-            );
+            return Err(ScenarioError::Recording { path });
         }
-        let text = String::from_utf8(bytes).map_err(|_| {
-            anyhow::anyhow!(
-                "{} is not a scenario: a scenario is a TOML text file, and this one is not text",
-                path.display()
-            )
-        })?;
+        let Ok(text) = String::from_utf8(bytes) else {
+            return Err(ScenarioError::NotText { path });
+        };
         Self::parse(&text, &path.display().to_string())
     }
 
     /// The plant parameters of a module: its preset with its overrides.
     pub fn module_params(&self, module: &ModuleSpec) -> Result<PlantParams> {
         let Some(base) = PlantParams::preset(&module.preset) else {
-            bail!(
-                "module `{}`: unknown preset `{}`",
-                module.name,
-                module.preset
-            );
+            return Err(ScenarioError::UnknownPreset {
+                module: module.name.clone(),
+                preset: module.preset.clone(),
+            });
         };
         let text = toml::to_string(&module.params)?;
         let origin = format!("scenario {}, module `{}` params", self.name, module.name);
@@ -1153,6 +1210,35 @@ mod tests {
         for rust in ["f64", "u32", "u8", "struct", "enum"] {
             assert!(!e.contains(rust), "{e}");
         }
+    }
+
+    #[test]
+    fn a_file_that_is_no_scenario_is_told_apart_by_what_it_is() {
+        let dir = std::env::temp_dir().join(format!("twin-sim-load-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let recording = dir.join("run.mcap");
+        std::fs::write(&recording, [MCAP_MAGIC, b"rest"].concat()).unwrap();
+        let e = Scenario::load(&recording.display().to_string()).unwrap_err();
+        assert!(matches!(e, ScenarioError::Recording { .. }), "{e:?}");
+        let shown = recording.display();
+        assert_eq!(
+            e.to_string(),
+            format!(
+                "{shown} is a recording, not a scenario: replay it with `twin replay {shown}`, \
+                 or look at it with `twin view {shown}`"
+            )
+        );
+        let binary = dir.join("blob.toml");
+        std::fs::write(&binary, [0xff, 0xfe, 0x00]).unwrap();
+        let e = Scenario::load(&binary.display().to_string()).unwrap_err();
+        assert!(matches!(e, ScenarioError::NotText { .. }), "{e:?}");
+        let e = Scenario::load("no-such-scenario").unwrap_err();
+        assert!(matches!(e, ScenarioError::NotFound { .. }), "{e:?}");
+        let text = ev_meb_with("preset = \"vemodule\"", "preset = \"nope\"");
+        let e = Scenario::parse(&text, "s.toml").unwrap_err();
+        assert!(matches!(e, ScenarioError::At { .. }), "{e:?}");
+        assert!(e.to_string().contains("unknown preset `nope`"), "{e}");
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
