@@ -18,8 +18,7 @@ use serde_json::{Value, json};
 use std::collections::{BTreeMap, VecDeque};
 
 use crate::engine::{BusSlot, FirmwareRecord, ModuleSlot, NodeSlot, Observer};
-use twin_recording::describe::decode_frame;
-use twin_recording::describe::{FrameFields, LinkFrameFields};
+use twin_recording::describe::{FrameFields, LinkFrameFields, decode_frame};
 use twin_recording::proto::Protobuf;
 use twin_recording::record::{ChannelId, Recorder, WriteError};
 use twin_recording::topics::{self, FirmwareIo, LoopReport, ReadingsSample, UartBurst};
@@ -150,7 +149,8 @@ pub enum Kind {
 }
 
 impl Kind {
-    const COUNT: usize = 6;
+    // The last kind's index: a kind added after it must move this along.
+    const COUNT: usize = Kind::FirmwareIo as usize + 1;
 }
 
 /// What [`McapObserver::record`] writes, one channel per owner: its kind,
