@@ -51,6 +51,14 @@ pub(crate) fn student(name: &str, bugs: &[&str]) -> Student {
     }
 }
 
+/// `twin check slave LINK MORE…`, the slave given 1 s to answer: a loaded
+/// test machine may answer late, and what is checked here is the logic.
+fn check_slave(link: &str, more: &[&str]) -> std::process::Output {
+    let mut args = vec!["check", "slave", link, "--timeout-ms", "1000"];
+    args.extend_from_slice(more);
+    twin(&args)
+}
+
 /// The names of the checks that failed, from the JSON report.
 fn failed(json: &Path) -> Vec<String> {
     let run: serde_json::Value =
@@ -79,7 +87,7 @@ fn the_twins_own_slave_passes_every_check_of_the_meb_slave_suite() {
     ]);
     let link = format!("tcp://{}", serve.tcp_of("meb"));
     // A loaded test machine may answer late; the logic is what is checked.
-    let out = twin(&["check", "slave", &link, "--timeout-ms", "1000"]);
+    let out = check_slave(&link, &[]);
     let shown = text(&out);
     assert!(out.status.success(), "{shown}");
     assert!(
@@ -94,15 +102,7 @@ fn the_twins_own_slave_passes_every_check_of_the_meb_slave_suite() {
 fn a_correct_student_slave_passes_and_each_planted_bug_is_found_alone() {
     let json = scratch("check", "run.json");
     let correct = student("correct", &[]);
-    let out = twin(&[
-        "check",
-        "slave",
-        &correct.link,
-        "--timeout-ms",
-        "1000",
-        "--json",
-        json.to_str().unwrap(),
-    ]);
+    let out = check_slave(&correct.link, &["--json", json.to_str().unwrap()]);
     assert!(out.status.success(), "{}", text(&out));
     assert_eq!(failed(&json), Vec::<String>::new());
     drop(correct);
@@ -130,15 +130,7 @@ fn a_correct_student_slave_passes_and_each_planted_bug_is_found_alone() {
     ];
     for (bug, expected) in cases {
         let slave = student(bug, &[bug]);
-        let out = twin(&[
-            "check",
-            "slave",
-            &slave.link,
-            "--timeout-ms",
-            "1000",
-            "--json",
-            json.to_str().unwrap(),
-        ]);
+        let out = check_slave(&slave.link, &["--json", json.to_str().unwrap()]);
         let shown = text(&out);
         assert!(!out.status.success(), "{bug}: {shown}");
         assert_eq!(failed(&json), expected, "{bug}: {shown}");
@@ -148,15 +140,7 @@ fn a_correct_student_slave_passes_and_each_planted_bug_is_found_alone() {
     // Replies whose FCS leaves out the @: every reply is refused for it,
     // with the FCS its bytes give; the silences still pass.
     let slave = student("fcs-without-at", &["fcs-without-at"]);
-    let out = twin(&[
-        "check",
-        "slave",
-        &slave.link,
-        "--timeout-ms",
-        "1000",
-        "--json",
-        json.to_str().unwrap(),
-    ]);
+    let out = check_slave(&slave.link, &["--json", json.to_str().unwrap()]);
     let shown = text(&out);
     assert!(shown.contains("its FCS is `"), "{shown}");
     let fails = failed(&json);
@@ -236,7 +220,7 @@ fn the_books_report_is_what_twin_check_prints() {
         + 8;
     let shown = &page[start..start + page[start..].find("\n```").unwrap()];
     let slave = student("book", &["answers-bad-fcs", "answers-broadcast"]);
-    let out = twin(&["check", "slave", &slave.link, "--timeout-ms", "1000"]);
+    let out = check_slave(&slave.link, &[]);
     assert_eq!(comparable(&text(&out)), comparable(shown));
 }
 
@@ -271,15 +255,7 @@ print(json.dumps({"name": suite.get("name"), "tests": int(suite.get("tests")),
 fn the_junit_report_counts_the_checks_and_holds_a_failures_frames() {
     let junit = scratch("check", "broadcast.junit.xml");
     let slave = student("junit", &["answers-broadcast"]);
-    let out = twin(&[
-        "check",
-        "slave",
-        &slave.link,
-        "--timeout-ms",
-        "1000",
-        "--junit",
-        junit.to_str().unwrap(),
-    ]);
+    let out = check_slave(&slave.link, &["--junit", junit.to_str().unwrap()]);
     assert!(!out.status.success(), "{}", text(&out));
     let read = junit_read(&junit);
     assert_eq!(read["name"], "MEB slave");
@@ -347,19 +323,17 @@ steps = [
         scratch("check", "markup.xml"),
     );
     let slave = student("markup", &[]);
-    let out = twin(&[
-        "check",
-        "slave",
+    let out = check_slave(
         &slave.link,
-        "--timeout-ms",
-        "1000",
-        "--suite",
-        suite.to_str().unwrap(),
-        "--html",
-        html.to_str().unwrap(),
-        "--junit",
-        junit.to_str().unwrap(),
-    ]);
+        &[
+            "--suite",
+            suite.to_str().unwrap(),
+            "--html",
+            html.to_str().unwrap(),
+            "--junit",
+            junit.to_str().unwrap(),
+        ],
+    );
     assert!(!out.status.success(), "{}", text(&out));
     let page = std::fs::read_to_string(&html).unwrap();
     assert!(page.starts_with("<!DOCTYPE html>"), "{page}");
