@@ -29,6 +29,7 @@ pub mod recover;
 pub mod signals;
 pub mod topics;
 pub mod typed;
+mod write_error;
 mod writer;
 
 pub use read::{Channel, Cut, Encoding, Event, Frame, Item, Message, ReadError, Reader, Recording};

@@ -15,7 +15,7 @@ use std::sync::Arc;
 use crate::disk::DiskGuard;
 use crate::mcap_file::McapFile;
 use crate::proto;
-use crate::record::WriteError;
+use crate::write_error::WriteError;
 
 type Result<T, E = WriteError> = std::result::Result<T, E>;
 
