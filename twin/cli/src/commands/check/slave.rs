@@ -1,42 +1,16 @@
-//! `twin check`: a student's program checked against its protocol, check
-//! by check, with the frames as evidence and a score.
+//! `twin check slave`: the student's module controller, sent requests by
+//! the twin; one student, or a class from a roster.
 
+use super::write;
 use anyhow::{Context, Result, bail};
-use clap::{Args, Subcommand};
+use clap::Args;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 use twin_check::class::{self, Student};
 use twin_check::{Suite, SuiteRun, report, run_suite, wire::Wire};
 
-/// Check a program against the protocol it must speak, and grade it.
-///
-/// Runs a suite of checks (send a request, expect the reply the protocol
-/// page requires, or silence) against a program on a serial port, a
-/// pseudo-terminal or TCP, and prints one line per check, the frames that
-/// show each failure, and a score. Suites are TOML files; the built-in ones
-/// (--list) are written the same way a teacher writes their own (--suite).
-/// A class is checked at once from a roster (--roster): a report per
-/// student and the scores side by side. Exits 1 when a check fails.
 #[derive(Debug, Args)]
-#[command(
-    after_help = "Examples:\n  twin check slave tcp://127.0.0.1:5700\n  twin check slave /dev/ttyUSB0?baud=9600 --id 3 --json report.json\n  twin check slave /tmp/ttyV0 --suite my-suite.toml --html report.html\n  twin check slave --roster class.csv --out grades/\n  twin check --list"
-)]
-pub struct CheckArgs {
-    #[command(subcommand)]
-    role: Option<Role>,
-    /// Print the built-in suites and their checks.
-    #[arg(long)]
-    list: bool,
-}
-
-#[derive(Debug, Subcommand)]
-enum Role {
-    /// The student's module controller: an MEB slave the twin sends requests to.
-    Slave(SlaveArgs),
-}
-
-#[derive(Debug, Args)]
-struct SlaveArgs {
+pub struct SlaveArgs {
     /// Where the slave is: tcp://HOST:PORT, or a serial device or
     /// pseudo-terminal (PATH?baud=9600&parity=E).
     #[arg(required_unless_present = "roster", conflicts_with = "roster")]
@@ -76,14 +50,8 @@ struct SlaveArgs {
     jobs: u16,
 }
 
-pub fn execute(args: &CheckArgs) -> Result<()> {
-    if args.list {
-        print!("{}", list()?);
-        return Ok(());
-    }
-    let Some(Role::Slave(slave)) = &args.role else {
-        bail!("say what to check: `twin check slave LINK`, or `twin check --list`");
-    };
+/// One student's slave checked, or a class's from a roster.
+pub fn execute(slave: &SlaveArgs) -> Result<()> {
     let mut suite = Suite::load(&slave.suite)?;
     if let Some(ms) = slave.timeout_ms {
         suite.timeout_ms = ms;
@@ -110,10 +78,6 @@ pub fn execute(args: &CheckArgs) -> Result<()> {
         bail!("{failed} of {} checks failed", run.checks.len());
     }
     Ok(())
-}
-
-fn write(path: &Path, contents: &str) -> Result<()> {
-    std::fs::write(path, contents).with_context(|| format!("cannot write {}", path.display()))
 }
 
 /// Every student of the roster checked, a line each as they finish, their
@@ -204,24 +168,4 @@ fn reports(out: &Path, student: &Student, run: &SuiteRun) -> Result<()> {
     write(&file("json"), &report::json(run))?;
     write(&file("html"), &report::html(run, Some(&student.name)))?;
     write(&file("junit.xml"), &report::junit(run))
-}
-
-fn list() -> Result<String> {
-    use std::fmt::Write;
-    let mut out = String::new();
-    for (name, _) in twin_check::BUILT_IN {
-        let suite = Suite::load(name)?;
-        let _ = writeln!(
-            out,
-            "{name}: {} ({} checks, {} points)\n  {}",
-            suite.name,
-            suite.checks.len(),
-            suite.points(),
-            suite.description
-        );
-        for check in &suite.checks {
-            let _ = writeln!(out, "  - {} ({})", check.name, check.requirement);
-        }
-    }
-    Ok(out)
 }

@@ -1,0 +1,71 @@
+//! `twin check`: a student's program checked against its protocol, check
+//! by check, with the frames as evidence and a score. One file per role.
+
+mod slave;
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, Subcommand};
+use std::path::Path;
+use twin_check::Suite;
+
+/// Check a program against the protocol it must speak, and grade it.
+///
+/// Runs a suite of checks (send a request, expect the reply the protocol
+/// page requires, or silence) against a program on a serial port, a
+/// pseudo-terminal or TCP, and prints one line per check, the frames that
+/// show each failure, and a score. Suites are TOML files; the built-in ones
+/// (--list) are written the same way a teacher writes their own (--suite).
+/// A class is checked at once from a roster (--roster): a report per
+/// student and the scores side by side. Exits 1 when a check fails.
+#[derive(Debug, Args)]
+#[command(
+    after_help = "Examples:\n  twin check slave tcp://127.0.0.1:5700\n  twin check slave /dev/ttyUSB0?baud=9600 --id 3 --json report.json\n  twin check slave /tmp/ttyV0 --suite my-suite.toml --html report.html\n  twin check slave --roster class.csv --out grades/\n  twin check --list"
+)]
+pub struct CheckArgs {
+    #[command(subcommand)]
+    role: Option<Role>,
+    /// Print the built-in suites and their checks.
+    #[arg(long)]
+    list: bool,
+}
+
+#[derive(Debug, Subcommand)]
+enum Role {
+    /// The student's module controller: an MEB slave the twin sends requests to.
+    Slave(slave::SlaveArgs),
+}
+
+pub fn execute(args: &CheckArgs) -> Result<()> {
+    if args.list {
+        print!("{}", list()?);
+        return Ok(());
+    }
+    match &args.role {
+        Some(Role::Slave(slave)) => slave::execute(slave),
+        None => bail!("say what to check: `twin check slave LINK`, or `twin check --list`"),
+    }
+}
+
+pub(crate) fn write(path: &Path, contents: &str) -> Result<()> {
+    std::fs::write(path, contents).with_context(|| format!("cannot write {}", path.display()))
+}
+
+fn list() -> Result<String> {
+    use std::fmt::Write;
+    let mut out = String::new();
+    for (name, _) in twin_check::BUILT_IN {
+        let suite = Suite::load(name)?;
+        let _ = writeln!(
+            out,
+            "{name}: {} ({} checks, {} points)\n  {}",
+            suite.name,
+            suite.checks.len(),
+            suite.points(),
+            suite.description
+        );
+        for check in &suite.checks {
+            let _ = writeln!(out, "  - {} ({})", check.name, check.requirement);
+        }
+    }
+    Ok(out)
+}
