@@ -14,8 +14,9 @@ use crate::proto::meb::{MebBlock, MebCmd, MebWordType, MebWords};
 /// The analog inputs read every cycle: V2, I, V1, RPM_M, RPM_L, LDR.
 pub(crate) const INPUT_WORDS: usize = 6;
 
-/// The switches in the default map's order: `SD 00` bits 0–4, `SD 01` bit 0.
-const SWITCHES: [(&str, u8, u8); 6] = [
+/// The switches as the lab's I/O list names them, with their place in the
+/// default map (`SD` word, bit): `SD 00` bits 0–4, `SD 01` bit 0.
+pub const SWITCHES: [(&str, u8, u8); 6] = [
     ("EN", 0, 0),
     ("BRK", 0, 1),
     ("PRO", 0, 2),
@@ -141,6 +142,27 @@ impl MebLayout {
         }
     }
 
+    /// `EA` address of input `i` (V2, I, V1, RPM_M, RPM_L, LDR), if the
+    /// map places it.
+    pub fn input_address(&self, i: usize) -> Option<u8> {
+        self.inputs.get(i).copied().flatten()
+    }
+
+    /// `SD` word and bit of switch `i` of [`SWITCHES`], if the map places it.
+    pub fn switch_place(&self, i: usize) -> Option<(u8, u8)> {
+        self.switches.get(i).copied().flatten()
+    }
+
+    /// `SA` address of VEL, if the map places it.
+    pub fn vel_address(&self) -> Option<u8> {
+        self.vel
+    }
+
+    /// `FA` address of SOC, if the map places it.
+    pub fn soc_address(&self) -> Option<u8> {
+        self.soc
+    }
+
     /// Whether this is the protocol page's map.
     pub fn is_default(&self) -> bool {
         self.map.is_default()
@@ -198,7 +220,7 @@ impl MebLayout {
     }
 
     /// `ED` of the hall code, if the map places it.
-    pub(crate) fn hall(&self) -> Option<u8> {
+    pub fn hall(&self) -> Option<u8> {
         self.hall
     }
 

@@ -15,7 +15,7 @@ mod pi;
 mod supervisor;
 pub(crate) mod wire;
 
-pub use layout::{LayoutError, MebLayout, TranslateError};
+pub use layout::{LayoutError, MebLayout, SWITCHES, TranslateError};
 pub use pi::{SpeedPi, VEL_MAX, VEL_MIN};
 pub use supervisor::{
     ForwardError, LoopState, PollCounters, StatusWords, Supervisor, WriteOutcome, WriteTicket,

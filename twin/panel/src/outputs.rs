@@ -76,7 +76,7 @@ pub fn written_json(written: &Written, ids: impl Iterator<Item = u8>) -> Value {
     for (id, words) in w {
         let mut s = Map::new();
         for &(name, word, bit) in &SWITCHES {
-            let pin = words[word] >> bit & 1 == 1;
+            let pin = words[usize::from(word)] >> bit & 1 == 1;
             s.insert(
                 name.into(),
                 json!({ "on": pin == pin_for(word, bit, true), "pin": u8::from(pin) }),
@@ -142,11 +142,12 @@ pub async fn supervise(
         let mut touched = [false; 2];
         for &(i, on) in &switches {
             let (_, word, bit) = SWITCHES[i];
-            touched[word] = true;
+            let at = usize::from(word);
+            touched[at] = true;
             if pin_for(word, bit, on) {
-                words[word] |= 1 << bit;
+                words[at] |= 1 << bit;
             } else {
-                words[word] &= !(1 << bit);
+                words[at] &= !(1 << bit);
             }
         }
         let mut tickets = Vec::new();

@@ -3,6 +3,7 @@
 //! makes and the place of each output it writes.
 
 use nodes::firmware::{MebMap, ea};
+use nodes::master::MebLayout;
 use nodes::proto::meb::{MebBlock, MebWordType};
 
 /// The analog inputs, as the lab's I/O list names them, with their
@@ -16,15 +17,8 @@ pub const INPUTS: [(&str, usize); 6] = [
     ("LDR", ea::LDR),
 ];
 
-/// The switches: name, default SD word and bit.
-pub const SWITCHES: [(&str, usize, u8); 6] = [
-    ("EN", 0, 0),
-    ("BRK", 0, 1),
-    ("PRO", 0, 2),
-    ("DES", 0, 3),
-    ("FR", 0, 4),
-    ("CHG", 1, 0),
-];
+/// The switches: name, default SD word and bit (the supervisor's table).
+pub use nodes::master::SWITCHES;
 
 /// A switch's place on the slave.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -76,44 +70,32 @@ fn runs(addresses: impl Iterator<Item = usize>) -> Vec<(u8, u8)> {
     runs
 }
 
-fn word_of(map: &MebMap, block: MebBlock, kind: MebWordType, home: usize) -> Option<u8> {
-    (0..=LAST)
-        .find(|&a| map.word(block, kind, a) == Some(home))
-        .map(|a| a as u8)
-}
-
 impl Layout {
+    /// Where the supervisor places each signal under `map` ([`MebLayout`],
+    /// so the panel and the supervisor cannot disagree), and what a poll
+    /// of every mapped address reads.
     pub fn new(map: &MebMap) -> Self {
-        use MebBlock::{Flags, Inputs, Outputs};
+        use MebBlock::Inputs;
         use MebWordType::{Analog, Digital};
-        let inputs = INPUTS.map(|(_, home)| word_of(map, Inputs, Analog, home));
-        let mut switches = [None; 6];
-        for a in 0..=LAST {
-            for (user_bit, home_word, home_bit) in map.bits(Outputs, Digital, a) {
-                if let Some(i) = SWITCHES
-                    .iter()
-                    .position(|&(_, w, b)| w == home_word && b == home_bit)
-                {
-                    switches[i] = Some(BitPlace {
-                        word: a as u8,
-                        bit: user_bit,
-                    });
-                }
-            }
-        }
+        let supervisor = MebLayout::from_map(map);
+        let switches: [Option<BitPlace>; 6] = std::array::from_fn(|i| {
+            supervisor
+                .switch_place(i)
+                .map(|(word, bit)| BitPlace { word, bit })
+        });
         let mut sd_words: Vec<u8> = switches.iter().flatten().map(|p| p.word).collect();
         sd_words.sort_unstable();
         sd_words.dedup();
         let mapped = |b, k| (0..=LAST).filter(move |&a| map.word(b, k, a).is_some());
-        let soc = word_of(map, Flags, Analog, 0);
+        let soc = supervisor.soc_address();
         Self {
-            inputs,
+            inputs: std::array::from_fn(|i| supervisor.input_address(i)),
             ea_reads: runs(mapped(Inputs, Analog)),
-            hall: word_of(map, Inputs, Digital, 0),
+            hall: supervisor.hall(),
             ed_reads: runs(mapped(Inputs, Digital)),
             soc,
             fa_reads: runs(soc.map(usize::from).into_iter().chain([ERRS])),
-            vel: word_of(map, Outputs, Analog, 0),
+            vel: supervisor.vel_address(),
             switches,
             sd_words,
         }

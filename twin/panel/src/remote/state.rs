@@ -11,7 +11,7 @@ use nodes::firmware::status;
 /// Whether the pin is high with the switch `on`. Every switch is active low
 /// (on = pin 0) but FR, whose high pin turns the wheel counter-clockwise:
 /// FR "on" is reverse.
-pub fn pin_for(home_word: usize, home_bit: u8, on: bool) -> bool {
+pub fn pin_for(home_word: u8, home_bit: u8, on: bool) -> bool {
     if (home_word, home_bit) == (0, 4) {
         on
     } else {
