@@ -17,10 +17,12 @@
 )]
 
 pub mod class;
+pub mod framing;
 pub mod report;
 pub mod run;
 pub mod suite;
 pub mod wire;
 
 pub use run::{CheckOutcome, Outcome, SuiteRun, run_suite};
+pub use framing::Protocol;
 pub use suite::{BUILT_IN, Suite, SuiteError};

@@ -3,9 +3,11 @@
 //! A check stops at its first failing step; the next check starts on a
 //! quiet line.
 
+use crate::framing::Protocol;
 use crate::suite::{Step, Suite};
 use crate::wire::{Wire, WireError};
 use serde::Serialize;
+use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
 /// How long the line must stay quiet before a check starts: leftovers of
@@ -117,15 +119,19 @@ impl SuiteRun {
 pub fn run_suite(suite: &Suite, wire: &mut Wire, id: u8) -> Result<SuiteRun, WireError> {
     let started = wire.now();
     let mut checks = Vec::with_capacity(suite.checks.len());
+    let mut next_transaction = 1;
     for check in &suite.checks {
         let mut play = Play {
             wire: &mut *wire,
+            protocol: suite.protocol,
             id,
             timeout_ms: suite.timeout_ms,
             frames: Vec::new(),
             pending: Vec::new(),
             pending_since: None,
-            last_body: String::new(),
+            unanswered: VecDeque::new(),
+            last_request: (Vec::new(), 0),
+            next_transaction,
             sent_at: None,
             reply_ms: Vec::new(),
         };
@@ -143,6 +149,7 @@ pub fn run_suite(suite: &Suite, wire: &mut Wire, id: u8) -> Result<SuiteRun, Wir
             }
         }
         let seconds = play.wire.now() - began;
+        next_transaction = play.next_transaction;
         checks.push(CheckOutcome {
             name: check.name.clone(),
             requirement: check.requirement.clone(),
@@ -165,6 +172,7 @@ pub fn run_suite(suite: &Suite, wire: &mut Wire, id: u8) -> Result<SuiteRun, Wir
 
 struct Play<'a> {
     wire: &'a mut Wire,
+    protocol: Protocol,
     id: u8,
     /// A reply's deadline where a step sets none.
     timeout_ms: u64,
@@ -172,8 +180,14 @@ struct Play<'a> {
     /// Received and not yet taken as a reply, and when its first byte came.
     pending: Vec<u8>,
     pending_since: Option<f64>,
-    /// The last frame sent, up to its FCS.
-    last_body: String,
+    /// The requests sent and not yet answered, oldest first: each one's
+    /// body (MEB's text up to the FCS, a binary frame's bytes before its
+    /// CRC) and its Modbus TCP transaction id.
+    unanswered: VecDeque<(Vec<u8>, u16)>,
+    /// The last request a reply was taken for, for a step expecting more.
+    last_request: (Vec<u8>, u16),
+    /// The next Modbus TCP transaction id (counted over the whole run).
+    next_transaction: u16,
     /// When the last request's last byte went out.
     sent_at: Option<Instant>,
     reply_ms: Vec<f64>,
@@ -184,9 +198,19 @@ type Verdict = Result<(), String>;
 
 impl Play<'_> {
     fn fill(&self, text: &str) -> String {
-        let other = if self.id == 99 { 98 } else { self.id + 1 };
-        text.replace("{id}", &format!("{:02}", self.id))
-            .replace("{other}", &format!("{other:02}"))
+        self.protocol.fill(text, self.id)
+    }
+
+    fn shown(&self, bytes: &[u8]) -> String {
+        self.protocol.shown(bytes)
+    }
+
+    /// The request the next reply answers: the oldest unanswered one.
+    fn answered(&mut self) -> (Vec<u8>, u16) {
+        if let Some(request) = self.unanswered.pop_front() {
+            self.last_request = request;
+        }
+        self.last_request.clone()
     }
 
     /// Waits until the line has been quiet for [`SETTLE`].
@@ -202,10 +226,11 @@ impl Play<'_> {
     }
 
     fn send(&mut self, bytes: &[u8]) -> Result<(), WireError> {
+        let text = self.shown(bytes);
         self.frames.push(Exchange {
             at: self.wire.now(),
             way: Way::Sent,
-            text: shown(bytes),
+            text,
         });
         self.wire.send(bytes)?;
         self.sent_at = Some(Instant::now());
@@ -234,10 +259,11 @@ impl Play<'_> {
         if !self.pending.is_empty() {
             self.pending_since = Some(self.wire.now());
         }
+        let text = self.shown(bytes);
         self.frames.push(Exchange {
             at,
             way: Way::Received,
-            text: shown(bytes),
+            text,
         });
     }
 
@@ -245,43 +271,50 @@ impl Play<'_> {
         match step {
             Step::Send {
                 body,
-                bad_fcs,
+                spoil,
                 ending,
             } => {
                 let body = self.fill(body);
-                let fcs = fcs(body.as_bytes()).wrapping_add(u8::from(*bad_fcs));
-                let frame = format!("{body}{fcs:02X}{ending}");
-                self.last_body = body;
+                let transaction = self.next_transaction;
+                self.next_transaction = transaction.wrapping_add(1);
+                let frame = self.protocol.request(&body, *spoil, ending, transaction);
+                self.unanswered
+                    .push_back((self.protocol.body(&body), transaction));
                 self.pending.clear();
                 self.pending_since = None;
-                self.send(frame.as_bytes())?;
+                self.send(&frame)?;
                 Ok(Ok(()))
             }
             Step::Raw(text) => {
-                let text = self.fill(text);
+                let bytes = self.protocol.raw(&self.fill(text));
                 self.pending.clear();
                 self.pending_since = None;
-                self.send(text.as_bytes())?;
+                self.send(&bytes)?;
                 Ok(Ok(()))
             }
             Step::Expect {
                 pattern,
-                words,
+                data,
                 within_ms,
             } => {
                 let pattern = self.fill(pattern);
-                self.expect(&pattern, *words, within_ms.unwrap_or(self.timeout_ms))
+                let (_, transaction) = self.answered();
+                let within_ms = within_ms.unwrap_or(self.timeout_ms);
+                self.expect(&pattern, *data, transaction, within_ms)
             }
             Step::Error { code, within_ms } => {
-                let addr = self.last_body.get(5..7).unwrap_or("##").to_string();
-                let pattern = format!("@{:02}ER{addr}01{code:04X}", self.id);
-                self.expect(&pattern, 0, within_ms.unwrap_or(self.timeout_ms))
+                let (request, transaction) = self.answered();
+                let pattern = self.protocol.error_pattern(&request, self.id, *code);
+                let within_ms = within_ms.unwrap_or(self.timeout_ms);
+                self.expect(&pattern, 0, transaction, within_ms)
             }
             Step::Silence { ms } => {
                 let until = Instant::now() + Duration::from_millis(*ms);
                 while Instant::now() < until {
                     self.receive(until)?;
                 }
+                // What went unanswered is not waited for by a later step.
+                self.unanswered.clear();
                 if self.pending.is_empty() {
                     return Ok(Ok(()));
                 }
@@ -289,7 +322,7 @@ impl Play<'_> {
                 self.note_received(&got);
                 Ok(Err(format!(
                     "answered `{}` where it must stay silent for {ms} ms",
-                    shown(&got)
+                    self.shown(&got)
                 )))
             }
             Step::Wait { ms } => {
@@ -318,25 +351,34 @@ impl Play<'_> {
         }
         let got = std::mem::take(&mut self.pending);
         self.note_received(&got);
+        let got = self.shown(&got);
         Ok(match came {
             Some(after) => format!(
-                "; then `{}` came, {:.0} ms after the request",
-                shown(&got),
+                "; then `{got}` came, {:.0} ms after the request",
                 after.as_secs_f64() * 1e3
             ),
-            None => format!("; then `{}` came", shown(&got)),
+            None => format!("; then `{got}` came"),
         })
     }
 
-    /// The next frame, held to `pattern` and `words` data words.
-    fn expect(&mut self, pattern: &str, words: u8, within_ms: u64) -> Result<Verdict, WireError> {
+    /// The next frame, held to `pattern` and `data` data words (MEB) or
+    /// bytes; over TCP, answering `transaction`.
+    fn expect(
+        &mut self,
+        pattern: &str,
+        data: u16,
+        transaction: u16,
+        within_ms: u64,
+    ) -> Result<Verdict, WireError> {
         let deadline = self.sent_at.unwrap_or_else(Instant::now) + Duration::from_millis(within_ms);
-        let wanted = format!("`{pattern}`{}", data_words(words));
+        let wanted = format!("`{pattern}`{}", self.data(data));
         loop {
-            if let Some(end) = frame_end(&self.pending) {
+            if let Some(end) = self.protocol.frame_end(&self.pending) {
                 let frame: Vec<u8> = self.pending.drain(..end).collect();
                 self.note_received(&frame);
-                return Ok(judge(&frame, pattern, words)
+                return Ok(self
+                    .protocol
+                    .judge(&frame, pattern, data, transaction)
                     .map_err(|why| format!("{why}; expected {wanted}")));
             }
             if !self.receive(deadline)? {
@@ -347,134 +389,37 @@ impl Play<'_> {
                 }
                 let got = std::mem::take(&mut self.pending);
                 self.note_received(&got);
+                let missing = if self.protocol.is_text() {
+                    " (`*\\n` missing)"
+                } else {
+                    ""
+                };
                 return Ok(Err(format!(
-                    "`{}` came, no whole frame (`*\\n` missing) within {within_ms} ms; expected {wanted}",
-                    shown(&got)
+                    "`{}` came, no whole frame{missing} within {within_ms} ms; expected {wanted}",
+                    self.shown(&got)
                 )));
             }
         }
     }
-}
 
-fn data_words(words: u8) -> String {
-    match words {
-        0 => String::new(),
-        1 => " and one data word".into(),
-        n => format!(" and {n} data words"),
-    }
-}
-
-/// Where the first frame in `bytes` ends (after its `\n`), if one is whole.
-fn frame_end(bytes: &[u8]) -> Option<usize> {
-    bytes.iter().position(|&b| b == b'\n').map(|i| i + 1)
-}
-
-/// Whether `frame` is a well-formed reply matching `pattern` (`#`: any
-/// upper-case hex digit) and then `words` words of data.
-fn judge(frame: &[u8], pattern: &str, words: u8) -> Result<(), String> {
-    let text = String::from_utf8_lossy(frame);
-    let Some(start) = text.find('@') else {
-        return Err(format!("`{}` is no frame (no @)", shown(frame)));
-    };
-    if start > 0 {
-        return Err(format!(
-            "{start} bytes before the reply's @ (`{}`)",
-            shown(&frame[..start])
-        ));
-    }
-    let Some(head) = text.strip_suffix("*\n") else {
-        return Err(format!(
-            "`{}` does not end in *\\n (the MEB page: replies end *\\n)",
-            shown(frame)
-        ));
-    };
-    if head.len() < 3 {
-        return Err(format!("`{}` is too short for a frame", shown(frame)));
-    }
-    let (body, fcs_text) = head.split_at(head.len() - 2);
-    let computed = fcs(body.as_bytes());
-    match u8::from_str_radix(fcs_text, 16) {
-        Ok(given) if given == computed && fcs_text == fcs_text.to_uppercase() => {}
-        Ok(_) if fcs_text != fcs_text.to_uppercase() => {
-            return Err(format!(
-                "its FCS `{fcs_text}` is lower case (replies are upper case)"
-            ));
-        }
-        _ => {
-            return Err(format!(
-                "its FCS is `{fcs_text}`; its bytes give {computed:02X}"
-            ));
+    /// " and N data words/bytes", or nothing for none.
+    fn data(&self, count: u16) -> String {
+        let (one, many) = self.protocol.data_unit();
+        match count {
+            0 => String::new(),
+            1 => format!(" and one {one}"),
+            n => format!(" and {n} {many}"),
         }
     }
-    let expected_len = pattern.len() + 4 * usize::from(words);
-    let hex = |c: char| c.is_ascii_digit() || ('A'..='F').contains(&c);
-    let fits = body.len() == expected_len
-        && body
-            .chars()
-            .zip(pattern.chars())
-            .all(|(c, p)| if p == '#' { hex(c) } else { c == p })
-        && body.chars().skip(pattern.len()).all(hex);
-    if fits {
-        Ok(())
-    } else {
-        Err(format!("the reply was `{body}`"))
-    }
-}
-
-/// The MEB check: XOR of every byte from `@` to the last before the FCS.
-fn fcs(bytes: &[u8]) -> u8 {
-    bytes.iter().fold(0, |x, b| x ^ b)
-}
-
-/// Bytes as a report shows them: text with `\r` and `\n` spelt out, other
-/// control bytes in hex.
-pub fn shown(bytes: &[u8]) -> String {
-    let mut out = String::with_capacity(bytes.len() + 4);
-    for &b in bytes {
-        match b {
-            b'\n' => out.push_str("\\n"),
-            b'\r' => out.push_str("\\r"),
-            0x20..=0x7e => out.push(char::from(b)),
-            _ => out.push_str(&format!("\\x{b:02X}")),
-        }
-    }
-    out
 }
 
 #[cfg(test)]
 mod tests {
-    use super::*;
-
-    #[test]
-    fn replies_are_judged_by_form_fcs_and_pattern() {
-        assert_eq!(judge(b"@01EA000643*\n", "@01EA0006", 0), Ok(()));
-        let read = b"@01EA00020BD608004F*\n";
-        assert_eq!(judge(read, "@01EA0002", 2), Ok(()));
-        assert_eq!(judge(read, "@##EA0002", 2), Ok(()));
-        assert!(
-            judge(read, "@01EA0002", 1)
-                .unwrap_err()
-                .contains("the reply was")
-        );
-        assert!(
-            judge(b"@01EA000644*\n", "@01EA0006", 0)
-                .unwrap_err()
-                .contains("its bytes give 43")
-        );
-        assert!(
-            judge(b"@01EA000643*\r\n", "@01EA0006", 0)
-                .unwrap_err()
-                .contains("does not end")
-        );
-        assert!(
-            judge(b"xx@01EA000643*\n", "@01EA0006", 0)
-                .unwrap_err()
-                .contains("2 bytes before")
-        );
-    }
+    use crate::framing::Protocol;
 
     #[test]
     fn control_bytes_are_spelt_out() {
-        assert_eq!(shown(b"@01\r\n\x01"), "@01\\r\\n\\x01");
+        assert_eq!(Protocol::Meb.shown(b"@01\r\n\x01"), "@01\\r\\n\\x01");
+        assert_eq!(Protocol::ModbusRtu.shown(&[1, 0x83, 2]), "01 83 02");
     }
 }

@@ -24,12 +24,36 @@
 //! always checked), expect an `error` reply of a code to the last request,
 //! expect `silence_ms` of silence, or `wait_ms`. `{id}` stands for the
 //! checked slave's id, `{other}` for an id that is not its.
+//!
+//! The binary protocols (`protocol = "modbus-rtu"`, `"modbus-tcp"` or
+//! `"modbus8"`, the Controller_network project's 8-byte frames) write
+//! frames as hex bytes, spaces allowed between them: `send = "{id} 03 0000
+//! 0003"` is the unit id and the PDU (the six bytes before the CRC of an
+//! 8-byte frame); the CRC is added (`crc = "bad"` spoils it), or over TCP
+//! the MBAP header with a transaction id the run counts. `raw` bytes go as
+//! they are. `expect` is the reply's unit and PDU, `..` for a byte of any
+//! value, then `bytes` data bytes of any value; its CRC (its header over
+//! TCP, the transaction id included) is always checked. `exception = 2`
+//! expects the exception reply of that code to the request it answers.
+//! `{id}` and `{other}` are hex bytes there.
 
+use crate::framing::{PROTOCOLS, Protocol};
 use serde::Deserialize;
 use std::path::Path;
 
 /// The suites that ship, by name: `twin check --list` prints them.
-pub const BUILT_IN: &[(&str, &str)] = &[("meb-slave", include_str!("../suites/meb-slave.toml"))];
+pub const BUILT_IN: &[(&str, &str)] = &[
+    ("meb-slave", include_str!("../suites/meb-slave.toml")),
+    (
+        "modbus-rtu-slave",
+        include_str!("../suites/modbus-rtu-slave.toml"),
+    ),
+    (
+        "modbus-tcp-slave",
+        include_str!("../suites/modbus-tcp-slave.toml"),
+    ),
+    ("modbus8-slave", include_str!("../suites/modbus8-slave.toml")),
+];
 
 /// A suite that cannot be used, with where and why.
 #[derive(Debug, thiserror::Error)]
@@ -52,7 +76,7 @@ pub enum SuiteError {
 #[derive(Debug, Clone, PartialEq)]
 pub struct Suite {
     pub name: String,
-    pub protocol: String,
+    pub protocol: Protocol,
     pub description: String,
     pub timeout_ms: u64,
     pub checks: Vec<Check>,
@@ -71,24 +95,27 @@ pub struct Check {
 /// One thing a check does.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Step {
-    /// A frame: its text up to the FCS, which is added (`good`) or spoilt,
-    /// then the ending.
+    /// A frame: its body (MEB's text up to the FCS, a binary frame's
+    /// bytes before its CRC), the check bytes added (`spoil`: wrong ones),
+    /// then MEB's ending.
     Send {
         body: String,
-        bad_fcs: bool,
+        spoil: bool,
         ending: String,
     },
     /// Bytes as they are (garbage, a partial frame).
     Raw(String),
-    /// A reply whose text up to the FCS matches `pattern` (`#`: any hex
-    /// digit) followed by `words` data words, within `within_ms` (the
-    /// suite's `timeout_ms` if not given).
+    /// A reply whose body matches `pattern` (MEB: `#` any hex digit;
+    /// binary: `..` any byte) followed by `data` data words (MEB) or bytes
+    /// of any value, within `within_ms` (the suite's `timeout_ms` if not
+    /// given).
     Expect {
         pattern: String,
-        words: u8,
+        data: u16,
         within_ms: Option<u64>,
     },
-    /// An error reply of `code` to the last request sent.
+    /// An error (MEB) or exception (Modbus) reply of `code` to the request
+    /// it answers.
     Error {
         code: u8,
         within_ms: Option<u64>,
@@ -138,11 +165,14 @@ fn one() -> u32 {
 struct StepToml {
     send: Option<String>,
     fcs: Option<String>,
+    crc: Option<String>,
     ending: Option<String>,
     raw: Option<String>,
     expect: Option<String>,
     words: Option<u8>,
+    bytes: Option<u16>,
     error: Option<u8>,
+    exception: Option<u8>,
     within_ms: Option<u64>,
     silence_ms: Option<u64>,
     wait_ms: Option<u64>,
@@ -171,6 +201,15 @@ impl Suite {
             path: path.into(),
             why: e.to_string().trim_end().to_string(),
         })?;
+        let Some(protocol) = Protocol::from_name(&raw.protocol) else {
+            return Err(SuiteError::Toml {
+                path: path.into(),
+                why: format!(
+                    "protocol `{}`: a suite speaks {PROTOCOLS}",
+                    raw.protocol
+                ),
+            });
+        };
         let line_of = |offset: usize| text[..offset.min(text.len())].lines().count().max(1);
         let mut checks = Vec::with_capacity(raw.checks.len());
         for check in raw.checks {
@@ -178,7 +217,7 @@ impl Suite {
             let mut sent = false;
             for spanned in check.steps {
                 let line = line_of(spanned.span().start);
-                let step = step(spanned.into_inner(), sent).map_err(|why| SuiteError::Step {
+                let step = step(protocol, spanned.into_inner(), sent).map_err(|why| SuiteError::Step {
                     path: path.into(),
                     line,
                     why: format!("check `{}`: {why}", check.name),
@@ -193,18 +232,9 @@ impl Suite {
                 steps,
             });
         }
-        if raw.protocol != "meb" {
-            return Err(SuiteError::Toml {
-                path: path.into(),
-                why: format!(
-                    "protocol `{}`: this version checks MEB programs (protocol = \"meb\")",
-                    raw.protocol
-                ),
-            });
-        }
         Ok(Suite {
             name: raw.name,
-            protocol: raw.protocol,
+            protocol,
             description: raw.description,
             timeout_ms: raw.timeout_ms,
             checks,
@@ -217,22 +247,25 @@ impl Suite {
     }
 }
 
-/// The one action of a step, checked.
-fn step(s: StepToml, sent: bool) -> Result<Step, String> {
+/// The one action of a step, checked against the suite's protocol.
+fn step(protocol: Protocol, s: StepToml, sent: bool) -> Result<Step, String> {
     let actions = [
         s.send.is_some(),
         s.raw.is_some(),
         s.expect.is_some(),
         s.error.is_some(),
+        s.exception.is_some(),
         s.silence_ms.is_some(),
         s.wait_ms.is_some(),
     ];
     let count = actions.iter().filter(|a| **a).count();
     if count != 1 {
         return Err(format!(
-            "a step does one thing (send, raw, expect, error, silence_ms or wait_ms); this one does {count}"
+            "a step does one thing (send, raw, expect, {}, silence_ms or wait_ms); this one does {count}",
+            if protocol.is_text() { "error" } else { "exception" }
         ));
     }
+    not_in_protocol(protocol, &s)?;
     let only_with = |given: bool, field: &str, action: &str| {
         if given {
             Err(format!("`{field}` goes with `{action}` only"))
@@ -242,44 +275,56 @@ fn step(s: StepToml, sent: bool) -> Result<Step, String> {
     };
     if s.send.is_none() {
         only_with(s.fcs.is_some(), "fcs", "send")?;
+        only_with(s.crc.is_some(), "crc", "send")?;
         only_with(s.ending.is_some(), "ending", "send")?;
     }
     if s.expect.is_none() {
         only_with(s.words.is_some(), "words", "expect")?;
+        only_with(s.bytes.is_some(), "bytes", "expect")?;
     }
-    if s.expect.is_none() && s.error.is_none() {
-        only_with(s.within_ms.is_some(), "within_ms", "expect or error")?;
+    let reply = if protocol.is_text() { "error" } else { "exception" };
+    if s.expect.is_none() && s.error.is_none() && s.exception.is_none() {
+        only_with(s.within_ms.is_some(), "within_ms", &format!("expect or {reply}"))?;
     }
     let within_ms = s.within_ms;
     if let Some(body) = s.send {
-        if !body.starts_with('@') {
-            return Err(format!("send `{body}`: a frame starts with @"));
-        }
-        let bad_fcs = match s.fcs.as_deref() {
-            None | Some("good") => false,
-            Some("bad") => true,
-            Some(other) => return Err(format!("fcs `{other}`: \"good\" or \"bad\"")),
+        protocol.check_send(&body)?;
+        let (field, check) = match (s.fcs, s.crc) {
+            (Some(fcs), _) => ("fcs", fcs),
+            (_, Some(crc)) => ("crc", crc),
+            _ => ("", "good".into()),
+        };
+        let spoil = match check.as_str() {
+            "good" => false,
+            "bad" => true,
+            other => return Err(format!("{field} `{other}`: \"good\" or \"bad\"")),
         };
         let ending = s.ending.unwrap_or_else(|| "*\n".into());
         return Ok(Step::Send {
             body,
-            bad_fcs,
+            spoil,
             ending,
         });
     }
     if let Some(raw) = s.raw {
+        protocol.check_raw(&raw).map_err(|why| format!("raw: {why}"))?;
         return Ok(Step::Raw(raw));
     }
-    if (s.expect.is_some() || s.error.is_some()) && !sent {
+    if (s.expect.is_some() || s.error.is_some() || s.exception.is_some()) && !sent {
         return Err("a reply is expected before anything was sent".into());
     }
     if let Some(pattern) = s.expect {
-        if !pattern.starts_with('@') {
-            return Err(format!("expect `{pattern}`: a reply starts with @"));
-        }
+        protocol
+            .check_pattern(&pattern)
+            .map_err(|why| format!("expect: {why}"))?;
+        let data = match (s.words, s.bytes) {
+            (Some(words), _) => u16::from(words),
+            (_, Some(bytes)) => bytes,
+            _ => 0,
+        };
         return Ok(Step::Expect {
             pattern,
-            words: s.words.unwrap_or(0),
+            data,
             within_ms,
         });
     }
@@ -289,12 +334,42 @@ fn step(s: StepToml, sent: bool) -> Result<Step, String> {
         }
         return Ok(Step::Error { code, within_ms });
     }
+    if let Some(code) = s.exception {
+        if code == 0 {
+            return Err("exception 0: Modbus exception codes start at 1".into());
+        }
+        return Ok(Step::Error { code, within_ms });
+    }
     if let Some(ms) = s.silence_ms {
         return Ok(Step::Silence { ms });
     }
     Ok(Step::Wait {
         ms: s.wait_ms.unwrap_or(0),
     })
+}
+
+/// A field that belongs to another protocol, named with the one to use.
+fn not_in_protocol(protocol: Protocol, s: &StepToml) -> Result<(), String> {
+    let misplaced: Vec<(bool, &str)> = match protocol {
+        Protocol::Meb => vec![
+            (s.crc.is_some(), "`crc` is for the binary protocols: an MEB frame's check is its FCS (`fcs`)"),
+            (s.bytes.is_some(), "`bytes` is for the binary protocols: an MEB reply's data is counted in `words`"),
+            (s.exception.is_some(), "`exception` is for the Modbus protocols: MEB replies `error`"),
+        ],
+        _ => vec![
+            (s.fcs.is_some(), "`fcs` is MEB's: a Modbus frame's check is its CRC (`crc`)"),
+            (s.ending.is_some(), "`ending` is MEB's: a Modbus frame has none"),
+            (s.words.is_some(), "`words` is MEB's: a Modbus reply's data is counted in `bytes`"),
+            (s.error.is_some(), "`error` is MEB's: a Modbus slave answers an `exception`"),
+        ],
+    };
+    if let Some((_, why)) = misplaced.iter().find(|(given, _)| *given) {
+        return Err((*why).into());
+    }
+    if protocol == Protocol::ModbusTcp && s.crc.is_some() {
+        return Err("`crc`: Modbus TCP frames carry no CRC (the MBAP header frames them)".into());
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -338,5 +413,49 @@ mod tests {
             e.contains("line 6") && e.contains("before anything was sent"),
             "{e}"
         );
+    }
+
+    fn one_check(protocol: &str, steps: &str) -> String {
+        format!(
+            "name = \"x\"\nprotocol = \"{protocol}\"\n[[check]]\nname = \"c\"\nrequirement = \"r\"\nsteps = [\n{steps}\n]\n"
+        )
+    }
+
+    #[test]
+    fn a_binary_step_reads_hex_bytes_and_its_counts() {
+        let text = one_check(
+            "modbus-rtu",
+            "{ send = \"{id} 04 0000 000A\", crc = \"bad\" },\n{ expect = \"{id} 04 14\", bytes = 20 },\n{ exception = 2 },",
+        );
+        let suite = Suite::parse(&text, "mine.toml").unwrap();
+        assert_eq!(suite.protocol, Protocol::ModbusRtu);
+        let steps = &suite.checks[0].steps;
+        assert!(matches!(&steps[0], Step::Send { spoil: true, .. }));
+        assert!(matches!(&steps[1], Step::Expect { data: 20, .. }));
+        assert!(matches!(&steps[2], Step::Error { code: 2, .. }));
+    }
+
+    #[test]
+    fn a_binary_suites_mistakes_are_named_with_their_line() {
+        let cases = [
+            ("modbus-rtu", "{ send = \"{id} 04 00G0 000A\" },", "line 8: check `c`: `0G` in `00G0` is not a hex byte"),
+            ("modbus-rtu", "{ send = \"{id} 04 000 000A\" },", "`000` has an odd number of hex digits"),
+            ("modbus8", "{ send = \"01 03 0001\" },", "an 8-byte Modbus frame is six bytes"),
+            ("modbus-tcp", "{ send = \"01 03 0001 0001\", crc = \"bad\" },", "Modbus TCP frames carry no CRC"),
+            ("modbus-rtu", "{ send = \"01 03 0001 0001\", fcs = \"bad\" },", "`fcs` is MEB's"),
+            ("meb", "{ send = \"@{id}EA0001\" },\n{ exception = 2 },", "line 9: check `c`: `exception` is for the Modbus protocols"),
+            ("modbus-rtu", "{ send = \"01 03 0001 0001\" },\n{ expect = \"01 03 02\", words = 1 },", "`words` is MEB's"),
+        ];
+        for (protocol, steps, why) in cases {
+            let e = Suite::parse(&one_check(protocol, steps), "mine.toml")
+                .unwrap_err()
+                .to_string();
+            assert!(e.starts_with("mine.toml, line "), "{e}");
+            assert!(e.contains(why), "{protocol} {steps}: {e}");
+        }
+        let e = Suite::parse(&one_check("modbus", ""), "mine.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("protocol `modbus`: a suite speaks \"meb\", \"modbus-rtu\""), "{e}");
     }
 }

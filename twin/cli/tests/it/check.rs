@@ -5,6 +5,7 @@
 //! reports read back; and a class ([`class`]).
 
 mod class;
+mod modbus;
 
 use crate::support::{Proc, scratch, text, twin};
 use std::path::Path;

@@ -19,7 +19,7 @@ use twin_check::Suite;
 /// student and the scores side by side. Exits 1 when a check fails.
 #[derive(Debug, Args)]
 #[command(
-    after_help = "Examples:\n  twin check slave tcp://127.0.0.1:5700\n  twin check slave /dev/ttyUSB0?baud=9600 --id 3 --json report.json\n  twin check slave /tmp/ttyV0 --suite my-suite.toml --html report.html\n  twin check slave --roster class.csv --out grades/\n  twin check --list"
+    after_help = "Examples:\n  twin check slave tcp://127.0.0.1:5700\n  twin check slave /dev/ttyUSB0?baud=9600 --id 3 --json report.json\n  twin check slave /tmp/ttyV0 --suite my-suite.toml --html report.html\n  twin check slave tcp://127.0.0.1:5020 --suite modbus-tcp-slave\n  twin check slave /tmp/ttyV0 --suite modbus-rtu-slave\n  twin check slave --roster class.csv --out grades/\n  twin check --list"
 )]
 pub struct CheckArgs {
     #[command(subcommand)]
@@ -31,7 +31,9 @@ pub struct CheckArgs {
 
 #[derive(Debug, Subcommand)]
 enum Role {
-    /// The student's module controller: an MEB slave the twin sends requests to.
+    /// The student's slave the twin sends requests to: the module controller
+    /// over MEB, Modbus RTU or TCP, or the Controller_network nodes over the
+    /// 8-byte Modbus (--suite).
     Slave(slave::SlaveArgs),
 }
 

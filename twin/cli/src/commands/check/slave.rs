@@ -15,16 +15,20 @@ pub struct SlaveArgs {
     /// pseudo-terminal (PATH?baud=9600&parity=E).
     #[arg(required_unless_present = "roster", conflicts_with = "roster")]
     link: Option<String>,
-    /// The slave's id (the M3CVME tool's device number); with --roster,
-    /// of every student whose line gives none.
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=99))]
+    /// The slave's id (MEB: the M3CVME tool's device number, 1-99; Modbus:
+    /// the unit id, 1-247); with --roster, of every student whose line
+    /// gives none. The 8-byte Modbus suite addresses the Controller_network
+    /// project's own ids, 01 and 02.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=247))]
     id: u8,
-    /// The suite: a built-in one's name (--list) or a TOML file.
+    /// The suite: a built-in one's name (--list: meb-slave,
+    /// modbus-rtu-slave, modbus-tcp-slave, modbus8-slave) or a TOML file.
     #[arg(long, default_value = "meb-slave", value_name = "NAME|FILE")]
     suite: String,
     /// A reply's deadline in ms where the suite's steps set none (the suite's
-    /// own otherwise: 100 ms for the built-in one, the MEB page's master
-    /// timeout). Give a slow board more.
+    /// own otherwise: 100 ms for MEB, the MEB page's master timeout, and
+    /// for the 8-byte Modbus; 200 ms for Modbus RTU and TCP). Give a slow
+    /// board more.
     #[arg(long, value_name = "MS", value_parser = clap::value_parser!(u64).range(1..=60_000))]
     timeout_ms: Option<u64>,
     /// Also write the run as JSON (every check, its frames and times).
@@ -53,6 +57,16 @@ pub struct SlaveArgs {
 /// One student's slave checked, or a class's from a roster.
 pub fn execute(slave: &SlaveArgs) -> Result<()> {
     let mut suite = Suite::load(&slave.suite)?;
+    let ids = suite.protocol.ids();
+    if !ids.contains(&slave.id) {
+        bail!(
+            "--id {}: the {} suite's slaves have ids {} to {}",
+            slave.id,
+            suite.name,
+            ids.start(),
+            ids.end()
+        );
+    }
     if let Some(ms) = slave.timeout_ms {
         suite.timeout_ms = ms;
     }
