@@ -190,7 +190,7 @@ const BAD_ADDRESS: [&str; 5] = [
     "a read running past the holding registers' end gets exception 02",
     "a write to a hole in the coils (6) gets exception 02",
     "a write past the holding registers (3) gets exception 02",
-    "a read of 125 registers, the most a request may ask, gets exception 02 here",
+    "a read of 125 input registers, the most a request may ask, gets exception 02 (there are ten)",
 ];
 
 #[test]
@@ -269,4 +269,35 @@ fn each_bug_planted_in_the_pymodbus_slave_is_found_and_nothing_else() {
             );
         });
     });
+}
+
+/// The book's Modbus report is the program's: every line it shows, in
+/// order, and every failure the program reports.
+#[test]
+fn the_books_modbus_report_is_what_twin_check_prints() {
+    if let Some(why) = pymodbus_missing() {
+        println!("skipped: pymodbus is missing ({why}); .ci/install installs it");
+        return;
+    }
+    let page =
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("../../docs/check.md"))
+            .unwrap();
+    let start = page
+        .find("```text\nModbus TCP slave suite")
+        .expect("the Modbus report on the page")
+        + 8;
+    let shown = super::comparable(&page[start..start + page[start..].find("\n```").unwrap()]);
+    let slave = student("tcp", "book", &["no-range-check"]);
+    let out = check_slave(&slave.link, &["--suite", "modbus-tcp-slave"]);
+    let printed = super::comparable(&text(&out));
+    let mut rest = printed.iter();
+    for line in &shown {
+        assert!(
+            rest.any(|l| l == line),
+            "the page's line {line:?} is not in what the program printed, in order:\n{}",
+            printed.join("\n")
+        );
+    }
+    let failures = |lines: &[String]| lines.iter().filter(|l| l.contains("FAIL")).count();
+    assert_eq!(failures(&shown), failures(&printed), "{}", printed.join("\n"));
 }
