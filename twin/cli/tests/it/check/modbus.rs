@@ -214,7 +214,19 @@ fn each_bug_planted_in_the_pymodbus_slave_is_found_and_nothing_else() {
             ],
         ),
         ("rtu", "wrong-exception-code", &BAD_ADDRESS),
-        ("tcp", "wrong-exception-code", &BAD_ADDRESS),
+        (
+            "tcp",
+            "wrong-exception-code",
+            &[
+                BAD_ADDRESS[0],
+                BAD_ADDRESS[1],
+                BAD_ADDRESS[2],
+                BAD_ADDRESS[3],
+                BAD_ADDRESS[4],
+                // Its last request is one past the holding registers.
+                "requests back to back, each sent as its reply comes, are answered with their transaction ids",
+            ],
+        ),
         (
             "rtu",
             "no-range-check",
