@@ -1,11 +1,14 @@
 //! `twin batch` as an HPC user runs it: a manifest of 20 short runs by
 //! index, by shard, all at once and as a scheduler's array task; entries
 //! skipped, retried and failed; the summaries gathered into a CSV and a
-//! plot; and the GNU parallel example of `docs/batch.md` run as written.
+//! plot; and the GNU parallel example of `docs/batch.md` run as written
+//! (its Slurm example, on a cluster of one node, is in `slurm`).
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
+
+mod slurm;
 
 const SCHEDULER_VARIABLES: [&str; 3] = [
     "SLURM_ARRAY_TASK_ID",
@@ -357,6 +360,21 @@ fn summarize_gathers_a_known_set_into_csv_and_plot() {
 // A broken manifest is refused with its file, line and field:
 // tests/cmd/batch-broken.trycmd.
 
+fn repo() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+/// The body of the block of `docs/batch.md` that opens with `fence`.
+fn doc_block(fence: &str) -> String {
+    let doc = std::fs::read_to_string(repo().join("docs/batch.md")).expect("docs/batch.md");
+    let start = doc
+        .find(&format!("{fence}\n"))
+        .unwrap_or_else(|| panic!("a {fence} block in docs/batch.md"));
+    let block = &doc[start..];
+    let block = &block[block.find('\n').unwrap() + 1..];
+    block[..block.find("```").unwrap()].to_string()
+}
+
 /// The GNU parallel example of `docs/batch.md`, its shell block run as
 /// written (with this build of `twin` first on the PATH).
 #[test]
@@ -368,14 +386,9 @@ fn the_gnu_parallel_example_of_the_docs_runs() {
             .is_ok_and(|o| o.status.success()),
         "GNU parallel is missing: install it (Debian: apt-get install parallel; .ci/install does)"
     );
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
-    let doc = std::fs::read_to_string(root.join("docs/batch.md")).expect("docs/batch.md");
-    let start = doc
-        .find("```sh parallel")
-        .expect("a ```sh parallel block in docs/batch.md");
-    let block = &doc[start..];
-    let block = &block[block.find('\n').unwrap() + 1..];
-    let block = &block[..block.find("```").unwrap()];
+    let root = repo();
+    let block = doc_block("```sh parallel");
+    let block = block.as_str();
     let dir = scratch("parallel");
     std::fs::copy(
         root.join("docs/examples/sweep.jsonl"),
