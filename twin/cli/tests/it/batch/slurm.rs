@@ -159,8 +159,10 @@ fn the_slurm_array_of_the_docs_runs_on_a_one_node_cluster() {
         std::fs::copy(repo().join("docs/examples").join(file), dir.join(file)).unwrap();
     }
     let cluster = OneNode::start();
-    let o = Command::new("bash")
-        .args(["-euo", "pipefail", "-c", &submit])
+    // Not a speed bound: a node that died mid-run would leave `sbatch
+    // --wait` waiting forever, and the whole test run with it.
+    let o = Command::new("timeout")
+        .args(["600", "bash", "-euo", "pipefail", "-c", &submit])
         .current_dir(&dir)
         .env("PATH", path())
         .env("HOME", &dir)
