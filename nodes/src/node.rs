@@ -10,6 +10,7 @@
 //! engine steps the plant up to each loop tick and hands the firmware the
 //! sensors; the firmware answers with the actuators to hold until its next tick.
 
+use crate::firmware::Refusal;
 use crate::time::{SimDuration, SimTime};
 
 /// Longest frame any node sends in one piece (an MEB frame with 99 words and
@@ -52,6 +53,14 @@ pub trait Node {
     /// Take the next event to record, if any.
     fn poll_event(&mut self) -> Option<NodeEvent> {
         None
+    }
+
+    /// Answer every request addressed to this node with `refusal` (an
+    /// injected fault: MEB `ER`, a Modbus exception, the Controller_network
+    /// project's exception frame), or serve normally again with `None`.
+    /// False for a node that serves no requests (a master).
+    fn force_refusal(&mut self, _refusal: Option<Refusal>) -> bool {
+        false
     }
 }
 

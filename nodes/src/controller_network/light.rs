@@ -216,6 +216,11 @@ impl Node for LightNode {
     fn poll_timeout(&self) -> Option<SimTime> {
         self.port.poll_timeout()
     }
+
+    fn force_refusal(&mut self, refusal: Option<crate::firmware::Refusal>) -> bool {
+        self.port.forced = refusal.map(crate::firmware::Refusal::modbus);
+        true
+    }
 }
 
 impl Firmware for LightNode {

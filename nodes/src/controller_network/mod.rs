@@ -111,6 +111,8 @@ struct SlavePort {
     replies: VecDeque<[u8; FRAME_LEN]>,
     /// The port is closed (reset communication) until then: bytes are lost.
     closed_until: Option<SimTime>,
+    /// Every request refused with this exception (an injected fault).
+    forced: Option<Exception>,
 }
 
 impl SlavePort {
@@ -121,6 +123,7 @@ impl SlavePort {
             decoder: Modbus8Decoder::new(config.crc_order, config.silence),
             replies: VecDeque::with_capacity(FIRST_REPLIES),
             closed_until: None,
+            forced: None,
         }
     }
 
@@ -140,7 +143,11 @@ impl SlavePort {
             if let Ok(request) = decoded
                 && request.id == self.id
             {
-                let mut reply = answer(map, request).to_bytes(self.config.crc_order);
+                let reply = match self.forced {
+                    Some(e) => Frame::exception(request.id, request.function, request.addr, e),
+                    None => answer(map, request),
+                };
+                let mut reply = reply.to_bytes(self.config.crc_order);
                 if self.config.corrupt_reply_crc {
                     corrupt_crc(&mut reply, self.config.crc_order);
                 }

@@ -406,6 +406,11 @@ impl Node for MotorNode {
             detail: format!("motor state {} -> {}", change.from, change.to),
         })
     }
+
+    fn force_refusal(&mut self, refusal: Option<crate::firmware::Refusal>) -> bool {
+        self.port.forced = refusal.map(crate::firmware::Refusal::modbus);
+        true
+    }
 }
 
 impl Firmware for MotorNode {

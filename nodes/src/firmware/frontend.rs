@@ -17,7 +17,7 @@ use crate::proto::modbus::pdu::function;
 use crate::proto::modbus::rtu::{Direction, RtuDecoder};
 use crate::proto::modbus::serial::Timing;
 use crate::proto::modbus::tcp::TcpDecoder;
-use crate::proto::modbus::{self, Drops, ExceptionResponse, MAX_PDU_LEN, ascii::AsciiDecoder};
+use crate::proto::modbus::{self, Drops, MAX_PDU_LEN, ascii::AsciiDecoder};
 use crate::time::{SimDuration, SimTime};
 
 use super::image::{Refusal, RegisterImage};
@@ -378,8 +378,7 @@ impl SlaveFrontend {
             .is_some_and(|(block, _)| block.access() == MebAccess::Write);
         let refusal = self.refusal(write);
         let reply = match refusal {
-            _ if request.is_broadcast() && refusal.is_some() => None,
-            Some(refusal) => Some(MebRepr::error_reply(self.id, request.addr, refusal.meb())),
+            Some(refusal) => meb_slave::refuse(self.id, request, refusal),
             None => meb_slave::serve_mapped(image, self.id, request, self.map.as_deref()),
         };
         if let Some(reply) = reply {
@@ -416,11 +415,7 @@ impl SlaveFrontend {
         );
         let refusal = self.refusal(write);
         let reply = match refusal {
-            _ if broadcast && refusal.is_some() => None,
-            Some(refusal) => Some(Err(ExceptionResponse {
-                function: code,
-                exception: refusal.modbus(),
-            })),
+            Some(refusal) => modbus_slave::refuse(self.id, unit, pdu, refusal),
             None => modbus_slave::serve(image, self.id, unit, pdu),
         };
         let Some(reply) = reply else { return };

@@ -146,6 +146,18 @@ pub enum Refusal {
 }
 
 impl Refusal {
+    /// The refusal an exception or `ER` code names: 1 illegal function /
+    /// command, 2 illegal address, 3 illegal data, 4 device failure.
+    pub fn from_code(code: u8) -> Option<Refusal> {
+        match code {
+            1 => Some(Refusal::IllegalCommand),
+            2 => Some(Refusal::IllegalAddress),
+            3 => Some(Refusal::IllegalData),
+            4 => Some(Refusal::DeviceFailure),
+            _ => None,
+        }
+    }
+
     /// The MEB error code.
     pub fn meb(self) -> MebErrorCode {
         match self {

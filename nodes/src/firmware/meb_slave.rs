@@ -92,6 +92,17 @@ pub fn serve_mapped(
     })
 }
 
+/// The reply when every request is refused with `refusal` (an injected
+/// fault, a read-only client): the `ER` reply to a request for this slave;
+/// silence to replies, to other slaves' requests and to broadcasts. Nothing
+/// is stored.
+pub fn refuse(own_id: u8, request: &MebRepr, refusal: Refusal) -> Option<MebRepr> {
+    if request.shape().is_reply() || request.is_broadcast() || request.id != own_id {
+        return None;
+    }
+    Some(MebRepr::error_reply(own_id, request.addr, refusal.meb()))
+}
+
 /// The checks and the action: command (01), CNT 0 (03), address range (02),
 /// values (03), whether it may be applied now (04).
 fn execute(

@@ -157,6 +157,8 @@ pub struct EvController {
     light: LightRpm,
     stalled_since: Option<SimTime>,
     events: VecDeque<NodeEvent>,
+    /// Every request refused with this (an injected fault).
+    forced: Option<Refusal>,
 }
 
 impl EvController {
@@ -182,6 +184,7 @@ impl EvController {
             light: LightRpm::new(config.light, config.loop_period),
             stalled_since: None,
             events: VecDeque::with_capacity(MAX_PENDING_EVENTS),
+            forced: None,
             config,
         }
     }
@@ -266,7 +269,11 @@ impl EvController {
                     // A drop earlier in this chunk already shows in FA1.
                     self.refresh_errs();
                     let id = self.config.slave_id;
-                    if let Some(reply) = meb_slave::serve(&mut self.image, id, &request) {
+                    let reply = match self.forced {
+                        Some(refusal) => meb_slave::refuse(id, &request, refusal),
+                        None => meb_slave::serve(&mut self.image, id, &request),
+                    };
+                    if let Some(reply) = reply {
                         let len = reply.emit(&mut self.tx).map_err(|_| "reply too long");
                         self.queue_reply(now, len);
                     }
@@ -286,7 +293,11 @@ impl EvController {
     fn serve_rtu(&mut self, now: SimTime, unit: u8, pdu: &[u8]) {
         self.refresh_errs();
         let own = self.config.slave_id;
-        if let Some(reply) = modbus_slave::serve(&mut self.image, own, unit, pdu) {
+        let reply = match self.forced {
+            Some(refusal) => modbus_slave::refuse(own, unit, pdu, refusal),
+            None => modbus_slave::serve(&mut self.image, own, unit, pdu),
+        };
+        if let Some(reply) = reply {
             let len = rtu::emit(own, &reply, &mut self.tx).map_err(|_| "reply too long");
             self.queue_reply(now, len);
         }
@@ -367,6 +378,11 @@ impl Node for EvController {
 
     fn poll_event(&mut self) -> Option<NodeEvent> {
         self.events.pop_front()
+    }
+
+    fn force_refusal(&mut self, refusal: Option<Refusal>) -> bool {
+        self.forced = refusal;
+        true
     }
 }
 

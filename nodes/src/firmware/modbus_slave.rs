@@ -57,6 +57,25 @@ pub fn serve(
     (!broadcast).then_some(answer)
 }
 
+/// The reply when every request is refused with `refusal` (an injected
+/// fault, a read-only client): the exception to a request for this unit;
+/// silence to other units and to broadcasts. Nothing is stored.
+pub fn refuse(
+    own_unit: u8,
+    frame_unit: u8,
+    pdu: &[u8],
+    refusal: Refusal,
+) -> Option<Result<Response, ExceptionResponse>> {
+    if frame_unit != own_unit || frame_unit == 0 {
+        return None;
+    }
+    let function = *pdu.first()?;
+    Some(Err(ExceptionResponse {
+        function,
+        exception: refusal.modbus(),
+    }))
+}
+
 /// The first `quantity` table entries from `address`, or 02 past the table's end.
 fn span(address: u16, quantity: u16, table: u16) -> Result<core::ops::Range<usize>, Refusal> {
     let end = u32::from(address) + u32::from(quantity);

@@ -1,7 +1,8 @@
 //! A node that misbehaves on purpose, as smoltcp's `FaultInjector` wraps a
 //! device: [`FaultyNode`] wraps any [`Node`] and, while a fault is active,
-//! spoils the check bytes of what it sends, loses or delays its frames, or
-//! takes it off the bus altogether.
+//! spoils the check bytes of what it sends, loses or delays its frames,
+//! refuses every request, answers as another slave, splits its replies in
+//! two, sends junk with them, or takes it off the bus altogether.
 //!
 //! A fault is active when set by hand ([`FaultyNode::set_fault`], which wins)
 //! or when the instant falls in a [`FaultWindow`] of the schedule. It is judged
@@ -12,6 +13,8 @@
 
 use std::collections::VecDeque;
 
+use super::fault_bytes::{self, Junk, JunkSource};
+use crate::firmware::Refusal;
 use crate::node::{MAX_FRAME, Node, NodeEvent};
 use crate::time::{SimDuration, SimTime};
 
@@ -50,6 +53,23 @@ pub enum Fault {
     DelayReply(SimDuration),
     /// Off the bus: bytes for the node are lost and its frames too.
     Silent,
+    /// Every request for the node refused with this (MEB `ER`, a Modbus
+    /// exception, the Controller_network project's exception frame), as
+    /// `twin serve`'s `fault exception`; nothing is stored. A node that
+    /// serves no requests (a master) is not changed.
+    Exception(Refusal),
+    /// Every frame sent as slave `id` (`None`: the id next to its own), its
+    /// check made good again: a well-formed reply from the wrong slave.
+    WrongId(Option<u8>),
+    /// Every frame sent in two writes: its first `first` bytes (`None`:
+    /// half), then, after `gap` of quiet line from the end of the first
+    /// write, the rest.
+    SplitReply {
+        first: Option<u16>,
+        gap: SimDuration,
+    },
+    /// Junk bytes sent with every frame, in the same write.
+    Junk(Junk),
 }
 
 /// A fault active from `from` (included) until `until` (excluded).
@@ -85,6 +105,31 @@ pub struct FaultStats {
     pub bytes_ignored: u64,
     /// Events not kept because nobody polled them.
     pub events_lost: u64,
+    /// Frames sent while every request was refused (exceptions, `ER`s).
+    pub frames_refused: u64,
+    /// Frames sent under another slave's id.
+    pub frames_wrong_id: u64,
+    /// Frames sent in two writes.
+    pub frames_split: u64,
+    /// Frames sent with junk bytes.
+    pub frames_junk: u64,
+}
+
+/// The rest of a split frame: waiting for the first write to end, or for
+/// its instant.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Rest {
+    None,
+    /// The first write is on the wire; the rest follows `gap` after it ends.
+    AfterFirst {
+        len: usize,
+        gap: SimDuration,
+    },
+    /// The rest goes out at `release`.
+    Due {
+        len: usize,
+        release: SimTime,
+    },
 }
 
 /// A frame held back, and when it may go.
@@ -108,6 +153,15 @@ pub struct FaultyNode<N: Node> {
     held_head: usize,
     events: VecDeque<NodeEvent>,
     stats: FaultStats,
+    /// The refusal the inner node was last told to give.
+    refusing: Option<Refusal>,
+    /// The rest of a split frame, its bytes in `rest_bytes`.
+    rest: Rest,
+    rest_bytes: Vec<u8>,
+    /// What the link adds before every write (the port's turnaround): taken
+    /// off a split's gap, so the quiet line is the gap asked for.
+    turnaround: SimDuration,
+    junk: JunkSource,
 }
 
 impl<N: Node> FaultyNode<N> {
@@ -124,7 +178,26 @@ impl<N: Node> FaultyNode<N> {
             held_head: 0,
             events: VecDeque::with_capacity(MAX_EVENTS),
             stats: FaultStats::default(),
+            refusing: None,
+            rest: Rest::None,
+            rest_bytes: vec![0; MAX_FRAME],
+            turnaround: SimDuration::ZERO,
+            junk: JunkSource::new(0),
         }
+    }
+
+    /// Draws random junk from `seed` (a scenario's seed, derived per node).
+    pub fn with_seed(mut self, seed: u64) -> Self {
+        self.junk = JunkSource::new(seed);
+        self
+    }
+
+    /// The link waits `turnaround` before each write: a split's second
+    /// write is asked for that much earlier, so the line is quiet for the
+    /// gap asked for (or the turnaround, if that is longer).
+    pub fn with_turnaround(mut self, turnaround: SimDuration) -> Self {
+        self.turnaround = turnaround;
+        self
     }
 
     /// Wraps `inner` with a schedule of fault windows (the first window that
@@ -204,6 +277,100 @@ impl<N: Node> FaultyNode<N> {
         true
     }
 
+    /// Tells the inner node whether to refuse every request, when that changes.
+    fn sync_refusal(&mut self, now: SimTime) {
+        let want = match self.active_fault(now) {
+            Some(Fault::Exception(refusal)) => Some(refusal),
+            _ => None,
+        };
+        if want != self.refusing {
+            self.inner.force_refusal(want);
+            self.refusing = want;
+        }
+    }
+
+    /// Moves the rest of a split frame into `buf` if it is due at `now`.
+    fn release_rest(&mut self, now: SimTime, buf: &mut [u8]) -> Option<usize> {
+        let Rest::Due { len, release } = self.rest else {
+            return None;
+        };
+        if release > now {
+            return None;
+        }
+        self.rest = Rest::None;
+        let src = self.rest_bytes.get(..len)?;
+        let dst = buf.get_mut(..len)?;
+        dst.copy_from_slice(src);
+        Some(len)
+    }
+
+    /// Applies a fault that changes the bytes of a frame on its way out
+    /// (the first `len` of `buf`); returns the length to send now.
+    fn reshape(&mut self, now: SimTime, fault: Fault, buf: &mut [u8], len: usize) -> usize {
+        match fault {
+            Fault::WrongId(id) => {
+                let frame = buf.get_mut(..len).unwrap_or_default();
+                let id = id.or_else(|| {
+                    fault_bytes::frame_id(self.check, frame)
+                        .map(|own| fault_bytes::other_id(self.check, own))
+                });
+                if let Some(id) = id
+                    && fault_bytes::set_id(self.check, frame, id)
+                {
+                    self.stats.frames_wrong_id += 1;
+                    self.record(
+                        now,
+                        "fault",
+                        format!("fault: {len}-byte frame sent as id {id}"),
+                    );
+                } else {
+                    self.stats.frames_passed += 1;
+                }
+                len
+            }
+            Fault::SplitReply { first, gap } => {
+                let Some(at) = fault_bytes::split_point(len, first) else {
+                    self.stats.frames_passed += 1;
+                    return len;
+                };
+                let rest = len - at;
+                if let (Some(dst), Some(src)) = (self.rest_bytes.get_mut(..rest), buf.get(at..len))
+                {
+                    dst.copy_from_slice(src);
+                }
+                self.rest = Rest::AfterFirst { len: rest, gap };
+                self.stats.frames_split += 1;
+                self.record(
+                    now,
+                    "fault",
+                    format!(
+                        "fault: {len}-byte frame split after byte {at}, the rest {:.0} us later",
+                        gap.as_secs_f64() * 1e6
+                    ),
+                );
+                at
+            }
+            Fault::Junk(junk) => {
+                let sent = self.junk.apply(&junk, buf, len);
+                self.stats.frames_junk += 1;
+                self.record(
+                    now,
+                    "fault",
+                    format!(
+                        "fault: {len}-byte frame sent with {} junk byte(s)",
+                        sent - len
+                    ),
+                );
+                sent
+            }
+            Fault::Exception(_) => {
+                self.stats.frames_refused += 1;
+                len
+            }
+            _ => len,
+        }
+    }
+
     /// Moves the oldest held frame into `buf` if it is due at `now`.
     fn release(&mut self, now: SimTime, buf: &mut [u8]) -> Option<usize> {
         let front = *self.held.front().filter(|h| h.release <= now)?;
@@ -237,6 +404,7 @@ impl<N: Node> Node for FaultyNode<N> {
             self.stats.bytes_ignored += bytes.len() as u64;
             return;
         }
+        self.sync_refusal(now);
         self.inner.handle_bytes(now, bytes);
     }
 
@@ -244,11 +412,19 @@ impl<N: Node> Node for FaultyNode<N> {
         // The wrapper's own wake-ups (releasing held frames) are not the
         // inner node's: pass on only the instants it asked for.
         if self.inner.poll_timeout().is_some_and(|t| t <= now) {
+            self.sync_refusal(now);
             self.inner.handle_timeout(now);
         }
     }
 
     fn poll_transmit(&mut self, now: SimTime, buf: &mut [u8]) -> Option<usize> {
+        if let Some(len) = self.release_rest(now, buf) {
+            return Some(len);
+        }
+        // A split frame's rest goes before anything else.
+        if self.rest != Rest::None {
+            return None;
+        }
         if let Some(len) = self.release(now, buf) {
             return Some(len);
         }
@@ -287,10 +463,17 @@ impl<N: Node> Node for FaultyNode<N> {
                     SimDuration::ZERO
                 }
                 Some(Fault::DelayReply(delay)) => delay,
+                Some(
+                    Fault::Exception(_)
+                    | Fault::WrongId(_)
+                    | Fault::SplitReply { .. }
+                    | Fault::Junk(_),
+                ) => SimDuration::ZERO,
             };
             if delay == SimDuration::ZERO && self.held.is_empty() {
-                if fault.is_none() {
-                    self.stats.frames_passed += 1;
+                match fault {
+                    None => self.stats.frames_passed += 1,
+                    Some(fault) => return Some(self.reshape(now, fault, buf, len)),
                 }
                 return Some(len);
             }
@@ -326,7 +509,10 @@ impl<N: Node> Node for FaultyNode<N> {
     }
 
     fn poll_timeout(&self) -> Option<SimTime> {
-        let release = self.held.front().map(|h| h.release);
+        let release = match self.rest {
+            Rest::Due { release, .. } => Some(release),
+            _ => self.held.front().map(|h| h.release),
+        };
         match (self.inner.poll_timeout(), release) {
             (Some(a), Some(b)) => Some(a.min(b)),
             (a, b) => a.or(b),
@@ -334,7 +520,23 @@ impl<N: Node> Node for FaultyNode<N> {
     }
 
     fn transmit_done(&mut self, now: SimTime) {
+        // The first write of a split frame is not the end of the frame the
+        // node sent: its rest is timed from here, and the node hears of the
+        // end when the rest has gone.
+        if let Rest::AfterFirst { len, gap } = self.rest {
+            let ahead = SimDuration(gap.0.saturating_sub(self.turnaround.0));
+            self.rest = Rest::Due {
+                len,
+                release: now + ahead,
+            };
+            return;
+        }
         self.inner.transmit_done(now);
+    }
+
+    fn force_refusal(&mut self, refusal: Option<Refusal>) -> bool {
+        self.refusing = refusal;
+        self.inner.force_refusal(refusal)
     }
 
     fn poll_event(&mut self) -> Option<NodeEvent> {

@@ -5,6 +5,7 @@
 
 mod controller_network;
 mod controller_network_slaves;
+mod fault_replies;
 mod firmware_frontend;
 mod firmware_meb_slave;
 mod firmware_modbus_slave;
