@@ -6,9 +6,12 @@ use nodes::controller_network::{
     ControllerNetworkMaster, LightConfig, LightNode, MasterConfig, MotorConfig, MotorNode,
 };
 use nodes::firmware::{
-    EvController, EvControllerConfig, LightDetectorConfig, Readings, SlaveProtocol, ea,
+    EvController, EvControllerConfig, LightDetectorConfig, Readings, Refusal, SlaveProtocol, ea,
 };
-use nodes::link::{BusConfig, CheckKind, Fault, FaultWindow, FaultyNode, PortId, SimBus, Wiring};
+use nodes::link::{
+    BusConfig, CheckKind, Fault, FaultWindow, FaultyNode, Junk, JunkBytes, JunkPlace, PortId,
+    SimBus, Wiring,
+};
 use nodes::master::Supervisor;
 use nodes::master::{Protocol, SetPointStep, SlaveLoopConfig, SpeedSource, SupervisorConfig};
 use nodes::node::Firmware;
@@ -18,8 +21,8 @@ use serde_json::{Value, json};
 
 use crate::engine::{SimNode, SpeedReadings};
 use crate::scenario::{
-    BusSpec, FaultKind, FaultSpec, LightDetectorSpec, MasterProgramSpec, NodeSpec, ProtocolSpec,
-    WiringSpec,
+    BusSpec, FaultKind, FaultSpec, JunkPlaceSpec, LightDetectorSpec, MasterProgramSpec, NodeSpec,
+    ProtocolSpec, WiringSpec,
 };
 use twin_recording::topics::{LoopReport, MebWords, ReadingsSample, SlaveLoop, SupervisorReport};
 
@@ -62,14 +65,40 @@ fn fault_windows(faults: &[&FaultSpec]) -> Vec<FaultWindow> {
         .map(|f| FaultWindow {
             from: at(f.from_s),
             until: at(f.until_s),
-            fault: match f.kind {
-                FaultKind::BadCheck => Fault::BadCheck,
-                FaultKind::DropReply => Fault::DropReply,
-                FaultKind::DelayReply => Fault::DelayReply(ms(f.delay_ms)),
-                FaultKind::Silent => Fault::Silent,
-            },
+            fault: fault(f),
         })
         .collect()
+}
+
+/// The wrapper's fault for a checked `[[fault]]` (`scenario::fault_check`
+/// refused what does not fit).
+fn fault(f: &FaultSpec) -> Fault {
+    match f.kind {
+        FaultKind::BadCheck => Fault::BadCheck,
+        FaultKind::DropReply => Fault::DropReply,
+        FaultKind::DelayReply => Fault::DelayReply(ms(f.delay_ms)),
+        FaultKind::Silent => Fault::Silent,
+        FaultKind::Exception => Fault::Exception(
+            Refusal::from_code(f.code.unwrap_or(4)).unwrap_or(Refusal::DeviceFailure),
+        ),
+        FaultKind::WrongId => Fault::WrongId(f.id),
+        FaultKind::SplitReply => Fault::SplitReply {
+            first: f.split_at,
+            gap: ms(f.gap_ms.unwrap_or_default()),
+        },
+        FaultKind::Junk => {
+            let bytes = match (&f.junk, f.junk_count) {
+                (Some(given), _) => JunkBytes::given(given),
+                (None, count) => JunkBytes::random(count.unwrap_or(1) as usize),
+            };
+            let place = match f.junk_place.unwrap_or_default() {
+                JunkPlaceSpec::Before => JunkPlace::Before,
+                JunkPlaceSpec::After => JunkPlace::After,
+            };
+            let bytes = bytes.unwrap_or(JunkBytes::Random(1));
+            Fault::Junk(Junk { bytes, place })
+        }
+    }
 }
 
 /// Whether a node drives a master-slaves bus as its master.
@@ -89,11 +118,13 @@ pub fn light_detector_config(params: &PlantParams, spec: LightDetectorSpec) -> L
     config
 }
 
-/// The node for a scenario's `[[node]]`, and its reply turnaround.
+/// The node for a scenario's `[[node]]`, and its reply turnaround; `seed`
+/// draws its faults' random junk.
 pub fn build_node(
     spec: &NodeSpec,
     module: Option<&PlantParams>,
     faults: &[&FaultSpec],
+    seed: u64,
 ) -> Result<(Box<dyn SimNode>, SimDuration)> {
     let windows = fault_windows(faults);
     match spec {
@@ -117,7 +148,9 @@ pub fn build_node(
                 ProtocolSpec::ModbusRtu => (SlaveProtocol::ModbusRtu, CheckKind::ModbusRtu),
             };
             config.protocol = protocol;
-            let node = FaultyNode::with_schedule(EvController::new(config), check, windows);
+            let node = FaultyNode::with_schedule(EvController::new(config), check, windows)
+                .with_seed(seed)
+                .with_turnaround(ms(*turnaround_ms));
             Ok((Box::new(node), ms(*turnaround_ms)))
         }
         NodeSpec::Supervisor {
@@ -168,14 +201,18 @@ pub fn build_node(
         }
         NodeSpec::MotorNode { turnaround_ms, .. } => {
             let motor = MotorNode::new(MotorConfig::default());
-            let node = FaultyNode::with_schedule(motor, CheckKind::Modbus8, windows);
+            let node = FaultyNode::with_schedule(motor, CheckKind::Modbus8, windows)
+                .with_seed(seed)
+                .with_turnaround(ms(*turnaround_ms));
             Ok((Box::new(node), ms(*turnaround_ms)))
         }
         NodeSpec::LightNode { turnaround_ms, .. } => {
             let config =
                 module.map_or_else(LightConfig::default, |p| LightConfig::for_sensor(&p.light));
             let light = LightNode::new(config);
-            let node = FaultyNode::with_schedule(light, CheckKind::Modbus8, windows);
+            let node = FaultyNode::with_schedule(light, CheckKind::Modbus8, windows)
+                .with_seed(seed)
+                .with_turnaround(ms(*turnaround_ms));
             Ok((Box::new(node), ms(*turnaround_ms)))
         }
         NodeSpec::ControllerNetworkMaster {
@@ -197,7 +234,8 @@ pub fn build_node(
                 ControllerNetworkMaster::new(config),
                 CheckKind::Modbus8,
                 windows,
-            );
+            )
+            .with_seed(seed);
             Ok((Box::new(node), SimDuration::ZERO))
         }
         NodeSpec::Firmware { .. } => crate::external::unavailable(spec),

@@ -71,13 +71,15 @@ pub fn build_medium(spec: &BusSpec, seed: u64, master: Option<usize>) -> Result<
     }
 }
 
-/// A node for a scenario's `[[node]]` on `bus`, and its turnaround: the
+/// A node for a scenario's `[[node]]` on `bus`, and its turnaround (`seed`:
+/// the node's share of the scenario's, for its faults' random junk): the
 /// parallel-module kinds here, every other kind through [`build_node`].
 pub fn build_node_on(
     spec: &NodeSpec,
     module: Option<&PlantParams>,
     faults: &[&FaultSpec],
     bus: &BusSpec,
+    seed: u64,
 ) -> Result<(Box<dyn SimNode>, SimDuration)> {
     let pwm = bus.pwmcap.clone().unwrap_or_default();
     let controller = |params: Option<&PlantParams>, loop_ms: f64| -> Result<EvControllerConfig> {
@@ -166,7 +168,7 @@ pub fn build_node_on(
         }
         NodeSpec::Firmware { .. } => crate::external::build_firmware(spec, module, bus)
             .map(|(node, turnaround)| (node as Box<dyn SimNode>, turnaround)),
-        _ => build_node(spec, module, faults),
+        _ => build_node(spec, module, faults, seed),
     }
 }
 

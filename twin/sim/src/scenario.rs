@@ -23,6 +23,7 @@
 //! ```
 
 pub mod check;
+mod fault_check;
 
 use plant::PlantParams;
 use plant::params::ParamsError;
@@ -565,6 +566,28 @@ pub struct FaultSpec {
     /// For `delay-reply`.
     #[serde(default)]
     pub delay_ms: f64,
+    /// For `exception`: 1 illegal function / command, 2 illegal address,
+    /// 3 illegal data, 4 device failure (MEB `ER` codes alike).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub code: Option<u8>,
+    /// For `wrong-id`: the id the replies carry (unset: the node's own + 1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub id: Option<u8>,
+    /// For `split-reply`: quiet line between the two writes (ms of bus time).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gap_ms: Option<f64>,
+    /// For `split-reply`: bytes in the first write (unset: half the reply).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub split_at: Option<u16>,
+    /// For `junk`: these bytes with every reply...
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub junk: Option<Vec<u8>>,
+    /// ... or this many, drawn from the scenario's seed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub junk_count: Option<u32>,
+    /// For `junk`: `before` (default) or `after` each reply.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub junk_place: Option<JunkPlaceSpec>,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -578,6 +601,41 @@ pub enum FaultKind {
     DelayReply,
     /// The node neither answers nor sends anything.
     Silent,
+    /// Every request refused with exception / `ER` `code`.
+    Exception,
+    /// Replies carry another slave's id (`id`), their check good.
+    WrongId,
+    /// Replies go in two writes, `gap_ms` of quiet line apart.
+    SplitReply,
+    /// Junk bytes go with every reply.
+    Junk,
+}
+
+impl FaultKind {
+    /// The kind as a scenario file writes it.
+    pub fn name(self) -> &'static str {
+        match self {
+            FaultKind::BadCheck => "bad-check",
+            FaultKind::DropReply => "drop-reply",
+            FaultKind::DelayReply => "delay-reply",
+            FaultKind::Silent => "silent",
+            FaultKind::Exception => "exception",
+            FaultKind::WrongId => "wrong-id",
+            FaultKind::SplitReply => "split-reply",
+            FaultKind::Junk => "junk",
+        }
+    }
+}
+
+/// Where a `junk` fault's bytes go.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum JunkPlaceSpec {
+    /// Just before each reply.
+    #[default]
+    Before,
+    /// Just after each reply (between it and the master's next request).
+    After,
 }
 
 /// The Controller_network master's old kind name, still read (`serde(alias)`).
@@ -824,6 +882,7 @@ impl Scenario {
                 return Err(("until_s".into(), "must not be before from_s".into()));
             }
         }
+        fault_check::check(self)?;
         check::check(self)
     }
 }
@@ -1004,6 +1063,9 @@ pub fn check_name(name: &str) -> std::result::Result<(), String> {
     Ok(())
 }
 
+/// The owner of a field of the `[[fault]]` at an index: `fault#0` the first.
+pub(crate) const FAULT_OWNER: &str = "fault#";
+
 /// The line of `key` where the file sets it, from the parsed file's spans:
 /// with an `owner`, in a table whose `name` is `owner` or in one of its
 /// sub-tables (`[bus.pwmcap]`), else at its name line; without, the first
@@ -1030,6 +1092,19 @@ fn locate(
             .min()
     };
     let offset = match owner {
+        Some(owner) if owner.starts_with(FAULT_OWNER) => {
+            let index: usize = owner.get(FAULT_OWNER.len()..)?.parse().ok()?;
+            let fault = match root.get_ref() {
+                toml::de::DeValue::Table(t) => match t.get("fault")?.get_ref() {
+                    toml::de::DeValue::Array(a) => a.get(index)?,
+                    _ => return None,
+                },
+                _ => return None,
+            };
+            setting(fault, key)
+                .or_else(|| setting(fault, "kind"))
+                .map(|span| span.start)
+        }
         None => first_of(&tables, key),
         Some(owner) => {
             let owners: Vec<_> = tables.iter().copied().filter(|t| named(t, owner)).collect();

@@ -137,7 +137,7 @@ pub fn build(scenario: &Scenario) -> Result<Engine> {
         let bus = build_medium(b, derive_seed(scenario.seed, 200 + i as u64), master)?;
         bus_index.insert(b.name.as_str(), engine.add_bus(&b.name, bus));
     }
-    for spec in &scenario.nodes {
+    for (i, spec) in scenario.nodes.iter().enumerate() {
         let Some(&bus) = bus_index.get(spec.bus()) else {
             bail!("node `{}`: no bus `{}`", spec.name(), spec.bus());
         };
@@ -150,8 +150,10 @@ pub fn build(scenario: &Scenario) -> Result<Engine> {
         let Some((bus_spec, _)) = buses.iter().find(|(b, _)| b.name == spec.bus()) else {
             bail!("node `{}`: no bus `{}`", spec.name(), spec.bus());
         };
-        let (node, turnaround) = build_node_on(spec, module.map(|(_, p)| p), &faults, bus_spec)
-            .with_context(|| format!("node `{}`", spec.name()))?;
+        let seed = derive_seed(scenario.seed, 500 + i as u64);
+        let (node, turnaround) =
+            build_node_on(spec, module.map(|(_, p)| p), &faults, bus_spec, seed)
+                .with_context(|| format!("node `{}`", spec.name()))?;
         let port = engine.buses[bus]
             .bus
             .add_port(nodes::link::PortConfig { turnaround });

@@ -1,0 +1,3 @@
+//! twin-sim's integration tests: scenario files run end to end.
+
+mod fault_kinds;
