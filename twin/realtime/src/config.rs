@@ -2,7 +2,7 @@
 //! the console switches on.
 
 use nodes::firmware::Refusal;
-use nodes::link::CheckKind;
+use nodes::link::{CheckKind, Junk};
 use nodes::time::SimDuration;
 
 use super::device::Device;
@@ -20,6 +20,12 @@ pub enum LinkFault {
     Delay(SimDuration),
     /// Every request is answered with this refusal (exception / ER).
     Exception(Refusal),
+    /// Replies carry this id (`None`: the slave's own + 1), their check good.
+    WrongId(Option<u8>),
+    /// Replies go in two writes, the second `gap` after the first ends.
+    Split(SimDuration),
+    /// Junk bytes go with every reply.
+    Junk(Junk),
 }
 
 /// The fault as the console's `fault` command names it; an exception with
@@ -41,6 +47,14 @@ impl std::fmt::Display for LinkFault {
                     meb.name()
                 )
             }
+            LinkFault::WrongId(Some(id)) => write!(f, "wrong-id (replies as id {id})"),
+            LinkFault::WrongId(None) => f.write_str("wrong-id (replies as the next id)"),
+            LinkFault::Split(gap) => write!(
+                f,
+                "split (replies in two writes, {:.1} ms apart)",
+                gap.as_secs_f64() * 1000.0
+            ),
+            LinkFault::Junk(junk) => write!(f, "{junk}"),
         }
     }
 }

@@ -18,7 +18,7 @@
 //! the recording and monitor into one [`FrameLog`] batch that the engine
 //! hands the sink once per pass of its loop.
 
-use nodes::link::spoil_check;
+use nodes::link::{JunkSource, frame_id, other_id, set_id, split_point, spoil_check};
 use nodes::node::MAX_FRAME;
 use nodes::time::{SimDuration, SimTime};
 use std::collections::{BTreeMap, VecDeque};
@@ -55,6 +55,8 @@ pub(super) struct Queued {
     start: SimTime,
     due: SimTime,
     len: usize,
+    /// The first write of a split reply: its end is not the reply's.
+    part: bool,
 }
 
 /// What a connection needs of its link's configuration (copied at open, so
@@ -109,6 +111,8 @@ pub struct Front {
     frames: FrameLog,
     clock: Option<RtClock>,
     buf: Vec<u8>,
+    /// Random junk for the `fault junk N` replies.
+    junk: JunkSource,
     ids: Vec<ConnId>,
     /// The session time the engine has ticked the plants and the firmware
     /// up to (its next tick), and the clock's slips since it last took them.
@@ -644,8 +648,10 @@ impl Front {
             .endpoint
             .poll_transmit(&mut self.devices, base, &mut self.buf)
         {
-            let frame = &mut self.buf[..len.min(MAX_FRAME)];
+            let mut len = len.min(MAX_FRAME);
+            let frame = &mut self.buf[..len];
             let mut extra = SimDuration::ZERO;
+            let mut split = None;
             match fault {
                 Some(LinkFault::NoReply) => {
                     self.counters.replies_faulted += 1;
@@ -663,22 +669,56 @@ impl Front {
                     self.counters.replies_faulted += 1;
                     extra = d;
                 }
+                Some(LinkFault::WrongId(id)) => {
+                    if let Some(kind) = conn.rules.check
+                        && let Some(id) =
+                            id.or_else(|| frame_id(kind, frame).map(|own| other_id(kind, own)))
+                        && set_id(kind, frame, id)
+                    {
+                        self.counters.replies_faulted += 1;
+                    }
+                }
+                Some(LinkFault::Split(gap)) => {
+                    split = split_point(len, None).map(|at| (at, gap));
+                    if split.is_some() {
+                        self.counters.replies_faulted += 1;
+                    }
+                }
+                Some(LinkFault::Junk(junk)) => {
+                    len = self.junk.apply(&junk, &mut self.buf, len);
+                    self.counters.replies_faulted += 1;
+                }
                 Some(LinkFault::Exception(_)) | None => {}
             }
+            let frame = &self.buf[..len];
             let rules = &conn.rules;
-            let start = (base + rules.turnaround + extra).max(conn.line_free);
-            let due = if rules.pace {
-                start + rules.serial.wire_time(frame.len())
-            } else {
-                start
+            let mut start = (base + rules.turnaround + extra).max(conn.line_free);
+            // A split reply is two writes: the second `gap` after the first
+            // has gone (its wire time, on a paced link), on the engine's
+            // timers like any reply's turnaround, never a sleep.
+            let (first, rest) = match split {
+                Some((at, _)) => frame.split_at(at),
+                None => (frame, &[][..]),
             };
-            conn.line_free = due;
-            conn.queued_bytes.extend_from_slice(frame);
-            conn.queue.push_back(Queued {
-                start,
-                due,
-                len: frame.len(),
-            });
+            for (piece, part) in [(first, !rest.is_empty()), (rest, false)] {
+                if piece.is_empty() {
+                    continue;
+                }
+                let due = if rules.pace {
+                    start + rules.serial.wire_time(piece.len())
+                } else {
+                    start
+                };
+                conn.line_free = due;
+                conn.queued_bytes.extend_from_slice(piece);
+                conn.queue.push_back(Queued {
+                    start,
+                    due,
+                    len: piece.len(),
+                    part,
+                });
+                start = due + split.map_or(SimDuration::ZERO, |(_, gap)| gap);
+            }
         }
         let now = self.now();
         self.flush(id, now);
@@ -707,8 +747,11 @@ impl Front {
             self.frames.push(record, frame);
             conn.due.push(frame);
             conn.queued_bytes.drain(..len);
+            let part = q.part;
             conn.queue.pop_front();
-            conn.endpoint.transmit_done(&mut self.devices, now);
+            if !part {
+                conn.endpoint.transmit_done(&mut self.devices, now);
+            }
         }
     }
 

@@ -2,6 +2,7 @@
 //! forced inputs, read-only, status. Parsed here, run on the engine's thread.
 
 use nodes::firmware::Refusal;
+use nodes::link::{Junk, JunkBytes, JunkPlace, MAX_JUNK};
 use nodes::time::SimDuration;
 use std::io::BufRead;
 use std::sync::mpsc::Sender;
@@ -18,6 +19,11 @@ commands:
   fault delay MS [LINK]        replies go out MS milliseconds late
   fault exception [CODE] [LINK]  every request refused: Modbus exception / MEB ER CODE (1-4, default 4;
                                MEB and Modbus links, not --modbus8)
+  fault wrong-id [ID] [LINK]   replies come from slave ID (default: the next id), check good
+                               (MEB, RTU, modbus8)
+  fault split MS [LINK]        each reply in two writes, the second MS milliseconds after the first
+  fault junk N|hex:BYTES [after] [LINK]  N random bytes (or these, e.g. hex:00ff) before each
+                               reply (after it with `after`)
   fault off                    no fault
   force v1|v2 VOLTS            the controller measures this battery / bus voltage
   force i AMPS                 ... this inverter current
@@ -116,14 +122,38 @@ pub fn parse(line: &str) -> Result<Option<Command>, String> {
                         }
                         [link, ..] => (4, Some(*link)),
                     };
-                    let refusal = match code {
-                        1 => Refusal::IllegalCommand,
-                        2 => Refusal::IllegalAddress,
-                        3 => Refusal::IllegalData,
-                        4 => Refusal::DeviceFailure,
-                        _ => return Err("exception code must be 1, 2, 3 or 4".into()),
+                    let Some(refusal) = Refusal::from_code(code) else {
+                        return Err("exception code must be 1, 2, 3 or 4".into());
                     };
                     (LinkFault::Exception(refusal), link)
+                }
+                ("wrong-id", args) => match args {
+                    [id, link @ ..] if id.parse::<u8>().is_ok() => {
+                        let id = id.parse::<u8>().ok().filter(|&id| (1..=247).contains(&id));
+                        let Some(id) = id else {
+                            return Err("wrong-id: the id must be 1 to 247 (MEB: 1 to 99)".into());
+                        };
+                        (LinkFault::WrongId(Some(id)), link.first().copied())
+                    }
+                    [link @ ..] => (LinkFault::WrongId(None), link.first().copied()),
+                },
+                ("split", [ms, link @ ..]) => {
+                    let ms = number(Some(ms), "split gap (ms)")?;
+                    if !(0.0..=10_000.0).contains(&ms) {
+                        return Err("split gap must be 0-10000 ms".into());
+                    }
+                    let gap = SimDuration::from_secs_f64(ms / 1000.0);
+                    (LinkFault::Split(gap), link.first().copied())
+                }
+                ("junk", [what, rest @ ..]) => {
+                    let (place, link) = match rest {
+                        ["after", link @ ..] => (JunkPlace::After, link.first().copied()),
+                        ["before", link @ ..] => (JunkPlace::Before, link.first().copied()),
+                        [link, ..] => (JunkPlace::Before, Some(*link)),
+                        [] => (JunkPlace::Before, None),
+                    };
+                    let bytes = junk_bytes(what)?;
+                    (LinkFault::Junk(Junk { bytes, place }), link)
                 }
                 _ => return Err(format!("unknown fault `{kind}`; try `help`")),
             };
@@ -171,6 +201,29 @@ pub fn parse(line: &str) -> Result<Option<Command>, String> {
         _ => return Err(format!("unknown command `{}`; try `help`", line.trim())),
     };
     Ok(Some(command))
+}
+
+/// `N` random bytes, or `hex:00ff7e` these bytes.
+fn junk_bytes(what: &str) -> Result<JunkBytes, String> {
+    let rule = format!("junk takes a count (1 to {MAX_JUNK}) or hex:BYTES (e.g. hex:00ff)");
+    if let Some(hex) = what.strip_prefix("hex:") {
+        let bytes: Option<Vec<u8>> = (hex.len() % 2 == 0)
+            .then(|| {
+                (0..hex.len())
+                    .step_by(2)
+                    .map(|i| {
+                        hex.get(i..i + 2)
+                            .and_then(|b| u8::from_str_radix(b, 16).ok())
+                    })
+                    .collect()
+            })
+            .flatten();
+        return bytes.and_then(|b| JunkBytes::given(&b)).ok_or(rule);
+    }
+    what.parse::<usize>()
+        .ok()
+        .and_then(JunkBytes::random)
+        .ok_or(rule)
 }
 
 /// Reads commands from stdin on its own thread until stdin closes; the
@@ -268,6 +321,13 @@ mod tests {
             "fault bad-check",
             "fault delay 20 meb",
             "fault exception 2",
+            "fault wrong-id",
+            "fault wrong-id 7 rtu",
+            "fault split 5",
+            "fault split 2.5 meb",
+            "fault junk 3",
+            "fault junk hex:00ff after",
+            "fault junk 4 after meb",
             "fault off",
             "force v1 30.5",
             "force hall 5",
@@ -282,6 +342,12 @@ mod tests {
         for (bad, why) in [
             ("fault delay soon", "must be a number"),
             ("fault exception 9", "1, 2, 3 or 4"),
+            ("fault wrong-id 0", "1 to 247"),
+            ("fault split", "unknown fault"),
+            ("fault split 20000", "0-10000 ms"),
+            ("fault junk 0", "a count (1 to 32)"),
+            ("fault junk hex:0g", "hex:BYTES"),
+            ("fault junk 99", "a count"),
             ("force v9 1", "cannot force `v9`"),
             ("force rpm_m -3", "RPM_M takes 0 to 65535 rpm"),
             ("force v1 500", "V1 takes 0 to 100 V"),
