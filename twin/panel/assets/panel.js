@@ -547,10 +547,35 @@ function buildFaults(names) {
     const d = el("button", "", "delay ms");
     d.dataset.fault = "delay"; d.dataset.link = name;
     d.onclick = () => send("/api/fault", { fault: "delay", link: name, delay_ms: +ms.value }, "fault", "the delay takes 0 to 60000 ms");
+    // A reply as another slave's (the id next to its own unless one is given).
+    const id = el("input"); id.type = "number"; id.min = 1; id.max = 247; id.placeholder = "next";
+    id.style.width = "4rem"; id.id = "fault-id-" + name; id.setAttribute("aria-label", "wrong id");
+    const w = el("button", "", "wrong id");
+    w.dataset.fault = "wrong-id"; w.dataset.link = name; w.id = "fault-wrong-id-" + name;
+    w.onclick = () => send("/api/fault", id.value === "" ? { fault: "wrong-id", link: name } : { fault: "wrong-id", link: name, id: +id.value }, "fault", "the id takes 1 to 247");
+    // Each reply in two writes, this many ms apart.
+    const gap = el("input"); gap.type = "number"; gap.value = 5; gap.min = 0; gap.max = 10000;
+    gap.style.width = "4rem"; gap.id = "fault-gap-" + name; gap.setAttribute("aria-label", "split gap ms");
+    const sp = el("button", "", "split, gap ms");
+    sp.dataset.fault = "split"; sp.dataset.link = name; sp.id = "fault-split-" + name;
+    sp.onclick = () => send("/api/fault", { fault: "split", link: name, gap_ms: +gap.value }, "fault", "the gap takes 0 to 10000 ms");
+    // Junk: a count of random bytes, or hex bytes; before or after each reply.
+    const junk = el("input"); junk.value = "3"; junk.style.width = "5rem"; junk.id = "fault-junk-bytes-" + name;
+    junk.setAttribute("aria-label", "junk: count or hex bytes (hex:00ff)");
+    const place = el("select"); place.id = "fault-junk-place-" + name; place.setAttribute("aria-label", "junk place");
+    for (const p of ["before", "after"]) { const o = el("option", "", p); o.value = p; place.append(o); }
+    const j = el("button", "", "junk");
+    j.dataset.fault = "junk"; j.dataset.link = name; j.id = "fault-junk-" + name;
+    j.onclick = () => {
+      const v = junk.value.trim();
+      const what = v.startsWith("hex:") ? { junk_hex: v.slice(4) } : { junk_count: +v };
+      send("/api/fault", Object.assign({ fault: "junk", link: name, junk_place: place.value }, what), "fault",
+        "junk takes a count (1 to 32) or hex:BYTES");
+    };
     const off = el("button", "", "off");
     off.id = "fault-off-" + name;
     off.onclick = () => send("/api/fault", { fault: "off" }, "fault");
-    r.append(ms, d, off);
+    r.append(ms, d, id, w, gap, sp, junk, place, j, off);
     box.append(r);
   }
 }

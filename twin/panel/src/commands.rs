@@ -3,6 +3,7 @@
 //! thread as the console's commands are.
 
 use nodes::firmware::Refusal;
+use nodes::link::{Junk, JunkBytes, JunkPlace, MAX_JUNK};
 use nodes::master::LoopMode;
 use nodes::time::SimDuration;
 use serde_json::{Map, Value, json};
@@ -249,7 +250,20 @@ pub fn slave(map: &Map<String, Value>) -> Result<EngineCommand, Rejected> {
 /// `POST /api/fault {"fault": "bad-check", "link": "meb"}`; `"off"` clears it.
 /// One fault is in force at a time, on one link or (no `link`) on all.
 pub fn fault(map: &Map<String, Value>) -> Result<EngineCommand, Rejected> {
-    only(map, &["fault", "link", "delay_ms", "code"])?;
+    only(
+        map,
+        &[
+            "fault",
+            "link",
+            "delay_ms",
+            "code",
+            "id",
+            "gap_ms",
+            "junk_count",
+            "junk_hex",
+            "junk_place",
+        ],
+    )?;
     let kind = required(text(map, "fault")?, "fault")?;
     let link = text(map, "link")?.map(str::to_string);
     let fault = match kind {
@@ -262,17 +276,26 @@ pub fn fault(map: &Map<String, Value>) -> Result<EngineCommand, Rejected> {
         }
         "exception" => {
             let code = number(map, "code", 1.0..=4.0)?.unwrap_or(4.0);
-            Some(LinkFault::Exception(match code.round() as u8 {
-                1 => Refusal::IllegalCommand,
-                2 => Refusal::IllegalAddress,
-                3 => Refusal::IllegalData,
-                _ => Refusal::DeviceFailure,
-            }))
+            Some(LinkFault::Exception(
+                Refusal::from_code(code.round() as u8).unwrap_or(Refusal::DeviceFailure),
+            ))
         }
+        "wrong-id" => {
+            let id = number(map, "id", 1.0..=247.0)?.map(|id| id.round() as u8);
+            Some(LinkFault::WrongId(id))
+        }
+        "split" => {
+            let ms = required(number(map, "gap_ms", 0.0..=10_000.0)?, "gap_ms")?;
+            Some(LinkFault::Split(SimDuration::from_secs_f64(ms / 1000.0)))
+        }
+        "junk" => Some(LinkFault::Junk(junk(map)?)),
         other => {
             return Err(Rejected::field(
                 "fault",
-                format!("no fault `{other}`: bad-check, no-reply, delay, exception or off"),
+                format!(
+                    "no fault `{other}`: bad-check, no-reply, delay, exception, wrong-id, split, \
+                     junk or off"
+                ),
             ));
         }
     };
@@ -286,6 +309,51 @@ pub fn fault(map: &Map<String, Value>) -> Result<EngineCommand, Rejected> {
         }
         Ok(json!({ "fault": fault.map(|f| f.to_string()), "link": link }))
     }))
+}
+
+/// A junk fault's bytes (`junk_count` random ones, or `junk_hex` these) and
+/// place (`junk_place`: `before`, the default, or `after` each reply).
+fn junk(map: &Map<String, Value>) -> Result<Junk, Rejected> {
+    let count = number(map, "junk_count", 1.0..=MAX_JUNK as f64)?;
+    let hex = text(map, "junk_hex")?;
+    let bytes = match (count, hex) {
+        (Some(_), Some(_)) => {
+            return Err(Rejected::field(
+                "junk_hex",
+                "give junk_count (random bytes) or junk_hex (these bytes), not both",
+            ));
+        }
+        (Some(n), None) => JunkBytes::random(n.round() as usize),
+        (None, Some(hex)) => {
+            let digits: Vec<char> = hex.chars().filter(|c| !c.is_whitespace()).collect();
+            let bytes: Option<Vec<u8>> = digits
+                .chunks(2)
+                .map(|pair| {
+                    let pair: String = pair.iter().collect();
+                    (pair.len() == 2).then(|| u8::from_str_radix(&pair, 16).ok())?
+                })
+                .collect();
+            bytes.and_then(|b| JunkBytes::given(&b))
+        }
+        (None, None) => JunkBytes::random(1),
+    };
+    let Some(bytes) = bytes else {
+        return Err(Rejected::field(
+            "junk_hex",
+            format!("junk_hex takes 1 to {MAX_JUNK} bytes in hex, e.g. \"00ff7e\""),
+        ));
+    };
+    let place = match text(map, "junk_place")? {
+        None | Some("before") => JunkPlace::Before,
+        Some("after") => JunkPlace::After,
+        Some(other) => {
+            return Err(Rejected::field(
+                "junk_place",
+                format!("junk_place is `before` or `after`, not `{other}`"),
+            ));
+        }
+    };
+    Ok(Junk { bytes, place })
 }
 
 /// `POST /api/loop {"slave": 1, "set_point_rpm": 2000, "kp": .., "ki": ..,

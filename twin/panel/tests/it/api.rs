@@ -304,3 +304,96 @@ fn a_browser_without_the_token_gets_a_page_in_words() {
         );
     }
 }
+
+/// One MEB exchange on `link` (`tcp://HOST:PORT`): read EA 0..6 from slave
+/// 1; every byte that comes within a second of the request.
+fn meb_exchange(link: &str) -> Vec<u8> {
+    use std::io::Read;
+    let addr = link.strip_prefix("tcp://").expect("a TCP link");
+    let mut s = std::net::TcpStream::connect(addr).expect("connects");
+    s.set_nodelay(true).unwrap();
+    let mut request = [0u8; 32];
+    let n = nodes::proto::meb::MebRepr {
+        id: 1,
+        cmd: nodes::proto::meb::MebCmd::EA,
+        addr: 0,
+        cnt: 6,
+        data: nodes::proto::meb::MebWords::new(),
+    }
+    .emit(&mut request)
+    .unwrap();
+    s.write_all(&request[..n]).unwrap();
+    let mut got = Vec::new();
+    let mut buf = [0u8; 256];
+    let deadline = Instant::now() + Duration::from_secs(3);
+    // 13 bytes and 4 per word, and whatever junk came with them.
+    while got.len() < 37 + 2 && Instant::now() < deadline {
+        s.set_read_timeout(Some(Duration::from_secs(1))).unwrap();
+        match s.read(&mut buf) {
+            Ok(0) | Err(_) => break,
+            Ok(n) => got.extend_from_slice(&buf[..n]),
+        }
+    }
+    got
+}
+
+#[test]
+fn the_new_fault_kinds_switch_on_from_the_api_and_reach_a_client() {
+    use nodes::proto::meb::MebRepr;
+    let session = serve("127.0.0.1:0", AccessOptions::default(), 60.0);
+    let post = |body: &str| http(&session.panel, "POST", "/api/fault", Some(body), true);
+    // The state is published a period after the command: waited for.
+    let shows = |text: &str| {
+        wait_for(Duration::from_secs(10), text, || {
+            state(&session)["state"]["fault"]["fault"] == text
+        })
+    };
+
+    let (got, answer) = post(r#"{"fault":"wrong-id","id":7,"link":"meb"}"#);
+    assert_eq!(got, 200, "{answer}");
+    shows("wrong-id (replies as id 7)");
+    let reply = meb_exchange(&session.meb);
+    let repr = MebRepr::parse(&reply).unwrap_or_else(|e| panic!("{e}: {reply:02x?}"));
+    assert_eq!(repr.id, 7, "a well-formed reply from slave 7");
+
+    let (got, answer) = post(r#"{"fault":"junk","junk_hex":"00ff","junk_place":"before"}"#);
+    assert_eq!(got, 200, "{answer}");
+    shows("junk 00 ff before each reply");
+    let reply = meb_exchange(&session.meb);
+    assert_eq!(reply[..2], [0x00, 0xff], "{reply:02x?}");
+    assert_eq!(MebRepr::parse(&reply[2..]).unwrap().id, 1);
+
+    let (got, answer) = post(r#"{"fault":"split","gap_ms":20}"#);
+    assert_eq!(got, 200, "{answer}");
+    shows("split (replies in two writes, 20.0 ms apart)");
+    let reply = meb_exchange(&session.meb);
+    assert_eq!(
+        MebRepr::parse(&reply).unwrap().id,
+        1,
+        "whole once both came"
+    );
+
+    for (body, field) in [
+        (r#"{"fault":"split"}"#, "gap_ms"),
+        (r#"{"fault":"junk","junk_hex":"0g"}"#, "junk_hex"),
+        (
+            r#"{"fault":"junk","junk_hex":"00","junk_count":2}"#,
+            "junk_hex",
+        ),
+        (
+            r#"{"fault":"junk","junk_count":2,"junk_place":"inside"}"#,
+            "junk_place",
+        ),
+        (r#"{"fault":"wrong-id","id":400}"#, "id"),
+    ] {
+        let (got, answer) = post(body);
+        assert_eq!(got, 422, "{body}: {answer}");
+        let answer: serde_json::Value = serde_json::from_str(&answer).unwrap();
+        assert_eq!(answer["field"], field, "{body}: {answer}");
+    }
+    let (got, _) = post(r#"{"fault":"off"}"#);
+    assert_eq!(got, 200);
+    wait_for(Duration::from_secs(10), "the fault off", || {
+        state(&session)["state"]["fault"].is_null()
+    });
+}
