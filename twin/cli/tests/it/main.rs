@@ -34,7 +34,6 @@ mod replay;
 mod rotate;
 mod run;
 mod serve;
-mod serve_faults;
 mod service;
 mod soak;
 mod step;
