@@ -135,7 +135,7 @@ pub fn parse(line: &str) -> Result<Option<Command>, String> {
                         };
                         (LinkFault::WrongId(Some(id)), link.first().copied())
                     }
-                    [link @ ..] => (LinkFault::WrongId(None), link.first().copied()),
+                    link => (LinkFault::WrongId(None), link.first().copied()),
                 },
                 ("split", [ms, link @ ..]) => {
                     let ms = number(Some(ms), "split gap (ms)")?;
