@@ -34,6 +34,7 @@ mod replay;
 mod rotate;
 mod run;
 mod serve;
+mod serve_faults;
 mod service;
 mod soak;
 mod step;
