@@ -7,9 +7,12 @@
 //! pseudo-terminal or TCP), [`report`] says what passed and, for what did
 //! not, the frames that show it, as text, JSON, JUnit XML or a page.
 //! [`class`] runs a suite against a whole class's programs at once.
+//! [`server`] checks a supervisor from its bus and its TCP server at once;
+//! [`client`] is a session with a remote client that follows a checklist.
 //!
 //! The fence: no engine, no plant. The checked program is outside the twin;
-//! this crate only talks to it over the wire.
+//! this crate only talks to it over the wire, where the twin's own node
+//! code (a slave, a supervisor's image) plays the program's counterpart.
 
 #![allow(
     clippy::disallowed_methods,
@@ -18,8 +21,10 @@
 
 pub mod class;
 pub mod framing;
+pub mod client;
 pub mod report;
 pub mod run;
+pub mod server;
 pub mod suite;
 pub mod wire;
 

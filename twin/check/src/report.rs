@@ -41,6 +41,10 @@ pub fn text(run: &SuiteRun) -> String {
             Outcome::Pass => {
                 let _ = writeln!(out, "  pass  {}  ({})", check.name, check.requirement);
             }
+            Outcome::NotJudged(what) => {
+                let _ = writeln!(out, "  ----  {}  ({})", check.name, check.requirement);
+                let _ = writeln!(out, "        not judged: {what}");
+            }
             Outcome::Fail(why) => {
                 let _ = writeln!(out, "  FAIL  {}  ({})", check.name, check.requirement);
                 let _ = writeln!(out, "        {why}");

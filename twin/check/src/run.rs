@@ -30,12 +30,15 @@ pub struct Exchange {
     pub text: String,
 }
 
-/// Passed, or the reason it did not.
+/// Passed, or the reason it did not; or left to a person (what a
+/// client shows its user), with what they are to look at.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 #[serde(tag = "result", content = "why", rename_all = "lowercase")]
 pub enum Outcome {
     Pass,
     Fail(String),
+    #[serde(rename = "not judged")]
+    NotJudged(String),
 }
 
 /// One check as it went.
@@ -82,8 +85,18 @@ impl SuiteRun {
     }
 
     /// The first check that failed, if one did.
+    /// The checks that failed.
+    pub fn failed(&self) -> usize {
+        self.checks
+            .iter()
+            .filter(|c| matches!(c.outcome, Outcome::Fail(_)))
+            .count()
+    }
+
     pub fn first_failure(&self) -> Option<&CheckOutcome> {
-        self.checks.iter().find(|c| c.outcome != Outcome::Pass)
+        self.checks
+            .iter()
+            .find(|c| matches!(c.outcome, Outcome::Fail(_)))
     }
 
     /// A run that never got to its checks: each fails with `why`, so the

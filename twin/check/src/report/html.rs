@@ -13,7 +13,7 @@ use std::fmt::Write;
 const STYLE: &str = "body{font-family:system-ui,sans-serif;max-width:60em;margin:2em auto;padding:0 1em;color:#222}\
 h1{font-size:1.4em}.score{font-size:1.6em;font-weight:bold}\
 table{border-collapse:collapse;width:100%}td,th{border-bottom:1px solid #ddd;padding:.35em;text-align:left;vertical-align:top}\
-.pass{color:#176e2c;font-weight:bold}.fail{color:#b00020;font-weight:bold}.req{color:#555;font-size:.9em}\
+.pass{color:#176e2c;font-weight:bold}.fail{color:#b00020;font-weight:bold}.nj{color:#555;font-style:italic}.req{color:#555;font-size:.9em}\
 pre{background:#f6f6f6;padding:.5em;overflow-x:auto;white-space:pre-wrap}";
 
 /// The run as a page; `student` names whose program it is, when known.
@@ -59,6 +59,7 @@ pub fn html(run: &SuiteRun, student: Option<&str>) -> String {
         let (class, verdict) = match check.outcome {
             Outcome::Pass => ("pass", "pass"),
             Outcome::Fail(_) => ("fail", "FAIL"),
+            Outcome::NotJudged(_) => ("nj", "not judged"),
         };
         let _ = writeln!(
             out,
@@ -67,8 +68,17 @@ pub fn html(run: &SuiteRun, student: Option<&str>) -> String {
             esc(&check.requirement),
             check.points
         );
-        let Outcome::Fail(why) = &check.outcome else {
-            continue;
+        let why = match &check.outcome {
+            Outcome::Pass => continue,
+            Outcome::NotJudged(what) => {
+                let _ = writeln!(
+                    out,
+                    "<tr><td colspan=\"3\" class=\"req\">not judged: {}</td></tr>",
+                    esc(what)
+                );
+                continue;
+            }
+            Outcome::Fail(why) => why,
         };
         if run.error.is_some() {
             continue;

@@ -12,7 +12,12 @@ use std::fmt::Write;
 
 /// The run as a JUnit XML document.
 pub fn junit(run: &SuiteRun) -> String {
-    let failures = run.checks.len() - run.passed().count();
+    let skipped = run
+        .checks
+        .iter()
+        .filter(|c| matches!(c.outcome, Outcome::NotJudged(_)))
+        .count();
+    let failures = run.failed();
     // A program that could not be reached is an error (nothing ran), not
     // a failed check.
     let (failures, errors) = if run.error.is_some() {
@@ -29,7 +34,7 @@ pub fn junit(run: &SuiteRun) -> String {
     );
     let _ = writeln!(
         out,
-        "  <testsuite name=\"{}\" tests=\"{}\" failures=\"{failures}\" errors=\"{errors}\" skipped=\"0\" time=\"{:.3}\">",
+        "  <testsuite name=\"{}\" tests=\"{}\" failures=\"{failures}\" errors=\"{errors}\" skipped=\"{skipped}\" time=\"{:.3}\">",
         attr(&run.suite),
         run.checks.len(),
         run.seconds
@@ -50,9 +55,21 @@ pub fn junit(run: &SuiteRun) -> String {
             attr(&check.requirement),
             check.seconds
         );
-        let Outcome::Fail(why) = &check.outcome else {
-            out.push_str("/>\n");
-            continue;
+        let why = match &check.outcome {
+            Outcome::Pass => {
+                out.push_str("/>\n");
+                continue;
+            }
+            // Left to a person: a reader counts it neither passed nor failed.
+            Outcome::NotJudged(what) => {
+                let _ = writeln!(
+                    out,
+                    ">\n      <skipped message=\"not judged: {}\"/>\n    </testcase>",
+                    attr(what)
+                );
+                continue;
+            }
+            Outcome::Fail(why) => why,
         };
         let element = if run.error.is_some() {
             "error"

@@ -6,6 +6,8 @@
 
 mod class;
 mod modbus;
+mod client;
+mod server;
 
 use crate::support::{Proc, scratch, text, twin};
 use std::path::Path;

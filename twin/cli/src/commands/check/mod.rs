@@ -1,6 +1,8 @@
 //! `twin check`: a student's program checked against its protocol, check
 //! by check, with the frames as evidence and a score. One file per role.
 
+mod client;
+mod server;
 mod slave;
 
 use anyhow::{Context, Result, bail};
@@ -35,6 +37,13 @@ enum Role {
     /// over MEB, Modbus RTU or TCP, or the Controller_network nodes over the
     /// 8-byte Modbus (--suite).
     Slave(slave::SlaveArgs),
+    /// The student's supervisor: master of the module's bus (the twin answers
+    /// there as the controller) and a TCP server the twin connects to as
+    /// the remote clients.
+    Server(server::ServerArgs),
+    /// The student's remote client: the twin is the supervisor's server it
+    /// connects to, in a session that follows a checklist.
+    Client(client::ClientArgs),
 }
 
 pub fn execute(args: &CheckArgs) -> Result<()> {
@@ -44,6 +53,8 @@ pub fn execute(args: &CheckArgs) -> Result<()> {
     }
     match &args.role {
         Some(Role::Slave(slave)) => slave::execute(slave),
+        Some(Role::Server(server)) => server::execute(server),
+        Some(Role::Client(client)) => client::execute(client),
         None => bail!("say what to check: `twin check slave LINK`, or `twin check --list`"),
     }
 }

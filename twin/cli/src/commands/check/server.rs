@@ -1,0 +1,75 @@
+//! `twin check server`: the student's supervisor, checked from its bus
+//! (the twin plays the module's controller there) and from its TCP server
+//! (the twin connects as the remote clients).
+
+use super::write;
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use std::path::PathBuf;
+use twin_check::report;
+use twin_check::server::{ServerOptions, check_server};
+
+#[derive(Debug, Args)]
+#[command(
+    after_help = "Examples:\n  twin vsp /tmp/ttyV0 /tmp/ttyV1 &\n  python3 supervisor.py --bus /tmp/ttyV0 --listen 5701 &\n  twin check server tcp://127.0.0.1:5701 --bus /tmp/ttyV1\n  twin check server tcp://127.0.0.1:5701 --bus /dev/ttyUSB0?baud=9600 --html report.html"
+)]
+pub struct ServerArgs {
+    /// Where the supervisor's server listens for remote clients:
+    /// tcp://HOST:PORT.
+    link: String,
+    /// The supervisor's bus, where the twin answers as the module's
+    /// controller: the other end of its serial line or pseudo-terminal
+    /// (PATH?baud=9600&parity=E).
+    #[arg(long, value_name = "LINK")]
+    bus: String,
+    /// The slave id the supervisor polls (the M3CVME tool's device number).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=99))]
+    id: u8,
+    /// A read's reply deadline, ms (the MEB page's master timeout); a
+    /// forwarded write gets ten times as long. Give a loaded machine more.
+    #[arg(long, default_value_t = 100, value_name = "MS", value_parser = clap::value_parser!(u64).range(1..=60_000))]
+    timeout_ms: u64,
+    /// Also write the run as JSON (every check, its frames on both sides).
+    #[arg(long, value_name = "FILE")]
+    json: Option<PathBuf>,
+    /// Also write the run as JUnit XML (a test case per check).
+    #[arg(long, value_name = "FILE")]
+    junit: Option<PathBuf>,
+    /// Also write the run as one HTML page, to open in a browser.
+    #[arg(long, value_name = "FILE")]
+    html: Option<PathBuf>,
+}
+
+/// The supervisor's server checked, its report printed and written.
+pub fn execute(args: &ServerArgs) -> Result<()> {
+    if !args.link.starts_with("tcp://") {
+        bail!(
+            "the server is reached over TCP: give tcp://HOST:PORT, not `{}` (its bus goes after --bus)",
+            args.link
+        );
+    }
+    let options = ServerOptions {
+        link: args.link.clone(),
+        bus: args.bus.clone(),
+        id: args.id,
+        timeout_ms: args.timeout_ms,
+    };
+    let run = check_server(&options)
+        .with_context(|| format!("cannot play the slave on the bus {}", args.bus))?;
+    print!("{}", report::text(&run));
+    let outputs = [
+        (&args.json, report::json(&run)),
+        (&args.junit, report::junit(&run)),
+        (&args.html, report::html(&run, None)),
+    ];
+    for (path, contents) in outputs {
+        if let Some(path) = path {
+            write(path, &contents)?;
+        }
+    }
+    let failed = run.checks.len() - run.passed().count();
+    if failed > 0 {
+        bail!("{failed} of {} checks failed", run.checks.len());
+    }
+    Ok(())
+}

@@ -1,0 +1,131 @@
+//! `twin check client`: a session with a client following the checklist,
+//! driven without a person: the twin's own `twin client` (every item seen,
+//! the display left "not judged"), and a student's client written outside
+//! the twin (a Python program), correct and with VEL written to the wrong
+//! block, found by name.
+
+use crate::supervise::client;
+use crate::support::{Proc, scratch, text};
+use std::path::Path;
+use std::process::{Command, Stdio};
+
+use super::failed;
+
+/// `twin check client` listening on a free port, stdin held open (its end
+/// would end the session), with `more` options.
+fn session(more: &[&str]) -> (Proc, String) {
+    let mut args = vec!["check", "client", "--listen", "tcp://127.0.0.1:0"];
+    args.extend_from_slice(more);
+    let proc = Proc::spawn(&args, Stdio::piped());
+    let addr = proc.tcp_of("meb");
+    (proc, addr)
+}
+
+/// Waits for the session to end by itself (every item seen): whether it
+/// exited 0, and what it printed.
+fn ended(mut proc: Proc) -> (bool, String) {
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+    loop {
+        if let Some(status) = proc.child.try_wait().expect("wait") {
+            // Let the reader thread take the last lines.
+            std::thread::sleep(std::time::Duration::from_millis(200));
+            return (status.success(), proc.output());
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the session did not end: {}",
+            proc.output()
+        );
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+}
+
+fn student_client(addr: &str, bugs: &[&str]) -> std::process::Output {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/peers/meb_student_client.py");
+    let mut command = Command::new("python3");
+    command.arg(script).arg(addr);
+    for bug in bugs {
+        command.args(["--bug", bug]);
+    }
+    command.output().expect("python3 runs")
+}
+
+#[test]
+fn the_twins_own_client_follows_the_checklist_and_passes() {
+    let json = scratch("check-client", "own.json");
+    let junit = scratch("check-client", "own.junit.xml");
+    let (proc, addr) = session(&[
+        "--json",
+        json.to_str().unwrap(),
+        "--junit",
+        junit.to_str().unwrap(),
+        "--duration",
+        "120",
+    ]);
+    let url = format!("tcp://{addr}");
+    assert!(client(&[&url, "read", "EA", "0", "6"]).status.success());
+    assert!(client(&[&url, "write", "SA", "0", "2048"]).status.success());
+    assert!(client(&[&url, "write", "SD", "0", "0x001E"]).status.success());
+    // Until the twin plays each fault: an error reply, then a hang-up.
+    let mut saw = Vec::new();
+    for _ in 0..200 {
+        let out = client(&[&url, "read", "EA", "0", "6"]);
+        if !out.status.success() {
+            saw.push(text(&out));
+            if saw.len() == 2 {
+                break;
+            }
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    assert_eq!(saw.len(), 2, "{saw:?}");
+    assert!(saw[0].contains("04"), "the error 04: {}", saw[0]);
+    assert!(client(&[&url, "read", "EA", "0", "6"]).status.success());
+    let (success, printed) = ended(proc);
+    assert!(success, "{printed}");
+    assert!(printed.contains("  2. seen"), "{printed}");
+    assert_eq!(failed(&json), Vec::<String>::new());
+    let run: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let results: Vec<&str> = run["checks"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["result"].as_str().unwrap())
+        .collect();
+    assert_eq!(
+        results,
+        ["pass", "pass", "pass", "pass", "pass", "not judged", "pass"]
+    );
+    let read = super::junit_read(&junit);
+    assert_eq!((read["tests"].as_u64(), read["failures"].as_u64()), (Some(7), Some(0)));
+}
+
+#[test]
+fn a_student_client_passes_and_a_vel_written_to_the_wrong_block_is_found() {
+    for (name, bugs, expected) in [
+        ("correct", &[][..], &[][..]),
+        (
+            "writes-wrong-block",
+            &["writes-wrong-block"][..],
+            &["set VEL to half of full scale (SA 00, about 2048)"][..],
+        ),
+    ] {
+        let json = scratch("check-client", &format!("{name}.json"));
+        let (proc, addr) = session(&["--json", json.to_str().unwrap(), "--duration", "120"]);
+        let out = student_client(&addr, bugs);
+        assert!(out.status.success(), "{name}: {}", text(&out));
+        let shown = String::from_utf8_lossy(&out.stdout).into_owned();
+        assert!(shown.contains("error 0004 from the server"), "{shown}");
+        assert!(shown.contains("the server hung up"), "{shown}");
+        let (success, printed) = ended(proc);
+        assert_eq!(failed(&json), expected, "{name}: {printed}");
+        assert_eq!(success, expected.is_empty(), "{printed}");
+        if name == "writes-wrong-block" {
+            assert!(
+                printed.contains("VEL went to VA 00, not SA 00 (`@01VA00010800"),
+                "{printed}"
+            );
+        }
+    }
+}

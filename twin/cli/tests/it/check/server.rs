@@ -1,0 +1,163 @@
+//! `twin check server`: the twin's own supervisor (`twin supervise`) passes
+//! every check, and a student's supervisor written outside the twin (a
+//! Python program on a pseudo-terminal and TCP) passes when correct, each
+//! planted bug found alone. The bus is a `twin vsp` pair: the supervisor
+//! on one end, the check's slave on the other.
+
+use crate::supervise::{pair_paths, s, server_tcp};
+use crate::support::{Proc, scratch, text, twin};
+use std::path::Path;
+use std::process::{Child, Command};
+use std::time::{Duration, Instant};
+
+use super::failed;
+
+/// The student's supervisor on `bus`, with `bugs` planted.
+struct StudentServer {
+    child: Child,
+    link: String,
+}
+
+impl Drop for StudentServer {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn student_server(name: &str, bus: &Path, bugs: &[&str]) -> StudentServer {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/peers/meb_student_server.py");
+    let port_file = scratch("check-server", &format!("{name}.port"));
+    let _ = std::fs::remove_file(&port_file);
+    let mut command = Command::new("python3");
+    command.arg(script).arg(bus).arg(&port_file);
+    for bug in bugs {
+        command.args(["--bug", bug]);
+    }
+    let mut child = command.spawn().expect("python3 runs");
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let port = loop {
+        if let Ok(port) = std::fs::read_to_string(&port_file) {
+            break port;
+        }
+        if let Ok(Some(status)) = child.try_wait() {
+            panic!("the student's supervisor stopped: {status}");
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the student's supervisor never listened"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    StudentServer {
+        child,
+        link: format!("tcp://127.0.0.1:{}", port.trim()),
+    }
+}
+
+/// `twin check server LINK --bus BUS MORE…`, reads given 1 s (writes 10 s):
+/// a loaded test machine may answer late, and the logic is what is checked.
+fn check_server(link: &str, bus: &Path, more: &[&str]) -> std::process::Output {
+    let mut args = vec!["check", "server", link, "--bus", s(bus), "--timeout-ms", "1000"];
+    args.extend_from_slice(more);
+    twin(&args)
+}
+
+#[test]
+fn the_twins_own_supervisor_passes_every_server_check() {
+    let (a, b) = pair_paths("check-supervise");
+    let _vsp = Proc::start(&["vsp", s(&a), s(&b)]);
+    let supervise = Proc::start(&[
+        "supervise",
+        "--meb",
+        s(&a),
+        "--listen",
+        "tcp://127.0.0.1:0",
+        "--no-record",
+        "--quiet",
+        "--status-every",
+        "0",
+        "--duration",
+        "120",
+    ]);
+    let link = format!("tcp://{}", server_tcp(&supervise));
+    let started = Instant::now();
+    let out = check_server(&link, &b, &[]);
+    let wall = started.elapsed();
+    let shown = text(&out);
+    assert!(out.status.success(), "{shown}");
+    assert!(
+        shown.contains("score: 21 of 21 points (15 of 15 checks passed)"),
+        "{shown}"
+    );
+    assert!(!shown.contains("FAIL"), "{shown}");
+    // The figure for the measurements, not a bound.
+    eprintln!(
+        "twin check server against twin supervise: {:.2} s",
+        wall.as_secs_f64()
+    );
+    supervise.terminate();
+}
+
+#[test]
+fn a_correct_student_server_passes_and_each_planted_bug_is_found_alone() {
+    let json = scratch("check-server", "run.json");
+    let cases: [(&str, &[&str]); 3] = [
+        ("correct", &[]),
+        (
+            "one-client-at-a-time",
+            &["two clients connected at once are both served"],
+        ),
+        (
+            "write-wrong-block",
+            &["a client's VEL write (SA 00) goes on the bus as SA 00 and is acknowledged"],
+        ),
+    ];
+    for (name, expected) in cases {
+        let (a, b) = pair_paths(&format!("check-{name}"));
+        let _vsp = Proc::start(&["vsp", s(&a), s(&b)]);
+        let bugs: &[&str] = if name == "correct" { &[] } else { &[name] };
+        let server = student_server(name, &a, bugs);
+        let out = check_server(&server.link, &b, &["--json", json.to_str().unwrap()]);
+        let shown = text(&out);
+        assert_eq!(failed(&json), expected, "{name}: {shown}");
+        assert_eq!(out.status.success(), expected.is_empty(), "{name}: {shown}");
+        if name == "write-wrong-block" {
+            assert!(
+                shown.contains("the write went on the bus as VA 00 (`@01VA000104D2"),
+                "{shown}"
+            );
+            // The evidence holds both sides: the client's request and
+            // what the supervisor put on the bus.
+            assert!(shown.contains(" s  sent      client    @01SA000104D2"), "{shown}");
+            assert!(shown.contains(" s  received  bus       @01VA000104D2"), "{shown}");
+        }
+        if name == "one-client-at-a-time" {
+            assert!(shown.contains("client 2: no reply within 1000 ms"), "{shown}");
+        }
+    }
+}
+
+#[test]
+fn a_server_that_is_not_listening_is_reported_with_every_check_failed() {
+    let (a, b) = pair_paths("check-nobody");
+    let _vsp = Proc::start(&["vsp", s(&a), s(&b)]);
+    let junit = scratch("check-server", "nobody.junit.xml");
+    let out = check_server("tcp://127.0.0.1:9", &b, &["--junit", junit.to_str().unwrap()]);
+    let shown = text(&out);
+    assert!(!out.status.success(), "{shown}");
+    assert!(
+        shown.contains("could not be checked: cannot connect to tcp://127.0.0.1:9: connection refused"),
+        "{shown}"
+    );
+    let read = super::junit_read(&junit);
+    assert_eq!(read["name"], "MEB server");
+    assert_eq!((read["tests"].as_u64(), read["errors"].as_u64()), (Some(15), Some(15)));
+    // And the link must be TCP: a serial path is the bus, said so.
+    let out = twin(&["check", "server", s(&a), "--bus", s(&b)]);
+    assert!(
+        text(&out).contains("the server is reached over TCP: give tcp://HOST:PORT"),
+        "{}",
+        text(&out)
+    );
+}
