@@ -99,6 +99,7 @@ enum Seen {
 }
 
 /// A session: the server listening, the checklist, what was seen.
+#[derive(Debug)]
 pub struct Session {
     bench: Bench,
     id: u8,
@@ -129,8 +130,11 @@ impl Session {
 
     /// Whether every item a program can show is seen.
     pub fn done(&self) -> bool {
-        self.current()
-            .is_none_or(|i| CHECKLIST.get(i).is_some_and(|item| item.wants == Wants::Person))
+        self.current().is_none_or(|i| {
+            CHECKLIST
+                .get(i)
+                .is_some_and(|item| item.wants == Wants::Person)
+        })
     }
 
     /// Looks at what the client did; the items newly seen, with their
@@ -158,7 +162,9 @@ impl Session {
             self.since = at;
             newly.push((index, outcome));
             match CHECKLIST.get(index + 1).map(|i| i.wants) {
-                Some(Wants::ErrorShown) => self.bench.play(Fault::Error(MebErrorCode::DeviceFailure)),
+                Some(Wants::ErrorShown) => {
+                    self.bench.play(Fault::Error(MebErrorCode::DeviceFailure))
+                }
                 Some(Wants::Reconnects) => self.bench.play(Fault::HangUp),
                 _ => {}
             }
@@ -200,7 +206,9 @@ impl Session {
             }
             Wants::EnableOn => acknowledged_writes(heard)
                 .find(|(_, r)| {
-                    r.cmd == MebCmd::SD && r.addr == 0 && r.data.as_slice().first().is_some_and(|w| w & 1 == 0)
+                    r.cmd == MebCmd::SD
+                        && r.addr == 0
+                        && r.data.as_slice().first().is_some_and(|w| w & 1 == 0)
                 })
                 .map(|(h, _)| (Outcome::Pass, h.at)),
             Wants::ErrorShown => (!self.bench.fault_pending())
@@ -231,7 +239,7 @@ impl Session {
         for (item, seen) in CHECKLIST.iter().zip(&self.seen) {
             let (outcome, until) = match (seen, item.wants) {
                 (_, Wants::Person) => (
-                    Outcome::NotJudged("for the teacher: watch the client".into()),
+                    Outcome::NotJudged("the teacher watches the client".into()),
                     from,
                 ),
                 (Seen::Done { outcome, at }, _) => (outcome.clone(), *at),
@@ -268,13 +276,15 @@ fn acknowledged_writes(
     heard: &[Heard],
 ) -> impl Iterator<Item = (&Heard, nodes::proto::meb::MebRepr)> {
     heard.iter().enumerate().filter_map(move |(i, h)| {
-        let request = h.repr.filter(|r| h.way == Way::Received && !r.data.is_empty())?;
+        let request = h
+            .repr
+            .filter(|r| h.way == Way::Received && !r.data.is_empty())?;
         let acked = heard.get(i + 1..)?.iter().any(|reply| {
             reply.conn == h.conn
                 && reply.way == Way::Sent
-                && reply
-                    .repr
-                    .is_some_and(|r| r.cmd == request.cmd && r.addr == request.addr && r.data.is_empty())
+                && reply.repr.is_some_and(|r| {
+                    r.cmd == request.cmd && r.addr == request.addr && r.data.is_empty()
+                })
         });
         acked.then_some((h, request))
     })
@@ -303,14 +313,15 @@ fn exchange(h: &Heard) -> Exchange {
 /// Every frame the client sent parsed, with a right FCS, for slave `id`.
 fn well_formed(heard: &[Heard], id: u8, ended: f64) -> CheckOutcome {
     let sent: Vec<&Heard> = heard.iter().filter(|h| h.way == Way::Received).collect();
-    let bad = sent
-        .iter()
-        .find(|h| h.repr.is_none_or(|r| r.id != id));
+    let bad = sent.iter().find(|h| h.repr.is_none_or(|r| r.id != id));
     let outcome = match (bad, sent.is_empty()) {
         (_, true) => Outcome::Fail("the client sent nothing".into()),
         (None, false) => Outcome::Pass,
         (Some(h), false) => Outcome::Fail(match h.repr {
-            None => format!("`{}` is not a well-formed MEB frame (form, FCS or ending)", h.text),
+            None => format!(
+                "`{}` is not a well-formed MEB frame (form, FCS or ending)",
+                h.text
+            ),
             Some(r) => format!("`{}` is for slave {:02}, not {id:02}", h.text, r.id),
         }),
     };
@@ -319,7 +330,9 @@ fn well_formed(heard: &[Heard], id: u8, ended: f64) -> CheckOutcome {
         None => Vec::new(),
     };
     CheckOutcome {
-        name: format!("every frame the client sent is well formed, its FCS right, for slave {id:02}"),
+        name: format!(
+            "every frame the client sent is well formed, its FCS right, for slave {id:02}"
+        ),
         requirement: "MEB page, Frame".into(),
         points: 2,
         outcome,

@@ -447,9 +447,11 @@ impl Checker {
         });
         let Some(at) = carried else {
             for f in frames.iter().filter(|f| f.way == Way::Received) {
-                if f.repr.is_some_and(|r| r.cmd.block().is_some_and(|(b, _)| {
-                    b.access() == nodes::proto::meb::MebAccess::Write
-                })) {
+                if f.repr.is_some_and(|r| {
+                    r.cmd
+                        .block()
+                        .is_some_and(|(b, _)| b.access() == nodes::proto::meb::MebAccess::Write)
+                }) {
                     self.note_bus(f);
                 }
             }
@@ -460,7 +462,10 @@ impl Checker {
         };
         let request = frames[at].clone();
         self.note_bus(&request);
-        let slave_reply = frames[at + 1..].iter().find(|f| f.way == Way::Sent).cloned();
+        let slave_reply = frames[at + 1..]
+            .iter()
+            .find(|f| f.way == Way::Sent)
+            .cloned();
         if let Some(r) = &slave_reply {
             self.note_bus(r);
         }
@@ -495,7 +500,11 @@ impl Checker {
         let mut client = self.connect("client")?;
         self.send(&mut client, body)?;
         let timeout = self.timeout;
-        self.expect(&mut client, &format!("@{{id}}ER{addr}01{code:04X}"), timeout)
+        self.expect(
+            &mut client,
+            &format!("@{{id}}ER{addr}01{code:04X}"),
+            timeout,
+        )
     }
 }
 
@@ -504,7 +513,11 @@ fn polls_the_slave(c: &mut Checker) -> Verdict {
     loop {
         let frames = c.bus.frames_since(0.0);
         if let Some(reply) = frames.iter().position(|f| f.way == Way::Sent) {
-            if let Some(request) = frames[..reply].iter().rev().find(|f| f.way == Way::Received) {
+            if let Some(request) = frames[..reply]
+                .iter()
+                .rev()
+                .find(|f| f.way == Way::Received)
+            {
                 c.note_bus(request);
             }
             c.note_bus(&frames[reply]);

@@ -8,7 +8,7 @@
 
 use crate::run::{Way, shown};
 use nodes::firmware::{Framing, RegisterImage, SlaveFrontend};
-use nodes::master::image_server::{ClientId, ImageServer, ImageServerConfig};
+use nodes::master::image_server::{ImageServer, ImageServerConfig};
 use nodes::master::{LoopMode, Protocol, SlaveLoopConfig, Supervisor, SupervisorConfig};
 use nodes::node::Node;
 use nodes::proto::meb::{MebErrorCode, MebRepr};
@@ -79,6 +79,14 @@ pub struct Bench {
     shared: Arc<Shared>,
     threads: Vec<JoinHandle<()>>,
     addr: std::net::SocketAddr,
+}
+
+impl std::fmt::Debug for Bench {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Bench")
+            .field("addr", &self.addr)
+            .finish_non_exhaustive()
+    }
 }
 
 impl Bench {

@@ -169,10 +169,7 @@ fn serve(mut wire: Wire, id: u8, started: Instant, shared: &Shared) {
 }
 
 fn lock(shared: &Shared) -> MutexGuard<'_, State> {
-    shared
-        .state
-        .lock()
-        .unwrap_or_else(PoisonError::into_inner)
+    shared.state.lock().unwrap_or_else(PoisonError::into_inner)
 }
 
 fn bus_frame(at: f64, way: Way, bytes: &[u8]) -> BusFrame {

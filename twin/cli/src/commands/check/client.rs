@@ -19,7 +19,11 @@ use twin_check::{Outcome, report};
 pub struct ClientArgs {
     /// Where the twin listens for the client (port 0: any free port,
     /// printed). Only this machine can connect unless HOST says otherwise.
-    #[arg(long, default_value = "tcp://127.0.0.1:5701", value_name = "tcp://HOST:PORT")]
+    #[arg(
+        long,
+        default_value = "tcp://127.0.0.1:5701",
+        value_name = "tcp://HOST:PORT"
+    )]
     listen: String,
     /// The slave id whose image the client reads and writes.
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=99))]
@@ -53,8 +57,8 @@ pub fn execute(args: &ClientArgs) -> Result<()> {
     {
         bail!("--duration must be a number of seconds above 0, not {d}");
     }
-    let mut session =
-        Session::listen(addr, args.id).with_context(|| format!("cannot listen on {}", args.listen))?;
+    let mut session = Session::listen(addr, args.id)
+        .with_context(|| format!("cannot listen on {}", args.listen))?;
     let link = format!("tcp://{}", session.addr());
     println!(
         "twin check client: slave {:02}'s image served to the client",
@@ -81,8 +85,7 @@ pub fn execute(args: &ClientArgs) -> Result<()> {
             println!("  {}. {verdict}", i + 1);
             let _ = std::io::stdout().flush();
         }
-        if session.done() || ended.try_recv().is_ok() || until.is_some_and(|u| Instant::now() > u)
-        {
+        if session.done() || ended.try_recv().is_ok() || until.is_some_and(|u| Instant::now() > u) {
             break;
         }
         std::thread::sleep(Duration::from_millis(20));

@@ -21,6 +21,23 @@ fn session(more: &[&str]) -> (Proc, String) {
     (proc, addr)
 }
 
+/// The session's lines, the port and the run's time taken out.
+fn without_port(shown: &str) -> Vec<String> {
+    shown
+        .lines()
+        .map(|line| match line.split_once("tcp://127.0.0.1:") {
+            Some((head, rest)) => {
+                let tail = rest.trim_start_matches(|c: char| c.is_ascii_digit());
+                format!("{head}tcp://…{tail}")
+            }
+            None => match line.split_once(" in ") {
+                Some((head, _)) if line.starts_with("score:") => head.to_string(),
+                _ => line.to_string(),
+            },
+        })
+        .collect()
+}
+
 /// Waits for the session to end by itself (every item seen): whether it
 /// exited 0, and what it printed.
 fn ended(mut proc: Proc) -> (bool, String) {
@@ -65,7 +82,11 @@ fn the_twins_own_client_follows_the_checklist_and_passes() {
     let url = format!("tcp://{addr}");
     assert!(client(&[&url, "read", "EA", "0", "6"]).status.success());
     assert!(client(&[&url, "write", "SA", "0", "2048"]).status.success());
-    assert!(client(&[&url, "write", "SD", "0", "0x001E"]).status.success());
+    assert!(
+        client(&[&url, "write", "SD", "0", "0x001E"])
+            .status
+            .success()
+    );
     // Until the twin plays each fault: an error reply, then a hang-up.
     let mut saw = Vec::new();
     for _ in 0..200 {
@@ -98,7 +119,10 @@ fn the_twins_own_client_follows_the_checklist_and_passes() {
         ["pass", "pass", "pass", "pass", "pass", "not judged", "pass"]
     );
     let read = super::junit_read(&junit);
-    assert_eq!((read["tests"].as_u64(), read["failures"].as_u64()), (Some(7), Some(0)));
+    assert_eq!(
+        (read["tests"].as_u64(), read["failures"].as_u64()),
+        (Some(7), Some(0))
+    );
 }
 
 #[test]
@@ -121,6 +145,19 @@ fn a_student_client_passes_and_a_vel_written_to_the_wrong_block_is_found() {
         let (success, printed) = ended(proc);
         assert_eq!(failed(&json), expected, "{name}: {printed}");
         assert_eq!(success, expected.is_empty(), "{printed}");
+        if name == "correct" {
+            // The book's session is this one.
+            let page = std::fs::read_to_string(
+                Path::new(env!("CARGO_MANIFEST_DIR")).join("../../docs/check.md"),
+            )
+            .unwrap();
+            let start = page
+                .find("```text\ntwin check client:")
+                .expect("the session on the page")
+                + 8;
+            let book = &page[start..start + page[start..].find("\n```").unwrap()];
+            assert_eq!(without_port(&printed), without_port(book));
+        }
         if name == "writes-wrong-block" {
             assert!(
                 printed.contains("VEL went to VA 00, not SA 00 (`@01VA00010800"),
