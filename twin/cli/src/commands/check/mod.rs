@@ -18,10 +18,12 @@ use twin_check::Suite;
 /// show each failure, and a score. Suites are TOML files; the built-in ones
 /// (--list) are written the same way a teacher writes their own (--suite).
 /// A class is checked at once from a roster (--roster): a report per
-/// student and the scores side by side. Exits 1 when a check fails.
+/// student and the scores side by side. A supervisor is checked from its
+/// bus and its TCP server at once (server); a remote client in a session
+/// that follows a checklist (client). Exits 1 when a check fails.
 #[derive(Debug, Args)]
 #[command(
-    after_help = "Examples:\n  twin check slave tcp://127.0.0.1:5700\n  twin check slave /dev/ttyUSB0?baud=9600 --id 3 --json report.json\n  twin check slave /tmp/ttyV0 --suite my-suite.toml --html report.html\n  twin check slave tcp://127.0.0.1:5020 --suite modbus-tcp-slave\n  twin check slave /tmp/ttyV0 --suite modbus-rtu-slave\n  twin check slave --roster class.csv --out grades/\n  twin check --list"
+    after_help = "Examples:\n  twin check slave tcp://127.0.0.1:5700\n  twin check slave /dev/ttyUSB0?baud=9600 --id 3 --json report.json\n  twin check slave /tmp/ttyV0 --suite my-suite.toml --html report.html\n  twin check slave tcp://127.0.0.1:5020 --suite modbus-tcp-slave\n  twin check slave /tmp/ttyV0 --suite modbus-rtu-slave\n  twin check slave --roster class.csv --out grades/\n  twin check server tcp://127.0.0.1:5701 --bus /tmp/ttyV1\n  twin check client --listen tcp://0.0.0.0:5701\n  twin check --list"
 )]
 pub struct CheckArgs {
     #[command(subcommand)]
@@ -55,7 +57,9 @@ pub fn execute(args: &CheckArgs) -> Result<()> {
         Some(Role::Slave(slave)) => slave::execute(slave),
         Some(Role::Server(server)) => server::execute(server),
         Some(Role::Client(client)) => client::execute(client),
-        None => bail!("say what to check: `twin check slave LINK`, or `twin check --list`"),
+        None => bail!(
+            "say what to check: `twin check slave LINK`, `twin check server LINK --bus LINK`, `twin check client`, or `twin check --list`"
+        ),
     }
 }
 
