@@ -11,11 +11,12 @@ use twin_check::server::{ServerOptions, check_server};
 
 #[derive(Debug, Args)]
 #[command(
-    after_help = "Examples:\n  twin vsp /tmp/ttyV0 /tmp/ttyV1 &\n  python3 supervisor.py --bus /tmp/ttyV0 --listen 5701 &\n  twin check server tcp://127.0.0.1:5701 --bus /tmp/ttyV1\n  twin check server tcp://127.0.0.1:5701 --bus /dev/ttyUSB0?baud=9600 --html report.html"
+    after_help = "Examples:\n  twin vsp /tmp/ttyV0 /tmp/ttyV1 &\n  python3 supervisor.py /tmp/ttyV0 5701 &      (the student's supervisor)\n  twin check server tcp://127.0.0.1:5701 --bus /tmp/ttyV1\n  twin check server tcp://127.0.0.1:5701 --bus /dev/ttyUSB0?baud=9600 --html report.html"
 )]
 pub struct ServerArgs {
     /// Where the supervisor's server listens for remote clients:
     /// tcp://HOST:PORT.
+    #[arg(value_name = "tcp://HOST:PORT")]
     link: String,
     /// The supervisor's bus, where the twin answers as the module's
     /// controller: the other end of its serial line or pseudo-terminal
