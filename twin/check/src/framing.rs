@@ -51,7 +51,11 @@ impl Protocol {
     /// written as the protocol writes an id: two decimal digits in MEB, a
     /// hex byte in the binary ones.
     pub fn fill(self, text: &str, id: u8) -> String {
-        let other = if id == *self.ids().end() { id - 1 } else { id + 1 };
+        let other = if id == *self.ids().end() {
+            id - 1
+        } else {
+            id + 1
+        };
         let write = |id: u8| match self {
             Protocol::Meb => format!("{id:02}"),
             _ => format!("{id:02X}"),
@@ -123,7 +127,13 @@ impl Protocol {
     /// Whether `frame` is a well-formed reply (its own check bytes right;
     /// over TCP, the transaction id of the request it answers) matching
     /// `pattern` and then `data` words (MEB) or bytes of any value.
-    pub fn judge(self, frame: &[u8], pattern: &str, data: u16, transaction: u16) -> Result<(), String> {
+    pub fn judge(
+        self,
+        frame: &[u8],
+        pattern: &str,
+        data: u16,
+        transaction: u16,
+    ) -> Result<(), String> {
         match self {
             Protocol::Meb => meb::judge(frame, pattern, data),
             _ => binary::judge(self, frame, pattern, data, transaction),

@@ -28,6 +28,6 @@ pub mod server;
 pub mod suite;
 pub mod wire;
 
-pub use run::{CheckOutcome, Outcome, SuiteRun, run_suite};
 pub use framing::Protocol;
+pub use run::{CheckOutcome, Outcome, SuiteRun, run_suite};
 pub use suite::{BUILT_IN, Suite, SuiteError};

@@ -52,7 +52,10 @@ pub const BUILT_IN: &[(&str, &str)] = &[
         "modbus-tcp-slave",
         include_str!("../suites/modbus-tcp-slave.toml"),
     ),
-    ("modbus8-slave", include_str!("../suites/modbus8-slave.toml")),
+    (
+        "modbus8-slave",
+        include_str!("../suites/modbus8-slave.toml"),
+    ),
 ];
 
 /// A suite that cannot be used, with where and why.
@@ -204,10 +207,7 @@ impl Suite {
         let Some(protocol) = Protocol::from_name(&raw.protocol) else {
             return Err(SuiteError::Toml {
                 path: path.into(),
-                why: format!(
-                    "protocol `{}`: a suite speaks {PROTOCOLS}",
-                    raw.protocol
-                ),
+                why: format!("protocol `{}`: a suite speaks {PROTOCOLS}", raw.protocol),
             });
         };
         // A step at the start of its line is on the line after the last
@@ -224,11 +224,12 @@ impl Suite {
             let mut sent = false;
             for spanned in check.steps {
                 let line = line_of(spanned.span().start);
-                let step = step(protocol, spanned.into_inner(), sent).map_err(|why| SuiteError::Step {
-                    path: path.into(),
-                    line,
-                    why: format!("check `{}`: {why}", check.name),
-                })?;
+                let step =
+                    step(protocol, spanned.into_inner(), sent).map_err(|why| SuiteError::Step {
+                        path: path.into(),
+                        line,
+                        why: format!("check `{}`: {why}", check.name),
+                    })?;
                 sent |= matches!(step, Step::Send { .. } | Step::Raw(_));
                 steps.push(step);
             }
@@ -269,7 +270,11 @@ fn step(protocol: Protocol, s: StepToml, sent: bool) -> Result<Step, String> {
     if count != 1 {
         return Err(format!(
             "a step does one thing (send, raw, expect, {}, silence_ms or wait_ms); this one does {count}",
-            if protocol.is_text() { "error" } else { "exception" }
+            if protocol.is_text() {
+                "error"
+            } else {
+                "exception"
+            }
         ));
     }
     not_in_protocol(protocol, &s)?;
@@ -289,9 +294,17 @@ fn step(protocol: Protocol, s: StepToml, sent: bool) -> Result<Step, String> {
         only_with(s.words.is_some(), "words", "expect")?;
         only_with(s.bytes.is_some(), "bytes", "expect")?;
     }
-    let reply = if protocol.is_text() { "error" } else { "exception" };
+    let reply = if protocol.is_text() {
+        "error"
+    } else {
+        "exception"
+    };
     if s.expect.is_none() && s.error.is_none() && s.exception.is_none() {
-        only_with(s.within_ms.is_some(), "within_ms", &format!("expect or {reply}"))?;
+        only_with(
+            s.within_ms.is_some(),
+            "within_ms",
+            &format!("expect or {reply}"),
+        )?;
     }
     let within_ms = s.within_ms;
     if let Some(body) = s.send {
@@ -314,7 +327,9 @@ fn step(protocol: Protocol, s: StepToml, sent: bool) -> Result<Step, String> {
         });
     }
     if let Some(raw) = s.raw {
-        protocol.check_raw(&raw).map_err(|why| format!("raw: {why}"))?;
+        protocol
+            .check_raw(&raw)
+            .map_err(|why| format!("raw: {why}"))?;
         return Ok(Step::Raw(raw));
     }
     if (s.expect.is_some() || s.error.is_some() || s.exception.is_some()) && !sent {
@@ -359,15 +374,36 @@ fn step(protocol: Protocol, s: StepToml, sent: bool) -> Result<Step, String> {
 fn not_in_protocol(protocol: Protocol, s: &StepToml) -> Result<(), String> {
     let misplaced: Vec<(bool, &str)> = match protocol {
         Protocol::Meb => vec![
-            (s.crc.is_some(), "`crc` is for the binary protocols: an MEB frame's check is its FCS (`fcs`)"),
-            (s.bytes.is_some(), "`bytes` is for the binary protocols: an MEB reply's data is counted in `words`"),
-            (s.exception.is_some(), "`exception` is for the Modbus protocols: MEB replies `error`"),
+            (
+                s.crc.is_some(),
+                "`crc` is for the binary protocols: an MEB frame's check is its FCS (`fcs`)",
+            ),
+            (
+                s.bytes.is_some(),
+                "`bytes` is for the binary protocols: an MEB reply's data is counted in `words`",
+            ),
+            (
+                s.exception.is_some(),
+                "`exception` is for the Modbus protocols: MEB replies `error`",
+            ),
         ],
         _ => vec![
-            (s.fcs.is_some(), "`fcs` is MEB's: a Modbus frame's check is its CRC (`crc`)"),
-            (s.ending.is_some(), "`ending` is MEB's: a Modbus frame has none"),
-            (s.words.is_some(), "`words` is MEB's: a Modbus reply's data is counted in `bytes`"),
-            (s.error.is_some(), "`error` is MEB's: a Modbus slave answers an `exception`"),
+            (
+                s.fcs.is_some(),
+                "`fcs` is MEB's: a Modbus frame's check is its CRC (`crc`)",
+            ),
+            (
+                s.ending.is_some(),
+                "`ending` is MEB's: a Modbus frame has none",
+            ),
+            (
+                s.words.is_some(),
+                "`words` is MEB's: a Modbus reply's data is counted in `bytes`",
+            ),
+            (
+                s.error.is_some(),
+                "`error` is MEB's: a Modbus slave answers an `exception`",
+            ),
         ],
     };
     if let Some((_, why)) = misplaced.iter().find(|(given, _)| *given) {
@@ -445,13 +481,41 @@ mod tests {
     #[test]
     fn a_binary_suites_mistakes_are_named_with_their_line() {
         let cases = [
-            ("modbus-rtu", "{ send = \"{id} 04 00G0 000A\" },", "line 7: check `c`: `G0` in `00G0` is not a hex byte"),
-            ("modbus-rtu", "{ send = \"{id} 04 000 000A\" },", "`000` has an odd number of hex digits"),
-            ("modbus8", "{ send = \"01 03 0001\" },", "an 8-byte Modbus frame is six bytes"),
-            ("modbus-tcp", "{ send = \"01 03 0001 0001\", crc = \"bad\" },", "Modbus TCP frames carry no CRC"),
-            ("modbus-rtu", "{ send = \"01 03 0001 0001\", fcs = \"bad\" },", "`fcs` is MEB's"),
-            ("meb", "{ send = \"@{id}EA0001\" },\n{ exception = 2 },", "line 8: check `c`: `exception` is for the Modbus protocols"),
-            ("modbus-rtu", "{ send = \"01 03 0001 0001\" },\n{ expect = \"01 03 02\", words = 1 },", "`words` is MEB's"),
+            (
+                "modbus-rtu",
+                "{ send = \"{id} 04 00G0 000A\" },",
+                "line 7: check `c`: `G0` in `00G0` is not a hex byte",
+            ),
+            (
+                "modbus-rtu",
+                "{ send = \"{id} 04 000 000A\" },",
+                "`000` has an odd number of hex digits",
+            ),
+            (
+                "modbus8",
+                "{ send = \"01 03 0001\" },",
+                "an 8-byte Modbus frame is six bytes",
+            ),
+            (
+                "modbus-tcp",
+                "{ send = \"01 03 0001 0001\", crc = \"bad\" },",
+                "Modbus TCP frames carry no CRC",
+            ),
+            (
+                "modbus-rtu",
+                "{ send = \"01 03 0001 0001\", fcs = \"bad\" },",
+                "`fcs` is MEB's",
+            ),
+            (
+                "meb",
+                "{ send = \"@{id}EA0001\" },\n{ exception = 2 },",
+                "line 8: check `c`: `exception` is for the Modbus protocols",
+            ),
+            (
+                "modbus-rtu",
+                "{ send = \"01 03 0001 0001\" },\n{ expect = \"01 03 02\", words = 1 },",
+                "`words` is MEB's",
+            ),
         ];
         for (protocol, steps, why) in cases {
             let e = Suite::parse(&one_check(protocol, steps), "mine.toml")
@@ -463,6 +527,9 @@ mod tests {
         let e = Suite::parse(&one_check("modbus", ""), "mine.toml")
             .unwrap_err()
             .to_string();
-        assert!(e.contains("protocol `modbus`: a suite speaks \"meb\", \"modbus-rtu\""), "{e}");
+        assert!(
+            e.contains("protocol `modbus`: a suite speaks \"meb\", \"modbus-rtu\""),
+            "{e}"
+        );
     }
 }

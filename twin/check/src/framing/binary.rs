@@ -162,12 +162,12 @@ fn checked(protocol: Protocol, frame: &[u8], transaction: u16) -> Result<&[u8], 
         },
         Protocol::ModbusTcp => {
             let reply = tcp::parse(frame).map_err(|e| match e {
-                FrameError::ProtocolId(id) => format!(
-                    "`{seen}`: its header's protocol id is {id:04X}; Modbus is 0000"
-                ),
-                FrameError::MbapLength(n) => format!(
-                    "`{seen}`: its header gives a length of {n}; Modbus allows 2 to 254"
-                ),
+                FrameError::ProtocolId(id) => {
+                    format!("`{seen}`: its header's protocol id is {id:04X}; Modbus is 0000")
+                }
+                FrameError::MbapLength(n) => {
+                    format!("`{seen}`: its header gives a length of {n}; Modbus allows 2 to 254")
+                }
                 FrameError::LengthMismatch { expected, actual } => format!(
                     "`{seen}`: its header gives a length of {expected}; {actual} bytes followed"
                 ),
@@ -266,7 +266,10 @@ mod tests {
         // The Controller_network master's own write of 0x80 to the motor.
         let frame = request(Protocol::Modbus8, "01 06 0001 0080", false, 0);
         assert_eq!(frame, [0x01, 0x06, 0x00, 0x01, 0x00, 0x80, 0xAA, 0xD9]);
-        assert_eq!(judge(Protocol::Modbus8, &frame, "01 06 0001 0080", 0, 0), Ok(()));
+        assert_eq!(
+            judge(Protocol::Modbus8, &frame, "01 06 0001 0080", 0, 0),
+            Ok(())
+        );
         let swapped = [0x01, 0x06, 0x00, 0x01, 0x00, 0x80, 0xD9, 0xAA];
         let why = judge(Protocol::Modbus8, &swapped, "01 06 0001 0080", 0, 0).unwrap_err();
         assert!(why.contains("two bytes swapped"), "{why}");

@@ -258,24 +258,41 @@ fn each_bug_planted_in_the_pymodbus_slave_is_found_and_nothing_else() {
         // not the request's: every check with a reply in it fails for
         // that reason, the silent ones pass.
         scope.spawn(|| {
-            let (fails, shown) = failures("rtu", "modbus-rtu-slave", "rtu-swapped", &["crc-byte-order-swapped"]);
+            let (fails, shown) = failures(
+                "rtu",
+                "modbus-rtu-slave",
+                "rtu-swapped",
+                &["crc-byte-order-swapped"],
+            );
             let silent = [
                 "a request for another unit gets no reply",
                 "a broadcast read is not answered",
             ];
-            assert!(!fails.iter().any(|f| silent.contains(&f.as_str())), "{shown}");
+            assert!(
+                !fails.iter().any(|f| silent.contains(&f.as_str())),
+                "{shown}"
+            );
             assert_eq!(fails.len(), 29 - silent.len(), "{shown}");
             assert_eq!(
-                shown.matches("(the two bytes swapped: Modbus RTU sends the CRC's low byte first)").count(),
+                shown
+                    .matches("(the two bytes swapped: Modbus RTU sends the CRC's low byte first)")
+                    .count(),
                 fails.len(),
                 "{shown}"
             );
         });
         scope.spawn(|| {
-            let (fails, shown) = failures("tcp", "modbus-tcp-slave", "tcp-transaction", &["wrong-transaction-id"]);
+            let (fails, shown) = failures(
+                "tcp",
+                "modbus-tcp-slave",
+                "tcp-transaction",
+                &["wrong-transaction-id"],
+            );
             assert_eq!(fails.len(), 25, "every check has a reply: {shown}");
             assert_eq!(
-                shown.matches("carries transaction id 0000; the request's was").count(),
+                shown
+                    .matches("carries transaction id 0000; the request's was")
+                    .count(),
                 25,
                 "{shown}"
             );
@@ -311,5 +328,10 @@ fn the_books_modbus_report_is_what_twin_check_prints() {
         );
     }
     let failures = |lines: &[String]| lines.iter().filter(|l| l.contains("FAIL")).count();
-    assert_eq!(failures(&shown), failures(&printed), "{}", printed.join("\n"));
+    assert_eq!(
+        failures(&shown),
+        failures(&printed),
+        "{}",
+        printed.join("\n")
+    );
 }
