@@ -20,8 +20,8 @@
 )]
 
 pub mod class;
-pub mod framing;
 pub mod client;
+pub mod framing;
 pub mod report;
 pub mod run;
 pub mod server;

@@ -5,8 +5,8 @@
 //! reports read back; and a class ([`class`]).
 
 mod class;
-mod modbus;
 mod client;
+mod modbus;
 mod server;
 
 use crate::support::{Proc, scratch, text, twin};
