@@ -256,6 +256,17 @@ pub fn run_class(
     suite: &Suite,
     students: &[Student],
     jobs: usize,
+    done: impl FnMut(&Student, &SuiteRun),
+) -> Vec<SuiteRun> {
+    run_each(students, jobs, |student| check(suite, student), done)
+}
+
+/// [`run_class`] with any check: `check` makes a student's run (a master's
+/// suite, say), `jobs` at once; `done` is called as each ends.
+pub fn run_each(
+    students: &[Student],
+    jobs: usize,
+    check: impl Fn(&Student) -> SuiteRun + Sync,
     mut done: impl FnMut(&Student, &SuiteRun),
 ) -> Vec<SuiteRun> {
     let next = AtomicUsize::new(0);
@@ -263,10 +274,10 @@ pub fn run_class(
     let mut runs: Vec<Option<SuiteRun>> = vec![None; students.len()];
     std::thread::scope(|scope| {
         for _ in 0..jobs.clamp(1, students.len().max(1)) {
-            let (tx, next) = (tx.clone(), &next);
+            let (tx, next, check) = (tx.clone(), &next, &check);
             scope.spawn(move || {
                 while let Some(student) = students.get(next.fetch_add(1, Ordering::Relaxed)) {
-                    let run = check(suite, student);
+                    let run = check(student);
                     if tx.send((student, run)).is_err() {
                         break;
                     }

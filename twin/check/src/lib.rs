@@ -22,6 +22,7 @@
 pub mod class;
 pub mod client;
 pub mod framing;
+pub mod master;
 pub mod report;
 pub mod run;
 pub mod server;

@@ -6,7 +6,7 @@
 mod html;
 mod junit;
 
-use crate::run::{CheckOutcome, Outcome, SuiteRun, Way};
+use crate::run::{CheckOutcome, Outcome, Role, SuiteRun, Way};
 use std::fmt::Write;
 
 pub use html::html;
@@ -28,11 +28,7 @@ pub(crate) fn frames(check: &CheckOutcome) -> String {
 /// The terminal's report.
 pub fn text(run: &SuiteRun) -> String {
     let mut out = String::new();
-    let _ = writeln!(
-        out,
-        "{} suite, slave {:02} on {}",
-        run.suite, run.id, run.link
-    );
+    let _ = writeln!(out, "{}", heading(run));
     if let Some(why) = &run.error {
         let _ = writeln!(out, "  could not be checked: {why}");
     }
@@ -40,6 +36,9 @@ pub fn text(run: &SuiteRun) -> String {
         match &check.outcome {
             Outcome::Pass => {
                 let _ = writeln!(out, "  pass  {}  ({})", check.name, check.requirement);
+                for note in &check.notes {
+                    let _ = writeln!(out, "        {note}");
+                }
             }
             Outcome::NotJudged(what) => {
                 let _ = writeln!(out, "  ----  {}  ({})", check.name, check.requirement);
@@ -48,6 +47,9 @@ pub fn text(run: &SuiteRun) -> String {
             Outcome::Fail(why) => {
                 let _ = writeln!(out, "  FAIL  {}  ({})", check.name, check.requirement);
                 let _ = writeln!(out, "        {why}");
+                for note in &check.notes {
+                    let _ = writeln!(out, "        {note}");
+                }
                 for line in frames(check).lines() {
                     let _ = writeln!(out, "        {line}");
                 }
@@ -59,7 +61,7 @@ pub fn text(run: &SuiteRun) -> String {
         .iter()
         .flat_map(|c| &c.frames)
         .any(|f| f.way == Way::Received);
-    if !heard && run.error.is_none() {
+    if !heard && run.error.is_none() && run.role == Role::Slave {
         let _ = writeln!(
             out,
             "nothing came back at all: is slave {:02} there, on {}? (--id is its device number)",
@@ -91,6 +93,23 @@ pub fn text(run: &SuiteRun) -> String {
     }
     out.push('\n');
     out
+}
+
+/// What was checked, on which link.
+pub(crate) fn heading(run: &SuiteRun) -> String {
+    match run.role {
+        Role::Slave => format!("{} suite, slave {:02} on {}", run.suite, run.id, run.link),
+        Role::Master => {
+            let ids: Vec<String> = run.ids.iter().map(|id| format!("{id:02}")).collect();
+            let slaves = if ids.len() == 1 { "slave" } else { "slaves" };
+            format!(
+                "{} suite, the master on {} (the twin's {slaves} {})",
+                run.suite,
+                run.link,
+                ids.join(", ")
+            )
+        }
+    }
 }
 
 /// The run as JSON: the suite, the link, every check with its frames.

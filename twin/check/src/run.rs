@@ -30,6 +30,23 @@ pub struct Exchange {
     pub text: String,
 }
 
+/// Which part of the bus the checked program plays.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Role {
+    /// It answers the twin's requests.
+    #[default]
+    Slave,
+    /// It polls the twin's slaves.
+    Master,
+}
+
+impl Role {
+    fn is_slave(&self) -> bool {
+        *self == Role::Slave
+    }
+}
+
 /// Passed, or the reason it did not; or left to a person (what a
 /// client shows its user), with what they are to look at.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -55,6 +72,10 @@ pub struct CheckOutcome {
     /// From the check's first step to its verdict (the quiet line before
     /// it not counted).
     pub seconds: f64,
+    /// Figures the check measured that hold the program to nothing (a
+    /// master's poll rate, what it chose where the protocol lets it).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub notes: Vec<String>,
 }
 
 /// A suite as it went against one program.
@@ -63,6 +84,11 @@ pub struct SuiteRun {
     pub suite: String,
     pub link: String,
     pub id: u8,
+    #[serde(skip_serializing_if = "Role::is_slave")]
+    pub role: Role,
+    /// A master's slaves, the twin's (`id` is the first).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub ids: Vec<u8>,
     pub checks: Vec<CheckOutcome>,
     pub seconds: f64,
     /// Why no check could be run (the program unreachable, or it hung up):
@@ -113,12 +139,15 @@ impl SuiteRun {
                 reply_ms: Vec::new(),
                 frames: Vec::new(),
                 seconds: 0.0,
+                notes: Vec::new(),
             })
             .collect();
         SuiteRun {
             suite: suite.name.clone(),
             link: link.into(),
             id,
+            role: Role::Slave,
+            ids: Vec::new(),
             checks,
             seconds: 0.0,
             error: Some(why),
@@ -171,12 +200,15 @@ pub fn run_suite(suite: &Suite, wire: &mut Wire, id: u8) -> Result<SuiteRun, Wir
             reply_ms: play.reply_ms,
             frames: play.frames,
             seconds,
+            notes: Vec::new(),
         });
     }
     Ok(SuiteRun {
         suite: suite.name.clone(),
         link: wire.link().to_string(),
         id,
+        role: Role::Slave,
+        ids: Vec::new(),
         checks,
         seconds: wire.now() - started,
         error: None,

@@ -92,6 +92,16 @@ impl Wire {
         })
     }
 
+    /// A connection a program made to the twin (a master to its slaves).
+    pub(crate) fn accepted(stream: TcpStream, link: &str) -> Self {
+        let _ = stream.set_nodelay(true);
+        Self {
+            line: Line::Tcp(stream),
+            link: link.into(),
+            started: Instant::now(),
+        }
+    }
+
     /// Seconds since the link was opened: the times of a report.
     pub fn now(&self) -> f64 {
         self.started.elapsed().as_secs_f64()
@@ -104,7 +114,7 @@ impl Wire {
     pub fn send(&mut self, bytes: &[u8]) -> Result<(), WireError> {
         let result = match &mut self.line {
             Line::Tcp(s) => s.write_all(bytes).and_then(|()| s.flush()),
-            Line::Serial(p) => p.write_all(bytes).and_then(|()| p.flush()),
+            Line::Serial(p) => write_patiently(p.as_mut(), bytes),
         };
         result.map_err(|why| self.io(why))
     }
@@ -155,6 +165,27 @@ impl Wire {
             why,
         }
     }
+}
+
+/// All of `bytes` to a serial port whose reads time out in 10 ms: a write
+/// held up by a full line (a program that floods it) is not a failure
+/// until it has made no way for 2 s.
+fn write_patiently(port: &mut dyn serialport::SerialPort, bytes: &[u8]) -> std::io::Result<()> {
+    let mut left = bytes;
+    let mut stuck_since = Instant::now();
+    while !left.is_empty() {
+        match port.write(left) {
+            Ok(n) => {
+                left = left.get(n..).unwrap_or_default();
+                stuck_since = Instant::now();
+            }
+            Err(e)
+                if matches!(e.kind(), ErrorKind::TimedOut | ErrorKind::WouldBlock | ErrorKind::Interrupted)
+                    && stuck_since.elapsed() < Duration::from_secs(2) => {}
+            Err(e) => return Err(e),
+        }
+    }
+    port.flush()
 }
 
 /// Why a connection failed, as a teacher reads it in a class's scores

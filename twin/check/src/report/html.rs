@@ -31,10 +31,8 @@ pub fn html(run: &SuiteRun, student: Option<&str>) -> String {
     );
     let _ = writeln!(
         out,
-        "<p>Suite <b>{}</b>, slave {:02} on <code>{}</code>, {:.1} s.</p>",
-        esc(&run.suite),
-        run.id,
-        esc(&run.link),
+        "<p>{}, {:.1} s.</p>",
+        esc(&super::heading(run)),
         run.seconds
     );
     let passed = run.passed().count();
@@ -68,6 +66,13 @@ pub fn html(run: &SuiteRun, student: Option<&str>) -> String {
             esc(&check.requirement),
             check.points
         );
+        if !check.notes.is_empty() {
+            let _ = writeln!(
+                out,
+                "<tr><td colspan=\"3\" class=\"req\">{}</td></tr>",
+                esc(&check.notes.join("; "))
+            );
+        }
         let why = match &check.outcome {
             Outcome::Pass => continue,
             Outcome::NotJudged(what) => {

@@ -2,6 +2,7 @@
 //! by check, with the frames as evidence and a score. One file per role.
 
 mod client;
+mod master;
 mod server;
 mod slave;
 
@@ -39,6 +40,21 @@ enum Role {
     /// over MEB, Modbus RTU or TCP, or the Controller_network nodes over the
     /// 8-byte Modbus (--suite).
     Slave(slave::SlaveArgs),
+    /// The student's supervisor: an MEB master polling slaves the twin plays.
+    ///
+    /// The twin answers on LINK as the EV module's controller firmware does
+    /// (its default map, a register image at power-up: no bench behind it)
+    /// and puts the master through a few seconds of each situation: slaves
+    /// that answer, a slow reply, a reply in two pieces, junk before a
+    /// reply, an error reply, a bad FCS, another slave's id, and a slave
+    /// that does not answer. The situations happen to the first --id; the
+    /// others answer throughout. Each check says what a master must do
+    /// there; what it may choose (retrying or not, its poll rate) is
+    /// printed as figures, not graded. Exits 1 when a check fails.
+    #[command(
+        after_help = "Examples:\n  twin vsp /tmp/ttyV0 /tmp/ttyV1 &      # the master opens /tmp/ttyV0\n  twin check master /tmp/ttyV1 --id 1,2\n  twin check master tcp://0.0.0.0:5700 --html report.html\n  twin check master --roster class.csv --out grades/"
+    )]
+    Master(master::MasterArgs),
     /// The student's supervisor: master of the module's bus (the twin answers
     /// there as the controller) and a TCP server the twin connects to as
     /// the remote clients.
@@ -55,10 +71,11 @@ pub fn execute(args: &CheckArgs) -> Result<()> {
     }
     match &args.role {
         Some(Role::Slave(slave)) => slave::execute(slave),
+        Some(Role::Master(master)) => master::execute(master),
         Some(Role::Server(server)) => server::execute(server),
         Some(Role::Client(client)) => client::execute(client),
         None => bail!(
-            "say what to check: `twin check slave LINK`, `twin check server LINK --bus LINK`, `twin check client`, or `twin check --list`"
+            "say what to check: `twin check slave LINK`, `twin check master LINK`, `twin check server LINK --bus LINK`, `twin check client`, or `twin check --list`"
         ),
     }
 }
@@ -75,6 +92,20 @@ fn list() -> Result<String> {
         let _ = writeln!(
             out,
             "{name}: {} ({} checks, {} points)\n  {}",
+            suite.name,
+            suite.checks.len(),
+            suite.points(),
+            suite.description
+        );
+        for check in &suite.checks {
+            let _ = writeln!(out, "  - {} ({})", check.name, check.requirement);
+        }
+    }
+    for (name, _) in twin_check::master::BUILT_IN {
+        let suite = twin_check::master::MasterSuite::load(name)?;
+        let _ = writeln!(
+            out,
+            "{name}: {} ({} checks, {} points; twin check master)\n  {}",
             suite.name,
             suite.checks.len(),
             suite.points(),

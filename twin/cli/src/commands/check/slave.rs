@@ -155,7 +155,7 @@ fn class(slave: &SlaveArgs, suite: &Suite, roster: &Path) -> Result<()> {
 }
 
 /// A student's line: the score, or why it could not be checked.
-fn verdict(run: &SuiteRun) -> String {
+pub(super) fn verdict(run: &SuiteRun) -> String {
     if let Some(why) = &run.error {
         return format!("could not be checked: {why}");
     }
@@ -172,7 +172,7 @@ fn verdict(run: &SuiteRun) -> String {
     }
 }
 
-fn reports(out: &Path, student: &Student, run: &SuiteRun) -> Result<()> {
+pub(super) fn reports(out: &Path, student: &Student, run: &SuiteRun) -> Result<()> {
     let stem = student.file_stem();
     let file = |ext: &str| out.join(format!("{stem}.{ext}"));
     write(

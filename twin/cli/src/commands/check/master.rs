@@ -1,0 +1,196 @@
+//! `twin check master`: the student's supervisor, polling slaves the twin
+//! plays; one student, or a class from a roster.
+
+use super::slave::{reports, verdict};
+use super::write;
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+use twin_check::class::{self, Student};
+use twin_check::master::{self as check, MasterLine, MasterOptions, MasterSuite};
+use twin_check::{SuiteRun, report};
+
+#[derive(Debug, Args)]
+pub struct MasterArgs {
+    /// Where the twin's slaves are: a serial device or pseudo-terminal the
+    /// master is on (PATH?baud=9600&parity=E), or tcp://HOST:PORT for the
+    /// twin to listen on until the master connects (port 0: any, printed).
+    #[arg(required_unless_present = "roster", conflicts_with = "roster")]
+    link: Option<String>,
+    /// The slaves the twin plays (the M3CVME tool's device numbers), e.g.
+    /// `--id 1,2`; the situations happen to the first. With --roster, of
+    /// every student whose line gives none.
+    #[arg(long, value_delimiter = ',', default_value = "1", value_parser = clap::value_parser!(u8).range(1..=99))]
+    id: Vec<u8>,
+    /// The suite: a built-in one's name (twin check --list) or a TOML file.
+    #[arg(long, default_value = "meb-master", value_name = "NAME|FILE")]
+    suite: String,
+    /// The master's reply timeout in ms, if it was given another than the
+    /// suite's (the MEB page's 100 ms): how long it may wait for a reply
+    /// before it gives up is judged against it.
+    #[arg(long, value_name = "MS", value_parser = clap::value_parser!(u64).range(1..=10_000))]
+    timeout_ms: Option<u64>,
+    /// How long to wait for the master to connect and send its first
+    /// request, seconds.
+    #[arg(long, default_value_t = 10, value_name = "SECONDS", value_parser = clap::value_parser!(u64).range(1..=3600))]
+    wait: u64,
+    /// Also write the run as JSON (every check, its frames, times and figures).
+    #[arg(long, value_name = "FILE")]
+    json: Option<PathBuf>,
+    /// Also write the run as JUnit XML (a test case per check).
+    #[arg(long, value_name = "FILE")]
+    junit: Option<PathBuf>,
+    /// Also write the run as one HTML page, to open in a browser.
+    #[arg(long, value_name = "FILE")]
+    html: Option<PathBuf>,
+    /// Check a class instead of one LINK: a CSV file with the columns
+    /// student,link[,id] (link: where the twin waits for that student's
+    /// master), or TOML [[student]] tables of name, link, id.
+    #[arg(long, value_name = "FILE", conflicts_with_all = ["json", "junit", "html"])]
+    roster: Option<PathBuf>,
+    /// Where a class's reports and scores.csv go [default:
+    /// check-SUITE-reports].
+    #[arg(long, value_name = "DIR", requires = "roster")]
+    out: Option<PathBuf>,
+    /// How many students of a class are checked at once.
+    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u16).range(1..=64))]
+    jobs: u16,
+}
+
+/// One student's master checked, or a class's from a roster.
+pub fn execute(args: &MasterArgs) -> Result<()> {
+    let mut suite = MasterSuite::load(&args.suite)?;
+    if let Some(ms) = args.timeout_ms {
+        suite.timeout_ms = ms;
+    }
+    let mut ids = Vec::new();
+    for id in &args.id {
+        if ids.contains(id) {
+            bail!("--id {id:02} is given twice");
+        }
+        ids.push(*id);
+    }
+    if let Some(roster) = &args.roster {
+        return class(args, &suite, roster);
+    }
+    let link = args.link.as_deref().unwrap_or_default();
+    let line = MasterLine::open(link)?;
+    eprintln!(
+        "the twin's slaves {} wait for the master on {}",
+        ids_text(&ids),
+        line.shown()
+    );
+    let wait = Duration::from_secs(args.wait);
+    let mut wire = line.connected(wait)?;
+    let options = MasterOptions { ids, wait };
+    let run = check::run_master(&suite, &mut wire, &options)?;
+    print!("{}", report::text(&run));
+    let outputs = [
+        (&args.json, report::json(&run)),
+        (&args.junit, report::junit(&run)),
+        (&args.html, report::html(&run, None)),
+    ];
+    for (path, contents) in outputs {
+        if let Some(path) = path {
+            write(path, &contents)?;
+        }
+    }
+    if let Some(why) = &run.error {
+        bail!("{why}");
+    }
+    let failed = run.checks.len() - run.passed().count();
+    if failed > 0 {
+        bail!("{failed} of {} checks failed", run.checks.len());
+    }
+    Ok(())
+}
+
+/// One student of a class: the twin waits on their line for their master.
+fn student_run(suite: &MasterSuite, student: &Student, wait: Duration) -> SuiteRun {
+    let ids = vec![student.id];
+    let run = MasterLine::open(&student.link)
+        .and_then(|line| line.connected(wait))
+        .map_err(|e| e.to_string())
+        .and_then(|mut wire| {
+            let options = MasterOptions {
+                ids: ids.clone(),
+                wait,
+            };
+            check::run_master(suite, &mut wire, &options).map_err(|e| e.to_string())
+        });
+    run.unwrap_or_else(|why| check::unreachable(suite, &student.link, &ids, why))
+}
+
+/// Every student's master checked, a line each as they finish, their
+/// reports and the class's scores.csv written to the out folder.
+fn class(args: &MasterArgs, suite: &MasterSuite, roster: &Path) -> Result<()> {
+    let students = class::load_roster(roster, args.id[0])?;
+    let out = args.out.clone().unwrap_or_else(|| {
+        let name = Path::new(&args.suite)
+            .file_stem()
+            .map_or_else(|| args.suite.clone(), |s| s.to_string_lossy().into_owned());
+        PathBuf::from(format!("check-{name}-reports"))
+    });
+    std::fs::create_dir_all(&out)
+        .with_context(|| format!("cannot make the folder {}", out.display()))?;
+    let width = students
+        .iter()
+        .map(|s| s.name.chars().count())
+        .max()
+        .unwrap_or(0);
+    println!(
+        "{} suite: {} students, {} at once",
+        suite.name,
+        students.len(),
+        usize::from(args.jobs).min(students.len())
+    );
+    let started = Instant::now();
+    let wait = Duration::from_secs(args.wait);
+    let mut unwritten = None;
+    let runs = class::run_each(
+        &students,
+        args.jobs.into(),
+        |student| student_run(suite, student, wait),
+        |student, run| {
+            println!("  {:width$}  {}", student.name, verdict(run));
+            if let Err(e) = reports(&out, student, run) {
+                unwritten.get_or_insert(e);
+            }
+        },
+    );
+    if let Some(e) = unwritten {
+        return Err(e);
+    }
+    write(
+        &out.join("scores.csv"),
+        &class::scores_csv(&students, &runs),
+    )?;
+    let unreachable = runs.iter().filter(|r| r.error.is_some()).count();
+    let failed = runs
+        .iter()
+        .filter(|r| r.error.is_none() && r.first_failure().is_some())
+        .count();
+    println!(
+        "{} students in {:.1} s: {} passed every check, {failed} failed a check, {unreachable} could not be checked; reports and scores.csv in {}",
+        students.len(),
+        started.elapsed().as_secs_f64(),
+        students.len() - failed - unreachable,
+        out.display()
+    );
+    if failed + unreachable > 0 {
+        bail!(
+            "{} of {} students did not pass every check",
+            failed + unreachable,
+            students.len()
+        );
+    }
+    Ok(())
+}
+
+fn ids_text(ids: &[u8]) -> String {
+    ids.iter()
+        .map(|id| format!("{id:02}"))
+        .collect::<Vec<_>>()
+        .join(", ")
+}
