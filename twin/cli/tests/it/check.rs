@@ -8,6 +8,7 @@ mod class;
 mod client;
 mod modbus;
 mod server;
+mod master;
 
 use crate::support::{Proc, scratch, text, twin};
 use std::path::Path;
