@@ -180,8 +180,10 @@ fn write_patiently(port: &mut dyn serialport::SerialPort, bytes: &[u8]) -> std::
                 stuck_since = Instant::now();
             }
             Err(e)
-                if matches!(e.kind(), ErrorKind::TimedOut | ErrorKind::WouldBlock | ErrorKind::Interrupted)
-                    && stuck_since.elapsed() < Duration::from_secs(2) => {}
+                if matches!(
+                    e.kind(),
+                    ErrorKind::TimedOut | ErrorKind::WouldBlock | ErrorKind::Interrupted
+                ) && stuck_since.elapsed() < Duration::from_secs(2) => {}
             Err(e) => return Err(e),
         }
     }

@@ -68,15 +68,14 @@ pub(crate) fn judge(
                 };
                 result
             }
-            Behaviour::Slow(ms) => waits(&phase, *ms)
-                .and_then(|()| carries_on(&phase, normal, timeout, &mut notes)),
+            Behaviour::Slow(ms) => {
+                waits(&phase, *ms).and_then(|()| carries_on(&phase, normal, timeout, &mut notes))
+            }
             Behaviour::Split(_) | Behaviour::Junk(_) => {
                 carries_on(&phase, normal, timeout, &mut notes)
             }
             Behaviour::Error(_) => goes_on(&phase, normal, timeout, &mut notes),
-            Behaviour::BadFcs | Behaviour::WrongId => {
-                discards(&phase, normal, timeout, &mut notes)
-            }
+            Behaviour::BadFcs | Behaviour::WrongId => discards(&phase, normal, timeout, &mut notes),
             Behaviour::Silent => gives_up(&phase, ids, normal, timeout, &mut notes),
         }
     };
@@ -165,7 +164,9 @@ fn answers(phase: &Phase, ids: &[u8], notes: &mut Vec<String>) -> Verdict {
         .collect();
     if let Some(missing) = ids.iter().find(|id| !polled.contains(id)) {
         return Err((
-            format!("slave {missing:02} was never polled (the master was given slaves {shown_ids})"),
+            format!(
+                "slave {missing:02} was never polled (the master was given slaves {shown_ids})"
+            ),
             None,
         ));
     }
@@ -177,7 +178,10 @@ fn answers(phase: &Phase, ids: &[u8], notes: &mut Vec<String>) -> Verdict {
         blocks(&phase.heard)
     ));
     if let Some(period) = median(periods(&phase.heard, ids[0])) {
-        notes.push(format!("slave {:02} polled every {period:.1} ms (median)", ids[0]));
+        notes.push(format!(
+            "slave {:02} polled every {period:.1} ms (median)",
+            ids[0]
+        ));
     }
     if let Some(after) = median(gaps_after_replies(&phase.heard)) {
         notes.push(format!(

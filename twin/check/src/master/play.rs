@@ -157,7 +157,10 @@ pub fn run_master(
     // Replies still owed go out, so the last check's are whole.
     let flush = Instant::now() + play.timeout;
     while !play.queue.is_empty() && Instant::now() < flush {
-        let last = suite.checks.last().map_or(Behaviour::Answers, |c| c.slave.clone());
+        let last = suite
+            .checks
+            .last()
+            .map_or(Behaviour::Answers, |c| c.slave.clone());
         play.turn(&last, flush)?;
     }
     let mut normal = Normal::default();
@@ -292,7 +295,10 @@ impl Play<'_> {
     /// `@`, anything before that junk; answered as `slave` says.
     fn heard(&mut self, chunk: Vec<u8>, slave: &Behaviour) {
         self.note(Way::Received, &chunk);
-        let start = chunk.iter().rposition(|&b| b == b'@').unwrap_or(chunk.len());
+        let start = chunk
+            .iter()
+            .rposition(|&b| b == b'@')
+            .unwrap_or(chunk.len());
         let (junk, bytes) = chunk.split_at(start);
         if bytes.is_empty() {
             return;

@@ -19,12 +19,13 @@ use twin_check::Suite;
 /// show each failure, and a score. Suites are TOML files; the built-in ones
 /// (--list) are written the same way a teacher writes their own (--suite).
 /// A class is checked at once from a roster (--roster): a report per
-/// student and the scores side by side. A supervisor is checked from its
-/// bus and its TCP server at once (server); a remote client in a session
-/// that follows a checklist (client). Exits 1 when a check fails.
+/// student and the scores side by side. A supervisor is checked as the
+/// master of its bus (master), or from its bus and its TCP server at once
+/// (server); a remote client in a session that follows a checklist
+/// (client). Exits 1 when a check fails.
 #[derive(Debug, Args)]
 #[command(
-    after_help = "Examples:\n  twin check slave tcp://127.0.0.1:5700\n  twin check slave /dev/ttyUSB0?baud=9600 --id 3 --json report.json\n  twin check slave /tmp/ttyV0 --suite my-suite.toml --html report.html\n  twin check slave tcp://127.0.0.1:5020 --suite modbus-tcp-slave\n  twin check slave /tmp/ttyV0 --suite modbus-rtu-slave\n  twin check slave --roster class.csv --out grades/\n  twin check server tcp://127.0.0.1:5701 --bus /tmp/ttyV1\n  twin check client --listen tcp://0.0.0.0:5701\n  twin check --list"
+    after_help = "Examples:\n  twin check slave tcp://127.0.0.1:5700\n  twin check slave /dev/ttyUSB0?baud=9600 --id 3 --json report.json\n  twin check slave /tmp/ttyV0 --suite my-suite.toml --html report.html\n  twin check slave tcp://127.0.0.1:5020 --suite modbus-tcp-slave\n  twin check slave /tmp/ttyV0 --suite modbus-rtu-slave\n  twin check slave --roster class.csv --out grades/\n  twin check master /tmp/ttyV1 --id 1,2\n  twin check server tcp://127.0.0.1:5701 --bus /tmp/ttyV1\n  twin check client --listen tcp://0.0.0.0:5701\n  twin check --list"
 )]
 pub struct CheckArgs {
     #[command(subcommand)]

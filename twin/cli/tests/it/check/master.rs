@@ -50,7 +50,8 @@ fn failed(json: &Path) -> Vec<String> {
 }
 
 const WELL_FORMED: &str = "polls every slave with well-formed requests, one at a time";
-const SLOW: &str = "waits for a slow reply (60 ms, within the 100 ms timeout) and sends nothing before it";
+const SLOW: &str =
+    "waits for a slow reply (60 ms, within the 100 ms timeout) and sends nothing before it";
 const BAD_FCS: &str = "discards a reply with a bad FCS";
 const SILENT: &str = "gives up on a slave that does not answer, and polls the others meanwhile";
 
@@ -105,10 +106,9 @@ fn the_twins_own_supervisor_passes_every_check_of_the_meb_master_suite() {
 /// Every line of the report in docs/check.md's "Checking a master" is a
 /// line of `printed`, numbers aside (counts and times differ run to run).
 fn held_to_the_book(printed: &str) {
-    let page = std::fs::read_to_string(
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../docs/check.md"),
-    )
-    .unwrap();
+    let page =
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("../../docs/check.md"))
+            .unwrap();
     let excerpt = page
         .split("the_twins_own_supervisor test")
         .nth(1)
@@ -167,7 +167,11 @@ fn a_students_master_passes_and_each_planted_bug_is_found_and_nothing_else() {
                     s(&json),
                 ]);
                 let printed = text(&out);
-                assert_eq!(out.status.success(), expected.is_empty(), "{name}: {printed}");
+                assert_eq!(
+                    out.status.success(),
+                    expected.is_empty(),
+                    "{name}: {printed}"
+                );
                 assert_eq!(failed(&json), expected, "{name}: {printed}");
             });
         }
@@ -203,7 +207,10 @@ fn a_class_of_masters_is_checked_from_a_roster() {
     assert_eq!(out.status.code(), Some(1), "{printed}");
     let scores = std::fs::read_to_string(out_dir.join("scores.csv")).unwrap();
     assert!(scores.contains("Ann,11,11,8,8,\n"), "{scores}");
-    assert!(scores.contains(&format!("Ben,9,11,7,8,{BAD_FCS}\n")), "{scores}");
+    assert!(
+        scores.contains(&format!("Ben,9,11,7,8,{BAD_FCS}\n")),
+        "{scores}"
+    );
     let ben = std::fs::read_to_string(out_dir.join("Ben.txt")).unwrap();
     assert!(
         ben.contains("the master on") && ben.contains("(the twin's slave 03)"),
