@@ -249,8 +249,9 @@ fn checked(students: Vec<Student>, path: &str) -> Result<Vec<Student>, RosterErr
 /// Plays `suite` against every student, `jobs` at once (each on its own
 /// link, so they do not wait for one another), and calls `done` with each
 /// run as it ends, on the caller's thread. A student whose program cannot
-/// be reached, or hangs up, gets a run whose checks all fail with why
-/// ([`SuiteRun::unreachable`]); the others go on. The runs come back in
+/// be reached gets a run whose checks all fail with why
+/// ([`SuiteRun::unreachable`]); one that hangs up keeps the checks run
+/// before it did ([`SuiteRun::hung_up`]); the others go on. The runs come back in
 /// the roster's order.
 pub fn run_class(
     suite: &Suite,
@@ -300,9 +301,10 @@ pub fn run_each(
 }
 
 fn check(suite: &Suite, student: &Student) -> SuiteRun {
-    let run =
-        Wire::open(&student.link).and_then(|mut wire| run_suite(suite, &mut wire, student.id));
-    run.unwrap_or_else(|e| SuiteRun::unreachable(suite, &student.link, student.id, e.to_string()))
+    match Wire::open(&student.link) {
+        Ok(mut wire) => run_suite(suite, &mut wire, student.id),
+        Err(e) => SuiteRun::unreachable(suite, &student.link, student.id, e.to_string()),
+    }
 }
 
 /// The class's scores as CSV, one row per student in the roster's order:

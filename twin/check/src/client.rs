@@ -11,7 +11,7 @@
 
 pub mod bench;
 
-use crate::run::{CheckOutcome, Exchange, Outcome, SuiteRun, Way};
+use crate::run::{CheckOutcome, Exchange, Outcome, Role, SuiteRun, Way};
 use bench::{Bench, Fault, Heard};
 use nodes::proto::meb::{MebCmd, MebErrorCode};
 
@@ -255,7 +255,9 @@ impl Session {
                 outcome,
                 reply_ms: Vec::new(),
                 frames: evidence(&heard, from, until),
+                at: from,
                 seconds: until - from,
+                notes: Vec::new(),
             });
             from = until;
         }
@@ -264,9 +266,12 @@ impl Session {
             suite: SUITE.into(),
             link: link.into(),
             id: self.id,
+            role: Role::default(),
+            ids: Vec::new(),
             checks,
             seconds: ended,
             error: None,
+            hung_up: None,
         }
     }
 }
@@ -307,6 +312,7 @@ fn exchange(h: &Heard) -> Exchange {
         at: h.at,
         way: h.way,
         text: format!("{:<8}  {}", format!("client {}", h.conn), h.text),
+        bytes: Vec::new(),
     }
 }
 
@@ -338,6 +344,8 @@ fn well_formed(heard: &[Heard], id: u8, ended: f64) -> CheckOutcome {
         outcome,
         reply_ms: Vec::new(),
         frames,
+        at: 0.0,
         seconds: ended,
+        notes: Vec::new(),
     }
 }

@@ -6,9 +6,11 @@
 //! own. [`run`] plays a suite over a real link (a serial port, a
 //! pseudo-terminal or TCP), [`report`] says what passed and, for what did
 //! not, the frames that show it, as text, JSON, JUnit XML or a page.
-//! [`class`] runs a suite against a whole class's programs at once.
-//! [`server`] checks a supervisor from its bus and its TCP server at once;
-//! [`client`] is a session with a remote client that follows a checklist.
+//! [`class`] runs a suite against a whole class's programs at once;
+//! [`record`] writes a run to MCAP, like every run of the twin.
+//! [`master`] checks a supervisor as master of its bus; [`server`] checks
+//! it from its bus and its TCP server at once; [`client`] is a session
+//! with a remote client that follows a checklist.
 //!
 //! The fence: no engine, no plant. The checked program is outside the twin;
 //! this crate only talks to it over the wire, where the twin's own node
@@ -23,6 +25,7 @@ pub mod class;
 pub mod client;
 pub mod framing;
 pub mod master;
+pub mod record;
 pub mod report;
 pub mod run;
 pub mod server;

@@ -25,12 +25,41 @@ pub(crate) fn frames(check: &CheckOutcome) -> String {
     out
 }
 
+/// What the program's hang-up did to the run, in one sentence: every
+/// report says it once, at the top.
+pub fn hung_up(run: &SuiteRun) -> Option<String> {
+    let gone = run.hung_up.as_ref()?;
+    let before = run
+        .checks
+        .iter()
+        .position(|c| c.name == gone.check)
+        .unwrap_or(run.checks.len());
+    let after = run.checks.len().saturating_sub(before + 1);
+    let kept = match before {
+        0 => "no check had finished before it".to_string(),
+        1 => "the check before it keeps its verdict".to_string(),
+        n => format!("the {n} checks before it keep their verdicts"),
+    };
+    let failed = match after {
+        0 => "it fails".to_string(),
+        1 => "it and the one after it fail".to_string(),
+        n => format!("it and the {n} after it fail"),
+    };
+    Some(format!(
+        "the program hung up at {:.3} s ({}), during `{}`: {kept}; {failed}",
+        gone.at, gone.how, gone.check
+    ))
+}
+
 /// The terminal's report.
 pub fn text(run: &SuiteRun) -> String {
     let mut out = String::new();
     let _ = writeln!(out, "{}", heading(run));
     if let Some(why) = &run.error {
         let _ = writeln!(out, "  could not be checked: {why}");
+    }
+    if let Some(line) = hung_up(run) {
+        let _ = writeln!(out, "  {line}");
     }
     for check in run.checks.iter().filter(|_| run.error.is_none()) {
         match &check.outcome {

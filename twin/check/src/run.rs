@@ -28,6 +28,11 @@ pub struct Exchange {
     pub at: f64,
     pub way: Way,
     pub text: String,
+    /// The bytes themselves, for the recording (`text` spells some out);
+    /// empty where a check shows two links side by side (a server's, a
+    /// client's), whose runs are not recorded.
+    #[serde(skip)]
+    pub bytes: Vec<u8>,
 }
 
 /// Which part of the bus the checked program plays.
@@ -66,6 +71,8 @@ pub struct CheckOutcome {
     pub points: u32,
     #[serde(flatten)]
     pub outcome: Outcome,
+    /// When its first step began, seconds after the link was opened.
+    pub at: f64,
     /// From the last byte of a request to the first of its reply, ms.
     pub reply_ms: Vec<f64>,
     pub frames: Vec<Exchange>,
@@ -91,10 +98,25 @@ pub struct SuiteRun {
     pub ids: Vec<u8>,
     pub checks: Vec<CheckOutcome>,
     pub seconds: f64,
-    /// Why no check could be run (the program unreachable, or it hung up):
-    /// every check then fails with this.
+    /// Why no check could be run (the program unreachable): every check
+    /// then fails with this.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub error: Option<String>,
+    /// The program hung up in the middle of the run: the checks before
+    /// keep their verdicts, the one running and those after it fail.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub hung_up: Option<HungUp>,
+}
+
+/// When and how the program hung up, and in which check.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct HungUp {
+    /// Seconds after the link was opened.
+    pub at: f64,
+    /// What the link said: `closed the connection`, `reset the connection`.
+    pub how: String,
+    /// The check that was running.
+    pub check: String,
 }
 
 impl SuiteRun {
@@ -136,6 +158,7 @@ impl SuiteRun {
                 requirement: check.requirement.clone(),
                 points: check.points,
                 outcome: Outcome::Fail(why.clone()),
+                at: 0.0,
                 reply_ms: Vec::new(),
                 frames: Vec::new(),
                 seconds: 0.0,
@@ -151,59 +174,79 @@ impl SuiteRun {
             checks,
             seconds: 0.0,
             error: Some(why),
+            hung_up: None,
         }
     }
 }
 
-/// Plays `suite` against the program on `wire`, as slave `id`. Errors only
-/// when the link itself fails (a connection closed): the checks run so far
-/// are lost with it, so the caller says which link and why.
-pub fn run_suite(suite: &Suite, wire: &mut Wire, id: u8) -> Result<SuiteRun, WireError> {
+/// Plays `suite` against the program on `wire`, as slave `id`. A program
+/// that hangs up (a connection closed, a pseudo-terminal gone) ends the run
+/// there: the checks before keep their verdicts, the one running and those
+/// after it fail saying so ([`SuiteRun::hung_up`]).
+pub fn run_suite(suite: &Suite, wire: &mut Wire, id: u8) -> SuiteRun {
     let started = wire.now();
     let mut checks = Vec::with_capacity(suite.checks.len());
+    let mut hung_up: Option<HungUp> = None;
     let mut next_transaction = 1;
     for check in &suite.checks {
-        let mut play = Play {
-            wire: &mut *wire,
-            protocol: suite.protocol,
-            id,
-            timeout_ms: suite.timeout_ms,
-            frames: Vec::new(),
-            pending: Vec::new(),
-            pending_since: None,
-            unanswered: VecDeque::new(),
-            last_request: (Vec::new(), 0),
-            next_transaction,
-            sent_at: None,
-            reply_ms: Vec::new(),
-        };
-        play.settle()?;
-        let began = play.wire.now();
-        let mut outcome = Outcome::Pass;
-        for step in &check.steps {
-            if let Err(why) = play.step(step)? {
-                // What comes after the failure is part of its story (a
-                // reply too late), and must not be taken for the next
-                // check's.
-                let late = play.late(Duration::from_millis(3 * suite.timeout_ms.max(100)))?;
-                outcome = Outcome::Fail(why + &late);
-                break;
-            }
-        }
-        let seconds = play.wire.now() - began;
-        next_transaction = play.next_transaction;
-        checks.push(CheckOutcome {
+        let outcome_of = |outcome: Outcome, at: f64, play: Play<'_>| CheckOutcome {
             name: check.name.clone(),
             requirement: check.requirement.clone(),
             points: check.points,
             outcome,
+            at,
+            seconds: play.wire.now() - at,
             reply_ms: play.reply_ms,
             frames: play.frames,
-            seconds,
             notes: Vec::new(),
+        };
+        if let Some(gone) = &hung_up {
+            let why = format!(
+                "not run: the program hung up at {:.3} s, during `{}`",
+                gone.at, gone.check
+            );
+            let at = wire.now();
+            let play = Play::new(wire, suite, id, next_transaction);
+            checks.push(outcome_of(Outcome::Fail(why), at, play));
+            continue;
+        }
+        let mut play = Play::new(wire, suite, id, next_transaction);
+        let mut began = play.wire.now();
+        let played = play.settle().and_then(|()| {
+            began = play.wire.now();
+            for step in &check.steps {
+                if let Err(why) = play.step(step)? {
+                    // What comes after the failure is part of its story (a
+                    // reply too late), and must not be taken for the next
+                    // check's.
+                    play.verdict = Some(why.clone());
+                    let late = play.late(Duration::from_millis(3 * suite.timeout_ms.max(100)))?;
+                    return Ok(Outcome::Fail(why + &late));
+                }
+            }
+            Ok(Outcome::Pass)
         });
+        let outcome = match played {
+            Ok(outcome) => outcome,
+            Err(e) => {
+                let gone = HungUp {
+                    at: play.wire.now(),
+                    how: hang_up_words(&e),
+                    check: check.name.clone(),
+                };
+                let hang_up = format!("the program hung up at {:.3} s ({})", gone.at, gone.how);
+                hung_up = Some(gone);
+                Outcome::Fail(match play.verdict.take() {
+                    // The check had failed already; the hang-up came after.
+                    Some(why) => format!("{why}; then {hang_up}"),
+                    None => hang_up,
+                })
+            }
+        };
+        next_transaction = play.next_transaction;
+        checks.push(outcome_of(outcome, began, play));
     }
-    Ok(SuiteRun {
+    SuiteRun {
         suite: suite.name.clone(),
         link: wire.link().to_string(),
         id,
@@ -212,7 +255,27 @@ pub fn run_suite(suite: &Suite, wire: &mut Wire, id: u8) -> Result<SuiteRun, Wir
         checks,
         seconds: wire.now() - started,
         error: None,
-    })
+        hung_up,
+    }
+}
+
+/// How the link went, in the words a student reads.
+fn hang_up_words(e: &WireError) -> String {
+    match e {
+        WireError::Closed { .. } => "it closed the connection".into(),
+        WireError::Io { why, .. } => match why.kind() {
+            std::io::ErrorKind::ConnectionReset | std::io::ErrorKind::ConnectionAborted => {
+                "it reset the connection".into()
+            }
+            std::io::ErrorKind::BrokenPipe => "it closed the connection".into(),
+            // A pseudo-terminal whose other end closed, a USB adapter pulled.
+            _ if why.raw_os_error() == Some(5) => {
+                "the serial port or pseudo-terminal went away".into()
+            }
+            _ => format!("the link failed: {why}"),
+        },
+        other => other.to_string(),
+    }
 }
 
 struct Play<'a> {
@@ -236,12 +299,32 @@ struct Play<'a> {
     /// When the last request's last byte went out.
     sent_at: Option<Instant>,
     reply_ms: Vec<f64>,
+    /// Why the check failed, once a step has failed it.
+    verdict: Option<String>,
 }
 
 /// A step's verdict: `Err(why)` when the program did not do what it required.
 type Verdict = Result<(), String>;
 
-impl Play<'_> {
+impl<'a> Play<'a> {
+    fn new(wire: &'a mut Wire, suite: &Suite, id: u8, next_transaction: u16) -> Self {
+        Play {
+            wire,
+            protocol: suite.protocol,
+            id,
+            timeout_ms: suite.timeout_ms,
+            frames: Vec::new(),
+            pending: Vec::new(),
+            pending_since: None,
+            unanswered: VecDeque::new(),
+            last_request: (Vec::new(), 0),
+            next_transaction,
+            sent_at: None,
+            reply_ms: Vec::new(),
+            verdict: None,
+        }
+    }
+
     fn fill(&self, text: &str) -> String {
         self.protocol.fill(text, self.id)
     }
@@ -276,6 +359,7 @@ impl Play<'_> {
             at: self.wire.now(),
             way: Way::Sent,
             text,
+            bytes: bytes.to_vec(),
         });
         self.wire.send(bytes)?;
         self.sent_at = Some(Instant::now());
@@ -309,6 +393,7 @@ impl Play<'_> {
             at,
             way: Way::Received,
             text,
+            bytes: bytes.to_vec(),
         });
     }
 

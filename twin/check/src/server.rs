@@ -11,7 +11,8 @@
 
 pub mod bus;
 
-use crate::run::{CheckOutcome, Exchange, Outcome, SuiteRun, Way, shown};
+use crate::framing::shown_text as shown;
+use crate::run::{CheckOutcome, Exchange, Outcome, Role, SuiteRun, Way};
 use crate::wire::{Wire, WireError};
 use bus::{Bus, BusFrame};
 use nodes::proto::meb::MebCmd;
@@ -192,16 +193,21 @@ pub fn check_server(options: &ServerOptions) -> Result<SuiteRun, WireError> {
             outcome,
             reply_ms: std::mem::take(&mut checker.reply_ms),
             frames,
+            at: began,
             seconds: checker.now() - began,
+            notes: Vec::new(),
         });
     }
     Ok(SuiteRun {
         suite: SUITE.into(),
         link,
         id: options.id,
+        role: Role::default(),
+        ids: Vec::new(),
         checks,
         seconds: checker.now(),
         error: None,
+        hung_up: None,
     })
 }
 
@@ -211,6 +217,8 @@ fn unreachable(link: &str, id: u8, why: String) -> SuiteRun {
         suite: SUITE.into(),
         link: link.into(),
         id,
+        role: Role::default(),
+        ids: Vec::new(),
         checks: CHECKS
             .iter()
             .map(|spec| CheckOutcome {
@@ -220,11 +228,14 @@ fn unreachable(link: &str, id: u8, why: String) -> SuiteRun {
                 outcome: Outcome::Fail(why.clone()),
                 reply_ms: Vec::new(),
                 frames: Vec::new(),
+                at: 0.0,
                 seconds: 0.0,
+                notes: Vec::new(),
             })
             .collect(),
         seconds: 0.0,
         error: Some(why),
+        hung_up: None,
     }
 }
 
@@ -281,6 +292,7 @@ impl Checker {
             at,
             way,
             text: format!("{side:<8}  {text}"),
+            bytes: Vec::new(),
         });
     }
 

@@ -25,15 +25,17 @@
 //! | [`REALTIME_LATENESS`] `/realtime/lateness` | a real-time session | each second (and the file is flushed) | `window` and `total`, each `ticks`, `p50_us`, `p99_us`, `p999_us`, `max_us`, `mean_us`, `overruns`: how late the plant's ticks ran; `slips`, `slipped_ms`: how often and by how much the session's clock slipped behind the wall (a stall longer than it catches up) |
 //! | [`EXPERIMENT_STEP`] `/experiment/step` | `twin step` (`twin-lab` `step.rs`) | each sample of the experiment | `set_point`, `wheel_rpm`, `motor_rpm`, `light_rpm` |
 //! | [`firmware_uart`] `/firmware/<node>/uart` | a virtual run with compiled firmware (`twin-avr`) | each burst of bytes on the firmware's UART, once the line has been quiet for two characters | [`UartBurst`]: `dir` (`rx` to the firmware, `tx` from it), `baud` (the firmware's own, from UBRR0/U2X0), `start_s`, `end_s`, `len`, `text`, `hex`, `cycles` (the CPU cycle each byte started at) |
+//! | [`CHECKS`] `/check/checks` | `twin check` (`twin-check` `record.rs`) | each check, at its first step | `index`, `name`, `requirement`, `points`, `result` (`pass`, `fail`), `why`, `at`, `seconds`, `frames` (how many of the link's frames are the check's, in order); the frames are on `/link/<role>/frames`, `from` `twin` or `slave NN` |
 //! | [`firmware_io`] `/firmware/<node>/io` | a virtual run with compiled firmware | every 10 ms of simulated time | [`FirmwareIo`]: `cycles` (run so far), `pins` (each wired output and PWM pin: `pin`, `signal`, `level`, `duty` over the 10 ms, `period_us` between its rising edges, `edges` in them), `adc` (each analog input fed: `pin`, `signal`, `millivolts`, `counts` as the 10-bit ADC converts them), `edges` (the edges of those pins in the 10 ms, up to 20 per pin: every edge of a line up to 1 kHz; `cycle`, `pin`, `level`) |
 //!
 //! Metadata records:
 //!
 //! | name | written by | when | fields |
 //! |---|---|---|---|
-//! | [`RUN_METADATA`] `twin.run` | every run and session | first, before any message | `kind` (`scenario`, `open-loop`, `serve`, `supervise`), `twin_version`; a scenario's `scenario`, `scenario_toml`, `seed`, `pwm_calibration`; the open loop's settings and `params_toml`; a step response's `experiment` (`step`), `step_from`, `step_to`, `step_at_s`, and `step_adaptive_light` (open loop) or `step_light_feedback` (closed loop); a session's `links`, `params`, `slaves`, … |
+//! | [`RUN_METADATA`] `twin.run` | every run and session | first, before any message | `kind` (`scenario`, `open-loop`, `serve`, `supervise`, `check`), `twin_version`; a scenario's `scenario`, `scenario_toml`, `seed`, `pwm_calibration`; the open loop's settings and `params_toml`; a step response's `experiment` (`step`), `step_from`, `step_to`, `step_at_s`, and `step_adaptive_light` (open loop) or `step_light_feedback` (closed loop); a session's `links`, `params`, `slaves`, …; a check's `role`, `suite`, `suite_toml`, `link`, `id` |
 //! | [`REALTIME_METADATA`] `twin.realtime` | a real-time session | when it ends | the session's totals |
 //! | [`firmware_metadata`] `twin.firmware.<node>` | a virtual run with compiled firmware | before any message | `node`, `file` (as the scenario names it), `attachment` (the MCAP attachment holding the file's bytes), `sha256`, `bytes`, `mcu`, `clock_hz`, `wiring` (the map's name or file) and `wiring_toml` (its text) |
+//! | [`CHECK_METADATA`] `twin.check` | `twin check` | after the checks | `score`, `points`, `checks`, `checks_passed`, `seconds`, and `hung_up` or `error` when the program hung up or could not be reached; the whole run as JSON is the attachment [`CHECK_RUN_ATTACHMENT`] |
 //! | [`PART_METADATA`] `twin.part` | a real-time session's file that another follows (rotation) | when it is closed | `part` (from 1), `ended_by` (`SIGHUP`, `--rotate-every 1h`, …), `next` (the next file's name); the next file's `twin.run` has `part` and `previous` |
 
 use serde::{Deserialize, Serialize};
@@ -52,6 +54,13 @@ pub const RUN_METADATA: &str = "twin.run";
 pub const REALTIME_METADATA: &str = "twin.realtime";
 /// Why a session's file ended and which file goes on (rotation).
 pub const PART_METADATA: &str = "twin.part";
+
+/// A `twin check` run's score and how it ended.
+pub const CHECK_METADATA: &str = "twin.check";
+/// The attachment holding a `twin check` run as its JSON report.
+pub const CHECK_RUN_ATTACHMENT: &str = "check-run.json";
+/// A `twin check` run's verdicts, one message per check.
+pub const CHECKS: &str = "/check/checks";
 
 /// The open-loop bench's sensors (one module, no name).
 pub const PLANT_SENSORS: &str = "/plant/sensors";

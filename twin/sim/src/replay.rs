@@ -47,6 +47,12 @@ impl RunSpec {
                  slaves and the machine's clock, so it cannot be run again. Its recorded requests \
                  can be sent to a live slave instead: `twin replay {origin} --frames-to LINK`"
             ),
+            "check" => bail!(
+                "{origin} is a `twin check` run: it checked a live program over its link, so \
+                 there is nothing to run again. Its frames and verdicts are in it: see them with \
+                 `twin export {origin} --csv DIR` or `twin view {origin}`, and check the program \
+                 again with `twin check`"
+            ),
             other => bail!(
                 "{origin} was recorded by a run of kind `{other}`, which this twin ({}) cannot \
                  run again: it may come from a newer twin",

@@ -6,7 +6,8 @@
 //! connection has a thread of its own. Everything a client sends and gets
 //! is kept with its time; a fault asked for is played on the next request.
 
-use crate::run::{Way, shown};
+use crate::framing::shown_text as shown;
+use crate::run::Way;
 use nodes::firmware::{Framing, RegisterImage, SlaveFrontend};
 use nodes::master::image_server::{ImageServer, ImageServerConfig};
 use nodes::master::{LoopMode, Protocol, SlaveLoopConfig, Supervisor, SupervisorConfig};

@@ -90,6 +90,7 @@ pub(crate) fn judge(
         outcome,
         reply_ms: Vec::new(),
         frames: evidence(phase.frames, around),
+        at: phase.began,
         seconds: phase.seconds,
         notes,
     }
@@ -104,6 +105,7 @@ pub(crate) fn failed(situation: &Situation, why: String) -> CheckOutcome {
         outcome: Outcome::Fail(why),
         reply_ms: Vec::new(),
         frames: Vec::new(),
+        at: 0.0,
         seconds: 0.0,
         notes: Vec::new(),
     }
@@ -115,13 +117,13 @@ type Verdict = Result<(), (String, Option<f64>)>;
 fn answers(phase: &Phase, ids: &[u8], notes: &mut Vec<String>) -> Verdict {
     let shown_ids = ids_text(ids);
     for (i, heard) in phase.heard.iter().enumerate() {
-        let text = crate::run::shown(&heard.bytes);
+        let text = crate::framing::shown_text(&heard.bytes);
         let fault = |why: String| Err((why, Some(heard.at)));
         if !heard.junk.is_empty() {
             return fault(format!(
                 "{} bytes before the request's @ (`{}`)",
                 heard.junk.len(),
-                crate::run::shown(&heard.junk)
+                crate::framing::shown_text(&heard.junk)
             ));
         }
         let frame = match &heard.frame {
@@ -153,7 +155,7 @@ fn answers(phase: &Phase, ids: &[u8], notes: &mut Vec<String>) -> Verdict {
             return fault(format!(
                 "`{text}` came {:.0} ms after `{}`, before its reply: a master waits for each reply (or its timeout) before the next request",
                 (heard.at - before.at) * 1e3,
-                crate::run::shown(&before.bytes)
+                crate::framing::shown_text(&before.bytes)
             ));
         }
     }
@@ -199,9 +201,9 @@ fn waits(phase: &Phase, slow_ms: u64) -> Verdict {
             return Err((
                 format!(
                     "`{}` came {:.0} ms after `{}`, before its reply (due {slow_ms} ms after it, within the timeout): a master waits for the reply",
-                    crate::run::shown(&heard.bytes),
+                    crate::framing::shown_text(&heard.bytes),
                     (heard.at - before.at) * 1e3,
-                    crate::run::shown(&before.bytes)
+                    crate::framing::shown_text(&before.bytes)
                 ),
                 Some(heard.at),
             ));
@@ -257,7 +259,7 @@ fn goes_on(phase: &Phase, normal: &Normal, timeout: f64, notes: &mut Vec<String>
                 return Err((
                     format!(
                         "nothing came after the error reply to `{}`: a master takes an error reply as the slave's answer and goes on",
-                        crate::run::shown(&heard.bytes)
+                        crate::framing::shown_text(&heard.bytes)
                     ),
                     Some(heard.at),
                 ));
@@ -306,9 +308,9 @@ fn discards(phase: &Phase, normal: &Normal, timeout: f64, notes: &mut Vec<String
             return Err((
                 format!(
                     "`{}` came {:.0} ms after the spoilt reply to `{}`, as after a good one: the master took a reply it must discard (a retry, or waiting out its timeout, shows it did not)",
-                    crate::run::shown(&next.bytes),
+                    crate::framing::shown_text(&next.bytes),
                     (next.at - answer.end) * 1e3,
-                    crate::run::shown(&heard.bytes)
+                    crate::framing::shown_text(&heard.bytes)
                 ),
                 Some(next.at),
             ));
@@ -359,7 +361,7 @@ fn gives_up(
                     format!(
                         "nothing came for {:.1} s after `{}` went unanswered: a master gives up after its reply timeout ({timeout:.0} ms) and carries on polling",
                         end - heard.at,
-                        crate::run::shown(&heard.bytes)
+                        crate::framing::shown_text(&heard.bytes)
                     ),
                     Some(heard.at),
                 ));

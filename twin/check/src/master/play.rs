@@ -8,7 +8,8 @@
 
 use super::judge::{self, Normal};
 use super::{Behaviour, MasterSuite};
-use crate::run::{Exchange, Role, SuiteRun, Way, shown};
+use crate::framing::shown_text as shown;
+use crate::run::{Exchange, Role, SuiteRun, Way};
 use crate::wire::{Wire, WireError};
 use nodes::firmware::{Framing, RegisterImage, SlaveFrontend};
 use nodes::proto::meb::{MebError, MebErrorCode, MebRepr};
@@ -179,6 +180,7 @@ pub fn run_master(
         checks,
         seconds: play.wire.now() - started,
         error: None,
+        hung_up: None,
     })
 }
 
@@ -197,6 +199,7 @@ pub fn unreachable(suite: &MasterSuite, link: &str, ids: &[u8], why: String) -> 
         ids: ids.to_vec(),
         checks,
         seconds: 0.0,
+        hung_up: None,
         error: Some(why),
     }
 }
@@ -288,6 +291,7 @@ impl Play<'_> {
             at,
             way,
             text: shown(bytes),
+            bytes: bytes.to_vec(),
         });
     }
 

@@ -50,6 +50,9 @@ pub fn html(run: &SuiteRun, student: Option<&str>) -> String {
             esc(why)
         );
     }
+    if let Some(line) = super::hung_up(run) {
+        let _ = writeln!(out, "<p class=\"fail\">{}</p>", esc(&capital(&line)));
+    }
     out.push_str(
         "<table>\n<thead><tr><th>Check</th><th>Points</th><th>Result</th></tr></thead>\n<tbody>\n",
     );
@@ -98,6 +101,14 @@ pub fn html(run: &SuiteRun, student: Option<&str>) -> String {
     }
     out.push_str("</tbody>\n</table>\n</body>\n</html>\n");
     out
+}
+
+/// A sentence's first letter in upper case.
+fn capital(s: &str) -> String {
+    let mut chars = s.chars();
+    chars
+        .next()
+        .map_or_else(String::new, |c| c.to_uppercase().chain(chars).collect())
 }
 
 /// Text as HTML: markup and quotes escaped.

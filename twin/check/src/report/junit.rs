@@ -47,7 +47,11 @@ pub fn junit(run: &SuiteRun) -> String {
         run.score(),
         run.points()
     );
-    for check in &run.checks {
+    let hung_up_in = run
+        .hung_up
+        .as_ref()
+        .and_then(|gone| run.checks.iter().position(|c| c.name == gone.check));
+    for (i, check) in run.checks.iter().enumerate() {
         let _ = write!(
             out,
             "    <testcase name=\"{}\" classname=\"{}\" time=\"{:.3}\"",
@@ -83,11 +87,17 @@ pub fn junit(run: &SuiteRun) -> String {
             attr(why),
             if run.error.is_some() {
                 "unreachable"
+            } else if hung_up_in.is_some_and(|h| i >= h) {
+                "hung-up"
             } else {
                 "protocol"
             },
             text(&frames)
         );
+    }
+    // After the cases, where the JUnit schema puts a suite's output.
+    if let Some(line) = super::hung_up(run) {
+        let _ = writeln!(out, "    <system-out>{}</system-out>", text(&line));
     }
     out.push_str("  </testsuite>\n</testsuites>\n");
     out

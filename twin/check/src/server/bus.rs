@@ -5,7 +5,8 @@
 //! No plant: the inputs hold what the check puts there, so a client's read
 //! can be held to them.
 
-use crate::run::{Way, shown};
+use crate::framing::shown_text as shown;
+use crate::run::Way;
 use crate::wire::{Wire, WireError};
 use nodes::firmware::{Framing, RegisterImage, SlaveFrontend};
 use nodes::proto::meb::MebRepr;

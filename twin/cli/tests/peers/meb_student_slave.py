@@ -2,9 +2,11 @@
 outside the twin's code: the module controller's side of the MEB page
 (docs/protocols/meb.md) with the default map, over TCP, one client at a time.
 
-    python3 meb_student_slave.py PORT_FILE [--id N] [--bug BUG]...
+    python3 meb_student_slave.py PORT_FILE [--id N] [--pty] [--bug BUG]...
 
-It listens on a free port on 127.0.0.1 and writes the port to PORT_FILE.
+It listens on a free port on 127.0.0.1 and writes the port to PORT_FILE;
+with --pty it opens a pseudo-terminal instead (a board on a USB serial
+adapter, as the checker sees it) and writes the path of its far end.
 Each --bug plants one mistake students make, so that `twin check` can be
 held to finding it and nothing else:
 
@@ -13,6 +15,8 @@ held to finding it and nothing else:
   answers-broadcast   answers a broadcast write
   no-resync           does not restart a frame at an @ (a partial frame spoils the next)
   wrong-error-code    answers an address out of range with error 03, not 02
+  hangs-up-after N    answers N requests, then closes the connection when
+                      the next one comes (a program that crashes mid-run)
 """
 import socket
 import sys
@@ -36,9 +40,11 @@ def frame(body, bugs):
 
 
 class Slave:
-    def __init__(self, ident, bugs):
+    def __init__(self, ident, bugs, answers=None):
         self.id = ident
         self.bugs = bugs
+        # How many more requests it answers before it hangs up (None: all).
+        self.answers = answers
         self.words = {
             "EA": [0xBD6, 0x800, 0xD05, 0, 0, 0xCD3],
             "ED": [0x1],
@@ -120,21 +126,55 @@ def serve(conn, slave):
             if buf.endswith("*\n") or buf.endswith("*\r\n"):
                 text = buf[: buf.rindex("*")]
                 buf = ""
+                if slave.answers == 0:
+                    return  # hangs up on this request
                 reply = slave.handle(text)
                 if reply is not None:
                     conn.sendall(frame(reply, slave.bugs))
+                    if slave.answers is not None:
+                        slave.answers -= 1
+
+
+class Pty:
+    """A pseudo-terminal's master end, used as the socket is."""
+
+    def __init__(self, fd):
+        self.fd = fd
+
+    def recv(self, n):
+        import os
+
+        try:
+            return os.read(self.fd, n)
+        except OSError:
+            return b""  # the checker closed its end
+
+    def sendall(self, data):
+        import os
+
+        while data:
+            data = data[os.write(self.fd, data) :]
 
 
 def main():
     args = sys.argv[1:]
-    port_file, ident, bugs = args[0], 1, set()
+    port_file, ident, bugs, answers, pty = args[0], 1, set(), None, False
     i = 1
     while i < len(args):
         if args[i] == "--id":
             ident = int(args[i + 1])
+        elif args[i] == "--pty":
+            pty = True
+            i += 1
+            continue
+        elif args[i] == "--bug" and args[i + 1] == "hangs-up-after":
+            answers = int(args[i + 2])
+            i += 1
         elif args[i] == "--bug":
             bugs.add(args[i + 1])
         i += 2
+    if pty:
+        return serve_pty(port_file, ident, bugs, answers)
     server = socket.socket()
     server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     server.bind(("127.0.0.1", 0))
@@ -144,7 +184,7 @@ def main():
     import os
 
     os.rename(port_file + ".tmp", port_file)
-    slave = Slave(ident, bugs)
+    slave = Slave(ident, bugs, answers)
     while True:
         conn, _ = server.accept()
         conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
@@ -154,6 +194,24 @@ def main():
             pass  # the checker hung up mid-exchange
         finally:
             conn.close()
+
+
+def serve_pty(path_file, ident, bugs, answers):
+    """One run on a pseudo-terminal; hanging up closes it, as a board
+    unplugged takes its serial port away."""
+    import os
+    import tty
+
+    master, slave_fd = os.openpty()
+    tty.setraw(slave_fd)
+    with open(path_file + ".tmp", "w") as f:
+        f.write(os.ttyname(slave_fd))
+    os.rename(path_file + ".tmp", path_file)
+    try:
+        serve(Pty(master), Slave(ident, bugs, answers))
+    finally:
+        os.close(master)
+        os.close(slave_fd)
 
 
 if __name__ == "__main__":

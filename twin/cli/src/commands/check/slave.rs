@@ -5,9 +5,10 @@ use super::write;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use std::path::{Path, PathBuf};
-use std::time::Instant;
+use std::time::{Instant, SystemTime};
 use twin_check::class::{self, Student};
-use twin_check::{Suite, SuiteRun, report, run_suite, wire::Wire};
+use twin_check::{Suite, SuiteRun, record, report, run_suite, wire::Wire};
+use twin_realtime::rotate;
 
 #[derive(Debug, Args)]
 pub struct SlaveArgs {
@@ -52,6 +53,20 @@ pub struct SlaveArgs {
     /// How many students of a class are checked at once.
     #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u16).range(1..=64))]
     jobs: u16,
+    /// Where to record the run (MCAP: every frame with its time, the check
+    /// it belongs to, the verdicts), replaced if it exists [default: a file
+    /// named by the run's start time in UTC in --record-dir, e.g.
+    /// check-slave-2026-12-03T07-35-44.mcap, as `twin serve` names its
+    /// own]. With --roster, each student's recording goes beside their
+    /// reports (STUDENT.mcap).
+    #[arg(long, value_name = "PATH", conflicts_with_all = ["roster", "record_dir"])]
+    record: Option<PathBuf>,
+    /// The folder the recording goes to [default: here].
+    #[arg(long, value_name = "DIR", conflicts_with = "roster")]
+    record_dir: Option<PathBuf>,
+    /// Do not record the run (nor, with --roster, the students' runs).
+    #[arg(long, conflicts_with_all = ["record", "record_dir"])]
+    no_record: bool,
 }
 
 /// One student's slave checked, or a class's from a roster.
@@ -75,8 +90,22 @@ pub fn execute(slave: &SlaveArgs) -> Result<()> {
     }
     let link = slave.link.as_deref().unwrap_or_default();
     let mut wire = Wire::open(link)?;
-    let run = run_suite(&suite, &mut wire, slave.id)?;
+    let run = run_suite(&suite, &mut wire, slave.id);
     print!("{}", report::text(&run));
+    if !slave.no_record {
+        let path = match &slave.record {
+            Some(path) => path.clone(),
+            None => rotate::next_name(
+                slave.record_dir.as_deref().unwrap_or(Path::new(".")),
+                "check-slave",
+                SystemTime::now(),
+            ),
+        };
+        let toml = record::suite_toml(&slave.suite);
+        let path = record::record(&path, "slave", &toml, &run)
+            .with_context(|| format!("cannot record the run to {}", path.display()))?;
+        println!("recorded to {}", path.display());
+    }
     let outputs = [
         (&slave.json, report::json(&run)),
         (&slave.junit, report::junit(&run)),
@@ -119,9 +148,10 @@ fn class(slave: &SlaveArgs, suite: &Suite, roster: &Path) -> Result<()> {
     );
     let started = Instant::now();
     let mut unwritten = None;
+    let toml = (!slave.no_record).then(|| record::suite_toml(&slave.suite));
     let runs = class::run_class(suite, &students, slave.jobs.into(), |student, run| {
         println!("  {:width$}  {}", student.name, verdict(run));
-        if let Err(e) = reports(&out, student, run) {
+        if let Err(e) = reports(&out, student, run, toml.as_deref()) {
             unwritten.get_or_insert(e);
         }
     });
@@ -138,10 +168,11 @@ fn class(slave: &SlaveArgs, suite: &Suite, roster: &Path) -> Result<()> {
         .filter(|r| r.error.is_none() && r.first_failure().is_some())
         .count();
     println!(
-        "{} students in {:.1} s: {} passed every check, {failed} failed a check, {unreachable} could not be checked; reports and scores.csv in {}",
+        "{} students in {:.1} s: {} passed every check, {failed} failed a check, {unreachable} could not be checked; reports{} and scores.csv in {}",
         students.len(),
         started.elapsed().as_secs_f64(),
         students.len() - failed - unreachable,
+        if slave.no_record { "" } else { ", recordings" },
         out.display()
     );
     if failed + unreachable > 0 {
@@ -166,13 +197,24 @@ pub(super) fn verdict(run: &SuiteRun) -> String {
         run.passed().count(),
         run.checks.len()
     );
-    match run.first_failure() {
-        Some(check) => format!("{score}; first failed: {}", check.name),
-        None => score,
+    match (&run.hung_up, run.first_failure()) {
+        (Some(gone), _) => format!(
+            "{score}; hung up at {:.3} s, during: {}",
+            gone.at, gone.check
+        ),
+        (None, Some(check)) => format!("{score}; first failed: {}", check.name),
+        (None, None) => score,
     }
 }
 
-pub(super) fn reports(out: &Path, student: &Student, run: &SuiteRun) -> Result<()> {
+/// A student's reports, and their run's recording unless `suite_toml` is
+/// `None` (--no-record).
+pub(super) fn reports(
+    out: &Path,
+    student: &Student,
+    run: &SuiteRun,
+    suite_toml: Option<&str>,
+) -> Result<()> {
     let stem = student.file_stem();
     let file = |ext: &str| out.join(format!("{stem}.{ext}"));
     write(
@@ -181,5 +223,11 @@ pub(super) fn reports(out: &Path, student: &Student, run: &SuiteRun) -> Result<(
     )?;
     write(&file("json"), &report::json(run))?;
     write(&file("html"), &report::html(run, Some(&student.name)))?;
-    write(&file("junit.xml"), &report::junit(run))
+    write(&file("junit.xml"), &report::junit(run))?;
+    if let Some(toml) = suite_toml {
+        let path = file("mcap");
+        record::record(&path, "slave", toml, run)
+            .with_context(|| format!("cannot record the run to {}", path.display()))?;
+    }
+    Ok(())
 }

@@ -71,7 +71,7 @@ fn a_class_gets_its_scores_a_report_each_and_the_unreachable_an_error() {
         "{shown}"
     );
     for stem in ["Anna_Müller", "Ben", "Carl"] {
-        for ext in ["txt", "json", "html", "junit.xml"] {
+        for ext in ["txt", "json", "html", "junit.xml", "mcap"] {
             assert!(
                 out_dir.join(format!("{stem}.{ext}")).is_file(),
                 "{stem}.{ext}"

@@ -1,0 +1,140 @@
+//! A student's slave that hangs up in the middle of a run (it closes the
+//! connection, as a program that crashes does): the checks run before keep
+//! their verdicts and count in the score, the one running and those after
+//! it fail saying so, and the report says it once at the top; a class too.
+
+use super::{check_slave, junit_read, student};
+use crate::support::{folder, scratch, text, twin};
+
+/// The first five checks of the MEB slave suite are one request and its
+/// reply each, a point each; the sixth is the write of the outputs.
+const SIXTH: &str =
+    "acknowledges a write of the outputs (SD 00, everything off) by echoing its header";
+
+#[test]
+fn a_slave_that_hangs_up_keeps_the_checks_it_passed() {
+    let (json, junit) = (
+        scratch("check", "hang-up.json"),
+        scratch("check", "hang-up.junit.xml"),
+    );
+    let slave = student("hang-up", &["hangs-up-after 5"]);
+    let out = check_slave(
+        &slave.link,
+        &[
+            "--json",
+            json.to_str().unwrap(),
+            "--junit",
+            junit.to_str().unwrap(),
+        ],
+    );
+    let shown = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{shown}");
+    let lines: Vec<&str> = shown.lines().collect();
+    assert!(
+        lines[1].starts_with("  the program hung up at ")
+            && lines[1].ends_with(&format!(
+                " s (it closed the connection), during `{SIXTH}`: the 5 checks before it keep their verdicts; it and the 19 after it fail"
+            )),
+        "{shown}"
+    );
+    assert!(
+        shown.contains("score: 5 of 32 points (5 of 25 checks passed)"),
+        "{shown}"
+    );
+    assert!(!shown.contains("could not be checked"), "{shown}");
+
+    let run: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!(run["score"], 5);
+    assert_eq!(run["hung_up"]["check"], SIXTH);
+    assert_eq!(run["hung_up"]["how"], "it closed the connection");
+    let checks = run["checks"].as_array().unwrap();
+    assert!(checks[..5].iter().all(|c| c["result"] == "pass"), "{run}");
+    // The check that was running keeps what it sent, and says when the
+    // program hung up.
+    let sixth = &checks[5];
+    assert_eq!(sixth["name"], SIXTH);
+    assert!(
+        sixth["why"]
+            .as_str()
+            .unwrap()
+            .starts_with("the program hung up at "),
+        "{sixth}"
+    );
+    assert_eq!(sixth["frames"][0]["text"], "@01SD0001001F20*\\n");
+    assert_eq!(sixth["frames"].as_array().unwrap().len(), 1, "{sixth}");
+    for later in &checks[6..] {
+        assert!(
+            later["why"]
+                .as_str()
+                .unwrap()
+                .starts_with("not run: the program hung up at "),
+            "{later}"
+        );
+        assert_eq!(later["frames"].as_array().unwrap().len(), 0, "{later}");
+    }
+
+    // To a CI system: five pass, twenty fail.
+    let read = junit_read(&junit);
+    assert_eq!(
+        (read["failures"].as_u64(), read["errors"].as_u64()),
+        (Some(20), Some(0))
+    );
+    assert!(read["cases"][4]["message"].is_null());
+}
+
+#[test]
+fn a_class_keeps_what_a_student_passed_before_the_hang_up() {
+    let dir = folder("check", "class-hang-up");
+    let (anna, ben) = (
+        student("anna-h", &["hangs-up-after 5"]),
+        student("ben-h", &[]),
+    );
+    let roster = dir.join("class.csv");
+    std::fs::write(
+        &roster,
+        format!("student,link\nAnna,{}\nBen,{}\n", anna.link, ben.link),
+    )
+    .unwrap();
+    let out_dir = dir.join("reports");
+    let out = twin(&[
+        "check",
+        "slave",
+        "--timeout-ms",
+        "1000",
+        "--roster",
+        roster.to_str().unwrap(),
+        "--out",
+        out_dir.to_str().unwrap(),
+        "--no-record",
+    ]);
+    let shown = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{shown}");
+    let scores = std::fs::read_to_string(out_dir.join("scores.csv")).unwrap();
+    assert_eq!(
+        scores.lines().collect::<Vec<_>>(),
+        [
+            "student,score,points,checks_passed,checks,first_failure",
+            &format!("Anna,5,32,5,25,{SIXTH}"),
+            "Ben,32,32,25,25,",
+        ],
+        "{shown}"
+    );
+    assert!(
+        shown.contains(&format!(
+            "  Anna  5 of 32 points, 5 of 25 checks; hung up at "
+        )),
+        "{shown}"
+    );
+    assert!(
+        shown.contains("1 passed every check, 1 failed a check, 0 could not be checked"),
+        "{shown}"
+    );
+    let anna_txt = std::fs::read_to_string(out_dir.join("Anna.txt")).unwrap();
+    assert!(anna_txt.contains("  the program hung up at "), "{anna_txt}");
+    let page = std::fs::read_to_string(out_dir.join("Anna.html")).unwrap();
+    assert!(
+        page.contains("<p class=\"fail\">The program hung up at "),
+        "{page}"
+    );
+}

@@ -1,0 +1,161 @@
+//! A check's recording: read by the Python `mcap` package (a reader we
+//! did not write) it holds every frame of the report, in order, each in
+//! its check, the verdicts, the suite and the score; `twin export` reads
+//! it, and `twin replay` says what it is instead of failing obscurely. A
+//! class records each student beside their reports.
+
+use super::{check_slave, student};
+use crate::support::{folder, text, twin};
+use std::path::Path;
+use std::process::Command;
+
+/// The recording as the Python reader gives it back.
+fn read(path: &Path) -> serde_json::Value {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/peers/check_recording.py");
+    let out = Command::new("python3")
+        .arg(script)
+        .arg(path)
+        .output()
+        .expect("python3 runs");
+    assert!(out.status.success(), "{}", text(&out));
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+/// Bytes spelt as the report spells them (`\n`, `\r`).
+fn spelt(raw: &str) -> String {
+    raw.replace('\n', "\\n").replace('\r', "\\r")
+}
+
+#[test]
+fn the_recording_holds_every_frame_of_the_report_in_its_check() {
+    let dir = folder("check", "recorded");
+    let (mcap, json) = (dir.join("run.mcap"), dir.join("run.json"));
+    let slave = student("recorded", &["answers-broadcast"]);
+    let out = check_slave(
+        &slave.link,
+        &[
+            "--record",
+            mcap.to_str().unwrap(),
+            "--json",
+            json.to_str().unwrap(),
+        ],
+    );
+    let shown = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{shown}");
+    assert!(
+        shown.contains(&format!("recorded to {}\n", mcap.display())),
+        "{shown}"
+    );
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let recorded = read(&mcap);
+
+    assert_eq!(recorded["run"]["kind"], "check");
+    assert_eq!(recorded["run"]["suite"], "MEB slave");
+    assert_eq!(recorded["run"]["id"], "01");
+    assert!(
+        recorded["run"]["suite_toml"]
+            .as_str()
+            .unwrap()
+            .contains("name = \"MEB slave\""),
+        "{recorded}"
+    );
+    assert_eq!(recorded["check"]["score"], "30");
+    assert_eq!(recorded["check"]["checks_passed"], "24");
+    assert_eq!(
+        recorded["attachments"],
+        serde_json::json!(["check-run.json"])
+    );
+
+    // Every frame of the report, in order, each where its check says.
+    let checks = recorded["checks"].as_array().unwrap();
+    let reported = report["checks"].as_array().unwrap();
+    assert_eq!(checks.len(), reported.len());
+    let frames = recorded["frames"].as_array().unwrap();
+    let mut next = 0;
+    for (check, expected) in checks.iter().zip(reported) {
+        assert_eq!(check["name"], expected["name"]);
+        assert_eq!(check["result"], expected["result"]);
+        let n = check["frames"].as_u64().unwrap() as usize;
+        let own = &frames[next..next + n];
+        next += n;
+        let want = expected["frames"].as_array().unwrap();
+        assert_eq!(own.len(), want.len(), "{}", check["name"]);
+        for (got, want) in own.iter().zip(want) {
+            assert_eq!(spelt(got["text"].as_str().unwrap()), want["text"]);
+            let from = if want["way"] == "sent" {
+                "twin"
+            } else {
+                "slave 01"
+            };
+            assert_eq!(got["from"], from);
+            assert_eq!(got["topic"], "/link/slave/frames");
+            assert_eq!(got["protocol"], "meb");
+            let at = want["at"].as_f64().unwrap();
+            assert!((got["time_s"].as_f64().unwrap() - at).abs() < 1e-6, "{got}");
+        }
+    }
+    assert_eq!(next, frames.len(), "no frame outside a check");
+    assert!(frames.len() > 40, "{}", frames.len());
+    let broadcast = checks
+        .iter()
+        .find(|c| c["result"] == "fail")
+        .expect("the planted bug");
+    assert_eq!(
+        broadcast["name"],
+        "a broadcast write (id 00) is not answered"
+    );
+    assert!(
+        broadcast["why"]
+            .as_str()
+            .unwrap()
+            .starts_with("answered `@01SD000157*\\n`"),
+        "{broadcast}"
+    );
+    let times: Vec<f64> = frames
+        .iter()
+        .map(|f| f["time_s"].as_f64().unwrap())
+        .collect();
+    assert!(times.windows(2).all(|w| w[0] <= w[1]), "{times:?}");
+
+    // The twin's own readers.
+    let csv = dir.join("csv");
+    let out = twin(&[
+        "export",
+        mcap.to_str().unwrap(),
+        "--csv",
+        csv.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", text(&out));
+    let rows = std::fs::read_to_string(csv.join("link_slave_frames.csv")).unwrap();
+    assert_eq!(rows.lines().count(), frames.len() + 1, "{rows}");
+    let out = twin(&["replay", mcap.to_str().unwrap()]);
+    assert!(!out.status.success());
+    assert!(
+        text(&out).contains("is a `twin check` run: it checked a live program over its link"),
+        "{}",
+        text(&out)
+    );
+}
+
+#[test]
+fn by_default_a_run_is_recorded_in_the_folder_named_by_its_start() {
+    let dir = folder("check", "record-dir");
+    let slave = student("record-dir", &[]);
+    let out = check_slave(&slave.link, &["--record-dir", dir.to_str().unwrap()]);
+    let shown = text(&out);
+    assert!(out.status.success(), "{shown}");
+    let line = shown
+        .lines()
+        .find_map(|l| l.strip_prefix("recorded to "))
+        .expect("says where");
+    let name = Path::new(line).file_name().unwrap().to_str().unwrap();
+    assert!(
+        name.starts_with("check-slave-20") && name.ends_with(".mcap"),
+        "{name}"
+    );
+    assert!(Path::new(line).starts_with(&dir), "{line}");
+    assert_eq!(read(Path::new(line))["check"]["score"], "32");
+    let out = check_slave(&slave.link, &["--no-record"]);
+    assert!(!text(&out).contains("recorded to"), "{}", text(&out));
+}
