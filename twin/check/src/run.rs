@@ -263,15 +263,16 @@ pub fn run_suite(suite: &Suite, wire: &mut Wire, id: u8) -> SuiteRun {
 fn hang_up_words(e: &WireError) -> String {
     match e {
         WireError::Closed { .. } => "it closed the connection".into(),
+        // A pseudo-terminal whose other end closed, a USB adapter pulled:
+        // the port fails its next read, write or flush, whatever it says.
+        WireError::Io { link, .. } if !link.starts_with("tcp://") => {
+            "the serial port or pseudo-terminal went away".into()
+        }
         WireError::Io { why, .. } => match why.kind() {
             std::io::ErrorKind::ConnectionReset | std::io::ErrorKind::ConnectionAborted => {
                 "it reset the connection".into()
             }
             std::io::ErrorKind::BrokenPipe => "it closed the connection".into(),
-            // A pseudo-terminal whose other end closed, a USB adapter pulled.
-            _ if why.raw_os_error() == Some(5) => {
-                "the serial port or pseudo-terminal went away".into()
-            }
             _ => format!("the link failed: {why}"),
         },
         other => other.to_string(),

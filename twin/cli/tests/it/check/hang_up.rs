@@ -169,3 +169,41 @@ fn without_port_and_time(line: &str) -> String {
         None => line.to_string(),
     }
 }
+
+/// The same student on a pseudo-terminal it opened itself, which goes away
+/// when it hangs up, as a board's serial port does when it is unplugged.
+#[test]
+fn a_pseudo_terminal_that_goes_away_keeps_the_checks_passed_too() {
+    let script =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/peers/meb_student_slave.py");
+    let path_file = scratch("check", "hang-up-pty.path");
+    let _ = std::fs::remove_file(&path_file);
+    let mut child = std::process::Command::new("python3")
+        .arg(script)
+        .arg(&path_file)
+        .args(["--pty", "--bug", "hangs-up-after", "5"])
+        .spawn()
+        .expect("python3 runs");
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
+    let path = loop {
+        if let Ok(path) = std::fs::read_to_string(&path_file) {
+            break path;
+        }
+        assert!(std::time::Instant::now() < deadline, "no pseudo-terminal");
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    };
+    let out = check_slave(path.trim(), &[]);
+    let _ = child.kill();
+    let _ = child.wait();
+    let shown = text(&out);
+    assert!(
+        shown.contains(&format!(
+            " s (the serial port or pseudo-terminal went away), during `{SIXTH}`: the 5 checks before it keep their verdicts"
+        )),
+        "{shown}"
+    );
+    assert!(
+        shown.contains("score: 5 of 32 points (5 of 25 checks passed)"),
+        "{shown}"
+    );
+}
