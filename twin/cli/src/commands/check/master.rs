@@ -154,7 +154,7 @@ fn class(args: &MasterArgs, suite: &MasterSuite, roster: &Path) -> Result<()> {
         |student| student_run(suite, student, wait),
         |student, run| {
             println!("  {:width$}  {}", student.name, verdict(run));
-            if let Err(e) = reports(&out, student, run) {
+            if let Err(e) = reports(&out, student, run, None) {
                 unwritten.get_or_insert(e);
             }
         },
