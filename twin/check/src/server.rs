@@ -156,8 +156,7 @@ const NEW_INPUTS: [u16; 6] = [0x0B66, 0x0777, 0x0D88, 1200, 1190, 0x0999];
 /// server that cannot be reached is a run whose checks all fail with why.
 pub fn check_server(options: &ServerOptions) -> Result<SuiteRun, WireError> {
     let started = Instant::now();
-    let bus = Bus::open(&options.bus, options.id, started)?;
-    bus.set_inputs(FIRST_INPUTS);
+    let bus = Bus::open(&options.bus, options.id, FIRST_INPUTS, started)?;
     let mut checker = Checker {
         link: options.link.clone(),
         id: options.id,

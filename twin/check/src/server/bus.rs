@@ -50,12 +50,15 @@ pub struct Bus {
 }
 
 impl Bus {
-    /// Opens `link` and answers as slave `id` from now on; times are
-    /// seconds since `started`.
-    pub fn open(link: &str, id: u8, started: Instant) -> Result<Bus, WireError> {
+    /// Opens `link` and answers as slave `id` from now on, its analog
+    /// inputs `inputs` from the first reply (a request the supervisor left
+    /// on the line before is answered with them too); times are seconds
+    /// since `started`.
+    pub fn open(link: &str, id: u8, inputs: [u16; 6], started: Instant) -> Result<Bus, WireError> {
         let wire = Wire::open(link)?;
         // The M3CVME module's converters: a 12-bit DAC and ADC.
-        let image = RegisterImage::new(12, 12, 2048, 100);
+        let mut image = RegisterImage::new(12, 12, 2048, 100);
+        image.inputs = inputs;
         let shared = Arc::new(Shared {
             stop: AtomicBool::new(false),
             state: Mutex::new(State {
