@@ -12,6 +12,7 @@ pub mod link;
 pub mod master;
 pub mod node;
 pub mod parallel;
+pub mod refusal;
 
 /// The wire formats, from the `protocols` crate: node code and its users
 /// name them `nodes::proto::…` without depending on that crate themselves.

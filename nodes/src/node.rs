@@ -10,7 +10,7 @@
 //! engine steps the plant up to each loop tick and hands the firmware the
 //! sensors; the firmware answers with the actuators to hold until its next tick.
 
-use crate::firmware::Refusal;
+use crate::refusal::Refusal;
 use crate::time::{SimDuration, SimTime};
 
 /// Longest frame any node sends in one piece (an MEB frame with 99 words and

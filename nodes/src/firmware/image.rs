@@ -6,8 +6,7 @@
 //! once: a front end turns its request into a [`WriteSet`] and the image
 //! either stores all of it or refuses it with a [`Refusal`].
 
-use crate::proto::meb::MebErrorCode;
-use crate::proto::modbus::Exception;
+pub use crate::refusal::Refusal;
 
 /// `EA` words: V2, I, V1, RPM_M, RPM_L, LDR.
 pub const EA_WORDS: usize = 6;
@@ -126,57 +125,6 @@ pub struct WriteSet {
     pub rpm_window_ms: Option<u16>,
     /// `VD0`.
     pub ldr_adaptive: Option<u16>,
-}
-
-/// Why a request was refused, in the terms both protocols share.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, thiserror::Error)]
-pub enum Refusal {
-    /// No such command / function, or its block holds no words.
-    #[error("illegal command")]
-    IllegalCommand,
-    /// An address outside the block.
-    #[error("illegal address")]
-    IllegalAddress,
-    /// A count of 0 or a value out of range.
-    #[error("illegal data")]
-    IllegalData,
-    /// Enabling the module while a trip's cause persists.
-    #[error("device failure: a trip's cause persists")]
-    DeviceFailure,
-}
-
-impl Refusal {
-    /// The refusal an exception or `ER` code names: 1 illegal function /
-    /// command, 2 illegal address, 3 illegal data, 4 device failure.
-    pub fn from_code(code: u8) -> Option<Refusal> {
-        match code {
-            1 => Some(Refusal::IllegalCommand),
-            2 => Some(Refusal::IllegalAddress),
-            3 => Some(Refusal::IllegalData),
-            4 => Some(Refusal::DeviceFailure),
-            _ => None,
-        }
-    }
-
-    /// The MEB error code.
-    pub fn meb(self) -> MebErrorCode {
-        match self {
-            Refusal::IllegalCommand => MebErrorCode::IllegalCommand,
-            Refusal::IllegalAddress => MebErrorCode::IllegalAddress,
-            Refusal::IllegalData => MebErrorCode::IllegalData,
-            Refusal::DeviceFailure => MebErrorCode::DeviceFailure,
-        }
-    }
-
-    /// The Modbus exception.
-    pub fn modbus(self) -> Exception {
-        match self {
-            Refusal::IllegalCommand => Exception::IllegalFunction,
-            Refusal::IllegalAddress => Exception::IllegalDataAddress,
-            Refusal::IllegalData => Exception::IllegalDataValue,
-            Refusal::DeviceFailure => Exception::ServerDeviceFailure,
-        }
-    }
 }
 
 /// The protective-trip latch (`docs/protocols/meb.md`, "A trip latches").

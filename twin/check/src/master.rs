@@ -23,6 +23,7 @@
 //! (`nodes::firmware::SlaveFrontend`, the default map) over a register
 //! image at power-up: no bench behind it, so the values are the image's.
 
+mod heard;
 mod judge;
 mod line;
 mod play;

@@ -19,7 +19,7 @@
 //!   poll period, and polls the other slaves meanwhile; retrying first is
 //!   its choice.
 
-use super::play::{Heard, Phase};
+use super::heard::{Heard, Phase, emit_request};
 use super::{Behaviour, MasterSuite, Situation};
 use crate::run::{CheckOutcome, Exchange, Outcome};
 use nodes::proto::meb::{MebError, MebRepr};
@@ -144,7 +144,7 @@ fn answers(phase: &Phase, ids: &[u8], notes: &mut Vec<String>) -> Verdict {
                 frame.id
             ));
         }
-        if super::play::emit_request(frame).is_some_and(|canonical| canonical != heard.bytes) {
+        if emit_request(frame).is_some_and(|canonical| canonical != heard.bytes) {
             return fault(format!(
                 "`{text}` is not written as the page says to emit a frame (upper-case hex, ending *\\n)"
             ));

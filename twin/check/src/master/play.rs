@@ -6,6 +6,7 @@
 //! the fault is the first check's to report, and answering lets every
 //! other situation still be tried on that master.
 
+use super::heard::{Answer, Heard, Phase, emit};
 use super::judge::{self, Normal};
 use super::{Behaviour, MasterSuite};
 use crate::framing::shown_text as shown;
@@ -24,45 +25,6 @@ pub struct MasterOptions {
     pub ids: Vec<u8>,
     /// How long to wait for the master's first request.
     pub wait: Duration,
-}
-
-/// One request the master sent, and what the twin did with it.
-#[derive(Debug, Clone)]
-pub(crate) struct Heard {
-    /// When its last byte came, seconds after the link was opened.
-    pub at: f64,
-    pub bytes: Vec<u8>,
-    /// Bytes before its `@` that belonged to no frame.
-    pub junk: Vec<u8>,
-    pub frame: Result<MebRepr, MebError>,
-    /// The slave it is for, read past a wrong FCS.
-    pub id: Option<u8>,
-    /// It came while the twin still owed a reply to an earlier one.
-    pub owed: bool,
-    pub answer: Option<Answer>,
-}
-
-/// What the twin sent back to a request.
-#[derive(Debug, Clone, Default)]
-pub(crate) struct Answer {
-    /// When its last byte was written.
-    pub end: f64,
-    /// It was spoilt (bad FCS, another id) or an error reply: not the
-    /// slave's normal reply.
-    pub spoilt: bool,
-    /// The good reply, sent after a spoilt one when the master neither
-    /// retried nor went on.
-    pub rescued: bool,
-}
-
-/// One situation as it went.
-#[derive(Debug, Default)]
-pub(crate) struct Phase {
-    pub heard: Vec<Heard>,
-    pub frames: Vec<Exchange>,
-    /// When it began, seconds after the link was opened, and how long.
-    pub began: f64,
-    pub seconds: f64,
 }
 
 struct Scheduled {
@@ -442,15 +404,4 @@ fn with_fcs(frame: &[u8], fcs: impl Fn(u8) -> u8) -> Option<Vec<u8>> {
 /// The reply with a wrong FCS (every bit of the right one flipped).
 fn spoil_fcs(reply: &[u8]) -> Vec<u8> {
     with_fcs(reply, |right| !right).unwrap_or_else(|| reply.to_vec())
-}
-
-/// A request as the page says to write it, to hold the master's to.
-pub(crate) fn emit_request(frame: &MebRepr) -> Option<Vec<u8>> {
-    emit(frame)
-}
-
-fn emit(frame: &MebRepr) -> Option<Vec<u8>> {
-    let mut buf = [0u8; 512];
-    let n = frame.emit(&mut buf).ok()?;
-    buf.get(..n).map(<[u8]>::to_vec)
 }
