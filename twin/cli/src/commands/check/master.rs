@@ -1,12 +1,11 @@
 //! `twin check master`: the student's supervisor, polling slaves the twin
 //! plays; one student, or a class from a roster.
 
-use super::slave::{reports, verdict};
 use super::write;
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use clap::Args;
 use std::path::{Path, PathBuf};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 use twin_check::class::{self, Student};
 use twin_check::master::{self as check, MasterLine, MasterOptions, MasterSuite};
 use twin_check::{SuiteRun, report};
@@ -122,70 +121,21 @@ fn student_run(suite: &MasterSuite, student: &Student, wait: Duration) -> SuiteR
     run.unwrap_or_else(|why| check::unreachable(suite, &student.link, &ids, why))
 }
 
-/// Every student's master checked, a line each as they finish, their
-/// reports and the class's scores.csv written to the out folder.
+/// Every student's master checked (see [`super::class`]); a master's run
+/// is not recorded.
 fn class(args: &MasterArgs, suite: &MasterSuite, roster: &Path) -> Result<()> {
     let students = class::load_roster(roster, args.id[0])?;
-    let out = args.out.clone().unwrap_or_else(|| {
-        let name = Path::new(&args.suite)
-            .file_stem()
-            .map_or_else(|| args.suite.clone(), |s| s.to_string_lossy().into_owned());
-        PathBuf::from(format!("check-{name}-reports"))
-    });
-    std::fs::create_dir_all(&out)
-        .with_context(|| format!("cannot make the folder {}", out.display()))?;
-    let width = students
-        .iter()
-        .map(|s| s.name.chars().count())
-        .max()
-        .unwrap_or(0);
-    println!(
-        "{} suite: {} students, {} at once",
-        suite.name,
-        students.len(),
-        usize::from(args.jobs).min(students.len())
-    );
-    let started = Instant::now();
     let wait = Duration::from_secs(args.wait);
-    let mut unwritten = None;
-    let runs = class::run_each(
-        &students,
-        args.jobs.into(),
-        |student| student_run(suite, student, wait),
-        |student, run| {
-            println!("  {:width$}  {}", student.name, verdict(run));
-            if let Err(e) = reports(&out, student, run, None) {
-                unwritten.get_or_insert(e);
-            }
-        },
-    );
-    if let Some(e) = unwritten {
-        return Err(e);
-    }
-    write(
-        &out.join("scores.csv"),
-        &class::scores_csv(&students, &runs),
-    )?;
-    let unreachable = runs.iter().filter(|r| r.error.is_some()).count();
-    let failed = runs
-        .iter()
-        .filter(|r| r.error.is_none() && r.first_failure().is_some())
-        .count();
-    println!(
-        "{} students in {:.1} s: {} passed every check, {failed} failed a check, {unreachable} could not be checked; reports and scores.csv in {}",
-        students.len(),
-        started.elapsed().as_secs_f64(),
-        students.len() - failed - unreachable,
-        out.display()
-    );
-    if failed + unreachable > 0 {
-        bail!(
-            "{} of {} students did not pass every check",
-            failed + unreachable,
-            students.len()
-        );
-    }
-    Ok(())
+    let options = super::class::Class {
+        suite_name: &suite.name,
+        suite_arg: &args.suite,
+        out: args.out.as_deref(),
+        jobs: args.jobs,
+        suite_toml: None,
+    };
+    super::class::run(&options, &students, |student| {
+        student_run(suite, student, wait)
+    })
 }
 
 fn ids_text(ids: &[u8]) -> String {

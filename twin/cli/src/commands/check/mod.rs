@@ -1,6 +1,7 @@
 //! `twin check`: a student's program checked against its protocol, check
 //! by check, with the frames as evidence and a score. One file per role.
 
+mod class;
 mod client;
 mod master;
 mod server;

@@ -5,7 +5,7 @@ use super::write;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use std::path::{Path, PathBuf};
-use std::time::{Instant, SystemTime};
+use std::time::SystemTime;
 use twin_check::class::{self, Student};
 use twin_check::{Suite, SuiteRun, record, report, run_suite, wire::Wire};
 use twin_realtime::rotate;
@@ -123,66 +123,18 @@ pub fn execute(slave: &SlaveArgs) -> Result<()> {
     Ok(())
 }
 
-/// Every student of the roster checked, a line each as they finish, their
-/// reports and the class's scores.csv written to the out folder.
+/// Every student of the roster checked (see [`super::class`]).
 fn class(slave: &SlaveArgs, suite: &Suite, roster: &Path) -> Result<()> {
     let students = class::load_roster(roster, slave.id)?;
-    let out = slave.out.clone().unwrap_or_else(|| {
-        let name = Path::new(&slave.suite)
-            .file_stem()
-            .map_or_else(|| slave.suite.clone(), |s| s.to_string_lossy().into_owned());
-        PathBuf::from(format!("check-{name}-reports"))
-    });
-    std::fs::create_dir_all(&out)
-        .with_context(|| format!("cannot make the folder {}", out.display()))?;
-    let width = students
-        .iter()
-        .map(|s| s.name.chars().count())
-        .max()
-        .unwrap_or(0);
-    println!(
-        "{} suite: {} students, {} at once",
-        suite.name,
-        students.len(),
-        usize::from(slave.jobs).min(students.len())
-    );
-    let started = Instant::now();
-    let mut unwritten = None;
     let toml = (!slave.no_record).then(|| record::suite_toml(&slave.suite));
-    let runs = class::run_class(suite, &students, slave.jobs.into(), |student, run| {
-        println!("  {:width$}  {}", student.name, verdict(run));
-        if let Err(e) = reports(&out, student, run, toml.as_deref()) {
-            unwritten.get_or_insert(e);
-        }
-    });
-    if let Some(e) = unwritten {
-        return Err(e);
-    }
-    write(
-        &out.join("scores.csv"),
-        &class::scores_csv(&students, &runs),
-    )?;
-    let unreachable = runs.iter().filter(|r| r.error.is_some()).count();
-    let failed = runs
-        .iter()
-        .filter(|r| r.error.is_none() && r.first_failure().is_some())
-        .count();
-    println!(
-        "{} students in {:.1} s: {} passed every check, {failed} failed a check, {unreachable} could not be checked; reports{} and scores.csv in {}",
-        students.len(),
-        started.elapsed().as_secs_f64(),
-        students.len() - failed - unreachable,
-        if slave.no_record { "" } else { ", recordings" },
-        out.display()
-    );
-    if failed + unreachable > 0 {
-        bail!(
-            "{} of {} students did not pass every check",
-            failed + unreachable,
-            students.len()
-        );
-    }
-    Ok(())
+    let options = super::class::Class {
+        suite_name: &suite.name,
+        suite_arg: &slave.suite,
+        out: slave.out.as_deref(),
+        jobs: slave.jobs,
+        suite_toml: toml.as_deref(),
+    };
+    super::class::run(&options, &students, |student| class::check(suite, student))
 }
 
 /// A student's line: the score, or why it could not be checked.
