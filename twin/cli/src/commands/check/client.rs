@@ -2,7 +2,6 @@
 //! twin listens as the supervisor's server, prints the checklist, says
 //! each item as it sees it done, and reports when the session ends.
 
-use super::write;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use std::io::{BufRead, Write as _};
@@ -92,21 +91,12 @@ pub fn execute(args: &ClientArgs) -> Result<()> {
     }
     let run = session.finish(&link);
     print!("{}", report::text(&run));
-    let outputs = [
-        (&args.json, report::json(&run)),
-        (&args.junit, report::junit(&run)),
-        (&args.html, report::html(&run, None)),
-    ];
-    for (path, contents) in outputs {
-        if let Some(path) = path {
-            write(path, &contents)?;
-        }
-    }
-    let failed = run.failed();
-    if failed > 0 {
-        bail!("{failed} of {} checks failed", run.checks.len());
-    }
-    Ok(())
+    super::reports_and_verdict(
+        &run,
+        args.json.as_deref(),
+        args.junit.as_deref(),
+        args.html.as_deref(),
+    )
 }
 
 /// A message when stdin gives a line or ends (Enter, Ctrl-D, a closed pipe).

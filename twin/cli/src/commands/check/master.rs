@@ -1,7 +1,6 @@
 //! `twin check master`: the student's supervisor, polling slaves the twin
 //! plays; one student, or a class from a roster.
 
-use super::write;
 use anyhow::{Result, bail};
 use clap::Args;
 use std::path::{Path, PathBuf};
@@ -85,24 +84,12 @@ pub fn execute(args: &MasterArgs) -> Result<()> {
     let options = MasterOptions { ids, wait };
     let run = check::run_master(&suite, &mut wire, &options)?;
     print!("{}", report::text(&run));
-    let outputs = [
-        (&args.json, report::json(&run)),
-        (&args.junit, report::junit(&run)),
-        (&args.html, report::html(&run, None)),
-    ];
-    for (path, contents) in outputs {
-        if let Some(path) = path {
-            write(path, &contents)?;
-        }
-    }
-    if let Some(why) = &run.error {
-        bail!("{why}");
-    }
-    let failed = run.checks.len() - run.passed().count();
-    if failed > 0 {
-        bail!("{failed} of {} checks failed", run.checks.len());
-    }
-    Ok(())
+    super::reports_and_verdict(
+        &run,
+        args.json.as_deref(),
+        args.junit.as_deref(),
+        args.html.as_deref(),
+    )
 }
 
 /// One student of a class: the twin waits on their line for their master.

@@ -2,7 +2,6 @@
 //! (the twin plays the module's controller there) and from its TCP server
 //! (the twin connects as the remote clients).
 
-use super::write;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use std::path::PathBuf;
@@ -58,19 +57,10 @@ pub fn execute(args: &ServerArgs) -> Result<()> {
     let run = check_server(&options)
         .with_context(|| format!("cannot play the slave on the bus {}", args.bus))?;
     print!("{}", report::text(&run));
-    let outputs = [
-        (&args.json, report::json(&run)),
-        (&args.junit, report::junit(&run)),
-        (&args.html, report::html(&run, None)),
-    ];
-    for (path, contents) in outputs {
-        if let Some(path) = path {
-            write(path, &contents)?;
-        }
-    }
-    let failed = run.checks.len() - run.passed().count();
-    if failed > 0 {
-        bail!("{failed} of {} checks failed", run.checks.len());
-    }
-    Ok(())
+    super::reports_and_verdict(
+        &run,
+        args.json.as_deref(),
+        args.junit.as_deref(),
+        args.html.as_deref(),
+    )
 }

@@ -106,21 +106,12 @@ pub fn execute(slave: &SlaveArgs) -> Result<()> {
             .with_context(|| format!("cannot record the run to {}", path.display()))?;
         println!("recorded to {}", path.display());
     }
-    let outputs = [
-        (&slave.json, report::json(&run)),
-        (&slave.junit, report::junit(&run)),
-        (&slave.html, report::html(&run, None)),
-    ];
-    for (path, contents) in outputs {
-        if let Some(path) = path {
-            write(path, &contents)?;
-        }
-    }
-    let failed = run.checks.len() - run.passed().count();
-    if failed > 0 {
-        bail!("{failed} of {} checks failed", run.checks.len());
-    }
-    Ok(())
+    super::reports_and_verdict(
+        &run,
+        slave.json.as_deref(),
+        slave.junit.as_deref(),
+        slave.html.as_deref(),
+    )
 }
 
 /// Every student of the roster checked (see [`super::class`]).
