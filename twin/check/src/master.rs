@@ -29,12 +29,11 @@ mod line;
 mod play;
 
 use serde::Deserialize;
-use std::path::Path;
 
 pub use line::{LineError, MasterLine};
 pub use play::{MasterOptions, run_master, unreachable};
 
-use crate::suite::SuiteError;
+use crate::suite::{SuiteError, source};
 
 /// The master suites that ship, by name.
 pub const BUILT_IN: &[(&str, &str)] = &[("meb-master", include_str!("../suites/meb-master.toml"))];
@@ -122,18 +121,8 @@ fn two() -> f64 {
 impl MasterSuite {
     /// A built-in master suite by name, or a teacher's file.
     pub fn load(name_or_path: &str) -> Result<Self, SuiteError> {
-        if let Some((name, text)) = BUILT_IN.iter().find(|(n, _)| *n == name_or_path) {
-            return Self::parse(text, &format!("the built-in suite {name}"));
-        }
-        let path = Path::new(name_or_path);
-        if !path.exists() && !name_or_path.contains(['/', '.']) {
-            return Err(SuiteError::Unknown(name_or_path.into()));
-        }
-        let text = std::fs::read_to_string(path).map_err(|why| SuiteError::Read {
-            path: name_or_path.into(),
-            why,
-        })?;
-        Self::parse(&text, name_or_path)
+        let (text, path) = source(name_or_path, BUILT_IN)?;
+        Self::parse(&text, &path)
     }
 
     /// A master suite from its TOML `text`; `path` names it in errors.

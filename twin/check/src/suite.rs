@@ -181,21 +181,31 @@ struct StepToml {
     wait_ms: Option<u64>,
 }
 
+/// The text of a built-in suite of `built_in` by name, or of a teacher's
+/// file, with how errors name it.
+pub(crate) fn source(
+    name_or_path: &str,
+    built_in: &[(&str, &'static str)],
+) -> Result<(std::borrow::Cow<'static, str>, String), SuiteError> {
+    if let Some((name, text)) = built_in.iter().find(|(n, _)| *n == name_or_path) {
+        return Ok(((*text).into(), format!("the built-in suite {name}")));
+    }
+    let path = Path::new(name_or_path);
+    if !path.exists() && !name_or_path.contains(['/', '.']) {
+        return Err(SuiteError::Unknown(name_or_path.into()));
+    }
+    let text = std::fs::read_to_string(path).map_err(|why| SuiteError::Read {
+        path: name_or_path.into(),
+        why,
+    })?;
+    Ok((text.into(), name_or_path.into()))
+}
+
 impl Suite {
     /// A built-in suite by name, or a teacher's file.
     pub fn load(name_or_path: &str) -> Result<Self, SuiteError> {
-        if let Some((name, text)) = BUILT_IN.iter().find(|(n, _)| *n == name_or_path) {
-            return Self::parse(text, &format!("the built-in suite {name}"));
-        }
-        let path = Path::new(name_or_path);
-        if !path.exists() && !name_or_path.contains(['/', '.']) {
-            return Err(SuiteError::Unknown(name_or_path.into()));
-        }
-        let text = std::fs::read_to_string(path).map_err(|why| SuiteError::Read {
-            path: name_or_path.into(),
-            why,
-        })?;
-        Self::parse(&text, name_or_path)
+        let (text, path) = source(name_or_path, BUILT_IN)?;
+        Self::parse(&text, &path)
     }
 
     /// A suite from its TOML `text`; `path` names it in errors.
