@@ -2,13 +2,12 @@
 //! they finish, their reports (and recordings) in the out folder, and the
 //! class's scores.csv.
 
-use super::slave::{reports, verdict};
 use super::write;
 use anyhow::{Context, Result, bail};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
-use twin_check::SuiteRun;
 use twin_check::class::{self, Student};
+use twin_check::{SuiteRun, record, report};
 
 /// How a class is run.
 pub(super) struct Class<'a> {
@@ -87,6 +86,48 @@ pub(super) fn run(
             failed + unreachable,
             students.len()
         );
+    }
+    Ok(())
+}
+
+/// A student's line: the score, or why it could not be checked.
+fn verdict(run: &SuiteRun) -> String {
+    if let Some(why) = &run.error {
+        return format!("could not be checked: {why}");
+    }
+    let score = format!(
+        "{} of {} points, {} of {} checks",
+        run.score(),
+        run.points(),
+        run.passed().count(),
+        run.checks.len()
+    );
+    match (&run.hung_up, run.first_failure()) {
+        (Some(gone), _) => format!(
+            "{score}; hung up at {:.3} s, during: {}",
+            gone.at, gone.check
+        ),
+        (None, Some(check)) => format!("{score}; first failed: {}", check.name),
+        (None, None) => score,
+    }
+}
+
+/// A student's reports, and their run's recording unless `suite_toml` is
+/// `None` (--no-record).
+fn reports(out: &Path, student: &Student, run: &SuiteRun, suite_toml: Option<&str>) -> Result<()> {
+    let stem = student.file_stem();
+    let file = |ext: &str| out.join(format!("{stem}.{ext}"));
+    write(
+        &file("txt"),
+        &format!("{}\n{}", student.name, report::text(run)),
+    )?;
+    write(&file("json"), &report::json(run))?;
+    write(&file("html"), &report::html(run, Some(&student.name)))?;
+    write(&file("junit.xml"), &report::junit(run))?;
+    if let Some(toml) = suite_toml {
+        let path = file("mcap");
+        record::record(&path, "slave", toml, run)
+            .with_context(|| format!("cannot record the run to {}", path.display()))?;
     }
     Ok(())
 }

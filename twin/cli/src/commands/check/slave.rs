@@ -1,13 +1,12 @@
 //! `twin check slave`: the student's module controller, sent requests by
 //! the twin; one student, or a class from a roster.
 
-use super::write;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use std::path::{Path, PathBuf};
 use std::time::SystemTime;
-use twin_check::class::{self, Student};
-use twin_check::{Suite, SuiteRun, record, report, run_suite, wire::Wire};
+use twin_check::class;
+use twin_check::{Suite, record, report, run_suite, wire::Wire};
 use twin_realtime::rotate;
 
 #[derive(Debug, Args)]
@@ -126,51 +125,4 @@ fn class(slave: &SlaveArgs, suite: &Suite, roster: &Path) -> Result<()> {
         suite_toml: toml.as_deref(),
     };
     super::class::run(&options, &students, |student| class::check(suite, student))
-}
-
-/// A student's line: the score, or why it could not be checked.
-pub(super) fn verdict(run: &SuiteRun) -> String {
-    if let Some(why) = &run.error {
-        return format!("could not be checked: {why}");
-    }
-    let score = format!(
-        "{} of {} points, {} of {} checks",
-        run.score(),
-        run.points(),
-        run.passed().count(),
-        run.checks.len()
-    );
-    match (&run.hung_up, run.first_failure()) {
-        (Some(gone), _) => format!(
-            "{score}; hung up at {:.3} s, during: {}",
-            gone.at, gone.check
-        ),
-        (None, Some(check)) => format!("{score}; first failed: {}", check.name),
-        (None, None) => score,
-    }
-}
-
-/// A student's reports, and their run's recording unless `suite_toml` is
-/// `None` (--no-record).
-pub(super) fn reports(
-    out: &Path,
-    student: &Student,
-    run: &SuiteRun,
-    suite_toml: Option<&str>,
-) -> Result<()> {
-    let stem = student.file_stem();
-    let file = |ext: &str| out.join(format!("{stem}.{ext}"));
-    write(
-        &file("txt"),
-        &format!("{}\n{}", student.name, report::text(run)),
-    )?;
-    write(&file("json"), &report::json(run))?;
-    write(&file("html"), &report::html(run, Some(&student.name)))?;
-    write(&file("junit.xml"), &report::junit(run))?;
-    if let Some(toml) = suite_toml {
-        let path = file("mcap");
-        record::record(&path, "slave", toml, run)
-            .with_context(|| format!("cannot record the run to {}", path.display()))?;
-    }
-    Ok(())
 }
