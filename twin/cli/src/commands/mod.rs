@@ -24,6 +24,7 @@ mod record_args;
 pub mod recover;
 pub mod replay;
 pub mod run;
+pub mod scope;
 pub mod serve;
 mod service;
 mod service_args;
