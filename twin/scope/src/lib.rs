@@ -56,8 +56,14 @@ pub enum ScopeError {
     NoScenario { path: PathBuf },
     #[error("{}: its scenario does not read: {why}", path.display())]
     Scenario { path: PathBuf, why: String },
-    #[error("--rate {rate}: {samples} samples of {lines} lines is more than 1 GiB; choose a shorter window or a lower rate")]
-    TooManySamples { rate: u64, samples: u64, lines: usize },
+    #[error(
+        "--rate {rate}: {samples} samples of {lines} lines is more than 1 GiB; choose a shorter window or a lower rate"
+    )]
+    TooManySamples {
+        rate: u64,
+        samples: u64,
+        lines: usize,
+    },
     #[error("--rate must be above zero")]
     ZeroRate,
     #[error("cannot write {}", path.display())]

@@ -109,8 +109,7 @@ pub fn load(path: &Path, choice: &Choice) -> Result<Waveform, ScopeError> {
     } else {
         bus_setup(&recording, path, &name)?
     };
-    let node_of = |from: &str, nodes: &mut Vec<String>| match nodes.iter().position(|n| n == from)
-    {
+    let node_of = |from: &str, nodes: &mut Vec<String>| match nodes.iter().position(|n| n == from) {
         Some(i) => i,
         None => {
             nodes.push(from.to_string());
@@ -135,7 +134,11 @@ pub fn load(path: &Path, choice: &Choice) -> Result<Waveform, ScopeError> {
     // at each listener: the receivers' lines show none.
     let flips = Vec::new();
     Ok(Waveform {
-        name: format!("{}.{}", if link { "link" } else { "bus" }, crate::wave::wire_name(&name)),
+        name: format!(
+            "{}.{}",
+            if link { "link" } else { "bus" },
+            crate::wave::wire_name(&name)
+        ),
         format,
         nodes,
         hearing,
@@ -209,14 +212,17 @@ fn bus_setup(
         .ok_or_else(|| ScopeError::NoScenario {
             path: path.to_path_buf(),
         })?;
-    let scenario = Scenario::parse(toml, &format!("{}, its scenario", path.display()))
-        .map_err(|e| ScopeError::Scenario {
-            path: path.to_path_buf(),
-            why: e.to_string(),
+    let scenario =
+        Scenario::parse(toml, &format!("{}, its scenario", path.display())).map_err(|e| {
+            ScopeError::Scenario {
+                path: path.to_path_buf(),
+                why: e.to_string(),
+            }
         })?;
     let spec = scenario.buses.iter().find(|b| b.name == bus);
-    let (baud, bits, wiring) =
-        spec.map_or((115_200, 10, WiringSpec::MultiDrop), |b| (b.baud, b.bits_per_char, b.wiring));
+    let (baud, bits, wiring) = spec.map_or((115_200, 10, WiringSpec::MultiDrop), |b| {
+        (b.baud, b.bits_per_char, b.wiring)
+    });
     let on_bus: Vec<_> = scenario.nodes.iter().filter(|n| n.bus() == bus).collect();
     let nodes = on_bus.iter().map(|n| n.name().to_string()).collect();
     let master = on_bus

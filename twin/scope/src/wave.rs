@@ -430,7 +430,10 @@ mod tests {
         let bit = w.format.bit_ticks();
         let edges: Vec<_> = w.edges(LineKind::Tx(0)).collect();
         // start (low), four ones, four zeros, stop (high).
-        assert_eq!(edges, vec![(0, false), (bit, true), (5 * bit, false), (9 * bit, true)]);
+        assert_eq!(
+            edges,
+            vec![(0, false), (bit, true), (5 * bit, false), (9 * bit, true)]
+        );
         let de: Vec<_> = w.edges(LineKind::DriverEnable(0)).collect();
         assert_eq!(de, vec![(0, true), (10 * bit, false)]);
         // b hears it; a's receiver is off while it drives.

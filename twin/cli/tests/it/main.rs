@@ -33,6 +33,7 @@ mod progress;
 mod replay;
 mod rotate;
 mod run;
+mod scope;
 mod serve;
 mod serve_faults;
 mod service;
