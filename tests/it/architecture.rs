@@ -168,6 +168,19 @@ fn heavy_dependencies_stay_in_their_one_crate() {
             &["rerun", "tokio", "twin-realtime", "twin-view"],
             "experiments run on the virtual clock",
         ),
+        (
+            "twin-scope",
+            &[
+                "tokio",
+                "rerun",
+                "plotters",
+                "axum",
+                "twin-realtime",
+                "twin-view",
+                "twin-lab",
+            ],
+            "a scope picture is read from a recording: no clock, no viewer, no page",
+        ),
     ];
     let mut crossed = Vec::new();
     for (krate, never, why) in fences {
@@ -192,8 +205,10 @@ fn heavy_dependencies_stay_in_their_one_crate() {
         }
     }
     // Only the viewer links rerun, only the lab draws plots, only the panel
-    // serves HTTP (and drives a browser in its tests).
+    // serves HTTP (and drives a browser in its tests), only the scope writes
+    // zip files (sigrok sessions).
     for (dep, owner) in [
+        ("zip", "twin-scope"),
         ("rerun", "twin-view"),
         ("plotters", "twin-lab"),
         ("axum", "twin-panel"),
