@@ -71,15 +71,12 @@ pub fn write(wave: &Waveform, out: impl Write) -> io::Result<Written> {
         edges: 0,
     };
     let mut last = ns(wave.from);
-    loop {
-        let Some((i, (at, level))) = heads
-            .iter()
-            .enumerate()
-            .filter_map(|(i, h)| h.map(|h| (i, h)))
-            .min_by_key(|&(i, (at, _))| (at, i))
-        else {
-            break;
-        };
+    while let Some((i, (at, level))) = heads
+        .iter()
+        .enumerate()
+        .filter_map(|(i, h)| h.map(|h| (i, h)))
+        .min_by_key(|&(i, (at, _))| (at, i))
+    {
         if at >= wave.to {
             break;
         }

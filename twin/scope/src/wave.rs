@@ -80,8 +80,8 @@ impl LineFormat {
             1..=8 => byte >> (k - 1) & 1 == 1,
             9 => match self.parity {
                 Parity::None => true,
-                Parity::Even => byte.count_ones() % 2 == 1,
-                Parity::Odd => byte.count_ones() % 2 == 0,
+                Parity::Even => !byte.count_ones().is_multiple_of(2),
+                Parity::Odd => byte.count_ones().is_multiple_of(2),
             },
             _ => true,
         }
