@@ -272,3 +272,37 @@ fn link_format(recording: &Recording, link: &str, baud: Option<u32>) -> LineForm
     }
     format
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use twin_recording::topics::RUN_METADATA;
+
+    fn session(links: &str) -> Recording {
+        Recording {
+            path: "serve.mcap".into(),
+            metadata: BTreeMap::from([(
+                RUN_METADATA.to_string(),
+                BTreeMap::from([("links".to_string(), links.to_string())]),
+            )]),
+            channels: vec![],
+            chunks: 0,
+            truncated: None,
+            end_ns: 0,
+        }
+    }
+
+    #[test]
+    fn a_links_format_is_read_from_its_options() {
+        let r = session("--meb /tmp/ttyV0?baud=9600&parity=E --modbus tcp://127.0.0.1:1502");
+        let meb = link_format(&r, "meb", None);
+        assert_eq!(
+            (meb.baud, meb.parity, meb.stop_bits),
+            (9600, Parity::Even, 1)
+        );
+        assert_eq!(meb.bits_per_char(), 11);
+        // A TCP link says no baud: the lab's, or the one asked for.
+        assert_eq!(link_format(&r, "modbus-tcp", None).baud, 115_200);
+        assert_eq!(link_format(&r, "modbus-tcp", Some(19_200)).baud, 19_200);
+    }
+}
