@@ -2,9 +2,11 @@
 //! supervisor) and the twin plays its slaves. A master suite is TOML too,
 //! but its checks are situations rather than steps: for a few seconds the
 //! twin's first slave behaves one way (answers, answers slowly, in two
-//! pieces, after junk, with an error, with a bad FCS or another slave's
-//! id, or not at all) and the master's requests in that time are judged by
-//! what the MEB page requires of a master in it ([`judge`]).
+//! pieces, after junk, with an error, with a bad FCS or CRC or another
+//! slave's id, or not at all) and the master's requests in that time are
+//! judged by what its protocol requires of a master in it ([`judge`]).
+//! The bus is MEB, Modbus RTU or TCP, or the Controller_network project's
+//! 8-byte Modbus; what differs between them is in [`dialect`].
 //!
 //! ```toml
 //! name = "MEB master"
@@ -20,9 +22,12 @@
 //! ```
 //!
 //! The replies come from the controller's own slave code
-//! (`nodes::firmware::SlaveFrontend`, the default map) over a register
-//! image at power-up: no bench behind it, so the values are the image's.
+//! (`nodes::firmware::SlaveFrontend`: MEB's default map, the Modbus map)
+//! over a register image at power-up, or from the Controller_network
+//! project's motor and light nodes: no bench behind them, so the values
+//! are the image's.
 
+mod dialect;
 mod heard;
 mod judge;
 mod line;
@@ -33,10 +38,25 @@ use serde::Deserialize;
 pub use line::{LineError, MasterLine};
 pub use play::{MasterOptions, run_master, unreachable};
 
+use crate::framing::{PROTOCOLS, Protocol};
 use crate::suite::{SuiteError, source};
 
 /// The master suites that ship, by name.
-pub const BUILT_IN: &[(&str, &str)] = &[("meb-master", include_str!("../suites/meb-master.toml"))];
+pub const BUILT_IN: &[(&str, &str)] = &[
+    ("meb-master", include_str!("../suites/meb-master.toml")),
+    (
+        "modbus-rtu-master",
+        include_str!("../suites/modbus-rtu-master.toml"),
+    ),
+    (
+        "modbus-tcp-master",
+        include_str!("../suites/modbus-tcp-master.toml"),
+    ),
+    (
+        "modbus8-master",
+        include_str!("../suites/modbus8-master.toml"),
+    ),
+];
 
 /// How the twin's first slave behaves during a check.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -47,11 +67,11 @@ pub enum Behaviour {
     Slow(u64),
     /// The reply in two writes this many ms apart.
     Split(u64),
-    /// These bytes, then the reply.
-    Junk(String),
-    /// Every request refused with this MEB error code.
+    /// These bytes, then (after this many ms of silence) the reply.
+    Junk(Vec<u8>, u64),
+    /// Every request refused with this MEB error or Modbus exception code.
     Error(u8),
-    /// The reply with its FCS spoilt.
+    /// The reply with its FCS or CRC spoilt.
     BadFcs,
     /// The reply with another slave's id.
     WrongId,
@@ -73,10 +93,12 @@ pub struct Situation {
 #[derive(Debug, Clone, PartialEq)]
 pub struct MasterSuite {
     pub name: String,
-    pub protocol: String,
+    pub protocol: Protocol,
     pub description: String,
     /// The master's reply timeout the protocol sets, ms.
     pub timeout_ms: u64,
+    /// The slaves the twin plays unless told others.
+    pub ids: Vec<u8>,
     pub checks: Vec<Situation>,
 }
 
@@ -90,6 +112,8 @@ struct SuiteToml {
     description: String,
     #[serde(default = "hundred")]
     timeout_ms: u64,
+    #[serde(default)]
+    ids: Vec<u8>,
     #[serde(default, rename = "check")]
     checks: Vec<toml::Spanned<SituationToml>>,
 }
@@ -138,10 +162,19 @@ impl MasterSuite {
                 "not a master's suite: a master suite says role = \"master\" (a slave's suite goes to `twin check slave --suite`)".into(),
             ));
         }
-        if raw.protocol != "meb" {
+        let Some(protocol) = Protocol::from_name(&raw.protocol) else {
             return Err(whole(format!(
-                "protocol `{}`: this version checks MEB masters (protocol = \"meb\")",
+                "protocol `{}`: a master suite speaks {PROTOCOLS}",
                 raw.protocol
+            )));
+        };
+        let ids = if raw.ids.is_empty() { vec![1] } else { raw.ids };
+        if let Some(id) = ids.iter().find(|id| !protocol.ids().contains(id)) {
+            return Err(whole(format!(
+                "ids: {id} is no slave id of {} ({} to {})",
+                raw.protocol,
+                protocol.ids().start(),
+                protocol.ids().end()
             )));
         }
         if !(1..=10_000).contains(&raw.timeout_ms) {
@@ -168,7 +201,7 @@ impl MasterSuite {
             if !(0.5..=600.0).contains(&c.seconds) {
                 return Err(at(format!("seconds {}: 0.5 to 600", c.seconds)));
             }
-            let slave = behaviour(c.slave, raw.timeout_ms).map_err(at)?;
+            let slave = behaviour(protocol, c.slave, raw.timeout_ms).map_err(at)?;
             checks.push(Situation {
                 name: c.name,
                 requirement: c.requirement,
@@ -184,9 +217,10 @@ impl MasterSuite {
         }
         Ok(MasterSuite {
             name: raw.name,
-            protocol: raw.protocol,
+            protocol,
             description: raw.description,
             timeout_ms: raw.timeout_ms,
+            ids,
             checks,
         })
     }
@@ -196,14 +230,17 @@ impl MasterSuite {
     }
 }
 
-const WORDS: &str = "\"answers\", \"bad-fcs\", \"wrong-id\" or \"silent\", or a table of one of slow_ms, split_ms, junk, error";
+const WORDS: &str = "\"answers\", \"bad-fcs\" (\"bad-crc\"), \"wrong-id\" or \"silent\", or a table of one of slow_ms, split_ms, junk (with gap_ms), error";
 
-fn behaviour(slave: toml::Value, timeout_ms: u64) -> Result<Behaviour, String> {
+fn behaviour(protocol: Protocol, slave: toml::Value, timeout_ms: u64) -> Result<Behaviour, String> {
     let table = match slave {
         toml::Value::String(word) => {
             return match word.as_str() {
                 "answers" => Ok(Behaviour::Answers),
-                "bad-fcs" => Ok(Behaviour::BadFcs),
+                "bad-fcs" | "bad-crc" if protocol == Protocol::ModbusTcp => {
+                    Err("a Modbus TCP frame has no check bytes to spoil (TCP checks them)".into())
+                }
+                "bad-fcs" | "bad-crc" => Ok(Behaviour::BadFcs),
                 "wrong-id" => Ok(Behaviour::WrongId),
                 "silent" => Ok(Behaviour::Silent),
                 other => Err(format!("slave `{other}`: {WORDS}")),
@@ -212,7 +249,12 @@ fn behaviour(slave: toml::Value, timeout_ms: u64) -> Result<Behaviour, String> {
         toml::Value::Table(table) => table,
         _ => return Err(format!("slave: {WORDS}")),
     };
-    let mut keys = table.iter();
+    let gap_ms = match table.get("gap_ms").map(toml::Value::as_integer) {
+        None => 0,
+        Some(Some(ms)) if (0..=1000).contains(&ms) && table.contains_key("junk") => ms as u64,
+        Some(_) => return Err("gap_ms: 0 to 1000 ms of silence after `junk`, with it".into()),
+    };
+    let mut keys = table.iter().filter(|(k, _)| *k != "gap_ms");
     let (Some((key, value)), None) = (keys.next(), keys.next()) else {
         return Err(format!("slave: one behaviour, {WORDS}"));
     };
@@ -234,15 +276,27 @@ fn behaviour(slave: toml::Value, timeout_ms: u64) -> Result<Behaviour, String> {
                 Behaviour::Split(ms)
             })
         }
-        "junk" => match value.as_str() {
+        "junk" if protocol.is_text() => match value.as_str() {
             Some(junk) if !junk.is_empty() && !junk.contains('\n') => {
-                Ok(Behaviour::Junk(junk.into()))
+                Ok(Behaviour::Junk(junk.into(), gap_ms))
             }
             _ => Err("junk: some bytes, without a line feed (that would end a frame)".into()),
         },
-        "error" => match value.as_integer() {
+        "junk" => match value.as_str().map(|text| protocol.check_raw(text)) {
+            Some(Ok(())) => Ok(Behaviour::Junk(
+                protocol.raw(value.as_str().unwrap_or_default()),
+                gap_ms,
+            )),
+            Some(Err(why)) => Err(format!("junk: {why}")),
+            None => Err("junk: hex bytes, e.g. \"FF 00\"".into()),
+        },
+        "error" if protocol.is_text() => match value.as_integer() {
             Some(code @ 1..=4) => Ok(Behaviour::Error(code as u8)),
             _ => Err(format!("error {value}: MEB's error codes are 1 to 4")),
+        },
+        "error" => match value.as_integer() {
+            Some(code @ 1..=255) => Ok(Behaviour::Error(code as u8)),
+            _ => Err(format!("error {value}: a Modbus exception code, 1 to 255")),
         },
         other => Err(format!("slave: `{other}` is no behaviour: {WORDS}")),
     }
@@ -256,7 +310,7 @@ mod tests {
     fn the_built_in_master_suites_parse() {
         for (name, text) in BUILT_IN {
             let suite = MasterSuite::parse(text, name).unwrap();
-            assert!(suite.checks.len() >= 8, "{name}");
+            assert!(suite.checks.len() >= 5, "{name}");
         }
     }
 

@@ -2,8 +2,8 @@
 //! the twin answered, and the frames as evidence. Played by `play`, judged
 //! by `judge`.
 
+use super::dialect::Examined;
 use crate::run::Exchange;
-use nodes::proto::meb::{MebError, MebRepr};
 
 /// One request the master sent, and what the twin did with it.
 #[derive(Debug, Clone)]
@@ -11,11 +11,10 @@ pub(crate) struct Heard {
     /// When its last byte came, seconds after the link was opened.
     pub at: f64,
     pub bytes: Vec<u8>,
-    /// Bytes before its `@` that belonged to no frame.
+    /// Bytes before it that belonged to no frame (MEB: before its `@`).
     pub junk: Vec<u8>,
-    pub frame: Result<MebRepr, MebError>,
-    /// The slave it is for, read past a wrong FCS.
-    pub id: Option<u8>,
+    /// What the slave made of it: its faults, its slave, what it reads.
+    pub seen: Examined,
     /// It came while the twin still owed a reply to an earlier one.
     pub owed: bool,
     pub answer: Option<Answer>,
@@ -42,15 +41,4 @@ pub(crate) struct Phase {
     /// When it began, seconds after the link was opened, and how long.
     pub began: f64,
     pub seconds: f64,
-}
-
-/// A request as the page says to write it, to hold the master's to.
-pub(crate) fn emit_request(frame: &MebRepr) -> Option<Vec<u8>> {
-    emit(frame)
-}
-
-pub(super) fn emit(frame: &MebRepr) -> Option<Vec<u8>> {
-    let mut buf = [0u8; 512];
-    let n = frame.emit(&mut buf).ok()?;
-    buf.get(..n).map(<[u8]>::to_vec)
 }

@@ -12,17 +12,22 @@
 //!   prompt one (a master that lost the reply waits out its timeout).
 //! - an error reply: it keeps polling (retrying the request or not is its
 //!   choice).
-//! - a bad FCS, another slave's id: not taken as the reply. It may retry
-//!   at once, or wait out its timeout; going straight on to its next
+//! - a bad FCS, another slave's id (MEB): not taken as the reply. It may
+//!   retry at once, or wait out its timeout; going straight on to its next
 //!   request as after a good reply is taking it.
+//! - a bad CRC, another slave's id, junk before a reply (Modbus): the
+//!   serial line specification lets a master that finds a frame error go
+//!   on at once, retry or wait out its timeout, so its requests cannot show
+//!   whether it took the reply: it must keep polling, and what it chose is
+//!   said.
 //! - a slave that does not answer: it gives up within its timeout and a
 //!   poll period, and polls the other slaves meanwhile; retrying first is
 //!   its choice.
 
-use super::heard::{Heard, Phase, emit_request};
+use super::heard::{Heard, Phase};
 use super::{Behaviour, MasterSuite, Situation};
+use crate::framing::Protocol;
 use crate::run::{CheckOutcome, Exchange, Outcome};
-use nodes::proto::meb::{MebError, MebRepr};
 use std::collections::BTreeSet;
 
 /// How the master went on in the first check, where the slaves answered:
@@ -48,6 +53,7 @@ pub(crate) fn judge(
     normal: &mut Normal,
 ) -> CheckOutcome {
     let timeout = suite.timeout_ms as f64;
+    let protocol = suite.protocol;
     let mut notes = Vec::new();
     let result = if phase.heard.is_empty() {
         Err((
@@ -60,7 +66,7 @@ pub(crate) fn judge(
     } else {
         match &situation.slave {
             Behaviour::Answers => {
-                let result = answers(&phase, ids, &mut notes);
+                let result = answers(&phase, ids, protocol, &mut notes);
                 *normal = Normal {
                     after_reply_ms: median(gaps_after_replies(&phase.heard)).unwrap_or(0.0),
                     period_ms: median(periods(&phase.heard, ids[0])).unwrap_or(timeout),
@@ -68,15 +74,27 @@ pub(crate) fn judge(
                 };
                 result
             }
-            Behaviour::Slow(ms) => {
-                waits(&phase, *ms).and_then(|()| carries_on(&phase, normal, timeout, &mut notes))
+            Behaviour::Slow(ms) => waits(&phase, *ms, protocol)
+                .and_then(|()| carries_on(&phase, normal, timeout, &mut notes)),
+            Behaviour::Junk(..) if !protocol.is_text() => {
+                goes_on(&phase, normal, timeout, protocol, Passed::Junk, &mut notes)
             }
-            Behaviour::Split(_) | Behaviour::Junk(_) => {
+            Behaviour::Split(_) | Behaviour::Junk(..) => {
                 carries_on(&phase, normal, timeout, &mut notes)
             }
-            Behaviour::Error(_) => goes_on(&phase, normal, timeout, &mut notes),
+            Behaviour::Error(_) => {
+                goes_on(&phase, normal, timeout, protocol, Passed::Error, &mut notes)
+            }
+            Behaviour::BadFcs | Behaviour::WrongId if !protocol.is_text() => goes_on(
+                &phase,
+                normal,
+                timeout,
+                protocol,
+                Passed::Spoilt,
+                &mut notes,
+            ),
             Behaviour::BadFcs | Behaviour::WrongId => discards(&phase, normal, timeout, &mut notes),
-            Behaviour::Silent => gives_up(&phase, ids, normal, timeout, &mut notes),
+            Behaviour::Silent => gives_up(&phase, ids, normal, timeout, protocol, &mut notes),
         }
     };
     let (outcome, around) = match result {
@@ -114,39 +132,27 @@ pub(crate) fn failed(situation: &Situation, why: String) -> CheckOutcome {
 /// Why it failed, and when (the frames around then are the evidence).
 type Verdict = Result<(), (String, Option<f64>)>;
 
-fn answers(phase: &Phase, ids: &[u8], notes: &mut Vec<String>) -> Verdict {
+fn answers(phase: &Phase, ids: &[u8], protocol: Protocol, notes: &mut Vec<String>) -> Verdict {
     let shown_ids = ids_text(ids);
     for (i, heard) in phase.heard.iter().enumerate() {
-        let text = crate::framing::shown_text(&heard.bytes);
+        let text = protocol.shown(&heard.bytes);
         let fault = |why: String| Err((why, Some(heard.at)));
         if !heard.junk.is_empty() {
             return fault(format!(
                 "{} bytes before the request's @ (`{}`)",
                 heard.junk.len(),
-                crate::framing::shown_text(&heard.junk)
+                protocol.shown(&heard.junk)
             ));
         }
-        let frame = match &heard.frame {
-            Ok(frame) => frame,
-            Err(MebError::BadFcs) => {
-                return fault(format!(
-                    "`{text}`: its FCS is not the XOR of its bytes (the page: XOR of every byte from @ to the last before the FCS)"
-                ));
-            }
-            Err(e) => return fault(format!("`{text}` is not a well-formed frame: {e}")),
-        };
-        if frame.shape().is_reply() {
-            return fault(format!("`{text}` has a reply's shape, not a request's"));
+        if let Some(why) = &heard.seen.fault {
+            return fault(why.clone());
         }
-        if !frame.is_broadcast() && !ids.contains(&frame.id) {
+        if let Some(id) = heard.seen.id
+            && !heard.seen.broadcast
+            && !ids.contains(&id)
+        {
             return fault(format!(
-                "`{text}` is for slave {:02}, which is not on this line (slaves {shown_ids})",
-                frame.id
-            ));
-        }
-        if emit_request(frame).is_some_and(|canonical| canonical != heard.bytes) {
-            return fault(format!(
-                "`{text}` is not written as the page says to emit a frame (upper-case hex, ending *\\n)"
+                "`{text}` is for slave {id:02}, which is not on this line (slaves {shown_ids})"
             ));
         }
         if heard.owed
@@ -155,14 +161,15 @@ fn answers(phase: &Phase, ids: &[u8], notes: &mut Vec<String>) -> Verdict {
             return fault(format!(
                 "`{text}` came {:.0} ms after `{}`, before its reply: a master waits for each reply (or its timeout) before the next request",
                 (heard.at - before.at) * 1e3,
-                crate::framing::shown_text(&before.bytes)
+                protocol.shown(&before.bytes)
             ));
         }
     }
     let polled: BTreeSet<u8> = phase
         .heard
         .iter()
-        .filter_map(|h| h.frame.as_ref().ok().map(|f| f.id))
+        .filter(|h| h.seen.fault.is_none())
+        .filter_map(|h| h.seen.id)
         .collect();
     if let Some(missing) = ids.iter().find(|id| !polled.contains(id)) {
         return Err((
@@ -170,6 +177,21 @@ fn answers(phase: &Phase, ids: &[u8], notes: &mut Vec<String>) -> Verdict {
                 "slave {missing:02} was never polled (the master was given slaves {shown_ids})"
             ),
             None,
+        ));
+    }
+    let refused: Vec<&Heard> = phase
+        .heard
+        .iter()
+        .filter(|h| h.seen.refused.is_some())
+        .collect();
+    if let Some(first) = refused.first() {
+        // A master's configuration (which registers to read) is its
+        // user's: said, not graded.
+        notes.push(format!(
+            "{} of the requests asked for what the slave does not have, and got exception {:02} (e.g. `{}`): see the slave's register map",
+            refused.len(),
+            first.seen.refused.unwrap_or(0),
+            protocol.shown(&first.bytes)
         ));
     }
     let count = phase.heard.len();
@@ -185,25 +207,32 @@ fn answers(phase: &Phase, ids: &[u8], notes: &mut Vec<String>) -> Verdict {
             ids[0]
         ));
     }
-    if let Some(after) = median(gaps_after_replies(&phase.heard)) {
+    let gaps = gaps_after_replies(&phase.heard);
+    let shortest = gaps.iter().copied().reduce(f64::min);
+    if let Some(after) = median(gaps) {
         notes.push(format!(
             "the next request came {after:.1} ms after a reply (median)"
+        ));
+    }
+    if let (Some(shortest), false) = (shortest, protocol.is_text()) {
+        notes.push(format!(
+            "the shortest silence between a reply and the next request: {shortest:.1} ms"
         ));
     }
     Ok(())
 }
 
 /// Nothing sent while the slow reply was owed.
-fn waits(phase: &Phase, slow_ms: u64) -> Verdict {
+fn waits(phase: &Phase, slow_ms: u64, protocol: Protocol) -> Verdict {
     for pair in phase.heard.windows(2) {
         let [before, heard] = pair else { continue };
         if heard.owed {
             return Err((
                 format!(
                     "`{}` came {:.0} ms after `{}`, before its reply (due {slow_ms} ms after it, within the timeout): a master waits for the reply",
-                    crate::framing::shown_text(&heard.bytes),
+                    protocol.shown(&heard.bytes),
                     (heard.at - before.at) * 1e3,
-                    crate::framing::shown_text(&before.bytes)
+                    protocol.shown(&before.bytes)
                 ),
                 Some(heard.at),
             ));
@@ -243,23 +272,57 @@ fn carries_on(phase: &Phase, normal: &Normal, timeout: f64, notes: &mut Vec<Stri
     ))
 }
 
-/// Error replies taken as answers: the polls go on.
-fn goes_on(phase: &Phase, normal: &Normal, timeout: f64, notes: &mut Vec<String>) -> Verdict {
+/// What the slave sent that a master goes on after.
+#[derive(Clone, Copy)]
+enum Passed {
+    Error,
+    /// A Modbus reply with a bad CRC or another slave's id.
+    Spoilt,
+    /// Junk, a silence, then the reply (Modbus).
+    Junk,
+}
+
+/// Error replies (Modbus: also replies to discard) and the polls go on;
+/// what the master did after each is said.
+fn goes_on(
+    phase: &Phase,
+    normal: &Normal,
+    timeout: f64,
+    protocol: Protocol,
+    passed: Passed,
+    notes: &mut Vec<String>,
+) -> Verdict {
     let limit = give_up_limit(normal, timeout);
     let (mut refused, mut retried) = (0, 0);
+    let mut gaps = Vec::new();
+    let first = phase.heard.first().map(|h| h.seen.id);
     for (i, heard) in phase.heard.iter().enumerate() {
-        if !heard.answer.as_ref().is_some_and(|a| a.spoilt) {
+        let Some(answer) = heard.answer.as_ref() else {
+            continue;
+        };
+        let counts = match passed {
+            Passed::Error | Passed::Spoilt => answer.spoilt,
+            Passed::Junk => first.is_some_and(|id| id == heard.seen.id),
+        };
+        if !counts {
             continue;
         }
         refused += 1;
         match phase.heard.get(i + 1) {
-            Some(next) if next.bytes == heard.bytes => retried += 1,
-            Some(_) => {}
+            Some(next) => {
+                gaps.push((next.at - answer.end) * 1e3);
+                retried += usize::from(next.bytes == heard.bytes);
+            }
             None if (phase.began + phase.seconds - heard.at) * 1e3 > quiet_limit(limit) => {
+                let what = match passed {
+                    Passed::Error => "the error reply",
+                    Passed::Spoilt => "the reply to discard",
+                    Passed::Junk => "the junk and the reply",
+                };
                 return Err((
                     format!(
-                        "nothing came after the error reply to `{}`: a master takes an error reply as the slave's answer and goes on",
-                        crate::framing::shown_text(&heard.bytes)
+                        "nothing came after {what} to `{}`: a master goes on polling",
+                        protocol.shown(&heard.bytes)
                     ),
                     Some(heard.at),
                 ));
@@ -267,8 +330,16 @@ fn goes_on(phase: &Phase, normal: &Normal, timeout: f64, notes: &mut Vec<String>
             None => {}
         }
     }
+    let what = match passed {
+        Passed::Error => "requests refused",
+        Passed::Spoilt => "replies to discard",
+        Passed::Junk => "replies after junk",
+    };
+    let after = median(gaps).map_or(String::new(), |ms| {
+        format!(", and went on {ms:.0} ms after them (median)")
+    });
     notes.push(format!(
-        "{refused} requests refused; the master sent the same request again after {retried} of them (its choice)"
+        "{refused} {what}; the next request was the same one after {retried} of them (a retry, or the same poll again: its choice){after}"
     ));
     Ok(())
 }
@@ -337,12 +408,13 @@ fn gives_up(
     ids: &[u8],
     normal: &Normal,
     timeout: f64,
+    protocol: Protocol,
     notes: &mut Vec<String>,
 ) -> Verdict {
     let silent = ids[0];
     let limit = give_up_limit(normal, timeout);
     let end = phase.began + phase.seconds;
-    let to = |h: &Heard| h.id;
+    let to = |h: &Heard| h.seen.id;
     let mut gaps = Vec::new();
     let mut retried = 0;
     let mut unanswered = 0;
@@ -361,7 +433,7 @@ fn gives_up(
                     format!(
                         "nothing came for {:.1} s after `{}` went unanswered: a master gives up after its reply timeout ({timeout:.0} ms) and carries on polling",
                         end - heard.at,
-                        crate::framing::shown_text(&heard.bytes)
+                        protocol.shown(&heard.bytes)
                     ),
                     Some(heard.at),
                 ));
@@ -446,7 +518,7 @@ fn gaps_after_replies(heard: &[Heard]) -> Vec<f64> {
 fn periods(heard: &[Heard], id: u8) -> Vec<f64> {
     let times: Vec<f64> = heard
         .iter()
-        .filter(|h| h.id == Some(id))
+        .filter(|h| h.seen.id == Some(id))
         .map(|h| h.at)
         .collect();
     times.windows(2).map(|w| (w[1] - w[0]) * 1e3).collect()
@@ -461,12 +533,12 @@ fn median(mut values: Vec<f64>) -> Option<f64> {
 fn blocks(heard: &[Heard]) -> String {
     let mut reads = BTreeSet::new();
     let mut writes = BTreeSet::new();
-    for frame in heard.iter().filter_map(|h| h.frame.as_ref().ok()) {
-        let span = span(frame);
-        match frame.cmd.block().map(|(b, _)| b.access()) {
-            Some(nodes::proto::meb::MebAccess::Read) => reads.insert(span),
-            _ => writes.insert(span),
-        };
+    for (read, span) in heard.iter().filter_map(|h| h.seen.block.clone()) {
+        if read {
+            reads.insert(span);
+        } else {
+            writes.insert(span);
+        }
     }
     let list = |set: BTreeSet<String>| set.into_iter().collect::<Vec<_>>().join(", ");
     match (reads.is_empty(), writes.is_empty()) {
@@ -474,15 +546,6 @@ fn blocks(heard: &[Heard]) -> String {
         (false, true) => format!("reads {}", list(reads)),
         (true, false) => format!("writes {}", list(writes)),
         (true, true) => "nothing well-formed".into(),
-    }
-}
-
-fn span(frame: &MebRepr) -> String {
-    let last = u16::from(frame.addr) + u16::from(frame.cnt.max(1)) - 1;
-    if frame.cnt <= 1 {
-        format!("{} {:02X}", frame.cmd, frame.addr)
-    } else {
-        format!("{} {:02X}-{last:02X}", frame.cmd, frame.addr)
     }
 }
 

@@ -2,18 +2,18 @@
 //! request the master sends is taken apart, answered as the situation says
 //! (or not), and kept with its time and the twin's answer for [`judge`].
 //!
-//! A request whose only fault is its FCS is answered as if it were right:
+//! A request whose only fault is its check bytes (MEB's FCS, a Modbus
+//! CRC) is answered as if they were right:
 //! the fault is the first check's to report, and answering lets every
 //! other situation still be tried on that master.
 
-use super::heard::{Answer, Heard, Phase, emit};
+use super::dialect::{self, Slaves};
+use super::heard::{Answer, Heard, Phase};
 use super::judge::{self, Normal};
 use super::{Behaviour, MasterSuite};
-use crate::framing::shown_text as shown;
+use crate::framing::Protocol;
 use crate::run::{Exchange, Role, SuiteRun, Way};
 use crate::wire::{Wire, WireError};
-use nodes::firmware::{Framing, RegisterImage, SlaveFrontend};
-use nodes::proto::meb::{MebError, MebErrorCode, MebRepr};
 use nodes::time::{SimDuration, SimTime};
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
@@ -40,16 +40,17 @@ struct Scheduled {
     rescue: bool,
 }
 
-struct Slave {
-    id: u8,
-    image: RegisterImage,
-    frontend: SlaveFrontend,
-}
+/// How long the line stays quiet before bytes whose length cannot be
+/// told are taken as a request.
+const QUIET: Duration = Duration::from_millis(50);
 
 struct Play<'a> {
     wire: &'a mut Wire,
+    protocol: Protocol,
     ids: Vec<u8>,
-    slaves: Vec<Slave>,
+    slaves: Slaves,
+    /// When the master's last byte came.
+    last_byte: Instant,
     timeout: Duration,
     phases: Vec<Phase>,
     pending: Vec<u8>,
@@ -66,21 +67,12 @@ pub fn run_master(
     options: &MasterOptions,
 ) -> Result<SuiteRun, WireError> {
     let started = wire.now();
-    let slaves = options
-        .ids
-        .iter()
-        .map(|&id| Slave {
-            id,
-            // The EV module's controller at power-up (12-bit DAC and ADC,
-            // the default light threshold and speed window).
-            image: RegisterImage::new(12, 12, 1933, 100),
-            frontend: SlaveFrontend::new(Framing::Meb, id),
-        })
-        .collect();
     let mut play = Play {
         wire,
+        protocol: suite.protocol,
         ids: options.ids.clone(),
-        slaves,
+        slaves: Slaves::new(suite.protocol, &options.ids),
+        last_byte: Instant::now(),
         timeout: Duration::from_millis(suite.timeout_ms),
         phases: Vec::new(),
         pending: Vec::new(),
@@ -183,15 +175,25 @@ impl Play<'_> {
         if let Some(r) = &self.rescue {
             until = until.min(r.at);
         }
+        if !self.pending.is_empty() && !self.protocol.is_text() {
+            // Binary bytes of no known length wait for the line to go
+            // quiet (MEB's wait for their line feed).
+            until = until.min(self.last_byte + QUIET);
+        }
         let before = self.pending.len();
-        if self.wire.receive(&mut self.pending, until)? == 0 && before == self.pending.len() {
+        if self.wire.receive(&mut self.pending, until)? > 0 {
+            self.last_byte = Instant::now();
+        }
+        let quiet = self.last_byte.elapsed() >= QUIET;
+        if before == self.pending.len() && !quiet {
             return Ok(());
         }
-        while let Some(nl) = self.pending.iter().position(|&b| b == b'\n') {
-            let chunk: Vec<u8> = self.pending.drain(..=nl).collect();
-            self.heard(chunk, slave);
+        while let Some((junk, bytes)) =
+            dialect::take_request(self.protocol, &mut self.pending, quiet)
+        {
+            self.heard(junk, bytes, slave);
         }
-        if self.pending.len() > nodes::proto::meb::MEB_MAX_FRAME_LEN {
+        if self.pending.len() > dialect::max_request(self.protocol) {
             let junk = std::mem::take(&mut self.pending);
             self.note(Way::Received, &junk);
         }
@@ -249,32 +251,25 @@ impl Play<'_> {
 
     fn note(&mut self, way: Way, bytes: &[u8]) {
         let at = self.wire.now();
+        let text = self.protocol.shown(bytes);
         self.phase().frames.push(Exchange {
             at,
             way,
-            text: shown(bytes),
+            text,
             bytes: bytes.to_vec(),
         });
     }
 
-    /// A line the master sent (up to its `\n`): the request from its last
-    /// `@`, anything before that junk; answered as `slave` says.
-    fn heard(&mut self, chunk: Vec<u8>, slave: &Behaviour) {
-        self.note(Way::Received, &chunk);
-        let start = chunk
-            .iter()
-            .rposition(|&b| b == b'@')
-            .unwrap_or(chunk.len());
-        let (junk, bytes) = chunk.split_at(start);
+    /// A request the master sent (`junk`: bytes before it that belong to
+    /// no frame), answered as `slave` says.
+    fn heard(&mut self, junk: Vec<u8>, bytes: Vec<u8>, slave: &Behaviour) {
+        let mut all = junk.clone();
+        all.extend_from_slice(&bytes);
+        self.note(Way::Received, &all);
         if bytes.is_empty() {
             return;
         }
-        let frame = MebRepr::parse(bytes);
-        let id = frame.as_ref().ok().map(|f| f.id).or_else(|| {
-            with_fcs(bytes, |right| right)
-                .and_then(|b| MebRepr::parse(&b).ok())
-                .map(|f| f.id)
-        });
+        let seen = dialect::examine(self.protocol, &bytes);
         let owed = !self.queue.is_empty();
         // Whatever the master sends next ends the wait for a retry.
         self.rescue = None;
@@ -283,18 +278,23 @@ impl Play<'_> {
         let at = self.wire.now();
         self.phase().heard.push(Heard {
             at,
-            bytes: bytes.to_vec(),
-            junk: junk.to_vec(),
-            frame,
-            id,
+            bytes: bytes.clone(),
+            junk,
+            seen,
             owed,
             answer: None,
         });
-        let Some(good) = self.good_reply(bytes) else {
+        let Some(good) = self.good_reply(&bytes) else {
             return;
         };
+        let protocol = self.protocol;
+        if let Some(code) = dialect::exception_of(protocol, &good)
+            && let Some(heard) = self.phase().heard.last_mut()
+        {
+            heard.seen.refused = Some(code);
+        }
         let first = self.ids.first().copied();
-        let target = MebRepr::parse(&good).map(|r| r.id).ok();
+        let target = dialect::reply_id(protocol, &good);
         let behaviour = if target == first {
             slave.clone()
         } else {
@@ -327,17 +327,20 @@ impl Play<'_> {
                     false,
                 );
             }
-            Behaviour::Junk(junk) => {
-                let mut bytes = junk.into_bytes();
-                bytes.extend_from_slice(&good);
-                schedule(now, bytes, true, false);
+            Behaviour::Junk(junk, gap_ms) => {
+                if gap_ms == 0 {
+                    let mut bytes = junk;
+                    bytes.extend_from_slice(&good);
+                    schedule(now, bytes, true, false);
+                } else {
+                    // On a binary line a silence sets the junk apart, as
+                    // noise between frames would be.
+                    schedule(now, junk, false, false);
+                    schedule(now + Duration::from_millis(gap_ms), good, true, false);
+                }
             }
             Behaviour::Error(code) => {
-                let addr = MebRepr::parse(&good).map_or(0, |r| r.addr);
-                let code =
-                    MebErrorCode::from_word(code.into()).unwrap_or(MebErrorCode::DeviceFailure);
-                let refusal = MebRepr::error_reply(target.unwrap_or(0), addr, code);
-                if let Some(reply) = emit(&refusal) {
+                if let Some(reply) = dialect::refusal(protocol, &bytes, &good, code) {
                     // An error reply is an answer: nothing is held back.
                     self.queue.push_back(Scheduled {
                         at: now,
@@ -351,13 +354,14 @@ impl Play<'_> {
                     });
                 }
             }
-            Behaviour::BadFcs => schedule(now, spoil_fcs(&good), true, true),
+            Behaviour::BadFcs => {
+                if let Some(reply) = dialect::spoil_check(protocol, &good) {
+                    schedule(now, reply, true, true);
+                }
+            }
             Behaviour::WrongId => {
                 let other = (1..=99).find(|id| !self.ids.contains(id)).unwrap_or(0);
-                let reply = MebRepr::parse(&good)
-                    .ok()
-                    .and_then(|r| emit(&MebRepr { id: other, ..r }));
-                if let Some(reply) = reply {
+                if let Some(reply) = dialect::with_id(protocol, &good, other) {
                     schedule(now, reply, true, true);
                 }
             }
@@ -365,43 +369,13 @@ impl Play<'_> {
         }
     }
 
-    /// The slave's own reply to `bytes` (its FCS repaired if that was its
-    /// only fault), if it is addressed to one of the twin's slaves and
-    /// gets a reply.
+    /// The slave's own reply to `bytes` (its check bytes repaired if that
+    /// was its only fault), if it is addressed to one of the twin's slaves
+    /// and gets a reply.
     fn good_reply(&mut self, bytes: &[u8]) -> Option<Vec<u8>> {
-        let repaired;
-        let request = match MebRepr::parse(bytes) {
-            Ok(_) => bytes,
-            Err(MebError::BadFcs) => {
-                repaired = with_fcs(bytes, |right| right)?;
-                &repaired[..]
-            }
-            Err(_) => return None,
-        };
-        let id = MebRepr::parse(request).ok()?.id;
+        let request = dialect::repaired(self.protocol, bytes)?;
+        let id = dialect::examine(self.protocol, &request).id?;
         let now = SimTime::ZERO + SimDuration::from_secs_f64(self.wire.now());
-        let slave = self.slaves.iter_mut().find(|s| s.id == id)?;
-        slave.frontend.handle_bytes(&mut slave.image, now, request);
-        while slave.frontend.poll_event().is_some() {}
-        let mut out = [0u8; 512];
-        let n = slave.frontend.poll_transmit(&mut out)?;
-        while slave.frontend.poll_transmit(&mut [0u8; 512]).is_some() {}
-        out.get(..n).map(<[u8]>::to_vec)
+        self.slaves.reply(now, id, &request)
     }
-}
-
-/// `frame` with its FCS replaced by `fcs(the right one)`.
-fn with_fcs(frame: &[u8], fcs: impl Fn(u8) -> u8) -> Option<Vec<u8>> {
-    let star = frame.iter().rposition(|&b| b == b'*')?;
-    let body = frame.get(..star.checked_sub(2)?)?;
-    let right = body.iter().fold(0, |x, b| x ^ b);
-    let mut out = body.to_vec();
-    out.extend_from_slice(format!("{:02X}", fcs(right)).as_bytes());
-    out.extend_from_slice(frame.get(star..)?);
-    Some(out)
-}
-
-/// The reply with a wrong FCS (every bit of the right one flipped).
-fn spoil_fcs(reply: &[u8]) -> Vec<u8> {
-    with_fcs(reply, |right| !right).unwrap_or_else(|| reply.to_vec())
 }

@@ -8,6 +8,7 @@ mod class;
 mod client;
 mod hang_up;
 mod master;
+mod master_modbus;
 mod modbus;
 mod recorded;
 mod server;

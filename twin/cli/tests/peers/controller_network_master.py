@@ -5,7 +5,11 @@ port again. Its read has no timeout, so no reply hangs the real program and a
 reply that is not whole in that one read misaligns it: this one records both instead (a hang is no reply
 within 2 s), and which replies came after the fixed wait (`late`).
 
-    python3 controller_network_master.py DEVICE CYCLES WAIT_MS
+    python3 controller_network_master.py DEVICE CYCLES WAIT_MS [BUG]
+
+BUG plants a mistake a student might make, for `twin check master` to find:
+crc-low-first (the CRC sent low byte first, as standard Modbus RTU does) or
+wrong-function (registers read with function 04, which the nodes lack).
 
 Its loop: read the motor's state until operational (write 01 from 80, 81 from
 02), then read rpm, every 20th cycle toggle the set point between 5000 and
@@ -32,9 +36,14 @@ def crc16(data: bytes) -> int:
     return crc
 
 
+BUG = sys.argv[4] if len(sys.argv) > 4 else None
+
+
 def frame(ident, fc, addr, value):
     body = bytes([ident, fc, addr >> 8, addr & 0xFF, value >> 8, value & 0xFF])
     crc = crc16(body)
+    if BUG == "crc-low-first":
+        return body + bytes([crc & 0xFF, crc >> 8])
     return body + bytes([crc >> 8, crc & 0xFF])  # high byte first, as the Controller_network master
 
 
@@ -79,6 +88,8 @@ def main():
     log = []
 
     def ask(ident, fc, addr, value):
+        if BUG == "wrong-function" and fc == 3:
+            fc = 4
         req = frame(ident, fc, addr, value)
         rep, late = transaction(path, req, wait_s)
         problem = check(req, rep) if rep else "no reply: the real master would hang"

@@ -16,12 +16,14 @@ pub struct MasterArgs {
     /// twin to listen on until the master connects (port 0: any, printed).
     #[arg(required_unless_present = "roster", conflicts_with = "roster")]
     link: Option<String>,
-    /// The slaves the twin plays (the M3CVME tool's device numbers), e.g.
-    /// `--id 1,2`; the situations happen to the first. With --roster, of
-    /// every student whose line gives none.
-    #[arg(long, value_delimiter = ',', default_value = "1", value_parser = clap::value_parser!(u8).range(1..=99))]
+    /// The slaves the twin plays (the M3CVME tool's device numbers, Modbus
+    /// unit ids), e.g. `--id 1,2`; the situations happen to the first
+    /// [default: the suite's: 1, or the 8-byte Modbus motor and light
+    /// nodes 1,2]. With --roster, of every student whose line gives none.
+    #[arg(long, value_delimiter = ',', value_parser = clap::value_parser!(u8).range(1..=247))]
     id: Vec<u8>,
-    /// The suite: a built-in one's name (twin check --list) or a TOML file.
+    /// The suite: a built-in one's name (twin check --list: meb-master,
+    /// modbus-rtu-master, modbus-tcp-master, modbus8-master) or a TOML file.
     #[arg(long, default_value = "meb-master", value_name = "NAME|FILE")]
     suite: String,
     /// The master's reply timeout in ms, if it was given another than the
@@ -67,10 +69,20 @@ pub fn execute(args: &MasterArgs) -> Result<()> {
         if ids.contains(id) {
             bail!("--id {id:02} is given twice");
         }
+        if !suite.protocol.ids().contains(id) {
+            bail!(
+                "--id {id}: the suite's slaves are numbered {} to {}",
+                suite.protocol.ids().start(),
+                suite.protocol.ids().end()
+            );
+        }
         ids.push(*id);
     }
+    if ids.is_empty() {
+        ids = suite.ids.clone();
+    }
     if let Some(roster) = &args.roster {
-        return class(args, &suite, roster);
+        return class(args, &suite, roster, ids[0]);
     }
     let link = args.link.as_deref().unwrap_or_default();
     let line = MasterLine::open(link)?;
@@ -110,8 +122,8 @@ fn student_run(suite: &MasterSuite, student: &Student, wait: Duration) -> SuiteR
 
 /// Every student's master checked (see [`super::class`]); a master's run
 /// is not recorded.
-fn class(args: &MasterArgs, suite: &MasterSuite, roster: &Path) -> Result<()> {
-    let students = class::load_roster(roster, args.id[0])?;
+fn class(args: &MasterArgs, suite: &MasterSuite, roster: &Path, id: u8) -> Result<()> {
+    let students = class::load_roster(roster, id)?;
     let wait = Duration::from_secs(args.wait);
     let options = super::class::Class {
         suite_name: &suite.name,
