@@ -443,14 +443,9 @@ pub(crate) fn with_id(protocol: Protocol, reply: &[u8], other: u8) -> Option<Vec
     }
 }
 
-/// The refusal of `code` the slave sends instead of `reply` (its good
-/// reply to `request`): MEB's error reply, Modbus' exception.
-pub(crate) fn refusal(
-    protocol: Protocol,
-    request: &[u8],
-    reply: &[u8],
-    code: u8,
-) -> Option<Vec<u8>> {
+/// The refusal of `code` the slave sends instead of `reply`, its good
+/// reply: MEB's error reply, Modbus' exception.
+pub(crate) fn refusal(protocol: Protocol, reply: &[u8], code: u8) -> Option<Vec<u8>> {
     match protocol {
         Protocol::Meb => {
             let good = MebRepr::parse(reply).ok()?;
@@ -468,10 +463,11 @@ pub(crate) fn refusal(
             Some(out)
         }
         Protocol::Modbus8 => {
-            let asked = Frame8::parse(request, CrcOrder::HighFirst).ok()?;
+            // A reply keeps its request's id, function and address.
+            let asked = Frame8::parse(reply, CrcOrder::HighFirst).ok()?;
             let frame = Frame8::exception(
                 asked.id,
-                asked.function,
+                asked.function & !modbus8::EXCEPTION_BIT,
                 asked.addr,
                 Exception::from_code(code),
             );

@@ -340,7 +340,7 @@ impl Play<'_> {
                 }
             }
             Behaviour::Error(code) => {
-                if let Some(reply) = dialect::refusal(protocol, &bytes, &good, code) {
+                if let Some(reply) = dialect::refusal(protocol, &good, code) {
                     // An error reply is an answer: nothing is held back.
                     self.queue.push_back(Scheduled {
                         at: now,
