@@ -42,19 +42,22 @@ enum Role {
     /// over MEB, Modbus RTU or TCP, or the Controller_network nodes over the
     /// 8-byte Modbus (--suite).
     Slave(slave::SlaveArgs),
-    /// The student's supervisor: an MEB master polling slaves the twin plays.
+    /// The student's supervisor: a master (MEB, Modbus RTU or TCP, 8-byte
+    /// Modbus) polling slaves the twin plays.
     ///
     /// The twin answers on LINK as the EV module's controller firmware does
-    /// (its default map, a register image at power-up: no bench behind it)
-    /// and puts the master through a few seconds of each situation: slaves
-    /// that answer, a slow reply, a reply in two pieces, junk before a
-    /// reply, an error reply, a bad FCS, another slave's id, and a slave
+    /// (MEB's default map or the Modbus map; the Controller_network nodes
+    /// with --suite modbus8-master; a register image at power-up: no bench
+    /// behind it) and puts the master through a few seconds of each
+    /// situation: slaves that answer, a slow reply, a reply in two pieces,
+    /// junk before a reply, an error reply, a bad FCS or CRC, another
+    /// slave's id, and a slave
     /// that does not answer. The situations happen to the first --id; the
     /// others answer throughout. Each check says what a master must do
     /// there; what it may choose (retrying or not, its poll rate) is
     /// printed as figures, not graded. Exits 1 when a check fails.
     #[command(
-        after_help = "Examples:\n  twin vsp /tmp/ttyV0 /tmp/ttyV1 &      # the master opens /tmp/ttyV0\n  twin check master /tmp/ttyV1 --id 1,2\n  twin check master tcp://0.0.0.0:5700 --html report.html\n  twin check master --roster class.csv --out grades/"
+        after_help = "Examples:\n  twin vsp /tmp/ttyV0 /tmp/ttyV1 &      # the master opens /tmp/ttyV0\n  twin check master /tmp/ttyV1 --id 1,2\n  twin check master /tmp/ttyV1 --suite modbus-rtu-master\n  twin check master tcp://0.0.0.0:5700 --html report.html\n  twin check master --roster class.csv --out grades/"
     )]
     Master(master::MasterArgs),
     /// The student's supervisor: master of the module's bus (the twin answers
