@@ -327,6 +327,20 @@ mod tests {
     }
 
     #[test]
+    fn a_bad_crc_over_tcp_is_refused_and_the_8_byte_suite_plays_both_nodes() {
+        let text = "name = \"x\"\nprotocol = \"modbus-tcp\"\nrole = \"master\"\n[[check]]\nname = \"a\"\nrequirement = \"r\"\nslave = \"answers\"\n[[check]]\nname = \"b\"\nrequirement = \"r\"\nslave = \"bad-crc\"\n";
+        let e = MasterSuite::parse(text, "mine.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("line 8") && e.contains("no check bytes"), "{e}");
+        let eight = MasterSuite::load("modbus8-master").unwrap();
+        assert_eq!(
+            (eight.protocol, eight.ids.as_slice()),
+            (Protocol::Modbus8, &[1, 2][..])
+        );
+    }
+
+    #[test]
     fn a_slave_suite_is_told_apart() {
         let text = "name = \"x\"\nprotocol = \"meb\"\n";
         let e = MasterSuite::parse(text, "mine.toml")

@@ -487,3 +487,83 @@ pub(crate) fn exception_of(protocol: Protocol, reply: &[u8]) -> Option<u8> {
     };
     (function & 0x80 != 0).then_some(code)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn rtu(body: &[u8]) -> Vec<u8> {
+        let mut out = body.to_vec();
+        out.extend_from_slice(&crc16_modbus(body).to_le_bytes());
+        out
+    }
+
+    #[test]
+    fn an_rtu_request_ends_where_its_function_says_and_waits_for_the_rest() {
+        let read = rtu(&[1, 4, 0, 0, 0, 10]);
+        let mut pending = read[..5].to_vec();
+        assert!(take_request(Protocol::ModbusRtu, &mut pending, false).is_none());
+        pending.extend_from_slice(&read[5..]);
+        pending.extend_from_slice(&read[..3]);
+        let (junk, taken) = take_request(Protocol::ModbusRtu, &mut pending, false).unwrap();
+        assert!(junk.is_empty());
+        assert_eq!(taken, read);
+        assert_eq!(pending.len(), 3);
+        // Once the line is quiet, what is there is taken as it is.
+        let (_, rest) = take_request(Protocol::ModbusRtu, &mut pending, true).unwrap();
+        assert_eq!(rest.len(), 3);
+        assert!(examine(Protocol::ModbusRtu, &rest).fault.is_some());
+    }
+
+    #[test]
+    fn a_crc_in_the_wrong_order_is_named_so() {
+        let mut swapped = rtu(&[1, 3, 0, 0, 0, 1]);
+        swapped.swap(6, 7);
+        let seen = examine(Protocol::ModbusRtu, &swapped);
+        assert!(
+            seen.fault.as_deref().unwrap().contains("high byte first"),
+            "{seen:?}"
+        );
+        assert_eq!(seen.id, Some(1));
+        assert_eq!(
+            repaired(Protocol::ModbusRtu, &swapped).unwrap(),
+            rtu(&[1, 3, 0, 0, 0, 1])
+        );
+        let eight = Frame8 {
+            id: 1,
+            function: modbus8::READ,
+            addr: 5,
+            value: 0,
+        };
+        let low_first = eight.to_bytes(CrcOrder::LowFirst);
+        let seen = examine(Protocol::Modbus8, &low_first);
+        assert!(
+            seen.fault.as_deref().unwrap().contains("low byte first"),
+            "{seen:?}"
+        );
+        let right = eight.to_bytes(CrcOrder::HighFirst);
+        let seen = examine(Protocol::Modbus8, &right);
+        assert!(seen.fault.is_none(), "{seen:?}");
+        assert_eq!(seen.block, Some((true, "01:0005".into())));
+    }
+
+    #[test]
+    fn the_modbus_slave_answers_and_its_reply_is_spoilt_as_asked() {
+        let mut slaves = Slaves::new(Protocol::ModbusRtu, &[1]);
+        let request = rtu(&[1, 4, 0, 0, 0, 10]);
+        let reply = slaves.reply(SimTime::ZERO, 1, &request).unwrap();
+        assert_eq!(&reply[..3], &[1, 4, 20]);
+        assert!(rtu::parse(&reply).is_ok());
+        let bad = spoil_check(Protocol::ModbusRtu, &reply).unwrap();
+        assert!(rtu::parse(&bad).is_err());
+        let other = with_id(Protocol::ModbusRtu, &reply, 7).unwrap();
+        assert_eq!(rtu::parse(&other).unwrap().unit, 7);
+        let refused = refusal(Protocol::ModbusRtu, &reply, 4).unwrap();
+        assert_eq!(&refused[..3], &[1, 0x84, 4]);
+        assert_eq!(exception_of(Protocol::ModbusRtu, &refused), Some(4));
+        // The map has three holding registers: a read of four is refused.
+        let four = rtu(&[1, 3, 0, 0, 0, 4]);
+        let reply = slaves.reply(SimTime::ZERO, 1, &four).unwrap();
+        assert_eq!(exception_of(Protocol::ModbusRtu, &reply), Some(2));
+    }
+}
