@@ -260,9 +260,13 @@ pub fn run_suite(suite: &Suite, wire: &mut Wire, id: u8) -> SuiteRun {
 }
 
 /// How the link went, in the words a student reads.
-fn hang_up_words(e: &WireError) -> String {
+pub(crate) fn hang_up_words(e: &WireError) -> String {
     match e {
         WireError::Closed { .. } => "it closed the connection".into(),
+        // A serial write that made no way for 2 s: the line stayed full.
+        WireError::Io { why, .. } if why.kind() == std::io::ErrorKind::TimedOut => {
+            "it stopped reading the twin's replies: the line stayed full for 2 s".into()
+        }
         // A pseudo-terminal whose other end closed, a USB adapter pulled:
         // the port fails its next read, write or flush, whatever it says.
         WireError::Io { link, .. } if !link.starts_with("tcp://") => {

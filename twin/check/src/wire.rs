@@ -32,6 +32,9 @@ pub struct Wire {
     line: Line,
     link: String,
     started: Instant,
+    /// Bytes read while a write waited for room: handed out first by
+    /// [`Wire::receive`].
+    inbox: Vec<u8>,
 }
 
 impl std::fmt::Debug for Wire {
@@ -89,6 +92,7 @@ impl Wire {
             line,
             link: link.into(),
             started: Instant::now(),
+            inbox: Vec::new(),
         })
     }
 
@@ -99,6 +103,7 @@ impl Wire {
             line: Line::Tcp(stream),
             link: link.into(),
             started: Instant::now(),
+            inbox: Vec::new(),
         }
     }
 
@@ -114,7 +119,7 @@ impl Wire {
     pub fn send(&mut self, bytes: &[u8]) -> Result<(), WireError> {
         let result = match &mut self.line {
             Line::Tcp(s) => s.write_all(bytes).and_then(|()| s.flush()),
-            Line::Serial(p) => write_patiently(p.as_mut(), bytes),
+            Line::Serial(p) => write_patiently(p.as_mut(), bytes, &mut self.inbox),
         };
         result.map_err(|why| self.io(why))
     }
@@ -122,6 +127,11 @@ impl Wire {
     /// Whatever comes in before `deadline`, appended to `into`; returns as
     /// soon as some bytes came (0 when none came in time).
     pub fn receive(&mut self, into: &mut Vec<u8>, deadline: Instant) -> Result<usize, WireError> {
+        if !self.inbox.is_empty() {
+            let n = self.inbox.len();
+            into.append(&mut self.inbox);
+            return Ok(n);
+        }
         let mut buf = [0u8; 512];
         loop {
             let left = deadline.saturating_duration_since(Instant::now());
@@ -167,24 +177,48 @@ impl Wire {
     }
 }
 
+/// How long a write may make no way before the line counts as stuck.
+const STUCK: Duration = Duration::from_secs(2);
+
 /// All of `bytes` to a serial port whose reads time out in 10 ms: a write
 /// held up by a full line (a program that floods it) is not a failure
-/// until it has made no way for 2 s.
-fn write_patiently(port: &mut dyn serialport::SerialPort, bytes: &[u8]) -> std::io::Result<()> {
+/// until it has made no way for 2 s. While it waits it reads into `inbox`:
+/// a relay between the two (a `twin vsp` pair) that is itself stuck
+/// handing the program's flood to a twin that does not read would
+/// otherwise never make room.
+fn write_patiently(
+    port: &mut dyn serialport::SerialPort,
+    bytes: &[u8],
+    inbox: &mut Vec<u8>,
+) -> std::io::Result<()> {
     let mut left = bytes;
     let mut stuck_since = Instant::now();
+    let mut buf = [0u8; 512];
     while !left.is_empty() {
         match port.write(left) {
-            Ok(n) => {
+            Ok(n) if n > 0 => {
                 left = left.get(n..).unwrap_or_default();
                 stuck_since = Instant::now();
             }
+            Ok(_) if stuck_since.elapsed() < STUCK => {}
+            Ok(_) => return Err(ErrorKind::TimedOut.into()),
             Err(e)
                 if matches!(
                     e.kind(),
                     ErrorKind::TimedOut | ErrorKind::WouldBlock | ErrorKind::Interrupted
-                ) && stuck_since.elapsed() < Duration::from_secs(2) => {}
+                ) && stuck_since.elapsed() < STUCK => {}
             Err(e) => return Err(e),
+        }
+        if !left.is_empty() {
+            match port.read(&mut buf) {
+                Ok(n) => inbox.extend_from_slice(buf.get(..n).unwrap_or_default()),
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        ErrorKind::TimedOut | ErrorKind::WouldBlock | ErrorKind::Interrupted
+                    ) => {}
+                Err(e) => return Err(e),
+            }
         }
     }
     port.flush()

@@ -12,7 +12,7 @@ use super::heard::{Answer, Heard, Phase};
 use super::judge::{self, Normal};
 use super::{Behaviour, MasterSuite};
 use crate::framing::Protocol;
-use crate::run::{Exchange, Role, SuiteRun, Way};
+use crate::run::{Exchange, HungUp, Role, SuiteRun, Way, hang_up_words};
 use crate::wire::{Wire, WireError};
 use nodes::time::{SimDuration, SimTime};
 use std::collections::VecDeque;
@@ -94,7 +94,10 @@ pub fn run_master(
     }
     // The first request only opened the line; the first check starts now.
     play.phases[0] = Phase::default();
-    for (i, situation) in suite.checks.iter().enumerate() {
+    // A link that fails mid-run (the master hung up, or stopped reading
+    // its replies) ends the run; the checks before keep their verdicts.
+    let mut broke: Option<(usize, WireError)> = None;
+    'checks: for (i, situation) in suite.checks.iter().enumerate() {
         if i > 0 {
             play.phases.push(Phase::default());
         }
@@ -103,7 +106,10 @@ pub fn run_master(
         play.phase().began = at;
         let end = began + Duration::from_secs_f64(situation.seconds);
         while Instant::now() < end {
-            play.turn(&situation.slave, end)?;
+            if let Err(e) = play.turn(&situation.slave, end) {
+                broke = Some((i, e));
+                break 'checks;
+            }
         }
         if let Some(phase) = play.phases.last_mut() {
             phase.seconds = began.elapsed().as_secs_f64();
@@ -111,19 +117,46 @@ pub fn run_master(
     }
     // Replies still owed go out, so the last check's are whole.
     let flush = Instant::now() + play.timeout;
-    while !play.queue.is_empty() && Instant::now() < flush {
+    while broke.is_none() && !play.queue.is_empty() && Instant::now() < flush {
         let last = suite
             .checks
             .last()
             .map_or(Behaviour::Answers, |c| c.slave.clone());
-        play.turn(&last, flush)?;
+        if let Err(e) = play.turn(&last, flush) {
+            broke = Some((suite.checks.len().saturating_sub(1), e));
+        }
     }
+    let hung_up = broke.as_ref().map(|(i, e)| HungUp {
+        at: play.wire.now(),
+        how: hang_up_words(e),
+        check: suite
+            .checks
+            .get(*i)
+            .map_or_else(String::new, |c| c.name.clone()),
+    });
     let mut normal = Normal::default();
+    let mut phases = std::mem::take(&mut play.phases).into_iter();
     let checks = suite
         .checks
         .iter()
-        .zip(std::mem::take(&mut play.phases))
-        .map(|(situation, phase)| judge::judge(situation, phase, &options.ids, suite, &mut normal))
+        .enumerate()
+        .map(|(i, situation)| match (&broke, &hung_up) {
+            (Some((at, _)), Some(gone)) if i == *at => judge::failed(
+                situation,
+                format!("the program hung up at {:.3} s ({})", gone.at, gone.how),
+            ),
+            (Some((at, _)), Some(gone)) if i > *at => judge::failed(
+                situation,
+                format!(
+                    "not run: the program hung up at {:.3} s, during `{}`",
+                    gone.at, gone.check
+                ),
+            ),
+            _ => {
+                let phase = phases.next().unwrap_or_default();
+                judge::judge(situation, phase, &options.ids, suite, &mut normal)
+            }
+        })
         .collect();
     Ok(SuiteRun {
         suite: suite.name.clone(),
@@ -134,7 +167,7 @@ pub fn run_master(
         checks,
         seconds: play.wire.now() - started,
         error: None,
-        hung_up: None,
+        hung_up,
     })
 }
 
