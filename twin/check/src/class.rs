@@ -321,6 +321,7 @@ pub fn scores_csv(students: &[Student], runs: &[SuiteRun]) -> String {
         "checks_passed",
         "checks",
         "first_failure",
+        "not_applicable",
     ]);
     for (student, run) in students.iter().zip(runs) {
         let first = match (&run.error, run.first_failure()) {
@@ -333,8 +334,9 @@ pub fn scores_csv(students: &[Student], runs: &[SuiteRun]) -> String {
             run.score().to_string(),
             run.points().to_string(),
             run.passed().count().to_string(),
-            run.checks.len().to_string(),
+            (run.checks.len() - run.not_applicable()).to_string(),
             first,
+            run.not_applicable().to_string(),
         ]);
     }
     String::from_utf8(out.into_inner().unwrap_or_default()).unwrap_or_default()

@@ -270,6 +270,7 @@ impl Session {
             ids: Vec::new(),
             checks,
             seconds: ended,
+            bench: None,
             error: None,
             hung_up: None,
         }

@@ -149,6 +149,39 @@ impl Protocol {
         }
     }
 
+    /// The data words of a well-formed read reply: MEB's four-digit hex
+    /// words between the header and the FCS; a Modbus register read's
+    /// bytes after its byte count, two to a word, high byte first.
+    pub fn data_words(self, frame: &[u8]) -> Vec<u16> {
+        let hex_words = |text: &[u8]| -> Vec<u16> {
+            text.chunks_exact(4)
+                .filter_map(|w| u16::from_str_radix(std::str::from_utf8(w).ok()?, 16).ok())
+                .collect()
+        };
+        let registers = |pdu: &[u8]| -> Vec<u16> {
+            let count = usize::from(pdu.get(1).copied().unwrap_or(0));
+            pdu.get(2..2 + count)
+                .unwrap_or(&[])
+                .chunks_exact(2)
+                .map(|b| u16::from_be_bytes([b[0], b[1]]))
+                .collect()
+        };
+        match self {
+            // `@IDCCAACN` then the words, the FCS's two digits and `*`.
+            Protocol::Meb => {
+                let star = frame.iter().rposition(|&b| b == b'*').unwrap_or(0);
+                frame
+                    .get(9..star.saturating_sub(2))
+                    .map_or_else(Vec::new, hex_words)
+            }
+            Protocol::ModbusRtu => frame
+                .get(1..frame.len().saturating_sub(2))
+                .map_or_else(Vec::new, registers),
+            Protocol::ModbusTcp => frame.get(7..).map_or_else(Vec::new, registers),
+            Protocol::Modbus8 => Vec::new(),
+        }
+    }
+
     /// What the data after a pattern is counted in.
     pub fn data_unit(self) -> (&'static str, &'static str) {
         match self {
@@ -179,4 +212,26 @@ pub fn shown_text(bytes: &[u8]) -> String {
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Protocol;
+
+    #[test]
+    fn a_read_replys_data_words_are_read_back() {
+        assert_eq!(
+            Protocol::Meb.data_words(b"@01EA00020BD60001FF*\n"),
+            vec![0x0BD6, 0x0001]
+        );
+        assert_eq!(
+            Protocol::ModbusRtu.data_words(&[1, 4, 4, 0x0B, 0xD6, 0, 1, 0xAA, 0xBB]),
+            vec![0x0BD6, 1]
+        );
+        assert_eq!(
+            Protocol::ModbusTcp.data_words(&[0, 1, 0, 0, 0, 5, 1, 4, 2, 0x12, 0x34]),
+            vec![0x1234]
+        );
+        assert!(Protocol::Meb.data_words(b"junk").is_empty());
+    }
 }

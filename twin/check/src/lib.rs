@@ -10,7 +10,9 @@
 //! [`record`] writes a run to MCAP, like every run of the twin.
 //! [`master`] checks a supervisor as master of its bus; [`server`] checks
 //! it from its bus and its TCP server at once; [`client`] is a session
-//! with a remote client that follows a checklist.
+//! with a remote client that follows a checklist. [`bench`] holds a
+//! slave wired to a twin session's bench to what its registers mean: the
+//! motor, the brake, the direction, the inputs against the plant.
 //!
 //! The fence: no engine, no plant. The checked program is outside the twin;
 //! this crate only talks to it over the wire, where the twin's own node
@@ -21,6 +23,7 @@
     reason = "a check talks to a real program in real time: its replies are timed by the wall clock"
 )]
 
+pub mod bench;
 pub mod class;
 pub mod client;
 pub mod framing;
@@ -32,6 +35,7 @@ pub mod server;
 pub mod suite;
 pub mod wire;
 
+pub use bench::Bench;
 pub use framing::Protocol;
-pub use run::{CheckOutcome, Outcome, SuiteRun, run_suite};
+pub use run::{CheckOutcome, Outcome, SuiteRun, run_suite, run_suite_on};
 pub use suite::{BUILT_IN, Suite, SuiteError};

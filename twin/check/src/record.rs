@@ -69,6 +69,7 @@ pub fn record(
             Outcome::Pass => ("pass", ""),
             Outcome::Fail(why) => ("fail", why.as_str()),
             Outcome::NotJudged(what) => ("not judged", what.as_str()),
+            Outcome::NotApplicable(why) => ("not applicable", why.as_str()),
         };
         let message = CheckMessage {
             index,

@@ -73,6 +73,10 @@ pub fn text(run: &SuiteRun) -> String {
                 let _ = writeln!(out, "  ----  {}  ({})", check.name, check.requirement);
                 let _ = writeln!(out, "        not judged: {what}");
             }
+            Outcome::NotApplicable(why) => {
+                let _ = writeln!(out, "  n/a   {}  ({})", check.name, check.requirement);
+                let _ = writeln!(out, "        not applicable: {why}");
+            }
             Outcome::Fail(why) => {
                 let _ = writeln!(out, "  FAIL  {}  ({})", check.name, check.requirement);
                 let _ = writeln!(out, "        {why}");
@@ -97,14 +101,7 @@ pub fn text(run: &SuiteRun) -> String {
             run.id, run.link
         );
     }
-    let passed = run.passed().count();
-    let _ = write!(
-        out,
-        "score: {} of {} points ({passed} of {} checks passed)",
-        run.score(),
-        run.points(),
-        run.checks.len(),
-    );
+    let _ = write!(out, "score: {}", score(run));
     if run.error.is_none() {
         let _ = write!(out, " in {:.1} s", run.seconds);
     }
@@ -124,10 +121,32 @@ pub fn text(run: &SuiteRun) -> String {
     out
 }
 
+/// `S of P points (N of C checks passed[, K not applicable])`: the
+/// checks not applicable count in neither.
+pub fn score(run: &SuiteRun) -> String {
+    let not_applicable = match run.not_applicable() {
+        0 => String::new(),
+        n => format!(", {n} not applicable"),
+    };
+    format!(
+        "{} of {} points ({} of {} checks passed{not_applicable})",
+        run.score(),
+        run.points(),
+        run.passed().count(),
+        run.checks.len() - run.not_applicable(),
+    )
+}
+
 /// What was checked, on which link.
 pub(crate) fn heading(run: &SuiteRun) -> String {
     match run.role {
-        Role::Slave => format!("{} suite, slave {:02} on {}", run.suite, run.id, run.link),
+        Role::Slave => match &run.bench {
+            Some(bench) => format!(
+                "{} suite, slave {:02} on {}, bench {bench}",
+                run.suite, run.id, run.link
+            ),
+            None => format!("{} suite, slave {:02} on {}", run.suite, run.id, run.link),
+        },
         Role::Master => {
             let ids: Vec<String> = run.ids.iter().map(|id| format!("{id:02}")).collect();
             let slaves = if ids.len() == 1 { "slave" } else { "slaves" };

@@ -3,6 +3,7 @@
 //! A check stops at its first failing step; the next check starts on a
 //! quiet line.
 
+use crate::bench::{Bench, PlantState};
 use crate::framing::Protocol;
 use crate::suite::{Step, Suite};
 use crate::wire::{Wire, WireError};
@@ -53,7 +54,10 @@ impl Role {
 }
 
 /// Passed, or the reason it did not; or left to a person (what a
-/// client shows its user), with what they are to look at.
+/// client shows its user), with what they are to look at; or not
+/// applicable to this run (a bench check without a bench), with why.
+/// Neither of the last two is a failure, and a check not applicable is
+/// not scored either.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 #[serde(tag = "result", content = "why", rename_all = "lowercase")]
 pub enum Outcome {
@@ -61,7 +65,13 @@ pub enum Outcome {
     Fail(String),
     #[serde(rename = "not judged")]
     NotJudged(String),
+    #[serde(rename = "not applicable")]
+    NotApplicable(String),
 }
+
+/// Why a bench check is not applicable without a bench.
+pub const NO_BENCH: &str =
+    "a bench check: give --bench URL, the panel of the twin session the slave is wired to";
 
 /// One check as it went.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -98,6 +108,9 @@ pub struct SuiteRun {
     pub ids: Vec<u8>,
     pub checks: Vec<CheckOutcome>,
     pub seconds: f64,
+    /// The panel of the bench the slave was checked on, if it was.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub bench: Option<String>,
     /// Why no check could be run (the program unreachable): every check
     /// then fails with this.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -124,8 +137,21 @@ impl SuiteRun {
         self.passed().map(|c| c.points).sum()
     }
 
+    /// The points of the checks that apply (not those not applicable).
     pub fn points(&self) -> u32 {
-        self.checks.iter().map(|c| c.points).sum()
+        self.applicable().map(|c| c.points).sum()
+    }
+
+    /// The checks that apply to this run.
+    pub fn applicable(&self) -> impl Iterator<Item = &CheckOutcome> {
+        self.checks
+            .iter()
+            .filter(|c| !matches!(c.outcome, Outcome::NotApplicable(_)))
+    }
+
+    /// The checks not applicable to this run.
+    pub fn not_applicable(&self) -> usize {
+        self.checks.len() - self.applicable().count()
     }
 
     pub fn passed(&self) -> impl Iterator<Item = &CheckOutcome> {
@@ -147,7 +173,8 @@ impl SuiteRun {
             .find(|c| matches!(c.outcome, Outcome::Fail(_)))
     }
 
-    /// A run that never got to its checks: each fails with `why`, so the
+    /// A run that never got to its checks: each fails with `why` (a
+    /// bench check without a bench is still not applicable), so the
     /// score and the reports say 0 of the suite's points.
     pub fn unreachable(suite: &Suite, link: &str, id: u8, why: String) -> Self {
         let checks = suite
@@ -157,7 +184,11 @@ impl SuiteRun {
                 name: check.name.clone(),
                 requirement: check.requirement.clone(),
                 points: check.points,
-                outcome: Outcome::Fail(why.clone()),
+                outcome: if check.is_bench() {
+                    Outcome::NotApplicable(NO_BENCH.into())
+                } else {
+                    Outcome::Fail(why.clone())
+                },
                 at: 0.0,
                 reply_ms: Vec::new(),
                 frames: Vec::new(),
@@ -173,6 +204,7 @@ impl SuiteRun {
             ids: Vec::new(),
             checks,
             seconds: 0.0,
+            bench: None,
             error: Some(why),
             hung_up: None,
         }
@@ -184,6 +216,12 @@ impl SuiteRun {
 /// there: the checks before keep their verdicts, the one running and those
 /// after it fail saying so ([`SuiteRun::hung_up`]).
 pub fn run_suite(suite: &Suite, wire: &mut Wire, id: u8) -> SuiteRun {
+    run_suite_on(suite, wire, id, None)
+}
+
+/// [`run_suite`] with the slave wired to `bench`: its bench checks are
+/// judged there (without one they are not applicable).
+pub fn run_suite_on(suite: &Suite, wire: &mut Wire, id: u8, bench: Option<&Bench>) -> SuiteRun {
     let started = wire.now();
     let mut checks = Vec::with_capacity(suite.checks.len());
     let mut hung_up: Option<HungUp> = None;
@@ -210,7 +248,18 @@ pub fn run_suite(suite: &Suite, wire: &mut Wire, id: u8) -> SuiteRun {
             checks.push(outcome_of(Outcome::Fail(why), at, play));
             continue;
         }
+        if check.is_bench() && bench.is_none() {
+            let at = wire.now();
+            let play = Play::new(wire, suite, id, next_transaction);
+            checks.push(outcome_of(
+                Outcome::NotApplicable(NO_BENCH.into()),
+                at,
+                play,
+            ));
+            continue;
+        }
         let mut play = Play::new(wire, suite, id, next_transaction);
+        play.bench = bench.filter(|_| check.is_bench());
         let mut began = play.wire.now();
         let played = play.settle().and_then(|()| {
             began = play.wire.now();
@@ -254,6 +303,7 @@ pub fn run_suite(suite: &Suite, wire: &mut Wire, id: u8) -> SuiteRun {
         ids: Vec::new(),
         checks,
         seconds: wire.now() - started,
+        bench: bench.map(|b| b.url().to_string()),
         error: None,
         hung_up,
     }
@@ -306,6 +356,12 @@ struct Play<'a> {
     reply_ms: Vec<f64>,
     /// Why the check failed, once a step has failed it.
     verdict: Option<String>,
+    /// The bench, in a bench check.
+    bench: Option<&'a Bench>,
+    /// The plant before the last request (in a bench check), and the
+    /// last reply taken.
+    plant_before: Option<PlantState>,
+    last_reply: Vec<u8>,
 }
 
 /// A step's verdict: `Err(why)` when the program did not do what it required.
@@ -327,6 +383,9 @@ impl<'a> Play<'a> {
             sent_at: None,
             reply_ms: Vec::new(),
             verdict: None,
+            bench: None,
+            plant_before: None,
+            last_reply: Vec::new(),
         }
     }
 
@@ -417,6 +476,12 @@ impl<'a> Play<'a> {
                     .push_back((self.protocol.body(&body), transaction));
                 self.pending.clear();
                 self.pending_since = None;
+                if let Some(bench) = self.bench {
+                    // What the plant was before the request, for the
+                    // inputs its reply carries; a bench that cannot be
+                    // read fails the step that needs it.
+                    self.plant_before = bench.state().ok();
+                }
                 self.send(&frame)?;
                 Ok(Ok(()))
             }
@@ -467,6 +532,16 @@ impl<'a> Play<'a> {
                 }
                 Ok(Ok(()))
             }
+            Step::Bench(step) => {
+                let Some(bench) = self.bench else {
+                    return Ok(Err(NO_BENCH.into()));
+                };
+                let words = self.protocol.data_words(&self.last_reply);
+                let reply = (!self.last_reply.is_empty()).then_some(words.as_slice());
+                Ok(bench
+                    .judge(step, reply, self.plant_before.as_ref())
+                    .map_err(|why| format!("on the bench: {why}")))
+            }
         }
     }
 
@@ -511,10 +586,14 @@ impl<'a> Play<'a> {
             if let Some(end) = self.protocol.frame_end(&self.pending) {
                 let frame: Vec<u8> = self.pending.drain(..end).collect();
                 self.note_received(&frame);
-                return Ok(self
+                let verdict = self
                     .protocol
                     .judge(&frame, pattern, data, transaction)
-                    .map_err(|why| format!("{why}; expected {wanted}")));
+                    .map_err(|why| format!("{why}; expected {wanted}"));
+                if verdict.is_ok() {
+                    self.last_reply = frame;
+                }
+                return Ok(verdict);
             }
             if !self.receive(deadline)? {
                 if self.pending.is_empty() {

@@ -205,6 +205,7 @@ pub fn check_server(options: &ServerOptions) -> Result<SuiteRun, WireError> {
         ids: Vec::new(),
         checks,
         seconds: checker.now(),
+        bench: None,
         error: None,
         hung_up: None,
     })
@@ -233,6 +234,7 @@ fn unreachable(link: &str, id: u8, why: String) -> SuiteRun {
             })
             .collect(),
         seconds: 0.0,
+        bench: None,
         error: Some(why),
         hung_up: None,
     }

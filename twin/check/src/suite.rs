@@ -36,7 +36,15 @@
 //! TCP, the transaction id included) is always checked. `exception = 2`
 //! expects the exception reply of that code to the request it answers.
 //! `{id}` and `{other}` are hex bytes there.
+//!
+//! A `bench` step looks at the plant the slave drives instead of the line
+//! (`crate::bench`): `{ bench = "forward", vel = 2048 }` (or `"reverse"`),
+//! `{ bench = "coasts" }`, `{ bench = "brakes" }`, `{ bench = "stopped" }`,
+//! `{ bench = "inputs", inputs = "V2 I V1 RPM_M RPM_L LDR", rpm_window_ms =
+//! 500 }` (the last reply's data words, `-` for one not compared). A check
+//! with one is a bench check: without a bench it is not applicable.
 
+use crate::bench::{BENCH_STEPS, BenchStep, Input};
 use crate::framing::{PROTOCOLS, Protocol};
 use serde::Deserialize;
 use std::path::Path;
@@ -95,6 +103,14 @@ pub struct Check {
     pub steps: Vec<Step>,
 }
 
+impl Check {
+    /// Whether a step of it looks at the bench: without one, the check
+    /// is not applicable.
+    pub fn is_bench(&self) -> bool {
+        self.steps.iter().any(|s| matches!(s, Step::Bench(_)))
+    }
+}
+
 /// One thing a check does.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Step {
@@ -130,6 +146,8 @@ pub enum Step {
     Wait {
         ms: u64,
     },
+    /// The plant the slave drives, held to what the frames before said.
+    Bench(BenchStep),
 }
 
 #[derive(Deserialize)]
@@ -179,6 +197,10 @@ struct StepToml {
     within_ms: Option<u64>,
     silence_ms: Option<u64>,
     wait_ms: Option<u64>,
+    bench: Option<String>,
+    vel: Option<u16>,
+    inputs: Option<String>,
+    rpm_window_ms: Option<u16>,
 }
 
 /// The text of a built-in suite of `built_in` by name, or of a teacher's
@@ -263,6 +285,15 @@ impl Suite {
     pub fn points(&self) -> u32 {
         self.checks.iter().map(|c| c.points).sum()
     }
+
+    /// The points of the checks that need no bench.
+    pub fn points_without_bench(&self) -> u32 {
+        self.checks
+            .iter()
+            .filter(|c| !c.is_bench())
+            .map(|c| c.points)
+            .sum()
+    }
 }
 
 /// The one action of a step, checked against the suite's protocol.
@@ -275,11 +306,12 @@ fn step(protocol: Protocol, s: StepToml, sent: bool) -> Result<Step, String> {
         s.exception.is_some(),
         s.silence_ms.is_some(),
         s.wait_ms.is_some(),
+        s.bench.is_some(),
     ];
     let count = actions.iter().filter(|a| **a).count();
     if count != 1 {
         return Err(format!(
-            "a step does one thing (send, raw, expect, {}, silence_ms or wait_ms); this one does {count}",
+            "a step does one thing (send, raw, expect, {}, silence_ms, wait_ms or bench); this one does {count}",
             if protocol.is_text() {
                 "error"
             } else {
@@ -288,6 +320,18 @@ fn step(protocol: Protocol, s: StepToml, sent: bool) -> Result<Step, String> {
         ));
     }
     not_in_protocol(protocol, &s)?;
+    if let Some(what) = s.bench {
+        return bench_step(&what, s.vel, s.inputs, s.rpm_window_ms, sent);
+    }
+    for (given, field) in [
+        (s.vel.is_some(), "vel"),
+        (s.inputs.is_some(), "inputs"),
+        (s.rpm_window_ms.is_some(), "rpm_window_ms"),
+    ] {
+        if given {
+            return Err(format!("`{field}` goes with `bench` only"));
+        }
+    }
     let only_with = |given: bool, field: &str, action: &str| {
         if given {
             Err(format!("`{field}` goes with `{action}` only"))
@@ -380,6 +424,78 @@ fn step(protocol: Protocol, s: StepToml, sent: bool) -> Result<Step, String> {
     })
 }
 
+/// A `bench` step and its fields.
+fn bench_step(
+    what: &str,
+    vel: Option<u16>,
+    inputs: Option<String>,
+    rpm_window_ms: Option<u16>,
+    sent: bool,
+) -> Result<Step, String> {
+    let turns = matches!(what, "forward" | "reverse");
+    if vel.is_some() != turns {
+        return Err(if turns {
+            format!("bench `{what}` needs `vel`, the VEL written (0 to 4095)")
+        } else {
+            format!("`vel` goes with bench `forward` or `reverse`, not `{what}`")
+        });
+    }
+    if inputs.is_some() != (what == "inputs") || (rpm_window_ms.is_some() && what != "inputs") {
+        return Err(if what == "inputs" {
+            "bench `inputs` needs `inputs`, the words the last reply carries (e.g. \"V2 I V1 RPM_M RPM_L LDR\")".into()
+        } else {
+            format!("`inputs` and `rpm_window_ms` go with bench `inputs`, not `{what}`")
+        });
+    }
+    let step = match what {
+        "forward" | "reverse" => {
+            let vel = vel.unwrap_or(0);
+            if vel > crate::bench::model::DAC_MAX {
+                return Err(format!("vel {vel}: VEL is 0 to 4095"));
+            }
+            BenchStep::Turns {
+                vel,
+                reverse: what == "reverse",
+            }
+        }
+        "coasts" => BenchStep::Coasts,
+        "brakes" => BenchStep::Brakes,
+        "stopped" => BenchStep::Stopped,
+        "inputs" => {
+            if !sent {
+                return Err("bench `inputs` compares a reply: nothing was sent before it".into());
+            }
+            let words = inputs
+                .unwrap_or_default()
+                .split_whitespace()
+                .map(|w| {
+                    Input::from_name(w).ok_or_else(|| {
+                        format!("inputs: `{w}` is no input (V2, I, V1, RPM_M, RPM_L, LDR, or - for one not compared)")
+                    })
+                })
+                .collect::<Result<Vec<_>, _>>()?;
+            if words.is_empty() {
+                return Err("inputs: name at least one input".into());
+            }
+            let rpm_window_ms = rpm_window_ms.unwrap_or(100);
+            if !RPM_WIN_MS.contains(&rpm_window_ms) {
+                return Err(format!(
+                    "rpm_window_ms {rpm_window_ms}: RPM_WIN is 1 to 1000 ms"
+                ));
+            }
+            BenchStep::Inputs {
+                words,
+                rpm_window_ms,
+            }
+        }
+        other => return Err(format!("bench `{other}`: a bench step is {BENCH_STEPS}")),
+    };
+    Ok(Step::Bench(step))
+}
+
+/// RPM_WIN's range (the MEB page's).
+const RPM_WIN_MS: std::ops::RangeInclusive<u16> = 1..=1000;
+
 /// A field that belongs to another protocol, named with the one to use.
 fn not_in_protocol(protocol: Protocol, s: &StepToml) -> Result<(), String> {
     let misplaced: Vec<(bool, &str)> = match protocol {
@@ -443,7 +559,7 @@ mod tests {
         let e = Suite::parse(text, "mine.toml").unwrap_err().to_string();
         assert_eq!(
             e,
-            "mine.toml, line 9: check `c`: a step does one thing (send, raw, expect, error, silence_ms or wait_ms); this one does 2"
+            "mine.toml, line 9: check `c`: a step does one thing (send, raw, expect, error, silence_ms, wait_ms or bench); this one does 2"
         );
     }
 

@@ -149,6 +149,7 @@ pub fn router(state: AppState) -> Router {
         .route("/api/info", get(info))
         .route("/api/state", get(latest))
         .route("/api/trend", get(trend))
+        .route("/api/plant", get(plant))
         .route("/api/stream", get(stream))
         .route("/api/force", post(|s, h, b| command(s, h, b, commands::force)))
         .route("/api/release", post(|s, h, b| command(s, h, b, commands::release)))
@@ -310,6 +311,31 @@ async fn latest(State(state): State<AppState>) -> Response {
         state.hub.latest().to_string(),
     )
         .into_response()
+}
+
+/// The plant's parameters, per module: what a check of a slave on this
+/// bench (`twin check slave --bench`) derives its expected speeds and
+/// counts from. A GET (read-only panels answer it), run on the engine
+/// because the parameters live with each module's plant.
+async fn plant(State(state): State<AppState>) -> Response {
+    let Backend::Engine(engine) = &state.backend else {
+        return error(
+            409,
+            json!({ "error": "twin panel has no plant: it is a remote client of a slave" }),
+        );
+    };
+    let read: EngineCommand = Box::new(|e| {
+        let modules: Vec<Value> = e
+            .modules
+            .iter()
+            .map(|m| json!({ "name": m.name, "params": m.plant.params() }))
+            .collect();
+        Ok(json!({ "modules": modules }))
+    });
+    match commands::run_on_engine(engine, read).await {
+        Ok(answer) => axum::Json(answer).into_response(),
+        Err(e) => error(e.status, e.to_json()),
+    }
 }
 
 async fn trend(

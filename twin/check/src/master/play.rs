@@ -166,6 +166,7 @@ pub fn run_master(
         ids: options.ids.clone(),
         checks,
         seconds: play.wire.now() - started,
+        bench: None,
         error: None,
         hung_up,
     })
@@ -187,6 +188,7 @@ pub fn unreachable(suite: &MasterSuite, link: &str, ids: &[u8], why: String) -> 
         checks,
         seconds: 0.0,
         hung_up: None,
+        bench: None,
         error: Some(why),
     }
 }

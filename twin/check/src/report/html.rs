@@ -35,13 +35,10 @@ pub fn html(run: &SuiteRun, student: Option<&str>) -> String {
         esc(&super::heading(run)),
         run.seconds
     );
-    let passed = run.passed().count();
     let _ = writeln!(
         out,
-        "<p class=\"score\">Score: {} of {} points ({passed} of {} checks passed)</p>",
-        run.score(),
-        run.points(),
-        run.checks.len()
+        "<p class=\"score\">Score: {}</p>",
+        esc(&super::score(run))
     );
     if let Some(why) = &run.error {
         let _ = writeln!(
@@ -61,6 +58,7 @@ pub fn html(run: &SuiteRun, student: Option<&str>) -> String {
             Outcome::Pass => ("pass", "pass"),
             Outcome::Fail(_) => ("fail", "FAIL"),
             Outcome::NotJudged(_) => ("nj", "not judged"),
+            Outcome::NotApplicable(_) => ("nj", "not applicable"),
         };
         let _ = writeln!(
             out,
@@ -83,6 +81,14 @@ pub fn html(run: &SuiteRun, student: Option<&str>) -> String {
                     out,
                     "<tr><td colspan=\"3\" class=\"req\">not judged: {}</td></tr>",
                     esc(what)
+                );
+                continue;
+            }
+            Outcome::NotApplicable(why) => {
+                let _ = writeln!(
+                    out,
+                    "<tr><td colspan=\"3\" class=\"req\">not applicable: {}</td></tr>",
+                    esc(why)
                 );
                 continue;
             }

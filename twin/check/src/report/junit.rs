@@ -15,7 +15,7 @@ pub fn junit(run: &SuiteRun) -> String {
     let skipped = run
         .checks
         .iter()
-        .filter(|c| matches!(c.outcome, Outcome::NotJudged(_)))
+        .filter(|c| matches!(c.outcome, Outcome::NotJudged(_) | Outcome::NotApplicable(_)))
         .count();
     let failures = run.failed();
     // A program that could not be reached is an error (nothing ran), not
@@ -70,6 +70,16 @@ pub fn junit(run: &SuiteRun) -> String {
                     out,
                     ">\n      <skipped message=\"not judged: {}\"/>\n    </testcase>",
                     attr(what)
+                );
+                continue;
+            }
+            // Not for this run (a bench check without a bench): skipped too,
+            // its message saying which of the two it is.
+            Outcome::NotApplicable(why) => {
+                let _ = writeln!(
+                    out,
+                    ">\n      <skipped message=\"not applicable: {}\"/>\n    </testcase>",
+                    attr(why)
                 );
                 continue;
             }

@@ -95,12 +95,16 @@ fn verdict(run: &SuiteRun) -> String {
     if let Some(why) = &run.error {
         return format!("could not be checked: {why}");
     }
+    let not_applicable = match run.not_applicable() {
+        0 => String::new(),
+        n => format!(" ({n} not applicable)"),
+    };
     let score = format!(
-        "{} of {} points, {} of {} checks",
+        "{} of {} points, {} of {} checks{not_applicable}",
         run.score(),
         run.points(),
         run.passed().count(),
-        run.checks.len()
+        run.checks.len() - run.not_applicable()
     );
     match (&run.hung_up, run.first_failure()) {
         (Some(gone), _) => format!(

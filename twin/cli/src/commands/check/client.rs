@@ -79,7 +79,7 @@ pub fn execute(args: &ClientArgs) -> Result<()> {
             let verdict = match outcome {
                 Outcome::Pass => "seen".to_string(),
                 Outcome::Fail(why) => format!("seen, wrong: {why}"),
-                Outcome::NotJudged(_) => continue,
+                Outcome::NotJudged(_) | Outcome::NotApplicable(_) => continue,
             };
             println!("  {}. {verdict}", i + 1);
             let _ = std::io::stdout().flush();

@@ -6,7 +6,7 @@ use clap::Args;
 use std::path::{Path, PathBuf};
 use std::time::SystemTime;
 use twin_check::class;
-use twin_check::{Suite, record, report, run_suite, wire::Wire};
+use twin_check::{Bench, Suite, record, report, run_suite_on, wire::Wire};
 use twin_realtime::rotate;
 
 #[derive(Debug, Args)]
@@ -31,6 +31,13 @@ pub struct SlaveArgs {
     /// board more.
     #[arg(long, value_name = "MS", value_parser = clap::value_parser!(u64).range(1..=60_000))]
     timeout_ms: Option<u64>,
+    /// The bench the slave is wired to: the panel of its twin session
+    /// (`twin serve --web`), http://HOST:PORT[/?token=…]. Its bench checks
+    /// then hold the slave to what its registers mean on the plant (VEL
+    /// moves the motor, EN, BRK and FR do what the map says, the inputs
+    /// match the plant); without it they are not applicable.
+    #[arg(long, value_name = "URL", conflicts_with = "roster")]
+    bench: Option<String>,
     /// Also write the run as JSON (every check, its frames and times).
     #[arg(long, value_name = "FILE")]
     json: Option<PathBuf>,
@@ -88,8 +95,12 @@ pub fn execute(slave: &SlaveArgs) -> Result<()> {
         return class(slave, &suite, roster);
     }
     let link = slave.link.as_deref().unwrap_or_default();
+    let bench = match &slave.bench {
+        Some(url) => Some(Bench::connect(url).map_err(|why| anyhow::anyhow!("--bench: {why}"))?),
+        None => None,
+    };
     let mut wire = Wire::open(link)?;
-    let run = run_suite(&suite, &mut wire, slave.id);
+    let run = run_suite_on(&suite, &mut wire, slave.id, bench.as_ref());
     print!("{}", report::text(&run));
     if !slave.no_record {
         let path = match &slave.record {
