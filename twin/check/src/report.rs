@@ -34,7 +34,13 @@ pub fn hung_up(run: &SuiteRun) -> Option<String> {
         .iter()
         .position(|c| c.name == gone.check)
         .unwrap_or(run.checks.len());
-    let after = run.checks.len().saturating_sub(before + 1);
+    // Those not applicable stay so: they neither ran nor failed.
+    let after = run
+        .checks
+        .iter()
+        .skip(before + 1)
+        .filter(|c| matches!(c.outcome, Outcome::Fail(_)))
+        .count();
     let kept = match before {
         0 => "no check had finished before it".to_string(),
         1 => "the check before it keeps its verdict".to_string(),
@@ -101,6 +107,9 @@ pub fn text(run: &SuiteRun) -> String {
             run.id, run.link
         );
     }
+    if let Some(line) = not_applicable(run) {
+        let _ = writeln!(out, "{line}");
+    }
     let _ = write!(out, "score: {}", score(run));
     if run.error.is_none() {
         let _ = write!(out, " in {:.1} s", run.seconds);
@@ -121,20 +130,28 @@ pub fn text(run: &SuiteRun) -> String {
     out
 }
 
-/// `S of P points (N of C checks passed[, K not applicable])`: the
-/// checks not applicable count in neither.
+/// `S of P points (N of C checks passed)`: the checks not applicable
+/// count in neither.
 pub fn score(run: &SuiteRun) -> String {
-    let not_applicable = match run.not_applicable() {
-        0 => String::new(),
-        n => format!(", {n} not applicable"),
-    };
     format!(
-        "{} of {} points ({} of {} checks passed{not_applicable})",
+        "{} of {} points ({} of {} checks passed)",
         run.score(),
         run.points(),
         run.passed().count(),
         run.checks.len() - run.not_applicable(),
     )
+}
+
+/// How many checks did not apply, and what would make them apply: `None`
+/// when every check applied.
+pub fn not_applicable(run: &SuiteRun) -> Option<String> {
+    match run.not_applicable() {
+        0 => None,
+        1 => Some("1 check not applicable (not scored): it needs the bench (--bench URL)".into()),
+        n => Some(format!(
+            "{n} checks not applicable (not scored): they need the bench (--bench URL)"
+        )),
+    }
 }
 
 /// What was checked, on which link.

@@ -238,16 +238,6 @@ pub fn run_suite_on(suite: &Suite, wire: &mut Wire, id: u8, bench: Option<&Bench
             frames: play.frames,
             notes: Vec::new(),
         };
-        if let Some(gone) = &hung_up {
-            let why = format!(
-                "not run: the program hung up at {:.3} s, during `{}`",
-                gone.at, gone.check
-            );
-            let at = wire.now();
-            let play = Play::new(wire, suite, id, next_transaction);
-            checks.push(outcome_of(Outcome::Fail(why), at, play));
-            continue;
-        }
         if check.is_bench() && bench.is_none() {
             let at = wire.now();
             let play = Play::new(wire, suite, id, next_transaction);
@@ -256,6 +246,16 @@ pub fn run_suite_on(suite: &Suite, wire: &mut Wire, id: u8, bench: Option<&Bench
                 at,
                 play,
             ));
+            continue;
+        }
+        if let Some(gone) = &hung_up {
+            let why = format!(
+                "not run: the program hung up at {:.3} s, during `{}`",
+                gone.at, gone.check
+            );
+            let at = wire.now();
+            let play = Play::new(wire, suite, id, next_transaction);
+            checks.push(outcome_of(Outcome::Fail(why), at, play));
             continue;
         }
         let mut play = Play::new(wire, suite, id, next_transaction);

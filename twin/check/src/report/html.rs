@@ -40,6 +40,9 @@ pub fn html(run: &SuiteRun, student: Option<&str>) -> String {
         "<p class=\"score\">Score: {}</p>",
         esc(&super::score(run))
     );
+    if let Some(line) = super::not_applicable(run) {
+        let _ = writeln!(out, "<p class=\"nj\">{}</p>", esc(&line));
+    }
     if let Some(why) = &run.error {
         let _ = writeln!(
             out,

@@ -4,6 +4,7 @@
 //! bug: each bug found, and nothing else reported; the JUnit and HTML
 //! reports read back; and a class ([`class`]).
 
+mod bench;
 mod class;
 mod client;
 mod hang_up;

@@ -95,12 +95,8 @@ fn verdict(run: &SuiteRun) -> String {
     if let Some(why) = &run.error {
         return format!("could not be checked: {why}");
     }
-    let not_applicable = match run.not_applicable() {
-        0 => String::new(),
-        n => format!(" ({n} not applicable)"),
-    };
     let score = format!(
-        "{} of {} points, {} of {} checks{not_applicable}",
+        "{} of {} points, {} of {} checks",
         run.score(),
         run.points(),
         run.passed().count(),

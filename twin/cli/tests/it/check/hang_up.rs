@@ -130,10 +130,10 @@ fn a_class_keeps_what_a_student_passed_before_the_hang_up() {
     assert_eq!(
         scores.lines().collect::<Vec<_>>(),
         [
-            "student,score,points,checks_passed,checks,first_failure",
+            "student,score,points,checks_passed,checks,first_failure,not_applicable",
             // Quoted: the check's name holds a comma.
-            &format!("Anna,5,32,5,25,\"{SIXTH}\""),
-            "Ben,32,32,25,25,",
+            &format!("Anna,5,32,5,25,\"{SIXTH}\",6"),
+            "Ben,32,32,25,25,,6",
         ],
         "{shown}"
     );
