@@ -61,8 +61,13 @@ impl Panel {
             .next()
             .ok_or_else(|| format!("{}: the host has no address", self.shown))?;
         let mut stream = TcpStream::connect_timeout(&addr, TIMEOUT).map_err(|e| {
+            let why = match e.kind() {
+                std::io::ErrorKind::ConnectionRefused => "connection refused".to_string(),
+                std::io::ErrorKind::TimedOut => "no answer".to_string(),
+                _ => e.to_string(),
+            };
             format!(
-                "cannot reach the bench's panel at {}: {e} (is `twin serve --web` running there?)",
+                "cannot reach the bench's panel at {}: {why} (is `twin serve --web` running there?)",
                 self.shown
             )
         })?;

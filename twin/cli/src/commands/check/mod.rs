@@ -109,7 +109,10 @@ pub(super) fn reports_and_verdict(
     }
     let failed = run.failed();
     if failed > 0 {
-        bail!("{failed} of {} checks failed", run.checks.len());
+        bail!(
+            "{failed} of {} checks failed",
+            run.checks.len() - run.not_applicable()
+        );
     }
     Ok(())
 }

@@ -151,7 +151,34 @@ fn a_slave_with_a_meaning_bug_fails_exactly_that_bench_check() {
         assert_eq!(failed(&json), vec![check.to_string()], "{shown}");
         assert!(shown.contains(why), "{shown}");
         assert!(shown.contains("error: 1 of 31 checks failed"), "{shown}");
+        assert!(!shown.contains("not applicable"), "{shown}");
+        if map == &fr_moved {
+            the_books_lines_are_printed(&shown);
+        }
         serve.terminate();
+    }
+}
+
+/// Every line of docs/check.md's bench report is printed, in order (its
+/// times and ports aside).
+fn the_books_lines_are_printed(shown: &str) {
+    let page = std::fs::read_to_string(
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../docs/check.md"),
+    )
+    .unwrap();
+    let start = page
+        .find("a_slave_with_a_meaning_bug test -->\n```text\n")
+        .expect("the bench report on the page");
+    let start = start + page[start..].find("```text\n").unwrap() + 8;
+    let book = super::comparable(&page[start..start + page[start..].find("\n```").unwrap()]);
+    let printed = super::comparable(shown);
+    let mut rest = printed.iter();
+    for line in &book {
+        assert!(
+            rest.any(|l| l == line),
+            "the page's line {line:?} is not in what the program printed, in order:\n{}",
+            printed.join("\n")
+        );
     }
 }
 

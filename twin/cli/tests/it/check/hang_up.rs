@@ -79,7 +79,11 @@ fn a_slave_that_hangs_up_keeps_the_checks_it_passed() {
     );
     assert_eq!(sixth["frames"][0]["text"], "@01SD0001001F20*\\n");
     assert_eq!(sixth["frames"].as_array().unwrap().len(), 1, "{sixth}");
-    for later in &checks[6..] {
+    // Every later check but the bench checks, which stay not applicable.
+    for later in checks[6..]
+        .iter()
+        .filter(|c| c["result"] != "not applicable")
+    {
         assert!(
             later["why"]
                 .as_str()

@@ -206,9 +206,9 @@ fn a_class_of_masters_is_checked_from_a_roster() {
     let printed = text(&out);
     assert_eq!(out.status.code(), Some(1), "{printed}");
     let scores = std::fs::read_to_string(out_dir.join("scores.csv")).unwrap();
-    assert!(scores.contains("Ann,11,11,8,8,\n"), "{scores}");
+    assert!(scores.contains("Ann,11,11,8,8,,0\n"), "{scores}");
     assert!(
-        scores.contains(&format!("Ben,9,11,7,8,{BAD_FCS}\n")),
+        scores.contains(&format!("Ben,9,11,7,8,{BAD_FCS},0\n")),
         "{scores}"
     );
     let ben = std::fs::read_to_string(out_dir.join("Ben.txt")).unwrap();
