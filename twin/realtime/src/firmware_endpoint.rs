@@ -12,7 +12,8 @@
 //!   order.
 //! - **A watchdog for a board that never answers.** Requests for a board's
 //!   id that it has not answered while its firmware ran for [`WATCHDOG`]
-//!   (two or more, valid, not broadcast) mark the board dead: the node says where its program is
+//!   (two or more, valid, not broadcast; the second of them unanswered for
+//!   [`REPLY_WAIT`]) mark the board dead: the node says where its program is
 //!   ([`twin_sim::engine::SimNode::not_answering`]), the server keeps serving
 //!   the others, and the master sees timeouts as on the bench.
 
@@ -58,6 +59,10 @@ struct Watch {
     /// When the oldest request it has not answered came, and how many since.
     since: Option<SimTime>,
     asked: u32,
+    /// When the second of them came: a request a sketch rightly left
+    /// unanswered (one a student's bug spoils, a reply-shaped frame) long
+    /// ago must not condemn it the moment the next request comes.
+    second: Option<SimTime>,
     fired: bool,
 }
 
@@ -100,6 +105,7 @@ impl FirmwareEndpoint {
                     id,
                     since: None,
                     asked: 0,
+                    second: None,
                     fired: false,
                 })
                 .collect(),
@@ -210,6 +216,9 @@ impl FirmwareEndpoint {
                 let at = devices.get(w.device).map_or(now, |d| firmware_time(d, now));
                 w.since.get_or_insert(at);
                 w.asked += 1;
+                if w.asked == WATCHDOG_REQUESTS {
+                    w.second = Some(at);
+                }
                 true
             }
             // A Rust node on the same line answers at once.
@@ -238,9 +247,9 @@ impl FirmwareEndpoint {
     }
 
     fn watchdog_due(w: &Watch) -> Option<SimTime> {
+        let (since, second) = (w.since?, w.second?);
         (!w.fired && w.asked >= WATCHDOG_REQUESTS)
-            .then(|| w.since.map(|s| s + WATCHDOG))
-            .flatten()
+            .then(|| (since + WATCHDOG).max(second + REPLY_WAIT))
     }
 
     /// Marks dead the boards whose firmware has run [`WATCHDOG`] past the
@@ -343,6 +352,7 @@ impl Endpoint for FirmwareEndpoint {
         if let Some(w) = self.watches.iter_mut().find(|w| w.device == d) {
             w.since = None;
             w.asked = 0;
+            w.second = None;
         }
         if self.one_at_a_time {
             self.next_request(devices, now);
