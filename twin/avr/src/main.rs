@@ -17,8 +17,8 @@ mod bench;
 /// ATmega328P run in simavr, instruction by instruction, against the
 /// simulated bench. A scenario's `firmware` node names the sketch's ELF and
 /// its wiring map (`ev-controller` or a TOML file); `serve --firmware`
-/// runs a sketch in real time for a real master (`supervise` and `vsp` are
-/// `twin`'s own, here so one binary holds a whole bench). This
+/// runs a sketch in real time for a real master (`supervise`, `vsp` and
+/// `check` are `twin`'s own, here so one binary holds a whole bench). This
 /// binary is GPL-3.0-or-later because it links simavr; `twin` is MIT OR
 /// Apache-2.0 and runs every other scenario.
 #[derive(Debug, clap::Parser)]
@@ -41,6 +41,7 @@ enum Command {
     Supervise(commands::supervise::SuperviseArgs),
     Vsp(commands::vsp::VspArgs),
     Calibrate(commands::calibrate::CalibrateArgs),
+    Check(commands::check::CheckArgs),
     Bench(bench::BenchArgs),
 }
 
@@ -106,6 +107,7 @@ fn main() -> ExitCode {
         Command::Supervise(args) => commands::supervise::execute(&args, &given("supervise")),
         Command::Vsp(args) => commands::vsp::execute(&args),
         Command::Calibrate(args) => commands::calibrate::execute(&args),
+        Command::Check(args) => commands::check::execute(&args),
         Command::Bench(args) => bench::execute(&args),
     };
     match result {
