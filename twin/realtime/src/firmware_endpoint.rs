@@ -59,9 +59,9 @@ struct Watch {
     /// When the oldest request it has not answered came, and how many since.
     since: Option<SimTime>,
     asked: u32,
-    /// When the second of them came: a request a sketch rightly left
-    /// unanswered (one a student's bug spoils, a reply-shaped frame) long
-    /// ago must not condemn it the moment the next request comes.
+    /// When the second of them came: a request a sketch left unanswered
+    /// long ago (one a student's bug spoilt) must not condemn it the
+    /// moment the next request comes.
     second: Option<SimTime>,
     fired: bool,
 }
@@ -119,12 +119,14 @@ impl FirmwareEndpoint {
     }
 
     /// The slave id a whole, valid request is for; `None` for a broadcast
-    /// or a frame no slave answers.
+    /// or a frame no slave answers (MEB: one shaped like a reply).
     fn addressed(&self, frame: &[u8]) -> Option<u8> {
         match self.framing {
             RequestFraming::Meb => {
-                let id = MebFrame::new_checked(frame).ok()?.id();
-                (id != 0).then_some(id)
+                let frame = MebFrame::new_checked(frame).ok()?;
+                // A frame shaped like a reply (an error reply, a read
+                // carrying data) is never answered: no request at all.
+                (frame.id() != 0 && !frame.shape().is_reply()).then_some(frame.id())
             }
             RequestFraming::Modbus8 => Frame::parse(frame, CrcOrder::HighFirst).ok().map(|f| f.id),
         }
