@@ -20,3 +20,4 @@ mod recording;
 mod serve;
 mod serve_boards;
 mod stall;
+mod students;
