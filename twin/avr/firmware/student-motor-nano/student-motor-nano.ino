@@ -9,8 +9,9 @@
 // make, so that the checker can be held to finding it and nothing else
 // (make BUILD=/tmp/bug DEFINES=-DBUG_CRC_LOW_FIRST student-motor-nano):
 //
-//   BUG_CRC_LOW_FIRST   the CRC low byte first, as standard Modbus RTU
-//                       sends it (this line sends it high byte first)
+//   BUG_CRC_LOW_FIRST   its replies' CRC low byte first, as standard
+//                       Modbus RTU sends it (this line sends it high byte
+//                       first); the requests it checks in the line's order
 //
 // Wiring (the bench's `motor-nano` map): D2 encoder A (INT0), D3 encoder
 // B, D9 PWM to the driver, D10 driver awake, D13 LED. Serial at 115200 8N1.
@@ -61,11 +62,7 @@ void addCrc(byte *f) {
 
 bool crcOk(const byte *f) {
   unsigned int crc = crc16(f, 6);
-#ifdef BUG_CRC_LOW_FIRST
-  return f[6] == (crc & 0xFF) && f[7] == (crc >> 8);
-#else
   return f[6] == (crc >> 8) && f[7] == (crc & 0xFF);
-#endif
 }
 
 void reply(byte function, unsigned int addr, unsigned int value) {
