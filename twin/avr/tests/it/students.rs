@@ -270,7 +270,7 @@ fn the_student_sketches_are_checked_and_each_planted_bug_is_found_alone() {
     assert_eq!(meb_replies.len(), 20, "{meb_replies:?}");
     let motor_replies = checks_with_a_reply("modbus8-slave", |b| b.starts_with("01"));
     assert_eq!(motor_replies.len(), 18, "{motor_replies:?}");
-    let students = vec![
+    let students = [
         meb("correct", "", vec![]),
         meb(
             "answers-bad-fcs",
