@@ -6,7 +6,7 @@
 //! checked there by `twin-avr check slave` (`twin check slave` itself) with
 //! the built-in suite of its protocol. The correct builds pass every check;
 //! each buggy build fails exactly the checks its bug explains, and nothing
-//! else. The variants run at once, each in its own server.
+//! else. The variants run three at a time, each in its own server.
 
 use crate::common;
 use crate::serve_boards::{ONE_AT_A_TIME, scratch, stop, wait_ready};
