@@ -20,7 +20,14 @@ use std::time::{Duration, Instant};
 /// How many sketches are served and checked at once.
 const AT_ONCE: usize = 3;
 /// How long a sketch must stay silent where the suite requires silence.
-const SILENCE_MS: u64 = 1000;
+const SILENCE_MS: u64 = 2000;
+/// How long a reply is waited for: a loaded machine (two cores, a load of
+/// 19) once ran a sketch's reply 1.5 s late.
+const TIMEOUT_MS: u64 = 3000;
+/// The same for a sketch whose every reply is wrong: each check with a
+/// reply fails, late or not, and a failed check waits three times as long
+/// again for a late reply.
+const TIMEOUT_WRONG_REPLIES_MS: u64 = 1000;
 
 /// A built-in suite as shipped: the checks a planted bug may fail are
 /// named from it.
@@ -122,11 +129,13 @@ struct Student {
     suite: &'static str,
     /// The checks its bug explains, in the suite's order.
     expected: Vec<String>,
+    /// `--timeout-ms`.
+    timeout_ms: u64,
 }
 
 /// The student's build served on one end of a vsp pair, checked on the
-/// other end; the sketch given 1 s to answer, and to stay silent (a loaded
-/// test machine runs it late: what is checked here is its logic).
+/// other end; the sketch given seconds to answer, and to stay silent (a
+/// loaded test machine runs it late: what is checked here is its logic).
 fn check(student: &Student, elf: &Path) -> Checked {
     let name = format!("{} {}", student.sketch, student.tag);
     let dir = scratch(&format!("{}-{}", student.sketch, student.tag));
@@ -167,14 +176,8 @@ fn check(student: &Student, elf: &Path) -> Checked {
     assert!(head.contains(&format!("{}.elf", student.sketch)), "{head}");
     let json = dir.join("run.json");
     let out = Command::new(env!("CARGO_BIN_EXE_twin-avr"))
-        .args([
-            "check",
-            "slave",
-            &a_s,
-            "--timeout-ms",
-            "1000",
-            "--no-record",
-        ])
+        .args(["check", "slave", &a_s, "--no-record"])
+        .args(["--timeout-ms", &student.timeout_ms.to_string()])
         .arg("--suite")
         .arg(patient_suite(student.suite, &dir))
         .arg("--json")
@@ -237,6 +240,7 @@ fn meb(tag: &'static str, define: &'static str, expected: Vec<String>) -> Studen
         beside: &[],
         suite: "meb-slave",
         expected,
+        timeout_ms: TIMEOUT_MS,
     }
 }
 
@@ -254,6 +258,7 @@ fn motor(tag: &'static str, define: &'static str, expected: Vec<String>) -> Stud
         beside: &[("light", "light-nano")],
         suite: "modbus8-slave",
         expected,
+        timeout_ms: TIMEOUT_MS,
     }
 }
 
@@ -299,11 +304,17 @@ fn the_student_sketches_are_checked_and_each_planted_bug_is_found_alone() {
             ]),
         ),
         // Every reply refused for its FCS; the silences still pass.
-        meb("fcs-without-at", "BUG_FCS_WITHOUT_AT", meb_replies),
+        Student {
+            timeout_ms: TIMEOUT_WRONG_REPLIES_MS,
+            ..meb("fcs-without-at", "BUG_FCS_WITHOUT_AT", meb_replies)
+        },
         motor("correct", "", vec![]),
         // Every reply of the motor's refused for its CRC; the light
         // Nano's and the silences still pass.
-        motor("crc-low-first", "BUG_CRC_LOW_FIRST", motor_replies),
+        Student {
+            timeout_ms: TIMEOUT_WRONG_REPLIES_MS,
+            ..motor("crc-low-first", "BUG_CRC_LOW_FIRST", motor_replies)
+        },
     ];
     // Built one after another (the builds would only share two cores).
     let built: Vec<PathBuf> = students.iter().map(build).collect();
