@@ -17,7 +17,7 @@ pub mod refusal;
 /// The wire formats, from the `protocols` crate: node code and its users
 /// name them `nodes::proto::…` without depending on that crate themselves.
 pub mod proto {
-    pub use protocols::{crc, link, meb, modbus, modbus8, pwmcap, words};
+    pub use protocols::{crc, hex, link, meb, modbus, modbus8, pwmcap, words};
 }
 /// Simulated time, from the `protocols` crate.
 pub use protocols::time;

@@ -6,6 +6,7 @@
 //! (`link`: `tcp://HOST:PORT`, serial paths and their options).
 
 pub mod crc;
+pub mod hex;
 pub mod link;
 pub mod meb;
 pub mod modbus;

@@ -4,6 +4,11 @@
 //! printing what it does. Its step-response program is the other program the
 //! project ran on the Pi: no handshake, and a loop that reads both nodes and
 //! writes the motor's state to operational, so that its first write is the step.
+//!
+//! Beside either program, or in place of both, a scenario can script
+//! requests ([`ScriptedRequest`]): frames sent at given times, as the
+//! project's command-line `modbus` program (`./modbus 1 6 1 128`) sent the
+//! single requests of its oscilloscope captures.
 
 use std::collections::VecDeque;
 
@@ -31,6 +36,9 @@ pub enum MasterProgram {
     /// write the state operational, again and again with no sleep. It never
     /// writes the set point, so the motor's power-up target is the step.
     StepResponse,
+    /// The command-line `modbus` program: only the scripted requests, one
+    /// at a time, each reply read once after the wait.
+    Requests,
 }
 
 impl MasterProgram {
@@ -39,6 +47,7 @@ impl MasterProgram {
         match self {
             MasterProgram::Loop => "loop",
             MasterProgram::StepResponse => "step-response",
+            MasterProgram::Requests => "requests",
         }
     }
 }
@@ -154,9 +163,22 @@ impl Step {
     }
 }
 
+/// A request a scenario scripts: sent at `at`, or as soon as the
+/// transaction in flight is over; its reply is read once, `reply_wait`
+/// after it, and only printed (the program's own state is left alone).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ScriptedRequest {
+    pub at: SimTime,
+    pub frame: Frame,
+    /// Sent with its CRC plus one, as the project's test of a wrong CRC.
+    pub bad_crc: bool,
+}
+
 /// Where the current transaction stands.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Wait {
+    /// Nothing of the program's to send (the `requests` program).
+    Idle,
     /// Send `step` at or after the instant.
     Send(SimTime),
     /// The request is out since the instant; read the reply from `+ reply_wait`.
@@ -171,6 +193,14 @@ pub struct ControllerNetworkMaster {
     phase: MasterPhase,
     step: Step,
     wait: Wait,
+    /// The request in flight.
+    current: Frame,
+    /// Scripted requests in time order, and the next one's index.
+    script: Vec<ScriptedRequest>,
+    next_script: usize,
+    /// While a scripted request is in flight: the program's wait it
+    /// interrupted, taken up again after it.
+    paused: Option<Wait>,
     reply: Option<Result<Frame, Modbus8Error>>,
     cycle: u32,
     set_point: u16,
@@ -187,14 +217,24 @@ impl ControllerNetworkMaster {
     pub fn new(config: MasterConfig) -> Self {
         let (phase, step) = match config.program {
             MasterProgram::Loop => (MasterPhase::Handshake, Step::ReadState),
-            MasterProgram::StepResponse => (MasterPhase::Running, Step::ReadRpm),
+            MasterProgram::StepResponse | MasterProgram::Requests => {
+                (MasterPhase::Running, Step::ReadRpm)
+            }
+        };
+        let wait = match config.program {
+            MasterProgram::Requests => Wait::Idle,
+            _ => Wait::Send(SimTime::ZERO + config.start),
         };
         ControllerNetworkMaster {
             config,
             decoder: Modbus8Decoder::new(config.crc_order, config.silence),
             phase,
             step,
-            wait: Wait::Send(SimTime::ZERO + config.start),
+            wait,
+            current: step.request(),
+            script: Vec::new(),
+            next_script: 0,
+            paused: None,
             reply: None,
             cycle: 0,
             set_point: config.set_point_high,
@@ -205,6 +245,21 @@ impl ControllerNetworkMaster {
             timeouts: 0,
             events: VecDeque::with_capacity(EVENT_QUEUE),
         }
+    }
+
+    /// The same master with `script` to send besides (or, in the
+    /// `requests` program, instead of) its program's requests.
+    pub fn with_script(mut self, mut script: Vec<ScriptedRequest>) -> Self {
+        // Stable: requests of one instant go in the order written.
+        script.sort_by_key(|r| r.at);
+        self.script = script;
+        self.next_script = 0;
+        self
+    }
+
+    /// Scripted requests sent so far.
+    pub fn scripted_sent(&self) -> usize {
+        self.next_script
     }
 
     /// Handshake or running.
@@ -280,12 +335,20 @@ impl ControllerNetworkMaster {
                 self.push_event(now, "bad_check", error.to_string());
                 self.advance(now, None);
             }
+            // The `modbus` program reads once and closes the port.
+            None if self.paused.is_some() => {
+                self.timeouts += 1;
+                self.log(now, || "There was no data available to read!".to_string());
+                let id = self.current.id;
+                self.push_event(now, "timeout", format!("no reply from {id:02x}"));
+                self.advance(now, None);
+            }
             None => match self.config.reply_timeout {
                 Some(timeout) if now >= sent_at + timeout => {
                     self.timeouts += 1;
                     self.log(now, || "There was no data available to read!".to_string());
-                    let request = self.step.request();
-                    self.push_event(now, "timeout", format!("no reply from {:02x}", request.id));
+                    let id = self.current.id;
+                    self.push_event(now, "timeout", format!("no reply from {id:02x}"));
                     self.advance(now, None);
                 }
                 // Blocks in read() until bytes come.
@@ -295,7 +358,7 @@ impl ControllerNetworkMaster {
     }
 
     fn use_reply(&mut self, now: SimTime, frame: Frame) {
-        let request = self.step.request();
+        let request = self.current;
         let order = self.config.crc_order;
         self.log(now, || {
             let bytes = frame.to_bytes(order);
@@ -318,7 +381,8 @@ impl ControllerNetworkMaster {
         }
         match frame.reply() {
             Ok(v) => {
-                if self.config.log {
+                // A scripted request's value is only printed (above).
+                if self.config.log && self.paused.is_none() {
                     self.log_value(now, v);
                 }
                 self.advance(now, Some(v));
@@ -362,7 +426,12 @@ impl ControllerNetworkMaster {
 
     /// The next step after the current one, given the value it got (if usable).
     fn advance(&mut self, now: SimTime, value: Option<u16>) {
-        if self.config.program == MasterProgram::StepResponse {
+        if let Some(wait) = self.paused.take() {
+            // A scripted request is over: the program goes on where it was.
+            self.wait = wait;
+            return;
+        }
+        if self.config.program != MasterProgram::Loop {
             self.advance_step_response(now, value);
             return;
         }
@@ -425,6 +494,10 @@ impl ControllerNetworkMaster {
     /// The step-response program: rpm, sensor, state operational, at once
     /// one after the other (its only pause is the wait for each reply).
     fn advance_step_response(&mut self, now: SimTime, value: Option<u16>) {
+        if self.config.program == MasterProgram::Requests {
+            self.wait = Wait::Idle;
+            return;
+        }
         self.step = match (self.step, value) {
             (Step::ReadRpm, v) => {
                 if let Some(v) = v {
@@ -497,16 +570,29 @@ impl Node for ControllerNetworkMaster {
     }
 
     fn poll_transmit(&mut self, now: SimTime, buf: &mut [u8]) -> Option<usize> {
-        let Wait::Send(at) = self.wait else {
-            return None;
-        };
-        if now < at {
+        let scripted = self
+            .script
+            .get(self.next_script)
+            .filter(|r| r.at <= now)
+            .copied();
+        let program_due = matches!(self.wait, Wait::Send(at) if at <= now);
+        let ready = matches!(self.wait, Wait::Idle | Wait::Send(_));
+        if !ready || (scripted.is_none() && !program_due) {
             return None;
         }
         let slot = buf.get_mut(..FRAME_LEN)?;
-        let request = self.step.request();
+        let (request, bad_crc) = match scripted {
+            // A scripted request goes first, between the program's.
+            Some(r) => {
+                self.next_script += 1;
+                self.paused = Some(self.wait);
+                (r.frame, r.bad_crc)
+            }
+            None => (self.step.request(), false),
+        };
+        self.current = request;
         let mut bytes = request.to_bytes(self.config.crc_order);
-        if self.config.corrupt_request_crc {
+        if self.config.corrupt_request_crc || bad_crc {
             corrupt_crc(&mut bytes, self.config.crc_order);
         }
         slot.copy_from_slice(&bytes);
@@ -531,11 +617,14 @@ impl Node for ControllerNetworkMaster {
     }
 
     fn poll_timeout(&self) -> Option<SimTime> {
+        let next_script = self.script.get(self.next_script).map(|r| r.at);
         let own = match self.wait {
-            Wait::Send(at) => Some(at),
+            Wait::Idle => next_script,
+            Wait::Send(at) => Some(next_script.map_or(at, |s| s.min(at))),
             Wait::Reply(sent_at) => {
                 let read_at = sent_at + self.config.reply_wait;
-                if self.reply.is_some() {
+                if self.reply.is_some() || self.paused.is_some() {
+                    // A reply to read, or a scripted request's one read.
                     Some(read_at)
                 } else {
                     // Nothing to read yet: wake for the timeout, if there is one.

@@ -11,7 +11,9 @@ mod master;
 mod motor;
 
 pub use light::{LightConfig, LightNode};
-pub use master::{ControllerNetworkMaster, MasterConfig, MasterPhase, MasterProgram};
+pub use master::{
+    ControllerNetworkMaster, MasterConfig, MasterPhase, MasterProgram, ScriptedRequest,
+};
 pub use motor::{MotorConfig, MotorNode, MotorState};
 
 use std::collections::VecDeque;

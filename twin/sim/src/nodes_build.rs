@@ -3,7 +3,8 @@
 
 use anyhow::{Result, bail};
 use nodes::controller_network::{
-    ControllerNetworkMaster, LightConfig, LightNode, MasterConfig, MotorConfig, MotorNode,
+    ControllerNetworkMaster, LightConfig, LightNode, MasterConfig, MasterProgram, MotorConfig,
+    MotorNode, ScriptedRequest,
 };
 use nodes::firmware::{
     EvController, EvControllerConfig, LightDetectorConfig, Readings, Refusal, SlaveProtocol, ea,
@@ -21,8 +22,8 @@ use serde_json::{Value, json};
 
 use crate::engine::{SimNode, SpeedReadings};
 use crate::scenario::{
-    BusSpec, FaultKind, FaultSpec, JunkPlaceSpec, LightDetectorSpec, MasterProgramSpec, NodeSpec,
-    ProtocolSpec, WiringSpec,
+    BusSpec, CrcSpec, FaultKind, FaultSpec, JunkPlaceSpec, LightDetectorSpec, MasterProgramSpec,
+    NodeSpec, ProtocolSpec, RequestSpec, WiringSpec,
 };
 use twin_recording::topics::{LoopReport, MebWords, ReadingsSample, SlaveLoop, SupervisorReport};
 
@@ -119,11 +120,13 @@ pub fn light_detector_config(params: &PlantParams, spec: LightDetectorSpec) -> L
 }
 
 /// The node for a scenario's `[[node]]`, and its reply turnaround; `seed`
-/// draws its faults' random junk.
+/// draws its faults' random junk; `requests` are the scripted frames it
+/// sends (a master's).
 pub fn build_node(
     spec: &NodeSpec,
     module: Option<&PlantParams>,
     faults: &[&FaultSpec],
+    requests: &[&RequestSpec],
     seed: u64,
 ) -> Result<(Box<dyn SimNode>, SimDuration)> {
     let windows = fault_windows(faults);
@@ -224,14 +227,30 @@ pub fn build_node(
             let base = match program {
                 MasterProgramSpec::Loop => MasterConfig::default(),
                 MasterProgramSpec::StepResponse => MasterConfig::step_response(),
+                MasterProgramSpec::Requests => MasterConfig {
+                    program: MasterProgram::Requests,
+                    ..MasterConfig::default()
+                },
             };
             let config = MasterConfig {
                 reply_timeout: reply_timeout_ms.map(ms),
                 start: SimDuration::from_secs_f64(start_s.unwrap_or_default()),
                 ..base
             };
+            let script = requests
+                .iter()
+                .map(|r| {
+                    let frame = crate::scenario::request_frame(&r.send)
+                        .map_err(|why| anyhow::anyhow!("request at {} s: {why}", r.at_s))?;
+                    Ok(ScriptedRequest {
+                        at: at(r.at_s),
+                        frame,
+                        bad_crc: r.crc == CrcSpec::Bad,
+                    })
+                })
+                .collect::<Result<Vec<_>>>()?;
             let node = FaultyNode::with_schedule(
-                ControllerNetworkMaster::new(config),
+                ControllerNetworkMaster::new(config).with_script(script),
                 CheckKind::Modbus8,
                 windows,
             )

@@ -16,7 +16,9 @@ use serde_json::{Value, json};
 
 use crate::engine::SimNode;
 use crate::nodes_build::{build_bus, build_node};
-use crate::scenario::{AddressingSpec, BusSpec, FaultSpec, MediumSpec, NodeSpec, ParallelLinkSpec};
+use crate::scenario::{
+    AddressingSpec, BusSpec, FaultSpec, MediumSpec, NodeSpec, ParallelLinkSpec, RequestSpec,
+};
 
 fn ms(v: f64) -> SimDuration {
     SimDuration::from_secs_f64(v / 1000.0)
@@ -78,6 +80,7 @@ pub fn build_node_on(
     spec: &NodeSpec,
     module: Option<&PlantParams>,
     faults: &[&FaultSpec],
+    requests: &[&RequestSpec],
     bus: &BusSpec,
     seed: u64,
 ) -> Result<(Box<dyn SimNode>, SimDuration)> {
@@ -168,7 +171,7 @@ pub fn build_node_on(
         }
         NodeSpec::Firmware { .. } => crate::external::build_firmware(spec, module, bus)
             .map(|(node, turnaround)| (node as Box<dyn SimNode>, turnaround)),
-        _ => build_node(spec, module, faults, seed),
+        _ => build_node(spec, module, faults, requests, seed),
     }
 }
 

@@ -1,5 +1,5 @@
 //! Scenario files: modules, buses, nodes, masters, a set-point schedule,
-//! faults and the seed, in TOML. Two scenarios are embedded in the binary.
+//! faults and the seed, in TOML. The lab's scenarios are embedded in the binary ([`EMBEDDED`]).
 //!
 //! ```toml
 //! name = "ev-meb"
@@ -24,6 +24,9 @@
 
 pub mod check;
 mod fault_check;
+mod request_check;
+
+pub use request_check::frame as request_frame;
 
 use plant::PlantParams;
 use plant::params::ParamsError;
@@ -36,7 +39,7 @@ pub use crate::scenario_pwm::{
 };
 
 /// The scenarios built into the binary: name, one-line description, TOML text.
-pub const EMBEDDED: [(&str, &str, &str); 7] = [
+pub const EMBEDDED: [(&str, &str, &str); 12] = [
     (
         "ev-meb",
         "the EV module's speed loop closed by a supervisor over MEB at 115200 baud (default)",
@@ -46,6 +49,31 @@ pub const EMBEDDED: [(&str, &str, &str); 7] = [
         "controller-network",
         "the Controller_network project: motor node, light-sensor node, Raspberry Pi master",
         include_str!("../../../recordings/scenarios/controller-network.toml"),
+    ),
+    (
+        "controller-network-bad-crc-master",
+        "the Controller_network scope capture: the Pi's request with a wrong CRC, ignored",
+        include_str!("../../../recordings/scenarios/controller-network-bad-crc-master.toml"),
+    ),
+    (
+        "controller-network-bad-crc-slave",
+        "the Controller_network scope capture: the motor's reply with a wrong CRC, refused",
+        include_str!("../../../recordings/scenarios/controller-network-bad-crc-slave.toml"),
+    ),
+    (
+        "controller-network-illegal-address",
+        "the Controller_network scope capture: a write to a register the motor lacks (02)",
+        include_str!("../../../recordings/scenarios/controller-network-illegal-address.toml"),
+    ),
+    (
+        "controller-network-illegal-value",
+        "the Controller_network scope capture: a write of 120 to the motor's state (03)",
+        include_str!("../../../recordings/scenarios/controller-network-illegal-value.toml"),
+    ),
+    (
+        "controller-network-illegal-function",
+        "the Controller_network scope capture: a request with function 04 (01)",
+        include_str!("../../../recordings/scenarios/controller-network-illegal-function.toml"),
     ),
     (
         "ten-modules",
@@ -98,6 +126,9 @@ pub struct Scenario {
     pub nodes: Vec<NodeSpec>,
     #[serde(rename = "fault", default)]
     pub faults: Vec<FaultSpec>,
+    /// Frames a master sends at given times (`[[request]]`).
+    #[serde(rename = "request", default, skip_serializing_if = "Vec::is_empty")]
+    pub requests: Vec<RequestSpec>,
 }
 
 fn default_seed() -> u64 {
@@ -135,6 +166,9 @@ pub enum MasterProgramSpec {
     Loop,
     /// The step-response program: reads both nodes and writes operational.
     StepResponse,
+    /// Only the scenario's `[[request]]`s, as the project's command-line
+    /// `modbus` program sent them for its oscilloscope captures.
+    Requests,
 }
 
 /// How a bus is wired.
@@ -555,6 +589,38 @@ impl NodeSpec {
     }
 }
 
+/// A frame a master sends at a given time, besides its program's polls
+/// (or, with `program = "requests"`, instead of them).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RequestSpec {
+    /// The master that sends it (a `controller-network-master`).
+    pub node: String,
+    /// When (s from the start); a transaction in flight is finished first.
+    pub at_s: f64,
+    /// The frame before its check bytes, in hex as a check suite's `send`:
+    /// id, function, address, value (`"01 06 0001 0080"`).
+    pub send: String,
+    /// `bad` sends it with a wrong CRC (the right one plus one).
+    #[serde(default, skip_serializing_if = "CrcSpec::is_good")]
+    pub crc: CrcSpec,
+}
+
+/// A scripted request's check bytes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CrcSpec {
+    #[default]
+    Good,
+    Bad,
+}
+
+impl CrcSpec {
+    pub fn is_good(&self) -> bool {
+        *self == Self::Good
+    }
+}
+
 /// A fault switched on for a time window.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -883,6 +949,7 @@ impl Scenario {
             }
         }
         fault_check::check(self)?;
+        request_check::check(self)?;
         check::check(self)
     }
 }
@@ -1065,6 +1132,8 @@ pub fn check_name(name: &str) -> std::result::Result<(), String> {
 
 /// The owner of a field of the `[[fault]]` at an index: `fault#0` the first.
 pub(crate) const FAULT_OWNER: &str = "fault#";
+/// The owner of a field of the `[[request]]` at an index: `request#0` the first.
+pub(crate) const REQUEST_OWNER: &str = "request#";
 
 /// The line of `key` where the file sets it, from the parsed file's spans:
 /// with an `owner`, in a table whose `name` is `owner` or in one of its
@@ -1092,17 +1161,20 @@ fn locate(
             .min()
     };
     let offset = match owner {
-        Some(owner) if owner.starts_with(FAULT_OWNER) => {
-            let index: usize = owner.get(FAULT_OWNER.len()..)?.parse().ok()?;
-            let fault = match root.get_ref() {
-                toml::de::DeValue::Table(t) => match t.get("fault")?.get_ref() {
+        Some(owner) if owner.starts_with(FAULT_OWNER) || owner.starts_with(REQUEST_OWNER) => {
+            // `fault#3`: the fourth `[[fault]]`; `request#0`: the first `[[request]]`.
+            let (array, index) = owner.split_once('#')?;
+            let index: usize = index.parse().ok()?;
+            let entry = match root.get_ref() {
+                toml::de::DeValue::Table(t) => match t.get(array)?.get_ref() {
                     toml::de::DeValue::Array(a) => a.get(index)?,
                     _ => return None,
                 },
                 _ => return None,
             };
-            setting(fault, key)
-                .or_else(|| setting(fault, "kind"))
+            setting(entry, key)
+                .or_else(|| setting(entry, "kind"))
+                .or_else(|| setting(entry, "node"))
                 .map(|span| span.start)
         }
         None => first_of(&tables, key),

@@ -147,13 +147,24 @@ pub fn build(scenario: &Scenario) -> Result<Engine> {
             .iter()
             .filter(|f| f.node == spec.name())
             .collect();
+        let requests: Vec<_> = scenario
+            .requests
+            .iter()
+            .filter(|r| r.node == spec.name())
+            .collect();
         let Some((bus_spec, _)) = buses.iter().find(|(b, _)| b.name == spec.bus()) else {
             bail!("node `{}`: no bus `{}`", spec.name(), spec.bus());
         };
         let seed = derive_seed(scenario.seed, 500 + i as u64);
-        let (node, turnaround) =
-            build_node_on(spec, module.map(|(_, p)| p), &faults, bus_spec, seed)
-                .with_context(|| format!("node `{}`", spec.name()))?;
+        let (node, turnaround) = build_node_on(
+            spec,
+            module.map(|(_, p)| p),
+            &faults,
+            &requests,
+            bus_spec,
+            seed,
+        )
+        .with_context(|| format!("node `{}`", spec.name()))?;
         let port = engine.buses[bus]
             .bus
             .add_port(nodes::link::PortConfig { turnaround });

@@ -10,41 +10,14 @@ use nodes::proto::modbus::serial::FrameLen;
 use nodes::proto::modbus::{FrameError, MAX_PDU_LEN, tcp};
 use nodes::proto::modbus8::{self, CrcOrder, Modbus8Error};
 
-/// The bytes `text` spells: pairs of hex digits, spaces anywhere between
-/// pairs (`01 03 0000 000A`).
+/// Bytes written as hex: two digits a byte, spaces between any pairs.
 pub(super) fn hex(text: &str) -> Result<Vec<u8>, String> {
-    pattern(text)?
-        .into_iter()
-        .map(|b| b.ok_or_else(|| format!("`{text}`: `..` (any byte) is for replies only")))
-        .collect()
+    nodes::proto::hex::bytes(text).map_err(|e| e.to_string())
 }
 
 /// A reply's pattern: hex bytes as [`hex`], `..` for a byte of any value.
 pub(super) fn pattern(text: &str) -> Result<Vec<Option<u8>>, String> {
-    let mut out = Vec::new();
-    for word in text.split_whitespace() {
-        if word.len() % 2 != 0 {
-            return Err(format!(
-                "`{word}` has an odd number of hex digits (a byte is two)"
-            ));
-        }
-        for pair in word.as_bytes().chunks(2) {
-            let pair = String::from_utf8_lossy(pair);
-            if pair == ".." {
-                out.push(None);
-                continue;
-            }
-            let byte = u8::from_str_radix(&pair, 16)
-                .ok()
-                .filter(|_| pair.chars().all(|c| c.is_ascii_hexdigit()))
-                .ok_or_else(|| format!("`{pair}` in `{word}` is not a hex byte"))?;
-            out.push(Some(byte));
-        }
-    }
-    if out.is_empty() {
-        return Err("no bytes given".into());
-    }
-    Ok(out)
+    nodes::proto::hex::pattern(text).map_err(|e| e.to_string())
 }
 
 /// Whether `body` (filled) is a frame `protocol` can send: unit and PDU

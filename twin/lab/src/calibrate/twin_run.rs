@@ -165,6 +165,8 @@ fn master_of(scenario: &Scenario) -> Result<Master<'_>> {
                     twin_sim::scenario::MasterProgramSpec::StepResponse => {
                         MasterConfig::step_response()
                     }
+                    // Only scripted requests: the default reply wait.
+                    twin_sim::scenario::MasterProgramSpec::Requests => MasterConfig::default(),
                 };
                 return Ok(Master::ControllerNetwork {
                     name,
