@@ -257,9 +257,14 @@ impl ControllerNetworkMaster {
         self
     }
 
-    /// Scripted requests sent so far.
-    pub fn scripted_sent(&self) -> usize {
-        self.next_script
+    /// Scripted requests: how many were sent, of how many.
+    pub fn scripted(&self) -> (usize, usize) {
+        (self.next_script, self.script.len())
+    }
+
+    /// The program it runs.
+    pub fn program(&self) -> MasterProgram {
+        self.config.program
     }
 
     /// Handshake or running.

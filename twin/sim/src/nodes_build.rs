@@ -365,11 +365,16 @@ impl SimNode for FaultyNode<LightNode> {
 impl SimNode for FaultyNode<ControllerNetworkMaster> {
     fn final_state(&self) -> Option<Value> {
         let m = self.inner();
-        Some(
-            json!({ "phase": m.phase().name(), "cycles": m.cycles(), "motor_rpm": m.motor_rpm(),
-                     "sensor_value": m.sensor_value(), "set_point": m.set_point(),
-                     "crc_errors": m.crc_errors(), "timeouts": m.timeouts() }),
-        )
+        let mut state = json!({ "phase": m.phase().name(), "cycles": m.cycles(), "motor_rpm": m.motor_rpm(),
+                 "sensor_value": m.sensor_value(), "set_point": m.set_point(),
+                 "crc_errors": m.crc_errors(), "timeouts": m.timeouts() });
+        // Only with a script, so runs without one read as they always did.
+        let (sent, of) = m.scripted();
+        if of > 0 {
+            state["program"] = json!(m.program().name());
+            state["scripted"] = json!({ "sent": sent, "of": of });
+        }
+        Some(state)
     }
 }
 

@@ -81,9 +81,11 @@ pub fn execute(args: &BaselineArgs) -> Result<()> {
     let scratch = std::env::temp_dir().join(format!("twin-baseline-{}", std::process::id()));
     std::fs::create_dir_all(&scratch)?;
     let (mut failed, mut missing) = (Vec::new(), Vec::new());
+    // The names in one column: 24 wide, or as wide as the longest.
+    let width = names.iter().map(String::len).max().unwrap_or(0).max(24);
     for (i, name) in names.iter().enumerate() {
         if !baseline::path(&dir, name).exists() {
-            println!("  {name:<24} MISSING  no {name}.mcap there");
+            println!("  {name:<width$} MISSING  no {name}.mcap there");
             missing.push(name.clone());
             continue;
         }
@@ -98,12 +100,12 @@ pub fn execute(args: &BaselineArgs) -> Result<()> {
             Ok(c) if c.passed() => {
                 let samples: usize = c.rows.iter().map(|r| r.samples).sum();
                 println!(
-                    "  {name:<24} pass  {} signals, {samples} samples, {wall:.2} s",
+                    "  {name:<width$} pass  {} signals, {samples} samples, {wall:.2} s",
                     c.rows.len()
                 );
             }
             Ok(c) => {
-                println!("  {name:<24} FAIL");
+                println!("  {name:<width$} FAIL");
                 if let Some(m) = &c.span_mismatch {
                     println!("    time span differs: {m}");
                 }
@@ -111,7 +113,7 @@ pub fn execute(args: &BaselineArgs) -> Result<()> {
                 failed.push(name.clone());
             }
             Err(e) => {
-                println!("  {name:<24} ERROR {e:#}");
+                println!("  {name:<width$} ERROR {e:#}");
                 failed.push(name.clone());
             }
         }

@@ -111,6 +111,23 @@ fn print_controller_network(node: &str, state: &Value) -> bool {
         return true;
     }
     if let Some(phase) = state["phase"].as_str() {
+        let scripted = &state["scripted"];
+        let (sent, of) = (scripted["sent"].as_u64(), scripted["of"].as_u64());
+        if state["program"] == "requests" {
+            println!(
+                "  {node} (Raspberry Pi master): only its scripted requests, {} of {} sent; \
+                 {} bad CRCs, {} timeouts",
+                sent.unwrap_or(0),
+                of.unwrap_or(0),
+                state["crc_errors"],
+                state["timeouts"]
+            );
+            return true;
+        }
+        let scripted = match (sent, of) {
+            (Some(sent), Some(of)) => format!("; scripted requests: {sent} of {of} sent"),
+            _ => String::new(),
+        };
         let motor = n("motor_rpm").map_or_else(
             || "nothing yet from the motor node".into(),
             |v| format!("motor shaft {v:.0} rpm from the motor node"),
@@ -126,7 +143,7 @@ fn print_controller_network(node: &str, state: &Value) -> bool {
         );
         println!(
             "  {node} (Raspberry Pi master): {phase}, {} cycles, set point {} rpm; last read: \
-             {motor}, {wheel}; {} bad CRCs, {} timeouts",
+             {motor}, {wheel}; {} bad CRCs, {} timeouts{scripted}",
             state["cycles"], state["set_point"], state["crc_errors"], state["timeouts"]
         );
         return true;
