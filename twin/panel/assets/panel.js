@@ -624,6 +624,7 @@ function renderFrames() {
     return tr;
   });
   tb.replaceChildren(...rows);
+  renderScope(last);
   $("frame-count").textContent = frames.length + " kept" + (skipped ? ", " + skipped + " skipped (faster than the panel)" : "") + (paused ? " · paused" : "");
 }
 function exportCsv() {
@@ -635,6 +636,125 @@ function exportCsv() {
   a.href = URL.createObjectURL(new Blob([lines.join("\n") + "\n"], { type: "text/csv" }));
   a.download = "frames.csv";
   document.body.append(a); a.click(); a.remove();
+}
+
+// ---- scope ------------------------------------------------------------------
+// The last few frames of one link as a scope shows its lines: every byte as
+// its UART bits (start bit low, data bits LSB first, parity, stop bits high)
+// at the link's baud, the twin's TX on the upper trace and the other side's
+// on the lower, each frame at its recorded time, its bytes in hex under it.
+// A quiet line longer than a few characters is cut, and the cut says how
+// long it was: at true scale a 100 ms wait would leave the bytes no width.
+const SVG = "http://www.w3.org/2000/svg";
+const SCOPE_CUT_CHARS = 4;        // quiet longer than this many characters is cut
+const SCOPE_CUT_PX = 44;          // the width of a cut
+const SCOPE_LANES = { out: [18, 44, 58], in: [82, 108, 122] };  // high, low, hex line
+function svgEl(tag, attrs, text) {
+  const e = document.createElementNS(SVG, tag);
+  for (const [k, v] of Object.entries(attrs)) e.setAttribute(k, v);
+  if (text !== undefined) e.textContent = text;
+  return e;
+}
+// A frame's bytes: its hex, or (a text frame) the hex the stream adds.
+function frameBytes(f) {
+  const hex = f.hex || f.text;
+  return hex.split(" ").filter((h) => h).map((h) => parseInt(h, 16));
+}
+// The levels of one character, 1 high: start, data LSB first, parity, stop.
+function charBits(byte, line) {
+  const bits = [0];
+  let ones = 0;
+  for (let i = 0; i < line.data_bits; i++) { const b = (byte >> i) & 1; bits.push(b); ones += b; }
+  if (line.parity === "E") bits.push(ones & 1);
+  if (line.parity === "O") bits.push((ones & 1) ^ 1);
+  for (let i = 0; i < line.stop_bits; i++) bits.push(1);
+  return bits;
+}
+function renderScope(m) {
+  const box = $("scope");
+  const W = Math.max(box.clientWidth || 0, 200), H = 150, L = 62, R = 6;
+  box.setAttribute("viewBox", "0 0 " + W + " " + H);
+  const kept = frames.filter(matches);
+  const link = $("filter-link").value || (kept.length ? kept[kept.length - 1].link : "");
+  // Two frames on a phone (a request and its reply), four on a wider screen.
+  const shown = kept.filter((f) => f.link === link).slice(W < 600 ? -2 : -4);
+  const info = ((m && m.state && m.state.links) || []).find((l) => l.name === link) || {};
+  const line = info.line || { baud: 115200, data_bits: 8, parity: "N", stop_bits: 1 };
+  const perChar = 1 + line.data_bits + (line.parity === "N" ? 0 : 1) + line.stop_bits;
+  const bitS = 1 / line.baud;
+  box.dataset.link = link;
+  box.dataset.baud = line.baud;
+  $("scope-of").textContent = link ? "· " + link : "";
+  $("scope-note").textContent = !link ? "" :
+    (info.line ? "" : "A TCP link has no line: drawn as on a serial line at 115200 baud 8N1. ") +
+    line.baud + " baud " + line.data_bits + line.parity + line.stop_bits + ", one bit " + (bitS * 1e6).toFixed(2) +
+    " µs; quiet longer than " + SCOPE_CUT_CHARS + " characters is cut (the cut gives its length).";
+  // Said below once the frames are placed.
+  const said = $("scope-note").textContent;
+  const parts = [];
+  for (const [dir, [hi, lo]] of Object.entries(SCOPE_LANES)) {
+    const who = dir === "out" ? "twin" : ((shown.filter((f) => f.dir === "in").pop() || {}).from || "other side");
+    parts.push(svgEl("text", { class: "lane", x: 2, y: (hi + lo) / 2 + 4 }, who + " TX"));
+  }
+  // Segments of frames close in time; a cut between them. A line carries
+  // one frame at a time: one recorded as starting before the last on its
+  // side had ended (a pseudo-terminal carries bytes faster than the baud)
+  // is drawn after it.
+  const segs = [], sideEnd = {};
+  let queued = 0;
+  for (const f of [...shown].sort((a, b) => a.t - b.t)) {
+    const bytes = frameBytes(f), len = bytes.length * perChar * bitS;
+    const at = Math.max(f.t, sideEnd[f.dir] ?? -Infinity);
+    if (at > f.t) queued++;
+    sideEnd[f.dir] = at + len;
+    const seg = segs[segs.length - 1];
+    if (seg && at - seg.end <= SCOPE_CUT_CHARS * perChar * bitS) {
+      seg.frames.push([f, bytes, at]); seg.end = Math.max(seg.end, at + len);
+    } else segs.push({ start: at, end: at + len, frames: [[f, bytes, at]] });
+  }
+  const pad = perChar * bitS;  // a character of idle line either side
+  const span = segs.reduce((a, s) => a + (s.end - s.start) + 2 * pad, 0);
+  const scale = span > 0 ? (W - L - R - SCOPE_CUT_PX * Math.max(segs.length - 1, 0)) / span : 0;
+  let x = L;
+  segs.forEach((seg, i) => {
+    if (i > 0) {
+      const gap = seg.start - segs[i - 1].end;
+      parts.push(svgEl("line", { class: "cut", x1: x + SCOPE_CUT_PX / 2, y1: 10, x2: x + SCOPE_CUT_PX / 2, y2: 128 }));
+      parts.push(svgEl("text", { x: x + 2, y: 140 }, gap >= 1 ? gap.toFixed(2) + " s" : (gap * 1e3).toFixed(gap < 0.01 ? 2 : 1) + " ms"));
+      x += SCOPE_CUT_PX;
+    }
+    const x0 = x, w = (seg.end - seg.start + 2 * pad) * scale;
+    for (const [hi] of Object.values(SCOPE_LANES)) parts.push(svgEl("path", { class: "idle", d: "M" + x0.toFixed(1) + " " + hi + "H" + (x0 + w).toFixed(1) }));
+    parts.push(svgEl("text", { x: x0, y: 148 }, seg.start.toFixed(4) + " s"));
+    for (const [f, bytes, at] of seg.frames) {
+      const [hi, lo, hexY] = SCOPE_LANES[f.dir === "out" ? "out" : "in"];
+      const bw = bitS * scale, fx = x0 + (at - seg.start + pad) * scale;
+      let d = "M" + fx.toFixed(2) + " " + hi, level = 1, k = 0;
+      for (const b of bytes) for (const bit of charBits(b, line)) {
+        if (bit !== level) { d += "H" + (fx + k * bw).toFixed(2) + "V" + (bit ? hi : lo); level = bit; }
+        k++;
+      }
+      d += "H" + (fx + k * bw).toFixed(2);
+      parts.push(svgEl("path", { class: "bits " + (f.dir === "out" ? "out" : "in") + (f.bad ? " bad" : ""), d,
+        "data-t": f.t, "data-x0": fx.toFixed(2), "data-bit": bw.toFixed(4), "data-high": hi, "data-low": lo,
+        "data-chars": bytes.length, "data-bits-per-char": perChar }));
+      // Each byte's hex under its bits, where there is room; else the frame's start.
+      const charPx = perChar * bw;
+      if (charPx >= 15) bytes.forEach((b, j) => parts.push(svgEl("text", { class: "byte " + f.dir,
+        x: (fx + (j + 0.5) * charPx).toFixed(1), y: hexY, "text-anchor": "middle" }, b.toString(16).toUpperCase().padStart(2, "0"))));
+      else {
+        // 10 px monospace: a byte's "XX " is 18 px; leave room for the "…".
+        const room = Math.floor((bytes.length * charPx + 6) / 18);
+        const fit = Math.max(1, room >= bytes.length ? bytes.length : room - 1);
+        const hex = bytes.slice(0, fit).map((b) => b.toString(16).toUpperCase().padStart(2, "0")).join(" ");
+        parts.push(svgEl("text", { class: "byte " + f.dir, x: fx.toFixed(1), y: hexY }, hex + (fit < bytes.length ? " …" : "")));
+      }
+    }
+    x += w;
+  });
+  box.replaceChildren(...parts);
+  if (queued) $("scope-note").textContent = said + " " + queued + (queued > 1 ? " frames" : " frame") +
+    " recorded as starting before the one before on the same side had ended: drawn after it.";
 }
 
 // ---- trend ------------------------------------------------------------------

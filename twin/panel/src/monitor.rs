@@ -67,18 +67,28 @@ impl LinkStats {
 
 /// Shown bytes: the text of an ASCII frame (MEB, Modbus ASCII), else hex.
 pub fn shown(bytes: &[u8]) -> String {
-    let text = bytes
-        .iter()
-        .all(|&b| b == b'\r' || b == b'\n' || (0x20..0x7f).contains(&b));
-    if text && !bytes.is_empty() {
+    if is_text(bytes) {
         String::from_utf8_lossy(bytes).trim_end().to_string()
     } else {
-        bytes
-            .iter()
-            .map(|b| format!("{b:02X}"))
-            .collect::<Vec<_>>()
-            .join(" ")
+        hex(bytes)
     }
+}
+
+/// Whether a frame is shown as its text: printable ASCII and line ends.
+fn is_text(bytes: &[u8]) -> bool {
+    !bytes.is_empty()
+        && bytes
+            .iter()
+            .all(|&b| b == b'\r' || b == b'\n' || (0x20..0x7f).contains(&b))
+}
+
+/// Bytes in hex, as the monitor shows a binary frame: `01 06 00 01`.
+fn hex(bytes: &[u8]) -> String {
+    bytes
+        .iter()
+        .map(|b| format!("{b:02X}"))
+        .collect::<Vec<_>>()
+        .join(" ")
 }
 
 /// Frames one message carries at most; the rest are counted as skipped.
@@ -162,11 +172,18 @@ impl Monitor {
                 } else {
                     (peer, "twin".to_string())
                 };
-                frames.push(json!({
+                let mut frame = json!({
                     "link": f.link, "from": from, "to": to, "dir": if out { "out" } else { "in" },
-                    "t": crate::seconds(f.start), "end": crate::seconds(f.end), "text": shown(&f.bytes),
+                    "t": crate::seconds(f.start), "end": crate::seconds(f.end),
                     "decoded": decoded, "bad": bad,
-                }));
+                });
+                // A text frame's bytes too (its text is trimmed of its line
+                // end): the scope draws every byte that went on the line.
+                if is_text(&f.bytes) {
+                    frame["hex"] = Value::String(hex(&f.bytes));
+                }
+                frame["text"] = Value::String(shown(&f.bytes));
+                frames.push(frame);
             } else {
                 self.cut += 1;
             }

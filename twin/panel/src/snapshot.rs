@@ -52,6 +52,22 @@ pub struct LinkState {
     pub protocol: &'static str,
     pub address: String,
     pub clients: usize,
+    /// The serial line's speed and character format (`None` on TCP, which
+    /// has no line): the scope draws every byte's bits at it.
+    pub line: Option<nodes::proto::link::SerialSettings>,
+}
+
+/// A serial line as the page reads it (`null`: a TCP link).
+pub fn line_json(line: Option<&nodes::proto::link::SerialSettings>) -> Value {
+    use nodes::proto::link::Parity;
+    line.map_or(Value::Null, |l| {
+        let parity = match l.parity {
+            Parity::None => "N",
+            Parity::Even => "E",
+            Parity::Odd => "O",
+        };
+        json!({ "baud": l.baud, "data_bits": l.data_bits, "parity": parity, "stop_bits": l.stop_bits })
+    })
 }
 
 /// What the engine hands the panel each stream period.
@@ -146,6 +162,10 @@ pub fn read(engine: &mut RtEngine) -> EngineSnapshot {
             protocol: l.protocol,
             address: l.address.clone(),
             clients,
+            line: match l.spec.addr {
+                nodes::proto::link::LinkAddr::Serial(_) => Some(l.spec.serial),
+                nodes::proto::link::LinkAddr::Tcp(_) => None,
+            },
         })
         .collect();
     let fault = engine.fault().map(|(f, link)| {
@@ -350,7 +370,10 @@ impl EngineSnapshot {
         let links: Vec<Value> = self
             .links
             .iter()
-            .map(|l| json!({ "name": l.name, "protocol": l.protocol, "address": l.address, "clients": l.clients }))
+            .map(|l| {
+                json!({ "name": l.name, "protocol": l.protocol, "address": l.address,
+                        "clients": l.clients, "line": line_json(l.line.as_ref()) })
+            })
             .collect();
         json!({
             "t": crate::seconds(self.t),

@@ -108,7 +108,8 @@ pub fn message_state(remote: &Remote) -> (Value, [Option<f64>; 5]) {
             "controller": controller,
             "readings": { "hall_rpm": hall_rpm, "light_rpm": light_rpm },
         }],
-        "links": [{ "name": LINK, "protocol": "meb", "address": o.url, "clients": usize::from(s.connected) }],
+        "links": [{ "name": LINK, "protocol": "meb", "address": o.url, "clients": usize::from(s.connected),
+                    "line": null }],
         "connection": {
             "url": o.url,
             "id": o.id,

@@ -17,6 +17,7 @@ mod common;
 mod meb_bus;
 mod page;
 mod phone_layout;
+mod scope;
 mod serve_truth;
 mod sim_inputs;
 mod supervise_browser;

@@ -1,6 +1,6 @@
 //! The page on a phone (390x844 CSS px) for each role: the frame monitor's
-//! text gets a whole line and the links table's errors are on the screen,
-//! and nothing scrolls sideways.
+//! text gets a whole line, the links table's errors and the scope's frames
+//! are on the screen, and nothing scrolls sideways.
 
 use crate::browser::screenshot_path;
 use crate::common::{
@@ -27,7 +27,9 @@ const MEASURE: &str = "(() => {
     text: t && t.width, errors_left: e && e.left, errors_right: e && e.right,
     errors_label: errors ? getComputedStyle(errors, '::before').content : null,
     links_scroll: (() => { const s = document.querySelector('#links-card .scroll');
-      return s.scrollWidth - s.clientWidth; })() };
+      return s.scrollWidth - s.clientWidth; })(),
+    scope_right: box(document.getElementById('scope')).right,
+    scope_frames: document.querySelectorAll('#scope path.bits').length };
 })()";
 
 async fn phone(driver: &common::Driver, name: &str, url: &str) -> Client {
@@ -49,7 +51,9 @@ async fn readable_on_a_phone(c: &Client, role: &str) {
         async || {
             seen = js(c, MEASURE).await;
             (
-                seen["text"].is_number() && seen["errors_right"].is_number(),
+                seen["text"].is_number()
+                    && seen["errors_right"].is_number()
+                    && seen["scope_frames"].as_u64() > Some(0),
                 seen.to_string(),
             )
         },
@@ -78,6 +82,11 @@ async fn readable_on_a_phone(c: &Client, role: &str) {
         "{role}: the links table scrolls sideways: {seen}"
     );
     assert_eq!(seen["errors_label"], "\"errors \"", "{role}: {seen}");
+    // The scope draws its frames (two on a phone) within the screen.
+    assert!(
+        n("scope_right") <= f64::from(PHONE.0) && n("scope_frames") <= 2.0,
+        "{role}: the scope: {seen}"
+    );
 }
 
 #[test]
