@@ -13,7 +13,9 @@ request (no retry). The planted bugs:
 
 - crc-swapped: its requests carry their CRC high byte first;
 - never-times-out: it waits for a reply for ever;
-- floods: it sends its next request 5 ms after one, reply or not.
+- floods: it sends a cycle's four requests back to back, reply or not, and
+  the next cycle 5 ms later (back to back, so that however fast a slave
+  answers, a request always comes before the last one's reply).
 """
 import argparse
 import time
@@ -105,8 +107,6 @@ def main():
                 port.write(request)
                 n += 1
                 if args.bug == "floods":
-                    time.sleep(0.005)
-                    port.reset_input_buffer()
                     continue
                 deadline = None
                 if args.bug != "never-times-out":
@@ -125,6 +125,9 @@ def main():
                 elif got[1] & 0x80:
                     errors["exceptions"] += 1
                 time.sleep(PAUSE_S)
+        if args.bug == "floods":
+            time.sleep(0.005)
+            port.reset_input_buffer()
     print(n, "requests;", errors)
 
 
