@@ -61,7 +61,11 @@ pub fn record(
             ("id", format!("{:02}", run.id)),
         ]),
     )?;
-    let slave = format!("slave {:02}", run.id);
+    // The checked program, as the frames' `from` names it.
+    let program = match role {
+        "slave" => format!("slave {:02}", run.id),
+        other => other.to_string(),
+    };
     let mut frames = None;
     let mut checks = None;
     for (index, check) in run.checks.iter().enumerate() {
@@ -80,21 +84,23 @@ pub fn record(
             why,
             at: check.at,
             seconds: check.seconds,
-            frames: check.frames.len(),
+            frames: check.frames.iter().filter(|f| !f.bytes.is_empty()).count(),
         };
         let channel = match checks {
             Some(c) => c,
             None => *checks.insert(recorder.add_channel(topics::CHECKS, &message)?),
         };
         recorder.write_to(channel, check.at, &message)?;
-        for frame in &check.frames {
+        // A frame without its bytes (a server's or a client's, shown on
+        // two links side by side) is in the attached report only.
+        for frame in check.frames.iter().filter(|f| !f.bytes.is_empty()) {
             let bytes = frame.bytes.as_slice();
             let text = printable(bytes);
             let decoded = link_frame_fields("meb", bytes);
             let mut message = FrameMessage {
                 from: match frame.way {
                     Way::Sent => "twin",
-                    Way::Received => &slave,
+                    Way::Received => &program,
                 },
                 start_s: frame.at,
                 end_s: frame.at,
@@ -153,6 +159,7 @@ fn printable(bytes: &[u8]) -> Option<&str> {
 pub fn suite_toml(name_or_path: &str) -> String {
     match crate::suite::BUILT_IN
         .iter()
+        .chain(crate::master::BUILT_IN)
         .find(|(n, _)| *n == name_or_path)
     {
         Some((_, text)) => (*text).to_string(),

@@ -16,6 +16,8 @@ pub(super) struct Class<'a> {
     /// The suite as given (a built-in name or a file): names the default
     /// out folder.
     pub suite_arg: &'a str,
+    /// The role checked: names each recording's link channel.
+    pub role: &'a str,
     pub out: Option<&'a Path>,
     pub jobs: u16,
     /// The suite's TOML, to record each run with; `None`: no recordings.
@@ -55,7 +57,7 @@ pub(super) fn run(
     let mut unwritten = None;
     let runs = class::run_each(students, class.jobs.into(), check, |student, run| {
         println!("  {:width$}  {}", student.name, verdict(run));
-        if let Err(e) = reports(&out, student, run, class.suite_toml) {
+        if let Err(e) = reports(&out, student, run, class) {
             unwritten.get_or_insert(e);
         }
     });
@@ -112,9 +114,9 @@ fn verdict(run: &SuiteRun) -> String {
     }
 }
 
-/// A student's reports, and their run's recording unless `suite_toml` is
-/// `None` (--no-record).
-fn reports(out: &Path, student: &Student, run: &SuiteRun, suite_toml: Option<&str>) -> Result<()> {
+/// A student's reports, and their run's recording unless the class's
+/// `suite_toml` is `None` (--no-record).
+fn reports(out: &Path, student: &Student, run: &SuiteRun, class: &Class<'_>) -> Result<()> {
     let stem = student.file_stem();
     let file = |ext: &str| out.join(format!("{stem}.{ext}"));
     write(
@@ -124,9 +126,9 @@ fn reports(out: &Path, student: &Student, run: &SuiteRun, suite_toml: Option<&st
     write(&file("json"), &report::json(run))?;
     write(&file("html"), &report::html(run, Some(&student.name)))?;
     write(&file("junit.xml"), &report::junit(run))?;
-    if let Some(toml) = suite_toml {
+    if let Some(toml) = class.suite_toml {
         let path = file("mcap");
-        record::record(&path, "slave", toml, run)
+        record::record(&path, class.role, toml, run)
             .with_context(|| format!("cannot record the run to {}", path.display()))?;
     }
     Ok(())

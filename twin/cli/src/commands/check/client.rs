@@ -5,7 +5,6 @@
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use std::io::{BufRead, Write as _};
-use std::path::PathBuf;
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 use twin_check::client::{CHECKLIST, Session};
@@ -31,20 +30,15 @@ pub struct ClientArgs {
     /// [default: when every item is seen, or on Enter or Ctrl-D].
     #[arg(long, value_name = "SECONDS")]
     duration: Option<f64>,
-    /// Also write the session as JSON (every item, its frames).
-    #[arg(long, value_name = "FILE")]
-    json: Option<PathBuf>,
-    /// Also write the session as JUnit XML (an item a person judges is
-    /// `skipped`).
-    #[arg(long, value_name = "FILE")]
-    junit: Option<PathBuf>,
-    /// Also write the session as one HTML page, to open in a browser.
-    #[arg(long, value_name = "FILE")]
-    html: Option<PathBuf>,
+    #[command(flatten)]
+    reports: super::reports::ReportArgs,
 }
 
 /// A session, from the checklist to the report.
 pub fn execute(args: &ClientArgs) -> Result<()> {
+    if args.reports.roster.is_some() {
+        bail!("a class of clients is not checked yet: give one --listen");
+    }
     let Some(addr) = args.listen.strip_prefix("tcp://") else {
         bail!(
             "the twin listens on TCP: give --listen tcp://HOST:PORT, not `{}`",
@@ -91,12 +85,8 @@ pub fn execute(args: &ClientArgs) -> Result<()> {
     }
     let run = session.finish(&link);
     print!("{}", report::text(&run));
-    super::reports_and_verdict(
-        &run,
-        args.json.as_deref(),
-        args.junit.as_deref(),
-        args.html.as_deref(),
-    )
+    args.reports.record("client", "", &run)?;
+    args.reports.reports_and_verdict(&run)
 }
 
 /// A message when stdin gives a line or ends (Enter, Ctrl-D, a closed pipe).

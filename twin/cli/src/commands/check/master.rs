@@ -3,11 +3,11 @@
 
 use anyhow::{Result, bail};
 use clap::Args;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::time::Duration;
 use twin_check::class::{self, Student};
 use twin_check::master::{self as check, MasterLine, MasterOptions, MasterSuite};
-use twin_check::{SuiteRun, report};
+use twin_check::{SuiteRun, record, report};
 
 #[derive(Debug, Args)]
 pub struct MasterArgs {
@@ -35,27 +35,8 @@ pub struct MasterArgs {
     /// request, seconds.
     #[arg(long, default_value_t = 10, value_name = "SECONDS", value_parser = clap::value_parser!(u64).range(1..=3600))]
     wait: u64,
-    /// Also write the run as JSON (every check, its frames, times and figures).
-    #[arg(long, value_name = "FILE")]
-    json: Option<PathBuf>,
-    /// Also write the run as JUnit XML (a test case per check).
-    #[arg(long, value_name = "FILE")]
-    junit: Option<PathBuf>,
-    /// Also write the run as one HTML page, to open in a browser.
-    #[arg(long, value_name = "FILE")]
-    html: Option<PathBuf>,
-    /// Check a class instead of one LINK: a CSV file with the columns
-    /// student,link[,id] (link: where the twin waits for that student's
-    /// master), or TOML [[student]] tables of name, link, id.
-    #[arg(long, value_name = "FILE", conflicts_with_all = ["json", "junit", "html"])]
-    roster: Option<PathBuf>,
-    /// Where a class's reports and scores.csv go [default:
-    /// check-SUITE-reports].
-    #[arg(long, value_name = "DIR", requires = "roster")]
-    out: Option<PathBuf>,
-    /// How many students of a class are checked at once.
-    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u16).range(1..=64))]
-    jobs: u16,
+    #[command(flatten)]
+    reports: super::reports::ReportArgs,
 }
 
 /// One student's master checked, or a class's from a roster.
@@ -81,7 +62,7 @@ pub fn execute(args: &MasterArgs) -> Result<()> {
     if ids.is_empty() {
         ids = suite.ids.clone();
     }
-    if let Some(roster) = &args.roster {
+    if let Some(roster) = &args.reports.roster {
         return class(args, &suite, roster, ids[0]);
     }
     let link = args.link.as_deref().unwrap_or_default();
@@ -96,12 +77,9 @@ pub fn execute(args: &MasterArgs) -> Result<()> {
     let options = MasterOptions { ids, wait };
     let run = check::run_master(&suite, &mut wire, &options)?;
     print!("{}", report::text(&run));
-    super::reports_and_verdict(
-        &run,
-        args.json.as_deref(),
-        args.junit.as_deref(),
-        args.html.as_deref(),
-    )
+    args.reports
+        .record("master", &record::suite_toml(&args.suite), &run)?;
+    args.reports.reports_and_verdict(&run)
 }
 
 /// One student of a class: the twin waits on their line for their master.
@@ -120,17 +98,18 @@ fn student_run(suite: &MasterSuite, student: &Student, wait: Duration) -> SuiteR
     run.unwrap_or_else(|why| check::unreachable(suite, &student.link, &ids, why))
 }
 
-/// Every student's master checked (see [`super::class`]); a master's run
-/// is not recorded.
+/// Every student's master checked (see [`super::class`]).
 fn class(args: &MasterArgs, suite: &MasterSuite, roster: &Path, id: u8) -> Result<()> {
     let students = class::load_roster(roster, id)?;
     let wait = Duration::from_secs(args.wait);
+    let toml = (!args.reports.no_record).then(|| record::suite_toml(&args.suite));
     let options = super::class::Class {
         suite_name: &suite.name,
         suite_arg: &args.suite,
-        out: args.out.as_deref(),
-        jobs: args.jobs,
-        suite_toml: None,
+        role: "master",
+        out: args.reports.out.as_deref(),
+        jobs: args.reports.jobs,
+        suite_toml: toml.as_deref(),
     };
     super::class::run(&options, &students, |student| {
         student_run(suite, student, wait)

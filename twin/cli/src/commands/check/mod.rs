@@ -4,13 +4,14 @@
 mod class;
 mod client;
 mod master;
+mod reports;
 mod server;
 mod slave;
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
 use std::path::Path;
-use twin_check::{Suite, SuiteRun, report};
+use twin_check::Suite;
 
 /// Check a program against the protocol it must speak, and grade it.
 ///
@@ -83,38 +84,6 @@ pub fn execute(args: &CheckArgs) -> Result<()> {
             "say what to check: `twin check slave LINK`, `twin check master LINK`, `twin check server LINK --bus LINK`, `twin check client`, or `twin check --list`"
         ),
     }
-}
-
-/// The reports of one run asked for on the command line (--json, --junit,
-/// --html), each made only when asked for; then the run's verdict: an
-/// error (exit 1) when a check failed. A check left to a person ("not
-/// judged") is no failure.
-pub(super) fn reports_and_verdict(
-    run: &SuiteRun,
-    json: Option<&Path>,
-    junit: Option<&Path>,
-    html: Option<&Path>,
-) -> Result<()> {
-    if let Some(path) = json {
-        write(path, &report::json(run))?;
-    }
-    if let Some(path) = junit {
-        write(path, &report::junit(run))?;
-    }
-    if let Some(path) = html {
-        write(path, &report::html(run, None))?;
-    }
-    if let Some(why) = &run.error {
-        bail!("{why}");
-    }
-    let failed = run.failed();
-    if failed > 0 {
-        bail!(
-            "{failed} of {} checks failed",
-            run.checks.len() - run.not_applicable()
-        );
-    }
-    Ok(())
 }
 
 pub(crate) fn write(path: &Path, contents: &str) -> Result<()> {

@@ -4,7 +4,6 @@
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use std::path::PathBuf;
 use twin_check::report;
 use twin_check::server::{ServerOptions, check_server};
 
@@ -15,13 +14,17 @@ use twin_check::server::{ServerOptions, check_server};
 pub struct ServerArgs {
     /// Where the supervisor's server listens for remote clients:
     /// tcp://HOST:PORT.
-    #[arg(value_name = "tcp://HOST:PORT")]
-    link: String,
+    #[arg(
+        value_name = "tcp://HOST:PORT",
+        required_unless_present = "roster",
+        conflicts_with = "roster"
+    )]
+    link: Option<String>,
     /// The supervisor's bus, where the twin answers as the module's
     /// controller: the other end of its serial line or pseudo-terminal
     /// (PATH?baud=9600&parity=E).
-    #[arg(long, value_name = "LINK")]
-    bus: String,
+    #[arg(long, value_name = "LINK", required_unless_present = "roster")]
+    bus: Option<String>,
     /// The slave id the supervisor polls (the M3CVME tool's device number).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=99))]
     id: u8,
@@ -29,38 +32,31 @@ pub struct ServerArgs {
     /// forwarded write gets ten times as long. Give a loaded machine more.
     #[arg(long, default_value_t = 100, value_name = "MS", value_parser = clap::value_parser!(u64).range(1..=60_000))]
     timeout_ms: u64,
-    /// Also write the run as JSON (every check, its frames on both sides).
-    #[arg(long, value_name = "FILE")]
-    json: Option<PathBuf>,
-    /// Also write the run as JUnit XML (a test case per check).
-    #[arg(long, value_name = "FILE")]
-    junit: Option<PathBuf>,
-    /// Also write the run as one HTML page, to open in a browser.
-    #[arg(long, value_name = "FILE")]
-    html: Option<PathBuf>,
+    #[command(flatten)]
+    reports: super::reports::ReportArgs,
 }
 
 /// The supervisor's server checked, its report printed and written.
 pub fn execute(args: &ServerArgs) -> Result<()> {
-    if !args.link.starts_with("tcp://") {
+    if args.reports.roster.is_some() {
+        bail!("a class of servers is not checked yet: give one tcp://HOST:PORT and --bus");
+    }
+    let link = args.link.clone().unwrap_or_default();
+    let bus = args.bus.clone().unwrap_or_default();
+    if !link.starts_with("tcp://") {
         bail!(
-            "the server is reached over TCP: give tcp://HOST:PORT, not `{}` (its bus goes after --bus)",
-            args.link
+            "the server is reached over TCP: give tcp://HOST:PORT, not `{link}` (its bus goes after --bus)"
         );
     }
     let options = ServerOptions {
-        link: args.link.clone(),
-        bus: args.bus.clone(),
+        link,
+        bus: bus.clone(),
         id: args.id,
         timeout_ms: args.timeout_ms,
     };
     let run = check_server(&options)
-        .with_context(|| format!("cannot play the slave on the bus {}", args.bus))?;
+        .with_context(|| format!("cannot play the slave on the bus {bus}"))?;
     print!("{}", report::text(&run));
-    super::reports_and_verdict(
-        &run,
-        args.json.as_deref(),
-        args.junit.as_deref(),
-        args.html.as_deref(),
-    )
+    args.reports.record("server", "", &run)?;
+    args.reports.reports_and_verdict(&run)
 }

@@ -1,13 +1,11 @@
 //! `twin check slave`: the student's module controller, sent requests by
 //! the twin; one student, or a class from a roster.
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use clap::Args;
-use std::path::{Path, PathBuf};
-use std::time::SystemTime;
+use std::path::Path;
 use twin_check::class;
 use twin_check::{Bench, Suite, record, report, run_suite_on, wire::Wire};
-use twin_realtime::rotate;
 
 #[derive(Debug, Args)]
 pub struct SlaveArgs {
@@ -38,41 +36,8 @@ pub struct SlaveArgs {
     /// match the plant); without it they are not applicable.
     #[arg(long, value_name = "URL", conflicts_with = "roster")]
     bench: Option<String>,
-    /// Also write the run as JSON (every check, its frames and times).
-    #[arg(long, value_name = "FILE")]
-    json: Option<PathBuf>,
-    /// Also write the run as JUnit XML, for CI systems and learning
-    /// platforms (a test case per check).
-    #[arg(long, value_name = "FILE")]
-    junit: Option<PathBuf>,
-    /// Also write the run as one HTML page, to open in a browser.
-    #[arg(long, value_name = "FILE")]
-    html: Option<PathBuf>,
-    /// Check a class instead of one LINK: a CSV file with the columns
-    /// student,link[,id], or TOML [[student]] tables of name, link, id.
-    #[arg(long, value_name = "FILE", conflicts_with_all = ["json", "junit", "html"])]
-    roster: Option<PathBuf>,
-    /// Where a class's reports and scores.csv go [default:
-    /// check-SUITE-reports].
-    #[arg(long, value_name = "DIR", requires = "roster")]
-    out: Option<PathBuf>,
-    /// How many students of a class are checked at once.
-    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u16).range(1..=64))]
-    jobs: u16,
-    /// Where to record the run (MCAP: every frame with its time, the check
-    /// it belongs to, the verdicts), replaced if it exists [default: a file
-    /// named by the run's start time in UTC in --record-dir, e.g.
-    /// check-slave-2026-12-03T07-35-44.mcap, as `twin serve` names its
-    /// own]. With --roster, each student's recording goes beside their
-    /// reports (STUDENT.mcap).
-    #[arg(long, value_name = "PATH", conflicts_with_all = ["roster", "record_dir"])]
-    record: Option<PathBuf>,
-    /// The folder the recording goes to [default: here].
-    #[arg(long, value_name = "DIR", conflicts_with = "roster")]
-    record_dir: Option<PathBuf>,
-    /// Do not record the run (nor, with --roster, the students' runs).
-    #[arg(long, conflicts_with_all = ["record", "record_dir"])]
-    no_record: bool,
+    #[command(flatten)]
+    reports: super::reports::ReportArgs,
 }
 
 /// One student's slave checked, or a class's from a roster.
@@ -91,7 +56,7 @@ pub fn execute(slave: &SlaveArgs) -> Result<()> {
     if let Some(ms) = slave.timeout_ms {
         suite.timeout_ms = ms;
     }
-    if let Some(roster) = &slave.roster {
+    if let Some(roster) = &slave.reports.roster {
         return class(slave, &suite, roster);
     }
     let link = slave.link.as_deref().unwrap_or_default();
@@ -102,37 +67,22 @@ pub fn execute(slave: &SlaveArgs) -> Result<()> {
     let mut wire = Wire::open(link)?;
     let run = run_suite_on(&suite, &mut wire, slave.id, bench.as_ref());
     print!("{}", report::text(&run));
-    if !slave.no_record {
-        let path = match &slave.record {
-            Some(path) => path.clone(),
-            None => rotate::next_name(
-                slave.record_dir.as_deref().unwrap_or(Path::new(".")),
-                "check-slave",
-                SystemTime::now(),
-            ),
-        };
-        let toml = record::suite_toml(&slave.suite);
-        let path = record::record(&path, "slave", &toml, &run)
-            .with_context(|| format!("cannot record the run to {}", path.display()))?;
-        println!("recorded to {}", path.display());
-    }
-    super::reports_and_verdict(
-        &run,
-        slave.json.as_deref(),
-        slave.junit.as_deref(),
-        slave.html.as_deref(),
-    )
+    slave
+        .reports
+        .record("slave", &record::suite_toml(&slave.suite), &run)?;
+    slave.reports.reports_and_verdict(&run)
 }
 
 /// Every student of the roster checked (see [`super::class`]).
 fn class(slave: &SlaveArgs, suite: &Suite, roster: &Path) -> Result<()> {
     let students = class::load_roster(roster, slave.id)?;
-    let toml = (!slave.no_record).then(|| record::suite_toml(&slave.suite));
+    let toml = (!slave.reports.no_record).then(|| record::suite_toml(&slave.suite));
     let options = super::class::Class {
         suite_name: &suite.name,
         suite_arg: &slave.suite,
-        out: slave.out.as_deref(),
-        jobs: slave.jobs,
+        role: "slave",
+        out: slave.reports.out.as_deref(),
+        jobs: slave.reports.jobs,
         suite_toml: toml.as_deref(),
     };
     super::class::run(&options, &students, |student| class::check(suite, student))

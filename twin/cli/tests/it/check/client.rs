@@ -12,9 +12,15 @@ use std::process::{Command, Stdio};
 use super::failed;
 
 /// `twin check client` listening on a free port, stdin held open (its end
-/// would end the session), with `more` options.
+/// would end the session), not recorded, with `more` options.
 fn session(more: &[&str]) -> (Proc, String) {
-    let mut args = vec!["check", "client", "--listen", "tcp://127.0.0.1:0"];
+    let mut args = vec![
+        "check",
+        "client",
+        "--listen",
+        "tcp://127.0.0.1:0",
+        "--no-record",
+    ];
     args.extend_from_slice(more);
     let proc = Proc::spawn(&args, Stdio::piped());
     let addr = proc.tcp_of("meb");

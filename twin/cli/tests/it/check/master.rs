@@ -86,6 +86,7 @@ fn the_twins_own_supervisor_passes_every_check_of_the_meb_master_suite() {
         "300",
         "--json",
         s(&json),
+        "--no-record",
     ]);
     let printed = text(&out);
     assert!(out.status.success(), "{printed}");
@@ -165,6 +166,7 @@ fn a_students_master_passes_and_each_planted_bug_is_found_and_nothing_else() {
                     "300",
                     "--json",
                     s(&json),
+                    "--no-record",
                 ]);
                 let printed = text(&out);
                 assert_eq!(

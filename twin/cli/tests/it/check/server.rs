@@ -57,6 +57,7 @@ fn student_server(name: &str, bus: &Path, bugs: &[&str]) -> StudentServer {
 
 /// `twin check server LINK --bus BUS MORE…`, reads given 1 s (writes 10 s):
 /// a loaded test machine may answer late, and the logic is what is checked.
+/// Not recorded unless MORE says where.
 fn check_server(link: &str, bus: &Path, more: &[&str]) -> std::process::Output {
     let mut args = vec![
         "check",
@@ -68,6 +69,12 @@ fn check_server(link: &str, bus: &Path, more: &[&str]) -> std::process::Output {
         "1000",
     ];
     args.extend_from_slice(more);
+    if !more
+        .iter()
+        .any(|a| a.starts_with("--record") || *a == "--no-record")
+    {
+        args.push("--no-record");
+    }
     twin(&args)
 }
 
