@@ -273,6 +273,7 @@ impl Session {
             bench: None,
             error: None,
             hung_up: None,
+            transcript: Vec::new(),
         }
     }
 }

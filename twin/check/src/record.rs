@@ -2,16 +2,18 @@
 //! disputed verdict can be looked at again with the twin's readers (`twin
 //! view`, `twin export`) or any MCAP tool: every frame on the link's frame
 //! channel (the same `twin.Frame` as a `twin serve` session's, `from`
-//! `twin` or the slave), one message per check on `/check/checks` saying
-//! which frames are its and its verdict, the suite in `twin.run`, the score
-//! in `twin.check`, and the whole run as its JSON report attached.
+//! `twin` or the checked program: `slave 01`, `master`), one message per
+//! check on `/check/checks` saying which frames are its and its verdict,
+//! the suite in `twin.run`, the score in `twin.check`, and the whole run as
+//! its JSON report attached. A master's recording holds every frame of its
+//! seconds of polling, where its report shows a few.
 //!
 //! Written once the run is over, from the [`SuiteRun`] the reports are made
 //! from, so the recording and the reports cannot disagree; log time is the
 //! run's time (seconds after the link was opened).
 
 use crate::report;
-use crate::run::{Outcome, SuiteRun, Way};
+use crate::run::{Exchange, Outcome, SuiteRun, Way};
 use serde::Serialize;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -69,6 +71,17 @@ pub fn record(
     let mut frames = None;
     let mut checks = None;
     for (index, check) in run.checks.iter().enumerate() {
+        // Every frame of the check where the run kept them apart from its
+        // evidence (a master's); a frame without its bytes (a server's or
+        // a client's, shown on two links side by side) is in the attached
+        // report only.
+        let own: Vec<&Exchange> = run
+            .transcript
+            .get(index)
+            .unwrap_or(&check.frames)
+            .iter()
+            .filter(|f| !f.bytes.is_empty())
+            .collect();
         let (result, why) = match &check.outcome {
             Outcome::Pass => ("pass", ""),
             Outcome::Fail(why) => ("fail", why.as_str()),
@@ -84,16 +97,14 @@ pub fn record(
             why,
             at: check.at,
             seconds: check.seconds,
-            frames: check.frames.iter().filter(|f| !f.bytes.is_empty()).count(),
+            frames: own.len(),
         };
         let channel = match checks {
             Some(c) => c,
             None => *checks.insert(recorder.add_channel(topics::CHECKS, &message)?),
         };
         recorder.write_to(channel, check.at, &message)?;
-        // A frame without its bytes (a server's or a client's, shown on
-        // two links side by side) is in the attached report only.
-        for frame in check.frames.iter().filter(|f| !f.bytes.is_empty()) {
+        for frame in own {
             let bytes = frame.bytes.as_slice();
             let text = printable(bytes);
             let decoded = link_frame_fields("meb", bytes);

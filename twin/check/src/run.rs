@@ -119,6 +119,12 @@ pub struct SuiteRun {
     /// keep their verdicts, the one running and those after it fail.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub hung_up: Option<HungUp>,
+    /// Every frame of each check, in the checks' order, where a check
+    /// keeps only those that show its verdict (a master's: a few of its
+    /// seconds of polling); empty where the checks' frames are all. What
+    /// the recording holds.
+    #[serde(skip)]
+    pub transcript: Vec<Vec<Exchange>>,
 }
 
 /// When and how the program hung up, and in which check.
@@ -207,6 +213,7 @@ impl SuiteRun {
             bench: None,
             error: Some(why),
             hung_up: None,
+            transcript: Vec::new(),
         }
     }
 }
@@ -306,6 +313,7 @@ pub fn run_suite_on(suite: &Suite, wire: &mut Wire, id: u8, bench: Option<&Bench
         bench: bench.map(|b| b.url().to_string()),
         error: None,
         hung_up,
+        transcript: Vec::new(),
     }
 }
 

@@ -208,6 +208,7 @@ pub fn check_server(options: &ServerOptions) -> Result<SuiteRun, WireError> {
         bench: None,
         error: None,
         hung_up: None,
+        transcript: Vec::new(),
     })
 }
 
@@ -237,6 +238,7 @@ fn unreachable(link: &str, id: u8, why: String) -> SuiteRun {
         bench: None,
         error: Some(why),
         hung_up: None,
+        transcript: Vec::new(),
     }
 }
 

@@ -134,6 +134,8 @@ pub fn run_master(
             .get(*i)
             .map_or_else(String::new, |c| c.name.clone()),
     });
+    // The checks keep their evidence; the recording, every frame.
+    let transcript = play.phases.iter().map(|p| p.frames.clone()).collect();
     let mut normal = Normal::default();
     let mut phases = std::mem::take(&mut play.phases).into_iter();
     let checks = suite
@@ -169,6 +171,7 @@ pub fn run_master(
         bench: None,
         error: None,
         hung_up,
+        transcript,
     })
 }
 
@@ -190,6 +193,7 @@ pub fn unreachable(suite: &MasterSuite, link: &str, ids: &[u8], why: String) -> 
         hung_up: None,
         bench: None,
         error: Some(why),
+        transcript: Vec::new(),
     }
 }
 

@@ -39,7 +39,8 @@ def main(path):
                         "topic": channel.topic,
                         "from": decoded.__getattribute__("from"),
                         "time_s": message.log_time / 1e9,
-                        "text": decoded.text if decoded.HasField("text") else bytes.fromhex(decoded.hex).decode("latin-1"),
+                        # Printable frames are stored as text; the others as hex.
+                        "text": decoded.text or bytes.fromhex(decoded.hex).decode("latin-1"),
                         "protocol": decoded.decoded.protocol,
                         "cmd": decoded.decoded.cmd,
                     }

@@ -174,6 +174,11 @@ fn a_students_master_passes_and_each_planted_bug_is_found_and_nothing_else() {
                     expected.is_empty(),
                     "{name}: {printed}"
                 );
+                assert!(
+                    json.is_file(),
+                    "{name}: no report ({}): {printed}",
+                    out.status
+                );
                 assert_eq!(failed(&json), expected, "{name}: {printed}");
             });
         }
@@ -213,9 +218,124 @@ fn a_class_of_masters_is_checked_from_a_roster() {
         scores.contains(&format!("Ben,9,11,7,8,{BAD_FCS},0\n")),
         "{scores}"
     );
+    // Each master's run recorded beside its reports.
+    let ann = super::recorded::read(&out_dir.join("Ann.mcap"));
+    assert_eq!(ann["check"]["score"], "11", "{ann}");
+    assert_eq!(ann["run"]["role"], "master", "{ann}");
     let ben = std::fs::read_to_string(out_dir.join("Ben.txt")).unwrap();
     assert!(
         ben.contains("the master on") && ben.contains("(the twin's slave 03)"),
         "{ben}"
+    );
+}
+
+/// A master's recording, read by the Python `mcap` package: every frame
+/// the master sent and the twin's slaves answered, each in its check (the
+/// report's frames among them, in order), the verdicts and the score;
+/// `twin export` reads it and `twin replay` says what it is.
+#[test]
+fn a_masters_run_is_recorded_with_every_frame_in_its_check() {
+    let dir = crate::support::folder("check", "master-recorded");
+    let (mcap, json) = (dir.join("run.mcap"), dir.join("run.json"));
+    let (a, b) = pair_paths("check-master-recorded");
+    let _vsp = Proc::start(&["vsp", s(&a), s(&b)]);
+    let _master = StudentMaster::start(&a, "1,2", Some("acts-on-bad-fcs"));
+    let out = twin(&[
+        "check",
+        "master",
+        s(&b),
+        "--id",
+        "1,2",
+        "--timeout-ms",
+        "300",
+        "--json",
+        s(&json),
+        "--record",
+        s(&mcap),
+    ]);
+    let printed = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{printed}");
+    assert!(
+        printed.contains(&format!("recorded to {}\n", mcap.display())),
+        "{printed}"
+    );
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let recorded = super::recorded::read(&mcap);
+    assert_eq!(recorded["run"]["kind"], "check");
+    assert_eq!(recorded["run"]["role"], "master");
+    assert_eq!(recorded["run"]["suite"], "MEB master");
+    assert!(
+        recorded["run"]["suite_toml"]
+            .as_str()
+            .unwrap()
+            .contains("role = \"master\""),
+        "{recorded}"
+    );
+    assert_eq!(recorded["check"]["score"], "9");
+    assert_eq!(recorded["check"]["checks_passed"], "7");
+
+    let checks = recorded["checks"].as_array().unwrap();
+    let reported = report["checks"].as_array().unwrap();
+    assert_eq!(checks.len(), reported.len());
+    let frames = recorded["frames"].as_array().unwrap();
+    let (mut next, mut shown) = (0, 0);
+    for (check, expected) in checks.iter().zip(reported) {
+        assert_eq!(check["name"], expected["name"]);
+        assert_eq!(check["result"], expected["result"]);
+        let n = check["frames"].as_u64().unwrap() as usize;
+        let own = &frames[next..next + n];
+        next += n;
+        // The master polled throughout: both ways, MEB requests decoded.
+        assert!(own.iter().any(|f| f["from"] == "master"), "{check}");
+        assert!(own.iter().any(|f| f["from"] == "twin"), "{check}");
+        for f in own {
+            assert_eq!(f["topic"], "/link/master/frames");
+        }
+        // The report's frames are among them, in order, at their times.
+        let want = expected["frames"].as_array().unwrap();
+        shown += want.len();
+        let mut rest = own.iter();
+        for w in want {
+            let at = w["at"].as_f64().unwrap();
+            let from = if w["way"] == "sent" { "twin" } else { "master" };
+            assert!(
+                rest.any(
+                    |got| super::recorded::spelt(got["text"].as_str().unwrap()) == w["text"]
+                        && got["from"] == from
+                        && (got["time_s"].as_f64().unwrap() - at).abs() < 1e-6
+                ),
+                "{}: {w} not recorded",
+                check["name"]
+            );
+        }
+    }
+    assert_eq!(next, frames.len(), "no frame outside a check");
+    assert!(
+        frames.len() > 2 * shown,
+        "{} frames, {shown} shown",
+        frames.len()
+    );
+    let first = frames
+        .iter()
+        .find(|f| f["from"] == "master")
+        .expect("a request");
+    assert_eq!(first["protocol"], "meb", "{first}");
+    let times: Vec<f64> = frames
+        .iter()
+        .map(|f| f["time_s"].as_f64().unwrap())
+        .collect();
+    assert!(times.windows(2).all(|w| w[0] <= w[1]), "in time order");
+
+    let csv = dir.join("csv");
+    let out = twin(&["export", s(&mcap), "--csv", s(&csv)]);
+    assert!(out.status.success(), "{}", text(&out));
+    assert!(csv.join("link_master_frames.csv").is_file());
+    let out = twin(&["replay", s(&mcap)]);
+    assert!(!out.status.success());
+    assert!(
+        text(&out).contains("is a `twin check` run"),
+        "{}",
+        text(&out)
     );
 }

@@ -10,7 +10,7 @@ use std::path::Path;
 use std::process::Command;
 
 /// The recording as the Python reader gives it back.
-fn read(path: &Path) -> serde_json::Value {
+pub(super) fn read(path: &Path) -> serde_json::Value {
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/peers/check_recording.py");
     let out = Command::new("python3")
         .arg(script)
@@ -21,9 +21,16 @@ fn read(path: &Path) -> serde_json::Value {
     serde_json::from_slice(&out.stdout).unwrap()
 }
 
-/// Bytes spelt as the report spells them (`\n`, `\r`).
-fn spelt(raw: &str) -> String {
-    raw.replace('\n', "\\n").replace('\r', "\\r")
+/// Bytes spelt as the report spells them (`\n`, `\r`, `\x00`).
+pub(super) fn spelt(raw: &str) -> String {
+    raw.chars()
+        .map(|c| match c {
+            '\n' => "\\n".to_string(),
+            '\r' => "\\r".to_string(),
+            ' '..='~' => c.to_string(),
+            _ => format!("\\x{:02X}", u32::from(c)),
+        })
+        .collect()
 }
 
 #[test]
