@@ -1,14 +1,16 @@
 //! A class: one suite run against every student's program, each on its
-//! own link, several at once, and the scores side by side. The roster is a
-//! CSV file (`student,link[,id]`, as a spreadsheet exports it) or TOML
-//! (`[[student]] name, link, id`).
+//! own link, several at once (students that share a link one after the
+//! other), and the scores side by side. The roster is a CSV file
+//! (`student,link[,id][,bus]`, as a spreadsheet exports it) or TOML
+//! (`[[student]] name, link, id, bus`).
 
 use crate::run::{SuiteRun, run_suite};
 use crate::suite::Suite;
 use crate::wire::Wire;
 use serde::Deserialize;
+use std::collections::VecDeque;
 use std::path::Path;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Condvar, Mutex, PoisonError};
 use twin_realtime::io::{LinkDefaults, LinkSpec};
 
 /// One student of the roster.
@@ -17,6 +19,9 @@ pub struct Student {
     pub name: String,
     pub link: String,
     pub id: u8,
+    /// A supervisor's bus, where the twin plays its slave (`twin check
+    /// server`), if the roster gives one.
+    pub bus: Option<String>,
     /// The roster's line, for messages.
     pub line: usize,
 }
@@ -109,6 +114,7 @@ pub fn parse_csv(text: &str, path: &str, default_id: u8) -> Result<Vec<Student>,
         }));
     };
     let id_at = column("id");
+    let bus_at = column("bus");
     let mut students = Vec::new();
     for record in reader.records() {
         let record = record.map_err(|e| csv_error(&e, path))?;
@@ -122,6 +128,7 @@ pub fn parse_csv(text: &str, path: &str, default_id: u8) -> Result<Vec<Student>,
             name: field(name_at),
             link: field(link_at),
             id,
+            bus: bus_at.map(field).filter(|s| !s.is_empty()),
             line,
         });
     }
@@ -163,6 +170,7 @@ struct StudentToml {
     name: String,
     link: String,
     id: Option<u8>,
+    bus: Option<String>,
 }
 
 /// A TOML roster: `[[student]]` tables of `name`, `link` and `id`.
@@ -193,6 +201,10 @@ pub fn parse_toml(text: &str, path: &str, default_id: u8) -> Result<Vec<Student>
             name: s.name.trim().into(),
             link: s.link.trim().into(),
             id,
+            bus: s
+                .bus
+                .map(|b| b.trim().to_string())
+                .filter(|b| !b.is_empty()),
             line,
         });
     }
@@ -242,6 +254,11 @@ fn checked(students: Vec<Student>, path: &str) -> Result<Vec<Student>, RosterErr
         if let Err(e) = LinkSpec::parse(&s.link, &LinkDefaults::default()) {
             return Err(at(s.line, format!("`{}`'s link: {e}", s.name)));
         }
+        if let Some(bus) = &s.bus
+            && let Err(e) = LinkSpec::parse(bus, &LinkDefaults::default())
+        {
+            return Err(at(s.line, format!("`{}`'s bus: {e}", s.name)));
+        }
     }
     Ok(students)
 }
@@ -263,41 +280,100 @@ pub fn run_class(
 }
 
 /// [`run_class`] with any check: `check` makes a student's run (a master's
-/// suite, say), `jobs` at once; `done` is called as each ends.
+/// suite, say), `jobs` at once; `done` is called as each ends. Students
+/// that share a link (or a bus) are never checked at once: the line is
+/// one program's at a time.
 pub fn run_each(
     students: &[Student],
     jobs: usize,
     check: impl Fn(&Student) -> SuiteRun + Sync,
     mut done: impl FnMut(&Student, &SuiteRun),
 ) -> Vec<SuiteRun> {
-    let next = AtomicUsize::new(0);
+    let queue = Queue {
+        state: Mutex::new(((0..students.len()).collect(), Vec::new())),
+        freed: Condvar::new(),
+    };
     let (tx, rx) = std::sync::mpsc::channel();
     let mut runs: Vec<Option<SuiteRun>> = vec![None; students.len()];
     std::thread::scope(|scope| {
         for _ in 0..jobs.clamp(1, students.len().max(1)) {
-            let (tx, next, check) = (tx.clone(), &next, &check);
+            let (tx, queue, check) = (tx.clone(), &queue, &check);
             scope.spawn(move || {
-                while let Some(student) = students.get(next.fetch_add(1, Ordering::Relaxed)) {
+                while let Some(i) = queue.take(students) {
+                    let Some(student) = students.get(i) else {
+                        break;
+                    };
                     let run = check(student);
-                    if tx.send((student, run)).is_err() {
+                    queue.give_back(student);
+                    if tx.send((i, run)).is_err() {
                         break;
                     }
                 }
             });
         }
         drop(tx);
-        for (student, run) in rx {
-            done(student, &run);
-            if let Some(slot) = students
-                .iter()
-                .position(|s| std::ptr::eq(s, student))
-                .and_then(|i| runs.get_mut(i))
-            {
+        for (i, run) in rx {
+            if let (Some(student), Some(slot)) = (students.get(i), runs.get_mut(i)) {
+                done(student, &run);
                 *slot = Some(run);
             }
         }
     });
     runs.into_iter().flatten().collect()
+}
+
+/// The students still to check, and the links in use.
+struct Queue {
+    state: Mutex<(VecDeque<usize>, Vec<String>)>,
+    freed: Condvar,
+}
+
+/// The links a student's check holds while it runs.
+fn links(student: &Student) -> impl Iterator<Item = &str> {
+    std::iter::once(student.link.as_str()).chain(student.bus.as_deref())
+}
+
+impl Queue {
+    /// The next student whose links are free (waiting while every one left
+    /// shares a link in use); `None` when none is left.
+    fn take(&self, students: &[Student]) -> Option<usize> {
+        let mut state = self.state.lock().unwrap_or_else(PoisonError::into_inner);
+        loop {
+            let (left, busy) = &mut *state;
+            if left.is_empty() {
+                return None;
+            }
+            let free = left.iter().position(|&i| {
+                students
+                    .get(i)
+                    .is_some_and(|s| links(s).all(|l| !busy.iter().any(|b| b == l)))
+            });
+            if let Some(at) = free
+                && let Some(i) = left.remove(at)
+            {
+                if let Some(student) = students.get(i) {
+                    busy.extend(links(student).map(str::to_string));
+                }
+                return Some(i);
+            }
+            state = self
+                .freed
+                .wait(state)
+                .unwrap_or_else(PoisonError::into_inner);
+        }
+    }
+
+    /// `student`'s links free again.
+    fn give_back(&self, student: &Student) {
+        let mut state = self.state.lock().unwrap_or_else(PoisonError::into_inner);
+        for link in links(student) {
+            if let Some(at) = state.1.iter().position(|b| b == link) {
+                state.1.swap_remove(at);
+            }
+        }
+        drop(state);
+        self.freed.notify_all();
+    }
 }
 
 /// One student's slave checked with `suite` over their link (unreachable: a
@@ -401,6 +477,51 @@ mod tests {
             "class.csv, line 2: 3 fields where the header has 2"
         );
         assert_eq!(csv_err("student,link\n"), "class.csv: no students in it");
+    }
+
+    #[test]
+    fn students_that_share_a_link_or_a_bus_are_never_checked_at_once() {
+        use std::sync::atomic::{AtomicUsize, Ordering};
+        let students = parse_csv(
+            "student,link,bus\nA,tcp://127.0.0.1:1,/tmp/b1\nB,tcp://127.0.0.1:1,/tmp/b2\nC,tcp://127.0.0.1:3,/tmp/b1\nD,tcp://127.0.0.1:4,/tmp/b4\nE,tcp://127.0.0.1:5,\n",
+            "class.csv",
+            1,
+        )
+        .unwrap();
+        assert_eq!(students[4].bus, None);
+        let suite = Suite::load("meb-slave").unwrap();
+        let (on_1, on_b1, most) = (
+            AtomicUsize::new(0),
+            AtomicUsize::new(0),
+            AtomicUsize::new(0),
+        );
+        let runs = run_each(
+            &students,
+            5,
+            |s| {
+                let shares = |c: &AtomicUsize, yes: bool| {
+                    if yes {
+                        let now = c.fetch_add(1, Ordering::SeqCst) + 1;
+                        most.fetch_max(now, Ordering::SeqCst);
+                    }
+                };
+                let (a, b) = (s.link.ends_with(":1"), s.bus.as_deref() == Some("/tmp/b1"));
+                shares(&on_1, a);
+                shares(&on_b1, b);
+                std::thread::sleep(std::time::Duration::from_millis(30));
+                if a {
+                    on_1.fetch_sub(1, Ordering::SeqCst);
+                }
+                if b {
+                    on_b1.fetch_sub(1, Ordering::SeqCst);
+                }
+                SuiteRun::unreachable(&suite, &s.link, s.id, s.name.clone())
+            },
+            |_, _| {},
+        );
+        assert_eq!(most.load(Ordering::SeqCst), 1);
+        let names: Vec<_> = runs.iter().map(|r| r.error.clone().unwrap()).collect();
+        assert_eq!(names, ["A", "B", "C", "D", "E"], "in the roster's order");
     }
 
     #[test]

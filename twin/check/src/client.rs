@@ -18,6 +18,12 @@ use nodes::proto::meb::{MebCmd, MebErrorCode};
 /// The suite's name in every report.
 pub const SUITE: &str = "MEB client";
 
+/// The suite as `twin check --list` names it (and a class's folder).
+pub const NAME: &str = "meb-client";
+
+/// What the session checks, for `twin check --list`.
+pub const DESCRIPTION: &str = "A remote client in a session that follows a checklist (the twin is the supervisor's server): reads, writes in the right block, an error reply and a dropped connection, every frame well formed";
+
 /// VEL's full scale (12-bit DAC) and the half a client is asked to set:
 /// within 5 % of it passes.
 const HALF_VEL: u16 = 2048;
@@ -121,6 +127,11 @@ impl Session {
 
     pub fn addr(&self) -> std::net::SocketAddr {
         self.bench.addr()
+    }
+
+    /// Whether a client has connected yet.
+    pub fn connected(&self) -> bool {
+        self.bench.connections() > 0
     }
 
     /// The item waited for now, by index.
@@ -278,6 +289,38 @@ impl Session {
     }
 }
 
+/// A session that never began (the twin could not listen): every check
+/// fails with why.
+pub fn unreachable(link: &str, id: u8, why: String) -> SuiteRun {
+    let checks = listed(id)
+        .into_iter()
+        .map(|(name, requirement, points)| CheckOutcome {
+            name,
+            requirement: requirement.into(),
+            points,
+            outcome: Outcome::Fail(why.clone()),
+            reply_ms: Vec::new(),
+            frames: Vec::new(),
+            at: 0.0,
+            seconds: 0.0,
+            notes: Vec::new(),
+        })
+        .collect();
+    SuiteRun {
+        suite: SUITE.into(),
+        link: link.into(),
+        id,
+        role: Role::default(),
+        ids: Vec::new(),
+        checks,
+        seconds: 0.0,
+        bench: None,
+        error: Some(why),
+        hung_up: None,
+        transcript: Vec::new(),
+    }
+}
+
 /// Write requests the twin acknowledged, each with its request.
 fn acknowledged_writes(
     heard: &[Heard],
@@ -318,6 +361,27 @@ fn exchange(h: &Heard) -> Exchange {
     }
 }
 
+/// The checks as `twin check --list` shows them (name, requirement,
+/// points), for slave `id`: the checklist's items, then the frames'.
+pub fn listed(id: u8) -> Vec<(String, &'static str, u32)> {
+    CHECKLIST
+        .iter()
+        .map(|item| (item.todo.to_string(), item.requirement, item.points))
+        .chain(std::iter::once((
+            well_formed_name(id),
+            WELL_FORMED_REQUIREMENT,
+            WELL_FORMED_POINTS,
+        )))
+        .collect()
+}
+
+const WELL_FORMED_REQUIREMENT: &str = "MEB page, Frame";
+const WELL_FORMED_POINTS: u32 = 2;
+
+fn well_formed_name(id: u8) -> String {
+    format!("every frame the client sent is well formed, its FCS right, for slave {id:02}")
+}
+
 /// Every frame the client sent parsed, with a right FCS, for slave `id`.
 fn well_formed(heard: &[Heard], id: u8, ended: f64) -> CheckOutcome {
     let sent: Vec<&Heard> = heard.iter().filter(|h| h.way == Way::Received).collect();
@@ -338,11 +402,9 @@ fn well_formed(heard: &[Heard], id: u8, ended: f64) -> CheckOutcome {
         None => Vec::new(),
     };
     CheckOutcome {
-        name: format!(
-            "every frame the client sent is well formed, its FCS right, for slave {id:02}"
-        ),
-        requirement: "MEB page, Frame".into(),
-        points: 2,
+        name: well_formed_name(id),
+        requirement: WELL_FORMED_REQUIREMENT.into(),
+        points: WELL_FORMED_POINTS,
         outcome,
         reply_ms: Vec::new(),
         frames,

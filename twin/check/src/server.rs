@@ -21,6 +21,12 @@ use std::time::{Duration, Instant};
 /// The suite's name in every report.
 pub const SUITE: &str = "MEB server";
 
+/// The suite as `twin check --list` names it (and a class's folder).
+pub const NAME: &str = "meb-server";
+
+/// What the suite checks, for `twin check --list`.
+pub const DESCRIPTION: &str = "A supervisor checked from its bus (the twin plays the module's controller) and its TCP server (the twin connects as the remote clients) at once: reads answered from the image, writes landing on the bus, errors, several clients, timing";
+
 /// How long the supervisor may take to poll the slave again: a supervisor
 /// that polls less often than this serves no image worth the name.
 const POLL_WAIT: Duration = Duration::from_secs(5);
@@ -212,8 +218,15 @@ pub fn check_server(options: &ServerOptions) -> Result<SuiteRun, WireError> {
     })
 }
 
-/// A run whose server could not be reached: every check fails with why.
-fn unreachable(link: &str, id: u8, why: String) -> SuiteRun {
+/// The checks as `twin check --list` shows them (name, requirement,
+/// points), from the table the run plays.
+pub fn listed() -> impl Iterator<Item = (&'static str, &'static str, u32)> {
+    CHECKS.iter().map(|c| (c.name, c.requirement, c.points))
+}
+
+/// A run whose server could not be reached (or its bus opened): every
+/// check fails with why.
+pub fn unreachable(link: &str, id: u8, why: String) -> SuiteRun {
     SuiteRun {
         suite: SUITE.into(),
         link: link.into(),

@@ -158,6 +158,11 @@ impl Bench {
         self.shared.lock().fault.is_some()
     }
 
+    /// How many connections the client made.
+    pub fn connections(&self) -> u64 {
+        self.shared.lock().connections
+    }
+
     /// The connection the twin hung up on, once it has.
     pub fn hung_up_on(&self) -> Option<u64> {
         self.shared.lock().hung_up

@@ -121,5 +121,42 @@ fn list() -> Result<String> {
             let _ = writeln!(out, "  - {} ({})", check.name, check.requirement);
         }
     }
+    // The server's and the client's checks are code, not TOML: listed from
+    // the tables their runs play.
+    use twin_check::{client, server};
+    let server_checks: Vec<_> = server::listed().collect();
+    let client_checks = client::listed(1);
+    for (name, title, role, description, checks) in [
+        (
+            server::NAME,
+            server::SUITE,
+            "server",
+            server::DESCRIPTION,
+            server_checks
+                .iter()
+                .map(|&(n, r, p)| (n, r, p))
+                .collect::<Vec<_>>(),
+        ),
+        (
+            client::NAME,
+            client::SUITE,
+            "client",
+            client::DESCRIPTION,
+            client_checks
+                .iter()
+                .map(|(n, r, p)| (n.as_str(), *r, *p))
+                .collect(),
+        ),
+    ] {
+        let points: u32 = checks.iter().map(|c| c.2).sum();
+        let _ = writeln!(
+            out,
+            "{name}: {title} ({} checks, {points} points; twin check {role})\n  {description}",
+            checks.len()
+        );
+        for (check, requirement, _) in checks {
+            let _ = writeln!(out, "  - {check} ({requirement})");
+        }
+    }
     Ok(out)
 }

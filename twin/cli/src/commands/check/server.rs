@@ -4,8 +4,9 @@
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use twin_check::report;
-use twin_check::server::{ServerOptions, check_server};
+use std::path::Path;
+use twin_check::server::{NAME, SUITE, ServerOptions, check_server, unreachable};
+use twin_check::{class, report};
 
 #[derive(Debug, Args)]
 #[command(
@@ -36,10 +37,11 @@ pub struct ServerArgs {
     reports: super::reports::ReportArgs,
 }
 
-/// The supervisor's server checked, its report printed and written.
+/// The supervisor's server checked, its report printed and written; or a
+/// class's from a roster.
 pub fn execute(args: &ServerArgs) -> Result<()> {
-    if args.reports.roster.is_some() {
-        bail!("a class of servers is not checked yet: give one tcp://HOST:PORT and --bus");
+    if let Some(roster) = &args.reports.roster {
+        return class(args, roster);
     }
     let link = args.link.clone().unwrap_or_default();
     let bus = args.bus.clone().unwrap_or_default();
@@ -59,4 +61,57 @@ pub fn execute(args: &ServerArgs) -> Result<()> {
     print!("{}", report::text(&run));
     args.reports.record("server", "", &run)?;
     args.reports.reports_and_verdict(&run)
+}
+
+/// Every student's supervisor checked (see [`super::class`]): the
+/// roster's `link` is their server, its `bus` their bus (--bus where it
+/// gives none). Students on one bus are checked one after the other.
+fn class(args: &ServerArgs, roster: &Path) -> Result<()> {
+    let mut students = class::load_roster(roster, args.id)?;
+    for student in &mut students {
+        let at = || format!("{}, line {}", roster.display(), student.line);
+        if !student.link.starts_with("tcp://") {
+            bail!(
+                "{}: `{}`'s server is reached over TCP: give tcp://HOST:PORT, not `{}` (the bus goes in the `bus` column)",
+                at(),
+                student.name,
+                student.link
+            );
+        }
+        if student.bus.is_none() {
+            let Some(bus) = &args.bus else {
+                bail!(
+                    "{}: `{}` has no bus: give each student's in a `bus` column, or one for all with --bus",
+                    at(),
+                    student.name
+                );
+            };
+            student.bus = Some(bus.clone());
+        }
+    }
+    let options = super::class::Class {
+        suite_name: SUITE,
+        suite_arg: NAME,
+        role: "server",
+        out: args.reports.out.as_deref(),
+        jobs: args.reports.jobs,
+        suite_toml: (!args.reports.no_record).then_some(""),
+    };
+    super::class::run(&options, &students, |student| {
+        let bus = student.bus.clone().unwrap_or_default();
+        let options = ServerOptions {
+            link: student.link.clone(),
+            bus: bus.clone(),
+            id: student.id,
+            timeout_ms: args.timeout_ms,
+        };
+        check_server(&options).unwrap_or_else(|e| {
+            let shown = format!("{}, bus {bus}", student.link);
+            unreachable(
+                &shown,
+                student.id,
+                format!("cannot play the slave on the bus: {e}"),
+            )
+        })
+    })
 }

@@ -2,9 +2,10 @@
 //! driven without a person: the twin's own `twin client` (every item seen,
 //! the display left "not judged"), and a student's client written outside
 //! the twin (a Python program), correct and with VEL written to the wrong
-//! block, found by name.
+//! block, found by name; and a class's sessions from a roster.
 
 use crate::supervise::client;
+use crate::supervise::s;
 use crate::support::{Proc, scratch, text};
 use std::path::Path;
 use std::process::{Command, Stdio};
@@ -171,4 +172,79 @@ fn a_student_client_passes_and_a_vel_written_to_the_wrong_block_is_found() {
             );
         }
     }
+}
+
+#[test]
+fn a_class_of_clients_gets_its_scores_from_a_roster() {
+    let dir = crate::support::folder("check-client", "class3");
+    let ports: Vec<u16> = (0..3)
+        .map(|_| {
+            let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+            listener.local_addr().unwrap().port()
+        })
+        .collect();
+    let roster = dir.join("class.toml");
+    let mut toml = String::new();
+    for (name, port) in ["Anna", "Ben", "Carl"].iter().zip(&ports) {
+        toml += &format!("[[student]]\nname = \"{name}\"\nlink = \"tcp://127.0.0.1:{port}\"\n\n");
+    }
+    std::fs::write(&roster, toml).unwrap();
+    let out_dir = dir.join("reports");
+    // Stdin held open: its end (Enter, Ctrl-D) ends every session.
+    let proc = Proc::spawn(
+        &[
+            "check",
+            "client",
+            "--roster",
+            s(&roster),
+            "--out",
+            s(&out_dir),
+            "--duration",
+            "300",
+        ],
+        Stdio::piped(),
+    );
+    // Anna's client is correct, Ben's writes VEL to the wrong block, and
+    // Carl's never connects.
+    let anna = student_client(&format!("127.0.0.1:{}", ports[0]), &[]);
+    assert!(anna.status.success(), "{}", text(&anna));
+    let ben = student_client(&format!("127.0.0.1:{}", ports[1]), &["writes-wrong-block"]);
+    assert!(ben.status.success(), "{}", text(&ben));
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+    while !(proc.output().contains("  Anna  ") && proc.output().contains("  Ben   7 of 9")) {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "Anna's and Ben's sessions did not end: {}",
+            proc.output()
+        );
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    // The teacher presses Enter: Carl's session ends too.
+    let mut proc = proc;
+    drop(proc.child.stdin.take());
+    let (success, printed) = ended(proc);
+    assert!(!success, "{printed}");
+    let scores = std::fs::read_to_string(out_dir.join("scores.csv")).unwrap();
+    assert_eq!(
+        scores.lines().collect::<Vec<_>>(),
+        [
+            "student,score,points,checks_passed,checks,first_failure",
+            "Anna,9,9,6,7,",
+            "Ben,7,9,5,7,\"set VEL to half of full scale (SA 00, about 2048)\"",
+            &format!(
+                "Carl,0,9,0,7,no client connected to tcp://127.0.0.1:{} during the session",
+                ports[2]
+            ),
+        ],
+        "{printed}"
+    );
+    assert!(
+        printed.contains("1 passed every check, 1 failed a check, 1 could not be checked"),
+        "{printed}"
+    );
+    let ben = std::fs::read_to_string(out_dir.join("Ben.txt")).unwrap();
+    assert!(
+        ben.contains("VEL went to VA 00, not SA 00 (`@01VA00010800"),
+        "{ben}"
+    );
 }

@@ -1,8 +1,9 @@
 //! `twin check server`: the twin's own supervisor (`twin supervise`) passes
 //! every check, and a student's supervisor written outside the twin (a
 //! Python program on a pseudo-terminal and TCP) passes when correct, each
-//! planted bug found alone. The bus is a `twin vsp` pair: the supervisor
-//! on one end, the check's slave on the other.
+//! planted bug found alone; and a class of them from a roster. The bus is
+//! a `twin vsp` pair: the supervisor on one end, the check's slave on the
+//! other.
 
 use crate::supervise::{pair_paths, s, server_tcp};
 use crate::support::{Proc, scratch, text, twin};
@@ -201,6 +202,100 @@ fn a_server_that_is_not_listening_is_reported_with_every_check_failed() {
     let out = twin(&["check", "server", s(&a), "--bus", s(&b)]);
     assert!(
         text(&out).contains("the server is reached over TCP: give tcp://HOST:PORT"),
+        "{}",
+        text(&out)
+    );
+}
+
+/// A port on this machine that nobody listens on (bound, then let go).
+fn free_port() -> u16 {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    listener.local_addr().unwrap().port()
+}
+
+#[test]
+fn a_class_of_servers_gets_its_scores_from_a_roster() {
+    let dir = crate::support::folder("check-server", "class3");
+    let (a1, b1) = pair_paths("check-class-anna");
+    let (a2, b2) = pair_paths("check-class-ben");
+    let (_, b3) = pair_paths("check-class-carl");
+    let _vsp1 = Proc::start(&["vsp", s(&a1), s(&b1)]);
+    let _vsp2 = Proc::start(&["vsp", s(&a2), s(&b2)]);
+    let anna = student_server("class-anna", &a1, &[]);
+    let ben = student_server("class-ben", &a2, &["write-wrong-block"]);
+    // Carl's supervisor is not running: his bus is a pseudo-terminal of
+    // its own (the check opens it) and nobody listens on his port.
+    let (a3, _) = pair_paths("check-class-carl");
+    let _vsp3 = Proc::start(&["vsp", s(&a3), s(&b3)]);
+    let nobody = format!("tcp://127.0.0.1:{}", free_port());
+    let roster = dir.join("class.csv");
+    std::fs::write(
+        &roster,
+        format!(
+            "student,link,bus\nAnna,{},{}\nBen,{},{}\nCarl,{nobody},{}\n",
+            anna.link,
+            s(&b1),
+            ben.link,
+            s(&b2),
+            s(&b3)
+        ),
+    )
+    .unwrap();
+    let out_dir = dir.join("reports");
+    let out = twin(&[
+        "check",
+        "server",
+        "--roster",
+        s(&roster),
+        "--timeout-ms",
+        "1000",
+        "--out",
+        s(&out_dir),
+    ]);
+    let shown = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{shown}");
+    assert!(
+        shown.starts_with("MEB server suite: 3 students, 3 at once\n"),
+        "{shown}"
+    );
+    let scores = std::fs::read_to_string(out_dir.join("scores.csv")).unwrap();
+    let rows: Vec<&str> = scores.lines().collect();
+    assert_eq!(
+        rows[..3],
+        [
+            "student,score,points,checks_passed,checks,first_failure",
+            "Anna,20,20,15,15,",
+            "Ben,18,20,14,15,a client's VEL write (SA 00) goes on the bus as SA 00 and is acknowledged",
+        ],
+        "{shown}"
+    );
+    assert!(
+        rows[3].starts_with(&format!(
+            "Carl,0,20,0,15,cannot connect to {nobody}: connection refused"
+        )),
+        "{scores}"
+    );
+    assert_eq!(rows.len(), 4, "{scores}");
+    for stem in ["Anna", "Ben", "Carl"] {
+        for ext in ["txt", "json", "html", "junit.xml", "mcap"] {
+            assert!(
+                out_dir.join(format!("{stem}.{ext}")).is_file(),
+                "{stem}.{ext}"
+            );
+        }
+    }
+    let ben_txt = std::fs::read_to_string(out_dir.join("Ben.txt")).unwrap();
+    assert!(
+        ben_txt.contains(" s  received  bus       @01VA000104D2"),
+        "{ben_txt}"
+    );
+
+    // A roster whose student has no bus, and no --bus for all: refused
+    // with the line, before anything is opened.
+    std::fs::write(&roster, format!("student,link\nAnna,{}\n", anna.link)).unwrap();
+    let out = twin(&["check", "server", "--roster", s(&roster)]);
+    assert!(
+        text(&out).contains("class.csv, line 2: `Anna` has no bus: give each student's in a `bus` column, or one for all with --bus"),
         "{}",
         text(&out)
     );
