@@ -228,6 +228,42 @@ fn comparable(report: &str) -> Vec<String> {
         .collect()
 }
 
+/// The `text` block of docs/check.md after the comment naming `test`:
+/// every one of its lines is a line `printed`, numbers aside (ports,
+/// times and counts differ run to run), in any order (a class's students
+/// finish in any order).
+pub(crate) fn held_to_the_book(test: &str, printed: &str) {
+    let page =
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("../../docs/check.md"))
+            .unwrap();
+    let block = page
+        .split(&format!("the output of {test} test"))
+        .nth(1)
+        .and_then(|rest| rest.split("```text\n").nth(1))
+        .and_then(|block| block.split("```").next())
+        .unwrap_or_else(|| panic!("docs/check.md shows the output of {test}"));
+    let numbers_aside = |line: &str| {
+        let mut out = String::new();
+        for c in line.chars() {
+            if c.is_ascii_digit() || c == '.' {
+                if !out.ends_with('#') {
+                    out.push('#');
+                }
+            } else {
+                out.push(c);
+            }
+        }
+        out
+    };
+    let real: Vec<String> = printed.lines().map(numbers_aside).collect();
+    for line in block.lines() {
+        assert!(
+            real.contains(&numbers_aside(line)),
+            "docs/check.md shows `{line}`, which {test} does not print:\n{printed}"
+        );
+    }
+}
+
 /// The book's report is the program's, bugs and all.
 #[test]
 fn the_books_report_is_what_twin_check_prints() {

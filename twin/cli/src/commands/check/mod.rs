@@ -20,19 +20,20 @@ use twin_check::Suite;
 /// pseudo-terminal or TCP, and prints one line per check, the frames that
 /// show each failure, and a score. Suites are TOML files; the built-in ones
 /// (--list) are written the same way a teacher writes their own (--suite).
-/// A class is checked at once from a roster (--roster): a report per
-/// student and the scores side by side. A supervisor is checked as the
+/// A class is checked at once from a roster (--roster), whatever the role:
+/// a report and a recording per student, and the scores side by side. A supervisor is checked as the
 /// master of its bus (master), or from its bus and its TCP server at once
 /// (server); a remote client in a session that follows a checklist
 /// (client). Exits 1 when a check fails.
 #[derive(Debug, Args)]
 #[command(
-    after_help = "Examples:\n  twin check slave tcp://127.0.0.1:5700\n  twin check slave /dev/ttyUSB0?baud=9600 --id 3 --json report.json\n  twin check slave /tmp/ttyV0 --suite my-suite.toml --html report.html\n  twin check slave tcp://127.0.0.1:5020 --suite modbus-tcp-slave\n  twin check slave /tmp/ttyV0 --suite modbus-rtu-slave\n  twin check slave --roster class.csv --out grades/\n  twin check master /tmp/ttyV1 --id 1,2\n  twin check server tcp://127.0.0.1:5701 --bus /tmp/ttyV1\n  twin check client --listen tcp://0.0.0.0:5701\n  twin check --list"
+    after_help = "Examples:\n  twin check slave tcp://127.0.0.1:5700\n  twin check slave /dev/ttyUSB0?baud=9600 --id 3 --json report.json\n  twin check slave /tmp/ttyV0 --suite my-suite.toml --html report.html\n  twin check slave tcp://127.0.0.1:5020 --suite modbus-tcp-slave\n  twin check slave /tmp/ttyV0 --suite modbus-rtu-slave\n  twin check slave --roster class.csv --out grades/\n  twin check master /tmp/ttyV1 --id 1,2\n  twin check server tcp://127.0.0.1:5701 --bus /tmp/ttyV1\n  twin check server --roster class.csv          (columns student,link,bus)\n  twin check client --listen tcp://0.0.0.0:5701\n  twin check --list"
 )]
 pub struct CheckArgs {
     #[command(subcommand)]
     role: Option<Role>,
-    /// Print the built-in suites and their checks.
+    /// Print every role's checks: the built-in suites, and the server's
+    /// and the client's.
     #[arg(long)]
     list: bool,
 }

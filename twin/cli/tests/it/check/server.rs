@@ -232,7 +232,7 @@ fn a_class_of_servers_gets_its_scores_from_a_roster() {
     std::fs::write(
         &roster,
         format!(
-            "student,link,bus\nAnna,{},{}\nBen,{},{}\nCarl,{nobody},{}\n",
+            "student,link,bus\nAnna Berg,{},{}\nBen Okafor,{},{}\nChloé Martin,{nobody},{}\n",
             anna.link,
             s(&b1),
             ben.link,
@@ -241,19 +241,23 @@ fn a_class_of_servers_gets_its_scores_from_a_roster() {
         ),
     )
     .unwrap();
-    let out_dir = dir.join("reports");
-    let out = twin(&[
-        "check",
-        "server",
-        "--roster",
-        s(&roster),
-        "--timeout-ms",
-        "1000",
-        "--out",
-        s(&out_dir),
-    ]);
+    // Run in the class's folder: the reports go to the default one.
+    let out_dir = dir.join("check-meb-server-reports");
+    let out = Command::new(env!("CARGO_BIN_EXE_twin"))
+        .args([
+            "check",
+            "server",
+            "--roster",
+            s(&roster),
+            "--timeout-ms",
+            "1000",
+        ])
+        .current_dir(&dir)
+        .output()
+        .unwrap();
     let shown = text(&out);
     assert_eq!(out.status.code(), Some(1), "{shown}");
+    super::held_to_the_book("check::server's a_class_of_servers", &shown);
     assert!(
         shown.starts_with("MEB server suite: 3 students, 3 at once\n"),
         "{shown}"
@@ -264,19 +268,19 @@ fn a_class_of_servers_gets_its_scores_from_a_roster() {
         rows[..3],
         [
             "student,score,points,checks_passed,checks,first_failure",
-            "Anna,20,20,15,15,",
-            "Ben,18,20,14,15,a client's VEL write (SA 00) goes on the bus as SA 00 and is acknowledged",
+            "Anna Berg,20,20,15,15,",
+            "Ben Okafor,18,20,14,15,a client's VEL write (SA 00) goes on the bus as SA 00 and is acknowledged",
         ],
         "{shown}"
     );
     assert!(
         rows[3].starts_with(&format!(
-            "Carl,0,20,0,15,cannot connect to {nobody}: connection refused"
+            "Chloé Martin,0,20,0,15,cannot connect to {nobody}: connection refused"
         )),
         "{scores}"
     );
     assert_eq!(rows.len(), 4, "{scores}");
-    for stem in ["Anna", "Ben", "Carl"] {
+    for stem in ["Anna_Berg", "Ben_Okafor", "Chloé_Martin"] {
         for ext in ["txt", "json", "html", "junit.xml", "mcap"] {
             assert!(
                 out_dir.join(format!("{stem}.{ext}")).is_file(),
@@ -284,7 +288,7 @@ fn a_class_of_servers_gets_its_scores_from_a_roster() {
             );
         }
     }
-    let ben_txt = std::fs::read_to_string(out_dir.join("Ben.txt")).unwrap();
+    let ben_txt = std::fs::read_to_string(out_dir.join("Ben_Okafor.txt")).unwrap();
     assert!(
         ben_txt.contains(" s  received  bus       @01VA000104D2"),
         "{ben_txt}"
@@ -292,10 +296,10 @@ fn a_class_of_servers_gets_its_scores_from_a_roster() {
 
     // A roster whose student has no bus, and no --bus for all: refused
     // with the line, before anything is opened.
-    std::fs::write(&roster, format!("student,link\nAnna,{}\n", anna.link)).unwrap();
+    std::fs::write(&roster, format!("student,link\nAnna Berg,{}\n", anna.link)).unwrap();
     let out = twin(&["check", "server", "--roster", s(&roster)]);
     assert!(
-        text(&out).contains("class.csv, line 2: `Anna` has no bus: give each student's in a `bus` column, or one for all with --bus"),
+        text(&out).contains("class.csv, line 2: `Anna Berg` has no bus: give each student's in a `bus` column, or one for all with --bus"),
         "{}",
         text(&out)
     );
