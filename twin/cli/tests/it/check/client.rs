@@ -159,7 +159,7 @@ fn a_student_client_passes_and_a_vel_written_to_the_wrong_block_is_found() {
             )
             .unwrap();
             let start = page
-                .find("```text\ntwin check client:")
+                .find("```text\ntwin check client: slave")
                 .expect("the session on the page")
                 + 8;
             let book = &page[start..start + page[start..].find("\n```").unwrap()];

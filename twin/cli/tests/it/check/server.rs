@@ -159,7 +159,7 @@ fn a_correct_student_server_passes_and_each_planted_bug_is_found_alone() {
             )
             .unwrap();
             let start = page
-                .find("```text\nMEB server suite")
+                .find("```text\nMEB server suite, ")
                 .expect("the report on the page")
                 + 8;
             let book = &page[start..start + page[start..].find("\n```").unwrap()];
