@@ -125,6 +125,15 @@ pub fn layout_of(path: &Path) -> Result<ViewLayout> {
                 })?;
             Ok(ViewLayout::of_supervise(&slaves))
         }
+        Some("check") => {
+            // A `twin check` run: its link's frames as a text log, the
+            // checked slave (or, for a master, the twin's first) its module.
+            let id = meta
+                .get("id")
+                .and_then(|id| id.parse::<u8>().ok())
+                .unwrap_or(1);
+            Ok(ViewLayout::of_supervise(&[id]))
+        }
         other => bail!(
             "{}: unknown recording kind {:?} in its `twin.run` metadata",
             path.display(),

@@ -232,7 +232,7 @@ fn a_class_of_masters_is_checked_from_a_roster() {
 /// A master's recording, read by the Python `mcap` package: every frame
 /// the master sent and the twin's slaves answered, each in its check (the
 /// report's frames among them, in order), the verdicts and the score;
-/// `twin export` reads it and `twin replay` says what it is.
+/// `twin export` and `twin view` read it and `twin replay` says what it is.
 #[test]
 fn a_masters_run_is_recorded_with_every_frame_in_its_check() {
     let dir = crate::support::folder("check", "master-recorded");
@@ -331,6 +331,10 @@ fn a_masters_run_is_recorded_with_every_frame_in_its_check() {
     let out = twin(&["export", s(&mcap), "--csv", s(&csv)]);
     assert!(out.status.success(), "{}", text(&out));
     assert!(csv.join("link_master_frames.csv").is_file());
+    let rrd = dir.join("run.rrd");
+    let out = twin(&["view", s(&mcap), "--save", s(&rrd)]);
+    assert!(out.status.success(), "{}", text(&out));
+    assert!(rrd.is_file(), "{}", text(&out));
     let out = twin(&["replay", s(&mcap)]);
     assert!(!out.status.success());
     assert!(

@@ -148,6 +148,15 @@ fn the_recording_holds_every_frame_of_the_report_in_its_check() {
         .filter(|l| l.starts_with(|c: char| c.is_ascii_digit()))
         .count();
     assert_eq!(starts, frames.len(), "{rows}");
+    let rrd = dir.join("run.rrd");
+    let out = twin(&[
+        "view",
+        mcap.to_str().unwrap(),
+        "--save",
+        rrd.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", text(&out));
+    assert!(rrd.is_file(), "{}", text(&out));
     let out = twin(&["replay", mcap.to_str().unwrap()]);
     assert!(!out.status.success());
     assert!(
