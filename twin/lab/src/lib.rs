@@ -1,7 +1,8 @@
 //! Experiments on the twin: batch runs of a manifest (`twin batch`), the step response (`twin step`), the light
 //! sensor's sweep (`twin sweep`), the PWM-capture paper's figures and the
 //! parallel modules (`twin experiment`), and the engine's benchmark (`twin
-//! bench`). The only crate that draws plots (plotters). The step-response
+//! bench`), and the scope pictures of `twin scope --png`. The only crate that
+//! draws plots (plotters). The step-response
 //! metrics themselves are `twin_sim::step_metrics`, for crates without plots.
 
 #![allow(
@@ -16,6 +17,7 @@ pub mod instruments;
 pub mod parallel;
 pub mod plot;
 pub mod pwmcap;
+pub mod scope_png;
 pub mod step;
 pub mod step_against;
 pub mod sweep;

@@ -23,7 +23,7 @@ const FONT_PATHS: [&str; 6] = [
 static FONT: OnceLock<std::result::Result<(), String>> = OnceLock::new();
 
 /// Register a font for plotters once per process.
-fn ensure_font() -> Result<()> {
+pub(crate) fn ensure_font() -> Result<()> {
     FONT.get_or_init(|| {
         let env = std::env::var("TWIN_FONT").ok();
         let candidates = env.iter().map(String::as_str).chain(FONT_PATHS);

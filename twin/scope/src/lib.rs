@@ -4,8 +4,8 @@
 //! the lines one would probe: each node's TX, its RS-485 driver enable and
 //! its RX, and the pair itself ([`wave`]). Writers turn the lines into a VCD
 //! file ([`vcd_out`], edges only, 1 ns timescale) or a sigrok session
-//! ([`sigrok`], the `.sr` zip PulseView opens); a picture can walk the same
-//! edges.
+//! ([`sigrok`], the `.sr` zip PulseView opens); the scope picture
+//! (`twin_lab::scope_png`, where plotters lives) walks the same edges.
 //!
 //! A real-time session's link has no line to probe (a pseudo-terminal or a
 //! socket carries bytes, not bits): its picture is reconstructed from the
