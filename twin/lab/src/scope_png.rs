@@ -69,7 +69,8 @@ pub struct Drawn {
 }
 
 /// The channels of a picture: each node's TX that talks in the window (at
-/// least two nodes, the master first among equals), then the bus line.
+/// least two nodes: the master, then the others in the scenario's order),
+/// then the bus line.
 pub fn channels(wave: &Waveform) -> Vec<(LineKind, String)> {
     let talks = |n: usize| wave.frames.iter().any(|f| f.node == n);
     let master = match wave.hearing {
@@ -85,7 +86,8 @@ pub fn channels(wave: &Waveform) -> Vec<(LineKind, String)> {
             picked.push(n);
         }
     }
-    picked.sort_unstable();
+    // The master on top, as its request comes first; then scenario order.
+    picked.sort_unstable_by_key(|&n| (Some(n) != master, n));
     picked.truncate(MAX_CHANNELS - 1);
     let mut out: Vec<_> = picked
         .into_iter()
@@ -330,7 +332,7 @@ fn channel(
         .light_line_style(TRANSPARENT)
         .axis_style(GRID)
         .label_style(font(13, DIM))
-        .axis_desc_style(font(15, color))
+        .axis_desc_style(font(15, shade(color)))
         .x_label_formatter(&|v| format!("{v:.decimals$}"))
         .x_desc(if last { "time (ms)" } else { "" })
         .y_desc(name)
@@ -408,6 +410,16 @@ fn channel(
         }
     }
     Ok(())
+}
+
+/// A channel's label colour: a shade off its trace's, so that only the
+/// trace has the trace's exact colour and a picture reads back unambiguously.
+fn shade(c: RGBColor) -> RGBColor {
+    RGBColor(
+        c.0.saturating_sub(8),
+        c.1.saturating_sub(8),
+        c.2.saturating_sub(8),
+    )
 }
 
 /// Whether frame `f` is seen on channel `kind`.
@@ -532,4 +544,68 @@ fn bus_table(
         ))?;
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nodes::proto::modbus8::{CrcOrder, Frame as Frame8};
+    use twin_scope::LineFormat;
+
+    fn wave(frames: Vec<Vec<u8>>) -> Waveform {
+        Waveform {
+            name: "bus.serial".into(),
+            format: LineFormat::from_bits_per_char(115_200, 10),
+            nodes: vec!["rpi".into(), "motor".into(), "sensor".into()],
+            hearing: Hearing::MasterSlaves { master: 0 },
+            frames: frames
+                .into_iter()
+                .enumerate()
+                .map(|(number, bytes)| Frame {
+                    number,
+                    node: number % 2,
+                    start: 1_000 * number as u64,
+                    bytes,
+                })
+                .collect(),
+            flips: vec![],
+            from: 0,
+            to: 10_000,
+            reconstructed: false,
+        }
+    }
+
+    #[test]
+    fn the_describer_marks_a_wrong_crc_and_an_exception() {
+        let read = Frame8 {
+            id: 1,
+            function: 3,
+            addr: 2,
+            value: 1,
+        }
+        .to_bytes(CrcOrder::HighFirst);
+        let mut bad = read;
+        bad[7] ^= 0xff;
+        let refused =
+            Frame8::exception(1, 6, 1, Exception::IllegalDataValue).to_bytes(CrcOrder::HighFirst);
+        let w = wave(vec![read.to_vec(), bad.to_vec(), refused.to_vec()]);
+        let d: Vec<Described> = w.frames.iter().map(|f| describe(&w, f)).collect();
+        assert!(!d[0].marked(), "{}", d[0].what);
+        assert!(d[0].what.contains("function 03 (read)"), "{}", d[0].what);
+        assert!(d[1].broken && d[1].what.contains("CRC"), "{}", d[1].what);
+        assert!(d[2].exception, "{}", d[2].what);
+        assert!(
+            d[2].what.contains(Exception::IllegalDataValue.name()),
+            "{}",
+            d[2].what
+        );
+    }
+
+    #[test]
+    fn a_picture_shows_the_master_and_a_slave_over_the_line() {
+        let w = wave(vec![vec![1, 3, 0, 2, 0, 1, 0, 0]]);
+        let names: Vec<String> = channels(&w).into_iter().map(|(_, n)| n).collect();
+        // Only the master talks in the window: a slave is shown beside it.
+        assert_eq!(names, ["rpi TX", "motor TX", "bus line"]);
+    }
 }

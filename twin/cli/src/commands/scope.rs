@@ -8,7 +8,7 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use twin_scope::{Choice, Window, sigrok, vcd_out};
 
-/// Write a bus of a recording as a logic analyzer would capture it: VCD or a sigrok session.
+/// Write a bus of a recording as a logic analyzer would capture it: VCD, a sigrok session, or a scope picture.
 ///
 /// Each frame is laid out bit by bit at the bus's baud and character format
 /// (start bit, 8 data bits least significant first, parity, stop bits) on the
@@ -20,6 +20,11 @@ use twin_scope::{Choice, Window, sigrok, vcd_out};
 /// reconstructed from the recorded byte times at the link's baud, with a TX
 /// line per side.
 ///
+/// A scope picture (`--png`) shows each talking node's TX above the bus line
+/// at 0/5 V TTL levels, the bytes in hex under each character, and under the
+/// screen the frames as a bus table (who sent it, its bytes, what it is), a
+/// wrong CRC or an exception marked in red.
+///
 /// Open the file in PulseView (or `sigrok-cli -i FILE`) and decode with the
 /// `uart` decoder on the line (and `modbus` on top for Modbus RTU); the
 /// command prints the decoder settings.
@@ -29,11 +34,15 @@ pub struct ScopeArgs {
     #[arg(value_name = "RUN.mcap")]
     recording: PathBuf,
     /// Write a VCD file: edges only, on a 1 ns timescale.
-    #[arg(long, value_name = "FILE", required_unless_present = "sr")]
+    #[arg(long, value_name = "FILE", required_unless_present_any = ["sr", "png"])]
     vcd: Option<PathBuf>,
     /// Write a sigrok session (.sr), sampled at --rate.
     #[arg(long, value_name = "FILE")]
     sr: Option<PathBuf>,
+    /// Draw a scope picture (PNG): the nodes' TX lines and the bus line, the
+    /// bytes and the frames under them.
+    #[arg(long, value_name = "FILE")]
+    png: Option<PathBuf>,
     /// Start of the window (s; default: just before the first frame).
     #[arg(long, value_name = "S", allow_negative_numbers = true)]
     from: Option<f64>,
@@ -111,6 +120,17 @@ pub fn execute(args: &ScopeArgs) -> Result<()> {
             written.lines,
             written.samples,
             written.rate
+        );
+    }
+    if let Some(path) = &args.png {
+        let drawn = twin_lab::scope_png::draw(&wave, path)
+            .with_context(|| format!("--png {}: cannot draw it", path.display()))?;
+        println!(
+            "  {}: {}×{} px, channels {}",
+            path.display(),
+            drawn.width,
+            drawn.height,
+            drawn.channels.join(", ")
         );
     }
     println!(

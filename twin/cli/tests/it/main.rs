@@ -34,6 +34,7 @@ mod replay;
 mod rotate;
 mod run;
 mod scope;
+mod scope_png;
 mod serve;
 mod serve_faults;
 mod service;
