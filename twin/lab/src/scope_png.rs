@@ -288,15 +288,16 @@ fn describe(wave: &Waveform, frame: &Frame) -> Described {
         } => plain(format!("{protocol}: unit {unit}")),
         LinkFrameFields::Bus(FrameFields::Broken { error, protocol })
         | LinkFrameFields::Broken { error, protocol } => {
-            let protocol = match protocol {
-                "modbus8" => "8-byte Modbus",
-                "unknown" => "does not read",
-                p => p,
+            let what = match protocol {
+                "modbus8" => format!("8-byte Modbus: {error}"),
+                // Of no known kind: the describer's reason says it all.
+                "unknown" => error,
+                p => format!("{p}: {error}"),
             };
             Described {
                 broken: true,
                 text: bytes.first() == Some(&b'@'),
-                ..plain(format!("{protocol}: {error}"))
+                ..plain(what)
             }
         }
     }
