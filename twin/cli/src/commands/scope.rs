@@ -86,11 +86,12 @@ pub fn execute(args: &ScopeArgs) -> Result<()> {
     let wave = twin_scope::load(&args.recording, &choice)?;
     let seconds = |ticks: u64| ticks as f64 / nodes::time::TICKS_PER_SECOND as f64;
     println!(
-        "twin scope: {} from {:.6} s to {:.6} s, {} frames at {} baud ({}){}",
+        "twin scope: {} from {:.6} s to {:.6} s, {} frame{} at {} baud ({}){}",
         wave.name,
         seconds(wave.from),
         seconds(wave.to),
         wave.frames.len(),
+        if wave.frames.len() == 1 { "" } else { "s" },
         wave.format.baud,
         char_format(&wave.format),
         if wave.reconstructed {
