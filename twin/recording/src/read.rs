@@ -13,12 +13,12 @@
 
 use mcap::records::Record;
 use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader, LinearReaderOptions};
+use prost_reflect::MessageDescriptor;
 use serde::Deserialize;
 use std::collections::{BTreeMap, HashMap};
 use std::fs::File;
 use std::io::Read;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 
 use crate::chunk::{chunk_damage_in_words, chunk_records, in_words};
 use crate::proto;
@@ -40,8 +40,8 @@ pub struct Channel {
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Encoding {
     Json,
-    /// Protobuf, with the schema its file gives.
-    Protobuf(Arc<proto::Schema>),
+    /// Protobuf, of the message type its file's schema gives.
+    Protobuf(MessageDescriptor),
     /// Protobuf whose schema does not read: why, in words.
     BadSchema(String),
     /// Anything else (not written by this twin), by its name.
@@ -56,8 +56,8 @@ impl Encoding {
             topics::MESSAGE_ENCODING => Encoding::Json,
             topics::PROTOBUF => match schema {
                 Some((name, encoding, data)) if encoding == topics::PROTOBUF => {
-                    match proto::descriptor::parse(data, name) {
-                        Ok(schema) => Encoding::Protobuf(Arc::new(schema)),
+                    match proto::schema_in(data, name) {
+                        Ok(schema) => Encoding::Protobuf(schema),
                         Err(e) => Encoding::BadSchema(e),
                     }
                 }
@@ -229,7 +229,7 @@ impl Message<'_> {
                         topic: topic(),
                         why,
                     })?;
-                if schema.name() == topics::FRAME_SCHEMA {
+                if schema.full_name() == topics::FRAME_SCHEMA {
                     topics::complete_frame(&mut value);
                 }
                 T::deserialize(value).map_err(|source| ReadError::LacksField {

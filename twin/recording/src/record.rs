@@ -7,12 +7,12 @@
 //! same run gives the same bytes. What the channels and metadata are is in
 //! [`crate::topics`].
 
+use prost_reflect::MessageDescriptor;
 use serde::Serialize;
 use serde_json::{Map, Value, json};
 use std::collections::BTreeMap;
 use std::fs::File;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 
 use crate::mcap_file::McapFile;
 use crate::proto;
@@ -52,8 +52,8 @@ pub struct Recorder<D: Deferred = NoDeferred> {
     path: PathBuf,
     /// Per channel, in creation order: its next sequence number.
     sequences: Vec<u32>,
-    /// Per channel, in creation order: its protobuf schema (`None`: JSON).
-    protos: Vec<Option<Arc<proto::Schema>>>,
+    /// Per channel, in creation order: its protobuf message type (`None`: JSON).
+    protos: Vec<Option<MessageDescriptor>>,
     /// Per channel: the hand-written message type found to match its
     /// schema, so that the next message of that type costs a pointer
     /// compare instead of comparing the names.
@@ -145,16 +145,15 @@ impl<D: Deferred> Recorder<D> {
     /// [`topics::described_schema`] has one, else derived from `sample`).
     pub fn add_channel<T: Serialize>(&mut self, topic: &str, sample: &T) -> Result<ChannelId> {
         let proto = topics::proto_schema(topic)
-            .filter(|schema| proto::encode(schema, sample, &mut Vec::new()).is_ok())
-            .map(Arc::new);
+            .filter(|schema| proto::transcode(schema, sample, &mut Vec::new()).is_ok());
         let job = match &proto {
             Some(schema) => Job::Channel {
                 topic: topic.to_string(),
-                schema_name: schema.name().to_string(),
+                schema_name: schema.full_name().to_string(),
                 schema_encoding: topics::PROTOBUF,
-                schema: proto::descriptor::descriptor_set(schema),
+                schema: proto::descriptor_set(schema),
                 message_encoding: topics::PROTOBUF,
-                proto: Some(Arc::clone(schema)),
+                proto: Some(schema.clone()),
             },
             None => {
                 let schema = match topics::described_schema(topic) {
@@ -219,7 +218,7 @@ impl<D: Deferred> Recorder<D> {
         let written: Result<(), Box<dyn std::error::Error + Send + Sync>> =
             match self.protos.get(channel.0) {
                 Some(Some(schema)) => {
-                    proto::encode(schema, message, &mut self.batch.bytes).map_err(Into::into)
+                    proto::transcode(schema, message, &mut self.batch.bytes).map_err(Into::into)
                 }
                 _ => serde_json::to_writer(Appender(&mut self.batch.bytes), message)
                     .map_err(Into::into),
@@ -236,8 +235,8 @@ impl<D: Deferred> Recorder<D> {
     }
 
     /// Write `message` to `channel` at simulated time `time_s`: its
-    /// protobuf written by hand ([`proto::Protobuf`]) where the channel has
-    /// its schema, else as [`Recorder::write_to`] writes it.
+    /// protobuf written through its type ([`proto::Protobuf`]) where the
+    /// channel has its schema, else as [`Recorder::write_to`] writes it.
     pub fn write_typed<T: Serialize + proto::Protobuf>(
         &mut self,
         channel: ChannelId,
@@ -259,12 +258,12 @@ impl<D: Deferred> Recorder<D> {
         channel: ChannelId,
         time_s: f64,
         schema: &'static str,
-        fields: impl FnOnce(&mut proto::ProtoOut<'_>),
+        fields: impl FnOnce(&mut Vec<u8>),
     ) -> Result<bool> {
         if !self.is_typed(channel, schema) {
             return Ok(false);
         }
-        fields(&mut proto::ProtoOut::new(&mut self.batch.bytes));
+        fields(&mut self.batch.bytes);
         let end = self.batch.bytes.len();
         self.queue(channel, time_s, end, false)?;
         Ok(true)
@@ -278,7 +277,8 @@ impl<D: Deferred> Recorder<D> {
         if known.is_some_and(|k| std::ptr::eq(k, schema)) {
             return true;
         }
-        let matches = matches!(self.protos.get(channel.0), Some(Some(s)) if s.name() == schema);
+        let matches =
+            matches!(self.protos.get(channel.0), Some(Some(s)) if s.full_name() == schema);
         if matches {
             *known = Some(schema);
         }

@@ -324,105 +324,26 @@ pub fn described_schema(topic: &str) -> Option<Value> {
 /// per-listener captures, values that may be missing) stays JSON too, as does
 /// a master's loop report other than a supervisor's:
 /// [`crate::record::Recorder::add_channel`] tries the first message.
-pub fn proto_schema(topic: &str) -> Option<crate::proto::Schema> {
-    match Topic::parse(topic) {
-        Topic::PlantSensors(_) => Some(sensors_proto()),
-        Topic::BusFrames(_) | Topic::LinkFrames(_) => Some(frame_proto()),
-        Topic::ControllerReadings(_) => Some(readings_proto()),
-        Topic::MasterLoop(_) => Some(supervisor_loop_proto()),
-        _ => None,
-    }
+pub fn proto_schema(topic: &str) -> Option<prost_reflect::MessageDescriptor> {
+    let name = match Topic::parse(topic) {
+        Topic::PlantSensors(_) => PLANT_SENSORS_SCHEMA,
+        Topic::BusFrames(_) | Topic::LinkFrames(_) => FRAME_SCHEMA,
+        Topic::ControllerReadings(_) => READINGS_SCHEMA,
+        Topic::MasterLoop(_) => SUPERVISOR_LOOP_SCHEMA,
+        _ => return None,
+    };
+    crate::proto::message(name)
 }
 
-/// `twin.ControllerReadings`: [`ReadingsSample`], every field with its
-/// meaning and unit as its comment (as [`readings_schema`] describes them).
-fn readings_proto() -> crate::proto::Schema {
-    use crate::proto::Kind::{Bool, Double, Message, Uint32};
-    let schema = crate::proto::schema(
-        "twin",
-        &[
-            (
-                "ControllerReadings",
-                &[
-                    ("battery_volts", Double, false),
-                    ("bus_volts", Double, false),
-                    ("inverter_amps", Double, false),
-                    ("hall_rpm", Uint32, false),
-                    ("light_rpm", Uint32, false),
-                    ("flag_dark", Bool, false),
-                    ("soc_percent", Double, false),
-                    ("meb", Message(1), false),
-                ],
-            ),
-            (
-                "Meb",
-                &[
-                    ("V2", Uint32, false),
-                    ("I", Uint32, false),
-                    ("V1", Uint32, false),
-                    ("RPM_M", Uint32, false),
-                    ("RPM_L", Uint32, false),
-                    ("LDR", Uint32, false),
-                    ("HALL", Uint32, false),
-                    ("SOC", Uint32, false),
-                    ("ERRS", Uint32, false),
-                    ("STATUS", Uint32, false),
-                ],
-            ),
-        ],
-    );
-    let described = readings_schema();
-    let mut comments = Vec::new();
-    for (message, properties) in [
-        (0, &described["properties"]),
-        (1, &described["properties"]["meb"]["properties"]),
-    ] {
-        if let Some(properties) = properties.as_object() {
-            for (name, field) in properties {
-                if let Some(text) = field["description"].as_str() {
-                    comments.push((message, name.clone(), text.to_string()));
-                }
-            }
-        }
-    }
-    let comments: Vec<(usize, &str, &str)> = comments
-        .iter()
-        .map(|(m, n, t)| (*m, n.as_str(), t.as_str()))
-        .collect();
-    crate::proto::with_comments(schema, &comments)
-}
-
-/// `twin.SupervisorLoop`: [`SupervisorReport`], one `Loop` per slave.
-fn supervisor_loop_proto() -> crate::proto::Schema {
-    use crate::proto::Kind::{Double, Message, Uint, Uint32};
-    crate::proto::schema(
-        "twin",
-        &[
-            (
-                "SupervisorLoop",
-                &[("cycles", Uint, false), ("loops", Message(1), true)],
-            ),
-            (
-                "Loop",
-                &[
-                    ("slave", Uint32, false),
-                    ("set_point_rpm", Double, false),
-                    ("measured_rpm", Double, false),
-                    ("error_rpm", Double, false),
-                    ("output", Uint32, false),
-                    ("integral", Double, false),
-                    ("requests", Uint, false),
-                    ("replies", Uint, false),
-                    ("timeouts", Uint, false),
-                    ("bad_checks", Uint, false),
-                    ("exceptions", Uint, false),
-                    ("retries", Uint, false),
-                    ("lost", Uint, false),
-                ],
-            ),
-        ],
-    )
-}
+/// The protobuf message type of the plant's samples ([`plant_sensors`]):
+/// `twin/recording/proto/twin/plant_sensors.proto`.
+pub const PLANT_SENSORS_SCHEMA: &str = "twin.PlantSensors";
+/// The protobuf message type of [`controller_readings`], every field's
+/// meaning and unit its comment: `controller_readings.proto`.
+pub const READINGS_SCHEMA: &str = "twin.ControllerReadings";
+/// The protobuf message type of a supervisor's [`master_loop`]:
+/// `supervisor_loop.proto`.
+pub const SUPERVISOR_LOOP_SCHEMA: &str = "twin.SupervisorLoop";
 
 /// A master's loop report as recorded on [`master_loop`], once per poll
 /// cycle: a supervisor's, typed (written without building a JSON value), or
@@ -478,71 +399,8 @@ pub struct SlaveLoop {
     pub lost: u64,
 }
 
-/// `twin.PlantSensors`: `plant::Sensors`, field for field.
-fn sensors_proto() -> crate::proto::Schema {
-    use crate::proto::Kind::{Bool, Double, Message, Sint, String, Uint, Uint32};
-    crate::proto::schema(
-        "twin",
-        &[
-            (
-                "PlantSensors",
-                &[
-                    ("time_s", Double, false),
-                    ("battery_volts", Double, false),
-                    ("bus_volts", Double, false),
-                    ("inverter_current", Double, false),
-                    ("battery_current", Double, false),
-                    ("soc", Double, false),
-                    ("charging", Bool, false),
-                    // Absent while the BMS conducts.
-                    ("bms_trip", String, false),
-                    ("battery_counts", Uint32, false),
-                    ("bus_counts", Uint32, false),
-                    ("current_counts", Uint32, false),
-                    ("motor_current", Double, false),
-                    ("motor_tripped", Bool, false),
-                    ("motor_rpm", Double, false),
-                    ("shaft", Message(1), false),
-                    ("wheel_rpm", Double, false),
-                    ("wheel_angle", Double, false),
-                    ("brake_applied", Bool, false),
-                    ("ldr_volts", Double, false),
-                    ("ldr_counts", Uint32, false),
-                    ("flag_in_beam", Bool, false),
-                    ("energy", Message(2), false),
-                ],
-            ),
-            (
-                "Shaft",
-                &[
-                    ("hall", Uint32, false),
-                    ("hall_edges", Uint, false),
-                    ("last_hall_edge_at", Double, false),
-                    ("encoder_a", Bool, false),
-                    ("encoder_b", Bool, false),
-                    ("encoder_count", Sint, false),
-                    ("last_encoder_edge_at", Double, false),
-                ],
-            ),
-            (
-                "Energy",
-                &[
-                    ("battery_out", Double, false),
-                    ("converter_loss", Double, false),
-                    ("bleeder_loss", Double, false),
-                    ("copper_loss", Double, false),
-                    ("friction_loss", Double, false),
-                    ("brake_loss", Double, false),
-                    ("kinetic", Double, false),
-                    ("capacitor", Double, false),
-                    ("magnetic", Double, false),
-                ],
-            ),
-        ],
-    )
-}
-
-/// The protobuf message type of the frames ([`bus_frames`], [`link_frames`]).
+/// The protobuf message type of the frames ([`bus_frames`],
+/// [`link_frames`]): `frame.proto`.
 pub const FRAME_SCHEMA: &str = "twin.Frame";
 
 /// `bytes` as two lowercase hex digits each, appended to `hex`: how a
@@ -550,11 +408,10 @@ pub const FRAME_SCHEMA: &str = "twin.Frame";
 pub fn put_hex(hex: &mut String, bytes: &[u8]) {
     // Appended a run at a time: a `push` per digit (a capacity check and a
     // UTF-8 encoding each) cost about 30 instructions a byte.
-    let appended: Result<(), std::convert::Infallible> =
-        crate::proto::write::hex_runs(bytes, |run| {
-            hex.push_str(run);
-            Ok(())
-        });
+    let appended: Result<(), std::convert::Infallible> = crate::proto::hex_runs(bytes, |run| {
+        hex.push_str(run);
+        Ok(())
+    });
     let Ok(()) = appended;
 }
 
@@ -575,71 +432,6 @@ pub fn complete_frame(frame: &mut Value) {
     if !fields.get("text").is_some_and(Value::is_string) {
         fields.insert("text".into(), Value::String(String::new()));
     }
-}
-
-/// `twin.Frame`: a frame on a bus or link, its `decoded` fields those of
-/// every protocol the describer knows (a frame has its protocol's). The
-/// bytes are there once: `text` or `hex`, as their comments say.
-fn frame_proto() -> crate::proto::Schema {
-    use crate::proto::Kind::{Double, Message, String, Uint32};
-    let schema = crate::proto::schema(
-        "twin",
-        &[
-            (
-                "Frame",
-                &[
-                    ("from", String, false),
-                    ("start_s", Double, false),
-                    ("end_s", Double, false),
-                    ("len", Uint32, false),
-                    ("text", String, false),
-                    ("hex", String, false),
-                    ("decoded", Message(1), false),
-                ],
-            ),
-            (
-                "Decoded",
-                &[
-                    ("protocol", String, false),
-                    ("addr", Uint32, false),
-                    ("cmd", String, false),
-                    ("cnt", Uint32, false),
-                    ("data", Uint32, true),
-                    ("id", Uint32, false),
-                    ("function", Uint32, false),
-                    ("value", Uint32, false),
-                    ("unit", Uint32, false),
-                    ("transaction", Uint32, false),
-                    ("error", String, false),
-                ],
-            ),
-        ],
-    );
-    crate::proto::with_comments(
-        schema,
-        &[
-            (
-                0,
-                "from",
-                // Kept as it was when `slave NN` came: the schema's text is in every
-                // recording, and a changed one would make old runs replay differently.
-                "the sending node (a session's link: twin or client N)",
-            ),
-            (0, "start_s", "when the first byte started on the wire (s)"),
-            (0, "end_s", "when the last byte ended (s)"),
-            (0, "len", "bytes in the frame"),
-            (
-                0,
-                "text",
-                "the bytes as text when they are printable ASCII (MEB); absent otherwise",
-            ),
-            (
-                0,
-                "hex",
-                "the bytes, two hex digits each, when they are not printable; absent when text holds them",
-            ),
-        ],
-    )
 }
 
 /// A burst of bytes on a firmware node's UART, as recorded on [`firmware_uart`].
@@ -798,45 +590,41 @@ mod tests {
             (master_loop("supervisor"), json_of(&report)),
         ] {
             let schema = proto_schema(&topic).expect("a protobuf schema");
-            // Twice: the second time through the field names' addresses.
-            for _ in 0..2 {
-                let mut bytes = Vec::new();
-                match Topic::parse(&topic) {
-                    Topic::ControllerReadings(_) => {
-                        crate::proto::encode(&schema, &readings, &mut bytes)
-                    }
-                    _ => crate::proto::encode(&schema, &report, &mut bytes),
+            let mut bytes = Vec::new();
+            match &report {
+                LoopReport::Supervisor(report) if schema.full_name() == SUPERVISOR_LOOP_SCHEMA => {
+                    crate::proto::Protobuf::write_protobuf(report, &mut bytes);
                 }
-                .unwrap();
-                assert_eq!(crate::proto::to_value(&schema, &bytes).unwrap(), value);
-                // The same report as a JSON value (a map) gives the same bytes.
-                let mut from_map = Vec::new();
-                crate::proto::encode(&schema, &value, &mut from_map).unwrap();
-                assert_eq!(
-                    crate::proto::to_value(&schema, &from_map).unwrap(),
-                    value,
-                    "{topic}"
-                );
+                _ => crate::proto::Protobuf::write_protobuf(&readings, &mut bytes),
             }
+            assert_eq!(crate::proto::to_value(&schema, &bytes).unwrap(), value);
+            // The same report as a JSON value (a map) gives the same bytes.
+            let mut from_map = Vec::new();
+            crate::proto::transcode(&schema, &value, &mut from_map).unwrap();
+            assert_eq!(from_map, bytes, "{topic}");
         }
         // Another master's report does not fit a supervisor's: JSON.
         let other = LoopReport::Other(json!({ "set_point_rpm": 1500.0, "vel": 3 }));
         let schema = proto_schema(&master_loop("master")).unwrap();
-        assert!(crate::proto::encode(&schema, &other, &mut Vec::new()).is_err());
+        assert!(crate::proto::transcode(&schema, &other, &mut Vec::new()).is_err());
         assert_eq!(other.to_value()["vel"], 3);
-        // The readings' descriptor carries every field's meaning.
-        let set = crate::proto::descriptor::descriptor_set(&readings_proto());
+        // The readings' descriptor carries every field's meaning, as the
+        // JSON schema has it.
+        let set = crate::proto::descriptor_set(&proto_schema(&topic_readings()).unwrap());
         let text = String::from_utf8_lossy(&set);
-        assert!(text.contains("RPM_L, wheel speed from the photoresistor (rpm)"));
-        assert!(text.contains("FD0, bit 0 battery cut-off"));
-        let read = crate::proto::descriptor::parse(&set, "twin.ControllerReadings").unwrap();
-        let names = |s: &crate::proto::Schema| -> Vec<String> {
-            s.messages
-                .iter()
-                .flat_map(|m| m.fields.iter().map(|f| f.name.clone()))
-                .collect()
-        };
-        assert_eq!(names(&read), names(&readings_proto()));
+        let described = readings_schema();
+        for (name, field) in described["properties"].as_object().unwrap().iter().chain(
+            described["properties"]["meb"]["properties"]
+                .as_object()
+                .unwrap(),
+        ) {
+            let meaning = field["description"].as_str().unwrap();
+            assert!(text.contains(meaning), "{name}: {meaning}");
+        }
+    }
+
+    fn topic_readings() -> String {
+        controller_readings("ev1")
     }
 
     /// Any serialisable value as the JSON value it is.

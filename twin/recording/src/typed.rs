@@ -1,79 +1,111 @@
-//! The busiest channels' messages written as protobuf by hand
-//! ([`crate::proto::write`]): a controller's readings, a supervisor's loop
-//! report and a frame's decoded fields. Field numbers are those of the
-//! schemas in [`crate::topics`], fields in their `Serialize` order; the
-//! tests hold every writer to [`crate::proto::encode`]'s bytes.
+//! The busiest channels' messages written as protobuf through their types
+//! made from the `.proto` files ([`crate::proto::twin`]): a controller's
+//! readings, a supervisor's loop report and a frame with its decoded
+//! fields. A message type with text or lists in it is kept from one message
+//! to the next (per thread), so writing one makes no string or list.
+
+use std::cell::RefCell;
 
 use crate::describe::{FrameFields, LinkFrameFields};
-use crate::proto::write::{ProtoOut, Protobuf};
-use crate::topics::{MebWords, ReadingsSample, SlaveLoop, SupervisorReport};
+use crate::proto::twin::{self as pb, controller_readings, frame, supervisor_loop};
+use crate::proto::{Protobuf, append, put_str};
+use crate::topics::{self, MebWords, ReadingsSample, SlaveLoop, SupervisorReport};
 use serde::Serialize;
 
 impl Protobuf for ReadingsSample {
-    const SCHEMA: &'static str = "twin.ControllerReadings";
+    const SCHEMA: &'static str = topics::READINGS_SCHEMA;
 
-    fn write_protobuf(&self, m: &mut ProtoOut<'_>) {
-        m.double(1, self.battery_volts);
-        m.double(2, self.bus_volts);
-        m.double(3, self.inverter_amps);
-        m.uint(4, self.hall_rpm.into());
-        m.uint(5, self.light_rpm.into());
-        m.bool(6, self.flag_dark);
-        m.double(7, self.soc_percent);
-        m.nested(8, |m| write_meb_words(&self.meb, m));
+    fn write_protobuf(&self, out: &mut Vec<u8>) {
+        let message = pb::ControllerReadings {
+            battery_volts: Some(self.battery_volts),
+            bus_volts: Some(self.bus_volts),
+            inverter_amps: Some(self.inverter_amps),
+            hall_rpm: Some(self.hall_rpm.into()),
+            light_rpm: Some(self.light_rpm.into()),
+            flag_dark: Some(self.flag_dark),
+            soc_percent: Some(self.soc_percent),
+            meb: Some(meb_words(&self.meb)),
+        };
+        append(&message, out);
     }
 }
 
-fn write_meb_words(w: &MebWords, m: &mut ProtoOut<'_>) {
-    let words = [
-        w.v2, w.i, w.v1, w.rpm_m, w.rpm_l, w.ldr, w.hall, w.soc, w.errs, w.status,
-    ];
-    for (number, word) in (1..).zip(words) {
-        m.uint(number, word.into());
+fn meb_words(w: &MebWords) -> controller_readings::Meb {
+    controller_readings::Meb {
+        v2: Some(w.v2.into()),
+        i: Some(w.i.into()),
+        v1: Some(w.v1.into()),
+        rpm_m: Some(w.rpm_m.into()),
+        rpm_l: Some(w.rpm_l.into()),
+        ldr: Some(w.ldr.into()),
+        hall: Some(w.hall.into()),
+        soc: Some(w.soc.into()),
+        errs: Some(w.errs.into()),
+        status: Some(w.status.into()),
     }
+}
+
+thread_local! {
+    /// The loop report last written on this thread, its list kept.
+    static LOOP: RefCell<pb::SupervisorLoop> = RefCell::default();
+    /// The frame last written on this thread, its text and list kept.
+    static FRAME: RefCell<pb::Frame> = RefCell::default();
 }
 
 impl Protobuf for SupervisorReport {
-    const SCHEMA: &'static str = "twin.SupervisorLoop";
+    const SCHEMA: &'static str = topics::SUPERVISOR_LOOP_SCHEMA;
 
-    fn write_protobuf(&self, m: &mut ProtoOut<'_>) {
-        m.uint(1, self.cycles);
-        for slave in &self.loops {
-            m.nested(2, |m| write_slave_loop(slave, m));
-        }
+    fn write_protobuf(&self, out: &mut Vec<u8>) {
+        LOOP.with_borrow_mut(|message| {
+            message.cycles = Some(self.cycles);
+            message.loops.clear();
+            message.loops.extend(self.loops.iter().map(slave_loop));
+            append(&*message, out);
+        });
     }
 }
 
-fn write_slave_loop(l: &SlaveLoop, m: &mut ProtoOut<'_>) {
-    m.uint(1, l.slave.into());
-    m.double(2, l.set_point_rpm);
-    m.double(3, l.measured_rpm);
-    m.double(4, l.error_rpm);
-    m.uint(5, l.output.into());
-    m.double(6, l.integral);
-    let counters = [
-        l.requests,
-        l.replies,
-        l.timeouts,
-        l.bad_checks,
-        l.exceptions,
-        l.retries,
-        l.lost,
-    ];
-    for (number, count) in (7..).zip(counters) {
-        m.uint(number, count);
+fn slave_loop(l: &SlaveLoop) -> supervisor_loop::Loop {
+    supervisor_loop::Loop {
+        slave: Some(l.slave.into()),
+        set_point_rpm: Some(l.set_point_rpm),
+        measured_rpm: Some(l.measured_rpm),
+        error_rpm: Some(l.error_rpm),
+        output: Some(l.output.into()),
+        integral: Some(l.integral),
+        requests: Some(l.requests),
+        replies: Some(l.replies),
+        timeouts: Some(l.timeouts),
+        bad_checks: Some(l.bad_checks),
+        exceptions: Some(l.exceptions),
+        retries: Some(l.retries),
+        lost: Some(l.lost),
     }
 }
 
-/// A frame's decoded fields, as the nested `twin.Frame.Decoded` message's
-/// fields (protocol 1, addr 2, cmd 3, cnt 4, data 5, id 6, function 7,
-/// value 8, unit 9, transaction 10, error 11).
+/// A frame's decoded fields, as the nested `twin.Frame.Decoded` message's.
 pub trait DecodedProtobuf {
-    fn write_decoded(&self, m: &mut ProtoOut<'_>);
+    /// Fill `d` (every field, those of other protocols absent).
+    fn fill_decoded(&self, d: &mut frame::Decoded);
+}
+
+/// `d` with no field but its protocol.
+fn only_protocol(d: &mut frame::Decoded, protocol: &str) {
+    put_str(&mut d.protocol, Some(protocol));
+    d.addr = None;
+    d.cmd = None;
+    d.cnt = None;
+    d.data.clear();
+    d.id = None;
+    d.function = None;
+    d.value = None;
+    d.unit = None;
+    d.transaction = None;
+    d.error = None;
 }
 
 impl DecodedProtobuf for FrameFields {
-    fn write_decoded(&self, m: &mut ProtoOut<'_>) {
+    fn fill_decoded(&self, d: &mut frame::Decoded) {
         match self {
             FrameFields::Meb {
                 addr,
@@ -83,15 +115,15 @@ impl DecodedProtobuf for FrameFields {
                 id,
                 protocol,
             } => {
-                m.uint(2, (*addr).into());
+                only_protocol(d, protocol);
+                d.addr = Some((*addr).into());
                 // Two ASCII letters (`MebCmd::new`): the text `Display` gives.
-                m.bytes(3, &cmd.letters());
-                m.uint(4, (*cnt).into());
-                for word in data.as_slice() {
-                    m.uint(5, (*word).into());
-                }
-                m.uint(6, (*id).into());
-                m.str(1, protocol);
+                let letters = d.cmd.get_or_insert_default();
+                letters.clear();
+                letters.extend(cmd.letters().map(char::from));
+                d.cnt = Some((*cnt).into());
+                d.data.extend(data.as_slice().iter().map(|w| u32::from(*w)));
+                d.id = Some((*id).into());
             }
             FrameFields::Modbus8 {
                 addr,
@@ -100,31 +132,31 @@ impl DecodedProtobuf for FrameFields {
                 protocol,
                 value,
             } => {
-                m.uint(2, (*addr).into());
-                m.uint(7, (*function).into());
-                m.uint(6, (*id).into());
-                m.str(1, protocol);
-                m.uint(8, (*value).into());
+                only_protocol(d, protocol);
+                d.addr = Some((*addr).into());
+                d.function = Some((*function).into());
+                d.id = Some((*id).into());
+                d.value = Some((*value).into());
             }
             FrameFields::ModbusRtu {
                 function,
                 protocol,
                 unit,
             } => {
-                m.uint(7, (*function).into());
-                m.str(1, protocol);
-                m.uint(9, (*unit).into());
+                only_protocol(d, protocol);
+                d.function = Some((*function).into());
+                d.unit = Some((*unit).into());
             }
             FrameFields::Broken { error, protocol } => {
-                m.str(11, error);
-                m.str(1, protocol);
+                only_protocol(d, protocol);
+                put_str(&mut d.error, Some(error));
             }
         }
     }
 }
 
 impl DecodedProtobuf for LinkFrameFields<'_> {
-    fn write_decoded(&self, m: &mut ProtoOut<'_>) {
+    fn fill_decoded(&self, d: &mut frame::Decoded) {
         match self {
             LinkFrameFields::Modbus {
                 function,
@@ -132,27 +164,23 @@ impl DecodedProtobuf for LinkFrameFields<'_> {
                 transaction,
                 unit,
             } => {
-                if let Some(function) = function {
-                    m.uint(7, (*function).into());
-                }
-                m.str(1, protocol);
-                if let Some(transaction) = transaction {
-                    m.uint(10, (*transaction).into());
-                }
-                m.uint(9, (*unit).into());
+                only_protocol(d, protocol);
+                d.function = function.map(u32::from);
+                d.transaction = transaction.map(u32::from);
+                d.unit = Some((*unit).into());
             }
             LinkFrameFields::Broken { error, protocol } => {
-                m.str(11, error);
-                m.str(1, protocol);
+                only_protocol(d, protocol);
+                put_str(&mut d.error, Some(error));
             }
-            LinkFrameFields::Bus(fields) => fields.write_decoded(m),
+            LinkFrameFields::Bus(fields) => fields.fill_decoded(d),
         }
     }
 }
 
 impl<T: DecodedProtobuf + ?Sized> DecodedProtobuf for &T {
-    fn write_decoded(&self, m: &mut ProtoOut<'_>) {
-        (**self).write_decoded(m);
+    fn fill_decoded(&self, d: &mut frame::Decoded) {
+        (**self).fill_decoded(d);
     }
 }
 
@@ -169,7 +197,7 @@ impl Serialize for Hex<'_> {
 
 impl std::fmt::Display for Hex<'_> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        crate::proto::write::hex_runs(self.0, |run| f.write_str(run))
+        crate::proto::hex_runs(self.0, |run| f.write_str(run))
     }
 }
 
@@ -209,18 +237,25 @@ impl<'a, D: ?Sized> FrameMessage<'a, D> {
 }
 
 impl<D: DecodedProtobuf + ?Sized> FrameMessage<'_, D> {
-    pub fn write(&self, m: &mut ProtoOut<'_>) {
-        m.str(1, self.from);
-        m.double(2, self.start_s);
-        m.double(3, self.end_s);
-        m.uint(4, self.len as u64);
-        if let Some(text) = self.text {
-            m.str(5, text);
-        }
-        if let Some(Hex(bytes)) = self.hex {
-            m.hex(6, bytes);
-        }
-        m.nested(7, |m| self.decoded.write_decoded(m));
+    /// Append the frame's protobuf bytes (`twin.Frame`) to `out`.
+    pub fn write(&self, out: &mut Vec<u8>) {
+        FRAME.with_borrow_mut(|m| {
+            put_str(&mut m.from, Some(self.from));
+            m.start_s = Some(self.start_s);
+            m.end_s = Some(self.end_s);
+            m.len = Some(u32::try_from(self.len).unwrap_or(u32::MAX));
+            put_str(&mut m.text, self.text);
+            match self.hex {
+                Some(Hex(bytes)) => {
+                    let hex = m.hex.get_or_insert_default();
+                    hex.clear();
+                    topics::put_hex(hex, bytes);
+                }
+                None => m.hex = None,
+            }
+            self.decoded.fill_decoded(m.decoded.get_or_insert_default());
+            append(&*m, out);
+        });
     }
 }
 
@@ -229,23 +264,40 @@ mod tests {
     use super::*;
     use crate::describe::{decode_frame, link_frame_fields};
     use crate::topics::{LoopReport, proto_schema};
+    use serde_json::Value;
 
-    /// What the schema-driven encoder writes for `value` on `topic`.
-    fn by_schema<T: Serialize>(topic: &str, value: &T) -> Vec<u8> {
+    /// What a reader makes of `bytes` on `topic`.
+    fn read_back(topic: &str, bytes: &[u8]) -> Value {
         let schema = proto_schema(topic).expect("a protobuf channel");
-        let mut bytes = Vec::new();
-        crate::proto::encode(&schema, value, &mut bytes).expect("fits its schema");
-        bytes
+        crate::proto::to_value(&schema, bytes).expect("reads back")
     }
 
-    fn by_hand(write: impl FnOnce(&mut ProtoOut<'_>)) -> Vec<u8> {
+    /// The JSON a JSON recording holds for `value`, as a protobuf one reads
+    /// back: an empty list is left out, and so is a `null` below the top.
+    fn as_read<T: Serialize>(value: &T) -> Value {
+        fn strip(v: &mut Value, top: bool) {
+            if let Value::Object(fields) = v {
+                fields.retain(|_, f| {
+                    (top || !f.is_null()) && f.as_array().is_none_or(|a| !a.is_empty())
+                });
+                for f in fields.values_mut() {
+                    strip(f, false);
+                }
+            }
+        }
+        let mut json = serde_json::to_value(value).unwrap();
+        strip(&mut json, true);
+        json
+    }
+
+    fn by_hand(write: impl FnOnce(&mut Vec<u8>)) -> Vec<u8> {
         let mut bytes = Vec::new();
-        write(&mut ProtoOut::new(&mut bytes));
+        write(&mut bytes);
         bytes
     }
 
     #[test]
-    fn readings_and_loop_reports_are_the_schema_encoder_s_bytes() {
+    fn readings_and_loop_reports_read_back_as_their_json() {
         let readings = ReadingsSample {
             battery_volts: 12.345678901234567,
             bus_volts: -0.0,
@@ -269,10 +321,13 @@ mod tests {
         };
         let topic = "/controller/ev1/readings";
         assert_eq!(
-            by_hand(|m| readings.write_protobuf(m)),
-            by_schema(topic, &readings)
+            read_back(topic, &by_hand(|m| readings.write_protobuf(m))),
+            as_read(&readings)
         );
-        assert_eq!(proto_schema(topic).unwrap().name(), ReadingsSample::SCHEMA);
+        assert_eq!(
+            proto_schema(topic).unwrap().full_name(),
+            ReadingsSample::SCHEMA
+        );
 
         let slave = |n: u8| SlaveLoop {
             slave: n,
@@ -296,19 +351,28 @@ mod tests {
                 loops: (1..=slaves).map(slave).collect(),
             };
             let topic = "/master/supervisor/loop";
+            let hand = by_hand(|m| report.write_protobuf(m));
+            let typed = LoopReport::Supervisor(report.clone());
+            assert_eq!(read_back(topic, &hand), as_read(&typed), "{slaves} slaves");
+            // prost-reflect, from the value's JSON, writes the same bytes.
+            assert_eq!(hand, by_schema(topic, &typed), "{slaves} slaves");
             assert_eq!(
-                by_hand(|m| report.write_protobuf(m)),
-                by_schema(topic, &LoopReport::Supervisor(report.clone())),
-                "{slaves} slaves"
-            );
-            assert_eq!(
-                proto_schema(topic).unwrap().name(),
+                proto_schema(topic).unwrap().full_name(),
                 SupervisorReport::SCHEMA
             );
         }
     }
 
-    /// A frame carrying `decoded`, written by hand and by the schema.
+    /// What prost-reflect writes for `value` on `topic`, from its JSON.
+    fn by_schema<T: Serialize>(topic: &str, value: &T) -> Vec<u8> {
+        let schema = proto_schema(topic).expect("a protobuf channel");
+        let mut bytes = Vec::new();
+        crate::proto::transcode(&schema, value, &mut bytes).expect("fits its schema");
+        bytes
+    }
+
+    /// A frame carrying `decoded`, written through its type and by
+    /// prost-reflect from its JSON; checked to read back as its JSON.
     fn frame_both_ways<D: DecodedProtobuf + Serialize>(
         decoded: &D,
         len: usize,
@@ -324,15 +388,17 @@ mod tests {
             hex,
             decoded,
         };
+        let topic = "/link/modbus-tcp/frames";
         let hand = by_hand(|m| message.write(m));
-        (hand, by_schema("/link/modbus-tcp/frames", &message))
+        assert_eq!(read_back(topic, &hand), as_read(&message));
+        (hand, by_schema(topic, &message))
     }
 
     #[test]
     fn hex_in_json_is_the_string_of_its_digits() {
         let bytes: Vec<u8> = (0..=200).collect();
         let mut spelled = String::new();
-        crate::topics::put_hex(&mut spelled, &bytes);
+        topics::put_hex(&mut spelled, &bytes);
         assert_eq!(spelled.len(), 2 * bytes.len());
         assert!(spelled.starts_with("000102") && spelled.ends_with("c6c7c8"));
         let json = serde_json::to_string(&Hex(&bytes)).unwrap();
@@ -340,7 +406,7 @@ mod tests {
     }
 
     #[test]
-    fn frames_of_every_protocol_are_the_schema_encoder_s_bytes() {
+    fn frames_of_every_protocol_read_back_as_their_json() {
         let long_error = [b'@'; 150];
         let frames: [(&str, &[u8]); 11] = [
             ("meb", b"@01EA0006FF*\n"),
@@ -356,7 +422,7 @@ mod tests {
             ("modbus-ascii", b":01"),
         ];
         let schema = proto_schema("/link/modbus-tcp/frames").unwrap();
-        assert_eq!(schema.name(), crate::topics::FRAME_SCHEMA);
+        assert_eq!(schema.full_name(), topics::FRAME_SCHEMA);
         let fields = [
             (Some("@01"), None),
             (None, Some(Hex(&[0, 7]))),

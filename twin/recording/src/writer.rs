@@ -10,7 +10,7 @@ use std::thread::JoinHandle;
 
 use serde::Serialize;
 
-use std::sync::Arc;
+use prost_reflect::MessageDescriptor;
 
 use crate::disk::DiskGuard;
 use crate::mcap_file::McapFile;
@@ -22,10 +22,10 @@ type Result<T, E = WriteError> = std::result::Result<T, E>;
 /// A message type the writer serialises itself: see
 /// [`crate::record::Recorder::write_deferred`].
 pub trait Deferred: Serialize + Send + 'static {
-    /// Write the message's protobuf bytes by hand ([`proto::Protobuf`]) for
-    /// a channel of the schema named `schema`; `false` where the type has no
-    /// such writer, and the writer encodes it by the schema instead.
-    fn write_protobuf(&self, schema: &str, out: &mut proto::ProtoOut<'_>) -> bool {
+    /// Append the message's protobuf bytes ([`proto::Protobuf`]) to `out`
+    /// for a channel of the message type named `schema`; `false` where the
+    /// type has no such writer, and the writer transcodes it instead.
+    fn write_protobuf(&self, schema: &str, out: &mut Vec<u8>) -> bool {
         let _ = (schema, out);
         false
     }
@@ -124,8 +124,8 @@ pub(crate) enum Job<D> {
         schema_encoding: &'static str,
         schema: Vec<u8>,
         message_encoding: &'static str,
-        /// Its protobuf schema, for the deferred messages (`None`: JSON).
-        proto: Option<Arc<proto::Schema>>,
+        /// Its protobuf message type, for the deferred messages (`None`: JSON).
+        proto: Option<MessageDescriptor>,
     },
     Messages(Batch<D>),
     Metadata(Metadata),
@@ -145,8 +145,8 @@ pub(crate) struct FileWriter {
     writer: McapFile<File>,
     /// MCAP ids of the channels, by creation order.
     ids: Vec<u16>,
-    /// Protobuf schemas of the channels, by creation order (`None`: JSON).
-    protos: Vec<Option<Arc<proto::Schema>>>,
+    /// Protobuf message types of the channels, by creation order (`None`: JSON).
+    protos: Vec<Option<MessageDescriptor>>,
     /// The file, as errors name it.
     path: PathBuf,
     disk: DiskGuard,
@@ -206,7 +206,7 @@ impl FileWriter {
                         let schema = self.protos.get(m.channel).and_then(Option::as_ref);
                         self.writer
                             .write_message_with(channel, m.sequence, m.time_ns, m.time_ns, |out| {
-                                serialise(schema.map(Arc::as_ref), message, out)
+                                serialise(schema, message, out)
                             })
                             .map_err(cannot_write)?;
                     } else {
@@ -265,14 +265,14 @@ impl FileWriter {
 /// A deferred message's bytes appended to `out`: protobuf by its own
 /// writer or by `schema`, else JSON.
 fn serialise<D: Deferred>(
-    schema: Option<&proto::Schema>,
+    schema: Option<&MessageDescriptor>,
     message: &D,
     out: &mut Vec<u8>,
 ) -> std::io::Result<()> {
     match schema {
         Some(schema) => {
-            if !message.write_protobuf(schema.name(), &mut proto::ProtoOut::new(out)) {
-                proto::encode(schema, message, out).map_err(std::io::Error::other)?;
+            if !message.write_protobuf(schema.full_name(), out) {
+                proto::transcode(schema, message, out).map_err(std::io::Error::other)?;
             }
             Ok(())
         }

@@ -700,7 +700,7 @@ mod tests {
     fn round_trip<T: Serialize>(topic: &str, value: &T) -> (Value, Value) {
         let schema = topics::proto_schema(topic).expect("a protobuf channel");
         let mut bytes = Vec::new();
-        proto::encode(&schema, value, &mut bytes).expect("it fits its schema");
+        proto::transcode(&schema, value, &mut bytes).expect("it fits its schema");
         let back = proto::to_value(&schema, &bytes).expect("it reads back");
         let mut json = serde_json::to_value(value).unwrap();
         if let Value::Object(fields) = &mut json {

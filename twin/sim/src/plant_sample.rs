@@ -1,10 +1,13 @@
 //! A plant sample as the recording's writer serialises it: its protobuf
-//! (`twin.PlantSensors`, `twin_recording::topics`) written by hand, field by
-//! field, in the order `plant::Sensors` serialises them. A run records one
-//! for each module every sample period, the largest part of its recording.
+//! (`twin.PlantSensors`, `twin/recording/proto/twin/plant_sensors.proto`)
+//! through the type made from that file, every field of `plant::Sensors`.
+//! A run records one for each module every sample period, the largest part
+//! of its recording.
 
 use serde::Serialize;
-use twin_recording::proto::{ProtoOut, Protobuf};
+use std::cell::RefCell;
+use twin_recording::proto::twin::{PlantSensors, plant_sensors};
+use twin_recording::proto::{Protobuf, append};
 use twin_recording::record::Deferred;
 
 /// One module's sensors, handed to the recording's writer as they are.
@@ -12,59 +15,68 @@ use twin_recording::record::Deferred;
 #[serde(transparent)]
 pub struct PlantSample(pub plant::Sensors);
 
-impl Protobuf for PlantSample {
-    const SCHEMA: &'static str = "twin.PlantSensors";
+thread_local! {
+    /// The sample last written on this thread: its trip's text is kept, so
+    /// a BMS that stays tripped makes no string per sample.
+    static SAMPLE: RefCell<PlantSensors> = RefCell::default();
+}
 
-    fn write_protobuf(&self, m: &mut ProtoOut<'_>) {
+impl Protobuf for PlantSample {
+    const SCHEMA: &'static str = twin_recording::topics::PLANT_SENSORS_SCHEMA;
+
+    fn write_protobuf(&self, out: &mut Vec<u8>) {
         let s = &self.0;
-        m.double(1, s.time_s);
-        m.double(2, s.battery_volts);
-        m.double(3, s.bus_volts);
-        m.double(4, s.inverter_current);
-        m.double(5, s.battery_current);
-        m.double(6, s.soc);
-        m.bool(7, s.charging);
-        if let Some(trip) = s.bms_trip {
-            m.str(8, bms_trip_name(trip));
-        }
-        m.uint(9, s.battery_counts.into());
-        m.uint(10, s.bus_counts.into());
-        m.uint(11, s.current_counts.into());
-        m.double(12, s.motor_current);
-        m.bool(13, s.motor_tripped);
-        m.double(14, s.motor_rpm);
-        m.nested(15, |m| {
-            let shaft = &s.shaft;
-            m.uint(1, shaft.hall.into());
-            m.uint(2, shaft.hall_edges);
-            m.double(3, shaft.last_hall_edge_at);
-            m.bool(4, shaft.encoder_a);
-            m.bool(5, shaft.encoder_b);
-            m.sint(6, shaft.encoder_count);
-            m.double(7, shaft.last_encoder_edge_at);
-        });
-        m.double(16, s.wheel_rpm);
-        m.double(17, s.wheel_angle);
-        m.bool(18, s.brake_applied);
-        m.double(19, s.ldr_volts);
-        m.uint(20, s.ldr_counts.into());
-        m.bool(21, s.flag_in_beam);
-        m.nested(22, |m| {
-            let e = &s.energy;
-            let energies = [
-                e.battery_out,
-                e.converter_loss,
-                e.bleeder_loss,
-                e.copper_loss,
-                e.friction_loss,
-                e.brake_loss,
-                e.kinetic,
-                e.capacitor,
-                e.magnetic,
-            ];
-            for (number, joules) in (1..).zip(energies) {
-                m.double(number, joules);
+        let shaft = &s.shaft;
+        let e = &s.energy;
+        SAMPLE.with_borrow_mut(|m| {
+            m.time_s = Some(s.time_s);
+            m.battery_volts = Some(s.battery_volts);
+            m.bus_volts = Some(s.bus_volts);
+            m.inverter_current = Some(s.inverter_current);
+            m.battery_current = Some(s.battery_current);
+            m.soc = Some(s.soc);
+            m.charging = Some(s.charging);
+            match s.bms_trip {
+                Some(trip) => {
+                    let text = m.bms_trip.get_or_insert_default();
+                    text.clear();
+                    text.push_str(bms_trip_name(trip));
+                }
+                None => m.bms_trip = None,
             }
+            m.battery_counts = Some(s.battery_counts.into());
+            m.bus_counts = Some(s.bus_counts.into());
+            m.current_counts = Some(s.current_counts.into());
+            m.motor_current = Some(s.motor_current);
+            m.motor_tripped = Some(s.motor_tripped);
+            m.motor_rpm = Some(s.motor_rpm);
+            m.shaft = Some(plant_sensors::Shaft {
+                hall: Some(shaft.hall.into()),
+                hall_edges: Some(shaft.hall_edges),
+                last_hall_edge_at: Some(shaft.last_hall_edge_at),
+                encoder_a: Some(shaft.encoder_a),
+                encoder_b: Some(shaft.encoder_b),
+                encoder_count: Some(shaft.encoder_count),
+                last_encoder_edge_at: Some(shaft.last_encoder_edge_at),
+            });
+            m.wheel_rpm = Some(s.wheel_rpm);
+            m.wheel_angle = Some(s.wheel_angle);
+            m.brake_applied = Some(s.brake_applied);
+            m.ldr_volts = Some(s.ldr_volts);
+            m.ldr_counts = Some(s.ldr_counts.into());
+            m.flag_in_beam = Some(s.flag_in_beam);
+            m.energy = Some(plant_sensors::Energy {
+                battery_out: Some(e.battery_out),
+                converter_loss: Some(e.converter_loss),
+                bleeder_loss: Some(e.bleeder_loss),
+                copper_loss: Some(e.copper_loss),
+                friction_loss: Some(e.friction_loss),
+                brake_loss: Some(e.brake_loss),
+                kinetic: Some(e.kinetic),
+                capacitor: Some(e.capacitor),
+                magnetic: Some(e.magnetic),
+            });
+            append(&*m, out);
         });
     }
 }
@@ -81,7 +93,7 @@ fn bms_trip_name(trip: plant::battery::BmsTrip) -> &'static str {
 }
 
 impl Deferred for PlantSample {
-    fn write_protobuf(&self, schema: &str, out: &mut ProtoOut<'_>) -> bool {
+    fn write_protobuf(&self, schema: &str, out: &mut Vec<u8>) -> bool {
         if schema != Self::SCHEMA {
             return false;
         }
@@ -97,9 +109,9 @@ mod tests {
     use twin_recording::topics;
 
     #[test]
-    fn a_plant_sample_is_the_schema_encoder_s_bytes_field_for_field() {
+    fn a_plant_sample_reads_back_as_its_json_field_for_field() {
         let schema = topics::proto_schema("/plant/ev1/sensors").expect("protobuf");
-        assert_eq!(schema.name(), PlantSample::SCHEMA);
+        assert_eq!(schema.full_name(), PlantSample::SCHEMA);
         let mut s = plant::Sensors {
             time_s: 1.25,
             battery_volts: 12.345678901234567,
@@ -147,21 +159,31 @@ mod tests {
                 bms_trip: trip,
                 ..*sample
             });
-            let mut by_schema = Vec::new();
-            twin_recording::proto::encode(&schema, &sample, &mut by_schema).expect("fits");
-            let mut by_hand = Vec::new();
+            let mut bytes = Vec::new();
             assert!(Deferred::write_protobuf(
                 &sample,
                 PlantSample::SCHEMA,
-                &mut ProtoOut::new(&mut by_hand)
+                &mut bytes
             ));
-            assert_eq!(by_hand, by_schema, "{trip:?}");
+            // Every field, the trip absent as `null` and NaN as `null`, as
+            // a JSON recording held them.
+            let json = serde_json::to_value(sample).unwrap();
+            assert_eq!(
+                twin_recording::proto::to_value(&schema, &bytes).unwrap(),
+                json,
+                "{trip:?}"
+            );
+            // The fields in number order, one byte of tag each below 16: the
+            // first is `time_s` (1, a double), the last `energy` (22, a
+            // message), as the hand-written encoder of earlier twins wrote them.
+            assert_eq!(bytes[0], 0x09);
+            assert_eq!(&bytes[bytes.len() - 9 * 9 - 3..][..3], &[0xb2, 0x01, 81]);
         }
         let mut nothing = Vec::new();
         assert!(!Deferred::write_protobuf(
             &PlantSample(s),
             "twin.Frame",
-            &mut ProtoOut::new(&mut nothing)
+            &mut nothing
         ));
         assert!(nothing.is_empty());
     }

@@ -65,11 +65,14 @@ fn write(path: &Path, threaded: bool, deferred: bool) {
                 // Written by hand, as the twin writes its frames; each
                 // second's first message is one of them, so a chunk closes
                 // before one.
-                let bytes = i.to_be_bytes();
+                let frame = twin_recording::proto::twin::Frame {
+                    from: Some("master".into()),
+                    hex: Some(format!("{i:08x}")),
+                    ..Default::default()
+                };
                 let typed = rec
-                    .write_protobuf(channel, t, "twin.Frame", |m| {
-                        m.str(1, "master");
-                        m.hex(6, &bytes);
+                    .write_protobuf(channel, t, "twin.Frame", |out| {
+                        twin_recording::proto::append(&frame, out);
                     })
                     .unwrap();
                 assert!(typed, "the frames' channel is twin.Frame");

@@ -1,0 +1,23 @@
+//! The recordings' protobuf messages, from their `.proto` files in `proto/`:
+//! compiled by protox (no `protoc` needed), the `FileDescriptorSet` kept for
+//! the MCAP schema records and the readers (`OUT_DIR/twin.fds`), and the
+//! Rust types made from it by prost-build (`OUT_DIR/twin.rs`).
+
+use prost::Message;
+use std::path::PathBuf;
+
+const FILES: [&str; 4] = [
+    "twin/plant_sensors.proto",
+    "twin/frame.proto",
+    "twin/controller_readings.proto",
+    "twin/supervisor_loop.proto",
+];
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    println!("cargo:rerun-if-changed=proto");
+    let out = PathBuf::from(std::env::var("OUT_DIR")?);
+    let fds = protox::compile(FILES, ["proto"])?;
+    std::fs::write(out.join("twin.fds"), fds.encode_to_vec())?;
+    prost_build::Config::new().compile_fds(fds)?;
+    Ok(())
+}
