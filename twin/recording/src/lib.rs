@@ -4,7 +4,8 @@
 //!   records; every writer and reader names topics through it.
 //! - [`record`]: the MCAP writer every run and session records through.
 //! - [`describe`]: the one frame describer (the `decoded` fields of a frame).
-//! - [`typed`]: the busiest messages' protobuf, written by hand.
+//! - [`proto`], [`typed`]: the busiest messages' protobuf, from the `.proto`
+//!   files in `proto/` (compiled at build time), and read back as JSON.
 //! - [`read`]: the one reader, streamed chunk by chunk ([`Reader`]), and what
 //!   a pass finds ([`Recording`]). On it: named signals as `f64` columns
 //!   ([`signals`]), comparison against a baseline ([`compare`]), the first

@@ -610,7 +610,7 @@ mod tests {
         assert_eq!(other.to_value()["vel"], 3);
         // The readings' descriptor carries every field's meaning, as the
         // JSON schema has it.
-        let set = crate::proto::descriptor_set(&proto_schema(&topic_readings()).unwrap());
+        let set = crate::proto::descriptor_set(&proto_schema(&controller_readings("ev1")).unwrap());
         let text = String::from_utf8_lossy(&set);
         let described = readings_schema();
         for (name, field) in described["properties"].as_object().unwrap().iter().chain(
@@ -621,10 +621,6 @@ mod tests {
             let meaning = field["description"].as_str().unwrap();
             assert!(text.contains(meaning), "{name}: {meaning}");
         }
-    }
-
-    fn topic_readings() -> String {
-        controller_readings("ev1")
     }
 
     /// Any serialisable value as the JSON value it is.
