@@ -101,41 +101,10 @@ fn the_twins_own_supervisor_passes_every_check_of_the_meb_master_suite() {
     );
     assert!(printed.contains("slave 02 polled"), "{printed}");
     assert_eq!(failed(&json), Vec::<String>::new());
-    held_to_the_book(&printed.replace(s(&b), "/tmp/ttyV1"));
-}
-
-/// Every line of the report in docs/check.md's "Checking a master" is a
-/// line of `printed`, numbers aside (counts and times differ run to run).
-fn held_to_the_book(printed: &str) {
-    let page =
-        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("../../docs/check.md"))
-            .unwrap();
-    let excerpt = page
-        .split("the_twins_own_supervisor test")
-        .nth(1)
-        .and_then(|rest| rest.split("```text\n").nth(1))
-        .and_then(|block| block.split("```").next())
-        .expect("docs/check.md shows the supervisor's report");
-    let numbers_aside = |line: &str| {
-        let mut out = String::new();
-        for c in line.chars() {
-            if c.is_ascii_digit() || c == '.' {
-                if !out.ends_with('#') {
-                    out.push('#');
-                }
-            } else {
-                out.push(c);
-            }
-        }
-        out
-    };
-    let real: Vec<String> = printed.lines().map(numbers_aside).collect();
-    for line in excerpt.lines() {
-        assert!(
-            real.contains(&numbers_aside(line)),
-            "docs/check.md shows `{line}`, which the program does not print:\n{printed}"
-        );
-    }
+    super::held_to_the_book(
+        "check::master's the_twins_own_supervisor",
+        &printed.replace(s(&b), "/tmp/ttyV1"),
+    );
 }
 
 #[test]
