@@ -58,6 +58,22 @@ fn the_twins_own_modbus_tcp_server_passes_every_check() {
     let serve = serve(&["--modbus", "tcp://127.0.0.1:0"]);
     let link = format!("tcp://{}", serve.tcp_of("modbus-tcp"));
     passes_every_check("modbus-tcp-slave", &link);
+    // Its recording reads back as Modbus TCP, not as MEB gone wrong.
+    let mcap = scratch("check-modbus", "modbus-tcp-slave.mcap");
+    let out = check_slave(
+        &link,
+        &[
+            "--suite",
+            "modbus-tcp-slave",
+            "--record",
+            mcap.to_str().unwrap(),
+        ],
+    );
+    assert!(out.status.success(), "{}", text(&out));
+    let recorded = super::recorded::read(&mcap);
+    let frames = recorded["frames"].as_array().unwrap();
+    assert!(!frames.is_empty(), "{recorded}");
+    assert_eq!(frames[0]["protocol"], "modbus-tcp", "{}", frames[0]);
     serve.terminate();
 }
 
