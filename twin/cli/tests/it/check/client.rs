@@ -244,11 +244,11 @@ fn a_class_of_clients_gets_its_scores_from_a_roster() {
     assert_eq!(
         scores.lines().collect::<Vec<_>>(),
         [
-            "student,score,points,checks_passed,checks,first_failure",
-            "Anna Berg,9,9,6,7,",
-            "Ben Okafor,7,9,5,7,\"set VEL to half of full scale (SA 00, about 2048)\"",
+            "student,score,points,checks_passed,checks,first_failure,not_applicable",
+            "Anna Berg,9,9,6,7,,0",
+            "Ben Okafor,7,9,5,7,\"set VEL to half of full scale (SA 00, about 2048)\",0",
             &format!(
-                "Chloé Martin,0,9,0,7,no client connected to tcp://127.0.0.1:{} during the session",
+                "Chloé Martin,0,9,0,7,no client connected to tcp://127.0.0.1:{} during the session,0",
                 ports[2]
             ),
         ],

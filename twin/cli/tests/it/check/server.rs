@@ -267,9 +267,9 @@ fn a_class_of_servers_gets_its_scores_from_a_roster() {
     assert_eq!(
         rows[..3],
         [
-            "student,score,points,checks_passed,checks,first_failure",
-            "Anna Berg,20,20,15,15,",
-            "Ben Okafor,18,20,14,15,a client's VEL write (SA 00) goes on the bus as SA 00 and is acknowledged",
+            "student,score,points,checks_passed,checks,first_failure,not_applicable",
+            "Anna Berg,20,20,15,15,,0",
+            "Ben Okafor,18,20,14,15,a client's VEL write (SA 00) goes on the bus as SA 00 and is acknowledged,0",
         ],
         "{shown}"
     );
