@@ -7,12 +7,13 @@ use twin_view::{self as view, ViewTarget};
 
 /// Show a recording in the rerun viewer.
 ///
-/// Turns RUN.mcap (written by `twin run`, `twin serve` or `twin supervise`)
-/// into a rerun recording laid out for the lab: the set point, the motor's
-/// (hall) rpm and the light sensor's rpm on one plot; V1, V2, I and SOC; the
-/// raw photoresistor signal with the dips the firmware's detector finds in
-/// it; every bus frame and event as a text log; simulated time (session time
-/// for a real-time session, with its tick lateness) as the timeline.
+/// Turns RUN.mcap (written by `twin run`, `twin serve`, `twin supervise` or
+/// `twin check`) into a rerun recording laid out for the lab: the set point,
+/// the motor's (hall) rpm and the light sensor's rpm on one plot; V1, V2, I
+/// and SOC; the raw photoresistor signal with the dips the firmware's
+/// detector finds in it; every bus frame and event as a text log; simulated
+/// time (session time for a real-time session, with its tick lateness) as the
+/// timeline. A check's recording shows its link's frames as a text log.
 ///
 /// With a viewer installed (`rerun` on PATH and a display) it opens one;
 /// otherwise, or with `--save`, it writes an .rrd file (beside the recording
@@ -20,7 +21,8 @@ use twin_view::{self as view, ViewTarget};
 /// `rerun-sdk==0.36.3`: `pip install rerun-sdk==0.36.3`, then `rerun FILE.rrd`.
 #[derive(Debug, Args)]
 pub struct ViewArgs {
-    /// A recording written by `twin run`, `twin serve` or `twin supervise`.
+    /// A recording written by `twin run`, `twin serve`, `twin supervise` or
+    /// `twin check`.
     #[arg(value_name = "RUN.mcap")]
     recording: PathBuf,
     /// Write an .rrd file instead of opening a viewer
