@@ -14,12 +14,12 @@ fn scratch(name: &str) -> PathBuf {
     support::scratch("scope", name)
 }
 
-fn s(p: &Path) -> &str {
+pub(crate) fn s(p: &Path) -> &str {
     p.to_str().expect("utf-8 path")
 }
 
 /// Runs `scenario` for `seconds` into a recording; its frames.
-fn run(scenario: &str, seconds: &str, name: &str) -> (PathBuf, Vec<Frame>) {
+pub(crate) fn run(scenario: &str, seconds: &str, name: &str) -> (PathBuf, Vec<Frame>) {
     let out = scratch(name);
     let o = twin(&["run", scenario, "--duration", seconds, "--out", s(&out)]);
     assert!(o.status.success(), "{}", text(&o));

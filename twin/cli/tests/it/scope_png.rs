@@ -2,26 +2,15 @@
 //! bit's centre along the time axis, is the frame's bytes at the bus's baud
 //! (start bit, 8 data bits least significant first, stop bit).
 
+use crate::scope::{run, s};
 use crate::support;
 use std::path::{Path, PathBuf};
 use support::{text, twin};
 use twin_lab::scope_png::TRACES;
-use twin_recording::read::{Frame, Recording};
+use twin_recording::read::Frame;
 
 fn scratch(name: &str) -> PathBuf {
     support::scratch("scope-png", name)
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().expect("utf-8 path")
-}
-
-fn run(scenario: &str, seconds: &str, name: &str) -> (PathBuf, Vec<Frame>) {
-    let out = scratch(name);
-    let o = twin(&["run", scenario, "--duration", seconds, "--out", s(&out)]);
-    assert!(o.status.success(), "{}", text(&o));
-    let frames = Recording::read(&out).unwrap().frames().unwrap();
-    (out, frames)
 }
 
 /// An RGB picture.
@@ -151,7 +140,7 @@ fn channels(out: &str, png: &Path) -> Vec<String> {
 
 #[test]
 fn a_frames_picture_reads_back_as_its_bytes_at_the_baud() {
-    let (run, frames) = run("ev-meb", "0.2", "ev-meb.mcap");
+    let (run, frames) = run("ev-meb", "0.2", "png-ev-meb.mcap");
     let bit_s = 1.0 / 115_200.0;
     // A short frame of each node that sends one (the supervisor's requests;
     // the controller's replies are long): at 1280 px a 16-character frame
@@ -212,7 +201,7 @@ fn a_frames_picture_reads_back_as_its_bytes_at_the_baud() {
 
 #[test]
 fn a_controller_network_request_and_reply_show_on_the_master_and_the_slave() {
-    let (run, frames) = run("controller-network", "0.3", "cn.mcap");
+    let (run, frames) = run("controller-network", "0.3", "png-cn.mcap");
     let bit_s = 1.0 / 115_200.0;
     let i = frames
         .iter()
@@ -256,7 +245,7 @@ fn a_controller_network_request_and_reply_show_on_the_master_and_the_slave() {
 
 #[test]
 fn a_frame_out_of_range_is_an_error_and_draws_nothing() {
-    let (run, frames) = run("ev-meb", "0.1", "short.mcap");
+    let (run, frames) = run("ev-meb", "0.1", "png-short.mcap");
     let png = scratch("none.png");
     let o = twin(&["scope", s(&run), "--frame", "99999", "--png", s(&png)]);
     assert!(!o.status.success());
