@@ -11,6 +11,7 @@
 
 pub mod bench;
 
+use crate::framing::Protocol;
 use crate::run::{CheckOutcome, Exchange, Outcome, Role, SuiteRun, Way};
 use bench::{Bench, Fault, Heard};
 use nodes::proto::meb::{MebCmd, MebErrorCode};
@@ -278,6 +279,7 @@ impl Session {
             link: link.into(),
             id: self.id,
             role: Role::default(),
+            protocol: Protocol::Meb,
             ids: Vec::new(),
             checks,
             seconds: ended,
@@ -311,6 +313,7 @@ pub fn unreachable(link: &str, id: u8, why: String) -> SuiteRun {
         link: link.into(),
         id,
         role: Role::default(),
+        protocol: Protocol::Meb,
         ids: Vec::new(),
         checks,
         seconds: 0.0,

@@ -34,6 +34,18 @@ impl Protocol {
         })
     }
 
+    /// The protocol as the recording's frame describer names a link's
+    /// (`describe::link_frame_fields`): the 8-byte Modbus decodes as a
+    /// bus's frames do.
+    pub fn link_name(self) -> &'static str {
+        match self {
+            Protocol::Meb => "meb",
+            Protocol::ModbusRtu => "modbus-rtu",
+            Protocol::ModbusTcp => "modbus-tcp",
+            Protocol::Modbus8 => "modbus8",
+        }
+    }
+
     /// True for MEB, whose frames are written as text.
     pub fn is_text(self) -> bool {
         self == Protocol::Meb

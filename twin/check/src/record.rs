@@ -17,7 +17,7 @@ use crate::run::{Exchange, Outcome, SuiteRun, Way};
 use serde::Serialize;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use twin_recording::describe::{FrameFields, LinkFrameFields, link_frame_fields};
+use twin_recording::describe::link_frame_fields;
 use twin_recording::typed::{FrameMessage, Hex};
 use twin_recording::{Recorder, WriteError, topics};
 
@@ -107,7 +107,7 @@ pub fn record(
         for frame in own {
             let bytes = frame.bytes.as_slice();
             let text = printable(bytes);
-            let decoded = decoded(&run.link, bytes);
+            let decoded = link_frame_fields(run.protocol.link_name(), bytes);
             let mut message = FrameMessage {
                 from: match frame.way {
                     Way::Sent => "twin",
@@ -176,20 +176,4 @@ pub fn suite_toml(name_or_path: &str) -> String {
         Some((_, text)) => (*text).to_string(),
         None => std::fs::read_to_string(name_or_path).unwrap_or_default(),
     }
-}
-
-/// A frame's fields as the recording's readers show them. A check's run
-/// does not say its protocol, but the frames do: MEB, RTU and the 8-byte
-/// Modbus decode as a bus's frames; on TCP, what does not is Modbus TCP.
-fn decoded<'a>(link: &str, bytes: &[u8]) -> LinkFrameFields<'a> {
-    let fields = link_frame_fields("meb", bytes);
-    if link.starts_with("tcp://")
-        && matches!(fields, LinkFrameFields::Bus(FrameFields::Broken { .. }))
-    {
-        let tcp = link_frame_fields("modbus-tcp", bytes);
-        if !matches!(tcp, LinkFrameFields::Broken { .. }) {
-            return tcp;
-        }
-    }
-    fields
 }

@@ -103,6 +103,9 @@ pub struct SuiteRun {
     pub id: u8,
     #[serde(skip_serializing_if = "Role::is_slave")]
     pub role: Role,
+    /// What its frames are: a recording decodes them by it.
+    #[serde(skip)]
+    pub protocol: Protocol,
     /// A master's slaves, the twin's (`id` is the first).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub ids: Vec<u8>,
@@ -207,6 +210,7 @@ impl SuiteRun {
             link: link.into(),
             id,
             role: Role::Slave,
+            protocol: suite.protocol,
             ids: Vec::new(),
             checks,
             seconds: 0.0,
@@ -307,6 +311,7 @@ pub fn run_suite_on(suite: &Suite, wire: &mut Wire, id: u8, bench: Option<&Bench
         link: wire.link().to_string(),
         id,
         role: Role::Slave,
+        protocol: suite.protocol,
         ids: Vec::new(),
         checks,
         seconds: wire.now() - started,

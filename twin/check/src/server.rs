@@ -11,7 +11,7 @@
 
 pub mod bus;
 
-use crate::framing::shown_text as shown;
+use crate::framing::{Protocol, shown_text as shown};
 use crate::run::{CheckOutcome, Exchange, Outcome, Role, SuiteRun, Way};
 use crate::wire::{Wire, WireError};
 use bus::{Bus, BusFrame};
@@ -208,6 +208,7 @@ pub fn check_server(options: &ServerOptions) -> Result<SuiteRun, WireError> {
         link,
         id: options.id,
         role: Role::default(),
+        protocol: Protocol::Meb,
         ids: Vec::new(),
         checks,
         seconds: checker.now(),
@@ -232,6 +233,7 @@ pub fn unreachable(link: &str, id: u8, why: String) -> SuiteRun {
         link: link.into(),
         id,
         role: Role::default(),
+        protocol: Protocol::Meb,
         ids: Vec::new(),
         checks: CHECKS
             .iter()
