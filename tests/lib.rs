@@ -4,8 +4,8 @@
 
 use anyhow::Result;
 use nodes::node::NodeEvent;
-use nodes::time::{SimDuration, SimTime};
 use plant::{Actuators, Sensors};
+use protocols::time::{SimDuration, SimTime};
 use twin_sim::engine::{BusSlot, Engine, ModuleSlot, NodeSlot, Observer};
 use twin_sim::scenario::Scenario;
 

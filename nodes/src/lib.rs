@@ -1,10 +1,10 @@
 //! The lab's nodes and simulated media, all sans-IO: no sockets, no clock,
-//! no unseeded randomness. Time comes in as [`time::SimTime`], bytes as
+//! no unseeded randomness. Time comes in as [`protocols::time::SimTime`], bytes as
 //! slices. The EV module controller (`firmware`), the Controller_network
 //! project's Nanos and Raspberry Pi master (`controller_network`), the
 //! supervisor and its server (`master`), the PWM-capture paper's parallel
 //! nodes (`parallel`), and the RS-485 bus and PWM-capture line (`link`). The
-//! codecs they speak are the `protocols` crate, re-exported here.
+//! codecs they speak are the `protocols` crate's, one import path for all.
 
 pub mod controller_network;
 pub mod firmware;
@@ -13,11 +13,3 @@ pub mod master;
 pub mod node;
 pub mod parallel;
 pub mod refusal;
-
-/// The wire formats, from the `protocols` crate: node code and its users
-/// name them `nodes::proto::…` without depending on that crate themselves.
-pub mod proto {
-    pub use protocols::{crc, hex, link, meb, modbus, modbus8, pwmcap, words};
-}
-/// Simulated time, from the `protocols` crate.
-pub use protocols::time;

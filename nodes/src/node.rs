@@ -11,7 +11,7 @@
 //! sensors; the firmware answers with the actuators to hold until its next tick.
 
 use crate::refusal::Refusal;
-use crate::time::{SimDuration, SimTime};
+use protocols::time::{SimDuration, SimTime};
 
 /// Longest frame any node sends in one piece (an MEB frame with 99 words and
 /// `*\r\n` is 410 bytes; Modbus ASCII 513).

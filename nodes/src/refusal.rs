@@ -2,8 +2,8 @@
 //! refuses every request), the slave firmware and the Controller_network
 //! nodes.
 
-use crate::proto::meb::MebErrorCode;
-use crate::proto::modbus::Exception;
+use protocols::meb::MebErrorCode;
+use protocols::modbus::Exception;
 
 /// Why a request was refused, in the terms both protocols share.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, thiserror::Error)]

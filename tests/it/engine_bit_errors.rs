@@ -15,8 +15,8 @@ use std::collections::{BTreeMap, HashSet};
 
 use nodes::controller_network::{ControllerNetworkMaster, MasterConfig};
 use nodes::link::{CheckKind, FaultyNode};
-use nodes::proto::meb::MebRepr;
-use nodes::time::{SimDuration, SimTime};
+use protocols::meb::MebRepr;
+use protocols::time::{SimDuration, SimTime};
 use serde_json::Value;
 use twin_sim::engine::{BusSlot, Engine, NodeSlot, Observer};
 use twin_sim::scenario::Scenario;

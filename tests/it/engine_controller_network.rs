@@ -5,8 +5,8 @@
 //! the 8-byte frames on the wire.
 
 use e2e::{Capture, WireFrame, at, run_captured};
-use nodes::proto::modbus8::{self, CrcOrder, Frame};
-use nodes::time::{SimDuration, SimTime};
+use protocols::modbus8::{self, CrcOrder, Frame};
+use protocols::time::{SimDuration, SimTime};
 use twin_sim::scenario::Scenario;
 
 /// The embedded scenario, read from its file so the test follows the file.

@@ -7,8 +7,8 @@
 //! change, plant sample and loop report.
 
 use e2e::{Capture, WireFrame, at, run_captured};
-use nodes::proto::meb::{MebCmd, MebRepr};
-use nodes::time::{SimDuration, SimTime};
+use protocols::meb::{MebCmd, MebRepr};
+use protocols::time::{SimDuration, SimTime};
 use twin_sim::scenario::Scenario;
 
 /// The supervisor's loop after one poll cycle.

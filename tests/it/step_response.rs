@@ -151,7 +151,7 @@ fn pausing_a_run_to_sample_it_changes_nothing() {
         &paused,
         |_| {},
         &Default::default(),
-        Some(nodes::time::SimDuration::from_millis(2)),
+        Some(protocols::time::SimDuration::from_millis(2)),
         |_, _, _| {
             samples += 1;
             Ok(())

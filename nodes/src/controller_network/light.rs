@@ -2,8 +2,8 @@
 //! photoresistor; the node times light→dark edges on its 20 ms sampling grid.
 
 use crate::node::{Firmware, Node};
-use crate::proto::modbus::Exception;
-use crate::time::{SimDuration, SimTime};
+use protocols::modbus::Exception;
+use protocols::time::{SimDuration, SimTime};
 
 use super::{Access, LIGHT_ID, PortConfig, REG_LIGHT_VALUE, RegisterMap, SlavePort, millis};
 
@@ -169,7 +169,7 @@ impl LightNode {
             self.timeout_from_ms = now_ms;
         }
         self.dark = dark;
-        let timeout_ms = self.config.edge_timeout.0 / (crate::time::TICKS_PER_SECOND / 1_000);
+        let timeout_ms = self.config.edge_timeout.0 / (protocols::time::TICKS_PER_SECOND / 1_000);
         if now_ms.saturating_sub(self.timeout_from_ms) >= timeout_ms {
             // The firmware keeps forcing 0 every sample until an edge comes.
             self.registers.rpm = 0.0;

@@ -13,9 +13,9 @@
 use std::collections::VecDeque;
 
 use crate::node::{Node, NodeEvent};
-use crate::proto::modbus::Exception;
-use crate::proto::modbus8::{self, CrcOrder, FRAME_LEN, Frame, Modbus8Decoder, Modbus8Error};
-use crate::time::{SimDuration, SimTime};
+use protocols::modbus::Exception;
+use protocols::modbus8::{self, CrcOrder, FRAME_LEN, Frame, Modbus8Decoder, Modbus8Error};
+use protocols::time::{SimDuration, SimTime};
 
 use super::{
     BAUD, LIGHT_ID, MOTOR_ID, MotorState, REG_LIGHT_VALUE, REG_RPM, REG_SET_SPEED, REG_STATE,
@@ -89,7 +89,7 @@ impl Default for MasterConfig {
             program: MasterProgram::Loop,
             start: SimDuration::ZERO,
             crc_order: CrcOrder::HighFirst,
-            silence: crate::proto::modbus::serial::silence_3_5_chars(BAUD, 10),
+            silence: protocols::modbus::serial::silence_3_5_chars(BAUD, 10),
             reply_wait: SimDuration::from_millis(100),
             reply_timeout: None,
             cycle_sleep: SimDuration::from_millis(500),

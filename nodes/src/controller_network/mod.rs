@@ -1,6 +1,6 @@
 //! The Controller_network project (`docs/protocols/modbus8.md`): the motor node (id 01),
 //! the light-sensor node (id 02) and the Raspberry Pi master, all speaking the
-//! 8-byte Modbus variant of [`crate::proto::modbus8`].
+//! 8-byte Modbus variant of [`protocols::modbus8`].
 //!
 //! The two Arduinos are [`Node`](crate::node::Node)s for their serial port and
 //! [`Firmware`](crate::node::Firmware) for the bench they control; the master
@@ -18,9 +18,9 @@ pub use motor::{MotorConfig, MotorNode, MotorState};
 
 use std::collections::VecDeque;
 
-use crate::proto::modbus::Exception;
-use crate::proto::modbus8::{self, CrcOrder, FRAME_LEN, Frame, Modbus8Decoder};
-use crate::time::{SimDuration, SimTime};
+use protocols::modbus::Exception;
+use protocols::modbus8::{self, CrcOrder, FRAME_LEN, Frame, Modbus8Decoder};
+use protocols::time::{SimDuration, SimTime};
 
 /// Slave id of the motor node.
 pub const MOTOR_ID: u8 = 0x01;
@@ -93,7 +93,7 @@ impl Default for PortConfig {
     fn default() -> Self {
         PortConfig {
             crc_order: CrcOrder::HighFirst,
-            silence: crate::proto::modbus::serial::silence_3_5_chars(BAUD, 10),
+            silence: protocols::modbus::serial::silence_3_5_chars(BAUD, 10),
             corrupt_reply_crc: false,
         }
     }
@@ -196,7 +196,7 @@ fn corrupt_crc(frame: &mut [u8; FRAME_LEN], order: CrcOrder) {
 
 /// Whole milliseconds since the start of the run, as Arduino's `millis()`.
 fn millis(now: SimTime) -> u64 {
-    now.0 / (crate::time::TICKS_PER_SECOND / 1_000)
+    now.0 / (protocols::time::TICKS_PER_SECOND / 1_000)
 }
 
 #[cfg(test)]

@@ -2,8 +2,8 @@
 //! encoder counted in 20 ms windows, and its own PI towards the set point.
 
 use crate::node::{Firmware, Node, NodeEvent};
-use crate::proto::modbus::Exception;
-use crate::time::{SimDuration, SimTime};
+use protocols::modbus::Exception;
+use protocols::time::{SimDuration, SimTime};
 
 use super::{
     Access, MOTOR_ID, PortConfig, REG_RPM, REG_SET_SPEED, REG_STATE, RegisterMap, SlavePort,

@@ -9,7 +9,7 @@
 
 use plant::shaft::ShaftReading;
 
-use crate::time::{SimDuration, SimTime};
+use protocols::time::{SimDuration, SimTime};
 
 /// Hall-edge speed estimator: edges counted between captured edges.
 ///

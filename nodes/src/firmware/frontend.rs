@@ -12,13 +12,13 @@
 use std::collections::VecDeque;
 
 use crate::node::{MAX_FRAME, NodeEvent};
-use crate::proto::meb::{MebAccess, MebDecodeError, MebDecoder, MebRepr};
-use crate::proto::modbus::pdu::function;
-use crate::proto::modbus::rtu::{Direction, RtuDecoder};
-use crate::proto::modbus::serial::Timing;
-use crate::proto::modbus::tcp::TcpDecoder;
-use crate::proto::modbus::{self, Drops, MAX_PDU_LEN, ascii::AsciiDecoder};
-use crate::time::{SimDuration, SimTime};
+use protocols::meb::{MebAccess, MebDecodeError, MebDecoder, MebRepr};
+use protocols::modbus::pdu::function;
+use protocols::modbus::rtu::{Direction, RtuDecoder};
+use protocols::modbus::serial::Timing;
+use protocols::modbus::tcp::TcpDecoder;
+use protocols::modbus::{self, Drops, MAX_PDU_LEN, ascii::AsciiDecoder};
+use protocols::time::{SimDuration, SimTime};
 
 use super::image::{Refusal, RegisterImage};
 use super::meb_map::MebMap;

@@ -3,7 +3,7 @@
 //! map of `docs/protocols/meb.md`; a front end given another one answers at the
 //! addresses it says, with the same checks and the same image.
 
-use crate::proto::meb::{MebBlock, MebWordType};
+use protocols::meb::{MebBlock, MebWordType};
 
 /// A signal of the EV module and its place in the default map.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -1,7 +1,7 @@
 //! The MEB slave front end: one well-formed frame in, the reply (if any) out,
 //! with the checks in the order `docs/protocols/meb.md` gives them.
 
-use crate::proto::meb::{MebAccess, MebBlock, MebRepr, MebWordType, MebWords};
+use protocols::meb::{MebAccess, MebBlock, MebRepr, MebWordType, MebWords};
 
 use super::image::{self, Refusal, RegisterImage, WriteSet};
 use super::meb_map::MebMap;

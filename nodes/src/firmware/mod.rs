@@ -23,11 +23,11 @@ use plant::params::SensingParams;
 use plant::{Actuators, PlantParams, Sensors};
 
 use crate::node::{Firmware, MAX_FRAME, Node, NodeEvent};
-use crate::proto::meb::{MebDecodeError, MebDecoder, MebRepr};
-use crate::proto::modbus::MAX_PDU_LEN;
-use crate::proto::modbus::rtu::{self, Direction, RtuDecoder};
-use crate::proto::modbus::serial::{Timing, standard_rtu_silence};
-use crate::time::{SimDuration, SimTime};
+use protocols::meb::{MebDecodeError, MebDecoder, MebRepr};
+use protocols::modbus::MAX_PDU_LEN;
+use protocols::modbus::rtu::{self, Direction, RtuDecoder};
+use protocols::modbus::serial::{Timing, standard_rtu_silence};
+use protocols::time::{SimDuration, SimTime};
 
 pub use estimators::{HallRpm, LightDetectorConfig, LightRpm};
 pub use frontend::{Framing, FrontendStats, SlaveFrontend};

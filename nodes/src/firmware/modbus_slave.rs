@@ -1,7 +1,7 @@
 //! The Modbus RTU slave front end: the fixed map of `docs/protocols/modbus-map.md` over
 //! the same register image the MEB front end serves.
 
-use crate::proto::modbus::{Bits, ExceptionResponse, Registers, Request, Response};
+use protocols::modbus::{Bits, ExceptionResponse, Registers, Request, Response};
 
 use super::image::{self, LDR_ADAPT, Refusal, RegisterImage, WriteSet, sd, status};
 

@@ -16,7 +16,7 @@ use std::collections::VecDeque;
 use super::fault_bytes::{self, Junk, JunkSource};
 use crate::firmware::Refusal;
 use crate::node::{MAX_FRAME, Node, NodeEvent};
-use crate::time::{SimDuration, SimTime};
+use protocols::time::{SimDuration, SimTime};
 
 /// Frames that can be held back at once by [`Fault::DelayReply`]; one more is
 /// dropped (and recorded), as a firmware's full transmit queue would.

@@ -8,7 +8,7 @@ use rand::{RngExt, SeedableRng};
 use rand_pcg::Pcg64;
 
 use super::CheckKind;
-use crate::proto::crc::crc16_modbus;
+use protocols::crc::crc16_modbus;
 
 /// Most junk bytes sent with one reply.
 pub const MAX_JUNK: usize = 32;

@@ -3,7 +3,7 @@
 //! a match the compiler sees through.
 
 use super::{BusError, BusEvent, BusStats, FrameInfo, PortConfig, PortId, PwmBus, SimBus};
-use crate::time::SimTime;
+use protocols::time::SimTime;
 
 /// What carries a bus slot's frames: the RS-485 serial bus, or the PWM-capture
 /// paper's link (frames of pulse widths, captured widths delivered).

@@ -25,8 +25,8 @@
 //! Nothing here reads a clock or panics; buffers are allocated when ports
 //! are added and grow only when more pulses are in flight than ever before.
 
-use crate::proto::pwmcap::PwmCoding;
-use crate::time::{SimDuration, SimTime};
+use protocols::pwmcap::PwmCoding;
+use protocols::time::{SimDuration, SimTime};
 
 use super::pwmline::{PWM_LINE_MAX_SYMBOLS, PwmCapture, PwmLine, PwmLineError, PwmLineParams};
 use super::simbus::{BusError, BusEvent, BusStats, FrameInfo, PortConfig, PortId};

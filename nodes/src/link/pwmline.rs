@@ -30,7 +30,7 @@
 use rand::{RngExt, SeedableRng};
 use rand_pcg::Pcg64;
 
-use crate::proto::pwmcap::{PwmCoding, PwmError};
+use protocols::pwmcap::{PwmCoding, PwmError};
 
 /// Why a line cannot be built or a transmission made.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
@@ -397,7 +397,7 @@ impl PwmLine {
 }
 
 /// The most symbols [`PwmLine::send_values`] sends in one frame, start included.
-pub const PWM_LINE_MAX_SYMBOLS: usize = crate::proto::pwmcap::PWM_MAX_SYMBOLS;
+pub const PWM_LINE_MAX_SYMBOLS: usize = protocols::pwmcap::PWM_MAX_SYMBOLS;
 
 /// Decodes captured widths (start first) into `decoded`, one slot per data
 /// symbol; slots without a captured width or with an invalid one get `None`.

@@ -26,7 +26,7 @@ use thiserror::Error;
 
 use super::noise::BitNoise;
 use crate::node::MAX_FRAME;
-use crate::time::{SimDuration, SimTime, TICKS_PER_SECOND};
+use protocols::time::{SimDuration, SimTime, TICKS_PER_SECOND};
 
 /// Added to the seed for the collision-garbling stream, so noise statistics do
 /// not depend on how many collisions happened.

@@ -26,11 +26,11 @@
 
 use std::collections::VecDeque;
 
-use crate::proto::meb::{
+use protocols::meb::{
     MebAccess, MebBlock, MebCmd, MebDecodeError, MebDecoder, MebDecoderStats, MebErrorCode,
     MebRepr, MebWordType, MebWords,
 };
-use crate::time::{SimDuration, SimTime};
+use protocols::time::{SimDuration, SimTime};
 
 use super::{ForwardError, LoopMode, Supervisor, WriteOutcome, WriteTicket};
 

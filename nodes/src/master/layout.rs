@@ -9,7 +9,7 @@
 //! (`EA 00 06`, `SD 00 02`), as before.
 
 use crate::firmware::{MebMap, TAGS, block_name};
-use crate::proto::meb::{MebBlock, MebCmd, MebWordType, MebWords};
+use protocols::meb::{MebBlock, MebCmd, MebWordType, MebWords};
 
 /// The analog inputs read every cycle: V2, I, V1, RPM_M, RPM_L, LDR.
 pub(crate) const INPUT_WORDS: usize = 6;

@@ -21,7 +21,7 @@ pub use supervisor::{
     ForwardError, LoopState, PollCounters, StatusWords, Supervisor, WriteOutcome, WriteTicket,
 };
 
-use crate::time::{SimDuration, SimTime};
+use protocols::time::{SimDuration, SimTime};
 
 /// The wire protocol the supervisor speaks to its slaves.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -7,7 +7,7 @@ use std::collections::VecDeque;
 pub use forward::{ForwardError, WriteOutcome, WriteTicket};
 
 use crate::node::{Node, NodeEvent};
-use crate::time::{SimDuration, SimTime};
+use protocols::time::{SimDuration, SimTime};
 
 use super::layout::MebLayout;
 use super::pi::{SpeedPi, VEL_MAX};
@@ -163,7 +163,7 @@ impl Supervisor {
             return Err(SupervisorConfigError::NoSlaves);
         }
         let (min, max) = match protocol {
-            Protocol::Meb => (1, crate::proto::meb::MEB_MAX_ID),
+            Protocol::Meb => (1, protocols::meb::MEB_MAX_ID),
             Protocol::ModbusRtu => (1, 247),
         };
         if protocol != Protocol::Meb && !layout.is_default() {

@@ -2,12 +2,12 @@
 //! both protocols: requests are emitted straight into the caller's buffer,
 //! replies are classified against the request they should answer.
 
-use crate::proto::meb::{MebCmd, MebDecodeError, MebDecoder, MebRepr, MebWords};
-use crate::proto::modbus::pdu::function;
-use crate::proto::modbus::rtu::{self, Direction, RtuDecoder};
-use crate::proto::modbus::serial::Timing;
-use crate::proto::modbus::{Bits, ExceptionResponse, PduError, Request, Response};
-use crate::time::{SimDuration, SimTime};
+use protocols::meb::{MebCmd, MebDecodeError, MebDecoder, MebRepr, MebWords};
+use protocols::modbus::pdu::function;
+use protocols::modbus::rtu::{self, Direction, RtuDecoder};
+use protocols::modbus::serial::Timing;
+use protocols::modbus::{Bits, ExceptionResponse, PduError, Request, Response};
+use protocols::time::{SimDuration, SimTime};
 
 use super::layout::MebLayout;
 use super::{Protocol, StartupOutputs};

@@ -21,8 +21,8 @@ use crate::firmware::{EvController, EvControllerConfig, WriteSet, ea};
 use crate::master::wire::{Reply, ReplyDecoder, Transaction};
 use crate::master::{Protocol, SetPointStep, SpeedPi, StartupOutputs};
 use crate::node::{Firmware, Node, NodeEvent};
-use crate::proto::pwmcap::{PwmCoding, PwmFrame, PwmFrameKind};
-use crate::time::{SimDuration, SimTime};
+use protocols::pwmcap::{PwmCoding, PwmFrame, PwmFrameKind};
+use protocols::time::{SimDuration, SimTime};
 
 use super::{
     MAX_PWM_SLAVE_ID, PwmReceiver, RxOutcome, broadcast_frame, designated_frame, emit_widths,

@@ -31,10 +31,10 @@ pub use master::{ParallelLink, ParallelMaster, ParallelMasterConfig, SlaveCounte
 pub use slave::{PwmAddressing, PwmSlave, PwmSlaveConfig, PwmSlaveCounters};
 
 use crate::link::pwmbus::PWM_RECORD_BYTES;
-use crate::proto::pwmcap::{
+use protocols::pwmcap::{
     PWM_MAX_SYMBOLS, PwmCoding, PwmCommandType, PwmData, PwmError, PwmFrame, PwmStatus,
 };
-use crate::time::{SimDuration, SimTime};
+use protocols::time::{SimDuration, SimTime};
 
 /// Symbols in every frame of this application, start included.
 pub const FRAME_SYMBOLS: usize = 4;

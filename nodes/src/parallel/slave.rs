@@ -8,8 +8,8 @@ use plant::{Actuators, Sensors};
 use crate::firmware::{EvController, EvControllerConfig, WriteSet, sd};
 use crate::master::StartupOutputs;
 use crate::node::{Firmware, Node, NodeEvent};
-use crate::proto::pwmcap::{PwmCoding, PwmData, PwmFrame, PwmFrameKind};
-use crate::time::{SimDuration, SimTime};
+use protocols::pwmcap::{PwmCoding, PwmData, PwmFrame, PwmFrameKind};
+use protocols::time::{SimDuration, SimTime};
 
 use super::{
     MAX_PWM_SLAVE_ID, PwmReceiver, RxOutcome, STATUS_RUN, STATUS_STOP, designated_frame,

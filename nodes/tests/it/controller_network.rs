@@ -7,9 +7,9 @@ use nodes::controller_network::{
     ControllerNetworkMaster, LightNode, MasterConfig, MasterPhase, MotorNode, MotorState,
 };
 use nodes::node::{Firmware, Node, NodeEvent};
-use nodes::proto::modbus8::{CrcOrder, Frame};
-use nodes::time::{SimDuration, SimTime};
 use plant::{Actuators, EvModule, PlantParams, Sensors};
+use protocols::modbus8::{CrcOrder, Frame};
+use protocols::time::{SimDuration, SimTime};
 
 const STEP_MS: u64 = 1;
 

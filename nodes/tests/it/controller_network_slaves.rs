@@ -5,8 +5,8 @@
 
 use nodes::controller_network::{LightNode, MotorConfig, MotorNode, MotorState, PortConfig};
 use nodes::node::{Firmware, Node};
-use nodes::proto::modbus8::{CrcOrder, Frame};
-use nodes::time::{SimDuration, SimTime};
+use protocols::modbus8::{CrcOrder, Frame};
+use protocols::time::{SimDuration, SimTime};
 use serde::Deserialize;
 
 const VECTORS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/vectors/modbus8.jsonl");

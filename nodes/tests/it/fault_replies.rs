@@ -11,10 +11,10 @@ use nodes::link::{
     SimBus,
 };
 use nodes::node::{MAX_FRAME, Node};
-use nodes::proto::meb::MebFrame;
-use nodes::proto::modbus::rtu;
-use nodes::proto::modbus8::{self, CrcOrder};
-use nodes::time::{SimDuration, SimTime};
+use protocols::meb::MebFrame;
+use protocols::modbus::rtu;
+use protocols::modbus8::{self, CrcOrder};
+use protocols::time::{SimDuration, SimTime};
 
 /// A reply from `vectors/meb.jsonl` ("reply with three analog inputs").
 const MEB_REPLY: &[u8] = b"@01EA00030A3C012307D034*\n";

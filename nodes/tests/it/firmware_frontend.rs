@@ -4,9 +4,9 @@
 
 use nodes::firmware::{EvController, EvControllerConfig, Framing, Refusal, SlaveFrontend};
 use nodes::node::{MAX_FRAME, Node};
-use nodes::proto::meb::{MebCmd, MebRepr};
-use nodes::proto::modbus::{self, Exception, Request, Response};
-use nodes::time::{SimDuration, SimTime};
+use protocols::meb::{MebCmd, MebRepr};
+use protocols::modbus::{self, Exception, Request, Response};
+use protocols::time::{SimDuration, SimTime};
 use serde::Deserialize;
 
 const VECTORS: &str = include_str!(concat!(
@@ -229,7 +229,7 @@ fn a_write_whose_count_and_quantity_disagree_gets_exception_03_on_rtu_and_tcp() 
 fn mismatched_write(pdu: &[u8]) {
     let mut rtu = vec![0x01];
     rtu.extend_from_slice(pdu);
-    let crc = nodes::proto::crc::crc16_modbus(&rtu);
+    let crc = protocols::crc::crc16_modbus(&rtu);
     rtu.extend_from_slice(&crc.to_le_bytes());
     let mut tcp = vec![0x00, 0x01, 0x00, 0x00, 0x00, 1 + pdu.len() as u8, 0x01];
     tcp.extend_from_slice(pdu);

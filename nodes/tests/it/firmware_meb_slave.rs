@@ -4,8 +4,8 @@
 
 use nodes::firmware::{EvController, EvControllerConfig, sd};
 use nodes::node::{MAX_FRAME, Node};
-use nodes::proto::meb::{MebCmd, MebRepr};
-use nodes::time::SimTime;
+use protocols::meb::{MebCmd, MebRepr};
+use protocols::time::SimTime;
 use serde::Deserialize;
 
 const VECTORS: &str = include_str!(concat!(

@@ -3,12 +3,12 @@
 
 use nodes::firmware::{EvController, EvControllerConfig, SlaveProtocol};
 use nodes::node::{Firmware, MAX_FRAME, Node};
-use nodes::proto::modbus::rtu;
-use nodes::proto::modbus::{
+use plant::Sensors;
+use protocols::modbus::rtu;
+use protocols::modbus::{
     Bits, EncodePdu, Exception, ExceptionResponse, Registers, Request, Response,
 };
-use nodes::time::{SimDuration, SimTime};
-use plant::Sensors;
+use protocols::time::{SimDuration, SimTime};
 
 fn controller() -> EvController {
     EvController::new(EvControllerConfig {

@@ -5,9 +5,9 @@
 
 use nodes::firmware::{EvController, EvControllerConfig, status};
 use nodes::node::{Firmware, MAX_FRAME, Node};
-use nodes::proto::meb::{MebCmd, MebRepr};
-use nodes::time::{SimDuration, SimTime};
 use plant::{Actuators, EvModule, PlantParams, Sensors};
+use protocols::meb::{MebCmd, MebRepr};
+use protocols::time::{SimDuration, SimTime};
 
 const TICK: SimDuration = SimDuration::from_millis(1);
 

@@ -7,9 +7,9 @@ use nodes::firmware::{EvController, EvControllerConfig};
 use nodes::master::image_server::{ClientId, CloseReason, ImageServer, ImageServerConfig};
 use nodes::master::{Protocol, SlaveLoopConfig, Supervisor, SupervisorConfig};
 use nodes::node::{Firmware, MAX_FRAME, Node};
-use nodes::proto::meb::MebError;
-use nodes::time::{SimDuration, SimTime};
 use plant::Sensors;
+use protocols::meb::MebError;
+use protocols::time::{SimDuration, SimTime};
 
 const BAUD: u32 = 115_200;
 const TURNAROUND: SimDuration = SimDuration::from_millis(1);

@@ -10,8 +10,8 @@ use nodes::master::{
     TranslateError,
 };
 use nodes::node::{MAX_FRAME, Node};
-use nodes::proto::meb::{MebCmd, MebRepr};
-use nodes::time::{SimDuration, SimTime};
+use protocols::meb::{MebCmd, MebRepr};
+use protocols::time::{SimDuration, SimTime};
 
 /// Inputs in the gaps, the switches in words 3 and 5, VEL at SA 04, SOC at FA 04.
 fn gapped_map() -> MebMap {

@@ -4,10 +4,10 @@
 
 use nodes::master::{Protocol, SetPointStep, SlaveLoopConfig, Supervisor, SupervisorConfig};
 use nodes::node::{MAX_FRAME, Node};
-use nodes::proto::meb::{MebCmd, MebRepr, MebWords};
-use nodes::proto::modbus::{ExceptionResponse, Registers, Response, rtu};
-use nodes::time::{SimDuration, SimTime};
 use proptest::prelude::*;
+use protocols::meb::{MebCmd, MebRepr, MebWords};
+use protocols::modbus::{ExceptionResponse, Registers, Response, rtu};
+use protocols::time::{SimDuration, SimTime};
 
 /// What the fake slave does with one request.
 #[derive(Debug, Clone)]
@@ -49,13 +49,13 @@ fn reply_to(protocol: Protocol, request: &[u8], words: [u16; 6]) -> Vec<u8> {
         Protocol::ModbusRtu => {
             let frame = rtu::parse(request).unwrap();
             let response = match frame.request().unwrap() {
-                nodes::proto::modbus::Request::ReadInputRegisters { .. } => {
+                protocols::modbus::Request::ReadInputRegisters { .. } => {
                     Response::ReadInputRegisters(Registers::from_slice(&words).unwrap())
                 }
-                nodes::proto::modbus::Request::WriteSingleRegister { address, value } => {
+                protocols::modbus::Request::WriteSingleRegister { address, value } => {
                     Response::WriteSingleRegister { address, value }
                 }
-                nodes::proto::modbus::Request::WriteMultipleCoils { address, coils } => {
+                protocols::modbus::Request::WriteMultipleCoils { address, coils } => {
                     Response::WriteMultipleCoils {
                         address,
                         quantity: coils.quantity(),

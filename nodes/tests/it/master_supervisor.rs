@@ -7,9 +7,9 @@ use nodes::master::{
     SupervisorConfig,
 };
 use nodes::node::{MAX_FRAME, Node};
-use nodes::proto::meb::{MebCmd, MebErrorCode, MebRepr, MebWords};
-use nodes::proto::modbus::{Registers, Response, rtu};
-use nodes::time::{SimDuration, SimTime};
+use protocols::meb::{MebCmd, MebErrorCode, MebRepr, MebWords};
+use protocols::modbus::{Registers, Response, rtu};
+use protocols::time::{SimDuration, SimTime};
 
 const BAUD: u32 = 115_200;
 const TURNAROUND: SimDuration = SimDuration::from_millis(1);
@@ -48,7 +48,7 @@ fn meb(id: u8, cmd: MebCmd, cnt: u8, data: &[u16]) -> Vec<u8> {
 
 fn rtu_reply(id: u8, response: Response) -> Vec<u8> {
     let mut out = [0u8; 256];
-    let reply: Result<Response, nodes::proto::modbus::ExceptionResponse> = Ok(response);
+    let reply: Result<Response, protocols::modbus::ExceptionResponse> = Ok(response);
     let n = rtu::emit(id, &reply, &mut out).unwrap();
     out[..n].to_vec()
 }
@@ -638,7 +638,7 @@ fn configurations_that_cannot_run_are_refused() {
 
 #[test]
 fn an_rtu_exception_is_counted_and_retried() {
-    use nodes::proto::modbus::{Exception, ExceptionResponse};
+    use protocols::modbus::{Exception, ExceptionResponse};
     let mut config = one_slave(Protocol::ModbusRtu, closed_loop(1, 1000.0));
     config.startup_outputs = None;
     let mut bus = Bus::new(config);

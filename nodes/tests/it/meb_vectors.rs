@@ -1,11 +1,11 @@
 //! Every frame of `vectors/meb.jsonl` parses to its stated fields or fails with
 //! its stated error kind, and every valid one re-emits canonically.
 
-use nodes::proto::meb::{
+use protocols::meb::{
     MEB_MAX_FRAME_LEN, MebCmd, MebDecodeError, MebDecoder, MebError, MebErrorCode, MebFrame,
     MebRepr, MebShape,
 };
-use nodes::time::{SimDuration, SimTime};
+use protocols::time::{SimDuration, SimTime};
 use serde::Deserialize;
 
 const VECTORS: &str = include_str!(concat!(
@@ -158,7 +158,7 @@ fn emit_rejects_what_it_cannot_write() {
     let mut small = [0u8; 12];
     assert_eq!(
         read.emit(&mut small),
-        Err(nodes::proto::meb::MebEmitError::BufferTooSmall { needed: 13 })
+        Err(protocols::meb::MebEmitError::BufferTooSmall { needed: 13 })
     );
     let mut buf = [0u8; 64];
     assert!(MebRepr { id: 100, ..read }.emit(&mut buf).is_err());

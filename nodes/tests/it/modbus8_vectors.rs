@@ -2,10 +2,10 @@
 //! (copied from the Controller_network project's terminal output and scope captures), and
 //! the stream decoder's silence rule with explicit simulated time.
 
-use nodes::proto::crc::crc16_modbus;
-use nodes::proto::modbus::Exception;
-use nodes::proto::modbus8::{CrcOrder, Frame, Modbus8Decoder, Modbus8Error};
-use nodes::time::{SimDuration, SimTime};
+use protocols::crc::crc16_modbus;
+use protocols::modbus::Exception;
+use protocols::modbus8::{CrcOrder, Frame, Modbus8Decoder, Modbus8Error};
+use protocols::time::{SimDuration, SimTime};
 use serde::Deserialize;
 
 const VECTORS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/vectors/modbus8.jsonl");

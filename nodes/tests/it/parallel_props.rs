@@ -9,9 +9,9 @@ use nodes::parallel::{
     ParallelLink, ParallelMaster, ParallelMasterConfig, PwmAddressing, PwmReceiver, PwmSlave,
     PwmSlaveConfig,
 };
-use nodes::proto::pwmcap::PwmCoding;
-use nodes::time::{SimDuration, SimTime};
 use proptest::prelude::*;
+use protocols::pwmcap::PwmCoding;
+use protocols::time::{SimDuration, SimTime};
 
 fn master(link: ParallelLink) -> ParallelMaster {
     let coding = PwmCoding::PAPER;

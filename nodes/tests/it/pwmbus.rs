@@ -3,8 +3,8 @@
 
 use nodes::link::{BusError, BusEvent, PortConfig, PortId, PwmBus, PwmBusConfig, PwmDuplex};
 use nodes::parallel::{PwmReceiver, RxOutcome};
-use nodes::proto::pwmcap::PwmCoding;
-use nodes::time::{SimDuration, SimTime};
+use protocols::pwmcap::PwmCoding;
+use protocols::time::{SimDuration, SimTime};
 
 fn quiet_config(duplex: PwmDuplex) -> PwmBusConfig {
     let mut config = PwmBusConfig {

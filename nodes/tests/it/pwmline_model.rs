@@ -1,7 +1,7 @@
 //! The PWM-capture line model against the analytic RC response.
 
 use nodes::link::pwmline::{PwmCalibration, PwmLine, PwmLineError, PwmLineParams, decode_captured};
-use nodes::proto::pwmcap::PwmCoding;
+use protocols::pwmcap::PwmCoding;
 
 const CLOCK_HZ: u32 = 150_000_000;
 

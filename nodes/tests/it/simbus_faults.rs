@@ -5,10 +5,10 @@ use nodes::link::{
     BusConfig, BusEvent, CheckKind, Fault, FaultWindow, FaultyNode, PortConfig, SimBus,
 };
 use nodes::node::{MAX_FRAME, Node};
-use nodes::proto::meb::{MebError, MebFrame};
-use nodes::proto::modbus::{FrameError, rtu};
-use nodes::proto::modbus8::{self, CrcOrder, Modbus8Error};
-use nodes::time::{SimDuration, SimTime};
+use protocols::meb::{MebError, MebFrame};
+use protocols::modbus::{FrameError, rtu};
+use protocols::modbus8::{self, CrcOrder, Modbus8Error};
+use protocols::time::{SimDuration, SimTime};
 
 /// A slave that answers every `expect` bytes it hears with a fixed reply and
 /// remembers what happened to it.

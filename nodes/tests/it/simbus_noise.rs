@@ -2,7 +2,7 @@
 //! bit-for-bit determinism under a seed.
 
 use nodes::link::{BusConfig, BusEvent, PortConfig, SimBus};
-use nodes::time::{SimDuration, SimTime};
+use protocols::time::{SimDuration, SimTime};
 
 const FRAME: usize = 500;
 

@@ -2,8 +2,8 @@
 //! built from the frames' wire intervals.
 
 use nodes::link::{BusConfig, BusEvent, FrameInfo, PortConfig, PortId, SimBus};
-use nodes::time::{SimDuration, SimTime};
 use proptest::prelude::*;
+use protocols::time::{SimDuration, SimTime};
 
 const PORTS: u16 = 3;
 

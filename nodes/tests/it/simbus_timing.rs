@@ -2,7 +2,7 @@
 //! event order, checked against exact tick arithmetic.
 
 use nodes::link::{BusConfig, BusEvent, PortConfig, PortId, SimBus, Wiring};
-use nodes::time::{SimDuration, SimTime, TICKS_PER_SECOND};
+use protocols::time::{SimDuration, SimTime, TICKS_PER_SECOND};
 
 /// A port that starts sending the instant it is asked to.
 const NO_TURNAROUND: PortConfig = PortConfig {

@@ -4,7 +4,7 @@
 
 use std::collections::HashMap;
 
-use nodes::proto::meb::MebRepr;
+use protocols::meb::MebRepr;
 
 /// What a receiver accepts at one position of an MEB frame.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]

@@ -2,8 +2,8 @@
 //! `twin_sim::external` before anything runs).
 
 use anyhow::{Context, Result, bail};
-use nodes::time::SimDuration;
 use plant::PlantParams;
+use protocols::time::SimDuration;
 use std::path::Path;
 use twin_sim::engine::SimNode;
 use twin_sim::external::FirmwareBuilder;

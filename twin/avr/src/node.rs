@@ -17,9 +17,9 @@ use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
 
 use nodes::node::{Firmware, MAX_FRAME, Node, NodeEvent};
-use nodes::time::{SimDuration, SimTime, TICKS_PER_SECOND};
 use plant::params::SensingParams;
 use plant::{Actuators, Sensors};
+use protocols::time::{SimDuration, SimTime, TICKS_PER_SECOND};
 use serde_json::json;
 use twin_sim::engine::{FirmwareFile, FirmwareRecord, SimNode, Streamed};
 

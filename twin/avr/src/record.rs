@@ -6,7 +6,7 @@
 //! start, and reused: nothing is allocated per byte or per edge.
 
 use anyhow::Result;
-use nodes::time::{SimDuration, SimTime};
+use protocols::time::{SimDuration, SimTime};
 use twin_recording::topics::{AdcInput, FirmwareIo, PinEdge, PinState, UartBurst};
 use twin_sim::engine::FirmwareRecord;
 

@@ -14,7 +14,7 @@ pub mod bench;
 use crate::framing::Protocol;
 use crate::run::{CheckOutcome, Exchange, Outcome, Role, SuiteRun, Way};
 use bench::{Bench, Fault, Heard};
-use nodes::proto::meb::{MebCmd, MebErrorCode};
+use protocols::meb::{MebCmd, MebErrorCode};
 
 /// The suite's name in every report.
 pub const SUITE: &str = "MEB client";
@@ -325,9 +325,7 @@ pub fn unreachable(link: &str, id: u8, why: String) -> SuiteRun {
 }
 
 /// Write requests the twin acknowledged, each with its request.
-fn acknowledged_writes(
-    heard: &[Heard],
-) -> impl Iterator<Item = (&Heard, nodes::proto::meb::MebRepr)> {
+fn acknowledged_writes(heard: &[Heard]) -> impl Iterator<Item = (&Heard, protocols::meb::MebRepr)> {
     heard.iter().enumerate().filter_map(move |(i, h)| {
         let request = h
             .repr

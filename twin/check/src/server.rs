@@ -15,7 +15,7 @@ use crate::framing::{Protocol, shown_text as shown};
 use crate::run::{CheckOutcome, Exchange, Outcome, Role, SuiteRun, Way};
 use crate::wire::{Wire, WireError};
 use bus::{Bus, BusFrame};
-use nodes::proto::meb::MebCmd;
+use protocols::meb::MebCmd;
 use std::time::{Duration, Instant};
 
 /// The suite's name in every report.
@@ -480,7 +480,7 @@ impl Checker {
                 if f.repr.is_some_and(|r| {
                     r.cmd
                         .block()
-                        .is_some_and(|(b, _)| b.access() == nodes::proto::meb::MebAccess::Write)
+                        .is_some_and(|(b, _)| b.access() == protocols::meb::MebAccess::Write)
                 }) {
                     self.note_bus(f);
                 }

@@ -7,7 +7,7 @@
 //! shared machine disturbs far less than the wall clock.
 
 use anyhow::{Context, Result};
-use nodes::time::{SimDuration, SimTime};
+use protocols::time::{SimDuration, SimTime};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 

@@ -7,9 +7,9 @@
 use nodes::controller_network::{LightConfig, LightNode, MotorConfig, MotorNode};
 use nodes::firmware::{EvController, EvControllerConfig};
 use nodes::link::{CheckKind, FaultyNode};
-use nodes::time::SimTime;
 use plant::light::fixed_threshold_max_rpm;
 use plant::{PlantParams, Sensors};
+use protocols::time::SimTime;
 
 use twin_sim::engine::{SimNode, SpeedReadings};
 

@@ -1,10 +1,10 @@
 //! The PWM-capture paper's figures (`docs/protocols/pwmcap.md`): Table 2's
 //! transfer times, bit-recognition reliability against added line impedance,
 //! and the longest clean cable — all computed from the coding in
-//! `nodes::proto::pwmcap` and the line model in `nodes::link::pwmline`.
+//! `protocols::pwmcap` and the line model in `nodes::link::pwmline`.
 
 use nodes::link::pwmline::{PwmCalibration, PwmLine, PwmLineError, PwmLineParams, PwmTestValues};
-use nodes::proto::pwmcap::PwmCoding;
+use protocols::pwmcap::PwmCoding;
 
 /// What a bit-recognition true/false positive is in this model; printed with
 /// the figures and repeated in `docs/protocols/pwmcap-line.md`.

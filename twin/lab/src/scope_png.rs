@@ -13,13 +13,13 @@
 use std::path::Path;
 
 use anyhow::{Result, anyhow};
-use nodes::proto::modbus::Exception;
-use nodes::proto::modbus8::EXCEPTION_BIT;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
+use protocols::modbus::Exception;
+use protocols::modbus8::EXCEPTION_BIT;
 use twin_recording::describe::{FrameFields, LinkFrameFields, decode_frame, link_frame_fields};
-use twin_scope::wave::{Frame, Hearing};
+use twin_scope::wave::{Hearing, LineFrame};
 use twin_scope::{LineKind, Waveform};
 
 use crate::plot::ensure_font;
@@ -166,7 +166,7 @@ fn title(wave: &Waveform) -> String {
 }
 
 fn seconds(ticks: u64) -> f64 {
-    ticks as f64 / nodes::time::TICKS_PER_SECOND as f64
+    ticks as f64 / protocols::time::TICKS_PER_SECOND as f64
 }
 
 fn ms(ticks: u64) -> f64 {
@@ -189,7 +189,7 @@ impl Described {
     }
 }
 
-fn describe(wave: &Waveform, frame: &Frame) -> Described {
+fn describe(wave: &Waveform, frame: &LineFrame) -> Described {
     let bytes = &frame.bytes;
     let fields = match wave.name.strip_prefix("link.") {
         Some(protocol) => link_frame_fields(protocol, bytes),
@@ -424,7 +424,7 @@ fn shade(c: RGBColor) -> RGBColor {
 }
 
 /// Whether frame `f` is seen on channel `kind`.
-fn shapes(kind: LineKind, f: &Frame) -> bool {
+fn shapes(kind: LineKind, f: &LineFrame) -> bool {
     match kind {
         LineKind::Tx(n) | LineKind::DriverEnable(n) | LineKind::Rx(n) => f.node == n,
         LineKind::Bus => true,
@@ -550,7 +550,7 @@ fn bus_table(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use nodes::proto::modbus8::{CrcOrder, Frame as Frame8};
+    use protocols::modbus8::{CrcOrder, Frame as Frame8};
     use twin_scope::LineFormat;
 
     fn wave(frames: Vec<Vec<u8>>) -> Waveform {
@@ -562,7 +562,7 @@ mod tests {
             frames: frames
                 .into_iter()
                 .enumerate()
-                .map(|(number, bytes)| Frame {
+                .map(|(number, bytes)| LineFrame {
                     number,
                     node: number % 2,
                     start: 1_000 * number as u64,

@@ -9,8 +9,8 @@
 //! `RPM_M` and `RPM_L` registers are read from the running engine.
 
 use anyhow::{Context, Result, bail};
-use nodes::time::{SimDuration, SimTime};
 use plant::{PlantParams, Sensors};
+use protocols::time::{SimDuration, SimTime};
 use serde::Serialize;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};

@@ -5,8 +5,8 @@
 //! the flag; plant/src/light.rs derives that speed, and the sweep prints both.
 
 use anyhow::{Result, bail};
-use nodes::time::{SimDuration, SimTime};
 use plant::PlantParams;
+use protocols::time::{SimDuration, SimTime};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 

@@ -19,8 +19,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::channel;
 use std::time::{Duration, Instant};
 
-use nodes::proto::meb::MebCmd;
 use plant::PlantParams;
+use protocols::meb::MebCmd;
 use twin_panel::{AccessOptions, Panel, PanelOptions, PanelRole};
 use twin_realtime::client::MebClient;
 use twin_realtime::io::LinkDefaults;

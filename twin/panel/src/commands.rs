@@ -5,7 +5,7 @@
 use nodes::firmware::Refusal;
 use nodes::link::{Junk, JunkBytes, JunkPlace, MAX_JUNK};
 use nodes::master::LoopMode;
-use nodes::time::SimDuration;
+use protocols::time::SimDuration;
 use serde_json::{Map, Value, json};
 use std::sync::Mutex;
 use std::sync::mpsc::Sender;

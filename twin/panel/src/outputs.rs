@@ -15,7 +15,7 @@ use crate::remote::OutputRequest;
 use crate::remote::layout::SWITCHES;
 use crate::remote::state::pin_for;
 use nodes::master::{LoopMode, StartupOutputs, WriteOutcome, WriteTicket};
-use nodes::proto::meb::MebCmd;
+use protocols::meb::MebCmd;
 use twin_realtime::{Inbound, RtEngine};
 
 /// The SD words the panel last had the supervisor write, per slave (MEB

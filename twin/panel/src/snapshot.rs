@@ -54,12 +54,12 @@ pub struct LinkState {
     pub clients: usize,
     /// The serial line's speed and character format (`None` on TCP, which
     /// has no line): the scope draws every byte's bits at it.
-    pub line: Option<nodes::proto::link::SerialSettings>,
+    pub line: Option<protocols::link::SerialSettings>,
 }
 
 /// A serial line as the page reads it (`null`: a TCP link).
-pub fn line_json(line: Option<&nodes::proto::link::SerialSettings>) -> Value {
-    use nodes::proto::link::Parity;
+pub fn line_json(line: Option<&protocols::link::SerialSettings>) -> Value {
+    use protocols::link::Parity;
     line.map_or(Value::Null, |l| {
         let parity = match l.parity {
             Parity::None => "N",
@@ -163,8 +163,8 @@ pub fn read(engine: &mut RtEngine) -> EngineSnapshot {
             address: l.address.clone(),
             clients,
             line: match l.spec.addr {
-                nodes::proto::link::LinkAddr::Serial(_) => Some(l.spec.serial),
-                nodes::proto::link::LinkAddr::Tcp(_) => None,
+                protocols::link::LinkAddr::Serial(_) => Some(l.spec.serial),
+                protocols::link::LinkAddr::Tcp(_) => None,
             },
         })
         .collect();

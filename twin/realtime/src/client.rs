@@ -3,11 +3,11 @@
 //! to an MEB slave served over TCP (`twin serve --meb tcp://…`).
 
 use anyhow::{Context, Result, anyhow, bail};
-use nodes::proto::meb::{
+use protocols::meb::{
     MEB_BROADCAST_ID, MEB_MAX_FRAME_LEN, MebAccess, MebCmd, MebDecodeError, MebDecoder,
     MebErrorCode, MebRepr, MebWords,
 };
-use nodes::time::SimTime;
+use protocols::time::SimTime;
 
 use crate::io::spec::LinkSpec;
 use std::io::{ErrorKind, Read, Write};

@@ -7,7 +7,7 @@
 //! order and no node sees a jump in its inputs. Every copy of the clock (the
 //! carriers', the panel's) sees the slip at once.
 
-use nodes::time::{SimDuration, SimTime, TICKS_PER_SECOND};
+use protocols::time::{SimDuration, SimTime, TICKS_PER_SECOND};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};

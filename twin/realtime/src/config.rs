@@ -3,7 +3,7 @@
 
 use nodes::firmware::Refusal;
 use nodes::link::{CheckKind, Junk};
-use nodes::time::SimDuration;
+use protocols::time::SimDuration;
 
 use super::device::Device;
 use super::endpoint::Endpoint;

@@ -2,7 +2,7 @@
 //! Controller_network Nano, a supervisor), as the real-time engine and the
 //! endpoints that answer for it see it.
 
-use nodes::time::SimTime;
+use protocols::time::SimTime;
 
 use super::forces::{Forces, HallLines};
 use twin_sim::engine::SimNode;

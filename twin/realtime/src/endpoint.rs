@@ -14,7 +14,7 @@ use std::collections::VecDeque;
 
 use nodes::firmware::SlaveFrontend;
 use nodes::node::{MAX_FRAME, NodeEvent};
-use nodes::time::SimTime;
+use protocols::time::SimTime;
 
 use super::device::Device;
 

@@ -12,7 +12,7 @@
 //! turnaround) and spins to that. Lateness (actual − scheduled tick time) goes into
 //! [`Lateness`] histograms: one per second for the recording, one in total.
 
-use nodes::time::{SimDuration, SimTime};
+use protocols::time::{SimDuration, SimTime};
 use std::collections::BTreeMap;
 use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, TryRecvError};
 use std::sync::{Arc, Mutex};
@@ -40,7 +40,7 @@ const SPIN: SimDuration = SimDuration::from_micros(60);
 /// The name real time lost is recorded under, as an event.
 const SLIP_NODE: &str = "clock";
 /// Ticks per nanosecond.
-const TICKS_PER_NANO: u64 = nodes::time::TICKS_PER_SECOND / 1_000_000_000;
+const TICKS_PER_NANO: u64 = protocols::time::TICKS_PER_SECOND / 1_000_000_000;
 /// While no one is connected, the plant ticks in batches this long: well
 /// inside `CATCH_UP`, so a batch waited for is no slip. An idle class of 35
 /// modules, debug build: 47 % of a core at 10 ms, 32 % at 20, 22 % at 40.

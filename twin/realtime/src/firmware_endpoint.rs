@@ -20,9 +20,9 @@
 use std::collections::VecDeque;
 
 use nodes::node::{MAX_FRAME, NodeEvent};
-use nodes::proto::meb::MebFrame;
-use nodes::proto::modbus8::{CrcOrder, Frame};
-use nodes::time::{SimDuration, SimTime};
+use protocols::meb::MebFrame;
+use protocols::modbus8::{CrcOrder, Frame};
+use protocols::time::{SimDuration, SimTime};
 
 use super::device::Device;
 use super::endpoint::Endpoint;

@@ -12,7 +12,7 @@
 
 use std::sync::mpsc::{Receiver, Sender, channel};
 
-use nodes::time::SimTime;
+use protocols::time::SimTime;
 use twin_recording::topics::{AdcInput, FirmwareIo, PinEdge, PinState, UartBurst};
 use twin_sim::engine::FirmwareRecord;
 

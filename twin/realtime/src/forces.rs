@@ -606,7 +606,7 @@ mod tests {
     #[test]
     fn rpm_m_follows_a_hall_code_stepped_by_hand() {
         use nodes::firmware::HallRpm;
-        use nodes::time::{SimDuration, SimTime};
+        use protocols::time::{SimDuration, SimTime};
         // One pole pair, no gear: 6 edges a turn. The sequence 1 3 2 6 4 5
         // changes one line a step; 60 steps a second is 10 turns a second.
         let mut hall = HallRpm::new(1, 1.0, SimDuration::from_millis(250));

@@ -2,7 +2,7 @@
 //! engine's loop in one buffer and handed to the sink as one message: no
 //! allocation and no channel send per frame on the request path.
 
-use nodes::time::SimTime;
+use protocols::time::SimTime;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::mpsc::{Receiver, Sender, channel};

@@ -17,7 +17,7 @@ use std::time::{Duration, Instant};
 
 use crate::io::{LinkAddr, LinkSpec};
 use twin_recording::describe::decode_frame;
-use twin_recording::{Frame, Recording};
+use twin_recording::{BusFrame, Recording};
 use twin_sim::engine::FrameKind;
 use twin_sim::nodes_build::is_master;
 use twin_sim::replay::RunSpec;
@@ -220,7 +220,7 @@ impl FramesReport {
 }
 
 /// The bus to replay: `wanted`, or the recording's only bus.
-fn pick_bus(frames: &[Frame], wanted: Option<&str>) -> Result<String> {
+fn pick_bus(frames: &[BusFrame], wanted: Option<&str>) -> Result<String> {
     let mut buses: Vec<&str> = frames.iter().map(|f| f.bus.as_str()).collect();
     buses.dedup();
     buses.sort_unstable();
@@ -263,7 +263,7 @@ pub fn replay_frames(
     if masters.is_empty() {
         bail!("no master on bus `{bus}` in the recorded scenario");
     }
-    let on_bus: Vec<&Frame> = frames.iter().filter(|f| f.bus == bus).collect();
+    let on_bus: Vec<&BusFrame> = frames.iter().filter(|f| f.bus == bus).collect();
     let mut requests: Vec<usize> = on_bus
         .iter()
         .enumerate()

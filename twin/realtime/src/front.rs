@@ -20,7 +20,7 @@
 
 use nodes::link::{JunkSource, frame_id, other_id, set_id, split_point, spoil_check};
 use nodes::node::MAX_FRAME;
-use nodes::time::{SimDuration, SimTime};
+use protocols::time::{SimDuration, SimTime};
 use std::collections::{BTreeMap, VecDeque};
 use std::sync::mpsc::Sender;
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -318,7 +318,7 @@ impl Front {
         let slip = SimDuration(ahead.0 - CATCH_UP.0);
         clock.slip(slip);
         self.slips.count += 1;
-        self.slips.ns += slip.0 / (nodes::time::TICKS_PER_SECOND / 1_000_000_000);
+        self.slips.ns += slip.0 / (protocols::time::TICKS_PER_SECOND / 1_000_000_000);
         SimTime(at.0 - slip.0)
     }
 

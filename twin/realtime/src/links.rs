@@ -29,7 +29,7 @@ use super::slots::Slots;
 use super::tcp_thread::{READ_CHUNK, serve_tcp};
 use super::wake::Wake;
 use crate::io::{SerialSettings, serial};
-use nodes::time::SimDuration;
+use protocols::time::SimDuration;
 
 /// Hands out connection ids.
 #[derive(Debug, Clone, Default)]

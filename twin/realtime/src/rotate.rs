@@ -21,7 +21,7 @@
 //! where a session's first line says `512M`.
 
 use anyhow::Result;
-use nodes::time::{SimDuration, SimTime};
+use protocols::time::{SimDuration, SimTime};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};

@@ -10,7 +10,7 @@
 //! [`SessionOutcome`] hold what every session is told and reports.
 
 use anyhow::{Context, Result, bail};
-use nodes::time::{SimDuration, SimTime};
+use protocols::time::{SimDuration, SimTime};
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};

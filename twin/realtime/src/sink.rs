@@ -7,10 +7,10 @@
 
 use anyhow::Result;
 use nodes::node::NodeEvent;
-use nodes::proto::modbus::rtu;
-use nodes::proto::modbus::serial::FrameLen;
-use nodes::proto::modbus8;
-use nodes::time::{SimDuration, SimTime};
+use protocols::modbus::rtu;
+use protocols::modbus::serial::FrameLen;
+use protocols::modbus8;
+use protocols::time::{SimDuration, SimTime};
 use serde_json::{Value, json};
 use std::collections::{BTreeMap, HashMap};
 use std::io::Write;

@@ -23,7 +23,7 @@ pub mod disk;
 pub mod export;
 pub mod identity;
 mod mcap_file;
-pub mod proto;
+pub mod protobuf;
 pub mod read;
 pub mod record;
 pub mod recover;
@@ -33,6 +33,8 @@ pub mod typed;
 mod write_error;
 mod writer;
 
-pub use read::{Channel, Cut, Encoding, Event, Frame, Item, Message, ReadError, Reader, Recording};
+pub use read::{
+    BusFrame, Channel, Cut, Encoding, Event, Item, Message, ReadError, Reader, Recording,
+};
 pub use record::{Recorder, WriteError};
 pub use signals::{Signal, Signals};

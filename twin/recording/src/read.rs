@@ -21,7 +21,7 @@ use std::io::Read;
 use std::path::{Path, PathBuf};
 
 use crate::chunk::{chunk_damage_in_words, chunk_records, in_words};
-use crate::proto;
+use crate::protobuf;
 use crate::topics::{self, Topic};
 
 /// One channel of a recording: its topic and how many messages it holds.
@@ -56,7 +56,7 @@ impl Encoding {
             topics::MESSAGE_ENCODING => Encoding::Json,
             topics::PROTOBUF => match schema {
                 Some((name, encoding, data)) if encoding == topics::PROTOBUF => {
-                    match proto::schema_in(data, name) {
+                    match protobuf::schema_in(data, name) {
                         Ok(schema) => Encoding::Protobuf(schema),
                         Err(e) => Encoding::BadSchema(e),
                     }
@@ -224,7 +224,7 @@ impl Message<'_> {
             }
             Encoding::Protobuf(schema) => {
                 let mut value =
-                    proto::to_value(schema, self.data).map_err(|why| ReadError::Damaged {
+                    protobuf::to_value(schema, self.data).map_err(|why| ReadError::Damaged {
                         sequence,
                         topic: topic(),
                         why,
@@ -734,7 +734,7 @@ impl Recording {
     }
 
     /// Every frame on every bus, in file order (read again from the file).
-    pub fn frames(&self) -> Result<Vec<Frame>> {
+    pub fn frames(&self) -> Result<Vec<BusFrame>> {
         let mut frames = Vec::new();
         Self::scan(&self.path, |m| {
             let Topic::BusFrames(bus) = Topic::parse(m.topic) else {
@@ -742,7 +742,7 @@ impl Recording {
             };
             let v: serde_json::Value = m.json()?;
             let s = |k: &str| v[k].as_str().unwrap_or("").to_string();
-            frames.push(Frame {
+            frames.push(BusFrame {
                 time_s: m.time_s(),
                 bus: bus.to_string(),
                 from: s("from"),
@@ -796,7 +796,7 @@ pub fn value_of(channel: &mcap::Channel<'_>, data: &[u8]) -> Result<serde_json::
 
 /// A frame as it went on a bus.
 #[derive(Debug, Clone, PartialEq)]
-pub struct Frame {
+pub struct BusFrame {
     /// When its first byte started (s).
     pub time_s: f64,
     pub end_s: f64,

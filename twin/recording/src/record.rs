@@ -15,7 +15,7 @@ use std::fs::File;
 use std::path::{Path, PathBuf};
 
 use crate::mcap_file::McapFile;
-use crate::proto;
+use crate::protobuf;
 use crate::topics;
 use crate::writer::{Appender, Backend, Batch, FileWriter, Job, Queued};
 pub use crate::writer::{Deferred, NoDeferred};
@@ -145,13 +145,13 @@ impl<D: Deferred> Recorder<D> {
     /// [`topics::described_schema`] has one, else derived from `sample`).
     pub fn add_channel<T: Serialize>(&mut self, topic: &str, sample: &T) -> Result<ChannelId> {
         let proto = topics::proto_schema(topic)
-            .filter(|schema| proto::transcode(schema, sample, &mut Vec::new()).is_ok());
+            .filter(|schema| protobuf::transcode(schema, sample, &mut Vec::new()).is_ok());
         let job = match &proto {
             Some(schema) => Job::Channel {
                 topic: topic.to_string(),
                 schema_name: schema.full_name().to_string(),
                 schema_encoding: topics::PROTOBUF,
-                schema: proto::descriptor_set(schema),
+                schema: protobuf::descriptor_set(schema),
                 message_encoding: topics::PROTOBUF,
                 proto: Some(schema.clone()),
             },
@@ -218,7 +218,7 @@ impl<D: Deferred> Recorder<D> {
         let written: Result<(), Box<dyn std::error::Error + Send + Sync>> =
             match self.protos.get(channel.0) {
                 Some(Some(schema)) => {
-                    proto::transcode(schema, message, &mut self.batch.bytes).map_err(Into::into)
+                    protobuf::transcode(schema, message, &mut self.batch.bytes).map_err(Into::into)
                 }
                 _ => serde_json::to_writer(Appender(&mut self.batch.bytes), message)
                     .map_err(Into::into),
@@ -235,9 +235,9 @@ impl<D: Deferred> Recorder<D> {
     }
 
     /// Write `message` to `channel` at simulated time `time_s`: its
-    /// protobuf written through its type ([`proto::Protobuf`]) where the
+    /// protobuf written through its type ([`protobuf::Protobuf`]) where the
     /// channel has its schema, else as [`Recorder::write_to`] writes it.
-    pub fn write_typed<T: Serialize + proto::Protobuf>(
+    pub fn write_typed<T: Serialize + protobuf::Protobuf>(
         &mut self,
         channel: ChannelId,
         time_s: f64,

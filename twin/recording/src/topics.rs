@@ -332,7 +332,7 @@ pub fn proto_schema(topic: &str) -> Option<prost_reflect::MessageDescriptor> {
         Topic::MasterLoop(_) => SUPERVISOR_LOOP_SCHEMA,
         _ => return None,
     };
-    crate::proto::message(name)
+    crate::protobuf::message(name)
 }
 
 /// The protobuf message type of the plant's samples ([`plant_sensors`]):
@@ -408,7 +408,7 @@ pub const FRAME_SCHEMA: &str = "twin.Frame";
 pub fn put_hex(hex: &mut String, bytes: &[u8]) {
     // Appended a run at a time: a `push` per digit (a capacity check and a
     // UTF-8 encoding each) cost about 30 instructions a byte.
-    let appended: Result<(), std::convert::Infallible> = crate::proto::hex_runs(bytes, |run| {
+    let appended: Result<(), std::convert::Infallible> = crate::protobuf::hex_runs(bytes, |run| {
         hex.push_str(run);
         Ok(())
     });
@@ -593,24 +593,25 @@ mod tests {
             let mut bytes = Vec::new();
             match &report {
                 LoopReport::Supervisor(report) if schema.full_name() == SUPERVISOR_LOOP_SCHEMA => {
-                    crate::proto::Protobuf::write_protobuf(report, &mut bytes);
+                    crate::protobuf::Protobuf::write_protobuf(report, &mut bytes);
                 }
-                _ => crate::proto::Protobuf::write_protobuf(&readings, &mut bytes),
+                _ => crate::protobuf::Protobuf::write_protobuf(&readings, &mut bytes),
             }
-            assert_eq!(crate::proto::to_value(&schema, &bytes).unwrap(), value);
+            assert_eq!(crate::protobuf::to_value(&schema, &bytes).unwrap(), value);
             // The same report as a JSON value (a map) gives the same bytes.
             let mut from_map = Vec::new();
-            crate::proto::transcode(&schema, &value, &mut from_map).unwrap();
+            crate::protobuf::transcode(&schema, &value, &mut from_map).unwrap();
             assert_eq!(from_map, bytes, "{topic}");
         }
         // Another master's report does not fit a supervisor's: JSON.
         let other = LoopReport::Other(json!({ "set_point_rpm": 1500.0, "vel": 3 }));
         let schema = proto_schema(&master_loop("master")).unwrap();
-        assert!(crate::proto::transcode(&schema, &other, &mut Vec::new()).is_err());
+        assert!(crate::protobuf::transcode(&schema, &other, &mut Vec::new()).is_err());
         assert_eq!(other.to_value()["vel"], 3);
         // The readings' descriptor carries every field's meaning, as the
         // JSON schema has it.
-        let set = crate::proto::descriptor_set(&proto_schema(&controller_readings("ev1")).unwrap());
+        let set =
+            crate::protobuf::descriptor_set(&proto_schema(&controller_readings("ev1")).unwrap());
         let text = String::from_utf8_lossy(&set);
         let described = readings_schema();
         for (name, field) in described["properties"].as_object().unwrap().iter().chain(

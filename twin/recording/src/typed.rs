@@ -1,5 +1,5 @@
 //! The busiest channels' messages written as protobuf through their types
-//! made from the `.proto` files ([`crate::proto::twin`]): a controller's
+//! made from the `.proto` files ([`crate::protobuf::twin`]): a controller's
 //! readings, a supervisor's loop report and a frame with its decoded
 //! fields. A message type with text or lists in it is kept from one message
 //! to the next (per thread), so writing one makes no string or list.
@@ -7,8 +7,8 @@
 use std::cell::RefCell;
 
 use crate::describe::{FrameFields, LinkFrameFields};
-use crate::proto::twin::{self as pb, controller_readings, frame, supervisor_loop};
-use crate::proto::{Protobuf, append, put_str};
+use crate::protobuf::twin::{self as pb, controller_readings, frame, supervisor_loop};
+use crate::protobuf::{Protobuf, append, put_str};
 use crate::topics::{self, MebWords, ReadingsSample, SlaveLoop, SupervisorReport};
 use serde::Serialize;
 
@@ -197,7 +197,7 @@ impl Serialize for Hex<'_> {
 
 impl std::fmt::Display for Hex<'_> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        crate::proto::hex_runs(self.0, |run| f.write_str(run))
+        crate::protobuf::hex_runs(self.0, |run| f.write_str(run))
     }
 }
 
@@ -269,7 +269,7 @@ mod tests {
     /// What a reader makes of `bytes` on `topic`.
     fn read_back(topic: &str, bytes: &[u8]) -> Value {
         let schema = proto_schema(topic).expect("a protobuf channel");
-        crate::proto::to_value(&schema, bytes).expect("reads back")
+        crate::protobuf::to_value(&schema, bytes).expect("reads back")
     }
 
     /// The JSON a JSON recording holds for `value`, as a protobuf one reads
@@ -367,7 +367,7 @@ mod tests {
     fn by_schema<T: Serialize>(topic: &str, value: &T) -> Vec<u8> {
         let schema = proto_schema(topic).expect("a protobuf channel");
         let mut bytes = Vec::new();
-        crate::proto::transcode(&schema, value, &mut bytes).expect("fits its schema");
+        crate::protobuf::transcode(&schema, value, &mut bytes).expect("fits its schema");
         bytes
     }
 

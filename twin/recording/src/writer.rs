@@ -14,7 +14,7 @@ use prost_reflect::MessageDescriptor;
 
 use crate::disk::DiskGuard;
 use crate::mcap_file::McapFile;
-use crate::proto;
+use crate::protobuf;
 use crate::write_error::WriteError;
 
 type Result<T, E = WriteError> = std::result::Result<T, E>;
@@ -22,7 +22,7 @@ type Result<T, E = WriteError> = std::result::Result<T, E>;
 /// A message type the writer serialises itself: see
 /// [`crate::record::Recorder::write_deferred`].
 pub trait Deferred: Serialize + Send + 'static {
-    /// Append the message's protobuf bytes ([`proto::Protobuf`]) to `out`
+    /// Append the message's protobuf bytes ([`protobuf::Protobuf`]) to `out`
     /// for a channel of the message type named `schema`; `false` where the
     /// type has no such writer, and the writer transcodes it instead.
     fn write_protobuf(&self, schema: &str, out: &mut Vec<u8>) -> bool {
@@ -272,7 +272,7 @@ fn serialise<D: Deferred>(
     match schema {
         Some(schema) => {
             if !message.write_protobuf(schema.full_name(), out) {
-                proto::transcode(schema, message, out).map_err(std::io::Error::other)?;
+                protobuf::transcode(schema, message, out).map_err(std::io::Error::other)?;
             }
             Ok(())
         }

@@ -11,7 +11,7 @@ use twin_recording::topics::{FrameSample, Topic};
 use twin_sim::scenario::{Scenario, WiringSpec};
 
 use crate::ScopeError;
-use crate::wave::{Frame, Hearing, LineFormat, Parity, Waveform};
+use crate::wave::{Hearing, LineFormat, LineFrame, Parity, Waveform};
 
 /// Which part of the recording to show.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -117,10 +117,10 @@ pub fn load(path: &Path, choice: &Choice) -> Result<Waveform, ScopeError> {
         }
     };
     let mut nodes = nodes;
-    let mut frames: Vec<Frame> = Vec::with_capacity(channel.frames.len());
+    let mut frames: Vec<LineFrame> = Vec::with_capacity(channel.frames.len());
     for (number, (from, start_s, bytes)) in channel.frames.into_iter().enumerate() {
         let node = node_of(&from, &mut nodes);
-        frames.push(Frame {
+        frames.push(LineFrame {
             number,
             node,
             start: ticks(start_s),
@@ -163,7 +163,7 @@ fn hex_bytes(digits: &str) -> Vec<u8> {
 
 /// The window in ticks.
 fn window(
-    frames: &[Frame],
+    frames: &[LineFrame],
     format: &LineFormat,
     window: Window,
     path: &Path,

@@ -90,7 +90,7 @@ impl LineFormat {
 
 /// A frame on the line.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Frame {
+pub struct LineFrame {
     /// Its place in the recording's frames of this bus (from 0), for
     /// `--frame N` and for the people reading the picture.
     pub number: usize,
@@ -101,7 +101,7 @@ pub struct Frame {
     pub bytes: Vec<u8>,
 }
 
-impl Frame {
+impl LineFrame {
     /// The end of its last stop bit on `format`'s line.
     pub fn end(&self, format: &LineFormat) -> u64 {
         self.start + format.bit_offset(self.bits(format))
@@ -172,7 +172,7 @@ pub struct Waveform {
     pub nodes: Vec<String>,
     pub hearing: Hearing,
     /// Frames overlapping the window, by start.
-    pub frames: Vec<Frame>,
+    pub frames: Vec<LineFrame>,
     /// Sorted.
     pub flips: Vec<Flip>,
     /// The window (ticks).
@@ -242,7 +242,7 @@ impl Waveform {
     }
 
     /// Whether frame `f` shapes line `kind` at all.
-    fn shapes(&self, kind: LineKind, f: &Frame) -> bool {
+    fn shapes(&self, kind: LineKind, f: &LineFrame) -> bool {
         match kind {
             LineKind::Tx(n) | LineKind::DriverEnable(n) => f.node == n,
             LineKind::Rx(n) => f.node == n || self.hearing.hears(n, f.node),
@@ -405,7 +405,7 @@ impl Iterator for Edges<'_> {
 mod tests {
     use super::*;
 
-    fn wave(frames: Vec<Frame>) -> Waveform {
+    fn wave(frames: Vec<LineFrame>) -> Waveform {
         Waveform {
             name: "bus.rs485".into(),
             format: LineFormat::from_bits_per_char(115_200, 10),
@@ -421,7 +421,7 @@ mod tests {
 
     #[test]
     fn a_byte_is_start_data_lsb_first_and_stop() {
-        let w = wave(vec![Frame {
+        let w = wave(vec![LineFrame {
             number: 0,
             node: 0,
             start: 0,
@@ -445,13 +445,13 @@ mod tests {
     fn two_talkers_at_once_pull_the_pair_low_wherever_either_does() {
         let bit = LineFormat::from_bits_per_char(115_200, 10).bit_ticks();
         let w = wave(vec![
-            Frame {
+            LineFrame {
                 number: 0,
                 node: 0,
                 start: 0,
                 bytes: vec![0xff],
             },
-            Frame {
+            LineFrame {
                 number: 1,
                 node: 1,
                 start: 3 * bit,
@@ -467,7 +467,7 @@ mod tests {
 
     #[test]
     fn noise_flips_a_data_bit_at_one_listener_only() {
-        let mut w = wave(vec![Frame {
+        let mut w = wave(vec![LineFrame {
             number: 0,
             node: 0,
             start: 0,

@@ -11,8 +11,8 @@
 use anyhow::Result;
 use nodes::link::{BusEvent, Medium, PortId};
 use nodes::node::{Firmware, MAX_FRAME, Node, NodeEvent};
-use nodes::time::{SimDuration, SimTime};
 use plant::{Actuators, EvModule};
+use protocols::time::{SimDuration, SimTime};
 use twin_recording::topics::{LoopReport, ReadingsSample};
 
 /// Passes of the loop at one instant after which the engine calls it a stall

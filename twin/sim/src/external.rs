@@ -6,8 +6,8 @@
 use std::sync::OnceLock;
 
 use anyhow::{Result, bail};
-use nodes::time::SimDuration;
 use plant::PlantParams;
+use protocols::time::SimDuration;
 
 use crate::engine::SimNode;
 use crate::scenario::{BusSpec, NodeSpec};

@@ -16,8 +16,8 @@ use nodes::link::{
 use nodes::master::Supervisor;
 use nodes::master::{Protocol, SetPointStep, SlaveLoopConfig, SpeedSource, SupervisorConfig};
 use nodes::node::Firmware;
-use nodes::time::{SimDuration, SimTime};
 use plant::PlantParams;
+use protocols::time::{SimDuration, SimTime};
 use serde_json::{Value, json};
 
 use crate::engine::{SimNode, SpeedReadings};

@@ -9,9 +9,9 @@ use nodes::node::Firmware;
 use nodes::parallel::{
     ParallelLink, ParallelMaster, ParallelMasterConfig, PwmAddressing, PwmSlave, PwmSlaveConfig,
 };
-use nodes::proto::modbus::serial::standard_rtu_silence;
-use nodes::time::{SimDuration, SimTime};
 use plant::PlantParams;
+use protocols::modbus::serial::standard_rtu_silence;
+use protocols::time::{SimDuration, SimTime};
 use serde_json::{Value, json};
 
 use crate::engine::SimNode;
@@ -97,7 +97,7 @@ pub fn build_node_on(
         pwm.coding()
             .map_err(|(field, msg)| anyhow::anyhow!("`{field}` {msg}"))
     };
-    let period_ticks = |coding: &nodes::proto::pwmcap::PwmCoding| {
+    let period_ticks = |coding: &protocols::pwmcap::PwmCoding| {
         coding.symbol_period_ticks().saturating_add(pwm.guard_ticks)
     };
     match spec {
@@ -117,7 +117,7 @@ pub fn build_node_on(
             let coding = if link.is_pwm() {
                 coding()?
             } else {
-                nodes::proto::pwmcap::PwmCoding::PAPER
+                protocols::pwmcap::PwmCoding::PAPER
             };
             let config = ParallelMasterConfig {
                 link: match link {

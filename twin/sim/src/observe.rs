@@ -12,14 +12,14 @@
 
 use anyhow::Result;
 use nodes::node::NodeEvent;
-use nodes::time::SimTime;
+use protocols::time::SimTime;
 use serde::Serialize;
 use serde_json::{Value, json};
 use std::collections::{BTreeMap, VecDeque};
 
 use crate::engine::{BusSlot, FirmwareRecord, ModuleSlot, NodeSlot, Observer};
 use twin_recording::describe::{FrameFields, LinkFrameFields, decode_frame};
-use twin_recording::proto::Protobuf;
+use twin_recording::protobuf::Protobuf;
 use twin_recording::record::{ChannelId, Recorder, WriteError};
 use twin_recording::topics::{self, FirmwareIo, LoopReport, ReadingsSample, UartBurst};
 use twin_recording::typed::{DecodedProtobuf, FrameMessage, Hex};
@@ -692,7 +692,7 @@ impl<O: Observer + ?Sized> Observer for &mut O {
 mod tests {
     use super::*;
     use twin_recording::describe::link_frame_fields;
-    use twin_recording::proto;
+    use twin_recording::protobuf;
 
     /// What `value` reads back as from its protobuf bytes, against its JSON
     /// (an empty list is left out, and so is a null below the top level; a
@@ -700,8 +700,8 @@ mod tests {
     fn round_trip<T: Serialize>(topic: &str, value: &T) -> (Value, Value) {
         let schema = topics::proto_schema(topic).expect("a protobuf channel");
         let mut bytes = Vec::new();
-        proto::transcode(&schema, value, &mut bytes).expect("it fits its schema");
-        let back = proto::to_value(&schema, &bytes).expect("it reads back");
+        protobuf::transcode(&schema, value, &mut bytes).expect("it fits its schema");
+        let back = protobuf::to_value(&schema, &bytes).expect("it reads back");
         let mut json = serde_json::to_value(value).unwrap();
         if let Value::Object(fields) = &mut json {
             fields.retain(|_, f| f.as_array().is_none_or(|a| !a.is_empty()));

@@ -6,8 +6,8 @@
 
 use serde::Serialize;
 use std::cell::RefCell;
-use twin_recording::proto::twin::{PlantSensors, plant_sensors};
-use twin_recording::proto::{Protobuf, append};
+use twin_recording::protobuf::twin::{PlantSensors, plant_sensors};
+use twin_recording::protobuf::{Protobuf, append};
 use twin_recording::record::Deferred;
 
 /// One module's sensors, handed to the recording's writer as they are.
@@ -169,7 +169,7 @@ mod tests {
             // a JSON recording held them.
             let json = serde_json::to_value(sample).unwrap();
             assert_eq!(
-                twin_recording::proto::to_value(&schema, &bytes).unwrap(),
+                twin_recording::protobuf::to_value(&schema, &bytes).unwrap(),
                 json,
                 "{trip:?}"
             );

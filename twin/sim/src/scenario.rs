@@ -1235,7 +1235,7 @@ fn tables_in<'v, 'a>(
 }
 
 fn crate_time_ticks() -> u64 {
-    nodes::time::TICKS_PER_SECOND
+    protocols::time::TICKS_PER_SECOND
 }
 
 #[cfg(test)]

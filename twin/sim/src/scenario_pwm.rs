@@ -40,7 +40,7 @@
 //! ```
 
 use nodes::link::{PortId, PwmBusConfig, PwmDuplex, PwmLineParams};
-use nodes::proto::pwmcap::PwmCoding;
+use protocols::pwmcap::PwmCoding;
 use serde::{Deserialize, Serialize};
 
 /// What a `[[bus]]` is.
@@ -125,7 +125,7 @@ impl PwmcapSpec {
     /// The coding, or what is wrong with it as (field, message).
     pub fn coding(&self) -> Result<PwmCoding, (String, String)> {
         if self.clock_hz == 0
-            || !nodes::time::TICKS_PER_SECOND.is_multiple_of(u64::from(self.clock_hz))
+            || !protocols::time::TICKS_PER_SECOND.is_multiple_of(u64::from(self.clock_hz))
         {
             return Err((
                 "clock_hz".into(),

@@ -1,8 +1,8 @@
 //! Running a scenario on the virtual clock and recording it.
 
 use anyhow::{Context, Result, bail};
-use nodes::time::{SimDuration, SimTime};
 use plant::{EvModule, PlantParams};
+use protocols::time::{SimDuration, SimTime};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 

@@ -3,7 +3,7 @@
 
 use anyhow::{Context, Result};
 use nodes::node::NodeEvent;
-use nodes::time::SimTime;
+use protocols::time::SimTime;
 use rerun::{RecordingStream, RecordingStreamBuilder};
 use std::net::{SocketAddr, TcpStream, ToSocketAddrs};
 use std::path::{Path, PathBuf};

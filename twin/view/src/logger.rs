@@ -21,10 +21,10 @@
 
 use anyhow::{Context, Result};
 use nodes::firmware::{LightRpm, ea};
-use nodes::proto::meb::{MebCmd, MebRepr};
-use nodes::proto::modbus::{self, Request, Response};
-use nodes::proto::modbus8;
-use nodes::time::{SimDuration, SimTime};
+use protocols::meb::{MebCmd, MebRepr};
+use protocols::modbus::{self, Request, Response};
+use protocols::modbus8;
+use protocols::time::{SimDuration, SimTime};
 use rerun::components::{InterpolationMode, MarkerShape, TextLogLevel};
 use rerun::{Color, RecordingStream, Scalars, SeriesLines, SeriesPoints, TextLog};
 use serde::Deserialize;
@@ -680,7 +680,7 @@ mod tests {
 
     #[test]
     fn input_register_replies_give_rpm_in_rtu_tcp_and_ascii_framing() {
-        use nodes::proto::modbus::{Registers, ascii, rtu, tcp};
+        use protocols::modbus::{Registers, ascii, rtu, tcp};
         let params = plant::PlantParams::default();
         let (rec, _storage) = rerun::RecordingStreamBuilder::new("test")
             .memory()

@@ -11,8 +11,8 @@
 
 use std::collections::VecDeque;
 
-use crate::proto::meb::{MebCmd, MebWords};
-use crate::time::SimTime;
+use protocols::meb::{MebCmd, MebWords};
+use protocols::time::SimTime;
 
 use super::super::layout::TranslateError;
 use super::super::wire::Transaction;
@@ -100,7 +100,7 @@ impl Supervisor {
         }
         let is_write = matches!(
             cmd.block().map(|(block, _)| block.access()),
-            Some(crate::proto::meb::MebAccess::Write)
+            Some(protocols::meb::MebAccess::Write)
         );
         let data = MebWords::from_slice(data).ok_or(ForwardError::NotAWrite)?;
         if !is_write || data.is_empty() {

@@ -11,8 +11,8 @@ use std::process::Command;
 use std::sync::OnceLock;
 
 use nodes::node::{Firmware, Node};
-use nodes::time::{SimDuration, SimTime};
 use plant::{Actuators, EvModule, PlantParams};
+use protocols::time::{SimDuration, SimTime};
 use twin_avr::node::Board;
 use twin_avr::{AvrNode, Wiring};
 use twin_sim::scenario::Scenario;

@@ -10,8 +10,8 @@ use std::process::Command;
 use std::sync::OnceLock;
 
 use nodes::node::{Firmware, Node};
-use nodes::time::{SimDuration, SimTime};
 use plant::{EvModule, PlantParams, Sensors};
+use protocols::time::{SimDuration, SimTime};
 use twin_avr::node::Board;
 use twin_avr::{AvrNode, Wiring};
 

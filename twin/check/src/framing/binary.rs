@@ -2,22 +2,22 @@
 //! RTU (unit, PDU, CRC-16 low byte first) and TCP (the MBAP header, unit,
 //! PDU), and the Controller_network project's 8-byte frames (CRC high byte
 //! first). The frames are made and checked by the workspace's own codecs
-//! (`nodes::proto`), the ones the twin's slaves speak.
+//! (`protocols`), the ones the twin's slaves speak.
 
 use super::Protocol;
-use nodes::proto::modbus::rtu::{self, Direction};
-use nodes::proto::modbus::serial::FrameLen;
-use nodes::proto::modbus::{FrameError, MAX_PDU_LEN, tcp};
-use nodes::proto::modbus8::{self, CrcOrder, Modbus8Error};
+use protocols::modbus::rtu::{self, Direction};
+use protocols::modbus::serial::FrameLen;
+use protocols::modbus::{FrameError, MAX_PDU_LEN, tcp};
+use protocols::modbus8::{self, CrcOrder, Modbus8Error};
 
 /// Bytes written as hex: two digits a byte, spaces between any pairs.
 pub(super) fn hex(text: &str) -> Result<Vec<u8>, String> {
-    nodes::proto::hex::bytes(text).map_err(|e| e.to_string())
+    protocols::hex::bytes(text).map_err(|e| e.to_string())
 }
 
 /// A reply's pattern: hex bytes as [`hex`], `..` for a byte of any value.
 pub(super) fn pattern(text: &str) -> Result<Vec<Option<u8>>, String> {
-    nodes::proto::hex::pattern(text).map_err(|e| e.to_string())
+    protocols::hex::pattern(text).map_err(|e| e.to_string())
 }
 
 /// Whether `body` (filled) is a frame `protocol` can send: unit and PDU

@@ -11,13 +11,13 @@ use nodes::controller_network::{
 };
 use nodes::firmware::{Framing, RegisterImage, SlaveFrontend};
 use nodes::node::Node;
-use nodes::proto::crc::crc16_modbus;
-use nodes::proto::meb::{MebError, MebErrorCode, MebRepr};
-use nodes::proto::modbus::rtu::{self, Direction};
-use nodes::proto::modbus::serial::{FrameLen, PTY_SILENCE};
-use nodes::proto::modbus::{Exception, Request};
-use nodes::proto::modbus8::{self, CrcOrder, Frame as Frame8};
-use nodes::time::SimTime;
+use protocols::crc::crc16_modbus;
+use protocols::meb::{MebError, MebErrorCode, MebRepr};
+use protocols::modbus::rtu::{self, Direction};
+use protocols::modbus::serial::{FrameLen, PTY_SILENCE};
+use protocols::modbus::{Exception, Request};
+use protocols::modbus8::{self, CrcOrder, Frame as Frame8};
+use protocols::time::SimTime;
 
 /// A request as the slave sees it.
 #[derive(Debug, Clone, Default)]
@@ -78,7 +78,7 @@ pub(crate) fn take_request(
 /// none are junk.
 pub(crate) fn max_request(protocol: Protocol) -> usize {
     match protocol {
-        Protocol::Meb => nodes::proto::meb::MEB_MAX_FRAME_LEN,
+        Protocol::Meb => protocols::meb::MEB_MAX_FRAME_LEN,
         Protocol::ModbusRtu => rtu::MAX_ADU_LEN,
         Protocol::ModbusTcp => 260,
         Protocol::Modbus8 => modbus8::FRAME_LEN,
@@ -123,7 +123,7 @@ fn examine_meb(bytes: &[u8], text: &str) -> Examined {
     seen.block = Some((
         matches!(
             frame.cmd.block().map(|(b, _)| b.access()),
-            Some(nodes::proto::meb::MebAccess::Read)
+            Some(protocols::meb::MebAccess::Read)
         ),
         meb_span(&frame),
     ));
@@ -170,7 +170,7 @@ fn modbus_body(protocol: Protocol, bytes: &[u8]) -> Result<(u8, Vec<u8>), String
     }
     match rtu::parse(bytes) {
         Ok(frame) => Ok((frame.unit, frame.pdu.to_vec())),
-        Err(nodes::proto::modbus::FrameError::BadCrc { .. }) => {
+        Err(protocols::modbus::FrameError::BadCrc { .. }) => {
             let body = &bytes[..bytes.len() - 2];
             let right = crc16_modbus(body).to_le_bytes();
             let sent = &bytes[bytes.len() - 2..];

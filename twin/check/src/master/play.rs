@@ -14,7 +14,7 @@ use super::{Behaviour, MasterSuite};
 use crate::framing::Protocol;
 use crate::run::{Exchange, HungUp, Role, SuiteRun, Way, hang_up_words};
 use crate::wire::{Wire, WireError};
-use nodes::time::{SimDuration, SimTime};
+use protocols::time::{SimDuration, SimTime};
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 

@@ -2,7 +2,7 @@
 
 use anyhow::{Result, bail};
 use clap::{Args, Subcommand};
-use nodes::proto::meb::MebCmd;
+use protocols::meb::MebCmd;
 use std::io::{BufRead, Write};
 use std::time::{Duration, Instant};
 use twin_realtime::client::{MebClient, Way, parse_addr, parse_cmd, parse_word, tag};

@@ -138,7 +138,7 @@ pub fn finish_recordings_on_signals() {
 
 /// A timeout option in seconds: 0 for never; a negative, infinite or NaN
 /// one is refused rather than taken for never.
-fn timeout(flag: &str, seconds: f64) -> anyhow::Result<Option<nodes::time::SimDuration>> {
+fn timeout(flag: &str, seconds: f64) -> anyhow::Result<Option<protocols::time::SimDuration>> {
     if seconds == 0.0 {
         return Ok(None);
     }
@@ -148,5 +148,5 @@ fn timeout(flag: &str, seconds: f64) -> anyhow::Result<Option<nodes::time::SimDu
             "{flag} {seconds}: give seconds above 0 up to a week (604800), or 0 for never"
         );
     }
-    Ok(Some(nodes::time::SimDuration::from_secs_f64(seconds)))
+    Ok(Some(protocols::time::SimDuration::from_secs_f64(seconds)))
 }

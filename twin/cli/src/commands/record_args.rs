@@ -105,7 +105,7 @@ impl RecordArgs {
         };
         plan.every = self
             .rotate_every
-            .map(|d| nodes::time::SimDuration::from_secs_f64(d.as_secs_f64()));
+            .map(|d| protocols::time::SimDuration::from_secs_f64(d.as_secs_f64()));
         plan.size = self.rotate_size;
         plan.keep = Retention {
             files: self.keep_files,

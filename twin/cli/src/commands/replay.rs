@@ -244,7 +244,7 @@ fn frames_stored_twice(path: &Path) -> Result<bool> {
         if let Encoding::Protobuf(schema) = m.encoding
             && schema.full_name() == twin_recording::topics::FRAME_SCHEMA
             && let Ok(serde_json::Value::Object(fields)) =
-                twin_recording::proto::to_value(schema, m.data)
+                twin_recording::protobuf::to_value(schema, m.data)
         {
             let present = |k: &str| {
                 fields

@@ -84,7 +84,7 @@ pub fn execute(args: &ScopeArgs) -> Result<()> {
         baud: args.baud,
     };
     let wave = twin_scope::load(&args.recording, &choice)?;
-    let seconds = |ticks: u64| ticks as f64 / nodes::time::TICKS_PER_SECOND as f64;
+    let seconds = |ticks: u64| ticks as f64 / protocols::time::TICKS_PER_SECOND as f64;
     println!(
         "twin scope: {} from {:.6} s to {:.6} s, {} frame{} at {} baud ({}){}",
         wave.name,

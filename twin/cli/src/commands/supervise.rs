@@ -4,7 +4,7 @@ use anyhow::{Result, bail};
 use clap::{ArgMatches, Args, ValueEnum};
 use nodes::master::SpeedSource;
 use nodes::master::image_server::ImageServerConfig;
-use nodes::time::SimDuration;
+use protocols::time::SimDuration;
 use std::io::Write;
 use std::path::PathBuf;
 use twin_realtime::allow::AllowList;

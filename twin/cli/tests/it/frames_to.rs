@@ -5,7 +5,7 @@
 //! check. The replay must count and show exactly those.
 
 use crate::support;
-use nodes::proto::meb::{MebRepr, MebWords};
+use protocols::meb::{MebRepr, MebWords};
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};

@@ -7,8 +7,8 @@
 
 use crate::peers;
 
-use nodes::proto::crc::crc16_modbus;
 use peers::{DirectPty, Serve, readable};
+use protocols::crc::crc16_modbus;
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
 use std::time::{Duration, Instant};

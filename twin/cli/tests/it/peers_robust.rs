@@ -7,8 +7,8 @@
 
 use crate::peers;
 
-use nodes::proto::crc::{crc16_modbus, lrc};
 use peers::{DirectPty, Serve, readable, scratch};
+use protocols::crc::{crc16_modbus, lrc};
 use std::fs::File;
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;

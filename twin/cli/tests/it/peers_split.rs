@@ -6,8 +6,8 @@
 
 use crate::peers;
 
-use nodes::proto::crc::crc16_modbus;
 use peers::{DirectPty, Serve, readable};
+use protocols::crc::crc16_modbus;
 use std::fs::File;
 use std::io::{Read, Write};
 use std::time::{Duration, Instant};

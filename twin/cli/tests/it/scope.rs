@@ -8,7 +8,7 @@ use crate::support;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use support::{text, twin};
-use twin_recording::read::{Frame, Recording};
+use twin_recording::read::{BusFrame, Recording};
 
 fn scratch(name: &str) -> PathBuf {
     support::scratch("scope", name)
@@ -19,7 +19,7 @@ pub(crate) fn s(p: &Path) -> &str {
 }
 
 /// Runs `scenario` for `seconds` into a recording; its frames.
-pub(crate) fn run(scenario: &str, seconds: &str, name: &str) -> (PathBuf, Vec<Frame>) {
+pub(crate) fn run(scenario: &str, seconds: &str, name: &str) -> (PathBuf, Vec<BusFrame>) {
     let out = scratch(name);
     let o = twin(&["run", scenario, "--duration", seconds, "--out", s(&out)]);
     assert!(o.status.success(), "{}", text(&o));
@@ -29,7 +29,7 @@ pub(crate) fn run(scenario: &str, seconds: &str, name: &str) -> (PathBuf, Vec<Fr
 
 /// A window from the idle line before frame `first` to the idle line after
 /// frame `last` (s), and the frames inside it.
-fn window(frames: &[Frame], first: usize, last: usize) -> (f64, f64, Vec<Frame>) {
+fn window(frames: &[BusFrame], first: usize, last: usize) -> (f64, f64, Vec<BusFrame>) {
     let from = (frames[first - 1].end_s + frames[first].time_s) / 2.0;
     let to = (frames[last].end_s + frames[last + 1].time_s) / 2.0;
     let inside = frames[first..=last].to_vec();
@@ -82,7 +82,7 @@ fn bytes_at(annotations: &[Annotation], t0: f64, sample_s: f64, bit_s: f64) -> V
 }
 
 /// The recorded bytes with their start bits' times.
-fn recorded(frames: &[Frame], char_s: f64) -> Vec<(u8, f64)> {
+fn recorded(frames: &[BusFrame], char_s: f64) -> Vec<(u8, f64)> {
     frames
         .iter()
         .flat_map(|f| {
@@ -148,7 +148,7 @@ fn vcd_and_sigrok_session_of_ev_meb_decode_to_the_recorded_frames() {
     same_within_a_bit("sr", &bytes_at(&got, from, 1.0 / rate, bit_s), &want, bit_s);
 
     // Each node's TX line carries its own frames only.
-    let supervisor: Vec<Frame> = inside
+    let supervisor: Vec<BusFrame> = inside
         .iter()
         .filter(|f| f.from == "supervisor")
         .cloned()

@@ -7,7 +7,7 @@ use crate::support;
 use std::path::{Path, PathBuf};
 use support::{text, twin};
 use twin_lab::scope_png::TRACES;
-use twin_recording::read::Frame;
+use twin_recording::read::BusFrame;
 
 fn scratch(name: &str) -> PathBuf {
     support::scratch("scope-png", name)
@@ -105,13 +105,13 @@ impl<'p> Trace<'p> {
 }
 
 /// The window `twin scope --frame` draws: two characters either side.
-fn frame_window(f: &Frame, bit_s: f64) -> (f64, f64) {
+fn frame_window(f: &BusFrame, bit_s: f64) -> (f64, f64) {
     let end = f.time_s + f.bytes.len() as f64 * 10.0 * bit_s;
     (f.time_s - 20.0 * bit_s, end + 20.0 * bit_s)
 }
 
 /// The levels of `f`'s bits on the wire, 8N1.
-fn bits(f: &Frame) -> Vec<bool> {
+fn bits(f: &BusFrame) -> Vec<bool> {
     f.bytes
         .iter()
         .flat_map(|b| {
@@ -123,7 +123,7 @@ fn bits(f: &Frame) -> Vec<bool> {
 }
 
 /// Reads frame `f`'s bits off `trace` at each bit's centre.
-fn read_bits(trace: &Trace, f: &Frame, window: (f64, f64), bit_s: f64) -> Vec<Option<bool>> {
+fn read_bits(trace: &Trace, f: &BusFrame, window: (f64, f64), bit_s: f64) -> Vec<Option<bool>> {
     (0..f.bytes.len() * 10)
         .map(|p| trace.level(f.time_s + (p as f64 + 0.5) * bit_s, window))
         .collect()

@@ -2,8 +2,8 @@
 //! pseudo-terminals, spoken to with the `nodes` crate's own codecs. Every
 //! server binds port 0 and the test reads the port it prints.
 
-use nodes::proto::meb::{MebCmd, MebErrorCode, MebRepr, MebWords};
-use nodes::proto::modbus::{self, Exception, Request, Response};
+use protocols::meb::{MebCmd, MebErrorCode, MebRepr, MebWords};
+use protocols::modbus::{self, Exception, Request, Response};
 use std::io::{Read, Write};
 use std::net::TcpStream;
 use std::path::PathBuf;
@@ -747,7 +747,7 @@ fn paced_replies_take_their_wire_time_at_the_links_baud() {
 
 #[test]
 fn the_controller_network_network_answers_both_ids_on_one_pty() {
-    use nodes::proto::modbus8::{CrcOrder, Frame};
+    use protocols::modbus8::{CrcOrder, Frame};
     let (mut port, _slave, path) = pty();
     let server = Server::start(&["--modbus8", &path, "--quiet", "--no-record"]);
     assert_eq!(server.links[0].0, "modbus8");

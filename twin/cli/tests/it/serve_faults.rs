@@ -3,8 +3,8 @@
 //! a reply from the wrong id, a reply split over two writes, junk before or
 //! after a reply; over MEB on TCP and Modbus RTU on a pseudo-terminal.
 
-use nodes::proto::meb::{MebCmd, MebRepr, MebWords};
-use nodes::proto::modbus::rtu;
+use protocols::meb::{MebCmd, MebRepr, MebWords};
+use protocols::modbus::rtu;
 use std::io::Write;
 use std::process::{ChildStdin, Command, Stdio};
 use std::time::Duration;

@@ -2,8 +2,8 @@
 //! binary on real pseudo-terminals and TCP sockets. Servers bind port 0 and
 //! the test reads the port they print.
 
-use nodes::proto::meb::{MebDecoder, MebRepr};
-use nodes::time::SimTime;
+use protocols::meb::{MebDecoder, MebRepr};
+use protocols::time::SimTime;
 use std::io::{Read, Write};
 use std::net::TcpStream;
 use std::path::{Path, PathBuf};

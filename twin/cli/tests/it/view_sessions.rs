@@ -4,8 +4,8 @@
 //! print`, PyPI `rerun-sdk==0.36.3`). Servers bind port 0 and the test reads
 //! the port they print.
 
-use nodes::proto::meb::{MebCmd, MebRepr, MebWords};
-use nodes::proto::modbus::{self, Request, Response};
+use protocols::meb::{MebCmd, MebRepr, MebWords};
+use protocols::modbus::{self, Request, Response};
 use std::collections::BTreeMap;
 use std::io::{Read, Write};
 use std::net::TcpStream;

@@ -7,7 +7,7 @@
 //! thread (and its recording's writer on another).
 
 use anyhow::{Context, Result};
-use nodes::time::SimDuration;
+use protocols::time::SimDuration;
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicUsize, Ordering};

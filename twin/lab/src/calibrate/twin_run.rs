@@ -12,8 +12,8 @@ use anyhow::{Result, bail};
 use nodes::controller_network::{
     LIGHT_ID, MOTOR_ID, MasterConfig, REG_LIGHT_VALUE, REG_RPM, REG_STATE,
 };
-use nodes::proto::modbus8::{self, CrcOrder, FRAME_LEN, Frame};
-use nodes::time::{SimDuration, SimTime};
+use protocols::modbus8::{self, CrcOrder, FRAME_LEN, Frame};
+use protocols::time::{SimDuration, SimTime};
 use twin_recording::topics::LoopReport;
 use twin_sim::engine::{BusSlot, NodeSlot, Observer};
 use twin_sim::scenario::{NodeSpec, Scenario};

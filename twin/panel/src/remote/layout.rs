@@ -4,7 +4,7 @@
 
 use nodes::firmware::{MebMap, ea};
 use nodes::master::MebLayout;
-use nodes::proto::meb::{MebBlock, MebWordType};
+use protocols::meb::{MebBlock, MebWordType};
 
 /// The analog inputs, as the lab's I/O list names them, with their
 /// default-map word.

@@ -18,7 +18,7 @@ use crate::commands::Rejected;
 use crate::hub::Hub;
 use layout::{Layout, SWITCHES};
 use nodes::firmware::MebMap;
-use nodes::proto::meb::MebCmd;
+use protocols::meb::MebCmd;
 use twin_realtime::client::{MebClient, Way};
 use twin_realtime::sink::LiveFrame;
 

@@ -313,12 +313,12 @@ fn meb_exchange(link: &str) -> Vec<u8> {
     let mut s = std::net::TcpStream::connect(addr).expect("connects");
     s.set_nodelay(true).unwrap();
     let mut request = [0u8; 32];
-    let n = nodes::proto::meb::MebRepr {
+    let n = protocols::meb::MebRepr {
         id: 1,
-        cmd: nodes::proto::meb::MebCmd::EA,
+        cmd: protocols::meb::MebCmd::EA,
         addr: 0,
         cnt: 6,
-        data: nodes::proto::meb::MebWords::new(),
+        data: protocols::meb::MebWords::new(),
     }
     .emit(&mut request)
     .unwrap();
@@ -339,7 +339,7 @@ fn meb_exchange(link: &str) -> Vec<u8> {
 
 #[test]
 fn the_new_fault_kinds_switch_on_from_the_api_and_reach_a_client() {
-    use nodes::proto::meb::MebRepr;
+    use protocols::meb::MebRepr;
     let session = serve("127.0.0.1:0", AccessOptions::default(), 60.0);
     let post = |body: &str| http(&session.panel, "POST", "/api/fault", Some(body), true);
     // The state is published a period after the command: waited for.

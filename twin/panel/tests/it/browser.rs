@@ -5,7 +5,7 @@ use crate::common;
 
 use common::{ClientAddr, chrome_capabilities, chromedriver, fresh_dir, serve};
 use fantoccini::{Client, ClientBuilder, Locator};
-use nodes::proto::meb::MebCmd;
+use protocols::meb::MebCmd;
 use std::time::{Duration, Instant};
 use twin_panel::AccessOptions;
 use twin_realtime::client::MebClient;

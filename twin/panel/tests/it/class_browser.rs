@@ -10,7 +10,7 @@ use crate::browser::screenshot_path;
 use crate::common::{self, ClientAddr, chromedriver, http, serve_module};
 use crate::page::{js, open, text, until};
 use fantoccini::Client;
-use nodes::proto::meb::MebCmd;
+use protocols::meb::MebCmd;
 use std::time::Duration;
 use twin_panel::{AccessOptions, ClassIndex, ClassModule};
 use twin_realtime::client::MebClient;

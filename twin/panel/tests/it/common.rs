@@ -380,7 +380,7 @@ pub fn supervise(bus: &str, web: &str, seconds: f64) -> Session {
 /// [`supervise`] polling the slaves `ids` (`--id` repeated), each with its loop.
 pub fn supervise_ids(bus: &str, web: &str, seconds: f64, ids: &[u8]) -> Session {
     use nodes::master::image_server::ImageServerConfig;
-    use nodes::time::SimDuration;
+    use protocols::time::SimDuration;
     use twin_realtime::supervise::{SuperviseOptions, supervise_with};
     let panel = Panel::bind(PanelOptions {
         role: PanelRole::Supervise,

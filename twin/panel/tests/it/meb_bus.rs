@@ -4,8 +4,8 @@
 //! with two modules answers. A request to an id nobody has is not
 //! answered, as on the line.
 
-use nodes::proto::meb::{MebDecoder, MebRepr};
-use nodes::time::SimTime;
+use protocols::meb::{MebDecoder, MebRepr};
+use protocols::time::SimTime;
 use std::collections::BTreeMap;
 use std::io::{Read, Write};
 use std::net::{TcpListener, TcpStream};

@@ -8,7 +8,7 @@ use crate::common::{
 };
 use crate::page::{js, runtime, until};
 use fantoccini::{Client, ClientBuilder};
-use nodes::proto::meb::MebCmd;
+use protocols::meb::MebCmd;
 use serde_json::Value;
 use std::time::Duration;
 use twin_panel::AccessOptions;

@@ -150,20 +150,26 @@ fn the_scope_draws_the_bits_of_the_frames_the_monitor_lists() {
                 assert_eq!(p["high"].as_f64(), Some(lower), "{p}");
             }
         }
-        // Left to right in time (a reply may be recorded as starting with
-        // its request: a pty carries no line timing), each as long as its
-        // characters at the baud.
+        // Left to right in time on each line, one frame at a time: a frame
+        // recorded as starting before the last on its side had ended (a pty
+        // carries no line timing, so a request and its reply may share a
+        // time stamp) is drawn after it, never over it.
         let placed: Vec<_> = paths
             .iter()
             .map(|p| (&p["t"], &p["x0"], &p["cls"]))
             .collect();
-        for pair in paths.windows(2) {
-            assert!(
-                pair[0]["x0"].as_f64() <= pair[1]["x0"].as_f64(),
-                "{placed:?}"
-            );
+        for side in ["in", "out"] {
+            let mut ends = f64::NEG_INFINITY;
+            for p in paths
+                .iter()
+                .filter(|p| p["cls"].as_str().unwrap().split(' ').any(|c| c == side))
+            {
+                let x0 = p["x0"].as_f64().unwrap();
+                assert!(x0 >= ends - 0.01, "{side}: {placed:?}");
+                let bits = p["chars"].as_f64().unwrap() * p["per_char"].as_f64().unwrap();
+                ends = x0 + bits * p["bit"].as_f64().unwrap();
+            }
         }
-        eprintln!("the scope's frames (t, x0, class): {placed:?}");
         // Coordinates are drawn to 0.01 px and a bit's width given to 0.0001 px.
         for p in &paths {
             let last = runs(p["d"].as_str().unwrap()).last().unwrap().1;

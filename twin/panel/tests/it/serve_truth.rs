@@ -8,7 +8,7 @@ use crate::page::{click, frame_rows, js, open, runtime, text, until};
 use fantoccini::Locator;
 use fantoccini::key::Key;
 use nodes::firmware::sd;
-use nodes::proto::meb::MebCmd;
+use protocols::meb::MebCmd;
 use serde_json::Value;
 use std::time::Duration;
 use twin_panel::AccessOptions;

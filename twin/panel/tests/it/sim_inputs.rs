@@ -9,7 +9,7 @@ use crate::page::{click, open, runtime, text, until};
 use fantoccini::key::Key;
 use fantoccini::{Client, Locator};
 use nodes::firmware::status;
-use nodes::proto::meb::MebCmd;
+use protocols::meb::MebCmd;
 use serde_json::Value;
 use std::time::Duration;
 use twin_panel::AccessOptions;

@@ -6,6 +6,6 @@ pub mod serial;
 pub mod tcp;
 
 /// The link grammar, from `protocols` (serve-bench reads it too).
-pub use nodes::proto::link as spec;
+pub use protocols::link as spec;
 
 pub use spec::{LinkAddr, LinkDefaults, LinkSpec, Parity, SerialSettings};

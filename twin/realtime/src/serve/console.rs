@@ -3,7 +3,7 @@
 
 use nodes::firmware::Refusal;
 use nodes::link::{Junk, JunkBytes, JunkPlace, MAX_JUNK};
-use nodes::time::SimDuration;
+use protocols::time::SimDuration;
 use std::io::BufRead;
 use std::sync::mpsc::Sender;
 

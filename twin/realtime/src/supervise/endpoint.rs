@@ -4,7 +4,7 @@
 
 use nodes::master::image_server::{ClientId, ImageServer, ImageServerConfig};
 use nodes::node::NodeEvent;
-use nodes::time::SimTime;
+use protocols::time::SimTime;
 
 use crate::{Device, Endpoint};
 
@@ -25,7 +25,7 @@ impl ImageEndpoint {
         config.max_clients = 1;
         // The engine times partial frames out and closes the connection; a
         // decoder that dropped them first would hide them from it.
-        config.partial_timeout = nodes::time::SimDuration(u64::MAX / 4);
+        config.partial_timeout = protocols::time::SimDuration(u64::MAX / 4);
         let mut server = ImageServer::new(config);
         let client = server
             .accept(now)

@@ -12,7 +12,7 @@ use nodes::master::image_server::ImageServerConfig;
 use nodes::master::{
     LoopMode, Protocol, SlaveLoopConfig, SpeedSource, Supervisor, SupervisorConfig,
 };
-use nodes::time::{SimDuration, SimTime};
+use protocols::time::{SimDuration, SimTime};
 use std::collections::BTreeMap;
 use std::sync::mpsc::Sender;
 use std::time::Duration;
@@ -112,7 +112,7 @@ pub fn build_supervisor(options: &SuperviseOptions) -> Result<Supervisor> {
         // A pty carries no timing: the silence that ends a frame must be
         // longer than the gaps between the chunks it arrives in. A bus spec's
         // `silence_ms` says what it is; on a serial port, the line's rule.
-        let line = nodes::proto::modbus::serial::standard_rtu_silence(options.baud, 10);
+        let line = protocols::modbus::serial::standard_rtu_silence(options.baud, 10);
         config.rtu_silence = LinkSpec::parse(&options.bus, &LinkDefaults::default())
             .map_or(line, |spec| spec.silence_with(line));
     }

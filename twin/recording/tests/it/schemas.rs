@@ -5,7 +5,7 @@
 
 use prost_reflect::{Kind, MessageDescriptor};
 use std::path::{Path, PathBuf};
-use twin_recording::{Encoding, Recording, proto};
+use twin_recording::{Encoding, Recording, protobuf};
 
 fn repository() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
@@ -55,7 +55,7 @@ fn the_proto_files_declare_the_messages_earlier_twins_wrote_field_for_field() {
             let Encoding::Protobuf(old) = &channel.encoding else {
                 continue;
             };
-            let new = proto::message(old.full_name())
+            let new = protobuf::message(old.full_name())
                 .unwrap_or_else(|| panic!("no .proto declares {}", old.full_name()));
             let (old_shape, new_shape) = (shape_of(old), shape_of(&new));
             assert!(!new_shape.is_empty());

@@ -65,14 +65,14 @@ fn write(path: &Path, threaded: bool, deferred: bool) {
                 // Written by hand, as the twin writes its frames; each
                 // second's first message is one of them, so a chunk closes
                 // before one.
-                let frame = twin_recording::proto::twin::Frame {
+                let frame = twin_recording::protobuf::twin::Frame {
                     from: Some("master".into()),
                     hex: Some(format!("{i:08x}")),
                     ..Default::default()
                 };
                 let typed = rec
                     .write_protobuf(channel, t, "twin.Frame", |out| {
-                        twin_recording::proto::append(&frame, out);
+                        twin_recording::protobuf::append(&frame, out);
                     })
                     .unwrap();
                 assert!(typed, "the frames' channel is twin.Frame");

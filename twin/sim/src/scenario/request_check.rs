@@ -5,8 +5,8 @@
 //! `field@request#N` (the N-th `[[request]]`), so the message points at
 //! its line.
 
-use nodes::proto::hex;
-use nodes::proto::modbus8::Frame;
+use protocols::hex;
+use protocols::modbus8::Frame;
 
 use super::{MasterProgramSpec, NodeSpec, REQUEST_OWNER, Scenario, check::shown};
 

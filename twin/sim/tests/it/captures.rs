@@ -6,7 +6,7 @@
 
 use std::path::PathBuf;
 
-use twin_recording::read::{Event, Frame, Recording};
+use twin_recording::read::{BusFrame, Event, Recording};
 use twin_sim::scenario::{EMBEDDED, Scenario};
 use twin_sim::virtual_run::run;
 
@@ -17,7 +17,7 @@ fn out(name: &str) -> PathBuf {
 }
 
 /// The frames and events of the embedded scenario `name`'s run.
-fn recorded(name: &str) -> (Vec<Frame>, Vec<Event>) {
+fn recorded(name: &str) -> (Vec<BusFrame>, Vec<Event>) {
     let scenario = Scenario::load(name).unwrap_or_else(|e| panic!("{name}: {e}"));
     let path = out(name);
     run(&scenario, &path, |_| {}).unwrap_or_else(|e| panic!("{name}: {e:#}"));
@@ -29,11 +29,11 @@ fn recorded(name: &str) -> (Vec<Frame>, Vec<Event>) {
 }
 
 fn bytes(hex: &str) -> Vec<u8> {
-    nodes::proto::hex::bytes(hex).expect("hex")
+    protocols::hex::bytes(hex).expect("hex")
 }
 
 /// Who sent what, in order.
-fn sent(frames: &[Frame]) -> Vec<(String, Vec<u8>)> {
+fn sent(frames: &[BusFrame]) -> Vec<(String, Vec<u8>)> {
     frames
         .iter()
         .map(|f| (f.from.clone(), f.bytes.clone()))
@@ -233,7 +233,7 @@ fn scripted_requests_go_between_the_loop_s_polls() {
     );
     assert_eq!(frames[scripted + 1].bytes, bytes("01 84 0001 0001 d461"));
     // The loop polls before and after it.
-    let polls = |range: &[Frame]| range.iter().filter(|f| f.from == "rpi").count();
+    let polls = |range: &[BusFrame]| range.iter().filter(|f| f.from == "rpi").count();
     assert!(polls(&frames[..scripted]) > 2, "{frames:?}");
     assert!(polls(&frames[scripted + 2..]) > 2, "{frames:?}");
 }

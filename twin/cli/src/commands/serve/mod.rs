@@ -3,8 +3,8 @@
 use anyhow::{Context, Result, bail};
 use clap::{ArgMatches, Args};
 use nodes::firmware::LightDetectorConfig;
-use nodes::time::SimDuration;
 use plant::PlantParams;
+use protocols::time::SimDuration;
 use std::collections::BTreeMap;
 use std::io::Write;
 use std::path::PathBuf;
