@@ -12,7 +12,7 @@
 pub mod bench;
 
 use crate::framing::Protocol;
-use crate::run::{CheckOutcome, Exchange, Outcome, Role, SuiteRun, Way};
+use crate::run::{CheckOutcome, Exchange, Outcome, Peer, Role, SuiteRun, Way};
 use bench::{Bench, Fault, Heard};
 use protocols::meb::{MebCmd, MebErrorCode};
 
@@ -247,6 +247,11 @@ impl Session {
         let heard = self.bench.heard();
         let ended = self.bench.now();
         let mut checks = Vec::new();
+        // Every frame, each in the item whose window it fell in (after the
+        // item before was seen, up to this one), for the recording; those
+        // after the last item seen are the frames check's.
+        let mut transcript = Vec::new();
+        let mut recorded_to = f64::NEG_INFINITY;
         let mut from = 0.0;
         for (item, seen) in CHECKLIST.iter().zip(&self.seen) {
             let (outcome, until) = match (seen, item.wants) {
@@ -260,6 +265,8 @@ impl Session {
                     ended,
                 ),
             };
+            transcript.push(window(&heard, recorded_to, until));
+            recorded_to = recorded_to.max(until);
             checks.push(CheckOutcome {
                 name: item.todo.into(),
                 requirement: item.requirement.into(),
@@ -274,6 +281,7 @@ impl Session {
             from = until;
         }
         checks.push(well_formed(&heard, self.id, ended));
+        transcript.push(window(&heard, recorded_to, f64::INFINITY));
         SuiteRun {
             suite: SUITE.into(),
             link: link.into(),
@@ -286,9 +294,18 @@ impl Session {
             bench: None,
             error: None,
             hung_up: None,
-            transcript: Vec::new(),
+            transcript,
         }
     }
+}
+
+/// The frames of `heard` after `after` up to `until`, every one.
+fn window(heard: &[Heard], after: f64, until: f64) -> Vec<Exchange> {
+    heard
+        .iter()
+        .filter(|h| h.at > after && h.at <= until)
+        .map(exchange)
+        .collect()
 }
 
 /// A session that never began (the twin could not listen): every check
@@ -354,11 +371,19 @@ fn evidence(heard: &[Heard], from: f64, until: f64) -> Vec<Exchange> {
 
 fn exchange(h: &Heard) -> Exchange {
     // The twin is the server: what the client sent it received.
+    let client = format!("client {}", h.conn);
     Exchange {
         at: h.at,
         way: h.way,
-        text: format!("{:<8}  {}", format!("client {}", h.conn), h.text),
-        bytes: Vec::new(),
+        text: format!("{client:<8}  {}", h.text),
+        bytes: h.bytes.clone(),
+        peer: Some(Peer {
+            link: "client",
+            from: match h.way {
+                Way::Received => client,
+                Way::Sent => "twin".into(),
+            },
+        }),
     }
 }
 

@@ -1,12 +1,16 @@
 //! A check's run recorded to MCAP, as every run of the twin is, so that a
 //! disputed verdict can be looked at again with the twin's readers (`twin
-//! view`, `twin export`) or any MCAP tool: every frame on the link's frame
-//! channel (the same `twin.Frame` as a `twin serve` session's, `from`
-//! `twin` or the checked program: `slave 01`, `master`), one message per
-//! check on `/check/checks` saying which frames are its and its verdict,
-//! the suite in `twin.run`, the score in `twin.check`, and the whole run as
-//! its JSON report attached. A master's recording holds every frame of its
-//! seconds of polling, where its report shows a few.
+//! view`, `twin export`, `twin scope`) or any MCAP tool: every frame on its
+//! link's frame channel (the same `twin.Frame` as a `twin serve` session's,
+//! `from` `twin` or the checked program: `slave 01`, `master`), one message
+//! per check on `/check/checks` saying how many frames are its and its
+//! verdict, the suite in `twin.run`, the score in `twin.check`, and the
+//! whole run as its JSON report attached. A master's recording holds every
+//! frame of its seconds of polling, where its report shows a few; a
+//! server's, both its links (`/link/server/frames`, the twin's clients and
+//! the supervisor's replies; `/link/bus/frames`, the supervisor's polls and
+//! the twin's slave's replies), every frame of each; a client's, every
+//! frame of its connections (`/link/client/frames`).
 //!
 //! Written once the run is over, from the [`SuiteRun`] the reports are made
 //! from, so the recording and the reports cannot disagree; log time is the
@@ -32,7 +36,8 @@ struct CheckMessage<'a> {
     why: &'a str,
     at: f64,
     seconds: f64,
-    /// How many of the link channel's frames, in order, are this check's.
+    /// How many of the link channels' frames are this check's: those
+    /// written after its message and before the next check's.
     frames: usize,
 }
 
@@ -68,13 +73,12 @@ pub fn record(
         "slave" => format!("slave {:02}", run.id),
         other => other.to_string(),
     };
-    let mut frames = None;
+    let mut frames: BTreeMap<&str, _> = BTreeMap::new();
     let mut checks = None;
     for (index, check) in run.checks.iter().enumerate() {
         // Every frame of the check where the run kept them apart from its
-        // evidence (a master's); a frame without its bytes (a server's or
-        // a client's, shown on two links side by side) is in the attached
-        // report only.
+        // evidence (a master's, a server's, a client's); a mark without
+        // bytes (a client hanging up) is in the attached report only.
         let own: Vec<&Exchange> = run
             .transcript
             .get(index)
@@ -108,11 +112,18 @@ pub fn record(
             let bytes = frame.bytes.as_slice();
             let text = printable(bytes);
             let decoded = link_frame_fields(run.protocol.link_name(), bytes);
+            let (link, from) = match &frame.peer {
+                Some(peer) => (peer.link, peer.from.as_str()),
+                None => (
+                    role,
+                    match frame.way {
+                        Way::Sent => "twin",
+                        Way::Received => program.as_str(),
+                    },
+                ),
+            };
             let mut message = FrameMessage {
-                from: match frame.way {
-                    Way::Sent => "twin",
-                    Way::Received => &program,
-                },
+                from,
                 start_s: frame.at,
                 end_s: frame.at,
                 len: bytes.len(),
@@ -121,9 +132,12 @@ pub fn record(
                 hex: Some(Hex(bytes)),
                 decoded: &decoded,
             };
-            let channel = match frames {
-                Some(c) => c,
-                None => *frames.insert(recorder.add_channel(&topics::link_frames(role), &message)?),
+            let channel = match frames.get(link) {
+                Some(&c) => c,
+                None => {
+                    let c = recorder.add_channel(&topics::link_frames(link), &message)?;
+                    *frames.entry(link).or_insert(c)
+                }
             };
             // Protobuf holds the bytes once: as text when printable.
             if recorder.is_protobuf(channel) && text.is_some() {

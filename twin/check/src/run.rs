@@ -29,11 +29,27 @@ pub struct Exchange {
     pub at: f64,
     pub way: Way,
     pub text: String,
-    /// The bytes themselves, for the recording (`text` spells some out);
-    /// empty where a check shows two links side by side (a server's, a
-    /// client's), whose runs are not recorded.
+    /// The bytes themselves, for the recording (`text` spells some out,
+    /// and on a check of two links names the side first); empty for a
+    /// mark that is no frame (a client hanging up).
     #[serde(skip)]
     pub bytes: Vec<u8>,
+    /// The link and the sender, where a check watches more than one link
+    /// (a server's bus and its clients, a client's connections); `None`:
+    /// the run's one link, between the twin and the checked program.
+    #[serde(skip)]
+    pub peer: Option<Peer>,
+}
+
+/// Which of a check's links a frame went on, and who sent it: the
+/// recording puts it on `/link/<link>/frames` with that `from`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Peer {
+    /// The link's name in the recording: `bus`, `server`, `client`.
+    pub link: &'static str,
+    /// The frame's sender as the recording's `from` says it: `client 1`,
+    /// `supervisor`, `slave 01`, `twin`.
+    pub from: String,
 }
 
 /// Which part of the bus the checked program plays.
@@ -437,6 +453,7 @@ impl<'a> Play<'a> {
             way: Way::Sent,
             text,
             bytes: bytes.to_vec(),
+            peer: None,
         });
         self.wire.send(bytes)?;
         self.sent_at = Some(Instant::now());
@@ -471,6 +488,7 @@ impl<'a> Play<'a> {
             way: Way::Received,
             text,
             bytes: bytes.to_vec(),
+            peer: None,
         });
     }
 

@@ -12,7 +12,7 @@
 pub mod bus;
 
 use crate::framing::{Protocol, shown_text as shown};
-use crate::run::{CheckOutcome, Exchange, Outcome, Role, SuiteRun, Way};
+use crate::run::{CheckOutcome, Exchange, Outcome, Peer, Role, SuiteRun, Way};
 use crate::wire::{Wire, WireError};
 use bus::{Bus, BusFrame};
 use protocols::meb::MebCmd;
@@ -157,6 +157,11 @@ const CHECKS: &[Spec] = &[
 const FIRST_INPUTS: [u16; 6] = [0x0A11, 0x0822, 0x0C33, 1500, 1490, 0x0555];
 const NEW_INPUTS: [u16; 6] = [0x0B66, 0x0777, 0x0D88, 1200, 1190, 0x0999];
 
+/// The links as a recording names them: the server's TCP connections
+/// (the twin's clients) and the supervisor's bus.
+const SERVER_LINK: &str = "server";
+const BUS_LINK: &str = "bus";
+
 /// The checks of the server at `options.link` whose bus is `options.bus`.
 /// Errors only when the bus cannot be opened (the teacher's setup); a
 /// server that cannot be reached is a run whose checks all fail with why.
@@ -178,7 +183,12 @@ pub fn check_server(options: &ServerOptions) -> Result<SuiteRun, WireError> {
         return Ok(unreachable(&link, options.id, e.to_string()));
     }
     let mut checks = Vec::with_capacity(CHECKS.len());
-    for spec in CHECKS {
+    // Every frame of both links, check by check, for the recording: the
+    // clients' frames each check noted, and every frame on the bus from
+    // the end of the check before (the supervisor polls throughout).
+    let mut transcript = Vec::with_capacity(CHECKS.len());
+    let mut bus_from = 0.0;
+    for (index, spec) in CHECKS.iter().enumerate() {
         checker.frames.clear();
         checker.reply_ms.clear();
         let began = checker.now();
@@ -191,6 +201,26 @@ pub fn check_server(options: &ServerOptions) -> Result<SuiteRun, WireError> {
         }
         let mut frames = std::mem::take(&mut checker.frames);
         frames.sort_by(|a, b| a.at.total_cmp(&b.at));
+        let bus_to = if index + 1 == CHECKS.len() {
+            f64::INFINITY
+        } else {
+            checker.now()
+        };
+        let mut every: Vec<Exchange> = frames
+            .iter()
+            .filter(|f| f.peer.as_ref().is_some_and(|p| p.link == SERVER_LINK))
+            .cloned()
+            .collect();
+        every.extend(
+            checker
+                .bus
+                .frames_between(bus_from, bus_to)
+                .iter()
+                .map(|f| bus_exchange(f, options.id)),
+        );
+        every.sort_by(|a, b| a.at.total_cmp(&b.at));
+        transcript.push(every);
+        bus_from = bus_to;
         checks.push(CheckOutcome {
             name: spec.name.into(),
             requirement: spec.requirement.into(),
@@ -215,7 +245,7 @@ pub fn check_server(options: &ServerOptions) -> Result<SuiteRun, WireError> {
         bench: None,
         error: None,
         hung_up: None,
-        transcript: Vec::new(),
+        transcript,
     })
 }
 
@@ -280,6 +310,25 @@ struct Checker {
     reply_ms: Vec<f64>,
 }
 
+/// A frame on the bus: the supervisor's request (`Received` by the twin's
+/// slave) or the reply of slave `id` (`Sent`).
+fn bus_exchange(frame: &BusFrame, id: u8) -> Exchange {
+    let from = match frame.way {
+        Way::Received => "supervisor".to_string(),
+        Way::Sent => format!("slave {id:02}"),
+    };
+    Exchange {
+        at: frame.at,
+        way: frame.way,
+        text: format!("{:<8}  {}", "bus", frame.text),
+        bytes: frame.bytes.clone(),
+        peer: Some(Peer {
+            link: BUS_LINK,
+            from,
+        }),
+    }
+}
+
 /// `body` with its FCS and `*\n`.
 fn framed(body: &str) -> String {
     let fcs = body.bytes().fold(0u8, |x, b| x ^ b);
@@ -305,22 +354,43 @@ impl Checker {
         })
     }
 
-    fn note(&mut self, at: f64, way: Way, side: &str, text: &str) {
+    /// A frame on a client's connection: `Sent` by the twin's client
+    /// `side`, `Received` from the supervisor.
+    fn note(&mut self, at: f64, way: Way, side: &str, bytes: &[u8]) {
+        let from = match way {
+            Way::Sent => side.to_string(),
+            Way::Received => "supervisor".to_string(),
+        };
         self.frames.push(Exchange {
             at,
             way,
-            text: format!("{side:<8}  {text}"),
+            text: format!("{side:<8}  {}", shown(bytes)),
+            bytes: bytes.to_vec(),
+            peer: Some(Peer {
+                link: SERVER_LINK,
+                from,
+            }),
+        });
+    }
+
+    /// A mark that is no frame (a client hanging up): in the report only.
+    fn note_mark(&mut self, side: &str, what: &str) {
+        self.frames.push(Exchange {
+            at: self.now(),
+            way: Way::Sent,
+            text: format!("{side:<8}  {what}"),
             bytes: Vec::new(),
+            peer: None,
         });
     }
 
     fn note_bus(&mut self, frame: &BusFrame) {
-        self.note(frame.at, frame.way, "bus", &frame.text);
+        self.frames.push(bus_exchange(frame, self.id));
     }
 
     /// Sends `bytes` as they are.
     fn send_raw(&mut self, client: &mut Client, bytes: &[u8]) -> Verdict {
-        self.note(self.now(), Way::Sent, client.name, &shown(bytes));
+        self.note(self.now(), Way::Sent, client.name, bytes);
         client
             .wire
             .send(bytes)
@@ -343,8 +413,7 @@ impl Checker {
             if let Some(end) = client.pending.iter().position(|&b| b == b'\n') {
                 let frame: Vec<u8> = client.pending.drain(..=end).collect();
                 let at = first_at.unwrap_or_else(|| self.now());
-                let text = shown(&frame);
-                self.note(at, Way::Received, client.name, &text);
+                self.note(at, Way::Received, client.name, &frame);
                 return Ok(String::from_utf8_lossy(&frame).into_owned());
             }
             let before = client.pending.len();
@@ -364,7 +433,7 @@ impl Checker {
                     return Err(format!("no reply within {ms} ms"));
                 }
                 let got = std::mem::take(&mut client.pending);
-                self.note(self.now(), Way::Received, client.name, &shown(&got));
+                self.note(self.now(), Way::Received, client.name, &got);
                 return Err(format!(
                     "`{}` came, no whole frame (`*\\n` missing) within {ms} ms",
                     shown(&got)
@@ -642,7 +711,7 @@ fn bad_fcs_ignored(c: &mut Checker) -> Verdict {
         }
     }
     if !got.is_empty() {
-        c.note(c.now(), Way::Received, client.name, &shown(&got));
+        c.note(c.now(), Way::Received, client.name, &got);
         return Err(format!(
             "answered `{}` where it must stay silent for {} ms",
             shown(&got),
@@ -671,7 +740,7 @@ fn hang_up_mid_frame(c: &mut Checker) -> Verdict {
     let partial = c.fill("@{id}EA00");
     c.send_raw(&mut leaving, partial.as_bytes())?;
     drop(leaving);
-    c.note(c.now(), Way::Sent, "client 1", "(hangs up)");
+    c.note_mark("client 1", "(hangs up)");
     let mut next = c.connect("client 2")?;
     c.read_inputs(&mut next, 0, 6)
 }

@@ -33,6 +33,8 @@ pub struct Heard {
     pub conn: u64,
     pub way: Way,
     pub text: String,
+    /// The bytes, for the recording.
+    pub bytes: Vec<u8>,
     /// The frame, when it is a well-formed one.
     pub repr: Option<MebRepr>,
 }
@@ -274,6 +276,7 @@ fn serve(mut stream: TcpStream, shared: &Shared) {
                     conn,
                     way: Way::Received,
                     text: shown(&line),
+                    bytes: line.clone(),
                     repr,
                 });
                 match (state.fault, repr) {
@@ -306,6 +309,7 @@ fn serve(mut stream: TcpStream, shared: &Shared) {
                     conn,
                     way: Way::Sent,
                     text: shown(reply),
+                    bytes: reply.clone(),
                     repr: MebRepr::parse(reply).ok(),
                 });
             }

@@ -298,6 +298,7 @@ impl Play<'_> {
             way,
             text,
             bytes: bytes.to_vec(),
+            peer: None,
         });
     }
 

@@ -24,6 +24,8 @@ pub struct BusFrame {
     pub at: f64,
     pub way: Way,
     pub text: String,
+    /// The bytes, for the recording.
+    pub bytes: Vec<u8>,
     /// The frame, when it is a well-formed one.
     pub repr: Option<MebRepr>,
 }
@@ -100,10 +102,15 @@ impl Bus {
 
     /// The frames from `since` (seconds) on.
     pub fn frames_since(&self, since: f64) -> Vec<BusFrame> {
+        self.frames_between(since, f64::INFINITY)
+    }
+
+    /// The frames from `from` (seconds) to before `to`.
+    pub fn frames_between(&self, from: f64, to: f64) -> Vec<BusFrame> {
         self.state()
             .frames
             .iter()
-            .filter(|f| f.at >= since)
+            .filter(|f| f.at >= from && f.at < to)
             .cloned()
             .collect()
     }
@@ -181,6 +188,7 @@ fn bus_frame(at: f64, way: Way, bytes: &[u8]) -> BusFrame {
         at,
         way,
         text: shown(bytes),
+        bytes: bytes.to_vec(),
         repr: MebRepr::parse(bytes).ok(),
     }
 }

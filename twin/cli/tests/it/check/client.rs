@@ -13,16 +13,14 @@ use std::process::{Command, Stdio};
 use super::failed;
 
 /// `twin check client` listening on a free port, stdin held open (its end
-/// would end the session), not recorded, with `more` options.
+/// would end the session), not recorded unless `more` says where, with
+/// `more` options.
 fn session(more: &[&str]) -> (Proc, String) {
-    let mut args = vec![
-        "check",
-        "client",
-        "--listen",
-        "tcp://127.0.0.1:0",
-        "--no-record",
-    ];
+    let mut args = vec!["check", "client", "--listen", "tcp://127.0.0.1:0"];
     args.extend_from_slice(more);
+    if !more.iter().any(|a| a.starts_with("--record")) {
+        args.push("--no-record");
+    }
     let proc = Proc::spawn(&args, Stdio::piped());
     let addr = proc.tcp_of("meb");
     (proc, addr)
@@ -143,7 +141,14 @@ fn a_student_client_passes_and_a_vel_written_to_the_wrong_block_is_found() {
         ),
     ] {
         let json = scratch("check-client", &format!("{name}.json"));
-        let (proc, addr) = session(&["--json", json.to_str().unwrap(), "--duration", "120"]);
+        // The buggy one recorded (the correct one's lines are the book's).
+        let mcap = scratch("check-client", &format!("{name}.mcap"));
+        let record = format!("--record={}", mcap.display());
+        let mut more = vec!["--json", json.to_str().unwrap(), "--duration", "120"];
+        if name == "writes-wrong-block" {
+            more.push(&record);
+        }
+        let (proc, addr) = session(&more);
         let out = student_client(&addr, bugs);
         assert!(out.status.success(), "{name}: {}", text(&out));
         let shown = String::from_utf8_lossy(&out.stdout).into_owned();
@@ -170,6 +175,7 @@ fn a_student_client_passes_and_a_vel_written_to_the_wrong_block_is_found() {
                 printed.contains("VEL went to VA 00, not SA 00 (`@01VA00010800"),
                 "{printed}"
             );
+            every_cited_frame_is_recorded(&json, &mcap);
         }
     }
 }
@@ -262,4 +268,51 @@ fn a_class_of_clients_gets_its_scores_from_a_roster() {
         ben.contains("VEL went to VA 00, not SA 00 (`@01VA00010800"),
         "{ben}"
     );
+}
+
+/// The session's recording holds every frame of its connections, each
+/// check's in its window, and every frame the report cites: on
+/// `/link/client/frames`, from the client's connection or the twin, at
+/// its time.
+fn every_cited_frame_is_recorded(json: &Path, mcap: &Path) {
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(json).unwrap()).unwrap();
+    let recorded = super::recorded::read(mcap);
+    assert_eq!(recorded["run"]["role"], "client");
+    let frames = recorded["frames"].as_array().unwrap();
+    assert!(
+        frames.iter().all(|f| f["topic"] == "/link/client/frames"),
+        "{recorded}"
+    );
+    let counted: u64 = recorded["checks"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["frames"].as_u64().unwrap())
+        .sum();
+    assert_eq!(counted as usize, frames.len());
+    let mut cited = 0;
+    for check in report["checks"].as_array().unwrap() {
+        for f in check["frames"].as_array().unwrap() {
+            let text = f["text"].as_str().unwrap();
+            let (client, bytes) = (text[..8].trim(), &text[10..]);
+            let from = if f["way"] == "sent" { "twin" } else { client };
+            let at = f["at"].as_f64().unwrap();
+            let found = frames.iter().any(|r| {
+                r["from"] == from
+                    && super::recorded::spelt(r["text"].as_str().unwrap()) == bytes
+                    && (r["time_s"].as_f64().unwrap() - at).abs() < 1e-6
+            });
+            assert!(found, "`{}`: {text} at {at} not recorded", check["name"]);
+            cited += 1;
+        }
+    }
+    assert!(cited >= 8, "{cited}");
+    // The write to the wrong block, as the client sent it, decoded.
+    let write = frames
+        .iter()
+        .find(|r| r["text"].as_str().unwrap().starts_with("@01VA00010800"))
+        .expect("the write");
+    assert_eq!(write["cmd"], "VA");
+    assert_eq!(write["from"], "client 1");
 }

@@ -304,3 +304,101 @@ fn a_class_of_servers_gets_its_scores_from_a_roster() {
         text(&out)
     );
 }
+
+#[test]
+fn a_server_check_records_both_links_with_every_frame_its_report_cites() {
+    let dir = crate::support::folder("check-server", "recorded");
+    let (mcap, json) = (dir.join("run.mcap"), dir.join("run.json"));
+    let (a, b) = pair_paths("check-recorded");
+    let _vsp = Proc::start(&["vsp", s(&a), s(&b)]);
+    let server = student_server("recorded", &a, &["write-wrong-block"]);
+    let out = check_server(
+        &server.link,
+        &b,
+        &["--record", s(&mcap), "--json", s(&json)],
+    );
+    let shown = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{shown}");
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let recorded = super::recorded::read(&mcap);
+    assert_eq!(recorded["run"]["role"], "server");
+    assert_eq!(recorded["check"]["score"], "18");
+    let frames = recorded["frames"].as_array().unwrap();
+    let on = |topic: &str| frames.iter().filter(|f| f["topic"] == topic).count();
+    let (server_frames, bus_frames) = (on("/link/server/frames"), on("/link/bus/frames"));
+    assert_eq!(server_frames + bus_frames, frames.len(), "two links only");
+    // Every poll of the supervisor is there, where the report cites a few.
+    let cited_on_bus = report["checks"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .flat_map(|c| c["frames"].as_array().unwrap())
+        .filter(|f| f["text"].as_str().unwrap().starts_with("bus "))
+        .count();
+    assert!(
+        bus_frames > cited_on_bus + 20,
+        "{bus_frames} on the bus, {cited_on_bus} cited"
+    );
+    // The checks' frames add up to every frame recorded.
+    let counted: u64 = recorded["checks"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["frames"].as_u64().unwrap())
+        .sum();
+    assert_eq!(counted as usize, frames.len());
+
+    // Every frame the report cites is recorded, on its link, from its
+    // sender, at its time.
+    let mut cited = 0;
+    for check in report["checks"].as_array().unwrap() {
+        for f in check["frames"].as_array().unwrap() {
+            let text = f["text"].as_str().unwrap();
+            let (side, bytes) = (text[..8].trim(), &text[10..]);
+            if bytes == "(hangs up)" {
+                continue;
+            }
+            let sent = f["way"] == "sent";
+            let (topic, from) = match (side, sent) {
+                ("bus", true) => ("/link/bus/frames", "slave 01"),
+                ("bus", false) => ("/link/bus/frames", "supervisor"),
+                (client, true) => ("/link/server/frames", client),
+                (_, false) => ("/link/server/frames", "supervisor"),
+            };
+            let at = f["at"].as_f64().unwrap();
+            let found = frames.iter().any(|r| {
+                r["topic"] == topic
+                    && r["from"] == from
+                    && super::recorded::spelt(r["text"].as_str().unwrap()) == bytes
+                    && (r["time_s"].as_f64().unwrap() - at).abs() < 1e-6
+            });
+            assert!(found, "`{}`: {text} at {at} not recorded", check["name"]);
+            cited += 1;
+        }
+    }
+    assert!(cited > 40, "{cited}");
+    // The disputed write as the bus carried it, decoded as MEB.
+    let write = frames
+        .iter()
+        .find(|r| r["topic"] == "/link/bus/frames" && r["text"] == "@01VA000104D225*\n")
+        .unwrap_or_else(|| panic!("the write on the bus: {shown}"));
+    assert_eq!((&write["protocol"], &write["cmd"]), (&"meb".into(), &"VA".into()));
+
+    // The twin's own readers: the bus as a logic analyzer sees it, the
+    // frames as CSV, and the view.
+    let vcd = dir.join("bus.vcd");
+    let out = twin(&["scope", s(&mcap), "--link", "bus", "--vcd", s(&vcd)]);
+    assert!(out.status.success(), "{}", text(&out));
+    let wave = std::fs::read_to_string(&vcd).unwrap();
+    assert!(wave.contains("supervisor"), "{}", &wave[..wave.len().min(2000)]);
+    let csv = dir.join("csv");
+    let out = twin(&["export", s(&mcap), "--csv", s(&csv)]);
+    assert!(out.status.success(), "{}", text(&out));
+    for file in ["link_bus_frames.csv", "link_server_frames.csv"] {
+        assert!(csv.join(file).is_file(), "{file}");
+    }
+    let rrd = dir.join("run.rrd");
+    let out = twin(&["view", s(&mcap), "--save", s(&rrd)]);
+    assert!(out.status.success(), "{}", text(&out));
+}
