@@ -154,8 +154,20 @@ pub fn not_applicable(run: &SuiteRun) -> Option<String> {
     }
 }
 
-/// What was checked, on which link.
+/// What was checked, on which link (and with what patience, when not 1).
 pub(crate) fn heading(run: &SuiteRun) -> String {
+    let mut heading = checked(run);
+    if run.patience != 1.0 {
+        let _ = write!(
+            heading,
+            "; patience {}: its waits {} times as long, its timing checks' as written",
+            run.patience, run.patience
+        );
+    }
+    heading
+}
+
+fn checked(run: &SuiteRun) -> String {
     match run.role {
         Role::Slave => match &run.bench {
             Some(bench) => format!(

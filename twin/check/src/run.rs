@@ -130,6 +130,10 @@ pub struct SuiteRun {
     /// The panel of the bench the slave was checked on, if it was.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub bench: Option<String>,
+    /// How many times as long the suite's waits were (`--patience`; 1:
+    /// as written). Its timing checks kept theirs.
+    #[serde(skip_serializing_if = "as_written")]
+    pub patience: f64,
     /// Why no check could be run (the program unreachable): every check
     /// then fails with this.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -144,6 +148,10 @@ pub struct SuiteRun {
     /// the recording holds.
     #[serde(skip)]
     pub transcript: Vec<Vec<Exchange>>,
+}
+
+fn as_written(patience: &f64) -> bool {
+    *patience == 1.0
 }
 
 /// When and how the program hung up, and in which check.
@@ -231,6 +239,7 @@ impl SuiteRun {
             checks,
             seconds: 0.0,
             bench: None,
+            patience: suite.patience,
             error: Some(why),
             hung_up: None,
             transcript: Vec::new(),
@@ -287,6 +296,9 @@ pub fn run_suite_on(suite: &Suite, wire: &mut Wire, id: u8, bench: Option<&Bench
         }
         let mut play = Play::new(wire, suite, id, next_transaction);
         play.bench = bench.filter(|_| check.is_bench());
+        if check.timing {
+            play.stretch = 1.0;
+        }
         let mut began = play.wire.now();
         let played = play.settle().and_then(|()| {
             began = play.wire.now();
@@ -296,7 +308,8 @@ pub fn run_suite_on(suite: &Suite, wire: &mut Wire, id: u8, bench: Option<&Bench
                     // reply too late), and must not be taken for the next
                     // check's.
                     play.verdict = Some(why.clone());
-                    let late = play.late(Duration::from_millis(3 * suite.timeout_ms.max(100)))?;
+                    let wait = play.stretched(3 * suite.timeout_ms.max(100));
+                    let late = play.late(Duration::from_millis(wait))?;
                     return Ok(Outcome::Fail(why + &late));
                 }
             }
@@ -320,7 +333,17 @@ pub fn run_suite_on(suite: &Suite, wire: &mut Wire, id: u8, bench: Option<&Bench
             }
         };
         next_transaction = play.next_transaction;
-        checks.push(outcome_of(outcome, began, play));
+        let slowest = play.reply_ms.iter().copied().fold(0.0, f64::max);
+        let mut done = outcome_of(outcome, began, play);
+        // Honest about what patience let through: a reply later than the
+        // suite's own deadline is said, pass or not.
+        if suite.patience != 1.0 && !check.timing && slowest > suite.timeout_ms as f64 {
+            done.notes.push(format!(
+                "a reply began {slowest:.0} ms after its request, beyond the suite's {} ms: in time only with --patience {}",
+                suite.timeout_ms, suite.patience
+            ));
+        }
+        checks.push(done);
     }
     SuiteRun {
         suite: suite.name.clone(),
@@ -332,6 +355,7 @@ pub fn run_suite_on(suite: &Suite, wire: &mut Wire, id: u8, bench: Option<&Bench
         checks,
         seconds: wire.now() - started,
         bench: bench.map(|b| b.url().to_string()),
+        patience: suite.patience,
         error: None,
         hung_up,
         transcript: Vec::new(),
@@ -366,8 +390,11 @@ struct Play<'a> {
     wire: &'a mut Wire,
     protocol: Protocol,
     id: u8,
-    /// A reply's deadline where a step sets none.
+    /// A reply's deadline where a step sets none (as the suite says).
     timeout_ms: u64,
+    /// How many times as long every wait is ([`Suite::patience`]; 1 in a
+    /// timing check).
+    stretch: f64,
     frames: Vec<Exchange>,
     /// Received and not yet taken as a reply, and when its first byte came.
     pending: Vec<u8>,
@@ -403,6 +430,7 @@ impl<'a> Play<'a> {
             protocol: suite.protocol,
             id,
             timeout_ms: suite.timeout_ms,
+            stretch: suite.patience,
             frames: Vec::new(),
             pending: Vec::new(),
             pending_since: None,
@@ -422,6 +450,11 @@ impl<'a> Play<'a> {
         self.protocol.fill(text, self.id)
     }
 
+    /// `ms` stretched by the patience asked for.
+    fn stretched(&self, ms: u64) -> u64 {
+        (ms as f64 * self.stretch).round() as u64
+    }
+
     fn shown(&self, bytes: &[u8]) -> String {
         self.protocol.shown(bytes)
     }
@@ -434,11 +467,12 @@ impl<'a> Play<'a> {
         self.last_request.clone()
     }
 
-    /// Waits until the line has been quiet for [`SETTLE`].
+    /// Waits until the line has been quiet for [`SETTLE`] (stretched).
     fn settle(&mut self) -> Result<(), WireError> {
         let mut junk = Vec::new();
-        let give_up = Instant::now() + Duration::from_secs(2);
-        while self.wire.receive(&mut junk, Instant::now() + SETTLE)? > 0 {
+        let quiet = SETTLE.mul_f64(self.stretch);
+        let give_up = Instant::now() + Duration::from_secs(2).mul_f64(self.stretch);
+        while self.wire.receive(&mut junk, Instant::now() + quiet)? > 0 {
             if Instant::now() > give_up {
                 break;
             }
@@ -530,17 +564,18 @@ impl<'a> Play<'a> {
             } => {
                 let pattern = self.fill(pattern);
                 let (_, transaction) = self.answered();
-                let within_ms = within_ms.unwrap_or(self.timeout_ms);
+                let within_ms = self.stretched(within_ms.unwrap_or(self.timeout_ms));
                 self.expect(&pattern, *data, transaction, within_ms)
             }
             Step::Error { code, within_ms } => {
                 let (request, transaction) = self.answered();
                 let pattern = self.protocol.error_pattern(&request, self.id, *code);
-                let within_ms = within_ms.unwrap_or(self.timeout_ms);
+                let within_ms = self.stretched(within_ms.unwrap_or(self.timeout_ms));
                 self.expect(&pattern, 0, transaction, within_ms)
             }
             Step::Silence { ms } => {
-                let until = Instant::now() + Duration::from_millis(*ms);
+                let ms = self.stretched(*ms);
+                let until = Instant::now() + Duration::from_millis(ms);
                 while Instant::now() < until {
                     self.receive(until)?;
                 }
@@ -557,7 +592,7 @@ impl<'a> Play<'a> {
                 )))
             }
             Step::Wait { ms } => {
-                let until = Instant::now() + Duration::from_millis(*ms);
+                let until = Instant::now() + Duration::from_millis(self.stretched(*ms));
                 while Instant::now() < until {
                     self.receive(until)?;
                 }

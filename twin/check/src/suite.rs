@@ -17,6 +17,9 @@
 //! ]
 //! ```
 //!
+//! A check with `timing = true` holds the program to the protocol's
+//! timing: `--patience` leaves its deadlines as written.
+//!
 //! A step does one thing: `send` a frame (its FCS and `*\n` added; `fcs =
 //! "bad"` sends a wrong one, `ending = "*\r\n"` another ending), send `raw`
 //! text as it is, `expect` a reply (its text up to the FCS, `#` for any hex
@@ -90,6 +93,10 @@ pub struct Suite {
     pub protocol: Protocol,
     pub description: String,
     pub timeout_ms: u64,
+    /// How many times as long its waits are (`--patience`, 1 unless
+    /// given): a reply's deadline, a silence, a wait, the quiet line
+    /// between checks; a timing check's are as written.
+    pub patience: f64,
     pub checks: Vec<Check>,
 }
 
@@ -100,6 +107,9 @@ pub struct Check {
     pub name: String,
     pub requirement: String,
     pub points: u32,
+    /// A check of the protocol's timing: its deadlines are the page's,
+    /// and patience does not stretch them.
+    pub timing: bool,
     pub steps: Vec<Step>,
 }
 
@@ -174,6 +184,8 @@ struct CheckToml {
     requirement: String,
     #[serde(default = "one")]
     points: u32,
+    #[serde(default)]
+    timing: bool,
     steps: Vec<toml::Spanned<StepToml>>,
 }
 
@@ -269,6 +281,7 @@ impl Suite {
                 name: check.name,
                 requirement: check.requirement,
                 points: check.points,
+                timing: check.timing,
                 steps,
             });
         }
@@ -277,6 +290,7 @@ impl Suite {
             protocol,
             description: raw.description,
             timeout_ms: raw.timeout_ms,
+            patience: 1.0,
             checks,
         })
     }

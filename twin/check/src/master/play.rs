@@ -170,6 +170,7 @@ pub fn run_master(
         checks,
         seconds: play.wire.now() - started,
         bench: None,
+        patience: 1.0,
         error: None,
         hung_up,
         transcript,
@@ -194,6 +195,7 @@ pub fn unreachable(suite: &MasterSuite, link: &str, ids: &[u8], why: String) -> 
         seconds: 0.0,
         hung_up: None,
         bench: None,
+        patience: 1.0,
         error: Some(why),
         transcript: Vec::new(),
     }

@@ -11,6 +11,7 @@ mod hang_up;
 mod master;
 mod master_modbus;
 mod modbus;
+mod patience;
 mod recorded;
 mod server;
 

@@ -15,11 +15,14 @@ held to finding it and nothing else:
   answers-broadcast   answers a broadcast write
   no-resync           does not restart a frame at an @ (a partial frame spoils the next)
   wrong-error-code    answers an address out of range with error 03, not 02
+  slow                answers every request 150 ms after it came (a sketch
+                      that does too much between its reads of the port)
   hangs-up-after N    answers N requests, then closes the connection when
                       the next one comes (a program that crashes mid-run)
 """
 import socket
 import sys
+import time
 
 SIZES = {"EA": 6, "ED": 1, "FA": 2, "FD": 1, "SA": 1, "SD": 2, "VA": 2, "VD": 1}
 READS = {"EA", "ED", "FA", "FD"}
@@ -130,6 +133,8 @@ def serve(conn, slave):
                     return  # hangs up on this request
                 reply = slave.handle(text)
                 if reply is not None:
+                    if "slow" in slave.bugs:
+                        time.sleep(0.150)
                     conn.sendall(frame(reply, slave.bugs))
                     if slave.answers is not None:
                         slave.answers -= 1

@@ -29,6 +29,13 @@ pub struct SlaveArgs {
     /// board more.
     #[arg(long, value_name = "MS", value_parser = clap::value_parser!(u64).range(1..=60_000))]
     timeout_ms: Option<u64>,
+    /// Wait FACTOR times as long for a slow program (a sketch that does
+    /// much between reads, a loaded machine): every reply's deadline,
+    /// silence and wait of the suite, said in the report's first line. The
+    /// timing checks keep the protocol's deadlines, and a reply later than
+    /// the suite's own deadline is noted under its check.
+    #[arg(long, default_value_t = 1.0, value_name = "FACTOR", value_parser = patience)]
+    patience: f64,
     /// The bench the slave is wired to: the panel of its twin session
     /// (`twin serve --web`), http://HOST:PORT[/?token=…]. Its bench checks
     /// then hold the slave to what its registers mean on the plant (VEL
@@ -56,6 +63,7 @@ pub fn execute(slave: &SlaveArgs) -> Result<()> {
     if let Some(ms) = slave.timeout_ms {
         suite.timeout_ms = ms;
     }
+    suite.patience = slave.patience;
     if let Some(roster) = &slave.reports.roster {
         return class(slave, &suite, roster);
     }
@@ -71,6 +79,16 @@ pub fn execute(slave: &SlaveArgs) -> Result<()> {
         .reports
         .record("slave", &record::suite_toml(&slave.suite), &run)?;
     slave.reports.reports_and_verdict(&run)
+}
+
+/// `--patience`: 1 to 100.
+fn patience(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(f) if (1.0..=100.0).contains(&f) => Ok(f),
+        _ => Err(format!(
+            "`{text}`: patience is a factor from 1 (the suite's waits as written) to 100"
+        )),
+    }
 }
 
 /// Every student of the roster checked (see [`super::class`]).
