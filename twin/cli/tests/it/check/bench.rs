@@ -1,6 +1,6 @@
 //! `twin check slave --bench`: the twin's own controller, on a `twin serve`
-//! session with its panel, passes every bench check over MEB (TCP) and
-//! Modbus RTU (a pseudo-terminal); a controller given a student's wrong
+//! session with its panel, passes every bench check over MEB (TCP), Modbus
+//! RTU (a pseudo-terminal) and Modbus TCP; a controller given a student's wrong
 //! I/O map (FR on a bit of its own, V1 and V2 swapped) fails exactly the
 //! check of that meaning; and without a bench the bench checks are "not
 //! applicable" in every report and in a class's scores.csv, not failed.
@@ -52,7 +52,7 @@ fn with_result(json: &std::path::Path, wanted: &str) -> Vec<String> {
 const BENCH_CHECKS: usize = 6;
 
 #[test]
-fn the_twins_own_controller_passes_every_bench_check_over_meb_and_modbus_rtu() {
+fn the_twins_own_controller_passes_every_bench_check_over_meb_and_modbus_rtu_and_tcp() {
     let dir = folder("check-bench", "own");
     let pair = PtyPair::new(&dir);
     let serve = serve(&[
@@ -60,12 +60,16 @@ fn the_twins_own_controller_passes_every_bench_check_over_meb_and_modbus_rtu() {
         "tcp://127.0.0.1:0",
         "--modbus-rtu",
         pair.a.to_str().unwrap(),
+        "--modbus",
+        "tcp://127.0.0.1:0",
     ]);
     let panel = panel_of(&serve);
     let meb = format!("tcp://{}", serve.tcp_of("meb"));
+    let modbus_tcp = format!("tcp://{}", serve.tcp_of("modbus-tcp"));
     for (suite, link) in [
         ("meb-slave", meb.as_str()),
         ("modbus-rtu-slave", pair.b.to_str().unwrap()),
+        ("modbus-tcp-slave", modbus_tcp.as_str()),
     ] {
         let json = scratch("check-bench", &format!("{suite}.json"));
         let out = check_slave(
