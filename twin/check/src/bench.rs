@@ -148,6 +148,12 @@ pub struct Bench {
     module: String,
 }
 
+/// Whether `url` is a panel's address (`http://HOST:PORT[/?token=…]`),
+/// without reaching it: a roster's mistake is said before anything runs.
+pub fn check_url(url: &str) -> Result<(), String> {
+    Panel::parse(url).map(|_| ())
+}
+
 impl Bench {
     /// The panel at `url` (`http://HOST:PORT`, `?token=…` if it needs
     /// one), and the plant's parameters it serves.

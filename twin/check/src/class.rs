@@ -1,10 +1,12 @@
 //! A class: one suite run against every student's program, each on its
 //! own link, several at once (students that share a link one after the
 //! other), and the scores side by side. The roster is a CSV file
-//! (`student,link[,id][,bus]`, as a spreadsheet exports it) or TOML
-//! (`[[student]] name, link, id, bus`).
+//! (`student,link[,id][,bus][,bench]`, as a spreadsheet exports it) or
+//! TOML (`[[student]] name, link, id, bus, bench`).
 
-use crate::run::{SuiteRun, run_suite};
+use crate::bench::Bench;
+use crate::framing::Protocol;
+use crate::run::{SuiteRun, run_suite_on};
 use crate::suite::Suite;
 use crate::wire::Wire;
 use serde::Deserialize;
@@ -22,6 +24,9 @@ pub struct Student {
     /// A supervisor's bus, where the twin plays its slave (`twin check
     /// server`), if the roster gives one.
     pub bus: Option<String>,
+    /// The panel of the bench the student's slave is wired to (`twin
+    /// check slave`'s `--bench`), if the roster gives one.
+    pub bench: Option<String>,
     /// The roster's line, for messages.
     pub line: usize,
 }
@@ -64,24 +69,34 @@ pub enum RosterError {
 }
 
 /// Reads a roster: TOML if the file's name ends in `.toml`, CSV otherwise.
-/// `default_id` is the slave id of a student whose line gives none.
-pub fn load_roster(path: &Path, default_id: u8) -> Result<Vec<Student>, RosterError> {
+/// `default_id` is the slave id of a student whose line gives none; an id
+/// the line gives must be one of `protocol`'s.
+pub fn load_roster(
+    path: &Path,
+    default_id: u8,
+    protocol: Protocol,
+) -> Result<Vec<Student>, RosterError> {
     let shown = path.display().to_string();
     let text = std::fs::read_to_string(path).map_err(|why| RosterError::Read {
         path: shown.clone(),
         why,
     })?;
     if path.extension().is_some_and(|e| e == "toml") {
-        parse_toml(&text, &shown, default_id)
+        parse_toml(&text, &shown, default_id, protocol)
     } else {
-        parse_csv(&text, &shown, default_id)
+        parse_csv(&text, &shown, default_id, protocol)
     }
 }
 
 /// A CSV roster: a header naming `student` and `link` (and `id`, if some
 /// students' slaves have another device number); other columns are left
 /// alone, `#` starts a comment line.
-pub fn parse_csv(text: &str, path: &str, default_id: u8) -> Result<Vec<Student>, RosterError> {
+pub fn parse_csv(
+    text: &str,
+    path: &str,
+    default_id: u8,
+    protocol: Protocol,
+) -> Result<Vec<Student>, RosterError> {
     let at = |line: usize, why: String| RosterError::At {
         path: path.into(),
         line,
@@ -115,6 +130,7 @@ pub fn parse_csv(text: &str, path: &str, default_id: u8) -> Result<Vec<Student>,
     };
     let id_at = column("id");
     let bus_at = column("bus");
+    let bench_at = column("bench");
     let mut students = Vec::new();
     for record in reader.records() {
         let record = record.map_err(|e| csv_error(&e, path))?;
@@ -122,13 +138,14 @@ pub fn parse_csv(text: &str, path: &str, default_id: u8) -> Result<Vec<Student>,
         let field = |i: usize| record.get(i).unwrap_or("").to_string();
         let id = match id_at.map(field).filter(|s| !s.is_empty()) {
             None => default_id,
-            Some(text) => id(&text).map_err(|why| at(line, why))?,
+            Some(text) => id(&text, protocol).map_err(|why| at(line, why))?,
         };
         students.push(Student {
             name: field(name_at),
             link: field(link_at),
             id,
             bus: bus_at.map(field).filter(|s| !s.is_empty()),
+            bench: bench_at.map(field).filter(|s| !s.is_empty()),
             line,
         });
     }
@@ -169,12 +186,20 @@ struct RosterToml {
 struct StudentToml {
     name: String,
     link: String,
-    id: Option<u8>,
+    /// Any integer, so that one out of range is said with its line.
+    id: Option<i64>,
     bus: Option<String>,
+    bench: Option<String>,
 }
 
-/// A TOML roster: `[[student]]` tables of `name`, `link` and `id`.
-pub fn parse_toml(text: &str, path: &str, default_id: u8) -> Result<Vec<Student>, RosterError> {
+/// A TOML roster: `[[student]]` tables of `name`, `link` and `id` (and
+/// `bus`, `bench`).
+pub fn parse_toml(
+    text: &str,
+    path: &str,
+    default_id: u8,
+    protocol: Protocol,
+) -> Result<Vec<Student>, RosterError> {
     let raw: RosterToml = toml::from_str(text).map_err(|e| RosterError::Whole {
         path: path.into(),
         why: e.to_string().trim_end().to_string(),
@@ -191,7 +216,7 @@ pub fn parse_toml(text: &str, path: &str, default_id: u8) -> Result<Vec<Student>
         let s = spanned.into_inner();
         let id = match s.id {
             None => default_id,
-            Some(n) => id(&n.to_string()).map_err(|why| RosterError::At {
+            Some(n) => id(&n.to_string(), protocol).map_err(|why| RosterError::At {
                 path: path.into(),
                 line,
                 why,
@@ -205,16 +230,30 @@ pub fn parse_toml(text: &str, path: &str, default_id: u8) -> Result<Vec<Student>
                 .bus
                 .map(|b| b.trim().to_string())
                 .filter(|b| !b.is_empty()),
+            bench: s
+                .bench
+                .map(|b| b.trim().to_string())
+                .filter(|b| !b.is_empty()),
             line,
         });
     }
     checked(students, path)
 }
 
-fn id(text: &str) -> Result<u8, String> {
+/// A line's `id`, in `protocol`'s range (its broadcast address is none).
+fn id(text: &str, protocol: Protocol) -> Result<u8, String> {
+    let ids = protocol.ids();
     match text.parse::<u8>() {
-        Ok(n) if (1..=99).contains(&n) => Ok(n),
-        _ => Err(format!("id `{text}`: a slave's device number is 1 to 99")),
+        Ok(n) if ids.contains(&n) => Ok(n),
+        _ => Err(format!(
+            "id `{text}`: {} is {} to {}",
+            match protocol {
+                Protocol::Meb => "an MEB slave's device number",
+                _ => "a Modbus unit id",
+            },
+            ids.start(),
+            ids.end()
+        )),
     }
 }
 
@@ -258,6 +297,11 @@ fn checked(students: Vec<Student>, path: &str) -> Result<Vec<Student>, RosterErr
             && let Err(e) = LinkSpec::parse(bus, &LinkDefaults::default())
         {
             return Err(at(s.line, format!("`{}`'s bus: {e}", s.name)));
+        }
+        if let Some(bench) = &s.bench
+            && let Err(why) = crate::bench::check_url(bench)
+        {
+            return Err(at(s.line, format!("`{}`'s bench: {why}", s.name)));
         }
     }
     Ok(students)
@@ -328,9 +372,12 @@ struct Queue {
     freed: Condvar,
 }
 
-/// The links a student's check holds while it runs.
+/// The links a student's check holds while it runs (a bench too: two
+/// slaves driving one plant at once would spoil each other's checks).
 fn links(student: &Student) -> impl Iterator<Item = &str> {
-    std::iter::once(student.link.as_str()).chain(student.bus.as_deref())
+    std::iter::once(student.link.as_str())
+        .chain(student.bus.as_deref())
+        .chain(student.bench.as_deref())
 }
 
 impl Queue {
@@ -376,12 +423,36 @@ impl Queue {
     }
 }
 
-/// One student's slave checked with `suite` over their link (unreachable: a
-/// run whose checks all fail with why).
+/// One student's slave checked with `suite` over their link, on their
+/// bench if the roster gives one (unreachable, or a bench that cannot be
+/// reached: a run whose checks all fail with why).
 pub fn check(suite: &Suite, student: &Student) -> SuiteRun {
+    let bench = match student.bench.as_deref().map(Bench::connect) {
+        None => None,
+        Some(Ok(bench)) => Some(bench),
+        Some(Err(why)) => {
+            return SuiteRun::unreachable(suite, &student.link, student.id, format!("bench: {why}"));
+        }
+    };
     match Wire::open(&student.link) {
-        Ok(mut wire) => run_suite(suite, &mut wire, student.id),
+        Ok(mut wire) => run_suite_on(suite, &mut wire, student.id, bench.as_ref()),
         Err(e) => SuiteRun::unreachable(suite, &student.link, student.id, e.to_string()),
+    }
+}
+
+/// Refuses a roster that gives a bench to a role that has none (only a
+/// slave is checked on a bench), with the file and the line.
+pub fn no_bench(students: &[Student], path: &Path, role: &str) -> Result<(), RosterError> {
+    match students.iter().find(|s| s.bench.is_some()) {
+        None => Ok(()),
+        Some(s) => Err(RosterError::At {
+            path: path.display().to_string(),
+            line: s.line,
+            why: format!(
+                "`{}` has a bench: a bench holds a slave to what its registers mean (twin check slave), not a {role}",
+                s.name
+            ),
+        }),
     }
 }
 
@@ -423,7 +494,7 @@ mod tests {
     use super::*;
 
     fn csv_err(text: &str) -> String {
-        parse_csv(text, "class.csv", 1).unwrap_err().to_string()
+        parse_csv(text, "class.csv", 1, Protocol::Meb).unwrap_err().to_string()
     }
 
     #[test]
@@ -432,6 +503,7 @@ mod tests {
             "student,link,id\n# the morning group\nAnna Müller, tcp://127.0.0.1:5701 ,\nBen,/dev/ttyUSB0?baud=9600,3\n",
             "class.csv",
             1,
+            Protocol::Meb,
         )
         .unwrap();
         assert_eq!(students.len(), 2);
@@ -470,7 +542,11 @@ mod tests {
         );
         assert_eq!(
             csv_err("student,link,id\nAnna,tcp://127.0.0.1:1,100\n"),
-            "class.csv, line 2: id `100`: a slave's device number is 1 to 99"
+            "class.csv, line 2: id `100`: an MEB slave's device number is 1 to 99"
+        );
+        assert_eq!(
+            csv_err("student,link,bench\nAnna,tcp://127.0.0.1:1,127.0.0.1:8080\n"),
+            "class.csv, line 2: `Anna`'s bench: `127.0.0.1:8080` is not a panel's address: it is http://HOST:PORT, as `twin serve --web` prints it"
         );
         assert_eq!(
             csv_err("student,link\nAnna,tcp://127.0.0.1:1,3\n"),
@@ -486,6 +562,7 @@ mod tests {
             "student,link,bus\nA,tcp://127.0.0.1:1,/tmp/b1\nB,tcp://127.0.0.1:1,/tmp/b2\nC,tcp://127.0.0.1:3,/tmp/b1\nD,tcp://127.0.0.1:4,/tmp/b4\nE,tcp://127.0.0.1:5,\n",
             "class.csv",
             1,
+            Protocol::Meb,
         )
         .unwrap();
         assert_eq!(students[4].bus, None);
@@ -527,17 +604,67 @@ mod tests {
     #[test]
     fn a_toml_roster_reads_the_same_and_names_its_lines() {
         let text = "[[student]]\nname = \"Anna\"\nlink = \"tcp://127.0.0.1:5701\"\n\n[[student]]\nname = \"Ben\"\nlink = \"tcp://127.0.0.1:5702\"\nid = 4\n";
-        let students = parse_toml(text, "class.toml", 1).unwrap();
+        let students = parse_toml(text, "class.toml", 1, Protocol::Meb).unwrap();
         assert_eq!(students[1].id, 4);
         let dup = text.replace("Ben", "Anna");
         assert_eq!(
-            parse_toml(&dup, "class.toml", 1).unwrap_err().to_string(),
+            parse_toml(&dup, "class.toml", 1, Protocol::Meb)
+                .unwrap_err()
+                .to_string(),
             "class.toml, line 5: `Anna` is on line 1 already"
         );
         let missing = "[[student]]\nname = \"Anna\"\n";
-        let e = parse_toml(missing, "class.toml", 1)
+        let e = parse_toml(missing, "class.toml", 1, Protocol::Meb)
             .unwrap_err()
             .to_string();
         assert!(e.contains("missing field `link`"), "{e}");
+    }
+
+    #[test]
+    fn an_id_is_held_to_the_protocols_range_with_its_line() {
+        let csv = "student,link,id\nAnna,tcp://127.0.0.1:1,120\nBen,tcp://127.0.0.1:2,0\n";
+        assert_eq!(
+            parse_csv(csv, "class.csv", 1, Protocol::Meb)
+                .unwrap_err()
+                .to_string(),
+            "class.csv, line 2: id `120`: an MEB slave's device number is 1 to 99"
+        );
+        // 120 is a Modbus unit id; 0, the broadcast, is no one's.
+        assert_eq!(
+            parse_csv(csv, "class.csv", 1, Protocol::ModbusTcp)
+                .unwrap_err()
+                .to_string(),
+            "class.csv, line 3: id `0`: a Modbus unit id is 1 to 247"
+        );
+        let toml = "[[student]]\nname = \"Anna\"\nlink = \"tcp://127.0.0.1:1\"\n\n[[student]]\nname = \"Ben\"\nlink = \"tcp://127.0.0.1:2\"\nid = 300\n";
+        assert_eq!(
+            parse_toml(toml, "class.toml", 1, Protocol::ModbusRtu)
+                .unwrap_err()
+                .to_string(),
+            "class.toml, line 5: id `300`: a Modbus unit id is 1 to 247"
+        );
+        let ok = toml.replace("300", "120");
+        let students = parse_toml(&ok, "class.toml", 1, Protocol::ModbusRtu).unwrap();
+        assert_eq!(students[1].id, 120);
+    }
+
+    #[test]
+    fn a_bench_per_student_in_csv_and_toml() {
+        let csv = "student,link,bench\nAnna,tcp://127.0.0.1:1,http://127.0.0.1:8080/?token=abc\nBen,tcp://127.0.0.1:2,\n";
+        let students = parse_csv(csv, "class.csv", 1, Protocol::Meb).unwrap();
+        assert_eq!(
+            students[0].bench.as_deref(),
+            Some("http://127.0.0.1:8080/?token=abc")
+        );
+        assert_eq!(students[1].bench, None);
+        let toml = "[[student]]\nname = \"Anna\"\nlink = \"tcp://127.0.0.1:1\"\nbench = \"http://127.0.0.1:8080\"\n";
+        let students = parse_toml(toml, "class.toml", 1, Protocol::Meb).unwrap();
+        assert_eq!(students[0].bench.as_deref(), Some("http://127.0.0.1:8080"));
+        assert_eq!(
+            no_bench(&students, Path::new("class.toml"), "server")
+                .unwrap_err()
+                .to_string(),
+            "class.toml, line 1: `Anna` has a bench: a bench holds a slave to what its registers mean (twin check slave), not a server"
+        );
     }
 }

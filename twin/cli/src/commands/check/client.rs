@@ -10,7 +10,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 use twin_check::client::{CHECKLIST, NAME, SUITE, Session, unreachable};
-use twin_check::{Outcome, class, report};
+use twin_check::{Outcome, Protocol, class, report};
 
 #[derive(Debug, Args)]
 #[command(
@@ -118,7 +118,8 @@ fn held(
 /// listens for their client. Every session ends as a single one does;
 /// Enter or Ctrl-D ends them all.
 fn class(args: &ClientArgs, roster: &Path) -> Result<()> {
-    let students = class::load_roster(roster, args.id)?;
+    let students = class::load_roster(roster, args.id, Protocol::Meb)?;
+    class::no_bench(&students, roster, "client")?;
     let mut sessions = Vec::with_capacity(students.len());
     println!(
         "twin check client: {} students' clients, each served its slave's image",

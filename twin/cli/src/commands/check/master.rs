@@ -100,7 +100,8 @@ fn student_run(suite: &MasterSuite, student: &Student, wait: Duration) -> SuiteR
 
 /// Every student's master checked (see [`super::class`]).
 fn class(args: &MasterArgs, suite: &MasterSuite, roster: &Path, id: u8) -> Result<()> {
-    let students = class::load_roster(roster, id)?;
+    let students = class::load_roster(roster, id, suite.protocol)?;
+    class::no_bench(&students, roster, "master")?;
     let wait = Duration::from_secs(args.wait);
     let toml = (!args.reports.no_record).then(|| record::suite_toml(&args.suite));
     let options = super::class::Class {

@@ -24,10 +24,11 @@ pub struct ReportArgs {
     #[arg(long, value_name = "FILE")]
     html: Option<PathBuf>,
     /// Check a class instead of one program: a CSV file with the columns
-    /// student,link[,id][,bus], or TOML [[student]] tables of name, link,
-    /// id, bus. `link` is where that student's program is, as LINK (or
-    /// --listen) gives it one at a time; `bus` a supervisor's bus, as
-    /// --bus.
+    /// student,link[,id][,bus][,bench], or TOML [[student]] tables of
+    /// name, link, id, bus, bench. `link` is where that student's program
+    /// is, as LINK (or --listen) gives it one at a time; `id` within the
+    /// protocol's range; `bus` a supervisor's bus, as --bus; `bench` the
+    /// panel of the bench a slave is wired to, as --bench.
     #[arg(long, value_name = "FILE", conflicts_with_all = ["json", "junit", "html"])]
     pub roster: Option<PathBuf>,
     /// Where a class's reports and scores.csv go [default:

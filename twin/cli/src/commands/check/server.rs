@@ -6,7 +6,7 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use std::path::Path;
 use twin_check::server::{NAME, SUITE, ServerOptions, check_server, unreachable};
-use twin_check::{class, report};
+use twin_check::{Protocol, class, report};
 
 #[derive(Debug, Args)]
 #[command(
@@ -67,7 +67,8 @@ pub fn execute(args: &ServerArgs) -> Result<()> {
 /// roster's `link` is their server, its `bus` their bus (--bus where it
 /// gives none). Students on one bus are checked one after the other.
 fn class(args: &ServerArgs, roster: &Path) -> Result<()> {
-    let mut students = class::load_roster(roster, args.id)?;
+    let mut students = class::load_roster(roster, args.id, Protocol::Meb)?;
+    class::no_bench(&students, roster, "server")?;
     for student in &mut students {
         let at = || format!("{}, line {}", roster.display(), student.line);
         if !student.link.starts_with("tcp://") {

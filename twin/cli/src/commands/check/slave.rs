@@ -40,8 +40,9 @@ pub struct SlaveArgs {
     /// (`twin serve --web`), http://HOST:PORT[/?token=…]. Its bench checks
     /// then hold the slave to what its registers mean on the plant (VEL
     /// moves the motor, EN, BRK and FR do what the map says, the inputs
-    /// match the plant); without it they are not applicable.
-    #[arg(long, value_name = "URL", conflicts_with = "roster")]
+    /// match the plant); without it they are not applicable. With
+    /// --roster, each student's bench is the roster's `bench` column.
+    #[arg(long, value_name = "URL")]
     bench: Option<String>,
     #[command(flatten)]
     reports: super::reports::ReportArgs,
@@ -65,6 +66,11 @@ pub fn execute(slave: &SlaveArgs) -> Result<()> {
     }
     suite.patience = slave.patience;
     if let Some(roster) = &slave.reports.roster {
+        if slave.bench.is_some() {
+            bail!(
+                "--bench is one slave's bench: with --roster, give each student's in the roster's `bench` column (the panel of the twin session their slave is wired to)"
+            );
+        }
         return class(slave, &suite, roster);
     }
     let link = slave.link.as_deref().unwrap_or_default();
@@ -93,7 +99,7 @@ fn patience(text: &str) -> Result<f64, String> {
 
 /// Every student of the roster checked (see [`super::class`]).
 fn class(slave: &SlaveArgs, suite: &Suite, roster: &Path) -> Result<()> {
-    let students = class::load_roster(roster, slave.id)?;
+    let students = class::load_roster(roster, slave.id, suite.protocol)?;
     let toml = (!slave.reports.no_record).then(|| record::suite_toml(&slave.suite));
     let options = super::class::Class {
         suite_name: &suite.name,

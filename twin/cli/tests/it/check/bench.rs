@@ -1,6 +1,8 @@
 //! `twin check slave --bench`: the twin's own controller, on a `twin serve`
 //! session with its panel, passes every bench check over MEB (TCP), Modbus
-//! RTU (a pseudo-terminal) and Modbus TCP; a controller given a student's wrong
+//! RTU (a pseudo-terminal) and Modbus TCP; a class whose roster gives one
+//! student a bench runs that student's bench checks there and leaves the
+//! other's not applicable; a controller given a student's wrong
 //! I/O map (FR on a bit of its own, V1 and V2 swapped) fails exactly the
 //! check of that meaning; and without a bench the bench checks are "not
 //! applicable" in every report and in a class's scores.csv, not failed.
@@ -266,6 +268,79 @@ fn without_a_bench_the_bench_checks_are_not_applicable_in_every_report() {
     assert_eq!(
         scores,
         "student,score,points,checks_passed,checks,first_failure,not_applicable\nAnna,32,32,25,25,,6\n"
+    );
+    serve.terminate();
+}
+
+#[test]
+fn a_class_runs_each_students_bench_checks_on_their_own_bench() {
+    // Anna's slave is the twin's own controller, wired to the bench of its
+    // session; Ben's is a student's program with no bench behind it.
+    let serve = serve(&["--meb", "tcp://127.0.0.1:0"]);
+    let panel = panel_of(&serve);
+    let anna = format!("tcp://{}", serve.tcp_of("meb"));
+    let ben = super::student("bench-class-ben", &[]);
+    let dir = folder("check-bench", "class-benches");
+    let roster = dir.join("class.csv");
+    std::fs::write(
+        &roster,
+        format!(
+            "student,link,bench\nAnna Berg,{anna},{panel}\nBen Okafor,{},\n",
+            ben.link
+        ),
+    )
+    .unwrap();
+    let out_dir = dir.join("out");
+    let out = twin(&[
+        "check",
+        "slave",
+        "--roster",
+        roster.to_str().unwrap(),
+        "--out",
+        out_dir.to_str().unwrap(),
+        "--timeout-ms",
+        "1000",
+        "--no-record",
+    ]);
+    let shown = text(&out);
+    assert!(out.status.success(), "{shown}");
+    let scores = std::fs::read_to_string(out_dir.join("scores.csv")).unwrap();
+    let rows: Vec<&str> = scores.lines().collect();
+    assert_eq!(rows.len(), 3, "{scores}");
+    // Anna: every check, the bench's too; Ben: the bench's not applicable.
+    let anna_row: Vec<&str> = rows[1].split(',').collect();
+    assert_eq!(anna_row[0], "Anna Berg");
+    assert_eq!((anna_row[1], anna_row[2]), (anna_row[2], anna_row[2]), "{scores}");
+    assert_eq!(&anna_row[3..], ["31", "31", "", "0"], "{scores}");
+    assert_eq!(rows[2], "Ben Okafor,32,32,25,25,,6", "{scores}");
+    let anna_txt = std::fs::read_to_string(out_dir.join("Anna_Berg.txt")).unwrap();
+    assert!(
+        anna_txt.contains(&format!(", bench {}", panel.trim_end_matches('/'))),
+        "{anna_txt}"
+    );
+    let ben_json = out_dir.join("Ben_Okafor.json");
+    assert_eq!(with_result(&ben_json, "not applicable").len(), BENCH_CHECKS);
+    let anna_json = out_dir.join("Anna_Berg.json");
+    let passed = with_result(&anna_json, "pass");
+    assert_eq!(
+        passed.iter().filter(|n| is_bench(n)).count(),
+        BENCH_CHECKS,
+        "{anna_txt}"
+    );
+
+    // One bench for the whole class is refused: each student has their own.
+    let out = twin(&[
+        "check",
+        "slave",
+        "--roster",
+        roster.to_str().unwrap(),
+        "--bench",
+        &panel,
+    ]);
+    assert!(
+        text(&out).contains("error: --bench is one slave's bench: with --roster, give each student's in the roster's `bench` column"),
+        "{}",
+        text(&out)
     );
     serve.terminate();
 }
