@@ -174,4 +174,30 @@ fn a_roster_with_a_mistake_is_refused_with_its_file_and_line() {
         "{}",
         text(&out)
     );
+    // An id is held to the suite's protocol: 120 is no MEB device number,
+    // 248 no Modbus unit id.
+    for (suite, id, why) in [
+        ("meb-slave", "120", "an MEB slave's device number is 1 to 99"),
+        ("modbus-tcp-slave", "248", "a Modbus unit id is 1 to 247"),
+    ] {
+        std::fs::write(
+            &roster,
+            format!("student,link,id\nAnna,tcp://127.0.0.1:5701,\nBen,tcp://127.0.0.1:5702,{id}\n"),
+        )
+        .unwrap();
+        let out = twin(&[
+            "check",
+            "slave",
+            "--suite",
+            suite,
+            "--roster",
+            roster.to_str().unwrap(),
+        ]);
+        assert_eq!(out.status.code(), Some(1));
+        assert!(
+            text(&out).contains(&format!("class.csv, line 3: id `{id}`: {why}")),
+            "{}",
+            text(&out)
+        );
+    }
 }
