@@ -431,7 +431,12 @@ pub fn check(suite: &Suite, student: &Student) -> SuiteRun {
         None => None,
         Some(Ok(bench)) => Some(bench),
         Some(Err(why)) => {
-            return SuiteRun::unreachable(suite, &student.link, student.id, format!("bench: {why}"));
+            return SuiteRun::unreachable(
+                suite,
+                &student.link,
+                student.id,
+                format!("bench: {why}"),
+            );
         }
     };
     match Wire::open(&student.link) {
@@ -494,7 +499,9 @@ mod tests {
     use super::*;
 
     fn csv_err(text: &str) -> String {
-        parse_csv(text, "class.csv", 1, Protocol::Meb).unwrap_err().to_string()
+        parse_csv(text, "class.csv", 1, Protocol::Meb)
+            .unwrap_err()
+            .to_string()
     }
 
     #[test]

@@ -310,7 +310,11 @@ fn a_class_runs_each_students_bench_checks_on_their_own_bench() {
     // Anna: every check, the bench's too; Ben: the bench's not applicable.
     let anna_row: Vec<&str> = rows[1].split(',').collect();
     assert_eq!(anna_row[0], "Anna Berg");
-    assert_eq!((anna_row[1], anna_row[2]), (anna_row[2], anna_row[2]), "{scores}");
+    assert_eq!(
+        (anna_row[1], anna_row[2]),
+        (anna_row[2], anna_row[2]),
+        "{scores}"
+    );
     assert_eq!(&anna_row[3..], ["31", "31", "", "0"], "{scores}");
     assert_eq!(rows[2], "Ben Okafor,32,32,25,25,,6", "{scores}");
     let anna_txt = std::fs::read_to_string(out_dir.join("Anna_Berg.txt")).unwrap();

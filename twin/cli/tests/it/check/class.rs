@@ -177,7 +177,11 @@ fn a_roster_with_a_mistake_is_refused_with_its_file_and_line() {
     // An id is held to the suite's protocol: 120 is no MEB device number,
     // 248 no Modbus unit id.
     for (suite, id, why) in [
-        ("meb-slave", "120", "an MEB slave's device number is 1 to 99"),
+        (
+            "meb-slave",
+            "120",
+            "an MEB slave's device number is 1 to 99",
+        ),
         ("modbus-tcp-slave", "248", "a Modbus unit id is 1 to 247"),
     ] {
         std::fs::write(

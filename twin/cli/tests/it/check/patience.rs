@@ -53,9 +53,11 @@ fn a_slow_slave_passes_with_patience_but_not_the_timing_check() {
         "{shown}"
     );
     assert!(
-        shown.lines().next().unwrap().ends_with(
-            "; patience 8: its waits 8 times as long, its timing checks' as written"
-        ),
+        shown
+            .lines()
+            .next()
+            .unwrap()
+            .ends_with("; patience 8: its waits 8 times as long, its timing checks' as written"),
         "{shown}"
     );
     // Each check patience let through says how late its reply was.
@@ -69,7 +71,8 @@ fn a_slow_slave_passes_with_patience_but_not_the_timing_check() {
 
     let out = twin(&["check", "slave", &slave.link, "--patience", "0.5"]);
     assert!(
-        text(&out).contains("`0.5`: patience is a factor from 1 (the suite's waits as written) to 100"),
+        text(&out)
+            .contains("`0.5`: patience is a factor from 1 (the suite's waits as written) to 100"),
         "{}",
         text(&out)
     );

@@ -383,7 +383,10 @@ fn a_server_check_records_both_links_with_every_frame_its_report_cites() {
         .iter()
         .find(|r| r["topic"] == "/link/bus/frames" && r["text"] == "@01VA000104D225*\n")
         .unwrap_or_else(|| panic!("the write on the bus: {shown}"));
-    assert_eq!((&write["protocol"], &write["cmd"]), (&"meb".into(), &"VA".into()));
+    assert_eq!(
+        (&write["protocol"], &write["cmd"]),
+        (&"meb".into(), &"VA".into())
+    );
 
     // The twin's own readers: the bus as a logic analyzer sees it, the
     // frames as CSV, and the view.
@@ -391,7 +394,11 @@ fn a_server_check_records_both_links_with_every_frame_its_report_cites() {
     let out = twin(&["scope", s(&mcap), "--link", "bus", "--vcd", s(&vcd)]);
     assert!(out.status.success(), "{}", text(&out));
     let wave = std::fs::read_to_string(&vcd).unwrap();
-    assert!(wave.contains("supervisor"), "{}", &wave[..wave.len().min(2000)]);
+    assert!(
+        wave.contains("supervisor"),
+        "{}",
+        &wave[..wave.len().min(2000)]
+    );
     let csv = dir.join("csv");
     let out = twin(&["export", s(&mcap), "--csv", s(&csv)]);
     assert!(out.status.success(), "{}", text(&out));
