@@ -10,7 +10,7 @@ use twin_realtime::io::{LinkAddr, LinkDefaults, LinkSpec, Parity};
 /// Why the link cannot be used.
 #[derive(Debug, thiserror::Error)]
 pub enum WireError {
-    #[error("{0}")]
+    #[error(transparent)]
     Spec(#[from] twin_realtime::io::spec::LinkSpecError),
     #[error("cannot connect to {link}: {why} (is the program listening there?)")]
     Connect { link: String, why: String },
