@@ -26,6 +26,13 @@ pub trait Endpoint: Send {
     fn handle_timeout(&mut self, devices: &mut [Device], now: SimTime);
     /// The next instant the endpoint needs to be woken at, if any.
     fn poll_timeout(&self, devices: &[Device]) -> Option<SimTime>;
+    /// The next firmware loop tick the engine should run between its 1 ms
+    /// ticks, if any: a sketch that owes a reply is run on its own loop
+    /// period, so the reply leaves when the sketch has written it (an
+    /// instant of no link's, so the engine sleeps to it without spinning).
+    fn follow(&self, _devices: &[Device]) -> Option<SimTime> {
+        None
+    }
     /// A frame to send now, written to `buf`; its length.
     fn poll_transmit(
         &mut self,

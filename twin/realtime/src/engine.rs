@@ -18,7 +18,7 @@ use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, TryRecvError};
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
-use super::clock::RtClock;
+use super::clock::{CATCH_UP, RtClock};
 pub use super::config::{EndpointFactory, LinkConfig, LinkFault};
 pub use super::device::Device;
 use super::firmware_log::FirmwareLog;
@@ -101,6 +101,10 @@ pub struct RtEngine {
     window: Lateness,
     pub counters: RtCounters,
     stop: Option<String>,
+    /// How far behind the wall the ticks catch up before the clock slips,
+    /// and what the slip spares, in the user's words.
+    catch_up: SimDuration,
+    slip_spares: &'static str,
     /// A line said (even with the monitor off) for a device's event, when
     /// the session's role has one to say: `twin supervise`'s hint at its
     /// first timeout from each slave.
@@ -143,8 +147,20 @@ impl RtEngine {
             window: Lateness::new(),
             counters: RtCounters::default(),
             stop: None,
+            catch_up: CATCH_UP,
+            slip_spares: "so that no step of the plant or the firmware was skipped",
             event_hint: None,
         }
+    }
+
+    /// How far behind the wall the engine catches up, tick by tick, before
+    /// the clock slips (default [`CATCH_UP`]), and what the slip spares
+    /// (said with it, "so that …"). A role with no plant to step through
+    /// lost time, only timers (a master's reply timeouts), catches up
+    /// little: a burst would spend a stall as time its timers waited.
+    pub fn set_catch_up(&mut self, catch_up: SimDuration, spares: &'static str) {
+        self.catch_up = catch_up;
+        self.slip_spares = spares;
     }
 
     /// Whether the plant samples and the controllers' readings go to the
@@ -275,6 +291,12 @@ impl RtEngine {
             &self.links,
         ))));
         self.swap_front(&mut front.lock());
+        front.lock().catch_up = self.catch_up;
+        // Idle batches stay well inside the catch-up, so a batch waited for
+        // is no slip.
+        let batch = IDLE_BATCH
+            .min(SimDuration(self.catch_up.0 / 2))
+            .max(self.tick);
         let mut next_tick = SimTime::ZERO;
         // The tick the last wait was for: the next one, or the last of a
         // batch while no one is connected.
@@ -288,11 +310,16 @@ impl RtEngine {
                     self.stop = Some("duration reached".into());
                 }
             }
-            let (next, idle) = {
+            self.follow(next_tick, &front);
+            let (next, idle, follow) = {
                 let mut shared = front.lock();
                 shared.service_timers(self.clock.now());
                 shared.ship_frames();
-                (shared.next_deadline(), shared.conns.is_empty())
+                (
+                    shared.next_deadline(),
+                    shared.conns.is_empty(),
+                    shared.next_follow(),
+                )
             };
             if self.stop.is_some() {
                 break;
@@ -302,7 +329,7 @@ impl RtEngine {
             // a twentieth of the wake-ups (a class of idle modules paid for
             // 1000 a second each).
             aimed = if idle && next.is_none() {
-                next_tick + SimDuration(IDLE_BATCH.0 - self.tick.0)
+                next_tick + SimDuration(batch.0 - self.tick.0)
             } else {
                 next_tick
             };
@@ -313,6 +340,12 @@ impl RtEngine {
             let (deadline, spin) = match next {
                 Some(d) if d < aimed => (d, true),
                 _ => (aimed, false),
+            };
+            // A sketch followed between the ticks: its loop period is
+            // 100 µs or so, and a few tens of µs late it computes the same.
+            let (deadline, spin) = match follow {
+                Some(f) if f < deadline => (f, false),
+                _ => (deadline, spin),
             };
             if let Some(message) = self.wait(inbound, deadline, spin) {
                 // The plant catches up first: a newcomer's first request,
@@ -448,6 +481,19 @@ impl RtEngine {
         }
     }
 
+    /// The firmware loops due by now that a link wants run before the next
+    /// tick (a sketch that owes a reply, bytes that wait for a core to
+    /// reach their arrival: [`crate::Endpoint::follow`]), so a reply the
+    /// sketch writes mid-tick leaves then, not at the next tick. The plant
+    /// advances to each loop tick as in a tick (lazily, in its own steps),
+    /// never beyond `next_tick`, which the engine's tick runs.
+    fn follow(&mut self, next_tick: SimTime, front: &FrontHandle) {
+        let now = self.clock.now().min(next_tick);
+        if front.lock().next_follow().is_some_and(|due| due <= now) {
+            self.with_front(front, |engine| engine.firmware_ticks(now, false));
+        }
+    }
+
     /// The ticks due at `now` from `next_tick` on, every one in order.
     /// Lateness is measured against `aimed`, the tick the wait was for. A
     /// wake more than `CATCH_UP` behind (a stopped process, a machine too
@@ -536,7 +582,8 @@ impl RtEngine {
     fn say_slip(&self, t: SimTime, slipped_ms: f64) {
         let detail = format!(
             "real time lost: {slipped_ms:.0} ms (the machine stopped the twin or was too busy to \
-             keep up; its clock slipped so that no step of the plant or the firmware was skipped)"
+             keep up; its clock slipped {})",
+            self.slip_spares
         );
         if self.status_period > SimDuration::ZERO {
             let _ = self.sink.send(SinkMsg::Say(detail.clone()));

@@ -16,6 +16,14 @@
 //!   [`REPLY_WAIT`]) mark the board dead: the node says where its program is
 //!   ([`twin_sim::engine::SimNode::not_answering`]), the server keeps serving
 //!   the others, and the master sees timeouts as on the bench.
+//!
+//! A sketch's core runs with its pins, on the engine's ticks. Between two
+//! 1 ms ticks it would stand still, so a request that came mid-tick would
+//! reach it early and its reply, written mid-tick, would wait for the next
+//! tick: while a board owes a reply (and while bytes wait for the core to
+//! reach their arrival), the endpoint asks the engine to run the firmware
+//! on its own loop period ([`Endpoint::follow`]), so the bytes reach the
+//! core when they came and the reply leaves when it is written.
 
 use std::collections::VecDeque;
 
@@ -50,6 +58,15 @@ const WATCHDOG_REQUESTS: u32 = 2;
 const SILENCE: SimDuration = SimDuration::from_millis(5);
 /// Requests held for a TCP client before more are dropped.
 const QUEUE_MAX: usize = 256;
+/// How long after a request a board that owes its reply is followed on its
+/// loop period: far longer than any sketch of ours takes to answer; a board
+/// still silent then (a mute sketch, a student's that waits a second for
+/// bytes that never come) goes back to the engine's 1 ms ticks, so it does
+/// not keep the engine waking ten times a millisecond.
+const FOLLOW_FOR: SimDuration = SimDuration::from_millis(50);
+/// Bytes held for the cores to reach their arrival before more are
+/// dropped: far more than a link brings in a millisecond.
+const HELD_MAX: usize = QUEUE_MAX * MAX_FRAME;
 
 /// One board the watchdog keeps an eye on.
 #[derive(Debug, Clone)]
@@ -64,6 +81,9 @@ struct Watch {
     /// moment the next request comes.
     second: Option<SimTime>,
     fired: bool,
+    /// When the latest request for it came (the board is followed for
+    /// [`FOLLOW_FOR`] after it while a reply is owed).
+    last: SimTime,
 }
 
 /// The sketches behind one link (see the module's documentation).
@@ -82,6 +102,10 @@ pub struct FirmwareEndpoint {
     outstanding: Option<SimTime>,
     /// A queued request on its way to the sketch (kept, not allocated each time).
     next: Vec<u8>,
+    /// Bytes that came before the engine had run the sketches to their
+    /// arrival, back to back, and each chunk's arrival and length.
+    held: Vec<u8>,
+    held_chunks: VecDeque<(SimTime, usize)>,
 }
 
 impl FirmwareEndpoint {
@@ -107,6 +131,7 @@ impl FirmwareEndpoint {
                     asked: 0,
                     second: None,
                     fired: false,
+                    last: SimTime::ZERO,
                 })
                 .collect(),
             partial: Vec::with_capacity(MAX_FRAME),
@@ -115,7 +140,50 @@ impl FirmwareEndpoint {
             lengths: VecDeque::new(),
             outstanding: None,
             next: Vec::with_capacity(MAX_FRAME),
+            held: Vec::with_capacity(MAX_FRAME),
+            held_chunks: VecDeque::new(),
         }
+    }
+
+    /// Whether every sketch of the link has run to `at` (its next loop
+    /// tick is there or beyond): bytes that came at `at` may reach it.
+    fn reached(&self, devices: &[Device], at: SimTime) -> bool {
+        self.devices
+            .iter()
+            .filter_map(|&d| devices.get(d)?.next_tick)
+            .all(|tick| tick >= at)
+    }
+
+    /// The link's bytes at `now`, the sketches run to `now`: to the cores
+    /// (as over a bus) and cut into requests.
+    fn deliver(&mut self, devices: &mut [Device], now: SimTime, bytes: &[u8]) {
+        if !self.one_at_a_time {
+            for &d in &self.devices {
+                if let Some(device) = devices.get_mut(d) {
+                    // As in `hand_over`: the core stays with its pins.
+                    let at = firmware_time(device, now);
+                    device.node.handle_bytes(at, bytes);
+                }
+            }
+        }
+        self.frame(devices, now, bytes);
+    }
+
+    /// Hands over the held bytes whose arrival the sketches have reached.
+    fn release(&mut self, devices: &mut [Device]) {
+        let mut held = std::mem::take(&mut self.held);
+        let mut taken = 0;
+        while let Some(&(at, len)) = self.held_chunks.front()
+            && self.reached(devices, at)
+        {
+            self.held_chunks.pop_front();
+            let end = (taken + len).min(held.len());
+            let chunk = held.get(taken..end).unwrap_or_default();
+            self.deliver(devices, at, chunk);
+            taken = end;
+        }
+        held.drain(..taken);
+        self.held = held;
     }
 
     /// The slave id a whole, valid request is for; `None` for a broadcast
@@ -217,6 +285,7 @@ impl FirmwareEndpoint {
             Some(w) => {
                 let at = devices.get(w.device).map_or(now, |d| firmware_time(d, now));
                 w.since.get_or_insert(at);
+                w.last = at;
                 w.asked += 1;
                 if w.asked == WATCHDOG_REQUESTS {
                     w.second = Some(at);
@@ -291,19 +360,19 @@ fn firmware_time(device: &Device, now: SimTime) -> SimTime {
 
 impl Endpoint for FirmwareEndpoint {
     fn handle_bytes(&mut self, devices: &mut [Device], now: SimTime, bytes: &[u8]) {
-        if !self.one_at_a_time {
-            for &d in &self.devices {
-                if let Some(device) = devices.get_mut(d) {
-                    // As in `hand_over`: the core stays with its pins.
-                    let at = firmware_time(device, now);
-                    device.node.handle_bytes(at, bytes);
-                }
-            }
+        if self.held_chunks.is_empty() && self.reached(devices, now) {
+            self.deliver(devices, now, bytes);
+        } else if self.held.len() + bytes.len() <= HELD_MAX {
+            // The cores are behind the bytes' arrival (between two of the
+            // engine's ticks): they get them once the engine has run them
+            // there (see `follow`), not early.
+            self.held.extend_from_slice(bytes);
+            self.held_chunks.push_back((now, bytes.len()));
         }
-        self.frame(devices, now, bytes);
     }
 
     fn handle_timeout(&mut self, devices: &mut [Device], now: SimTime) {
+        self.release(devices);
         for &d in &self.devices {
             if let Some(device) = devices.get_mut(d) {
                 let at = firmware_time(device, now);
@@ -332,6 +401,26 @@ impl Endpoint for FirmwareEndpoint {
                 Some(device.next_tick.map_or(t, |tick| t.max(tick)))
             })
             .chain(self.outstanding.map(|since| since + REPLY_WAIT))
+            // Held bytes: the engine follows the sketches there first.
+            .chain(self.held_chunks.front().map(|&(at, _)| at))
+            .min()
+    }
+
+    fn follow(&self, devices: &[Device]) -> Option<SimTime> {
+        let owed = |w: &Watch| {
+            !w.fired
+                && w.since.is_some()
+                && devices
+                    .get(w.device)
+                    .and_then(|d| d.next_tick)
+                    .is_some_and(|tick| tick < w.last + FOLLOW_FOR)
+        };
+        if self.held_chunks.is_empty() && !self.watches.iter().any(owed) {
+            return None;
+        }
+        self.devices
+            .iter()
+            .filter_map(|&d| devices.get(d)?.next_tick)
             .min()
     }
 

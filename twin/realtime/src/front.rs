@@ -118,6 +118,9 @@ pub struct Front {
     /// up to (its next tick), and the clock's slips since it last took them.
     pub(super) ticked_to: SimTime,
     pub(super) slips: Slips,
+    /// How far ahead of `ticked_to` a time may be before the clock slips
+    /// (see [`crate::RtEngine::set_catch_up`]).
+    pub(super) catch_up: SimDuration,
 }
 
 /// Slips of the clock: how many, and the nanoseconds lost in all.
@@ -275,6 +278,7 @@ impl Front {
             sink: Some(sink),
             clock: Some(clock),
             buf: vec![0; MAX_FRAME],
+            catch_up: CATCH_UP,
             ..Self::default()
         }
     }
@@ -312,10 +316,10 @@ impl Front {
         // Stamped before an earlier slip: it came at most now.
         let at = at.min(clock.now());
         let ahead = at.saturating_since(self.ticked_to);
-        if ahead <= CATCH_UP {
+        if ahead <= self.catch_up {
             return at;
         }
-        let slip = SimDuration(ahead.0 - CATCH_UP.0);
+        let slip = SimDuration(ahead.0 - self.catch_up.0);
         clock.slip(slip);
         self.slips.count += 1;
         self.slips.ns += slip.0 / (protocols::time::TICKS_PER_SECOND / 1_000_000_000);
@@ -753,6 +757,15 @@ impl Front {
                 conn.endpoint.transmit_done(&mut self.devices, now);
             }
         }
+    }
+
+    /// The earliest firmware loop tick a connection wants run before the
+    /// engine's next tick (see [`crate::Endpoint::follow`]).
+    pub(super) fn next_follow(&self) -> Option<SimTime> {
+        self.conns
+            .values()
+            .filter_map(|c| c.endpoint.follow(&self.devices))
+            .min()
     }
 
     /// The earliest instant a connection needs attention at.

@@ -48,7 +48,7 @@ impl LatenessSummary {
         (self.slips > 0).then(|| {
             format!(
                 "real time lost: {:.0} ms in {} slip{} (the machine stopped the twin or was too \
-                 busy; its clock slipped rather than skip a step of the plant or the firmware)",
+                 busy; its clock slipped rather than run the lost time in a burst)",
                 self.slipped_ms,
                 self.slips,
                 if self.slips == 1 { "" } else { "s" }

@@ -300,6 +300,130 @@ fn supervise_closes_the_speed_loop_against_serve_over_a_vsp_pair() {
     let _ = std::fs::remove_file(&out);
 }
 
+/// `twin supervise` stopped (SIGSTOP) for 300 ms every 1.5 s while it polls
+/// `twin serve` over a vsp pair every 2 ms with a 45 ms reply timeout. The
+/// slave answers in a few ms, its reply waiting in the pty while the
+/// supervisor stands still; the supervisor must take each stall as the slip
+/// its clock counts, not as time its request waited. Read from its
+/// recording: no reply comes later than the timeout after its request, no
+/// request is retried sooner than its timeout, and the slips are there.
+/// Before, the engine caught up 50 ms of each stall in a burst, so the
+/// request in flight at a stall timed out (or was answered 51 ms late).
+#[test]
+fn a_stopped_supervisor_slips_its_clock_and_waits_its_whole_timeout() {
+    const TIMEOUT_S: f64 = 0.045;
+    let (a, b) = pair_paths("stall");
+    let _vsp = Proc::start(&["vsp", s(&a), s(&b)]);
+    let _serve = Proc::start(&[
+        "serve",
+        "--meb",
+        s(&b),
+        "--quiet",
+        "--no-record",
+        "--status-every",
+        "0",
+    ]);
+    let out = std::env::temp_dir().join(format!("twin-{}-stall.mcap", std::process::id()));
+    let supervise = Proc::start(&[
+        "supervise",
+        "--meb",
+        s(&a),
+        "--no-server",
+        "--set-point",
+        "1000",
+        "--poll-ms",
+        "2",
+        "--timeout-ms",
+        "45",
+        "--quiet",
+        "--status-every",
+        "0",
+        "--out",
+        s(&out),
+    ]);
+    let pid = supervise.child.id().to_string();
+    let mut stalls = 0;
+    for _ in 0..5 {
+        std::thread::sleep(Duration::from_millis(1200));
+        let stop = Command::new("kill").args(["-STOP", &pid]).status();
+        std::thread::sleep(Duration::from_millis(300));
+        let cont = Command::new("kill").args(["-CONT", &pid]).status();
+        assert!(stop.is_ok_and(|s| s.success()) && cont.is_ok_and(|s| s.success()));
+        stalls += 1;
+    }
+    std::thread::sleep(Duration::from_millis(500));
+    let printed = supervise.terminate();
+    println!("{printed}");
+
+    // The bus's frames in order (start, who, text), the supervisor's
+    // timeouts and retries, the slips.
+    let (mut frames, mut timeouts, mut slips) = (Vec::new(), Vec::new(), (0, 0.0));
+    twin_recording::Recording::scan(&out, |m| {
+        if m.topic == "/link/bus/frames" {
+            let v = m.value()?;
+            frames.push((
+                v["start_s"].as_f64().unwrap_or(m.time_s()),
+                v["from"].as_str().unwrap_or("").to_string(),
+                v["text"].as_str().unwrap_or("").trim().to_string(),
+            ));
+        } else if m.topic == "/events" {
+            let v = m.value()?;
+            if v["kind"] == "timeout" || v["kind"] == "retry" {
+                timeouts.push(format!("{:.4} s {}", m.time_s(), v["detail"]));
+            }
+        } else if m.topic == "/realtime/lateness" {
+            let v = m.value()?;
+            slips = (
+                v["total"]["slips"].as_u64().unwrap_or(0),
+                v["total"]["slipped_ms"].as_f64().unwrap_or(0.0),
+            );
+        }
+        Ok(())
+    })
+    .expect("the recording reads");
+    let _ = std::fs::remove_file(&out);
+
+    assert!(frames.len() > 1000, "{} frames", frames.len());
+    let mut late = Vec::new();
+    for pair in frames.windows(2) {
+        let [(t0, from0, text0), (t1, from1, text1)] = pair else {
+            continue;
+        };
+        if from0 != "twin" {
+            continue;
+        }
+        let waited = t1 - t0;
+        if from1 != "twin" && waited > TIMEOUT_S {
+            late.push(format!("{text0} at {t0:.4} s answered {:.1} ms later", waited * 1e3));
+        }
+        // The same request again with no reply between: a retry, which
+        // waits the whole timeout on the session's clock.
+        if from1 == "twin" && text1 == text0 {
+            assert!(
+                waited >= TIMEOUT_S,
+                "{text0} at {t0:.4} s retried {:.1} ms later",
+                waited * 1e3
+            );
+            late.push(format!("{text0} at {t0:.4} s retried {:.1} ms later", waited * 1e3));
+        }
+    }
+    // A slave late on its own (the machine busy, not the stall) may cost
+    // one; each stall cost one before.
+    assert!(
+        late.len() <= 1 && timeouts.len() <= 2,
+        "{} stalls: {late:?}, {timeouts:?}",
+        stalls
+    );
+    // Each stall slipped the clock by nearly all of its 300 ms.
+    assert!(slips.0 >= stalls, "{} slips for {stalls} stalls", slips.0);
+    assert!(
+        slips.1 >= 250.0 * stalls as f64,
+        "{} ms lost in {stalls} stalls",
+        slips.1
+    );
+    assert!(printed.contains("real time lost:"), "{printed}");
+}
+
 fn wait_for_speed_below(raw: &mut Raw, rpm: u16, within: Duration) {
     let deadline = Instant::now() + within;
     let mut last = 0;

@@ -190,6 +190,15 @@ fn first_timeout_hint(options: &SuperviseOptions) -> crate::engine::EventHint {
 /// Index of the supervisor among the engine's devices.
 const SUPERVISOR: usize = 0;
 
+/// How far behind the wall the supervisor's engine catches up before its
+/// clock slips. It has no plant to step through lost time, only timers:
+/// after a stall of the process (stopped, or starved by a busy machine) a
+/// burst of catch-up would count the stall as time a request waited for
+/// its reply, and time out a request whose reply lay in the port's buffer
+/// all along. Five ticks: a busy machine's scheduling delay passes
+/// unnoticed, a stall is the slip the session counts and says.
+const CATCH_UP: SimDuration = SimDuration::from_millis(5);
+
 /// `twin supervise` as a session's role: the supervisor, its bus and the
 /// server's listeners.
 struct Supervising<'a, C> {
@@ -215,6 +224,7 @@ impl<C: FnOnce(Sender<Inbound>)> Role for Supervising<'_, C> {
         // engine's; and no plant here: the module is on the other end of the bus.
         engine.set_status_period(SimDuration::ZERO);
         engine.event_hint = Some(first_timeout_hint(self.options));
+        engine.set_catch_up(CATCH_UP, "so that no reply's wait counts the stall");
         engine.devices.push(Device::new(
             "supervisor",
             Box::new(SupervisorNode::new(supervisor)),
