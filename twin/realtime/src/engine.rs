@@ -490,7 +490,7 @@ impl RtEngine {
     fn follow(&mut self, next_tick: SimTime, front: &FrontHandle) {
         let now = self.clock.now().min(next_tick);
         if front.lock().next_follow().is_some_and(|due| due <= now) {
-            self.with_front(front, |engine| engine.firmware_ticks(now, false));
+            self.with_front(front, |engine| engine.firmware_loops(now));
         }
     }
 
@@ -602,6 +602,12 @@ impl RtEngine {
     /// At a recording instant (`record`) the module controllers' readings go
     /// to the sink too, beside the plant samples.
     fn firmware_ticks(&mut self, t: SimTime, record: bool) {
+        self.firmware_loops(t);
+        self.firmware_reports(t, record);
+    }
+
+    /// The firmware loops due at `t`, each device's in time order.
+    fn firmware_loops(&mut self, t: SimTime) {
         // Each firmware's loop at its own period, in time order across the
         // devices: a sketch's pins are fed every 100 µs or so (an encoder's
         // edges come faster than the engine's 1 ms tick), the Rust nodes'
@@ -660,6 +666,13 @@ impl RtEngine {
                     .send(SinkMsg::Say(format!("{}: {why}", device.name)));
             }
         }
+    }
+
+    /// What the loops run so far have to say: readings at a recording
+    /// instant (`record`), the sketches' channels, the devices' events, the
+    /// status line. Once a tick: a sketch followed between the ticks
+    /// reports at the next one, so the sink is not woken ten times a tick.
+    fn firmware_reports(&mut self, t: SimTime, record: bool) {
         if record {
             for device in &self.devices {
                 if let (Some(module), Some(readings)) =
