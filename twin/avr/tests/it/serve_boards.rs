@@ -613,3 +613,101 @@ fn over_tcp_the_ev_sketch_answers_every_request_in_order() {
     assert!(timeouts <= requests / 100 + 1, "{last}");
     assert!(replies + timeouts + 2 >= requests, "{last}");
 }
+
+/// The EV sketch over TCP, polled one request at a time, recorded: the
+/// sketch's UART hears each request when it came on the link (not at the
+/// engine's last tick, up to a millisecond early, as before), and each
+/// reply leaves the link once the sketch has written it and its line has
+/// gone quiet, never earlier. Read from the recording, so a loaded machine
+/// only makes it late, which is allowed.
+#[test]
+fn the_ev_sketch_hears_each_request_when_it_came_and_answers_once_written() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let elf = sketches().join("ev-controller.elf");
+    let dir = scratch("reply-times");
+    let recording = dir.join("replies.mcap");
+    let mut serve = twin_avr(&[
+        "serve",
+        "--meb",
+        "tcp://127.0.0.1:0",
+        "--firmware",
+        &elf.display().to_string(),
+        "--duration",
+        "60",
+        "--out",
+        &recording.display().to_string(),
+        "--quiet",
+        "--status-every",
+        "0",
+    ]);
+    let (out, head) = wait_ready(&mut serve);
+    let address = head
+        .lines()
+        .find_map(|l| l.trim().strip_prefix("meb tcp://"))
+        .and_then(|rest| rest.split_whitespace().next())
+        .unwrap_or_else(|| panic!("no TCP link in {head}"))
+        .to_string();
+    let (host, port) = address.rsplit_once(':').unwrap();
+    let timed = Command::new("python3")
+        .arg(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/peers/meb_latency.py"))
+        .args([host, port, "60"])
+        .output()
+        .expect("python3 runs");
+    assert!(
+        timed.status.success(),
+        "{}",
+        String::from_utf8_lossy(&timed.stderr)
+    );
+    let seen: Value = serde_json::from_slice(&timed.stdout).unwrap();
+    let rest = stop(serve, out);
+    println!("{seen}\n{rest}");
+    assert_eq!(seen["replies"], 60, "{seen}");
+    assert_eq!(seen["wrong"], 0, "{seen}");
+
+    // The link's frames (start, from the client?) and the sketch's UART
+    // bursts (dir, start, end, baud), in order.
+    let (mut link, mut uart) = (Vec::new(), Vec::new());
+    twin_recording::Recording::scan(&recording, |m| {
+        if m.topic.starts_with("/link/") && m.topic.ends_with("/frames") {
+            let v = m.value()?;
+            link.push((
+                v["start_s"].as_f64().unwrap_or(m.time_s()),
+                v["from"] != "twin",
+            ));
+        } else if m.topic.starts_with("/firmware/") && m.topic.ends_with("/uart") {
+            let v = m.value()?;
+            uart.push((
+                v["dir"] == "rx",
+                v["start_s"].as_f64().unwrap_or(f64::NAN),
+                v["end_s"].as_f64().unwrap_or(f64::NAN),
+                v["baud"].as_f64().unwrap_or(f64::NAN),
+            ));
+        }
+        Ok(())
+    })
+    .expect("the recording reads");
+    let requests: Vec<f64> = link.iter().filter(|l| l.1).map(|l| l.0).collect();
+    let replies: Vec<f64> = link.iter().filter(|l| !l.1).map(|l| l.0).collect();
+    let heard: Vec<f64> = uart.iter().filter(|u| u.0).map(|u| u.2).collect();
+    let written: Vec<(f64, f64)> = uart.iter().filter(|u| !u.0).map(|u| (u.2, u.3)).collect();
+    assert_eq!(requests.len(), 60, "{} requests recorded", requests.len());
+    assert_eq!(heard.len(), 60, "{} requests heard", heard.len());
+    assert_eq!(written.len(), 60, "{} replies written", written.len());
+    // Recorded to the nanosecond, in floating point.
+    const EPS: f64 = 2e-9;
+    for (n, (came, got)) in requests.iter().zip(&heard).enumerate() {
+        assert!(
+            got + EPS >= *came,
+            "request {n} came at {came:.6} s, its last byte reached the sketch at {got:.6} s"
+        );
+    }
+    for (n, (sent, (end, baud))) in replies.iter().zip(&written).enumerate() {
+        // A frame ends when the line has been quiet for two characters.
+        let due = end + 20.0 / baud;
+        assert!(
+            sent + EPS >= due,
+            "reply {n} left at {sent:.6} s, before the sketch's line went quiet at {due:.6} s"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
