@@ -41,10 +41,13 @@ const SPIN: SimDuration = SimDuration::from_micros(60);
 const SLIP_NODE: &str = "clock";
 /// Ticks per nanosecond.
 const TICKS_PER_NANO: u64 = protocols::time::TICKS_PER_SECOND / 1_000_000_000;
-/// While no one is connected, the plant ticks in batches this long: well
-/// inside `CATCH_UP`, so a batch waited for is no slip. An idle class of 35
-/// modules, debug build: 47 % of a core at 10 ms, 32 % at 20, 22 % at 40.
-const IDLE_BATCH: SimDuration = SimDuration::from_millis(20);
+/// While no one is connected, the plant ticks in batches this long. The
+/// clock slips only when a wake comes later than the batch's last tick by
+/// more than the catch-up, so a batch may be longer than that; each batch
+/// is a wake-up of every module's engine, and a newcomer or a command wakes
+/// it at once (the plant catches up before it is served). An idle class of
+/// 35 modules, debug build: 47 % of a core at 10 ms, 32 % at 20, 22 % at 40.
+const IDLE_BATCH: SimDuration = SimDuration::from_millis(100);
 /// How often the engine looks for connections past their idle timeout.
 const IDLE_CHECK_PERIOD: SimDuration = SimDuration::from_millis(100);
 
@@ -292,11 +295,7 @@ impl RtEngine {
         ))));
         self.swap_front(&mut front.lock());
         front.lock().catch_up = self.catch_up;
-        // Idle batches stay well inside the catch-up, so a batch waited for
-        // is no slip.
-        let batch = IDLE_BATCH
-            .min(SimDuration(self.catch_up.0 / 2))
-            .max(self.tick);
+        let batch = IDLE_BATCH.max(self.tick);
         let mut next_tick = SimTime::ZERO;
         // The tick the last wait was for: the next one, or the last of a
         // batch while no one is connected.
@@ -311,28 +310,29 @@ impl RtEngine {
                 }
             }
             self.follow(next_tick, &front);
-            let (next, idle, follow) = {
+            // With no one connected nothing reads the plant between ticks,
+            // so they run in batches: the same ticks in the same order, on
+            // a hundredth of the wake-ups (a class of idle modules paid for
+            // 1000 a second each), never past the session's end.
+            let (next, follow) = {
                 let mut shared = front.lock();
                 shared.service_timers(self.clock.now());
                 shared.ship_frames();
-                (
-                    shared.next_deadline(),
-                    shared.conns.is_empty(),
-                    shared.next_follow(),
-                )
+                let next = shared.next_deadline();
+                aimed = if shared.conns.is_empty() && next.is_none() {
+                    let last = next_tick + SimDuration(batch.0 - self.tick.0);
+                    end.map_or(last, |e| last.min(e.max(next_tick)))
+                } else {
+                    next_tick
+                };
+                // The clock slips when the wake is late for the tick it
+                // waited for, not for the batch's length.
+                shared.ticked_to = aimed;
+                (next, shared.next_follow())
             };
             if self.stop.is_some() {
                 break;
             }
-            // With no one connected nothing reads the plant between ticks,
-            // so they run in batches: the same ticks in the same order, on
-            // a twentieth of the wake-ups (a class of idle modules paid for
-            // 1000 a second each).
-            aimed = if idle && next.is_none() {
-                next_tick + SimDuration(batch.0 - self.tick.0)
-            } else {
-                next_tick
-            };
             // Only a link's deadline (a reply's turnaround, a timer) is
             // worth spinning for: a plant tick a few tens of microseconds
             // late computes the same step, and spinning before each one
