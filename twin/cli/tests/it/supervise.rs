@@ -301,17 +301,21 @@ fn supervise_closes_the_speed_loop_against_serve_over_a_vsp_pair() {
 }
 
 /// `twin supervise` stopped (SIGSTOP) for 300 ms every 1.5 s while it polls
-/// `twin serve` over a vsp pair every 2 ms with a 45 ms reply timeout. The
+/// `twin serve` over a vsp pair every 2 ms with a 30 ms reply timeout. The
 /// slave answers in a few ms, its reply waiting in the pty while the
 /// supervisor stands still; the supervisor must take each stall as the slip
 /// its clock counts, not as time its request waited. Read from its
-/// recording: no reply comes later than the timeout after its request, no
-/// request is retried sooner than its timeout, and the slips are there.
-/// Before, the engine caught up 50 ms of each stall in a burst, so the
-/// request in flight at a stall timed out (or was answered 51 ms late).
+/// recording: no request is retried sooner than its timeout, none waits
+/// longer than its timeout and the 5 ms the supervisor catches up (a slave
+/// slow on a busy machine only makes the timeout fire on time), and the
+/// slips are there. Before, the engine caught up 50 ms of each stall in a
+/// burst, so the request in flight at a stall was retried or answered 50 ms
+/// or more after it was sent.
 #[test]
 fn a_stopped_supervisor_slips_its_clock_and_waits_its_whole_timeout() {
-    const TIMEOUT_S: f64 = 0.045;
+    const TIMEOUT_S: f64 = 0.030;
+    // The timeout, the catch-up, and room for the engine's own pass.
+    const LONGEST_S: f64 = TIMEOUT_S + 0.010;
     // Other tests' servers would make the slave itself late.
     let _cores = support::cores_to_myself();
     let (a, b) = pair_paths("stall");
@@ -336,7 +340,7 @@ fn a_stopped_supervisor_slips_its_clock_and_waits_its_whole_timeout() {
         "--poll-ms",
         "2",
         "--timeout-ms",
-        "45",
+        "30",
         "--quiet",
         "--status-every",
         "0",
@@ -395,7 +399,7 @@ fn a_stopped_supervisor_slips_its_clock_and_waits_its_whole_timeout() {
             continue;
         }
         let waited = t1 - t0;
-        if from1 != "twin" && waited > TIMEOUT_S {
+        if from1 != "twin" && waited > LONGEST_S {
             late.push((
                 *t0,
                 format!("{text0} at {t0:.4} s answered {:.1} ms later", waited * 1e3),
@@ -409,23 +413,19 @@ fn a_stopped_supervisor_slips_its_clock_and_waits_its_whole_timeout() {
                 "{text0} at {t0:.4} s retried {:.1} ms later",
                 waited * 1e3
             );
-            late.push((
-                *t0,
-                format!("{text0} at {t0:.4} s retried {:.1} ms later", waited * 1e3),
-            ));
+            if waited > LONGEST_S {
+                late.push((
+                    *t0,
+                    format!("{text0} at {t0:.4} s retried {:.1} ms later", waited * 1e3),
+                ));
+            }
         }
     }
-    // Each stall cost a late reply or a retry before. A slave late on its
-    // own (a machine busy with other work, not the stall) may cost a few
-    // in a row: counted as one episode, and one such is let pass.
-    let episodes = late
-        .iter()
-        .zip(std::iter::once(f64::NEG_INFINITY).chain(late.iter().map(|(t, _)| *t)))
-        .filter(|((t, _), before)| t - before > 0.3)
-        .count();
     assert!(
-        episodes <= 1,
-        "{stalls} stalls, {episodes} episodes late: {late:?}, {timeouts:?}"
+        late.is_empty(),
+        "{stalls} stalls, {} waits too long: {late:?}, {} timeouts: {timeouts:?}",
+        late.len(),
+        timeouts.len()
     );
     // Each stall slipped the clock by nearly all of its 300 ms.
     assert!(slips.0 >= stalls, "{} slips for {stalls} stalls", slips.0);
