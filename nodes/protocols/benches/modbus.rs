@@ -10,7 +10,7 @@ use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use protocols::modbus::rtu::{Direction, RtuDecoder};
 use protocols::modbus::serial::{PTY_SILENCE, Timing};
 use protocols::modbus::{EncodePdu, Registers, Request, Response, ascii, rtu, tcp};
-use protocols::modbus8::{CrcOrder, Frame, Modbus8Decoder};
+use protocols::modbus8::{CrcOrder, Modbus8Decoder, Modbus8Repr};
 use protocols::time::SimTime;
 
 /// FC03: read 10 holding registers from 0, and its reply.
@@ -27,7 +27,7 @@ fn fc03() -> (Request, Response) {
 fn modbus8(c: &mut Criterion) {
     let mut g = c.benchmark_group("modbus8");
     g.throughput(Throughput::Elements(1));
-    let frame = Frame {
+    let frame = Modbus8Repr {
         id: 1,
         function: 3,
         addr: 5,
@@ -35,7 +35,7 @@ fn modbus8(c: &mut Criterion) {
     };
     let bytes = frame.to_bytes(CrcOrder::HighFirst);
     g.bench_function("parse", |b| {
-        b.iter(|| Frame::parse(black_box(&bytes), CrcOrder::HighFirst))
+        b.iter(|| Modbus8Repr::parse(black_box(&bytes), CrcOrder::HighFirst))
     });
     let mut out = [0u8; 8];
     g.bench_function("emit", |b| {
@@ -82,13 +82,21 @@ trait EncodeDyn {
 
 impl<T: EncodePdu> EncodeDyn for T {
     fn rtu(&self, out: &mut [u8]) -> usize {
-        rtu::emit(1, self, out).unwrap_or(0)
+        rtu::RtuRepr { unit: 1, pdu: self }.emit(out).unwrap_or(0)
     }
     fn ascii(&self, out: &mut [u8]) -> usize {
-        ascii::emit(1, self, out).unwrap_or(0)
+        ascii::AsciiRepr { unit: 1, pdu: self }
+            .emit(out)
+            .unwrap_or(0)
     }
     fn tcp(&self, out: &mut [u8]) -> usize {
-        tcp::emit(7, 1, self, out).unwrap_or(0)
+        tcp::TcpRepr {
+            transaction_id: 7,
+            unit: 1,
+            pdu: self,
+        }
+        .emit(out)
+        .unwrap_or(0)
     }
 }
 
@@ -105,13 +113,13 @@ fn framings(c: &mut Criterion) {
         c,
         "rtu",
         |p, out| p.rtu(out),
-        |adu, req| rtu::parse(adu).is_ok_and(|f| pdu_ok(f.pdu, req)),
+        |adu, req| rtu::RtuFrame::new_checked(adu).is_ok_and(|f| pdu_ok(f.pdu(), req)),
     );
     framing(
         c,
         "tcp",
         |p, out| p.tcp(out),
-        |adu, req| tcp::parse(adu).is_ok_and(|f| pdu_ok(f.pdu, req)),
+        |adu, req| tcp::TcpFrame::new_checked(adu).is_ok_and(|f| pdu_ok(f.pdu(), req)),
     );
     framing(
         c,
@@ -119,7 +127,7 @@ fn framings(c: &mut Criterion) {
         |p, out| p.ascii(out),
         |adu, req| {
             let mut scratch = [0u8; ascii::MAX_BINARY_LEN];
-            ascii::parse(adu, &mut scratch).is_ok_and(|f| pdu_ok(f.pdu, req))
+            ascii::AsciiFrame::decode_line(adu, &mut scratch).is_ok_and(|f| pdu_ok(f.pdu(), req))
         },
     );
 }
@@ -130,7 +138,12 @@ fn streams(c: &mut Criterion) {
     let mut stream = Vec::new();
     let mut out = [0u8; 300];
     for unit in (0..FRAMES).map(|i| (i % 247 + 1) as u8) {
-        let n = rtu::emit(unit, &request, &mut out).unwrap();
+        let n = rtu::RtuRepr {
+            unit,
+            pdu: &request,
+        }
+        .emit(&mut out)
+        .unwrap();
         stream.extend_from_slice(&out[..n]);
     }
     let mut g = c.benchmark_group("stream");
@@ -153,7 +166,7 @@ fn streams(c: &mut Criterion) {
     }
     let m8: Vec<u8> = (0..FRAMES)
         .flat_map(|i| {
-            Frame {
+            Modbus8Repr {
                 id: 1,
                 function: 3,
                 addr: 5,

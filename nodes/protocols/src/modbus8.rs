@@ -1,12 +1,18 @@
 //! The 8-byte Modbus variant of the Controller_network project
-//! (`docs/protocols/modbus8.md`): every request and reply is id, function, address,
-//! value, CRC — eight bytes, with the CRC high byte first unless the order is
-//! set to the standard one.
+//! (`docs/protocols/modbus8.md`): every request and reply is id, function,
+//! address, value, CRC — eight bytes, with the CRC high byte first unless the
+//! order is set to the standard one.
+//!
+//! - [`Modbus8Frame`] is a checked view over the eight bytes (CRC checked in
+//!   the order given); [`Modbus8Repr`] is the value (`parse`, `from_frame`,
+//!   `emit`), following smoltcp's `wire` split of `Packet` and `Repr`, as MEB
+//!   and standard Modbus do.
+//! - [`Modbus8Decoder`] cuts a byte stream into frames by the spec's silence rule.
 //!
 //! A reply with the function's top bit set is an exception; it is still a
-//! valid frame, and [`Frame::reply`] separates the two as
-//! `Result<value, Exception>`. A bad CRC or a wrong length is a [`Modbus8Error`].
-//! Nothing here panics or allocates, whatever the input.
+//! valid frame, and `reply()` separates the two as `Result<value, Exception>`.
+//! A bad CRC or a wrong length is a [`Modbus8Error`]. Nothing here panics or
+//! allocates, whatever the input.
 
 use thiserror::Error;
 
@@ -71,9 +77,105 @@ pub enum Modbus8Error {
     },
 }
 
-/// One 8-byte frame, request or reply.
+/// A checked view over the eight bytes of one frame, request or reply.
+///
+/// [`Modbus8Frame::new_checked`] checks the length and the CRC in the order
+/// given, so every accessor reads a well-formed frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Modbus8Frame<T: AsRef<[u8]>> {
+    buffer: T,
+    order: CrcOrder,
+}
+
+impl<T: AsRef<[u8]>> Modbus8Frame<T> {
+    /// Checks `buffer` as one whole frame: exactly eight bytes, the CRC in `order`.
+    pub fn new_checked(buffer: T, order: CrcOrder) -> Result<Self, Modbus8Error> {
+        check(buffer.as_ref(), order)?;
+        Ok(Modbus8Frame { buffer, order })
+    }
+
+    /// A view over bytes a decoder has already checked.
+    fn new_unchecked(buffer: T, order: CrcOrder) -> Self {
+        Modbus8Frame { buffer, order }
+    }
+
+    fn byte(&self, at: usize) -> u8 {
+        self.buffer.as_ref().get(at).copied().unwrap_or(0)
+    }
+
+    fn word(&self, at: usize) -> u16 {
+        u16::from_be_bytes([self.byte(at), self.byte(at + 1)])
+    }
+
+    /// Slave id: 1 motor, 2 light sensor.
+    pub fn id(&self) -> u8 {
+        self.byte(0)
+    }
+
+    /// Function: 03 read, 06 write; top bit set on an exception reply.
+    pub fn function(&self) -> u8 {
+        self.byte(1)
+    }
+
+    /// Register address.
+    pub fn addr(&self) -> u16 {
+        self.word(2)
+    }
+
+    /// Register value; on an exception reply, the exception code.
+    pub fn value(&self) -> u16 {
+        self.word(4)
+    }
+
+    /// The CRC as a number, read in the frame's byte order.
+    pub fn crc(&self) -> u16 {
+        self.order.read([self.byte(6), self.byte(7)])
+    }
+
+    /// The order the CRC was checked in.
+    pub fn crc_order(&self) -> CrcOrder {
+        self.order
+    }
+
+    /// True for an exception reply.
+    pub fn is_exception(&self) -> bool {
+        self.function() & EXCEPTION_BIT != 0
+    }
+
+    /// A reply's content: the register value, or the exception it carries.
+    pub fn reply(&self) -> Result<u16, Exception> {
+        Modbus8Repr::from_frame(self).reply()
+    }
+
+    /// The bytes of the frame, as received.
+    pub fn as_bytes(&self) -> &[u8] {
+        self.buffer.as_ref()
+    }
+
+    /// Gives the buffer back.
+    pub fn into_inner(self) -> T {
+        self.buffer
+    }
+}
+
+fn check(bytes: &[u8], order: CrcOrder) -> Result<(), Modbus8Error> {
+    let &[id, function, a_hi, a_lo, v_hi, v_lo, c0, c1] = bytes else {
+        return Err(Modbus8Error::WrongLength { len: bytes.len() });
+    };
+    let received = order.read([c0, c1]);
+    let calculated = crc16_modbus(&[id, function, a_hi, a_lo, v_hi, v_lo]);
+    if received != calculated {
+        return Err(Modbus8Error::BadCrc {
+            received,
+            calculated,
+        });
+    }
+    Ok(())
+}
+
+/// One 8-byte frame as a value, request or reply.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub struct Frame {
+pub struct Modbus8Repr {
     /// Slave id: 1 motor, 2 light sensor.
     pub id: u8,
     /// Function: 03 read, 06 write; top bit set on an exception reply.
@@ -84,11 +186,26 @@ pub struct Frame {
     pub value: u16,
 }
 
-impl Frame {
+impl Modbus8Repr {
+    /// Checks exactly eight bytes as a frame, the CRC in `order`, and reads it.
+    pub fn parse(bytes: &[u8], order: CrcOrder) -> Result<Self, Modbus8Error> {
+        Modbus8Frame::new_checked(bytes, order).map(|frame| Self::from_frame(&frame))
+    }
+
+    /// The value of a checked frame.
+    pub fn from_frame<T: AsRef<[u8]>>(frame: &Modbus8Frame<T>) -> Self {
+        Modbus8Repr {
+            id: frame.id(),
+            function: frame.function(),
+            addr: frame.addr(),
+            value: frame.value(),
+        }
+    }
+
     /// The exception reply to a request with `function` at `addr`: id and
     /// address kept, top bit of the function set, the code in the value.
     pub fn exception(id: u8, function: u8, addr: u16, exception: Exception) -> Self {
-        Frame {
+        Modbus8Repr {
             id,
             function: function | EXCEPTION_BIT,
             addr,
@@ -113,27 +230,6 @@ impl Frame {
         }
     }
 
-    /// Reads a frame from exactly eight bytes, checking the CRC in `order`.
-    pub fn parse(bytes: &[u8], order: CrcOrder) -> Result<Frame, Modbus8Error> {
-        let &[id, function, a_hi, a_lo, v_hi, v_lo, c0, c1] = bytes else {
-            return Err(Modbus8Error::WrongLength { len: bytes.len() });
-        };
-        let received = order.read([c0, c1]);
-        let calculated = crc16_modbus(&[id, function, a_hi, a_lo, v_hi, v_lo]);
-        if received != calculated {
-            return Err(Modbus8Error::BadCrc {
-                received,
-                calculated,
-            });
-        }
-        Ok(Frame {
-            id,
-            function,
-            addr: u16::from_be_bytes([a_hi, a_lo]),
-            value: u16::from_be_bytes([v_hi, v_lo]),
-        })
-    }
-
     /// The frame's eight bytes with the CRC in `order`.
     pub fn to_bytes(&self, order: CrcOrder) -> [u8; FRAME_LEN] {
         let [a_hi, a_lo] = self.addr.to_be_bytes();
@@ -143,7 +239,7 @@ impl Frame {
         [self.id, self.function, a_hi, a_lo, v_hi, v_lo, c0, c1]
     }
 
-    /// Writes the frame into the start of `out`; returns 8.
+    /// Writes the frame, the CRC in `order`, to the start of `out`; returns 8.
     pub fn emit(&self, out: &mut [u8], order: CrcOrder) -> Result<usize, BufferTooSmall> {
         let available = out.len();
         let slot = out.get_mut(..FRAME_LEN).ok_or(BufferTooSmall {
@@ -166,7 +262,7 @@ impl Framing for Modbus8Framing {
     }
 
     fn check(&self, frame: &[u8]) -> Result<(), Modbus8Error> {
-        Frame::parse(frame, self.0).map(|_| ())
+        check(frame, self.0)
     }
 }
 
@@ -183,7 +279,7 @@ impl Framing for Modbus8Framing {
 /// let mut decoder = Modbus8Decoder::for_pty(CrcOrder::HighFirst);
 /// let mut input: &[u8] = &[0x01, 0x06, 0x00, 0x01, 0x00, 0x80, 0xaa, 0xd9];
 /// let frame = decoder.decode(SimTime::ZERO, &mut input).unwrap().unwrap();
-/// assert_eq!((frame.id, frame.function, frame.addr, frame.value), (1, 6, 1, 0x80));
+/// assert_eq!((frame.id(), frame.function(), frame.addr(), frame.value()), (1, 6, 1, 0x80));
 /// ```
 #[derive(Debug, Clone)]
 pub struct Modbus8Decoder {
@@ -219,10 +315,11 @@ impl Modbus8Decoder {
         &mut self,
         now: SimTime,
         input: &mut &[u8],
-    ) -> Option<Result<Frame, Modbus8Error>> {
+    ) -> Option<Result<Modbus8Frame<&[u8]>, Modbus8Error>> {
         let order = self.framing.0;
         let item = self.core.decode(&self.framing, now, input)?;
-        Some(item.and_then(|bytes| Frame::parse(bytes, order)))
+        // The core hands out only bytes the framing's check passed.
+        Some(item.map(|bytes| Modbus8Frame::new_unchecked(bytes, order)))
     }
 
     /// When [`Modbus8Decoder::handle_timeout`] should next be called, if a
@@ -264,7 +361,7 @@ mod tests {
         let mut bad = WRITE_80;
         bad[7] = 0xda;
         assert_eq!(
-            Frame::parse(&bad, CrcOrder::HighFirst),
+            Modbus8Repr::parse(&bad, CrcOrder::HighFirst),
             Err(Modbus8Error::BadCrc {
                 received: 0xaada,
                 calculated: 0xaad9
@@ -282,27 +379,33 @@ mod tests {
 
     #[test]
     fn exception_reply_round_trip() {
-        let frame = Frame::exception(1, WRITE, 2, Exception::IllegalDataAddress);
+        let frame = Modbus8Repr::exception(1, WRITE, 2, Exception::IllegalDataAddress);
         assert_eq!(frame.reply(), Err(Exception::IllegalDataAddress));
         let bytes = frame.to_bytes(CrcOrder::HighFirst);
         assert_eq!(bytes, [0x01, 0x86, 0x00, 0x02, 0x00, 0x02, 0x15, 0xa8]);
+        let view = Modbus8Frame::new_checked(&bytes, CrcOrder::HighFirst).unwrap();
+        assert_eq!(view.reply(), Err(Exception::IllegalDataAddress));
+        assert_eq!(
+            (view.crc(), Modbus8Repr::from_frame(&view)),
+            (0x15a8, frame)
+        );
     }
 
     #[test]
     fn wrong_lengths_are_rejected() {
         assert_eq!(
-            Frame::parse(&WRITE_80[..7], CrcOrder::HighFirst),
+            Modbus8Repr::parse(&WRITE_80[..7], CrcOrder::HighFirst),
             Err(Modbus8Error::WrongLength { len: 7 })
         );
         let mut nine = [0u8; 9];
         nine[..8].copy_from_slice(&WRITE_80);
         assert_eq!(
-            Frame::parse(&nine, CrcOrder::HighFirst),
+            Modbus8Repr::parse(&nine, CrcOrder::HighFirst),
             Err(Modbus8Error::WrongLength { len: 9 })
         );
         let mut short = [0u8; 7];
         assert!(
-            Frame::parse(&WRITE_80, CrcOrder::HighFirst)
+            Modbus8Repr::parse(&WRITE_80, CrcOrder::HighFirst)
                 .unwrap()
                 .emit(&mut short, CrcOrder::HighFirst)
                 .is_err()

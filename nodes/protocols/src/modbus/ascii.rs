@@ -7,8 +7,8 @@
 
 use crate::crc::lrc;
 
-use super::pdu::EncodePdu;
-use super::{BufferTooSmall, Drops, Frame, FrameError, MAX_PDU_LEN};
+use super::pdu::{EncodePdu, ExceptionResponse, PduError, Request, Response};
+use super::{BufferTooSmall, Drops, FrameError, MAX_PDU_LEN};
 
 /// The longest ASCII frame in characters: `:` + 2 × (unit + PDU + LRC) + CR LF.
 pub const MAX_ADU_LEN: usize = 1 + 2 * MAX_BINARY_LEN + 2;
@@ -43,6 +43,12 @@ fn check_content(binary: &[u8]) -> Result<usize, FrameError> {
     if pdu.is_empty() {
         return Err(too_short);
     }
+    if binary.len() > MAX_BINARY_LEN {
+        return Err(FrameError::TooLong {
+            len: 1 + 2 * binary.len() + 2,
+            max: MAX_ADU_LEN,
+        });
+    }
     let calculated = lrc(binary.get(..binary.len() - 1).unwrap_or(&[]));
     if *received != calculated {
         return Err(FrameError::BadLrc {
@@ -53,87 +59,194 @@ fn check_content(binary: &[u8]) -> Result<usize, FrameError> {
     Ok(pdu.len())
 }
 
-/// Checks decoded content and splits it into unit and PDU.
-fn check(binary: &[u8]) -> Result<Frame<'_>, FrameError> {
-    let pdu_len = check_content(binary)?;
-    match binary {
-        [unit, rest @ ..] => Ok(Frame {
-            unit: *unit,
-            pdu: rest.get(..pdu_len).unwrap_or(&[]),
-        }),
-        [] => Err(FrameError::MissingStart),
+/// A checked view over the content of one ASCII frame: the unit id, PDU and
+/// LRC that its hex digits spell.
+///
+/// ASCII sends each byte as two hex characters between `:` and CR LF, so the
+/// view is over the bytes the characters stand for: the decoder decodes them
+/// into its buffer as they come, [`AsciiFrame::decode_line`] into a scratch
+/// buffer. The PDU is then a slice, as over RTU and TCP.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct AsciiFrame<T: AsRef<[u8]>> {
+    buffer: T,
+}
+
+impl<T: AsRef<[u8]>> AsciiFrame<T> {
+    /// Checks `content` (unit, PDU, LRC, as bytes): its length, then its LRC.
+    pub fn new_checked(content: T) -> Result<Self, FrameError> {
+        check_content(content.as_ref())?;
+        Ok(AsciiFrame { buffer: content })
+    }
+
+    /// A view over content a decoder has already checked.
+    fn new_unchecked(content: T) -> Self {
+        AsciiFrame { buffer: content }
+    }
+
+    /// Unit id (slave address); 0 is the broadcast.
+    pub fn unit(&self) -> u8 {
+        self.buffer.as_ref().first().copied().unwrap_or(0)
+    }
+
+    /// The function code (first PDU byte; top bit set on an exception reply).
+    pub fn function(&self) -> u8 {
+        self.buffer.as_ref().get(1).copied().unwrap_or(0)
+    }
+
+    /// The LRC the frame carries (and that checked).
+    pub fn lrc(&self) -> u8 {
+        self.buffer.as_ref().last().copied().unwrap_or(0)
+    }
+
+    /// True when a slave with id `unit` must act on this frame: its own id, or
+    /// the broadcast id 0 (which is acted on but never answered).
+    pub fn is_for(&self, unit: u8) -> bool {
+        self.unit() == unit || self.is_broadcast()
+    }
+
+    /// True for the broadcast id 0.
+    pub fn is_broadcast(&self) -> bool {
+        self.unit() == 0
+    }
+
+    /// Parses the PDU as a request (master to slave).
+    pub fn request(&self) -> Result<Request, PduError> {
+        Request::parse(pdu_of(self.buffer.as_ref()))
+    }
+
+    /// Parses the PDU as a reply (slave to master).
+    pub fn response(&self) -> Result<Result<Response, ExceptionResponse>, PduError> {
+        Response::parse(pdu_of(self.buffer.as_ref()))
+    }
+
+    /// The content as bytes: unit, PDU, LRC (not the hex characters).
+    pub fn as_bytes(&self) -> &[u8] {
+        self.buffer.as_ref()
+    }
+
+    /// Gives the buffer back.
+    pub fn into_inner(self) -> T {
+        self.buffer
     }
 }
 
-/// Checks a whole ASCII frame (`:` … CR LF), decoding its hex into `scratch`;
-/// the returned frame borrows `scratch`.
-pub fn parse<'s>(
-    adu: &[u8],
-    scratch: &'s mut [u8; MAX_BINARY_LEN],
-) -> Result<Frame<'s>, FrameError> {
-    let Some((&START, rest)) = adu.split_first() else {
-        return Err(FrameError::MissingStart);
-    };
-    let Some(hex) = rest.strip_suffix(&[CR, LF]) else {
-        return Err(FrameError::MissingEnd);
-    };
-    if adu.len() > MAX_ADU_LEN {
-        return Err(FrameError::TooLong {
-            len: adu.len(),
-            max: MAX_ADU_LEN,
-        });
+impl<'a, T: AsRef<[u8]> + ?Sized> AsciiFrame<&'a T> {
+    /// Function code and data; never empty. Borrowed from the buffer, so it
+    /// outlives the view (a decoder's frame can be kept while it goes on).
+    pub fn pdu(&self) -> &'a [u8] {
+        pdu_of(self.buffer.as_ref())
     }
-    if hex.len() % 2 != 0 {
-        return Err(FrameError::OddHexLength);
-    }
-    let binary_len = hex.len() / 2;
-    for (i, (slot, pair)) in scratch.iter_mut().zip(hex.chunks_exact(2)).enumerate() {
-        let digit = |k: usize| {
-            let c = pair.get(k).copied().unwrap_or(0);
-            hex_value(c).ok_or(FrameError::NotHex {
-                byte: c,
-                position: 1 + 2 * i + k,
-            })
+}
+
+impl<'s> AsciiFrame<&'s [u8]> {
+    /// Checks a whole ASCII line (`:` … CR LF), decoding its hex into
+    /// `scratch`; the view is over `scratch`.
+    pub fn decode_line(
+        line: &[u8],
+        scratch: &'s mut [u8; MAX_BINARY_LEN],
+    ) -> Result<Self, FrameError> {
+        let Some((&START, rest)) = line.split_first() else {
+            return Err(FrameError::MissingStart);
         };
-        *slot = digit(0)? << 4 | digit(1)?;
+        let Some(hex) = rest.strip_suffix(&[CR, LF]) else {
+            return Err(FrameError::MissingEnd);
+        };
+        if line.len() > MAX_ADU_LEN {
+            return Err(FrameError::TooLong {
+                len: line.len(),
+                max: MAX_ADU_LEN,
+            });
+        }
+        if hex.len() % 2 != 0 {
+            return Err(FrameError::OddHexLength);
+        }
+        let binary_len = hex.len() / 2;
+        for (i, (slot, pair)) in scratch.iter_mut().zip(hex.chunks_exact(2)).enumerate() {
+            let digit = |k: usize| {
+                let c = pair.get(k).copied().unwrap_or(0);
+                hex_value(c).ok_or(FrameError::NotHex {
+                    byte: c,
+                    position: 1 + 2 * i + k,
+                })
+            };
+            *slot = digit(0)? << 4 | digit(1)?;
+        }
+        let scratch: &'s [u8; MAX_BINARY_LEN] = scratch;
+        AsciiFrame::new_checked(scratch.get(..binary_len).unwrap_or(&[]))
     }
-    check(scratch.get(..binary_len).unwrap_or(&[]))
 }
 
-/// Writes `pdu` for `unit` as an ASCII frame into `out`; returns its length.
-pub fn emit(
-    unit: u8,
-    pdu: &(impl EncodePdu + ?Sized),
-    out: &mut [u8],
-) -> Result<usize, BufferTooSmall> {
-    let needed = 1 + 2 * (1 + pdu.pdu_len() + 1) + 2;
-    let too_small = BufferTooSmall {
-        needed,
-        available: out.len(),
-    };
-    let frame = out.get_mut(..needed).ok_or(too_small)?;
-    // The binary content is built on the stack, then spelt out in hex.
-    let mut binary = [0u8; MAX_BINARY_LEN];
-    binary[0] = unit;
-    let pdu_len = pdu.encode_pdu(&mut binary[1..MAX_BINARY_LEN - 1])?;
-    let checked = 1 + pdu_len;
-    binary[checked] = lrc(&binary[..checked]);
-    let content = &binary[..checked + 1];
+/// The PDU of checked content: between the unit id and the LRC.
+fn pdu_of(content: &[u8]) -> &[u8] {
+    content
+        .get(1..content.len().saturating_sub(1))
+        .unwrap_or_default()
+}
 
-    let (start, rest) = frame.split_first_mut().ok_or(too_small)?;
-    *start = START;
-    for (pair, &byte) in rest.chunks_exact_mut(2).zip(content) {
-        pair.copy_from_slice(&[
-            HEX_UPPER[usize::from(byte >> 4)],
-            HEX_UPPER[usize::from(byte & 0x0F)],
-        ]);
+/// One ASCII frame as a value: the unit id and a PDU. Parsed, the PDU is
+/// bytes of the decoded content (`AsciiRepr<&[u8]>`); to emit, it is anything
+/// that writes a PDU (a [`Request`], a reply, raw bytes), spelt out in hex.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct AsciiRepr<P> {
+    /// Unit id (slave address); 0 is the broadcast.
+    pub unit: u8,
+    /// Function code and data.
+    pub pdu: P,
+}
+
+impl<'s> AsciiRepr<&'s [u8]> {
+    /// Checks a whole ASCII line (`:` … CR LF) and reads its unit id and PDU,
+    /// decoding the hex into `scratch`.
+    pub fn parse(line: &[u8], scratch: &'s mut [u8; MAX_BINARY_LEN]) -> Result<Self, FrameError> {
+        AsciiFrame::decode_line(line, scratch).map(|frame| Self::from_frame(&frame))
     }
-    let end = 1 + 2 * content.len();
-    frame
-        .get_mut(end..end + 2)
-        .ok_or(too_small)?
-        .copy_from_slice(&[CR, LF]);
-    Ok(end + 2)
+
+    /// The value of a checked frame.
+    pub fn from_frame<T: AsRef<[u8]> + ?Sized>(frame: &AsciiFrame<&'s T>) -> Self {
+        AsciiRepr {
+            unit: frame.unit(),
+            pdu: frame.pdu(),
+        }
+    }
+}
+
+impl<P: EncodePdu> AsciiRepr<P> {
+    /// The length of the line in characters: `:`, unit, PDU and LRC in hex, CR LF.
+    pub fn emitted_len(&self) -> usize {
+        1 + 2 * (1 + self.pdu.pdu_len() + 1) + 2
+    }
+
+    /// Writes the line (upper-case hex) to the start of `out` and returns its length.
+    pub fn emit(&self, out: &mut [u8]) -> Result<usize, BufferTooSmall> {
+        let needed = self.emitted_len();
+        let too_small = BufferTooSmall {
+            needed,
+            available: out.len(),
+        };
+        let frame = out.get_mut(..needed).ok_or(too_small)?;
+        // The binary content is built on the stack, then spelt out in hex.
+        let mut binary = [0u8; MAX_BINARY_LEN];
+        binary[0] = self.unit;
+        let pdu_len = self.pdu.encode_pdu(&mut binary[1..MAX_BINARY_LEN - 1])?;
+        let checked = 1 + pdu_len;
+        binary[checked] = lrc(&binary[..checked]);
+        let content = &binary[..checked + 1];
+
+        let (start, rest) = frame.split_first_mut().ok_or(too_small)?;
+        *start = START;
+        for (pair, &byte) in rest.chunks_exact_mut(2).zip(content) {
+            pair.copy_from_slice(&[
+                HEX_UPPER[usize::from(byte >> 4)],
+                HEX_UPPER[usize::from(byte & 0x0F)],
+            ]);
+        }
+        let end = 1 + 2 * content.len();
+        frame
+            .get_mut(end..end + 2)
+            .ok_or(too_small)?
+            .copy_from_slice(&[CR, LF]);
+        Ok(end + 2)
+    }
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -157,7 +270,7 @@ enum State {
 /// let mut decoder = AsciiDecoder::new();
 /// let mut input: &[u8] = b"noise:F7031389000A60\r\n";
 /// let frame = decoder.decode(&mut input).unwrap().unwrap();
-/// assert_eq!((frame.unit, frame.pdu), (0xF7, &[0x03, 0x13, 0x89, 0x00, 0x0A][..]));
+/// assert_eq!((frame.unit(), frame.pdu()), (0xF7, &[0x03, 0x13, 0x89, 0x00, 0x0A][..]));
 /// assert_eq!(decoder.drops().noise.bytes, 5);
 /// ```
 #[derive(Debug, Clone)]
@@ -194,7 +307,7 @@ impl AsciiDecoder {
     /// `input` is used up; call again while it is not empty. A frame that ends
     /// in CR LF but fails its LRC or form is returned as an error once; frames
     /// cut short by a new `:` or a stray character are only counted.
-    pub fn decode(&mut self, input: &mut &[u8]) -> Option<Result<Frame<'_>, FrameError>> {
+    pub fn decode(&mut self, input: &mut &[u8]) -> Option<Result<AsciiFrame<&[u8]>, FrameError>> {
         while let Some((&c, rest)) = input.split_first() {
             *input = rest;
             match self.state {
@@ -226,10 +339,7 @@ impl AsciiDecoder {
                                 None => check_content(&self.binary[..self.len]),
                             };
                             return Some(match checked {
-                                Ok(pdu_len) => Ok(Frame {
-                                    unit: self.binary[0],
-                                    pdu: &self.binary[1..1 + pdu_len],
-                                }),
+                                Ok(_) => Ok(AsciiFrame::new_unchecked(&self.binary[..self.len])),
                                 Err(err) => {
                                     self.drops.bad_check.add(chars);
                                     Err(err)
@@ -314,8 +424,8 @@ mod tests {
     fn spec_example_round_trips() {
         let line = b":F7031389000A60\r\n";
         let mut scratch = [0u8; MAX_BINARY_LEN];
-        let frame = parse(line, &mut scratch).unwrap();
-        assert_eq!(frame.unit, 0xF7);
+        let frame = AsciiFrame::decode_line(line, &mut scratch).unwrap();
+        assert_eq!((frame.unit(), frame.lrc()), (0xF7, 0x60));
         let request = frame.request().unwrap();
         assert_eq!(
             request,
@@ -325,12 +435,20 @@ mod tests {
             }
         );
         let mut out = [0u8; MAX_ADU_LEN];
-        let n = emit(0xF7, &request, &mut out).unwrap();
+        let n = AsciiRepr {
+            unit: 0xF7,
+            pdu: &request,
+        }
+        .emit(&mut out)
+        .unwrap();
         assert_eq!(&out[..n], line);
         // Lower case is accepted and re-emits upper case.
         let lower = b":f7031389000a60\r\n";
         assert_eq!(
-            parse(lower, &mut scratch).unwrap().request().unwrap(),
+            AsciiFrame::decode_line(lower, &mut scratch)
+                .unwrap()
+                .request()
+                .unwrap(),
             request
         );
     }
@@ -339,33 +457,33 @@ mod tests {
     fn malformed_lines_are_typed() {
         let mut s = [0u8; MAX_BINARY_LEN];
         assert_eq!(
-            parse(b"F7031389000A60\r\n", &mut s),
+            AsciiFrame::decode_line(b"F7031389000A60\r\n", &mut s),
             Err(FrameError::MissingStart)
         );
         assert_eq!(
-            parse(b":F7031389000A60\n", &mut s),
+            AsciiFrame::decode_line(b":F7031389000A60\n", &mut s),
             Err(FrameError::MissingEnd)
         );
         assert_eq!(
-            parse(b":F7031389000A6\r\n", &mut s),
+            AsciiFrame::decode_line(b":F7031389000A6\r\n", &mut s),
             Err(FrameError::OddHexLength)
         );
         assert_eq!(
-            parse(b":F7031389000A61\r\n", &mut s),
+            AsciiFrame::decode_line(b":F7031389000A61\r\n", &mut s),
             Err(FrameError::BadLrc {
                 received: 0x61,
                 calculated: 0x60
             })
         );
         assert_eq!(
-            parse(b":F70G1389000A60\r\n", &mut s),
+            AsciiFrame::decode_line(b":F70G1389000A60\r\n", &mut s),
             Err(FrameError::NotHex {
                 byte: b'G',
                 position: 4
             })
         );
         assert!(matches!(
-            parse(b":0101\r\n", &mut s),
+            AsciiFrame::decode_line(b":0101\r\n", &mut s),
             Err(FrameError::TooShort { .. })
         ));
     }
@@ -380,7 +498,7 @@ mod tests {
             Some(Err(FrameError::TooShort { .. }))
         ));
         let frame = decoder.decode(&mut input).unwrap().unwrap();
-        assert_eq!(frame.unit, 0xF7);
+        assert_eq!(frame.unit(), 0xF7);
         assert_eq!(
             decoder.decode(&mut input),
             Some(Err(FrameError::BadLrc {

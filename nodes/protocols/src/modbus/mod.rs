@@ -11,16 +11,20 @@
 //!   storage ([`Bits`], [`Registers`]); a reply parses to
 //!   `Result<Result<Response, ExceptionResponse>, PduError>`: an exception is a
 //!   valid reply, a malformed PDU is an error.
-//! - [`rtu`], [`ascii`], [`tcp`]: whole-ADU `parse`/`emit` giving a [`Frame`]
-//!   view (unit id + PDU bytes, no copy), and a stream decoder per framing that is
-//!   fed byte chunks and yields frames one at a time.
+//! - [`rtu`], [`ascii`], [`tcp`]: one frame per framing as a checked view over
+//!   its bytes ([`rtu::RtuFrame`], [`ascii::AsciiFrame`], [`tcp::TcpFrame`]:
+//!   `new_checked`, then `unit()`, `pdu()`, `request()`, `response()`) and as a
+//!   small value ([`rtu::RtuRepr`], [`ascii::AsciiRepr`], [`tcp::TcpRepr`]:
+//!   `parse`, `from_frame`, `emit`), following smoltcp's `wire` split of
+//!   `Packet` and `Repr`, as MEB does; and a stream decoder per framing that is
+//!   fed byte chunks and yields checked views one at a time.
 //!
 //! - [`serial`]: the silence rule shared by RTU and the 8-byte variant
 //!   ([`crate::modbus8`]), and the silences to configure it with.
 //!
-//! A slave checks [`Frame::unit`] before it parses the PDU, so frames for other
-//! slaves on the same line cost one byte compare. The decoders still frame
-//! them, since a frame's end must be found to find the next one's start.
+//! A slave checks a frame's `unit()` before it parses the PDU, so frames for
+//! other slaves on the same line cost one byte compare. The decoders still
+//! frame them, since a frame's end must be found to find the next one's start.
 //!
 //! # No panics
 //!
@@ -122,44 +126,6 @@ pub enum FrameError {
         /// Bytes actually there.
         actual: usize,
     },
-}
-
-/// A checked Modbus frame: the unit (slave) id and the PDU bytes, borrowed from
-/// the input or from a decoder's buffer.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Frame<'a> {
-    /// Unit id (slave address); 0 is a broadcast on a serial line.
-    pub unit: u8,
-    /// Function code and data; never empty.
-    pub pdu: &'a [u8],
-}
-
-impl Frame<'_> {
-    /// The function code (first PDU byte; top bit set on an exception reply).
-    pub fn function(&self) -> u8 {
-        self.pdu.first().copied().unwrap_or(0)
-    }
-
-    /// True when a slave with id `unit` must act on this frame: its own id, or
-    /// the serial broadcast id 0 (which is acted on but never answered).
-    pub fn is_for(&self, unit: u8) -> bool {
-        self.unit == unit || self.is_broadcast()
-    }
-
-    /// True for the serial broadcast id 0.
-    pub fn is_broadcast(&self) -> bool {
-        self.unit == 0
-    }
-
-    /// Parses the PDU as a request (master to slave).
-    pub fn request(&self) -> Result<Request, PduError> {
-        Request::parse(self.pdu)
-    }
-
-    /// Parses the PDU as a reply (slave to master).
-    pub fn response(&self) -> Result<Result<Response, ExceptionResponse>, PduError> {
-        Response::parse(self.pdu)
-    }
 }
 
 /// A count of one kind of drop: how many times it happened and how many bytes it

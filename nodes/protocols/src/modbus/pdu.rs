@@ -460,6 +460,18 @@ impl EncodePdu for Result<Response, ExceptionResponse> {
     }
 }
 
+/// A PDU behind a reference writes as the PDU itself, so a frame's value can
+/// borrow what it emits (`RtuRepr { unit, pdu: &request }`).
+impl<P: EncodePdu + ?Sized> EncodePdu for &P {
+    fn pdu_len(&self) -> usize {
+        (**self).pdu_len()
+    }
+
+    fn encode_pdu(&self, out: &mut [u8]) -> Result<usize, BufferTooSmall> {
+        (**self).encode_pdu(out)
+    }
+}
+
 /// Raw PDU bytes (forwarded or echoed without interpretation); at most
 /// [`MAX_PDU_LEN`] of them are written.
 impl EncodePdu for [u8] {

@@ -8,17 +8,102 @@
 use crate::crc::crc16_modbus;
 use crate::time::SimTime;
 
-use super::pdu::{EncodePdu, function};
+use super::pdu::{EncodePdu, ExceptionResponse, PduError, Request, Response, function};
 use super::serial::{FrameLen, Framing, SerialCore, Timing};
-use super::{BufferTooSmall, Drops, Frame, FrameError};
+use super::{BufferTooSmall, Drops, FrameError};
 
 /// The shortest RTU frame: unit, function, CRC.
 pub const MIN_ADU_LEN: usize = 4;
 /// The longest RTU frame: unit, 253-byte PDU, CRC.
 pub const MAX_ADU_LEN: usize = 256;
 
-/// Checks a whole RTU frame and returns its unit id and PDU.
-pub fn parse(adu: &[u8]) -> Result<Frame<'_>, FrameError> {
+/// A checked view over the bytes of one RTU frame: unit id, PDU, CRC.
+///
+/// [`RtuFrame::new_checked`] checks the length and the CRC, so every accessor
+/// reads a well-formed frame; the PDU is left as bytes for
+/// [`RtuFrame::request`] or [`RtuFrame::response`] to parse. A slave reads
+/// [`RtuFrame::unit`] first, so a frame for another slave costs one compare.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RtuFrame<T: AsRef<[u8]>> {
+    buffer: T,
+}
+
+impl<T: AsRef<[u8]>> RtuFrame<T> {
+    /// Checks `buffer` as one whole frame: its length, then its CRC.
+    pub fn new_checked(buffer: T) -> Result<Self, FrameError> {
+        check(buffer.as_ref())?;
+        Ok(RtuFrame { buffer })
+    }
+
+    /// A view over bytes a decoder has already checked.
+    fn new_unchecked(buffer: T) -> Self {
+        RtuFrame { buffer }
+    }
+
+    /// Unit id (slave address); 0 is the broadcast.
+    pub fn unit(&self) -> u8 {
+        self.buffer.as_ref().first().copied().unwrap_or(0)
+    }
+
+    /// The function code (first PDU byte; top bit set on an exception reply).
+    pub fn function(&self) -> u8 {
+        self.buffer.as_ref().get(1).copied().unwrap_or(0)
+    }
+
+    /// The CRC as a number (sent low byte first).
+    pub fn crc(&self) -> u16 {
+        match self.buffer.as_ref() {
+            [.., lo, hi] => u16::from_le_bytes([*lo, *hi]),
+            _ => 0,
+        }
+    }
+
+    /// True when a slave with id `unit` must act on this frame: its own id, or
+    /// the broadcast id 0 (which is acted on but never answered).
+    pub fn is_for(&self, unit: u8) -> bool {
+        self.unit() == unit || self.is_broadcast()
+    }
+
+    /// True for the broadcast id 0.
+    pub fn is_broadcast(&self) -> bool {
+        self.unit() == 0
+    }
+
+    /// Parses the PDU as a request (master to slave).
+    pub fn request(&self) -> Result<Request, PduError> {
+        Request::parse(pdu_of(self.buffer.as_ref()))
+    }
+
+    /// Parses the PDU as a reply (slave to master).
+    pub fn response(&self) -> Result<Result<Response, ExceptionResponse>, PduError> {
+        Response::parse(pdu_of(self.buffer.as_ref()))
+    }
+
+    /// The bytes of the frame, as received.
+    pub fn as_bytes(&self) -> &[u8] {
+        self.buffer.as_ref()
+    }
+
+    /// Gives the buffer back.
+    pub fn into_inner(self) -> T {
+        self.buffer
+    }
+}
+
+impl<'a, T: AsRef<[u8]> + ?Sized> RtuFrame<&'a T> {
+    /// Function code and data; never empty. Borrowed from the buffer, so it
+    /// outlives the view (a decoder's frame can be kept while it goes on).
+    pub fn pdu(&self) -> &'a [u8] {
+        pdu_of(self.buffer.as_ref())
+    }
+}
+
+/// The PDU of checked frame bytes: between the unit id and the CRC.
+fn pdu_of(adu: &[u8]) -> &[u8] {
+    adu.get(1..adu.len().saturating_sub(2)).unwrap_or_default()
+}
+
+fn check(adu: &[u8]) -> Result<(), FrameError> {
     if adu.len() < MIN_ADU_LEN {
         return Err(FrameError::TooShort {
             len: adu.len(),
@@ -43,35 +128,69 @@ pub fn parse(adu: &[u8]) -> Result<Frame<'_>, FrameError> {
             calculated,
         });
     }
-    match body {
-        [unit, pdu @ ..] => Ok(Frame { unit: *unit, pdu }),
-        [] => Err(FrameError::TooShort {
-            len: 0,
-            min: MIN_ADU_LEN,
-        }),
+    Ok(())
+}
+
+/// One RTU frame as a value: the unit id and a PDU. Parsed, the PDU is the
+/// frame's bytes (`RtuRepr<&[u8]>`); to emit, it is anything that writes a PDU
+/// (a [`Request`], a reply, raw bytes).
+///
+/// ```
+/// use protocols::modbus::Request;
+/// use protocols::modbus::rtu::RtuRepr;
+///
+/// let request = Request::ReadHoldingRegisters { address: 0, quantity: 10 };
+/// let mut out = [0u8; 8];
+/// let n = RtuRepr { unit: 1, pdu: &request }.emit(&mut out).unwrap();
+/// assert_eq!(out[..n], [0x01, 0x03, 0x00, 0x00, 0x00, 0x0A, 0xC5, 0xCD]);
+/// assert_eq!(RtuRepr::parse(&out).unwrap().unit, 1);
+/// ```
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RtuRepr<P> {
+    /// Unit id (slave address); 0 is the broadcast.
+    pub unit: u8,
+    /// Function code and data.
+    pub pdu: P,
+}
+
+impl<'a> RtuRepr<&'a [u8]> {
+    /// Checks one whole frame and reads its unit id and PDU.
+    pub fn parse(adu: &'a [u8]) -> Result<Self, FrameError> {
+        RtuFrame::new_checked(adu).map(|frame| Self::from_frame(&frame))
+    }
+
+    /// The value of a checked frame.
+    pub fn from_frame<T: AsRef<[u8]> + ?Sized>(frame: &RtuFrame<&'a T>) -> Self {
+        RtuRepr {
+            unit: frame.unit(),
+            pdu: frame.pdu(),
+        }
     }
 }
 
-/// Writes `pdu` for `unit` as an RTU frame into `out`; returns its length.
-pub fn emit(
-    unit: u8,
-    pdu: &(impl EncodePdu + ?Sized),
-    out: &mut [u8],
-) -> Result<usize, BufferTooSmall> {
-    let needed = 1 + pdu.pdu_len() + 2;
-    let too_small = BufferTooSmall {
-        needed,
-        available: out.len(),
-    };
-    let frame = out.get_mut(..needed).ok_or(too_small)?;
-    let (head, rest) = frame.split_first_mut().ok_or(too_small)?;
-    *head = unit;
-    let pdu_len = pdu.encode_pdu(rest)?;
-    let body_len = 1 + pdu_len;
-    let crc = crc16_modbus(frame.get(..body_len).unwrap_or(&[]));
-    let slot = frame.get_mut(body_len..body_len + 2).ok_or(too_small)?;
-    slot.copy_from_slice(&crc.to_le_bytes());
-    Ok(body_len + 2)
+impl<P: EncodePdu> RtuRepr<P> {
+    /// The length of the frame: unit, PDU, CRC.
+    pub fn emitted_len(&self) -> usize {
+        1 + self.pdu.pdu_len() + 2
+    }
+
+    /// Writes the frame to the start of `out` and returns its length.
+    pub fn emit(&self, out: &mut [u8]) -> Result<usize, BufferTooSmall> {
+        let needed = self.emitted_len();
+        let too_small = BufferTooSmall {
+            needed,
+            available: out.len(),
+        };
+        let frame = out.get_mut(..needed).ok_or(too_small)?;
+        let (head, rest) = frame.split_first_mut().ok_or(too_small)?;
+        *head = self.unit;
+        let pdu_len = self.pdu.encode_pdu(rest)?;
+        let body_len = 1 + pdu_len;
+        let crc = crc16_modbus(frame.get(..body_len).unwrap_or(&[]));
+        let slot = frame.get_mut(body_len..body_len + 2).ok_or(too_small)?;
+        slot.copy_from_slice(&crc.to_le_bytes());
+        Ok(body_len + 2)
+    }
 }
 
 /// Which way the frames a decoder listens to travel.
@@ -123,7 +242,7 @@ impl Framing for RtuFraming {
     }
 
     fn check(&self, frame: &[u8]) -> Result<(), FrameError> {
-        parse(frame).map(|_| ())
+        check(frame)
     }
 }
 
@@ -137,7 +256,7 @@ impl Framing for RtuFraming {
 /// let mut decoder = RtuDecoder::new(Direction::Request, Timing::Silence(PTY_SILENCE));
 /// let mut input: &[u8] = &[0x01, 0x03, 0x00, 0x00, 0x00, 0x0A, 0xC5, 0xCD];
 /// let frame = decoder.decode(SimTime::ZERO, &mut input).unwrap().unwrap();
-/// assert_eq!((frame.unit, frame.pdu), (1, &[0x03, 0x00, 0x00, 0x00, 0x0A][..]));
+/// assert_eq!((frame.unit(), frame.pdu()), (1, &[0x03, 0x00, 0x00, 0x00, 0x0A][..]));
 /// assert!(decoder.decode(SimTime::ZERO, &mut input).is_none());
 /// ```
 #[derive(Debug, Clone)]
@@ -163,9 +282,10 @@ impl RtuDecoder {
         &mut self,
         now: SimTime,
         input: &mut &[u8],
-    ) -> Option<Result<Frame<'_>, FrameError>> {
+    ) -> Option<Result<RtuFrame<&[u8]>, FrameError>> {
         let item = self.core.decode(&self.framing, now, input)?;
-        Some(item.and_then(parse))
+        // The core hands out only bytes the framing's check passed.
+        Some(item.map(RtuFrame::new_unchecked))
     }
 
     /// When [`RtuDecoder::handle_timeout`] should next be called, if a partial
@@ -176,9 +296,9 @@ impl RtuDecoder {
 
     /// Applies the silence rule at `now`: drops a partial frame, or completes one
     /// whose length only the silence gives (an unknown function code).
-    pub fn handle_timeout(&mut self, now: SimTime) -> Option<Result<Frame<'_>, FrameError>> {
+    pub fn handle_timeout(&mut self, now: SimTime) -> Option<Result<RtuFrame<&[u8]>, FrameError>> {
         let item = self.core.handle_timeout(&self.framing, now)?;
-        Some(item.and_then(parse))
+        Some(item.map(RtuFrame::new_unchecked))
     }
 
     /// What has been thrown away so far, by reason.
@@ -207,8 +327,9 @@ mod tests {
 
     #[test]
     fn parse_and_emit_a_known_frame() {
-        let frame = parse(&READ_10).unwrap();
-        assert_eq!(frame.unit, 1);
+        let frame = RtuFrame::new_checked(&READ_10).unwrap();
+        assert_eq!(frame.unit(), 1);
+        assert_eq!(frame.crc(), 0xCDC5);
         let request = frame.request().unwrap();
         assert_eq!(
             request,
@@ -218,8 +339,15 @@ mod tests {
             }
         );
         let mut out = [0u8; MAX_ADU_LEN];
-        let n = emit(1, &request, &mut out).unwrap();
+        let n = RtuRepr {
+            unit: 1,
+            pdu: &request,
+        }
+        .emit(&mut out)
+        .unwrap();
         assert_eq!(&out[..n], READ_10);
+        let repr = RtuRepr::parse(&out[..n]).unwrap();
+        assert_eq!((repr.unit, repr.pdu), (1, &READ_10[1..6]));
     }
 
     #[test]
@@ -227,7 +355,7 @@ mod tests {
         let mut bad = READ_10;
         bad[7] ^= 1;
         assert_eq!(
-            parse(&bad),
+            RtuFrame::new_checked(&bad),
             Err(FrameError::BadCrc {
                 received: 0xCCC5,
                 calculated: 0xCDC5
@@ -243,7 +371,11 @@ mod tests {
         };
         let mut out = [0u8; 7];
         assert_eq!(
-            emit(1, &request, &mut out),
+            RtuRepr {
+                unit: 1,
+                pdu: &request
+            }
+            .emit(&mut out),
             Err(BufferTooSmall {
                 needed: 8,
                 available: 7
@@ -255,7 +387,8 @@ mod tests {
     fn unknown_function_is_delimited_by_silence() {
         // 0x2B read device identification: a slave must see it to answer 01.
         let mut out = [0u8; 16];
-        let n = emit(1, &[0x2Bu8, 0x0E, 0x01, 0x00][..], &mut out).unwrap();
+        let pdu: &[u8] = &[0x2B, 0x0E, 0x01, 0x00];
+        let n = RtuRepr { unit: 1, pdu }.emit(&mut out).unwrap();
         let mut decoder = RtuDecoder::new(Direction::Request, Timing::Silence(PTY_SILENCE));
         let mut input = &out[..n];
         assert!(decoder.decode(SimTime::ZERO, &mut input).is_none());
@@ -263,13 +396,12 @@ mod tests {
         assert_eq!(due, SimTime::ZERO + PTY_SILENCE);
         assert!(decoder.handle_timeout(SimTime(due.0 - 1)).is_none());
         let frame = decoder.handle_timeout(due).unwrap().unwrap();
-        assert_eq!(frame.pdu, &[0x2B, 0x0E, 0x01, 0x00]);
+        assert_eq!(frame.pdu(), &[0x2B, 0x0E, 0x01, 0x00]);
         assert_eq!(decoder.poll_timeout(), None);
     }
 
     #[test]
     fn a_slave_skips_another_slaves_reply_on_a_shared_line() {
-        use crate::modbus::pdu::Response;
         use crate::modbus::{Registers, serial::silence_3_5_chars};
         use crate::time::SimDuration;
 
@@ -280,18 +412,28 @@ mod tests {
             address: 0,
             quantity: 10,
         };
-        let n = emit(1, &read, &mut out).unwrap();
+        let n = RtuRepr {
+            unit: 1,
+            pdu: &read,
+        }
+        .emit(&mut out)
+        .unwrap();
         line.push(out[..n].to_vec());
         let values: Vec<u16> = (0..10).map(|i| 0x0101 * i).collect();
         let reply = Response::ReadHoldingRegisters(Registers::from_slice(&values).unwrap());
-        let n = emit(
-            1,
-            &Ok::<_, crate::modbus::ExceptionResponse>(reply),
-            &mut out,
-        )
+        let n = RtuRepr {
+            unit: 1,
+            pdu: &Ok::<_, ExceptionResponse>(reply),
+        }
+        .emit(&mut out)
         .unwrap();
         line.push(out[..n].to_vec());
-        let n = emit(2, &read, &mut out).unwrap();
+        let n = RtuRepr {
+            unit: 2,
+            pdu: &read,
+        }
+        .emit(&mut out)
+        .unwrap();
         line.push(out[..n].to_vec());
 
         // Slave 2 hears all three frames, byte by byte, 3.5 characters apart.
@@ -329,7 +471,7 @@ mod tests {
         stream.extend(READ_10);
         let mut input = &stream[..];
         let frame = decoder.decode(SimTime::ZERO, &mut input).unwrap().unwrap();
-        assert_eq!(frame.unit, 1);
+        assert_eq!(frame.unit(), 1);
         assert!(input.is_empty());
         assert_eq!(decoder.drops().malformed.bytes, 2);
     }

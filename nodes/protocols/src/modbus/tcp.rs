@@ -10,7 +10,7 @@
 //! counting each (for a capture read after the fact).
 
 use super::pdu::{EncodePdu, ExceptionResponse, PduError, Request, Response};
-use super::{BufferTooSmall, Drops, Frame, FrameError, MAX_PDU_LEN};
+use super::{BufferTooSmall, Drops, FrameError, MAX_PDU_LEN};
 
 /// MBAP header length, unit id included.
 pub const MBAP_LEN: usize = 7;
@@ -19,34 +19,131 @@ pub const MIN_ADU_LEN: usize = MBAP_LEN + 1;
 /// The longest frame: header and a 253-byte PDU.
 pub const MAX_ADU_LEN: usize = MBAP_LEN + MAX_PDU_LEN;
 
-/// A checked Modbus TCP frame, borrowing its PDU.
+/// A checked view over the bytes of one Modbus TCP frame: the MBAP header
+/// (transaction id, protocol id 0, length, unit id) and the PDU.
+///
+/// [`TcpFrame::new_checked`] checks the protocol id, the length field and that
+/// the frame is as long as it says; the PDU is left as bytes for
+/// [`TcpFrame::request`] or [`TcpFrame::response`] to parse.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct TcpFrame<'a> {
-    /// Transaction id, echoed by the reply.
-    pub transaction_id: u16,
-    /// Unit id (a gateway's target; often 0 or 255 for a plain TCP device).
-    pub unit: u8,
-    /// Function code and data; never empty.
-    pub pdu: &'a [u8],
+pub struct TcpFrame<T: AsRef<[u8]>> {
+    buffer: T,
 }
 
-impl<'a> TcpFrame<'a> {
-    /// The unit id and PDU without the transaction id.
-    pub fn frame(&self) -> Frame<'a> {
-        Frame {
-            unit: self.unit,
-            pdu: self.pdu,
+impl<T: AsRef<[u8]>> TcpFrame<T> {
+    /// Checks `buffer` as one whole frame.
+    pub fn new_checked(buffer: T) -> Result<Self, FrameError> {
+        check(buffer.as_ref())?;
+        Ok(TcpFrame { buffer })
+    }
+
+    /// A view over bytes a decoder has already checked.
+    fn new_unchecked(buffer: T) -> Self {
+        TcpFrame { buffer }
+    }
+
+    /// Transaction id, echoed by the reply.
+    pub fn transaction_id(&self) -> u16 {
+        match self.buffer.as_ref() {
+            [hi, lo, ..] => u16::from_be_bytes([*hi, *lo]),
+            _ => 0,
         }
+    }
+
+    /// Unit id (a gateway's target; often 0 or 255 for a plain TCP device).
+    pub fn unit(&self) -> u8 {
+        self.buffer.as_ref().get(MBAP_LEN - 1).copied().unwrap_or(0)
+    }
+
+    /// The function code (first PDU byte; top bit set on an exception reply).
+    pub fn function(&self) -> u8 {
+        self.buffer.as_ref().get(MBAP_LEN).copied().unwrap_or(0)
     }
 
     /// Parses the PDU as a request.
     pub fn request(&self) -> Result<Request, PduError> {
-        Request::parse(self.pdu)
+        Request::parse(pdu_of(self.buffer.as_ref()))
     }
 
     /// Parses the PDU as a reply.
     pub fn response(&self) -> Result<Result<Response, ExceptionResponse>, PduError> {
-        Response::parse(self.pdu)
+        Response::parse(pdu_of(self.buffer.as_ref()))
+    }
+
+    /// The bytes of the frame, as received.
+    pub fn as_bytes(&self) -> &[u8] {
+        self.buffer.as_ref()
+    }
+
+    /// Gives the buffer back.
+    pub fn into_inner(self) -> T {
+        self.buffer
+    }
+}
+
+impl<'a, T: AsRef<[u8]> + ?Sized> TcpFrame<&'a T> {
+    /// Function code and data; never empty. Borrowed from the buffer, so it
+    /// outlives the view (a decoder's frame can be kept while it goes on).
+    pub fn pdu(&self) -> &'a [u8] {
+        pdu_of(self.buffer.as_ref())
+    }
+}
+
+/// The PDU of checked frame bytes: after the MBAP header.
+fn pdu_of(adu: &[u8]) -> &[u8] {
+    adu.get(MBAP_LEN..).unwrap_or_default()
+}
+
+/// One Modbus TCP frame as a value: transaction id, unit id and a PDU.
+/// Parsed, the PDU is the frame's bytes (`TcpRepr<&[u8]>`); to emit, it is
+/// anything that writes a PDU (a [`Request`], a reply, raw bytes).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TcpRepr<P> {
+    /// Transaction id, echoed by the reply.
+    pub transaction_id: u16,
+    /// Unit id (a gateway's target; often 0 or 255 for a plain TCP device).
+    pub unit: u8,
+    /// Function code and data.
+    pub pdu: P,
+}
+
+impl<'a> TcpRepr<&'a [u8]> {
+    /// Checks one whole frame and reads its header and PDU.
+    pub fn parse(adu: &'a [u8]) -> Result<Self, FrameError> {
+        TcpFrame::new_checked(adu).map(|frame| Self::from_frame(&frame))
+    }
+
+    /// The value of a checked frame.
+    pub fn from_frame<T: AsRef<[u8]> + ?Sized>(frame: &TcpFrame<&'a T>) -> Self {
+        TcpRepr {
+            transaction_id: frame.transaction_id(),
+            unit: frame.unit(),
+            pdu: frame.pdu(),
+        }
+    }
+}
+
+impl<P: EncodePdu> TcpRepr<P> {
+    /// The length of the frame: MBAP header and PDU.
+    pub fn emitted_len(&self) -> usize {
+        MBAP_LEN + self.pdu.pdu_len()
+    }
+
+    /// Writes the frame to the start of `out` and returns its length.
+    pub fn emit(&self, out: &mut [u8]) -> Result<usize, BufferTooSmall> {
+        let pdu_len = self.pdu.pdu_len();
+        let needed = MBAP_LEN + pdu_len;
+        let available = out.len();
+        let frame = out
+            .get_mut(..needed)
+            .ok_or(BufferTooSmall { needed, available })?;
+        let (header, body) = frame.split_at_mut(MBAP_LEN);
+        let [t_hi, t_lo] = self.transaction_id.to_be_bytes();
+        // The PDU is at most 253 bytes, so the length always fits.
+        let [l_hi, l_lo] = (1 + pdu_len as u16).to_be_bytes();
+        header.copy_from_slice(&[t_hi, t_lo, 0, 0, l_hi, l_lo, self.unit]);
+        self.pdu.encode_pdu(body)?;
+        Ok(needed)
     }
 }
 
@@ -85,48 +182,21 @@ fn header_len(bytes: &[u8]) -> Result<usize, FrameError> {
 }
 
 /// Checks a whole Modbus TCP frame.
-pub fn parse(adu: &[u8]) -> Result<TcpFrame<'_>, FrameError> {
+fn check(adu: &[u8]) -> Result<(), FrameError> {
     let expected = header_len(adu)?;
-    let &[t_hi, t_lo, _, _, _, _, unit, ref pdu @ ..] = adu else {
+    if adu.len() < MBAP_LEN {
         return Err(FrameError::TooShort {
             len: adu.len(),
             min: MIN_ADU_LEN,
         });
-    };
+    }
     if adu.len() != expected {
         return Err(FrameError::LengthMismatch {
             expected: expected - 6,
             actual: adu.len() - 6,
         });
     }
-    Ok(TcpFrame {
-        transaction_id: u16::from_be_bytes([t_hi, t_lo]),
-        unit,
-        pdu,
-    })
-}
-
-/// Writes `pdu` for `unit` with `transaction_id` as a Modbus TCP frame into
-/// `out`; returns its length.
-pub fn emit(
-    transaction_id: u16,
-    unit: u8,
-    pdu: &(impl EncodePdu + ?Sized),
-    out: &mut [u8],
-) -> Result<usize, BufferTooSmall> {
-    let pdu_len = pdu.pdu_len();
-    let needed = MBAP_LEN + pdu_len;
-    let available = out.len();
-    let frame = out
-        .get_mut(..needed)
-        .ok_or(BufferTooSmall { needed, available })?;
-    let (header, body) = frame.split_at_mut(MBAP_LEN);
-    let [t_hi, t_lo] = transaction_id.to_be_bytes();
-    // The PDU is at most 253 bytes, so the length always fits.
-    let [l_hi, l_lo] = (1 + pdu_len as u16).to_be_bytes();
-    header.copy_from_slice(&[t_hi, t_lo, 0, 0, l_hi, l_lo, unit]);
-    pdu.encode_pdu(body)?;
-    Ok(needed)
+    Ok(())
 }
 
 /// Turns a Modbus TCP byte stream, in chunks of any size, into frames.
@@ -137,7 +207,7 @@ pub fn emit(
 /// let mut decoder = TcpDecoder::new();
 /// let mut input: &[u8] = &[0x00, 0x07, 0, 0, 0, 6, 0x01, 0x03, 0x00, 0x00, 0x00, 0x05];
 /// let frame = decoder.decode(&mut input).unwrap().unwrap();
-/// assert_eq!((frame.transaction_id, frame.unit), (7, 1));
+/// assert_eq!((frame.transaction_id(), frame.unit()), (7, 1));
 /// ```
 #[derive(Debug, Clone)]
 pub struct TcpDecoder {
@@ -186,13 +256,15 @@ impl TcpDecoder {
     /// that cannot be Modbus is counted in [`Drops::malformed`]; the plain
     /// decoder resynchronises past it, a server's returns it (see
     /// [`TcpDecoder::for_server`]).
-    pub fn decode(&mut self, input: &mut &[u8]) -> Option<Result<TcpFrame<'_>, FrameError>> {
+    pub fn decode(&mut self, input: &mut &[u8]) -> Option<Result<TcpFrame<&[u8]>, FrameError>> {
         if self.stopped.is_some() {
             *input = &[];
             return None;
         }
         match self.advance(input)? {
-            Ok(end) => Some(parse(&self.buf[..end])),
+            // `advance` hands out a frame only when its header checked and
+            // exactly the length it announces is in.
+            Ok(end) => Some(Ok(TcpFrame::new_unchecked(&self.buf[..end]))),
             Err(fault) => {
                 *input = &[];
                 self.len = 0;
@@ -268,11 +340,17 @@ mod tests {
         let adu = [
             0x00, 0x01, 0x00, 0x00, 0x00, 0x06, 0x11, 0x03, 0x00, 0x6B, 0x00, 0x03,
         ];
-        let frame = parse(&adu).unwrap();
-        assert_eq!((frame.transaction_id, frame.unit), (1, 0x11));
+        let frame = TcpFrame::new_checked(&adu).unwrap();
+        assert_eq!((frame.transaction_id(), frame.unit()), (1, 0x11));
         let request = frame.request().unwrap();
         let mut out = [0u8; MAX_ADU_LEN];
-        let n = emit(1, 0x11, &request, &mut out).unwrap();
+        let repr = TcpRepr {
+            transaction_id: 1,
+            unit: 0x11,
+            pdu: &request,
+        };
+        let n = repr.emit(&mut out).unwrap();
+        assert_eq!(n, repr.emitted_len());
         assert_eq!(&out[..n], adu);
     }
 
@@ -296,15 +374,18 @@ mod tests {
     #[test]
     fn header_faults_are_typed() {
         let good = [0, 1, 0, 0, 0, 2, 1, 0x03];
-        assert!(parse(&good).is_ok());
+        assert!(TcpFrame::new_checked(&good).is_ok());
         let mut bad = good;
         bad[2] = 1;
-        assert_eq!(parse(&bad), Err(FrameError::ProtocolId(0x0100)));
+        assert_eq!(
+            TcpFrame::new_checked(&bad),
+            Err(FrameError::ProtocolId(0x0100))
+        );
         let mut bad = good;
         bad[5] = 1;
-        assert_eq!(parse(&bad), Err(FrameError::MbapLength(1)));
+        assert_eq!(TcpFrame::new_checked(&bad), Err(FrameError::MbapLength(1)));
         assert_eq!(
-            parse(&[0, 1, 0, 0, 0, 3, 1, 0x03]),
+            TcpFrame::new_checked(&[0, 1, 0, 0, 0, 3, 1, 0x03]),
             Err(FrameError::LengthMismatch {
                 expected: 3,
                 actual: 2
@@ -319,7 +400,7 @@ mod tests {
         stream.extend([0, 9, 0, 0, 0, 6, 1, 0x06, 0, 1, 0, 2]);
         let mut input = &stream[..];
         let frame = decoder.decode(&mut input).unwrap().unwrap();
-        assert_eq!(frame.transaction_id, 9);
+        assert_eq!(frame.transaction_id(), 9);
         assert_eq!(decoder.drops().malformed.bytes, 3);
         assert!(decoder.decode(&mut input).is_none());
         assert_eq!(decoder.pending(), 0);

@@ -14,7 +14,7 @@ use protocols::modbus::tcp::{self, TcpDecoder};
 use protocols::modbus::{
     Bits, EncodePdu, Exception, ExceptionResponse, Registers, Request, Response,
 };
-use protocols::modbus8::{CrcOrder, Frame, Modbus8Decoder};
+use protocols::modbus8::{CrcOrder, Modbus8Decoder, Modbus8Repr};
 use protocols::time::{SimDuration, SimTime};
 
 // ---------------------------------------------------------------- strategies
@@ -84,9 +84,9 @@ fn reply() -> impl Strategy<Value = Result<Response, ExceptionResponse>> {
     ]
 }
 
-fn modbus8_frame() -> impl Strategy<Value = Frame> {
+fn modbus8_frame() -> impl Strategy<Value = Modbus8Repr> {
     (any::<u8>(), any::<u8>(), any::<u16>(), any::<u16>()).prop_map(
-        |(id, function, addr, value)| Frame {
+        |(id, function, addr, value)| Modbus8Repr {
             id,
             function,
             addr,
@@ -128,21 +128,27 @@ fn pdu_bytes(pdu: &(impl EncodePdu + ?Sized)) -> Vec<u8> {
 
 fn rtu_bytes(unit: u8, pdu: &(impl EncodePdu + ?Sized)) -> Vec<u8> {
     let mut out = vec![0u8; rtu::MAX_ADU_LEN];
-    let n = rtu::emit(unit, pdu, &mut out).unwrap();
+    let n = rtu::RtuRepr { unit, pdu }.emit(&mut out).unwrap();
     out.truncate(n);
     out
 }
 
 fn ascii_bytes(unit: u8, pdu: &(impl EncodePdu + ?Sized)) -> Vec<u8> {
     let mut out = vec![0u8; ascii::MAX_ADU_LEN];
-    let n = ascii::emit(unit, pdu, &mut out).unwrap();
+    let n = ascii::AsciiRepr { unit, pdu }.emit(&mut out).unwrap();
     out.truncate(n);
     out
 }
 
 fn tcp_bytes(tid: u16, unit: u8, pdu: &(impl EncodePdu + ?Sized)) -> Vec<u8> {
     let mut out = vec![0u8; tcp::MAX_ADU_LEN];
-    let n = tcp::emit(tid, unit, pdu, &mut out).unwrap();
+    let n = tcp::TcpRepr {
+        transaction_id: tid,
+        unit,
+        pdu,
+    }
+    .emit(&mut out)
+    .unwrap();
     out.truncate(n);
     out
 }
@@ -157,19 +163,19 @@ proptest! {
         prop_assert_eq!(&Request::parse(&pdu).unwrap(), &req);
 
         let adu = rtu_bytes(unit, &req);
-        let frame = rtu::parse(&adu).unwrap();
-        prop_assert_eq!(frame.unit, unit);
+        let frame = rtu::RtuFrame::new_checked(&adu).unwrap();
+        prop_assert_eq!(frame.unit(), unit);
         prop_assert_eq!(&frame.request().unwrap(), &req);
 
         let adu = ascii_bytes(unit, &req);
         let mut scratch = [0u8; ascii::MAX_BINARY_LEN];
-        let frame = ascii::parse(&adu, &mut scratch).unwrap();
-        prop_assert_eq!(frame.unit, unit);
+        let frame = ascii::AsciiFrame::decode_line(&adu, &mut scratch).unwrap();
+        prop_assert_eq!(frame.unit(), unit);
         prop_assert_eq!(&frame.request().unwrap(), &req);
 
         let adu = tcp_bytes(tid, unit, &req);
-        let frame = tcp::parse(&adu).unwrap();
-        prop_assert_eq!((frame.transaction_id, frame.unit), (tid, unit));
+        let frame = tcp::TcpFrame::new_checked(&adu).unwrap();
+        prop_assert_eq!((frame.transaction_id(), frame.unit()), (tid, unit));
         prop_assert_eq!(&frame.request().unwrap(), &req);
     }
 
@@ -179,26 +185,26 @@ proptest! {
         prop_assert_eq!(&Response::parse(&pdu).unwrap(), &rep);
 
         let adu = rtu_bytes(unit, &rep);
-        prop_assert_eq!(&rtu::parse(&adu).unwrap().response().unwrap(), &rep);
+        prop_assert_eq!(&rtu::RtuFrame::new_checked(&adu).unwrap().response().unwrap(), &rep);
 
         let adu = ascii_bytes(unit, &rep);
         let mut scratch = [0u8; ascii::MAX_BINARY_LEN];
-        prop_assert_eq!(&ascii::parse(&adu, &mut scratch).unwrap().response().unwrap(), &rep);
+        prop_assert_eq!(&ascii::AsciiFrame::decode_line(&adu, &mut scratch).unwrap().response().unwrap(), &rep);
 
         let adu = tcp_bytes(tid, unit, &rep);
-        prop_assert_eq!(&tcp::parse(&adu).unwrap().response().unwrap(), &rep);
+        prop_assert_eq!(&tcp::TcpFrame::new_checked(&adu).unwrap().response().unwrap(), &rep);
     }
 
     #[test]
     fn modbus8_round_trips_in_both_orders(frame in modbus8_frame(), order in crc_order()) {
         let bytes = frame.to_bytes(order);
-        prop_assert_eq!(Frame::parse(&bytes, order), Ok(frame));
+        prop_assert_eq!(Modbus8Repr::parse(&bytes, order), Ok(frame));
         // The other order rejects it unless both CRC bytes happen to be equal.
         let other = match order {
             CrcOrder::HighFirst => CrcOrder::LowFirst,
             CrcOrder::LowFirst => CrcOrder::HighFirst,
         };
-        prop_assert_eq!(Frame::parse(&bytes, other).is_ok(), bytes[6] == bytes[7]);
+        prop_assert_eq!(Modbus8Repr::parse(&bytes, other).is_ok(), bytes[6] == bytes[7]);
     }
 
     #[test]
@@ -206,7 +212,7 @@ proptest! {
         let mut adu = rtu_bytes(unit, &req);
         let bit = bit % (adu.len() * 8);
         adu[bit / 8] ^= 1 << (bit % 8);
-        prop_assert!(rtu::parse(&adu).is_err());
+        prop_assert!(rtu::RtuFrame::new_checked(&adu).is_err());
     }
 }
 
@@ -220,14 +226,14 @@ fn run_rtu(decoder: &mut RtuDecoder, chunks: &[&[u8]], times: &[SimTime]) -> Vec
         let mut input = *chunk;
         while let Some(item) = decoder.decode(now, &mut input) {
             if let Ok(frame) = item {
-                out.push((frame.unit, frame.pdu.to_vec()));
+                out.push((frame.unit(), frame.pdu().to_vec()));
             }
         }
     }
     if let Some(due) = decoder.poll_timeout()
         && let Some(Ok(frame)) = decoder.handle_timeout(due)
     {
-        out.push((frame.unit, frame.pdu.to_vec()));
+        out.push((frame.unit(), frame.pdu().to_vec()));
     }
     out
 }
@@ -327,7 +333,7 @@ proptest! {
         for (chunk, &now) in chunks.iter().zip(&times) {
             let mut input = *chunk;
             while let Some(item) = decoder.decode(now, &mut input) {
-                got.push(item.unwrap());
+                got.push(Modbus8Repr::from_frame(&item.unwrap()));
             }
         }
         prop_assert_eq!(got, frames);
@@ -346,7 +352,7 @@ proptest! {
             let mut input = chunk;
             while let Some(item) = decoder.decode(&mut input) {
                 let frame = item.unwrap();
-                got.push((frame.transaction_id, frame.unit, frame.response().unwrap()));
+                got.push((frame.transaction_id(), frame.unit(), frame.response().unwrap()));
             }
         }
         prop_assert_eq!(got, frames);
@@ -376,7 +382,7 @@ proptest! {
             let mut input = chunk;
             while let Some(item) = decoder.decode(&mut input) {
                 let frame = item.unwrap();
-                got.push((frame.unit, frame.request().unwrap()));
+                got.push((frame.unit(), frame.request().unwrap()));
             }
         }
         let want: Vec<_> = frames.iter().map(|(u, r, _)| (*u, r.clone())).collect();
@@ -409,7 +415,7 @@ proptest! {
                 let mut input = *chunk;
                 while let Some(item) = decoder.decode(now, &mut input) {
                     if let Ok(frame) = item {
-                        framed += frame.pdu.len() + 3;
+                        framed += frame.pdu().len() + 3;
                     }
                 }
             }
@@ -437,11 +443,11 @@ proptest! {
         for chunk in chunks(&bytes, &cuts) {
             let mut input = chunk;
             while let Some(item) = tcp.decode(&mut input) {
-                tcp_framed += item.map_or(0, |f| (f.pdu.len() + tcp::MBAP_LEN) as u64);
+                tcp_framed += item.map_or(0, |f| (f.pdu().len() + tcp::MBAP_LEN) as u64);
             }
             let mut input = chunk;
             while let Some(item) = ascii.decode(&mut input) {
-                ascii_framed += item.map_or(0, |f| (1 + 2 * (f.pdu.len() + 2) + 2) as u64);
+                ascii_framed += item.map_or(0, |f| (1 + 2 * (f.pdu().len() + 2) + 2) as u64);
             }
         }
         let n = bytes.len() as u64;
@@ -453,10 +459,10 @@ proptest! {
     fn parsers_never_panic(bytes in prop::collection::vec(any::<u8>(), 0..300)) {
         let _ = Request::parse(&bytes);
         let _ = Response::parse(&bytes);
-        let _ = rtu::parse(&bytes);
-        let _ = tcp::parse(&bytes);
+        let _ = rtu::RtuFrame::new_checked(&bytes);
+        let _ = tcp::TcpFrame::new_checked(&bytes);
         let mut scratch = [0u8; ascii::MAX_BINARY_LEN];
-        let _ = ascii::parse(&bytes, &mut scratch);
-        let _ = Frame::parse(&bytes, CrcOrder::HighFirst);
+        let _ = ascii::AsciiFrame::decode_line(&bytes, &mut scratch);
+        let _ = Modbus8Repr::parse(&bytes, CrcOrder::HighFirst);
     }
 }

@@ -74,16 +74,16 @@ impl Case {
         let mut scratch = [0u8; ascii::MAX_BINARY_LEN];
         let (unit, tid, pdu) = match self.framing {
             Framing::Rtu => {
-                let f = rtu::parse(bytes).expect("RTU frame");
-                (f.unit, 0, f.pdu)
+                let f = rtu::RtuFrame::new_checked(bytes).expect("RTU frame");
+                (f.unit(), 0, f.pdu())
             }
             Framing::Ascii => {
-                let f = ascii::parse(bytes, &mut scratch).expect("ASCII frame");
-                (f.unit, 0, f.pdu)
+                let f = ascii::AsciiFrame::decode_line(bytes, &mut scratch).expect("ASCII frame");
+                (f.unit(), 0, f.pdu())
             }
             Framing::Tcp => {
-                let f = tcp::parse(bytes).expect("TCP frame");
-                (f.unit, f.transaction_id, f.pdu)
+                let f = tcp::TcpFrame::new_checked(bytes).expect("TCP frame");
+                (f.unit(), f.transaction_id(), f.pdu())
             }
         };
         let value = match self.pdu {
@@ -161,9 +161,14 @@ fn frame(
     out: &mut [u8],
 ) -> usize {
     match framing {
-        Framing::Rtu => rtu::emit(unit, pdu, out),
-        Framing::Ascii => ascii::emit(unit, pdu, out),
-        Framing::Tcp => tcp::emit(tid, unit, pdu, out),
+        Framing::Rtu => rtu::RtuRepr { unit, pdu }.emit(out),
+        Framing::Ascii => ascii::AsciiRepr { unit, pdu }.emit(out),
+        Framing::Tcp => tcp::TcpRepr {
+            transaction_id: tid,
+            unit,
+            pdu,
+        }
+        .emit(out),
     }
     .expect("emit")
 }
