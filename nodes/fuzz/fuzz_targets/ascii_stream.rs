@@ -20,7 +20,7 @@ fn run<'a>(chunks: impl Iterator<Item = &'a [u8]>) -> (Events, Drops, usize) {
     for chunk in chunks {
         let mut input = chunk;
         while let Some(item) = decoder.decode(&mut input) {
-            events.push(item.map(|f| (f.unit, f.pdu.to_vec())));
+            events.push(item.map(|f| (f.unit(), f.pdu().to_vec())));
         }
         assert!(input.is_empty());
         assert!(decoder.pending() <= MAX_ADU_LEN);
@@ -41,9 +41,15 @@ fuzz_target!(|data: &[u8]| {
     let mut scratch = [0u8; MAX_BINARY_LEN];
     for (unit, pdu) in events.iter().flatten() {
         framed += 1 + 2 * (pdu.len() + 2) + 2;
-        let n = ascii::emit(*unit, &pdu[..], &mut out).expect("a decoded frame fits");
-        let again = ascii::parse(&out[..n], &mut scratch).expect("a decoded frame re-parses");
-        assert_eq!((again.unit, again.pdu), (*unit, &pdu[..]));
+        let n = ascii::AsciiRepr {
+            unit: *unit,
+            pdu: &pdu[..],
+        }
+        .emit(&mut out)
+        .expect("a decoded frame fits");
+        let again = ascii::AsciiFrame::decode_line(&out[..n], &mut scratch)
+            .expect("a decoded frame re-parses");
+        assert_eq!((again.unit(), again.pdu()), (*unit, &pdu[..]));
         drop(Request::parse(pdu));
         drop(Response::parse(pdu));
     }

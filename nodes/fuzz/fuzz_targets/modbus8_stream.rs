@@ -10,10 +10,10 @@ mod chunking;
 use chunking::chunks;
 use libfuzzer_sys::fuzz_target;
 use protocols::modbus::Drops;
-use protocols::modbus8::{CrcOrder, FRAME_LEN, Frame, Modbus8Decoder, Modbus8Error};
+use protocols::modbus8::{CrcOrder, FRAME_LEN, Modbus8Decoder, Modbus8Error, Modbus8Repr};
 use protocols::time::{SimDuration, SimTime};
 
-type Events = Vec<Result<Frame, Modbus8Error>>;
+type Events = Vec<Result<Modbus8Repr, Modbus8Error>>;
 
 fn run<'a>(
     order: CrcOrder,
@@ -24,7 +24,7 @@ fn run<'a>(
     for (now, chunk) in chunks {
         let mut input = chunk;
         while let Some(item) = decoder.decode(now, &mut input) {
-            events.push(item);
+            events.push(item.map(|frame| Modbus8Repr::from_frame(&frame)));
         }
         assert!(input.is_empty());
         assert!(decoder.pending() < FRAME_LEN);
@@ -60,6 +60,9 @@ fuzz_target!(|data: &[u8]| {
         bytes.len() as u64
     );
     for frame in events.iter().flatten() {
-        assert_eq!(Frame::parse(&frame.to_bytes(order), order), Ok(*frame));
+        assert_eq!(
+            Modbus8Repr::parse(&frame.to_bytes(order), order),
+            Ok(*frame)
+        );
     }
 });

@@ -29,7 +29,7 @@ fn run<'a>(
         last = now;
         let mut input = chunk;
         while let Some(item) = decoder.decode(now, &mut input) {
-            events.push(item.map(|f| (f.unit, f.pdu.to_vec())));
+            events.push(item.map(|f| (f.unit(), f.pdu().to_vec())));
         }
         assert!(input.is_empty());
         assert!(decoder.pending() <= MAX_ADU_LEN);
@@ -37,7 +37,7 @@ fn run<'a>(
     if let Some(due) = decoder.poll_timeout() {
         assert!(due > last);
         if let Some(item) = decoder.handle_timeout(due) {
-            events.push(item.map(|f| (f.unit, f.pdu.to_vec())));
+            events.push(item.map(|f| (f.unit(), f.pdu().to_vec())));
         }
         assert_eq!(decoder.pending(), 0);
         assert_eq!(decoder.poll_timeout(), None);
@@ -78,9 +78,14 @@ fuzz_target!(|data: &[u8]| {
     let mut out = [0u8; MAX_ADU_LEN];
     for (unit, pdu) in events.iter().flatten() {
         framed += pdu.len() + 3;
-        let n = rtu::emit(*unit, &pdu[..], &mut out).expect("a decoded frame fits");
-        let again = rtu::parse(&out[..n]).expect("a decoded frame re-parses");
-        assert_eq!((again.unit, again.pdu), (*unit, &pdu[..]));
+        let n = rtu::RtuRepr {
+            unit: *unit,
+            pdu: &pdu[..],
+        }
+        .emit(&mut out)
+        .expect("a decoded frame fits");
+        let again = rtu::RtuFrame::new_checked(&out[..n]).expect("a decoded frame re-parses");
+        assert_eq!((again.unit(), again.pdu()), (*unit, &pdu[..]));
         match direction {
             Direction::Request => drop(Request::parse(pdu)),
             Direction::Response => drop(Response::parse(pdu)),

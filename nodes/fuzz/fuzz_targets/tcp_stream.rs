@@ -20,7 +20,7 @@ fn run<'a>(chunks: impl Iterator<Item = &'a [u8]>) -> (Events, Drops, usize) {
     for chunk in chunks {
         let mut input = chunk;
         while let Some(item) = decoder.decode(&mut input) {
-            events.push(item.map(|f| (f.transaction_id, f.unit, f.pdu.to_vec())));
+            events.push(item.map(|f| (f.transaction_id(), f.unit(), f.pdu().to_vec())));
         }
         assert!(input.is_empty());
         assert!(decoder.pending() <= MAX_ADU_LEN);
@@ -38,10 +38,16 @@ fuzz_target!(|data: &[u8]| {
     let mut out = [0u8; MAX_ADU_LEN];
     for (tid, unit, pdu) in events.iter().flatten() {
         framed += pdu.len() + tcp::MBAP_LEN;
-        let n = tcp::emit(*tid, *unit, &pdu[..], &mut out).expect("a decoded frame fits");
-        let again = tcp::parse(&out[..n]).expect("a decoded frame re-parses");
+        let n = tcp::TcpRepr {
+            transaction_id: *tid,
+            unit: *unit,
+            pdu: &pdu[..],
+        }
+        .emit(&mut out)
+        .expect("a decoded frame fits");
+        let again = tcp::TcpFrame::new_checked(&out[..n]).expect("a decoded frame re-parses");
         assert_eq!(
-            (again.transaction_id, again.unit, again.pdu),
+            (again.transaction_id(), again.unit(), again.pdu()),
             (*tid, *unit, &pdu[..])
         );
         drop(Request::parse(pdu));

@@ -14,7 +14,7 @@ use std::collections::VecDeque;
 
 use crate::node::{Node, NodeEvent};
 use protocols::modbus::Exception;
-use protocols::modbus8::{self, CrcOrder, FRAME_LEN, Frame, Modbus8Decoder, Modbus8Error};
+use protocols::modbus8::{self, CrcOrder, FRAME_LEN, Modbus8Decoder, Modbus8Error, Modbus8Repr};
 use protocols::time::{SimDuration, SimTime};
 
 use super::{
@@ -145,7 +145,7 @@ enum Step {
 }
 
 impl Step {
-    fn request(self) -> Frame {
+    fn request(self) -> Modbus8Repr {
         let (id, function, addr, value) = match self {
             Step::ReadState => (MOTOR_ID, modbus8::READ, REG_STATE, 0),
             Step::WriteState(v) => (MOTOR_ID, modbus8::WRITE, REG_STATE, v),
@@ -154,7 +154,7 @@ impl Step {
             Step::WriteSetPoint(v) => (MOTOR_ID, modbus8::WRITE, REG_SET_SPEED, v),
             Step::ReadSensor => (LIGHT_ID, modbus8::READ, REG_LIGHT_VALUE, 0),
         };
-        Frame {
+        Modbus8Repr {
             id,
             function,
             addr,
@@ -169,7 +169,7 @@ impl Step {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ScriptedRequest {
     pub at: SimTime,
-    pub frame: Frame,
+    pub frame: Modbus8Repr,
     /// Sent with its CRC plus one, as the project's test of a wrong CRC.
     pub bad_crc: bool,
 }
@@ -194,14 +194,14 @@ pub struct ControllerNetworkMaster {
     step: Step,
     wait: Wait,
     /// The request in flight.
-    current: Frame,
+    current: Modbus8Repr,
     /// Scripted requests in time order, and the next one's index.
     script: Vec<ScriptedRequest>,
     next_script: usize,
     /// While a scripted request is in flight: the program's wait it
     /// interrupted, taken up again after it.
     paused: Option<Wait>,
-    reply: Option<Result<Frame, Modbus8Error>>,
+    reply: Option<Result<Modbus8Repr, Modbus8Error>>,
     cycle: u32,
     set_point: u16,
     motor_state: Option<u16>,
@@ -362,7 +362,7 @@ impl ControllerNetworkMaster {
         }
     }
 
-    fn use_reply(&mut self, now: SimTime, frame: Frame) {
+    fn use_reply(&mut self, now: SimTime, frame: Modbus8Repr) {
         let request = self.current;
         let order = self.config.crc_order;
         self.log(now, || {
@@ -529,7 +529,7 @@ impl ControllerNetworkMaster {
 
 /// What the project's `handleError` prints for an exception code.
 /// A frame's id, function, register and value, as the project prints them.
-fn words(frame: &Frame) -> String {
+fn words(frame: &Modbus8Repr) -> String {
     format!(
         "{:02x} {:02x} {:04x} {:04x}",
         frame.id, frame.function, frame.addr, frame.value
@@ -558,6 +558,7 @@ impl Node for ControllerNetworkMaster {
             let Some(decoded) = self.decoder.decode(now, &mut bytes) else {
                 break;
             };
+            let decoded = decoded.map(|frame| Modbus8Repr::from_frame(&frame));
             // Only the first frame after a request is read; later bytes sit
             // in the port until it is flushed for the next request.
             if matches!(self.wait, Wait::Reply(_)) && self.reply.is_none() {

@@ -19,7 +19,7 @@ pub use motor::{MotorConfig, MotorNode, MotorState};
 use std::collections::VecDeque;
 
 use protocols::modbus::Exception;
-use protocols::modbus8::{self, CrcOrder, FRAME_LEN, Frame, Modbus8Decoder};
+use protocols::modbus8::{self, CrcOrder, FRAME_LEN, Modbus8Decoder, Modbus8Repr};
 use protocols::time::{SimDuration, SimTime};
 
 /// Slave id of the motor node.
@@ -57,13 +57,13 @@ trait RegisterMap {
 
 /// The reply to `request`, checked in the spec's order: address (02), then
 /// function (01), then value (03). A write is answered by its echo.
-fn answer(map: &mut impl RegisterMap, request: Frame) -> Frame {
-    let exception = |e| Frame::exception(request.id, request.function, request.addr, e);
+fn answer(map: &mut impl RegisterMap, request: Modbus8Repr) -> Modbus8Repr {
+    let exception = |e| Modbus8Repr::exception(request.id, request.function, request.addr, e);
     let Some(access) = map.access(request.addr) else {
         return exception(Exception::IllegalDataAddress);
     };
     match (request.function, access) {
-        (modbus8::READ, Access::Read | Access::ReadWrite) => Frame {
+        (modbus8::READ, Access::Read | Access::ReadWrite) => Modbus8Repr {
             value: map.read(request.addr),
             ..request
         },
@@ -142,11 +142,14 @@ impl SlavePort {
             let Some(decoded) = self.decoder.decode(now, &mut bytes) else {
                 break;
             };
+            let decoded = decoded.map(|frame| Modbus8Repr::from_frame(&frame));
             if let Ok(request) = decoded
                 && request.id == self.id
             {
                 let reply = match self.forced {
-                    Some(e) => Frame::exception(request.id, request.function, request.addr, e),
+                    Some(e) => {
+                        Modbus8Repr::exception(request.id, request.function, request.addr, e)
+                    }
                     None => answer(map, request),
                 };
                 let mut reply = reply.to_bytes(self.config.crc_order);
@@ -205,7 +208,7 @@ mod tests {
 
     #[test]
     fn corrupted_crc_is_the_projects_plus_one() {
-        let mut frame = Frame {
+        let mut frame = Modbus8Repr {
             id: 1,
             function: 6,
             addr: 1,

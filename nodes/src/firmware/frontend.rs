@@ -238,7 +238,7 @@ impl SlaveFrontend {
         let decoded = match &mut self.decoder {
             Decoder::Rtu(decoder) if decoder.poll_timeout().is_some_and(|t| t <= now) => decoder
                 .handle_timeout(now)
-                .map(|f| modbus_decoded(f.map(|f| (f.unit, f.pdu, None)), pdu)),
+                .map(|f| modbus_decoded(f.map(|f| (f.unit(), f.pdu(), None)), pdu)),
             _ => None,
         };
         if let Some(decoded) = decoded {
@@ -271,13 +271,13 @@ impl SlaveFrontend {
             }
             Decoder::Rtu(decoder) => decoder
                 .decode(now, input)
-                .map(|f| modbus_decoded(f.map(|f| (f.unit, f.pdu, None)), pdu)),
+                .map(|f| modbus_decoded(f.map(|f| (f.unit(), f.pdu(), None)), pdu)),
             Decoder::Ascii(decoder) => decoder
                 .decode(input)
-                .map(|f| modbus_decoded(f.map(|f| (f.unit, f.pdu, None)), pdu)),
+                .map(|f| modbus_decoded(f.map(|f| (f.unit(), f.pdu(), None)), pdu)),
             // A server's decoder fails only on a header that cannot be valid.
             Decoder::Tcp(decoder) => Some(match decoder.decode(input)? {
-                Ok(f) => modbus_decoded(Ok((f.unit, f.pdu, Some(f.transaction_id))), pdu),
+                Ok(f) => modbus_decoded(Ok((f.unit(), f.pdu(), Some(f.transaction_id()))), pdu),
                 Err(fault) => Decoded::Fatal(fault),
             }),
         }
@@ -423,11 +423,25 @@ impl SlaveFrontend {
         let framing = self.framing;
         let reply_unit = transaction.map_or(id, |_| request_unit);
         self.queue(|slot| match (framing, transaction) {
-            (Framing::ModbusTcp, Some(tid)) => {
-                modbus::tcp::emit(tid, reply_unit, &reply, slot).ok()
+            (Framing::ModbusTcp, Some(tid)) => modbus::tcp::TcpRepr {
+                transaction_id: tid,
+                unit: reply_unit,
+                pdu: &reply,
             }
-            (Framing::ModbusAscii, _) => modbus::ascii::emit(id, &reply, slot).ok(),
-            _ => modbus::rtu::emit(id, &reply, slot).ok(),
+            .emit(slot)
+            .ok(),
+            (Framing::ModbusAscii, _) => modbus::ascii::AsciiRepr {
+                unit: id,
+                pdu: &reply,
+            }
+            .emit(slot)
+            .ok(),
+            _ => modbus::rtu::RtuRepr {
+                unit: id,
+                pdu: &reply,
+            }
+            .emit(slot)
+            .ok(),
         });
     }
 }

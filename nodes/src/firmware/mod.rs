@@ -298,7 +298,12 @@ impl EvController {
             None => modbus_slave::serve(&mut self.image, own, unit, pdu),
         };
         if let Some(reply) = reply {
-            let len = rtu::emit(own, &reply, &mut self.tx).map_err(|_| "reply too long");
+            let len = rtu::RtuRepr {
+                unit: own,
+                pdu: &reply,
+            }
+            .emit(&mut self.tx)
+            .map_err(|_| "reply too long");
             self.queue_reply(now, len);
         }
     }
@@ -310,9 +315,9 @@ impl EvController {
             let frame = match self.rtu.decode(now, &mut input) {
                 None => break,
                 Some(Ok(frame)) => {
-                    let len = frame.pdu.len().min(MAX_PDU_LEN);
-                    pdu[..len].copy_from_slice(&frame.pdu[..len]);
-                    Some((frame.unit, len))
+                    let len = frame.pdu().len().min(MAX_PDU_LEN);
+                    pdu[..len].copy_from_slice(&frame.pdu()[..len]);
+                    Some((frame.unit(), len))
                 }
                 Some(Err(_)) => None,
             };
@@ -340,9 +345,9 @@ impl Node for EvController {
         let mut pdu = [0u8; MAX_PDU_LEN];
         let frame = match self.rtu.handle_timeout(now) {
             Some(Ok(frame)) => {
-                let len = frame.pdu.len().min(MAX_PDU_LEN);
-                pdu[..len].copy_from_slice(&frame.pdu[..len]);
-                Some((frame.unit, len))
+                let len = frame.pdu().len().min(MAX_PDU_LEN);
+                pdu[..len].copy_from_slice(&frame.pdu()[..len]);
+                Some((frame.unit(), len))
             }
             _ => None,
         };

@@ -66,7 +66,12 @@ impl Transaction {
             .emit(out)
             .ok(),
             (Protocol::Meb, _) => self.meb_request(id, layout).emit(out).ok(),
-            (Protocol::ModbusRtu, _) => rtu::emit(id, &self.rtu_request()?, out).ok(),
+            (Protocol::ModbusRtu, _) => rtu::RtuRepr {
+                unit: id,
+                pdu: &self.rtu_request()?,
+            }
+            .emit(out)
+            .ok(),
         }
     }
 
@@ -269,7 +274,7 @@ impl ReplyDecoder {
             ReplyDecoder::Rtu(decoder) => {
                 let item = decoder.decode(now, input)?;
                 Some(match item {
-                    Ok(frame) if frame.unit != pending.0 => Reply::Unexpected,
+                    Ok(frame) if frame.unit() != pending.0 => Reply::Unexpected,
                     Ok(frame) => classify_rtu(frame.response(), pending.1),
                     // A failed CRC, or bytes no reply can start with.
                     Err(_) => Reply::Bad,

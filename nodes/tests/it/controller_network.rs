@@ -8,7 +8,7 @@ use nodes::controller_network::{
 };
 use nodes::node::{Firmware, Node, NodeEvent};
 use plant::{Actuators, EvModule, PlantParams, Sensors};
-use protocols::modbus8::{CrcOrder, Frame};
+use protocols::modbus8::{CrcOrder, Modbus8Repr};
 use protocols::time::{SimDuration, SimTime};
 
 const STEP_MS: u64 = 1;
@@ -193,7 +193,7 @@ fn a_reply_with_a_bad_crc_is_reported_and_not_used() {
     bench.motor.set_corrupt_reply_crc(true);
     bench.run_until(1_000, |_, _| {});
     // The read-state reply 01 03 0001 0080 carries CRC + 1.
-    let good = Frame {
+    let good = Modbus8Repr {
         id: 1,
         function: 3,
         addr: 1,
@@ -269,7 +269,7 @@ fn a_stopped_motor_is_sent_through_init() {
     let mut bench = Bench::new(false, MasterConfig::default());
     let mut buf = [0u8; 8];
     // Someone else stopped the motor before the master started.
-    let stop = Frame {
+    let stop = Modbus8Repr {
         id: 1,
         function: 6,
         addr: 1,
@@ -521,7 +521,7 @@ fn two_state_changes_in_one_tick_are_both_reported() {
     let mut motor = MotorNode::default();
     let mut buf = [0u8; 8];
     let now = ms(4);
-    let init = Frame {
+    let init = Modbus8Repr {
         id: 1,
         function: 6,
         addr: 1,

@@ -5,7 +5,7 @@
 
 use nodes::controller_network::{LightNode, MotorConfig, MotorNode, MotorState, PortConfig};
 use nodes::node::{Firmware, Node};
-use protocols::modbus8::{CrcOrder, Frame};
+use protocols::modbus8::{CrcOrder, Modbus8Repr};
 use protocols::time::{SimDuration, SimTime};
 use serde::Deserialize;
 
@@ -62,7 +62,7 @@ fn exchange(node: &mut impl Node, now: SimTime, request: &[u8]) -> Option<[u8; 8
 }
 
 fn req(id: u8, function: u8, addr: u16, value: u16) -> [u8; 8] {
-    Frame {
+    Modbus8Repr {
         id,
         function,
         addr,
@@ -71,8 +71,8 @@ fn req(id: u8, function: u8, addr: u16, value: u16) -> [u8; 8] {
     .to_bytes(CrcOrder::HighFirst)
 }
 
-fn reply(bytes: [u8; 8]) -> Frame {
-    Frame::parse(&bytes, CrcOrder::HighFirst).expect("reply CRC")
+fn reply(bytes: [u8; 8]) -> Modbus8Repr {
+    Modbus8Repr::parse(&bytes, CrcOrder::HighFirst).expect("reply CRC")
 }
 
 fn ms(t: u64) -> SimTime {

@@ -109,7 +109,10 @@ fn a_wrong_id_reply_is_well_formed_and_only_its_id_and_check_differ() {
         if check == CheckKind::ModbusRtu {
             // The CRC covers the id: worked out separately below.
             assert_eq!(sent[..5], as_two[..5], "{check:?}");
-            assert!(rtu::parse(&sent).is_ok(), "{check:?}: {sent:02x?}");
+            assert!(
+                rtu::RtuFrame::new_checked(&sent).is_ok(),
+                "{check:?}: {sent:02x?}"
+            );
         } else {
             assert_eq!(sent, as_two, "{check:?}");
         }
@@ -125,7 +128,7 @@ fn a_wrong_id_reply_is_well_formed_and_only_its_id_and_check_differ() {
     );
     let meb = MebFrame::new_checked(&b"@02EA00030A3C012307D037*\n"[..]).unwrap();
     assert_eq!(meb.id(), 2);
-    let m8 = modbus8::Frame::parse(
+    let m8 = modbus8::Modbus8Repr::parse(
         &[0x02, 0x06, 0x00, 0x01, 0x00, 0x80, 0x99, 0xd9],
         CrcOrder::HighFirst,
     )
@@ -224,7 +227,7 @@ fn on_the_bus_the_split_replys_gap_is_quiet_line_of_exactly_the_gap() {
     assert_eq!(writes[1].start.saturating_since(writes[0].end), gap);
     let bytes: Vec<u8> = heard.iter().map(|&(_, b)| b).collect();
     assert_eq!(bytes, MODBUS8_REPLY);
-    assert!(modbus8::Frame::parse(&bytes, CrcOrder::HighFirst).is_ok());
+    assert!(modbus8::Modbus8Repr::parse(&bytes, CrcOrder::HighFirst).is_ok());
     assert_eq!(slave.inner().done.len(), 1);
 }
 
@@ -317,7 +320,7 @@ fn an_exception_fault_refuses_every_request_in_each_protocols_own_frame() {
     assert_eq!(reply, [0x01, 0x83, 0x00, 0x01, 0x00, 0x02, 0x15, 0x94]);
 
     // A refused write stores nothing: state 0x01 refused, still 0x80.
-    let write = modbus8::Frame {
+    let write = modbus8::Modbus8Repr {
         id: 1,
         function: modbus8::WRITE,
         addr: 1,

@@ -81,11 +81,17 @@ fn front_ends_share_one_image_and_count_their_drops() {
         address: 0,
         quantity: 1,
     };
-    let n = modbus::tcp::emit(77, 255, &read, &mut adu).unwrap();
+    let n = modbus::tcp::TcpRepr {
+        transaction_id: 77,
+        unit: 255,
+        pdu: &read,
+    }
+    .emit(&mut adu)
+    .unwrap();
     let reply = reply_of(&mut tcp, &mut controller, &adu[..n]).expect("a reply");
-    let frame = modbus::tcp::parse(&reply).unwrap();
+    let frame = modbus::tcp::TcpFrame::new_checked(&reply).unwrap();
     assert_eq!(
-        (frame.transaction_id, frame.unit),
+        (frame.transaction_id(), frame.unit()),
         (77, 255),
         "unit 255 echoed"
     );
@@ -97,19 +103,35 @@ fn front_ends_share_one_image_and_count_their_drops() {
     // Two frames in one TCP chunk get two replies, in order.
     let mut two = Vec::new();
     for tid in [1u16, 2] {
-        let n = modbus::tcp::emit(tid, 1, &read, &mut adu).unwrap();
+        let n = modbus::tcp::TcpRepr {
+            transaction_id: tid,
+            unit: 1,
+            pdu: &read,
+        }
+        .emit(&mut adu)
+        .unwrap();
         two.extend_from_slice(&adu[..n]);
     }
     tcp.handle_bytes(controller.image_mut(), SimTime::ZERO, &two);
     let mut buf = [0u8; MAX_FRAME];
     for tid in [1u16, 2] {
         let n = tcp.poll_transmit(&mut buf).expect("pipelined reply");
-        assert_eq!(modbus::tcp::parse(&buf[..n]).unwrap().transaction_id, tid);
+        assert_eq!(
+            modbus::tcp::TcpFrame::new_checked(&buf[..n])
+                .unwrap()
+                .transaction_id(),
+            tid
+        );
     }
 
     // Garbage on RTU and a bad FCS on MEB both land in the shared ERRS.
     let errs = controller.image().errs;
-    let n = modbus::rtu::emit(1, &read, &mut adu).unwrap();
+    let n = modbus::rtu::RtuRepr {
+        unit: 1,
+        pdu: &read,
+    }
+    .emit(&mut adu)
+    .unwrap();
     adu[n - 1] ^= 0xFF;
     assert_eq!(reply_of(&mut rtu, &mut controller, &adu[..n]), None);
     assert_eq!(reply_of(&mut meb, &mut controller, b"@01EA000100*\n"), None);
@@ -141,10 +163,15 @@ fn read_only_and_forced_refusals_answer_in_each_protocol() {
         address: 0,
         quantity: 2,
     };
-    let n = modbus::ascii::emit(1, &read, &mut adu).unwrap();
+    let n = modbus::ascii::AsciiRepr {
+        unit: 1,
+        pdu: &read,
+    }
+    .emit(&mut adu)
+    .unwrap();
     let reply = reply_of(&mut ascii, &mut controller, &adu[..n]).unwrap();
     let mut scratch = [0u8; modbus::ascii::MAX_BINARY_LEN];
-    let frame = modbus::ascii::parse(&reply, &mut scratch).unwrap();
+    let frame = modbus::ascii::AsciiFrame::decode_line(&reply, &mut scratch).unwrap();
     let e = frame.response().unwrap().expect_err("an exception");
     assert_eq!(e.exception, Exception::ServerDeviceFailure);
 }

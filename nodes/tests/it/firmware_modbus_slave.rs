@@ -19,7 +19,7 @@ fn controller() -> EvController {
 
 fn frame(unit: u8, pdu: &(impl EncodePdu + ?Sized)) -> Vec<u8> {
     let mut buf = [0u8; 256];
-    let len = rtu::emit(unit, pdu, &mut buf).unwrap();
+    let len = rtu::RtuRepr { unit, pdu }.emit(&mut buf).unwrap();
     buf[..len].to_vec()
 }
 
@@ -37,8 +37,8 @@ fn ask_unit(
 ) -> Option<Result<Response, ExceptionResponse>> {
     c.handle_bytes(SimTime::ZERO, &frame(unit, request));
     let reply = transmitted(c, SimTime::ZERO)?;
-    let parsed = rtu::parse(&reply).expect("reply checks");
-    assert_eq!(parsed.unit, 1, "reply carries the slave's unit id");
+    let parsed = rtu::RtuFrame::new_checked(&reply).expect("reply checks");
+    assert_eq!(parsed.unit(), 1, "reply carries the slave's unit id");
     Some(parsed.response().expect("reply parses"))
 }
 

@@ -47,7 +47,7 @@ fn reply_to(protocol: Protocol, request: &[u8], words: [u16; 6]) -> Vec<u8> {
             out[..n].to_vec()
         }
         Protocol::ModbusRtu => {
-            let frame = rtu::parse(request).unwrap();
+            let frame = rtu::RtuFrame::new_checked(request).unwrap();
             let response = match frame.request().unwrap() {
                 protocols::modbus::Request::ReadInputRegisters { .. } => {
                     Response::ReadInputRegisters(Registers::from_slice(&words).unwrap())
@@ -64,7 +64,12 @@ fn reply_to(protocol: Protocol, request: &[u8], words: [u16; 6]) -> Vec<u8> {
                 other => panic!("unexpected request {other:?}"),
             };
             let reply: Result<Response, ExceptionResponse> = Ok(response);
-            let n = rtu::emit(1, &reply, &mut out).unwrap();
+            let n = rtu::RtuRepr {
+                unit: 1,
+                pdu: &reply,
+            }
+            .emit(&mut out)
+            .unwrap();
             out[..n].to_vec()
         }
     }

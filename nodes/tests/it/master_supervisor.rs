@@ -49,7 +49,12 @@ fn meb(id: u8, cmd: MebCmd, cnt: u8, data: &[u16]) -> Vec<u8> {
 fn rtu_reply(id: u8, response: Response) -> Vec<u8> {
     let mut out = [0u8; 256];
     let reply: Result<Response, protocols::modbus::ExceptionResponse> = Ok(response);
-    let n = rtu::emit(id, &reply, &mut out).unwrap();
+    let n = rtu::RtuRepr {
+        unit: id,
+        pdu: &reply,
+    }
+    .emit(&mut out)
+    .unwrap();
     out[..n].to_vec()
 }
 
@@ -648,7 +653,12 @@ fn an_rtu_exception_is_counted_and_retried() {
         exception: Exception::IllegalDataAddress,
     });
     let mut out = [0u8; 16];
-    let n = rtu::emit(1, &refusal, &mut out).unwrap();
+    let n = rtu::RtuRepr {
+        unit: 1,
+        pdu: &refusal,
+    }
+    .emit(&mut out)
+    .unwrap();
     bus.reply(&out[..n]);
     assert_eq!(bus.event_kinds(), ["exception", "retry"]);
     assert_eq!(bus.next_request().bytes, first.bytes);

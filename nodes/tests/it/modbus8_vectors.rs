@@ -4,7 +4,7 @@
 
 use protocols::crc::crc16_modbus;
 use protocols::modbus::Exception;
-use protocols::modbus8::{CrcOrder, Frame, Modbus8Decoder, Modbus8Error};
+use protocols::modbus8::{CrcOrder, Modbus8Decoder, Modbus8Error, Modbus8Frame, Modbus8Repr};
 use protocols::time::{SimDuration, SimTime};
 use serde::Deserialize;
 
@@ -30,8 +30,8 @@ impl Vector {
             .collect()
     }
 
-    fn expected(&self) -> Frame {
-        Frame {
+    fn expected(&self) -> Modbus8Repr {
+        Modbus8Repr {
             id: self.id.expect("valid vector has id"),
             function: self.fc.expect("valid vector has fc"),
             addr: self.addr.expect("valid vector has addr"),
@@ -60,7 +60,7 @@ fn vectors() -> Vec<Vector> {
 /// the received and calculated values.
 fn check(v: &Vector, order: CrcOrder, valid: bool) {
     let bytes = v.bytes();
-    let result = Frame::parse(&bytes, order);
+    let result = Modbus8Repr::parse(&bytes, order);
     if valid {
         let frame = result.unwrap_or_else(|e| panic!("{} ({order:?}): {e}", v.note));
         assert_eq!(frame, v.expected(), "{}", v.note);
@@ -105,7 +105,7 @@ fn the_projects_crc_error_message() {
         .into_iter()
         .find(|v| v.frame_hex == "010600010080aada")
         .expect("the project's bad-CRC vector");
-    let err = Frame::parse(&v.bytes(), CrcOrder::HighFirst).unwrap_err();
+    let err = Modbus8Repr::parse(&v.bytes(), CrcOrder::HighFirst).unwrap_err();
     assert_eq!(
         err.to_string(),
         "CRC error: received 0xaada, calculated 0xaad9"
@@ -118,7 +118,7 @@ fn exception_vectors_are_replies_not_errors() {
         .iter()
         .filter(|v| v.valid && v.fc.is_some_and(|fc| fc & 0x80 != 0))
         .map(|v| {
-            Frame::parse(&v.bytes(), CrcOrder::HighFirst)
+            Modbus8Repr::parse(&v.bytes(), CrcOrder::HighFirst)
                 .unwrap()
                 .reply()
         })
@@ -139,6 +139,11 @@ fn char_time() -> SimDuration {
     SimDuration::bit_times(10, BAUD)
 }
 
+/// The value of a frame the decoder yields.
+fn value(item: Result<Modbus8Frame<&[u8]>, Modbus8Error>) -> Result<Modbus8Repr, Modbus8Error> {
+    item.map(|frame| Modbus8Repr::from_frame(&frame))
+}
+
 /// Feeds `bytes` one per character time starting at `start`, as a serial line
 /// delivers them, collecting what the decoder yields; returns the time after
 /// the last byte.
@@ -146,20 +151,20 @@ fn feed_bytewise(
     decoder: &mut Modbus8Decoder,
     start: SimTime,
     bytes: &[u8],
-    out: &mut Vec<Result<Frame, Modbus8Error>>,
+    out: &mut Vec<Result<Modbus8Repr, Modbus8Error>>,
 ) -> SimTime {
     let mut now = start;
     for byte in bytes {
         now += char_time();
         let mut input = std::slice::from_ref(byte);
         while let Some(item) = decoder.decode(now, &mut input) {
-            out.push(item);
+            out.push(value(item));
         }
     }
     now
 }
 
-fn valid_frames() -> Vec<(Vec<u8>, Frame)> {
+fn valid_frames() -> Vec<(Vec<u8>, Modbus8Repr)> {
     vectors()
         .iter()
         .filter(|v| v.valid)
@@ -220,7 +225,10 @@ fn silence_is_also_seen_when_the_next_chunk_arrives() {
     assert!(decoder.decode(SimTime::ZERO, &mut input).is_none());
     let later = SimTime::ZERO + SimDuration::from_millis(5);
     let mut input = &frames[1].0[..];
-    assert_eq!(decoder.decode(later, &mut input), Some(Ok(frames[1].1)));
+    assert_eq!(
+        decoder.decode(later, &mut input).map(value),
+        Some(Ok(frames[1].1))
+    );
     assert_eq!(decoder.drops().timed_out.bytes, 3);
 }
 
@@ -275,7 +283,7 @@ fn back_to_back_frames_on_a_pty_need_no_gap() {
     let mut input = &burst[..];
     let mut out = Vec::new();
     while let Some(item) = decoder.decode(SimTime::ZERO, &mut input) {
-        out.push(item.unwrap());
+        out.push(value(item).unwrap());
     }
     let expected: Vec<_> = frames.iter().map(|(_, f)| *f).collect();
     assert_eq!(out, expected);
@@ -292,7 +300,7 @@ fn the_standard_order_decoder_reads_the_low_first_vector() {
     let bytes = v.bytes();
     let mut input = &bytes[..];
     assert_eq!(
-        decoder.decode(SimTime::ZERO, &mut input),
+        decoder.decode(SimTime::ZERO, &mut input).map(value),
         Some(Ok(v.expected()))
     );
 }

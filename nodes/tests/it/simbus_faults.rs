@@ -84,7 +84,7 @@ fn triggered(reply: &[u8], check: CheckKind) -> FaultyNode<Scripted> {
 
 fn vector_frames_are_valid() {
     assert!(MebFrame::new_checked(MEB_REPLY).is_ok());
-    assert!(modbus8::Frame::parse(&MODBUS8_FRAME, CrcOrder::HighFirst).is_ok());
+    assert!(modbus8::Modbus8Repr::parse(&MODBUS8_FRAME, CrcOrder::HighFirst).is_ok());
 }
 
 #[test]
@@ -118,7 +118,7 @@ fn bad_check_fails_the_modbus8_codec_as_the_controller_network_saw_it() {
     node.set_fault(Some(Fault::BadCheck));
     let spoiled = transmit(&mut node, SimTime::ZERO).unwrap();
     assert_eq!(
-        modbus8::Frame::parse(&spoiled, CrcOrder::HighFirst),
+        modbus8::Modbus8Repr::parse(&spoiled, CrcOrder::HighFirst),
         Err(Modbus8Error::BadCrc {
             received: 0xaada,
             calculated: 0xaad9
@@ -131,12 +131,12 @@ fn bad_check_fails_the_modbus8_codec_as_the_controller_network_saw_it() {
 fn bad_check_fails_the_rtu_codec() {
     // Read holding register 0, count 1, unit 1: CRC 84 0A (low byte first).
     let request = [0x01, 0x03, 0x00, 0x00, 0x00, 0x01, 0x84, 0x0a];
-    assert!(rtu::parse(&request).is_ok());
+    assert!(rtu::RtuFrame::new_checked(&request).is_ok());
     let mut node = triggered(&request, CheckKind::ModbusRtu);
     node.set_fault(Some(Fault::BadCheck));
     let spoiled = transmit(&mut node, SimTime::ZERO).unwrap();
     assert_eq!(
-        rtu::parse(&spoiled).err(),
+        rtu::RtuFrame::new_checked(&spoiled).err(),
         Some(FrameError::BadCrc {
             received: 0x0a85,
             calculated: 0x0a84
@@ -240,7 +240,7 @@ fn a_faulty_slave_on_the_bus_sends_a_reply_the_master_rejects() {
         turnaround: SimDuration::ZERO,
     });
     let slave_port = bus.add_port(PortConfig::default());
-    let reply = modbus8::Frame {
+    let reply = modbus8::Modbus8Repr {
         id: 1,
         function: modbus8::READ,
         addr: 1,
@@ -250,7 +250,7 @@ fn a_faulty_slave_on_the_bus_sends_a_reply_the_master_rejects() {
     let mut slave = FaultyNode::new(Scripted::new(&reply, 8), CheckKind::Modbus8);
     slave.set_fault(Some(Fault::BadCheck));
 
-    let request = modbus8::Frame {
+    let request = modbus8::Modbus8Repr {
         id: 1,
         function: modbus8::READ,
         addr: 1,
@@ -281,7 +281,7 @@ fn a_faulty_slave_on_the_bus_sends_a_reply_the_master_rejects() {
     }
     assert_eq!(reply_start, Some(sent.end + SimDuration::from_millis(1)));
     assert!(matches!(
-        modbus8::Frame::parse(&at_master, CrcOrder::HighFirst),
+        modbus8::Modbus8Repr::parse(&at_master, CrcOrder::HighFirst),
         Err(Modbus8Error::BadCrc { received, calculated }) if received == calculated.wrapping_add(1)
     ));
     assert_eq!(slave.inner().transmit_done.len(), 1);
