@@ -5,7 +5,7 @@
 //! the 8-byte frames on the wire.
 
 use e2e::{Capture, WireFrame, at, run_captured};
-use protocols::modbus8::{self, CrcOrder, Frame};
+use protocols::modbus8::{self, CrcOrder, Modbus8Repr};
 use protocols::time::{SimDuration, SimTime};
 use twin_sim::scenario::Scenario;
 
@@ -27,12 +27,12 @@ const RPM_STEP: f64 = 3000.0 / 7.0;
 
 /// An 8-byte frame's fields.
 trait Decoded {
-    fn decoded(&self) -> Frame;
+    fn decoded(&self) -> Modbus8Repr;
 }
 
 impl Decoded for WireFrame {
-    fn decoded(&self) -> Frame {
-        Frame::parse(&self.bytes, CrcOrder::HighFirst)
+    fn decoded(&self) -> Modbus8Repr {
+        Modbus8Repr::parse(&self.bytes, CrcOrder::HighFirst)
             .unwrap_or_else(|e| panic!("{} sent {:02x?}: {e}", self.from, self.bytes))
     }
 }
@@ -96,7 +96,7 @@ fn handshake_takes_the_motor_from_pre_operational_to_operational() {
     assert_eq!(&frames[2].bytes[..6], &[0x01, 0x06, 0x00, 0x01, 0x00, 0x01]);
     assert_eq!(
         frames[2].decoded(),
-        Frame {
+        Modbus8Repr {
             id: 1,
             function: modbus8::WRITE,
             addr: 1,

@@ -550,7 +550,7 @@ fn bus_table(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use protocols::modbus8::{CrcOrder, Frame as Frame8};
+    use protocols::modbus8::{CrcOrder, Modbus8Repr};
     use twin_scope::LineFormat;
 
     fn wave(frames: Vec<Vec<u8>>) -> Waveform {
@@ -578,7 +578,7 @@ mod tests {
 
     #[test]
     fn the_describer_marks_a_wrong_crc_and_an_exception() {
-        let read = Frame8 {
+        let read = Modbus8Repr {
             id: 1,
             function: 3,
             addr: 2,
@@ -587,8 +587,8 @@ mod tests {
         .to_bytes(CrcOrder::HighFirst);
         let mut bad = read;
         bad[7] ^= 0xff;
-        let refused =
-            Frame8::exception(1, 6, 1, Exception::IllegalDataValue).to_bytes(CrcOrder::HighFirst);
+        let refused = Modbus8Repr::exception(1, 6, 1, Exception::IllegalDataValue)
+            .to_bytes(CrcOrder::HighFirst);
         let w = wave(vec![read.to_vec(), bad.to_vec(), refused.to_vec()]);
         let d: Vec<Described> = w.frames.iter().map(|f| describe(&w, f)).collect();
         assert!(!d[0].marked(), "{}", d[0].what);

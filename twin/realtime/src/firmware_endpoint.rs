@@ -29,7 +29,7 @@ use std::collections::VecDeque;
 
 use nodes::node::{MAX_FRAME, NodeEvent};
 use protocols::meb::MebFrame;
-use protocols::modbus8::{CrcOrder, Frame};
+use protocols::modbus8::{CrcOrder, Modbus8Repr};
 use protocols::time::{SimDuration, SimTime};
 
 use super::device::Device;
@@ -196,7 +196,9 @@ impl FirmwareEndpoint {
                 // carrying data) is never answered: no request at all.
                 (frame.id() != 0 && !frame.shape().is_reply()).then_some(frame.id())
             }
-            RequestFraming::Modbus8 => Frame::parse(frame, CrcOrder::HighFirst).ok().map(|f| f.id),
+            RequestFraming::Modbus8 => Modbus8Repr::parse(frame, CrcOrder::HighFirst)
+                .ok()
+                .map(|f| f.id),
         }
     }
 

@@ -21,10 +21,10 @@ impl FrameKind {
     /// MEB frames start with `@`; an 8-byte frame whose CRC checks high byte
     /// first is the Controller_network variant; anything else is read as Modbus RTU.
     pub fn of(sent: &[u8]) -> Self {
-        use protocols::modbus8::{CrcOrder, Frame};
+        use protocols::modbus8::{CrcOrder, Modbus8Repr};
         if sent.first() == Some(&b'@') {
             FrameKind::Meb
-        } else if sent.len() == 8 && Frame::parse(sent, CrcOrder::HighFirst).is_ok() {
+        } else if sent.len() == 8 && Modbus8Repr::parse(sent, CrcOrder::HighFirst).is_ok() {
             FrameKind::Modbus8
         } else {
             FrameKind::ModbusRtu
@@ -37,9 +37,9 @@ impl FrameKind {
         match self {
             FrameKind::Meb => MebRepr::parse(received).is_ok(),
             FrameKind::Modbus8 => {
-                modbus8::Frame::parse(received, modbus8::CrcOrder::HighFirst).is_ok()
+                modbus8::Modbus8Repr::parse(received, modbus8::CrcOrder::HighFirst).is_ok()
             }
-            FrameKind::ModbusRtu => modbus::rtu::parse(received).is_ok(),
+            FrameKind::ModbusRtu => modbus::rtu::RtuFrame::new_checked(received).is_ok(),
         }
     }
 }
@@ -130,21 +130,23 @@ pub fn decode_frame(bytes: &[u8]) -> FrameFields {
             },
             Err(e) => broken("meb", &e),
         },
-        FrameKind::Modbus8 => match modbus8::Frame::parse(bytes, modbus8::CrcOrder::HighFirst) {
-            Ok(f) => FrameFields::Modbus8 {
-                addr: f.addr,
-                function: f.function,
-                id: f.id,
-                protocol: "modbus8",
-                value: f.value,
-            },
-            Err(e) => broken("modbus8", &e),
-        },
-        FrameKind::ModbusRtu => match modbus::rtu::parse(bytes) {
+        FrameKind::Modbus8 => {
+            match modbus8::Modbus8Repr::parse(bytes, modbus8::CrcOrder::HighFirst) {
+                Ok(f) => FrameFields::Modbus8 {
+                    addr: f.addr,
+                    function: f.function,
+                    id: f.id,
+                    protocol: "modbus8",
+                    value: f.value,
+                },
+                Err(e) => broken("modbus8", &e),
+            }
+        }
+        FrameKind::ModbusRtu => match modbus::rtu::RtuFrame::new_checked(bytes) {
             Ok(f) => FrameFields::ModbusRtu {
                 function: f.function(),
                 protocol: "modbus-rtu",
-                unit: f.unit,
+                unit: f.unit(),
             },
             Err(e) => broken("unknown", &e),
         },
@@ -195,12 +197,13 @@ impl LinkFrameFields<'_> {
 }
 
 pub fn link_frame_fields<'a>(protocol: &'a str, bytes: &[u8]) -> LinkFrameFields<'a> {
-    let modbus = |f: Result<modbus::Frame<'_>, modbus::FrameError>| match f {
-        Ok(f) => LinkFrameFields::Modbus {
-            function: Some(f.function()),
+    // RTU and ASCII frames read alike: a unit id and a function code.
+    let modbus = |f: Result<(u8, u8), modbus::FrameError>| match f {
+        Ok((unit, function)) => LinkFrameFields::Modbus {
+            function: Some(function),
             protocol,
             transaction: None,
-            unit: f.unit,
+            unit,
         },
         Err(e) => LinkFrameFields::Broken {
             error: e.to_string(),
@@ -208,23 +211,25 @@ pub fn link_frame_fields<'a>(protocol: &'a str, bytes: &[u8]) -> LinkFrameFields
         },
     };
     match protocol {
-        "modbus-tcp" => match modbus::tcp::parse(bytes) {
+        "modbus-tcp" => match modbus::tcp::TcpFrame::new_checked(bytes) {
             Ok(f) => LinkFrameFields::Modbus {
-                function: f.pdu.first().copied(),
+                function: f.pdu().first().copied(),
                 protocol,
-                transaction: Some(f.transaction_id),
-                unit: f.unit,
+                transaction: Some(f.transaction_id()),
+                unit: f.unit(),
             },
             Err(e) => LinkFrameFields::Broken {
                 error: e.to_string(),
                 protocol,
             },
         },
-        "modbus-ascii" => modbus(modbus::ascii::parse(
-            bytes,
-            &mut [0; modbus::ascii::MAX_BINARY_LEN],
-        )),
-        "modbus-rtu" => modbus(modbus::rtu::parse(bytes)),
+        "modbus-ascii" => modbus(
+            modbus::ascii::AsciiFrame::decode_line(bytes, &mut [0; modbus::ascii::MAX_BINARY_LEN])
+                .map(|f| (f.unit(), f.function())),
+        ),
+        "modbus-rtu" => {
+            modbus(modbus::rtu::RtuFrame::new_checked(bytes).map(|f| (f.unit(), f.function())))
+        }
         _ => LinkFrameFields::Bus(decode_frame(bytes)),
     }
 }

@@ -372,7 +372,7 @@ impl RerunLogger {
             return;
         }
         if let Some((m, role)) = self.layout.controller_network_node(from) {
-            let Ok(f) = modbus8::Frame::parse(bytes, modbus8::CrcOrder::HighFirst) else {
+            let Ok(f) = modbus8::Modbus8Repr::parse(bytes, modbus8::CrcOrder::HighFirst) else {
                 return;
             };
             match (role, f.function, f.addr) {
@@ -390,9 +390,9 @@ impl RerunLogger {
         // A master's frame: remember a Modbus read so that its reply can
         // be read; the Controller_network master's set-point write to the motor node
         // (register 9; until the first one the node runs its default 10000).
-        let read = with_modbus(bytes, |frame| match frame.request() {
+        let read = with_modbus(bytes, |unit, pdu| match Request::parse(pdu) {
             Ok(Request::ReadInputRegisters { address, quantity }) => Some(PendingRead {
-                unit: frame.unit,
+                unit,
                 address,
                 quantity,
             }),
@@ -401,7 +401,7 @@ impl RerunLogger {
         if let Some(read) = read {
             self.pending_reads.insert(bus.to_string(), read);
         }
-        if let Ok(f) = modbus8::Frame::parse(bytes, modbus8::CrcOrder::HighFirst)
+        if let Ok(f) = modbus8::Modbus8Repr::parse(bytes, modbus8::CrcOrder::HighFirst)
             && f.function == 6
             && f.id == 1
             && f.addr == 9
@@ -415,11 +415,11 @@ impl RerunLogger {
     /// on `bus`.
     fn modbus_reply(&mut self, bus: &str, bytes: &[u8]) -> Option<(usize, Vec<u16>)> {
         let pending = self.pending_reads.get(bus).copied()?;
-        let words = with_modbus(bytes, |frame| {
-            if frame.unit != pending.unit {
+        let words = with_modbus(bytes, |unit, pdu| {
+            if unit != pending.unit {
                 return None;
             }
-            let Ok(Ok(Response::ReadInputRegisters(registers))) = frame.response() else {
+            let Ok(Ok(Response::ReadInputRegisters(registers))) = Response::parse(pdu) else {
                 return None;
             };
             let words = registers.as_slice();
@@ -463,18 +463,19 @@ pub struct LatenessSample {
     pub max_us: f64,
 }
 
-/// `f` applied to `bytes` read as a Modbus frame in whichever framing it
-/// checks as: RTU (serial links, the simulated bus), TCP or ASCII.
-fn with_modbus<R>(bytes: &[u8], f: impl FnOnce(modbus::Frame<'_>) -> Option<R>) -> Option<R> {
-    if let Ok(frame) = modbus::rtu::parse(bytes) {
-        return f(frame);
+/// `f` applied to the unit id and PDU of `bytes` read as a Modbus frame in
+/// whichever framing it checks as: RTU (serial links, the simulated bus), TCP
+/// or ASCII.
+fn with_modbus<R>(bytes: &[u8], f: impl FnOnce(u8, &[u8]) -> Option<R>) -> Option<R> {
+    if let Ok(frame) = modbus::rtu::RtuFrame::new_checked(bytes) {
+        return f(frame.unit(), frame.pdu());
     }
-    if let Ok(frame) = modbus::tcp::parse(bytes) {
-        return f(frame.frame());
+    if let Ok(frame) = modbus::tcp::TcpFrame::new_checked(bytes) {
+        return f(frame.unit(), frame.pdu());
     }
     let mut scratch = [0; modbus::ascii::MAX_BINARY_LEN];
-    match modbus::ascii::parse(bytes, &mut scratch) {
-        Ok(frame) => f(frame),
+    match modbus::ascii::AsciiFrame::decode_line(bytes, &mut scratch) {
+        Ok(frame) => f(frame.unit(), frame.pdu()),
         Err(_) => None,
     }
 }
@@ -699,16 +700,34 @@ mod tests {
         let mut reply_bytes = [0u8; 300];
         let framings: [(&str, EmitBoth); 3] = [
             ("rtu", |q, r, a, b| {
-                (rtu::emit(1, q, a).unwrap(), rtu::emit(1, r, b).unwrap())
+                (
+                    rtu::RtuRepr { unit: 1, pdu: q }.emit(a).unwrap(),
+                    rtu::RtuRepr { unit: 1, pdu: r }.emit(b).unwrap(),
+                )
             }),
             ("tcp", |q, r, a, b| {
                 (
-                    tcp::emit(7, 1, q, a).unwrap(),
-                    tcp::emit(7, 1, r, b).unwrap(),
+                    tcp::TcpRepr {
+                        transaction_id: 7,
+                        unit: 1,
+                        pdu: q,
+                    }
+                    .emit(a)
+                    .unwrap(),
+                    tcp::TcpRepr {
+                        transaction_id: 7,
+                        unit: 1,
+                        pdu: r,
+                    }
+                    .emit(b)
+                    .unwrap(),
                 )
             }),
             ("ascii", |q, r, a, b| {
-                (ascii::emit(1, q, a).unwrap(), ascii::emit(1, r, b).unwrap())
+                (
+                    ascii::AsciiRepr { unit: 1, pdu: q }.emit(a).unwrap(),
+                    ascii::AsciiRepr { unit: 1, pdu: r }.emit(b).unwrap(),
+                )
             }),
         ];
         for (k, (link, emit)) in framings.into_iter().enumerate() {

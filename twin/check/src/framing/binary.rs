@@ -44,9 +44,15 @@ pub(super) fn request(protocol: Protocol, body: &str, spoil: bool, transaction: 
     let (unit, pdu) = bytes.split_first().unwrap_or((&0, &[][..]));
     let mut out = vec![0; tcp::MAX_ADU_LEN];
     let len = match protocol {
-        Protocol::ModbusTcp => tcp::emit(transaction, *unit, pdu, &mut out).unwrap_or(0),
+        Protocol::ModbusTcp => tcp::TcpRepr {
+            transaction_id: transaction,
+            unit: *unit,
+            pdu,
+        }
+        .emit(&mut out)
+        .unwrap_or(0),
         Protocol::Modbus8 => {
-            let frame = modbus8::Frame {
+            let frame = modbus8::Modbus8Repr {
                 id: *unit,
                 function: pdu.first().copied().unwrap_or(0),
                 addr: word(pdu, 1),
@@ -54,7 +60,9 @@ pub(super) fn request(protocol: Protocol, body: &str, spoil: bool, transaction: 
             };
             frame.emit(&mut out, CrcOrder::HighFirst).unwrap_or(0)
         }
-        _ => rtu::emit(*unit, pdu, &mut out).unwrap_or(0),
+        _ => rtu::RtuRepr { unit: *unit, pdu }
+            .emit(&mut out)
+            .unwrap_or(0),
     };
     out.truncate(len);
     if spoil && let Some(last) = out.last_mut() {
@@ -122,7 +130,7 @@ pub(super) fn judge(
 fn checked(protocol: Protocol, frame: &[u8], transaction: u16) -> Result<&[u8], String> {
     let seen = shown(frame);
     match protocol {
-        Protocol::Modbus8 => match modbus8::Frame::parse(frame, CrcOrder::HighFirst) {
+        Protocol::Modbus8 => match modbus8::Modbus8Repr::parse(frame, CrcOrder::HighFirst) {
             Ok(_) => Ok(frame.get(..6).unwrap_or_default()),
             Err(Modbus8Error::WrongLength { len }) => {
                 Err(format!("`{seen}` is {len} bytes; a frame is 8"))
@@ -134,7 +142,7 @@ fn checked(protocol: Protocol, frame: &[u8], transaction: u16) -> Result<&[u8], 
             )),
         },
         Protocol::ModbusTcp => {
-            let reply = tcp::parse(frame).map_err(|e| match e {
+            let reply = tcp::TcpFrame::new_checked(frame).map_err(|e| match e {
                 FrameError::ProtocolId(id) => {
                     format!("`{seen}`: its header's protocol id is {id:04X}; Modbus is 0000")
                 }
@@ -146,15 +154,15 @@ fn checked(protocol: Protocol, frame: &[u8], transaction: u16) -> Result<&[u8], 
                 ),
                 _ => format!("`{seen}` is too short for a Modbus TCP frame"),
             })?;
-            if reply.transaction_id != transaction {
+            if reply.transaction_id() != transaction {
                 return Err(format!(
                     "`{seen}` carries transaction id {:04X}; the request's was {transaction:04X}",
-                    reply.transaction_id
+                    reply.transaction_id()
                 ));
             }
             Ok(frame.get(tcp::MBAP_LEN - 1..).unwrap_or_default())
         }
-        _ => match rtu::parse(frame) {
+        _ => match rtu::RtuFrame::new_checked(frame) {
             Ok(_) => Ok(frame.get(..frame.len() - 2).unwrap_or_default()),
             Err(FrameError::BadCrc { calculated, .. }) => Err(bad_crc(
                 frame,

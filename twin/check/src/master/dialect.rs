@@ -16,7 +16,7 @@ use protocols::meb::{MebError, MebErrorCode, MebRepr};
 use protocols::modbus::rtu::{self, Direction};
 use protocols::modbus::serial::{FrameLen, PTY_SILENCE};
 use protocols::modbus::{Exception, Request};
-use protocols::modbus8::{self, CrcOrder, Frame as Frame8};
+use protocols::modbus8::{self, CrcOrder, Modbus8Repr};
 use protocols::time::SimTime;
 
 /// A request as the slave sees it.
@@ -168,8 +168,8 @@ fn modbus_body(protocol: Protocol, bytes: &[u8]) -> Result<(u8, Vec<u8>), String
         }
         return Ok((unit, bytes[7..].to_vec()));
     }
-    match rtu::parse(bytes) {
-        Ok(frame) => Ok((frame.unit, frame.pdu.to_vec())),
+    match rtu::RtuFrame::new_checked(bytes) {
+        Ok(frame) => Ok((frame.unit(), frame.pdu().to_vec())),
         Err(protocols::modbus::FrameError::BadCrc { .. }) => {
             let body = &bytes[..bytes.len() - 2];
             let right = crc16_modbus(body).to_le_bytes();
@@ -251,10 +251,10 @@ fn examine_modbus8(bytes: &[u8], text: &str) -> Examined {
         id: bytes.first().copied(),
         ..Examined::default()
     };
-    let frame = match Frame8::parse(bytes, CrcOrder::HighFirst) {
+    let frame = match Modbus8Repr::parse(bytes, CrcOrder::HighFirst) {
         Ok(frame) => frame,
         Err(modbus8::Modbus8Error::BadCrc { .. }) => {
-            seen.fault = Some(if Frame8::parse(bytes, CrcOrder::LowFirst).is_ok() {
+            seen.fault = Some(if Modbus8Repr::parse(bytes, CrcOrder::LowFirst).is_ok() {
                 format!(
                     "`{text}`: its CRC is sent low byte first, as standard Modbus does: the Controller_network project sends it high byte first"
                 )
@@ -436,7 +436,7 @@ pub(crate) fn with_id(protocol: Protocol, reply: &[u8], other: u8) -> Option<Vec
             Some(out)
         }
         Protocol::Modbus8 => {
-            let mut frame = Frame8::parse(reply, CrcOrder::HighFirst).ok()?;
+            let mut frame = Modbus8Repr::parse(reply, CrcOrder::HighFirst).ok()?;
             frame.id = other;
             Some(frame.to_bytes(CrcOrder::HighFirst).to_vec())
         }
@@ -464,8 +464,8 @@ pub(crate) fn refusal(protocol: Protocol, reply: &[u8], code: u8) -> Option<Vec<
         }
         Protocol::Modbus8 => {
             // A reply keeps its request's id, function and address.
-            let asked = Frame8::parse(reply, CrcOrder::HighFirst).ok()?;
-            let frame = Frame8::exception(
+            let asked = Modbus8Repr::parse(reply, CrcOrder::HighFirst).ok()?;
+            let frame = Modbus8Repr::exception(
                 asked.id,
                 asked.function & !modbus8::EXCEPTION_BIT,
                 asked.addr,
@@ -529,7 +529,7 @@ mod tests {
             repaired(Protocol::ModbusRtu, &swapped).unwrap(),
             rtu(&[1, 3, 0, 0, 0, 1])
         );
-        let eight = Frame8 {
+        let eight = Modbus8Repr {
             id: 1,
             function: modbus8::READ,
             addr: 5,
@@ -553,11 +553,11 @@ mod tests {
         let request = rtu(&[1, 4, 0, 0, 0, 10]);
         let reply = slaves.reply(SimTime::ZERO, 1, &request).unwrap();
         assert_eq!(&reply[..3], &[1, 4, 20]);
-        assert!(rtu::parse(&reply).is_ok());
+        assert!(rtu::RtuFrame::new_checked(&reply).is_ok());
         let bad = spoil_check(Protocol::ModbusRtu, &reply).unwrap();
-        assert!(rtu::parse(&bad).is_err());
+        assert!(rtu::RtuFrame::new_checked(&bad).is_err());
         let other = with_id(Protocol::ModbusRtu, &reply, 7).unwrap();
-        assert_eq!(rtu::parse(&other).unwrap().unit, 7);
+        assert_eq!(rtu::RtuFrame::new_checked(&other).unwrap().unit(), 7);
         let refused = refusal(Protocol::ModbusRtu, &reply, 4).unwrap();
         assert_eq!(&refused[..3], &[1, 0x84, 4]);
         assert_eq!(exception_of(Protocol::ModbusRtu, &refused), Some(4));

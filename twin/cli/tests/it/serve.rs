@@ -122,7 +122,13 @@ fn modbus_tcp(
     request: &Request,
 ) -> Result<Response, modbus::ExceptionResponse> {
     let mut out = [0u8; 300];
-    let n = modbus::tcp::emit(tid, unit, request, &mut out).unwrap();
+    let n = modbus::tcp::TcpRepr {
+        transaction_id: tid,
+        unit,
+        pdu: request,
+    }
+    .emit(&mut out)
+    .unwrap();
     s.write_all(&out[..n]).unwrap();
     let mut header = [0u8; 6];
     s.read_exact(&mut header).expect("an MBAP header");
@@ -131,9 +137,9 @@ fn modbus_tcp(
     s.read_exact(&mut rest).expect("the rest of the reply");
     let mut adu = header.to_vec();
     adu.extend(rest);
-    let frame = modbus::tcp::parse(&adu).expect("a well-formed reply");
-    assert_eq!(frame.transaction_id, tid, "transaction id echoed");
-    assert_eq!(frame.unit, unit, "unit id echoed");
+    let frame = modbus::tcp::TcpFrame::new_checked(&adu).expect("a well-formed reply");
+    assert_eq!(frame.transaction_id(), tid, "transaction id echoed");
+    assert_eq!(frame.unit(), unit, "unit id echoed");
     frame.response().expect("a valid PDU")
 }
 
@@ -688,23 +694,38 @@ fn modbus_rtu_and_meb_on_ptys_answer_after_the_turnaround() {
         address: 0,
         quantity: 10,
     };
-    let n = modbus::rtu::emit(1, &request, &mut frame).unwrap();
+    let n = modbus::rtu::RtuRepr {
+        unit: 1,
+        pdu: &request,
+    }
+    .emit(&mut frame)
+    .unwrap();
     rtu.write_all(&frame[..n]).unwrap();
     // unit, function, byte count, 20 data bytes, CRC
     let reply = read_n(&mut rtu, 25);
-    let parsed = modbus::rtu::parse(&reply).expect("CRC checks");
-    assert_eq!(parsed.unit, 1);
+    let parsed = modbus::rtu::RtuFrame::new_checked(&reply).expect("CRC checks");
+    assert_eq!(parsed.unit(), 1);
     match parsed.response() {
         Ok(Ok(Response::ReadInputRegisters(r))) => assert!(r.as_slice()[2] > 3000),
         other => panic!("{other:?}"),
     }
     // Another unit's request gets silence; the next one for us is served.
-    let n = modbus::rtu::emit(7, &request, &mut frame).unwrap();
+    let n = modbus::rtu::RtuRepr {
+        unit: 7,
+        pdu: &request,
+    }
+    .emit(&mut frame)
+    .unwrap();
     rtu.write_all(&frame[..n]).unwrap();
     std::thread::sleep(Duration::from_millis(50));
-    let n = modbus::rtu::emit(1, &request, &mut frame).unwrap();
+    let n = modbus::rtu::RtuRepr {
+        unit: 1,
+        pdu: &request,
+    }
+    .emit(&mut frame)
+    .unwrap();
     rtu.write_all(&frame[..n]).unwrap();
-    assert!(modbus::rtu::parse(&read_n(&mut rtu, 25)).is_ok());
+    assert!(modbus::rtu::RtuFrame::new_checked(&read_n(&mut rtu, 25)).is_ok());
 
     let request = meb_frame(1, MebCmd::EA, 0, 6, &[]);
     let sent = Instant::now();
@@ -747,13 +768,13 @@ fn paced_replies_take_their_wire_time_at_the_links_baud() {
 
 #[test]
 fn the_controller_network_network_answers_both_ids_on_one_pty() {
-    use protocols::modbus8::{CrcOrder, Frame};
+    use protocols::modbus8::{CrcOrder, Modbus8Repr};
     let (mut port, _slave, path) = pty();
     let server = Server::start(&["--modbus8", &path, "--quiet", "--no-record"]);
     assert_eq!(server.links[0].0, "modbus8");
     assert_eq!(server.links[0].2, "01,02");
     for (id, addr) in [(1u8, 0x0001u16), (2, 0x0006)] {
-        let request = Frame {
+        let request = Modbus8Repr {
             id,
             function: 3,
             addr,
@@ -762,7 +783,7 @@ fn the_controller_network_network_answers_both_ids_on_one_pty() {
         .to_bytes(CrcOrder::HighFirst);
         port.write_all(&request).unwrap();
         let reply = read_n(&mut port, 8);
-        let frame = Frame::parse(&reply, CrcOrder::HighFirst).expect("CRC checks");
+        let frame = Modbus8Repr::parse(&reply, CrcOrder::HighFirst).expect("CRC checks");
         assert_eq!((frame.id, frame.addr), (id, addr), "{reply:02x?}");
     }
 }

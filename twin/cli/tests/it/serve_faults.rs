@@ -86,7 +86,7 @@ fn console_faults_reach_a_real_client_byte_for_byte() {
     let clean = whole(&exchange(&meb, &meb_read_ea(), MEB_EA_LEN));
     assert_eq!(MebRepr::parse(&clean).unwrap().id, 1);
     let clean_rtu = whole(&exchange(&rtu_link, &RTU_READ, 7));
-    assert_eq!(rtu::parse(&clean_rtu).unwrap().unit, 1);
+    assert_eq!(rtu::RtuFrame::new_checked(&clean_rtu).unwrap().unit(), 1);
 
     // Wrong id: a well-formed reply, from slave 7.
     say(
@@ -99,7 +99,11 @@ fn console_faults_reach_a_real_client_byte_for_byte() {
     let repr = MebRepr::parse(&reply).unwrap_or_else(|e| panic!("{e}: {reply:02x?}"));
     assert_eq!((repr.id, repr.cmd), (7, MebCmd::EA));
     let reply = whole(&exchange(&rtu_link, &RTU_READ, 7));
-    assert_eq!(rtu::parse(&reply).unwrap().unit, 7, "{reply:02x?}");
+    assert_eq!(
+        rtu::RtuFrame::new_checked(&reply).unwrap().unit(),
+        7,
+        "{reply:02x?}"
+    );
     // Unchosen: the next id.
     say(
         &server,
@@ -129,7 +133,7 @@ fn console_faults_reach_a_real_client_byte_for_byte() {
     );
     let reply = whole(&exchange(&rtu_link, &RTU_READ, 7 + 4));
     assert_eq!(reply.len(), 11, "{reply:02x?}");
-    assert_eq!(rtu::parse(&reply[..7]).unwrap().unit, 1);
+    assert_eq!(rtu::RtuFrame::new_checked(&reply[..7]).unwrap().unit(), 1);
 
     // Split: the reply in two writes, a second apart; together the whole reply.
     say(
@@ -145,7 +149,10 @@ fn console_faults_reach_a_real_client_byte_for_byte() {
     let chunks = exchange(&rtu_link, &RTU_READ, 7);
     assert!(chunks.len() >= 2, "two writes: {chunks:02x?}");
     assert_eq!(chunks[0].len(), 3, "{chunks:02x?}");
-    assert_eq!(rtu::parse(&whole(&chunks)).unwrap().unit, 1);
+    assert_eq!(
+        rtu::RtuFrame::new_checked(&whole(&chunks)).unwrap().unit(),
+        1
+    );
 
     say(&server, &mut console, "fault off", "fault off");
     let reply = whole(&exchange(&meb, &meb_read_ea(), MEB_EA_LEN));

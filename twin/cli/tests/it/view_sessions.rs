@@ -89,14 +89,20 @@ fn input_registers(s: &mut TcpStream, tid: u16) -> Vec<u16> {
         quantity: 6,
     };
     let mut adu = [0u8; 300];
-    let n = modbus::tcp::emit(tid, 1, &request, &mut adu).expect("emits");
+    let n = modbus::tcp::TcpRepr {
+        transaction_id: tid,
+        unit: 1,
+        pdu: &request,
+    }
+    .emit(&mut adu)
+    .expect("emits");
     s.write_all(&adu[..n]).unwrap();
     let mut head = [0u8; 6];
     s.read_exact(&mut head).expect("an MBAP header");
     let mut rest = vec![0u8; usize::from(u16::from_be_bytes([head[4], head[5]]))];
     s.read_exact(&mut rest).expect("the rest of the reply");
     let whole = [&head[..], &rest].concat();
-    let frame = modbus::tcp::parse(&whole).expect("a valid Modbus TCP reply");
+    let frame = modbus::tcp::TcpFrame::new_checked(&whole).expect("a valid Modbus TCP reply");
     match frame.response() {
         Ok(Ok(Response::ReadInputRegisters(r))) => r.as_slice().to_vec(),
         other => panic!("not an input-register reply: {other:?}"),

@@ -12,7 +12,7 @@ use anyhow::{Result, bail};
 use nodes::controller_network::{
     LIGHT_ID, MOTOR_ID, MasterConfig, REG_LIGHT_VALUE, REG_RPM, REG_STATE,
 };
-use protocols::modbus8::{self, CrcOrder, FRAME_LEN, Frame};
+use protocols::modbus8::{self, CrcOrder, FRAME_LEN, Modbus8Repr};
 use protocols::time::{SimDuration, SimTime};
 use twin_recording::topics::LoopReport;
 use twin_sim::engine::{BusSlot, NodeSlot, Observer};
@@ -73,7 +73,7 @@ struct ReadsObserver<'a> {
     /// The supervisor's set point in its last report.
     last_set_point: Option<f64>,
     /// The last request the master sent, and when its last bit left.
-    request: Option<(Frame, f64)>,
+    request: Option<(Modbus8Repr, f64)>,
     reads: TwinReads,
 }
 
@@ -88,7 +88,7 @@ impl Observer for ReadsObserver<'_> {
     ) -> Result<()> {
         let Some(frame) = bytes
             .get(..FRAME_LEN)
-            .and_then(|b| Frame::parse(b, CrcOrder::HighFirst).ok())
+            .and_then(|b| Modbus8Repr::parse(b, CrcOrder::HighFirst).ok())
         else {
             return Ok(());
         };

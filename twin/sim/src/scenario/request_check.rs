@@ -6,7 +6,7 @@
 //! its line.
 
 use protocols::hex;
-use protocols::modbus8::Frame;
+use protocols::modbus8::Modbus8Repr;
 
 use super::{MasterProgramSpec, NodeSpec, REQUEST_OWNER, Scenario, check::shown};
 
@@ -15,10 +15,10 @@ type Fault = (String, String);
 
 /// The frame a request's `send` spells (six bytes: id, function, address,
 /// value), or why it is none.
-pub fn frame(send: &str) -> Result<Frame, String> {
+pub fn frame(send: &str) -> Result<Modbus8Repr, String> {
     let bytes = hex::bytes(send).map_err(|e| e.to_string())?;
     match bytes[..] {
-        [id, function, a0, a1, v0, v1] => Ok(Frame {
+        [id, function, a0, a1, v0, v1] => Ok(Modbus8Repr {
             id,
             function,
             addr: u16::from_be_bytes([a0, a1]),
