@@ -28,6 +28,13 @@
  * - the edges of the pins the twin watches (the wiring map's outputs and
  *   PWM, a VCD trace's pins) are kept with their cycle in a ring the Rust
  *   side drains after each run, for the recording and the trace;
+ * - a 16-bit timer's compare register (OCR1A, OCR1B) takes its high byte at
+ *   the low byte's write, through the chip's TEMP register: simavr 1.6 lets
+ *   the high byte into the register at once and, at the low byte's write,
+ *   compares the new value with one whose high byte is already new, so in
+ *   fast PWM a write that changes the high byte alone was never applied
+ *   (OCR1A from 0x000 to 0x200, VEL 2048 on a 10-bit PWM, left the pin at
+ *   the old duty);
  * - simavr's GDB stub is started only when asked (its run loop polls the
  *   debugger's socket at every instruction), with the core stopped until
  *   the debugger says continue, as `simavr -g` does.
@@ -48,11 +55,23 @@
 #include <simavr/avr_adc.h>
 #include <simavr/avr_ioport.h>
 #include <simavr/avr_extint.h>
+#include <simavr/avr_timer.h>
 #include <simavr/sim_gdb.h>
 
 #define TX_RING 512
 #define PORTS 3 /* B, C, D */
 #define EDGE_RING 16384
+#define WIDE_OCRS 8
+
+/* A 16-bit compare register: its high byte waits in TEMP for the low
+ * byte's write, which simavr's timer handles. */
+typedef struct wide_ocr {
+	struct twin_avr *t;
+	avr_io_addr_t low, high;
+	uint8_t temp;
+	avr_io_write_t timer_write;
+	void *timer_param;
+} wide_ocr_t;
 
 typedef struct twin_avr {
 	avr_t *avr;
@@ -81,6 +100,7 @@ typedef struct twin_avr {
 	uint8_t edge_pin[EDGE_RING]; /* index, bit 7 the new level */
 	uint32_t edge_head, edge_tail;
 	uint32_t edge_dropped;
+	wide_ocr_t wide_ocr[WIDE_OCRS];
 } twin_avr_t;
 
 /* simavr's messages ("Loaded 1638 .text", a crash's reason) would go to
@@ -269,6 +289,50 @@ void twin_avr_free_elf(void *fw) { free(fw); }
 
 /* Starts a core for mcu at frequency with the firmware read by
  * twin_avr_read_elf (taken over). NULL if simavr has no such MCU. */
+static void ocr_high_write(avr_t *avr, avr_io_addr_t addr, uint8_t v, void *param) {
+	(void)avr;
+	(void)addr;
+	((wide_ocr_t *)param)->temp = v;
+}
+
+/* The low byte's write: both bytes at once, as the chip does. simavr's timer
+ * applies a new value only if it differs from the register before the
+ * write, which it reads from memory: where the high byte changes, the low
+ * byte in memory is made to differ first, so the timer sees the change. */
+static void ocr_low_write(avr_t *avr, avr_io_addr_t addr, uint8_t v, void *param) {
+	wide_ocr_t *w = param;
+	if (avr->data[w->high] != w->temp) {
+		avr->data[w->high] = w->temp;
+		avr->data[addr] = (uint8_t)~v;
+	}
+	w->timer_write(avr, addr, v, w->timer_param);
+}
+
+static void hook_wide_ocrs(twin_avr_t *t) {
+	avr_t *avr = t->avr;
+	int n = 0;
+	for (avr_io_t *io = avr->io_port; io; io = io->next) {
+		if (!io->kind || strcmp(io->kind, "timer") != 0)
+			continue;
+		avr_timer_t *timer = (avr_timer_t *)io;
+		for (int c = 0; c < AVR_TIMER_COMP_COUNT && n < WIDE_OCRS; c++) {
+			avr_io_addr_t low = timer->comp[c].r_ocr, high = timer->comp[c].r_ocrh;
+			if (!low || !high)
+				continue;
+			int li = AVR_DATA_TO_IO(low), hi = AVR_DATA_TO_IO(high);
+			/* Only where the timer watches the low byte and nothing the high. */
+			if (!avr->io[li].w.c || avr->io[hi].w.c)
+				continue;
+			wide_ocr_t *w = &t->wide_ocr[n++];
+			*w = (wide_ocr_t){t, low, high, avr->data[high], avr->io[li].w.c, avr->io[li].w.param};
+			avr->io[li].w.c = ocr_low_write;
+			avr->io[li].w.param = w;
+			avr->io[hi].w.c = ocr_high_write;
+			avr->io[hi].w.param = w;
+		}
+	}
+}
+
 twin_avr_t *twin_avr_start(void *firmware, const char *mcu, uint32_t frequency) {
 	elf_firmware_t *fw = firmware;
 	avr_t *avr = avr_make_mcu_by_name(mcu);
@@ -302,6 +366,7 @@ twin_avr_t *twin_avr_start(void *firmware, const char *mcu, uint32_t frequency) 
 	t->uart_in = avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_INPUT);
 	for (int i = 0; i < 8; i++)
 		t->adc[i] = avr_io_getirq(avr, AVR_IOCTL_ADC_GETIRQ, ADC_IRQ_ADC0 + i);
+	hook_wide_ocrs(t);
 	pin_ref_t *refs = pin_refs_alloc(t);
 	t->refs = refs;
 	const char names[PORTS] = {'B', 'C', 'D'};
