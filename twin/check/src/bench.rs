@@ -17,6 +17,10 @@
 //!
 //! The check runs no plant: the plant runs in the session, and the model's
 //! closed forms come from the parameters that session serves.
+//!
+//! A slave's converters may be coarser than the map's 12 bits (an Arduino's
+//! ADC has 10; its VEL is a PWM through the bench's RC filter): given as
+//! [`Converters`], the tolerances widen to their resolution, and no further.
 
 mod http;
 pub mod model;
@@ -140,12 +144,71 @@ const SETTLE_WITHIN: Duration = Duration::from_secs(15);
 const COAST_FOR_S: f64 = 1.0;
 const BRAKE_FOR_S: f64 = 0.25;
 
+/// The slave's own converters, where they are coarser than the map's 12
+/// bits: its ADC (the inputs it reads back) and the output that gives VEL
+/// its voltage.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Converters {
+    pub adc_bits: u8,
+    pub vel_bits: u8,
+}
+
+impl Default for Converters {
+    /// The map's: 12-bit counts both ways.
+    fn default() -> Self {
+        Converters {
+            adc_bits: MAP_BITS,
+            vel_bits: MAP_BITS,
+        }
+    }
+}
+
+/// The MEB page's default scaling counts 12 bits.
+pub const MAP_BITS: u8 = 12;
+
+/// How far a PWM's voltage ripples about its mean through the bench's RC
+/// filter, as the plant sees it at any one moment: a 15.6 kHz PWM through
+/// 1 ms moves 80 mV peak to peak at half duty.
+const PWM_RIPPLE_VOLTS: f64 = 0.1;
+
+impl Converters {
+    /// One step of a converter of `bits`, in the map's 12-bit counts.
+    fn step(bits: u8) -> f64 {
+        f64::from(1u32 << MAP_BITS.saturating_sub(bits.clamp(1, MAP_BITS)))
+    }
+
+    /// The counts an input read back may be off by: one step of the ADC
+    /// (a coarser one truncates to its step, and its reading scaled to 12
+    /// bits is rounded: one count more).
+    fn adc_counts(self) -> f64 {
+        let step = Self::step(self.adc_bits);
+        if step > 1.0 { step + 1.0 } else { step }
+    }
+
+    /// The VEL counts the drive may be off by: one step of its output.
+    fn vel_counts(self) -> f64 {
+        Self::step(self.vel_bits)
+    }
+
+    /// What the plant's VEL input may be off by at any one moment (V): one
+    /// step, and a PWM's ripple if VEL is one.
+    fn vel_volts(self) -> f64 {
+        let step = self.vel_counts() * model::vel_volts(1);
+        if self.vel_bits < MAP_BITS {
+            step + PWM_RIPPLE_VOLTS
+        } else {
+            step
+        }
+    }
+}
+
 /// The bench a slave is wired to: its session's panel and plant.
 #[derive(Debug, Clone)]
 pub struct Bench {
     panel: Panel,
     params: PlantParams,
     module: String,
+    converters: Converters,
 }
 
 /// Whether `url` is a panel's address (`http://HOST:PORT[/?token=…]`),
@@ -174,7 +237,27 @@ impl Bench {
             module: module["name"].as_str().unwrap_or("").to_string(),
             panel,
             params,
+            converters: Converters::default(),
         })
+    }
+
+    /// The slave's converters, if coarser than the map's.
+    pub fn with_converters(mut self, converters: Converters) -> Self {
+        self.converters = converters;
+        self
+    }
+
+    /// What the bench says of the slave's converters in a report's head:
+    /// nothing for the map's own.
+    pub fn described(&self) -> String {
+        let c = self.converters;
+        if c == Converters::default() {
+            return self.panel.shown.clone();
+        }
+        format!(
+            "{} (the slave's ADC {} bits, VEL {} bits)",
+            self.panel.shown, c.adc_bits, c.vel_bits
+        )
     }
 
     /// The panel's address, for reports.
@@ -313,7 +396,7 @@ impl Bench {
     /// the model's speed.
     fn turns(&self, vel: u16, reverse: bool) -> Result<(), String> {
         let volts = model::vel_volts(vel);
-        let dac_step = model::vel_volts(1);
+        let vel_slack = self.converters.vel_volts();
         let drive = self.until(OUTPUTS_SHOWN_WITHIN, |s| {
             if !s.enable {
                 return Err("the plant's drive is off (EN off as the plant sees it)".into());
@@ -328,7 +411,7 @@ impl Bench {
                     direction(reverse)
                 ));
             }
-            if (s.vel_volts - volts).abs() > dac_step {
+            if (s.vel_volts - volts).abs() > vel_slack {
                 return Err(format!(
                     "the plant's speed input is {:.3} V where VEL {vel} is {volts:.3} V",
                     s.vel_volts
@@ -345,8 +428,11 @@ impl Bench {
         let sign = if reverse { -1.0 } else { 1.0 };
         let p = &self.params;
         let expected = |s: &PlantState| sign * model::steady_rpm(p, vel, s.bus_volts);
-        // The speed VEL is written with: one DAC count either side.
-        let tolerance = |s: &PlantState| model::rpm_per_count(p, vel, s.bus_volts).max(1.0);
+        // The speed VEL is written with: one step of the slave's output
+        // either side (the map's DAC: one count).
+        let counts = self.converters.vel_counts();
+        let tolerance =
+            |s: &PlantState| (counts * model::rpm_per_count(p, vel, s.bus_volts)).max(1.0);
         let settled = self.until(SETTLE_WITHIN, |s| {
             let off = s.motor_rpm - expected(s);
             if off.abs() <= tolerance(s) {
@@ -445,6 +531,7 @@ impl Bench {
         }
         let p = &self.params;
         let window = f64::from(rpm_window_ms.max(1)) / 1e3;
+        let adc = self.converters.adc_counts();
         let mut wrong = Vec::new();
         for (&input, &word) in words.iter().zip(reply) {
             let both = |f: &dyn Fn(&PlantState) -> f64| {
@@ -470,7 +557,7 @@ impl Bench {
                     (
                         f64::from(c1.min(c2)),
                         f64::from(c1.max(c2)),
-                        1.0,
+                        adc,
                         format!("{what} at {} {unit}", range(lo, hi, 2)),
                     )
                 }
@@ -478,7 +565,7 @@ impl Bench {
                     let (lo, hi) = both(&|s| s.ldr_counts);
                     // Its noise is drawn afresh at every sample.
                     let noise = model::ldr_noise_counts(p);
-                    (lo, hi, 1.0 + noise, "the photoresistor's divider".into())
+                    (lo, hi, adc + noise, "the photoresistor's divider".into())
                 }
                 Input::RpmM | Input::RpmL => {
                     let (lo, hi) = both(&|s| s.wheel_rpm.abs());

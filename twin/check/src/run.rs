@@ -354,7 +354,7 @@ pub fn run_suite_on(suite: &Suite, wire: &mut Wire, id: u8, bench: Option<&Bench
         ids: Vec::new(),
         checks,
         seconds: wire.now() - started,
-        bench: bench.map(|b| b.url().to_string()),
+        bench: bench.map(Bench::described),
         patience: suite.patience,
         error: None,
         hung_up,

@@ -5,6 +5,7 @@ use anyhow::{Result, bail};
 use clap::Args;
 use std::path::Path;
 use twin_check::class;
+use twin_check::bench::{Converters, MAP_BITS};
 use twin_check::{Bench, Suite, record, report, run_suite_on, wire::Wire};
 
 #[derive(Debug, Args)]
@@ -44,6 +45,20 @@ pub struct SlaveArgs {
     /// --roster, each student's bench is the roster's `bench` column.
     #[arg(long, value_name = "URL")]
     bench: Option<String>,
+    /// The bits of the slave's ADC, where fewer than the map's 12: an
+    /// Arduino's (a sketch in twin-avr) has 10. The inputs it reads back
+    /// are then held to one step of it and a count of rounding (5 counts
+    /// for 10 bits) instead of one count.
+    #[arg(long, value_name = "BITS", requires = "bench", default_value_t = MAP_BITS,
+          value_parser = clap::value_parser!(u8).range(1..=12))]
+    adc_bits: u8,
+    /// The bits VEL reaches the bench with, where fewer than the map's 12:
+    /// an Arduino's PWM (10 bits on Timer1, 8 by analogWrite) through the
+    /// bench's RC filter. The plant's speed input is then held to one step
+    /// of it and the PWM's ripple (0.1 V), the motor's speed to one step.
+    #[arg(long, value_name = "BITS", requires = "bench", default_value_t = MAP_BITS,
+          value_parser = clap::value_parser!(u8).range(1..=12))]
+    vel_bits: u8,
     #[command(flatten)]
     reports: super::reports::ReportArgs,
 }
@@ -75,7 +90,14 @@ pub fn execute(slave: &SlaveArgs) -> Result<()> {
     }
     let link = slave.link.as_deref().unwrap_or_default();
     let bench = match &slave.bench {
-        Some(url) => Some(Bench::connect(url).map_err(|why| anyhow::anyhow!("--bench: {why}"))?),
+        Some(url) => Some(
+            Bench::connect(url)
+                .map_err(|why| anyhow::anyhow!("--bench: {why}"))?
+                .with_converters(Converters {
+                    adc_bits: slave.adc_bits,
+                    vel_bits: slave.vel_bits,
+                }),
+        ),
         None => None,
     };
     let mut wire = Wire::open(link)?;
