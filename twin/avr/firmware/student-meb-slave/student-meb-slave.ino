@@ -16,14 +16,33 @@
 //   BUG_NO_RESYNC          does not restart at an @ inside a frame, so a
 //                          partial frame spoils the next one
 //
+// and two that keep every frame right but get the bench wrong, which only
+// the bench checks (`twin check slave --bench`) can find:
+//
+//   BUG_FR_WRONG_PIN       FR on D12, a pin the bench leaves unwired: the
+//                          motor never turns counter-clockwise
+//   BUG_V1_V2_SWAPPED      V1 read from A0 and V2 from A2: the battery and
+//                          the bus swapped
+//
 // Wiring (the bench's `ev-controller` map): A0 V2, A1 I, A2 V1, A3 LDR;
 // D2-D4 hall A-C; D5 EN, D6 BRK, D7 PRO, D8 DES, D10 FR, D11 CHG (active
-// low); D9 VEL as PWM. Serial at 115200 8N1 is the bus.
+// low); D9 VEL as PWM through the bench's RC filter. Serial at 115200 8N1
+// is the bus. The ADC has 10 bits and the map counts 12: readings are
+// scaled, and VEL's 12 bits drive a 10-bit PWM.
 
 #define MY_ID 1
 
+#ifdef BUG_FR_WRONG_PIN
+const int EN_PIN = 5, BRK_PIN = 6, PRO_PIN = 7, DES_PIN = 8, FR_PIN = 12, CHG_PIN = 11;
+#else
 const int EN_PIN = 5, BRK_PIN = 6, PRO_PIN = 7, DES_PIN = 8, FR_PIN = 10, CHG_PIN = 11;
-const int VEL_PIN = 9;
+#endif
+const int VEL_PIN = 9;  // OC1A: Timer1's PWM
+#ifdef BUG_V1_V2_SWAPPED
+const int V2_PIN = A2, I_PIN = A1, V1_PIN = A0, LDR_PIN = A3;
+#else
+const int V2_PIN = A0, I_PIN = A1, V1_PIN = A2, LDR_PIN = A3;
+#endif
 
 // Sizes of the blocks, in words.
 const int EA_SIZE = 6, ED_SIZE = 1, FA_SIZE = 2, FD_SIZE = 1;
@@ -35,12 +54,30 @@ unsigned int sd[SD_SIZE] = {0x1F, 0x01};
 unsigned int va[VA_SIZE] = {1933, 100};
 unsigned int vd[VD_SIZE] = {1};
 unsigned int errorCount = 0;
+// Set by a write: loop() drives the pins only then. (In simavr a write to
+// port B cuts the PWM's pulse on D9 short, which the chip does not: a
+// sketch that drove its pins at every pass would turn the motor slower in
+// the twin than on the bench.)
+bool written = false;
 
 // Hall edges counted in loop(), turned into rpm every half second.
 int lastHall = -1;
 unsigned long hallEdges = 0;
 unsigned long lastRpmTime = 0;
 unsigned int rpm = 0;
+
+// The flag's passes in front of the photoresistor (its reading dips below
+// a threshold), counted over the same half second: one pass per wheel turn.
+// The photoresistor is slow, so at speed the dip is shallow: with LDR_ADAPT
+// (VD 00) set, the threshold is midway between the brightest and darkest
+// readings of the last half second, if they are far enough apart to be the
+// flag; without, it is LDR_TH (VA 00).
+unsigned int ldr = 0;
+unsigned int ldrHigh = 0, ldrLow = 4095;
+unsigned int adaptedTh = 0;  // 0: no flag seen in the last half second
+bool inFlag = false;
+unsigned long flagPasses = 0;
+unsigned int rpmL = 0;
 
 // The frame being received, from @ to before *.
 char buf[64];
@@ -80,6 +117,12 @@ bool isLetter(char c) {
   return (c >= 'A' && c <= 'Z') || (c >= 'a' && c <= 'z');
 }
 
+// The 10-bit ADC's reading as the map's 12-bit counts, rounded.
+unsigned int read12(int pin) {
+  unsigned long v = analogRead(pin);
+  return (v * 4095 + 511) / 1023;
+}
+
 unsigned char fcs(const char *s, int n) {
   unsigned char x = 0;
   for (int i = 0; i < n; i++) x ^= s[i];
@@ -105,12 +148,12 @@ void sendError(unsigned int addr, int code) {
 unsigned int readWord(const char *cmd, unsigned int a) {
   if (cmd[0] == 'E' && cmd[1] == 'A') {
     switch (a) {
-      case 0: return analogRead(A0) * 4;  // 10-bit ADC, the map counts 12 bits
-      case 1: return analogRead(A1) * 4;
-      case 2: return analogRead(A2) * 4;
+      case 0: return read12(V2_PIN);
+      case 1: return read12(I_PIN);
+      case 2: return read12(V1_PIN);
       case 3: return rpm;
-      case 4: return 0;  // the light-sensor speed: not done yet
-      default: return analogRead(A3) * 4;
+      case 4: return rpmL;
+      default: return ldr;
     }
   }
   if (cmd[0] == 'E') {
@@ -156,6 +199,7 @@ void store(const char *cmd, unsigned int a, unsigned int v) {
   else if (cmd[0] == 'S') sd[a] = v;
   else if (cmd[1] == 'A') va[a] = v;
   else vd[a] = v;
+  written = true;
 }
 
 // One frame, from @ to before *: answered, or ignored.
@@ -271,6 +315,19 @@ void receive(char c) {
   buf[len++] = c;
 }
 
+// VEL's 12 bits on Timer1's 10-bit fast PWM (15.6 kHz): analogWrite's
+// 490 Hz and 8 bits would ripple through the bench's 1 ms RC filter.
+// At 0 the pin is held low (fast PWM still pulses once per period).
+void setVel(unsigned int v) {
+  if (v == 0) {
+    TCCR1A &= ~_BV(COM1A1);
+    digitalWrite(VEL_PIN, LOW);
+  } else {
+    OCR1A = v >> 2;
+    TCCR1A |= _BV(COM1A1);
+  }
+}
+
 void setOutputs() {
   digitalWrite(EN_PIN, sd[0] & 1);
   digitalWrite(BRK_PIN, (sd[0] >> 1) & 1);
@@ -278,7 +335,7 @@ void setOutputs() {
   digitalWrite(DES_PIN, (sd[0] >> 3) & 1);
   digitalWrite(FR_PIN, (sd[0] >> 4) & 1);
   digitalWrite(CHG_PIN, sd[1] & 1);
-  analogWrite(VEL_PIN, vel / 16);
+  setVel(vel);
 }
 
 void countHall() {
@@ -287,10 +344,25 @@ void countHall() {
     if (lastHall >= 0) hallEdges++;
     lastHall = hall;
   }
+  ldr = read12(LDR_PIN);
+  if (ldr > ldrHigh) ldrHigh = ldr;
+  if (ldr < ldrLow) ldrLow = ldr;
+  unsigned int th = vd[0] ? adaptedTh : va[0];
+  if (!inFlag && ldr < th) {
+    inFlag = true;
+    flagPasses++;
+  } else if (inFlag && ldr >= th + 10) {
+    inFlag = false;
+  }
   if (millis() - lastRpmTime >= 500) {
     // 24 hall edges per wheel turn, counted over half a second.
     rpm = hallEdges * 60 * 2 / 24;
     hallEdges = 0;
+    rpmL = flagPasses * 60 * 2;
+    flagPasses = 0;
+    adaptedTh = ldrHigh - ldrLow >= 200 ? (ldrHigh + ldrLow) / 2 : 0;
+    ldrHigh = 0;
+    ldrLow = 4095;
     lastRpmTime = millis();
   }
 }
@@ -306,6 +378,9 @@ void setup() {
   pinMode(2, INPUT);
   pinMode(3, INPUT);
   pinMode(4, INPUT);
+  // Timer1: fast PWM, 10 bits (TOP 0x3FF), no prescaler.
+  TCCR1A = _BV(WGM11) | _BV(WGM10);
+  TCCR1B = _BV(WGM12) | _BV(CS10);
   setOutputs();
   Serial.begin(115200);
 }
@@ -314,6 +389,9 @@ void loop() {
   while (Serial.available() > 0) {
     receive(Serial.read());
   }
-  setOutputs();
+  if (written) {
+    written = false;
+    setOutputs();
+  }
   countHall();
 }
