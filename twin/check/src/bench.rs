@@ -119,7 +119,11 @@ impl PlantState {
         let num = |field: &str| m[field].as_f64();
         let a = &m["actuators"];
         Some(PlantState {
-            t: v["t"].as_f64()?,
+            // The plant's own time where the panel gives it: under load the
+            // engine's ticks run late, and the session's clock is ahead of
+            // the plant (a wheel watched coasting for a second of clock
+            // time coasted less by the plant's).
+            t: m["plant_t"].as_f64().or_else(|| v["t"].as_f64())?,
             battery_volts: num("battery_volts")?,
             bus_volts: num("bus_volts")?,
             inverter_current: num("inverter_current")?,

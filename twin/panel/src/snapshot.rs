@@ -313,6 +313,9 @@ impl EngineSnapshot {
                 let a = &m.actuators;
                 json!({
                     "name": m.name,
+                    // The time the plant has reached: behind `t` while the
+                    // engine catches up on late ticks.
+                    "plant_t": crate::seconds(s.time_s),
                     "battery_volts": s.battery_volts,
                     "bus_volts": s.bus_volts,
                     "inverter_current": s.inverter_current,
