@@ -19,8 +19,9 @@
 // and two that keep every frame right but get the bench wrong, which only
 // the bench checks (`twin check slave --bench`) can find:
 //
-//   BUG_FR_WRONG_PIN       FR on D12, a pin the bench leaves unwired: the
-//                          motor never turns counter-clockwise
+//   BUG_FR_WRONG_PIN       FR on D12, a pin the bench leaves unwired: D10
+//                          floats, the module pulls it up, and the motor
+//                          always turns counter-clockwise
 //   BUG_V1_V2_SWAPPED      V1 read from A0 and V2 from A2: the battery and
 //                          the bus swapped
 //

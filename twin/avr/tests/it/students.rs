@@ -7,6 +7,12 @@
 //! the built-in suite of its protocol. The correct builds pass every check;
 //! each buggy build fails exactly the checks its bug explains, and nothing
 //! else. The variants run three at a time, each in its own server.
+//!
+//! The MEB slave is also checked on its bench (`serve --web`, `check
+//! --bench` with an Arduino's 10-bit ADC and PWM): built correct it passes
+//! the bench checks too, and a build whose frames are right but whose I/O
+//! is wrong (FR on a pin the bench leaves unwired, V1 and V2 read from each
+//! other's inputs) fails exactly the bench checks of that meaning.
 
 use crate::common;
 use crate::serve_boards::{ONE_AT_A_TIME, scratch, stop, wait_ready};
@@ -140,6 +146,17 @@ struct Student {
     expected: Vec<String>,
     /// `--timeout-ms`.
     timeout_ms: u64,
+    /// Checked on its bench: the server's panel given to `--bench`.
+    bench: bool,
+}
+
+/// The panel's URL, as the server printed it before `ready`.
+fn panel_of(head: &str) -> String {
+    head.lines()
+        .find_map(|l| l.strip_prefix("panel: "))
+        .and_then(|l| l.split_whitespace().next())
+        .unwrap_or_else(|| panic!("no panel line printed: {head}"))
+        .to_string()
 }
 
 /// The student's build served on one end of a vsp pair, checked on the
@@ -167,6 +184,9 @@ fn check(student: &Student, elf: &Path) -> Checked {
     for f in &firmware {
         args.extend(["--firmware", f]);
     }
+    if student.bench {
+        args.extend(["--web", "127.0.0.1:0"]);
+    }
     let mut serve = twin_avr(
         &[
             args.as_slice(),
@@ -184,8 +204,22 @@ fn check(student: &Student, elf: &Path) -> Checked {
     let (serve_out, head) = wait_ready(&mut serve);
     assert!(head.contains(&format!("{}.elf", student.sketch)), "{head}");
     let json = dir.join("run.json");
+    // An Arduino's converters: its 10-bit ADC, and VEL on Timer1's 10-bit PWM.
+    let bench = if student.bench {
+        vec![
+            "--bench".to_string(),
+            panel_of(&head),
+            "--adc-bits".into(),
+            "10".into(),
+            "--vel-bits".into(),
+            "10".into(),
+        ]
+    } else {
+        vec![]
+    };
     let out = Command::new(env!("CARGO_BIN_EXE_twin-avr"))
         .args(["check", "slave", &a_s, "--no-record"])
+        .args(&bench)
         .args(["--timeout-ms", &student.timeout_ms.to_string()])
         .arg("--suite")
         .arg(patient_suite(student.suite, &dir))
@@ -204,13 +238,24 @@ fn check(student: &Student, elf: &Path) -> Checked {
             .unwrap_or_else(|e| panic!("{name}: no report: {e}\n{report}")),
     )
     .unwrap();
-    let failed: Vec<String> = run["checks"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .filter(|c| c["result"] == "fail")
-        .map(|c| c["name"].as_str().unwrap().to_string())
-        .collect();
+    let with_result = |wanted: &str| -> Vec<String> {
+        run["checks"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|c| c["result"] == wanted)
+            .map(|c| c["name"].as_str().unwrap().to_string())
+            .collect()
+    };
+    let failed = with_result("fail");
+    if student.bench {
+        // On its bench every check applies.
+        assert_eq!(
+            with_result("not applicable"),
+            Vec::<String>::new(),
+            "{name}:\n{report}"
+        );
+    }
     assert_eq!(
         out.status.success(),
         failed.is_empty(),
@@ -250,6 +295,15 @@ fn meb(tag: &'static str, define: &'static str, expected: Vec<String>) -> Studen
         suite: "meb-slave",
         expected,
         timeout_ms: TIMEOUT_MS,
+        bench: false,
+    }
+}
+
+/// The MEB slave on its bench.
+fn meb_on_bench(tag: &'static str, define: &'static str, expected: Vec<String>) -> Student {
+    Student {
+        bench: true,
+        ..meb(tag, define, expected)
     }
 }
 
@@ -260,19 +314,64 @@ fn motor(tag: &'static str, define: &'static str, expected: Vec<String>) -> Stud
         define,
         link: "--modbus8",
         board: "motor=",
-        // The project's own light Nano sketch is node 02 on the line, as
-        // on the bench: the twin's own node would answer at once, before
-        // a sketch run slower than real time answers a request sent
-        // before its own (requests written at once, answered in order).
-        beside: &[("light", "light-nano")],
+        // The twin's own light node is node 02 on the line: it answers at
+        // once, long before the sketch, which simavr runs slower than
+        // real time, and the suite holds each node to the order of its
+        // own requests alone.
+        beside: &[],
         suite: "modbus8-slave",
         expected,
         timeout_ms: TIMEOUT_MS,
+        bench: false,
     }
 }
 
 fn names(names: &[&str]) -> Vec<String> {
     names.iter().map(|n| n.to_string()).collect()
+}
+
+/// Builds the students one after another (the builds would only share two
+/// cores), checks them AT_ONCE at a time, the longest runs first (a failed
+/// check waits 3 s for a late reply): each sketch is a core run in real
+/// time, and more of them than a loaded machine can run would answer later
+/// than the checker waits.
+fn check_all(students: &[Student]) -> Vec<Checked> {
+    let built: Vec<PathBuf> = students.iter().map(build).collect();
+    let mut order: Vec<usize> = (0..students.len()).collect();
+    order.sort_by_key(|&i| std::cmp::Reverse(students[i].expected.len()));
+    let next = AtomicUsize::new(0);
+    let results: Mutex<Vec<Option<Checked>>> =
+        Mutex::new((0..students.len()).map(|_| None).collect());
+    let started = Instant::now();
+    std::thread::scope(|s| {
+        for _ in 0..AT_ONCE {
+            s.spawn(|| {
+                while let Some(&i) = order.get(next.fetch_add(1, Ordering::SeqCst)) {
+                    let run = check(&students[i], &built[i]);
+                    results.lock().unwrap()[i] = Some(run);
+                }
+            });
+        }
+    });
+    let checked: Vec<Checked> = results
+        .into_inner()
+        .unwrap()
+        .into_iter()
+        .map(|r| r.expect("every variant checked"))
+        .collect();
+    eprintln!(
+        "{} sketches checked, {AT_ONCE} at once, in {:.1} s",
+        checked.len(),
+        started.elapsed().as_secs_f64()
+    );
+    for (student, run) in students.iter().zip(&checked) {
+        assert_eq!(
+            run.failed, student.expected,
+            "{} {}:\n{}",
+            student.sketch, student.tag, run.report
+        );
+    }
+    checked
 }
 
 #[test]
@@ -325,46 +424,7 @@ fn the_student_sketches_are_checked_and_each_planted_bug_is_found_alone() {
             ..motor("crc-low-first", "BUG_CRC_LOW_FIRST", motor_replies)
         },
     ];
-    // Built one after another (the builds would only share two cores).
-    let built: Vec<PathBuf> = students.iter().map(build).collect();
-    // Checked AT_ONCE at a time, the longest runs (a failed check waits
-    // 3 s for a late reply) first: each sketch is a core run in real time,
-    // and more of them than a loaded machine can run would answer later
-    // than the checker waits.
-    let mut order: Vec<usize> = (0..students.len()).collect();
-    order.sort_by_key(|&i| std::cmp::Reverse(students[i].expected.len()));
-    let next = AtomicUsize::new(0);
-    let results: Mutex<Vec<Option<Checked>>> =
-        Mutex::new((0..students.len()).map(|_| None).collect());
-    let started = Instant::now();
-    std::thread::scope(|s| {
-        for _ in 0..AT_ONCE {
-            s.spawn(|| {
-                while let Some(&i) = order.get(next.fetch_add(1, Ordering::SeqCst)) {
-                    let run = check(&students[i], &built[i]);
-                    results.lock().unwrap()[i] = Some(run);
-                }
-            });
-        }
-    });
-    let checked: Vec<Checked> = results
-        .into_inner()
-        .unwrap()
-        .into_iter()
-        .map(|r| r.expect("every variant checked"))
-        .collect();
-    eprintln!(
-        "{} sketches checked, {AT_ONCE} at once, in {:.1} s",
-        checked.len(),
-        started.elapsed().as_secs_f64()
-    );
-    for (student, run) in students.iter().zip(&checked) {
-        assert_eq!(
-            run.failed, student.expected,
-            "{} {}:\n{}",
-            student.sketch, student.tag, run.report
-        );
-    }
+    let checked = check_all(&students);
     let fcs = &checked[5];
     assert!(fcs.report.contains("its FCS is `"), "{}", fcs.report);
     let crc = &checked[7];
@@ -372,5 +432,52 @@ fn the_student_sketches_are_checked_and_each_planted_bug_is_found_alone() {
         crc.report.contains("the two bytes swapped"),
         "{}",
         crc.report
+    );
+}
+
+#[test]
+fn the_student_slave_on_its_bench_passes_and_each_meaning_bug_fails_its_bench_check_alone() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let students = [
+        meb_on_bench("bench-correct", "", vec![]),
+        // D10, FR's pin, left an input: the module's input pulls it up, so
+        // the motor turns counter-clockwise whatever FR says. Every check
+        // that turns it clockwise fails; the one that turns it
+        // counter-clockwise passes.
+        meb_on_bench(
+            "fr-wrong-pin",
+            "BUG_FR_WRONG_PIN",
+            names(&[
+                "VEL with EN on turns the motor clockwise at the plant's speed for it (SA 00, SD 00)",
+                "EN off stops driving the motor: the wheel coasts (SD 00 bit 0)",
+                "BRK brakes the wheel: it slows faster than coasting (SD 00 bit 1)",
+                "RPM_M and RPM_L read the wheel's speed (EA 03-04, RPM_WIN 500 ms)",
+            ]),
+        ),
+        meb_on_bench(
+            "v1-v2-swapped",
+            "BUG_V1_V2_SWAPPED",
+            names(&[
+                "the analog inputs read the plant within the ADC's resolution, the wheel braked at rest (EA 00-05)",
+            ]),
+        ),
+    ];
+    let checked = check_all(&students);
+    let fr = &checked[1].report;
+    assert!(
+        fr.contains("the plant turns the motor counter-clockwise (FR as the plant sees it) where FR was written clockwise"),
+        "{fr}"
+    );
+    let swapped = &checked[2].report;
+    assert!(
+        swapped.contains("V2 read ") && swapped.contains("; the bus at "),
+        "{swapped}"
+    );
+    assert!(
+        checked[0]
+            .report
+            .contains("(the slave's ADC 10 bits, VEL 10 bits)"),
+        "{}",
+        checked[0].report
     );
 }
