@@ -4,8 +4,8 @@
 use anyhow::{Result, bail};
 use clap::Args;
 use std::path::Path;
-use twin_check::class;
 use twin_check::bench::{Converters, MAP_BITS};
+use twin_check::class;
 use twin_check::{Bench, Suite, record, report, run_suite_on, wire::Wire};
 
 #[derive(Debug, Args)]
