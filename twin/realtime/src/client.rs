@@ -10,6 +10,8 @@ use protocols::meb::{
 use protocols::time::SimTime;
 
 use crate::io::spec::LinkSpec;
+use crate::typed_line::OnOff;
+use clap::Parser;
 use std::io::{ErrorKind, Read, Write};
 use std::net::{SocketAddr, TcpStream};
 use std::time::{Duration, Instant};
@@ -289,6 +291,95 @@ pub fn tag(cmd: MebCmd, addr: usize) -> Option<&'static str> {
     })
 }
 
+/// The interactive prompt's commands (`twin client` without a command),
+/// one a line.
+#[derive(Debug, Parser)]
+#[command(
+    name = "meb>",
+    no_binary_name = true,
+    disable_help_flag = true,
+    disable_version_flag = true,
+    override_usage = "<COMMAND> [ARGS]...",
+    help_template = "Commands, one a line (`help COMMAND` tells more of one):\n{subcommands}",
+    max_term_width = 100
+)]
+pub enum Prompt {
+    /// The inputs and the loop
+    Show,
+    /// Read CNT words from CMD ADDR, e.g. `read EA 0 6`, `read FA 10 3`
+    Read {
+        /// Two letters: EA, ED, FA or FD (the blocks read)
+        #[arg(value_parser = parse_cmd)]
+        cmd: MebCmd,
+        /// Hex, as on the wire
+        #[arg(value_parser = parse_addr)]
+        addr: u8,
+        /// How many words, 1-99
+        #[arg(default_value_t = 1, value_parser = parse_count)]
+        cnt: u8,
+    },
+    /// Write words to CMD ADDR, e.g. `write SA 0 2048`
+    Write {
+        /// Two letters: SA, SD, VA or VD (the blocks written)
+        #[arg(value_parser = parse_cmd)]
+        cmd: MebCmd,
+        /// Hex, as on the wire
+        #[arg(value_parser = parse_addr)]
+        addr: u8,
+        /// Decimal, or hex with 0x
+        #[arg(required = true, value_parser = parse_word)]
+        values: Vec<u16>,
+    },
+    /// VA 10: the loop's set point
+    SetPoint {
+        #[arg(value_parser = parse_word)]
+        rpm: u16,
+    },
+    /// VA 11, VA 12: the loop's gains (x1000 on the wire)
+    Gains {
+        #[arg(value_parser = parse_gain, allow_negative_numbers = true)]
+        kp: u16,
+        #[arg(value_parser = parse_gain, allow_negative_numbers = true)]
+        ki: u16,
+    },
+    /// VD 10: close or open the loop
+    Loop {
+        #[arg(value_enum, value_name = "on|off")]
+        on: OnOff,
+    },
+    /// SA 00: VEL (the loop rewrites it while closed)
+    Vel {
+        #[arg(value_parser = parse_word)]
+        counts: u16,
+    },
+    /// SD 00: EN with the brake released
+    Enable,
+    /// SD 00: everything off
+    Disable,
+    /// End the session
+    #[command(alias = "exit")]
+    Quit,
+}
+
+/// A count of words, as MEB carries: 1 to 99.
+pub fn parse_count(text: &str) -> Result<u8> {
+    text.parse::<u8>()
+        .ok()
+        .filter(|n| (1..=99).contains(n))
+        .ok_or_else(|| anyhow!("count `{text}` is not 1-99"))
+}
+
+/// A gain as typed (`0.45`) to its word on the wire (x1000).
+pub fn parse_gain(text: &str) -> Result<u16> {
+    let v: f64 = text
+        .parse()
+        .map_err(|_| anyhow!("`{text}` is not a number"))?;
+    if !(0.0..=65.535).contains(&v) {
+        bail!("gain {v} outside 0-65.535");
+    }
+    Ok((v * 1000.0).round() as u16)
+}
+
 /// A command as typed: two letters, any case (the server judges it).
 pub fn parse_cmd(text: &str) -> Result<MebCmd> {
     let bytes = text.as_bytes();
@@ -332,5 +423,82 @@ mod tests {
         assert!(parse_word("70000").is_err());
         assert_eq!(parse_cmd("ea").unwrap(), MebCmd::EA);
         assert!(parse_cmd("E1").is_err());
+    }
+
+    #[test]
+    fn the_prompt_reads_its_commands_and_says_what_is_wrong() {
+        use crate::typed_line::{self, Typed};
+        let read = |line: &str| typed_line::read::<Prompt>(line);
+        assert!(matches!(
+            read("read fa 10 3"),
+            Ok(Typed::Command(Prompt::Read {
+                cmd: MebCmd::FA,
+                addr: 0x10,
+                cnt: 3
+            }))
+        ));
+        assert!(matches!(
+            read("read EA 0"),
+            Ok(Typed::Command(Prompt::Read { cnt: 1, .. }))
+        ));
+        assert!(matches!(
+            read("write SD 0 0x000E 1"),
+            Ok(Typed::Command(Prompt::Write { values, .. })) if values == [0x0E, 1]
+        ));
+        assert!(matches!(
+            read("gains 0.45 2.5"),
+            Ok(Typed::Command(Prompt::Gains { kp: 450, ki: 2500 }))
+        ));
+        assert!(matches!(
+            read("loop off"),
+            Ok(Typed::Command(Prompt::Loop { on: OnOff::Off }))
+        ));
+        for (line, prompt) in [
+            ("show", "Show"),
+            ("set-point 1500", "SetPoint"),
+            ("vel 1000", "Vel"),
+            ("enable", "Enable"),
+            ("disable", "Disable"),
+            ("quit", "Quit"),
+            ("exit", "Quit"),
+        ] {
+            let got = format!("{:?}", read(line));
+            assert!(got.contains(prompt), "{line}: {got}");
+        }
+        assert!(matches!(read("  "), Ok(Typed::Blank)));
+        let Ok(Typed::Help(help)) = read("help") else {
+            panic!("no help")
+        };
+        for command in [
+            "show",
+            "read",
+            "write",
+            "set-point",
+            "gains",
+            "loop",
+            "vel",
+            "enable",
+            "disable",
+            "quit",
+        ] {
+            assert!(
+                help.contains(&format!("\n  {command} ")),
+                "{command}: {help}"
+            );
+        }
+        for (line, why) in [
+            ("write VA 10 70000", "value `70000` is not a 16-bit word"),
+            ("write VA 10", "<VALUES>..."),
+            ("read EA zz", "address `zz` is not hex"),
+            ("read E1 0", "`E1` is not a command"),
+            ("read EA 0 100", "count `100` is not 1-99"),
+            ("gains 70 1", "gain 70 outside 0-65.535"),
+            ("gains -1 1", "gain -1 outside"),
+            ("loop maybe", "[possible values: on, off]"),
+            ("bogus", "unrecognized subcommand 'bogus'"),
+        ] {
+            let e = read(line).err().unwrap_or_default();
+            assert!(e.starts_with("error: ") && e.contains(why), "{line}: {e}");
+        }
     }
 }

@@ -45,6 +45,7 @@ pub mod sink;
 pub mod slots;
 pub mod supervise;
 pub mod tcp_thread;
+pub mod typed_line;
 pub mod vsp;
 pub mod wake;
 

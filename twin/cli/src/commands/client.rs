@@ -5,7 +5,8 @@ use clap::{Args, Subcommand};
 use protocols::meb::MebCmd;
 use std::io::{BufRead, Write};
 use std::time::{Duration, Instant};
-use twin_realtime::client::{MebClient, Way, parse_addr, parse_cmd, parse_word, tag};
+use twin_realtime::client::{MebClient, Prompt, Way, parse_addr, parse_cmd, parse_word, tag};
+use twin_realtime::typed_line::{self, Typed};
 
 /// Talk MEB over TCP to a supervisor (`twin supervise --listen`) or an MEB slave.
 ///
@@ -163,17 +164,6 @@ fn watch(client: &mut MebClient, id: u8, every: Duration, count: Option<u64>) ->
     }
 }
 
-const HELP: &str = "commands:
-  show                       the inputs and the loop
-  read CMD ADDR [CNT]        e.g. read EA 0 6, read FA 10 3
-  write CMD ADDR VALUE...    e.g. write SA 0 2048
-  set-point RPM              VA 10: the loop's set point
-  gains KP KI                VA 11, VA 12 (x1000 on the wire)
-  loop on|off                VD 10: close or open the loop
-  vel COUNTS                 SA 00: VEL (the loop rewrites it while closed)
-  enable | disable           SD 00: EN with the brake released / everything off
-  quit";
-
 fn interactive(client: &mut MebClient, id: u8) -> Result<()> {
     println!("twin client: connected, slave {id:02}; `help` lists the commands");
     match reading(client, id) {
@@ -188,66 +178,39 @@ fn interactive(client: &mut MebClient, id: u8) -> Result<()> {
         if stdin.lock().read_line(&mut line)? == 0 {
             return Ok(());
         }
-        let words: Vec<&str> = line.split_whitespace().collect();
-        // Ok(true): a write went through; the inputs are shown after it.
-        let result: Result<bool> = match words.as_slice() {
-            [] => Ok(false),
-            ["quit" | "exit"] => return Ok(()),
-            ["help"] => {
-                println!("{HELP}");
-                Ok(false)
+        let prompt = match typed_line::read::<Prompt>(&line) {
+            Ok(Typed::Command(prompt)) => prompt,
+            Ok(Typed::Blank) => continue,
+            Ok(Typed::Help(text)) | Err(text) => {
+                println!("{text}");
+                continue;
             }
-            ["show"] => reading(client, id).map(|l| {
+        };
+        // Ok(true): a write went through; the inputs are shown after it.
+        let result: Result<bool> = match prompt {
+            Prompt::Quit => return Ok(()),
+            Prompt::Show => reading(client, id).map(|l| {
                 println!("{l}");
                 false
             }),
-            ["read", cmd, addr, rest @ ..] => (|| {
-                let cmd = parse_cmd(cmd)?;
-                let addr = parse_addr(addr)?;
-                let cnt = match rest {
-                    [] => 1,
-                    [n] => n
-                        .parse()
-                        .map_err(|_| anyhow::anyhow!("count `{n}` is not 1-99"))?,
-                    _ => bail!("read CMD ADDR [CNT]"),
-                };
-                print_words(cmd, addr, &client.read(id, cmd, addr, cnt)?);
-                Ok(false)
-            })(),
-            ["write", cmd, addr, values @ ..] if !values.is_empty() => (|| {
-                let cmd = parse_cmd(cmd)?;
-                let addr = parse_addr(addr)?;
-                let words = values
-                    .iter()
-                    .map(|v| parse_word(v))
-                    .collect::<Result<Vec<_>>>()?;
-                client.write(id, cmd, addr, &words)?;
+            Prompt::Read { cmd, addr, cnt } => client.read(id, cmd, addr, cnt).map(|words| {
+                print_words(cmd, addr, &words);
+                false
+            }),
+            Prompt::Write { cmd, addr, values } => client.write(id, cmd, addr, &values).map(|()| {
                 println!("acknowledged");
-                Ok(true)
-            })(),
-            ["set-point", rpm] => parse_word(rpm)
-                .and_then(|w| client.write(id, MebCmd::VA, 0x10, &[w]).map(|()| true)),
-            ["gains", kp, ki] => (|| {
-                let scaled = |t: &str| -> Result<u16> {
-                    let v: f64 = t
-                        .parse()
-                        .map_err(|_| anyhow::anyhow!("`{t}` is not a number"))?;
-                    if !(0.0..=65.535).contains(&v) {
-                        bail!("gain {v} outside 0-65.535");
-                    }
-                    Ok((v * 1000.0).round() as u16)
-                };
-                client.write(id, MebCmd::VA, 0x11, &[scaled(kp)?, scaled(ki)?])?;
-                Ok(true)
-            })(),
-            ["loop", "on"] => client.write(id, MebCmd::VD, 0x10, &[1]).map(|()| true),
-            ["loop", "off"] => client.write(id, MebCmd::VD, 0x10, &[0]).map(|()| true),
-            ["vel", v] => {
-                parse_word(v).and_then(|w| client.write(id, MebCmd::SA, 0, &[w]).map(|()| true))
+                true
+            }),
+            Prompt::SetPoint { rpm } => client.write(id, MebCmd::VA, 0x10, &[rpm]).map(|()| true),
+            Prompt::Gains { kp, ki } => {
+                client.write(id, MebCmd::VA, 0x11, &[kp, ki]).map(|()| true)
             }
-            ["enable"] => client.write(id, MebCmd::SD, 0, &[0x000E]).map(|()| true),
-            ["disable"] => client.write(id, MebCmd::SD, 0, &[0x001F]).map(|()| true),
-            _ => Err(anyhow::anyhow!("unknown command; `help` lists them")),
+            Prompt::Loop { on } => client
+                .write(id, MebCmd::VD, 0x10, &[u16::from(on.is_on())])
+                .map(|()| true),
+            Prompt::Vel { counts } => client.write(id, MebCmd::SA, 0, &[counts]).map(|()| true),
+            Prompt::Enable => client.write(id, MebCmd::SD, 0, &[0x000E]).map(|()| true),
+            Prompt::Disable => client.write(id, MebCmd::SD, 0, &[0x001F]).map(|()| true),
         };
         match result {
             Ok(true) => {

@@ -496,7 +496,19 @@ fn console_commands_force_inputs_and_switch_faults() {
     m.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
     assert_eq!(read_ea(&mut m).len(), 6);
     assert!(input_registers(&mut t, 3).len() == 10);
-    say("frobnicate", "unknown command");
+    say("frobnicate", "error: unrecognized subcommand 'frobnicate'");
+    // What `help` and `help fault` print is what the book shows.
+    for (asked, block) in console_help_in_the_book() {
+        let before = server.output().len();
+        // Waits for its last line, so the whole text is there.
+        say(asked, block.trim_end().lines().last().unwrap_or_default());
+        let said = server.output();
+        assert!(
+            said[before..].contains(block.trim_end()),
+            "docs/lab-session.md shows for `{asked}`:\n{block}\nthe console said:\n{}",
+            &said[before..]
+        );
+    }
     let out = server.output();
     for rust in [
         "Forces",
@@ -508,6 +520,30 @@ fn console_commands_force_inputs_and_switch_faults() {
     ] {
         assert!(!out.contains(rust), "`{rust}` printed: {out}");
     }
+}
+
+/// The console's help as docs/lab-session.md shows it: each `text` block
+/// that follows a line `> help…` (the command typed), with that command.
+fn console_help_in_the_book() -> Vec<(&'static str, String)> {
+    let page = std::fs::read_to_string(
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../docs/lab-session.md"),
+    )
+    .unwrap();
+    let shown: Vec<(&'static str, String)> = ["help", "help fault"]
+        .into_iter()
+        .filter_map(|asked| {
+            let typed = format!("```text\n> {asked}\n");
+            let start = page.find(&typed)? + typed.len();
+            let block = &page[start..start + page[start..].find("```")?];
+            Some((asked, block.to_string()))
+        })
+        .collect();
+    assert_eq!(
+        shown.len(),
+        2,
+        "docs/lab-session.md shows `help` and `help fault`"
+    );
+    shown
 }
 
 #[test]

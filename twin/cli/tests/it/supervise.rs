@@ -673,7 +673,7 @@ fn client_reports_a_server_that_is_not_there_and_bad_arguments() {
         .stdin
         .take()
         .unwrap()
-        .write_all(b"set-point 1234\nloop off\nread VD 10\nwrite EA 0 1\nread FD 10\nvel 5000\nbogus\nquit\n")
+        .write_all(b"set-point 1234\nloop off\nread VD 10\nwrite EA 0 1\nread FD 10\nvel 5000\nbogus\nhelp\nread EA 0 100\nquit\n")
         .unwrap();
     let out = prompt.wait_with_output().unwrap();
     assert!(out.status.success());
@@ -688,7 +688,19 @@ fn client_reports_a_server_that_is_not_there_and_bad_arguments() {
         text.contains("error: slave 01 answered SA 00 = 5000 with ER 03"),
         "{text}"
     );
-    assert!(text.contains("error: unknown command"), "{text}");
+    assert!(
+        text.contains("error: unrecognized subcommand 'bogus'"),
+        "{text}"
+    );
+    // `help` lists the commands; a wrong word is refused with what it takes.
+    assert!(
+        text.contains("\n  set-point  VA 10: the loop's set point\n"),
+        "{text}"
+    );
+    assert!(
+        text.contains("error: invalid value '100' for '[CNT]': count `100` is not 1-99"),
+        "{text}"
+    );
     // A read of a written block, or the reverse, would be reply-shaped and never
     // answered: refused at once in words, and the session goes on.
     assert!(
