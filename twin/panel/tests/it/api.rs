@@ -161,34 +161,12 @@ fn a_read_only_panel_shows_and_changes_nothing() {
     assert!(state(&session)["state"]["fault"].is_null());
 }
 
-/// Reads one stream for `seconds`: the updates it got.
-fn stream_updates(addr: std::net::SocketAddr, seconds: f64) -> usize {
-    let mut s = std::net::TcpStream::connect(addr).expect("connects");
-    s.set_read_timeout(Some(Duration::from_millis(500)))
-        .unwrap();
-    s.write_all(b"GET /api/stream HTTP/1.1\r\nHost: panel\r\nAccept: text/event-stream\r\n\r\n")
-        .unwrap();
-    let mut reader = BufReader::new(s);
-    let end = Instant::now() + Duration::from_secs_f64(seconds);
-    let mut updates = 0;
-    let mut line = String::new();
-    while Instant::now() < end {
-        line.clear();
-        match reader.read_line(&mut line) {
-            Ok(0) => break,
-            Ok(_) if line.starts_with("event: update") => updates += 1,
-            _ => {}
-        }
-    }
-    updates
-}
-
 #[test]
 fn thirty_stream_clients_are_all_served() {
     let session = serve("127.0.0.1:0", AccessOptions::default(), 30.0);
     let addr = session.panel.addr_for_clients();
     let clients: Vec<_> = (0..30)
-        .map(|_| std::thread::spawn(move || stream_updates(addr, 3.0)))
+        .map(|_| std::thread::spawn(move || common::stream_updates(addr, 3.0)))
         .collect();
     wait_for(Duration::from_secs(5), "30 stream clients counted", || {
         state(&session)["stream_clients"].as_u64() == Some(30)
@@ -241,25 +219,21 @@ fn session_times_are_whole_microseconds() {
 #[test]
 fn a_browser_without_the_token_gets_a_page_in_words() {
     let session = serve("0.0.0.0:0", AccessOptions::default(), 30.0);
-    let mut stream =
-        std::net::TcpStream::connect(session.panel.addr_for_clients()).expect("connects");
-    stream
-        .set_read_timeout(Some(Duration::from_secs(5)))
+    let url = |path: &str| format!("http://{}{path}", session.panel.addr_for_clients());
+    let page = common::agent()
+        .get(url("/"))
+        .header("Accept", "text/html,application/xhtml+xml")
+        .call()
         .unwrap();
-    stream
-        .write_all(
-            b"GET / HTTP/1.1\r\nHost: panel\r\nAccept: text/html,application/xhtml+xml\r\nConnection: close\r\n\r\n",
-        )
-        .unwrap();
-    let mut response = String::new();
-    let _ = std::io::Read::read_to_string(&mut stream, &mut response);
-    assert!(response.starts_with("HTTP/1.1 401"), "{response}");
-    assert!(response.contains("text/html"), "{response}");
+    assert_eq!(page.status(), 401);
+    let kind = header(&page, "content-type");
+    assert!(kind.contains("text/html"), "{kind}");
+    let page = page.into_body().read_to_string().unwrap();
     assert!(
-        response.contains("<h1>This panel needs its token</h1>"),
-        "{response}"
+        page.contains("<h1>This panel needs its token</h1>"),
+        "{page}"
     );
-    assert!(!response.contains("{\"error\""), "{response}");
+    assert!(!page.contains("{\"error\""), "{page}");
     let (status, body) = http(&session.panel, "GET", "/api/state", None, false);
     assert_eq!(status, 401);
     assert!(
@@ -268,41 +242,39 @@ fn a_browser_without_the_token_gets_a_page_in_words() {
     );
     // The token from the URL is kept in the panel's own cookie, named after
     // its port, and a reload without the query is let in by that cookie only.
-    let raw = |request: String| {
-        let mut stream =
-            std::net::TcpStream::connect(session.panel.addr_for_clients()).expect("connects");
-        stream
-            .set_read_timeout(Some(Duration::from_secs(5)))
-            .unwrap();
-        stream.write_all(request.as_bytes()).unwrap();
-        let mut response = String::new();
-        let _ = std::io::Read::read_to_string(&mut stream, &mut response);
-        response
-    };
     let token = common::token_of(&session.panel).unwrap();
     let cookie = format!(
         "twin_panel_token_{}",
         session.panel.addr_for_clients().port()
     );
-    let first = raw(format!(
-        "GET /api/info?token={token} HTTP/1.1\r\nHost: panel\r\nConnection: close\r\n\r\n"
-    ));
-    assert!(first.starts_with("HTTP/1.1 200"), "{first}");
+    let first = common::agent()
+        .get(url(&format!("/api/info?token={token}")))
+        .call()
+        .unwrap();
+    assert_eq!(first.status(), 200);
+    let set = header(&first, "set-cookie").to_ascii_lowercase();
     assert!(
-        first
-            .to_ascii_lowercase()
-            .contains(&format!("set-cookie: {cookie}={token}; path=/; httponly")),
-        "{first}"
+        set.starts_with(&format!("{cookie}={token}; path=/; httponly")),
+        "{set}"
     );
-    for (name, status) in [(cookie.as_str(), "200"), ("twin_panel_token", "401")] {
-        let again = raw(format!(
-            "GET /api/info HTTP/1.1\r\nHost: panel\r\nCookie: {name}={token}\r\nConnection: close\r\n\r\n"
-        ));
-        assert!(
-            again.starts_with(&format!("HTTP/1.1 {status}")),
-            "cookie {name}: {again}"
-        );
+    for (name, status) in [(cookie.as_str(), 200), ("twin_panel_token", 401)] {
+        let again = common::agent()
+            .get(url("/api/info"))
+            .header("Cookie", format!("{name}={token}"))
+            .call()
+            .unwrap();
+        assert_eq!(again.status(), status, "cookie {name}");
     }
+}
+
+/// A header of `answer`, as text (empty when it has none).
+fn header(answer: &ureq::http::Response<ureq::Body>, name: &str) -> String {
+    answer
+        .headers()
+        .get(name)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or_default()
+        .to_string()
 }
 
 /// One MEB exchange on `link` (`tcp://HOST:PORT`): read EA 0..6 from slave

@@ -168,7 +168,7 @@ fn the_panel_shows_the_bench_in_a_browser_and_its_monitor_shows_a_bad_check() {
         // 30 stream clients beside the browser: everyone stays served.
         let addr = session.panel.addr_for_clients();
         let streams: Vec<_> = (0..30)
-            .map(|_| std::thread::spawn(move || count_updates(addr, 3.0)))
+            .map(|_| std::thread::spawn(move || common::stream_updates(addr, 3.0)))
             .collect();
         let before = text(&c, "#clock").await;
         tokio::time::sleep(Duration::from_secs(2)).await;
@@ -178,27 +178,6 @@ fn the_panel_shows_the_bench_in_a_browser_and_its_monitor_shows_a_bad_check() {
         assert!(counts.iter().all(|&n| n >= 20), "{counts:?}");
         c.close().await.unwrap();
     });
-}
-
-fn count_updates(addr: std::net::SocketAddr, seconds: f64) -> usize {
-    use std::io::{BufRead, BufReader, Write};
-    let mut s = std::net::TcpStream::connect(addr).unwrap();
-    s.set_read_timeout(Some(Duration::from_millis(500)))
-        .unwrap();
-    s.write_all(b"GET /api/stream HTTP/1.1\r\nHost: panel\r\n\r\n")
-        .unwrap();
-    let mut r = BufReader::new(s);
-    let end = Instant::now() + Duration::from_secs_f64(seconds);
-    let (mut n, mut line) = (0, String::new());
-    while Instant::now() < end {
-        line.clear();
-        if let Ok(_) = r.read_line(&mut line)
-            && line.starts_with("event: update")
-        {
-            n += 1;
-        }
-    }
-    n
 }
 
 #[test]

@@ -1,7 +1,6 @@
 //! A real `twin serve` session (the real-time engine, a real MEB TCP link)
-//! with its panel, for the panel's tests; a small HTTP client; chromedriver.
+//! with its panel, for the panel's tests; requests to it; chromedriver.
 
-use std::io::{Read, Write};
 use std::net::TcpStream;
 use std::os::unix::process::CommandExt;
 use std::sync::mpsc::{Sender, channel};
@@ -180,7 +179,8 @@ pub fn wait_for(limit: Duration, what: &str, mut ok: impl FnMut() -> bool) {
     }
 }
 
-/// One HTTP/1.1 request; `with_token` sends the panel's token when it has one.
+/// One request to the panel; `with_token` sends the panel's token when it
+/// has one. The status and the body, a refusal's too.
 pub fn http(
     panel: &Running,
     method: &str,
@@ -188,32 +188,66 @@ pub fn http(
     body: Option<&str>,
     with_token: bool,
 ) -> (u16, String) {
-    let mut stream = TcpStream::connect(panel.addr_for_clients()).expect("connects to the panel");
-    stream
-        .set_read_timeout(Some(Duration::from_secs(5)))
-        .unwrap();
-    let auth = match (with_token, token_of(panel)) {
-        (true, Some(t)) => format!("Authorization: Bearer {t}\r\n"),
-        _ => String::new(),
+    let mut request = ureq::http::Request::builder()
+        .method(method)
+        .uri(format!("http://{}{path}", panel.addr_for_clients()));
+    if with_token && let Some(token) = token_of(panel) {
+        request = request.header("Authorization", format!("Bearer {token}"));
+    }
+    let answer = match body {
+        Some(body) => agent().run(
+            request
+                .header("Content-Type", "application/json")
+                .body(body)
+                .unwrap(),
+        ),
+        None => agent().run(request.body(()).unwrap()),
     };
-    let body = body.unwrap_or("");
-    let request = format!(
-        "{method} {path} HTTP/1.1\r\nHost: panel\r\n{auth}Content-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
-        body.len()
-    );
-    stream.write_all(request.as_bytes()).unwrap();
-    let mut response = String::new();
-    let _ = stream.read_to_string(&mut response);
-    let status = response
-        .split_whitespace()
-        .nth(1)
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(0);
-    let body = response
-        .split_once("\r\n\r\n")
-        .map(|(_, b)| b.to_string())
-        .unwrap_or_default();
-    (status, body)
+    let answer = answer.unwrap_or_else(|e| panic!("{method} {path}: {e}"));
+    let status = answer.status().as_u16();
+    (
+        status,
+        answer.into_body().read_to_string().unwrap_or_default(),
+    )
+}
+
+/// The tests' HTTP client: a refusal is an answer, not an error; nothing
+/// waits longer than a loaded machine could need.
+pub fn agent() -> ureq::Agent {
+    ureq::Agent::config_builder()
+        .http_status_as_error(false)
+        .timeout_global(Some(Duration::from_secs(30)))
+        .build()
+        .into()
+}
+
+/// Reads the panel's stream at `addr` for `seconds`: the updates it got.
+pub fn stream_updates(addr: std::net::SocketAddr, seconds: f64) -> usize {
+    use std::io::BufRead;
+    let agent: ureq::Agent = ureq::Agent::config_builder()
+        .timeout_global(Some(Duration::from_secs_f64(seconds)))
+        .build()
+        .into();
+    let Ok(stream) = agent
+        .get(format!("http://{addr}/api/stream"))
+        .header("Accept", "text/event-stream")
+        .call()
+    else {
+        return 0;
+    };
+    let mut events = std::io::BufReader::new(stream.into_body().into_reader());
+    let end = Instant::now() + Duration::from_secs_f64(seconds);
+    let (mut updates, mut line) = (0, String::new());
+    while Instant::now() < end {
+        line.clear();
+        match events.read_line(&mut line) {
+            // The stream's time is up (ureq's timeout), or the panel closed it.
+            Ok(0) | Err(_) => break,
+            Ok(_) if line.starts_with("event: update") => updates += 1,
+            Ok(_) => {}
+        }
+    }
+    updates
 }
 
 pub fn token_of(panel: &Running) -> Option<String> {
