@@ -4,7 +4,7 @@
 use crate::common;
 
 use common::{ClientAddr, http, serve, wait_for};
-use std::io::{BufRead, BufReader, Write};
+use std::io::Write;
 use std::time::{Duration, Instant};
 use twin_panel::AccessOptions;
 
