@@ -7,7 +7,7 @@
 use std::time::{Duration, Instant};
 
 use crate::support;
-use support::Proc;
+use support::{Proc, http};
 
 /// The URL printed on the `panel:` line.
 fn panel_url(proc: &Proc) -> String {
@@ -27,17 +27,6 @@ fn parts(url: &str) -> (String, Option<String>) {
         host.to_string(),
         path.split_once("token=").map(|(_, t)| t.to_string()),
     )
-}
-
-fn http(host: &str, method: &str, path: &str, token: Option<&str>, body: &str) -> (u16, String) {
-    let auth = token
-        .map(|t| format!("Authorization: Bearer {t}\r\n"))
-        .unwrap_or_default();
-    let request = format!(
-        "{method} {path} HTTP/1.1\r\nHost: panel\r\n{auth}Content-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
-        body.len()
-    );
-    support::http_exchange(host, &request)
 }
 
 #[test]

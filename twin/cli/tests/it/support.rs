@@ -308,24 +308,37 @@ pub fn folder(area: &str, name: &str) -> PathBuf {
     dir
 }
 
-/// One raw HTTP/1.1 request sent whole on a fresh connection (it should ask
-/// `Connection: close`), and the status and body of the answer; status 0 if
-/// none came within 30 s.
-pub fn http_exchange(addr: impl std::net::ToSocketAddrs, raw: &str) -> (u16, String) {
-    use std::io::Write;
-    let mut s = std::net::TcpStream::connect(addr).expect("the panel answers");
-    s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
-    s.write_all(raw.as_bytes()).unwrap();
-    let mut response = String::new();
-    let _ = s.read_to_string(&mut response);
-    let status = response
-        .split_whitespace()
-        .nth(1)
-        .and_then(|c| c.parse().ok())
-        .unwrap_or(0);
-    let body = response
-        .split_once("\r\n\r\n")
-        .map(|(_, b)| b.to_string())
-        .unwrap_or_default();
-    (status, body)
+/// One request to a panel at `host` (HOST:PORT), with its token as a
+/// bearer when given and `body` as JSON when not empty: the status and the
+/// body, a refusal's too.
+pub fn http(
+    host: impl std::fmt::Display,
+    method: &str,
+    path: &str,
+    token: Option<&str>,
+    body: &str,
+) -> (u16, String) {
+    let agent: ureq::Agent = ureq::Agent::config_builder()
+        .http_status_as_error(false)
+        .timeout_global(Some(Duration::from_secs(30)))
+        .build()
+        .into();
+    let mut request = ureq::http::Request::builder()
+        .method(method)
+        .uri(format!("http://{host}{path}"));
+    if let Some(token) = token {
+        request = request.header("Authorization", format!("Bearer {token}"));
+    }
+    let answer = if body.is_empty() {
+        agent.run(request.body(()).unwrap())
+    } else {
+        let request = request.header("Content-Type", "application/json");
+        agent.run(request.body(body).unwrap())
+    };
+    let answer = answer.unwrap_or_else(|e| panic!("{method} http://{host}{path}: {e}"));
+    let status = answer.status().as_u16();
+    (
+        status,
+        answer.into_body().read_to_string().unwrap_or_default(),
+    )
 }
