@@ -123,8 +123,7 @@ fn request(web: SocketAddr, raw: &str) -> (u16, String, Duration) {
 /// fresh connection (it should ask `Connection: close`): the status and
 /// body of the answer; status 0 if none came within 30 s.
 fn raw_exchange(addr: SocketAddr, raw: &str) -> (u16, String) {
-    use std::io::Write;
-    let mut s = std::net::TcpStream::connect(addr).expect("the panel answers");
+    let mut s = TcpStream::connect(addr).expect("the panel answers");
     s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
     s.write_all(raw.as_bytes()).unwrap();
     let mut response = String::new();
