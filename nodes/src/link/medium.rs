@@ -2,7 +2,9 @@
 //! bus, the PWM-capture link), so a bus slot needs no box and every call is
 //! a match the compiler sees through.
 
-use super::{BusError, BusEvent, BusStats, FrameInfo, PortConfig, PortId, PwmBus, SimBus};
+use super::{
+    BusError, BusEvent, BusStats, FrameInfo, LineMark, PortConfig, PortId, PwmBus, SimBus,
+};
 use protocols::time::SimTime;
 
 /// What carries a bus slot's frames: the RS-485 serial bus, or the PWM-capture
@@ -51,6 +53,20 @@ impl Medium {
         match self {
             Medium::Serial(bus) => bus.stats(),
             Medium::Pwm(link) => link.stats(),
+        }
+    }
+    /// Keep line marks for [`Medium::poll_line_mark`] (the serial bus's;
+    /// a PWM-capture link records what each listener captured already).
+    pub fn keep_line_marks(&mut self) {
+        if let Medium::Serial(bus) = self {
+            bus.keep_line_marks();
+        }
+    }
+    /// The oldest line mark not yet polled ([`SimBus::poll_line_mark`]).
+    pub fn poll_line_mark(&mut self) -> Option<LineMark> {
+        match self {
+            Medium::Serial(bus) => bus.poll_line_mark(),
+            Medium::Pwm(_) => None,
         }
     }
     /// The PWM-capture link, if this is one.

@@ -25,6 +25,6 @@ pub use pwmline::{
     CableModel, PwmCalibration, PwmCapture, PwmLine, PwmLineError, PwmLineParams, PwmTestValues,
 };
 pub use simbus::{
-    BusConfig, BusConfigError, BusError, BusEvent, BusStats, FrameInfo, PortConfig, PortId, SimBus,
-    Wiring,
+    BusConfig, BusConfigError, BusError, BusEvent, BusStats, FrameInfo, LineMark, PortConfig,
+    PortId, SimBus, Wiring,
 };

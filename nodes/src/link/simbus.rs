@@ -16,9 +16,15 @@
 //! - **Noise**: each data bit flips independently at the configured rate, at
 //!   each receiver (a seeded stream consumed in delivery order).
 //!
+//! Where the line differs from what a port sent (a character a collision
+//! garbled, bits noise flipped at a listener) is kept as a [`LineMark`] when
+//! asked ([`SimBus::keep_line_marks`]), for a recording to say where.
+//!
 //! Buffers are allocated when ports are added; the pool of in-flight frames
 //! grows only when more frames overlap than ever before, never per byte.
 //! Nothing here panics on any input.
+
+use std::collections::VecDeque;
 
 use rand::{RngExt, SeedableRng};
 use rand_pcg::Pcg64;
@@ -188,6 +194,41 @@ impl BusEvent {
     }
 }
 
+/// Where the line differs from what a port sent: what a recording keeps so
+/// that a logic analyzer's picture of the bus shows it where it happened.
+/// A frame is named by its sender and its first start bit ([`FrameInfo`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LineMark {
+    /// A character garbled on the wire by a collision: every listener gets
+    /// it so.
+    Garbled {
+        from: PortId,
+        /// The frame's first start bit.
+        start: SimTime,
+        /// The character's place in its frame.
+        index: usize,
+        /// The data bits changed (bit 0 is the first on the wire).
+        mask: u8,
+        /// The character as it is on the wire.
+        byte: u8,
+    },
+    /// Data bits that noise flipped at one listener.
+    Flipped {
+        from: PortId,
+        start: SimTime,
+        index: usize,
+        /// The listener.
+        to: PortId,
+        mask: u8,
+        /// The character as the listener got it.
+        byte: u8,
+    },
+}
+
+/// Line marks held between two [`SimBus::poll_line_mark`] calls before the
+/// queue grows: a frame's worth of garbled characters.
+const MARKS_RESERVED: usize = 2 * MAX_FRAME;
+
 /// What the bus has carried so far.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct BusStats {
@@ -282,6 +323,9 @@ pub struct SimBus {
     /// frame starts, moves to its next byte or ends, since most deliveries
     /// only pass the same byte on to the next listener.
     next: Option<(usize, SimTime)>,
+    /// Line marks not yet polled; `None` unless asked for, so a bus whose
+    /// marks nobody reads keeps none.
+    marks: Option<VecDeque<LineMark>>,
 }
 
 impl SimBus {
@@ -307,6 +351,7 @@ impl SimBus {
             busy_until: SimTime::ZERO,
             stats: BusStats::default(),
             next: None,
+            marks: None,
         })
     }
 
@@ -360,6 +405,21 @@ impl SimBus {
     /// What the bus has carried so far.
     pub fn stats(&self) -> &BusStats {
         &self.stats
+    }
+
+    /// From now on, keep a [`LineMark`] wherever the line differs from
+    /// what was sent, for [`SimBus::poll_line_mark`]. The caller must poll
+    /// them: they queue until it does.
+    pub fn keep_line_marks(&mut self) {
+        if self.marks.is_none() {
+            self.marks = Some(VecDeque::with_capacity(MARKS_RESERVED));
+        }
+    }
+
+    /// The oldest line mark not yet polled (collisions are marked when the
+    /// frame that collides is sent, noise when the byte is delivered).
+    pub fn poll_line_mark(&mut self) -> Option<LineMark> {
+        self.marks.as_mut()?.pop_front()
     }
 
     /// Puts `bytes` on the line from `from`, handed over at `now`.
@@ -580,6 +640,15 @@ impl SimBus {
                 *byte ^= mask;
                 *flag = true;
                 self.stats.bytes_garbled_by_collision += 1;
+                if let Some(marks) = &mut self.marks {
+                    marks.push_back(LineMark::Garbled {
+                        from: t.from,
+                        start: t.start,
+                        index: i,
+                        mask,
+                        byte: *byte,
+                    });
+                }
             }
         }
     }
@@ -639,7 +708,7 @@ impl SimBus {
         }
         self.delivered_up_to = self.delivered_up_to.max(at);
         let t = self.slots.get(slot)?;
-        let (from, index, listener) = (t.from, t.next_byte, t.next_listener);
+        let (from, index, listener, start) = (t.from, t.next_byte, t.next_listener, t.start);
         let frame_len = t.bytes.len();
         let open = t.open;
         let Some(&wire_byte) = t.bytes.get(index) else {
@@ -675,6 +744,16 @@ impl SimBus {
         if noise != 0 {
             self.stats.bytes_corrupted_by_noise += 1;
             self.stats.bits_flipped += u64::from(noise.count_ones());
+            if let Some(marks) = &mut self.marks {
+                marks.push_back(LineMark::Flipped {
+                    from,
+                    start,
+                    index,
+                    to: PortId(listener),
+                    mask: noise,
+                    byte: wire_byte ^ noise,
+                });
+            }
         }
         Some(BusEvent::Byte {
             to: PortId(listener),
@@ -769,6 +848,119 @@ mod tests {
         );
         assert_eq!(bus.poll_timeout(), None);
         assert!(bus.end_stream(us(400), firmware).is_none());
+    }
+
+    /// Every event up to the end, and the marks the bus kept.
+    fn drain(bus: &mut SimBus) -> (Vec<BusEvent>, Vec<LineMark>) {
+        let mut events = Vec::new();
+        while let Some(at) = bus.poll_timeout() {
+            let Some(event) = bus.poll_event(at) else {
+                break;
+            };
+            events.push(event);
+        }
+        let marks = std::iter::from_fn(|| bus.poll_line_mark()).collect();
+        (events, marks)
+    }
+
+    #[test]
+    fn line_marks_say_where_a_collision_garbled_and_where_noise_flipped() {
+        // Without asking, no marks are kept.
+        let mut quiet = SimBus::new(BusConfig {
+            bit_error_rate: 0.05,
+            ..BusConfig::default()
+        })
+        .unwrap();
+        let (a, b) = (
+            quiet.add_port(PortConfig::default()),
+            quiet.add_port(PortConfig::default()),
+        );
+        quiet.send(SimTime::ZERO, a, &[0x55; 40]).unwrap();
+        quiet.send(SimTime::ZERO, b, &[0x0f; 2]).unwrap();
+        assert!(drain(&mut quiet).1.is_empty());
+
+        let mut bus = SimBus::new(BusConfig {
+            bit_error_rate: 0.05,
+            ..BusConfig::default()
+        })
+        .unwrap();
+        bus.keep_line_marks();
+        let a = bus.add_port(PortConfig::default());
+        let b = bus.add_port(PortConfig {
+            turnaround: SimDuration::ZERO,
+        });
+        let sent_a = [0x55u8; 40];
+        let info_a = bus.send(SimTime::ZERO, a, &sent_a).unwrap();
+        // b talks over a's third and fourth characters.
+        let over = info_a.start + bus.wire_time(2);
+        let info_b = bus.send(over, b, &[0x0f; 2]).unwrap();
+        assert_eq!(info_b.start, over);
+        let (events, marks) = drain(&mut bus);
+        let garbled: Vec<(PortId, SimTime, usize)> = marks
+            .iter()
+            .filter_map(|m| match *m {
+                LineMark::Garbled {
+                    from, start, index, ..
+                } => Some((from, start, index)),
+                LineMark::Flipped { .. } => None,
+            })
+            .collect();
+        assert_eq!(
+            garbled,
+            vec![
+                (a, info_a.start, 2),
+                (a, info_a.start, 3),
+                (b, info_b.start, 0),
+                (b, info_b.start, 1)
+            ]
+        );
+        // Each byte as received is what was sent with the marks' masks:
+        // the collision's, then the listener's noise.
+        let mut flips = 0;
+        for event in &events {
+            let BusEvent::Byte {
+                to,
+                byte,
+                from,
+                index,
+                ..
+            } = *event
+            else {
+                continue;
+            };
+            let sent = if from == a { sent_a[index] } else { 0x0f };
+            let mut want = sent;
+            for m in &marks {
+                match *m {
+                    LineMark::Garbled {
+                        from: f,
+                        index: i,
+                        mask,
+                        byte,
+                        ..
+                    } if (f, i) == (from, index) => {
+                        assert_eq!(byte, sent ^ mask);
+                        want ^= mask;
+                    }
+                    LineMark::Flipped {
+                        from: f,
+                        index: i,
+                        to: t,
+                        mask,
+                        byte,
+                        ..
+                    } if (f, i, t) == (from, index, to) => {
+                        want ^= mask;
+                        assert_eq!(byte, want);
+                        flips += 1;
+                    }
+                    _ => {}
+                }
+            }
+            assert_eq!(byte, want, "byte {index} from port {}", from.index());
+        }
+        assert!(flips > 3, "{marks:?}");
+        assert_eq!(flips, bus.stats().bytes_corrupted_by_noise);
     }
 
     #[test]
