@@ -12,7 +12,7 @@
 
 use std::path::Path;
 
-use anyhow::{Result, anyhow};
+use anyhow::{Result, anyhow, bail};
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
@@ -24,10 +24,16 @@ use twin_scope::{LineKind, Waveform};
 
 use crate::plot::ensure_font;
 
-/// The picture's width (px).
+/// The picture's width unless asked otherwise (px).
 pub const WIDTH: u32 = 1280;
-/// The height of one channel's band (px).
+/// The narrowest and widest picture drawn (px): the bus table needs the
+/// one, a picture viewer the other.
+pub const WIDTHS: std::ops::RangeInclusive<u32> = 640..=16_384;
+/// The height of one channel's band unless a height is asked for (px).
 const BAND: u32 = 150;
+/// The lowest band a trace, its levels and its bytes fit in (px).
+const MIN_BAND: u32 = 80;
+const MAX_BAND: u32 = 2_000;
 const TITLE: u32 = 40;
 /// The time axis's labels under the last band.
 const X_AXIS: u32 = 44;
@@ -102,17 +108,57 @@ pub fn channels(wave: &Waveform) -> Vec<(LineKind, String)> {
     out
 }
 
-/// Draws `wave` to a PNG at `path`.
-pub fn draw(wave: &Waveform, path: &Path) -> Result<Drawn> {
-    ensure_font()?;
+/// The picture's size as asked: its width, and its whole height (the
+/// channels' bands share what the title, axis and bus table leave).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Size {
+    pub width: u32,
+    pub height: Option<u32>,
+}
+
+impl Default for Size {
+    fn default() -> Self {
+        Size {
+            width: WIDTH,
+            height: None,
+        }
+    }
+}
+
+/// Draws `wave` to a PNG at `path`, `size` as asked.
+pub fn draw(wave: &Waveform, path: &Path, size: Size) -> Result<Drawn> {
     let channels = channels(wave);
     let listed = wave.frames.len().min(TABLE_FRAMES);
     let table_rows = 1 + 2 * listed as u32 + u32::from(wave.frames.len() > listed);
-    let height = TITLE + BAND * channels.len() as u32 + X_AXIS + 16 + ROW * table_rows + 12;
-    let size = (WIDTH, height);
+    let fixed = TITLE + X_AXIS + 16 + ROW * table_rows + 12;
+    let bands = channels.len() as u32;
+    if !WIDTHS.contains(&size.width) {
+        bail!(
+            "a width of {} px: give {} to {} px",
+            size.width,
+            WIDTHS.start(),
+            WIDTHS.end()
+        );
+    }
+    let band = match size.height {
+        None => BAND,
+        Some(h) => {
+            let (low, high) = (fixed + MIN_BAND * bands, fixed + MAX_BAND * bands);
+            if !(low..=high).contains(&h) {
+                bail!(
+                    "a height of {h} px: {bands} channels and a table of {listed} frames take {low} to {high} px"
+                );
+            }
+            (h - fixed) / bands
+        }
+    };
+    ensure_font()?;
+    let height = size.height.unwrap_or(fixed + band * bands);
+    let width = size.width;
+    let size = (width, height);
     let drawn = Drawn {
         channels: channels.iter().map(|(_, name)| name.clone()).collect(),
-        width: WIDTH,
+        width,
         height,
     };
     let described: Vec<Described> = wave.frames.iter().map(|f| describe(wave, f)).collect();
@@ -121,12 +167,12 @@ pub fn draw(wave: &Waveform, path: &Path) -> Result<Drawn> {
         root.fill(&SCREEN)?;
         let (head, rest) = root.split_vertically(TITLE);
         head.draw(&Text::new(title(wave), (16, 12), font(17, TEXT)))?;
-        let screen_height = BAND * channels.len() as u32 + X_AXIS;
+        let screen_height = band * bands + X_AXIS;
         let (screen, table) = rest.split_vertically(screen_height);
         let bands = screen.split_by_breakpoints(
             [] as [u32; 0],
             (1..channels.len())
-                .map(|i| BAND * i as u32)
+                .map(|i| band * i as u32)
                 .collect::<Vec<_>>(),
         );
         for (i, ((kind, name), band)) in channels.iter().zip(&bands).enumerate() {
@@ -315,7 +361,7 @@ fn channel(
     color: RGBColor,
     last: bool,
 ) -> std::result::Result<(), Box<dyn std::error::Error>> {
-    let (t0, t1) = (ms(wave.from), ms(wave.to));
+    let (t0, t1) = (ms(wave.from) - ms(wave.lead_in), ms(wave.to));
     let mut chart = ChartBuilder::on(band)
         .margin_left(8)
         .margin_right(24)
@@ -373,10 +419,11 @@ fn channel(
     // The bytes under the trace, where a character is wide enough to read.
     let format = &wave.format;
     let bpc = u64::from(format.bits_per_char());
-    let char_px = (x1 - x0) as f64 * format.bit_offset(bpc) as f64 / (wave.to - wave.from) as f64;
+    let char_px = (x1 - x0) as f64 * format.bit_offset(bpc) as f64
+        / (wave.to - wave.from + wave.lead_in) as f64;
     let (_, y_hex) = at(t0, -1.2);
     let (_, y_ascii) = at(t0, -2.4);
-    for (f, d) in wave.frames.iter().zip(described) {
+    for (n, (f, d)) in wave.frames.iter().zip(described).enumerate() {
         if !shapes(kind, f) {
             continue;
         }
@@ -393,12 +440,16 @@ fn channel(
             }
             continue;
         }
-        for (i, byte) in f.bytes.iter().enumerate() {
+        for (i, sent) in f.bytes.iter().enumerate() {
             let mid = f.start + format.bit_offset(i as u64 * bpc) + format.bit_offset(bpc) / 2;
             if mid < wave.from || mid > wave.to {
                 continue;
             }
             let (x, _) = at(ms(mid), 0.0);
+            // The bus line shows a character as the receivers got it: one
+            // a collision garbled or noise flipped, in red.
+            let byte = &wave.line_byte(kind, n, i);
+            let ink = if byte == sent { ink } else { MARK };
             let centred = |size| font(size, ink).pos(Pos::new(HPos::Center, VPos::Center));
             root.draw(&Text::new(format!("{byte:02X}"), (x, y_hex), centred(13)))?;
             if d.text && byte.is_ascii_graphic() {
@@ -456,9 +507,11 @@ fn trace(
     (y_hi, y_lo): (i32, i32),
 ) -> std::result::Result<(), Box<dyn std::error::Error>> {
     let columns = (x1 - x0).max(0) as usize + 1;
-    let span = (wave.to - wave.from).max(1);
+    // The screen starts with the window's idle lead-in, if it has one.
+    let span = (wave.to - wave.from + wave.lead_in).max(1);
     let column = |t: u64| -> usize {
-        let c = u128::from(t.saturating_sub(wave.from)) * (columns as u128 - 1) / u128::from(span);
+        let since = wave.lead_in + t.saturating_sub(wave.from);
+        let c = u128::from(since) * (columns as u128 - 1) / u128::from(span);
         (c as usize).min(columns - 1)
     };
     let mut seen = vec![0u8; columns];
@@ -473,7 +526,7 @@ fn trace(
         if t >= wave.to {
             break;
         }
-        if t > wave.from {
+        if t > wave.from || (wave.lead_in > 0 && t == wave.from) {
             let c = column(t);
             mark(at, c, level);
             at = c;
@@ -570,8 +623,10 @@ mod tests {
                 })
                 .collect(),
             flips: vec![],
+            garbled: vec![],
             from: 0,
             to: 10_000,
+            lead_in: 0,
             reconstructed: false,
         }
     }

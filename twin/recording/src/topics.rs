@@ -18,6 +18,7 @@
 //! | [`plant_actuators`] `/plant/<module>/actuators` | a virtual run, a real-time session | on every change | `plant::Actuators`: `vel_volts`, `enable`, `brake`, `boost`, `discharge`, `reverse`, `charger` |
 //! | [`PLANT_ACTUATORS`] `/plant/actuators` | the open-loop bench | on every change | as above |
 //! | [`bus_frames`] `/bus/<bus>/frames` | a virtual run | every frame sent, at its first byte | [`FrameSample`]: `from` (the sending node), `start_s`, `end_s`, `len`, `text` (printable bytes, else empty), `hex` (protobuf keeps the bytes once: `text` when printable, else `hex`; [`complete_frame`] gives back both), `decoded` ([`crate::describe`]; PWM-capture: widths sent and captured per listener, values, pulses lost, values wrong) |
+//! | [`bus_line`] `/bus/<bus>/line` | a virtual run | only where the line differed from what was sent (a recording of a bus without noise or collisions has no such channel) | [`LineSample`]: `kind` (`collision`: a character garbled on the wire, alike for every listener; `noise`: data bits flipped at one listener), `from` and `frame_start_s` (the frame's sender and first start bit, as on [`bus_frames`]), `index` (the character's place in the frame), `to` (the listener; empty for a collision), `mask` (the data bits changed, bit 0 first on the wire), `byte` (the character as on the wire, or as the listener got it) |
 //! | [`link_frames`] `/link/<link>/frames` | a real-time session (`twin serve`, `twin supervise`) | every frame, both directions | [`FrameSample`], `from` being `twin`, `client N`, or on `twin supervise`'s `bus` the slave that answered (`slave 01`) |
 //! | [`EVENTS`] `/events` | a virtual run, a real-time session | as they happen | [`EventSample`]: `node`, `kind` (`timeout`, `bad_check`, `retry`, `exception`, `dropped`, `fault`, `state`, `log`; a session's `connection`, and `slip` from the node `clock` each second real time was lost), `detail` |
 //! | [`controller_readings`] `/controller/<node>/readings` | a virtual run, a real-time session (`twin serve`) | beside each plant sample (the scenario's `record_hz`), per EV module controller | [`ReadingsSample`]: what the controller reads, named: `battery_volts` (V1), `bus_volts` (V2), `inverter_amps` (I), `hall_rpm` (RPM_M), `light_rpm` (RPM_L), `flag_dark` (ED0 bit 3), `soc_percent` (SOC), and `meb`, the raw words a master reads by their MEB names (`V2`, `I`, `V1`, `RPM_M`, `RPM_L`, `LDR`, `HALL`, `SOC`, `ERRS`, `STATUS`); its schema describes every field with its unit ([`readings_schema`]; in the protobuf descriptor as the fields' comments) |
@@ -88,6 +89,12 @@ pub fn bus_frames(bus: &str) -> String {
     format!("/bus/{bus}/frames")
 }
 
+/// Where a simulated bus's line differed from what was sent (collisions,
+/// noise): `/bus/<bus>/line`.
+pub fn bus_line(bus: &str) -> String {
+    format!("/bus/{bus}/line")
+}
+
 /// The frames on a real-time session's link: `/link/<link>/frames`.
 pub fn link_frames(link: &str) -> String {
     format!("/link/{link}/frames")
@@ -139,6 +146,8 @@ pub enum Topic<'a> {
     /// A module's actuators (`None`: the open-loop bench's).
     PlantActuators(Option<&'a str>),
     BusFrames(&'a str),
+    /// Where a bus's line differed from what was sent, by bus name.
+    BusLine(&'a str),
     LinkFrames(&'a str),
     Events,
     MasterLoop(&'a str),
@@ -177,6 +186,8 @@ impl<'a> Topic<'a> {
             Topic::PlantActuators(Some(m))
         } else if let Some(b) = named("/bus/", "/frames") {
             Topic::BusFrames(b)
+        } else if let Some(b) = named("/bus/", "/line") {
+            Topic::BusLine(b)
         } else if let Some(l) = named("/link/", "/frames") {
             Topic::LinkFrames(l)
         } else if let Some(n) = named("/master/", "/loop") {
@@ -199,6 +210,45 @@ impl<'a> Topic<'a> {
         matches!(self, Topic::PlantSensors(_))
     }
 }
+
+/// Where a bus's line differed from what a node sent, as recorded on
+/// [`bus_line`]: a character a collision garbled, or bits noise flipped at
+/// one listener. Written from [`LineMessage`].
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+pub struct LineSample {
+    /// `collision` or `noise` ([`LINE_COLLISION`], [`LINE_NOISE`]).
+    pub kind: String,
+    /// The frame's sender.
+    pub from: String,
+    /// The frame's first start bit (s), as its [`FrameSample::start_s`].
+    pub frame_start_s: f64,
+    /// The character's place in its frame (from 0).
+    pub index: usize,
+    /// Noise: the listener; a collision: empty (every listener gets it so).
+    pub to: String,
+    /// The data bits changed (bit 0 is the first on the wire).
+    pub mask: u8,
+    /// The character as it is on the wire (a collision) or as the listener
+    /// got it (noise).
+    pub byte: u8,
+}
+
+/// A [`LineSample`] as written, borrowing its names.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct LineMessage<'a> {
+    pub kind: &'a str,
+    pub from: &'a str,
+    pub frame_start_s: f64,
+    pub index: usize,
+    pub to: &'a str,
+    pub mask: u8,
+    pub byte: u8,
+}
+
+/// [`LineSample::kind`] of a character garbled by a collision.
+pub const LINE_COLLISION: &str = "collision";
+/// [`LineSample::kind`] of bits flipped by noise at a listener.
+pub const LINE_NOISE: &str = "noise";
 
 /// A frame as recorded on [`bus_frames`] and [`link_frames`] (the fields a
 /// reader takes; `len`, `text` and `decoded` are for people and tools).

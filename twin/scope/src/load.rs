@@ -1,17 +1,19 @@
-//! A recording's bus (or link) as a [`Waveform`]: its frames, its line
-//! format from the scenario the recording carries (or, for a real-time
-//! session, from the link's options), and the window chosen.
+//! A recording's bus (or link) as a [`Waveform`]: its frames, where the
+//! line differed from them (the characters collisions garbled and the bits
+//! noise flipped, which a virtual run records only where they happened),
+//! its line format from the scenario the recording carries (or, for a
+//! real-time session, from the link's options), and the window chosen.
 
 use std::collections::BTreeMap;
 use std::path::Path;
 
 use protocols::time::TICKS_PER_SECOND;
 use twin_recording::read::Recording;
-use twin_recording::topics::{FrameSample, Topic};
+use twin_recording::topics::{FrameSample, LINE_COLLISION, LineSample, Topic};
 use twin_sim::scenario::{Scenario, WiringSpec};
 
 use crate::ScopeError;
-use crate::wave::{Hearing, LineFormat, LineFrame, Parity, Waveform};
+use crate::wave::{Flip, Garble, Hearing, LineFormat, LineFrame, Parity, Waveform};
 
 /// Which part of the recording to show.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -35,10 +37,12 @@ pub struct Choice {
     pub baud: Option<u32>,
 }
 
-/// Frames of one channel, as read: sender, first start bit (s), bytes.
+/// Frames of one channel, as read: sender, first start bit (s), bytes;
+/// and where the line differed from them.
 #[derive(Debug, Default)]
 struct Channel {
     frames: Vec<(String, f64, Vec<u8>)>,
+    marks: Vec<LineSample>,
 }
 
 /// Reads `path` and builds the chosen bus's waveform.
@@ -52,6 +56,14 @@ pub fn load(path: &Path, choice: &Choice) -> Result<Waveform, ScopeError> {
                 let bytes = hex_bytes(&f.hex);
                 let channel = buses.entry((link, b.to_string())).or_default();
                 channel.frames.push((f.from, f.start_s, bytes));
+            }
+            Topic::BusLine(b) => {
+                let mark: LineSample = m.json()?;
+                buses
+                    .entry((false, b.to_string()))
+                    .or_default()
+                    .marks
+                    .push(mark);
             }
             _ => {}
         }
@@ -128,11 +140,33 @@ pub fn load(path: &Path, choice: &Choice) -> Result<Waveform, ScopeError> {
         });
     }
     frames.sort_by_key(|f| (f.start, f.number));
+    if link {
+        // A pseudo-terminal or a socket hands over a frame's bytes at once,
+        // faster than the baud: laid out at the baud, a frame whose byte
+        // times put it on the line before the one before it has ended (and
+        // 3.5 characters of silence, what a Modbus RTU receiver needs to
+        // tell two frames apart) follows it after that silence.
+        let silence = format.bit_offset(u64::from(format.bits_per_char()) * 7 / 2);
+        let mut free = 0;
+        for f in &mut frames {
+            f.start = f.start.max(free);
+            free = f.end(&format) + silence;
+        }
+    }
     let (from, to) = window(&frames, &format, choice.window, path)?;
+    // A frame whose first start bit opens the window (one at 0 s) needs
+    // idle line before it, or a decoder sees no falling edge.
+    let char_ticks = format.bit_offset(u64::from(format.bits_per_char()));
+    let lead_in = if frames
+        .iter()
+        .any(|f| f.start >= from && f.start - from < char_ticks)
+    {
+        char_ticks
+    } else {
+        0
+    };
     frames.retain(|f| f.end(&format) > from && f.start < to);
-    // The recording keeps the bytes as sent, not where noise flipped them
-    // at each listener: the receivers' lines show none.
-    let flips = Vec::new();
+    let (flips, garbled) = marks(&channel.marks, &frames, &mut nodes);
     Ok(Waveform {
         name: format!(
             "{}.{}",
@@ -144,10 +178,62 @@ pub fn load(path: &Path, choice: &Choice) -> Result<Waveform, ScopeError> {
         hearing,
         frames,
         flips,
+        garbled,
         from,
         to,
+        lead_in,
         reconstructed: link,
     })
+}
+
+/// The recorded line marks as flips and garbled characters of `frames`
+/// (those of frames outside the window left out), each list sorted.
+fn marks(
+    marks: &[LineSample],
+    frames: &[LineFrame],
+    nodes: &mut Vec<String>,
+) -> (Vec<Flip>, Vec<Garble>) {
+    let (mut flips, mut garbled) = (Vec::new(), Vec::new());
+    if marks.is_empty() {
+        return (flips, garbled);
+    }
+    // A frame is its sender and its first start bit.
+    let index: BTreeMap<(usize, u64), usize> = frames
+        .iter()
+        .enumerate()
+        .map(|(i, f)| ((f.node, f.start), i))
+        .collect();
+    let node = |name: &str, nodes: &mut Vec<String>| match nodes.iter().position(|n| n == name) {
+        Some(i) => i,
+        None => {
+            nodes.push(name.to_string());
+            nodes.len() - 1
+        }
+    };
+    for m in marks {
+        let from = node(&m.from, nodes);
+        let Some(&frame) = index.get(&(from, ticks(m.frame_start_s))) else {
+            continue;
+        };
+        if m.kind == LINE_COLLISION {
+            garbled.push(Garble {
+                frame,
+                index: m.index,
+                byte: m.byte,
+            });
+        } else {
+            flips.push(Flip {
+                frame,
+                index: m.index,
+                to: node(&m.to, nodes),
+                mask: m.mask,
+            });
+        }
+    }
+    flips.sort_unstable();
+    garbled.sort_unstable();
+    garbled.dedup_by_key(|g| (g.frame, g.index));
+    (flips, garbled)
 }
 
 /// Seconds as engine ticks.

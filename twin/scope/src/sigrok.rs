@@ -40,7 +40,9 @@ pub fn samples(wave: &Waveform, rate: u64) -> Result<(Vec<u8>, usize, u64), Scop
     }
     let lines = wave.lines();
     let unitsize = lines.len().div_ceil(8).max(1);
-    let span = u128::from(wave.to - wave.from);
+    // The samples begin with the window's idle lead-in, if it has one.
+    let lead = u128::from(wave.lead_in);
+    let span = u128::from(wave.to - wave.from) + lead;
     let count = (span * u128::from(rate)).div_ceil(u128::from(TICKS_PER_SECOND));
     let count = u64::try_from(count).unwrap_or(u64::MAX);
     if count.saturating_mul(unitsize as u64) > MAX_BYTES {
@@ -53,7 +55,7 @@ pub fn samples(wave: &Waveform, rate: u64) -> Result<(Vec<u8>, usize, u64), Scop
     let mut data = vec![0u8; count as usize * unitsize];
     // The first sample at or after tick `at`.
     let index = |at: u64| -> u64 {
-        let since = u128::from(at.saturating_sub(wave.from));
+        let since = lead + u128::from(at.saturating_sub(wave.from));
         let i = (since * u128::from(rate)).div_ceil(u128::from(TICKS_PER_SECOND));
         u64::try_from(i).unwrap_or(u64::MAX).min(count)
     };

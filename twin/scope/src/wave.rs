@@ -10,6 +10,13 @@
 //! Times are the engine's ticks ([`protocols::time::TICKS_PER_SECOND`]): a
 //! bit boundary is `start + ⌊p × ticks_per_second / baud⌋` for bit `p` of the
 //! frame, as the bus computes its bytes' arrivals, so no rounding accumulates.
+//!
+//! The TX lines carry the bytes as sent; the pair and the receivers carry
+//! them as the engine delivered them: a character a collision garbled
+//! ([`Garble`]) as garbled, and bits noise flipped at a listener
+//! ([`Flip`]) flipped, on that listener's RX and on the pair. The parity
+//! bit stays the talker's, so a decoder that checks parity sees the error
+//! a receiver would.
 
 use protocols::time::TICKS_PER_SECOND;
 
@@ -126,6 +133,17 @@ pub struct Flip {
     pub mask: u8,
 }
 
+/// A character a collision garbled on the wire, as every listener got it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub struct Garble {
+    /// Index in [`Waveform::frames`].
+    pub frame: usize,
+    /// The character's place in its frame.
+    pub index: usize,
+    /// The character as it was on the wire.
+    pub byte: u8,
+}
+
 /// A line a logic analyzer probes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum LineKind {
@@ -137,8 +155,10 @@ pub enum LineKind {
     /// off while it drives, so the line idles high then), with the noise
     /// the engine flipped at this listener.
     Rx(usize),
-    /// The pair itself: where two drive at once, low wins wherever either
-    /// drives low (the collision the engine counted, garbling both).
+    /// The pair itself, as the receivers got it: each character a
+    /// collision garbled as the engine garbled it (where two drive at once,
+    /// low wherever either is low), and the bits noise flipped at any
+    /// listener flipped.
     Bus,
 }
 
@@ -175,9 +195,15 @@ pub struct Waveform {
     pub frames: Vec<LineFrame>,
     /// Sorted.
     pub flips: Vec<Flip>,
+    /// Sorted.
+    pub garbled: Vec<Garble>,
     /// The window (ticks).
     pub from: u64,
     pub to: u64,
+    /// Idle line drawn before `from` (ticks), so that a frame whose first
+    /// start bit opens the window starts with a falling edge a decoder
+    /// sees: a character time when one does, else 0.
+    pub lead_in: u64,
     /// Reconstructed from a real-time session's byte times: no driver
     /// enable or receiver lines, only what each side sent and the link.
     pub reconstructed: bool,
@@ -256,6 +282,44 @@ impl Waveform {
         self.flips
             .binary_search_by(|f| (f.frame, f.index, f.to).cmp(&key))
             .map_or(0, |i| self.flips[i].mask)
+    }
+
+    /// The bits noise flipped on character `index` of frame `frame` at any
+    /// listener.
+    fn flip_anywhere(&self, frame: usize, index: usize) -> u8 {
+        let key = (frame, index);
+        let first = self.flips.partition_point(|f| (f.frame, f.index) < key);
+        self.flips[first..]
+            .iter()
+            .take_while(|f| (f.frame, f.index) == key)
+            .fold(0, |mask, f| mask | f.mask)
+    }
+
+    /// Character `index` of frame `frame` as line `kind` carries it: as
+    /// sent on a TX line; as garbled by a collision on the pair and the RX
+    /// lines, with the bits noise flipped at that listener (the pair: at
+    /// any listener).
+    pub fn line_byte(&self, kind: LineKind, frame: usize, index: usize) -> u8 {
+        let sent = self
+            .frames
+            .get(frame)
+            .and_then(|f| f.bytes.get(index))
+            .copied()
+            .unwrap_or(0xff);
+        if self.garbled.is_empty() && self.flips.is_empty() {
+            return sent;
+        }
+        let wire = || {
+            let key = (frame, index);
+            self.garbled
+                .binary_search_by(|g| (g.frame, g.index).cmp(&key))
+                .map_or(sent, |i| self.garbled[i].byte)
+        };
+        match kind {
+            LineKind::Tx(_) | LineKind::DriverEnable(_) => sent,
+            LineKind::Rx(n) => wire() ^ self.flip(frame, index, n),
+            LineKind::Bus => wire() ^ self.flip_anywhere(frame, index),
+        }
     }
 }
 
@@ -341,17 +405,19 @@ impl Edges<'_> {
                 continue;
             }
             any = true;
+            if matches!(self.kind, LineKind::Rx(n) if f.node == n) {
+                driving_self = true;
+                continue;
+            }
             let p = m.passed - 1;
             let (index, k) = ((p / bpc) as usize, (p % bpc) as u32);
-            let byte = f.bytes.get(index).copied().unwrap_or(0xff);
-            let mut bit = format.level(byte, k);
-            match self.kind {
-                LineKind::Rx(n) if f.node == n => driving_self = true,
-                LineKind::Rx(n) if (1..=8).contains(&k) => {
-                    bit ^= w.flip(m.frame, index, n) >> (k - 1) & 1 == 1;
-                }
-                _ => {}
-            }
+            let sent = f.bytes.get(index).copied().unwrap_or(0xff);
+            let bit = match k {
+                // The data bits as this line carries them; start, parity
+                // and stop bits as the talker made them.
+                1..=8 => w.line_byte(self.kind, m.frame, index) >> (k - 1) & 1 == 1,
+                _ => format.level(sent, k),
+            };
             low |= !bit;
         }
         match self.kind {
@@ -413,8 +479,10 @@ mod tests {
             hearing: Hearing::All,
             frames,
             flips: vec![],
+            garbled: vec![],
             from: 0,
             to: TICKS_PER_SECOND,
+            lead_in: 0,
             reconstructed: false,
         }
     }
@@ -487,5 +555,33 @@ mod tests {
             vec![(0, false), (bit, true), (3 * bit, false), (4 * bit, true)]
         );
         assert_eq!(w.edges(LineKind::Rx(2)).count(), 2);
+        // The pair shows it too; the talker's TX does not.
+        assert_eq!(w.edges(LineKind::Bus).collect::<Vec<_>>(), rx);
+        assert_eq!(w.edges(LineKind::Tx(0)).count(), 2);
+    }
+
+    #[test]
+    fn a_garbled_character_is_on_the_pair_and_the_receivers_as_the_engine_garbled_it() {
+        let mut w = wave(vec![LineFrame {
+            number: 0,
+            node: 0,
+            start: 0,
+            bytes: vec![0xff, 0xff],
+        }]);
+        w.garbled.push(Garble {
+            frame: 0,
+            index: 1,
+            byte: 0xfe,
+        });
+        let bit = w.format.bit_ticks();
+        let garbled = vec![(0, false), (bit, true), (10 * bit, false), (12 * bit, true)];
+        assert_eq!(w.edges(LineKind::Bus).collect::<Vec<_>>(), garbled);
+        assert_eq!(w.edges(LineKind::Rx(1)).collect::<Vec<_>>(), garbled);
+        assert_eq!(w.line_byte(LineKind::Bus, 0, 1), 0xfe);
+        assert_eq!(w.line_byte(LineKind::Tx(0), 0, 1), 0xff);
+        assert_eq!(
+            w.edges(LineKind::Tx(0)).collect::<Vec<_>>(),
+            vec![(0, false), (bit, true), (10 * bit, false), (11 * bit, true)]
+        );
     }
 }

@@ -9,7 +9,7 @@
 //! always give the same run.
 
 use anyhow::Result;
-use nodes::link::{BusEvent, Medium, PortId};
+use nodes::link::{BusEvent, LineMark, Medium, PortId};
 use nodes::node::{Firmware, MAX_FRAME, Node, NodeEvent};
 use plant::{Actuators, EvModule};
 use protocols::time::{SimDuration, SimTime};
@@ -374,6 +374,14 @@ pub trait Observer {
         let _ = (bus, from, start, end, bytes);
         Ok(())
     }
+    /// Where `bus`'s line differed from what a node sent: a character a
+    /// collision garbled, or bits noise flipped at a listener. Comes after
+    /// the frame's [`Observer::frame`] or, for a frame garbled by one sent
+    /// later, after that frame's.
+    fn line_mark(&mut self, bus: &BusSlot, mark: &LineMark) -> Result<()> {
+        let _ = (bus, mark);
+        Ok(())
+    }
     /// Something a node reports (a timeout, a trip, a fault).
     fn event(&mut self, node: &NodeSlot, event: &NodeEvent) -> Result<()> {
         let _ = (node, event);
@@ -460,9 +468,12 @@ impl Engine {
 
     /// Add a bus: a `SimBus`, a `PwmBus` or a [`Medium`].
     pub fn add_bus(&mut self, name: &str, bus: impl Into<Medium>) -> usize {
+        let mut bus = bus.into();
+        // The observer hears where the line differed from what was sent.
+        bus.keep_line_marks();
         self.buses.push(BusSlot {
             name: name.into(),
-            bus: bus.into(),
+            bus,
             owners: Vec::new(),
             port_names: Vec::new(),
             sent: Vec::new(),
@@ -561,7 +572,7 @@ impl Engine {
                 );
             }
             self.now = t;
-            self.deliver_bus_events(t);
+            self.deliver_bus_events(t, observer)?;
             self.tick_firmware(t, observer)?;
             for slot in &mut self.nodes {
                 if slot.node.poll_timeout().is_some_and(|due| due <= t) {
@@ -681,10 +692,11 @@ impl Engine {
         buses.chain(nodes).chain(ticks).chain(record).min()
     }
 
-    fn deliver_bus_events(&mut self, t: SimTime) {
+    fn deliver_bus_events(&mut self, t: SimTime, observer: &mut dyn Observer) -> Result<()> {
         for b in 0..self.buses.len() {
             while let Some(event) = self.buses[b].bus.poll_event(t) {
                 self.events += 1;
+                self.report_line_marks(b, observer)?;
                 match event {
                     BusEvent::Byte {
                         to,
@@ -714,6 +726,15 @@ impl Engine {
                 }
             }
         }
+        Ok(())
+    }
+
+    /// Hands the observer every line mark bus `b` kept.
+    fn report_line_marks(&mut self, b: usize, observer: &mut dyn Observer) -> Result<()> {
+        while let Some(mark) = self.buses[b].bus.poll_line_mark() {
+            observer.line_mark(&self.buses[b], &mark)?;
+        }
+        Ok(())
     }
 
     /// Step a module's plant up to `t` in whole plant steps (and a last
@@ -776,6 +797,8 @@ impl Engine {
                     info.end,
                     &self.tx[..len],
                 )?;
+                let b = slot.bus;
+                self.report_line_marks(b, observer)?;
             }
         }
         Ok(())
@@ -820,6 +843,8 @@ impl Engine {
                         .get(port.index())
                         .map_or(&[][..], Vec::as_slice);
                     observer.frame(bus_slot, slot, info.start, info.end, sent)?;
+                    let b = slot.bus;
+                    self.report_line_marks(b, observer)?;
                 }
             }
         }

@@ -5,12 +5,14 @@
 //! | `/plant/<module>/sensors` | at the scenario's `record_hz` | every sensor, hall/encoder counts, energy ledger |
 //! | `/plant/<module>/actuators` | on every change | what the firmware drives |
 //! | `/bus/<bus>/frames` | every frame sent | sender, start and end time, raw bytes, decoded fields (PWM-capture: widths sent and captured per listener, values, pulses lost, values wrong) |
+//! | `/bus/<bus>/line` | only where a collision garbled a character or noise flipped bits | the frame (sender, first start bit), the character, the listener (noise), the bits changed, the byte as it was then |
 //! | `/events` | as they happen | node, kind (`timeout`, `bad_check`, `retry`, `log`, …), detail |
 //! | `/master/<node>/loop` | every poll cycle | set point, measured rpm, error, output, counters |
 //! | `/controller/<node>/readings` | beside each plant sample | an EV controller's readings, named (`hall_rpm`, `light_rpm`, …) |
 //! | `/firmware/<node>/uart`, `/firmware/<node>/io` | UART bursts; every 10 ms | compiled firmware: its UART bytes with their cycles, its pins, ADC inputs and cycle count |
 
 use anyhow::Result;
+use nodes::link::{LineMark, PortId};
 use nodes::node::NodeEvent;
 use protocols::time::SimTime;
 use serde::Serialize;
@@ -21,7 +23,9 @@ use crate::engine::{BusSlot, FirmwareRecord, ModuleSlot, NodeSlot, Observer};
 use twin_recording::describe::{FrameFields, LinkFrameFields, decode_frame};
 use twin_recording::protobuf::Protobuf;
 use twin_recording::record::{ChannelId, Recorder, WriteError};
-use twin_recording::topics::{self, FirmwareIo, LoopReport, ReadingsSample, UartBurst};
+use twin_recording::topics::{
+    self, FirmwareIo, LineMessage, LoopReport, ReadingsSample, UartBurst,
+};
 use twin_recording::typed::{DecodedProtobuf, FrameMessage, Hex};
 
 pub use crate::plant_sample::PlantSample;
@@ -47,6 +51,9 @@ pub struct McapObserver {
     /// a message's topic is formatted once, not per message.
     channels: [Vec<LazyChannel>; Kind::COUNT],
     buses: Vec<LazyChannel>,
+    /// Each bus's `/bus/<bus>/line`, made on its first mark: a run without
+    /// noise or collisions has none.
+    lines: Vec<LazyChannel>,
     event_channel: LazyChannel,
 }
 
@@ -336,6 +343,7 @@ impl McapObserver {
             log_tail: VecDeque::new(),
             channels: Default::default(),
             buses: Vec::new(),
+            lines: Vec::new(),
             event_channel: LazyChannel::new("", topics::EVENTS.to_string()),
         }
     }
@@ -569,6 +577,38 @@ impl Observer for McapObserver {
         Ok(written?)
     }
 
+    fn line_mark(&mut self, bus: &BusSlot, mark: &LineMark) -> Result<()> {
+        let name = |port: PortId| bus.port_names.get(port.index()).map_or("", String::as_str);
+        let (kind, from, start, index, to, mask, byte) = match *mark {
+            LineMark::Garbled {
+                from,
+                start,
+                index,
+                mask,
+                byte,
+            } => (topics::LINE_COLLISION, from, start, index, "", mask, byte),
+            LineMark::Flipped {
+                from,
+                start,
+                index,
+                to,
+                mask,
+                byte,
+            } => (topics::LINE_NOISE, from, start, index, name(to), mask, byte),
+        };
+        let message = LineMessage {
+            kind,
+            from: name(from),
+            frame_start_s: secs(start),
+            index,
+            to,
+            mask,
+            byte,
+        };
+        let channel = channel_of(&mut self.lines, &bus.name, topics::bus_line);
+        Ok(channel.write(&mut self.recorder, start, &message)?)
+    }
+
     fn event(&mut self, node: &NodeSlot, event: &NodeEvent) -> Result<()> {
         Ok(self.record_event(&node.name, event)?)
     }
@@ -614,6 +654,11 @@ impl<A: Observer, B: Observer> Observer for Tee<A, B> {
     ) -> Result<()> {
         self.first.frame(bus, from, start, end, bytes)?;
         self.second.frame(bus, from, start, end, bytes)
+    }
+
+    fn line_mark(&mut self, bus: &BusSlot, mark: &LineMark) -> Result<()> {
+        self.first.line_mark(bus, mark)?;
+        self.second.line_mark(bus, mark)
     }
 
     fn event(&mut self, node: &NodeSlot, event: &NodeEvent) -> Result<()> {
@@ -665,6 +710,10 @@ impl<O: Observer + ?Sized> Observer for &mut O {
         bytes: &[u8],
     ) -> Result<()> {
         (**self).frame(bus, from, start, end, bytes)
+    }
+
+    fn line_mark(&mut self, bus: &BusSlot, mark: &LineMark) -> Result<()> {
+        (**self).line_mark(bus, mark)
     }
 
     fn event(&mut self, node: &NodeSlot, event: &NodeEvent) -> Result<()> {

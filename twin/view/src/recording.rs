@@ -290,7 +290,7 @@ fn feed(logger: &mut RerunLogger, session: Session, m: &Message<'_>, t: f64) -> 
             logger.firmware_io(node, t, &io);
         }
         // Actuator changes are in the frames that caused them.
-        Topic::PlantActuators(_) | Topic::ExperimentStep | Topic::Other(_) => {}
+        Topic::PlantActuators(_) | Topic::BusLine(_) | Topic::ExperimentStep | Topic::Other(_) => {}
     }
     Ok(())
 }

@@ -20,10 +20,17 @@ use twin_scope::{Choice, Window, sigrok, vcd_out};
 /// reconstructed from the recorded byte times at the link's baud, with a TX
 /// line per side.
 ///
+/// The TX lines carry the bytes as sent; the pair and the RX lines carry
+/// them as the engine delivered them: a character a collision garbled as
+/// garbled, bits noise flipped at a listener flipped (on its RX, and on the
+/// pair). A window whose first frame starts right at its start (a frame at
+/// 0 s) begins with a character of idle line, so a decoder sees the start bit.
+///
 /// A scope picture (`--png`) shows each talking node's TX above the bus line
 /// at 0/5 V TTL levels, the bytes in hex under each character, and under the
 /// screen the frames as a bus table (who sent it, its bytes, what it is), a
-/// wrong CRC or an exception marked in red.
+/// wrong CRC or an exception marked in red, and a character received other
+/// than sent in red under the bus line.
 ///
 /// Open the file in PulseView (or `sigrok-cli -i FILE`) and decode with the
 /// `uart` decoder on the line (and `modbus` on top for Modbus RTU); the
@@ -65,6 +72,12 @@ pub struct ScopeArgs {
     /// Samples per second of the .sr file (default: 16 per bit).
     #[arg(long, value_name = "HZ")]
     rate: Option<u64>,
+    /// The scope picture's width (default 1280).
+    #[arg(long, value_name = "PX", requires = "png")]
+    width: Option<u32>,
+    /// The scope picture's height (default: 150 px a channel, and the bus table).
+    #[arg(long, value_name = "PX", requires = "png")]
+    height: Option<u32>,
 }
 
 pub fn execute(args: &ScopeArgs) -> Result<()> {
@@ -86,7 +99,7 @@ pub fn execute(args: &ScopeArgs) -> Result<()> {
     let wave = twin_scope::load(&args.recording, &choice)?;
     let seconds = |ticks: u64| ticks as f64 / protocols::time::TICKS_PER_SECOND as f64;
     println!(
-        "twin scope: {} from {:.6} s to {:.6} s, {} frame{} at {} baud ({}){}",
+        "twin scope: {} from {:.6} s to {:.6} s, {} frame{} at {} baud ({}){}{}",
         wave.name,
         seconds(wave.from),
         seconds(wave.to),
@@ -94,12 +107,25 @@ pub fn execute(args: &ScopeArgs) -> Result<()> {
         if wave.frames.len() == 1 { "" } else { "s" },
         wave.format.baud,
         char_format(&wave.format),
+        if wave.lead_in > 0 {
+            ", after a character of idle line (a frame starts the window)"
+        } else {
+            ""
+        },
         if wave.reconstructed {
             "; reconstructed from the recorded byte times (a link has no line to probe)"
         } else {
             ""
         }
     );
+    if !wave.flips.is_empty() || !wave.garbled.is_empty() {
+        println!(
+            "  as received: {} character{} garbled by collisions, {} with bits flipped by noise",
+            wave.garbled.len(),
+            if wave.garbled.len() == 1 { "" } else { "s" },
+            wave.flips.len()
+        );
+    }
     if let Some(path) = &args.vcd {
         let file = File::create(path)
             .with_context(|| format!("--vcd {}: cannot create it", path.display()))?;
@@ -124,7 +150,11 @@ pub fn execute(args: &ScopeArgs) -> Result<()> {
         );
     }
     if let Some(path) = &args.png {
-        let drawn = twin_lab::scope_png::draw(&wave, path)
+        let size = twin_lab::scope_png::Size {
+            width: args.width.unwrap_or(twin_lab::scope_png::WIDTH),
+            height: args.height,
+        };
+        let drawn = twin_lab::scope_png::draw(&wave, path, size)
             .with_context(|| format!("--png {}: cannot draw it", path.display()))?;
         println!(
             "  {}: {}×{} px, channels {}",

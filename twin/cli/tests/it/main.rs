@@ -35,6 +35,7 @@ mod rotate;
 mod run;
 mod scope;
 mod scope_png;
+mod scope_session;
 mod serve;
 mod serve_faults;
 mod service;

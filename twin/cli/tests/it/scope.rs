@@ -2,13 +2,16 @@
 //! `sigrok-cli`, the decoders PulseView runs): the bytes the `uart` decoder
 //! finds on the exported line are the recording's frames, in order, each
 //! within one bit of its recorded time; Modbus RTU decodes with `modbus` on
-//! top; a collision shows where the engine put it.
+//! top; a collision and noise show where the engine put them; a frame that
+//! opens the window decodes; a real-time session's recording decodes as
+//! the bytes went, reconstructed at the link's baud.
 
 use crate::support;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use support::{text, twin};
 use twin_recording::read::{BusFrame, Recording};
+use twin_recording::topics::{LINE_COLLISION, LINE_NOISE, LineSample, Topic};
 
 fn scratch(name: &str) -> PathBuf {
     support::scratch("scope", name)
@@ -25,6 +28,41 @@ pub(crate) fn run(scenario: &str, seconds: &str, name: &str) -> (PathBuf, Vec<Bu
     assert!(o.status.success(), "{}", text(&o));
     let frames = Recording::read(&out).unwrap().frames().unwrap();
     (out, frames)
+}
+
+/// Where the recording says the line differed from what was sent.
+fn line_marks(path: &Path) -> Vec<LineSample> {
+    let mut marks = Vec::new();
+    Recording::scan(path, |m| {
+        if let Topic::BusLine(_) = Topic::parse(m.topic) {
+            marks.push(m.json()?);
+        }
+        Ok(())
+    })
+    .unwrap();
+    marks
+}
+
+/// Whether `m` marks frame `f` (its sender and first start bit; the
+/// frame's time as read back is within a nanosecond of the mark's).
+fn same_frame(m: &LineSample, f: &BusFrame) -> bool {
+    m.from == f.from && (m.frame_start_s - f.time_s).abs() < 1e-9
+}
+
+/// `frames`' bytes as `marks` say the line carried them: each character a
+/// collision garbled as garbled, then the bits noise flipped at any listener.
+fn as_received(frames: &[BusFrame], marks: &[LineSample]) -> Vec<BusFrame> {
+    let mut frames = frames.to_vec();
+    for f in &mut frames {
+        let ours = marks.iter().filter(|m| same_frame(m, f));
+        for m in ours.clone().filter(|m| m.kind == LINE_COLLISION) {
+            f.bytes[m.index] = m.byte;
+        }
+        for m in ours.filter(|m| m.kind == LINE_NOISE) {
+            f.bytes[m.index] ^= m.mask;
+        }
+    }
+    frames
 }
 
 /// A window from the idle line before frame `first` to the idle line after
@@ -242,25 +280,42 @@ fn a_collision_garbles_the_line_where_the_two_frames_overlap() {
     assert!(o.status.success(), "{}", text(&o));
     let rate = 16.0 * 115_200.0;
     let uart = |line: &str| format!("uart:rx=bus.rs485.{line}:baudrate=115200");
-    // On the pair, low wins wherever either drives low: the bytes are
-    // neither request but both ANDed, each at the time both went.
-    let got = decode(&sr, "srzip", &uart("line"), "uart=rx-data");
-    let both: Vec<(u8, f64)> = recorded(std::slice::from_ref(a), 10.0 * bit_s)
+    // The engine garbled every character of both requests (they overlap
+    // from the first start bit to the last stop bit), and the recording
+    // says how: on the pair each driver puts its characters as garbled,
+    // low wherever either is low, each at the time both went.
+    let marks = line_marks(&run);
+    let garbled = |f: &BusFrame| {
+        marks
+            .iter()
+            .filter(|m| m.kind == LINE_COLLISION && same_frame(m, f))
+            .count()
+    };
+    assert_eq!((garbled(a), garbled(b)), (a.bytes.len(), b.bytes.len()));
+    assert_eq!(garbled(reply), 0);
+    let received = as_received(&[a.clone(), b.clone()], &marks);
+    let both: Vec<(u8, f64)> = recorded(&received[..1], 10.0 * bit_s)
         .into_iter()
-        .zip(&b.bytes)
+        .zip(&received[1].bytes)
         .map(|((x, at), y)| (x & y, at))
         .collect();
     let mut want = recorded(std::slice::from_ref(reply), 10.0 * bit_s);
     want.extend(&both);
+    let got = decode(&sr, "srzip", &uart("line"), "uart=rx-data");
     same_within_a_bit(
         "the pair",
         &bytes_at(&got, from, 1.0 / rate, bit_s),
         &want,
         bit_s,
     );
-    let line: Vec<u8> = both.iter().map(|b| b.0).collect();
-    assert_ne!(line, a.bytes);
-    assert_ne!(line, b.bytes);
+    // The controller, which hears both, receives the same.
+    let got = decode(&sr, "srzip", &uart("ev1.rx"), "uart=rx-data");
+    same_within_a_bit(
+        "ev1's RX",
+        &bytes_at(&got, from, 1.0 / rate, bit_s),
+        &both,
+        bit_s,
+    );
     // Each talker's TX still carries its own frame, whole.
     for f in [a, b] {
         let got = decode(
@@ -277,6 +332,137 @@ fn a_collision_garbles_the_line_where_the_two_frames_overlap() {
             bit_s,
         );
     }
+}
+
+/// `ev-meb` with noise on its bus (the book's example): `bit_error_rate`
+/// flips bits at the receivers.
+const NOISY_BUS: &str = concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/../../docs/examples/noisy-bus.toml"
+);
+
+#[test]
+fn noise_shows_on_the_pair_and_the_receiver_where_the_engine_flipped_bits() {
+    let (run, frames) = run(NOISY_BUS, "0.3", "noisy.mcap");
+    let marks = line_marks(&run);
+    assert!(marks.iter().all(|m| m.kind == LINE_NOISE), "no collisions");
+    // A window of a few frames around the first the noise hit.
+    let hit = marks.first().expect("noise flipped some bits");
+    let i = frames
+        .iter()
+        .position(|f| same_frame(hit, f))
+        .expect("the flipped frame is recorded");
+    let (first, last) = (i.max(2) - 1, (i + 2).min(frames.len() - 2));
+    let (from, to, inside) = window(&frames, first, last);
+    let vcd = scratch("noisy.vcd");
+    let o = twin(&[
+        "scope",
+        s(&run),
+        "--from",
+        &from.to_string(),
+        "--to",
+        &to.to_string(),
+        "--vcd",
+        s(&vcd),
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(
+        text(&o).contains("with bits flipped by noise"),
+        "{}",
+        text(&o)
+    );
+    let bit_s = 1.0 / 115_200.0;
+    let vcd_from = (from * 1e9).round() * 1e-9;
+    let received = as_received(&inside, &marks);
+    let want = recorded(&received, 10.0 * bit_s);
+    let sent = recorded(&inside, 10.0 * bit_s);
+    let wrong: Vec<usize> = (0..sent.len())
+        .filter(|&k| sent[k].0 != want[k].0)
+        .collect();
+    assert!(!wrong.is_empty(), "the flipped byte is in the window");
+    // The pair: a wrong byte exactly where the engine flipped bits, the
+    // bytes as sent everywhere else.
+    let uart = |line: &str| format!("uart:rx=bus.rs485.{line}:baudrate=115200");
+    let got = decode(&vcd, "vcd", &uart("line"), "uart=rx-data");
+    same_within_a_bit(
+        "the pair",
+        &bytes_at(&got, vcd_from, 1e-9, bit_s),
+        &want,
+        bit_s,
+    );
+    // Each listener's RX shows what it got: ev-meb has two nodes, so each
+    // frame has one listener and its RX reads as the pair does.
+    for (node, other) in [("ev1", "supervisor"), ("supervisor", "ev1")] {
+        let heard: Vec<BusFrame> = received
+            .iter()
+            .filter(|f| f.from == other)
+            .cloned()
+            .collect();
+        let got = decode(&vcd, "vcd", &uart(&format!("{node}.rx")), "uart=rx-data");
+        same_within_a_bit(
+            &format!("{node}'s RX"),
+            &bytes_at(&got, vcd_from, 1e-9, bit_s),
+            &recorded(&heard, 10.0 * bit_s),
+            bit_s,
+        );
+    }
+    // The talkers' TX lines carry what was sent.
+    let sup: Vec<BusFrame> = inside
+        .iter()
+        .filter(|f| f.from == "supervisor")
+        .cloned()
+        .collect();
+    let got = decode(&vcd, "vcd", &uart("supervisor.tx"), "uart=rx-data");
+    same_within_a_bit(
+        "the supervisor's TX",
+        &bytes_at(&got, vcd_from, 1e-9, bit_s),
+        &recorded(&sup, 10.0 * bit_s),
+        bit_s,
+    );
+}
+
+#[test]
+fn a_window_that_opens_on_a_start_bit_begins_with_idle_line() {
+    let (run, frames) = run("ev-meb", "0.2", "lead-in.mcap");
+    let f = frames.iter().position(|f| f.time_s > 0.1).unwrap();
+    let (_, to, inside) = window(&frames, f, f + 1);
+    // From the first start bit itself: without idle line before it, a
+    // decoder would see no falling edge and misread the first byte.
+    let from = inside[0].time_s;
+    let (vcd, sr) = (scratch("lead-in.vcd"), scratch("lead-in.sr"));
+    let o = twin(&[
+        "scope",
+        s(&run),
+        "--from",
+        &from.to_string(),
+        "--to",
+        &to.to_string(),
+        "--vcd",
+        s(&vcd),
+        "--sr",
+        s(&sr),
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(
+        text(&o).contains("after a character of idle line"),
+        "{}",
+        text(&o)
+    );
+    let bit_s = 1.0 / 115_200.0;
+    let char_s = 10.0 * bit_s;
+    let want = recorded(&inside, char_s);
+    let uart = "uart:rx=bus.rs485.line:baudrate=115200";
+    let vcd_from = (from * 1e9).round() * 1e-9 - (char_s * 1e9).floor() * 1e-9;
+    let got = decode(&vcd, "vcd", uart, "uart=rx-data");
+    same_within_a_bit("VCD", &bytes_at(&got, vcd_from, 1e-9, bit_s), &want, bit_s);
+    let got = decode(&sr, "srzip", uart, "uart=rx-data");
+    let rate = 16.0 * 115_200.0;
+    same_within_a_bit(
+        "sr",
+        &bytes_at(&got, from - char_s, 1.0 / rate, bit_s),
+        &want,
+        bit_s,
+    );
 }
 
 #[test]

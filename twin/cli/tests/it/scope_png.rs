@@ -257,3 +257,69 @@ fn a_frame_out_of_range_is_an_error_and_draws_nothing() {
     assert!(text(&o).contains(&want), "{}", text(&o));
     assert!(!png.exists(), "a picture was drawn");
 }
+
+#[test]
+fn a_picture_is_drawn_at_the_size_asked_and_still_reads_back() {
+    let (run, frames) = run("ev-meb", "0.2", "png-size.mcap");
+    let bit_s = 1.0 / 115_200.0;
+    let (n, f) = frames
+        .iter()
+        .enumerate()
+        .skip(10)
+        .find(|(_, f)| f.bytes.len() <= 16)
+        .expect("a short frame");
+    let png = scratch("size.png");
+    let o = twin(&[
+        "scope",
+        s(&run),
+        "--frame",
+        &n.to_string(),
+        "--png",
+        s(&png),
+        "--width",
+        "1920",
+        "--height",
+        "720",
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("1920×720 px"), "{}", text(&o));
+    let picture = Picture::read(&png);
+    assert_eq!((picture.width, picture.height), (1920, 720));
+    let names = channels(&text(&o), &png);
+    let line = names.len() - 1;
+    assert_eq!(names[line], "bus line");
+    let trace = Trace::find(&picture, line);
+    let want: Vec<Option<bool>> = bits(f).into_iter().map(Some).collect();
+    let window = frame_window(f, bit_s);
+    assert_eq!(read_bits(&trace, f, window, bit_s), want);
+
+    // A size no picture can have is refused, saying what can be.
+    let o = twin(&[
+        "scope",
+        s(&run),
+        "--frame",
+        "1",
+        "--png",
+        s(&png),
+        "--width",
+        "100",
+    ]);
+    assert!(!o.status.success());
+    assert!(
+        text(&o).contains("a width of 100 px: give 640 to 16384 px"),
+        "{}",
+        text(&o)
+    );
+    let o = twin(&[
+        "scope",
+        s(&run),
+        "--frame",
+        "1",
+        "--png",
+        s(&png),
+        "--height",
+        "50",
+    ]);
+    assert!(!o.status.success());
+    assert!(text(&o).contains("a height of 50 px: "), "{}", text(&o));
+}
