@@ -12,8 +12,9 @@ use twin_scope::{Choice, Window, sigrok, vcd_out};
 ///
 /// Each frame is laid out bit by bit at the bus's baud and character format
 /// (start bit, 8 data bits least significant first, parity, stop bits) on the
-/// lines one would probe: the pair itself (`bus.rs485.line`: what a receiver
-/// sees; where two nodes drive at once, low wherever either drives low), and
+/// lines one would probe: the pair itself (`bus.rs485.line`: what the
+/// receivers got; where two nodes drive at once, each one's characters as
+/// the engine garbled them, low wherever either is low), and
 /// per node its UART's TX, its RS-485 driver enable (`de`) and its RX (off,
 /// so high, while the node drives). A real-time session's link (`twin
 /// serve`, `twin supervise`) has no line to probe: its waveform is

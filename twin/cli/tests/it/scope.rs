@@ -54,11 +54,11 @@ fn same_frame(m: &LineSample, f: &BusFrame) -> bool {
 fn as_received(frames: &[BusFrame], marks: &[LineSample]) -> Vec<BusFrame> {
     let mut frames = frames.to_vec();
     for f in &mut frames {
-        let ours = marks.iter().filter(|m| same_frame(m, f));
-        for m in ours.clone().filter(|m| m.kind == LINE_COLLISION) {
+        let ours: Vec<&LineSample> = marks.iter().filter(|m| same_frame(m, f)).collect();
+        for m in ours.iter().filter(|m| m.kind == LINE_COLLISION) {
             f.bytes[m.index] = m.byte;
         }
-        for m in ours.filter(|m| m.kind == LINE_NOISE) {
+        for m in ours.iter().filter(|m| m.kind == LINE_NOISE) {
             f.bytes[m.index] ^= m.mask;
         }
     }
