@@ -2,12 +2,13 @@
 //! holds what several of them share: an observer that keeps everything the
 //! engine reports in memory, and a way to run a scenario into it.
 
-use anyhow::Result;
 use nodes::node::NodeEvent;
 use plant::{Actuators, Sensors};
 use protocols::time::{SimDuration, SimTime};
-use twin_sim::engine::{BusSlot, Engine, ModuleSlot, NodeSlot, Observer};
+use twin_sim::engine::{BusSlot, Engine, ModuleSlot, NodeSlot, ObserveError, Observer};
 use twin_sim::scenario::Scenario;
+
+type Result<T, E = ObserveError> = std::result::Result<T, E>;
 
 /// One frame as it went on the wire.
 #[derive(Debug, Clone)]

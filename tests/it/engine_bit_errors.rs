@@ -65,7 +65,7 @@ impl Observer for Memory {
         _start: SimTime,
         end: SimTime,
         bytes: &[u8],
-    ) -> anyhow::Result<()> {
+    ) -> Result<(), twin_sim::engine::ObserveError> {
         self.frames.push(SentFrame {
             from: from.name.clone(),
             end,
@@ -78,7 +78,7 @@ impl Observer for Memory {
         at: SimTime,
         _: &NodeSlot,
         report: &twin_recording::topics::LoopReport,
-    ) -> anyhow::Result<()> {
+    ) -> Result<(), twin_sim::engine::ObserveError> {
         let value = &report.to_value();
         self.telemetry.push(Telemetry {
             at,

@@ -27,7 +27,9 @@
 mod master;
 mod slave;
 
-pub use master::{ParallelLink, ParallelMaster, ParallelMasterConfig, SlaveCounters};
+pub use master::{
+    ParallelConfigError, ParallelLink, ParallelMaster, ParallelMasterConfig, SlaveCounters,
+};
 pub use slave::{PwmAddressing, PwmSlave, PwmSlaveConfig, PwmSlaveCounters};
 
 use crate::link::pwmbus::PWM_RECORD_BYTES;

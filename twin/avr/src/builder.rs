@@ -7,6 +7,7 @@ use protocols::time::SimDuration;
 use std::path::Path;
 use twin_sim::engine::SimNode;
 use twin_sim::external::FirmwareBuilder;
+use twin_sim::nodes_build::BuildError;
 use twin_sim::scenario::{BusSpec, NodeSpec};
 
 use crate::node::{AvrNode, Board};
@@ -18,6 +19,18 @@ pub struct AvrBuilder;
 
 impl FirmwareBuilder for AvrBuilder {
     fn build(
+        &self,
+        spec: &NodeSpec,
+        module: Option<&PlantParams>,
+        bus: &BusSpec,
+    ) -> Result<(Box<dyn SimNode + Send>, SimDuration), BuildError> {
+        self.build_node(spec, module, bus)
+            .map_err(|e| BuildError::Firmware(e.into()))
+    }
+}
+
+impl AvrBuilder {
+    fn build_node(
         &self,
         spec: &NodeSpec,
         module: Option<&PlantParams>,

@@ -21,7 +21,7 @@ use plant::params::SensingParams;
 use plant::{Actuators, Sensors};
 use protocols::time::{SimDuration, SimTime, TICKS_PER_SECOND};
 use serde_json::json;
-use twin_sim::engine::{FirmwareFile, FirmwareRecord, SimNode, Streamed};
+use twin_sim::engine::{FirmwareFile, FirmwareRecord, ObserveError, SimNode, Streamed};
 
 use crate::ffi::{Core, Image, State};
 use crate::record::FirmwareLog;
@@ -943,8 +943,8 @@ impl SimNode for AvrNode {
 
     fn firmware_records(
         &mut self,
-        record: &mut dyn FnMut(FirmwareRecord<'_>) -> anyhow::Result<()>,
-    ) -> anyhow::Result<()> {
+        record: &mut dyn FnMut(FirmwareRecord<'_>) -> Result<(), ObserveError>,
+    ) -> Result<(), ObserveError> {
         let gap =
             SimDuration::from_secs_f64(2.0 * f64::from(self.uart.bits_per_char) / self.uart.baud);
         let now = self.to_time(self.core.cycle());

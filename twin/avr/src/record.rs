@@ -8,7 +8,7 @@
 use anyhow::Result;
 use protocols::time::{SimDuration, SimTime};
 use twin_recording::topics::{AdcInput, FirmwareIo, PinEdge, PinState, UartBurst};
-use twin_sim::engine::FirmwareRecord;
+use twin_sim::engine::{FirmwareRecord, ObserveError};
 
 /// Bytes a burst holds before it is recorded even if the line stays busy.
 const BURST_BYTES: usize = 1024;
@@ -294,8 +294,8 @@ impl FirmwareLog {
         &mut self,
         now: SimTime,
         gap: SimDuration,
-        record: &mut dyn FnMut(FirmwareRecord<'_>) -> Result<()>,
-    ) -> Result<()> {
+        record: &mut dyn FnMut(FirmwareRecord<'_>) -> Result<(), ObserveError>,
+    ) -> Result<(), ObserveError> {
         for dir in [&mut self.rx, &mut self.tx] {
             if !dir.done.bytes.is_empty() {
                 emit(&dir.done, &mut self.hex, &mut self.text, record)?;
@@ -326,8 +326,8 @@ fn emit(
     burst: &Burst,
     hex: &mut String,
     text: &mut String,
-    record: &mut dyn FnMut(FirmwareRecord<'_>) -> Result<()>,
-) -> Result<()> {
+    record: &mut dyn FnMut(FirmwareRecord<'_>) -> Result<(), ObserveError>,
+) -> Result<(), ObserveError> {
     hex.clear();
     text.clear();
     twin_recording::topics::put_hex(hex, &burst.bytes);

@@ -128,15 +128,11 @@ fn main() -> ExitCode {
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
-        // Stopped as asked, not failed: say where, and exit as a shell
+        // Stopped as asked, not failed: say where (a run cut short ends on
+        // `Interrupted`, the root of its error), and exit as a shell
         // reports a command stopped by Ctrl-C.
-        Err(e) if has_interrupt(&e) => {
-            if let Some(i) = e
-                .chain()
-                .find_map(|c| c.downcast_ref::<twin_sim::interrupt::Interrupted>())
-            {
-                eprintln!("{i}");
-            }
+        Err(e) if twin_sim::interrupt::requested() => {
+            eprintln!("{}", e.root_cause());
             ExitCode::from(130)
         }
         Err(e) => {
@@ -144,13 +140,6 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
-}
-
-fn has_interrupt(e: &anyhow::Error) -> bool {
-    e.chain().any(|c| {
-        c.downcast_ref::<twin_sim::interrupt::Interrupted>()
-            .is_some()
-    })
 }
 
 /// `twin run | head` closes our stdout early. Rust ignores SIGPIPE, so the next

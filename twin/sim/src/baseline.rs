@@ -4,14 +4,45 @@
 //! so a change in the physics or a protocol shows up as a named signal and
 //! time.
 
-use anyhow::{Context, Result, bail};
 use serde::Deserialize;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use crate::scenario::{EMBEDDED, Scenario};
-use twin_recording::Signals;
+use crate::scenario::{EMBEDDED, Scenario, ScenarioError};
+use crate::virtual_run::RunError;
 use twin_recording::compare::{self, Comparison, Tolerances};
+use twin_recording::{ReadError, Signals};
+
+/// Why a baseline could not be recorded or checked.
+#[derive(Debug, thiserror::Error)]
+pub enum BaselineError {
+    #[error("recordings/baselines/baselines.toml")]
+    Settings(#[source] toml::de::Error),
+    #[error(
+        "recordings/baselines/baselines.toml names `{name}`, which is not an embedded scenario"
+    )]
+    NotEmbedded { name: String },
+    #[error("no embedded scenario `{name}`: baselines exist for {names}")]
+    NoScenario { name: String, names: String },
+    #[error("no baseline for `{name}` at {}: record it with `twin baseline --record {name}`", path.display())]
+    NoBaseline { name: String, path: PathBuf },
+    #[error(transparent)]
+    Scenario(#[from] ScenarioError),
+    /// A baseline or a fresh run's recording that cannot be read.
+    #[error(transparent)]
+    Read(#[from] ReadError),
+    /// The run itself (boxed: a run's error is large, the rest are small).
+    #[error(transparent)]
+    Run(Box<RunError>),
+}
+
+impl From<RunError> for BaselineError {
+    fn from(e: RunError) -> Self {
+        BaselineError::Run(Box::new(e))
+    }
+}
+
+type Result<T, E = BaselineError> = std::result::Result<T, E>;
 
 /// The cut-down settings, built into the binary like the scenarios.
 pub const SETTINGS: &str = include_str!("../../../recordings/baselines/baselines.toml");
@@ -52,11 +83,11 @@ struct Settings {
 }
 
 fn settings() -> Result<Settings> {
-    let s: Settings = toml::from_str(SETTINGS).context("recordings/baselines/baselines.toml")?;
+    let s: Settings = toml::from_str(SETTINGS).map_err(BaselineError::Settings)?;
     if let Some(unknown) = s.scenario.keys().find(|k| !names().contains(&k.as_str())) {
-        bail!(
-            "recordings/baselines/baselines.toml names `{unknown}`, which is not an embedded scenario"
-        );
+        return Err(BaselineError::NotEmbedded {
+            name: unknown.clone(),
+        });
     }
     Ok(s)
 }
@@ -69,10 +100,10 @@ pub fn names() -> Vec<&'static str> {
 /// The scenario a baseline records: the embedded one, cut down.
 pub fn scenario(name: &str) -> Result<Scenario> {
     let Some((_, _, text)) = EMBEDDED.iter().find(|(n, _, _)| *n == name) else {
-        bail!(
-            "no embedded scenario `{name}`: baselines exist for {}",
-            names().join(", ")
-        );
+        return Err(BaselineError::NoScenario {
+            name: name.into(),
+            names: names().join(", "),
+        });
     };
     let mut s = Scenario::parse(text, &format!("embedded scenario {name}"))?;
     let settings = settings()?;
@@ -108,10 +139,10 @@ pub fn check(
 ) -> Result<Comparison> {
     let baseline_path = path(dir, name);
     if !baseline_path.exists() {
-        bail!(
-            "no baseline for `{name}` at {}: record it with `twin baseline --record {name}`",
-            baseline_path.display()
-        );
+        return Err(BaselineError::NoBaseline {
+            name: name.into(),
+            path: baseline_path,
+        });
     }
     let baseline = Signals::read(&baseline_path)?;
     let s = scenario(name)?;

@@ -8,12 +8,50 @@
 //! transmissions, each in declaration order), so the same scenario and seed
 //! always give the same run.
 
-use anyhow::Result;
-use nodes::link::{BusEvent, LineMark, Medium, PortId};
+use nodes::link::{BusError, BusEvent, LineMark, Medium, PortId};
 use nodes::node::{Firmware, MAX_FRAME, Node, NodeEvent};
 use plant::{Actuators, EvModule};
 use protocols::time::{SimDuration, SimTime};
+use twin_recording::WriteError;
 use twin_recording::topics::{LoopReport, ReadingsSample};
+
+/// Why the engine stopped a run before its end.
+#[derive(Debug, thiserror::Error)]
+pub enum EngineError {
+    /// Nodes that keep asking to be woken at an instant already handled.
+    #[error(
+        "simulated time stopped at {at_s:.6} s: node(s) {nodes} ask to be woken again and again at that instant"
+    )]
+    Stalled { at_s: f64, nodes: String },
+    /// A node that cannot go on ([`SimNode::failure`]: compiled firmware
+    /// that crashed), in its own words.
+    #[error("node `{node}`: {why}")]
+    NodeFailed { node: String, why: String },
+    /// A bus refused what a node sent on it.
+    #[error("bus `{bus}`")]
+    Bus {
+        bus: String,
+        #[source]
+        source: BusError,
+    },
+    /// An observer could not keep what it was given.
+    #[error(transparent)]
+    Observer(#[from] ObserveError),
+}
+
+/// Why an [`Observer`] could not keep what the engine reported.
+#[derive(Debug, thiserror::Error)]
+pub enum ObserveError {
+    /// The recording could not be written (the disk guard's stop is
+    /// [`WriteError::DiskFull`]).
+    #[error(transparent)]
+    Recording(#[from] WriteError),
+    /// An observer of another crate failed (a live view), in its own words.
+    #[error(transparent)]
+    Other(Box<dyn std::error::Error + Send + Sync>),
+}
+
+type Result<T, E = ObserveError> = std::result::Result<T, E>;
 
 /// Passes of the loop at one instant after which the engine calls it a stall
 /// (a busy bus with many nodes takes a few dozen).
@@ -536,7 +574,7 @@ impl Engine {
         end: SimTime,
         observer: &mut dyn Observer,
         mut progress: impl FnMut(SimTime),
-    ) -> Result<()> {
+    ) -> Result<(), EngineError> {
         let mut handled = 0u64;
         let mut passes_at_this_instant = 0u32;
         let mut until = end;
@@ -565,11 +603,10 @@ impl Engine {
                     .filter(|n| n.node.poll_timeout().is_some_and(|due| due <= t))
                     .map(|n| n.name.as_str())
                     .collect();
-                anyhow::bail!(
-                    "simulated time stopped at {:.6} s: node(s) {} ask to be woken again and again at that instant",
-                    t.as_secs_f64(),
-                    stuck.join(", ")
-                );
+                return Err(EngineError::Stalled {
+                    at_s: t.as_secs_f64(),
+                    nodes: stuck.join(", "),
+                });
             }
             self.now = t;
             self.deliver_bus_events(t, observer)?;
@@ -743,7 +780,11 @@ impl Engine {
         self.modules[m].advance(self.plant_step, t);
     }
 
-    fn tick_firmware(&mut self, t: SimTime, observer: &mut dyn Observer) -> Result<()> {
+    fn tick_firmware(
+        &mut self,
+        t: SimTime,
+        observer: &mut dyn Observer,
+    ) -> Result<(), EngineError> {
         for n in 0..self.nodes.len() {
             if self.nodes[n].next_tick.is_none_or(|due| due > t) {
                 continue;
@@ -762,7 +803,10 @@ impl Engine {
             self.events += 1;
             slot.next_tick = Some(next);
             if let Some(why) = slot.node.failure() {
-                anyhow::bail!("node `{}`: {why}", slot.name);
+                return Err(EngineError::NodeFailed {
+                    node: slot.name.clone(),
+                    why,
+                });
             }
             if changed {
                 observer.actuators(t, module)?;
@@ -771,7 +815,7 @@ impl Engine {
         Ok(())
     }
 
-    fn transmit_all(&mut self, observer: &mut dyn Observer) -> Result<()> {
+    fn transmit_all(&mut self, observer: &mut dyn Observer) -> Result<(), EngineError> {
         let t = self.now;
         for n in 0..self.nodes.len() {
             if !self.nodes[n].stirred {
@@ -784,7 +828,13 @@ impl Engine {
                 let len = len.min(self.tx.len());
                 let slot = &self.nodes[n];
                 let bus = &mut self.buses[slot.bus];
-                let info = bus.bus.send(t, slot.port, &self.tx[..len])?;
+                let info = bus
+                    .bus
+                    .send(t, slot.port, &self.tx[..len])
+                    .map_err(|source| EngineError::Bus {
+                        bus: bus.name.clone(),
+                        source,
+                    })?;
                 if let Some(sent) = bus.sent.get_mut(slot.port.index()) {
                     sent.clear();
                     sent.extend_from_slice(&self.tx[..len]);
@@ -806,7 +856,7 @@ impl Engine {
 
     /// Hands a streaming node's bytes to its bus as it found them, and
     /// records its frame when its line goes quiet.
-    fn stream_all(&mut self, n: usize, observer: &mut dyn Observer) -> Result<()> {
+    fn stream_all(&mut self, n: usize, observer: &mut dyn Observer) -> Result<(), EngineError> {
         let t = self.now;
         while let Some(out) = self.nodes[n].node.poll_stream(t) {
             let slot = &mut self.nodes[n];
@@ -817,7 +867,11 @@ impl Engine {
             let port = slot.port;
             match out {
                 Streamed::Byte { byte, start, end } => {
-                    bus.stream_byte(t, port, byte, start, end)?;
+                    bus.stream_byte(t, port, byte, start, end)
+                        .map_err(|source| EngineError::Bus {
+                            bus: bus_slot.name.clone(),
+                            source,
+                        })?;
                     if let Some(sent) = bus_slot.sent.get_mut(port.index()) {
                         if !slot.stream_open {
                             sent.clear();
@@ -855,7 +909,7 @@ impl Engine {
         &mut self,
         observer: &mut dyn Observer,
         wants_loop_reports: bool,
-    ) -> Result<()> {
+    ) -> Result<(), EngineError> {
         let t = self.now;
         for n in 0..self.nodes.len() {
             if !self.nodes[n].stirred {

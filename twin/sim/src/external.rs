@@ -5,17 +5,20 @@
 
 use std::sync::OnceLock;
 
-use anyhow::{Result, bail};
 use plant::PlantParams;
 use protocols::time::SimDuration;
 
 use crate::engine::SimNode;
+use crate::nodes_build::BuildError;
+
+type Result<T, E = BuildError> = std::result::Result<T, E>;
 use crate::scenario::{BusSpec, NodeSpec};
 
 /// Builds the nodes of kind `firmware`.
 pub trait FirmwareBuilder: Send + Sync {
     /// The node for `spec` on `bus`, with its module's parameters, and its
-    /// reply turnaround (the firmware's own: zero).
+    /// reply turnaround (the firmware's own: zero). What it refuses is
+    /// [`BuildError::Firmware`], in its own words.
     fn build(
         &self,
         spec: &NodeSpec,
@@ -51,9 +54,7 @@ pub fn build_firmware(
 
 /// The error for a firmware node where no builder is registered.
 pub fn unavailable<T>(spec: &NodeSpec) -> Result<T> {
-    bail!(
-        "node `{}` runs compiled AVR firmware: run this scenario with `twin-avr run`, \
-         the build of the twin that links simavr (GPL)",
-        spec.name()
-    )
+    Err(BuildError::FirmwareUnavailable {
+        node: spec.name().to_string(),
+    })
 }

@@ -1,7 +1,6 @@
 //! Turning a scenario's bus and node declarations into the nodes crate's
 //! objects, and what the engine needs from each kind of node.
 
-use anyhow::{Result, bail};
 use nodes::controller_network::{
     ControllerNetworkMaster, LightConfig, LightNode, MasterConfig, MasterProgram, MotorConfig,
     MotorNode, ScriptedRequest,
@@ -10,8 +9,8 @@ use nodes::firmware::{
     EvController, EvControllerConfig, LightDetectorConfig, Readings, Refusal, SlaveProtocol, ea,
 };
 use nodes::link::{
-    BusConfig, CheckKind, Fault, FaultWindow, FaultyNode, Junk, JunkBytes, JunkPlace, PortId,
-    SimBus, Wiring,
+    BusConfig, BusConfigError, CheckKind, Fault, FaultWindow, FaultyNode, Junk, JunkBytes,
+    JunkPlace, PortId, SimBus, Wiring,
 };
 use nodes::master::Supervisor;
 use nodes::master::{Protocol, SetPointStep, SlaveLoopConfig, SpeedSource, SupervisorConfig};
@@ -26,6 +25,78 @@ use crate::scenario::{
     NodeSpec, ProtocolSpec, RequestSpec, WiringSpec,
 };
 use twin_recording::topics::{LoopReport, MebWords, ReadingsSample, SlaveLoop, SupervisorReport};
+
+/// Why a scenario's buses and nodes could not be built.
+#[derive(Debug, thiserror::Error)]
+pub enum BuildError {
+    #[error("bus `{bus}` is wired master-slaves but has no master node")]
+    NoMaster { bus: String },
+    /// A serial bus's line settings the bus refused.
+    #[error("bus `{bus}`")]
+    Bus {
+        bus: String,
+        #[source]
+        source: BusConfigError,
+    },
+    /// A PWM-capture link's setting out of range.
+    #[error("bus `{bus}`: `{field}` {message}")]
+    BusSetting {
+        bus: String,
+        field: String,
+        message: String,
+    },
+    /// A PWM-capture node's coding out of range.
+    #[error("`{field}` {message}")]
+    Coding { field: String, message: String },
+    /// A PWM-capture line the line model refused.
+    #[error("bus `{bus}`")]
+    PwmLine {
+        bus: String,
+        #[source]
+        source: nodes::link::PwmLineError,
+    },
+    #[error(
+        "bus `{bus}`: calibration found no start width up to {max_ticks} extra ticks: the line is too slow or too noisy for this coding"
+    )]
+    CalibrationFailed { bus: String, max_ticks: u32 },
+    /// A node that drives or reads a module, declared without one.
+    #[error("{kind} needs a module")]
+    NoModule { kind: &'static str },
+    /// A scripted request that is not a frame.
+    #[error("request at {at_s} s: {why}")]
+    Request { at_s: f64, why: String },
+    #[error("PWM slave id {id} is outside 1..=15")]
+    PwmSlaveId { id: u8 },
+    #[error("a parallel-module node needs its bus: build it with nodes_parallel::build_node_on")]
+    NeedsBus,
+    #[error("node `{node}`: no bus `{bus}`")]
+    NoBus { node: String, bus: String },
+    #[error(
+        "node `{node}` runs compiled AVR firmware: run this scenario with `twin-avr run`, \
+         the build of the twin that links simavr (GPL)"
+    )]
+    FirmwareUnavailable { node: String },
+    /// What the registered builder of firmware nodes refused, in its words.
+    #[error(transparent)]
+    Firmware(Box<dyn std::error::Error + Send + Sync>),
+    /// One node of the scenario could not be built.
+    #[error("node `{node}`")]
+    Node {
+        node: String,
+        #[source]
+        source: Box<BuildError>,
+    },
+    /// A supervisor's settings its loop refused.
+    #[error(transparent)]
+    Supervisor(#[from] nodes::master::SupervisorConfigError),
+    /// A parallel-module master's settings it refused.
+    #[error(transparent)]
+    ParallelMaster(#[from] nodes::parallel::ParallelConfigError),
+    #[error(transparent)]
+    Scenario(#[from] crate::scenario::ScenarioError),
+}
+
+type Result<T, E = BuildError> = std::result::Result<T, E>;
 
 fn ms(v: f64) -> SimDuration {
     SimDuration::from_secs_f64(v / 1000.0)
@@ -44,10 +115,9 @@ pub fn build_bus(spec: &BusSpec, seed: u64, master: Option<usize>) -> Result<Sim
             master: PortId(m as u16),
         },
         (WiringSpec::MasterSlaves, None) => {
-            bail!(
-                "bus `{}` is wired master-slaves but has no master node",
-                spec.name
-            )
+            return Err(BuildError::NoMaster {
+                bus: spec.name.clone(),
+            });
         }
     };
     let config = BusConfig {
@@ -57,7 +127,10 @@ pub fn build_bus(spec: &BusSpec, seed: u64, master: Option<usize>) -> Result<Sim
         seed,
         wiring,
     };
-    SimBus::new(config).map_err(|e| anyhow::anyhow!("bus `{}`: {e}", spec.name))
+    SimBus::new(config).map_err(|source| BuildError::Bus {
+        bus: spec.name.clone(),
+        source,
+    })
 }
 
 fn fault_windows(faults: &[&FaultSpec]) -> Vec<FaultWindow> {
@@ -140,7 +213,9 @@ pub fn build_node(
             ..
         } => {
             let Some(params) = module else {
-                bail!("an ev-controller needs a module")
+                return Err(BuildError::NoModule {
+                    kind: "an ev-controller",
+                });
             };
             let mut config = EvControllerConfig::for_plant(params);
             config.light = light_detector_config(params, *light_detector);
@@ -241,7 +316,7 @@ pub fn build_node(
                 .iter()
                 .map(|r| {
                     let frame = crate::scenario::request_frame(&r.send)
-                        .map_err(|why| anyhow::anyhow!("request at {} s: {why}", r.at_s))?;
+                        .map_err(|why| BuildError::Request { at_s: r.at_s, why })?;
                     Ok(ScriptedRequest {
                         at: at(r.at_s),
                         frame,
@@ -257,12 +332,10 @@ pub fn build_node(
             .with_seed(seed);
             Ok((Box::new(node), SimDuration::ZERO))
         }
-        NodeSpec::Firmware { .. } => crate::external::unavailable(spec),
-        NodeSpec::ParallelMaster { .. } | NodeSpec::PwmSlave { .. } => {
-            bail!(
-                "a parallel-module node needs its bus: build it with nodes_parallel::build_node_on"
-            )
+        NodeSpec::Firmware { name, .. } => {
+            Err(BuildError::FirmwareUnavailable { node: name.clone() })
         }
+        NodeSpec::ParallelMaster { .. } | NodeSpec::PwmSlave { .. } => Err(BuildError::NeedsBus),
     }
 }
 

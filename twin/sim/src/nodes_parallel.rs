@@ -1,7 +1,6 @@
 //! Building the PWM-capture link and the parallel-module nodes of a
 //! scenario, and what the engine records of them.
 
-use anyhow::{Result, bail};
 use nodes::firmware::EvControllerConfig;
 use nodes::link::{Medium, PwmBus, PwmCalibration, PwmLine};
 use nodes::master::SetPointStep;
@@ -15,7 +14,9 @@ use protocols::time::{SimDuration, SimTime};
 use serde_json::{Value, json};
 
 use crate::engine::SimNode;
-use crate::nodes_build::{build_bus, build_node};
+use crate::nodes_build::{BuildError, build_bus, build_node};
+
+type Result<T, E = BuildError> = std::result::Result<T, E>;
 use crate::scenario::{
     AddressingSpec, BusSpec, FaultSpec, MediumSpec, NodeSpec, ParallelLinkSpec, RequestSpec,
 };
@@ -37,16 +38,23 @@ pub fn calibrated(spec: &BusSpec, seed: u64) -> Result<(BusSpec, Option<PwmCalib
     else {
         return Ok((spec.clone(), None));
     };
-    let config = pwm
-        .bus_config(seed, Some(0))
-        .map_err(|(field, msg)| anyhow::anyhow!("bus `{}`: `{field}` {msg}", spec.name))?;
-    let mut line = PwmLine::new(config.line, config.coding.clock_hz(), seed)?;
-    let Some(found) = PwmCalibration::find(&mut line, &config.coding)? else {
-        bail!(
-            "bus `{}`: calibration found no start width up to {} extra ticks: the line is too slow or too noisy for this coding",
-            spec.name,
-            PwmCalibration::MAX_ALLOWANCE_TICKS
-        );
+    let config =
+        pwm.bus_config(seed, Some(0))
+            .map_err(|(field, message)| BuildError::BusSetting {
+                bus: spec.name.clone(),
+                field,
+                message,
+            })?;
+    let line_error = |source| BuildError::PwmLine {
+        bus: spec.name.clone(),
+        source,
+    };
+    let mut line = PwmLine::new(config.line, config.coding.clock_hz(), seed).map_err(line_error)?;
+    let Some(found) = PwmCalibration::find(&mut line, &config.coding).map_err(line_error)? else {
+        return Err(BuildError::CalibrationFailed {
+            bus: spec.name.clone(),
+            max_ticks: PwmCalibration::MAX_ALLOWANCE_TICKS,
+        });
     };
     let mut spec = spec.clone();
     if let Some(p) = spec.pwmcap.as_mut() {
@@ -63,11 +71,17 @@ pub fn build_medium(spec: &BusSpec, seed: u64, master: Option<usize>) -> Result<
         MediumSpec::Serial => build_bus(spec, seed, master).map(Medium::from),
         MediumSpec::Pwmcap => {
             let pwm = spec.pwmcap.clone().unwrap_or_default();
-            let config = pwm
-                .bus_config(seed, master)
-                .map_err(|(field, msg)| anyhow::anyhow!("bus `{}`: `{field}` {msg}", spec.name))?;
-            let link =
-                PwmBus::new(config).map_err(|e| anyhow::anyhow!("bus `{}`: {e}", spec.name))?;
+            let config = pwm.bus_config(seed, master).map_err(|(field, message)| {
+                BuildError::BusSetting {
+                    bus: spec.name.clone(),
+                    field,
+                    message,
+                }
+            })?;
+            let link = PwmBus::new(config).map_err(|source| BuildError::PwmLine {
+                bus: spec.name.clone(),
+                source,
+            })?;
             Ok(Medium::from(link))
         }
     }
@@ -87,7 +101,7 @@ pub fn build_node_on(
     let pwm = bus.pwmcap.clone().unwrap_or_default();
     let controller = |params: Option<&PlantParams>, loop_ms: f64| -> Result<EvControllerConfig> {
         let Some(params) = params else {
-            bail!("this node needs a module")
+            return Err(BuildError::NoModule { kind: "this node" });
         };
         let mut config = EvControllerConfig::for_plant(params);
         config.loop_period = ms(loop_ms);
@@ -95,7 +109,7 @@ pub fn build_node_on(
     };
     let coding = || {
         pwm.coding()
-            .map_err(|(field, msg)| anyhow::anyhow!("`{field}` {msg}"))
+            .map_err(|(field, message)| BuildError::Coding { field, message })
     };
     let period_ticks = |coding: &protocols::pwmcap::PwmCoding| {
         coding.symbol_period_ticks().saturating_add(pwm.guard_ticks)
@@ -165,7 +179,7 @@ pub fn build_node_on(
                 controller: controller(module, *loop_period_ms)?,
             };
             let Some(slave) = PwmSlave::new(config) else {
-                bail!("PWM slave id {id} is outside 1..=15");
+                return Err(BuildError::PwmSlaveId { id: *id });
             };
             Ok((Box::new(slave), ms(*turnaround_ms)))
         }

@@ -11,7 +11,6 @@
 //! | `/controller/<node>/readings` | beside each plant sample | an EV controller's readings, named (`hall_rpm`, `light_rpm`, …) |
 //! | `/firmware/<node>/uart`, `/firmware/<node>/io` | UART bursts; every 10 ms | compiled firmware: its UART bytes with their cycles, its pins, ADC inputs and cycle count |
 
-use anyhow::Result;
 use nodes::link::{LineMark, PortId};
 use nodes::node::NodeEvent;
 use protocols::time::SimTime;
@@ -19,7 +18,9 @@ use serde::Serialize;
 use serde_json::{Value, json};
 use std::collections::{BTreeMap, VecDeque};
 
-use crate::engine::{BusSlot, FirmwareRecord, ModuleSlot, NodeSlot, Observer};
+use crate::engine::{BusSlot, FirmwareRecord, ModuleSlot, NodeSlot, ObserveError, Observer};
+
+type Result<T, E = ObserveError> = std::result::Result<T, E>;
 use twin_recording::describe::{FrameFields, LinkFrameFields, decode_frame};
 use twin_recording::protobuf::Protobuf;
 use twin_recording::record::{ChannelId, Recorder, WriteError};

@@ -1,11 +1,15 @@
 //! The first `twin run`: the bench in open loop, no nodes yet. Enable the
 //! inverter, release the brake, step `VEL` at a given time, record everything.
 
-use anyhow::Result;
 use plant::{Actuators, EvModule, PlantParams, Sensors};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use twin_recording::topics;
+
+use crate::scenario::ScenarioError;
+use crate::virtual_run::RunError;
+
+type Result<T, E = RunError> = std::result::Result<T, E>;
 
 /// What to run.
 #[derive(Debug, Clone)]
@@ -84,7 +88,10 @@ pub fn run_with(
     config: &OpenLoop,
     out: &Path,
     mut progress: impl FnMut(f64),
-    mut after_step: impl FnMut(&mut twin_recording::record::Recorder, &Sensors) -> Result<()>,
+    mut after_step: impl FnMut(
+        &mut twin_recording::record::Recorder,
+        &Sensors,
+    ) -> Result<(), twin_recording::WriteError>,
 ) -> Result<Summary> {
     let mut module = EvModule::new(&config.params, config.seed);
     let mut rec = twin_recording::record::Recorder::create(out)?;
@@ -130,7 +137,7 @@ pub fn run_with(
     })
 }
 
-fn run_metadata(config: &OpenLoop) -> Result<BTreeMap<String, String>> {
+fn run_metadata(config: &OpenLoop) -> Result<BTreeMap<String, String>, ScenarioError> {
     let mut fields = BTreeMap::from([
         ("kind".into(), "open-loop".into()),
         ("twin_version".into(), env!("CARGO_PKG_VERSION").into()),
@@ -141,7 +148,10 @@ fn run_metadata(config: &OpenLoop) -> Result<BTreeMap<String, String>> {
         ("vel_step_at_s".into(), config.vel_step_at_s.to_string()),
         ("vel_fraction".into(), config.vel_fraction.to_string()),
         ("record_hz".into(), config.record_hz.to_string()),
-        ("params_toml".into(), toml::to_string(&config.params)?),
+        (
+            "params_toml".into(),
+            toml::to_string(&config.params).map_err(ScenarioError::from)?,
+        ),
     ]);
     fields.extend(config.experiment.clone());
     // Only when set, so that a plain open-loop run's file stays as it was.

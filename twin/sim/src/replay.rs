@@ -3,14 +3,134 @@
 //! seed it ran with, or an open-loop run's settings and parameters), may be
 //! changed field by field (`--set node.supervisor.kp=0.6`), and runs again.
 
-use anyhow::{Context, Result, bail};
 use plant::PlantParams;
 use std::path::{Path, PathBuf};
 use toml::{Table, Value};
 
 use crate::openloop::{self, OpenLoop};
-use crate::scenario::Scenario;
+use crate::scenario::{Scenario, ScenarioError};
+use crate::virtual_run::RunError;
 use twin_recording::Recording;
+
+/// Why a recorded run cannot be read back, changed or run again.
+#[derive(Debug, thiserror::Error)]
+pub enum ReplayError {
+    #[error("{origin} has no `twin.run` metadata: it was not recorded by `twin run`")]
+    NoRunMetadata { origin: String },
+    #[error("{origin}: `twin.run` lacks `{field}`")]
+    MissingField { origin: String, field: String },
+    #[error("{origin}: `twin.run` field `{field}` is not a number")]
+    NotANumber {
+        origin: String,
+        field: String,
+        #[source]
+        source: std::num::ParseFloatError,
+    },
+    #[error("{origin}: `twin.run` field `seed` is not an integer")]
+    SeedNotInteger {
+        origin: String,
+        #[source]
+        source: std::num::ParseIntError,
+    },
+    #[error("{origin}: `params_toml` is not TOML")]
+    ParamsNotToml {
+        origin: String,
+        #[source]
+        source: toml::de::Error,
+    },
+    #[error("{origin}: open-loop settings in `twin.run`")]
+    OpenLoopSettings {
+        origin: String,
+        #[source]
+        source: Box<ReplayError>,
+    },
+    #[error(
+        "{origin} is a `twin {kind}` session: it ran in real time, with live masters or \
+         slaves and the machine's clock, so it cannot be run again. Its recorded requests \
+         can be sent to a live slave instead: `twin replay {origin} --frames-to LINK`"
+    )]
+    RealTime { origin: String, kind: String },
+    #[error(
+        "{origin} is a `twin check` run: it checked a live program over its link, so \
+         there is nothing to run again. Its frames and verdicts are in it: see them with \
+         `twin export {origin} --csv DIR` or `twin view {origin}`, and check the program \
+         again with `twin check`"
+    )]
+    CheckRun { origin: String },
+    #[error(
+        "{origin} was recorded by a run of kind `{kind}`, which this twin ({version}) cannot \
+         run again: it may come from a newer twin"
+    )]
+    UnknownKind {
+        origin: String,
+        kind: String,
+        version: &'static str,
+    },
+    #[error("`preset` must be a preset name")]
+    PresetNotNamed,
+    #[error("unknown preset `{preset}`")]
+    UnknownPreset { preset: String },
+    #[error("`params` must be a table")]
+    ParamsNotTable,
+    #[error("`{field}` must be a number")]
+    SettingNotANumber { field: String },
+    #[error("`seed` must be a non-negative integer")]
+    BadSeed,
+    #[error("`{field}` must be a positive number, got {value}")]
+    NotPositive { field: String, value: f64 },
+    #[error("`{field}` is a fraction of VEL's 5 V range: 0 to 1, got {value}")]
+    NotAFraction { field: String, value: f64 },
+    #[error("`vel_step_at_s` must be 0 or more, got {value}")]
+    StepBeforeStart { value: f64 },
+    #[error("--set `{set}`: write PATH=VALUE, e.g. node.supervisor.kp=0.6")]
+    SetSyntax { set: String },
+    /// One `--set` that could not be applied.
+    #[error("--set `{set}`")]
+    Set {
+        set: String,
+        #[source]
+        source: Box<ReplayError>,
+    },
+    #[error("`{path}` is not a dotted path")]
+    NotDottedPath { path: String },
+    #[error("`{path}` is a list: name a field of one of its items")]
+    ListNeedsItem { path: String },
+    #[error("`{path}` has no item `{pick}`: its items are {names} (or an index below {count})")]
+    NoItem {
+        path: String,
+        pick: String,
+        names: String,
+        count: usize,
+    },
+    #[error("`{path}` is not a table")]
+    NotATable { path: String },
+    #[error("`{path}` is a value, not a table")]
+    ValueNotTable { path: String },
+    /// The run as `--set` left it, which no longer holds together.
+    #[error("{origin}")]
+    Edited {
+        origin: String,
+        #[source]
+        source: Box<ReplayError>,
+    },
+    #[error(transparent)]
+    Scenario(#[from] ScenarioError),
+    #[error(transparent)]
+    Params(#[from] plant::ParamsError),
+    #[error(transparent)]
+    Toml(#[from] toml::ser::Error),
+    /// The run itself (boxed: a run's error is large, the rest are small).
+    #[error(transparent)]
+    Run(Box<RunError>),
+}
+
+impl From<RunError> for ReplayError {
+    fn from(e: RunError) -> Self {
+        ReplayError::Run(Box::new(e))
+    }
+}
+
+type Result<T, E = ReplayError> = std::result::Result<T, E>;
 
 /// What a recording says was run.
 #[derive(Debug, Clone)]
@@ -24,13 +144,16 @@ impl RunSpec {
     pub fn from_recording(recording: &Recording) -> Result<Self> {
         let origin = recording.path.display().to_string();
         let Some(kind) = recording.run_field("kind") else {
-            bail!("{origin} has no `twin.run` metadata: it was not recorded by `twin run`");
+            return Err(ReplayError::NoRunMetadata { origin });
         };
         match kind {
             "scenario" => {
-                let text = recording
-                    .run_field("scenario_toml")
-                    .with_context(|| format!("{origin}: `twin.run` lacks `scenario_toml`"))?;
+                let text = recording.run_field("scenario_toml").ok_or_else(|| {
+                    ReplayError::MissingField {
+                        origin: origin.clone(),
+                        field: "scenario_toml".into(),
+                    }
+                })?;
                 Ok(Self::Scenario(Scenario::parse(
                     text,
                     &format!("{origin}, scenario_toml"),
@@ -38,26 +161,22 @@ impl RunSpec {
             }
             "open-loop" => Ok(Self::OpenLoop(open_loop_table(recording).and_then(
                 |t| {
-                    open_loop_from_table(&t)
-                        .with_context(|| format!("{origin}: open-loop settings in `twin.run`"))
+                    open_loop_from_table(&t).map_err(|source| ReplayError::OpenLoopSettings {
+                        origin: origin.clone(),
+                        source: Box::new(source),
+                    })
                 },
             )?)),
-            "serve" | "supervise" => bail!(
-                "{origin} is a `twin {kind}` session: it ran in real time, with live masters or \
-                 slaves and the machine's clock, so it cannot be run again. Its recorded requests \
-                 can be sent to a live slave instead: `twin replay {origin} --frames-to LINK`"
-            ),
-            "check" => bail!(
-                "{origin} is a `twin check` run: it checked a live program over its link, so \
-                 there is nothing to run again. Its frames and verdicts are in it: see them with \
-                 `twin export {origin} --csv DIR` or `twin view {origin}`, and check the program \
-                 again with `twin check`"
-            ),
-            other => bail!(
-                "{origin} was recorded by a run of kind `{other}`, which this twin ({}) cannot \
-                 run again: it may come from a newer twin",
-                env!("CARGO_PKG_VERSION")
-            ),
+            "serve" | "supervise" => Err(ReplayError::RealTime {
+                origin,
+                kind: kind.to_string(),
+            }),
+            "check" => Err(ReplayError::CheckRun { origin }),
+            other => Err(ReplayError::UnknownKind {
+                origin,
+                kind: other.to_string(),
+                version: env!("CARGO_PKG_VERSION"),
+            }),
         }
     }
 
@@ -75,7 +194,7 @@ impl RunSpec {
         match self {
             RunSpec::Scenario(_) => Ok(RunSpec::Scenario(scenario_from_table(&table, &origin)?)),
             RunSpec::OpenLoop(_) => Ok(RunSpec::OpenLoop(
-                open_loop_from_table(&table).context(origin)?,
+                open_loop_from_table(&table).map_err(|e| edited_error(origin, e))?,
             )),
         }
     }
@@ -97,7 +216,7 @@ impl RunSpec {
         }
         let spec = RunSpec::OpenLoop(Box::new(config));
         let table = edited(spec.to_table()?, overrides)?;
-        Ok(*open_loop_from_table(&table).context(origin_of(overrides))?)
+        Ok(*open_loop_from_table(&table).map_err(|e| edited_error(origin_of(overrides), e))?)
     }
 
     fn to_table(&self) -> Result<Table> {
@@ -159,18 +278,26 @@ fn open_loop_table(recording: &Recording) -> Result<Table> {
     let field = |k: &str| {
         recording
             .run_field(k)
-            .with_context(|| format!("{origin}: `twin.run` lacks `{k}`"))
+            .ok_or_else(|| ReplayError::MissingField {
+                origin: origin.clone(),
+                field: k.into(),
+            })
     };
     let number = |k: &str| -> Result<f64> {
-        field(k)?
-            .parse()
-            .with_context(|| format!("{origin}: `twin.run` field `{k}` is not a number"))
+        field(k)?.parse().map_err(|source| ReplayError::NotANumber {
+            origin: origin.clone(),
+            field: k.into(),
+            source,
+        })
     };
     let mut t = Table::new();
     t.insert("preset".into(), Value::String(field("preset")?.into()));
     let seed: i64 = field("seed")?
         .parse()
-        .with_context(|| format!("{origin}: `twin.run` field `seed` is not an integer"))?;
+        .map_err(|source| ReplayError::SeedNotInteger {
+            origin: origin.clone(),
+            source,
+        })?;
     t.insert("seed".into(), Value::Integer(seed));
     for k in ["duration_s", "step_s", "vel_step_at_s", "vel_fraction"] {
         t.insert(k.into(), Value::Float(number(k)?));
@@ -187,8 +314,11 @@ fn open_loop_table(recording: &Recording) -> Result<Table> {
         None => 0.0,
     };
     t.insert("vel_before_fraction".into(), Value::Float(before));
-    let params: Table = toml::from_str(field("params_toml")?)
-        .with_context(|| format!("{origin}: `params_toml` is not TOML"))?;
+    let params: Table =
+        toml::from_str(field("params_toml")?).map_err(|source| ReplayError::ParamsNotToml {
+            origin: origin.clone(),
+            source,
+        })?;
     t.insert("params".into(), Value::Table(params));
     Ok(t)
 }
@@ -197,14 +327,16 @@ fn open_loop_from_table(t: &Table) -> Result<Box<OpenLoop>> {
     let preset = t
         .get("preset")
         .and_then(Value::as_str)
-        .context("`preset` must be a preset name")?;
+        .ok_or(ReplayError::PresetNotNamed)?;
     let Some(base) = PlantParams::preset(preset) else {
-        bail!("unknown preset `{preset}`");
+        return Err(ReplayError::UnknownPreset {
+            preset: preset.to_string(),
+        });
     };
     let params_text = toml::to_string(
         t.get("params")
             .and_then(Value::as_table)
-            .context("`params` must be a table")?,
+            .ok_or(ReplayError::ParamsNotTable)?,
     )?;
     let params = PlantParams::from_toml(&params_text, Path::new("params"), &base)?;
     let mut o = OpenLoop::new(params, preset);
@@ -212,7 +344,7 @@ fn open_loop_from_table(t: &Table) -> Result<Box<OpenLoop>> {
         let v = match t.get(k) {
             Some(Value::Float(f)) => *f,
             Some(Value::Integer(i)) => *i as f64,
-            _ => bail!("`{k}` must be a number"),
+            _ => return Err(ReplayError::SettingNotANumber { field: k.into() }),
         };
         Ok(v)
     };
@@ -220,7 +352,7 @@ fn open_loop_from_table(t: &Table) -> Result<Box<OpenLoop>> {
         .get("seed")
         .and_then(Value::as_integer)
         .and_then(|s| u64::try_from(s).ok())
-        .context("`seed` must be a non-negative integer")?;
+        .ok_or(ReplayError::BadSeed)?;
     o.duration_s = number("duration_s")?;
     o.step_s = number("step_s")?;
     o.vel_step_at_s = number("vel_step_at_s")?;
@@ -236,7 +368,10 @@ fn open_loop_from_table(t: &Table) -> Result<Box<OpenLoop>> {
         ("record_hz", o.record_hz),
     ] {
         if !(v.is_finite() && v > 0.0) {
-            bail!("`{k}` must be a positive number, got {v}");
+            return Err(ReplayError::NotPositive {
+                field: k.into(),
+                value: v,
+            });
         }
     }
     for (k, v) in [
@@ -244,11 +379,16 @@ fn open_loop_from_table(t: &Table) -> Result<Box<OpenLoop>> {
         ("vel_before_fraction", o.vel_before_fraction),
     ] {
         if !(0.0..=1.0).contains(&v) {
-            bail!("`{k}` is a fraction of VEL's 5 V range: 0 to 1, got {v}");
+            return Err(ReplayError::NotAFraction {
+                field: k.into(),
+                value: v,
+            });
         }
     }
     if !(o.vel_step_at_s >= 0.0 && o.vel_step_at_s.is_finite()) {
-        bail!("`vel_step_at_s` must be 0 or more, got {}", o.vel_step_at_s);
+        return Err(ReplayError::StepBeforeStart {
+            value: o.vel_step_at_s,
+        });
     }
     Ok(Box::new(o))
 }
@@ -268,7 +408,7 @@ pub fn parse_value(raw: &str) -> Value {
 fn set_path(table: &mut Table, path: &str, value: Value) -> Result<()> {
     let parts: Vec<&str> = path.split('.').collect();
     if parts.iter().any(|p| p.is_empty()) {
-        bail!("`{path}` is not a dotted path");
+        return Err(ReplayError::NotDottedPath { path: path.into() });
     }
     let mut here: &mut Table = table;
     let mut i = 0;
@@ -287,7 +427,7 @@ fn set_path(table: &mut Table, path: &str, value: Value) -> Result<()> {
             Value::Array(items) => {
                 i += 1;
                 if i + 1 == parts.len() {
-                    bail!("`{walked}` is a list: name a field of one of its items");
+                    return Err(ReplayError::ListNeedsItem { path: walked });
                 }
                 let pick = parts[i];
                 let names: Vec<String> = items
@@ -298,19 +438,26 @@ fn set_path(table: &mut Table, path: &str, value: Value) -> Result<()> {
                     Ok(n) if n < items.len() => n,
                     _ => match names.iter().position(|n| n == pick) {
                         Some(n) => n,
-                        None => bail!(
-                            "`{walked}` has no item `{pick}`: its items are {} (or an index below {})",
-                            names.join(", "),
-                            items.len()
-                        ),
+                        None => {
+                            return Err(ReplayError::NoItem {
+                                path: walked,
+                                pick: pick.into(),
+                                names: names.join(", "),
+                                count: items.len(),
+                            });
+                        }
                     },
                 };
                 match &mut items[index] {
                     Value::Table(t) => t,
-                    _ => bail!("`{walked}.{pick}` is not a table"),
+                    _ => {
+                        return Err(ReplayError::NotATable {
+                            path: format!("{walked}.{pick}"),
+                        });
+                    }
                 }
             }
-            _ => bail!("`{walked}` is a value, not a table"),
+            _ => return Err(ReplayError::ValueNotTable { path: walked }),
         };
         i += 1;
     }
@@ -323,17 +470,30 @@ fn origin_of(overrides: &[String]) -> String {
 fn edited(mut table: Table, overrides: &[String]) -> Result<Table> {
     for o in overrides {
         let Some((path, raw)) = o.split_once('=') else {
-            bail!("--set `{o}`: write PATH=VALUE, e.g. node.supervisor.kp=0.6");
+            return Err(ReplayError::SetSyntax { set: o.clone() });
         };
-        set_path(&mut table, path.trim(), parse_value(raw.trim()))
-            .with_context(|| format!("--set `{o}`"))?;
+        set_path(&mut table, path.trim(), parse_value(raw.trim())).map_err(|source| {
+            ReplayError::Set {
+                set: o.clone(),
+                source: Box::new(source),
+            }
+        })?;
     }
     Ok(table)
 }
 
 fn scenario_from_table(table: &Table, origin: &str) -> Result<Scenario> {
     let text = toml::to_string(table)?;
-    Scenario::parse(&text, "the edited scenario").context(origin.to_string())
+    Scenario::parse(&text, "the edited scenario")
+        .map_err(|e| edited_error(origin.to_string(), e.into()))
+}
+
+/// `error` in the run as `--set` left it (`origin`).
+fn edited_error(origin: String, error: ReplayError) -> ReplayError {
+    ReplayError::Edited {
+        origin,
+        source: Box::new(error),
+    }
 }
 
 #[cfg(test)]

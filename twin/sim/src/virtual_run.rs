@@ -1,19 +1,62 @@
 //! Running a scenario on the virtual clock and recording it.
 
-use anyhow::{Context, Result, bail};
 use plant::{EvModule, PlantParams};
 use protocols::time::{SimDuration, SimTime};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use crate::engine::Engine;
+use crate::engine::{Engine, EngineError};
 use crate::interrupt::Interrupted;
-use crate::nodes_build::{is_master, light_detector_config};
+use crate::nodes_build::{BuildError, is_master, light_detector_config};
 use crate::nodes_parallel::{build_medium, build_node_on, calibrated};
 use crate::observe::McapObserver;
 use crate::observe::SimRecorder;
-use crate::scenario::{NodeSpec, Scenario};
+use crate::scenario::{NodeSpec, Scenario, ScenarioError};
+use twin_recording::WriteError;
 use twin_recording::topics::{self, ReadingsSample};
+
+/// Why a run on the virtual clock (a scenario's, or the open-loop bench's)
+/// did not give its outcome.
+#[derive(Debug, thiserror::Error)]
+pub enum RunError {
+    #[error(transparent)]
+    Scenario(#[from] ScenarioError),
+    #[error(transparent)]
+    Build(#[from] BuildError),
+    /// The recording could not be written.
+    #[error(transparent)]
+    Recording(#[from] WriteError),
+    #[error(transparent)]
+    Engine(#[from] EngineError),
+    /// The run stopped on its own before its end (a node that failed, a
+    /// recording that could not go on); what was recorded up to there is
+    /// kept, whole.
+    #[error(
+        "the run stopped at {at_s:.6} s simulated; its recording up to there is {}",
+        recording.display()
+    )]
+    Stopped {
+        at_s: f64,
+        recording: PathBuf,
+        #[source]
+        source: Box<RunError>,
+    },
+    /// Stopped as asked (Ctrl-C): not a failure, but not the whole run.
+    #[error(transparent)]
+    Interrupted(#[from] Interrupted),
+}
+
+impl RunError {
+    /// The stop asked from outside, if that is why the run ended.
+    pub fn interrupted(&self) -> Option<&Interrupted> {
+        match self {
+            RunError::Interrupted(i) => Some(i),
+            _ => None,
+        }
+    }
+}
+
+type Result<T, E = RunError> = std::result::Result<T, E>;
 
 /// What a run reports at the end.
 #[derive(Debug, Clone)]
@@ -59,7 +102,7 @@ pub struct LightDetectorOf {
 }
 
 /// The light detector of each `ev-controller` of `scenario`.
-pub fn light_detectors(scenario: &Scenario) -> Result<Vec<LightDetectorOf>> {
+pub fn light_detectors(scenario: &Scenario) -> Result<Vec<LightDetectorOf>, ScenarioError> {
     let mut found = Vec::new();
     for node in &scenario.nodes {
         let NodeSpec::EvController {
@@ -103,6 +146,7 @@ pub fn calibrated_buses(
         crate::scenario::BusSpec,
         Option<nodes::link::PwmCalibration>,
     )>,
+    BuildError,
 > {
     scenario
         .buses
@@ -113,7 +157,7 @@ pub fn calibrated_buses(
 }
 
 /// Build the engine for a scenario.
-pub fn build(scenario: &Scenario) -> Result<Engine> {
+pub fn build(scenario: &Scenario) -> Result<Engine, BuildError> {
     let plant_step = SimDuration::from_secs_f64(scenario.plant_step_s);
     let record_period = SimDuration::from_secs_f64(1.0 / scenario.record_hz);
     let mut engine = Engine::new(plant_step, record_period);
@@ -139,7 +183,10 @@ pub fn build(scenario: &Scenario) -> Result<Engine> {
     }
     for (i, spec) in scenario.nodes.iter().enumerate() {
         let Some(&bus) = bus_index.get(spec.bus()) else {
-            bail!("node `{}`: no bus `{}`", spec.name(), spec.bus());
+            return Err(BuildError::NoBus {
+                node: spec.name().to_string(),
+                bus: spec.bus().to_string(),
+            });
         };
         let module = spec.module().and_then(|m| params.get(m));
         let faults: Vec<_> = scenario
@@ -153,7 +200,10 @@ pub fn build(scenario: &Scenario) -> Result<Engine> {
             .filter(|r| r.node == spec.name())
             .collect();
         let Some((bus_spec, _)) = buses.iter().find(|(b, _)| b.name == spec.bus()) else {
-            bail!("node `{}`: no bus `{}`", spec.name(), spec.bus());
+            return Err(BuildError::NoBus {
+                node: spec.name().to_string(),
+                bus: spec.bus().to_string(),
+            });
         };
         let seed = derive_seed(scenario.seed, 500 + i as u64);
         let (node, turnaround) = build_node_on(
@@ -164,7 +214,10 @@ pub fn build(scenario: &Scenario) -> Result<Engine> {
             bus_spec,
             seed,
         )
-        .with_context(|| format!("node `{}`", spec.name()))?;
+        .map_err(|source| BuildError::Node {
+            node: spec.name().to_string(),
+            source: Box::new(source),
+        })?;
         let port = engine.buses[bus]
             .bus
             .add_port(nodes::link::PortConfig { turnaround });
@@ -219,7 +272,7 @@ pub fn run_sampled(
     progress: impl FnMut(f64),
     experiment: &BTreeMap<String, String>,
     sample_every: Option<SimDuration>,
-    on_sample: impl FnMut(SimTime, &Engine, &mut SimRecorder) -> Result<()>,
+    on_sample: impl FnMut(SimTime, &Engine, &mut SimRecorder) -> Result<(), WriteError>,
 ) -> Result<RunOutcome> {
     let mut discard = crate::engine::DiscardObserver;
     run_observed(
@@ -241,7 +294,7 @@ fn run_observed(
     mut progress: impl FnMut(f64),
     experiment: &BTreeMap<String, String>,
     sample_every: Option<SimDuration>,
-    mut on_sample: impl FnMut(SimTime, &Engine, &mut SimRecorder) -> Result<()>,
+    mut on_sample: impl FnMut(SimTime, &Engine, &mut SimRecorder) -> Result<(), WriteError>,
 ) -> Result<RunOutcome> {
     let mut engine = build(scenario)?;
     let pwm_calibrations: Vec<(String, nodes::link::PwmCalibration)> = calibrated_buses(scenario)?
@@ -252,7 +305,10 @@ fn run_observed(
     let mut identity = BTreeMap::from([
         ("kind".into(), "scenario".into()),
         ("scenario".into(), scenario.name.clone()),
-        ("scenario_toml".into(), toml::to_string(scenario)?),
+        (
+            "scenario_toml".into(),
+            toml::to_string(scenario).map_err(ScenarioError::from)?,
+        ),
         ("seed".into(), scenario.seed.to_string()),
         ("twin_version".into(), env!("CARGO_PKG_VERSION").into()),
     ]);
@@ -279,10 +335,12 @@ fn run_observed(
         second: also,
     };
     let ran = match sample_every.filter(|p| *p > SimDuration::ZERO) {
-        None => engine.run_until(end, &mut both, |t| {
-            progress(t.as_secs_f64() / scenario.duration_s)
-        }),
-        Some(period) => (|| {
+        None => engine
+            .run_until(end, &mut both, |t| {
+                progress(t.as_secs_f64() / scenario.duration_s)
+            })
+            .map_err(RunError::from),
+        Some(period) => (|| -> Result<()> {
             let mut t = SimTime::ZERO;
             on_sample(t, &engine, &mut both.first.recorder)?;
             while t < end && !engine.interrupted() {
@@ -298,21 +356,20 @@ fn run_observed(
         // A node that failed (firmware that crashed) stops the run; what
         // was recorded up to there is kept, whole.
         return Err(match observer.recorder.finish() {
-            Ok(path) => e.context(format!(
-                "the run stopped at {:.6} s simulated; its recording up to there is {}",
-                engine.now().as_secs_f64(),
-                path.display()
-            )),
+            Ok(recording) => RunError::Stopped {
+                at_s: engine.now().as_secs_f64(),
+                recording,
+                source: Box::new(e),
+            },
             Err(_) => e,
         });
     }
     if engine.interrupted() {
         let recording = observer.recorder.finish()?;
-        return Err(Interrupted {
+        return Err(RunError::Interrupted(Interrupted {
             at_s: engine.now().as_secs_f64(),
             recording: Some(recording),
-        }
-        .into());
+        }));
     }
     progress(1.0);
     let modules = engine

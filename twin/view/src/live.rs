@@ -12,7 +12,7 @@ use std::time::Duration;
 use super::blueprint::blueprint;
 use super::layout::ViewLayout;
 use super::logger::{PlantSample, RerunLogger};
-use twin_sim::engine::{BusSlot, ModuleSlot, NodeSlot, Observer};
+use twin_sim::engine::{BusSlot, ModuleSlot, NodeSlot, ObserveError, Observer};
 
 /// The application id the viewer groups the twin's recordings under.
 pub const APPLICATION_ID: &str = "ev-lab-twin";
@@ -159,7 +159,7 @@ fn secs(t: SimTime) -> f64 {
 }
 
 impl Observer for RerunObserver {
-    fn plant(&mut self, now: SimTime, module: &ModuleSlot) -> Result<()> {
+    fn plant(&mut self, now: SimTime, module: &ModuleSlot) -> Result<(), ObserveError> {
         let sample = PlantSample::from(module.plant.sensors());
         self.logger.plant(&module.name, secs(now), &sample);
         Ok(())
@@ -172,13 +172,13 @@ impl Observer for RerunObserver {
         start: SimTime,
         end: SimTime,
         bytes: &[u8],
-    ) -> Result<()> {
+    ) -> Result<(), ObserveError> {
         self.logger
             .frame(&bus.name, &from.name, secs(start), secs(end), bytes);
         Ok(())
     }
 
-    fn event(&mut self, node: &NodeSlot, event: &NodeEvent) -> Result<()> {
+    fn event(&mut self, node: &NodeSlot, event: &NodeEvent) -> Result<(), ObserveError> {
         self.logger
             .event(&node.name, secs(event.at), event.kind, &event.detail);
         Ok(())
@@ -189,7 +189,7 @@ impl Observer for RerunObserver {
         now: SimTime,
         node: &NodeSlot,
         report: &twin_recording::topics::LoopReport,
-    ) -> Result<()> {
+    ) -> Result<(), ObserveError> {
         self.logger
             .master_loop(&node.name, secs(now), &report.to_value());
         Ok(())
@@ -200,28 +200,38 @@ impl Observer for RerunObserver {
         now: SimTime,
         node: &NodeSlot,
         readings: &twin_recording::topics::ReadingsSample,
-    ) -> Result<()> {
+    ) -> Result<(), ObserveError> {
         self.logger.readings(&node.name, secs(now), readings);
         Ok(())
     }
 
     /// A firmware node's records, through the same path `twin view` reads
     /// them by (their JSON), so the live view and the file agree.
-    fn firmware(&mut self, node: &str, record: twin_sim::engine::FirmwareRecord<'_>) -> Result<()> {
+    fn firmware(&mut self, node: &str, record: twin_sim::engine::FirmwareRecord<'_>) -> Result<(), ObserveError> {
         use crate::logger::firmware::{FirmwareIo, UartBurst};
         use twin_sim::engine::FirmwareRecord;
         match record {
             FirmwareRecord::Uart(_, burst) => {
-                let b: UartBurst = serde_json::from_value(serde_json::to_value(burst)?)?;
+                let b: UartBurst = through_json(&burst)?;
                 self.logger.firmware_uart(node, &b);
             }
             FirmwareRecord::Io(at, io) => {
-                let io: FirmwareIo = serde_json::from_value(serde_json::to_value(io)?)?;
+                let io: FirmwareIo = through_json(&io)?;
                 self.logger.firmware_io(node, secs(at), &io);
             }
         }
         Ok(())
     }
+}
+
+/// `value` read back as `T` through its JSON, as `twin view` reads a
+/// recording's firmware records.
+fn through_json<T: serde::de::DeserializeOwned>(
+    value: &impl serde::Serialize,
+) -> Result<T, ObserveError> {
+    serde_json::to_value(value)
+        .and_then(serde_json::from_value)
+        .map_err(|e| ObserveError::Other(Box::new(e)))
 }
 
 /// The `.rrd` that `twin view` writes for `recording`: beside it, same stem.

@@ -113,7 +113,8 @@ pub fn execute(args: &BaselineArgs) -> Result<()> {
                 failed.push(name.clone());
             }
             Err(e) => {
-                println!("  {name:<width$} ERROR {e:#}");
+                // With its causes, as `main` prints an error.
+                println!("  {name:<width$} ERROR {:#}", anyhow::Error::from(e));
                 failed.push(name.clone());
             }
         }

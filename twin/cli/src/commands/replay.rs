@@ -303,7 +303,7 @@ impl Rerun {
 
     fn run(&self, out: &Path, progress: impl FnMut(f64)) -> Result<PathBuf> {
         match self {
-            Rerun::Run(spec) => spec.run(out, progress),
+            Rerun::Run(spec) => Ok(spec.run(out, progress)?),
             Rerun::Step(step) => Ok(twin_lab::step::run(step, out, progress)?.recording),
         }
     }

@@ -15,7 +15,7 @@ use nodes::controller_network::{
 use protocols::modbus8::{self, CrcOrder, FRAME_LEN, Modbus8Repr};
 use protocols::time::{SimDuration, SimTime};
 use twin_recording::topics::LoopReport;
-use twin_sim::engine::{BusSlot, NodeSlot, Observer};
+use twin_sim::engine::{BusSlot, NodeSlot, ObserveError, Observer};
 use twin_sim::scenario::{NodeSpec, Scenario};
 use twin_sim::virtual_run;
 
@@ -85,7 +85,7 @@ impl Observer for ReadsObserver<'_> {
         _start: SimTime,
         end: SimTime,
         bytes: &[u8],
-    ) -> Result<()> {
+    ) -> Result<(), ObserveError> {
         let Some(frame) = bytes
             .get(..FRAME_LEN)
             .and_then(|b| Modbus8Repr::parse(b, CrcOrder::HighFirst).ok())
@@ -127,7 +127,7 @@ impl Observer for ReadsObserver<'_> {
         }
         Ok(())
     }
-    fn telemetry(&mut self, now: SimTime, node: &NodeSlot, report: &LoopReport) -> Result<()> {
+    fn telemetry(&mut self, now: SimTime, node: &NodeSlot, report: &LoopReport) -> Result<(), ObserveError> {
         if node.name != self.master.name() {
             return Ok(());
         }
