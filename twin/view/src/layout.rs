@@ -1,7 +1,6 @@
 //! What a view needs to know about a run: its modules, the bus nodes that
 //! speak for each one, and how each module's light detector is set up.
 
-use anyhow::Result;
 use nodes::firmware::LightDetectorConfig;
 use plant::PlantParams;
 use std::collections::BTreeMap;
@@ -84,7 +83,7 @@ pub enum ControllerNetworkRole {
 
 impl ViewLayout {
     /// The layout of a scenario run.
-    pub fn of_scenario(scenario: &Scenario) -> Result<Self> {
+    pub fn of_scenario(scenario: &Scenario) -> Result<Self, twin_sim::scenario::ScenarioError> {
         let mut layout = Self::default();
         for m in &scenario.modules {
             let params = scenario.module_params(m)?;

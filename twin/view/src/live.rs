@@ -1,7 +1,6 @@
 //! Streaming a run to rerun as it happens: an [`Observer`] that sits beside
 //! the MCAP recorder (`twin_sim::observe::Tee`), for `twin run --view` and the real-time roles.
 
-use anyhow::{Context, Result};
 use nodes::node::NodeEvent;
 use protocols::time::SimTime;
 use rerun::{RecordingStream, RecordingStreamBuilder};
@@ -12,6 +11,9 @@ use std::time::Duration;
 use super::blueprint::blueprint;
 use super::layout::ViewLayout;
 use super::logger::{PlantSample, RerunLogger};
+use crate::ViewError;
+
+type Result<T, E = ViewError> = std::result::Result<T, E>;
 use twin_sim::engine::{BusSlot, ModuleSlot, NodeSlot, ObserveError, Observer};
 
 /// The application id the viewer groups the twin's recordings under.
@@ -85,7 +87,10 @@ pub fn open_stream(
         }
         ViewTarget::Save(path) => {
             if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-                std::fs::create_dir_all(dir)?;
+                std::fs::create_dir_all(dir).map_err(|source| ViewError::CreateDir {
+                    dir: dir.to_path_buf(),
+                    source,
+                })?;
             }
             builder.save(path)?
         }
@@ -99,13 +104,9 @@ pub fn open_stream(
 /// reached; a caller usually reports it and runs on without the view.
 pub fn live_view(target: &ViewTarget, name: &str, layout: ViewLayout) -> Result<RerunObserver> {
     if *target == ViewTarget::Spawn && viewer_available().is_none() {
-        anyhow::bail!(
-            "no rerun viewer to open here (`rerun` on PATH and a display). Install one with \
-             `pip install rerun-sdk==0.36.3`, or stream to a file with `--view FILE.rrd` and \
-             open it later with `rerun FILE.rrd`"
-        );
+        return Err(ViewError::NoViewer);
     }
-    RerunObserver::open(target, name, layout).context("cannot open the live view")
+    RerunObserver::open(target, name, layout).map_err(|e| ViewError::LiveView(Box::new(e)))
 }
 
 /// Whether something listens at the host and port of a `rerun+http://` URL.
@@ -114,7 +115,10 @@ fn probe(url: &str) -> Result<()> {
     let authority = rest.split('/').next().unwrap_or(rest);
     let addrs: Vec<SocketAddr> = authority
         .to_socket_addrs()
-        .with_context(|| format!("`{url}`: expected rerun+http://HOST:PORT/proxy"))?
+        .map_err(|source| ViewError::NotAViewerUrl {
+            url: url.to_string(),
+            source,
+        })?
         .collect();
     if addrs
         .iter()
@@ -122,9 +126,9 @@ fn probe(url: &str) -> Result<()> {
     {
         Ok(())
     } else {
-        anyhow::bail!(
-            "no rerun viewer listens at {authority} (start one with `rerun`, or `rerun --port PORT`)"
-        )
+        Err(ViewError::NotListening {
+            authority: authority.to_string(),
+        })
     }
 }
 
@@ -150,7 +154,7 @@ impl RerunObserver {
         self.logger
             .stream()
             .flush_with_timeout(FLUSH_TIMEOUT)
-            .map_err(|e| anyhow::anyhow!("the rerun viewer did not take the whole stream: {e}"))
+            .map_err(ViewError::Unflushed)
     }
 }
 
@@ -207,7 +211,11 @@ impl Observer for RerunObserver {
 
     /// A firmware node's records, through the same path `twin view` reads
     /// them by (their JSON), so the live view and the file agree.
-    fn firmware(&mut self, node: &str, record: twin_sim::engine::FirmwareRecord<'_>) -> Result<(), ObserveError> {
+    fn firmware(
+        &mut self,
+        node: &str,
+        record: twin_sim::engine::FirmwareRecord<'_>,
+    ) -> Result<(), ObserveError> {
         use crate::logger::firmware::{FirmwareIo, UartBurst};
         use twin_sim::engine::FirmwareRecord;
         match record {

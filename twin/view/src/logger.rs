@@ -19,7 +19,7 @@
 //! | `events` | every node event | event |
 //! | `<node>/firmware/…` | compiled firmware: its UART, pins, ADC inputs, cycles ([`firmware`]) | burst / 10 ms |
 
-use anyhow::{Context, Result};
+use crate::ViewError;
 use nodes::firmware::{LightRpm, ea};
 use protocols::meb::{MebCmd, MebRepr};
 use protocols::modbus::{self, Request, Response};
@@ -152,7 +152,7 @@ pub struct RerunLogger {
 
 impl RerunLogger {
     /// Log the series styles (static) for every module of `layout`.
-    pub fn new(rec: RecordingStream, layout: ViewLayout) -> Result<Self> {
+    pub fn new(rec: RecordingStream, layout: ViewLayout) -> Result<Self, ViewError> {
         // Only simulated time: no wall clock in the view.
         rec.set_log_time_enabled(false);
         rec.set_log_tick_enabled(false);
@@ -439,10 +439,8 @@ impl RerunLogger {
     }
 
     /// Push everything logged so far to the sink.
-    pub fn flush(&self) -> Result<()> {
-        self.rec
-            .flush_blocking()
-            .context("the rerun sink did not take the data")
+    pub fn flush(&self) -> Result<(), ViewError> {
+        self.rec.flush_blocking().map_err(ViewError::SinkRefused)
     }
 }
 
@@ -481,7 +479,7 @@ fn with_modbus<R>(bytes: &[u8], f: impl FnOnce(u8, &[u8]) -> Option<R>) -> Optio
 }
 
 /// The styles of the lateness series (static, logged once).
-fn log_lateness_styles(rec: &RecordingStream) -> Result<()> {
+fn log_lateness_styles(rec: &RecordingStream) -> Result<(), ViewError> {
     let line = |name: &str, rgb: [u8; 3]| {
         SeriesLines::new()
             .with_names([name])
@@ -498,7 +496,11 @@ fn log_lateness_styles(rec: &RecordingStream) -> Result<()> {
 }
 
 /// Names, colours and line styles of a module's series (static, logged once).
-fn log_styles(rec: &RecordingStream, p: &ModulePaths, controller_network: bool) -> Result<()> {
+fn log_styles(
+    rec: &RecordingStream,
+    p: &ModulePaths,
+    controller_network: bool,
+) -> Result<(), ViewError> {
     let line = |name: &str, rgb: [u8; 3], width: f32| {
         SeriesLines::new()
             .with_names([name])

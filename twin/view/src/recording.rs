@@ -6,7 +6,6 @@
 //! and its topics recognised by the catalogue ([`twin_recording::topics`]). A
 //! truncated file (the run killed) is read up to its last complete chunk.
 
-use anyhow::{Context, Result, bail};
 use plant::PlantParams;
 use serde::Deserialize;
 use std::collections::BTreeMap;
@@ -19,6 +18,7 @@ use super::layout::{
     ViewLayout, supervised_module,
 };
 use super::logger::{LatenessSample, PlantSample, RerunLogger};
+use crate::ViewError;
 use twin_sim::scenario::Scenario;
 
 /// What a recording's messages came to.
@@ -51,40 +51,38 @@ pub fn run_metadata(path: &Path) -> Option<BTreeMap<String, String>> {
 
 /// The view layout the recording at `path` was made with: its scenario's,
 /// or the open loop's preset.
-pub fn layout_of(path: &Path) -> Result<ViewLayout> {
+pub fn layout_of(path: &Path) -> Result<ViewLayout, ViewError> {
+    let path_buf = || path.to_path_buf();
     match Reader::open(path) {
-        Err(ReadError::NotMcap { .. }) => bail!(
-            "{} is not an MCAP recording (it does not start with the MCAP magic bytes)",
-            path.display()
-        ),
+        Err(ReadError::NotMcap { .. }) => return Err(ViewError::NotMcap { path: path_buf() }),
         Err(e) => return Err(e.into()),
         Ok(_) => {}
     }
     let Some(meta) = run_metadata(path) else {
-        bail!(
-            "{} has no `twin.run` metadata record: it was not written by `twin run`, `twin serve` or `twin supervise`",
-            path.display()
-        );
+        return Err(ViewError::NoRunMetadata { path: path_buf() });
     };
     match meta.get("kind").map(String::as_str) {
         Some("scenario") => {
             let Some(text) = meta.get("scenario_toml") else {
-                bail!(
-                    "{}: the `twin.run` metadata has no `scenario_toml`",
-                    path.display()
-                );
+                return Err(ViewError::NoScenarioToml { path: path_buf() });
             };
             let origin = format!("{} (its stored scenario)", path.display());
             let scenario = Scenario::parse(text, &origin)?;
-            ViewLayout::of_scenario(&scenario)
+            Ok(ViewLayout::of_scenario(&scenario)?)
         }
         Some("open-loop") => {
             let preset = meta.get("preset").map_or("vemodule", String::as_str);
             let params = match meta.get("params_toml") {
-                Some(text) => toml::from_str::<PlantParams>(text)
-                    .with_context(|| format!("{}: the stored plant parameters", path.display()))?,
-                None => PlantParams::preset(preset)
-                    .with_context(|| format!("{}: unknown preset `{preset}`", path.display()))?,
+                Some(text) => toml::from_str::<PlantParams>(text).map_err(|source| {
+                    ViewError::StoredParams {
+                        path: path_buf(),
+                        source,
+                    }
+                })?,
+                None => PlantParams::preset(preset).ok_or_else(|| ViewError::UnknownPreset {
+                    path: path_buf(),
+                    preset: preset.to_string(),
+                })?,
             };
             Ok(ViewLayout::open_loop(&params))
         }
@@ -95,8 +93,12 @@ pub fn layout_of(path: &Path) -> Result<ViewLayout> {
             let controller_network = options.contains(&"--modbus8");
             let ev = options.iter().any(|o| *o != "--modbus8");
             let params = match meta.get("params") {
-                Some(text) => toml::from_str::<PlantParams>(text)
-                    .with_context(|| format!("{}: the stored plant parameters", path.display()))?,
+                Some(text) => toml::from_str::<PlantParams>(text).map_err(|source| {
+                    ViewError::StoredParams {
+                        path: path_buf(),
+                        source,
+                    }
+                })?,
                 None => PlantParams::preset("vemodule").unwrap_or_default(),
             };
             // Recorded since the choice was given; before, always fixed.
@@ -117,11 +119,10 @@ pub fn layout_of(path: &Path) -> Result<ViewLayout> {
                 .filter(|s| !s.trim().is_empty())
                 .map(|s| s.trim().parse::<u8>())
                 .collect::<Result<_, _>>()
-                .with_context(|| {
-                    format!(
-                        "{}: the `slaves` of its `twin.run` metadata ({text}) are not slave ids",
-                        path.display()
-                    )
+                .map_err(|source| ViewError::NotSlaveIds {
+                    path: path_buf(),
+                    text: text.to_string(),
+                    source,
                 })?;
             Ok(ViewLayout::of_supervise(&slaves))
         }
@@ -134,11 +135,10 @@ pub fn layout_of(path: &Path) -> Result<ViewLayout> {
                 .unwrap_or(1);
             Ok(ViewLayout::of_supervise(&[id]))
         }
-        other => bail!(
-            "{}: unknown recording kind {:?} in its `twin.run` metadata",
-            path.display(),
-            other.unwrap_or("(none)")
-        ),
+        other => Err(ViewError::UnknownKind {
+            path: path_buf(),
+            kind: other.unwrap_or("(none)").to_string(),
+        }),
     }
 }
 
@@ -204,7 +204,7 @@ fn unhex(digits: &str) -> Option<Vec<u8>> {
 }
 
 /// Feed every message of the recording at `path` to `logger`.
-pub fn replay_into(path: &Path, logger: &mut RerunLogger) -> Result<ReadSummary> {
+pub fn replay_into(path: &Path, logger: &mut RerunLogger) -> Result<ReadSummary, ReadError> {
     let mut summary = ReadSummary::default();
     let session = Session::of(run_metadata(path).as_ref());
     let mut reader = Reader::open(path)?;
@@ -240,7 +240,12 @@ pub fn replay_into(path: &Path, logger: &mut RerunLogger) -> Result<ReadSummary>
 }
 
 /// One message to the logger, by topic.
-fn feed(logger: &mut RerunLogger, session: Session, m: &Message<'_>, t: f64) -> Result<()> {
+fn feed(
+    logger: &mut RerunLogger,
+    session: Session,
+    m: &Message<'_>,
+    t: f64,
+) -> Result<(), ViewError> {
     match Topic::parse(m.topic) {
         Topic::PlantSensors(module) => {
             let s: PlantSample = m.json()?;
@@ -249,14 +254,14 @@ fn feed(logger: &mut RerunLogger, session: Session, m: &Message<'_>, t: f64) -> 
         Topic::BusFrames(bus) => {
             let f: FrameSample = m.json()?;
             let Some(bytes) = unhex(&f.hex) else {
-                bail!("field `hex` is not hexadecimal");
+                return Err(ViewError::NotHex);
             };
             logger.frame(bus, &f.from, f.start_s, f.end_s, &bytes);
         }
         Topic::LinkFrames(link) => {
             let f: FrameSample = m.json()?;
             let Some(bytes) = unhex(&f.hex) else {
-                bail!("field `hex` is not hexadecimal");
+                return Err(ViewError::NotHex);
             };
             let from = session.sender(link, &f.from, &bytes);
             logger.frame(link, &from, f.start_s, f.end_s, &bytes);

@@ -49,7 +49,11 @@ impl LiveView for RerunSession {
 
     fn finish(self: Box<Self>) -> (u64, Option<String>) {
         let samples = self.observer.logger.samples.values().sum();
-        let error = self.observer.finish().err().map(|e| format!("{e:#}"));
+        let error = self
+            .observer
+            .finish()
+            .err()
+            .map(|e| format!("{:#}", anyhow::Error::from(e)));
         (samples, error)
     }
 }
@@ -68,6 +72,7 @@ pub fn opener(
         move |modules| match twin_view::live_view(&target, role, layout(modules)) {
             Ok(observer) => Some(Box::new(RerunSession { observer, session }) as Box<dyn LiveView>),
             Err(e) => {
+                let e = anyhow::Error::from(e);
                 eprintln!("{role} --view: {e:#}; running without the live view");
                 None
             }

@@ -232,7 +232,10 @@ pub fn execute(args: &RunArgs) -> Result<()> {
         let samples: u64 = observer.logger.samples.values().sum();
         match observer.finish() {
             Ok(()) => println!("live view: {samples} samples streamed to rerun"),
-            Err(e) => eprintln!("warning: {e:#}; the MCAP recording is complete"),
+            Err(e) => eprintln!(
+                "warning: {:#}; the MCAP recording is complete",
+                anyhow::Error::from(e)
+            ),
         }
     }
     Ok(())
@@ -245,6 +248,7 @@ fn open_live_view(target: &str, scenario: &Scenario) -> Result<Option<RerunObser
     match view::live_view(&ViewTarget::parse(target), &scenario.name, layout) {
         Ok(observer) => Ok(Some(observer)),
         Err(e) => {
+            let e = anyhow::Error::from(e);
             eprintln!("twin run --view: {e:#}; running without the live view");
             Ok(None)
         }
