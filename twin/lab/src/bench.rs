@@ -6,13 +6,36 @@
 //! time of every thread, the recording's writer thread included), which a
 //! shared machine disturbs far less than the wall clock.
 
-use anyhow::{Context, Result};
 use protocols::time::{SimDuration, SimTime};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use twin_sim::scenario::Scenario;
 use twin_sim::virtual_run;
+
+/// Why a run of the bench could not be measured.
+#[derive(Debug, thiserror::Error)]
+pub enum BenchError {
+    #[error(transparent)]
+    Build(#[from] twin_sim::nodes_build::BuildError),
+    #[error(transparent)]
+    Engine(#[from] twin_sim::engine::EngineError),
+    #[error(transparent)]
+    Run(#[from] virtual_run::RunError),
+    /// Stopped as asked (Ctrl-C) before its end.
+    #[error(transparent)]
+    Interrupted(#[from] twin_sim::interrupt::Interrupted),
+    #[error("cannot read {}", path.display())]
+    RecordingSize {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("no run was measured")]
+    NoRun,
+}
+
+type Result<T, E = BenchError> = std::result::Result<T, E>;
 
 /// The scenarios `twin bench` runs when none is named: the default one-module
 /// speed loop and the ten-module bus.
@@ -105,11 +128,10 @@ pub fn run_discarding(scenario: &Scenario, mut progress: impl FnMut(f64)) -> Res
     })?;
     if engine.interrupted() {
         let at_s = engine.now().as_secs_f64();
-        return Err(twin_sim::interrupt::Interrupted {
+        return Err(BenchError::Interrupted(twin_sim::interrupt::Interrupted {
             at_s,
             recording: None,
-        }
-        .into());
+        }));
     }
     let (wall_s, cpu_s) = started.stop();
     Ok(Measurement {
@@ -134,7 +156,10 @@ pub fn run_recording(
     // The writer thread has ended: its CPU time is the process's.
     let (wall_s, cpu_s) = started.stop();
     let recording_bytes = std::fs::metadata(&outcome.recording)
-        .with_context(|| format!("cannot read {}", outcome.recording.display()))?
+        .map_err(|source| BenchError::RecordingSize {
+            path: outcome.recording.clone(),
+            source,
+        })?
         .len();
     Ok(Measurement {
         simulated_s: outcome.simulated_s,
@@ -150,22 +175,25 @@ pub fn run_recording(
 /// whatever else the machine was doing; its CPU time the mean of the runs'
 /// (what the work costs, which other processes change far less than the
 /// wall clock, read in ticks that a mean blurs).
-pub fn best_of(repeat: u32, mut run: impl FnMut() -> Result<Measurement>) -> Result<Measurement> {
+pub fn best_of<E: From<BenchError>>(
+    repeat: u32,
+    mut run: impl FnMut() -> Result<Measurement, E>,
+) -> Result<Measurement, E> {
     let mut best = Best::default();
     for _ in 0..repeat.max(1) {
         best.add(run()?);
     }
-    best.take()
+    Ok(best.take()?)
 }
 
 /// [`best_of`] for two kinds of run at once, run in turn (`a b a b …`), so
 /// that a machine whose speed drifts over the minutes weighs on both alike
 /// and their ratio is not the drift's.
-pub fn best_of_alternating(
+pub fn best_of_alternating<E: From<BenchError>>(
     repeat: u32,
-    mut a: impl FnMut() -> Result<Measurement>,
-    mut b: impl FnMut() -> Result<Measurement>,
-) -> Result<Alternated> {
+    mut a: impl FnMut() -> Result<Measurement, E>,
+    mut b: impl FnMut() -> Result<Measurement, E>,
+) -> Result<Alternated, E> {
     let (mut best_a, mut best_b) = (Best::default(), Best::default());
     let mut pairs = Vec::new();
     for _ in 0..repeat.max(1) {
@@ -270,7 +298,7 @@ impl Best {
     }
 
     fn take(self) -> Result<Measurement> {
-        let mut best = self.fastest.context("no run was measured")?;
+        let mut best = self.fastest.ok_or(BenchError::NoRun)?;
         best.cpu_s = self.cpu_s / f64::from(self.runs.max(1));
         Ok(best)
     }
@@ -343,7 +371,7 @@ mod tests {
         let walls_a = [3.0, 1.0, 2.0];
         let walls_b = [5.0, 6.0, 4.0];
         let (mut i, mut j) = (0, 0);
-        let runs = best_of_alternating(
+        let runs = best_of_alternating::<BenchError>(
             3,
             || {
                 order.borrow_mut().push('a');
@@ -371,15 +399,19 @@ mod tests {
         let (wall, cpu) = (runs.wall_spread().unwrap(), runs.cpu_spread().unwrap());
         assert!(close(wall.median, 0.5) && close(wall.low, 1.0 / 6.0) && close(wall.high, 0.6));
         assert!(close(cpu.median, 1.0) && close(cpu.low, 0.5) && close(cpu.high, 1.5));
-        let failed = best_of_alternating(
+        let failed = best_of_alternating::<BenchError>(
             2,
             || Ok(measured(1.0, 1.0)),
-            || anyhow::bail!("scenario broke"),
+            || Err(BenchError::NoRun),
         );
         assert!(failed.is_err());
         // No CPU time to read: no CPU spread, the wall clock's still.
-        let unknown =
-            best_of_alternating(2, || Ok(measured(1.0, 0.0)), || Ok(measured(2.0, 0.0))).unwrap();
+        let unknown = best_of_alternating::<BenchError>(
+            2,
+            || Ok(measured(1.0, 0.0)),
+            || Ok(measured(2.0, 0.0)),
+        )
+        .unwrap();
         assert!(unknown.cpu_spread().is_none());
         assert_eq!(unknown.wall_spread().map(|s| s.median), Some(0.5));
     }
@@ -429,7 +461,7 @@ mod tests {
     fn best_of_keeps_the_fastest_run_and_the_mean_cpu() {
         let mut walls = [0.3, 0.1, 0.2].into_iter();
         let mut cpus = [0.25, 0.15, 0.05].into_iter();
-        let best = best_of(3, || {
+        let best = best_of::<BenchError>(3, || {
             Ok(Measurement {
                 simulated_s: 1.0,
                 wall_s: walls.next().unwrap_or(1.0),

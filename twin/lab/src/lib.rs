@@ -9,6 +9,12 @@
     clippy::disallowed_methods,
     reason = "the bench times the engine on the wall clock, and a batch its runs"
 )]
+#![allow(
+    clippy::result_large_err,
+    reason = "an experiment's error carries the run's (its scenario's place and \
+              message); it is made once, when an experiment fails, never on a path \
+              that runs per step"
+)]
 
 pub mod batch;
 pub mod bench;

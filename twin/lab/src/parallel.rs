@@ -16,7 +16,6 @@
 //!   on, each slave's wheel rpm minus the master's; the largest magnitude
 //!   and the RMS over slaves and instants.
 
-use anyhow::{Result, bail};
 use serde_json::Value;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -25,6 +24,21 @@ use twin_recording::Recording;
 use twin_recording::topics::Topic;
 use twin_sim::scenario::{NodeSpec, Scenario};
 use twin_sim::virtual_run;
+
+/// Why a parallel-module experiment could not run or be read back.
+#[derive(Debug, thiserror::Error)]
+pub enum ParallelError {
+    #[error("scenario {scenario} has no parallel-master node")]
+    NoMaster { scenario: String },
+    #[error(transparent)]
+    Scenario(#[from] twin_sim::scenario::ScenarioError),
+    #[error(transparent)]
+    Run(#[from] virtual_run::RunError),
+    #[error(transparent)]
+    Read(#[from] twin_recording::ReadError),
+}
+
+type Result<T, E = ParallelError> = std::result::Result<T, E>;
 
 /// The embedded scenarios compared, in the order printed.
 pub const VARIANTS: [&str; 4] = [
@@ -90,7 +104,9 @@ fn roles(scenario: &Scenario) -> Result<(String, Vec<String>, f64)> {
         .iter()
         .find(|n| matches!(n, NodeSpec::ParallelMaster { .. }))
     else {
-        bail!("scenario {} has no parallel-master node", scenario.name);
+        return Err(ParallelError::NoMaster {
+            scenario: scenario.name.clone(),
+        });
     };
     let first_set_point = set_points
         .iter()

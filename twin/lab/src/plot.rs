@@ -2,10 +2,9 @@
 //! TrueType font: plotters' `ab_glyph` renders it without system font
 //! libraries, from a font file read once at run time.
 
-use anyhow::{Context, Result, anyhow};
 use plotters::prelude::*;
 use plotters::style::FontStyle;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
 /// Where a font is looked for, after the `TWIN_FONT` environment variable:
@@ -20,10 +19,24 @@ const FONT_PATHS: [&str; 6] = [
     "C:\\Windows\\Fonts\\arial.ttf",
 ];
 
-static FONT: OnceLock<std::result::Result<(), String>> = OnceLock::new();
+/// Why a plot could not be drawn.
+#[derive(Debug, Clone, thiserror::Error)]
+pub enum PlotError {
+    /// No font to label it with, or one that is not a font: what to do.
+    #[error("{0}")]
+    Font(String),
+    /// plotters failed to draw or to write the file, in its own words.
+    #[error("cannot draw {}: {why}", path.display())]
+    Draw { path: PathBuf, why: String },
+    /// A picture's size that cannot hold what it must show: the range.
+    #[error("{0}")]
+    Size(String),
+}
+
+static FONT: OnceLock<Result<(), String>> = OnceLock::new();
 
 /// Register a font for plotters once per process.
-pub(crate) fn ensure_font() -> Result<()> {
+pub(crate) fn ensure_font() -> Result<(), PlotError> {
     FONT.get_or_init(|| {
         let env = std::env::var("TWIN_FONT").ok();
         let candidates = env.iter().map(String::as_str).chain(FONT_PATHS);
@@ -44,7 +57,7 @@ pub(crate) fn ensure_font() -> Result<()> {
         ))
     })
     .clone()
-    .map_err(|e| anyhow!(e))
+    .map_err(PlotError::Font)
 }
 
 /// One line on a plot.
@@ -77,9 +90,14 @@ pub const LIGHT: RGBColor = RGBColor(214, 39, 40);
 pub const EXTRA: RGBColor = RGBColor(44, 160, 44);
 
 /// Draw `series` to a `width × height` PNG at `path`.
-pub fn line_plot(path: &Path, axes: &Axes, series: &[Series], size: (u32, u32)) -> Result<()> {
+pub fn line_plot(
+    path: &Path,
+    axes: &Axes,
+    series: &[Series],
+    size: (u32, u32),
+) -> Result<(), PlotError> {
     ensure_font()?;
-    let draw = || -> std::result::Result<(), Box<dyn std::error::Error>> {
+    let draw = || -> Result<(), Box<dyn std::error::Error>> {
         let root = BitMapBackend::new(path, size).into_drawing_area();
         root.fill(&WHITE)?;
         let (x0, x1) = axes.x_range;
@@ -131,9 +149,10 @@ pub fn line_plot(path: &Path, axes: &Axes, series: &[Series], size: (u32, u32)) 
         root.present()?;
         Ok(())
     };
-    draw()
-        .map_err(|e| anyhow!("{e}"))
-        .with_context(|| format!("cannot draw {}", path.display()))
+    draw().map_err(|e| PlotError::Draw {
+        path: path.to_path_buf(),
+        why: e.to_string(),
+    })
 }
 
 /// A range that holds every point of `series` with a margin, never empty.

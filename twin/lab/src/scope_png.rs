@@ -12,7 +12,6 @@
 
 use std::path::Path;
 
-use anyhow::{Result, anyhow, bail};
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
@@ -22,7 +21,7 @@ use twin_recording::describe::{FrameFields, LinkFrameFields, decode_frame, link_
 use twin_scope::wave::{Hearing, LineFrame};
 use twin_scope::{LineKind, Waveform};
 
-use crate::plot::ensure_font;
+use crate::plot::{PlotError, ensure_font};
 
 /// The picture's width unless asked otherwise (px).
 pub const WIDTH: u32 = 1280;
@@ -126,28 +125,28 @@ impl Default for Size {
 }
 
 /// Draws `wave` to a PNG at `path`, `size` as asked.
-pub fn draw(wave: &Waveform, path: &Path, size: Size) -> Result<Drawn> {
+pub fn draw(wave: &Waveform, path: &Path, size: Size) -> Result<Drawn, PlotError> {
     let channels = channels(wave);
     let listed = wave.frames.len().min(TABLE_FRAMES);
     let table_rows = 1 + 2 * listed as u32 + u32::from(wave.frames.len() > listed);
     let fixed = TITLE + X_AXIS + 16 + ROW * table_rows + 12;
     let bands = channels.len() as u32;
     if !WIDTHS.contains(&size.width) {
-        bail!(
+        return Err(PlotError::Size(format!(
             "a width of {} px: give {} to {} px",
             size.width,
             WIDTHS.start(),
             WIDTHS.end()
-        );
+        )));
     }
     let band = match size.height {
         None => BAND,
         Some(h) => {
             let (low, high) = (fixed + MIN_BAND * bands, fixed + MAX_BAND * bands);
             if !(low..=high).contains(&h) {
-                bail!(
+                return Err(PlotError::Size(format!(
                     "a height of {h} px: {bands} channels and a table of {listed} frames take {low} to {high} px"
-                );
+                )));
             }
             (h - fixed) / bands
         }
@@ -162,7 +161,7 @@ pub fn draw(wave: &Waveform, path: &Path, size: Size) -> Result<Drawn> {
         height,
     };
     let described: Vec<Described> = wave.frames.iter().map(|f| describe(wave, f)).collect();
-    let paint = || -> std::result::Result<(), Box<dyn std::error::Error>> {
+    let paint = || -> Result<(), Box<dyn std::error::Error>> {
         let root = BitMapBackend::new(path, size).into_drawing_area();
         root.fill(&SCREEN)?;
         let (head, rest) = root.split_vertically(TITLE);
@@ -183,7 +182,10 @@ pub fn draw(wave: &Waveform, path: &Path, size: Size) -> Result<Drawn> {
         root.present()?;
         Ok(())
     };
-    paint().map_err(|e| anyhow!("cannot draw {}: {e}", path.display()))?;
+    paint().map_err(|e| PlotError::Draw {
+        path: path.to_path_buf(),
+        why: e.to_string(),
+    })?;
     Ok(drawn)
 }
 
@@ -360,7 +362,7 @@ fn channel(
     name: &str,
     color: RGBColor,
     last: bool,
-) -> std::result::Result<(), Box<dyn std::error::Error>> {
+) -> Result<(), Box<dyn std::error::Error>> {
     let (t0, t1) = (ms(wave.from) - ms(wave.lead_in), ms(wave.to));
     let mut chart = ChartBuilder::on(band)
         .margin_left(8)
@@ -505,7 +507,7 @@ fn trace(
     color: RGBColor,
     (x0, x1): (i32, i32),
     (y_hi, y_lo): (i32, i32),
-) -> std::result::Result<(), Box<dyn std::error::Error>> {
+) -> Result<(), Box<dyn std::error::Error>> {
     let columns = (x1 - x0).max(0) as usize + 1;
     // The screen starts with the window's idle lead-in, if it has one.
     let span = (wave.to - wave.from + wave.lead_in).max(1);
@@ -552,7 +554,7 @@ fn bus_table(
     area: &DrawingArea<BitMapBackend<'_>, Shift>,
     wave: &Waveform,
     described: &[Described],
-) -> std::result::Result<(), Box<dyn std::error::Error>> {
+) -> Result<(), Box<dyn std::error::Error>> {
     let columns = [16, 76, 186, 330];
     let mut y = 8;
     for (x, head) in columns

@@ -8,7 +8,6 @@
 //! the set-point step and closes the loop over the bus; the controller's
 //! `RPM_M` and `RPM_L` registers are read from the running engine.
 
-use anyhow::{Context, Result, bail};
 use plant::{PlantParams, Sensors};
 use protocols::time::{SimDuration, SimTime};
 use serde::Serialize;
@@ -16,13 +15,90 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use super::instruments::{Instruments, light_limit, read_instruments};
-use super::plot::{self, Axes, Series};
+use super::plot::{self, Axes, PlotError, Series};
 use twin_recording::Recording;
 use twin_sim::openloop::{self, OpenLoop};
 use twin_sim::replay::RunSpec;
 use twin_sim::scenario::{NodeSpec, Scenario};
 use twin_sim::step_metrics::{StepMetrics, StepOptions, delay, step_metrics};
-use twin_sim::virtual_run;
+use twin_sim::virtual_run::{self, RunError};
+
+/// Why a step experiment could not be read back, changed, run or drawn.
+#[derive(Debug, thiserror::Error)]
+pub enum StepError {
+    #[error("{origin}: the step experiment's `twin.run` lacks `{field}`")]
+    MissingField { origin: String, field: String },
+    #[error("{origin}: `twin.run` field `{field}` is not a number")]
+    NotANumber {
+        origin: String,
+        field: String,
+        #[source]
+        source: std::num::ParseFloatError,
+    },
+    #[error("--set `{change}`: write PATH=VALUE, e.g. step.to=300")]
+    SetSyntax { change: String },
+    #[error("--set `{change}`: {path} must be a number")]
+    SetNotANumber { change: String, path: String },
+    #[error(
+        "--set `{change}`: this scenario's master runs its own set points (the \
+         Controller_network master), so the step's levels are its own; `step.at_s` \
+         picks which of its steps is measured"
+    )]
+    OwnSetPoints { change: String },
+    #[error("--set `{change}`: open loop, the step is a fraction of VEL's 5 V range, 0 to 1")]
+    NotAFraction { change: String },
+    #[error("--set `{change}`: a set point in rpm, 0 or more")]
+    NegativeSetPoint { change: String },
+    #[error(
+        "--set `{change}`: the step's time must fall within the run, above 0 and below {duration_s} s"
+    )]
+    StepOutsideRun { change: String, duration_s: f64 },
+    #[error("--set `{change}`: the step has `step.from`, `step.to` and `step.at_s`, not `{path}`")]
+    UnknownStepField { change: String, path: String },
+    #[error("the duration must be a positive number of seconds, got {duration_s}")]
+    Duration { duration_s: f64 },
+    #[error("the step at {step_at_s} s must come within the run of {duration_s} s")]
+    StepAt { step_at_s: f64, duration_s: f64 },
+    #[error("open loop, --{name} is VEL as a fraction of its 5 V range: 0 to 1, got {value}")]
+    VelFraction { name: &'static str, value: f64 },
+    #[error("scenario `{scenario}`: only a supervisor can close its loop on the light sensor")]
+    LightNeedsSupervisor { scenario: String },
+    #[error(
+        "scenario `{scenario}` has neither a supervisor with an ev-controller slave nor a \
+         Controller_network motor node to give a set-point step to: use --open-loop, or \
+         such a scenario"
+    )]
+    NothingToStep { scenario: String },
+    #[error("the watched module is not declared")]
+    ModuleNotDeclared,
+    #[error("module `{module}` is missing from the engine")]
+    ModuleMissing { module: String },
+    #[error("scenario {scenario} failed")]
+    ScenarioFailed {
+        scenario: String,
+        #[source]
+        source: RunError,
+    },
+    #[error(
+        "the motor node's set point does not change after {at_s} s in {duration_s} s of scenario {scenario}: \
+         give a longer --duration or an earlier --at"
+    )]
+    NoChange {
+        at_s: f64,
+        duration_s: f64,
+        scenario: String,
+    },
+    #[error(transparent)]
+    Replay(#[from] twin_sim::replay::ReplayError),
+    #[error(transparent)]
+    Scenario(#[from] twin_sim::scenario::ScenarioError),
+    #[error(transparent)]
+    Run(#[from] RunError),
+    #[error(transparent)]
+    Plot(#[from] PlotError),
+}
+
+type Result<T, E = StepError> = std::result::Result<T, E>;
 
 /// Samples of the traces per simulated second.
 pub const SAMPLE_HZ: f64 = 500.0;
@@ -94,12 +170,17 @@ impl StepConfig {
         let field = |k: &str| -> Result<&str> {
             recording
                 .run_field(k)
-                .with_context(|| format!("{origin}: the step experiment's `twin.run` lacks `{k}`"))
+                .ok_or_else(|| StepError::MissingField {
+                    origin: origin.clone(),
+                    field: k.to_string(),
+                })
         };
         let number = |k: &str| -> Result<f64> {
-            field(k)?
-                .parse()
-                .with_context(|| format!("{origin}: `twin.run` field `{k}` is not a number"))
+            field(k)?.parse().map_err(|source| StepError::NotANumber {
+                origin: origin.clone(),
+                field: k.to_string(),
+                source,
+            })
         };
         let flag = |k: &str| recording.run_field(k) == Some("true");
         // `step.from`, `step.to`, `step.at_s` change the step itself; every
@@ -142,15 +223,21 @@ impl StepConfig {
     /// One `--set step.from=V` (or `step.to`, `step.at_s`): rpm closed loop,
     /// a fraction of VEL's range open loop, as `twin step` takes them.
     fn change_step(&mut self, change: &str) -> Result<()> {
+        let change_owned = || change.to_string();
         let Some((path, value)) = change.split_once('=') else {
-            bail!("--set `{change}`: write PATH=VALUE, e.g. step.to=300");
+            return Err(StepError::SetSyntax {
+                change: change_owned(),
+            });
         };
         let value: f64 = value
             .trim()
             .parse()
             .ok()
             .filter(|v: &f64| v.is_finite())
-            .with_context(|| format!("--set `{change}`: {} must be a number", path.trim()))?;
+            .ok_or_else(|| StepError::SetNotANumber {
+                change: change_owned(),
+                path: path.trim().to_string(),
+            })?;
         let open_loop = matches!(self.drive, StepDrive::OpenLoop { .. });
         let own_set_points = match &self.drive {
             StepDrive::ClosedLoop { scenario, .. } => !scenario
@@ -160,27 +247,36 @@ impl StepConfig {
             StepDrive::OpenLoop { .. } => false,
         };
         match path.trim() {
-            "step.from" | "step.to" if own_set_points => bail!(
-                "--set `{change}`: this scenario's master runs its own set points (the \
-                 Controller_network master), so the step's levels are its own; `step.at_s` \
-                 picks which of its steps is measured"
-            ),
-            "step.from" | "step.to" if open_loop && !(0.0..=1.0).contains(&value) => bail!(
-                "--set `{change}`: open loop, the step is a fraction of VEL's 5 V range, 0 to 1"
-            ),
+            "step.from" | "step.to" if own_set_points => {
+                return Err(StepError::OwnSetPoints {
+                    change: change_owned(),
+                });
+            }
+            "step.from" | "step.to" if open_loop && !(0.0..=1.0).contains(&value) => {
+                return Err(StepError::NotAFraction {
+                    change: change_owned(),
+                });
+            }
             "step.from" | "step.to" if value < 0.0 => {
-                bail!("--set `{change}`: a set point in rpm, 0 or more")
+                return Err(StepError::NegativeSetPoint {
+                    change: change_owned(),
+                });
             }
             "step.from" => self.from = value,
             "step.to" => self.to = value,
-            "step.at_s" if !(value > 0.0 && value < self.duration_s) => bail!(
-                "--set `{change}`: the step's time must fall within the run, above 0 and below {} s",
-                self.duration_s
-            ),
+            "step.at_s" if !(value > 0.0 && value < self.duration_s) => {
+                return Err(StepError::StepOutsideRun {
+                    change: change_owned(),
+                    duration_s: self.duration_s,
+                });
+            }
             "step.at_s" => self.step_at_s = value,
-            other => bail!(
-                "--set `{change}`: the step has `step.from`, `step.to` and `step.at_s`, not `{other}`"
-            ),
+            other => {
+                return Err(StepError::UnknownStepField {
+                    change: change_owned(),
+                    path: other.to_string(),
+                });
+            }
         }
         Ok(())
     }
@@ -319,17 +415,15 @@ struct Ran {
 /// Run the experiment, record it to `recording`, and measure it.
 pub fn run(config: &StepConfig, recording: &Path, progress: impl FnMut(f64)) -> Result<StepReport> {
     if !(config.duration_s.is_finite() && config.duration_s > 0.0) {
-        bail!(
-            "the duration must be a positive number of seconds, got {}",
-            config.duration_s
-        );
+        return Err(StepError::Duration {
+            duration_s: config.duration_s,
+        });
     }
     if !(config.step_at_s >= 0.0 && config.step_at_s < config.duration_s) {
-        bail!(
-            "the step at {} s must come within the run of {} s",
-            config.step_at_s,
-            config.duration_s
-        );
+        return Err(StepError::StepAt {
+            step_at_s: config.step_at_s,
+            duration_s: config.duration_s,
+        });
     }
     let (ran, mode, bench, unit, adaptive) = match &config.drive {
         StepDrive::OpenLoop {
@@ -462,7 +556,7 @@ fn run_open_loop(
 ) -> Result<Trace> {
     for (name, v) in [("from", config.from), ("to", config.to)] {
         if !(0.0..=1.0).contains(&v) {
-            bail!("open loop, --{name} is VEL as a fraction of its 5 V range: 0 to 1, got {v}");
+            return Err(StepError::VelFraction { name, value: v });
         }
     }
     let mut ol = OpenLoop::new(params.clone(), preset);
@@ -523,10 +617,9 @@ fn run_closed_loop(
         _ => None,
     });
     if supervised.is_none() && on_light {
-        bail!(
-            "scenario `{}`: only a supervisor can close its loop on the light sensor",
-            scenario.name
-        );
+        return Err(StepError::LightNeedsSupervisor {
+            scenario: scenario.name.clone(),
+        });
     }
     // The node whose module is watched: the supervisor's first slave, or
     // the Controller_network motor node, whose master runs its own set-point
@@ -544,18 +637,15 @@ fn run_closed_loop(
         }),
     };
     let Some(module) = watched else {
-        bail!(
-            "scenario `{}` has neither a supervisor with an ev-controller slave nor a \
-             Controller_network motor node to give a set-point step to: use --open-loop, or \
-             such a scenario",
-            scenario.name
-        );
+        return Err(StepError::NothingToStep {
+            scenario: scenario.name.clone(),
+        });
     };
     let spec = scenario
         .modules
         .iter()
         .find(|m| m.name == module)
-        .context("the watched module is not declared")?;
+        .ok_or(StepError::ModuleNotDeclared)?;
     let params = scenario.module_params(spec)?;
     let preset = spec.preset.clone();
     // The watched module's controller runs the detector the scenario gives it.
@@ -607,9 +697,12 @@ fn run_closed_loop(
             trace.push(rec, t, sample)
         },
     )
-    .with_context(|| format!("scenario {} failed", scenario.name))?;
+    .map_err(|source| StepError::ScenarioFailed {
+        scenario: scenario.name.clone(),
+        source,
+    })?;
     if missing {
-        bail!("module `{module}` is missing from the engine");
+        return Err(StepError::ModuleMissing { module });
     }
     if supervised.is_some() {
         return Ok(Ran {
@@ -628,12 +721,11 @@ fn run_closed_loop(
     let sp = &trace.set_point;
     let tt = &trace.time_s;
     let Some(i) = (1..sp.len()).find(|&i| tt[i] >= at && sp[i] != sp[i - 1]) else {
-        bail!(
-            "the motor node's set point does not change after {at} s in {} s of scenario {}: \
-             give a longer --duration or an earlier --at",
-            config.duration_s,
-            scenario.name
-        );
+        return Err(StepError::NoChange {
+            at_s: at,
+            duration_s: config.duration_s,
+            scenario: scenario.name.clone(),
+        });
     };
     let until = (i + 1..sp.len())
         .find(|&j| sp[j] != sp[i])
@@ -652,12 +744,16 @@ fn run_closed_loop(
 
 /// The plot of `step.png`: set point (closed loop), true wheel, motor and
 /// light rpm against time.
-pub fn plot(report: &StepReport, path: &Path) -> Result<()> {
+pub fn plot(report: &StepReport, path: &Path) -> Result<(), PlotError> {
     plot_with(report, Vec::new(), path)
 }
 
 /// [`plot`], with `extra` curves drawn after the twin's (a bench's own).
-pub fn plot_with(report: &StepReport, extra: Vec<Series<'_>>, path: &Path) -> Result<()> {
+pub fn plot_with(
+    report: &StepReport,
+    extra: Vec<Series<'_>>,
+    path: &Path,
+) -> Result<(), PlotError> {
     let tr = &report.trace;
     let pts = |y: &[f64]| -> Vec<(f64, f64)> {
         tr.time_s

@@ -2,7 +2,6 @@
 //! twin's, in the layout of the Controller_network step log (`time_s`,
 //! `motor_value`, `sensor_value`, the registers as its master read them).
 
-use anyhow::{Result, bail};
 use std::path::Path;
 use twin_sim::step_metrics::{StepMetrics, StepOptions, step_metrics};
 
@@ -10,6 +9,19 @@ use crate::calibrate::csv_log;
 use plotters::style::RGBColor;
 
 use crate::plot::Series;
+
+/// Why a bench's step log cannot be laid over the twin's.
+#[derive(Debug, thiserror::Error)]
+pub enum AgainstError {
+    #[error(
+        "--against compares with a Controller_network bench's step log: give the \
+         controller-network scenario (or one with its motor and light-sensor nodes)"
+    )]
+    NotControllerNetwork,
+    /// The log itself, in the words of its file.
+    #[error(transparent)]
+    Log(#[from] crate::calibrate::CalibrateError),
+}
 use crate::step::StepReport;
 
 /// The bench's curves in wheel rpm, moved onto the twin's time axis.
@@ -31,17 +43,14 @@ const REGISTER_PER_WHEEL_RPM: f64 = 100.0;
 
 /// Reads `path`, whose step came at `bench_step_s` on its own clock, and
 /// lays it over `report` (its step at the twin's `step_at_s`).
-pub fn load(path: &Path, bench_step_s: f64, report: &StepReport) -> Result<Against> {
+pub fn load(path: &Path, bench_step_s: f64, report: &StepReport) -> Result<Against, AgainstError> {
     if report.mode != "closed-loop" || !report.signals.iter().any(|s| s.signal == "motor (encoder)")
     {
-        bail!(
-            "--against compares with a Controller_network bench's step log: give the \
-             controller-network scenario (or one with its motor and light-sensor nodes)"
-        );
+        return Err(AgainstError::NotControllerNetwork);
     }
     let table = csv_log::read(path, "time_s", 1.0)?;
     let shift = report.step_at_s - bench_step_s;
-    let column = |name: &str| -> Result<Vec<(f64, f64)>> {
+    let column = |name: &str| -> Result<Vec<(f64, f64)>, AgainstError> {
         Ok(table
             .column(name, true)?
             .into_iter()

@@ -4,7 +4,6 @@
 //! Where the light rpm stops tracking is where the photoresistor stops seeing
 //! the flag; plant/src/light.rs derives that speed, and the sweep prints both.
 
-use anyhow::{Result, bail};
 use plant::PlantParams;
 use protocols::time::{SimDuration, SimTime};
 use serde::Serialize;
@@ -13,6 +12,30 @@ use std::path::{Path, PathBuf};
 use super::instruments::{Instruments, light_limit};
 use super::plot::{self, Axes, Series};
 use twin_sim::openloop::{self, OpenLoop};
+
+/// Why a sweep could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum SweepError {
+    #[error("no speeds to sweep")]
+    NoSpeeds,
+    #[error("settling and measuring times must be positive")]
+    NotPositive,
+    #[error(
+        "{rpm:.1} rpm is beyond what the {preset} bench's motor reaches at full VEL (its no-load \
+         speed on this supply): give a lower --rpm range"
+    )]
+    BeyondNoLoad { rpm: f64, preset: String },
+    #[error(
+        "{rpm:.1} rpm needs VEL at {percent:.0} % of its range: the {preset} bench cannot reach it"
+    )]
+    OutOfRange {
+        rpm: f64,
+        percent: f64,
+        preset: String,
+    },
+    #[error(transparent)]
+    Run(#[from] twin_sim::virtual_run::RunError),
+}
 
 /// Within this fraction of the true speed the light sensor tracks it.
 pub const TRACKING_TOLERANCE: f64 = 0.03;
@@ -99,12 +122,12 @@ pub fn run(
     config: &SweepConfig,
     runs_dir: Option<&Path>,
     mut progress: impl FnMut(f64),
-) -> Result<SweepReport> {
+) -> Result<SweepReport, SweepError> {
     if config.target_rpm.is_empty() {
-        bail!("no speeds to sweep");
+        return Err(SweepError::NoSpeeds);
     }
     if !(config.settle_s > 0.0 && config.measure_s > 0.0) {
-        bail!("settling and measuring times must be positive");
+        return Err(SweepError::NotPositive);
     }
     let bus = config
         .params
@@ -117,18 +140,17 @@ pub fn run(
     for (i, &rpm) in config.target_rpm.iter().enumerate() {
         let vel = vel_for_rpm(&config.params, rpm, bus);
         if !vel.is_finite() {
-            bail!(
-                "{rpm:.1} rpm is beyond what the {} bench's motor reaches at full VEL (its no-load \
-                 speed on this supply): give a lower --rpm range",
-                config.preset
-            );
+            return Err(SweepError::BeyondNoLoad {
+                rpm,
+                preset: config.preset.clone(),
+            });
         }
         if !(0.0..=1.0).contains(&vel) {
-            bail!(
-                "{rpm:.1} rpm needs VEL at {:.0} % of its range: the {} bench cannot reach it",
-                vel * 100.0,
-                config.preset
-            );
+            return Err(SweepError::OutOfRange {
+                rpm,
+                percent: vel * 100.0,
+                preset: config.preset.clone(),
+            });
         }
         let path = match runs_dir {
             Some(dir) => dir.join(format!("sweep-{:05.0}rpm.mcap", rpm)),
@@ -177,7 +199,7 @@ fn run_one(
     vel: f64,
     path: &Path,
     progress: impl FnMut(f64),
-) -> Result<SweepPoint> {
+) -> Result<SweepPoint, twin_sim::virtual_run::RunError> {
     // A slow wheel needs a few turns to settle and a few to be measured: the
     // light sensor gives one reading per turn.
     let turn_s = 60.0 / target_rpm.max(1.0);
@@ -225,7 +247,7 @@ fn run_one(
 
 /// `sweep.png`: light rpm against true rpm, the line where they agree, and
 /// the documented limit.
-pub fn plot(reports: &[SweepReport], path: &Path) -> Result<PathBuf> {
+pub fn plot(reports: &[SweepReport], path: &Path) -> Result<PathBuf, plot::PlotError> {
     let colors = [plot::LIGHT, plot::MOTOR, plot::EXTRA];
     let max = reports
         .iter()

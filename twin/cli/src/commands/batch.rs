@@ -199,6 +199,7 @@ fn check(manifest: &Manifest, indices: &[usize], path: &Path) -> Result<()> {
             ),
             Err(e) => {
                 wrong += 1;
+                let e = anyhow::Error::from(e);
                 println!("entry {i} {}: WRONG: {e:#}", manifest.name(i));
             }
         }
@@ -223,7 +224,7 @@ fn select(args: &BatchArgs) -> Result<Selection> {
         return Ok(Selection::One(i));
     }
     if let Some(shard) = &args.shard {
-        return Selection::parse_shard(shard);
+        return Ok(Selection::parse_shard(shard)?);
     }
     if args.all {
         return Ok(Selection::All);

@@ -9,7 +9,9 @@
 //!
 //! Errors name the file, the line and the field.
 
-use anyhow::{Result, bail};
+use super::BatchError;
+
+type Result<T, E = BatchError> = std::result::Result<T, E>;
 use serde::Deserialize;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -52,8 +54,10 @@ impl Manifest {
     /// Read a manifest: TOML when the file ends in `.toml`, JSON Lines
     /// otherwise (blank lines and lines starting with `#` are skipped).
     pub fn load(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path)
-            .map_err(|e| anyhow::anyhow!("cannot read the manifest {}: {e}", path.display()))?;
+        let text = std::fs::read_to_string(path).map_err(|source| BatchError::ReadManifest {
+            path: path.to_path_buf(),
+            source,
+        })?;
         Self::parse(&text, path)
     }
 
@@ -103,11 +107,11 @@ impl Manifest {
         for (i, e) in self.entries.iter().enumerate() {
             let at = format!("{origin}:{}", self.lines[i]);
             if e.scenario.trim().is_empty() {
-                bail!("{at}: `scenario` is empty: name an embedded scenario or a scenario file");
+                return Err(BatchError::EmptyScenario { at });
             }
             for s in &e.set {
                 if !s.contains('=') {
-                    bail!("{at}: `set`: `{s}` is not PATH=VALUE, e.g. node.supervisor.kp=0.6");
+                    return Err(BatchError::SetNotPathValue { at, set: s.clone() });
                 }
             }
             if let Some(out) = &e.out {
@@ -117,18 +121,15 @@ impl Manifest {
                         .chars()
                         .any(|c| matches!(c, '/' | '\\') || c.is_control());
                 if bad {
-                    bail!(
-                        "{at}: `out` `{out}` must be a plain file name: not empty, no `/` or `\\`, \
-                         not starting with `.`"
-                    );
+                    return Err(BatchError::BadOut {
+                        at,
+                        out: out.clone(),
+                    });
                 }
             }
             let name = self.name(i);
             if let Some(first) = names.insert(name.clone(), self.lines[i]) {
-                bail!(
-                    "{at}: `out` `{name}` is also the name of the entry on line {first}: \
-                     each entry needs its own"
-                );
+                return Err(BatchError::SameOut { at, name, first });
             }
         }
         Ok(())
@@ -150,7 +151,10 @@ fn parse_json_lines(text: &str, origin: &str) -> Result<(Vec<Entry>, Vec<usize>)
                 Some(cut) => &message[..cut],
                 None => &message,
             };
-            anyhow::anyhow!("{origin}:{}:{}: {message}", n + 1, e.column())
+            BatchError::Syntax {
+                at: format!("{origin}:{}:{}", n + 1, e.column()),
+                message: message.to_string(),
+            }
         })?;
         entries.push(entry);
         lines.push(n + 1);
@@ -164,7 +168,10 @@ fn parse_toml(text: &str, origin: &str) -> Result<(Vec<Entry>, Vec<usize>)> {
         let place = e
             .span()
             .map_or_else(String::new, |s| format!(":{}", line_of(s.start)));
-        anyhow::anyhow!("{origin}{place}: {}", e.message().trim_end())
+        BatchError::Syntax {
+            at: format!("{origin}{place}"),
+            message: e.message().trim_end().to_string(),
+        }
     })?;
     // Each entry starts at its `[[run]]` header.
     let lines: Vec<usize> = text
@@ -197,10 +204,11 @@ impl Selection {
     pub fn indices(self, count: usize) -> Result<Vec<usize>> {
         match self {
             Selection::One(i) if i < count => Ok(vec![i]),
-            Selection::One(i) => bail!(
-                "entry {i} is past the end: the manifest has {count} entries, 0 to {}",
-                count.saturating_sub(1)
-            ),
+            Selection::One(index) => Err(BatchError::PastTheEnd {
+                index,
+                count,
+                last: count.saturating_sub(1),
+            }),
             Selection::Shard { k, n } => Ok((k..count).step_by(n).collect()),
             Selection::All => Ok((0..count).collect()),
         }
@@ -213,7 +221,9 @@ impl Selection {
             .and_then(|(k, n)| Some((k.trim().parse().ok()?, n.trim().parse().ok()?)));
         match parsed {
             Some((k, n)) if n > 0 && k < n => Ok(Selection::Shard { k, n }),
-            _ => bail!("`{text}` is not a shard: write K/N with 0 <= K < N, e.g. 0/4"),
+            _ => Err(BatchError::NotAShard {
+                text: text.to_string(),
+            }),
         }
     }
 }
@@ -236,7 +246,10 @@ pub fn scheduler_index(
         if let Some(value) = var(name) {
             return match value.trim().parse::<usize>() {
                 Ok(i) => Ok(Some((i, name))),
-                Err(_) => bail!("{name} is `{value}`, not an entry index (0, 1, 2, …)"),
+                Err(_) => Err(BatchError::NotAnIndex {
+                    variable: name,
+                    value,
+                }),
             };
         }
     }

@@ -6,7 +6,9 @@
 //! Several entries run at once on threads of this process, each run on one
 //! thread (and its recording's writer on another).
 
-use anyhow::{Context, Result};
+use super::BatchError;
+
+type Result<T, E = BatchError> = std::result::Result<T, E>;
 use protocols::time::SimDuration;
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
@@ -78,8 +80,10 @@ pub fn run(
     options: &Options,
     on_done: impl Fn(&Report) + Sync,
 ) -> Result<Vec<Report>> {
-    std::fs::create_dir_all(&options.dir)
-        .with_context(|| format!("cannot create the folder {}", options.dir.display()))?;
+    std::fs::create_dir_all(&options.dir).map_err(|source| BatchError::CreateDir {
+        dir: options.dir.clone(),
+        source,
+    })?;
     let next = AtomicUsize::new(0);
     let reports = Mutex::new(Vec::with_capacity(indices.len()));
     let work = || {
@@ -113,7 +117,7 @@ pub fn run(
                     // less on a worker.
                     .stack_size(8 << 20)
                     .spawn_scoped(s, work)
-                    .context("cannot start a worker thread")?;
+                    .map_err(BatchError::Worker)?;
             }
             Ok(())
         })?;
@@ -166,8 +170,10 @@ pub fn run_entry(manifest: &Manifest, index: usize, dir: &Path, force: bool) -> 
     });
     summary.wall_s = started.elapsed().as_secs_f64();
     let ran = ran.and_then(|figures| {
-        std::fs::rename(&tmp, &recording)
-            .with_context(|| format!("cannot move the recording to {}", recording.display()))?;
+        std::fs::rename(&tmp, &recording).map_err(|source| BatchError::MoveRecording {
+            path: recording.clone(),
+            source,
+        })?;
         Ok(figures)
     });
     match ran {
@@ -179,16 +185,16 @@ pub fn run_entry(manifest: &Manifest, index: usize, dir: &Path, force: bool) -> 
         }
         Err(e) => {
             let _ = std::fs::remove_file(&tmp);
-            if e.chain().any(|c| c.is::<interrupt::Interrupted>()) {
+            if e.interrupted() {
                 return Report::Stopped { entry: index, name };
             }
-            summary.error = Some(format!("{e:#}"));
+            summary.error = Some(in_full(&e));
         }
     }
     if let Err(e) = summary.write(dir) {
         // Not written is not done: the entry runs again next time.
         summary.status = Status::Failed;
-        summary.error = Some(format!("{e:#}"));
+        summary.error = Some(in_full(&e));
     }
     Report::Ran(summary)
 }
@@ -196,8 +202,7 @@ pub fn run_entry(manifest: &Manifest, index: usize, dir: &Path, force: bool) -> 
 /// Run `scenario`, recorded to `out`, and give its figures.
 fn run_scenario(scenario: &Scenario, out: &Path) -> Result<figures::Figures> {
     let Some(step) = Step::of_scenario(scenario) else {
-        let outcome = virtual_run::run(scenario, out, |_| {})
-            .with_context(|| format!("scenario {} failed", scenario.name))?;
+        let outcome = virtual_run::run(scenario, out, |_| {}).map_err(failed(scenario))?;
         return Ok(figures::of_outcome(&outcome));
     };
     // Sampling between stretches of the run changes nothing in it: the
@@ -217,8 +222,28 @@ fn run_scenario(scenario: &Scenario, out: &Path) -> Result<figures::Figures> {
             Ok(())
         },
     )
-    .with_context(|| format!("scenario {} failed", scenario.name))?;
+    .map_err(failed(scenario))?;
     let mut f = figures::of_outcome(&outcome);
     f.extend(step.figures(&time_s, &wheel_rpm));
     Ok(f)
+}
+
+/// The error of a run of `scenario` that failed.
+fn failed(scenario: &Scenario) -> impl Fn(virtual_run::RunError) -> BatchError + '_ {
+    |source| BatchError::ScenarioFailed {
+        scenario: scenario.name.clone(),
+        source,
+    }
+}
+
+/// `e` with its causes, `outer: cause: …`, as `main` prints an error.
+fn in_full(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        text.push_str(": ");
+        text.push_str(&c.to_string());
+        cause = c.source();
+    }
+    text
 }

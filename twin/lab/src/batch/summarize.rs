@@ -2,7 +2,9 @@
 //! column against another (a figure against a `--set` parameter, or against
 //! another figure: light-sensor rpm against the true wheel rpm).
 
-use anyhow::{Context, Result, bail};
+use super::BatchError;
+
+type Result<T, E = BatchError> = std::result::Result<T, E>;
 use std::collections::BTreeSet;
 use std::path::Path;
 
@@ -22,13 +24,14 @@ const FIRST: [&str; 7] = [
 
 /// Every summary in `dir` (its `*.json` files), in manifest order.
 pub fn gather(dir: &Path) -> Result<Vec<Summary>> {
-    let listing = std::fs::read_dir(dir)
-        .with_context(|| format!("cannot read the folder {}", dir.display()))?;
+    let unreadable = |source| BatchError::ReadDir {
+        dir: dir.to_path_buf(),
+        source,
+    };
+    let listing = std::fs::read_dir(dir).map_err(unreadable)?;
     let mut summaries = Vec::new();
     for item in listing {
-        let path = item
-            .with_context(|| format!("cannot read the folder {}", dir.display()))?
-            .path();
+        let path = item.map_err(unreadable)?.path();
         let name = path
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
@@ -42,11 +45,9 @@ pub fn gather(dir: &Path) -> Result<Vec<Summary>> {
         }
     }
     if summaries.is_empty() {
-        bail!(
-            "{} holds no batch summaries (NAME.json): run `twin batch MANIFEST --out {}` first",
-            dir.display(),
-            dir.display()
-        );
+        return Err(BatchError::NoSummaries {
+            dir: dir.to_path_buf(),
+        });
     }
     summaries.sort_by(|a, b| (a.entry, &a.name).cmp(&(b.entry, &b.name)));
     Ok(summaries)
@@ -132,10 +133,10 @@ pub fn find_column(summaries: &[Summary], name: &str) -> Result<String> {
         .map(String::as_str)
         .filter(|c| !["name", "status", "scenario", "recording", "error"].contains(c))
         .collect();
-    bail!(
-        "no column `{name}` in these summaries; the numeric ones are {}",
-        numeric.join(", ")
-    )
+    Err(BatchError::NoColumn {
+        name: name.to_string(),
+        numeric: numeric.join(", "),
+    })
 }
 
 /// What a plot drew.
@@ -162,7 +163,7 @@ pub fn plot(summaries: &[Summary], y: &str, x: &str, path: &Path) -> Result<Plot
         }
     }
     if points.is_empty() {
-        bail!("no run that succeeded has both `{x}` and `{y}` as numbers: nothing to plot");
+        return Err(BatchError::NothingToPlot { x, y });
     }
     points.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1)));
     let mut means: Vec<(f64, f64)> = Vec::new();

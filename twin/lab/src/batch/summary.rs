@@ -3,7 +3,9 @@
 //! place), so a reader or a retried task never finds half of one. An entry
 //! is done when its summary says `"status": "ok"`.
 
-use anyhow::{Context, Result};
+use super::BatchError;
+
+type Result<T, E = BatchError> = std::result::Result<T, E>;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::io::Write;
@@ -61,10 +63,18 @@ impl Summary {
         let text = match std::fs::read_to_string(path) {
             Ok(t) => t,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
-            Err(e) => return Err(e).with_context(|| format!("cannot read {}", path.display())),
+            Err(source) => {
+                return Err(BatchError::ReadSummary {
+                    path: path.to_path_buf(),
+                    source,
+                });
+            }
         };
-        let summary = serde_json::from_str(text.trim_end())
-            .with_context(|| format!("{} is not a batch summary line", path.display()))?;
+        let summary =
+            serde_json::from_str(text.trim_end()).map_err(|source| BatchError::NotASummary {
+                path: path.to_path_buf(),
+                source,
+            })?;
         Ok(Some(summary))
     }
 }
@@ -90,7 +100,10 @@ pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
     })();
     if let Err(e) = written {
         let _ = std::fs::remove_file(&tmp);
-        return Err(e).with_context(|| format!("cannot write {}", path.display()));
+        return Err(BatchError::Write {
+            path: path.to_path_buf(),
+            source: e,
+        });
     }
     Ok(())
 }

@@ -1,35 +1,39 @@
 //! Trial parameters written into a scenario, by their path in a plant
 //! parameter file.
 
-use anyhow::{Result, bail};
+use super::CalibrateError;
 use plant::PlantParams;
 use twin_sim::scenario::Scenario;
 
 /// Whether `path` names a number of the plant's parameters.
-pub fn check_path(path: &str) -> Result<()> {
+pub fn check_path(path: &str) -> Result<(), CalibrateError> {
     let all = toml::Table::try_from(PlantParams::default())?;
+    let path_owned = || path.to_string();
     let mut table = &all;
     let parts: Vec<&str> = path.split('.').collect();
     let (last, head) = parts.split_last().expect("split gives one part at least");
     for part in head {
         match table.get(*part) {
             Some(toml::Value::Table(t)) => table = t,
-            _ => bail!("`{path}` is no parameter of the plant (no table `{part}`)"),
+            _ => {
+                return Err(CalibrateError::NoTable {
+                    path: path_owned(),
+                    table: part.to_string(),
+                });
+            }
         }
     }
     match table.get(*last) {
         Some(toml::Value::Float(_)) => Ok(()),
-        Some(toml::Value::Integer(_)) => {
-            bail!("`{path}` is a whole number (a count), so it cannot be fitted")
-        }
-        Some(_) => bail!("`{path}` is not a number, so it cannot be fitted"),
+        Some(toml::Value::Integer(_)) => Err(CalibrateError::WholeNumber { path: path_owned() }),
+        Some(_) => Err(CalibrateError::NotANumberParameter { path: path_owned() }),
         None => {
             let near: Vec<&str> = table.keys().map(String::as_str).collect();
-            bail!(
-                "`{path}` is no parameter of the plant; `{}` has: {}",
-                head.join("."),
-                near.join(", ")
-            )
+            Err(CalibrateError::NoParameter {
+                path: path_owned(),
+                table: head.join("."),
+                has: near.join(", "),
+            })
         }
     }
 }

@@ -1,7 +1,7 @@
 //! The measured log: a CSV file with a header row, `#` comments allowed
 //! (a provenance header), read with the `csv` crate.
 
-use anyhow::{Context, Result, bail};
+use super::CalibrateError as E;
 use std::path::{Path, PathBuf};
 
 /// The log's cells, by column, with the line each row came from.
@@ -14,25 +14,32 @@ pub struct Table {
 }
 
 /// Reads `path`; the time column is checked here (numbers, never going back).
-pub fn read(path: &Path, time_column: &str, time_scale: f64) -> Result<Table> {
+pub fn read(path: &Path, time_column: &str, time_scale: f64) -> Result<Table, E> {
+    let at = |line: u64| format!("{}:{line}", path.display());
     let mut reader = csv::ReaderBuilder::new()
         .comment(Some(b'#'))
         .trim(csv::Trim::All)
         .flexible(false)
         .from_path(path)
-        .with_context(|| format!("cannot read the log {}", path.display()))?;
+        .map_err(|source| E::ReadLog {
+            path: path.to_path_buf(),
+            source,
+        })?;
     let headers: Vec<String> = reader
         .headers()
-        .with_context(|| format!("{}: no header row", path.display()))?
+        .map_err(|source| E::NoHeader {
+            path: path.to_path_buf(),
+            source,
+        })?
         .iter()
         .map(str::to_string)
         .collect();
     let Some(time_at) = headers.iter().position(|h| h == time_column) else {
-        bail!(
-            "{}: no column `{time_column}` for the time (columns: {})",
-            path.display(),
-            headers.join(", ")
-        );
+        return Err(E::NoTimeColumn {
+            path: path.to_path_buf(),
+            column: time_column.to_string(),
+            columns: headers.join(", "),
+        });
     };
     let mut rows = Vec::new();
     let mut last_time = f64::NEG_INFINITY;
@@ -40,25 +47,29 @@ pub fn read(path: &Path, time_column: &str, time_scale: f64) -> Result<Table> {
         let record = record.map_err(|e| in_words(path, &e))?;
         let line = record.position().map_or(0, csv::Position::line);
         let cell = record.get(time_at).unwrap_or("");
-        let time = number(cell).map(|t| t * time_scale).with_context(|| {
-            format!(
-                "{}:{line}: column `{time_column}`: `{cell}` is not a time",
-                path.display()
-            )
-        })?;
+        let time = number(cell)
+            .map(|t| t * time_scale)
+            .map_err(|source| E::NotATime {
+                at: at(line),
+                column: time_column.to_string(),
+                cell: cell.to_string(),
+                source,
+            })?;
         if time <= last_time {
-            bail!(
-                "{}:{line}: column `{time_column}`: time goes backwards or stands still \
-                 ({cell} after {})",
-                path.display(),
-                last_time / time_scale
-            );
+            return Err(E::TimeBackwards {
+                at: at(line),
+                column: time_column.to_string(),
+                cell: cell.to_string(),
+                before: last_time / time_scale,
+            });
         }
         last_time = time;
         rows.push((line, time, record.iter().map(str::to_string).collect()));
     }
     if rows.len() < 2 {
-        bail!("{}: fewer than two rows of data", path.display());
+        return Err(E::TooFewRows {
+            path: path.to_path_buf(),
+        });
     }
     Ok(Table {
         path: path.to_path_buf(),
@@ -68,31 +79,46 @@ pub fn read(path: &Path, time_column: &str, time_scale: f64) -> Result<Table> {
 }
 
 /// A finite number; NaN and infinities are refused.
-fn number(cell: &str) -> Result<f64> {
-    let v: f64 = cell.parse().map_err(|_| anyhow::anyhow!("not a number"))?;
+fn number(cell: &str) -> Result<f64, NotANumber> {
+    let v: f64 = cell.parse().map_err(|_| NotANumber::NotANumber)?;
     if !v.is_finite() {
-        bail!("not a finite number");
+        return Err(NotANumber::NotFinite);
     }
     Ok(v)
 }
 
-fn in_words(path: &Path, e: &csv::Error) -> anyhow::Error {
+/// A cell that is not a finite number.
+#[derive(Debug, Clone, Copy, thiserror::Error)]
+pub enum NotANumber {
+    #[error("not a number")]
+    NotANumber,
+    #[error("not a finite number")]
+    NotFinite,
+}
+
+fn in_words(path: &Path, e: &csv::Error) -> E {
+    let at = |pos: &Option<csv::Position>| {
+        format!(
+            "{}:{}",
+            path.display(),
+            pos.as_ref().map_or(0, csv::Position::line)
+        )
+    };
     match e.kind() {
         csv::ErrorKind::UnequalLengths {
             pos,
             expected_len,
             len,
-        } => anyhow::anyhow!(
-            "{}:{}: {len} cells where the header has {expected_len}",
-            path.display(),
-            pos.as_ref().map_or(0, csv::Position::line)
-        ),
-        csv::ErrorKind::Utf8 { pos, .. } => anyhow::anyhow!(
-            "{}:{}: not UTF-8 text: is this a CSV file?",
-            path.display(),
-            pos.as_ref().map_or(0, csv::Position::line)
-        ),
-        _ => anyhow::anyhow!("{}: {e}", path.display()),
+        } => E::UnequalRow {
+            at: at(pos),
+            len: *len,
+            expected: *expected_len,
+        },
+        csv::ErrorKind::Utf8 { pos, .. } => E::NotUtf8 { at: at(pos) },
+        _ => E::Csv {
+            path: path.to_path_buf(),
+            why: e.to_string(),
+        },
     }
 }
 
@@ -106,14 +132,15 @@ impl Table {
 
     /// `(time, value)` of a column; an empty cell is skipped when
     /// `skip_empty`, an error otherwise, and so is anything not a number.
-    pub fn column(&self, name: &str, skip_empty: bool) -> Result<Vec<(f64, f64)>> {
+    pub fn column(&self, name: &str, skip_empty: bool) -> Result<Vec<(f64, f64)>, E> {
         let Some(at) = self.headers.iter().position(|h| h == name) else {
-            bail!(
-                "{}: no column `{name}` (columns: {})",
-                self.path.display(),
-                self.headers.join(", ")
-            );
+            return Err(E::NoColumn {
+                path: self.path.clone(),
+                column: name.to_string(),
+                columns: self.headers.join(", "),
+            });
         };
+        let line_at = |line: &u64| format!("{}:{line}", self.path.display());
         let mut out = Vec::with_capacity(self.rows.len());
         for (line, time, cells) in &self.rows {
             let cell = cells.get(at).map_or("", String::as_str);
@@ -121,22 +148,24 @@ impl Table {
                 if skip_empty {
                     continue;
                 }
-                bail!(
-                    "{}:{line}: column `{name}` is empty; if the signal was not measured there, \
-                     say `empty = \"skip\"` for it in the calibration file",
-                    self.path.display()
-                );
+                return Err(E::EmptyCell {
+                    at: line_at(line),
+                    column: name.to_string(),
+                });
             }
-            let v = number(cell).with_context(|| {
-                format!("{}:{line}: column `{name}`: `{cell}`", self.path.display())
+            let v = number(cell).map_err(|source| E::NotANumber {
+                at: line_at(line),
+                column: name.to_string(),
+                cell: cell.to_string(),
+                source,
             })?;
             out.push((*time, v));
         }
         if out.len() < 2 {
-            bail!(
-                "{}: column `{name}` has fewer than two values",
-                self.path.display()
-            );
+            return Err(E::TooFewValues {
+                path: self.path.clone(),
+                column: name.to_string(),
+            });
         }
         Ok(out)
     }

@@ -11,7 +11,7 @@
 //! run from them, one per core, each restarted smaller from its best, and
 //! the better end wins.
 
-use anyhow::{Result, bail};
+use super::CalibrateError;
 use argmin::core::{CostFunction, Executor, State, TerminationReason, TerminationStatus};
 use argmin::solver::neldermead::NelderMead;
 use std::sync::Mutex;
@@ -76,24 +76,24 @@ pub struct Model<'a> {
 }
 
 impl<'a> Model<'a> {
-    pub fn new(job: &'a Job) -> Result<Self> {
+    pub fn new(job: &'a Job) -> Result<Self, CalibrateError> {
         let (a, b) = job.fit_window;
         let mut scales = Vec::new();
         for s in &job.signals {
             let v: Vec<f64> = s.rows_in((a, b)).iter().map(|p| p.1).collect();
             if v.len() < 2 {
-                bail!(
-                    "column `{}` has fewer than two values in the fit window [{a}, {b}] s",
-                    s.column
-                );
+                return Err(CalibrateError::FewInWindow {
+                    column: s.column.clone(),
+                    from: a,
+                    to: b,
+                });
             }
             let mean = v.iter().sum::<f64>() / v.len() as f64;
             let sd = (v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / v.len() as f64).sqrt();
             if sd == 0.0 {
-                bail!(
-                    "column `{}` is constant in the fit window: nothing to identify from it",
-                    s.column
-                );
+                return Err(CalibrateError::Constant {
+                    column: s.column.clone(),
+                });
             }
             scales.push(sd);
         }
@@ -112,7 +112,7 @@ impl<'a> Model<'a> {
     }
 
     /// The experiment with `values` (in the order of the job's parameters).
-    pub fn simulate(&self, values: &[f64]) -> Result<TwinReads> {
+    pub fn simulate(&self, values: &[f64]) -> Result<TwinReads, CalibrateError> {
         self.evaluations.fetch_add(1, Ordering::Relaxed);
         let scenario = apply::with_values(&self.job.scenario, &self.paths, values);
         twin_run::run(
@@ -157,7 +157,7 @@ impl<'a> Model<'a> {
     }
 
     /// The cost of `values`: the sum of squared residuals in the fit window.
-    pub fn cost_of(&self, values: &[f64]) -> Result<f64> {
+    pub fn cost_of(&self, values: &[f64]) -> Result<f64, CalibrateError> {
         let reads = self.simulate(values)?;
         Ok(self
             .residuals(&reads, self.job.fit_window)
@@ -181,7 +181,7 @@ impl CostFunction for Problem<'_, '_> {
     type Param = Vec<f64>;
     type Output = f64;
 
-    fn cost(&self, u: &Vec<f64>) -> std::result::Result<f64, argmin::core::Error> {
+    fn cost(&self, u: &Vec<f64>) -> Result<f64, argmin::core::Error> {
         let values: Vec<f64> = self
             .model
             .job
@@ -224,7 +224,7 @@ fn search(
     start: &[f64],
     max_iterations: u64,
     progress: &(dyn Fn(u64) + Sync),
-) -> Result<Search> {
+) -> Result<Search, CalibrateError> {
     let mut size = 0.8;
     let mut best = simplex_search(model, start, size, max_iterations, progress)?;
     for _ in 0..RESTARTS {
@@ -249,7 +249,7 @@ fn simplex_search(
     size: f64,
     max_iterations: u64,
     progress: &(dyn Fn(u64) + Sync),
-) -> Result<Search> {
+) -> Result<Search, CalibrateError> {
     let params = &model.job.parameters;
     let u0: Vec<f64> = params
         .iter()
@@ -265,16 +265,16 @@ fn simplex_search(
     }
     let solver = NelderMead::new(simplex)
         .with_sd_tolerance(1e-6)
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+        .map_err(|e| CalibrateError::Optimiser { why: e.to_string() })?;
     let problem = Problem { model, progress };
     let result = Executor::new(problem, solver)
         .configure(|state| state.max_iters(max_iterations))
         .timer(false)
         .run()
-        .map_err(|e| anyhow::anyhow!("the optimiser failed: {e}"))?;
+        .map_err(|e| CalibrateError::OptimiserFailed { why: e.to_string() })?;
     let state = result.state();
     let Some(best) = state.get_best_param() else {
-        bail!("the optimiser found no parameters at all");
+        return Err(CalibrateError::NoParameters);
     };
     let values: Vec<f64> = params
         .iter()
@@ -332,7 +332,7 @@ pub fn fit(
     model: &Model<'_>,
     max_iterations: u64,
     progress: &(dyn Fn(u64) + Sync),
-) -> Result<Search> {
+) -> Result<Search, CalibrateError> {
     let params = &model.job.parameters;
     let start: Vec<f64> = params.iter().map(|p| p.start).collect();
     // Say why the start itself cannot run, in the simulation's own words.
@@ -367,7 +367,7 @@ pub fn fit(
     // Ties go to the earlier point, so the result does not depend on threads.
     costs.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
     let starts: Vec<&Vec<f64>> = costs.iter().take(2).map(|&(i, _)| &points[i]).collect();
-    let found: Mutex<Vec<(usize, Result<Search>)>> = Mutex::new(Vec::new());
+    let found: Mutex<Vec<(usize, Result<Search, CalibrateError>)>> = Mutex::new(Vec::new());
     std::thread::scope(|scope| {
         for (k, from) in starts.iter().enumerate() {
             let found = &found;
@@ -379,7 +379,7 @@ pub fn fit(
     });
     let mut found = found.into_inner().unwrap_or_else(|e| e.into_inner());
     found.sort_by_key(|(k, _)| *k);
-    let found: Vec<Result<Search>> = found.into_iter().map(|(_, s)| s).collect();
+    let found: Vec<Result<Search, CalibrateError>> = found.into_iter().map(|(_, s)| s).collect();
     let mut best: Option<Search> = None;
     for s in found {
         let s = s?;
@@ -388,10 +388,10 @@ pub fn fit(
         }
     }
     let Some(best) = best else {
-        bail!("no search finished");
+        return Err(CalibrateError::NoSearchFinished);
     };
     if best.cost >= REFUSED {
-        bail!("the plant refused every trial: no parameters in the bounds give a run");
+        return Err(CalibrateError::EveryTrialRefused);
     }
     Ok(best)
 }

@@ -3,7 +3,7 @@
 //! scenario that ran the experiment, and the parameters to fit. Every
 //! mistake in it is reported with the file, line and column or field.
 
-use anyhow::{Context, Result, bail};
+use super::CalibrateError as E;
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
 use twin_sim::scenario::{NodeSpec, Scenario};
@@ -20,7 +20,7 @@ enum Source {
 
 impl Source {
     /// `(time s, value)` of a column or signal.
-    fn column(&self, name: &str, skip_empty: bool) -> Result<Vec<(f64, f64)>> {
+    fn column(&self, name: &str, skip_empty: bool) -> Result<Vec<(f64, f64)>, E> {
         match self {
             Source::Csv(table) => table.column(name, skip_empty),
             Source::Recording(recorded) => recorded.signal(name),
@@ -174,20 +174,26 @@ fn at(path: &Path, text: &str, offset: usize) -> String {
 
 impl Job {
     /// Reads and checks a job file and the log and scenario it names.
-    pub fn load(path: &Path) -> Result<Job> {
+    pub fn load(path: &Path) -> Result<Job, E> {
         Job::load_with_log(path, None)
     }
 
     /// Reads and checks a job file, with `log` (a CSV file, or a recording
     /// if it ends in `.mcap`) in place of the log it names, if given.
-    pub fn load_with_log(path: &Path, log: Option<&Path>) -> Result<Job> {
-        let text = std::fs::read_to_string(path)
-            .with_context(|| format!("cannot read the calibration file {}", path.display()))?;
+    pub fn load_with_log(path: &Path, log: Option<&Path>) -> Result<Job, E> {
+        let text = std::fs::read_to_string(path).map_err(|source| E::ReadJob {
+            path: path.to_path_buf(),
+            source,
+        })?;
         let doc = plant::toml_errors::parse(&text).map_err(|e| {
             let place = e
                 .span
                 .map_or(path.display().to_string(), |s| at(path, &text, s.start));
-            anyhow::anyhow!("{place}: {}", plant::toml_errors::in_words(&e.message))
+            E::JobToml {
+                at: place,
+                field: String::new(),
+                why: plant::toml_errors::in_words(&e.message).to_string(),
+            }
         })?;
         let file: JobFile = plant::toml_errors::deserialize(&doc).map_err(|e| {
             let place = e
@@ -198,10 +204,11 @@ impl Job {
             } else {
                 format!(" `{}`:", e.path)
             };
-            anyhow::anyhow!(
-                "{place}:{field} {}",
-                plant::toml_errors::in_words(&e.message)
-            )
+            E::JobToml {
+                at: place,
+                field,
+                why: plant::toml_errors::in_words(&e.message).to_string(),
+            }
         })?;
         let place = |key: &str| {
             plant::toml_errors::span_of(&doc, key)
@@ -214,27 +221,31 @@ impl Job {
         } else {
             Scenario::load(&file.scenario)
         }
-        .with_context(|| format!("{}: the scenario `{}`", place("scenario"), file.scenario))?;
+        .map_err(|source| E::JobScenario {
+            at: place("scenario"),
+            scenario: file.scenario.clone(),
+            source,
+        })?;
         let time_scale = match file.time_unit.as_str() {
             "s" => 1.0,
             "ms" => 1e-3,
             "us" | "µs" => 1e-6,
-            other => bail!(
-                "{}: time unit `{other}` is not one the twin knows: s, ms or us",
-                place("time_unit")
-            ),
+            other => {
+                return Err(E::TimeUnit {
+                    at: place("time_unit"),
+                    unit: other.to_string(),
+                });
+            }
         };
         if file.signals.is_empty() {
-            bail!(
-                "{}: no `[[signal]]`: name at least one measured column",
-                path.display()
-            );
+            return Err(E::NoSignals {
+                path: path.to_path_buf(),
+            });
         }
         if file.parameters.is_empty() {
-            bail!(
-                "{}: no `[[fit]]`: name at least one parameter to fit",
-                path.display()
-            );
+            return Err(E::NoParametersToFit {
+                path: path.to_path_buf(),
+            });
         }
         let parameters = check_parameters(&file.parameters, |i| place(&format!("fit.{i}")))?;
         let given = log.map(|p| (p.to_path_buf(), p.extension().is_some_and(|x| x == "mcap")));
@@ -253,36 +264,44 @@ impl Job {
                 let log = dir.join(mcap);
                 (log.clone(), Source::Recording(Recorded::read(&log)?))
             }
-            (None, Some(_), Some(_)) => bail!(
-                "{}: both `log` and `recording`: name one measured log",
-                place("recording")
-            ),
-            (None, None, None) => bail!(
-                "{}: no measured log: name a CSV file as `log = \"…\"` or an MCAP \
-                 recording as `recording = \"…\"` (or give one with --log)",
-                path.display()
-            ),
+            (None, Some(_), Some(_)) => {
+                return Err(E::TwoLogs {
+                    at: place("recording"),
+                });
+            }
+            (None, None, None) => {
+                return Err(E::NoLog {
+                    path: path.to_path_buf(),
+                });
+            }
         };
         let mut signals = Vec::new();
         for (i, s) in file.signals.iter().enumerate() {
             let where_ = place(&format!("signal.{i}"));
-            let twin = TwinSignal::from_name(&s.twin).with_context(|| where_.clone())?;
-            let unit = Unit::parse(&s.unit, twin).with_context(|| where_.clone())?;
+            let within = |source| E::At {
+                at: where_.clone(),
+                source: Box::new(source),
+            };
+            let twin = TwinSignal::from_name(&s.twin).map_err(within)?;
+            let unit = Unit::parse(&s.unit, twin).map_err(within)?;
             let skip_empty = match s.empty.as_deref() {
                 None => false,
                 Some("skip") => true,
-                Some(other) => bail!("{where_}: `empty = \"{other}\"`: the one choice is \"skip\""),
+                Some(other) => {
+                    return Err(E::EmptyChoice {
+                        at: where_,
+                        given: other.to_string(),
+                    });
+                }
             };
             if skip_empty && matches!(source, Source::Recording(_)) {
-                bail!(
-                    "{where_}: `empty` is for a CSV file's cells; a recording has no empty cells"
-                );
+                return Err(E::EmptyInRecording { at: where_ });
             }
             if !(s.weight.is_finite() && s.weight > 0.0) {
-                bail!(
-                    "{where_}: `weight` must be a number above 0, not {}",
-                    s.weight
-                );
+                return Err(E::Weight {
+                    at: where_,
+                    weight: s.weight,
+                });
             }
             let samples = source.column(&s.column, skip_empty)?;
             let samples = samples
@@ -307,9 +326,10 @@ impl Job {
             ),
         };
         let set_point = match &file.set_point {
-            Some(name) => source
-                .column(name, true)
-                .with_context(|| place("set_point"))?,
+            Some(name) => source.column(name, true).map_err(|source| E::At {
+                at: place("set_point"),
+                source: Box::new(source),
+            })?,
             None => Vec::new(),
         };
         let schedule = super::recorded::changes(&set_point);
@@ -322,28 +342,26 @@ impl Job {
                 from: schedule[0].1,
                 to,
             },
-            (None, None) if file.set_point.is_some() => bail!(
-                "{}: the set point `{}` never changes in {}: a constant command excites \
-                 nothing, so there is nothing to identify",
-                place("set_point"),
-                file.set_point.as_deref().unwrap_or(""),
-                log.display()
-            ),
-            (None, None) => bail!(
-                "{}: no `[step]` and no `set_point`: say when the command stepped, \
-                 or which column holds the set point",
-                path.display()
-            ),
+            (None, None) if file.set_point.is_some() => {
+                return Err(E::SetPointConstant {
+                    at: place("set_point"),
+                    set_point: file.set_point.clone().unwrap_or_default(),
+                    log,
+                });
+            }
+            (None, None) => {
+                return Err(E::NoStepGiven {
+                    path: path.to_path_buf(),
+                });
+            }
         };
         let step = &step;
         if step.from == step.to {
-            bail!(
-                "{}: the step goes from {} to {}: a constant command excites nothing, \
-                 so there is nothing to identify",
-                place("step"),
-                step.from,
-                step.to
-            );
+            return Err(E::StepConstant {
+                at: place("step"),
+                from: step.from,
+                to: step.to,
+            });
         }
         let scenario = if schedule.is_empty() {
             scenario
@@ -351,33 +369,39 @@ impl Job {
             follow_schedule(scenario, &schedule)
         };
         if step.at_s < first || step.at_s > last {
-            bail!(
-                "{}: the step at {} s is outside the log, which runs from {first} s to {last} s",
-                place("step"),
-                step.at_s
-            );
+            return Err(E::StepOutsideLog {
+                at: place("step"),
+                step_s: step.at_s,
+                first,
+                last,
+            });
         }
         if last - step.at_s < MIN_AFTER_STEP_S {
-            bail!(
-                "{}: the log ends {:.3} s after the step: too short to identify anything \
-                 (at least {MIN_AFTER_STEP_S} s)",
-                log.display(),
-                last - step.at_s
-            );
+            return Err(E::LogTooShort {
+                log,
+                after_s: last - step.at_s,
+                least_s: MIN_AFTER_STEP_S,
+            });
         }
-        let window = |w: Option<[f64; 2]>, key: &str, default: (f64, f64)| -> Result<(f64, f64)> {
+        let window = |w: Option<[f64; 2]>, key: &str, default: (f64, f64)| {
             let Some([a, b]) = w else {
                 return Ok(default);
             };
             if !(a.is_finite() && b.is_finite() && a < b) {
-                bail!("{}: `{key}` must be [from, to] with from < to", place(key));
+                return Err(E::WindowOrder {
+                    at: place(key),
+                    key: key.to_string(),
+                });
             }
             if b <= step.at_s || a >= last {
-                bail!(
-                    "{}: `{key}` [{a}, {b}] holds nothing after the step at {} s in a log ending at {last} s",
-                    place(key),
-                    step.at_s
-                );
+                return Err(E::WindowEmpty {
+                    at: place(key),
+                    key: key.to_string(),
+                    from: a,
+                    to: b,
+                    step_s: step.at_s,
+                    last,
+                });
             }
             Ok((a, b))
         };
@@ -424,34 +448,44 @@ impl Job {
 fn check_parameters(
     files: &[ParameterFile],
     place: impl Fn(usize) -> String,
-) -> Result<Vec<Parameter>> {
+) -> Result<Vec<Parameter>, E> {
     let mut out: Vec<Parameter> = Vec::new();
     for (i, p) in files.iter().enumerate() {
         let here = place(i);
+        let path = || p.path.clone();
         if !(p.min.is_finite() && p.max.is_finite() && p.start.is_finite()) {
-            bail!("{here}: `{}`: min, max and start must be numbers", p.path);
+            return Err(E::BoundsNotNumbers {
+                at: here,
+                path: path(),
+            });
         }
         if p.min >= p.max {
-            bail!(
-                "{here}: `{}`: min {} is not below max {}",
-                p.path,
-                p.min,
-                p.max
-            );
+            return Err(E::BoundsOrder {
+                at: here,
+                path: path(),
+                min: p.min,
+                max: p.max,
+            });
         }
         if p.start < p.min || p.start > p.max {
-            bail!(
-                "{here}: `{}`: the start {} is outside its bounds [{}, {}]",
-                p.path,
-                p.start,
-                p.min,
-                p.max
-            );
+            return Err(E::StartOutside {
+                at: here,
+                path: path(),
+                start: p.start,
+                min: p.min,
+                max: p.max,
+            });
         }
         if out.iter().any(|o| o.path == p.path) {
-            bail!("{here}: `{}` is fitted twice", p.path);
+            return Err(E::FittedTwice {
+                at: here,
+                path: path(),
+            });
         }
-        super::apply::check_path(&p.path).with_context(|| here.clone())?;
+        super::apply::check_path(&p.path).map_err(|source| E::At {
+            at: here.clone(),
+            source: Box::new(source),
+        })?;
         out.push(Parameter {
             path: p.path.clone(),
             min: p.min,

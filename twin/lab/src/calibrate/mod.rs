@@ -17,7 +17,6 @@ pub mod signal;
 pub mod twin_run;
 pub mod uncertainty;
 
-use anyhow::{Context, Result};
 use serde::Serialize;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -25,6 +24,292 @@ use std::path::{Path, PathBuf};
 pub use job::Job;
 use report::{SignalFit, StepFigures};
 use twin_run::TwinReads;
+
+/// Why a calibration could not run: its job file, its log, the twin's runs
+/// or the search, each in the words of the file it is about.
+#[derive(Debug, thiserror::Error)]
+pub enum CalibrateError {
+    #[error("cannot read the calibration file {}", path.display())]
+    ReadJob {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// Text that is not TOML, or does not fit the job's fields.
+    #[error("{at}:{field} {why}")]
+    JobToml {
+        at: String,
+        field: String,
+        why: String,
+    },
+    #[error("{at}: the scenario `{scenario}`")]
+    JobScenario {
+        at: String,
+        scenario: String,
+        #[source]
+        source: twin_sim::scenario::ScenarioError,
+    },
+    #[error("{at}: time unit `{unit}` is not one the twin knows: s, ms or us")]
+    TimeUnit { at: String, unit: String },
+    #[error("{}: no `[[signal]]`: name at least one measured column", path.display())]
+    NoSignals { path: PathBuf },
+    #[error("{}: no `[[fit]]`: name at least one parameter to fit", path.display())]
+    NoParametersToFit { path: PathBuf },
+    #[error("{at}: both `log` and `recording`: name one measured log")]
+    TwoLogs { at: String },
+    #[error(
+        "{}: no measured log: name a CSV file as `log = \"…\"` or an MCAP \
+         recording as `recording = \"…\"` (or give one with --log)",
+        path.display()
+    )]
+    NoLog { path: PathBuf },
+    /// What is wrong at a place of the job file.
+    #[error("{at}")]
+    At {
+        at: String,
+        #[source]
+        source: Box<CalibrateError>,
+    },
+    #[error("{at}: `empty = \"{given}\"`: the one choice is \"skip\"")]
+    EmptyChoice { at: String, given: String },
+    #[error("{at}: `empty` is for a CSV file's cells; a recording has no empty cells")]
+    EmptyInRecording { at: String },
+    #[error("{at}: `weight` must be a number above 0, not {weight}")]
+    Weight { at: String, weight: f64 },
+    #[error(
+        "{at}: the set point `{set_point}` never changes in {}: a constant command excites \
+         nothing, so there is nothing to identify",
+        log.display()
+    )]
+    SetPointConstant {
+        at: String,
+        set_point: String,
+        log: PathBuf,
+    },
+    #[error(
+        "{}: no `[step]` and no `set_point`: say when the command stepped, \
+         or which column holds the set point",
+        path.display()
+    )]
+    NoStepGiven { path: PathBuf },
+    #[error(
+        "{at}: the step goes from {from} to {to}: a constant command excites nothing, \
+         so there is nothing to identify"
+    )]
+    StepConstant { at: String, from: f64, to: f64 },
+    #[error(
+        "{at}: the step at {step_s} s is outside the log, which runs from {first} s to {last} s"
+    )]
+    StepOutsideLog {
+        at: String,
+        step_s: f64,
+        first: f64,
+        last: f64,
+    },
+    #[error(
+        "{}: the log ends {after_s:.3} s after the step: too short to identify anything \
+         (at least {least_s} s)",
+        log.display()
+    )]
+    LogTooShort {
+        log: PathBuf,
+        after_s: f64,
+        least_s: f64,
+    },
+    #[error("{at}: `{key}` must be [from, to] with from < to")]
+    WindowOrder { at: String, key: String },
+    #[error(
+        "{at}: `{key}` [{from}, {to}] holds nothing after the step at {step_s} s in a log ending at {last} s"
+    )]
+    WindowEmpty {
+        at: String,
+        key: String,
+        from: f64,
+        to: f64,
+        step_s: f64,
+        last: f64,
+    },
+    #[error("{at}: `{path}`: min, max and start must be numbers")]
+    BoundsNotNumbers { at: String, path: String },
+    #[error("{at}: `{path}`: min {min} is not below max {max}")]
+    BoundsOrder {
+        at: String,
+        path: String,
+        min: f64,
+        max: f64,
+    },
+    #[error("{at}: `{path}`: the start {start} is outside its bounds [{min}, {max}]")]
+    StartOutside {
+        at: String,
+        path: String,
+        start: f64,
+        min: f64,
+        max: f64,
+    },
+    #[error("{at}: `{path}` is fitted twice")]
+    FittedTwice { at: String, path: String },
+    #[error("`{path}` is no parameter of the plant (no table `{table}`)")]
+    NoTable { path: String, table: String },
+    #[error("`{path}` is a whole number (a count), so it cannot be fitted")]
+    WholeNumber { path: String },
+    #[error("`{path}` is not a number, so it cannot be fitted")]
+    NotANumberParameter { path: String },
+    #[error("`{path}` is no parameter of the plant; `{table}` has: {has}")]
+    NoParameter {
+        path: String,
+        table: String,
+        has: String,
+    },
+    #[error("`twin = \"{name}\"` is no signal the twin has: {known}")]
+    UnknownSignal { name: String, known: String },
+    #[error("unit `{unit}`{kind} does not fit the twin's {signal}: use one of {known}")]
+    Unit {
+        unit: String,
+        kind: &'static str,
+        signal: &'static str,
+        known: String,
+    },
+    #[error("cannot read the log {}", path.display())]
+    ReadLog {
+        path: PathBuf,
+        #[source]
+        source: csv::Error,
+    },
+    #[error("{}: no header row", path.display())]
+    NoHeader {
+        path: PathBuf,
+        #[source]
+        source: csv::Error,
+    },
+    #[error("{}: no column `{column}` for the time (columns: {columns})", path.display())]
+    NoTimeColumn {
+        path: PathBuf,
+        column: String,
+        columns: String,
+    },
+    #[error("{at}: column `{column}`: `{cell}` is not a time")]
+    NotATime {
+        at: String,
+        column: String,
+        cell: String,
+        #[source]
+        source: csv_log::NotANumber,
+    },
+    #[error("{at}: column `{column}`: time goes backwards or stands still ({cell} after {before})")]
+    TimeBackwards {
+        at: String,
+        column: String,
+        cell: String,
+        before: f64,
+    },
+    #[error("{}: fewer than two rows of data", path.display())]
+    TooFewRows { path: PathBuf },
+    #[error("{at}: {len} cells where the header has {expected}")]
+    UnequalRow { at: String, len: u64, expected: u64 },
+    #[error("{at}: not UTF-8 text: is this a CSV file?")]
+    NotUtf8 { at: String },
+    #[error("{}: {why}", path.display())]
+    Csv { path: PathBuf, why: String },
+    #[error("{}: no column `{column}` (columns: {columns})", path.display())]
+    NoColumn {
+        path: PathBuf,
+        column: String,
+        columns: String,
+    },
+    #[error(
+        "{at}: column `{column}` is empty; if the signal was not measured there, \
+         say `empty = \"skip\"` for it in the calibration file"
+    )]
+    EmptyCell { at: String, column: String },
+    #[error("{at}: column `{column}`: `{cell}`")]
+    NotANumber {
+        at: String,
+        column: String,
+        cell: String,
+        #[source]
+        source: csv_log::NotANumber,
+    },
+    #[error("{}: column `{column}` has fewer than two values", path.display())]
+    TooFewValues { path: PathBuf, column: String },
+    #[error("cannot read the recording {}", path.display())]
+    ReadRecording {
+        path: PathBuf,
+        #[source]
+        source: twin_recording::ReadError,
+    },
+    #[error("{}: no signal `{name}`{hint}", path.display())]
+    NoSignal {
+        path: PathBuf,
+        name: String,
+        hint: String,
+    },
+    #[error("{}: signal `{name}` has fewer than two values", path.display())]
+    TooFewSignalValues { path: PathBuf, name: String },
+    #[error(
+        "scenario {scenario} has no master the calibration can read (a `controller-network-master` \
+         or a `supervisor`): calibration compares what a master read"
+    )]
+    NoMaster { scenario: String },
+    #[error(
+        "in scenario {scenario}, the master never {what} within {until_s} s: \
+         there is no step to compare"
+    )]
+    NoStep {
+        scenario: String,
+        what: String,
+        until_s: f64,
+    },
+    #[error("column `{column}` has fewer than two values in the fit window [{from}, {to}] s")]
+    FewInWindow { column: String, from: f64, to: f64 },
+    #[error("column `{column}` is constant in the fit window: nothing to identify from it")]
+    Constant { column: String },
+    /// The optimiser refused its starting simplex, in its own words.
+    #[error("{why}")]
+    Optimiser { why: String },
+    #[error("the optimiser failed: {why}")]
+    OptimiserFailed { why: String },
+    #[error("the optimiser found no parameters at all")]
+    NoParameters,
+    #[error("no search finished")]
+    NoSearchFinished,
+    #[error("the plant refused every trial: no parameters in the bounds give a run")]
+    EveryTrialRefused,
+    #[error("a simulation thread failed")]
+    SimulationThread,
+    /// The twin with the starting values, which does not run.
+    #[error("the twin with the starting values")]
+    Start(#[source] Box<CalibrateError>),
+    #[error(
+        "{}: column `{column}` ({unit}) averages {measured} after the step, {ratio:.1} times what \
+         the twin's {signal} gives ({twin}): is the unit right?",
+        log.display()
+    )]
+    Magnitude {
+        log: PathBuf,
+        column: String,
+        unit: &'static str,
+        measured: String,
+        ratio: f64,
+        signal: &'static str,
+        twin: String,
+    },
+    #[error("cannot create {}", dir.display())]
+    CreateDir {
+        dir: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error(transparent)]
+    Plot(#[from] crate::plot::PlotError),
+    #[error(transparent)]
+    Toml(#[from] toml::ser::Error),
+    #[error(transparent)]
+    Build(#[from] twin_sim::nodes_build::BuildError),
+    #[error(transparent)]
+    Engine(#[from] twin_sim::engine::EngineError),
+}
+
+type Result<T, E = CalibrateError> = std::result::Result<T, E>;
 
 /// How long the fit may search.
 #[derive(Debug, Clone, Copy)]
@@ -116,7 +401,7 @@ pub fn calibrate(job: &Job, options: Options, progress: &(dyn Fn(u64) + Sync)) -
     let start: Vec<f64> = job.parameters.iter().map(|p| p.start).collect();
     let reads_start = model
         .simulate(&start)
-        .context("the twin with the starting values")?;
+        .map_err(|e| CalibrateError::Start(Box::new(e)))?;
     check_magnitudes(job, &reads_start)?;
     let cost_start = model.cost_of(&start)?;
     let search = fit::fit(&model, options.max_iterations, progress)?;
@@ -201,16 +486,15 @@ fn check_magnitudes(job: &Job, reads: &TwinReads) -> Result<()> {
         if measured > 0.0 && twin > 0.0 {
             let ratio = measured / twin;
             if !(0.2..=5.0).contains(&ratio) {
-                anyhow::bail!(
-                    "{}: column `{}` ({}) averages {} after the step, {ratio:.1} times what \
-                     the twin's {} gives ({}): is the unit right?",
-                    job.log.display(),
-                    s.column,
-                    s.unit.name,
-                    short(measured),
-                    s.twin.describe(),
-                    short(twin)
-                );
+                return Err(CalibrateError::Magnitude {
+                    log: job.log.clone(),
+                    column: s.column.clone(),
+                    unit: s.unit.name,
+                    measured: short(measured),
+                    ratio,
+                    signal: s.twin.describe(),
+                    twin: short(twin),
+                });
             }
         }
     }
@@ -323,7 +607,10 @@ pub fn draw(job: &Job, outcome: &Outcome, dir: &Path) -> Result<Vec<PathBuf>> {
         residuals.iter().flat_map(|s| s.points.iter().map(|p| p.1)),
         0.05,
     );
-    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    std::fs::create_dir_all(dir).map_err(|source| CalibrateError::CreateDir {
+        dir: dir.to_path_buf(),
+        source,
+    })?;
     let main = dir.join("calibrate.png");
     plot::line_plot(
         &main,

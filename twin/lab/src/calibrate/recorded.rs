@@ -2,7 +2,7 @@
 //! module, or one of the twin's own. Its signals are named as `twin export`
 //! and `twin view` name them (`/master/supervisor/loop.loops.0.measured_rpm`).
 
-use anyhow::{Context, Result, bail};
+use super::CalibrateError;
 use std::path::{Path, PathBuf};
 use twin_recording::signals::Signals;
 
@@ -14,9 +14,11 @@ pub struct Recorded {
 }
 
 impl Recorded {
-    pub fn read(path: &Path) -> Result<Recorded> {
-        let signals = Signals::read(path)
-            .with_context(|| format!("cannot read the recording {}", path.display()))?;
+    pub fn read(path: &Path) -> Result<Recorded, CalibrateError> {
+        let signals = Signals::read(path).map_err(|source| CalibrateError::ReadRecording {
+            path: path.to_path_buf(),
+            source,
+        })?;
         Ok(Recorded {
             path: path.to_path_buf(),
             signals,
@@ -24,7 +26,7 @@ impl Recorded {
     }
 
     /// `(time s, value)` of the signal `name`.
-    pub fn signal(&self, name: &str) -> Result<Vec<(f64, f64)>> {
+    pub fn signal(&self, name: &str) -> Result<Vec<(f64, f64)>, CalibrateError> {
         let Some(signal) = self.signals.by_name.get(name) else {
             // The loops' signals are the ones a calibration reads; the
             // plant's dozens of sensor fields would bury them.
@@ -47,7 +49,11 @@ impl Recorded {
             } else {
                 format!(" (its loop signals: {})", loops.join(", "))
             };
-            bail!("{}: no signal `{name}`{hint}", self.path.display());
+            return Err(CalibrateError::NoSignal {
+                path: self.path.clone(),
+                name: name.to_string(),
+                hint,
+            });
         };
         let samples: Vec<(f64, f64)> = signal
             .times
@@ -57,10 +63,10 @@ impl Recorded {
             .filter(|p| p.1.is_finite())
             .collect();
         if samples.len() < 2 {
-            bail!(
-                "{}: signal `{name}` has fewer than two values",
-                self.path.display()
-            );
+            return Err(CalibrateError::TooFewSignalValues {
+                path: self.path.clone(),
+                name: name.to_string(),
+            });
         }
         Ok(samples)
     }

@@ -1,7 +1,7 @@
 //! The twin's signals a measured column (or a recording's signal) can be
 //! compared with, and their units.
 
-use anyhow::{Result, bail};
+use super::CalibrateError;
 
 /// A signal of the twin, as a master read it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -26,15 +26,15 @@ const NAMES: [(&str, TwinSignal); 4] = [
 ];
 
 impl TwinSignal {
-    pub fn from_name(name: &str) -> Result<Self> {
+    pub fn from_name(name: &str) -> Result<Self, CalibrateError> {
         match NAMES.iter().find(|(n, _)| *n == name) {
             Some((_, s)) => Ok(*s),
             None => {
                 let known: Vec<&str> = NAMES.iter().map(|(n, _)| *n).collect();
-                bail!(
-                    "`twin = \"{name}\"` is no signal the twin has: {}",
-                    known.join(", ")
-                )
+                Err(CalibrateError::UnknownSignal {
+                    name: name.to_string(),
+                    known: known.join(", "),
+                })
             }
         }
     }
@@ -73,7 +73,7 @@ pub struct Unit {
 impl Unit {
     /// The unit `text` for `signal`: a speed for both (the light register
     /// is wheel rpm × 100, so plain wheel rpm is scaled by 100).
-    pub fn parse(text: &str, signal: TwinSignal) -> Result<Unit> {
+    pub fn parse(text: &str, signal: TwinSignal) -> Result<Unit, CalibrateError> {
         let speeds: &[(&str, f64)] = match signal {
             TwinSignal::MotorRpmRead | TwinSignal::SupervisorRpm => &[
                 ("rpm", 1.0),
@@ -96,11 +96,12 @@ impl Unit {
             ("V" | "mV" | "A" | "mA" | "W" | "counts" | "%", _) => " is not a speed, and",
             _ => "",
         };
-        bail!(
-            "unit `{text}`{kind} does not fit the twin's {}: use one of {}",
-            signal.describe(),
-            known.join(", ")
-        )
+        Err(CalibrateError::Unit {
+            unit: text.to_string(),
+            kind,
+            signal: signal.describe(),
+            known: known.join(", "),
+        })
     }
 
     /// A value of this unit in the twin's.

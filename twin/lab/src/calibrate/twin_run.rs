@@ -8,7 +8,6 @@
 //! nodes' replies on the bus) and the EV module's MEB supervisor (its loop
 //! report, once per poll cycle, as `twin supervise` records it).
 
-use anyhow::{Result, bail};
 use nodes::controller_network::{
     LIGHT_ID, MOTOR_ID, MasterConfig, REG_LIGHT_VALUE, REG_RPM, REG_STATE,
 };
@@ -19,6 +18,7 @@ use twin_sim::engine::{BusSlot, NodeSlot, ObserveError, Observer};
 use twin_sim::scenario::{NodeSpec, Scenario};
 use twin_sim::virtual_run;
 
+use super::CalibrateError;
 use super::signal::TwinSignal;
 
 /// What the master read in one run, per signal: `(time s, value)`, the time
@@ -127,7 +127,12 @@ impl Observer for ReadsObserver<'_> {
         }
         Ok(())
     }
-    fn telemetry(&mut self, now: SimTime, node: &NodeSlot, report: &LoopReport) -> Result<(), ObserveError> {
+    fn telemetry(
+        &mut self,
+        now: SimTime,
+        node: &NodeSlot,
+        report: &LoopReport,
+    ) -> Result<(), ObserveError> {
         if node.name != self.master.name() {
             return Ok(());
         }
@@ -156,7 +161,7 @@ impl Observer for ReadsObserver<'_> {
 }
 
 /// The master of `scenario` whose reads are compared.
-fn master_of(scenario: &Scenario) -> Result<Master<'_>> {
+fn master_of(scenario: &Scenario) -> Result<Master<'_>, CalibrateError> {
     for node in &scenario.nodes {
         match node {
             NodeSpec::ControllerNetworkMaster { name, program, .. } => {
@@ -177,11 +182,9 @@ fn master_of(scenario: &Scenario) -> Result<Master<'_>> {
             _ => {}
         }
     }
-    bail!(
-        "scenario {} has no master the calibration can read (a `controller-network-master` \
-         or a `supervisor`): calibration compares what a master read",
-        scenario.name
-    )
+    Err(CalibrateError::NoMaster {
+        scenario: scenario.name.clone(),
+    })
 }
 
 /// Runs `scenario` (its parameters already set) to `until_s` and returns what
@@ -192,7 +195,7 @@ pub fn run(
     until_s: f64,
     step_at_s: f64,
     step: (f64, f64),
-) -> Result<TwinReads> {
+) -> Result<TwinReads, CalibrateError> {
     let master = master_of(scenario)?;
     let mut engine = virtual_run::build(scenario)?;
     let mut observer = ReadsObserver {
@@ -212,11 +215,11 @@ pub fn run(
                 format!("stepped its set point from {} to {} rpm", step.0, step.1)
             }
         };
-        bail!(
-            "in scenario {}, the master never {what} within {until_s} s: \
-             there is no step to compare",
-            scenario.name
-        );
+        return Err(CalibrateError::NoStep {
+            scenario: scenario.name.clone(),
+            what,
+            until_s,
+        });
     };
     let shift = step_at_s - step_s;
     for series in [

@@ -7,7 +7,7 @@
 //! residuals of one master reading repeat on every log row until the next
 //! one, so the error variance counts the master's readings, not the rows.
 
-use anyhow::Result;
+use super::CalibrateError;
 use nalgebra::DMatrix;
 use serde::Serialize;
 
@@ -33,7 +33,11 @@ pub struct Uncertainty {
 }
 
 /// The uncertainty at `values`; the 6 × p simulations run on every core.
-pub fn estimate(model: &Model<'_>, values: &[f64], readings: usize) -> Result<Uncertainty> {
+pub fn estimate(
+    model: &Model<'_>,
+    values: &[f64],
+    readings: usize,
+) -> Result<Uncertainty, CalibrateError> {
     let p = values.len();
     let window = model.job.fit_window;
     let base = model.residuals(&model.simulate(values)?, window);
@@ -49,7 +53,7 @@ pub fn estimate(model: &Model<'_>, values: &[f64], readings: usize) -> Result<Un
         .collect();
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let chunk = trials.len().div_ceil(cores).max(1);
-    let mut results: Vec<Result<Vec<f64>>> = Vec::new();
+    let mut results: Vec<Result<Vec<f64>, CalibrateError>> = Vec::new();
     std::thread::scope(|scope| {
         let handles: Vec<_> = trials
             .chunks(chunk)
@@ -68,7 +72,7 @@ pub fn estimate(model: &Model<'_>, values: &[f64], readings: usize) -> Result<Un
         for h in handles {
             match h.join() {
                 Ok(r) => results.extend(r),
-                Err(_) => results.push(Err(anyhow::anyhow!("a simulation thread failed"))),
+                Err(_) => results.push(Err(CalibrateError::SimulationThread)),
             }
         }
     });
