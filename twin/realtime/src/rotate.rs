@@ -20,14 +20,16 @@
 //! logrotate's, mean 512·2²⁰ as their help says; and it prints `512.0 MiB`
 //! where a session's first line says `512M`.
 
-use anyhow::Result;
 use protocols::time::{SimDuration, SimTime};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
+use twin_recording::WriteError;
 use twin_recording::disk;
 use twin_recording::topics;
+
+type Result<T, E = WriteError> = std::result::Result<T, E>;
 use twin_sim::engine::FirmwareFile;
 use twin_sim::observe::SimRecorder;
 
@@ -407,7 +409,7 @@ pub enum DiskOutcome {
     Resumed(Box<SimRecorder>, Vec<Pruned>),
     /// Waiting for space (having deleted these); the error if a new file
     /// could not be made.
-    Paused(Vec<Pruned>, Option<anyhow::Error>),
+    Paused(Vec<Pruned>, Option<WriteError>),
 }
 
 /// Writes each firmware's record and its bytes into `recorder`.

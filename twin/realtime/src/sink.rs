@@ -5,7 +5,6 @@
 //! `/realtime/lateness` (each second: that second's and the total tick
 //! lateness). The file is flushed every second, so a crash loses at most one.
 
-use anyhow::Result;
 use nodes::node::NodeEvent;
 use protocols::modbus::rtu;
 use protocols::modbus::serial::FrameLen;
@@ -27,6 +26,8 @@ use twin_recording::describe::{LinkFrameFields, link_frame_fields};
 use twin_recording::record::WriteError;
 use twin_recording::topics::{self, LoopReport, ReadingsSample};
 use twin_sim::observe::{LazyChannel, McapObserver, SimRecorder};
+
+type Result<T, E = WriteError> = std::result::Result<T, E>;
 
 /// How often the sink drains its queue (console lines and recording may lag
 /// by this much; the engine never waits for them).
@@ -571,7 +572,7 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
     let mut last_at = SimTime::ZERO;
     let mut frame_sink = FrameSink::new(&config);
     let stdout = std::io::stdout();
-    let mut failed: Option<anyhow::Error> = None;
+    let mut failed: Option<WriteError> = None;
     let mut finish = None;
     let mut view = config.view.take();
     let mut drain_every = DRAIN_EVERY;
@@ -765,7 +766,7 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
                 &reason,
                 &mut out,
             ),
-            (recorded, _, _) => recorded.map_err(anyhow::Error::from),
+            (recorded, _, _) => recorded,
         };
         if let Err(e) = recorded {
             if let Some(o) = observer.take() {
@@ -774,8 +775,13 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
             match &mut files {
                 // A service's recording goes on in a new file, after the
                 // old ones the retention rules let go.
-                Some(f) if matches!(e.downcast_ref(), Some(WriteError::DiskFull(_))) => {
-                    let _ = writeln!(out, "warning: recording {}: {e:#}", f.current().display());
+                Some(f) if matches!(e, WriteError::DiskFull(_)) => {
+                    let _ = writeln!(
+                        out,
+                        "warning: recording {}: {}",
+                        f.current().display(),
+                        in_full(&e)
+                    );
                     match f.disk_full(last_at) {
                         DiskOutcome::Resumed(recorder, pruned) => {
                             say_pruned(&mut out, &pruned);
@@ -795,7 +801,9 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
                                 } else {
                                     " (no --keep-files, --keep-age or --keep-size: no old recording is deleted)"
                                 },
-                                error.map(|e| format!(": {e:#}")).unwrap_or_default()
+                                error
+                                    .map(|e| format!(": {}", in_full(&e)))
+                                    .unwrap_or_default()
                             );
                         }
                     }
@@ -803,7 +811,7 @@ fn run(mut config: SinkConfig, rx: &Receiver<SinkMsg>) -> Result<SinkOutcome> {
                 _ => {
                     // Keep serving: the session matters more than its recording.
                     if failed.is_none() {
-                        let _ = writeln!(out, "warning: recording stopped: {e:#}");
+                        let _ = writeln!(out, "warning: recording stopped: {}", in_full(&e));
                     }
                     failed.get_or_insert(e);
                 }
@@ -915,10 +923,22 @@ fn resume(
             );
         }
         Some(Err(e)) => {
-            let _ = writeln!(out, "warning: recording still paused: {e:#}");
+            let _ = writeln!(out, "warning: recording still paused: {}", in_full(&e));
         }
         None => {}
     }
+}
+
+/// `e` with its causes, `outer: cause: …`, as `main` prints an error.
+fn in_full(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        text.push_str(": ");
+        text.push_str(&c.to_string());
+        cause = c.source();
+    }
+    text
 }
 
 fn say_pruned(out: &mut impl Write, pruned: &[Pruned]) {
