@@ -98,11 +98,12 @@ pub fn execute(args: &BenchArgs) -> Result<()> {
             || {
                 pair.set(pair.get() + 1);
                 let bar = new_bar("not recorded");
-                bench::run_discarding(&scenario, |done| bar.show(done))
+                // Boxed: a run's error is large to pass by value.
+                bench::run_discarding(&scenario, |done| bar.show(done)).map_err(Box::new)
             },
             || {
                 let bar = new_bar("recorded");
-                bench::run_recording(&scenario, &out, |done| bar.show(done))
+                bench::run_recording(&scenario, &out, |done| bar.show(done)).map_err(Box::new)
             },
         );
         // Remove the scratch file whatever happened, then report.

@@ -74,12 +74,20 @@ fn a_serve_sessions_recording_decodes_in_the_order_the_bytes_went() {
     let mut frame = [0u8; 300];
     for (address, quantity) in [(0u16, 10u16), (2, 1), (5, 3)] {
         let request = Request::ReadInputRegisters { address, quantity };
-        let n = modbus::rtu::emit(1, &request, &mut frame).unwrap();
+        let n = modbus::rtu::RtuRepr {
+            unit: 1,
+            pdu: &request,
+        }
+        .emit(&mut frame)
+        .unwrap();
         port.write_all(&frame[..n]).unwrap();
         // unit, function, byte count, the registers, CRC
         let mut reply = vec![0u8; 5 + 2 * usize::from(quantity)];
         port.read_exact(&mut reply).expect("a reply on the pty");
-        assert!(modbus::rtu::parse(&reply).is_ok(), "{reply:02x?}");
+        assert!(
+            modbus::rtu::RtuFrame::new_checked(&reply).is_ok(),
+            "{reply:02x?}"
+        );
     }
     let printed = server.terminate();
     assert!(printed.contains("stopped"), "{printed}");
