@@ -338,7 +338,7 @@ fn a_collision_garbles_the_line_where_the_two_frames_overlap() {
 /// flips bits at the receivers.
 const NOISY_BUS: &str = concat!(
     env!("CARGO_MANIFEST_DIR"),
-    "/../../docs/examples/noisy-bus.toml"
+    "/../../docs/examples/noisy-pair.toml"
 );
 
 #[test]
