@@ -46,7 +46,9 @@ const TICKS_PER_NANO: u64 = protocols::time::TICKS_PER_SECOND / 1_000_000_000;
 /// more than the catch-up, so a batch may be longer than that; each batch
 /// is a wake-up of every module's engine, and a newcomer or a command wakes
 /// it at once (the plant catches up before it is served). An idle class of
-/// 35 modules, debug build: 47 % of a core at 10 ms, 32 % at 20, 22 % at 40.
+/// 35 modules, debug build: 47 % of a core at 10 ms, 32 % at 20, 22 % at 40;
+/// 100 ms took 0.63× the CPU of 20 ms in the same run (`serve-bench class
+/// --modules 35 --hz 0`, a loaded machine).
 const IDLE_BATCH: SimDuration = SimDuration::from_millis(100);
 /// How often the engine looks for connections past their idle timeout.
 const IDLE_CHECK_PERIOD: SimDuration = SimDuration::from_millis(100);
