@@ -24,16 +24,18 @@ pub fn read<T: Parser>(line: &str) -> Result<Typed<T>, String> {
     if words.is_empty() {
         return Ok(Typed::Blank);
     }
-    match T::try_parse_from(words) {
+    match T::try_parse_from(&words) {
         Ok(command) => Ok(Typed::Command(command)),
         // clap hands the help over as an error; here it is what was asked for.
-        Err(e)
-            if matches!(
-                e.kind(),
-                ErrorKind::DisplayHelp | ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand
-            ) =>
-        {
-            Ok(Typed::Help(shown(&e)))
+        Err(e) if e.kind() == ErrorKind::DisplayHelp => Ok(Typed::Help(shown(&e))),
+        // A command typed without the words it needs (`fault`) is a
+        // question: the same answer as `help fault`, not clap's shorter one.
+        Err(e) if e.kind() == ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand => {
+            let asked = std::iter::once("help").chain(words.iter().copied());
+            Ok(Typed::Help(match T::try_parse_from(asked) {
+                Err(help) if help.kind() == ErrorKind::DisplayHelp => shown(&help),
+                _ => shown(&e),
+            }))
         }
         Err(e) => Err(shown(&e)),
     }
