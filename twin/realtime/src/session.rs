@@ -9,7 +9,6 @@
 //! totals. A role supplies what differs; [`SessionOptions`] and
 //! [`SessionOutcome`] hold what every session is told and reports.
 
-use anyhow::{Context, Result, bail};
 use protocols::time::{SimDuration, SimTime};
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
@@ -23,11 +22,35 @@ use tokio::runtime::{Handle, Runtime};
 use tokio::signal::unix::{Signal, SignalKind, signal};
 
 use super::allow::AllowList;
-use super::io::{SerialSettings, serial, tcp};
+use super::io::{OpenError, SerialSettings, serial, tcp};
 use super::links::{ClientLimit, ConnIds, Refused, accept_loop, serial_loop};
 use super::rotate::{RecordPlan, Recordings};
 use super::sink::{self, SinkConfig, SinkLink, SinkMsg, ViewOpener};
 use super::{Inbound, LatenessSummary, RtClock, RtEngine, RtSummary};
+use twin_recording::WriteError;
+
+/// Why a session could not start or end as it should: what every role
+/// shares (its own mistakes are its role's error, which holds these).
+#[derive(Debug, thiserror::Error)]
+pub enum SessionError {
+    #[error("cannot start the I/O runtime")]
+    Runtime(#[source] std::io::Error),
+    #[error("cannot start the real-time thread")]
+    EngineThread(#[source] std::io::Error),
+    /// The engine's thread ended without its summary (it panicked).
+    #[error("the real-time thread failed")]
+    EngineFailed,
+    /// The recording thread ended without its outcome (it panicked).
+    #[error("the recording thread failed")]
+    RecordingFailed,
+    /// The recording could not be started or finished.
+    #[error(transparent)]
+    Recording(#[from] WriteError),
+    #[error("cannot write the session's totals")]
+    Totals(#[source] serde_json::Error),
+}
+
+type Result<T, E = SessionError> = std::result::Result<T, E>;
 
 /// What every session is told, beside what its role is told (the role's
 /// options hold it as `session`).
@@ -109,11 +132,13 @@ pub trait Role {
     type Link;
     /// What the role reports at the end, beside [`SessionOutcome`].
     type End;
+    /// Why the role's session failed: its own mistakes, and the session's.
+    type Error: From<SessionError>;
     /// The recording's `kind`.
     const KIND: &'static str;
 
     /// Adds the role's modules and devices to `engine`, and sets it up.
-    fn build(&mut self, engine: &mut RtEngine) -> Result<()>;
+    fn build(&mut self, engine: &mut RtEngine) -> Result<(), Self::Error>;
 
     /// Opens the role's links (inside the runtime): each is added to
     /// `engine`, and the task that carries it to `links`.
@@ -121,11 +146,11 @@ pub trait Role {
         &mut self,
         engine: &mut RtEngine,
         links: &mut Links,
-    ) -> impl Future<Output = Result<Vec<Self::Link>>>;
+    ) -> impl Future<Output = Result<Vec<Self::Link>, Self::Error>>;
 
     /// The recording's `twin.run` metadata besides `command`, `kind` and the
     /// twin's version.
-    fn metadata(&self) -> Result<BTreeMap<String, String>>;
+    fn metadata(&self) -> Result<BTreeMap<String, String>, Self::Error>;
 
     /// Once the engine and the links run: the role's own tasks.
     fn started(&mut self, runtime: &Runtime, engine: &Sender<Inbound>);
@@ -185,9 +210,11 @@ impl Links {
         link: usize,
         limit: Option<ClientLimit>,
         allow: AllowList,
-    ) -> Result<SocketAddr> {
+    ) -> Result<SocketAddr, OpenError> {
         let listener = tcp::bind(addr).await?;
-        let local = listener.local_addr()?;
+        let local = listener
+            .local_addr()
+            .map_err(|source| OpenError::Listen { addr, source })?;
         let (ids, clock, refused) = (self.ids.clone(), self.clock.clone(), self.refused.clone());
         self.start(move |rt, inbound| {
             rt.spawn(accept_loop(
@@ -204,7 +231,7 @@ impl Links {
         path: &Path,
         settings: SerialSettings,
         link: usize,
-    ) -> Result<()> {
+    ) -> Result<(), OpenError> {
         if self.wait_for_ports && !path.exists() {
             println!("waiting for {} to appear ...", path.display());
             // A stop while waiting ends the wait: once another module of a
@@ -218,10 +245,10 @@ impl Links {
                 tokio::select! {
                     () = tokio::time::sleep(Duration::from_millis(100)) => {}
                     Some(()) = next(&mut term) => {
-                        bail!("stopped (SIGTERM) while waiting for {} to appear", path.display())
+                        return Err(stopped_waiting("SIGTERM", path));
                     }
                     Some(()) = next(&mut int) => {
-                        bail!("stopped (SIGINT) while waiting for {} to appear", path.display())
+                        return Err(stopped_waiting("SIGINT", path));
                     }
                 }
             }
@@ -235,6 +262,13 @@ impl Links {
     }
 }
 
+fn stopped_waiting(signal: &'static str, path: &Path) -> OpenError {
+    OpenError::StoppedWaiting {
+        signal,
+        path: path.to_path_buf(),
+    }
+}
+
 /// Runs a session of `role`: `ready` gets the open links once they all are
 /// (the command prints them and `ready`). Returns once the session has
 /// stopped and its recording is finished.
@@ -242,7 +276,7 @@ pub fn run<R: Role>(
     options: &SessionOptions,
     mut role: R,
     ready: impl FnOnce(&[R::Link]),
-) -> Result<(SessionOutcome, R::End)> {
+) -> Result<(SessionOutcome, R::End), R::Error> {
     // Every client is a descriptor: a service's soft limit of 1024 would
     // cap the links long before the machine does.
     if let Some(Err(e)) = super::fd_limit::raise_once() {
@@ -267,14 +301,17 @@ pub fn run<R: Role>(
     metadata.insert("command".into(), options.command_line.clone());
     let recording = match &options.record {
         Some(plan) => {
-            let (mut files, mut recorder) = Recordings::start(plan.clone(), R::KIND, metadata)?;
+            let (mut files, mut recorder) =
+                Recordings::start(plan.clone(), R::KIND, metadata).map_err(SessionError::from)?;
             // A sketch's ELF goes into the session's files, as into a run's.
             let firmware = engine
                 .devices
                 .iter()
                 .filter_map(|d| d.node.firmware_file())
                 .collect();
-            files.keep_firmware(firmware, &mut recorder)?;
+            files
+                .keep_firmware(firmware, &mut recorder)
+                .map_err(SessionError::from)?;
             Some((files, recorder))
         }
         None => None,
@@ -350,7 +387,8 @@ pub fn run<R: Role>(
     drop(sink_tx);
     let sunk = sink_handle
         .join()
-        .map_err(|_| anyhow::anyhow!("the recording thread failed"))??;
+        .map_err(|_| SessionError::RecordingFailed)?
+        .map_err(SessionError::from)?;
     let outcome = SessionOutcome {
         elapsed_s: summary.elapsed.as_secs_f64(),
         lateness: summary.lateness,
@@ -379,7 +417,7 @@ pub fn links_runtime() -> Result<Runtime> {
         .enable_time()
         .thread_name("twin-links")
         .build()
-        .context("cannot start the I/O runtime")
+        .map_err(SessionError::Runtime)
 }
 
 /// Each link's name and protocol, as the sink labels its frames.
@@ -438,7 +476,7 @@ fn spawn_engine_with(
             let summary = engine.run(&inbound, end);
             (summary, engine)
         })
-        .context("cannot start the real-time thread")
+        .map_err(SessionError::EngineThread)
 }
 
 /// Drives the links on `runtime` until the engine thread ends (its
@@ -488,7 +526,7 @@ pub fn run_until_stopped<T: Send + 'static>(
     });
     match joined {
         Ok(Ok(ended)) => Ok(ended),
-        _ => Err(anyhow::anyhow!("the real-time thread failed")),
+        _ => Err(SessionError::EngineFailed),
     }
 }
 
@@ -530,9 +568,12 @@ pub fn totals(summary: &RtSummary, refused_clients: u64) -> Result<BTreeMap<Stri
         ),
         (
             "tick_lateness".into(),
-            serde_json::to_string(&summary.lateness)?,
+            serde_json::to_string(&summary.lateness).map_err(SessionError::Totals)?,
         ),
-        ("counters".into(), serde_json::to_string(&summary.counters)?),
+        (
+            "counters".into(),
+            serde_json::to_string(&summary.counters).map_err(SessionError::Totals)?,
+        ),
         ("refused_clients".into(), refused_clients.to_string()),
         ("stopped_by".into(), summary.stopped_by.clone()),
         (

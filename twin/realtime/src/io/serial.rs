@@ -1,22 +1,22 @@
 //! Serial devices and pseudo-terminals as tokio streams (tokio-serial, built
 //! without libudev: no port enumeration is needed to open a path).
 
-use anyhow::{Result, bail};
 use std::path::Path;
 use tokio_serial::{DataBits, FlowControl, SerialStream, StopBits};
 
+use super::OpenError;
 use super::spec::{LinkAddr, LinkSpec, Parity, SerialSettings};
+
+type Result<T, E = OpenError> = std::result::Result<T, E>;
 
 /// Refuses a serial path that does not exist, saying it may be a
 /// pseudo-terminal some other program has not created yet (what `open` and
 /// the services' `--check` say alike).
 pub fn present(path: &Path) -> Result<()> {
     if !path.exists() {
-        bail!(
-            "serial port {} does not exist; if it is a pseudo-terminal that another program \
-             creates (twin vsp, socat), start that program first, or pass --wait-for-ports",
-            path.display()
-        );
+        return Err(OpenError::NoSuchPort {
+            path: path.to_path_buf(),
+        });
     }
     Ok(())
 }
@@ -34,10 +34,11 @@ pub fn check_port(spec: &LinkSpec, wait_for_ports: bool) -> Result<()> {
 /// does not exist gets an error that says it may be a pseudo-terminal some
 /// other program has not created yet.
 pub fn open(path: &Path, settings: &SerialSettings) -> Result<SerialStream> {
-    let shown = path.display();
     present(path)?;
     let Some(name) = path.to_str() else {
-        bail!("serial port path {shown} is not valid UTF-8");
+        return Err(OpenError::NotUtf8 {
+            path: path.to_path_buf(),
+        });
     };
     let builder = tokio_serial::new(name, settings.baud)
         .data_bits(match settings.data_bits {
@@ -54,6 +55,9 @@ pub fn open(path: &Path, settings: &SerialSettings) -> Result<SerialStream> {
             _ => StopBits::One,
         })
         .flow_control(FlowControl::None);
-    SerialStream::open(&builder)
-        .map_err(|e| anyhow::anyhow!("cannot open serial port {shown} at {settings}: {e}"))
+    SerialStream::open(&builder).map_err(|source| OpenError::Serial {
+        path: path.to_path_buf(),
+        settings: *settings,
+        source,
+    })
 }

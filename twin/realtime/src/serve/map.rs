@@ -12,10 +12,9 @@
 //! BRK = "0.1"
 //! ```
 
-use anyhow::{Result, anyhow};
 use nodes::firmware::MebMap;
 use std::collections::BTreeMap;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use toml::{Spanned, Value};
 
 fn line_of(text: &str, offset: usize) -> usize {
@@ -23,16 +22,41 @@ fn line_of(text: &str, offset: usize) -> usize {
         .map_or(1, |t| t.matches('\n').count() + 1)
 }
 
+/// Why a map file (`--map`) gives no map.
+#[derive(Debug, thiserror::Error)]
+pub enum MapFileError {
+    #[error("cannot read I/O map {}", path.display())]
+    Read {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// A mistake in its text, at the file's line (the text's error is
+    /// said in these words, not kept as a cause).
+    #[error("{}:{line}: {message}", path.display())]
+    Text {
+        path: PathBuf,
+        line: usize,
+        message: String,
+    },
+}
+
 /// Reads a map file; every mistake names the file and line.
-pub fn load(path: &Path) -> Result<MebMap> {
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| anyhow!("cannot read I/O map {}: {e}", path.display()))?;
+pub fn load(path: &Path) -> Result<MebMap, MapFileError> {
+    let text = std::fs::read_to_string(path).map_err(|source| MapFileError::Read {
+        path: path.to_path_buf(),
+        source,
+    })?;
     parse(&text, path)
 }
 
 /// Parses a map from `text` (read from `path`, for the messages).
-pub fn parse(text: &str, path: &Path) -> Result<MebMap> {
-    parse_text(text).map_err(|e| anyhow!("{}:{}: {}", path.display(), e.line, e.message))
+pub fn parse(text: &str, path: &Path) -> Result<MebMap, MapFileError> {
+    parse_text(text).map_err(|e| MapFileError::Text {
+        path: path.to_path_buf(),
+        line: e.line,
+        message: e.message,
+    })
 }
 
 /// A mistake in a map's text: its line and what is wrong.

@@ -6,7 +6,6 @@
 pub mod console;
 pub mod map;
 
-use anyhow::{Context, Result, bail};
 use nodes::controller_network::{LightConfig, LightNode, MotorConfig, MotorNode};
 use nodes::firmware::{EvController, EvControllerConfig, Framing, SlaveFrontend};
 use nodes::link::{CheckKind, FaultyNode};
@@ -18,11 +17,68 @@ use tokio::runtime::Runtime;
 
 use crate::device::SlaveAddress;
 use crate::firmware_endpoint::{FirmwareEndpoint, RequestFraming};
-use crate::io::{LinkAddr, LinkDefaults, LinkSpec};
+use crate::io::spec::LinkSpecError;
+use crate::io::{LinkAddr, LinkDefaults, LinkSpec, OpenError};
 use crate::links::ClientLimit;
-use crate::session::{self, Links, Role, SessionOptions, SessionOutcome};
+use crate::session::{self, Links, Role, SessionError, SessionOptions, SessionOutcome};
 use crate::{Device, Inbound, LinkConfig, NodeEndpoint, RtEngine, SlaveEndpoint};
 use twin_sim::engine::ModuleSlot;
+use twin_sim::nodes_build::BuildError;
+
+/// Why `twin serve` cannot serve: a link or a sketch it is given, or the
+/// session around them.
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    #[error(
+        "no link given: serve at least one, e.g. --meb tcp://127.0.0.1:5700 or --modbus-rtu /tmp/ttyV1"
+    )]
+    NoLink,
+    /// A link's text that is not a link (`--meb TEXT`, …).
+    #[error("{option} {text}")]
+    Spec {
+        option: &'static str,
+        text: String,
+        #[source]
+        source: LinkSpecError,
+    },
+    #[error(
+        "--modbus {text}: Modbus TCP needs tcp://HOST:PORT; for a serial port use --modbus-rtu or --modbus-ascii"
+    )]
+    ModbusTcpNotTcp { text: String },
+    #[error(
+        "{option} {text}: this protocol runs on a serial port or pty; over TCP use --modbus (Modbus TCP) or --meb"
+    )]
+    SerialOnly { option: &'static str, text: String },
+    #[error("--modbus8 given twice: the Controller_network nodes share one serial line")]
+    Modbus8Twice,
+    /// A link that could not be opened, or a serial port not there (`--check`).
+    #[error("{option} {text}")]
+    Open {
+        option: &'static str,
+        text: String,
+        #[source]
+        source: OpenError,
+    },
+    #[error("--firmware {elf}: its board answers on {link}, and none is given")]
+    FirmwareWithoutLink { elf: String, link: &'static str },
+    #[error("{option} {text}: the EV controller's sketch serves MEB links only (its own protocol)")]
+    SketchServesMebOnly { option: &'static str, text: String },
+    /// A sketch the firmware builder refused (or no builder: `twin` has none).
+    #[error("--firmware {elf}")]
+    Firmware {
+        elf: String,
+        #[source]
+        source: BuildError,
+    },
+    #[error("cannot write the plant's parameters into the recording")]
+    Params(#[source] toml::ser::Error),
+    #[error("internal: link {link} has no device to serve")]
+    NoDevice { link: String },
+    #[error(transparent)]
+    Session(#[from] SessionError),
+}
+
+type Result<T, E = ServeError> = std::result::Result<T, E>;
 
 /// The slave ids `--id` takes, and the panel's id box: MEB's two digits,
 /// and Modbus's unicast addresses below 100 (0 is a broadcast).
@@ -64,6 +120,15 @@ impl ServeProtocol {
             ServeProtocol::ModbusRtu => "modbus-rtu",
             ServeProtocol::ModbusAscii => "modbus-ascii",
             ServeProtocol::Modbus8 => "modbus8",
+        }
+    }
+
+    /// `source`, said of the link `spec` of this protocol.
+    fn open_error(self, spec: &LinkSpec, source: OpenError) -> ServeError {
+        ServeError::Open {
+            option: self.option(),
+            text: spec.text.clone(),
+            source,
         }
     }
 
@@ -149,7 +214,7 @@ fn check_kind(protocol: ServeProtocol) -> Option<CheckKind> {
 pub fn check_links(options: &ServeOptions) -> Result<()> {
     for (protocol, spec) in parse_links(options)? {
         crate::io::serial::check_port(&spec, options.session.wait_for_ports)
-            .with_context(|| format!("{} {}", protocol.option(), spec.text))?;
+            .map_err(|source| protocol.open_error(&spec, source))?;
     }
     Ok(())
 }
@@ -157,26 +222,27 @@ pub fn check_links(options: &ServeOptions) -> Result<()> {
 /// Parses every link and checks each protocol is on a medium it runs on.
 pub fn parse_links(options: &ServeOptions) -> Result<Vec<(ServeProtocol, LinkSpec)>> {
     if options.links.is_empty() {
-        bail!(
-            "no link given: serve at least one, e.g. --meb tcp://127.0.0.1:5700 or --modbus-rtu /tmp/ttyV1"
-        );
+        return Err(ServeError::NoLink);
     }
     let mut specs = Vec::new();
     for (protocol, text) in &options.links {
-        let spec = LinkSpec::parse(text, &options.defaults)
-            .with_context(|| format!("{} {text}", protocol.option()))?;
+        let spec = LinkSpec::parse(text, &options.defaults).map_err(|source| ServeError::Spec {
+            option: protocol.option(),
+            text: text.clone(),
+            source,
+        })?;
         let tcp = spec.is_tcp();
         match protocol {
-            ServeProtocol::ModbusTcp if !tcp => bail!(
-                "--modbus {text}: Modbus TCP needs tcp://HOST:PORT; for a serial port use --modbus-rtu or --modbus-ascii"
-            ),
+            ServeProtocol::ModbusTcp if !tcp => {
+                return Err(ServeError::ModbusTcpNotTcp { text: text.clone() });
+            }
             ServeProtocol::ModbusRtu | ServeProtocol::ModbusAscii | ServeProtocol::Modbus8
                 if tcp =>
             {
-                bail!(
-                    "{} {text}: this protocol runs on a serial port or pty; over TCP use --modbus (Modbus TCP) or --meb",
-                    protocol.option()
-                )
+                return Err(ServeError::SerialOnly {
+                    option: protocol.option(),
+                    text: text.clone(),
+                });
             }
             _ => {}
         }
@@ -188,7 +254,7 @@ pub fn parse_links(options: &ServeOptions) -> Result<Vec<(ServeProtocol, LinkSpe
         .count()
         > 1
     {
-        bail!("--modbus8 given twice: the Controller_network nodes share one serial line");
+        return Err(ServeError::Modbus8Twice);
     }
     Ok(specs)
 }
@@ -209,6 +275,7 @@ struct Serving<'a, C> {
 impl<C: FnOnce(Sender<Inbound>)> Role for Serving<'_, C> {
     type Link = OpenLink;
     type End = ();
+    type Error = ServeError;
     const KIND: &'static str = "serve";
 
     fn build(&mut self, engine: &mut RtEngine) -> Result<()> {
@@ -246,7 +313,10 @@ impl<C: FnOnce(Sender<Inbound>)> Role for Serving<'_, C> {
             ("links".into(), link_options.join(" ")),
             ("seed".into(), options.seed.to_string()),
             ("slave_id".into(), options.id.to_string()),
-            ("params".into(), toml::to_string(&options.params)?),
+            (
+                "params".into(),
+                toml::to_string(&options.params).map_err(ServeError::Params)?,
+            ),
             (
                 "light_detector".into(),
                 if options.light_adaptive {
@@ -285,10 +355,10 @@ fn build_devices(
             _ => (wants_controller_network, "a --modbus8 link"),
         };
         if !wanted {
-            bail!(
-                "--firmware {}: its board answers on {link}, and none is given",
-                spec_elf(spec)
-            );
+            return Err(ServeError::FirmwareWithoutLink {
+                elf: spec_elf(spec).to_string(),
+                link,
+            });
         }
     }
     let mut ev = None;
@@ -305,11 +375,10 @@ fn build_devices(
                     .iter()
                     .find(|(p, _)| !matches!(p, ServeProtocol::Meb | ServeProtocol::Modbus8))
                 {
-                    bail!(
-                        "{} {}: the EV controller's sketch serves MEB links only (its own protocol)",
-                        p.option(),
-                        spec.text
-                    );
+                    return Err(ServeError::SketchServesMebOnly {
+                        option: p.option(),
+                        text: spec.text.clone(),
+                    });
                 }
                 build_sketch(spec, &options.params, options.defaults.baud)?
             }
@@ -400,8 +469,13 @@ fn build_sketch(
         medium: Default::default(),
         pwmcap: None,
     };
-    let (node, _) = twin_sim::external::build_firmware(spec, Some(params), &bus)
-        .with_context(|| format!("--firmware {}", spec_elf(spec)))?;
+    let (node, _) =
+        twin_sim::external::build_firmware(spec, Some(params), &bus).map_err(|source| {
+            ServeError::Firmware {
+                elf: spec_elf(spec).to_string(),
+                source,
+            }
+        })?;
     Ok(node)
 }
 
@@ -453,14 +527,14 @@ async fn open_links(
                         options.session.allow.clone(),
                     )
                     .await
-                    .with_context(|| format!("{} {}", protocol.option(), spec.text))?;
+                    .map_err(|source| protocol.open_error(&spec, source))?;
                 (format!("tcp://{local}"), true)
             }
             LinkAddr::Serial(path) => {
                 links
                     .serial(path, spec.serial, link)
                     .await
-                    .with_context(|| format!("{} {}", protocol.option(), spec.text))?;
+                    .map_err(|source| protocol.open_error(&spec, source))?;
                 (path.display().to_string(), false)
             }
         };
@@ -532,7 +606,7 @@ async fn open_links(
                         nodes::controller_network::LIGHT_ID
                     ),
                 ),
-                _ => bail!("internal: link {name} has no device to serve"),
+                _ => return Err(ServeError::NoDevice { link: name }),
             };
         open.push(OpenLink {
             protocol: protocol.name(),

@@ -7,10 +7,10 @@
 
 pub mod endpoint;
 
-use anyhow::{Context, Result, bail};
 use nodes::master::image_server::ImageServerConfig;
 use nodes::master::{
     LoopMode, Protocol, SlaveLoopConfig, SpeedSource, Supervisor, SupervisorConfig,
+    SupervisorConfigError,
 };
 use protocols::time::{SimDuration, SimTime};
 use std::collections::BTreeMap;
@@ -18,12 +18,59 @@ use std::sync::mpsc::Sender;
 use std::time::Duration;
 use tokio::runtime::Runtime;
 
-use crate::io::{LinkAddr, LinkDefaults, LinkSpec};
+use crate::io::spec::LinkSpecError;
+use crate::io::{LinkAddr, LinkDefaults, LinkSpec, OpenError};
 use crate::links::{ClientLimit, ConnIds, serve_stream};
-use crate::session::{self, Links, Role, SessionOptions, SessionOutcome};
+use crate::session::{self, Links, Role, SessionError, SessionOptions, SessionOutcome};
 use crate::{Device, Inbound, LinkConfig, NodeEndpoint, RtClock, RtEngine};
 use endpoint::ImageEndpoint;
 use twin_sim::nodes_build::SupervisorNode;
+
+/// Why `twin supervise` cannot supervise: its bus, its listeners, its
+/// loop's settings, or the session around them.
+#[derive(Debug, thiserror::Error)]
+pub enum SuperviseError {
+    /// A link's text that is not a link (the bus's option, `--listen`).
+    #[error("{option} {text}")]
+    Spec {
+        option: &'static str,
+        text: String,
+        #[source]
+        source: LinkSpecError,
+    },
+    #[error("--modbus-rtu {text}: Modbus RTU runs on a serial port or pty; over TCP use --meb")]
+    RtuOverTcp { text: String },
+    #[error(
+        "--listen {text}: the server listens on tcp://HOST:PORT (remote clients come over TCP)"
+    )]
+    ListenNotTcp { text: String },
+    /// The bus or a listener that could not be opened, or a serial port
+    /// not there (`--check`).
+    #[error("{option} {text}")]
+    Open {
+        option: &'static str,
+        text: String,
+        #[source]
+        source: OpenError,
+    },
+    #[error(
+        "--meb {text}: cannot connect to an MEB slave at {addr} (is `twin serve --meb tcp://{addr}` running?)"
+    )]
+    Connect {
+        text: String,
+        addr: std::net::SocketAddr,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error(transparent)]
+    Supervisor(#[from] SupervisorConfigError),
+    #[error("internal: {0}")]
+    Internal(&'static str),
+    #[error(transparent)]
+    Session(#[from] SessionError),
+}
+
+type Result<T, E = SuperviseError> = std::result::Result<T, E>;
 
 /// Everything `twin supervise` is told.
 #[derive(Debug, Clone)]
@@ -214,11 +261,12 @@ impl<C: FnOnce(Sender<Inbound>)> Role for Supervising<'_, C> {
     type Link = OpenLink;
     /// The supervisor's status lines at the end.
     type End = Vec<String>;
+    type Error = SuperviseError;
     const KIND: &'static str = "supervise";
 
     fn build(&mut self, engine: &mut RtEngine) -> Result<()> {
         let Some(supervisor) = self.supervisor.take() else {
-            bail!("internal: the supervisor is built once");
+            return Err(SuperviseError::Internal("the supervisor is built once"));
         };
         // The status lines are the supervisor's (`status_loop`), not the
         // engine's; and no plant here: the module is on the other end of the bus.
@@ -235,7 +283,7 @@ impl<C: FnOnce(Sender<Inbound>)> Role for Supervising<'_, C> {
 
     async fn open(&mut self, engine: &mut RtEngine, links: &mut Links) -> Result<Vec<OpenLink>> {
         let Some(bus) = self.bus.take() else {
-            bail!("internal: the bus is opened once");
+            return Err(SuperviseError::Internal("the bus is opened once"));
         };
         let listen = std::mem::take(&mut self.listen);
         open_links(self.options, bus, listen, engine, links).await
@@ -288,8 +336,13 @@ impl<C: FnOnce(Sender<Inbound>)> Role for Supervising<'_, C> {
 /// opened or bound.
 pub fn check_links(options: &SuperviseOptions) -> Result<()> {
     let (bus, _) = parse_links(options)?;
-    crate::io::serial::check_port(&bus, options.session.wait_for_ports)
-        .with_context(|| format!("{} {}", bus_option(options.protocol), options.bus))
+    crate::io::serial::check_port(&bus, options.session.wait_for_ports).map_err(|source| {
+        SuperviseError::Open {
+            option: bus_option(options.protocol),
+            text: options.bus.clone(),
+            source,
+        }
+    })
 }
 
 fn parse_links(options: &SuperviseOptions) -> Result<(LinkSpec, Vec<LinkSpec>)> {
@@ -301,21 +354,25 @@ fn parse_links(options: &SuperviseOptions) -> Result<(LinkSpec, Vec<LinkSpec>)> 
         pace: false,
     };
     let option = bus_option(options.protocol);
-    let bus = LinkSpec::parse(&options.bus, &defaults)
-        .with_context(|| format!("{option} {}", options.bus))?;
+    let bus = LinkSpec::parse(&options.bus, &defaults).map_err(|source| SuperviseError::Spec {
+        option,
+        text: options.bus.clone(),
+        source,
+    })?;
     if options.protocol == Protocol::ModbusRtu && bus.is_tcp() {
-        bail!(
-            "--modbus-rtu {}: Modbus RTU runs on a serial port or pty; over TCP use --meb",
-            options.bus
-        );
+        return Err(SuperviseError::RtuOverTcp {
+            text: options.bus.clone(),
+        });
     }
     let mut listen = Vec::new();
     for text in &options.listen {
-        let spec = LinkSpec::parse(text, &defaults).with_context(|| format!("--listen {text}"))?;
+        let spec = LinkSpec::parse(text, &defaults).map_err(|source| SuperviseError::Spec {
+            option: "--listen",
+            text: text.clone(),
+            source,
+        })?;
         if !spec.is_tcp() {
-            bail!(
-                "--listen {text}: the server listens on tcp://HOST:PORT (remote clients come over TCP)"
-            );
+            return Err(SuperviseError::ListenNotTcp { text: text.clone() });
         }
         listen.push(spec);
     }
@@ -343,14 +400,22 @@ async fn open_links(
             links
                 .serial(path, bus.serial, 0)
                 .await
-                .with_context(|| format!("{} {}", bus_option(options.protocol), bus.text))?;
+                .map_err(|source| SuperviseError::Open {
+                    option: bus_option(options.protocol),
+                    text: bus.text.clone(),
+                    source,
+                })?;
             path_text(&bus)
         }
         LinkAddr::Tcp(addr) => {
             let addr = *addr;
-            let first = tokio::net::TcpStream::connect(addr).await.with_context(|| {
-                format!("--meb {}: cannot connect to an MEB slave at {addr} (is `twin serve --meb tcp://{addr}` running?)", bus.text)
-            })?;
+            let first = tokio::net::TcpStream::connect(addr)
+                .await
+                .map_err(|source| SuperviseError::Connect {
+                    text: bus.text.clone(),
+                    addr,
+                    source,
+                })?;
             let (ids, clock) = (links.ids.clone(), links.clock.clone());
             links.start(move |rt, inbound| {
                 rt.spawn(tcp_bus_loop(addr, first, ids, clock, inbound));
@@ -382,7 +447,7 @@ async fn open_links(
 
     for (n, spec) in listen.into_iter().enumerate() {
         let LinkAddr::Tcp(addr) = spec.addr else {
-            bail!("internal: a listener that is not TCP");
+            return Err(SuperviseError::Internal("a listener that is not TCP"));
         };
         let link = engine.links.len();
         let local = links
@@ -396,7 +461,11 @@ async fn open_links(
                 options.session.allow.clone(),
             )
             .await
-            .with_context(|| format!("--listen {}", spec.text))?;
+            .map_err(|source| SuperviseError::Open {
+                option: "--listen",
+                text: spec.text.clone(),
+                source,
+            })?;
         let address = format!("tcp://{local}");
         open.push(OpenLink {
             protocol: "meb",

@@ -8,7 +8,7 @@
 //! class's index, the teacher's page of every module, behind a token of its
 //! own.
 
-use anyhow::{Result, anyhow, bail};
+use anyhow::{Context, Result, anyhow, bail};
 use clap::{ArgMatches, Command};
 use std::io::Write;
 use std::sync::mpsc::{Sender, channel};
@@ -62,7 +62,8 @@ pub fn execute(
         } else {
             serve::parse_links(&options).map(drop)
         };
-        links.map_err(|e| anyhow!("{}:{}: module {}: {e:#}", file.origin, m.line, m.name))?;
+        // Context, not the message: the link's error keeps its causes.
+        links.with_context(|| format!("{}:{}: module {}", file.origin, m.line, m.name))?;
         modules.push((m.name.clone(), args, options));
     }
     if let Some(index) = &file.index {
@@ -198,7 +199,7 @@ fn run(
                             let _ = console.send(Report::Console(n, engine));
                         },
                     );
-                    let _ = done.send(Report::Done(n, Box::new(outcome)));
+                    let _ = done.send(Report::Done(n, Box::new(outcome.map_err(Into::into))));
                 });
             if let Err(e) = spawned {
                 let _ = tx.send(Report::Done(
