@@ -16,7 +16,6 @@
 //! reading it) are dropped and counted, as a UART overruns, rather than stalling
 //! the other direction.
 
-use anyhow::{Context, Result, bail};
 use rustix::fs::{OFlags, fcntl_getfl, fcntl_setfl};
 use rustix::pty::{OpenptFlags, grantpt, ioctl_tiocgptpeer, openpt, ptsname, unlockpt};
 use rustix::termios::{OptionalActions, tcgetattr, tcsetattr};
@@ -25,6 +24,77 @@ use std::os::fd::OwnedFd;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 use tokio::net::unix::pipe;
+
+/// Why the pair cannot be made or stopped copying.
+#[derive(Debug, thiserror::Error)]
+pub enum VspError {
+    #[error("the two ends need different paths")]
+    SamePaths,
+    #[error("--baud must be above 0")]
+    ZeroBaud,
+    #[error("cannot open /dev/ptmx (are pseudo-terminals available?)")]
+    NoPtmx(#[source] std::io::Error),
+    /// A step of making a new pseudo-terminal, as the system call says it.
+    #[error("{step}")]
+    Pty {
+        step: &'static str,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("the pseudo-terminal's name is not UTF-8")]
+    NameNotUtf8(#[source] std::ffi::IntoStringError),
+    #[error("cannot open {}", device.display())]
+    OpenDevice {
+        device: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{} exists and is not a symlink; remove it or choose another path", link.display())]
+    NotASymlink { link: PathBuf },
+    #[error("cannot replace the old symlink {}", link.display())]
+    ReplaceLink {
+        link: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("cannot check {}", link.display())]
+    CheckLink {
+        link: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("cannot create the symlink {}", link.display())]
+    CreateLink {
+        link: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("waiting on the pty")]
+    Wait(#[source] std::io::Error),
+    #[error("reading {}", device.display())]
+    Read {
+        device: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("writing {}", device.display())]
+    Write {
+        device: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+type Result<T, E = VspError> = std::result::Result<T, E>;
+
+/// The error of `step` in making a pseudo-terminal (rustix's errno values
+/// as `std::io::Error`, so they read as every other system error does).
+fn pty_step<E: Into<std::io::Error>>(step: &'static str) -> impl FnOnce(E) -> VspError {
+    move |e| VspError::Pty {
+        step,
+        source: e.into(),
+    }
+}
 
 /// One end of the pair: the master side we copy through, and the slave side we
 /// hold open so the master never sees a hang-up.
@@ -50,30 +120,37 @@ impl PtyEnd {
     /// anything else there is refused, so a mistyped path never deletes a file.
     pub fn open(link: &Path) -> Result<Self> {
         let master_fd = openpt(OpenptFlags::RDWR | OpenptFlags::NOCTTY | OpenptFlags::CLOEXEC)
-            .context("cannot open /dev/ptmx (are pseudo-terminals available?)")?;
-        grantpt(&master_fd).context("grantpt on the new pseudo-terminal")?;
-        unlockpt(&master_fd).context("unlockpt on the new pseudo-terminal")?;
+            .map_err(|e| VspError::NoPtmx(e.into()))?;
+        grantpt(&master_fd).map_err(pty_step("grantpt on the new pseudo-terminal"))?;
+        unlockpt(&master_fd).map_err(pty_step("unlockpt on the new pseudo-terminal"))?;
         let device = PathBuf::from(
             ptsname(&master_fd, Vec::new())
-                .context("ptsname of the new pseudo-terminal")?
+                .map_err(pty_step("ptsname of the new pseudo-terminal"))?
                 .into_string()
-                .context("the pseudo-terminal's name is not UTF-8")?,
+                .map_err(VspError::NameNotUtf8)?,
         );
         let held_slave = ioctl_tiocgptpeer(
             &master_fd,
             OpenptFlags::RDWR | OpenptFlags::NOCTTY | OpenptFlags::CLOEXEC,
         )
-        .with_context(|| format!("cannot open {}", device.display()))?;
-        let mut termios = tcgetattr(&held_slave).context("tcgetattr on the pty")?;
+        .map_err(|e| VspError::OpenDevice {
+            device: device.clone(),
+            source: e.into(),
+        })?;
+        let mut termios = tcgetattr(&held_slave).map_err(pty_step("tcgetattr on the pty"))?;
         termios.make_raw();
-        tcsetattr(&held_slave, OptionalActions::Now, &termios).context("tcsetattr on the pty")?;
-        let flags = fcntl_getfl(&master_fd).context("fcntl on the pty master")?;
-        fcntl_setfl(&master_fd, flags | OFlags::NONBLOCK).context("fcntl on the pty master")?;
-        let tx_fd = master_fd.try_clone().context("dup of the pty master")?;
+        tcsetattr(&held_slave, OptionalActions::Now, &termios)
+            .map_err(pty_step("tcsetattr on the pty"))?;
+        let flags = fcntl_getfl(&master_fd).map_err(pty_step("fcntl on the pty master"))?;
+        fcntl_setfl(&master_fd, flags | OFlags::NONBLOCK)
+            .map_err(pty_step("fcntl on the pty master"))?;
+        let tx_fd = master_fd
+            .try_clone()
+            .map_err(pty_step("dup of the pty master"))?;
         let rx = pipe::Receiver::from_owned_fd_unchecked(master_fd)
-            .context("registering the pty with the runtime")?;
+            .map_err(pty_step("registering the pty with the runtime"))?;
         let tx = pipe::Sender::from_owned_fd_unchecked(tx_fd)
-            .context("registering the pty with the runtime")?;
+            .map_err(pty_step("registering the pty with the runtime"))?;
         let replaced = place_link(link, &device)?;
         Ok(Self {
             rx,
@@ -116,19 +193,29 @@ fn place_link(link: &Path, device: &Path) -> Result<Option<PathBuf>> {
     let replaced = match std::fs::symlink_metadata(link) {
         Ok(meta) if meta.file_type().is_symlink() => {
             let old = std::fs::read_link(link).ok();
-            std::fs::remove_file(link)
-                .with_context(|| format!("cannot replace the old symlink {}", link.display()))?;
+            std::fs::remove_file(link).map_err(|source| VspError::ReplaceLink {
+                link: link.to_path_buf(),
+                source,
+            })?;
             old
         }
-        Ok(_) => bail!(
-            "{} exists and is not a symlink; remove it or choose another path",
-            link.display()
-        ),
+        Ok(_) => {
+            return Err(VspError::NotASymlink {
+                link: link.to_path_buf(),
+            });
+        }
         Err(e) if e.kind() == ErrorKind::NotFound => None,
-        Err(e) => return Err(e).with_context(|| format!("cannot check {}", link.display())),
+        Err(source) => {
+            return Err(VspError::CheckLink {
+                link: link.to_path_buf(),
+                source,
+            });
+        }
     };
-    std::os::unix::fs::symlink(device, link)
-        .with_context(|| format!("cannot create the symlink {}", link.display()))?;
+    std::os::unix::fs::symlink(device, link).map_err(|source| VspError::CreateLink {
+        link: link.to_path_buf(),
+        source,
+    })?;
     Ok(replaced)
 }
 
@@ -172,10 +259,10 @@ impl Pair {
     /// Opens both ends; inside a tokio runtime (the masters are polled by it).
     pub fn open(links: [&Path; 2], options: PairOptions) -> Result<Self> {
         if links[0] == links[1] {
-            bail!("the two ends need different paths");
+            return Err(VspError::SamePaths);
         }
         if options.baud == Some(0) {
-            bail!("--baud must be above 0");
+            return Err(VspError::ZeroBaud);
         }
         let first = PtyEnd::open(links[0])?;
         let second = PtyEnd::open(links[1])?;
@@ -258,12 +345,17 @@ impl Pair {
 
 async fn read_ready(end: &PtyEnd, buf: &mut [u8]) -> Result<usize> {
     loop {
-        end.rx.readable().await.context("waiting on the pty")?;
+        end.rx.readable().await.map_err(VspError::Wait)?;
         match end.rx.try_read(buf) {
             Ok(n) => return Ok(n),
             Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::Interrupted) => {}
             // Cannot happen while we hold the slave open; if it does, say which end.
-            Err(e) => return Err(e).with_context(|| format!("reading {}", end.device.display())),
+            Err(source) => {
+                return Err(VspError::Read {
+                    device: end.device.clone(),
+                    source,
+                });
+            }
         }
     }
 }
@@ -280,7 +372,12 @@ fn write_some(end: &PtyEnd, mut bytes: &[u8]) -> Result<usize> {
             }
             Err(e) if e.kind() == ErrorKind::Interrupted => {}
             Err(e) if e.kind() == ErrorKind::WouldBlock => break,
-            Err(e) => return Err(e).with_context(|| format!("writing {}", end.device.display())),
+            Err(source) => {
+                return Err(VspError::Write {
+                    device: end.device.clone(),
+                    source,
+                });
+            }
         }
     }
     Ok(written)

@@ -102,7 +102,7 @@ async fn run(args: &VspArgs) -> Result<()> {
     print_counters(&names, pair.counters());
     // Dropping the pair removes the links.
     drop(pair);
-    outcome
+    Ok(outcome?)
 }
 
 fn print_counters(names: &[String; 2], counters: [DirectionCounters; 2]) {
