@@ -10,17 +10,79 @@
 //! id, command, function or length) is a real departure. The two are counted
 //! apart.
 
-use anyhow::{Context, Result, bail};
 use std::io::{Read, Write};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, channel};
 use std::time::{Duration, Instant};
 
+use crate::io::spec::LinkSpecError;
 use crate::io::{LinkAddr, LinkSpec};
 use twin_recording::describe::decode_frame;
+use twin_recording::read::ReadError;
 use twin_recording::{BusFrame, Recording};
 use twin_sim::engine::FrameKind;
 use twin_sim::nodes_build::is_master;
-use twin_sim::replay::RunSpec;
+use twin_sim::replay::{ReplayError, RunSpec};
+
+/// Why recorded frames could not be sent to a live slave (`twin replay
+/// --frames-to`): the link, or the recording.
+#[derive(Debug, thiserror::Error)]
+pub enum FramesToError {
+    #[error(transparent)]
+    Spec(#[from] LinkSpecError),
+    #[error("cannot connect to {addr} (is the slave serving?)")]
+    Connect {
+        addr: std::net::SocketAddr,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The connection, made, could not be set up to be read and written.
+    #[error("cannot set up the connection to {addr}")]
+    Socket {
+        addr: std::net::SocketAddr,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("cannot open serial device {}", path.display())]
+    OpenSerial {
+        path: std::path::PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The far end hung up between exchanges, and there is more to send.
+    #[error("{link} closed ({why})")]
+    ClosedBefore { link: String, why: String },
+    #[error("cannot write to {link}")]
+    Write {
+        link: String,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The far end hung up (or failed) while a reply was awaited.
+    #[error("{link} closed")]
+    Closed {
+        link: String,
+        #[source]
+        source: Option<std::io::Error>,
+    },
+    #[error("no bus `{bus}` in the recording: it has {buses}")]
+    NoSuchBus { bus: String, buses: String },
+    #[error("the recording holds no bus frames to replay")]
+    NoFrames,
+    #[error("the recording has several buses ({buses}): pick one with --bus")]
+    SeveralBuses { buses: String },
+    #[error("an open-loop recording has no bus frames to replay")]
+    OpenLoop,
+    #[error("no master on bus `{bus}` in the recorded scenario")]
+    NoMaster { bus: String },
+    /// The recording's scenario could not be read back.
+    #[error(transparent)]
+    Replay(#[from] ReplayError),
+    /// The recording's frames could not be read.
+    #[error(transparent)]
+    Read(#[from] ReadError),
+}
+
+type Result<T, E = FramesToError> = std::result::Result<T, E>;
 
 /// How long the line must stay quiet after the last byte before a reply that
 /// has not passed its check is taken as complete.
@@ -54,19 +116,25 @@ impl Link {
         )?;
         match &link.addr {
             LinkAddr::Tcp(addr) => {
+                let addr = *addr;
                 let stream = std::net::TcpStream::connect(addr)
-                    .with_context(|| format!("cannot connect to {addr} (is the slave serving?)"))?;
-                stream.set_nodelay(true)?;
-                let reader = stream.try_clone()?;
+                    .map_err(|source| FramesToError::Connect { addr, source })?;
+                let socket = |source| FramesToError::Socket { addr, source };
+                stream.set_nodelay(true).map_err(socket)?;
+                let reader = stream.try_clone().map_err(socket)?;
                 Ok(Self::from_parts(spec, Box::new(stream), reader))
             }
             LinkAddr::Serial(path) => {
+                let open = |source| FramesToError::OpenSerial {
+                    path: path.clone(),
+                    source,
+                };
                 let file = std::fs::OpenOptions::new()
                     .read(true)
                     .write(true)
                     .open(path)
-                    .with_context(|| format!("cannot open serial device {}", path.display()))?;
-                let reader = file.try_clone()?;
+                    .map_err(open)?;
+                let reader = file.try_clone().map_err(open)?;
                 Ok(Self::from_parts(spec, Box::new(file), reader))
             }
         }
@@ -133,12 +201,18 @@ impl Link {
         timeout: Duration,
     ) -> Result<Vec<u8>> {
         if let Some(why) = &self.closed {
-            bail!("{} closed ({why})", self.name);
+            return Err(FramesToError::ClosedBefore {
+                link: self.name.clone(),
+                why: why.clone(),
+            });
         }
         self.out
             .write_all(request)
             .and_then(|()| self.out.flush())
-            .with_context(|| format!("cannot write to {}", self.name))?;
+            .map_err(|source| FramesToError::Write {
+                link: self.name.clone(),
+                source,
+            })?;
         let deadline = Instant::now() + timeout;
         let mut reply = Vec::new();
         loop {
@@ -150,13 +224,21 @@ impl Link {
             };
             match self.rx.recv_timeout(wait) {
                 Ok(chunk) => {
-                    reply.extend(chunk.with_context(|| format!("{} closed", self.name))?);
+                    reply.extend(chunk.map_err(|source| FramesToError::Closed {
+                        link: self.name.clone(),
+                        source: Some(source),
+                    })?);
                     if kind.is_some_and(|k| k.passes_check(&reply)) {
                         return Ok(reply);
                     }
                 }
                 Err(RecvTimeoutError::Timeout) => return Ok(reply),
-                Err(RecvTimeoutError::Disconnected) => bail!("{} closed", self.name),
+                Err(RecvTimeoutError::Disconnected) => {
+                    return Err(FramesToError::Closed {
+                        link: self.name.clone(),
+                        source: None,
+                    });
+                }
             }
         }
     }
@@ -227,14 +309,16 @@ fn pick_bus(frames: &[BusFrame], wanted: Option<&str>) -> Result<String> {
     buses.dedup();
     match wanted {
         Some(b) if buses.contains(&b) => Ok(b.to_string()),
-        Some(b) => bail!("no bus `{b}` in the recording: it has {}", buses.join(", ")),
+        Some(b) => Err(FramesToError::NoSuchBus {
+            bus: b.to_string(),
+            buses: buses.join(", "),
+        }),
         None => match buses.as_slice() {
-            [] => bail!("the recording holds no bus frames to replay"),
+            [] => Err(FramesToError::NoFrames),
             [one] => Ok(one.to_string()),
-            many => bail!(
-                "the recording has several buses ({}): pick one with --bus",
-                many.join(", ")
-            ),
+            many => Err(FramesToError::SeveralBuses {
+                buses: many.join(", "),
+            }),
         },
     }
 }
@@ -250,7 +334,7 @@ pub fn replay_frames(
     mut progress: impl FnMut(f64),
 ) -> Result<FramesReport> {
     let RunSpec::Scenario(scenario) = RunSpec::from_recording(recording)? else {
-        bail!("an open-loop recording has no bus frames to replay");
+        return Err(FramesToError::OpenLoop);
     };
     let frames = recording.frames()?;
     let bus = pick_bus(&frames, bus)?;
@@ -261,7 +345,7 @@ pub fn replay_frames(
         .map(|n| n.name().to_string())
         .collect();
     if masters.is_empty() {
-        bail!("no master on bus `{bus}` in the recorded scenario");
+        return Err(FramesToError::NoMaster { bus });
     }
     let on_bus: Vec<&BusFrame> = frames.iter().filter(|f| f.bus == bus).collect();
     let mut requests: Vec<usize> = on_bus
