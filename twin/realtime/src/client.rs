@@ -2,19 +2,105 @@
 //! request at a time to a supervisor's server (`twin supervise --listen`) or
 //! to an MEB slave served over TCP (`twin serve --meb tcp://…`).
 
-use anyhow::{Context, Result, anyhow, bail};
 use protocols::meb::{
     MEB_BROADCAST_ID, MEB_MAX_FRAME_LEN, MebAccess, MebCmd, MebDecodeError, MebDecoder,
-    MebErrorCode, MebRepr, MebWords,
+    MebEmitError, MebErrorCode, MebRepr, MebWords,
 };
 use protocols::time::SimTime;
 
-use crate::io::spec::LinkSpec;
+use crate::io::spec::{LinkSpec, LinkSpecError};
 use crate::typed_line::OnOff;
 use clap::Parser;
 use std::io::{ErrorKind, Read, Write};
 use std::net::{SocketAddr, TcpStream};
 use std::time::{Duration, Instant};
+
+/// Why a request to an MEB server got no usable answer, or could not be
+/// sent.
+#[derive(Debug, thiserror::Error)]
+pub enum ClientError {
+    #[error(transparent)]
+    Url(#[from] LinkSpecError),
+    #[error("cannot connect to {url} (is `twin supervise --listen {url}` running?)")]
+    Connect {
+        url: String,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The connection, made, could not be set up (no delay, a read timeout).
+    #[error("cannot set up the connection to {peer}")]
+    Socket {
+        peer: SocketAddr,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("cannot build the request")]
+    Build(#[source] MebEmitError),
+    #[error("the server closed the connection")]
+    Send(#[source] std::io::Error),
+    /// The server kept quiet for the whole timeout.
+    #[error(
+        "no reply from {peer} within {timeout_ms} ms to {request}: is a module with id {id} \
+         there? A slave answers only its own id (--id; `twin serve --id {id}`, the M3CVME \
+         tool's slave number)"
+    )]
+    NoReply {
+        peer: SocketAddr,
+        timeout_ms: u128,
+        request: String,
+        id: u8,
+    },
+    #[error("{peer} closed the connection")]
+    Closed { peer: SocketAddr },
+    #[error("reading the reply")]
+    Read(#[source] std::io::Error),
+    #[error("id 00 is broadcast: a broadcast read is never answered (docs/protocols/meb.md)")]
+    BroadcastRead,
+    #[error("the reply to {request} carries {got} words, not {wanted}")]
+    WordCount {
+        request: String,
+        got: usize,
+        wanted: u8,
+    },
+    #[error("at most 99 words per write")]
+    TooManyWords,
+    #[error(
+        "{cmd} is written, not read: MEB reads only EA, ED, FA and FD (write it with `write {cmd} ADDR WORD`)"
+    )]
+    NotRead { cmd: MebCmd },
+    #[error(
+        "{cmd} is read, not written: MEB writes only SA, SD, VA and VD (read it with `read {cmd} ADDR CNT`)"
+    )]
+    NotWritten { cmd: MebCmd },
+    /// The slave's `ER` reply, with what its code means.
+    #[error("slave {id:02} answered {request} with ER {code:02}: {meaning}")]
+    Refused {
+        id: u8,
+        request: String,
+        code: u16,
+        meaning: &'static str,
+    },
+}
+
+type Result<T, E = ClientError> = std::result::Result<T, E>;
+
+/// A word, command or count typed (on `twin client`'s command line or its
+/// prompt) that does not read as one.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ArgumentError {
+    #[error("count `{0}` is not 1-99")]
+    Count(String),
+    #[error("`{0}` is not a number")]
+    NotANumber(String),
+    #[error("gain {0} outside 0-65.535")]
+    Gain(f64),
+    #[error("`{0}` is not a command (EA ED SA SD VA VD FA FD)")]
+    Command(String),
+    #[error("address `{0}` is not hex 00-FF (addresses are hex, as on the wire: FA 10 is 0x10)")]
+    Address(String),
+    #[error("value `{0}` is not a 16-bit word (0-65535, or 0x0000-0xFFFF)")]
+    Word(String),
+}
 
 /// Which way a frame went, for the monitor.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -57,10 +143,14 @@ impl MebClient {
     /// Connects within `timeout`; each reply is waited for that long too.
     pub fn connect(url: &str, timeout: Duration) -> Result<Self> {
         let peer = parse_url(url)?;
-        let stream = TcpStream::connect_timeout(&peer, timeout).with_context(|| {
-            format!("cannot connect to {url} (is `twin supervise --listen {url}` running?)")
-        })?;
-        stream.set_nodelay(true)?;
+        let stream =
+            TcpStream::connect_timeout(&peer, timeout).map_err(|source| ClientError::Connect {
+                url: url.to_string(),
+                source,
+            })?;
+        stream
+            .set_nodelay(true)
+            .map_err(|source| ClientError::Socket { peer, source })?;
         Ok(Self {
             stream,
             decoder: MebDecoder::new(),
@@ -88,38 +178,37 @@ impl MebClient {
     /// command) are skipped; malformed bytes are dropped.
     pub fn request(&mut self, request: &MebRepr) -> Result<MebRepr> {
         let mut out = [0u8; MEB_MAX_FRAME_LEN];
-        let len = request
-            .emit(&mut out)
-            .map_err(|e| anyhow!("cannot build the request: {e}"))?;
+        let len = request.emit(&mut out).map_err(ClientError::Build)?;
         self.show(Way::Sent, &out[..len]);
         self.stream
             .write_all(&out[..len])
-            .context("the server closed the connection")?;
+            .map_err(ClientError::Send)?;
         let deadline = Instant::now() + self.timeout;
         let mut buf = [0u8; 1024];
         loop {
             let left = deadline.saturating_duration_since(Instant::now());
             if left.is_zero() {
-                bail!(
-                    "no reply from {} within {} ms to {}: is a module with id {} there? A \
-                     slave answers only its own id (--id; `twin serve --id {}`, the M3CVME \
-                     tool's slave number)",
-                    self.peer,
-                    self.timeout.as_millis(),
-                    describe(request),
-                    request.id,
-                    request.id
-                );
+                return Err(ClientError::NoReply {
+                    peer: self.peer,
+                    timeout_ms: self.timeout.as_millis(),
+                    request: describe(request),
+                    id: request.id,
+                });
             }
-            self.stream.set_read_timeout(Some(left))?;
+            self.stream
+                .set_read_timeout(Some(left))
+                .map_err(|source| ClientError::Socket {
+                    peer: self.peer,
+                    source,
+                })?;
             let n = match self.stream.read(&mut buf) {
-                Ok(0) => bail!("{} closed the connection", self.peer),
+                Ok(0) => return Err(ClientError::Closed { peer: self.peer }),
                 Ok(n) => n,
                 Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut) => {
                     continue;
                 }
                 Err(e) if e.kind() == ErrorKind::Interrupted => continue,
-                Err(e) => return Err(e).context("reading the reply"),
+                Err(e) => return Err(ClientError::Read(e)),
             };
             let mut rest = &buf[..n];
             while !rest.is_empty() {
@@ -145,7 +234,7 @@ impl MebClient {
     /// Reads `cnt` words from `cmd addr`.
     pub fn read(&mut self, id: u8, cmd: MebCmd, addr: u8, cnt: u8) -> Result<Vec<u16>> {
         if id == MEB_BROADCAST_ID {
-            bail!("id 00 is broadcast: a broadcast read is never answered (docs/protocols/meb.md)");
+            return Err(ClientError::BroadcastRead);
         }
         refuse_wrong_direction(cmd, MebAccess::Read)?;
         let request = MebRepr {
@@ -157,19 +246,18 @@ impl MebClient {
         };
         let reply = check(&request, self.request(&request)?)?;
         if reply.data.len() != usize::from(cnt) {
-            bail!(
-                "the reply to {} carries {} words, not {cnt}",
-                describe(&request),
-                reply.data.len()
-            );
+            return Err(ClientError::WordCount {
+                request: describe(&request),
+                got: reply.data.len(),
+                wanted: cnt,
+            });
         }
         Ok(reply.data.as_slice().to_vec())
     }
 
     /// Writes `words` to `cmd addr`; `Ok` once acknowledged.
     pub fn write(&mut self, id: u8, cmd: MebCmd, addr: u8, words: &[u16]) -> Result<()> {
-        let data =
-            MebWords::from_slice(words).ok_or_else(|| anyhow!("at most 99 words per write"))?;
+        let data = MebWords::from_slice(words).ok_or(ClientError::TooManyWords)?;
         refuse_wrong_direction(cmd, MebAccess::Write)?;
         let request = MebRepr {
             id,
@@ -181,14 +269,12 @@ impl MebClient {
         if id == MEB_BROADCAST_ID {
             // Every slave applies it, none answers: nothing to wait for.
             let mut out = [0u8; MEB_MAX_FRAME_LEN];
-            let len = request
-                .emit(&mut out)
-                .map_err(|e| anyhow!("cannot build the request: {e}"))?;
+            let len = request.emit(&mut out).map_err(ClientError::Build)?;
             self.show(Way::Sent, &out[..len]);
             return self
                 .stream
                 .write_all(&out[..len])
-                .context("the server closed the connection");
+                .map_err(ClientError::Send);
         }
         check(&request, self.request(&request)?).map(|_| ())
     }
@@ -202,12 +288,8 @@ fn refuse_wrong_direction(cmd: MebCmd, wanted: MebAccess) -> Result<()> {
         return Ok(());
     };
     match (wanted, block.access()) {
-        (MebAccess::Read, MebAccess::Write) => bail!(
-            "{cmd} is written, not read: MEB reads only EA, ED, FA and FD (write it with `write {cmd} ADDR WORD`)"
-        ),
-        (MebAccess::Write, MebAccess::Read) => bail!(
-            "{cmd} is read, not written: MEB writes only SA, SD, VA and VD (read it with `read {cmd} ADDR CNT`)"
-        ),
+        (MebAccess::Read, MebAccess::Write) => Err(ClientError::NotRead { cmd }),
+        (MebAccess::Write, MebAccess::Read) => Err(ClientError::NotWritten { cmd }),
         _ => Ok(()),
     }
 }
@@ -239,11 +321,12 @@ pub fn check(request: &MebRepr, reply: MebRepr) -> Result<MebRepr> {
         }
         None => "unknown error code",
     };
-    bail!(
-        "slave {:02} answered {} with ER {code:02}: {meaning}",
-        request.id,
-        describe(request)
-    )
+    Err(ClientError::Refused {
+        id: request.id,
+        request: describe(request),
+        code,
+        meaning,
+    })
 }
 
 /// `EA 00 CNT 03`, as a user would say it.
@@ -362,51 +445,46 @@ pub enum Prompt {
 }
 
 /// A count of words, as MEB carries: 1 to 99.
-pub fn parse_count(text: &str) -> Result<u8> {
+pub fn parse_count(text: &str) -> Result<u8, ArgumentError> {
     text.parse::<u8>()
         .ok()
         .filter(|n| (1..=99).contains(n))
-        .ok_or_else(|| anyhow!("count `{text}` is not 1-99"))
+        .ok_or_else(|| ArgumentError::Count(text.to_string()))
 }
 
 /// A gain as typed (`0.45`) to its word on the wire (x1000).
-pub fn parse_gain(text: &str) -> Result<u16> {
+pub fn parse_gain(text: &str) -> Result<u16, ArgumentError> {
     let v: f64 = text
         .parse()
-        .map_err(|_| anyhow!("`{text}` is not a number"))?;
+        .map_err(|_| ArgumentError::NotANumber(text.to_string()))?;
     if !(0.0..=65.535).contains(&v) {
-        bail!("gain {v} outside 0-65.535");
+        return Err(ArgumentError::Gain(v));
     }
     Ok((v * 1000.0).round() as u16)
 }
 
 /// A command as typed: two letters, any case (the server judges it).
-pub fn parse_cmd(text: &str) -> Result<MebCmd> {
-    let bytes = text.as_bytes();
-    match bytes {
-        &[a, b] => MebCmd::new([a.to_ascii_uppercase(), b.to_ascii_uppercase()])
-            .ok_or_else(|| anyhow!("`{text}` is not a command (EA ED SA SD VA VD FA FD)")),
-        _ => bail!("`{text}` is not a command (EA ED SA SD VA VD FA FD)"),
+pub fn parse_cmd(text: &str) -> Result<MebCmd, ArgumentError> {
+    match text.as_bytes() {
+        &[a, b] => MebCmd::new([a.to_ascii_uppercase(), b.to_ascii_uppercase()]),
+        _ => None,
     }
+    .ok_or_else(|| ArgumentError::Command(text.to_string()))
 }
 
 /// An address as on the wire: hex, `00`–`FF` (`0x` allowed).
-pub fn parse_addr(text: &str) -> Result<u8> {
+pub fn parse_addr(text: &str) -> Result<u8, ArgumentError> {
     let digits = text.strip_prefix("0x").unwrap_or(text);
-    u8::from_str_radix(digits, 16).map_err(|_| {
-        anyhow!(
-            "address `{text}` is not hex 00-FF (addresses are hex, as on the wire: FA 10 is 0x10)"
-        )
-    })
+    u8::from_str_radix(digits, 16).map_err(|_| ArgumentError::Address(text.to_string()))
 }
 
 /// A word value: decimal, or hex with `0x`.
-pub fn parse_word(text: &str) -> Result<u16> {
+pub fn parse_word(text: &str) -> Result<u16, ArgumentError> {
     let parsed = match text.strip_prefix("0x") {
         Some(hex) => u16::from_str_radix(hex, 16),
         None => text.parse(),
     };
-    parsed.map_err(|_| anyhow!("value `{text}` is not a 16-bit word (0-65535, or 0x0000-0xFFFF)"))
+    parsed.map_err(|_| ArgumentError::Word(text.to_string()))
 }
 
 #[cfg(test)]

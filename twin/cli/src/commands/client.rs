@@ -5,7 +5,9 @@ use clap::{Args, Subcommand};
 use protocols::meb::MebCmd;
 use std::io::{BufRead, Write};
 use std::time::{Duration, Instant};
-use twin_realtime::client::{MebClient, Prompt, Way, parse_addr, parse_cmd, parse_word, tag};
+use twin_realtime::client::{
+    ClientError, MebClient, Prompt, Way, parse_addr, parse_cmd, parse_word, tag,
+};
 use twin_realtime::typed_line::{self, Typed};
 
 /// Talk MEB over TCP to a supervisor (`twin supervise --listen`) or an MEB slave.
@@ -90,7 +92,7 @@ pub fn execute(args: &ClientArgs) -> Result<()> {
             let words = values
                 .iter()
                 .map(|v| parse_word(v))
-                .collect::<Result<Vec<_>>>()?;
+                .collect::<Result<Vec<_>, _>>()?;
             client.write(id, cmd, addr, &words)?;
             if id == 0 {
                 println!(
@@ -121,7 +123,7 @@ fn print_words(cmd: MebCmd, addr: u8, words: &[u16]) {
 }
 
 /// One line: the six inputs, and the loop if the server holds one.
-fn reading(client: &mut MebClient, id: u8) -> Result<String> {
+fn reading(client: &mut MebClient, id: u8) -> Result<String, ClientError> {
     let inputs = client.read(id, MebCmd::EA, 0, 6)?;
     let mut line = ["V2", "I", "V1", "RPM_M", "RPM_L", "LDR"]
         .iter()
@@ -168,7 +170,7 @@ fn interactive(client: &mut MebClient, id: u8) -> Result<()> {
     println!("twin client: connected, slave {id:02}; `help` lists the commands");
     match reading(client, id) {
         Ok(line) => println!("{line}"),
-        Err(e) => println!("error: {e:#}"),
+        Err(e) => println!("error: {:#}", anyhow::Error::from(e)),
     }
     let stdin = std::io::stdin();
     loop {
@@ -187,7 +189,7 @@ fn interactive(client: &mut MebClient, id: u8) -> Result<()> {
             }
         };
         // Ok(true): a write went through; the inputs are shown after it.
-        let result: Result<bool> = match prompt {
+        let result: Result<bool, ClientError> = match prompt {
             Prompt::Quit => return Ok(()),
             Prompt::Show => reading(client, id).map(|l| {
                 println!("{l}");
@@ -219,7 +221,8 @@ fn interactive(client: &mut MebClient, id: u8) -> Result<()> {
                 }
             }
             Ok(false) => {}
-            Err(e) => println!("error: {e:#}"),
+            // Through anyhow, so the causes are said too, as `main` says them.
+            Err(e) => println!("error: {:#}", anyhow::Error::from(e)),
         }
     }
 }

@@ -19,7 +19,7 @@ use crate::hub::Hub;
 use layout::{Layout, SWITCHES};
 use nodes::firmware::MebMap;
 use protocols::meb::MebCmd;
-use twin_realtime::client::{MebClient, Way};
+use twin_realtime::client::{ClientError, MebClient, Way};
 use twin_realtime::sink::LiveFrame;
 
 pub use state::message_state;
@@ -200,7 +200,9 @@ impl Remote {
                         hub.push_event("panel", self.now(), "connected", &self.options.url);
                         client = Some(c);
                     }
-                    Err(e) => lock(&self.state).error = Some(format!("{e:#}")),
+                    Err(e) => {
+                        lock(&self.state).error = Some(format!("{:#}", anyhow::Error::from(e)))
+                    }
                 }
                 continue;
             };
@@ -295,7 +297,7 @@ impl Remote {
     fn exchange<T>(
         &self,
         c: &mut MebClient,
-        f: impl FnOnce(&mut MebClient) -> Result<T>,
+        f: impl FnOnce(&mut MebClient) -> Result<T, ClientError>,
     ) -> Result<T, Failed> {
         lock(&self.state).counters.requests += 1;
         match f(c) {
@@ -304,7 +306,8 @@ impl Remote {
                 Ok(v)
             }
             Err(e) => {
-                let text = format!("{e:#}");
+                // Through anyhow, so the causes are said too.
+                let text = format!("{:#}", anyhow::Error::from(e));
                 let mut s = lock(&self.state);
                 let lost = if text.contains(" ER ") {
                     s.counters.refused += 1;
