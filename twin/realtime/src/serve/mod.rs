@@ -39,7 +39,7 @@ pub enum ServeError {
         option: &'static str,
         text: String,
         #[source]
-        source: LinkSpecError,
+        source: Box<LinkSpecError>,
     },
     #[error(
         "--modbus {text}: Modbus TCP needs tcp://HOST:PORT; for a serial port use --modbus-rtu or --modbus-ascii"
@@ -68,7 +68,7 @@ pub enum ServeError {
     Firmware {
         elf: String,
         #[source]
-        source: BuildError,
+        source: Box<BuildError>,
     },
     #[error("cannot write the plant's parameters into the recording")]
     Params(#[source] toml::ser::Error),
@@ -229,7 +229,7 @@ pub fn parse_links(options: &ServeOptions) -> Result<Vec<(ServeProtocol, LinkSpe
         let spec = LinkSpec::parse(text, &options.defaults).map_err(|source| ServeError::Spec {
             option: protocol.option(),
             text: text.clone(),
-            source,
+            source: Box::new(source),
         })?;
         let tcp = spec.is_tcp();
         match protocol {
@@ -473,7 +473,7 @@ fn build_sketch(
         twin_sim::external::build_firmware(spec, Some(params), &bus).map_err(|source| {
             ServeError::Firmware {
                 elf: spec_elf(spec).to_string(),
-                source,
+                source: Box::new(source),
             }
         })?;
     Ok(node)

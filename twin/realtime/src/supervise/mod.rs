@@ -36,7 +36,7 @@ pub enum SuperviseError {
         option: &'static str,
         text: String,
         #[source]
-        source: LinkSpecError,
+        source: Box<LinkSpecError>,
     },
     #[error("--modbus-rtu {text}: Modbus RTU runs on a serial port or pty; over TCP use --meb")]
     RtuOverTcp { text: String },
@@ -357,7 +357,7 @@ fn parse_links(options: &SuperviseOptions) -> Result<(LinkSpec, Vec<LinkSpec>)> 
     let bus = LinkSpec::parse(&options.bus, &defaults).map_err(|source| SuperviseError::Spec {
         option,
         text: options.bus.clone(),
-        source,
+        source: Box::new(source),
     })?;
     if options.protocol == Protocol::ModbusRtu && bus.is_tcp() {
         return Err(SuperviseError::RtuOverTcp {
@@ -369,7 +369,7 @@ fn parse_links(options: &SuperviseOptions) -> Result<(LinkSpec, Vec<LinkSpec>)> 
         let spec = LinkSpec::parse(text, &defaults).map_err(|source| SuperviseError::Spec {
             option: "--listen",
             text: text.clone(),
-            source,
+            source: Box::new(source),
         })?;
         if !spec.is_tcp() {
             return Err(SuperviseError::ListenNotTcp { text: text.clone() });
