@@ -1,7 +1,6 @@
 //! How `twin-avr` builds a scenario's `firmware` nodes (registered with
 //! `twin_sim::external` before anything runs).
 
-use anyhow::{Context, Result, bail};
 use plant::PlantParams;
 use protocols::time::SimDuration;
 use std::path::Path;
@@ -10,8 +9,47 @@ use twin_sim::external::FirmwareBuilder;
 use twin_sim::nodes_build::BuildError;
 use twin_sim::scenario::{BusSpec, NodeSpec};
 
-use crate::node::{AvrNode, Board};
-use crate::wiring::Wiring;
+use crate::debug::DebugError;
+use crate::node::{AvrNode, Board, StartError};
+use crate::vcd::VcdError;
+use crate::wiring::{Wiring, WiringError};
+
+/// Why a scenario's firmware node cannot be built: the node and the field
+/// at fault, the cause (the wiring map's or the firmware file's own error)
+/// as its source.
+#[derive(Debug, thiserror::Error)]
+pub enum FirmwareError {
+    #[error("node `{node}` is not a firmware node")]
+    NotFirmware { node: String },
+    #[error("firmware node `{node}` needs a module")]
+    NoModule { node: String },
+    #[error("firmware node `{node}`: clock_hz {clock_hz}: give the board's clock, 1 to 32 MHz")]
+    Clock { node: String, clock_hz: u32 },
+    #[error("firmware node `{node}`, field `wiring`")]
+    Wiring {
+        node: String,
+        #[source]
+        source: Box<WiringError>,
+    },
+    /// A replay's map, out of the recording.
+    #[error("firmware node `{node}`, the wiring map its recording stored")]
+    StoredWiring {
+        node: String,
+        #[source]
+        source: Box<WiringError>,
+    },
+    /// The ELF or Intel HEX file refused, or simavr could not start it.
+    #[error("firmware node `{node}`, field `elf`")]
+    Start {
+        node: String,
+        #[source]
+        source: StartError,
+    },
+    #[error(transparent)]
+    Debug(#[from] DebugError),
+    #[error(transparent)]
+    Vcd(#[from] VcdError),
+}
 
 /// The builder of firmware nodes.
 #[derive(Debug, Default)]
@@ -35,7 +73,7 @@ impl AvrBuilder {
         spec: &NodeSpec,
         module: Option<&PlantParams>,
         bus: &BusSpec,
-    ) -> Result<(Box<dyn SimNode + Send>, SimDuration)> {
+    ) -> Result<(Box<dyn SimNode + Send>, SimDuration), FirmwareError> {
         let NodeSpec::Firmware {
             name,
             elf,
@@ -46,24 +84,32 @@ impl AvrBuilder {
             ..
         } = spec
         else {
-            bail!("node `{}` is not a firmware node", spec.name());
+            return Err(FirmwareError::NotFirmware {
+                node: spec.name().into(),
+            });
         };
         let Some(params) = module else {
-            bail!("firmware node `{name}` needs a module")
+            return Err(FirmwareError::NoModule { node: name.clone() });
         };
         if !(1_000_000..=32_000_000).contains(clock_hz) {
-            bail!(
-                "firmware node `{name}`: clock_hz {clock_hz}: give the board's clock, 1 to 32 MHz"
-            );
+            return Err(FirmwareError::Clock {
+                node: name.clone(),
+                clock_hz: *clock_hz,
+            });
         }
         // A replay runs the file and map its recording stored.
         let stored = crate::replay::stored(name);
         let wiring = match &stored {
-            Some(s) => Wiring::parse(&s.wiring_text, &s.wiring_origin).with_context(|| {
-                format!("firmware node `{name}`, the wiring map its recording stored")
+            Some(s) => Wiring::parse(&s.wiring_text, &s.wiring_origin).map_err(|source| {
+                FirmwareError::StoredWiring {
+                    node: name.clone(),
+                    source: Box::new(source),
+                }
             })?,
-            None => Wiring::load(wiring)
-                .with_context(|| format!("firmware node `{name}`, field `wiring`"))?,
+            None => Wiring::load(wiring).map_err(|source| FirmwareError::Wiring {
+                node: name.clone(),
+                source: Box::new(source),
+            })?,
         };
         let board = Board {
             name,
@@ -76,8 +122,13 @@ impl AvrBuilder {
         let shown = stored
             .as_ref()
             .map_or(Path::new(elf), |s| Path::new(&s.recorded_file));
-        let mut node = AvrNode::start_as(board, wiring, params.sensing.clone(), shown)
-            .with_context(|| format!("firmware node `{name}`, field `elf`"))?;
+        let mut node =
+            AvrNode::start_as(board, wiring, params.sensing.clone(), shown).map_err(|source| {
+                FirmwareError::Start {
+                    node: name.clone(),
+                    source,
+                }
+            })?;
         node.hold_in_boot(SimDuration::from_secs_f64(boot_ms / 1000.0));
         if let Some(debug) = crate::debug::for_node(name)? {
             if let Some(path) = &debug.vcd {

@@ -7,9 +7,28 @@
 use std::path::PathBuf;
 use std::sync::Mutex;
 
-use anyhow::{Result, bail};
-
 use crate::wiring::{Pin, pin};
+
+type Result<T, E = DebugError> = std::result::Result<T, E>;
+
+/// Why the debugging extras cannot be given as asked.
+#[derive(Debug, thiserror::Error)]
+pub enum DebugError {
+    #[error("--vcd-pins {name}: no such pin on the ATmega328P (D0–D13, A0–A5)")]
+    NoSuchPin { name: String },
+    #[error(
+        "--gdb and --vcd go to one firmware node, and this scenario has two (`{first}`, \
+         `{second}`): name one with --firmware-node"
+    )]
+    TwoNodes { first: String, second: String },
+    /// simavr's GDB stub did not start; `simavr` is its last log line, if any.
+    #[error("--gdb {port}: cannot listen on that port (in use?{})", said(.simavr.as_deref()))]
+    GdbPort { port: u16, simavr: Option<String> },
+}
+
+fn said(simavr: Option<&str>) -> String {
+    simavr.map_or_else(String::new, |l| format!("; simavr: {l}"))
+}
 
 /// `twin-avr run`'s and `replay`'s debugging options.
 #[derive(Debug, Clone, Default, clap::Args)]
@@ -55,7 +74,7 @@ impl DebugArgs {
         let mut pins: Vec<Pin> = Vec::new();
         for name in &self.vcd_pins {
             let Some(p) = pin(name) else {
-                bail!("--vcd-pins {name}: no such pin on the ATmega328P (D0–D13, A0–A5)");
+                return Err(DebugError::NoSuchPin { name: name.clone() });
             };
             if !pins.contains(&p) {
                 pins.push(p);
@@ -109,10 +128,10 @@ pub fn for_node(name: &str) -> Result<Option<DebugArgs>> {
             *taken = Some(name.to_string());
             Ok(Some(args.clone()))
         }
-        (None, Some(first)) => bail!(
-            "--gdb and --vcd go to one firmware node, and this scenario has two (`{first}`, \
-             `{name}`): name one with --firmware-node"
-        ),
+        (None, Some(first)) => Err(DebugError::TwoNodes {
+            first: first.to_string(),
+            second: name.to_string(),
+        }),
         (None, None) => {
             *taken = Some(name.to_string());
             Ok(Some(args.clone()))

@@ -67,6 +67,16 @@ struct AvrReplay {
     debug: twin_avr::debug::DebugArgs,
 }
 
+fn run(args: AvrRun) -> anyhow::Result<()> {
+    twin_avr::debug::set(args.debug)?;
+    commands::finish_recordings_on_signals();
+    let ran = commands::run::execute(&args.run);
+    if let Some(note) = twin_avr::debug::unused() {
+        eprintln!("twin-avr: {note}");
+    }
+    ran
+}
+
 fn replay(args: &AvrReplay, given: &clap::ArgMatches) -> anyhow::Result<()> {
     twin_avr::debug::set(args.debug.clone())?;
     let firmware = match given.get_one::<std::path::PathBuf>("recording") {
@@ -92,14 +102,7 @@ fn main() -> ExitCode {
             .unwrap_or_default()
     };
     let result = match cli.command {
-        Command::Run(args) => twin_avr::debug::set(args.debug).and_then(|()| {
-            commands::finish_recordings_on_signals();
-            let ran = commands::run::execute(&args.run);
-            if let Some(note) = twin_avr::debug::unused() {
-                eprintln!("twin-avr: {note}");
-            }
-            ran
-        }),
+        Command::Run(args) => run(args),
         Command::Replay(args) => replay(&args, &given("replay")),
         // `twin serve` itself: a configuration file's options give way to
         // the command line's.

@@ -349,7 +349,11 @@ impl AvrNode {
     }
 
     /// Traces `pins` to a VCD file at `path`, from now on.
-    pub fn trace_vcd(&mut self, path: &Path, pins: &[crate::wiring::Pin]) -> anyhow::Result<()> {
+    pub fn trace_vcd(
+        &mut self,
+        path: &Path,
+        pins: &[crate::wiring::Pin],
+    ) -> Result<(), crate::vcd::VcdError> {
         let core = &self.core;
         let trace = VcdTrace::create(path, pins, self.clock_hz, &self.name, |i| {
             core.pin_output(i).0
@@ -361,15 +365,13 @@ impl AvrNode {
 
     /// Starts simavr's GDB stub on `port`: the core waits, stopped, for a
     /// debugger to connect and continue it.
-    pub fn debug_gdb(&mut self, port: u16) -> anyhow::Result<()> {
+    pub fn debug_gdb(&mut self, port: u16) -> Result<(), crate::debug::DebugError> {
         if !self.core.gdb(port) {
-            anyhow::bail!(
-                "--gdb {port}: cannot listen on that port (in use?{})",
-                match Core::last_log() {
-                    l if l.is_empty() => String::new(),
-                    l => format!("; simavr: {l}"),
-                }
-            );
+            let log = Core::last_log();
+            return Err(crate::debug::DebugError::GdbPort {
+                port,
+                simavr: (!log.is_empty()).then_some(log),
+            });
         }
         Ok(())
     }

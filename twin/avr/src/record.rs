@@ -5,7 +5,6 @@
 //! `twin_recording::topics`). Every buffer is made once, at the node's
 //! start, and reused: nothing is allocated per byte or per edge.
 
-use anyhow::Result;
 use protocols::time::{SimDuration, SimTime};
 use twin_recording::topics::{AdcInput, FirmwareIo, PinEdge, PinState, UartBurst};
 use twin_sim::engine::{FirmwareRecord, ObserveError};

@@ -9,10 +9,26 @@ use std::fs::File;
 use std::io::{self, BufWriter};
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result};
 use vcd::{IdCode, SimulationCommand, TimescaleUnit, Value};
 
 use crate::wiring::Pin;
+
+/// Why a trace could not be started.
+#[derive(Debug, thiserror::Error)]
+pub enum VcdError {
+    #[error("--vcd {}: cannot create it", path.display())]
+    Create {
+        path: PathBuf,
+        #[source]
+        source: io::Error,
+    },
+    #[error("--vcd {}: cannot write it", path.display())]
+    Write {
+        path: PathBuf,
+        #[source]
+        source: io::Error,
+    },
+}
 
 /// An open trace.
 pub struct VcdTrace {
@@ -49,12 +65,17 @@ impl VcdTrace {
         clock_hz: u32,
         board: &str,
         level: impl Fn(u8) -> bool,
-    ) -> Result<Self> {
-        let file = File::create(path)
-            .with_context(|| format!("--vcd {}: cannot create it", path.display()))?;
+    ) -> Result<Self, VcdError> {
+        let file = File::create(path).map_err(|source| VcdError::Create {
+            path: path.to_path_buf(),
+            source,
+        })?;
         let mut out = vcd::Writer::new(BufWriter::new(file));
-        let ids = header(&mut out, pins, clock_hz, board, level)
-            .with_context(|| format!("--vcd {}: cannot write it", path.display()))?;
+        let ids =
+            header(&mut out, pins, clock_hz, board, level).map_err(|source| VcdError::Write {
+                path: path.to_path_buf(),
+                source,
+            })?;
         let mask = pins.iter().fold(0u32, |m, pin| m | 1 << pin.index);
         Ok(Self {
             out,

@@ -4,8 +4,54 @@
 
 use std::collections::BTreeMap;
 
-use anyhow::{Context, Result, anyhow, bail};
 use serde::Deserialize;
+
+type Result<T, E = WiringError> = std::result::Result<T, E>;
+
+/// Why a wiring map is refused: each names the map (its file, or the
+/// shipped map's name) and the table and pin at fault.
+#[derive(Debug, thiserror::Error)]
+pub enum WiringError {
+    #[error("wiring map {name}: neither a shipped map ({shipped}) nor a file that can be read")]
+    Unreadable {
+        name: String,
+        /// The shipped maps' names, listed.
+        shipped: String,
+        #[source]
+        source: std::io::Error,
+    },
+    /// Not TOML, or a table or field the map has not: the TOML reader's
+    /// own words (line, column and the text) are the message.
+    #[error("{origin}: {error}")]
+    Toml {
+        origin: String,
+        error: toml::de::Error,
+    },
+    #[error("{origin}: [{table}] {name}: no such pin on the ATmega328P (D2–D13, A0–A5)")]
+    NoSuchPin {
+        origin: String,
+        table: &'static str,
+        name: String,
+    },
+    #[error("{origin}: [{table}] {name} = \"{signal}\": unknown signal (known here: {known})")]
+    UnknownSignal {
+        origin: String,
+        table: &'static str,
+        name: String,
+        signal: String,
+        known: &'static str,
+    },
+    #[error("{origin}: [analog] {pin}: not an analog pin (A0–A5)")]
+    NotAnalog { origin: String, pin: &'static str },
+    #[error("{origin}: {pin}: D0 and D1 are the serial port (RXD, TXD)")]
+    SerialPort { origin: String, pin: &'static str },
+    #[error("{origin}: {pin} is wired twice")]
+    WiredTwice { origin: String, pin: &'static str },
+    #[error("{origin}: [board] tick_us: give 10 to 100000 µs, got {got}")]
+    TickUs { origin: String, got: u32 },
+    #[error("{origin}: [board] pwm_filter_ms: give 0 or more, got {got}")]
+    PwmFilter { origin: String, got: f64 },
+}
 
 /// The maps that ship: name, text.
 pub const SHIPPED: [(&str, &str); 3] = [
@@ -153,19 +199,23 @@ impl Wiring {
         if let Some((name, text)) = SHIPPED.iter().find(|(n, _)| *n == name_or_file) {
             return Self::parse(text, &format!("wiring map {name}"));
         }
-        let text = std::fs::read_to_string(name_or_file).with_context(|| {
+        let text = std::fs::read_to_string(name_or_file).map_err(|source| {
             let names: Vec<&str> = SHIPPED.iter().map(|(n, _)| *n).collect();
-            format!(
-                "wiring map {name_or_file}: neither a shipped map ({}) nor a file that can be read",
-                names.join(", ")
-            )
+            WiringError::Unreadable {
+                name: name_or_file.into(),
+                shipped: names.join(", "),
+                source,
+            }
         })?;
         Self::parse(&text, name_or_file)
     }
 
     /// Parses a map; `origin` names it in errors.
     pub fn parse(text: &str, origin: &str) -> Result<Self> {
-        let file: File = toml::from_str(text).map_err(|e| anyhow!("{origin}: {e}"))?;
+        let file: File = toml::from_str(text).map_err(|error| WiringError::Toml {
+            origin: origin.into(),
+            error,
+        })?;
         let analog = pins(
             origin,
             "analog",
@@ -183,7 +233,10 @@ impl Wiring {
         )?;
         for (pin, _) in &analog {
             if pin.adc.is_none() {
-                bail!("{origin}: [analog] {}: not an analog pin (A0–A5)", pin.name);
+                return Err(WiringError::NotAnalog {
+                    origin: origin.into(),
+                    pin: pin.name,
+                });
             }
         }
         let inputs = pins(
@@ -238,27 +291,30 @@ impl Wiring {
             .chain(pwm.iter().map(|(p, _)| p));
         for p in all {
             if p.index == 16 || p.index == 17 {
-                bail!(
-                    "{origin}: {}: D0 and D1 are the serial port (RXD, TXD)",
-                    p.name
-                );
+                return Err(WiringError::SerialPort {
+                    origin: origin.into(),
+                    pin: p.name,
+                });
             }
             if used.insert(p.index, p.name).is_some() {
-                bail!("{origin}: {} is wired twice", p.name);
+                return Err(WiringError::WiredTwice {
+                    origin: origin.into(),
+                    pin: p.name,
+                });
             }
         }
         let board = file.board;
         if !(10..=100_000).contains(&board.tick_us) {
-            bail!(
-                "{origin}: [board] tick_us: give 10 to 100000 µs, got {}",
-                board.tick_us
-            );
+            return Err(WiringError::TickUs {
+                origin: origin.into(),
+                got: board.tick_us,
+            });
         }
         if !(board.pwm_filter_ms.is_finite() && board.pwm_filter_ms >= 0.0) {
-            bail!(
-                "{origin}: [board] pwm_filter_ms: give 0 or more, got {}",
-                board.pwm_filter_ms
-            );
+            return Err(WiringError::PwmFilter {
+                origin: origin.into(),
+                got: board.pwm_filter_ms,
+            });
         }
         Ok(Self {
             origin: origin.into(),
@@ -274,22 +330,27 @@ impl Wiring {
 
 fn pins<T>(
     origin: &str,
-    table: &str,
+    table: &'static str,
     entries: &BTreeMap<String, String>,
     signal: impl Fn(&str) -> Option<T>,
-    known: &str,
+    known: &'static str,
 ) -> Result<Vec<(Pin, T)>> {
     entries
         .iter()
         .map(|(name, what)| {
-            let p = pin(name).ok_or_else(|| {
-                anyhow!("{origin}: [{table}] {name}: no such pin on the ATmega328P (D2–D13, A0–A5)")
+            let p = pin(name).ok_or_else(|| WiringError::NoSuchPin {
+                origin: origin.into(),
+                table,
+                name: name.clone(),
             })?;
-            let s = signal(&what.to_ascii_lowercase()).ok_or_else(|| {
-                anyhow!(
-                    "{origin}: [{table}] {name} = \"{what}\": unknown signal (known here: {known})"
-                )
-            })?;
+            let s =
+                signal(&what.to_ascii_lowercase()).ok_or_else(|| WiringError::UnknownSignal {
+                    origin: origin.into(),
+                    table,
+                    name: name.clone(),
+                    signal: what.clone(),
+                    known,
+                })?;
             Ok((p, s))
         })
         .collect()
@@ -335,5 +396,30 @@ mod tests {
         );
         let err = Wiring::parse("[analog]\nD5 = \"v1\"\n", "my.toml").unwrap_err();
         assert!(err.to_string().contains("not an analog pin"), "{err}");
+    }
+
+    #[test]
+    fn a_map_that_cannot_be_read_says_why_once_as_its_source() {
+        let err = Wiring::load("/nonexistent/my-map.toml").unwrap_err();
+        assert!(matches!(err, WiringError::Unreadable { .. }), "{err:?}");
+        let top = err.to_string();
+        assert!(
+            top.starts_with(
+                "wiring map /nonexistent/my-map.toml: neither a shipped map (ev-controller"
+            ),
+            "{top}"
+        );
+        let cause = std::error::Error::source(&err)
+            .expect("the I/O error")
+            .to_string();
+        assert!(
+            !top.contains(&cause),
+            "the cause is printed by whoever walks the chain: {top}"
+        );
+        let err = Wiring::parse("[pwm]\nD9 = \"vel\"\nd9 = \"vel\"\n", "my.toml").unwrap_err();
+        assert!(
+            matches!(err, WiringError::WiredTwice { pin: "D9", .. }),
+            "{err:?}"
+        );
     }
 }
