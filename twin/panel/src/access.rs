@@ -3,9 +3,34 @@
 //! printed at start inside the URL to open (as Jupyter does), and kept across
 //! restarts in `--web-token-file`. `--web-read-only` serves no controls.
 
-use anyhow::{Context, Result, bail};
 use std::net::SocketAddr;
 use std::path::PathBuf;
+
+type Result<T, E = TokenError> = std::result::Result<T, E>;
+
+/// Why the panel has no token to ask for.
+#[derive(Debug, thiserror::Error)]
+pub enum TokenError {
+    #[error("cannot read /dev/urandom for the panel's token")]
+    Random(#[source] std::io::Error),
+    #[error(
+        "--web-token-file {}: the token must be at least 16 letters or digits on one line (delete the file for a new one)",
+        path.display()
+    )]
+    Malformed { path: PathBuf },
+    #[error("--web-token-file {}", path.display())]
+    Read {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("--web-token-file {}: cannot write it", path.display())]
+    Write {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+}
 
 /// What the command line says about access.
 #[derive(Debug, Clone, Default)]
@@ -97,7 +122,7 @@ fn new_token() -> Result<String> {
     let mut bytes = [0u8; 24];
     std::fs::File::open("/dev/urandom")
         .and_then(|mut f| f.read_exact(&mut bytes))
-        .context("cannot read /dev/urandom for the panel's token")?;
+        .map_err(TokenError::Random)?;
     Ok(bytes.iter().map(|b| format!("{b:02x}")).collect())
 }
 
@@ -108,20 +133,22 @@ fn token_from_file(path: &std::path::Path) -> Result<String> {
         Ok(text) => {
             let token = text.trim().to_string();
             if token.len() < 16 || !token.chars().all(|c| c.is_ascii_alphanumeric()) {
-                bail!(
-                    "--web-token-file {}: the token must be at least 16 letters or digits on one line (delete the file for a new one)",
-                    path.display()
-                );
+                return Err(TokenError::Malformed { path: path.into() });
             }
             Ok(token)
         }
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
             let token = new_token()?;
-            write_private(path, &token)
-                .with_context(|| format!("--web-token-file {}: cannot write it", path.display()))?;
+            write_private(path, &token).map_err(|source| TokenError::Write {
+                path: path.into(),
+                source,
+            })?;
             Ok(token)
         }
-        Err(e) => Err(e).with_context(|| format!("--web-token-file {}", path.display())),
+        Err(source) => Err(TokenError::Read {
+            path: path.into(),
+            source,
+        }),
     }
 }
 

@@ -9,7 +9,6 @@
 //! (or, for a module without one, an [unserved](crate::Panel::unserved)
 //! feed) last published: the index never asks an engine anything itself.
 
-use anyhow::{Context, Result};
 use axum::Router;
 use axum::extract::{Request, State};
 use axum::http::{HeaderValue, StatusCode, header};
@@ -22,9 +21,28 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use twin_realtime::rotate::RecordPlan;
 
-use crate::access::{Access, AccessOptions};
+use crate::access::{Access, AccessOptions, TokenError};
 use crate::http::{escape, token_of};
 use crate::{Limits, Panel, Running};
+
+/// Why the class's index cannot be served.
+#[derive(Debug, thiserror::Error)]
+pub enum IndexError {
+    #[error("the class's index on {addr}")]
+    Token {
+        addr: SocketAddr,
+        #[source]
+        source: TokenError,
+    },
+    #[error("the class's index: cannot listen on {addr}")]
+    Listen {
+        addr: SocketAddr,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("cannot start the class's index's thread")]
+    Thread(#[source] std::io::Error),
+}
 
 /// One module of the class, as the index shows it.
 #[derive(Debug, Clone)]
@@ -62,7 +80,7 @@ const REFRESH_S: u32 = 2;
 impl ClassIndex {
     /// Binds `addr` and reads the teacher's token from `token_file` (a new
     /// one written there, readable by its owner only, if it is missing).
-    pub fn bind(addr: SocketAddr, token_file: &Path) -> Result<Self> {
+    pub fn bind(addr: SocketAddr, token_file: &Path) -> Result<Self, IndexError> {
         let access = Access::new(
             &AccessOptions {
                 token_file: Some(token_file.to_path_buf()),
@@ -70,11 +88,11 @@ impl ClassIndex {
             },
             &addr,
         )
-        .with_context(|| format!("the class's index on {addr}"))?;
-        let listener = std::net::TcpListener::bind(addr)
-            .with_context(|| format!("the class's index: cannot listen on {addr}"))?;
-        listener.set_nonblocking(true)?;
-        let addr = listener.local_addr()?;
+        .map_err(|source| IndexError::Token { addr, source })?;
+        let listen = |source| IndexError::Listen { addr, source };
+        let listener = std::net::TcpListener::bind(addr).map_err(listen)?;
+        listener.set_nonblocking(true).map_err(listen)?;
+        let addr = listener.local_addr().map_err(listen)?;
         Ok(Self {
             access: Arc::new(access),
             listener,
@@ -99,7 +117,7 @@ impl ClassIndex {
 
     /// Serves the index of `modules` on a thread of its own, at the
     /// panels' lower priority.
-    pub fn start(self, modules: Vec<ClassModule>) -> Result<()> {
+    pub fn start(self, modules: Vec<ClassModule>) -> Result<(), IndexError> {
         let state = IndexState {
             access: self.access,
             modules: Arc::new(modules),
@@ -134,7 +152,7 @@ impl ClassIndex {
                     crate::server::run(listener, router(state, limits), limits, say).await;
                 });
             })
-            .context("cannot start the class's index's thread")?;
+            .map_err(IndexError::Thread)?;
         Ok(())
     }
 }

@@ -48,17 +48,35 @@ pub mod snapshot;
 pub mod step;
 pub mod view;
 
-use anyhow::{Context, Result};
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::sync::mpsc::Sender;
 
-pub use access::{Access, AccessOptions};
-pub use class_index::{ClassIndex, ClassModule};
+pub use access::{Access, AccessOptions, TokenError};
+pub use class_index::{ClassIndex, ClassModule, IndexError};
 pub use hub::Hub;
+pub use remote::RemoteError;
 pub use server::Limits;
 use twin_realtime::Inbound;
 pub use twin_realtime::sink::LiveView;
+
+/// Why a session's panel cannot be served.
+#[derive(Debug, thiserror::Error)]
+pub enum PanelError {
+    #[error(transparent)]
+    Token(#[from] TokenError),
+    /// The address is taken, or not this machine's.
+    #[error("--web {addr}: cannot listen there")]
+    Listen {
+        addr: SocketAddr,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("the panel was started twice")]
+    StartedTwice,
+    #[error("cannot start the panel's thread")]
+    Thread(#[source] std::io::Error),
+}
 
 /// Which session the panel fronts: what it shows and which controls it has.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
@@ -131,12 +149,15 @@ impl Panel {
     /// Binds the address (so a busy port is said before the session starts)
     /// and decides the access rules; the server itself starts with
     /// [`Panel::start`].
-    pub fn bind(options: PanelOptions) -> Result<Self> {
+    pub fn bind(options: PanelOptions) -> Result<Self, PanelError> {
         let access = Access::new(&options.access, &options.addr)?;
-        let listener = std::net::TcpListener::bind(options.addr)
-            .with_context(|| format!("--web {}: cannot listen there", options.addr))?;
-        listener.set_nonblocking(true)?;
-        let addr = listener.local_addr()?;
+        let listen = |source| PanelError::Listen {
+            addr: options.addr,
+            source,
+        };
+        let listener = std::net::TcpListener::bind(options.addr).map_err(listen)?;
+        listener.set_nonblocking(true).map_err(listen)?;
+        let addr = listener.local_addr().map_err(listen)?;
         Ok(Self {
             hub: Arc::new(Hub::new(options.role)),
             options,
@@ -238,25 +259,27 @@ impl Panel {
 
     /// Starts the server on a thread of its own, sending the engine its
     /// state reads and commands through `engine`.
-    pub fn start(&self, engine: Sender<Inbound>) -> Result<()> {
+    pub fn start(&self, engine: Sender<Inbound>) -> Result<(), PanelError> {
         self.spawn(http::Backend::Engine(Arc::new(std::sync::Mutex::new(
             engine,
         ))))
     }
 
     /// Starts the client panel's server over its connection (`twin panel`).
-    pub fn start_remote(&self, remote: Arc<remote::Remote>) -> Result<()> {
+    pub fn start_remote(&self, remote: Arc<remote::Remote>) -> Result<(), PanelError> {
         self.spawn(http::Backend::Remote(remote))
     }
 
-    fn spawn(&self, backend: http::Backend) -> Result<()> {
+    fn spawn(&self, backend: http::Backend) -> Result<(), PanelError> {
+        // Only a take happens under this lock: a panic elsewhere leaves the
+        // listener as it was.
         let listener = self
             .listener
             .lock()
-            .map_err(|_| anyhow::anyhow!("panel listener poisoned"))?
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
             .take();
         if listener.is_none() && self.served() {
-            anyhow::bail!("the panel was started twice");
+            return Err(PanelError::StartedTwice);
         }
         let state = http::AppState {
             hub: self.hub.clone(),
@@ -294,7 +317,7 @@ impl Panel {
                     None => runtime.block_on(http::feed(state)),
                 }
             })
-            .context("cannot start the panel's thread")?;
+            .map_err(PanelError::Thread)?;
         Ok(())
     }
 }

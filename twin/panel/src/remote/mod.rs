@@ -8,8 +8,8 @@
 pub mod layout;
 pub mod state;
 
-use anyhow::Result;
 use serde_json::{Value, json};
+use std::error::Error;
 use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, channel};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -36,6 +36,32 @@ pub struct RemoteOptions {
     pub poll: Duration,
     /// Connection and reply timeout.
     pub timeout: Duration,
+}
+
+/// Why `twin panel` cannot start.
+#[derive(Debug, thiserror::Error)]
+pub enum RemoteError {
+    /// The first connection failed: the client's own words (the address,
+    /// what refused it).
+    #[error(transparent)]
+    Connect(#[from] ClientError),
+    #[error("cannot start the panel's connection thread")]
+    Thread(#[source] std::io::Error),
+    #[error("the panel's connection thread ended")]
+    ThreadEnded,
+}
+
+/// `e` with its causes, `outer: cause: …`, as `main` prints an error (the
+/// page shows it so).
+fn in_full(e: &(dyn Error + 'static)) -> String {
+    let mut text = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        text.push_str(": ");
+        text.push_str(&c.to_string());
+        cause = c.source();
+    }
+    text
 }
 
 /// The link's name on the page (its frames, its row in the links table).
@@ -99,7 +125,7 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 impl Remote {
     /// Connects once (so a wrong address or a slave that is not there is
     /// said at start), then polls on a thread of its own, feeding `hub`.
-    pub fn start(options: RemoteOptions, hub: Arc<Hub>) -> Result<Arc<Self>> {
+    pub fn start(options: RemoteOptions, hub: Arc<Hub>) -> Result<Arc<Self>, RemoteError> {
         let layout = Layout::new(&options.map);
         let (tx, rx) = channel();
         let sd = layout.sd_words.iter().map(|&w| (w, None)).collect();
@@ -118,20 +144,19 @@ impl Remote {
         // The connection lives on the poller's thread (its monitor is not Send).
         std::thread::Builder::new()
             .name("twin-panel-client".into())
-            .spawn(move || {
-                match MebClient::connect(&poller.options.url, poller.options.timeout) {
+            .spawn(
+                move || match MebClient::connect(&poller.options.url, poller.options.timeout) {
                     Ok(first) => {
                         let _ = first_tx.send(Ok(()));
                         poller.run(first, rx, hub);
                     }
                     Err(e) => {
-                        let _ = first_tx.send(Err(e));
+                        let _ = first_tx.send(Err(RemoteError::Connect(e)));
                     }
-                }
-            })?;
-        first_rx
-            .recv()
-            .map_err(|_| anyhow::anyhow!("the panel's connection thread ended"))??;
+                },
+            )
+            .map_err(RemoteError::Thread)?;
+        first_rx.recv().map_err(|_| RemoteError::ThreadEnded)??;
         Ok(remote)
     }
 
@@ -201,7 +226,7 @@ impl Remote {
                         client = Some(c);
                     }
                     Err(e) => {
-                        lock(&self.state).error = Some(format!("{:#}", anyhow::Error::from(e)))
+                        lock(&self.state).error = Some(in_full(&e));
                     }
                 }
                 continue;
@@ -306,13 +331,12 @@ impl Remote {
                 Ok(v)
             }
             Err(e) => {
-                // Through anyhow, so the causes are said too.
-                let text = format!("{:#}", anyhow::Error::from(e));
+                let text = in_full(&e);
                 let mut s = lock(&self.state);
-                let lost = if text.contains(" ER ") {
+                let lost = if matches!(e, ClientError::Refused { .. }) {
                     s.counters.refused += 1;
                     None
-                } else if text.starts_with("no reply") {
+                } else if matches!(e, ClientError::NoReply { .. }) {
                     s.counters.timeouts += 1;
                     None
                 } else {
