@@ -10,6 +10,7 @@ use axum::middleware::{self, Next};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
+use axum_extra::extract::cookie::CookieJar;
 use futures_util::Stream;
 use serde_json::{Value, json};
 use std::collections::BTreeMap;
@@ -200,29 +201,34 @@ pub(crate) fn error(status: u16, body: Value) -> Response {
     (status, axum::Json(body)).into_response()
 }
 
-/// The token a request carries: `?token=`, `Authorization: Bearer`, or the
-/// cookie named `cookie` (the panel's own).
+/// The one query parameter the guard reads (the handlers read their own).
+#[derive(serde::Deserialize)]
+struct TokenQuery {
+    token: Option<String>,
+}
+
+/// The token a request carries: `?token=` (percent-encoding decoded), else
+/// `Authorization: Bearer`, else the cookie named `cookie` (the panel's own:
+/// another port's panel's cookie, sent to the same host, is not it).
 pub(crate) fn token_of(request: &Request, cookie: &str) -> Option<String> {
-    let from_query = request.uri().query().and_then(|q| {
-        q.split('&')
-            .find_map(|kv| kv.strip_prefix("token="))
-            .map(str::to_string)
-    });
+    // A query that does not read (`token` given twice) carries no token.
+    let from_query = Query::<TokenQuery>::try_from_uri(request.uri())
+        .ok()
+        .and_then(|Query(q)| q.token);
     let headers = request.headers();
-    let from_header = headers
-        .get(header::AUTHORIZATION)
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.strip_prefix("Bearer "))
-        .map(|t| t.trim().to_string());
-    let from_cookie = headers
-        .get(header::COOKIE)
-        .and_then(|v| v.to_str().ok())
-        .and_then(|c| {
-            c.split(';')
-                .find_map(|kv| kv.trim().strip_prefix(cookie)?.strip_prefix('='))
-                .map(str::to_string)
-        });
-    from_query.or(from_header).or(from_cookie)
+    let from_header = || {
+        headers
+            .get(header::AUTHORIZATION)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.strip_prefix("Bearer "))
+            .map(|t| t.trim().to_string())
+    };
+    let from_cookie = || {
+        CookieJar::from_headers(headers)
+            .get(cookie)
+            .map(|c| c.value().to_string())
+    };
+    from_query.or_else(from_header).or_else(from_cookie)
 }
 
 /// What a browser shows when the panel is opened without its token

@@ -267,6 +267,112 @@ fn a_browser_without_the_token_gets_a_page_in_words() {
     }
 }
 
+/// `/api/info` asked with `query` after `?` and the given headers: its status.
+fn info_status(session: &common::Session, query: &str, headers: &[(&str, String)]) -> u16 {
+    let addr = session.panel.addr_for_clients();
+    let mut request = common::agent().get(format!("http://{addr}/api/info?{query}"));
+    for (name, value) in headers {
+        request = request.header(*name, value);
+    }
+    request.call().unwrap().status().as_u16()
+}
+
+/// A token in the query may come percent-encoded (as a link in a mail or a
+/// page may carry it): it opens the panel decoded. And where a request
+/// carries it more than one way, the query wins over the header, the
+/// header over the cookie, wrong or right.
+#[test]
+fn a_percent_encoded_token_in_the_query_opens_the_panel() {
+    let session = serve("0.0.0.0:0", AccessOptions::default(), 30.0);
+    let token = common::token_of(&session.panel).unwrap();
+    let encoded: String = token.bytes().map(|b| format!("%{b:02X}")).collect();
+    assert_eq!(info_status(&session, &format!("token={encoded}"), &[]), 200);
+    // Among other parameters, and the cookie it sets holds it decoded.
+    let addr = session.panel.addr_for_clients();
+    let answer = common::agent()
+        .get(format!("http://{addr}/api/info?x=1&token={encoded}&y=%20"))
+        .call()
+        .unwrap();
+    assert_eq!(answer.status(), 200);
+    let set = header(&answer, "set-cookie");
+    assert!(set.contains(&format!("={token};")), "{set}");
+    assert_eq!(
+        info_status(&session, &format!("token={encoded}%30"), &[]),
+        401,
+        "one character more, encoded, is another token"
+    );
+    let cookie = format!("twin_panel_token_{}={token}", addr.port());
+    let bearer = |t: &str| ("Authorization", format!("Bearer {t}"));
+    for (query, headers, status, why) in [
+        (
+            format!("token={token}"),
+            vec![bearer("wrong")],
+            200,
+            "the query wins over the header",
+        ),
+        (
+            "token=wrong".into(),
+            vec![bearer(&token)],
+            401,
+            "the query wins, wrong too",
+        ),
+        (
+            String::new(),
+            vec![bearer(&token), ("Cookie", "x=1".into())],
+            200,
+            "the header alone",
+        ),
+        (
+            String::new(),
+            vec![bearer("wrong"), ("Cookie", cookie.clone())],
+            401,
+            "the header wins over the cookie",
+        ),
+        (
+            String::new(),
+            vec![("Cookie", cookie.clone())],
+            200,
+            "the cookie alone",
+        ),
+    ] {
+        assert_eq!(info_status(&session, &query, &headers), status, "{why}");
+    }
+}
+
+/// A browser sends every cookie of the host in one header: a class's
+/// panels on one server each find their own among the others' and a
+/// stranger's, in any order; another panel's cookie is never taken.
+#[test]
+fn two_cookies_in_one_header_each_panel_takes_its_own() {
+    let session = serve("0.0.0.0:0", AccessOptions::default(), 30.0);
+    let token = common::token_of(&session.panel).unwrap();
+    let port = session.panel.addr_for_clients().port();
+    let other = port.wrapping_add(1);
+    let cookie = |header: String| vec![("Cookie", header)];
+    for (header, status) in [
+        (
+            format!("twin_panel_token_{other}=wrong; twin_panel_token_{port}={token}"),
+            200,
+        ),
+        (
+            format!("twin_panel_token_{port}={token}; twin_panel_token_{other}=wrong"),
+            200,
+        ),
+        (format!("theme=dark;twin_panel_token_{port}={token}"), 200),
+        // The right token under another panel's name, or a longer name.
+        (
+            format!("twin_panel_token_{other}={token}; twin_panel_token_{port}0={token}"),
+            401,
+        ),
+    ] {
+        assert_eq!(
+            info_status(&session, "", &cookie(header.clone())),
+            status,
+            "{header}"
+        );
+    }
+}
+
 /// A header of `answer`, as text (empty when it has none).
 fn header(answer: &ureq::http::Response<ureq::Body>, name: &str) -> String {
     answer
