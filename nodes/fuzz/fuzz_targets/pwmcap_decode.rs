@@ -6,7 +6,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use protocols::pwmcap::{PWM_MAX_SYMBOLS, PwmCoding, PwmFrame, PwmFrameKind};
+use protocols::pwmcap::{PWM_MAX_SYMBOLS, PwmCoding, PwmRepr, PwmFrameKind};
 
 fuzz_target!(|data: &[u8]| {
     let [data_bits, dummy_bits, s0, s1, kind, widths @ ..] = data else {
@@ -29,12 +29,12 @@ fuzz_target!(|data: &[u8]| {
         .chunks_exact(4)
         .map(|w| u32::from_le_bytes([w[0], w[1], w[2], w[3]]))
         .collect();
-    if let Ok(frame) = PwmFrame::decode(kind, &coding, &widths) {
+    if let Ok(frame) = PwmRepr::parse(kind, &coding, &widths) {
         let mut out = [0u32; PWM_MAX_SYMBOLS];
         let n = frame
             .emit(&coding, &mut out)
             .expect("a decoded frame emits");
         assert_eq!(n, widths.len());
-        assert_eq!(PwmFrame::decode(kind, &coding, &out[..n]), Ok(frame));
+        assert_eq!(PwmRepr::parse(kind, &coding, &out[..n]), Ok(frame));
     }
 });

@@ -11,7 +11,7 @@ use std::hint::black_box;
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use protocols::meb::{MEB_MAX_FRAME_LEN, MebDecoder, MebRepr, MebWords};
 use protocols::pwmcap::{
-    PWM_MAX_SYMBOLS, PwmCoding, PwmCommandType, PwmData, PwmFrame, PwmFrameKind, PwmStatus,
+    PWM_MAX_SYMBOLS, PwmCoding, PwmCommandType, PwmData, PwmFrameKind, PwmRepr, PwmStatus,
 };
 use protocols::time::SimTime;
 
@@ -81,14 +81,14 @@ fn pwmcap(c: &mut Criterion) {
     let cases = [
         (
             "broadcast_3_values",
-            PwmFrame::Broadcast {
+            PwmRepr::Broadcast {
                 status,
                 data: PwmData::from_slice(&[10, 128, 255]).expect("3"),
             },
         ),
         (
             "experiment",
-            PwmFrame::Experiment {
+            PwmRepr::Experiment {
                 function_code: 4,
                 status,
                 reference_1: 100,
@@ -108,7 +108,7 @@ fn pwmcap(c: &mut Criterion) {
         });
         let kind: PwmFrameKind = frame.kind();
         group.bench_function(format!("decode/{name}"), |b| {
-            b.iter(|| PwmFrame::decode(kind, &coding, black_box(&widths[..n])))
+            b.iter(|| PwmRepr::parse(kind, &coding, black_box(&widths[..n])))
         });
     }
     group.finish();

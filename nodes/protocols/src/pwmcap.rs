@@ -2,7 +2,8 @@
 //!
 //! The sender's PWM timer makes a pulse whose ON width, in counter ticks, carries
 //! the value; the receiver's capture unit measures it back. This module is the
-//! coding only — value ↔ width, frames ↔ width sequences, and the frame times of
+//! coding only — value ↔ width, frames ↔ width sequences (a checked view over
+//! captured widths, [`PwmFrame`], and a value, [`PwmRepr`]), and the frame times of
 //! the paper's Table 2; the line (RC low-pass, comparator, noise) is modelled
 //! elsewhere.
 //!
@@ -315,9 +316,138 @@ impl fmt::Display for PwmFrameKind {
     }
 }
 
-/// One frame of symbols, start symbol implied.
+/// A checked view over the ON widths a receiver captured for one frame, start
+/// symbol first.
+///
+/// Widths do not say which layout they carry, so the receiver names the
+/// [`PwmFrameKind`] it expects and the [`PwmCoding`] it listens with.
+/// [`PwmFrame::new_checked`] checks the symbol count and decodes every symbol
+/// once, so each accessor reads a well-formed frame; the accessors decode the
+/// symbols they read again, against the start width measured in this frame.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum PwmFrame {
+pub struct PwmFrame<T: AsRef<[u32]>> {
+    widths: T,
+    kind: PwmFrameKind,
+    coding: PwmCoding,
+}
+
+impl<T: AsRef<[u32]>> PwmFrame<T> {
+    /// Checks `widths` as one whole frame of `kind` coded with `coding`: the
+    /// number of symbols, then every symbol's value (its width within the
+    /// coding's range, the status' command type, a function code of 8 bits).
+    pub fn new_checked(
+        widths: T,
+        kind: PwmFrameKind,
+        coding: &PwmCoding,
+    ) -> Result<Self, PwmError> {
+        check(widths.as_ref(), kind, coding)?;
+        Ok(PwmFrame {
+            widths,
+            kind,
+            coding: *coding,
+        })
+    }
+
+    /// The layout the frame was checked against.
+    pub fn kind(&self) -> PwmFrameKind {
+        self.kind
+    }
+
+    /// The start symbol's width as measured: every other symbol is read against it.
+    pub fn start_width(&self) -> u32 {
+        self.widths.as_ref().first().copied().unwrap_or(0)
+    }
+
+    /// The status symbol (the second symbol of a broadcast or designated frame,
+    /// the third of an experiment frame).
+    pub fn status(&self) -> PwmStatus {
+        let at = match self.kind {
+            PwmFrameKind::Experiment => 2,
+            PwmFrameKind::Broadcast | PwmFrameKind::Designated => 1,
+        };
+        PwmStatus::from_symbol(self.value(at)).unwrap_or(PwmStatus {
+            high: 0,
+            command: PwmCommandType::Current,
+        })
+    }
+
+    /// The data values of a broadcast or designated frame; none in an experiment frame.
+    pub fn data(&self) -> PwmData {
+        let mut data = PwmData::new();
+        if self.kind != PwmFrameKind::Experiment {
+            for at in 2..self.widths.as_ref().len() {
+                // The check bounded the count by PWM_MAX_DATA, so every value fits.
+                let _ = data.push(self.value(at));
+            }
+        }
+        data
+    }
+
+    /// The function code of an experiment frame.
+    pub fn function_code(&self) -> Option<u8> {
+        (self.kind == PwmFrameKind::Experiment).then(|| u8::try_from(self.value(1)).unwrap_or(0))
+    }
+
+    /// The two control references of an experiment frame.
+    pub fn references(&self) -> Option<(u16, u16)> {
+        (self.kind == PwmFrameKind::Experiment).then(|| (self.value(3), self.value(4)))
+    }
+
+    /// The widths, as captured.
+    pub fn as_widths(&self) -> &[u32] {
+        self.widths.as_ref()
+    }
+
+    /// Gives the widths back.
+    pub fn into_inner(self) -> T {
+        self.widths
+    }
+
+    /// The value of symbol `at` (1 is the first after the start); 0 where the
+    /// check would have failed, which it did not.
+    fn value(&self, at: usize) -> u16 {
+        let width = self.widths.as_ref().get(at).copied().unwrap_or(0);
+        self.coding
+            .decode_width(width, self.start_width())
+            .unwrap_or(0)
+    }
+}
+
+/// Checks captured widths as a frame of `kind`, as [`PwmFrame::new_checked`] says.
+fn check(widths: &[u32], kind: PwmFrameKind, coding: &PwmCoding) -> Result<(), PwmError> {
+    let count_error = PwmError::SymbolCount {
+        kind,
+        got: widths.len(),
+    };
+    let Some((&start, symbols)) = widths.split_first() else {
+        return Err(count_error);
+    };
+    let value = |width: u32| coding.decode_width(width, start);
+    match (kind, symbols) {
+        (PwmFrameKind::Experiment, &[function_code, status, reference_1, reference_2]) => {
+            let function_code = value(function_code)?;
+            u8::try_from(function_code).map_err(|_| PwmError::NotAByte(function_code))?;
+            PwmStatus::from_symbol(value(status)?)?;
+            value(reference_1)?;
+            value(reference_2)?;
+            Ok(())
+        }
+        (PwmFrameKind::Broadcast | PwmFrameKind::Designated, [status, data @ ..])
+            if data.len() <= PWM_MAX_DATA =>
+        {
+            PwmStatus::from_symbol(value(*status)?)?;
+            for &width in data {
+                value(width)?;
+            }
+            Ok(())
+        }
+        _ => Err(count_error),
+    }
+}
+
+/// One frame as a value, start symbol implied.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PwmRepr {
     /// Start, status (operation status, command type), data.
     Broadcast {
         /// Operation status and command type.
@@ -345,21 +475,48 @@ pub enum PwmFrame {
     },
 }
 
-impl PwmFrame {
+impl PwmRepr {
+    /// Checks captured ON widths, start symbol first, as a frame of `kind` and
+    /// reads its values.
+    pub fn parse(kind: PwmFrameKind, coding: &PwmCoding, widths: &[u32]) -> Result<Self, PwmError> {
+        PwmFrame::new_checked(widths, kind, coding).map(|frame| Self::from_frame(&frame))
+    }
+
+    /// The value of a checked frame.
+    pub fn from_frame<T: AsRef<[u32]>>(frame: &PwmFrame<T>) -> Self {
+        let status = frame.status();
+        match (frame.function_code(), frame.references()) {
+            (Some(function_code), Some((reference_1, reference_2))) => PwmRepr::Experiment {
+                function_code,
+                status,
+                reference_1,
+                reference_2,
+            },
+            _ if frame.kind() == PwmFrameKind::Designated => PwmRepr::Designated {
+                status,
+                data: frame.data(),
+            },
+            _ => PwmRepr::Broadcast {
+                status,
+                data: frame.data(),
+            },
+        }
+    }
+
     /// The frame's layout.
     pub const fn kind(&self) -> PwmFrameKind {
         match self {
-            PwmFrame::Broadcast { .. } => PwmFrameKind::Broadcast,
-            PwmFrame::Designated { .. } => PwmFrameKind::Designated,
-            PwmFrame::Experiment { .. } => PwmFrameKind::Experiment,
+            PwmRepr::Broadcast { .. } => PwmFrameKind::Broadcast,
+            PwmRepr::Designated { .. } => PwmFrameKind::Designated,
+            PwmRepr::Experiment { .. } => PwmFrameKind::Experiment,
         }
     }
 
     /// Symbols on the wire, start symbol included.
     pub fn symbol_count(&self) -> usize {
         match self {
-            PwmFrame::Broadcast { data, .. } | PwmFrame::Designated { data, .. } => 2 + data.len(),
-            PwmFrame::Experiment { .. } => 5,
+            PwmRepr::Broadcast { data, .. } | PwmRepr::Designated { data, .. } => 2 + data.len(),
+            PwmRepr::Experiment { .. } => 5,
         }
     }
 
@@ -374,12 +531,12 @@ impl PwmFrame {
         // Start excluded; `data` holds at most PWM_MAX_DATA words, so it fits.
         let mut values = [0u16; PWM_MAX_SYMBOLS - 1];
         let count = match self {
-            PwmFrame::Broadcast { status, data } | PwmFrame::Designated { status, data } => {
+            PwmRepr::Broadcast { status, data } | PwmRepr::Designated { status, data } => {
                 values[0] = status.to_symbol()?;
                 values[1..=data.len()].copy_from_slice(data);
                 1 + data.len()
             }
-            PwmFrame::Experiment {
+            PwmRepr::Experiment {
                 function_code,
                 status,
                 reference_1,
@@ -403,47 +560,5 @@ impl PwmFrame {
             *width = coding.encode_width(*value)?;
         }
         Ok(needed)
-    }
-
-    /// Decodes a frame of `kind` from captured ON widths, start symbol first.
-    pub fn decode(
-        kind: PwmFrameKind,
-        coding: &PwmCoding,
-        widths: &[u32],
-    ) -> Result<Self, PwmError> {
-        let count_error = PwmError::SymbolCount {
-            kind,
-            got: widths.len(),
-        };
-        let Some((&start, symbols)) = widths.split_first() else {
-            return Err(count_error);
-        };
-        let value = |width: u32| coding.decode_width(width, start);
-        match (kind, symbols) {
-            (PwmFrameKind::Experiment, &[function_code, status, reference_1, reference_2]) => {
-                let function_code = value(function_code)?;
-                Ok(PwmFrame::Experiment {
-                    function_code: u8::try_from(function_code)
-                        .map_err(|_| PwmError::NotAByte(function_code))?,
-                    status: PwmStatus::from_symbol(value(status)?)?,
-                    reference_1: value(reference_1)?,
-                    reference_2: value(reference_2)?,
-                })
-            }
-            (PwmFrameKind::Broadcast | PwmFrameKind::Designated, [status, data_widths @ ..])
-                if data_widths.len() <= PWM_MAX_DATA =>
-            {
-                let status = PwmStatus::from_symbol(value(*status)?)?;
-                let mut data = PwmData::new();
-                for &width in data_widths {
-                    data.push(value(width)?).map_err(|_| count_error)?;
-                }
-                Ok(match kind {
-                    PwmFrameKind::Designated => PwmFrame::Designated { status, data },
-                    _ => PwmFrame::Broadcast { status, data },
-                })
-            }
-            _ => Err(count_error),
-        }
     }
 }

@@ -21,7 +21,7 @@ use crate::firmware::{EvController, EvControllerConfig, WriteSet, ea};
 use crate::master::wire::{Reply, ReplyDecoder, Transaction};
 use crate::master::{Protocol, SetPointStep, SpeedPi, StartupOutputs};
 use crate::node::{Firmware, Node, NodeEvent};
-use protocols::pwmcap::{PwmCoding, PwmFrame, PwmFrameKind};
+use protocols::pwmcap::{PwmCoding, PwmFrameKind, PwmRepr};
 use protocols::time::{SimDuration, SimTime};
 
 use super::{
@@ -329,8 +329,8 @@ impl ParallelMaster {
                 return self.failed(now, "bad_check", format!("answer cut short: {got} of 4"));
             }
         };
-        match PwmFrame::decode(PwmFrameKind::Designated, &self.config.coding, &widths) {
-            Ok(PwmFrame::Designated { status, data }) if status.high == id => {
+        match PwmRepr::parse(PwmFrameKind::Designated, &self.config.coding, &widths) {
+            Ok(PwmRepr::Designated { status, data }) if status.high == id => {
                 if vel_of(&data) == Some(self.sent_vel) {
                     self.acknowledged();
                 } else {

@@ -21,7 +21,7 @@
 //! than 1.5 symbol periods after the previous one's rising edge starts a new
 //! frame; a frame still short of symbols 2.5 periods after its last pulse's
 //! rising edge has timed out), and hands
-//! out whole frames for [`PwmFrame::decode`] (start-width compensation, dummy
+//! out whole frames for [`PwmRepr::parse`] (start-width compensation, dummy
 //! bits dropped).
 
 mod master;
@@ -34,7 +34,7 @@ pub use slave::{PwmAddressing, PwmSlave, PwmSlaveConfig, PwmSlaveCounters};
 
 use crate::link::pwmbus::PWM_RECORD_BYTES;
 use protocols::pwmcap::{
-    PWM_MAX_SYMBOLS, PwmCoding, PwmCommandType, PwmData, PwmError, PwmFrame, PwmStatus,
+    PWM_MAX_SYMBOLS, PwmCoding, PwmCommandType, PwmData, PwmError, PwmRepr, PwmStatus,
 };
 use protocols::time::{SimDuration, SimTime};
 
@@ -61,8 +61,8 @@ pub fn vel_of(data: &PwmData) -> Option<u16> {
 }
 
 /// A broadcast reference frame.
-pub fn broadcast_frame(run: bool, vel: u16) -> PwmFrame {
-    PwmFrame::Broadcast {
+pub fn broadcast_frame(run: bool, vel: u16) -> PwmRepr {
+    PwmRepr::Broadcast {
         status: PwmStatus {
             high: if run { STATUS_RUN } else { STATUS_STOP },
             command: PwmCommandType::Voltage,
@@ -72,8 +72,8 @@ pub fn broadcast_frame(run: bool, vel: u16) -> PwmFrame {
 }
 
 /// A designated reference frame to slave `id`, or its answer from slave `id`.
-pub fn designated_frame(id: u8, vel: u16) -> PwmFrame {
-    PwmFrame::Designated {
+pub fn designated_frame(id: u8, vel: u16) -> PwmRepr {
+    PwmRepr::Designated {
         status: PwmStatus {
             high: id,
             command: PwmCommandType::Voltage,
@@ -84,7 +84,7 @@ pub fn designated_frame(id: u8, vel: u16) -> PwmFrame {
 
 /// Writes `frame`'s widths as the link takes them (4-byte little-endian
 /// records) to `buf`; `None` if it does not fit or cannot be coded.
-pub fn emit_widths(frame: &PwmFrame, coding: &PwmCoding, buf: &mut [u8]) -> Option<usize> {
+pub fn emit_widths(frame: &PwmRepr, coding: &PwmCoding, buf: &mut [u8]) -> Option<usize> {
     let mut widths = [0u32; PWM_MAX_SYMBOLS];
     let count = frame.emit(coding, &mut widths).ok()?;
     let out = buf.get_mut(..count * PWM_RECORD_BYTES)?;

@@ -8,7 +8,7 @@ use plant::{Actuators, Sensors};
 use crate::firmware::{EvController, EvControllerConfig, WriteSet, sd};
 use crate::master::StartupOutputs;
 use crate::node::{Firmware, Node, NodeEvent};
-use protocols::pwmcap::{PwmCoding, PwmData, PwmFrame, PwmFrameKind};
+use protocols::pwmcap::{PwmCoding, PwmData, PwmFrameKind, PwmRepr};
 use protocols::time::{SimDuration, SimTime};
 
 use super::{
@@ -141,7 +141,7 @@ impl PwmSlave {
             PwmAddressing::Broadcast => PwmFrameKind::Broadcast,
             PwmAddressing::Designated => PwmFrameKind::Designated,
         };
-        let frame = match PwmFrame::decode(kind, &self.config.coding, widths) {
+        let frame = match PwmRepr::parse(kind, &self.config.coding, widths) {
             Ok(frame) => frame,
             Err(error) => {
                 self.counters.bad_frames += 1;
@@ -150,7 +150,7 @@ impl PwmSlave {
             }
         };
         match frame {
-            PwmFrame::Broadcast { status, data } => match (status.high, vel_of(&data)) {
+            PwmRepr::Broadcast { status, data } => match (status.high, vel_of(&data)) {
                 (STATUS_RUN, Some(vel)) => self.take(now, true, vel),
                 (STATUS_STOP, Some(vel)) => self.take(now, false, vel),
                 _ => {
@@ -159,7 +159,7 @@ impl PwmSlave {
                     self.push_event(now, "bad_check", why);
                 }
             },
-            PwmFrame::Designated { status, data } if status.high == self.config.id => {
+            PwmRepr::Designated { status, data } if status.high == self.config.id => {
                 let Some(vel) = vel_of(&data) else {
                     self.counters.bad_frames += 1;
                     let why = format!("designated frame: {}", described(status.high, &data));

@@ -1,10 +1,11 @@
 //! PWM-capture coding: the paper's Table 2 figures, the width coding and its
-//! noise margin, and emit -> decode round trips of every frame kind.
+//! noise margin, the checked view over captured widths, and emit -> parse round
+//! trips of every frame kind.
 
 use proptest::prelude::*;
 use protocols::pwmcap::{
     PWM_MAX_DATA, PWM_MAX_SYMBOLS, PwmCoding, PwmCommandType, PwmData, PwmError, PwmFrame,
-    PwmFrameKind, PwmStatus,
+    PwmFrameKind, PwmRepr, PwmStatus,
 };
 use protocols::time::{SimDuration, TICKS_PER_SECOND};
 
@@ -128,7 +129,7 @@ fn codings_out_of_range_are_refused() {
 
 #[test]
 fn experiment_frame_symbols() {
-    let frame = PwmFrame::Experiment {
+    let frame = PwmRepr::Experiment {
         function_code: 0x04,
         status: PwmStatus {
             high: 0x1,
@@ -144,12 +145,22 @@ fn experiment_frame_symbols() {
         &[200, 200 + 4 * 4, 200 + 4 * 0x12, 200 + 400, 200 + 1020]
     );
     assert_eq!(
-        PwmFrame::decode(PwmFrameKind::Experiment, &PwmCoding::PAPER, &widths[..n]),
+        PwmRepr::parse(PwmFrameKind::Experiment, &PwmCoding::PAPER, &widths[..n]),
         Ok(frame)
     );
+    // The view reads the same values, against the start width it measured.
+    let delayed = widths.map(|w| w + 37);
+    let view =
+        PwmFrame::new_checked(&delayed[..n], PwmFrameKind::Experiment, &PwmCoding::PAPER).unwrap();
+    assert_eq!(view.start_width(), 237);
+    assert_eq!(view.function_code(), Some(0x04));
+    assert_eq!(view.status().command, PwmCommandType::Power);
+    assert_eq!(view.references(), Some((100, 255)));
+    assert!(view.data().is_empty());
+    assert_eq!(PwmRepr::from_frame(&view), frame);
     // The kind decides the layout: five symbols are not an experiment frame with a missing one.
     assert_eq!(
-        PwmFrame::decode(PwmFrameKind::Experiment, &PwmCoding::PAPER, &widths[..4]),
+        PwmRepr::parse(PwmFrameKind::Experiment, &PwmCoding::PAPER, &widths[..4]),
         Err(PwmError::SymbolCount {
             kind: PwmFrameKind::Experiment,
             got: 4
@@ -164,8 +175,40 @@ fn experiment_frame_symbols() {
     let mut bad = widths;
     bad[2] = 200 + 4 * 0x17;
     assert_eq!(
-        PwmFrame::decode(PwmFrameKind::Experiment, &PwmCoding::PAPER, &bad[..n]),
+        PwmRepr::parse(PwmFrameKind::Experiment, &PwmCoding::PAPER, &bad[..n]),
         Err(PwmError::UnknownCommandType(7))
+    );
+}
+
+#[test]
+fn designated_view_reads_id_and_data() {
+    let frame = PwmRepr::Designated {
+        status: PwmStatus {
+            high: 3,
+            command: PwmCommandType::Voltage,
+        },
+        data: PwmData::from_slice(&[0x0F, 0xA0]).unwrap(),
+    };
+    let mut widths = [0u32; PWM_MAX_SYMBOLS];
+    let n = frame.emit(&PwmCoding::PAPER, &mut widths).unwrap();
+    let view =
+        PwmFrame::new_checked(&widths[..n], PwmFrameKind::Designated, &PwmCoding::PAPER).unwrap();
+    assert_eq!(
+        (view.kind(), view.status().high),
+        (PwmFrameKind::Designated, 3)
+    );
+    assert_eq!(view.data().as_slice(), &[0x0F, 0xA0]);
+    assert_eq!((view.function_code(), view.references()), (None, None));
+    assert_eq!(view.as_widths(), &widths[..n]);
+    // A width above the coding's range fails the check, not an accessor.
+    let mut wide = widths;
+    wide[3] = 200 + 1024 + 2;
+    assert_eq!(
+        PwmFrame::new_checked(&wide[..n], PwmFrameKind::Designated, &PwmCoding::PAPER),
+        Err(PwmError::WidthAboveRange {
+            width: 1226,
+            start: 200
+        })
     );
 }
 
@@ -184,16 +227,16 @@ fn arb_command() -> impl Strategy<Value = PwmCommandType> + Clone {
     ])
 }
 
-fn arb_frame(max_value: u16) -> impl Strategy<Value = PwmFrame> {
+fn arb_frame(max_value: u16) -> impl Strategy<Value = PwmRepr> {
     let status = (0u8..16, arb_command()).prop_map(|(high, command)| PwmStatus { high, command });
     let data = prop::collection::vec(0..=max_value, 0..=PWM_MAX_DATA)
         .prop_map(|v| PwmData::from_slice(&v).unwrap());
     prop_oneof![
         (status.clone(), data.clone())
-            .prop_map(|(status, data)| PwmFrame::Broadcast { status, data }),
-        (status.clone(), data).prop_map(|(status, data)| PwmFrame::Designated { status, data }),
+            .prop_map(|(status, data)| PwmRepr::Broadcast { status, data }),
+        (status.clone(), data).prop_map(|(status, data)| PwmRepr::Designated { status, data }),
         (any::<u8>(), status, 0..=max_value, 0..=max_value).prop_map(|(f, status, r1, r2)| {
-            PwmFrame::Experiment {
+            PwmRepr::Experiment {
                 function_code: f,
                 status,
                 reference_1: r1,
@@ -224,7 +267,7 @@ proptest! {
             let jitter = if i == 0 || half_step == 0 { 0 } else { noise[i].rem_euclid(2 * half_step) - half_step };
             *w = (i64::from(*w) + i64::from(delay) + jitter) as u32;
         }
-        prop_assert_eq!(PwmFrame::decode(frame.kind(), &coding, &captured[..n]), Ok(frame));
+        prop_assert_eq!(PwmRepr::parse(frame.kind(), &coding, &captured[..n]), Ok(frame));
     }
 
     #[test]
@@ -233,9 +276,13 @@ proptest! {
         coding in arb_coding(),
         kind in prop::sample::select(vec![PwmFrameKind::Broadcast, PwmFrameKind::Designated, PwmFrameKind::Experiment]),
     ) {
-        if let Ok(frame) = PwmFrame::decode(kind, &coding, &widths) {
+        let parsed = PwmRepr::parse(kind, &coding, &widths);
+        if let Ok(frame) = parsed {
             prop_assert_eq!(frame.kind(), kind);
             prop_assert_eq!(frame.symbol_count(), widths.len());
         }
+        // The view and the value agree on what is a frame.
+        let view = PwmFrame::new_checked(&widths[..], kind, &coding);
+        prop_assert_eq!(view.map(|v| PwmRepr::from_frame(&v)), parsed);
     }
 }
