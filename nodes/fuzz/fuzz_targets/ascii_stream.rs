@@ -10,7 +10,7 @@ mod chunking;
 use chunking::chunks;
 use libfuzzer_sys::fuzz_target;
 use protocols::modbus::ascii::{self, AsciiDecoder, MAX_ADU_LEN, MAX_BINARY_LEN};
-use protocols::modbus::{Drops, FrameError, Request, Response};
+use protocols::modbus::{Adu, Drops, FrameError, Request, Response};
 
 type Events = Vec<Result<(u8, Vec<u8>), FrameError>>;
 

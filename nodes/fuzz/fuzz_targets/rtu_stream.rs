@@ -12,7 +12,7 @@ use chunking::chunks;
 use libfuzzer_sys::fuzz_target;
 use protocols::modbus::rtu::{self, Direction, MAX_ADU_LEN, RtuDecoder};
 use protocols::modbus::serial::{PTY_SILENCE, Timing};
-use protocols::modbus::{Drops, FrameError, Request, Response};
+use protocols::modbus::{Adu, Drops, FrameError, Request, Response};
 use protocols::time::{SimDuration, SimTime};
 
 type Events = Vec<Result<(u8, Vec<u8>), FrameError>>;

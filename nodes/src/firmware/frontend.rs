@@ -13,6 +13,7 @@ use std::collections::VecDeque;
 
 use crate::node::{MAX_FRAME, NodeEvent};
 use protocols::meb::{MebAccess, MebDecodeError, MebDecoder, MebRepr};
+use protocols::modbus::Adu;
 use protocols::modbus::pdu::function;
 use protocols::modbus::rtu::{Direction, RtuDecoder};
 use protocols::modbus::serial::Timing;

@@ -24,6 +24,7 @@ use plant::{Actuators, PlantParams, Sensors};
 
 use crate::node::{Firmware, MAX_FRAME, Node, NodeEvent};
 use protocols::meb::{MebDecodeError, MebDecoder, MebRepr};
+use protocols::modbus::Adu;
 use protocols::modbus::MAX_PDU_LEN;
 use protocols::modbus::rtu::{self, Direction, RtuDecoder};
 use protocols::modbus::serial::{Timing, standard_rtu_silence};

@@ -3,6 +3,7 @@
 //! replies are classified against the request they should answer.
 
 use protocols::meb::{MebCmd, MebDecodeError, MebDecoder, MebRepr, MebWords};
+use protocols::modbus::Adu;
 use protocols::modbus::pdu::function;
 use protocols::modbus::rtu::{self, Direction, RtuDecoder};
 use protocols::modbus::serial::Timing;

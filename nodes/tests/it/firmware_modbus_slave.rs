@@ -4,6 +4,7 @@
 use nodes::firmware::{EvController, EvControllerConfig, SlaveProtocol};
 use nodes::node::{Firmware, MAX_FRAME, Node};
 use plant::Sensors;
+use protocols::modbus::Adu;
 use protocols::modbus::rtu;
 use protocols::modbus::{
     Bits, EncodePdu, Exception, ExceptionResponse, Registers, Request, Response,

@@ -4,6 +4,7 @@
 //! frame reads the same wherever it was recorded.
 
 use protocols::meb::{MebCmd, MebRepr, MebWords};
+use protocols::modbus::Adu;
 use protocols::{modbus, modbus8};
 use serde::Serialize;
 use serde_json::Value;

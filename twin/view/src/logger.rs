@@ -22,6 +22,7 @@
 use crate::ViewError;
 use nodes::firmware::{LightRpm, ea};
 use protocols::meb::{MebCmd, MebRepr};
+use protocols::modbus::Adu;
 use protocols::modbus::{self, Request, Response};
 use protocols::modbus8;
 use protocols::time::{SimDuration, SimTime};

@@ -7,7 +7,8 @@
 
 use crate::crc::lrc;
 
-use super::pdu::{EncodePdu, ExceptionResponse, PduError, Request, Response};
+use super::adu::{Adu, SerialAdu, pdu_of};
+use super::pdu::EncodePdu;
 use super::{BufferTooSmall, Drops, FrameError, MAX_PDU_LEN};
 
 /// The longest ASCII frame in characters: `:` + 2 × (unit + PDU + LRC) + CR LF.
@@ -83,45 +84,9 @@ impl<T: AsRef<[u8]>> AsciiFrame<T> {
         AsciiFrame { buffer: content }
     }
 
-    /// Unit id (slave address); 0 is the broadcast.
-    pub fn unit(&self) -> u8 {
-        self.buffer.as_ref().first().copied().unwrap_or(0)
-    }
-
-    /// The function code (first PDU byte; top bit set on an exception reply).
-    pub fn function(&self) -> u8 {
-        self.buffer.as_ref().get(1).copied().unwrap_or(0)
-    }
-
     /// The LRC the frame carries (and that checked).
     pub fn lrc(&self) -> u8 {
         self.buffer.as_ref().last().copied().unwrap_or(0)
-    }
-
-    /// True when a slave with id `unit` must act on this frame: its own id, or
-    /// the broadcast id 0 (which is acted on but never answered).
-    pub fn is_for(&self, unit: u8) -> bool {
-        self.unit() == unit || self.is_broadcast()
-    }
-
-    /// True for the broadcast id 0.
-    pub fn is_broadcast(&self) -> bool {
-        self.unit() == 0
-    }
-
-    /// Parses the PDU as a request (master to slave).
-    pub fn request(&self) -> Result<Request, PduError> {
-        Request::parse(pdu_of(self.buffer.as_ref()))
-    }
-
-    /// Parses the PDU as a reply (slave to master).
-    pub fn response(&self) -> Result<Result<Response, ExceptionResponse>, PduError> {
-        Response::parse(pdu_of(self.buffer.as_ref()))
-    }
-
-    /// The content as bytes: unit, PDU, LRC (not the hex characters).
-    pub fn as_bytes(&self) -> &[u8] {
-        self.buffer.as_ref()
     }
 
     /// Gives the buffer back.
@@ -130,11 +95,25 @@ impl<T: AsRef<[u8]>> AsciiFrame<T> {
     }
 }
 
+impl<T: AsRef<[u8]>> Adu for AsciiFrame<T> {
+    /// The unit id.
+    const HEADER_LEN: usize = 1;
+    /// The LRC.
+    const CHECK_LEN: usize = 1;
+
+    /// The content as bytes: unit, PDU, LRC (not the hex characters).
+    fn as_bytes(&self) -> &[u8] {
+        self.buffer.as_ref()
+    }
+}
+
+impl<T: AsRef<[u8]>> SerialAdu for AsciiFrame<T> {}
+
 impl<'a, T: AsRef<[u8]> + ?Sized> AsciiFrame<&'a T> {
     /// Function code and data; never empty. Borrowed from the buffer, so it
     /// outlives the view (a decoder's frame can be kept while it goes on).
     pub fn pdu(&self) -> &'a [u8] {
-        pdu_of(self.buffer.as_ref())
+        pdu_of::<Self>(self.buffer.as_ref())
     }
 }
 
@@ -176,16 +155,9 @@ impl<'s> AsciiFrame<&'s [u8]> {
     }
 }
 
-/// The PDU of checked content: between the unit id and the LRC.
-fn pdu_of(content: &[u8]) -> &[u8] {
-    content
-        .get(1..content.len().saturating_sub(1))
-        .unwrap_or_default()
-}
-
 /// One ASCII frame as a value: the unit id and a PDU. Parsed, the PDU is
 /// bytes of the decoded content (`AsciiRepr<&[u8]>`); to emit, it is anything
-/// that writes a PDU (a [`Request`], a reply, raw bytes), spelt out in hex.
+/// that writes a PDU (a [`Request`](super::Request), a reply, raw bytes), spelt out in hex.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct AsciiRepr<P> {
     /// Unit id (slave address); 0 is the broadcast.
@@ -265,6 +237,7 @@ enum State {
 /// Turns a Modbus ASCII byte stream, in chunks of any size, into frames.
 ///
 /// ```
+/// use protocols::modbus::Adu;
 /// use protocols::modbus::ascii::AsciiDecoder;
 ///
 /// let mut decoder = AsciiDecoder::new();

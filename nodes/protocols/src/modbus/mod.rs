@@ -13,7 +13,9 @@
 //!   valid reply, a malformed PDU is an error.
 //! - [`rtu`], [`ascii`], [`tcp`]: one frame per framing as a checked view over
 //!   its bytes ([`rtu::RtuFrame`], [`ascii::AsciiFrame`], [`tcp::TcpFrame`]:
-//!   `new_checked`, then `unit()`, `pdu()`, `request()`, `response()`) and as a
+//!   `new_checked`, then `pdu()` and what they share as an [`Adu`]: `unit()`,
+//!   `function()`, `request()`, `response()`, and on a serial line
+//!   ([`SerialAdu`]) `is_for()`, `is_broadcast()`) and as a
 //!   small value ([`rtu::RtuRepr`], [`ascii::AsciiRepr`], [`tcp::TcpRepr`]:
 //!   `parse`, `from_frame`, `emit`), following smoltcp's `wire` split of
 //!   `Packet` and `Repr`, as MEB does; and a stream decoder per framing that is
@@ -31,6 +33,7 @@
 //! Every parse takes untrusted bytes and returns a typed error on any input;
 //! nothing on the parse, emit or decode path allocates.
 
+mod adu;
 pub mod ascii;
 mod data;
 pub mod pdu;
@@ -40,6 +43,7 @@ pub mod rtu;
 pub mod serial;
 pub mod tcp;
 
+pub use adu::{Adu, SerialAdu};
 pub use pdu::{
     Bits, EncodePdu, Exception, ExceptionResponse, PduError, Registers, Request, Response,
 };

@@ -8,7 +8,8 @@
 use crate::crc::crc16_modbus;
 use crate::time::SimTime;
 
-use super::pdu::{EncodePdu, ExceptionResponse, PduError, Request, Response, function};
+use super::adu::{Adu, SerialAdu, pdu_of};
+use super::pdu::{EncodePdu, function};
 use super::serial::{FrameLen, Framing, SerialCore, Timing};
 use super::{BufferTooSmall, Drops, FrameError};
 
@@ -21,8 +22,8 @@ pub const MAX_ADU_LEN: usize = 256;
 ///
 /// [`RtuFrame::new_checked`] checks the length and the CRC, so every accessor
 /// reads a well-formed frame; the PDU is left as bytes for
-/// [`RtuFrame::request`] or [`RtuFrame::response`] to parse. A slave reads
-/// [`RtuFrame::unit`] first, so a frame for another slave costs one compare.
+/// [`Adu::request`] or [`Adu::response`] to parse. A slave reads
+/// [`Adu::unit`] first, so a frame for another slave costs one compare.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct RtuFrame<T: AsRef<[u8]>> {
     buffer: T,
@@ -40,16 +41,6 @@ impl<T: AsRef<[u8]>> RtuFrame<T> {
         RtuFrame { buffer }
     }
 
-    /// Unit id (slave address); 0 is the broadcast.
-    pub fn unit(&self) -> u8 {
-        self.buffer.as_ref().first().copied().unwrap_or(0)
-    }
-
-    /// The function code (first PDU byte; top bit set on an exception reply).
-    pub fn function(&self) -> u8 {
-        self.buffer.as_ref().get(1).copied().unwrap_or(0)
-    }
-
     /// The CRC as a number (sent low byte first).
     pub fn crc(&self) -> u16 {
         match self.buffer.as_ref() {
@@ -58,49 +49,31 @@ impl<T: AsRef<[u8]>> RtuFrame<T> {
         }
     }
 
-    /// True when a slave with id `unit` must act on this frame: its own id, or
-    /// the broadcast id 0 (which is acted on but never answered).
-    pub fn is_for(&self, unit: u8) -> bool {
-        self.unit() == unit || self.is_broadcast()
-    }
-
-    /// True for the broadcast id 0.
-    pub fn is_broadcast(&self) -> bool {
-        self.unit() == 0
-    }
-
-    /// Parses the PDU as a request (master to slave).
-    pub fn request(&self) -> Result<Request, PduError> {
-        Request::parse(pdu_of(self.buffer.as_ref()))
-    }
-
-    /// Parses the PDU as a reply (slave to master).
-    pub fn response(&self) -> Result<Result<Response, ExceptionResponse>, PduError> {
-        Response::parse(pdu_of(self.buffer.as_ref()))
-    }
-
-    /// The bytes of the frame, as received.
-    pub fn as_bytes(&self) -> &[u8] {
-        self.buffer.as_ref()
-    }
-
     /// Gives the buffer back.
     pub fn into_inner(self) -> T {
         self.buffer
     }
 }
 
+impl<T: AsRef<[u8]>> Adu for RtuFrame<T> {
+    /// The unit id.
+    const HEADER_LEN: usize = 1;
+    /// The CRC.
+    const CHECK_LEN: usize = 2;
+
+    fn as_bytes(&self) -> &[u8] {
+        self.buffer.as_ref()
+    }
+}
+
+impl<T: AsRef<[u8]>> SerialAdu for RtuFrame<T> {}
+
 impl<'a, T: AsRef<[u8]> + ?Sized> RtuFrame<&'a T> {
     /// Function code and data; never empty. Borrowed from the buffer, so it
     /// outlives the view (a decoder's frame can be kept while it goes on).
     pub fn pdu(&self) -> &'a [u8] {
-        pdu_of(self.buffer.as_ref())
+        pdu_of::<Self>(self.buffer.as_ref())
     }
-}
-
-/// The PDU of checked frame bytes: between the unit id and the CRC.
-fn pdu_of(adu: &[u8]) -> &[u8] {
-    adu.get(1..adu.len().saturating_sub(2)).unwrap_or_default()
 }
 
 fn check(adu: &[u8]) -> Result<(), FrameError> {
@@ -133,7 +106,7 @@ fn check(adu: &[u8]) -> Result<(), FrameError> {
 
 /// One RTU frame as a value: the unit id and a PDU. Parsed, the PDU is the
 /// frame's bytes (`RtuRepr<&[u8]>`); to emit, it is anything that writes a PDU
-/// (a [`Request`], a reply, raw bytes).
+/// (a [`Request`](super::Request), a reply, raw bytes).
 ///
 /// ```
 /// use protocols::modbus::Request;
@@ -249,6 +222,7 @@ impl Framing for RtuFraming {
 /// Turns RTU bytes, in chunks of any size with their arrival times, into frames.
 ///
 /// ```
+/// use protocols::modbus::Adu;
 /// use protocols::modbus::rtu::{Direction, RtuDecoder};
 /// use protocols::modbus::serial::{PTY_SILENCE, Timing};
 /// use protocols::time::SimTime;
@@ -320,7 +294,7 @@ impl RtuDecoder {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::modbus::pdu::Request;
+    use crate::modbus::pdu::{ExceptionResponse, Request, Response};
     use crate::modbus::serial::PTY_SILENCE;
 
     const READ_10: [u8; 8] = [0x01, 0x03, 0x00, 0x00, 0x00, 0x0A, 0xC5, 0xCD];

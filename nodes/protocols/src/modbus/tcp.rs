@@ -9,7 +9,8 @@
 //! plain decoder drops one byte at a time until a plausible header lines up,
 //! counting each (for a capture read after the fact).
 
-use super::pdu::{EncodePdu, ExceptionResponse, PduError, Request, Response};
+use super::adu::{Adu, pdu_of};
+use super::pdu::EncodePdu;
 use super::{BufferTooSmall, Drops, FrameError, MAX_PDU_LEN};
 
 /// MBAP header length, unit id included.
@@ -24,7 +25,7 @@ pub const MAX_ADU_LEN: usize = MBAP_LEN + MAX_PDU_LEN;
 ///
 /// [`TcpFrame::new_checked`] checks the protocol id, the length field and that
 /// the frame is as long as it says; the PDU is left as bytes for
-/// [`TcpFrame::request`] or [`TcpFrame::response`] to parse.
+/// [`Adu::request`] or [`Adu::response`] to parse.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct TcpFrame<T: AsRef<[u8]>> {
     buffer: T,
@@ -50,34 +51,21 @@ impl<T: AsRef<[u8]>> TcpFrame<T> {
         }
     }
 
-    /// Unit id (a gateway's target; often 0 or 255 for a plain TCP device).
-    pub fn unit(&self) -> u8 {
-        self.buffer.as_ref().get(MBAP_LEN - 1).copied().unwrap_or(0)
-    }
-
-    /// The function code (first PDU byte; top bit set on an exception reply).
-    pub fn function(&self) -> u8 {
-        self.buffer.as_ref().get(MBAP_LEN).copied().unwrap_or(0)
-    }
-
-    /// Parses the PDU as a request.
-    pub fn request(&self) -> Result<Request, PduError> {
-        Request::parse(pdu_of(self.buffer.as_ref()))
-    }
-
-    /// Parses the PDU as a reply.
-    pub fn response(&self) -> Result<Result<Response, ExceptionResponse>, PduError> {
-        Response::parse(pdu_of(self.buffer.as_ref()))
-    }
-
-    /// The bytes of the frame, as received.
-    pub fn as_bytes(&self) -> &[u8] {
-        self.buffer.as_ref()
-    }
-
     /// Gives the buffer back.
     pub fn into_inner(self) -> T {
         self.buffer
+    }
+}
+
+/// The unit id is a gateway's target (often 0 or 255 for a plain TCP device).
+impl<T: AsRef<[u8]>> Adu for TcpFrame<T> {
+    /// The MBAP header, the unit id last.
+    const HEADER_LEN: usize = MBAP_LEN;
+    /// No check: TCP's own.
+    const CHECK_LEN: usize = 0;
+
+    fn as_bytes(&self) -> &[u8] {
+        self.buffer.as_ref()
     }
 }
 
@@ -85,18 +73,13 @@ impl<'a, T: AsRef<[u8]> + ?Sized> TcpFrame<&'a T> {
     /// Function code and data; never empty. Borrowed from the buffer, so it
     /// outlives the view (a decoder's frame can be kept while it goes on).
     pub fn pdu(&self) -> &'a [u8] {
-        pdu_of(self.buffer.as_ref())
+        pdu_of::<Self>(self.buffer.as_ref())
     }
-}
-
-/// The PDU of checked frame bytes: after the MBAP header.
-fn pdu_of(adu: &[u8]) -> &[u8] {
-    adu.get(MBAP_LEN..).unwrap_or_default()
 }
 
 /// One Modbus TCP frame as a value: transaction id, unit id and a PDU.
 /// Parsed, the PDU is the frame's bytes (`TcpRepr<&[u8]>`); to emit, it is
-/// anything that writes a PDU (a [`Request`], a reply, raw bytes).
+/// anything that writes a PDU (a [`Request`](super::Request), a reply, raw bytes).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct TcpRepr<P> {
     /// Transaction id, echoed by the reply.
@@ -202,6 +185,7 @@ fn check(adu: &[u8]) -> Result<(), FrameError> {
 /// Turns a Modbus TCP byte stream, in chunks of any size, into frames.
 ///
 /// ```
+/// use protocols::modbus::Adu;
 /// use protocols::modbus::tcp::TcpDecoder;
 ///
 /// let mut decoder = TcpDecoder::new();

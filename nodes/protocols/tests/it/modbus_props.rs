@@ -12,7 +12,7 @@ use protocols::modbus::rtu::{self, Direction, RtuDecoder};
 use protocols::modbus::serial::{PTY_SILENCE, Timing, silence_3_5_chars};
 use protocols::modbus::tcp::{self, TcpDecoder};
 use protocols::modbus::{
-    Bits, EncodePdu, Exception, ExceptionResponse, Registers, Request, Response,
+    Adu, Bits, EncodePdu, Exception, ExceptionResponse, Registers, Request, Response,
 };
 use protocols::modbus8::{CrcOrder, Modbus8Decoder, Modbus8Repr};
 use protocols::time::{SimDuration, SimTime};

@@ -13,7 +13,8 @@ use std::io::Write;
 use std::process::{Command, Stdio};
 
 use protocols::modbus::{
-    Bits, EncodePdu, Exception, ExceptionResponse, Registers, Request, Response, ascii, rtu, tcp,
+    Adu, Bits, EncodePdu, Exception, ExceptionResponse, Registers, Request, Response, ascii, rtu,
+    tcp,
 };
 use serde_json::{Value, json};
 

@@ -4,6 +4,7 @@
 //! after a reply; over MEB on TCP and Modbus RTU on a pseudo-terminal.
 
 use protocols::meb::{MebCmd, MebRepr, MebWords};
+use protocols::modbus::Adu;
 use protocols::modbus::rtu;
 use std::io::Write;
 use std::process::{ChildStdin, Command, Stdio};
