@@ -13,26 +13,12 @@ import socket
 import sys
 import time
 
-SLAVE = 1
-WAIT_S = 3.0
-
-
-def fcs(data: bytes) -> int:
-    x = 0
-    for b in data:
-        x ^= b
-    return x
-
-
-def frame(cmd, addr, cnt):
-    body = "@%02d%s%02X%02d" % (SLAVE, cmd, addr, cnt)
-    return (body + "%02X*\n" % fcs(body.encode())).encode()
+from meb_peer import SLAVE, WAIT_S, connect, fcs, frame
 
 
 def main():
     host, port, rounds, burst = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
-    sock = socket.create_connection((host, port), timeout=WAIT_S)
-    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    sock = connect(host, port)
     kinds = [("EA", 0, 3), ("ED", 0, 1), ("FA", 0, 2), ("EA", 1, 2), ("FD", 0, 1)]
     requests = replies = wrong = 0
     slowest = 0.0
