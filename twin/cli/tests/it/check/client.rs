@@ -284,29 +284,10 @@ fn every_cited_frame_is_recorded(json: &Path, mcap: &Path) {
         frames.iter().all(|f| f["topic"] == "/link/client/frames"),
         "{recorded}"
     );
-    let counted: u64 = recorded["checks"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|c| c["frames"].as_u64().unwrap())
-        .sum();
-    assert_eq!(counted as usize, frames.len());
-    let mut cited = 0;
-    for check in report["checks"].as_array().unwrap() {
-        for f in check["frames"].as_array().unwrap() {
-            let text = f["text"].as_str().unwrap();
-            let (client, bytes) = (text[..8].trim(), &text[10..]);
-            let from = if f["way"] == "sent" { "twin" } else { client };
-            let at = f["at"].as_f64().unwrap();
-            let found = frames.iter().any(|r| {
-                r["from"] == from
-                    && super::recorded::spelt(r["text"].as_str().unwrap()) == bytes
-                    && (r["time_s"].as_f64().unwrap() - at).abs() < 1e-6
-            });
-            assert!(found, "`{}`: {text} at {at} not recorded", check["name"]);
-            cited += 1;
-        }
-    }
+    let cited = super::recorded::cited_frames_recorded(&report, &recorded, |client, sent| {
+        let from = if sent { "twin" } else { client };
+        ("/link/client/frames", from.to_string())
+    });
     assert!(cited >= 8, "{cited}");
     // The write to the wrong block, as the client sent it, decoded.
     let write = frames

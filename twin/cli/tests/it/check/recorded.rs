@@ -33,6 +33,47 @@ pub(super) fn spelt(raw: &str) -> String {
         .collect()
 }
 
+/// What a run's report and its recording agree on, whatever the role: the
+/// checks' frame counts add up to every frame recorded, and every frame the
+/// report cites (a hang-up is none) is recorded at its time, on the topic
+/// and from the sender that `place` gives for its side (the report's first
+/// column) and way (`true`: the twin sent it). Returns how many it cites.
+pub(super) fn cited_frames_recorded(
+    report: &serde_json::Value,
+    recorded: &serde_json::Value,
+    place: impl Fn(&str, bool) -> (&'static str, String),
+) -> usize {
+    let frames = recorded["frames"].as_array().unwrap();
+    let counted: u64 = recorded["checks"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["frames"].as_u64().unwrap())
+        .sum();
+    assert_eq!(counted as usize, frames.len());
+    let mut cited = 0;
+    for check in report["checks"].as_array().unwrap() {
+        for f in check["frames"].as_array().unwrap() {
+            let text = f["text"].as_str().unwrap();
+            let (side, bytes) = (text[..8].trim(), &text[10..]);
+            if bytes == "(hangs up)" {
+                continue;
+            }
+            let (topic, from) = place(side, f["way"] == "sent");
+            let at = f["at"].as_f64().unwrap();
+            let found = frames.iter().any(|r| {
+                r["topic"] == topic
+                    && r["from"] == from.as_str()
+                    && spelt(r["text"].as_str().unwrap()) == bytes
+                    && (r["time_s"].as_f64().unwrap() - at).abs() < 1e-6
+            });
+            assert!(found, "`{}`: {text} at {at} not recorded", check["name"]);
+            cited += 1;
+        }
+    }
+    cited
+}
+
 #[test]
 fn the_recording_holds_every_frame_of_the_report_in_its_check() {
     let dir = folder("check", "recorded");
