@@ -116,8 +116,8 @@ pub struct Session {
 }
 
 impl Session {
-    /// Listens on `addr` (`HOST:PORT`), the image of slave `id` behind it.
-    pub fn listen(addr: &str, id: u8) -> std::io::Result<Session> {
+    /// Listens on `addr`, the image of slave `id` behind it.
+    pub fn listen(addr: std::net::SocketAddr, id: u8) -> std::io::Result<Session> {
         Ok(Session {
             bench: Bench::listen(addr, id)?,
             id,

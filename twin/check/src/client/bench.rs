@@ -15,7 +15,7 @@ use nodes::node::Node;
 use protocols::meb::{MebErrorCode, MebRepr};
 use protocols::time::{SimDuration, SimTime};
 use std::io::{ErrorKind, Read, Write};
-use std::net::{TcpListener, TcpStream};
+use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::thread::JoinHandle;
@@ -81,7 +81,7 @@ impl Shared {
 pub struct Bench {
     shared: Arc<Shared>,
     threads: Vec<JoinHandle<()>>,
-    addr: std::net::SocketAddr,
+    addr: SocketAddr,
 }
 
 impl std::fmt::Debug for Bench {
@@ -93,8 +93,8 @@ impl std::fmt::Debug for Bench {
 }
 
 impl Bench {
-    /// Listens on `addr` (`HOST:PORT`; port 0 for any), supervising slave `id`.
-    pub fn listen(addr: &str, id: u8) -> std::io::Result<Bench> {
+    /// Listens on `addr` (port 0 for any), supervising slave `id`.
+    pub fn listen(addr: SocketAddr, id: u8) -> std::io::Result<Bench> {
         let listener = TcpListener::bind(addr)?;
         listener.set_nonblocking(true)?;
         let local = listener.local_addr()?;
@@ -136,7 +136,7 @@ impl Bench {
     }
 
     /// Where it listens.
-    pub fn addr(&self) -> std::net::SocketAddr {
+    pub fn addr(&self) -> SocketAddr {
         self.addr
     }
 

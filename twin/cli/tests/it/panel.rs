@@ -755,7 +755,7 @@ fn the_class_index_lists_every_module_for_the_teacher_alone() {
             l.first().map(String::as_str) == Some("meb")
                 && l.last().map(String::as_str) == Some("student01")
         })
-        .map(|l| l[1].trim_start_matches("tcp://").to_string())
+        .map(|l| support::host_port(&l[1]).to_string())
         .unwrap_or_else(|| panic!("no link line for student01: {printed}"));
     let reply = meb_request(&meb1);
     assert!(reply.starts_with("@01EA00"), "{reply:?}");

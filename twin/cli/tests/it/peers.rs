@@ -112,11 +112,7 @@ impl Serve {
 
     /// `host:port` of the first TCP link of `protocol`.
     pub fn tcp(&self, protocol: &str) -> String {
-        let link = self.link(protocol);
-        link.address
-            .strip_prefix("tcp://")
-            .unwrap_or_else(|| panic!("{protocol} link is not TCP: {link:?}"))
-            .to_string()
+        crate::support::host_port(&self.link(protocol).address).to_string()
     }
 
     pub fn port(&self, protocol: &str) -> u16 {

@@ -67,7 +67,7 @@ fn pipelined_requests_get_every_reply_in_order() {
         .links
         .iter()
         .filter(|l| l.protocol == "meb")
-        .map(|l| l.address.trim_start_matches("tcp://").to_string())
+        .map(|l| crate::support::host_port(&l.address).to_string())
         .collect();
     meb_pipelined(&meb[0], 100);
     // Paced replies wait for their wire time: the connection is not read

@@ -47,11 +47,7 @@ impl Server {
 
     /// The address printed for the `n`th link.
     fn tcp(&self, n: usize) -> String {
-        self.links[n]
-            .1
-            .strip_prefix("tcp://")
-            .expect("a tcp link")
-            .to_string()
+        support::host_port(&self.links[n].1).to_string()
     }
 
     fn output(&self) -> String {

@@ -449,7 +449,7 @@ fn a_class_of_five_modules_each_reached_by_its_own_pymodbus_client() {
             .find(|l| l.get(3) == Some(&name))
             .unwrap_or_else(|| panic!("{name} not among {links:?}"));
         assert_eq!(link[0], "modbus-tcp");
-        addrs.push(link[1].strip_prefix("tcp://").unwrap().to_string());
+        addrs.push(support::host_port(&link[1]).to_string());
     }
     // All five at once, each writing its own VEL.
     let students: Vec<_> = addrs

@@ -23,7 +23,7 @@ pub(crate) fn server_tcp(proc: &Proc) -> String {
         .find(|f| f.iter().any(|w| w.starts_with("tcp://")) && !f.iter().any(|w| w == "master"))
         .unwrap_or_else(|| panic!("no tcp link printed: {}", proc.output()));
     let field = link.iter().find(|w| w.starts_with("tcp://")).unwrap();
-    field.trim_start_matches("tcp://").to_string()
+    support::host_port(field).to_string()
 }
 
 /// Paths for a vsp pair unique to this test run.

@@ -181,10 +181,7 @@ impl Proc {
             .iter()
             .find(|f| f.first().is_some_and(|p| p == protocol))
             .unwrap_or_else(|| panic!("no {protocol} link printed by {}: {links:?}", self.what));
-        link[1]
-            .strip_prefix("tcp://")
-            .unwrap_or_else(|| panic!("the {protocol} link of {} is not tcp", self.what))
-            .to_string()
+        host_port(&link[1]).to_string()
     }
 
     /// Whether stdout shows `needle` within a few seconds (the printing
@@ -249,6 +246,12 @@ impl Drop for Proc {
         let _ = self.child.kill();
         let _ = self.child.wait();
     }
+}
+
+/// The `HOST:PORT` of a link the twin printed as `tcp://HOST:PORT`.
+pub fn host_port(link: &str) -> &str {
+    link.strip_prefix("tcp://")
+        .unwrap_or_else(|| panic!("`{link}` is not a TCP link"))
 }
 
 /// `twin ARGS`, run to its end with its output collected.

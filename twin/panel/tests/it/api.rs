@@ -387,7 +387,7 @@ fn header(answer: &ureq::http::Response<ureq::Body>, name: &str) -> String {
 /// 1; every byte that comes within a second of the request.
 fn meb_exchange(link: &str) -> Vec<u8> {
     use std::io::Read;
-    let addr = link.strip_prefix("tcp://").expect("a TCP link");
+    let addr = common::host_port(link);
     let mut s = std::net::TcpStream::connect(addr).expect("connects");
     s.set_nodelay(true).unwrap();
     let mut request = [0u8; 32];

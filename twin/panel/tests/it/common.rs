@@ -15,6 +15,12 @@ use twin_realtime::serve::{self, ServeOptions, ServeProtocol};
 use twin_realtime::session::SessionOptions;
 use twin_realtime::sink::ViewOpener;
 
+/// The `HOST:PORT` of a link given as `tcp://HOST:PORT`.
+pub fn host_port(link: &str) -> &str {
+    link.strip_prefix("tcp://")
+        .unwrap_or_else(|| panic!("`{link}` is not a TCP link"))
+}
+
 pub struct Session {
     pub engine: Sender<Inbound>,
     /// `tcp://127.0.0.1:PORT` of the MEB link.

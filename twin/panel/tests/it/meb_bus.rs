@@ -18,7 +18,7 @@ pub fn meb_bus(slaves: &[(u8, &str)]) -> String {
     let addr = listener.local_addr().unwrap();
     let slaves: BTreeMap<u8, String> = slaves
         .iter()
-        .map(|(id, url)| (*id, url.trim_start_matches("tcp://").to_string()))
+        .map(|(id, url)| (*id, crate::common::host_port(url).to_string()))
         .collect();
     std::thread::spawn(move || {
         // The master may connect again after a failure.

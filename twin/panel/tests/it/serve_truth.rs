@@ -199,7 +199,7 @@ fn the_serve_page_names_the_client_each_reply_goes_to() {
             (note.contains("0x001F"), format!("`{note}`"))
         })
         .await;
-        let addr = serve.meb.trim_start_matches("tcp://").to_string();
+        let addr = crate::common::host_port(&serve.meb).to_string();
         let connect = || {
             let s = std::net::TcpStream::connect(&addr).unwrap();
             s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();

@@ -4,7 +4,9 @@
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
+use protocols::link::{LinkSpec, LinkSpecError};
 use std::io::{BufRead, Write as _};
+use std::net::SocketAddr;
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
@@ -47,12 +49,7 @@ pub fn execute(args: &ClientArgs) -> Result<()> {
     if let Some(roster) = &args.reports.roster {
         return class(args, roster);
     }
-    let Some(addr) = args.listen.strip_prefix("tcp://") else {
-        bail!(
-            "the twin listens on TCP: give --listen tcp://HOST:PORT, not `{}`",
-            args.listen
-        );
-    };
+    let addr = listen_addr(&args.listen).context("--listen")?;
     let mut session = Session::listen(addr, args.id)
         .with_context(|| format!("cannot listen on {}", args.listen))?;
     let link = format!("tcp://{}", session.addr());
@@ -79,6 +76,13 @@ pub fn execute(args: &ClientArgs) -> Result<()> {
     print!("{}", report::text(&run));
     args.reports.record("client", "", &run)?;
     args.reports.reports_and_verdict(&run)
+}
+
+/// Where the twin listens for a client: a link's own reading of
+/// `tcp://HOST:PORT` (so a misspelt one gets the links' suggestion); the
+/// twin serves a client over TCP only.
+fn listen_addr(link: &str) -> Result<SocketAddr, LinkSpecError> {
+    LinkSpec::parse_tcp_peer(link, "a client's session takes no options")
 }
 
 /// The checklist, then `ready`: the clients may connect.
@@ -132,14 +136,8 @@ fn class(args: &ClientArgs, roster: &Path) -> Result<()> {
         .unwrap_or(0);
     for student in &students {
         let at = || format!("{}, line {}", roster.display(), student.line);
-        let Some(addr) = student.link.strip_prefix("tcp://") else {
-            bail!(
-                "{}: the twin listens for `{}`'s client on TCP: give tcp://HOST:PORT, not `{}`",
-                at(),
-                student.name,
-                student.link
-            );
-        };
+        let addr = listen_addr(&student.link)
+            .with_context(|| format!("{}: `{}`'s client", at(), student.name))?;
         // A port taken is the student's to fix, not the class's: their
         // run says so and the others go on.
         let session = Session::listen(addr, student.id).map_err(|e| e.to_string());

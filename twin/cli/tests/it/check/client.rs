@@ -297,3 +297,45 @@ fn every_cited_frame_is_recorded(json: &Path, mcap: &Path) {
     assert_eq!(write["cmd"], "VA");
     assert_eq!(write["from"], "client 1");
 }
+
+/// `--listen` is read as every link is: a misspelt `tcp://` gets the links'
+/// own suggestion, a serial device is refused as not TCP, and a roster's
+/// link says which line and student it is.
+#[test]
+fn a_misspelt_listen_address_gets_the_links_own_message() {
+    let out = crate::support::twin(&["check", "client", "--listen", "tcp:/127.0.0.1:0"]);
+    assert!(!out.status.success());
+    let shown = text(&out);
+    assert!(
+        shown.contains("--listen: link `tcp:/127.0.0.1:0` looks like a misspelt TCP address")
+            && shown.contains("write `tcp://127.0.0.1:0`"),
+        "{shown}"
+    );
+    let out = crate::support::twin(&["check", "client", "--listen", "/dev/null"]);
+    assert!(!out.status.success());
+    let shown = text(&out);
+    assert!(
+        shown.contains("`/dev/null` is not tcp://HOST:PORT"),
+        "{shown}"
+    );
+    let roster = scratch("check-client", "misspelt.toml");
+    std::fs::write(
+        &roster,
+        "[[student]]\nname = \"Ana\"\nlink = \"tcp:127.0.0.1:0\"\n",
+    )
+    .unwrap();
+    let out = crate::support::twin(&[
+        "check",
+        "client",
+        "--roster",
+        roster.to_str().unwrap(),
+        "--no-record",
+    ]);
+    assert!(!out.status.success());
+    let shown = text(&out);
+    assert!(
+        shown.contains(", line ")
+            && shown.contains("`Ana`'s client: link `tcp:127.0.0.1:0` looks like a misspelt"),
+        "{shown}"
+    );
+}

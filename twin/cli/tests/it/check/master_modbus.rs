@@ -9,7 +9,7 @@
 
 use super::failed;
 use crate::peers::PtyPair;
-use crate::support::{folder, scratch, text, twin};
+use crate::support::{folder, host_port, scratch, text, twin};
 use rustix::fs::OFlags;
 use std::io::{BufRead, BufReader, Read};
 use std::os::unix::fs::OpenOptionsExt;
@@ -195,9 +195,9 @@ fn mbpoll_and_pymodbus_as_tcp_masters_pass_with_nothing_reported() {
                     assert!(stderr.read_line(&mut line).unwrap() > 0, "{said}");
                     said.push_str(&line);
                     if let Some(link) = line.trim().rsplit(' ').next()
-                        && let Some(addr) = link.strip_prefix("tcp://")
+                        && link.starts_with("tcp://")
                     {
-                        break addr.rsplit(':').next().unwrap().to_string();
+                        break host_port(link).rsplit(':').next().unwrap().to_string();
                     }
                 };
                 let _master = if who == "mbpoll" {
