@@ -9,11 +9,10 @@ Prints one JSON object: requests, replies, replies that answered another
 request (out of order or garbled), and the slowest round in ms.
 """
 import json
-import socket
 import sys
 import time
 
-from meb_peer import SLAVE, WAIT_S, connect, fcs, frame
+from meb_peer import SLAVE, WAIT_S, connect, fcs, frame, received
 
 
 def main():
@@ -36,10 +35,7 @@ def main():
                 got.append(line + b"\n")
             if len(got) >= len(asked):
                 break
-            try:
-                chunk = sock.recv(4096)
-            except socket.timeout:
-                break
+            chunk = received(sock)
             if not chunk:
                 break
             buf += chunk

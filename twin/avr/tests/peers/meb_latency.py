@@ -9,11 +9,10 @@ Prints one JSON object: requests, replies, wrong replies, and the reply
 latency's p50, p99 and max in microseconds.
 """
 import json
-import socket
 import sys
 import time
 
-from meb_peer import SLAVE, connect, frame
+from meb_peer import SLAVE, connect, frame, received
 
 
 def main():
@@ -28,10 +27,7 @@ def main():
         start = time.perf_counter()
         sock.sendall(frame(cmd, addr, cnt))
         while b"\n" not in buf:
-            try:
-                chunk = sock.recv(4096)
-            except socket.timeout:
-                break
+            chunk = received(sock)
             if not chunk:
                 break
             buf += chunk

@@ -1,7 +1,7 @@
 """What the MEB test masters beside it share (meb_latency.py, meb_burst.py),
 written from docs/protocols/meb.md alone: a read request's line with its FCS,
-and a TCP connection to the server with Nagle off, so a request leaves as it
-is written.
+a TCP connection to the server with Nagle off, so a request leaves as it is
+written, and the bytes it sends.
 """
 import socket
 
@@ -25,3 +25,12 @@ def connect(host, port):
     sock = socket.create_connection((host, port), timeout=WAIT_S)
     sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
     return sock
+
+
+def received(sock):
+    """The next bytes the server sends; b"" once it has been quiet for
+    WAIT_S or has closed."""
+    try:
+        return sock.recv(4096)
+    except socket.timeout:
+        return b""
