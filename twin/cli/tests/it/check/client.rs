@@ -303,17 +303,18 @@ fn every_cited_frame_is_recorded(json: &Path, mcap: &Path) {
 /// link says which line and student it is.
 #[test]
 fn a_misspelt_listen_address_gets_the_links_own_message() {
-    let out = crate::support::twin(&["check", "client", "--listen", "tcp:/127.0.0.1:0"]);
-    assert!(!out.status.success());
-    let shown = text(&out);
+    let refused = |args: &[&str]| {
+        let out = crate::support::twin(&[&["check", "client"], args].concat());
+        assert!(!out.status.success(), "{}", text(&out));
+        text(&out)
+    };
+    let shown = refused(&["--listen", "tcp:/127.0.0.1:0"]);
     assert!(
         shown.contains("--listen: link `tcp:/127.0.0.1:0` looks like a misspelt TCP address")
             && shown.contains("write `tcp://127.0.0.1:0`"),
         "{shown}"
     );
-    let out = crate::support::twin(&["check", "client", "--listen", "/dev/null"]);
-    assert!(!out.status.success());
-    let shown = text(&out);
+    let shown = refused(&["--listen", "/dev/null"]);
     assert!(
         shown.contains("`/dev/null` is not tcp://HOST:PORT"),
         "{shown}"
@@ -324,15 +325,7 @@ fn a_misspelt_listen_address_gets_the_links_own_message() {
         "[[student]]\nname = \"Ana\"\nlink = \"tcp:127.0.0.1:0\"\n",
     )
     .unwrap();
-    let out = crate::support::twin(&[
-        "check",
-        "client",
-        "--roster",
-        roster.to_str().unwrap(),
-        "--no-record",
-    ]);
-    assert!(!out.status.success());
-    let shown = text(&out);
+    let shown = refused(&["--roster", roster.to_str().unwrap(), "--no-record"]);
     assert!(
         shown.contains(", line ")
             && shown.contains("`Ana`'s client: link `tcp:127.0.0.1:0` looks like a misspelt"),
