@@ -13,12 +13,11 @@ use std::collections::VecDeque;
 
 use crate::node::{MAX_FRAME, NodeEvent};
 use protocols::meb::{MebAccess, MebDecodeError, MebDecoder, MebRepr};
-use protocols::modbus::Adu;
 use protocols::modbus::pdu::function;
 use protocols::modbus::rtu::{Direction, RtuDecoder};
 use protocols::modbus::serial::Timing;
 use protocols::modbus::tcp::TcpDecoder;
-use protocols::modbus::{self, Drops, MAX_PDU_LEN, ascii::AsciiDecoder};
+use protocols::modbus::{self, Adu, Drops, MAX_PDU_LEN, ascii::AsciiDecoder};
 use protocols::time::{SimDuration, SimTime};
 
 use super::image::{Refusal, RegisterImage};

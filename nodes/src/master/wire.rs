@@ -3,11 +3,10 @@
 //! replies are classified against the request they should answer.
 
 use protocols::meb::{MebCmd, MebDecodeError, MebDecoder, MebRepr, MebWords};
-use protocols::modbus::Adu;
 use protocols::modbus::pdu::function;
 use protocols::modbus::rtu::{self, Direction, RtuDecoder};
 use protocols::modbus::serial::Timing;
-use protocols::modbus::{Bits, ExceptionResponse, PduError, Request, Response};
+use protocols::modbus::{Adu, Bits, ExceptionResponse, PduError, Request, Response};
 use protocols::time::{SimDuration, SimTime};
 
 use super::layout::MebLayout;

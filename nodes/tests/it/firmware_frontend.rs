@@ -5,8 +5,7 @@
 use nodes::firmware::{EvController, EvControllerConfig, Framing, Refusal, SlaveFrontend};
 use nodes::node::{MAX_FRAME, Node};
 use protocols::meb::{MebCmd, MebRepr};
-use protocols::modbus::Adu;
-use protocols::modbus::{self, Exception, Request, Response};
+use protocols::modbus::{self, Adu, Exception, Request, Response};
 use protocols::time::{SimDuration, SimTime};
 use serde::Deserialize;
 

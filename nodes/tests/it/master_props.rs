@@ -6,8 +6,7 @@ use nodes::master::{Protocol, SetPointStep, SlaveLoopConfig, Supervisor, Supervi
 use nodes::node::{MAX_FRAME, Node};
 use proptest::prelude::*;
 use protocols::meb::{MebCmd, MebRepr, MebWords};
-use protocols::modbus::Adu;
-use protocols::modbus::{ExceptionResponse, Registers, Response, rtu};
+use protocols::modbus::{Adu, ExceptionResponse, Registers, Response, rtu};
 use protocols::time::{SimDuration, SimTime};
 
 /// What the fake slave does with one request.

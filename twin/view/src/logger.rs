@@ -22,8 +22,7 @@
 use crate::ViewError;
 use nodes::firmware::{LightRpm, ea};
 use protocols::meb::{MebCmd, MebRepr};
-use protocols::modbus::Adu;
-use protocols::modbus::{self, Request, Response};
+use protocols::modbus::{self, Adu, Request, Response};
 use protocols::modbus8;
 use protocols::time::{SimDuration, SimTime};
 use rerun::components::{InterpolationMode, MarkerShape, TextLogLevel};

@@ -13,10 +13,9 @@ use nodes::firmware::{Framing, RegisterImage, SlaveFrontend};
 use nodes::node::Node;
 use protocols::crc::crc16_modbus;
 use protocols::meb::{MebError, MebErrorCode, MebRepr};
-use protocols::modbus::Adu;
 use protocols::modbus::rtu::{self, Direction};
 use protocols::modbus::serial::{FrameLen, PTY_SILENCE};
-use protocols::modbus::{Exception, Request};
+use protocols::modbus::{Adu, Exception, Request};
 use protocols::modbus8::{self, CrcOrder, Modbus8Repr};
 use protocols::time::SimTime;
 

@@ -3,8 +3,7 @@
 //! server binds port 0 and the test reads the port it prints.
 
 use protocols::meb::{MebCmd, MebErrorCode, MebRepr, MebWords};
-use protocols::modbus::Adu;
-use protocols::modbus::{self, Exception, Request, Response};
+use protocols::modbus::{self, Adu, Exception, Request, Response};
 use std::io::{Read, Write};
 use std::net::TcpStream;
 use std::path::PathBuf;

@@ -5,8 +5,7 @@
 //! the port they print.
 
 use protocols::meb::{MebCmd, MebRepr, MebWords};
-use protocols::modbus::Adu;
-use protocols::modbus::{self, Request, Response};
+use protocols::modbus::{self, Adu, Request, Response};
 use std::collections::BTreeMap;
 use std::io::{Read, Write};
 use std::net::TcpStream;
