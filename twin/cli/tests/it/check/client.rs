@@ -319,16 +319,28 @@ fn a_misspelt_listen_address_gets_the_links_own_message() {
         shown.contains("`/dev/null` is not tcp://HOST:PORT"),
         "{shown}"
     );
+    // A roster's link is read when the roster is: the links' own message,
+    // with its line; one that is a serial device is refused as not TCP.
     let roster = scratch("check-client", "misspelt.toml");
-    std::fs::write(
-        &roster,
-        "[[student]]\nname = \"Ana\"\nlink = \"tcp:127.0.0.1:0\"\n",
-    )
-    .unwrap();
-    let shown = refused(&["--roster", roster.to_str().unwrap(), "--no-record"]);
-    assert!(
-        shown.contains(", line ")
-            && shown.contains("`Ana`'s client: link `tcp:127.0.0.1:0` looks like a misspelt"),
-        "{shown}"
-    );
+    for (link, says) in [
+        (
+            "tcp:127.0.0.1:0",
+            "`Ana`'s link: link `tcp:127.0.0.1:0` looks like a misspelt TCP address",
+        ),
+        (
+            "/dev/null",
+            "`Ana`'s client: `/dev/null` is not tcp://HOST:PORT",
+        ),
+    ] {
+        std::fs::write(
+            &roster,
+            format!("[[student]]\nname = \"Ana\"\nlink = \"{link}\"\n"),
+        )
+        .unwrap();
+        let shown = refused(&["--roster", roster.to_str().unwrap(), "--no-record"]);
+        assert!(
+            shown.contains(&format!("misspelt.toml, line 1: {says}")),
+            "{shown}"
+        );
+    }
 }
