@@ -14,7 +14,7 @@ use std::collections::BTreeMap;
 use std::fs::File;
 use std::path::{Path, PathBuf};
 
-use crate::mcap_file::McapFile;
+use crate::mcap_out::McapFile;
 use crate::protobuf;
 use crate::topics;
 use crate::writer::{Appender, Backend, Batch, FileWriter, Job, Queued};

@@ -1,0 +1,346 @@
+//! The MCAP file a recording writes, through the MCAP library's writer
+//! (`mcap::Writer`, <https://mcap.dev/spec>): chunks of about 1 MiB, zstd,
+//! schemas and channels in the chunks and repeated in the summary, message
+//! indexes after each chunk, statistics, the summary's indexes and offsets,
+//! both checksums.
+//!
+//! The library writes into [`Landing`], which holds what was written since
+//! the last whole record and lands it in the file, followed by a provisional
+//! end, each time a chunk (or a metadata record, or an attachment) is whole:
+//! so a run killed (kill -9, a crash) leaves a file that every reader reads
+//! up to its last whole chunk.
+
+use mcap::records::{MessageHeader, Metadata, op};
+use mcap::{Attachment, McapError, WriteOptions, Writer};
+use std::collections::BTreeMap;
+use std::io::{self, Cursor, Seek, SeekFrom, Write};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+/// An MCAP file being written to `W`.
+pub(crate) struct McapFile<W: Write + Seek> {
+    writer: Writer<Landing<W>>,
+    /// Set before the close, so that the library's last flush leaves the
+    /// summary to [`Landing::land_last`].
+    closing: Arc<AtomicBool>,
+    /// A message's bytes, for a message serialised by the caller.
+    scratch: Vec<u8>,
+}
+
+fn io_error(e: McapError) -> io::Error {
+    match e {
+        McapError::Io(e) => e,
+        other => io::Error::other(other),
+    }
+}
+
+impl<W: Write + Seek> McapFile<W> {
+    /// Start the file: magic and header, into the file with a provisional
+    /// end, so that a run killed before its first chunk leaves an MCAP file
+    /// of no message.
+    pub(crate) fn new(inner: W, library: &str, level: i32, chunk_size: usize) -> io::Result<Self> {
+        let closing = Arc::new(AtomicBool::new(false));
+        let landing = Landing {
+            inner,
+            landed: 0,
+            end_len: 0,
+            pending: Cursor::new(Vec::with_capacity(chunk_size + 64 * 1024)),
+            crc: crc32fast::Hasher::new(),
+            closing: Arc::clone(&closing),
+        };
+        let level = std::env::var("TWIN_MCAP_LEVEL")
+            .ok()
+            .and_then(|l| l.parse().ok())
+            .unwrap_or(level.unsigned_abs());
+        let mut options = WriteOptions::new()
+            .compression(Some(mcap::Compression::Zstd))
+            .compression_level(level)
+            .chunk_size(Some(chunk_size as u64))
+            .profile("")
+            .library(library);
+        if let Some(threads) = std::env::var("TWIN_MCAP_THREADS")
+            .ok()
+            .and_then(|t| t.parse().ok())
+        {
+            options = options.compression_threads(threads);
+        }
+        let mut writer = options.create(landing).map_err(io_error)?;
+        writer.flush().map_err(io_error)?;
+        Ok(Self {
+            writer,
+            closing,
+            scratch: Vec::new(),
+        })
+    }
+
+    /// The id of a schema (the same id for the same schema).
+    pub(crate) fn add_schema(
+        &mut self,
+        name: &str,
+        encoding: &str,
+        data: &[u8],
+    ) -> io::Result<u16> {
+        self.writer
+            .add_schema(name, encoding, data)
+            .map_err(io_error)
+    }
+
+    /// A new channel.
+    pub(crate) fn add_channel(
+        &mut self,
+        schema_id: u16,
+        topic: &str,
+        message_encoding: &str,
+    ) -> io::Result<u16> {
+        self.writer
+            .add_channel(schema_id, topic, message_encoding, &BTreeMap::new())
+            .map_err(io_error)
+    }
+
+    /// One message on `channel` (an id [`McapFile::add_channel`] gave).
+    pub(crate) fn write_message(
+        &mut self,
+        channel: u16,
+        sequence: u32,
+        log_time: u64,
+        publish_time: u64,
+        data: &[u8],
+    ) -> io::Result<()> {
+        let header = MessageHeader {
+            channel_id: channel,
+            sequence,
+            log_time,
+            publish_time,
+        };
+        self.writer
+            .write_to_known_channel(&header, data)
+            .map_err(io_error)
+    }
+
+    /// [`McapFile::write_message`] with the message's bytes appended by
+    /// `data`; if it fails, nothing of the message is written.
+    pub(crate) fn write_message_with(
+        &mut self,
+        channel: u16,
+        sequence: u32,
+        log_time: u64,
+        publish_time: u64,
+        data: impl FnOnce(&mut Vec<u8>) -> io::Result<()>,
+    ) -> io::Result<()> {
+        let mut scratch = std::mem::take(&mut self.scratch);
+        scratch.clear();
+        let written = data(&mut scratch)
+            .and_then(|()| self.write_message(channel, sequence, log_time, publish_time, &scratch));
+        self.scratch = scratch;
+        written
+    }
+
+    /// A metadata record, after the open chunk (which it closes).
+    pub(crate) fn write_metadata(
+        &mut self,
+        name: &str,
+        metadata: &BTreeMap<String, String>,
+    ) -> io::Result<()> {
+        self.writer
+            .write_metadata(&Metadata {
+                name: name.into(),
+                metadata: metadata.clone(),
+            })
+            .map_err(io_error)?;
+        self.flush()
+    }
+
+    /// An attachment record (a file the recording carries whole: the
+    /// firmware a run executed), after the open chunk (which it closes).
+    pub(crate) fn write_attachment(
+        &mut self,
+        log_time: u64,
+        name: &str,
+        media_type: &str,
+        data: &[u8],
+    ) -> io::Result<()> {
+        self.writer
+            .attach(&Attachment {
+                log_time,
+                // Simulated too, so the bytes repeat.
+                create_time: log_time,
+                name: name.into(),
+                media_type: media_type.into(),
+                data: data.into(),
+            })
+            .map_err(io_error)?;
+        self.flush()
+    }
+
+    /// Close the open chunk, into the file.
+    pub(crate) fn flush(&mut self) -> io::Result<()> {
+        self.writer.flush().map_err(io_error)
+    }
+
+    /// Close the data section and write the summary, the footer and the
+    /// closing magic over the provisional end; returns the output.
+    pub(crate) fn finish(mut self) -> io::Result<W> {
+        self.closing.store(true, Ordering::Relaxed);
+        self.writer.finish().map_err(io_error)?;
+        self.writer.into_inner().land_last()
+    }
+}
+
+/// The library's output: the bytes not yet in the file (the library seeks
+/// back into them to put in a chunk's sizes), where they go, and the
+/// checksum of the bytes in the file.
+///
+/// What the library wrote lands in the file at each of its flushes (a chunk,
+/// a metadata record or an attachment whole), followed by a provisional end:
+/// a data end record and a footer saying there is no summary (`summary_start`
+/// 0) and the closing magic. So the file always ends as an MCAP file does,
+/// and a run killed leaves one that every reader reads up to its last whole
+/// chunk: a reader looking for the summary finds none and reads the file
+/// through, as Python's `mcap` `make_reader` does. The next records
+/// overwrite that end, and at the close the summary does.
+pub(crate) struct Landing<W> {
+    inner: W,
+    /// Where the bytes in `pending` go: the end of the records in the file,
+    /// where its provisional end starts.
+    landed: u64,
+    /// Bytes of the provisional end after `landed` (0 before the first).
+    end_len: usize,
+    pending: Cursor<Vec<u8>>,
+    /// The data section's checksum, of the bytes landed.
+    crc: crc32fast::Hasher,
+    closing: Arc<AtomicBool>,
+}
+
+/// The provisional end: a data end record (opcode, length, checksum), a
+/// footer (opcode, length, summary start, summary offsets start, checksum)
+/// and the closing magic.
+const PROVISIONAL_END: usize = 13 + 29 + 8;
+
+/// The final end: footer and closing magic.
+const FINAL_END: usize = 29 + 8;
+
+/// A footer naming no summary (summary start, summary offsets start and
+/// summary checksum 0), and the closing magic.
+const NO_SUMMARY: [u8; FINAL_END] = {
+    let mut end = [0u8; FINAL_END];
+    end[0] = op::FOOTER;
+    end[1] = 20;
+    let mut i = 0;
+    while i < 8 {
+        end[29 + i] = mcap::MAGIC[i];
+        i += 1;
+    }
+    end
+};
+
+impl<W: Write + Seek> Write for Landing<W> {
+    fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
+        self.pending.write(buf)
+    }
+
+    fn write_all(&mut self, buf: &[u8]) -> io::Result<()> {
+        self.pending.write_all(buf)
+    }
+
+    /// The library flushes once a chunk, a metadata record or an attachment
+    /// is whole, and after the summary (which [`Landing::land_last`] lands).
+    fn flush(&mut self) -> io::Result<()> {
+        if self.closing.load(Ordering::Relaxed) {
+            return Ok(());
+        }
+        self.land()
+    }
+}
+
+impl<W: Write + Seek> Seek for Landing<W> {
+    fn seek(&mut self, to: SeekFrom) -> io::Result<u64> {
+        let end = self.pending.get_ref().len() as u64;
+        let at = match to {
+            SeekFrom::Start(p) => p.checked_sub(self.landed),
+            SeekFrom::End(d) => end.checked_add_signed(d),
+            SeekFrom::Current(d) => self.pending.position().checked_add_signed(d),
+        };
+        // The library goes back only into the chunk it is closing.
+        let Some(at) = at.filter(|&at| at <= end) else {
+            return Err(io::Error::other(
+                "the MCAP writer went back to bytes already in the file",
+            ));
+        };
+        self.pending.set_position(at);
+        Ok(self.landed + at)
+    }
+}
+
+impl<W: Write + Seek> Landing<W> {
+    /// The pending records into the file, ended by a provisional end.
+    fn land(&mut self) -> io::Result<()> {
+        let records = std::mem::take(self.pending.get_mut());
+        // Records shorter than the end they would overwrite (an empty
+        // metadata record) wait for the next: the end could not be kept
+        // readable while they land.
+        if records.len() < self.end_len || records.is_empty() {
+            *self.pending.get_mut() = records;
+            return Ok(());
+        }
+        self.crc.update(&records);
+        // The data section's checksum so far, so that a reader checking it
+        // finds it right.
+        let mut end = [0u8; PROVISIONAL_END];
+        end[0] = op::DATA_END;
+        end[1..9].copy_from_slice(&4u64.to_le_bytes());
+        end[9..13].copy_from_slice(&self.crc.clone().finalize().to_le_bytes());
+        end[13..].copy_from_slice(&NO_SUMMARY);
+        let landed = self.write_at(&records, &end);
+        *self.pending.get_mut() = records;
+        landed?;
+        self.landed += self.pending.get_ref().len() as u64;
+        self.end_len = PROVISIONAL_END;
+        self.pending.get_mut().clear();
+        self.pending.set_position(0);
+        Ok(())
+    }
+
+    /// The pending records, which end with the footer and the closing magic,
+    /// into the file: it is complete. Returns the output.
+    fn land_last(mut self) -> io::Result<W> {
+        let pending = std::mem::take(self.pending.get_mut());
+        let Some(split) = pending.len().checked_sub(FINAL_END) else {
+            return Err(io::Error::other("the MCAP writer wrote no footer"));
+        };
+        let (records, end) = pending.split_at(split);
+        // The file is never longer than this: the summary (its statistics
+        // record alone) is longer than the provisional end it replaces.
+        // A footer naming the summary goes in once the summary is whole:
+        // until then, one naming none.
+        self.write_at(records, &NO_SUMMARY)?;
+        self.inner
+            .seek(SeekFrom::Start(self.landed + records.len() as u64))?;
+        self.inner.write_all(end)?;
+        self.inner.flush()?;
+        Ok(self.inner)
+    }
+
+    /// `records` then `end` written at `landed`, over the provisional end,
+    /// in an order that keeps the file readable wherever a kill stops it:
+    /// `end` first, past the old end; then the records after the old end's
+    /// bytes; then, last, the records' first bytes over the old end. Until
+    /// that last write, a reader reading through stops at the old end's
+    /// footer, and one looking at the file's last bytes finds a footer
+    /// there. A kill cuts a write short only between two pages, so the
+    /// long middle write may stop anywhere (behind the old end, which still
+    /// reads); the two short ones at worst at one page boundary.
+    fn write_at(&mut self, records: &[u8], end: &[u8]) -> io::Result<()> {
+        // Never more than the records: `land` keeps shorter ones back, and
+        // the summary is longer than the provisional end.
+        let old = self.end_len.min(records.len());
+        let at = self.landed;
+        self.inner
+            .seek(SeekFrom::Start(at + records.len() as u64))?;
+        self.inner.write_all(end)?;
+        self.inner.seek(SeekFrom::Start(at + old as u64))?;
+        self.inner.write_all(&records[old..])?;
+        self.inner.seek(SeekFrom::Start(at))?;
+        self.inner.write_all(&records[..old])?;
+        self.inner.flush()
+    }
+}
