@@ -344,3 +344,182 @@ impl<W: Write + Seek> Landing<W> {
         self.inner.flush()
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::read::{Cut, Reader};
+    use std::path::Path;
+
+    /// Every record of a file, chunks opened, CRCs checked; offsets and
+    /// sizes (which depend on the compressed bytes) left out.
+    fn records(file: &[u8]) -> Vec<String> {
+        use mcap::records::Record;
+        use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader, LinearReaderOptions};
+        let options = LinearReaderOptions::default()
+            .with_emit_chunks(false)
+            .with_validate_chunk_crcs(true)
+            .with_validate_data_section_crc(true)
+            .with_validate_summary_section_crc(true);
+        let mut reader = LinearReader::new_with_options(options);
+        let mut rest = file;
+        let mut out = Vec::new();
+        while let Some(event) = reader.next_event() {
+            match event.unwrap() {
+                LinearReadEvent::ReadRequest(need) => {
+                    let n = need.min(rest.len());
+                    reader.insert(n).copy_from_slice(&rest[..n]);
+                    reader.notify_read(n);
+                    rest = &rest[n..];
+                }
+                LinearReadEvent::Record { opcode, data } => {
+                    let shown = match mcap::parse_record(opcode, data).unwrap() {
+                        Record::ChunkIndex(c) => format!(
+                            "chunk index {}..{} channels {:?} {}",
+                            c.message_start_time,
+                            c.message_end_time,
+                            c.message_index_offsets.keys().collect::<Vec<_>>(),
+                            c.uncompressed_size
+                        ),
+                        Record::MessageIndex(m) => format!("{m:?}"),
+                        Record::MetadataIndex(m) => format!("metadata index {}", m.name),
+                        Record::SummaryOffset(s) => format!("summary offset {}", s.group_opcode),
+                        Record::DataEnd(_) => "data end".into(),
+                        Record::Footer(_) => "footer".into(),
+                        other => format!("{other:?}"),
+                    };
+                    out.push(shown);
+                }
+            }
+        }
+        out
+    }
+
+    /// An output that keeps every write and where it went, so that the file
+    /// can be seen as a kill would leave it after any of them.
+    #[derive(Default)]
+    struct Tape {
+        position: u64,
+        writes: Vec<(u64, Vec<u8>)>,
+    }
+
+    impl Write for Tape {
+        fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
+            self.writes.push((self.position, buf.to_vec()));
+            self.position += buf.len() as u64;
+            Ok(buf.len())
+        }
+        fn flush(&mut self) -> io::Result<()> {
+            Ok(())
+        }
+    }
+
+    impl Seek for Tape {
+        fn seek(&mut self, to: SeekFrom) -> io::Result<u64> {
+            match to {
+                SeekFrom::Start(p) => self.position = p,
+                other => panic!("the writer seeks only from the start: {other:?}"),
+            }
+            Ok(self.position)
+        }
+    }
+
+    /// The file after `writes`, the last of them cut to its first `cut` bytes.
+    fn file_after(writes: &[(u64, Vec<u8>)], cut: usize) -> Vec<u8> {
+        let mut file = Vec::new();
+        for (i, (at, bytes)) in writes.iter().enumerate() {
+            let bytes = match i + 1 == writes.len() {
+                true => &bytes[..cut.min(bytes.len())],
+                false => &bytes[..],
+            };
+            let at = *at as usize;
+            if file.len() < at + bytes.len() {
+                file.resize(at + bytes.len(), 0);
+            }
+            file[at..at + bytes.len()].copy_from_slice(bytes);
+        }
+        file
+    }
+
+    /// Messages a reader reading `file` through finds, checking every CRC,
+    /// the end magic and the footer at the file's end (where an indexed
+    /// reader looks first); and whether that footer names a summary.
+    fn read_through(file: &[u8]) -> (usize, bool) {
+        let footer = mcap::read::footer(file).expect("a footer at the file's end");
+        let count = records(file)
+            .iter()
+            .filter(|r| r.starts_with("Message {"))
+            .count();
+        (count, footer.summary_start != 0)
+    }
+
+    #[test]
+    fn a_file_cut_after_any_write_reads_to_its_last_whole_chunk() {
+        let mut file = McapFile::new(Tape::default(), "lib", 1, 4096).unwrap();
+        let schema = file.add_schema("a", "jsonschema", b"{}").unwrap();
+        let channel = file.add_channel(schema, "/a", "json").unwrap();
+        for i in 0..2000u32 {
+            let data = format!("{{\"i\":{i},\"x\":{}}}", f64::from(i) * 0.37);
+            let time = u64::from(i) * 1_000_000;
+            file.write_message(channel, i, time, time, data.as_bytes())
+                .unwrap();
+            if i % 300 == 299 {
+                file.flush().unwrap();
+            }
+            if i == 700 {
+                file.write_metadata("run", &BTreeMap::new()).unwrap();
+            }
+            if i == 1200 {
+                file.write_attachment(time, "fw.hex", "text/plain", &[b':'; 3000])
+                    .unwrap();
+            }
+        }
+        let tape = file.finish().unwrap();
+        let writes = &tape.writes;
+        let mut last = 0;
+        for k in 1..=writes.len() {
+            let whole = file_after(&writes[..k], usize::MAX);
+            if !whole.starts_with(mcap::MAGIC) {
+                // Before the header landed: nothing was recorded yet.
+                assert!(k < 3, "write {k}");
+                continue;
+            }
+            let (count, summary) = read_through(&whole);
+            assert!(count >= last, "write {k}: {count} messages after {last}");
+            last = count;
+            assert_eq!(summary, k == writes.len(), "write {k}");
+            // Before the footer naming it, the summary landed whole after
+            // the data end: the twin reads that as a complete file.
+            let closed = k + 1 >= writes.len();
+            let mut r = Reader::from_bytes(&whole, Path::new("cut.mcap")).unwrap();
+            while r.next().unwrap().is_some() {}
+            let r = r.finish();
+            assert_eq!(r.message_count(), count as u64, "write {k}");
+            match closed {
+                true => assert_eq!(r.truncated, None),
+                false => assert_eq!(r.truncated, Some(Cut::NoSummary), "write {k}"),
+            }
+            // A kill stops a long write between two pages of the file: cut
+            // there, it reads as before it.
+            let (at, bytes) = &writes[k - 1];
+            if bytes.len() > PROVISIONAL_END {
+                let before = file_after(&writes[..k], 0);
+                let (before, _) = read_through(&before);
+                let pages = (at / 4096 + 1) * 4096..at + bytes.len() as u64;
+                for page in pages.step_by(4096) {
+                    let cut = file_after(&writes[..k], (page - at) as usize);
+                    assert_eq!(
+                        read_through(&cut),
+                        (before, false),
+                        "write {k} cut at {page}"
+                    );
+                }
+            }
+        }
+        assert_eq!(last, 2000);
+        // Closed, the file is what it would be written at once.
+        let closed = file_after(writes, usize::MAX);
+        let summary = mcap::Summary::read(&closed).unwrap().expect("a summary");
+        assert_eq!(summary.stats.unwrap().message_count, 2000);
+    }
+}
