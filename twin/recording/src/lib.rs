@@ -23,7 +23,6 @@ pub mod disk;
 pub mod export;
 pub mod identity;
 mod mcap_file;
-mod mcap_out;
 pub mod protobuf;
 pub mod read;
 pub mod record;

@@ -13,7 +13,7 @@ use serde::Serialize;
 use prost_reflect::MessageDescriptor;
 
 use crate::disk::DiskGuard;
-use crate::mcap_out::McapFile;
+use crate::mcap_file::McapFile;
 use crate::protobuf;
 use crate::write_error::WriteError;
 
