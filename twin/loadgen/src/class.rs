@@ -1,7 +1,9 @@
 //! `serve-bench class`: a class of N modules on this machine, served by one
 //! `twin serve` process (a configuration file with a `[[module]]` per
 //! student) and by one process per student (what the `twin-serve@` unit
-//! template runs), measured interleaved in the same run. Each module is
+//! template runs), measured interleaved in the same run; or, given other
+//! builds of `twin` (`--against`), each build serving the class from one
+//! process, interleaved the same way. Each module is
 //! polled by its own Modbus TCP client at a fixed rate (one request in
 //! flight, FC04 and FC03 alternating, every reply checked); reported per
 //! module are the reply latency p99 and, from the server's own report, the
@@ -36,10 +38,65 @@ impl Variant {
     }
 }
 
+/// A build of `twin`, and what its lines are headed with.
+#[derive(Debug, Clone)]
+pub struct Build {
+    pub label: String,
+    pub path: PathBuf,
+}
+
+impl Build {
+    /// Labels for `paths`: each binary's folder (`bins/old/twin` is `old`)
+    /// where the binaries share a name, else its file name; a label taken
+    /// twice gets its place in the list too.
+    pub fn labelled(paths: &[PathBuf]) -> Vec<Build> {
+        let name = |p: &PathBuf| {
+            p.file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default()
+        };
+        let same_names = paths.iter().all(|p| name(p) == name(&paths[0]));
+        let labels: Vec<String> = paths
+            .iter()
+            .map(|p| {
+                let folder = p
+                    .parent()
+                    .and_then(|d| d.file_name())
+                    .map(|n| n.to_string_lossy().into_owned());
+                match folder {
+                    Some(f) if same_names && !f.is_empty() => f,
+                    _ => name(p),
+                }
+            })
+            .collect();
+        labels
+            .iter()
+            .enumerate()
+            .map(|(n, label)| Build {
+                label: if labels.iter().filter(|l| *l == label).count() > 1 {
+                    format!("{label}#{}", n + 1)
+                } else {
+                    label.clone()
+                },
+                path: paths[n].clone(),
+            })
+            .collect()
+    }
+}
+
+/// One way to serve the class: a build, and one process or a process each.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Way {
+    /// Index into [`ClassRun::builds`].
+    pub build: usize,
+    pub variant: Variant,
+}
+
 /// What the class is told and how it is loaded.
 #[derive(Debug, Clone)]
 pub struct ClassRun {
-    pub twin: PathBuf,
+    /// The builds measured: the first is the one the others are compared with.
+    pub builds: Vec<Build>,
     pub modules: usize,
     pub hz: f64,
     pub seconds: f64,
@@ -62,10 +119,12 @@ pub struct ModuleFigures {
     pub tick_p99_us: Option<f64>,
 }
 
-/// A variant's figures over its modules, and what the machine did meanwhile.
+/// A way's figures over its modules, and what the machine did meanwhile.
 #[derive(Debug, Clone)]
 pub struct ClassFigures {
-    pub variant: Variant,
+    pub way: Way,
+    /// How the way is named on its lines.
+    pub name: String,
     pub modules: Vec<ModuleFigures>,
     /// The servers' CPU time over the run, as a share of one core.
     pub server_cpu: f64,
@@ -77,9 +136,10 @@ pub struct ClassFigures {
     pub rss_mib: f64,
 }
 
-/// Writes the configuration files of `variant` into `dir`; returns the
+/// Writes the configuration files of `way` into `dir`; returns the
 /// commands that serve the class.
-fn commands(run: &ClassRun, variant: Variant, dir: &Path) -> Result<Vec<Command>> {
+fn commands(run: &ClassRun, way: Way, dir: &Path) -> Result<Vec<Command>> {
+    let twin = &run.builds[way.build].path;
     std::fs::create_dir_all(dir)?;
     let record = if run.record {
         format!(
@@ -94,7 +154,7 @@ fn commands(run: &ClassRun, variant: Variant, dir: &Path) -> Result<Vec<Command>
     );
     let module = |n: usize| format!("modbus = [\"tcp://127.0.0.1:0\"]\nseed = {}\n", n + 1);
     let mut commands = Vec::new();
-    match variant {
+    match way.variant {
         Variant::OneProcess => {
             let mut text = common.clone();
             for n in 0..run.modules {
@@ -106,7 +166,7 @@ fn commands(run: &ClassRun, variant: Variant, dir: &Path) -> Result<Vec<Command>
             }
             let path = dir.join("class.toml");
             std::fs::write(&path, text)?;
-            let mut cmd = Command::new(&run.twin);
+            let mut cmd = Command::new(twin);
             cmd.args(["serve", "--config"]).arg(&path);
             commands.push(cmd);
         }
@@ -119,7 +179,7 @@ fn commands(run: &ClassRun, variant: Variant, dir: &Path) -> Result<Vec<Command>
                 );
                 let path = dir.join(format!("{name}.toml"));
                 std::fs::write(&path, text)?;
-                let mut cmd = Command::new(&run.twin);
+                let mut cmd = Command::new(twin);
                 cmd.args(["serve", "--config"]).arg(&path);
                 commands.push(cmd);
             }
@@ -203,18 +263,46 @@ fn load_avg() -> f64 {
         .unwrap_or(f64::NAN)
 }
 
+/// The ways a run serves its class: one build one process and a process
+/// each, or every build one process.
+pub fn ways(run: &ClassRun) -> Vec<Way> {
+    if run.builds.len() == 1 {
+        [Variant::OneProcess, Variant::ProcessPerModule]
+            .map(|variant| Way { build: 0, variant })
+            .to_vec()
+    } else {
+        (0..run.builds.len())
+            .map(|build| Way {
+                build,
+                variant: Variant::OneProcess,
+            })
+            .collect()
+    }
+}
+
+/// How `way` is named on its lines: the variant, after the build's label
+/// where builds are compared.
+pub fn way_name(run: &ClassRun, way: Way) -> String {
+    if run.builds.len() == 1 {
+        way.variant.name().to_string()
+    } else {
+        format!("{}, {}", run.builds[way.build].label, way.variant.name())
+    }
+}
+
 /// Serves and loads the class one way; returns its figures.
-pub fn measure(run: &ClassRun, variant: Variant, round: usize) -> Result<ClassFigures> {
+pub fn measure(run: &ClassRun, way: Way, round: usize) -> Result<ClassFigures> {
     let dir = run.dir.join(format!(
-        "round{round}-{}",
-        match variant {
+        "round{round}-{}-{}",
+        way.build,
+        match way.variant {
             Variant::OneProcess => "one",
             Variant::ProcessPerModule => "each",
         }
     ));
     let _ = std::fs::remove_dir_all(&dir);
     let mut servers = Vec::new();
-    for (n, cmd) in commands(run, variant, &dir)?.into_iter().enumerate() {
+    for (n, cmd) in commands(run, way, &dir)?.into_iter().enumerate() {
         servers.push(Server::start(
             &format!("twin serve {n}"),
             cmd,
@@ -304,7 +392,8 @@ pub fn measure(run: &ClassRun, variant: Variant, round: usize) -> Result<ClassFi
             .map(|(_, _, p)| *p);
     }
     Ok(ClassFigures {
-        variant,
+        way,
+        name: way_name(run, way),
         modules,
         server_cpu,
         machine_busy,
@@ -352,7 +441,7 @@ pub fn summary(f: &ClassFigures) -> String {
     };
     format!(
         "{:<15} {replies} | tick lateness p99 per module: median {:>5.0} µs, worst {:>6.0} µs | {answered}/{expected} answered, {lost} lost, {bad} wrong, {late} sent late | server CPU {:.1} % of a core, RSS {:.0} MiB ({:.1} per module) | machine busy {:.0} %, load {:.1}",
-        f.variant.name(),
+        f.name,
         median(&tick),
         tick_max,
         f.server_cpu * 100.0,
@@ -361,4 +450,57 @@ pub fn summary(f: &ClassFigures) -> String {
         f.machine_busy * 100.0,
         f.load_avg
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn run(paths: &[&str]) -> ClassRun {
+        ClassRun {
+            builds: Build::labelled(&paths.iter().map(PathBuf::from).collect::<Vec<_>>()),
+            modules: 2,
+            hz: 0.0,
+            seconds: 1.0,
+            record: false,
+            dir: PathBuf::from("class"),
+        }
+    }
+
+    #[test]
+    fn builds_are_named_by_their_folder_where_the_binaries_share_a_name() {
+        let labels = |paths: &[&str]| {
+            run(paths)
+                .builds
+                .into_iter()
+                .map(|b| b.label)
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(
+            labels(&["bins/head/twin", "bins/old/twin"]),
+            ["head", "old"]
+        );
+        assert_eq!(labels(&["twin", "twin-old"]), ["twin", "twin-old"]);
+        assert_eq!(labels(&["a/x/twin", "b/x/twin"]), ["x#1", "x#2"]);
+    }
+
+    #[test]
+    fn one_build_is_served_both_ways_and_several_one_process_each() {
+        let one = run(&["head/twin"]);
+        assert_eq!(
+            ways(&one)
+                .into_iter()
+                .map(|w| way_name(&one, w))
+                .collect::<Vec<_>>(),
+            ["one process", "a process each"]
+        );
+        let three = run(&["head/twin", "old/twin", "fix/twin"]);
+        assert_eq!(
+            ways(&three)
+                .into_iter()
+                .map(|w| way_name(&three, w))
+                .collect::<Vec<_>>(),
+            ["head, one process", "old, one process", "fix, one process"]
+        );
+    }
 }

@@ -98,9 +98,10 @@ enum Role {
     },
     /// A class on this machine: N modules served by one `twin serve`
     /// (`[[module]]` tables) against one process per module (the
-    /// `twin-serve@` template), interleaved round by round; each module
+    /// `twin-serve@` template), or by each build given with --against (one
+    /// process each), interleaved round by round; each module
     /// polled by its own Modbus TCP client at --hz, every reply checked.
-    /// Prints per variant the reply latency p99 and tick lateness p99 per
+    /// Prints per way the reply latency p99 and tick lateness p99 per
     /// module (median and worst), lost and wrong replies, the servers' CPU
     /// and memory and the machine's load, then the ratios.
     Class {
@@ -123,6 +124,12 @@ enum Role {
         /// Folder for the configurations and recordings [default: a temporary one].
         #[arg(long)]
         dir: Option<PathBuf>,
+        /// Another build of `twin` to serve the class beside --twin's
+        /// (repeat it): each build serves it from one process, in turn,
+        /// and the ratios are each build's against --twin's. A build is
+        /// named by its folder (`--against old/twin` is `old`).
+        #[arg(long, value_name = "TWIN")]
+        against: Vec<PathBuf>,
     },
 }
 
@@ -149,9 +156,14 @@ fn main() -> ExitCode {
             rounds,
             no_record,
             dir,
+            against,
         }) => class_bench(
             &class::ClassRun {
-                twin: twin_binary(&cli),
+                builds: class::Build::labelled(
+                    &std::iter::once(twin_binary(&cli))
+                        .chain(against.iter().cloned())
+                        .collect::<Vec<_>>(),
+                ),
                 modules: *modules,
                 hz: *hz,
                 seconds: *seconds,
@@ -199,9 +211,8 @@ fn load(address: &str, clients: usize, seconds: f64, echo: bool) -> Result<()> {
 }
 
 fn class_bench(run: &class::ClassRun, rounds: usize, temporary: bool) -> Result<()> {
-    use class::Variant::{OneProcess, ProcessPerModule};
     eprintln!(
-        "serve-bench class: {} modules at {} Hz each, {} s per variant, {} rounds, {}",
+        "serve-bench class: {} modules at {} Hz each, {} s per way, {} rounds, {}",
         run.modules,
         run.hz,
         run.seconds,
@@ -212,52 +223,62 @@ fn class_bench(run: &class::ClassRun, rounds: usize, temporary: bool) -> Result<
             "not recorded"
         }
     );
+    if run.builds.len() > 1 {
+        for b in &run.builds {
+            println!("build {}: {}", b.label, b.path.display());
+        }
+    }
+    let ways = class::ways(run);
     let mut all = Vec::new();
     for round in 0..rounds.max(1) {
-        let order = if round % 2 == 0 {
-            [OneProcess, ProcessPerModule]
-        } else {
-            [ProcessPerModule, OneProcess]
-        };
-        for variant in order {
-            let f = class::measure(run, variant, round)?;
+        // Each round starts one way later, so no way is always first.
+        let mut order = ways.clone();
+        order.rotate_left(round % ways.len());
+        for way in order {
+            let f = class::measure(run, way, round)?;
             println!("round {}: {}", round + 1, class::summary(&f));
             all.push(f);
         }
     }
-    // Ratios a process each / one process, over the rounds' medians.
-    let figure = |variant, g: fn(&class::ModuleFigures) -> f64| {
+    // Each way's figure: the median over the rounds of the median module's.
+    let figure = |way, g: fn(&class::ModuleFigures) -> f64| {
         let per_round: Vec<f64> = all
             .iter()
-            .filter(|f| f.variant == variant)
+            .filter(|f| f.way == way)
             .map(|f| class::median(&f.modules.iter().map(g).collect::<Vec<_>>()))
             .collect();
         class::median(&per_round)
     };
-    let cpu = |variant| {
+    let whole = |way, g: fn(&class::ClassFigures) -> f64| {
         class::median(
             &all.iter()
-                .filter(|f| f.variant == variant)
-                .map(|f| f.server_cpu)
+                .filter(|f| f.way == way)
+                .map(g)
                 .collect::<Vec<_>>(),
         )
     };
     let lat = |m: &class::ModuleFigures| m.latency_p99_us;
     let tick = |m: &class::ModuleFigures| m.tick_p99_us.unwrap_or(f64::NAN);
-    // An idle class has no replies to compare.
-    let replies = if run.hz > 0.0 {
-        format!(
-            "reply p99 per module (median) {:.2}, ",
-            figure(ProcessPerModule, lat) / figure(OneProcess, lat)
-        )
-    } else {
-        String::new()
-    };
-    println!(
-        "a process each / one process: {replies}tick lateness p99 per module (median) {:.2}, server CPU {:.2}",
-        figure(ProcessPerModule, tick) / figure(OneProcess, tick),
-        cpu(ProcessPerModule) / cpu(OneProcess)
-    );
+    let (base, others) = ways.split_first().context("no way to serve the class")?;
+    for &way in others {
+        // An idle class has no replies to compare.
+        let replies = if run.hz > 0.0 {
+            format!(
+                "reply p99 per module (median) {:.2}, ",
+                figure(way, lat) / figure(*base, lat)
+            )
+        } else {
+            String::new()
+        };
+        println!(
+            "{} / {}: {replies}tick lateness p99 per module (median) {:.2}, server CPU {:.2}, RSS {:.2}",
+            class::way_name(run, way),
+            class::way_name(run, *base),
+            figure(way, tick) / figure(*base, tick),
+            whole(way, |f| f.server_cpu) / whole(*base, |f| f.server_cpu),
+            whole(way, |f| f.rss_mib) / whole(*base, |f| f.rss_mib),
+        );
+    }
     if temporary {
         let _ = std::fs::remove_dir_all(&run.dir);
     }
