@@ -101,7 +101,21 @@ pub struct ClassRun {
     pub hz: f64,
     pub seconds: f64,
     pub record: bool,
+    /// Poll over MEB-TCP instead of Modbus TCP.
+    pub meb: bool,
     pub dir: PathBuf,
+}
+
+impl ClassRun {
+    /// The protocol each module is polled in, its configuration key and
+    /// the name the twin prints its links under.
+    fn protocol(&self) -> (Dialect, &'static str, &'static str) {
+        if self.meb {
+            (Dialect::MebTcp, "meb", "meb")
+        } else {
+            (Dialect::ModbusTcp, "modbus", "modbus-tcp")
+        }
+    }
 }
 
 /// One module's figures.
@@ -152,7 +166,8 @@ fn commands(run: &ClassRun, way: Way, dir: &Path) -> Result<Vec<Command>> {
     let common = format!(
         "quiet = true\nstatus-every = 0\nallow = [\"127.0.0.1\"]\nmax-clients = 4\n{record}"
     );
-    let module = |n: usize| format!("modbus = [\"tcp://127.0.0.1:0\"]\nseed = {}\n", n + 1);
+    let key = run.protocol().1;
+    let module = |n: usize| format!("{key} = [\"tcp://127.0.0.1:0\"]\nseed = {}\n", n + 1);
     let mut commands = Vec::new();
     match way.variant {
         Variant::OneProcess => {
@@ -191,6 +206,7 @@ fn commands(run: &ClassRun, way: Way, dir: &Path) -> Result<Vec<Command>> {
 /// Polls `addr` at `hz` until `stop`; every reply checked.
 fn poll_module(
     addr: &str,
+    dialect: Dialect,
     hz: f64,
     start: Instant,
     stop: &AtomicBool,
@@ -200,7 +216,6 @@ fn poll_module(
     stream.set_nodelay(true)?;
     stream.set_read_timeout(Some(Duration::from_secs(1)))?;
     let period = Duration::from_secs_f64(1.0 / hz);
-    let dialect = Dialect::ModbusTcp;
     let mut figures = ModuleFigures::default();
     let mut latencies: Vec<u32> = Vec::with_capacity(8192);
     let mut request = [0u8; 16];
@@ -313,7 +328,7 @@ pub fn measure(run: &ClassRun, way: Way, round: usize) -> Result<ClassFigures> {
     let mut addrs: Vec<(usize, String, String)> = Vec::new();
     for (si, s) in servers.iter().enumerate() {
         for (n, (protocol, addr)) in s.links.iter().enumerate() {
-            if protocol == "modbus-tcp" {
+            if protocol == run.protocol().2 {
                 let name = s.link_names.get(n).cloned().unwrap_or_default();
                 addrs.push((si, name, tcp_addr(addr)?.to_string()));
             }
@@ -333,12 +348,13 @@ pub fn measure(run: &ClassRun, way: Way, round: usize) -> Result<ClassFigures> {
         .enumerate()
         .map(|(n, (_, _, addr))| {
             let (addr, stop, hz) = (addr.clone(), stop.clone(), run.hz);
+            let dialect = run.protocol().0;
             // Spread the clients over the period, as students' programs would be.
             let offset = Duration::from_secs_f64(n as f64 / run.modules as f64 / hz);
             std::thread::Builder::new()
                 .name(format!("client-{n}"))
                 .stack_size(256 * 1024)
-                .spawn(move || poll_module(&addr, hz, start + offset, &stop))
+                .spawn(move || poll_module(&addr, dialect, hz, start + offset, &stop))
         })
         .collect::<std::io::Result<_>>()?;
     std::thread::sleep(Duration::from_secs_f64(run.seconds) + Duration::from_millis(200));
@@ -463,6 +479,7 @@ mod tests {
             hz: 0.0,
             seconds: 1.0,
             record: false,
+            meb: false,
             dir: PathBuf::from("class"),
         }
     }

@@ -100,7 +100,8 @@ enum Role {
     /// (`[[module]]` tables) against one process per module (the
     /// `twin-serve@` template), or by each build given with --against (one
     /// process each), interleaved round by round; each module
-    /// polled by its own Modbus TCP client at --hz, every reply checked.
+    /// polled by its own Modbus TCP (or MEB-TCP) client at --hz, every
+    /// reply checked.
     /// Prints per way the reply latency p99 and tick lateness p99 per
     /// module (median and worst), lost and wrong replies, the servers' CPU
     /// and memory and the machine's load, then the ratios.
@@ -121,6 +122,11 @@ enum Role {
         /// Serve without recording (the class records by default).
         #[arg(long)]
         no_record: bool,
+        /// Serve and poll each module over MEB-TCP (the M3CVME tool's
+        /// protocol: EA 00 six words and FA 00 two alternating) instead of
+        /// Modbus TCP.
+        #[arg(long)]
+        meb: bool,
         /// Folder for the configurations and recordings [default: a temporary one].
         #[arg(long)]
         dir: Option<PathBuf>,
@@ -155,6 +161,7 @@ fn main() -> ExitCode {
             seconds,
             rounds,
             no_record,
+            meb,
             dir,
             against,
         }) => class_bench(
@@ -168,6 +175,7 @@ fn main() -> ExitCode {
                 hz: *hz,
                 seconds: *seconds,
                 record: !*no_record,
+                meb: *meb,
                 dir: dir.clone().unwrap_or_else(|| {
                     std::env::temp_dir().join(format!("serve-bench-class-{}", std::process::id()))
                 }),
@@ -212,9 +220,10 @@ fn load(address: &str, clients: usize, seconds: f64, echo: bool) -> Result<()> {
 
 fn class_bench(run: &class::ClassRun, rounds: usize, temporary: bool) -> Result<()> {
     eprintln!(
-        "serve-bench class: {} modules at {} Hz each, {} s per way, {} rounds, {}",
+        "serve-bench class: {} modules at {} Hz each over {}, {} s per way, {} rounds, {}",
         run.modules,
         run.hz,
+        if run.meb { "MEB-TCP" } else { "Modbus TCP" },
         run.seconds,
         rounds,
         if run.record {

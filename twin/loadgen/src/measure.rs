@@ -5,6 +5,7 @@
 
 use anyhow::{Context, Result, bail};
 use protocols::crc::crc16_modbus;
+use protocols::meb::{MebCmd, MebRepr, MebWords};
 use rustix::event::{PollFd, PollFlags, Timespec, poll};
 use std::io::{Read, Write};
 use std::os::fd::AsFd;
@@ -26,11 +27,23 @@ pub enum Dialect {
     EchoTcp,
     /// The Modbus RTU requests, echoed back unchanged.
     EchoRtu,
+    /// MEB over TCP (the M3CVME tool's protocol): slave 01's six analog
+    /// inputs (`EA`) and two analog flags (`FA`) alternating.
+    MebTcp,
 }
 
 impl Dialect {
     fn read(i: usize) -> (u8, u16) {
         if i.is_multiple_of(2) { (4, 10) } else { (3, 3) }
+    }
+
+    /// MEB's reads: the command and its word count.
+    fn meb_read(i: usize) -> (MebCmd, u8) {
+        if i.is_multiple_of(2) {
+            (MebCmd::EA, 6)
+        } else {
+            (MebCmd::FA, 2)
+        }
     }
 
     /// Writes request `i` into `out`, returns its length.
@@ -53,6 +66,18 @@ impl Dialect {
                 out[7] = crc[1];
                 8
             }
+            Dialect::MebTcp => {
+                let (cmd, cnt) = Self::meb_read(i);
+                let request = MebRepr {
+                    id: 1,
+                    cmd,
+                    addr: 0,
+                    cnt,
+                    data: MebWords::new(),
+                };
+                // 13 bytes: always fits.
+                request.emit(out).unwrap_or(0)
+            }
         }
     }
 
@@ -65,6 +90,8 @@ impl Dialect {
             Dialect::ModbusRtu => 1 + 2 + data + 2,
             Dialect::EchoTcp => 12,
             Dialect::EchoRtu => 8,
+            // Header, FCS and `*\n`: 13 bytes, and four per word.
+            Dialect::MebTcp => 13 + 4 * usize::from(Self::meb_read(i).1),
         }
     }
 
@@ -84,6 +111,12 @@ impl Dialect {
                 reply[0] == 1
                     && reply[1] == fc
                     && crc16_modbus(&reply[..n - 2]).to_le_bytes() == [reply[n - 2], reply[n - 1]]
+            }
+            Dialect::MebTcp => {
+                let (cmd, cnt) = Self::meb_read(i);
+                MebRepr::parse(reply).is_ok_and(|r| {
+                    r.id == 1 && r.cmd == cmd && r.cnt == cnt && r.data.len() == usize::from(cnt)
+                })
             }
         }
     }
@@ -308,5 +341,29 @@ mod tests {
         assert_eq!(median([3.0, f64::NAN, 1.0, 2.0]), Some(2.0));
         assert_eq!(median([4.0, 1.0, 3.0, 2.0]), Some(2.5));
         assert_eq!(median([f64::NAN]), None);
+    }
+
+    #[test]
+    fn meb_reads_are_the_lab_frames_and_their_replies_are_checked() {
+        let mut out = [0u8; 16];
+        let n = Dialect::MebTcp.request(0, &mut out);
+        assert_eq!(&out[..n], b"@01EA000643*\n");
+        let n = Dialect::MebTcp.request(1, &mut out);
+        assert_eq!(&out[..n], b"@01FA000244*\n");
+        let reply = MebRepr {
+            id: 1,
+            cmd: MebCmd::FA,
+            addr: 0,
+            cnt: 2,
+            data: MebWords::from_slice(&[0x03E8, 0]).unwrap(),
+        };
+        let mut bytes = [0u8; 64];
+        let len = reply.emit(&mut bytes).unwrap();
+        assert_eq!(len, Dialect::MebTcp.reply_len(1));
+        assert!(Dialect::MebTcp.check(1, &out[..n], &bytes[..len]));
+        // The other read's reply, or a spoilt check, is refused.
+        assert!(!Dialect::MebTcp.check(0, &out[..n], &bytes[..len]));
+        bytes[len - 3] ^= 1;
+        assert!(!Dialect::MebTcp.check(1, &out[..n], &bytes[..len]));
     }
 }
