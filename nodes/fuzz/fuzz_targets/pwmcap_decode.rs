@@ -6,7 +6,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use protocols::pwmcap::{PWM_MAX_SYMBOLS, PwmCoding, PwmRepr, PwmFrameKind};
+use protocols::pwmcap::{PWM_MAX_SYMBOLS, PwmCoding, PwmFrameKind, PwmRepr};
 
 fuzz_target!(|data: &[u8]| {
     let [data_bits, dummy_bits, s0, s1, kind, widths @ ..] = data else {
