@@ -10,7 +10,7 @@
 
 use mcap::records::Record;
 use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader, LinearReaderOptions};
-use mcap::{Attachment, Writer};
+use mcap::{Attachment, WriteOptions, Writer};
 use std::collections::BTreeSet;
 use std::fs::File;
 use std::io::{BufWriter, Read};
@@ -186,7 +186,12 @@ fn create(out: &Path, profile: &str, library: &str) -> Result<FileWriter> {
         path: out.to_path_buf(),
         source,
     })?;
-    crate::mcap_file::write_options(profile, library)
+    WriteOptions::new()
+        .compression(Some(mcap::Compression::Zstd))
+        .compression_level(crate::record::ZSTD_LEVEL.unsigned_abs())
+        .chunk_size(Some(crate::record::CHUNK_SIZE as u64))
+        .profile(profile)
+        .library(library)
         .create(BufWriter::new(file))
         .map_err(|source| RecoverError::Start {
             path: out.to_path_buf(),
