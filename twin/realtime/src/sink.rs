@@ -25,6 +25,7 @@ use super::rotate::{DiskOutcome, Pruned, Recordings};
 use twin_recording::describe::{LinkFrameFields, link_frame_fields};
 use twin_recording::record::WriteError;
 use twin_recording::topics::{self, LoopReport, ReadingsSample};
+use twin_sim::error_text::in_full;
 use twin_sim::observe::{LazyChannel, McapObserver, SimRecorder};
 
 type Result<T, E = WriteError> = std::result::Result<T, E>;
@@ -927,18 +928,6 @@ fn resume(
         }
         None => {}
     }
-}
-
-/// `e` with its causes, `outer: cause: …`, as `main` prints an error.
-fn in_full(e: &dyn std::error::Error) -> String {
-    let mut text = e.to_string();
-    let mut cause = e.source();
-    while let Some(c) = cause {
-        text.push_str(": ");
-        text.push_str(&c.to_string());
-        cause = c.source();
-    }
-    text
 }
 
 fn say_pruned(out: &mut impl Write, pruned: &[Pruned]) {

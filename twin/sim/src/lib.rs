@@ -10,6 +10,7 @@
 
 pub mod baseline;
 pub mod engine;
+pub mod error_text;
 pub mod external;
 pub mod interrupt;
 pub mod nodes_build;

@@ -18,6 +18,7 @@ use std::time::Instant;
 use super::figures::{self, Step};
 use super::manifest::Manifest;
 use super::summary::{Status, Summary, temporary};
+use twin_sim::error_text::in_full;
 use twin_sim::interrupt;
 use twin_sim::replay::{RunSpec, parse_value};
 use twin_sim::scenario::Scenario;
@@ -234,16 +235,4 @@ fn failed(scenario: &Scenario) -> impl Fn(virtual_run::RunError) -> BatchError +
         scenario: scenario.name.clone(),
         source,
     }
-}
-
-/// `e` with its causes, `outer: cause: …`, as `main` prints an error.
-fn in_full(e: &dyn std::error::Error) -> String {
-    let mut text = e.to_string();
-    let mut cause = e.source();
-    while let Some(c) = cause {
-        text.push_str(": ");
-        text.push_str(&c.to_string());
-        cause = c.source();
-    }
-    text
 }

@@ -9,7 +9,6 @@ pub mod layout;
 pub mod state;
 
 use serde_json::{Value, json};
-use std::error::Error;
 use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, channel};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -21,6 +20,7 @@ use nodes::firmware::MebMap;
 use protocols::meb::MebCmd;
 use twin_realtime::client::{ClientError, MebClient, Way};
 use twin_realtime::sink::LiveFrame;
+use twin_sim::error_text::in_full;
 
 pub use state::message_state;
 
@@ -49,19 +49,6 @@ pub enum RemoteError {
     Thread(#[source] std::io::Error),
     #[error("the panel's connection thread ended")]
     ThreadEnded,
-}
-
-/// `e` with its causes, `outer: cause: …`, as `main` prints an error (the
-/// page shows it so).
-fn in_full(e: &(dyn Error + 'static)) -> String {
-    let mut text = e.to_string();
-    let mut cause = e.source();
-    while let Some(c) = cause {
-        text.push_str(": ");
-        text.push_str(&c.to_string());
-        cause = c.source();
-    }
-    text
 }
 
 /// The link's name on the page (its frames, its row in the links table).
