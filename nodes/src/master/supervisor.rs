@@ -102,8 +102,11 @@ struct Slave {
 enum Phase {
     /// The next request goes out at `at` (gap or poll period).
     Waiting { at: SimTime },
-    /// A request is on the wire or answered by `deadline`.
-    Awaiting { deadline: SimTime },
+    /// A request is out, its reply awaited. The reply timeout runs from
+    /// when the request has left (`Node::transmit_done`): until then
+    /// `deadline` is `None`, so a request the engine writes late (a busy
+    /// machine, a stopped process) is never given up before it is out.
+    Awaiting { deadline: Option<SimTime> },
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -687,7 +690,9 @@ impl Node for Supervisor {
     }
 
     fn handle_timeout(&mut self, now: SimTime) {
-        if let Phase::Awaiting { deadline } = self.phase
+        if let Phase::Awaiting {
+            deadline: Some(deadline),
+        } = self.phase
             && now >= deadline
         {
             let id = self.pending_id();
@@ -734,26 +739,27 @@ impl Node for Supervisor {
         if let Some(counters) = self.counters() {
             counters.requests += 1;
         }
-        // Provisional: `transmit_done` restarts the timeout from the last stop
-        // bit, as the spec counts it; this one only guards an engine that
-        // never reports the end of transmission.
-        self.phase = Phase::Awaiting {
-            deadline: now + self.reply_timeout,
-        };
+        // The timeout starts at `transmit_done`, from the last stop bit, as
+        // the spec counts it: a request still waiting to be written has not
+        // begun to wait for its reply.
+        self.phase = Phase::Awaiting { deadline: None };
         Some(len)
     }
 
     fn poll_timeout(&self) -> Option<SimTime> {
-        Some(match self.phase {
-            Phase::Waiting { at } => at,
+        match self.phase {
+            Phase::Waiting { at } => Some(at),
             Phase::Awaiting { deadline } => deadline,
-        })
+        }
     }
 
+    /// The request has left: its reply timeout starts. Every engine reports
+    /// it (the simulated bus after the last byte's stop bit, the real-time
+    /// links once the bytes are written); until then the supervisor waits.
     fn transmit_done(&mut self, now: SimTime) {
-        if let Phase::Awaiting { .. } = self.phase {
+        if let Phase::Awaiting { deadline: None } = self.phase {
             self.phase = Phase::Awaiting {
-                deadline: now + self.reply_timeout,
+                deadline: Some(now + self.reply_timeout),
             };
         }
     }

@@ -349,6 +349,56 @@ fn a_reply_just_inside_the_timeout_is_used() {
     assert_eq!(bus.counters(1).timeouts, 0);
 }
 
+/// A request the engine writes late (a busy machine, a stopped process: the
+/// real-time links report the write when it happens) waits its whole reply
+/// timeout from then, however long it sat before: no retry goes out while
+/// its first copy is still unwritten, and a reply inside the timeout counted
+/// from the write is used. Before, the timeout ran from `poll_transmit`, so a
+/// first copy held back 300 ms was retried the moment it left.
+#[test]
+fn a_request_written_late_waits_its_whole_timeout_from_the_write() {
+    let mut config = one_slave(Protocol::Meb, closed_loop(1, 1000.0));
+    config.startup_outputs = None;
+    config.reply_timeout = ms(30);
+    let mut master = Supervisor::new(config).unwrap();
+    let mut buf = [0u8; MAX_FRAME];
+    let decided = SimTime::ZERO;
+    let n = master.poll_transmit(decided, &mut buf).expect("the first poll");
+    assert_eq!(&buf[..n], b"@01EA000643*\n");
+    // Not written yet: nothing to time out, nothing more to send.
+    assert_eq!(master.poll_timeout(), None);
+    master.handle_timeout(decided + ms(31));
+    assert_eq!(master.poll_transmit(decided + ms(31), &mut buf), None);
+    assert_eq!(master.loop_state(1).unwrap().counters.timeouts, 0);
+
+    let written = decided + ms(300);
+    master.transmit_done(written);
+    assert_eq!(master.poll_timeout(), Some(written + ms(30)));
+    // A second report of the same request does not move its timeout.
+    master.transmit_done(written + ms(5));
+    assert_eq!(master.poll_timeout(), Some(written + ms(30)));
+    master.handle_timeout(written + ms(29));
+    master.handle_bytes(written + ms(29), &meb(1, MebCmd::EA, 6, &INPUTS));
+    let counters = master.loop_state(1).unwrap().counters;
+    assert_eq!((counters.replies, counters.timeouts), (1, 0));
+
+    // The next request, written at once, times out 30 ms after its write.
+    let next = written + ms(31);
+    while master.poll_transmit(next, &mut buf).is_none() {
+        let at = master.poll_timeout().expect("the next poll's instant");
+        assert!(at <= next, "the next poll is due by {next:?}, asked for {at:?}");
+        master.handle_timeout(at);
+    }
+    master.transmit_done(next);
+    master.handle_timeout(next + ms(29));
+    assert!(std::iter::from_fn(|| master.poll_event()).all(|e| e.kind != "timeout"));
+    master.handle_timeout(next + ms(30));
+    let kinds: Vec<_> = std::iter::from_fn(|| master.poll_event())
+        .map(|e| e.kind)
+        .collect();
+    assert_eq!(kinds, ["timeout", "retry"]);
+}
+
 #[test]
 fn a_reply_with_a_bad_fcs_is_not_used_and_the_request_is_retried() {
     let mut config = one_slave(Protocol::Meb, closed_loop(1, 1000.0));

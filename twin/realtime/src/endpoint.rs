@@ -40,8 +40,19 @@ pub trait Endpoint: Send {
         now: SimTime,
         buf: &mut [u8],
     ) -> Option<usize>;
-    /// The last frame has been written to the link at `now`.
+    /// The last frame has been written to the link at `now`: when its
+    /// carrier wrote it if [`Endpoint::reports_writes`], else when the
+    /// engine handed it to the carrier.
     fn transmit_done(&mut self, _devices: &mut [Device], _now: SimTime) {}
+    /// Whether [`Endpoint::transmit_done`] waits for the carrier to have
+    /// written the frame, and the frame is recorded as written then: a
+    /// master's reply timeout counts from when its request has left, which
+    /// on a busy machine (or across a stopped process) comes later than the
+    /// engine's hand-off. Costs the carrier a lock of the front per write,
+    /// so a slave's endpoint, whose replies wait for nothing, says no.
+    fn reports_writes(&self) -> bool {
+        false
+    }
     /// Take the next event the endpoint itself noticed: (who, the event).
     fn poll_event(&mut self, devices: &mut [Device]) -> Option<(String, NodeEvent)>;
     /// Bytes held for a frame that is not complete yet (partial-frame timeout).
@@ -90,6 +101,8 @@ pub struct NodeEndpoint {
     lengths: VecDeque<usize>,
     /// Where a node writes a frame, made once: `collect` runs for every byte.
     scratch: Vec<u8>,
+    /// The nodes are masters: see [`Endpoint::reports_writes`].
+    masters: bool,
 }
 
 impl NodeEndpoint {
@@ -99,6 +112,16 @@ impl NodeEndpoint {
             devices,
             scratch: vec![0; MAX_FRAME],
             ..Self::default()
+        }
+    }
+
+    /// Drives masters (`devices`) over one link: each is told its request
+    /// has left when its carrier has written it, and its reply timeout
+    /// runs from then.
+    pub fn masters(devices: Vec<usize>) -> Self {
+        NodeEndpoint {
+            masters: true,
+            ..Self::new(devices)
         }
     }
 
@@ -180,6 +203,10 @@ impl Endpoint for NodeEndpoint {
                 device.node.transmit_done(now);
             }
         }
+    }
+
+    fn reports_writes(&self) -> bool {
+        self.masters
     }
 
     /// The engine drains the devices' own events, whatever drives them.

@@ -94,12 +94,26 @@ pub enum Direction {
 pub struct PackedFrames {
     bytes: Vec<u8>,
     ends: Vec<usize>,
+    /// Whether the front waits to hear when these frames were written
+    /// ([`crate::Endpoint::reports_writes`]): their carrier tells it
+    /// (`FrontHandle::written`) once they are.
+    report: bool,
 }
 
 impl PackedFrames {
     pub fn push(&mut self, frame: &[u8]) {
         self.bytes.extend_from_slice(frame);
         self.ends.push(self.bytes.len());
+    }
+
+    /// The front waits to hear when the frames pushed are written.
+    pub fn report_when_written(&mut self) {
+        self.report = true;
+    }
+
+    /// Whether the front waits to hear when these frames are written.
+    pub fn reports(&self) -> bool {
+        self.report && !self.is_empty()
     }
 
     pub fn is_empty(&self) -> bool {
@@ -109,6 +123,7 @@ impl PackedFrames {
     pub fn clear(&mut self) {
         self.bytes.clear();
         self.ends.clear();
+        self.report = false;
     }
 
     /// Moves every frame of `self` to the end of `to`.
@@ -119,6 +134,7 @@ impl PackedFrames {
             let base = to.bytes.len();
             to.bytes.extend_from_slice(&self.bytes);
             to.ends.extend(self.ends.iter().map(|e| e + base));
+            to.report |= self.report;
         }
         self.clear();
     }

@@ -94,6 +94,18 @@ pub(super) struct Conn {
     /// noise outside any frame does not count, so a connection that sends
     /// only that ages out and makes room as a quiet one does.
     last_rx: SimTime,
+    /// The frames handed to the carrier and not yet reported written, in
+    /// order, when the endpoint [`reports_writes`](Endpoint::reports_writes).
+    unwritten: VecDeque<Unwritten>,
+}
+
+/// A frame handed to its carrier, until the carrier says it is written.
+#[derive(Debug, Clone, Copy)]
+struct Unwritten {
+    /// Its time on the wire (a paced link's), before the write that ends it.
+    wire: SimDuration,
+    /// The first write of a split reply: its end is not the reply's.
+    part: bool,
 }
 
 /// The shared state. The engine keeps its fields as its own between runs
@@ -260,6 +272,23 @@ impl FrontHandle {
         self.lock().take_due(conn, out)
     }
 
+    /// The carrier of `conn` wrote `frames` (which [`Outgoing::reports`])
+    /// at `at`: they are recorded as written then, and the endpoint told
+    /// its transmission has ended; the frames that follow are added to `out`.
+    pub fn written(
+        &self,
+        conn: ConnId,
+        at: SimTime,
+        frames: &Outgoing,
+        out: &mut Outgoing,
+    ) -> After {
+        let mut guard = self.lock();
+        let front = &mut *guard;
+        let at = front.hold_clock(at);
+        front.written(conn, at, frames);
+        front.take_due(conn, out)
+    }
+
     /// The count of frames shipped to the sink and not yet recorded.
     pub fn backlog(&self) -> Backlog {
         self.lock().backlog()
@@ -330,6 +359,16 @@ impl Front {
         self.clock.as_ref().map_or(SimTime::ZERO, |c| c.now())
     }
 
+    /// The session's time now, the clock held first (see
+    /// [`Front::hold_clock`]): what the endpoints' timers and frames are
+    /// stamped with. A time read across a stall the clock has not yet
+    /// slipped for would count the stall as time that passed, and lie
+    /// ahead of every time stamped after the slip.
+    fn held_now(&mut self) -> SimTime {
+        let now = self.now();
+        self.hold_clock(now)
+    }
+
     fn send(&self, message: SinkMsg) {
         if let Some(sink) = &self.sink {
             let _ = sink.send(message);
@@ -396,6 +435,7 @@ impl Front {
                 rate_bytes: 0,
                 probation: None,
                 last_rx: now,
+                unwritten: VecDeque::new(),
             },
         );
         self.note(link_index, &peer, "connected");
@@ -724,7 +764,7 @@ impl Front {
                 start = due + split.map_or(SimDuration::ZERO, |(_, gap)| gap);
             }
         }
-        let now = self.now();
+        let now = self.held_now();
         self.flush(id, now);
     }
 
@@ -741,6 +781,19 @@ impl Front {
             let frame = conn.queued_bytes.get(..len).unwrap_or_default();
             self.counters.frames_out += 1;
             self.counters.bytes_out += len as u64;
+            let part = q.part;
+            if conn.endpoint.reports_writes() {
+                // Recorded and reported when its carrier has written it.
+                conn.unwritten.push_back(Unwritten {
+                    wire: q.due.saturating_since(q.start),
+                    part,
+                });
+                conn.due.push(frame);
+                conn.due.report_when_written();
+                conn.queued_bytes.drain(..len);
+                conn.queue.pop_front();
+                continue;
+            }
             let record = FrameRecord {
                 link: conn.link,
                 conn: id,
@@ -751,12 +804,39 @@ impl Front {
             self.frames.push(record, frame);
             conn.due.push(frame);
             conn.queued_bytes.drain(..len);
-            let part = q.part;
             conn.queue.pop_front();
             if !part {
                 conn.endpoint.transmit_done(&mut self.devices, now);
             }
         }
+    }
+
+    /// The carrier of `id` wrote `frames` at `at`: each is recorded as
+    /// written then (its wire time before, on a paced link), and the
+    /// endpoint told each transmission has ended, so a master's reply
+    /// timeout runs from when its request left, not from when the engine
+    /// handed it over. Then what the endpoint has to send goes out.
+    fn written(&mut self, id: ConnId, at: SimTime, frames: &Outgoing) {
+        let Some(conn) = self.conns.get_mut(&id) else {
+            return;
+        };
+        for frame in frames.iter() {
+            let Some(Unwritten { wire, part }) = conn.unwritten.pop_front() else {
+                break;
+            };
+            let record = FrameRecord {
+                link: conn.link,
+                conn: id,
+                direction: Direction::Tx,
+                start: SimTime(at.0.saturating_sub(wire.0)),
+                end: at,
+            };
+            self.frames.push(record, frame);
+            if !part {
+                conn.endpoint.transmit_done(&mut self.devices, at);
+            }
+        }
+        self.drain(id, at);
     }
 
     /// The earliest firmware loop tick a connection wants run before the
@@ -777,6 +857,10 @@ impl Front {
     }
 
     pub(super) fn service_timers(&mut self, now: SimTime) {
+        // Read before a stall, `now` would count it as time the timers
+        // waited (a reply timeout fired, a request stamped ahead of every
+        // time after the slip, so the next ones queued behind it).
+        let now = self.hold_clock(now);
         // The ids are copied into a kept buffer: handling a connection may
         // close it, and this runs at every wake-up (no allocation here).
         let mut ids = std::mem::take(&mut self.ids);

@@ -82,6 +82,8 @@ where
     };
     let mut buf = vec![0u8; READ_CHUNK];
     let mut due = Outgoing::default();
+    // The frames just written, while the front hears of them.
+    let mut written = Outgoing::default();
     // Kept registered across passes of the loop rather than made anew for
     // each (which locks the Notify's waiter list twice per request).
     let notified = ready.notified();
@@ -118,11 +120,31 @@ where
                 None => break "server stopping".into(),
             },
         }
-        // The replies due now, each in one write, before the next read.
-        if let Err(e) = write_frames(&mut stream, &due).await {
-            break format!("write failed: {e}");
+        // The replies due now, each in one write, before the next read;
+        // a master's requests reported as written (its reply timeout runs
+        // from then), which may make more due.
+        let mut failed = None;
+        while !due.is_empty() {
+            if let Err(e) = write_frames(&mut stream, &due).await {
+                failed = Some(format!("write failed: {e}"));
+                break;
+            }
+            if !due.reports() {
+                due.clear();
+                break;
+            }
+            std::mem::swap(&mut due, &mut written);
+            after = front.written(conn, clock.now(), &written, &mut due);
+            written.clear();
+            if matches!(after, After::Timers | After::Owing) && engine.send(Inbound::Wake).is_err()
+            {
+                failed = Some("server stopping".into());
+                break;
+            }
         }
-        due.clear();
+        if let Some(why) = failed {
+            break why;
+        }
     };
     let _ = engine.send(Inbound::Closed {
         conn,

@@ -442,7 +442,7 @@ async fn open_links(
         partial_timeout: None,
         rate_limit: None,
         idle_timeout: None,
-        factory: Box::new(|_devices, _peer| Box::new(NodeEndpoint::new(vec![SUPERVISOR]))),
+        factory: Box::new(|_devices, _peer| Box::new(NodeEndpoint::masters(vec![SUPERVISOR]))),
     });
 
     for (n, spec) in listen.into_iter().enumerate() {
