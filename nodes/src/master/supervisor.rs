@@ -662,6 +662,14 @@ impl Slave {
 
 impl Node for Supervisor {
     fn handle_bytes(&mut self, now: SimTime, bytes: &[u8]) {
+        // Bytes while the request is still going out answer an earlier
+        // copy (a reply late for the timeout that retried it), or are
+        // noise: not this request's reply, which can only follow it. A
+        // master flushes its input when it sends; taken as the reply, they
+        // would move on to the next request right behind this one.
+        if let Phase::Awaiting { deadline: None } = self.phase {
+            return;
+        }
         // Bytes while a request waits to go out: the rest of a reply already
         // given up on (a bad check mid-frame), or another talker. Sending now
         // would collide with it, so the request waits for the line to be

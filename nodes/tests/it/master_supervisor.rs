@@ -363,13 +363,18 @@ fn a_request_written_late_waits_its_whole_timeout_from_the_write() {
     let mut master = Supervisor::new(config).unwrap();
     let mut buf = [0u8; MAX_FRAME];
     let decided = SimTime::ZERO;
-    let n = master.poll_transmit(decided, &mut buf).expect("the first poll");
+    let n = master
+        .poll_transmit(decided, &mut buf)
+        .expect("the first poll");
     assert_eq!(&buf[..n], b"@01EA000643*\n");
-    // Not written yet: nothing to time out, nothing more to send.
+    // Not written yet: nothing to time out, nothing more to send, and a
+    // reply (an earlier copy's, late) heard meanwhile is not its reply.
     assert_eq!(master.poll_timeout(), None);
     master.handle_timeout(decided + ms(31));
     assert_eq!(master.poll_transmit(decided + ms(31), &mut buf), None);
-    assert_eq!(master.loop_state(1).unwrap().counters.timeouts, 0);
+    master.handle_bytes(decided + ms(40), &meb(1, MebCmd::EA, 6, &INPUTS));
+    let counters = master.loop_state(1).unwrap().counters;
+    assert_eq!((counters.replies, counters.timeouts), (0, 0));
 
     let written = decided + ms(300);
     master.transmit_done(written);
@@ -386,7 +391,10 @@ fn a_request_written_late_waits_its_whole_timeout_from_the_write() {
     let next = written + ms(31);
     while master.poll_transmit(next, &mut buf).is_none() {
         let at = master.poll_timeout().expect("the next poll's instant");
-        assert!(at <= next, "the next poll is due by {next:?}, asked for {at:?}");
+        assert!(
+            at <= next,
+            "the next poll is due by {next:?}, asked for {at:?}"
+        );
         master.handle_timeout(at);
     }
     master.transmit_done(next);

@@ -39,6 +39,18 @@ impl RtClock {
         }
     }
 
+    /// A clock whose zero was `ago` before now: a session under way, for
+    /// tests that need the wall clock ahead of the engine's ticks without
+    /// sleeping.
+    #[cfg(test)]
+    pub(crate) fn started_ago(ago: Duration) -> Self {
+        let now = Instant::now();
+        Self {
+            origin: now.checked_sub(ago).unwrap_or(now),
+            slipped_ns: Arc::new(AtomicU64::new(0)),
+        }
+    }
+
     /// The session time of `instant` (zero before the origin).
     pub fn at(&self, instant: Instant) -> SimTime {
         let ns = instant.saturating_duration_since(self.origin).as_nanos();

@@ -945,3 +945,130 @@ pub enum Outbound {
     /// Write these frames, then close the connection, for this reason.
     Close { why: String, owed: Outgoing },
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::endpoint::NodeEndpoint;
+    use crate::io::{LinkDefaults, LinkSpec};
+    use crate::wake::Wake;
+    use nodes::master::{Protocol, SlaveLoopConfig, Supervisor, SupervisorConfig};
+    use nodes::node::Node;
+    use twin_sim::nodes_build::SupervisorNode;
+
+    fn ms(n: u64) -> SimDuration {
+        SimDuration::from_millis(n)
+    }
+
+    fn supervisor_timeout(front: &FrontHandle) -> Option<SimTime> {
+        front
+            .lock()
+            .devices
+            .get_mut(0)
+            .and_then(|d| d.node.supervisor_mut())
+            .and_then(|s| s.poll_timeout())
+    }
+
+    /// A supervisor's bus when the engine's thread was stopped for 300 ms
+    /// just after its tick and reads the time before the clock slipped for
+    /// the stall: its timers are held at the catch-up, its request goes
+    /// out at the held time, and is recorded and starts its reply timeout
+    /// only when its carrier has written it. Before, the request was stamped
+    /// 300 ms ahead of the slipped clock, so the next ones queued behind it
+    /// for 300 ms, and their timeouts, counted from their hand-off, fired
+    /// before their first copies were written.
+    #[test]
+    fn a_stall_before_the_slip_is_not_time_a_request_waited() {
+        let clock = RtClock::started_ago(std::time::Duration::from_secs(1));
+        let (sink, _sink) = std::sync::mpsc::channel();
+        let defaults = LinkDefaults {
+            serial_turnaround: SimDuration::ZERO,
+            pace: false,
+            ..LinkDefaults::default()
+        };
+        let link = LinkConfig {
+            name: "bus".into(),
+            protocol: "meb",
+            address: "/tmp/bus".into(),
+            twin_is_master: true,
+            spec: LinkSpec::parse("/tmp/bus", &defaults).expect("a serial path"),
+            check: None,
+            partial_timeout: None,
+            rate_limit: None,
+            idle_timeout: None,
+            factory: Box::new(|_, _| Box::new(NodeEndpoint::masters(vec![0]))),
+        };
+        let mut front = Front::new(sink, clock.clone(), std::slice::from_ref(&link));
+        front.catch_up = ms(5);
+        let mut config = SupervisorConfig::new(Protocol::Meb, vec![SlaveLoopConfig::new(1)]);
+        config.startup_outputs = None;
+        config.reply_timeout = ms(30);
+        config.first_poll_at = SimTime::ZERO + ms(700);
+        let supervisor = Supervisor::new(config).expect("a supervisor");
+        front.devices.push(Device::new(
+            "supervisor",
+            Box::new(SupervisorNode::new(supervisor)),
+            None,
+        ));
+        let (out, _outbox) = tokio::sync::mpsc::unbounded_channel();
+        let task = LinkTask {
+            out,
+            wake: Wake::Task(Arc::new(tokio::sync::Notify::new())),
+        };
+        let endpoint = Box::new(NodeEndpoint::masters(vec![0]));
+        front.open(&link, 0, 1, "/tmp/bus".into(), endpoint, task);
+        // The engine ticked up to 0.7 s, then stood still until now (1 s).
+        let ticked_to = SimTime::ZERO + ms(700);
+        front.ticked_to = ticked_to;
+        let front = FrontHandle(Arc::new(Mutex::new(front)));
+
+        let read_before_the_slip = clock.now();
+        front.lock().service_timers(read_before_the_slip);
+        let held = ticked_to + ms(5);
+        assert!(
+            clock.now() < held + ms(100),
+            "the clock slipped for the stall"
+        );
+        assert!(front.lock().slips.count >= 1);
+        // Handed to the carrier, not yet written: no timeout runs.
+        let mut due = Outgoing::default();
+        front.take_due(1, &mut due);
+        assert!(due.reports());
+        assert_eq!(due.iter().collect::<Vec<_>>(), [&b"@01EA000643*\n"[..]]);
+        assert_eq!(supervisor_timeout(&front), None);
+
+        // The carrier writes it a little later (on the held clock).
+        let mut more = Outgoing::default();
+        front.written(1, clock.now(), &due, &mut more);
+        assert!(more.is_empty());
+        let batch = front.lock().frames.take().expect("the request recorded");
+        let records: Vec<_> = batch.iter().map(|(r, bytes)| (*r, bytes.len())).collect();
+        let [(request, 13)] = records[..] else {
+            panic!("one request recorded: {records:?}");
+        };
+        assert_eq!(request.direction, Direction::Tx);
+        assert_eq!(request.start, request.end);
+        assert!(
+            request.start >= ticked_to && request.start <= held,
+            "written at {:?}, the engine's tick {ticked_to:?}",
+            request.start
+        );
+        assert_eq!(supervisor_timeout(&front), Some(request.end + ms(30)));
+
+        // Its reply, read at once, is used: nothing timed out.
+        let reply = b"@01EA00060BB80000000003E8000003E84B*\n";
+        let mut replies = Outgoing::default();
+        front.receive(1, clock.now(), reply, &mut replies);
+        let mut shared = front.lock();
+        let supervisor = shared.devices[0]
+            .node
+            .supervisor_mut()
+            .expect("the supervisor");
+        let counters = supervisor.loop_state(1).expect("slave 1").counters;
+        assert_eq!(
+            (counters.replies, counters.timeouts),
+            (1, 0),
+            "{counters:?}"
+        );
+    }
+}
