@@ -49,7 +49,9 @@ pub trait Endpoint: Send {
     /// master's reply timeout counts from when its request has left, which
     /// on a busy machine (or across a stopped process) comes later than the
     /// engine's hand-off. Costs the carrier a lock of the front per write,
-    /// so a slave's endpoint, whose replies wait for nothing, says no.
+    /// so a slave's endpoint, whose replies wait for nothing, says no. The
+    /// tokio carriers report (serial ports, the connections the twin opens
+    /// itself: where it is a master); a listener's client threads do not.
     fn reports_writes(&self) -> bool {
         false
     }
