@@ -16,10 +16,11 @@
 //! `twin bench --repeat 5 --seconds 100`, the recorded runs alone: the
 //! library's took 1.19x as long on ev-meb (0.172 to 0.189 s against 0.147
 //! and 0.156 s) and 1.12x on ten-modules (1.26 to 1.48 s against 1.21 and
-//! 1.24 s). Over the 10 % that keeps a writer of our own, so this is the one
-//! recordings use. `twin recover` still rewrites a cut file through the
-//! library's writer (it keeps the file's own schema and channel ids, which
-//! this writer numbers itself).
+//! 1.24 s). Over the 10 % that keeps a writer of our own, so this is the
+//! workspace's one MCAP writer: recordings and `twin recover`'s copies (which
+//! keep a file's own schema and channel ids: [`McapFile::add_schema_with_id`],
+//! [`McapFile::add_channel_with_id`]). The library's writer stays only in
+//! this module's test, as the reference this one is held to.
 
 use mcap::records::op;
 use std::collections::BTreeMap;
@@ -71,16 +72,17 @@ pub(crate) struct McapFile<W: Write + Seek> {
     chunk: Vec<u8>,
     /// The open chunk's first and last message times.
     chunk_bounds: Option<(u64, u64)>,
-    /// Per channel id (0, no channel, stays empty): the open chunk's
-    /// messages (log time, offset in the chunk).
-    indexes: Vec<Vec<(u64, u64)>>,
+    /// Per channel id (`None` where no channel has it): the open chunk's
+    /// messages (log time, offset in the chunk). A message's channel is
+    /// checked and indexed in one lookup.
+    indexes: Vec<Option<Vec<(u64, u64)>>>,
     compressor: zstd::bulk::Compressor<'static>,
     /// A record's body, built before its length is known.
     scratch: Vec<u8>,
-    /// Schema records (id order), for the summary and their deduplication.
-    schemas: Vec<Schema>,
-    /// Channel records' bodies (id order), for the summary.
-    channels: Vec<Vec<u8>>,
+    /// Schema records by id, for the summary and their deduplication.
+    schemas: BTreeMap<u16, Schema>,
+    /// Channel records' bodies by id, for the summary.
+    channels: BTreeMap<u16, Vec<u8>>,
     /// The chunk index records, whole and back to back, for the summary:
     /// one allocation for a session of any length (a 10-minute session at
     /// eight clients closes about 16 000 chunks), none per chunk.
@@ -94,6 +96,7 @@ pub(crate) struct McapFile<W: Write + Seek> {
     stats: Statistics,
 }
 
+#[derive(PartialEq)]
 struct Schema {
     name: String,
     encoding: String,
@@ -302,7 +305,15 @@ fn too_many(what: &str) -> io::Error {
 impl<W: Write + Seek> McapFile<W> {
     /// Start the file: magic and header (and a provisional end, so that a
     /// run killed before its first chunk leaves an MCAP file of no message).
-    pub(crate) fn new(inner: W, library: &str, level: i32, chunk_size: usize) -> io::Result<Self> {
+    /// The twin's recordings have no `profile` (""); a recovered file keeps
+    /// its original's.
+    pub(crate) fn new(
+        inner: W,
+        profile: &str,
+        library: &str,
+        level: i32,
+        chunk_size: usize,
+    ) -> io::Result<Self> {
         let mut file = Self {
             out: Out {
                 inner,
@@ -315,11 +326,11 @@ impl<W: Write + Seek> McapFile<W> {
             chunk_size,
             chunk: Vec::with_capacity(chunk_size + 64 * 1024),
             chunk_bounds: None,
-            indexes: vec![Vec::new()],
+            indexes: Vec::new(),
             compressor: compressor(level)?,
             scratch: Vec::new(),
-            schemas: Vec::new(),
-            channels: Vec::new(),
+            schemas: BTreeMap::new(),
+            channels: BTreeMap::new(),
             chunk_index_records: Vec::new(),
             index_offsets: Vec::new(),
             metadata_indexes: Vec::new(),
@@ -328,7 +339,7 @@ impl<W: Write + Seek> McapFile<W> {
         };
         file.out.put(mcap::MAGIC);
         let mut header = Vec::new();
-        header.str(""); // profile
+        header.str(profile);
         header.str(library);
         file.out.record(op::HEADER, &header);
         file.out.land()?;
@@ -343,22 +354,53 @@ impl<W: Write + Seek> McapFile<W> {
         encoding: &str,
         data: &[u8],
     ) -> io::Result<u16> {
-        if let Some(i) = self
-            .schemas
-            .iter()
-            .position(|s| s.name == name && s.encoding == encoding && s.data == data)
-        {
-            return Ok(i as u16 + 1);
+        let same = |s: &Schema| s.name == name && s.encoding == encoding && s.data == data;
+        if let Some((&id, _)) = self.schemas.iter().find(|(_, s)| same(s)) {
+            return Ok(id);
         }
-        let id = u16::try_from(self.schemas.len() + 1).map_err(|_| too_many("schemas"))?;
-        self.schemas.push(Schema {
-            name: name.into(),
-            encoding: encoding.into(),
-            data: data.into(),
-        });
+        let id = first_free(&self.schemas).ok_or_else(|| too_many("schemas"))?;
+        self.declare_schema(id, name, encoding, data);
+        Ok(id)
+    }
+
+    /// A schema with the id `id` (a copied file's own), written into the
+    /// open chunk the first time; again with the same contents, nothing.
+    pub(crate) fn add_schema_with_id(
+        &mut self,
+        id: u16,
+        name: &str,
+        encoding: &str,
+        data: &[u8],
+    ) -> io::Result<()> {
+        if id == 0 {
+            return Err(io::Error::other(format!(
+                "schema `{name}` has the id 0, which MCAP reserves for \"no schema\""
+            )));
+        }
+        match self.schemas.get(&id) {
+            Some(s) if s.name == name && s.encoding == encoding && s.data == data => Ok(()),
+            Some(s) => Err(io::Error::other(format!(
+                "schema {id} is declared twice, differently (`{}`, then `{name}`)",
+                s.name
+            ))),
+            None => {
+                self.declare_schema(id, name, encoding, data);
+                Ok(())
+            }
+        }
+    }
+
+    fn declare_schema(&mut self, id: u16, name: &str, encoding: &str, data: &[u8]) {
         let body = schema_body(id, name, encoding, data);
         chunk_record(&mut self.chunk, op::SCHEMA, &body);
-        Ok(id)
+        self.schemas.insert(
+            id,
+            Schema {
+                name: name.into(),
+                encoding: encoding.into(),
+                data: data.into(),
+            },
+        );
     }
 
     /// A new channel (ids from 1, as the MCAP library gave them), written
@@ -369,17 +411,53 @@ impl<W: Write + Seek> McapFile<W> {
         topic: &str,
         message_encoding: &str,
     ) -> io::Result<u16> {
-        let id = u16::try_from(self.channels.len() + 1).map_err(|_| too_many("channels"))?;
-        let mut body = Vec::new();
-        body.u16(id);
-        body.u16(schema_id);
-        body.str(topic);
-        body.str(message_encoding);
-        body.map(&BTreeMap::new());
-        chunk_record(&mut self.chunk, op::CHANNEL, &body);
-        self.channels.push(body);
-        self.indexes.push(Vec::new());
+        let id = first_free(&self.channels).ok_or_else(|| too_many("channels"))?;
+        let body = channel_body(id, schema_id, topic, message_encoding, &BTreeMap::new());
+        self.declare_channel(id, schema_id, topic, body)?;
         Ok(id)
+    }
+
+    /// A channel with the id `id` (a copied file's own; 0 is a channel id
+    /// too) and its metadata, written into the open chunk the first time;
+    /// again with the same contents, nothing.
+    pub(crate) fn add_channel_with_id(
+        &mut self,
+        id: u16,
+        schema_id: u16,
+        topic: &str,
+        message_encoding: &str,
+        metadata: &BTreeMap<String, String>,
+    ) -> io::Result<()> {
+        let body = channel_body(id, schema_id, topic, message_encoding, metadata);
+        match self.channels.get(&id) {
+            Some(known) if *known == body => Ok(()),
+            Some(_) => Err(io::Error::other(format!(
+                "channel {id} is declared twice, differently (the second time as `{topic}`)"
+            ))),
+            None => self.declare_channel(id, schema_id, topic, body),
+        }
+    }
+
+    fn declare_channel(
+        &mut self,
+        id: u16,
+        schema_id: u16,
+        topic: &str,
+        body: Vec<u8>,
+    ) -> io::Result<()> {
+        if schema_id != 0 && !self.schemas.contains_key(&schema_id) {
+            return Err(io::Error::other(format!(
+                "channel `{topic}` uses schema {schema_id}, which the file never declared"
+            )));
+        }
+        chunk_record(&mut self.chunk, op::CHANNEL, &body);
+        self.channels.insert(id, body);
+        let slot = usize::from(id);
+        if self.indexes.len() <= slot {
+            self.indexes.resize_with(slot + 1, || None);
+        }
+        self.indexes[slot] = Some(Vec::new());
+        Ok(())
     }
 
     /// One message on `channel` (an id [`McapFile::add_channel`] gave).
@@ -408,7 +486,7 @@ impl<W: Write + Seek> McapFile<W> {
         publish_time: u64,
         data: impl FnOnce(&mut Vec<u8>) -> io::Result<()>,
     ) -> io::Result<()> {
-        if channel == 0 || usize::from(channel) >= self.indexes.len() {
+        if !matches!(self.indexes.get(usize::from(channel)), Some(Some(_))) {
             return Err(io::Error::other(format!(
                 "a message on channel {channel}, which the file never declared"
             )));
@@ -434,7 +512,7 @@ impl<W: Write + Seek> McapFile<W> {
         }
         let length = (self.chunk.len() - offset - 9) as u64;
         self.chunk[offset + 1..offset + 9].copy_from_slice(&length.to_le_bytes());
-        if let Some(index) = self.indexes.get_mut(usize::from(channel)) {
+        if let Some(Some(index)) = self.indexes.get_mut(usize::from(channel)) {
             index.push((log_time, offset as u64));
         }
         self.chunk_bounds = Some(match self.chunk_bounds {
@@ -481,6 +559,7 @@ impl<W: Write + Seek> McapFile<W> {
     pub(crate) fn write_attachment(
         &mut self,
         log_time: u64,
+        create_time: u64,
         name: &str,
         media_type: &str,
         data: &[u8],
@@ -489,7 +568,7 @@ impl<W: Write + Seek> McapFile<W> {
         let offset = self.out.position();
         let mut body = Vec::with_capacity(40 + name.len() + media_type.len() + data.len());
         body.u64(log_time);
-        body.u64(log_time); // create time: simulated too, so the bytes repeat
+        body.u64(create_time);
         body.str(name);
         body.str(media_type);
         body.u64(data.len() as u64);
@@ -501,7 +580,7 @@ impl<W: Write + Seek> McapFile<W> {
         index.u64(offset);
         index.u64(self.out.position() - offset);
         index.u64(log_time);
-        index.u64(log_time);
+        index.u64(create_time);
         index.u64(data.len() as u64);
         index.str(name);
         index.str(media_type);
@@ -558,9 +637,9 @@ impl<W: Write + Seek> McapFile<W> {
         let indexes_start = self.out.position();
         self.index_offsets.clear();
         for (channel, entries) in self.indexes.iter_mut().enumerate() {
-            if entries.is_empty() {
+            let Some(entries) = entries.as_mut().filter(|e| !e.is_empty()) else {
                 continue;
-            }
+            };
             let channel = channel as u16;
             // In channel order, as the chunk index lists them.
             self.index_offsets.push((channel, self.out.position()));
@@ -615,17 +694,16 @@ impl<W: Write + Seek> McapFile<W> {
         let schemas: Vec<Vec<u8>> = self
             .schemas
             .iter()
-            .enumerate()
-            .map(|(i, s)| schema_body(i as u16 + 1, &s.name, &s.encoding, &s.data))
+            .map(|(&id, s)| schema_body(id, &s.name, &s.encoding, &s.data))
             .collect();
         let out = &mut self.out;
         group(out, &mut groups, op::SCHEMA, records(op::SCHEMA, &schemas));
-        let channels = &self.channels;
+        let channels: Vec<&[u8]> = self.channels.values().map(Vec::as_slice).collect();
         group(
             out,
             &mut groups,
             op::CHANNEL,
-            records(op::CHANNEL, channels),
+            records(op::CHANNEL, &channels),
         );
         let statistics = [statistics(&self.stats, self.schemas.len(), channels.len())];
         let statistics = records(op::STATISTICS, &statistics);
@@ -678,8 +756,11 @@ fn group<W: Write + Seek>(
 }
 
 /// Writes records of `opcode` with `bodies`.
-fn records<W: Write + Seek>(opcode: u8, bodies: &[Vec<u8>]) -> impl FnOnce(&mut Out<W>) + '_ {
-    move |out| bodies.iter().for_each(|b| out.record(opcode, b))
+fn records<W: Write + Seek, B: AsRef<[u8]>>(
+    opcode: u8,
+    bodies: &[B],
+) -> impl FnOnce(&mut Out<W>) + '_ {
+    move |out| bodies.iter().for_each(|b| out.record(opcode, b.as_ref()))
 }
 
 fn statistics(stats: &Statistics, schema_count: usize, channel_count: usize) -> Vec<u8> {
@@ -704,6 +785,27 @@ fn statistics(stats: &Statistics, schema_count: usize, channel_count: usize) -> 
         body.u16(channel);
         body.u64(count);
     }
+    body
+}
+
+/// The lowest id from 1 that `taken` does not hold (`None`: all are taken).
+fn first_free<T>(taken: &BTreeMap<u16, T>) -> Option<u16> {
+    (1..=u16::MAX).find(|id| !taken.contains_key(id))
+}
+
+fn channel_body(
+    id: u16,
+    schema_id: u16,
+    topic: &str,
+    message_encoding: &str,
+    metadata: &BTreeMap<String, String>,
+) -> Vec<u8> {
+    let mut body = Vec::new();
+    body.u16(id);
+    body.u16(schema_id);
+    body.str(topic);
+    body.str(message_encoding);
+    body.map(metadata);
     body
 }
 
@@ -736,7 +838,7 @@ mod tests {
     /// [`McapFile`]: two schemas (one shared), three channels, messages
     /// across size-closed and flushed chunks, metadata in the middle.
     fn both(chunk_size: usize) -> (Vec<u8>, Vec<u8>) {
-        let mut ours = McapFile::new(Cursor::new(Vec::new()), "lib", 1, chunk_size).unwrap();
+        let mut ours = McapFile::new(Cursor::new(Vec::new()), "", "lib", 1, chunk_size).unwrap();
         let mut theirs = mcap::WriteOptions::new()
             .compression(Some(mcap::Compression::Zstd))
             .compression_level(1)
@@ -829,6 +931,10 @@ mod tests {
                         ),
                         Record::MessageIndex(m) => format!("{m:?}"),
                         Record::MetadataIndex(m) => format!("metadata index {}", m.name),
+                        Record::AttachmentIndex(a) => format!(
+                            "attachment index {} {} {} {} {}",
+                            a.name, a.media_type, a.log_time, a.create_time, a.data_size
+                        ),
                         Record::SummaryOffset(s) => format!("summary offset {}", s.group_opcode),
                         Record::DataEnd(_) => "data end".into(),
                         Record::Footer(_) => "footer".into(),
@@ -872,6 +978,173 @@ mod tests {
                 seen += messages.len();
             }
             assert_eq!(seen, 3000);
+        }
+    }
+
+    /// A file copied with its own ids, as `twin recover` writes one, through
+    /// both writers: schemas 7 then 3, channels 9, 0 (no schema) and 4 (with
+    /// metadata), one of each declared again alike, a profile, and an
+    /// attachment created before its log time.
+    fn both_with_ids() -> (Vec<u8>, Vec<u8>) {
+        let mut ours = McapFile::new(Cursor::new(Vec::new()), "ros2", "lib", 1, 4096).unwrap();
+        let mut theirs = mcap::WriteOptions::new()
+            .compression(Some(mcap::Compression::Zstd))
+            .compression_level(1)
+            .compression_threads(0)
+            .chunk_size(Some(4096))
+            .profile("ros2")
+            .library("lib")
+            .create(Cursor::new(Vec::new()))
+            .unwrap();
+        let none = BTreeMap::new();
+        let qos = BTreeMap::from([(
+            "offered_qos_profiles".to_string(),
+            "- depth: 10".to_string(),
+        )]);
+        for (id, name, data) in [
+            (7, "a", b"{}".as_slice()),
+            (3, "b", b"{\"type\":\"object\"}"),
+        ] {
+            ours.add_schema_with_id(id, name, "jsonschema", data)
+                .unwrap();
+            theirs
+                .add_schema_with_id(id, name, "jsonschema", data)
+                .unwrap();
+        }
+        let channels = [
+            (9, 7, "/nine", &none),
+            (0, 0, "/zero", &none),
+            (4, 3, "/four", &qos),
+        ];
+        for &(id, schema, topic, metadata) in channels.iter().chain(&channels[..1]) {
+            ours.add_channel_with_id(id, schema, topic, "json", metadata)
+                .unwrap();
+            theirs
+                .add_channel_with_id(id, schema, topic, "json", metadata)
+                .unwrap();
+        }
+        ours.add_schema_with_id(7, "a", "jsonschema", b"{}")
+            .unwrap();
+        theirs
+            .add_schema_with_id(7, "a", "jsonschema", b"{}")
+            .unwrap();
+        for i in 0..1000u32 {
+            let channel = [9, 0, 4][(i % 3) as usize];
+            let data = format!("{{\"i\":{i}}}");
+            let time = u64::from(i) * 1_000_000;
+            ours.write_message(channel, i * 2, time, time + 7, data.as_bytes())
+                .unwrap();
+            let header = MessageHeader {
+                channel_id: channel,
+                sequence: i * 2,
+                log_time: time,
+                publish_time: time + 7,
+            };
+            theirs
+                .write_to_known_channel(&header, data.as_bytes())
+                .unwrap();
+            if i == 500 {
+                ours.write_attachment(time, 12, "fw.hex", "text/plain", b":00000001FF")
+                    .unwrap();
+                theirs
+                    .attach(&mcap::Attachment {
+                        log_time: time,
+                        create_time: 12,
+                        name: "fw.hex".into(),
+                        media_type: "text/plain".into(),
+                        data: b":00000001FF".as_slice().into(),
+                    })
+                    .unwrap();
+            }
+        }
+        let ours = ours.finish().unwrap().into_inner();
+        theirs.finish().unwrap();
+        (ours, theirs.into_inner().into_inner())
+    }
+
+    #[test]
+    fn a_file_s_own_ids_are_written_as_the_mcap_library_writes_them() {
+        let (ours, theirs) = both_with_ids();
+        let (a, b) = (records(&ours), records(&theirs));
+        assert!(a.len() > 1000, "{}", a.len());
+        // Record by record, so that a difference shows as one.
+        for (i, (a, b)) in a.iter().zip(&b).enumerate() {
+            assert_eq!(a, b, "record {i}");
+        }
+        assert_eq!(a.len(), b.len());
+        let summary = mcap::Summary::read(&ours).unwrap().unwrap();
+        let theirs_summary = mcap::Summary::read(&theirs).unwrap().unwrap();
+        assert_eq!(summary.stats, theirs_summary.stats);
+        let ids = |s: &mcap::Summary| -> Vec<(u16, Option<u16>)> {
+            let schema = |c: &mcap::Channel| c.schema.as_ref().map(|s| s.id);
+            let mut ids: Vec<_> = s.channels.iter().map(|(&id, c)| (id, schema(c))).collect();
+            ids.sort();
+            ids
+        };
+        assert_eq!(ids(&summary), [(0, None), (4, Some(3)), (9, Some(7))]);
+        assert_eq!(ids(&summary), ids(&theirs_summary));
+        assert_eq!(
+            summary.channels[&4].metadata["offered_qos_profiles"],
+            "- depth: 10"
+        );
+        let header = mcap::read::LinearReader::new(&ours)
+            .unwrap()
+            .next()
+            .unwrap()
+            .unwrap();
+        assert!(
+            matches!(&header, mcap::records::Record::Header(h) if h.profile == "ros2"),
+            "{header:?}"
+        );
+    }
+
+    #[test]
+    fn a_declaration_that_contradicts_an_earlier_one_is_refused_in_words() {
+        let mut file = McapFile::new(Cursor::new(Vec::new()), "", "lib", 1, 4096).unwrap();
+        file.add_schema_with_id(2, "a", "jsonschema", b"{}")
+            .unwrap();
+        let e = file
+            .add_schema_with_id(2, "b", "jsonschema", b"{}")
+            .unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "schema 2 is declared twice, differently (`a`, then `b`)"
+        );
+        let e = file
+            .add_schema_with_id(0, "c", "jsonschema", b"{}")
+            .unwrap_err();
+        assert!(
+            e.to_string().contains("the id 0, which MCAP reserves"),
+            "{e}"
+        );
+        let none = BTreeMap::new();
+        file.add_channel_with_id(5, 2, "/a", "json", &none).unwrap();
+        let e = file
+            .add_channel_with_id(5, 2, "/b", "json", &none)
+            .unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "channel 5 is declared twice, differently (the second time as `/b`)"
+        );
+        let e = file
+            .add_channel_with_id(6, 3, "/c", "json", &none)
+            .unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "channel `/c` uses schema 3, which the file never declared"
+        );
+        // A channel the file never declared, next to and far from declared ones.
+        for channel in [0, 4, 6, 700] {
+            let e = file.write_message(channel, 0, 0, 0, b"{}").unwrap_err();
+            assert!(e.to_string().contains("never declared"), "{e}");
+        }
+        // The automatic ids go around the given ones.
+        assert_eq!(file.add_schema("d", "jsonschema", b"[]").unwrap(), 1);
+        assert_eq!(file.add_schema("d", "jsonschema", b"[]").unwrap(), 1);
+        assert_eq!(file.add_schema("e", "jsonschema", b"[]").unwrap(), 3);
+        assert_eq!(file.add_schema("a", "jsonschema", b"{}").unwrap(), 2);
+        for expected in [1, 2, 3, 4, 6] {
+            assert_eq!(file.add_channel(1, "/x", "json").unwrap(), expected);
         }
     }
 
@@ -935,7 +1208,7 @@ mod tests {
 
     #[test]
     fn a_file_cut_after_any_write_reads_to_its_last_whole_chunk() {
-        let mut file = McapFile::new(Tape::default(), "lib", 1, 4096).unwrap();
+        let mut file = McapFile::new(Tape::default(), "", "lib", 1, 4096).unwrap();
         let schema = file.add_schema("a", "jsonschema", b"{}").unwrap();
         let channel = file.add_channel(schema, "/a", "json").unwrap();
         for i in 0..2000u32 {
@@ -950,7 +1223,7 @@ mod tests {
                 file.write_metadata("run", &BTreeMap::new()).unwrap();
             }
             if i == 1200 {
-                file.write_attachment(time, "fw.hex", "text/plain", &[b':'; 3000])
+                file.write_attachment(time, time, "fw.hex", "text/plain", &[b':'; 3000])
                     .unwrap();
             }
         }

@@ -466,7 +466,7 @@ fn open(path: &Path) -> Result<FileWriter> {
         source,
     })?;
     let library = concat!("ev-lab-twin ", env!("CARGO_PKG_VERSION"));
-    let writer = McapFile::new(file, library, ZSTD_LEVEL, CHUNK_SIZE).map_err(|source| {
+    let writer = McapFile::new(file, "", library, ZSTD_LEVEL, CHUNK_SIZE).map_err(|source| {
         WriteError::Start {
             path: path.to_path_buf(),
             source,

@@ -4,19 +4,24 @@
 //! read is copied into a new file with its summary, a damaged chunk is left
 //! out and reading goes on after it, and the copy ends where the data ends.
 //!
-//! Schemas and channels keep their ids, messages their sequence numbers and
-//! times, and metadata and attachments come along, so the recovered file is
-//! the recording as far as it was written, not a re-encoding of it.
+//! Schemas and channels keep their ids and metadata, messages their
+//! sequence numbers and times, metadata and attachments come along, the
+//! header keeps its profile and library, and each whole chunk is one chunk
+//! of the copy again: the recovered file is the recording as far as it was
+//! written, not a re-encoding of it. It is written by the recordings' own
+//! writer ([`McapFile`]), so a complete recording of the twin's comes out
+//! byte for byte the same.
 
 use mcap::records::Record;
 use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader, LinearReaderOptions};
-use mcap::{Attachment, WriteOptions, Writer};
 use std::collections::BTreeSet;
 use std::fs::File;
-use std::io::{BufWriter, Read};
+use std::io::Read;
 use std::path::{Path, PathBuf};
 
 use crate::chunk::{chunk_records, in_words};
+use crate::mcap_file::McapFile;
+use crate::record::{CHUNK_SIZE, ZSTD_LEVEL};
 
 /// Why a recovery could not be made.
 #[derive(Debug, thiserror::Error)]
@@ -45,19 +50,19 @@ pub enum RecoverError {
     Start {
         path: PathBuf,
         #[source]
-        source: mcap::McapError,
+        source: std::io::Error,
     },
     #[error("cannot write {}", path.display())]
     Write {
         path: PathBuf,
         #[source]
-        source: mcap::McapError,
+        source: std::io::Error,
     },
     #[error("cannot finish {}", path.display())]
     Finish {
         path: PathBuf,
         #[source]
-        source: mcap::McapError,
+        source: std::io::Error,
     },
 }
 
@@ -154,6 +159,9 @@ pub fn recover(damaged: &Path, out: &Path) -> Result<Recovered> {
                 for r in records {
                     copy.take(writer, r).map_err(cannot_write)?;
                 }
+                // Where the recording closed a chunk (a simulated second's
+                // end, a full chunk), so does the copy.
+                writer.flush().map_err(cannot_write)?;
             }
             // A damaged chunk's neighbours are whole: leave it out and go
             // on, as `mcap recover` does.
@@ -163,7 +171,7 @@ pub fn recover(damaged: &Path, out: &Path) -> Result<Recovered> {
             }
         }
     }
-    let mut writer = match writer {
+    let writer = match writer {
         Some(w) => w,
         None => {
             return Err(RecoverError::Empty {
@@ -179,24 +187,20 @@ pub fn recover(damaged: &Path, out: &Path) -> Result<Recovered> {
     Ok(copy.found)
 }
 
-type FileWriter = Writer<BufWriter<File>>;
+type FileWriter = McapFile<File>;
 
+/// The copy, compressed as the twin's recordings are.
 fn create(out: &Path, profile: &str, library: &str) -> Result<FileWriter> {
     let file = File::create(out).map_err(|source| RecoverError::Create {
         path: out.to_path_buf(),
         source,
     })?;
-    WriteOptions::new()
-        .compression(Some(mcap::Compression::Zstd))
-        .compression_level(crate::record::ZSTD_LEVEL.unsigned_abs())
-        .chunk_size(Some(crate::record::CHUNK_SIZE as u64))
-        .profile(profile)
-        .library(library)
-        .create(BufWriter::new(file))
-        .map_err(|source| RecoverError::Start {
+    McapFile::new(file, profile, library, ZSTD_LEVEL, CHUNK_SIZE).map_err(|source| {
+        RecoverError::Start {
             path: out.to_path_buf(),
             source,
-        })
+        }
+    })
 }
 
 /// Ids declared so far, and the tally.
@@ -210,7 +214,7 @@ struct Copy {
 impl Copy {
     /// Write `record` into the copy, if it is data (the summary and the
     /// indexes are the writer's to rebuild).
-    fn take(&mut self, writer: &mut FileWriter, record: Record<'_>) -> mcap::McapResult<()> {
+    fn take(&mut self, writer: &mut FileWriter, record: Record<'_>) -> std::io::Result<()> {
         match record {
             Record::Schema { header, data } => {
                 writer.add_schema_with_id(header.id, &header.name, &header.encoding, &data)?;
@@ -235,24 +239,30 @@ impl Copy {
             }
             Record::Message { header, data } => {
                 if self.channels.contains(&header.channel_id) {
-                    writer.write_to_known_channel(&header, &data)?;
+                    writer.write_message(
+                        header.channel_id,
+                        header.sequence,
+                        header.log_time,
+                        header.publish_time,
+                        &data,
+                    )?;
                     self.found.messages += 1;
                 } else {
                     self.found.strays += 1;
                 }
             }
             Record::Metadata(m) => {
-                writer.write_metadata(&m)?;
+                writer.write_metadata(&m.name, &m.metadata)?;
                 self.found.metadata += 1;
             }
             Record::Attachment { header, data, .. } => {
-                writer.attach(&Attachment {
-                    log_time: header.log_time,
-                    create_time: header.create_time,
-                    name: header.name,
-                    media_type: header.media_type,
-                    data,
-                })?;
+                writer.write_attachment(
+                    header.log_time,
+                    header.create_time,
+                    &header.name,
+                    &header.media_type,
+                    &data,
+                )?;
                 self.found.attachments += 1;
             }
             _ => {}

@@ -235,8 +235,9 @@ impl FileWriter {
                 media_type,
                 data,
             } => {
+                // Created at its log time: simulated too, so the bytes repeat.
                 self.writer
-                    .write_attachment(log_time, &name, &media_type, &data)
+                    .write_attachment(log_time, log_time, &name, &media_type, &data)
                     .map_err(cannot_write)?;
                 Ok(None)
             }
