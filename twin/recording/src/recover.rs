@@ -318,6 +318,114 @@ mod tests {
     use super::*;
     use crate::read::Recording;
     use crate::read::tests::{damage_chunk, scratch, write};
+    use std::collections::BTreeMap;
+
+    /// A file laid out as another writer may lay one out, with its own ids:
+    /// schemas 7 and 3, channels 9, 0 (no schema) and 4 (with metadata), a
+    /// profile, sequence numbers that skip, publish times apart from log
+    /// times, metadata and an attachment between 4 kB chunks.
+    fn write_with_own_ids(path: &Path) {
+        let file = File::create(path).unwrap();
+        let mut w = McapFile::new(file, "x-lab", "a lab's logger", ZSTD_LEVEL, 4096).unwrap();
+        let none = BTreeMap::new();
+        let rate = BTreeMap::from([("rate_hz".to_string(), "100".to_string())]);
+        w.write_metadata("run", &rate).unwrap();
+        w.add_schema_with_id(7, "a", "jsonschema", b"{}").unwrap();
+        w.add_schema_with_id(3, "b", "jsonschema", b"{\"type\":\"object\"}")
+            .unwrap();
+        w.add_channel_with_id(9, 7, "/nine", "json", &none).unwrap();
+        w.add_channel_with_id(0, 0, "/zero", "json", &none).unwrap();
+        w.add_channel_with_id(4, 3, "/four", "json", &rate).unwrap();
+        for i in 0..3000u32 {
+            let channel = [9, 0, 4][(i % 7 % 3) as usize];
+            let data = format!("{{\"i\":{i},\"x\":{}}}", f64::from(i) * 0.37);
+            let time = 5_000_000_000 + u64::from(i) * 1_000_000;
+            w.write_message(channel, 3 * i + 1, time, time - 250, data.as_bytes())
+                .unwrap();
+            if i == 900 {
+                w.write_attachment(time, 5, "fw.hex", "text/plain", &[b':'; 300])
+                    .unwrap();
+            }
+            if i == 2000 {
+                w.write_metadata("checkpoint", &none).unwrap();
+            }
+        }
+        w.finish().unwrap();
+    }
+
+    /// Every message of `bytes`: channel id and topic, sequence, log and
+    /// publish time, data.
+    fn messages(bytes: &[u8]) -> Vec<(u16, String, u32, u64, u64, Vec<u8>)> {
+        mcap::MessageStream::new(bytes)
+            .unwrap()
+            .map(|m| {
+                let m = m.unwrap();
+                let c = &m.channel;
+                let data = m.data.into_owned();
+                (
+                    c.id,
+                    c.topic.clone(),
+                    m.sequence,
+                    m.log_time,
+                    m.publish_time,
+                    data,
+                )
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_copy_is_the_file_itself_up_to_its_last_whole_chunk() {
+        let path = scratch("own-ids.mcap");
+        write_with_own_ids(&path);
+        let full = std::fs::read(&path).unwrap();
+        let all = messages(&full);
+        // Complete: the same bytes.
+        let out = scratch("own-ids-copy.mcap");
+        let found = recover(&path, &out).unwrap();
+        assert!(found.was_complete);
+        assert_eq!((found.messages, found.channels), (3000, 3));
+        assert!(std::fs::read(&out).unwrap() == full, "the copy differs");
+        // Cut anywhere: the file's own bytes up to its last whole chunk,
+        // then the data end and a summary of what the copy holds.
+        let cut = scratch("own-ids-cut.mcap");
+        let mut counts = BTreeSet::new();
+        for at in (full.len() / 10..full.len() * 9 / 10).step_by(full.len() / 9) {
+            std::fs::write(&cut, &full[..at]).unwrap();
+            let found = recover(&cut, &out).unwrap();
+            assert!(!found.was_complete, "cut at {at}");
+            let copied = std::fs::read(&out).unwrap();
+            let footer = mcap::read::footer(&copied).unwrap();
+            let data_end = usize::try_from(footer.summary_start).unwrap() - 13;
+            assert!(copied[..data_end] == full[..data_end], "cut at {at}");
+            let got = messages(&copied);
+            assert_eq!(got[..], all[..got.len()], "cut at {at}");
+            assert_eq!(got.len() as u64, found.messages);
+            counts.insert(got.len());
+            let summary = mcap::Summary::read(&copied).unwrap().unwrap();
+            assert_eq!(summary.stats.unwrap().message_count, found.messages);
+            let mut ids: Vec<_> = summary
+                .channels
+                .values()
+                .map(|c| (c.id, c.schema.as_ref().map(|s| s.id), c.metadata.len()))
+                .collect();
+            ids.sort();
+            assert_eq!(ids, [(0, None, 0), (4, Some(3), 1), (9, Some(7), 0)]);
+            let header = mcap::read::LinearReader::new(&copied)
+                .unwrap()
+                .next()
+                .unwrap()
+                .unwrap();
+            let Record::Header(header) = header else {
+                panic!("{header:?}")
+            };
+            assert_eq!(
+                (header.profile.as_str(), header.library.as_str()),
+                ("x-lab", "a lab's logger")
+            );
+        }
+        assert_eq!(counts.len(), 8, "each cut in another chunk: {counts:?}");
+    }
 
     #[test]
     fn a_file_that_is_not_mcap_or_holds_nothing_is_refused_with_its_name() {

@@ -1,7 +1,8 @@
 //! A recording cut by SIGKILL, read by a reader we did not write: Python's
 //! `mcap` package (`make_reader`, on the file and on a stream), against what
-//! `twin recover` finds in it; and a recording closed as usual, which keeps
-//! its summary.
+//! `twin recover` finds in it and copies; a recording closed as usual, which
+//! keeps its summary; and a file another writer made (Python's), cut and
+//! recovered with all it holds.
 
 use crate::peers::script;
 use crate::support::{Proc, scratch, text, twin};
@@ -40,7 +41,8 @@ fn python_messages(path: &Path) -> (u64, serde_json::Value) {
     (n, v)
 }
 
-/// The messages `twin recover` copies out of `path`.
+/// The messages `twin recover` copies out of `path`: as many as it says,
+/// and as many as Python reads in the copy, which has its summary.
 fn recovered(path: &Path) -> u64 {
     let out = path.with_extension("recovered.mcap");
     let o = twin(&["recover", s(path), "--out", s(&out)]);
@@ -50,7 +52,12 @@ fn recovered(path: &Path) -> u64 {
         said.contains("the data stops there: the file ends without its summary"),
         "{said}"
     );
-    message_count(&said)
+    let n = message_count(&said);
+    let (in_python, v) = python_messages(&out);
+    assert_eq!(in_python, n, "{v}");
+    assert_eq!(v["summary"], true, "{v}");
+    assert_eq!(v["summary_messages"].as_u64(), Some(n), "{v}");
+    n
 }
 
 /// The messages `twin recover` copies out of the complete file `path`.
@@ -157,4 +164,80 @@ fn a_recording_closed_as_usual_keeps_its_summary() {
         // reads the file as complete.
         assert_eq!(messages_of_complete(path), n, "{v}");
     }
+}
+
+/// What `tests/peers/mcap_dump.py` (the Python `mcap` package) reads in
+/// `path`: header, schemas, channels, messages, metadata, attachments and
+/// the summary's statistics.
+fn python_dump(path: &Path) -> serde_json::Value {
+    let o = Command::new("python3")
+        .arg(script("mcap_dump.py"))
+        .arg(path)
+        .output()
+        .expect("python3 runs");
+    assert!(
+        o.status.success(),
+        "the Python `mcap` package must read {} (pip install mcap): {}",
+        path.display(),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    serde_json::from_slice(&o.stdout).expect("one JSON object")
+}
+
+#[test]
+fn a_file_another_writer_made_is_recovered_with_all_it_holds() {
+    // Written by the Python `mcap` package's writer: its own ids, profile,
+    // channel metadata, sequence numbers and publish times.
+    let original = scratch("cut-recording", "python-written.mcap");
+    let o = Command::new("python3")
+        .arg(script("mcap_write.py"))
+        .arg(&original)
+        .output()
+        .expect("python3 runs");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let whole = python_dump(&original);
+    let all = whole["messages"].as_array().expect("messages");
+    assert_eq!(all.len(), 3000, "{}", whole["statistics"]);
+
+    // Cut in a chunk, past the attachment and the first metadata record.
+    let bytes = std::fs::read(&original).expect("the file");
+    let cut = scratch("cut-recording", "python-written-cut.mcap");
+    std::fs::write(&cut, &bytes[..bytes.len() * 8 / 10]).expect("cut");
+    let out = scratch("cut-recording", "python-written.recovered.mcap");
+    let o = twin(&["recover", s(&cut), "--out", s(&out)]);
+    assert!(o.status.success(), "{}", text(&o));
+    let copy = python_dump(&out);
+    let got = copy["messages"].as_array().expect("messages");
+    let n = got.len();
+    assert!(n > 1200 && n < all.len(), "{n} messages recovered");
+    assert_eq!(message_count(&text(&o)), n as u64);
+    // Every message as it was (channel id, sequence, log and publish time,
+    // data), in order, up to the cut; and what the file declared, with its
+    // ids and metadata.
+    assert_eq!(got[..], all[..n]);
+    for field in ["header", "schemas", "channels"] {
+        assert_eq!(copy[field], whole[field], "{field}");
+    }
+    assert_eq!(copy["attachments"], whole["attachments"]);
+    let metadata = copy["metadata"].as_array().expect("metadata");
+    assert!(!metadata.is_empty());
+    assert_eq!(
+        metadata[..],
+        whole["metadata"].as_array().unwrap()[..metadata.len()]
+    );
+    // The summary the copy gained counts what it holds.
+    assert_eq!(copy["statistics"]["messages"], n);
+    assert_eq!(copy["statistics"]["channels"], 3);
+    assert_eq!(copy["statistics"]["attachments"], 1);
+
+    // The complete file is copied whole, and the twin reads the copy.
+    let out = scratch("cut-recording", "python-written.copy.mcap");
+    let o = twin(&["recover", s(&original), "--out", s(&out)]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("complete already"), "{}", text(&o));
+    assert_eq!(python_dump(&out), whole);
+    let csv = scratch("cut-recording", "python-written-csv");
+    let o = twin(&["export", s(&out), "--csv", s(&csv)]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("/point"), "{}", text(&o));
 }

@@ -374,6 +374,27 @@ fn recover_turns_a_cut_recording_into_one_every_reader_opens() {
     let recovered = messages(&whole);
     assert_eq!(recovered.len() as u64, iterated);
     assert_eq!(recovered[..], original[..recovered.len()]);
+    // More: its data are the recording's own bytes up to the last whole
+    // chunk (header, metadata, chunks, message indexes), then its end.
+    let copied = std::fs::read(&whole).unwrap();
+    let footer = mcap::read::footer(&copied).expect("a footer");
+    let data_end = usize::try_from(footer.summary_start).unwrap() - 13;
+    assert!(data_end > full.len() / 3, "{data_end}");
+    assert!(copied[..data_end] == full[..data_end], "the data differ");
+    // `twin export` reads the copy as it read the cut file.
+    let whole_dir = scratch("cut-whole-csv");
+    assert!(
+        twin(&["export", s(&whole), "--csv", s(&whole_dir)])
+            .status
+            .success()
+    );
+    for file in ["plant_ev1_sensors.csv", "bus_rs485_frames.csv"] {
+        assert_eq!(
+            std::fs::read(dir.join(file)).unwrap(),
+            std::fs::read(whole_dir.join(file)).unwrap(),
+            "{file}"
+        );
+    }
     // Made whole, it is a baseline again; and a complete file is copied as is.
     let o = twin(&["compare", s(&cut), s(&whole)]);
     assert!(o.status.success(), "{}", text(&o));
@@ -383,6 +404,8 @@ fn recover_turns_a_cut_recording_into_one_every_reader_opens() {
     assert!(text(&o).contains("complete already"), "{}", text(&o));
     assert!(!text(&o).contains("replaced"), "{}", text(&o));
     assert_eq!(messages(&copy), original);
+    // Written as the twin writes recordings, chunk for chunk: the same bytes.
+    assert!(std::fs::read(&copy).unwrap() == full, "the copy differs");
     // A second time it says what it replaced.
     let o = twin(&["recover", s(ev_meb()), "--out", s(&copy)]);
     assert!(
