@@ -406,6 +406,9 @@ fn recover_turns_a_cut_recording_into_one_every_reader_opens() {
     assert_eq!(messages(&copy), original);
     // Written as the twin writes recordings, chunk for chunk: the same bytes.
     assert!(std::fs::read(&copy).unwrap() == full, "the copy differs");
+    let o = twin(&["replay", s(&copy), "--out", s(&scratch("copy.replay.mcap"))]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("byte-identical"), "{}", text(&o));
     // A second time it says what it replaced.
     let o = twin(&["recover", s(ev_meb()), "--out", s(&copy)]);
     assert!(
