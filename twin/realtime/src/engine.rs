@@ -41,14 +41,18 @@ const SPIN: SimDuration = SimDuration::from_micros(60);
 const SLIP_NODE: &str = "clock";
 /// Ticks per nanosecond.
 const TICKS_PER_NANO: u64 = protocols::time::TICKS_PER_SECOND / 1_000_000_000;
-/// While no one is connected, the plant ticks in batches this long. The
+/// While nothing reads the plant between ticks (no one connected, or
+/// clients whose requests are answered from the image when they come and
+/// have no deadline pending), the plant ticks in batches this long. The
 /// clock slips only when a wake comes later than the batch's last tick by
 /// more than the catch-up, so a batch may be longer than that; each batch
-/// is a wake-up of every module's engine, and a newcomer or a command wakes
-/// it at once (the plant catches up before it is served). An idle class of
-/// 35 modules, debug build: 47 % of a core at 10 ms, 32 % at 20, 22 % at 40;
-/// 100 ms took 0.63× the CPU of 20 ms in the same run (`serve-bench class
-/// --modules 35 --hz 0`, a loaded machine).
+/// is a wake-up of every module's engine, and a newcomer, a command or a
+/// request that finds the plant behind wakes it at once (the plant catches
+/// up before it is served). An idle class of 35 modules, debug build: 47 %
+/// of a core at 10 ms, 32 % at 20, 22 % at 40; 100 ms took 0.63× the CPU of
+/// 20 ms in the same run (`serve-bench class --modules 35 --hz 0`, a loaded
+/// machine). A polled class wakes for its requests anyway, so the batch
+/// matters less there (see `docs/measurements.md`).
 const IDLE_BATCH: SimDuration = SimDuration::from_millis(100);
 /// How often the engine looks for connections past their idle timeout.
 const IDLE_CHECK_PERIOD: SimDuration = SimDuration::from_millis(100);
@@ -60,6 +64,15 @@ fn spin_from_env() -> SimDuration {
         .ok()
         .and_then(|v| v.trim().parse::<u64>().ok())
         .map_or(SPIN, SimDuration::from_micros)
+}
+
+/// The batch: `TWIN_RT_BATCH_MS` (milliseconds, at least one tick) if set,
+/// else [`IDLE_BATCH`]. A tuning knob for measuring, like the spin's.
+fn batch_from_env() -> SimDuration {
+    std::env::var("TWIN_RT_BATCH_MS")
+        .ok()
+        .and_then(|v| v.trim().parse::<u64>().ok())
+        .map_or(IDLE_BATCH, SimDuration::from_millis)
 }
 
 /// What a session reports at its end.
@@ -297,14 +310,16 @@ impl RtEngine {
         ))));
         self.swap_front(&mut front.lock());
         front.lock().catch_up = self.catch_up;
-        let batch = IDLE_BATCH.max(self.tick);
+        let batch = batch_from_env().max(self.tick);
         let mut next_tick = SimTime::ZERO;
         // The tick the last wait was for: the next one, or the last of a
         // batch while no one is connected.
         let mut aimed = SimTime::ZERO;
         loop {
             let now = self.clock.now();
-            if now >= next_tick {
+            // Through a batch the ticks wait for its last (or a message):
+            // a request caught up to its arrival is answered from there.
+            if now >= next_tick && now >= aimed {
                 self.tick_through(now, &mut next_tick, aimed, &front);
                 // On the session's clock, which may have slipped.
                 if end.is_some_and(|e| self.clock.now() >= e) && self.stop.is_none() {
@@ -315,18 +330,29 @@ impl RtEngine {
             // With no one connected nothing reads the plant between ticks,
             // so they run in batches: the same ticks in the same order, on
             // a hundredth of the wake-ups (a class of idle modules paid for
-            // 1000 a second each), never past the session's end.
+            // 1000 a second each), never past the session's end. Clients
+            // that are answered from the image when their bytes come, with
+            // no deadline pending, read the plant only then: the engine
+            // batches for them too, and a request that finds the plant
+            // behind has it caught up first (`After::Behind`), so a polled
+            // module costs its requests, not a thousand wake-ups a second.
+            // Requests faster than `BUSY_GAP` keep it ticking every
+            // millisecond, where that is cheaper than catching up for each.
             let (next, follow) = {
                 let mut shared = front.lock();
-                shared.service_timers(self.clock.now());
+                let now = self.clock.now();
+                shared.service_timers(now);
                 shared.ship_frames();
                 let next = shared.next_deadline();
-                aimed = if shared.conns.is_empty() && next.is_none() {
+                let unread = shared.conns.is_empty()
+                    || (shared.answers_at_once() && !shared.requests_busy(now));
+                aimed = if unread && next.is_none() {
                     let last = next_tick + SimDuration(batch.0 - self.tick.0);
                     end.map_or(last, |e| last.min(e.max(next_tick)))
                 } else {
                     next_tick
                 };
+                shared.batching = aimed > next_tick;
                 // The clock slips when the wake is late for the tick it
                 // waited for, not for the batch's length.
                 shared.ticked_to = aimed;
@@ -351,15 +377,24 @@ impl RtEngine {
             };
             if let Some(message) = self.wait(inbound, deadline, spin) {
                 // The plant catches up first: a newcomer's first request,
-                // or a command, meets the plant of now, not of a batch ago.
-                let now = self.clock.now();
-                if now >= next_tick {
-                    self.tick_through(now, &mut next_tick, aimed, &front);
-                }
-                self.handle(message, &front);
-                // Everything already queued is handled before the next wait.
-                while let Ok(message) = inbound.try_recv() {
-                    self.handle(message, &front);
+                // or a command, meets the plant of now, not of a batch ago;
+                // a request that found it behind, the plant of its arrival.
+                let mut message = Some(message);
+                let mut first = true;
+                while let Some(m) = message.take() {
+                    let now = match m {
+                        Inbound::CatchUp { at, .. } => Some(at.min(self.clock.now())),
+                        _ => first.then(|| self.clock.now()),
+                    };
+                    if let Some(now) = now
+                        && now >= next_tick
+                    {
+                        self.tick_through(now, &mut next_tick, aimed, &front);
+                    }
+                    self.handle(m, &front);
+                    first = false;
+                    // Everything already queued is handled before the next wait.
+                    message = inbound.try_recv().ok();
                 }
             }
         }
@@ -446,6 +481,11 @@ impl RtEngine {
             }
             // The loop looks at the connections' deadlines again.
             Inbound::Wake => {}
+            // The plant has been caught up before this was handled: the
+            // carrier hands its bytes again.
+            Inbound::CatchUp { conn, .. } => {
+                front.lock().caught_up(conn);
+            }
             Inbound::Stop(why) => {
                 self.stop.get_or_insert(why);
             }
@@ -534,7 +574,9 @@ impl RtEngine {
             self.plant_tick(*next_tick, front);
             *next_tick += self.tick;
         }
-        front.lock().ticked_to = *next_tick;
+        let mut shared = front.lock();
+        shared.ticked_to = *next_tick;
+        shared.plant_to = *next_tick;
     }
 
     fn plant_tick(&mut self, t: SimTime, front: &FrontHandle) {
@@ -790,6 +832,12 @@ pub enum Inbound {
     /// A connection now waits for a timer (a turnaround, pacing, the RTU
     /// silence): the engine looks at the deadlines again.
     Wake,
+    /// A request on connection `conn` that arrived `at` found the plant
+    /// behind while the engine slept through a batch
+    /// ([`crate::front::After::Behind`]): the engine ticks the plant up to
+    /// `at` (not beyond: the reply reads the plant of its arrival) and wakes
+    /// the carrier.
+    CatchUp { conn: ConnId, at: SimTime },
     /// Run this on the engine's thread (console commands, other front ends).
     Command(Box<dyn FnOnce(&mut RtEngine) + Send>),
     /// Link `link` is full and has a newcomer: `answer` says whether a
@@ -813,6 +861,7 @@ impl std::fmt::Debug for Inbound {
             Inbound::Command(_) => write!(f, "Command"),
             Inbound::Room { link, .. } => write!(f, "Room({link})"),
             Inbound::Wake => write!(f, "Wake"),
+            Inbound::CatchUp { conn, .. } => write!(f, "CatchUp({conn})"),
             Inbound::Stop(why) => write!(f, "Stop({why})"),
         }
     }

@@ -35,6 +35,9 @@ use super::sink::SinkMsg;
 use super::wake::Wake;
 use tokio::sync::mpsc::UnboundedSender;
 
+/// The engine's tick.
+pub(super) const TICK: SimDuration = SimDuration::from_millis(1);
+
 /// Counters for the status line and the summary.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
 pub struct RtCounters {
@@ -133,7 +136,27 @@ pub struct Front {
     /// How far ahead of `ticked_to` a time may be before the clock slips
     /// (see [`crate::RtEngine::set_catch_up`]).
     pub(super) catch_up: SimDuration,
+    /// The engine's next tick: the plants and the firmware have run every
+    /// tick before it (`ticked_to` is the tick the engine waits for, the
+    /// last of a batch while it sleeps through one).
+    pub(super) plant_to: SimTime,
+    /// Whether the engine sleeps through a batch of ticks: then a request
+    /// that finds the plant behind asks for it first ([`After::Behind`]).
+    pub(super) batching: bool,
+    /// When the last bytes came on any connection, and how long after the
+    /// ones before: the engine ticks every millisecond while requests come
+    /// faster than [`BUSY_GAP`].
+    pub(super) last_request: SimTime,
+    pub(super) request_gap: SimDuration,
 }
+
+/// Requests closer together than this keep the engine ticking every
+/// millisecond rather than in batches: catching the plant up for a request
+/// costs its carrier two thread switches (the engine's wake-up and its
+/// own), a tick one wake-up, so batches pay once requests are two ticks
+/// apart or more. One client polling as fast as it can (100 000 requests a
+/// second) would otherwise wait on the engine every other millisecond.
+pub(super) const BUSY_GAP: SimDuration = SimDuration::from_millis(2);
 
 /// Slips of the clock: how many, and the nanoseconds lost in all.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -164,6 +187,13 @@ pub enum After {
     Owing,
     /// The twin closed it: a `Close` is on the carrier's channel.
     Closed,
+    /// Nothing was taken: the engine sleeps through a batch of ticks and
+    /// the plant is more than a tick behind the bytes' arrival. The carrier
+    /// sends [`crate::engine::Inbound::CatchUp`], waits for the engine's
+    /// signal and hands the same bytes, with the same arrival, again, so
+    /// the request is answered from the plant of its arrival, never from a
+    /// batch ago.
+    Behind,
 }
 
 /// A newcomer let in beyond a full listener's `--max-clients` because a
@@ -258,11 +288,28 @@ impl FrontHandle {
     }
 
     /// Bytes read at `at` on connection `conn`, answered on the caller's
-    /// thread: the replies due now are added to `out`.
-    pub fn receive(&self, conn: ConnId, at: SimTime, bytes: &[u8], out: &mut Outgoing) -> After {
+    /// thread: the replies due now are added to `out`. A carrier that can
+    /// wait for the engine (`may_wait`: a TCP connection's thread) is told
+    /// [`After::Behind`] instead, taking nothing, when the engine sleeps
+    /// through a batch and has not ticked the plant to `at`; the others
+    /// (serial ports' tasks, on the links' runtime) never are, and their
+    /// engine never batches ([`Front::answers_at_once`]).
+    pub fn receive(
+        &self,
+        conn: ConnId,
+        at: SimTime,
+        bytes: &[u8],
+        may_wait: bool,
+        out: &mut Outgoing,
+    ) -> After {
         let mut guard = self.lock();
         let front = &mut *guard;
         let at = front.hold_clock(at);
+        if may_wait && front.behind(at) && front.conns.contains_key(&conn) {
+            return After::Behind;
+        }
+        front.request_gap = at.saturating_since(front.last_request);
+        front.last_request = at;
         front.receive(conn, at, bytes);
         front.take_due(conn, out)
     }
@@ -308,8 +355,47 @@ impl Front {
             clock: Some(clock),
             buf: vec![0; MAX_FRAME],
             catch_up: CATCH_UP,
+            request_gap: BUSY_GAP,
             ..Self::default()
         }
+    }
+
+    /// Whether a request that came at `at` would find the plant more than
+    /// a tick behind it because the engine sleeps through a batch: the
+    /// tick before the one due at `at` has not run. (A tick that is merely
+    /// late, the engine awake, is answered as it stands, as it always was.)
+    fn behind(&self, at: SimTime) -> bool {
+        self.batching && at >= self.plant_to + TICK
+    }
+
+    /// Whether the engine may sleep through a batch of ticks while these
+    /// connections are open (and none has a deadline): each is carried by
+    /// a thread that can wait for the plant to be caught up
+    /// ([`After::Behind`]), answers from the image when its bytes come (no
+    /// reply waiting on a bus or a sketch: [`Endpoint::answers_later`]),
+    /// and wants no firmware loop run between the ticks. A serial port, a
+    /// supervisor's clients and a sketch's UART keep the engine ticking
+    /// every millisecond, as they always had it.
+    pub(super) fn answers_at_once(&self) -> bool {
+        self.conns.values().all(|c| {
+            matches!(c.task.wake, Wake::Thread(_))
+                && !c.endpoint.answers_later()
+                && c.endpoint.follow(&self.devices).is_none()
+        })
+    }
+
+    /// The plant has been caught up for a request on `conn` that found it
+    /// behind: its carrier is woken to hand the bytes again.
+    pub(super) fn caught_up(&self, conn: ConnId) {
+        if let Some(c) = self.conns.get(&conn) {
+            c.task.frames_due();
+        }
+    }
+
+    /// Whether requests come faster than [`BUSY_GAP`] (the last two closer
+    /// than it, the last less than it before `now`).
+    pub(super) fn requests_busy(&self, now: SimTime) -> bool {
+        self.request_gap < BUSY_GAP && now.saturating_since(self.last_request) < BUSY_GAP
     }
 
     fn take_due(&mut self, conn: ConnId, out: &mut Outgoing) -> After {

@@ -98,7 +98,7 @@ where
                 Ok(n) => {
                     let at = clock.now();
                     let bytes = buf.get(..n).unwrap_or_default();
-                    after = front.receive(conn, at, bytes, &mut due);
+                    after = front.receive(conn, at, bytes, false, &mut due);
                     if matches!(after, After::Timers | After::Owing)
                         && engine.send(Inbound::Wake).is_err()
                     {

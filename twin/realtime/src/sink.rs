@@ -32,7 +32,7 @@ type Result<T, E = WriteError> = std::result::Result<T, E>;
 
 /// How often the sink drains its queue (console lines and recording may lag
 /// by this much; the engine never waits for them).
-const DRAIN_EVERY: Duration = Duration::from_millis(2);
+const DRAIN_EVERY: Duration = Duration::from_millis(10);
 /// The longest a sink that keeps finding its queue empty waits between
 /// looks: an idle module's sink then wakes a few times per batch of plant
 /// ticks instead of 500 times a second, and the first message after a quiet

@@ -18,6 +18,12 @@
 //! the bus), which signals that eventfd when it makes frames due.
 //! When the twin closes the connection, the engine sends the `Close` and
 //! shuts the socket's reading side, which wakes a blocked `recv`.
+//!
+//! While the engine sleeps through a batch of plant ticks (no deadline
+//! pending, requests further apart than a couple of ticks), a request that
+//! finds the plant behind its arrival waits on the same eventfd for the
+//! engine to catch up ([`After::Behind`]): two thread switches for that
+//! request, where the engine used to wake for every tick between requests.
 
 use std::io::{ErrorKind, Read, Write};
 use std::net::{Shutdown, TcpStream};
@@ -36,6 +42,13 @@ use super::wake::{ThreadWake, Wake};
 /// Bytes read at once, here and by the serial ports' tasks: larger than
 /// any frame, so a frame rarely splits.
 pub(super) const READ_CHUNK: usize = 4096;
+
+/// How long a carrier waits for the engine to catch the plant up before it
+/// looks again whether it still must.
+const CATCH_UP_LOOK: rustix::event::Timespec = rustix::event::Timespec {
+    tv_sec: 0,
+    tv_nsec: 100_000_000,
+};
 
 /// A client that has not taken a reply for this long is dropped, so that
 /// the thread does not wait on it forever.
@@ -164,7 +177,25 @@ impl Carrier {
             };
             let at = clock.now();
             let bytes = buf.get(..n).unwrap_or_default();
-            after = front.receive(self.conn, at, bytes, &mut self.due);
+            after = front.receive(self.conn, at, bytes, true, &mut self.due);
+            // The engine sleeps through a batch of ticks and the plant is
+            // behind these bytes: it catches up to their arrival, then they
+            // are handed again, so the reply reads the plant of then.
+            while after == After::Behind {
+                if engine
+                    .send(Inbound::CatchUp {
+                        conn: self.conn,
+                        at,
+                    })
+                    .is_err()
+                {
+                    return Ending::Peer("server stopping".into());
+                }
+                if let Err(why) = self.wait_engine() {
+                    return Ending::Peer(why);
+                }
+                after = front.receive(self.conn, at, bytes, true, &mut self.due);
+            }
             if matches!(after, After::Timers | After::Owing) && engine.send(Inbound::Wake).is_err()
             {
                 return Ending::Peer("server stopping".into());
@@ -199,6 +230,22 @@ impl Carrier {
         }
         let socket = !fds[0].revents().is_empty();
         Ok(socket || fds[1].revents().is_empty())
+    }
+
+    /// Waits for the engine's signal that it caught the plant up, or
+    /// [`CATCH_UP_LOOK`] (then the caller looks again: a connection the
+    /// twin closed meanwhile is never signalled).
+    fn wait_engine(&self) -> Result<(), String> {
+        let mut fds = [PollFd::new(&self.wake.frames, PollFlags::IN)];
+        loop {
+            match poll(&mut fds, Some(&CATCH_UP_LOOK)) {
+                Ok(_) => break,
+                Err(rustix::io::Errno::INTR) => continue,
+                Err(e) => return Err(format!("poll failed: {e}")),
+            }
+        }
+        self.wake.clear();
+        Ok(())
     }
 
     /// Writes each due frame in one write.

@@ -255,6 +255,132 @@ fn meb_and_modbus_tcp_serve_one_module_and_a_write_turns_the_wheel() {
     assert!(!summary.metadata_indexes.is_empty());
 }
 
+/// A client polling every 15-40 ms reads the plant of its request's
+/// arrival, though the engine sleeps through batches of plant ticks between
+/// requests: each request that finds the plant behind has it caught up
+/// first. Read from the recording (the controller's readings at every tick,
+/// `--record-hz 1000`, and each request's arrival on the link): every reply
+/// is the readings of the tick of its arrival or of the one before (as when
+/// a tick runs a little late), never of a later one, while the wheel speeds
+/// up and the words change from tick to tick; and the engine woke for far
+/// fewer ticks than the session had.
+#[test]
+fn a_polled_module_answers_from_the_plant_of_each_request_s_arrival() {
+    let dir = scratch("fresh");
+    let recording = dir.join("fresh.mcap");
+    let server = Server::start(&[
+        "--modbus",
+        "tcp://127.0.0.1:0",
+        "--quiet",
+        "--record-hz",
+        "1000",
+        "--out",
+        recording.to_str().unwrap(),
+    ]);
+    let mut t = connect(&server.tcp(0));
+    // EN (coil 0) and FR (coil 4) to 0: SD0_RUN; then VEL at half.
+    for (tid, address) in [(1, 0), (2, 4)] {
+        let r = modbus_tcp(
+            &mut t,
+            tid,
+            1,
+            &Request::WriteSingleCoil {
+                address,
+                value: false,
+            },
+        );
+        assert!(matches!(r, Ok(Response::WriteSingleCoil { .. })), "{r:?}");
+    }
+    let r = modbus_tcp(
+        &mut t,
+        3,
+        1,
+        &Request::WriteSingleRegister {
+            address: 0,
+            value: 2048,
+        },
+    );
+    assert!(
+        matches!(r, Ok(Response::WriteSingleRegister { .. })),
+        "{r:?}"
+    );
+    let mut read = std::collections::BTreeMap::new();
+    for i in 0..80u16 {
+        std::thread::sleep(Duration::from_millis(15 + u64::from(i * 7 % 26)));
+        let tid = 100 + i;
+        let request = Request::ReadInputRegisters {
+            address: 0,
+            quantity: 6,
+        };
+        match modbus_tcp(&mut t, tid, 1, &request) {
+            Ok(Response::ReadInputRegisters(r)) => read.insert(tid, r.as_slice().to_vec()),
+            other => panic!("unexpected reply {other:?}"),
+        };
+    }
+    let said = server.terminate();
+
+    // Each request's arrival (its first bytes on the link), the readings
+    // of every tick, and how many ticks the engine woke for.
+    let mut arrived = std::collections::BTreeMap::<u16, f64>::new();
+    let mut readings = std::collections::BTreeMap::<u64, Vec<u16>>::new();
+    let mut woke_for = 0;
+    twin_recording::Recording::scan(&recording, |msg| {
+        match msg.topic {
+            "/link/modbus-tcp/frames" => {
+                let v = msg.value()?;
+                if let Some(tid) = v["decoded"]["transaction"].as_u64() {
+                    let start = v["start_s"].as_f64().unwrap_or(f64::NAN);
+                    arrived.entry(tid as u16).or_insert(start);
+                }
+            }
+            "/controller/ev1/readings" => {
+                let v = msg.value()?;
+                let words = ["V2", "I", "V1", "RPM_M", "RPM_L", "LDR"]
+                    .iter()
+                    .map(|w| v["meb"][w].as_u64().unwrap_or(u64::MAX) as u16)
+                    .collect();
+                readings.insert(msg.log_time_ns / 1_000_000, words);
+            }
+            "/realtime/lateness" => {
+                woke_for = msg.value()?["total"]["ticks"].as_u64().unwrap_or(0);
+            }
+            _ => {}
+        }
+        Ok(())
+    })
+    .expect("the recording reads");
+    let last_ms = *readings.keys().last().expect("readings");
+    assert!(
+        woke_for * 4 < last_ms,
+        "the engine woke for {woke_for} ticks of {last_ms}: it did not batch ({said})"
+    );
+    let mut changing = 0;
+    for (tid, words) in &read {
+        let at = arrived[tid];
+        let tick = (at * 1000.0).floor() as u64;
+        let near: Vec<_> = (tick.saturating_sub(1)..=tick)
+            .filter_map(|ms| Some((ms, readings.get(&ms)?)))
+            .collect();
+        assert!(
+            near.iter().any(|(_, r)| *r == words),
+            "request {tid} came at {at:.4} s and read {words:?}; the ticks around it: {near:?}"
+        );
+        // The words of a few ticks before differ: a stale reply would show.
+        if readings
+            .get(&tick.saturating_sub(5))
+            .is_some_and(|r| r != words)
+        {
+            changing += 1;
+        }
+    }
+    assert!(
+        changing >= read.len() / 2,
+        "only {changing} of {} replies read words that changed within 5 ms",
+        read.len()
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// RPM_M and RPM_L once the wheel turns at VEL `vel`: as soon as they agree
 /// within 5 %, or 3 s after the hall rpm passed 800 (15 s at most).
 fn spin_and_read_speeds(server: &Server, vel: u16) -> (u16, u16) {
