@@ -11,6 +11,18 @@
 //! until shortly before a link's next deadline (a node's timer, a reply's
 //! turnaround) and spins to that. Lateness (actual − scheduled tick time) goes into
 //! [`Lateness`] histograms: one per second for the recording, one in total.
+//!
+//! Batches: while nothing reads the plant between ticks (no one connected;
+//! or TCP clients answered from the image when their bytes come, with no
+//! deadline pending and requests more than `front::BUSY_GAP`
+//! apart), the thread sleeps through `IDLE_BATCH` of ticks and runs them
+//! in a burst, the same ticks in the same order. A request that comes
+//! meanwhile and finds the plant more than a tick behind its arrival has
+//! the plant ticked up to that arrival first ([`Inbound::CatchUp`]), so a
+//! client reads what it would have read from an engine ticking every
+//! millisecond, and a polled module costs its requests rather than a
+//! thousand wake-ups a second. Serial ports, supervisors and sketches keep
+//! the 1 ms ticks (`Front::answers_at_once`).
 
 use protocols::time::{SimDuration, SimTime};
 use std::collections::BTreeMap;
