@@ -332,7 +332,8 @@ impl RtEngine {
             // Through a batch the ticks wait for its last (or a message):
             // a request caught up to its arrival is answered from there.
             if now >= next_tick && now >= aimed {
-                self.tick_through(now, &mut next_tick, aimed, &front);
+                let late = now.saturating_since(aimed);
+                self.tick_through(now, Some(late), &mut next_tick, &front);
                 // On the session's clock, which may have slipped.
                 if end.is_some_and(|e| self.clock.now() >= e) && self.stop.is_none() {
                     self.stop = Some("duration reached".into());
@@ -394,14 +395,21 @@ impl RtEngine {
                 let mut message = Some(message);
                 let mut first = true;
                 while let Some(m) = message.take() {
-                    let now = match m {
-                        Inbound::CatchUp { at, .. } => Some(at.min(self.clock.now())),
-                        _ => first.then(|| self.clock.now()),
+                    let wall = self.clock.now();
+                    // How far to tick, and how late the ticks come for what
+                    // needed them: the wait's aim, or the request's arrival
+                    // (the lateness of a polled module's batches).
+                    let to = match m {
+                        Inbound::CatchUp { at, .. } => {
+                            Some((at.min(wall), Some(wall.saturating_since(at))))
+                        }
+                        _ => first
+                            .then(|| (wall, (wall >= aimed).then(|| wall.saturating_since(aimed)))),
                     };
-                    if let Some(now) = now
-                        && now >= next_tick
+                    if let Some((to, late)) = to
+                        && to >= next_tick
                     {
-                        self.tick_through(now, &mut next_tick, aimed, &front);
+                        self.tick_through(to, late, &mut next_tick, &front);
                     }
                     self.handle(m, &front);
                     first = false;
@@ -549,7 +557,9 @@ impl RtEngine {
     }
 
     /// The ticks due at `now` from `next_tick` on, every one in order.
-    /// Lateness is measured against `aimed`, the tick the wait was for. A
+    /// `late`: how late they come for what needed them (the tick the wait
+    /// was for, or the request that found the plant behind), if anything
+    /// did. A
     /// wake more than `CATCH_UP` behind (a stopped process, a machine too
     /// busy to keep up) slips the session's clock by the excess rather than
     /// skip ticks: the plant and every node, a sketch's pins included, step
@@ -558,12 +568,11 @@ impl RtEngine {
     fn tick_through(
         &mut self,
         now: SimTime,
+        late: Option<SimDuration>,
         next_tick: &mut SimTime,
-        aimed: SimTime,
         front: &FrontHandle,
     ) {
-        if now >= aimed {
-            let late = now.saturating_since(aimed);
+        if let Some(late) = late {
             let ns = late.0 / TICKS_PER_NANO;
             self.lateness.record(ns);
             self.window.record(ns);
