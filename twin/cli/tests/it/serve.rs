@@ -262,8 +262,8 @@ fn meb_and_modbus_tcp_serve_one_module_and_a_write_turns_the_wheel() {
 /// `--record-hz 1000`, and each request's arrival on the link): every reply
 /// is the readings of the tick of its arrival or of the one before (as when
 /// a tick runs a little late), never of a later one, while the wheel speeds
-/// up and the words change from tick to tick; and the engine woke for far
-/// fewer ticks than the session had.
+/// up and the words change from tick to tick; and the engine woke far
+/// fewer times than the session had ticks.
 #[test]
 fn a_polled_module_answers_from_the_plant_of_each_request_s_arrival() {
     let dir = scratch("fresh");
@@ -320,7 +320,9 @@ fn a_polled_module_answers_from_the_plant_of_each_request_s_arrival() {
     let said = server.terminate();
 
     // Each request's arrival (its first bytes on the link), the readings
-    // of every tick, and how many ticks the engine woke for.
+    // of every tick, and how many times the engine woke for late ticks
+    // (once a tick when it ticks every millisecond; in batches, once a
+    // batch and once per request that found the plant behind).
     let mut arrived = std::collections::BTreeMap::<u16, f64>::new();
     let mut readings = std::collections::BTreeMap::<u64, Vec<u16>>::new();
     let mut woke_for = 0;
@@ -352,7 +354,7 @@ fn a_polled_module_answers_from_the_plant_of_each_request_s_arrival() {
     let last_ms = *readings.keys().last().expect("readings");
     assert!(
         woke_for * 4 < last_ms,
-        "the engine woke for {woke_for} ticks of {last_ms}: it did not batch ({said})"
+        "the engine woke {woke_for} times in {last_ms} ms: it did not batch ({said})"
     );
     let mut changing = 0;
     for (tid, words) in &read {
