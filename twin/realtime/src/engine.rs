@@ -15,8 +15,9 @@
 //! Batches: while nothing reads the plant between ticks (no one connected;
 //! or TCP clients answered from the image when their bytes come, with no
 //! deadline pending and requests more than `front::BUSY_GAP`
-//! apart), the thread sleeps through `IDLE_BATCH` of ticks and runs them
-//! in a burst, the same ticks in the same order. A request that comes
+//! apart), the thread sleeps through a batch of ticks (`IDLE_BATCH` with
+//! no one connected, `POLLED_BATCH` with clients) and runs them in a
+//! burst, the same ticks in the same order. A request that comes
 //! meanwhile and finds the plant more than a tick behind its arrival has
 //! the plant ticked up to that arrival first ([`Inbound::CatchUp`]), so a
 //! client reads what it would have read from an engine ticking every
@@ -63,9 +64,17 @@ const TICKS_PER_NANO: u64 = protocols::time::TICKS_PER_SECOND / 1_000_000_000;
 /// up before it is served). An idle class of 35 modules, debug build: 47 %
 /// of a core at 10 ms, 32 % at 20, 22 % at 40; 100 ms took 0.63× the CPU of
 /// 20 ms in the same run (`serve-bench class --modules 35 --hz 0`, a loaded
-/// machine). A polled class wakes for its requests anyway, so the batch
-/// matters less there (see `docs/measurements.md`).
+/// machine).
 const IDLE_BATCH: SimDuration = SimDuration::from_millis(100);
+/// The batch while clients are connected (and nothing is pending): about a
+/// master's poll period. A request that comes just after a batch's last
+/// tick finds the plant caught up and is answered at once; one that comes
+/// mid-batch waits for a catch-up (two thread switches), and the next batch
+/// then ends about when the next poll comes. A class of 35 modules polled
+/// at 100 Hz, release build, in the same runs: 10 ms took 0.77× the CPU of
+/// 100 ms and 0.46× its reply p99 (`serve-bench class --modules 35 --hz
+/// 100`, `docs/measurements.md`).
+const POLLED_BATCH: SimDuration = SimDuration::from_millis(10);
 /// How often the engine looks for connections past their idle timeout.
 const IDLE_CHECK_PERIOD: SimDuration = SimDuration::from_millis(100);
 
@@ -78,13 +87,15 @@ fn spin_from_env() -> SimDuration {
         .map_or(SPIN, SimDuration::from_micros)
 }
 
-/// The batch: `TWIN_RT_BATCH_MS` (milliseconds, at least one tick) if set,
-/// else [`IDLE_BATCH`]. A tuning knob for measuring, like the spin's.
-fn batch_from_env() -> SimDuration {
-    std::env::var("TWIN_RT_BATCH_MS")
+/// A batch: the milliseconds in the environment variable `var` (at least
+/// one tick) if set, else `default`. Tuning knobs for measuring, like the
+/// spin's: `TWIN_RT_BATCH_MS` ([`IDLE_BATCH`]) and `TWIN_RT_POLLED_BATCH_MS`
+/// ([`POLLED_BATCH`]).
+fn batch_from_env(var: &str, default: SimDuration) -> SimDuration {
+    std::env::var(var)
         .ok()
         .and_then(|v| v.trim().parse::<u64>().ok())
-        .map_or(IDLE_BATCH, SimDuration::from_millis)
+        .map_or(default, SimDuration::from_millis)
 }
 
 /// What a session reports at its end.
@@ -322,7 +333,8 @@ impl RtEngine {
         ))));
         self.swap_front(&mut front.lock());
         front.lock().catch_up = self.catch_up;
-        let batch = batch_from_env().max(self.tick);
+        let idle_batch = batch_from_env("TWIN_RT_BATCH_MS", IDLE_BATCH).max(self.tick);
+        let polled_batch = batch_from_env("TWIN_RT_POLLED_BATCH_MS", POLLED_BATCH).max(self.tick);
         let mut next_tick = SimTime::ZERO;
         // The tick the last wait was for: the next one, or the last of a
         // batch while no one is connected.
@@ -360,6 +372,11 @@ impl RtEngine {
                 let unread = shared.conns.is_empty()
                     || (shared.answers_at_once() && !shared.requests_busy(now));
                 aimed = if unread && next.is_none() {
+                    let batch = if shared.conns.is_empty() {
+                        idle_batch
+                    } else {
+                        polled_batch
+                    };
                     let last = next_tick + SimDuration(batch.0 - self.tick.0);
                     end.map_or(last, |e| last.min(e.max(next_tick)))
                 } else {
