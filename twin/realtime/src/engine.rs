@@ -337,7 +337,7 @@ impl RtEngine {
         let polled_batch = batch_from_env("TWIN_RT_POLLED_BATCH_MS", POLLED_BATCH).max(self.tick);
         let mut next_tick = SimTime::ZERO;
         // The tick the last wait was for: the next one, or the last of a
-        // batch while no one is connected.
+        // batch while nothing reads the plant between ticks.
         let mut aimed = SimTime::ZERO;
         loop {
             let now = self.clock.now();
@@ -576,12 +576,11 @@ impl RtEngine {
     /// The ticks due at `now` from `next_tick` on, every one in order.
     /// `late`: how late they come for what needed them (the tick the wait
     /// was for, or the request that found the plant behind), if anything
-    /// did. A
-    /// wake more than `CATCH_UP` behind (a stopped process, a machine too
-    /// busy to keep up) slips the session's clock by the excess rather than
-    /// skip ticks: the plant and every node, a sketch's pins included, step
-    /// through the whole interval at their own resolution, a little late,
-    /// and never compute from a jump in their inputs.
+    /// did. A wake more than `CATCH_UP` behind (a stopped process, a
+    /// machine too busy to keep up) slips the session's clock by the excess
+    /// rather than skip ticks: the plant and every node, a sketch's pins
+    /// included, step through the whole interval at their own resolution, a
+    /// little late, and never compute from a jump in their inputs.
     fn tick_through(
         &mut self,
         now: SimTime,
