@@ -66,15 +66,15 @@ const TICKS_PER_NANO: u64 = protocols::time::TICKS_PER_SECOND / 1_000_000_000;
 /// 20 ms in the same run (`serve-bench class --modules 35 --hz 0`, a loaded
 /// machine).
 const IDLE_BATCH: SimDuration = SimDuration::from_millis(100);
-/// The batch while clients are connected (and nothing is pending): about a
-/// master's poll period. A request that comes just after a batch's last
-/// tick finds the plant caught up and is answered at once; one that comes
-/// mid-batch waits for a catch-up (two thread switches), and the next batch
-/// then ends about when the next poll comes. A class of 35 modules polled
-/// at 100 Hz, release build, in the same runs: 10 ms took 0.77× the CPU of
-/// 100 ms and 0.46× its reply p99 (`serve-bench class --modules 35 --hz
-/// 100`, `docs/measurements.md`).
-const POLLED_BATCH: SimDuration = SimDuration::from_millis(10);
+/// The batch while clients are connected (and nothing is pending). Its
+/// length trades the server's CPU against how late a batch's ticks run:
+/// release builds in the same runs (`serve-bench class --hz 100`, the
+/// knob below), 35 modules: 10 ms took 0.78× the CPU of 20 or 100 ms but
+/// its tick lateness p99 was 8.8× theirs and its reply p99 1.9× (machine
+/// mostly idle; 20 and 100 ms alike); 100 modules: 10 and 20 ms ran
+/// 1.7-12× later than 100 ms at p99 (every module's bursts of ticks
+/// contend for the two cores), so 100 ms, as for an idle module.
+const POLLED_BATCH: SimDuration = SimDuration::from_millis(100);
 /// How often the engine looks for connections past their idle timeout.
 const IDLE_CHECK_PERIOD: SimDuration = SimDuration::from_millis(100);
 
