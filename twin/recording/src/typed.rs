@@ -1,47 +1,71 @@
-//! The busiest channels' messages written as protobuf through their types
-//! made from the `.proto` files ([`crate::protobuf::twin`]): a controller's
-//! readings, a supervisor's loop report and a frame with its decoded
-//! fields. A message type with text or lists in it is kept from one message
+//! The busiest channels' messages written as protobuf: a controller's
+//! readings field by field ([`crate::protobuf::wire`], prost's bytes for
+//! its type), a supervisor's loop report and a frame with its decoded
+//! fields through their types made from the `.proto` files
+//! ([`crate::protobuf::twin`]). A message type with text or lists in it is kept from one message
 //! to the next (per thread), so writing one makes no string or list.
 
 use std::cell::RefCell;
 
 use crate::describe::{FrameFields, LinkFrameFields};
-use crate::protobuf::twin::{self as pb, controller_readings, frame, supervisor_loop};
+#[cfg(test)]
+use crate::protobuf::twin::controller_readings;
+use crate::protobuf::twin::{self as pb, frame, supervisor_loop};
+use crate::protobuf::wire::Fields;
 use crate::protobuf::{Protobuf, append, put_str};
-use crate::topics::{self, MebWords, ReadingsSample, SlaveLoop, SupervisorReport};
+use crate::topics::{self, ReadingsSample, SlaveLoop, SupervisorReport};
 use serde::Serialize;
 
 impl Protobuf for ReadingsSample {
     const SCHEMA: &'static str = topics::READINGS_SCHEMA;
 
+    /// The bytes prost writes for [`readings_message`] (a test holds it to
+    /// them), written field by field: see [`Fields`] for why.
     fn write_protobuf(&self, out: &mut Vec<u8>) {
-        let message = pb::ControllerReadings {
-            battery_volts: Some(self.battery_volts),
-            bus_volts: Some(self.bus_volts),
-            inverter_amps: Some(self.inverter_amps),
-            hall_rpm: Some(self.hall_rpm.into()),
-            light_rpm: Some(self.light_rpm.into()),
-            flag_dark: Some(self.flag_dark),
-            soc_percent: Some(self.soc_percent),
-            meb: Some(meb_words(&self.meb)),
-        };
-        append(&message, out);
+        let m = &mut Fields::new(out);
+        m.double(1, self.battery_volts);
+        m.double(2, self.bus_volts);
+        m.double(3, self.inverter_amps);
+        m.uint(4, self.hall_rpm.into());
+        m.uint(5, self.light_rpm.into());
+        m.bool(6, self.flag_dark);
+        m.double(7, self.soc_percent);
+        m.nested(8, |m| {
+            let w = &self.meb;
+            let words = [
+                w.v2, w.i, w.v1, w.rpm_m, w.rpm_l, w.ldr, w.hall, w.soc, w.errs, w.status,
+            ];
+            for (number, word) in (1..).zip(words) {
+                m.uint(number, word.into());
+            }
+        });
     }
 }
 
-fn meb_words(w: &MebWords) -> controller_readings::Meb {
-    controller_readings::Meb {
-        v2: Some(w.v2.into()),
-        i: Some(w.i.into()),
-        v1: Some(w.v1.into()),
-        rpm_m: Some(w.rpm_m.into()),
-        rpm_l: Some(w.rpm_l.into()),
-        ldr: Some(w.ldr.into()),
-        hall: Some(w.hall.into()),
-        soc: Some(w.soc.into()),
-        errs: Some(w.errs.into()),
-        status: Some(w.status.into()),
+/// The readings as the type made from `controller_readings.proto`.
+#[cfg(test)]
+fn readings_message(r: &ReadingsSample) -> pb::ControllerReadings {
+    let w = &r.meb;
+    pb::ControllerReadings {
+        battery_volts: Some(r.battery_volts),
+        bus_volts: Some(r.bus_volts),
+        inverter_amps: Some(r.inverter_amps),
+        hall_rpm: Some(r.hall_rpm.into()),
+        light_rpm: Some(r.light_rpm.into()),
+        flag_dark: Some(r.flag_dark),
+        soc_percent: Some(r.soc_percent),
+        meb: Some(controller_readings::Meb {
+            v2: Some(w.v2.into()),
+            i: Some(w.i.into()),
+            v1: Some(w.v1.into()),
+            rpm_m: Some(w.rpm_m.into()),
+            rpm_l: Some(w.rpm_l.into()),
+            ldr: Some(w.ldr.into()),
+            hall: Some(w.hall.into()),
+            soc: Some(w.soc.into()),
+            errs: Some(w.errs.into()),
+            status: Some(w.status.into()),
+        }),
     }
 }
 
@@ -263,7 +287,7 @@ impl<D: DecodedProtobuf + ?Sized> FrameMessage<'_, D> {
 mod tests {
     use super::*;
     use crate::describe::{decode_frame, link_frame_fields};
-    use crate::topics::{LoopReport, proto_schema};
+    use crate::topics::{LoopReport, MebWords, proto_schema};
     use serde_json::Value;
 
     /// What a reader makes of `bytes` on `topic`.
@@ -320,10 +344,10 @@ mod tests {
             },
         };
         let topic = "/controller/ev1/readings";
-        assert_eq!(
-            read_back(topic, &by_hand(|m| readings.write_protobuf(m))),
-            as_read(&readings)
-        );
+        let hand = by_hand(|m| readings.write_protobuf(m));
+        assert_eq!(read_back(topic, &hand), as_read(&readings));
+        // Byte for byte what prost writes for the `.proto` file's type.
+        assert_eq!(hand, by_hand(|m| append(&readings_message(&readings), m)));
         assert_eq!(
             proto_schema(topic).unwrap().full_name(),
             ReadingsSample::SCHEMA

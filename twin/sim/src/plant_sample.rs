@@ -1,13 +1,15 @@
 //! A plant sample as the recording's writer serialises it: its protobuf
 //! (`twin.PlantSensors`, `twin/recording/proto/twin/plant_sensors.proto`)
-//! through the type made from that file, every field of `plant::Sensors`.
+//! as prost writes the type made from that file, every field of
+//! `plant::Sensors`, written field by field (`protobuf::wire`).
 //! A run records one for each module every sample period, the largest part
 //! of its recording.
 
 use serde::Serialize;
-use std::cell::RefCell;
+use twin_recording::protobuf::Protobuf;
+#[cfg(test)]
 use twin_recording::protobuf::twin::{PlantSensors, plant_sensors};
-use twin_recording::protobuf::{Protobuf, append};
+use twin_recording::protobuf::wire::Fields;
 use twin_recording::record::Deferred;
 
 /// One module's sensors, handed to the recording's writer as they are.
@@ -15,42 +17,90 @@ use twin_recording::record::Deferred;
 #[serde(transparent)]
 pub struct PlantSample(pub plant::Sensors);
 
-thread_local! {
-    /// The sample last written on this thread: its trip's text is kept, so
-    /// a BMS that stays tripped makes no string per sample.
-    static SAMPLE: RefCell<PlantSensors> = RefCell::default();
-}
-
 impl Protobuf for PlantSample {
     const SCHEMA: &'static str = twin_recording::topics::PLANT_SENSORS_SCHEMA;
 
+    /// The bytes prost writes for [`PlantSample::as_message`] (a test holds
+    /// it to them), written field by field: see [`Fields`] for why.
     fn write_protobuf(&self, out: &mut Vec<u8>) {
+        let s = &self.0;
+        let m = &mut Fields::new(out);
+        m.double(1, s.time_s);
+        m.double(2, s.battery_volts);
+        m.double(3, s.bus_volts);
+        m.double(4, s.inverter_current);
+        m.double(5, s.battery_current);
+        m.double(6, s.soc);
+        m.bool(7, s.charging);
+        if let Some(trip) = s.bms_trip {
+            m.str(8, bms_trip_name(trip));
+        }
+        m.uint(9, s.battery_counts.into());
+        m.uint(10, s.bus_counts.into());
+        m.uint(11, s.current_counts.into());
+        m.double(12, s.motor_current);
+        m.bool(13, s.motor_tripped);
+        m.double(14, s.motor_rpm);
+        m.nested(15, |m| {
+            let shaft = &s.shaft;
+            m.uint(1, shaft.hall.into());
+            m.uint(2, shaft.hall_edges);
+            m.double(3, shaft.last_hall_edge_at);
+            m.bool(4, shaft.encoder_a);
+            m.bool(5, shaft.encoder_b);
+            m.sint(6, shaft.encoder_count);
+            m.double(7, shaft.last_encoder_edge_at);
+        });
+        m.double(16, s.wheel_rpm);
+        m.double(17, s.wheel_angle);
+        m.bool(18, s.brake_applied);
+        m.double(19, s.ldr_volts);
+        m.uint(20, s.ldr_counts.into());
+        m.bool(21, s.flag_in_beam);
+        m.nested(22, |m| {
+            let e = &s.energy;
+            let energies = [
+                e.battery_out,
+                e.converter_loss,
+                e.bleeder_loss,
+                e.copper_loss,
+                e.friction_loss,
+                e.brake_loss,
+                e.kinetic,
+                e.capacitor,
+                e.magnetic,
+            ];
+            for (number, joules) in (1..).zip(energies) {
+                m.double(number, joules);
+            }
+        });
+    }
+}
+
+#[cfg(test)]
+impl PlantSample {
+    /// The sample as the type made from `plant_sensors.proto`: what prost
+    /// writes for it is what [`PlantSample::write_protobuf`] must write.
+    fn as_message(&self) -> PlantSensors {
         let s = &self.0;
         let shaft = &s.shaft;
         let e = &s.energy;
-        SAMPLE.with_borrow_mut(|m| {
-            m.time_s = Some(s.time_s);
-            m.battery_volts = Some(s.battery_volts);
-            m.bus_volts = Some(s.bus_volts);
-            m.inverter_current = Some(s.inverter_current);
-            m.battery_current = Some(s.battery_current);
-            m.soc = Some(s.soc);
-            m.charging = Some(s.charging);
-            match s.bms_trip {
-                Some(trip) => {
-                    let text = m.bms_trip.get_or_insert_default();
-                    text.clear();
-                    text.push_str(bms_trip_name(trip));
-                }
-                None => m.bms_trip = None,
-            }
-            m.battery_counts = Some(s.battery_counts.into());
-            m.bus_counts = Some(s.bus_counts.into());
-            m.current_counts = Some(s.current_counts.into());
-            m.motor_current = Some(s.motor_current);
-            m.motor_tripped = Some(s.motor_tripped);
-            m.motor_rpm = Some(s.motor_rpm);
-            m.shaft = Some(plant_sensors::Shaft {
+        PlantSensors {
+            time_s: Some(s.time_s),
+            battery_volts: Some(s.battery_volts),
+            bus_volts: Some(s.bus_volts),
+            inverter_current: Some(s.inverter_current),
+            battery_current: Some(s.battery_current),
+            soc: Some(s.soc),
+            charging: Some(s.charging),
+            bms_trip: s.bms_trip.map(|t| bms_trip_name(t).to_string()),
+            battery_counts: Some(s.battery_counts.into()),
+            bus_counts: Some(s.bus_counts.into()),
+            current_counts: Some(s.current_counts.into()),
+            motor_current: Some(s.motor_current),
+            motor_tripped: Some(s.motor_tripped),
+            motor_rpm: Some(s.motor_rpm),
+            shaft: Some(plant_sensors::Shaft {
                 hall: Some(shaft.hall.into()),
                 hall_edges: Some(shaft.hall_edges),
                 last_hall_edge_at: Some(shaft.last_hall_edge_at),
@@ -58,14 +108,14 @@ impl Protobuf for PlantSample {
                 encoder_b: Some(shaft.encoder_b),
                 encoder_count: Some(shaft.encoder_count),
                 last_encoder_edge_at: Some(shaft.last_encoder_edge_at),
-            });
-            m.wheel_rpm = Some(s.wheel_rpm);
-            m.wheel_angle = Some(s.wheel_angle);
-            m.brake_applied = Some(s.brake_applied);
-            m.ldr_volts = Some(s.ldr_volts);
-            m.ldr_counts = Some(s.ldr_counts.into());
-            m.flag_in_beam = Some(s.flag_in_beam);
-            m.energy = Some(plant_sensors::Energy {
+            }),
+            wheel_rpm: Some(s.wheel_rpm),
+            wheel_angle: Some(s.wheel_angle),
+            brake_applied: Some(s.brake_applied),
+            ldr_volts: Some(s.ldr_volts),
+            ldr_counts: Some(s.ldr_counts.into()),
+            flag_in_beam: Some(s.flag_in_beam),
+            energy: Some(plant_sensors::Energy {
                 battery_out: Some(e.battery_out),
                 converter_loss: Some(e.converter_loss),
                 bleeder_loss: Some(e.bleeder_loss),
@@ -75,9 +125,8 @@ impl Protobuf for PlantSample {
                 kinetic: Some(e.kinetic),
                 capacitor: Some(e.capacitor),
                 magnetic: Some(e.magnetic),
-            });
-            append(&*m, out);
-        });
+            }),
+        }
     }
 }
 
@@ -165,6 +214,10 @@ mod tests {
                 PlantSample::SCHEMA,
                 &mut bytes
             ));
+            // Byte for byte what prost writes for the `.proto` file's type.
+            let mut by_prost = Vec::new();
+            twin_recording::protobuf::append(&sample.as_message(), &mut by_prost);
+            assert_eq!(bytes, by_prost, "{trip:?}");
             // Every field, the trip absent as `null` and NaN as `null`, as
             // a JSON recording held them.
             let json = serde_json::to_value(sample).unwrap();

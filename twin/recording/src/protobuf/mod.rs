@@ -10,6 +10,7 @@
 
 pub mod decode;
 mod transcode;
+pub mod wire;
 
 use prost::Message as _;
 use prost_reflect::{DescriptorPool, MessageDescriptor};
