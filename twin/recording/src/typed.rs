@@ -1,19 +1,16 @@
-//! The busiest channels' messages written as protobuf: a controller's
-//! readings field by field ([`crate::protobuf::wire`], prost's bytes for
-//! its type), a supervisor's loop report and a frame with its decoded
-//! fields through their types made from the `.proto` files
-//! ([`crate::protobuf::twin`]). A message type with text or lists in it is kept from one message
+//! The busiest channels' messages written as protobuf field by field
+//! ([`crate::protobuf::wire`]): a controller's readings, a supervisor's
+//! loop report and a frame with its decoded fields, the bytes prost writes
+//! for their types made from the `.proto` files ([`crate::protobuf::twin`]),
+//! as the tests check. A message type with text or lists in it is kept from one message
 //! to the next (per thread), so writing one makes no string or list.
 
-use std::cell::RefCell;
-
 use crate::describe::{FrameFields, LinkFrameFields};
+use crate::protobuf::Protobuf;
 #[cfg(test)]
-use crate::protobuf::twin::controller_readings;
-use crate::protobuf::twin::{self as pb, frame, supervisor_loop};
+use crate::protobuf::twin::{self as pb, controller_readings};
 use crate::protobuf::wire::Fields;
-use crate::protobuf::{Protobuf, append, put_str};
-use crate::topics::{self, ReadingsSample, SlaveLoop, SupervisorReport};
+use crate::topics::{self, ReadingsSample, SupervisorReport};
 use serde::Serialize;
 
 impl Protobuf for ReadingsSample {
@@ -69,67 +66,48 @@ fn readings_message(r: &ReadingsSample) -> pb::ControllerReadings {
     }
 }
 
-thread_local! {
-    /// The loop report last written on this thread, its list kept.
-    static LOOP: RefCell<pb::SupervisorLoop> = RefCell::default();
-    /// The frame last written on this thread, its text and list kept.
-    static FRAME: RefCell<pb::Frame> = RefCell::default();
-}
-
 impl Protobuf for SupervisorReport {
     const SCHEMA: &'static str = topics::SUPERVISOR_LOOP_SCHEMA;
 
+    /// The bytes prost writes for the `.proto` file's type (a test holds it
+    /// to prost-reflect's), written field by field: see [`Fields`] for why.
     fn write_protobuf(&self, out: &mut Vec<u8>) {
-        LOOP.with_borrow_mut(|message| {
-            message.cycles = Some(self.cycles);
-            message.loops.clear();
-            message.loops.extend(self.loops.iter().map(slave_loop));
-            append(&*message, out);
-        });
-    }
-}
-
-fn slave_loop(l: &SlaveLoop) -> supervisor_loop::Loop {
-    supervisor_loop::Loop {
-        slave: Some(l.slave.into()),
-        set_point_rpm: Some(l.set_point_rpm),
-        measured_rpm: Some(l.measured_rpm),
-        error_rpm: Some(l.error_rpm),
-        output: Some(l.output.into()),
-        integral: Some(l.integral),
-        requests: Some(l.requests),
-        replies: Some(l.replies),
-        timeouts: Some(l.timeouts),
-        bad_checks: Some(l.bad_checks),
-        exceptions: Some(l.exceptions),
-        retries: Some(l.retries),
-        lost: Some(l.lost),
+        let m = &mut Fields::new(out);
+        m.uint(1, self.cycles);
+        for l in &self.loops {
+            m.nested(2, |m| {
+                m.uint(1, l.slave.into());
+                m.double(2, l.set_point_rpm);
+                m.double(3, l.measured_rpm);
+                m.double(4, l.error_rpm);
+                m.uint(5, l.output.into());
+                m.double(6, l.integral);
+                let counts = [
+                    l.requests,
+                    l.replies,
+                    l.timeouts,
+                    l.bad_checks,
+                    l.exceptions,
+                    l.retries,
+                    l.lost,
+                ];
+                for (number, count) in (7..).zip(counts) {
+                    m.uint(number, count);
+                }
+            });
+        }
     }
 }
 
 /// A frame's decoded fields, as the nested `twin.Frame.Decoded` message's.
 pub trait DecodedProtobuf {
-    /// Fill `d` (every field, those of other protocols absent).
-    fn fill_decoded(&self, d: &mut frame::Decoded);
-}
-
-/// `d` with no field but its protocol.
-fn only_protocol(d: &mut frame::Decoded, protocol: &str) {
-    put_str(&mut d.protocol, Some(protocol));
-    d.addr = None;
-    d.cmd = None;
-    d.cnt = None;
-    d.data.clear();
-    d.id = None;
-    d.function = None;
-    d.value = None;
-    d.unit = None;
-    d.transaction = None;
-    d.error = None;
+    /// Write its fields (those of other protocols absent), in field-number
+    /// order.
+    fn write_decoded(&self, m: &mut Fields<'_>);
 }
 
 impl DecodedProtobuf for FrameFields {
-    fn fill_decoded(&self, d: &mut frame::Decoded) {
+    fn write_decoded(&self, m: &mut Fields<'_>) {
         match self {
             FrameFields::Meb {
                 addr,
@@ -139,15 +117,21 @@ impl DecodedProtobuf for FrameFields {
                 id,
                 protocol,
             } => {
-                only_protocol(d, protocol);
-                d.addr = Some((*addr).into());
-                // Two ASCII letters (`MebCmd::new`): the text `Display` gives.
-                let letters = d.cmd.get_or_insert_default();
-                letters.clear();
-                letters.extend(cmd.letters().map(char::from));
-                d.cnt = Some((*cnt).into());
-                d.data.extend(data.as_slice().iter().map(|w| u32::from(*w)));
-                d.id = Some((*id).into());
+                m.str(1, protocol);
+                m.uint(2, (*addr).into());
+                // Two ASCII letters (`MebCmd::new`): the text `Display`
+                // gives, each letter a `char` as prost's string held it.
+                let mut text = [0u8; 8];
+                let mut len = 0;
+                for letter in cmd.letters() {
+                    len += char::from(letter).encode_utf8(&mut text[len..]).len();
+                }
+                m.str(3, std::str::from_utf8(&text[..len]).unwrap_or_default());
+                m.uint(4, (*cnt).into());
+                for w in data.as_slice() {
+                    m.uint(5, (*w).into());
+                }
+                m.uint(6, (*id).into());
             }
             FrameFields::Modbus8 {
                 addr,
@@ -156,31 +140,31 @@ impl DecodedProtobuf for FrameFields {
                 protocol,
                 value,
             } => {
-                only_protocol(d, protocol);
-                d.addr = Some((*addr).into());
-                d.function = Some((*function).into());
-                d.id = Some((*id).into());
-                d.value = Some((*value).into());
+                m.str(1, protocol);
+                m.uint(2, (*addr).into());
+                m.uint(6, (*id).into());
+                m.uint(7, (*function).into());
+                m.uint(8, (*value).into());
             }
             FrameFields::ModbusRtu {
                 function,
                 protocol,
                 unit,
             } => {
-                only_protocol(d, protocol);
-                d.function = Some((*function).into());
-                d.unit = Some((*unit).into());
+                m.str(1, protocol);
+                m.uint(7, (*function).into());
+                m.uint(9, (*unit).into());
             }
             FrameFields::Broken { error, protocol } => {
-                only_protocol(d, protocol);
-                put_str(&mut d.error, Some(error));
+                m.str(1, protocol);
+                m.str(11, error);
             }
         }
     }
 }
 
 impl DecodedProtobuf for LinkFrameFields<'_> {
-    fn fill_decoded(&self, d: &mut frame::Decoded) {
+    fn write_decoded(&self, m: &mut Fields<'_>) {
         match self {
             LinkFrameFields::Modbus {
                 function,
@@ -188,23 +172,27 @@ impl DecodedProtobuf for LinkFrameFields<'_> {
                 transaction,
                 unit,
             } => {
-                only_protocol(d, protocol);
-                d.function = function.map(u32::from);
-                d.transaction = transaction.map(u32::from);
-                d.unit = Some((*unit).into());
+                m.str(1, protocol);
+                if let Some(function) = function {
+                    m.uint(7, (*function).into());
+                }
+                m.uint(9, (*unit).into());
+                if let Some(transaction) = transaction {
+                    m.uint(10, (*transaction).into());
+                }
             }
             LinkFrameFields::Broken { error, protocol } => {
-                only_protocol(d, protocol);
-                put_str(&mut d.error, Some(error));
+                m.str(1, protocol);
+                m.str(11, error);
             }
-            LinkFrameFields::Bus(fields) => fields.fill_decoded(d),
+            LinkFrameFields::Bus(fields) => fields.write_decoded(m),
         }
     }
 }
 
 impl<T: DecodedProtobuf + ?Sized> DecodedProtobuf for &T {
-    fn fill_decoded(&self, d: &mut frame::Decoded) {
-        (**self).fill_decoded(d);
+    fn write_decoded(&self, m: &mut Fields<'_>) {
+        (**self).write_decoded(m);
     }
 }
 
@@ -261,25 +249,22 @@ impl<'a, D: ?Sized> FrameMessage<'a, D> {
 }
 
 impl<D: DecodedProtobuf + ?Sized> FrameMessage<'_, D> {
-    /// Append the frame's protobuf bytes (`twin.Frame`) to `out`.
+    /// Append the frame's protobuf bytes (`twin.Frame`) to `out`: those
+    /// prost writes for the `.proto` file's type (tests hold them to
+    /// prost-reflect's), written field by field: see [`Fields`] for why.
     pub fn write(&self, out: &mut Vec<u8>) {
-        FRAME.with_borrow_mut(|m| {
-            put_str(&mut m.from, Some(self.from));
-            m.start_s = Some(self.start_s);
-            m.end_s = Some(self.end_s);
-            m.len = Some(u32::try_from(self.len).unwrap_or(u32::MAX));
-            put_str(&mut m.text, self.text);
-            match self.hex {
-                Some(Hex(bytes)) => {
-                    let hex = m.hex.get_or_insert_default();
-                    hex.clear();
-                    topics::put_hex(hex, bytes);
-                }
-                None => m.hex = None,
-            }
-            self.decoded.fill_decoded(m.decoded.get_or_insert_default());
-            append(&*m, out);
-        });
+        let m = &mut Fields::new(out);
+        m.str(1, self.from);
+        m.double(2, self.start_s);
+        m.double(3, self.end_s);
+        m.uint(4, u32::try_from(self.len).unwrap_or(u32::MAX).into());
+        if let Some(text) = self.text {
+            m.str(5, text);
+        }
+        if let Some(Hex(bytes)) = self.hex {
+            m.hex(6, bytes);
+        }
+        m.nested(7, |m| self.decoded.write_decoded(m));
     }
 }
 
@@ -287,7 +272,8 @@ impl<D: DecodedProtobuf + ?Sized> FrameMessage<'_, D> {
 mod tests {
     use super::*;
     use crate::describe::{decode_frame, link_frame_fields};
-    use crate::topics::{LoopReport, MebWords, proto_schema};
+    use crate::protobuf::append;
+    use crate::topics::{LoopReport, MebWords, SlaveLoop, proto_schema};
     use serde_json::Value;
 
     /// What a reader makes of `bytes` on `topic`.

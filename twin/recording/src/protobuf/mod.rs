@@ -104,20 +104,6 @@ pub(crate) fn hex_runs<E>(
     Ok(())
 }
 
-/// `slot` holding `text` (`None`: absent), its string's room kept for the
-/// next message: a message type reused from one message to the next makes
-/// no string per message.
-pub(crate) fn put_str(slot: &mut Option<String>, text: Option<&str>) {
-    match text {
-        Some(text) => {
-            let s = slot.get_or_insert_default();
-            s.clear();
-            s.push_str(text);
-        }
-        None => *slot = None,
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -1,16 +1,15 @@
-//! The two busiest messages' fields appended straight to the batch, field
-//! by field, in field-number order: the bytes prost writes for the same
-//! values through the types made from the `.proto` files (tests hold each
-//! writer to prost's bytes), without prost's per-field calls.
+//! The busiest messages' fields appended straight to the batch, field by
+//! field, in field-number order: the bytes prost writes for the same values
+//! through the types made from the `.proto` files (tests hold each writer
+//! to prost's bytes), without prost's per-field calls.
 //!
 //! Why: prost writes every tag and integer through `encode_varint`, which
 //! the compiler keeps out of line (a loop unrolled ten times), and sizes
 //! each nested message twice before writing it. In a pinned recorded ev-meb
 //! run (`perf record`, 1000 simulated seconds) prost's encoding took 5.0 %
 //! of the samples where the earlier hand-written writer took 1.6 %, most of
-//! the recorded run's 6 % over the build before. A plant sample (38 fields)
-//! and a controller's readings (18) are four fifths of those fields; the
-//! frames and loop reports, with text and lists, stay with prost.
+//! the recorded run's 6 % over the build before (`docs/measurements-recording.md`,
+//! "A run's messages written field by field").
 
 /// Wire types used here.
 const VARINT: u32 = 0;
@@ -75,6 +74,19 @@ impl<'a> Fields<'a> {
         self.tag(number, LEN);
         self.varint(v.len() as u64);
         self.out.extend_from_slice(v.as_bytes());
+    }
+
+    /// A `string` field holding `bytes` spelled in hex, two lowercase
+    /// digits a byte, with no string made first.
+    #[inline]
+    pub fn hex(&mut self, number: u32, bytes: &[u8]) {
+        self.tag(number, LEN);
+        self.varint(2 * bytes.len() as u64);
+        let start = self.out.len();
+        self.out.resize(start + 2 * bytes.len(), 0);
+        if let Some(digits) = self.out.get_mut(start..) {
+            super::spell_hex(digits, bytes);
+        }
     }
 
     /// A nested message, its fields written by `fields`. One byte is kept
