@@ -1,7 +1,9 @@
 //! Protobuf, as the twin's busiest channels are recorded. The messages are
 //! `.proto` files in the repository (`twin/recording/proto/twin/`), compiled
 //! at build time by protox (no `protoc`): their Rust types ([`twin`]) made
-//! by prost-build and written by prost, their `FileDescriptorSet` embedded
+//! by prost-build (the busy messages are written field by field by [`wire`],
+//! prost's bytes for those types, which tests compare), their
+//! `FileDescriptorSet` embedded
 //! for the MCAP schema records (schema encoding `protobuf`), which Foxglove,
 //! Lichtblick and the MCAP tools decode by field name. The readers decode a
 //! message through prost-reflect with the schema its own file carries, back
