@@ -1144,7 +1144,7 @@ mod tests {
         // Its reply, read at once, is used: nothing timed out.
         let reply = b"@01EA00060BB80000000003E8000003E84B*\n";
         let mut replies = Outgoing::default();
-        front.receive(1, clock.now(), reply, &mut replies);
+        front.receive(1, clock.now(), reply, false, &mut replies);
         let mut shared = front.lock();
         let supervisor = shared.devices[0]
             .node
