@@ -282,7 +282,7 @@ pub fn run<R: Role>(
     if let Some(Err(e)) = super::fd_limit::raise_once() {
         eprintln!("warning: {e}");
     }
-    let runtime = links_runtime()?;
+    let runtime = links_runtime(options.rt_priority)?;
     let clock = RtClock::start();
     let record_period = SimDuration::from_secs_f64(1.0 / options.record_hz.max(1.0));
     // The sink starts once the links are open and named; its channel is made
@@ -354,9 +354,10 @@ pub fn run<R: Role>(
         start(runtime.handle(), inbound_tx.clone());
     }
     role.started(&runtime, &inbound_tx);
-    // The links' runtime runs on this thread: a reply waits for it too.
+    // This thread drives the runtime and its signals: a reply waits for it
+    // too. The runtime's own threads raised themselves as they started.
     if let Some(priority) = options.rt_priority
-        && let Err(why) = super::clock::raise_this_thread(priority.saturating_sub(1).max(1))
+        && let Err(why) = super::clock::raise_this_thread(links_priority(priority))
         && !refused.swap(true, Ordering::Relaxed)
     {
         let _ = sink_tx.send(SinkMsg::Say(refused_warning(priority, &why)));
@@ -408,16 +409,31 @@ pub fn run<R: Role>(
 
 /// The runtime the listeners and serial ports run on (a TCP connection has
 /// a thread of its own, see [`super::tcp_thread`]): a worker per core (up
-/// to four), so several serial ports are answered at once.
-pub fn links_runtime() -> Result<Runtime> {
+/// to four), so several serial ports are answered at once. With
+/// `priority`, its threads take the links' real-time priority as they
+/// start: the serial ports' tasks run on them, not on the thread that
+/// blocks on the runtime (a refusal is said once, by that thread).
+pub fn links_runtime(priority: Option<u8>) -> Result<Runtime> {
     let workers = std::thread::available_parallelism().map_or(2, |n| n.get().clamp(1, 4));
-    tokio::runtime::Builder::new_multi_thread()
+    let mut builder = tokio::runtime::Builder::new_multi_thread();
+    builder
         .worker_threads(workers)
         .enable_io()
         .enable_time()
-        .thread_name("twin-links")
-        .build()
-        .map_err(SessionError::Runtime)
+        .thread_name("twin-links");
+    if let Some(priority) = priority {
+        let links = links_priority(priority);
+        builder.on_thread_start(move || {
+            let _ = super::clock::raise_this_thread(links);
+        });
+    }
+    builder.build().map_err(SessionError::Runtime)
+}
+
+/// The links' priority: one below the plant's, so a busy link never holds
+/// off a tick.
+fn links_priority(plant: u8) -> u8 {
+    plant.saturating_sub(1).max(1)
 }
 
 /// Each link's name and protocol, as the sink labels its frames.

@@ -424,6 +424,74 @@ fn the_units_grant_is_enough_and_a_refusal_is_said_once() {
     }
 }
 
+/// `--rt-priority N`, granted: the plant's thread runs under SCHED_FIFO
+/// at N and every thread of the links' runtime (where the serial ports and
+/// listeners are served) at N-1, as the help says; read from `/proc` while
+/// the session runs. (The runtime's workers once kept normal priority: only
+/// the thread that blocks on the runtime was raised.)
+#[test]
+fn a_granted_priority_reaches_the_plant_and_every_links_thread() {
+    let fifo = Command::new("chrt")
+        .args(["-f", "1", "true"])
+        .output()
+        .is_ok_and(|o| o.status.success());
+    if !fifo {
+        eprintln!("SKIPPED: needs SCHED_FIFO allowed (root, or CAP_SYS_NICE)");
+        return;
+    }
+    let serve = Proc::start(&[
+        "serve",
+        "--modbus",
+        "tcp://127.0.0.1:0",
+        "--no-record",
+        "--quiet",
+        "--status-every",
+        "0",
+        "--rt-priority",
+        "40",
+    ]);
+    // Each thread's name, real-time priority and policy (1: SCHED_FIFO),
+    // fields 2, 40 and 41 of its stat.
+    let pid = serve.child.id();
+    let threads = || {
+        let mut threads = Vec::new();
+        for task in std::fs::read_dir(format!("/proc/{pid}/task")).expect("the twin's threads") {
+            let Ok(stat) = std::fs::read_to_string(task.unwrap().path().join("stat")) else {
+                continue;
+            };
+            let (Some(open), Some(close)) = (stat.find('('), stat.rfind(')')) else {
+                continue;
+            };
+            let fields: Vec<&str> = stat[close + 1..].split_whitespace().collect();
+            let number = |n: usize| fields.get(n - 3).and_then(|f| f.parse::<u32>().ok());
+            threads.push((stat[open + 1..close].to_string(), number(40), number(41)));
+        }
+        threads
+    };
+    let of = |threads: &[(String, Option<u32>, Option<u32>)], name: &str| {
+        threads
+            .iter()
+            .filter(|t| t.0 == name)
+            .map(|t| (t.1, t.2))
+            .collect::<Vec<_>>()
+    };
+    let raised = |t: &[(String, Option<u32>, Option<u32>)]| {
+        let links = of(t, "twin-links");
+        of(t, "twin-realtime") == [(Some(40), Some(1))]
+            && !links.is_empty()
+            && links.iter().all(|&l| l == (Some(39), Some(1)))
+    };
+    // Each thread raises itself as it starts, a moment after `ready`.
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let mut seen = threads();
+    while !raised(&seen) && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(50));
+        seen = threads();
+    }
+    serve.terminate();
+    assert!(raised(&seen), "{seen:?}");
+}
+
 #[test]
 fn a_class_of_five_modules_each_reached_by_its_own_pymodbus_client() {
     let dir = folder("class");
