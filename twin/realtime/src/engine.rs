@@ -174,7 +174,7 @@ impl RtEngine {
             read_only: false,
             spin: spin_from_env(),
             plant_step,
-            tick: SimDuration::from_millis(1),
+            tick: super::front::TICK,
             record_period,
             next_record: SimTime::ZERO,
             samples_wanted: true,

@@ -139,6 +139,23 @@ fn modbus_tcp(
     frame.response().expect("a valid PDU")
 }
 
+/// VEL (holding register 0) written over Modbus TCP, the write's echo checked.
+fn write_vel(s: &mut TcpStream, tid: u16, vel: u16) {
+    let r = modbus_tcp(
+        s,
+        tid,
+        1,
+        &Request::WriteSingleRegister {
+            address: 0,
+            value: vel,
+        },
+    );
+    assert!(
+        matches!(r, Ok(Response::WriteSingleRegister { .. })),
+        "{r:?}"
+    );
+}
+
 fn input_registers(s: &mut TcpStream, tid: u16) -> Vec<u16> {
     let request = Request::ReadInputRegisters {
         address: 0,
@@ -195,19 +212,7 @@ fn meb_and_modbus_tcp_serve_one_module_and_a_write_turns_the_wheel() {
     // Enable over MEB, set VEL over Modbus: the hall rpm rises.
     let ack = meb(&mut m, &meb_frame(1, MebCmd::SD, 0, 1, &[SD0_RUN]));
     assert_eq!(ack.cmd, MebCmd::SD, "{ack:?}");
-    let r = modbus_tcp(
-        &mut t,
-        2,
-        1,
-        &Request::WriteSingleRegister {
-            address: 0,
-            value: 2048,
-        },
-    );
-    assert!(
-        matches!(r, Ok(Response::WriteSingleRegister { .. })),
-        "{r:?}"
-    );
+    write_vel(&mut t, 2, 2048);
     let deadline = Instant::now() + Duration::from_secs(10);
     let mut tid = 10;
     let rpm = loop {
@@ -291,19 +296,7 @@ fn a_polled_module_answers_from_the_plant_of_each_request_s_arrival() {
         );
         assert!(matches!(r, Ok(Response::WriteSingleCoil { .. })), "{r:?}");
     }
-    let r = modbus_tcp(
-        &mut t,
-        3,
-        1,
-        &Request::WriteSingleRegister {
-            address: 0,
-            value: 2048,
-        },
-    );
-    assert!(
-        matches!(r, Ok(Response::WriteSingleRegister { .. })),
-        "{r:?}"
-    );
+    write_vel(&mut t, 3, 2048);
     let mut read = std::collections::BTreeMap::new();
     for i in 0..80u16 {
         std::thread::sleep(Duration::from_millis(15 + u64::from(i * 7 % 26)));
