@@ -19,16 +19,17 @@
 //! no one connected, `POLLED_BATCH` with clients) and runs them in a
 //! burst, the same ticks in the same order. A request that comes
 //! meanwhile and finds the plant more than a tick behind its arrival has
-//! the plant ticked up to that arrival first ([`Inbound::CatchUp`]), so a
-//! client reads what it would have read from an engine ticking every
-//! millisecond, and a polled module costs its requests rather than a
-//! thousand wake-ups a second. Serial ports, supervisors and sketches keep
+//! the plant ticked up to that arrival first, by its carrier's thread
+//! while it holds the engine ([`FrontHandle::catch_up`]), so a client reads what
+//! it would have read from an engine ticking every millisecond, and a
+//! polled module costs its requests rather than a thousand wake-ups a
+//! second. Serial ports, supervisors and sketches keep
 //! the 1 ms ticks (`Front::answers_at_once`).
 
 use protocols::time::{SimDuration, SimTime};
 use std::collections::BTreeMap;
 use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, TryRecvError};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Instant;
 
 use super::clock::{CATCH_UP, RtClock};
@@ -38,7 +39,7 @@ use super::firmware_log::FirmwareLog;
 pub use super::forces::Forces;
 pub use super::frame_log::{ConnId, Outgoing};
 pub use super::front::RtCounters;
-use super::front::{Conn, Front, FrontHandle, Probation};
+use super::front::{CatchUp, Conn, Front, FrontHandle, Probation};
 pub use super::front::{LinkTask, Outbound};
 use super::lateness::{Lateness, LatenessSummary};
 use super::sink::SinkMsg;
@@ -125,6 +126,8 @@ pub struct RtEngine {
     spin: SimDuration,
     plant_step: SimDuration,
     tick: SimDuration,
+    /// The next plant tick: every one before it has run.
+    next_tick: SimTime,
     record_period: SimDuration,
     next_record: SimTime,
     /// Whether anyone takes the plant samples and readings (a recording, a
@@ -175,6 +178,7 @@ impl RtEngine {
             spin: spin_from_env(),
             plant_step,
             tick: super::front::TICK,
+            next_tick: SimTime::ZERO,
             record_period,
             next_record: SimTime::ZERO,
             samples_wanted: true,
@@ -326,115 +330,142 @@ impl RtEngine {
         // worth a wake-up each, and without the slack the spin before them
         // can be short.
         let _ = rustix::thread::set_current_timer_slack(std::num::NonZeroU64::new(1));
-        let front = FrontHandle(Arc::new(Mutex::new(Front::new(
-            self.sink.clone(),
+        // While the engine sleeps through a batch, a carrier whose request
+        // finds the plant behind ticks it up to the request's arrival
+        // itself ([`FrontHandle::catch_up`]), holding the engine: it is shared
+        // for the run, and given back whole at its end.
+        let stand_in = Self::new(
             self.clock.clone(),
-            &self.links,
-        ))));
-        self.swap_front(&mut front.lock());
-        front.lock().catch_up = self.catch_up;
-        let idle_batch = batch_from_env("TWIN_RT_BATCH_MS", IDLE_BATCH).max(self.tick);
-        let polled_batch = batch_from_env("TWIN_RT_POLLED_BATCH_MS", POLLED_BATCH).max(self.tick);
-        let mut next_tick = SimTime::ZERO;
-        // The tick the last wait was for: the next one, or the last of a
-        // batch while nothing reads the plant between ticks.
-        let mut aimed = SimTime::ZERO;
-        loop {
-            let now = self.clock.now();
-            // Through a batch the ticks wait for its last (or a message):
-            // a request caught up to its arrival is answered from there.
-            if now >= next_tick && now >= aimed {
-                let late = now.saturating_since(aimed);
-                self.tick_through(now, Some(late), &mut next_tick, &front);
-                // On the session's clock, which may have slipped.
-                if end.is_some_and(|e| self.clock.now() >= e) && self.stop.is_none() {
-                    self.stop = Some("duration reached".into());
-                }
-            }
-            self.follow(next_tick, &front);
-            // With no one connected nothing reads the plant between ticks,
-            // so they run in batches: the same ticks in the same order, on
-            // a hundredth of the wake-ups (a class of idle modules paid for
-            // 1000 a second each), never past the session's end. Clients
-            // that are answered from the image when their bytes come, with
-            // no deadline pending, read the plant only then: the engine
-            // batches for them too, and a request that finds the plant
-            // behind has it caught up first (`After::Behind`), so a polled
-            // module costs its requests, not a thousand wake-ups a second.
-            // Requests faster than `BUSY_GAP` keep it ticking every
-            // millisecond, where that is cheaper than catching up for each.
-            let (next, follow) = {
-                let mut shared = front.lock();
-                let now = self.clock.now();
-                shared.service_timers(now);
-                shared.ship_frames();
-                let next = shared.next_deadline();
-                let unread = shared.conns.is_empty()
-                    || (shared.answers_at_once() && !shared.requests_busy(now));
-                aimed = if unread && next.is_none() {
-                    let batch = if shared.conns.is_empty() {
-                        idle_batch
-                    } else {
-                        polled_batch
-                    };
-                    let last = next_tick + SimDuration(batch.0 - self.tick.0);
-                    end.map_or(last, |e| last.min(e.max(next_tick)))
-                } else {
-                    next_tick
-                };
-                shared.batching = aimed > next_tick;
-                // The clock slips when the wake is late for the tick it
-                // waited for, not for the batch's length.
-                shared.ticked_to = aimed;
-                (next, shared.next_follow())
-            };
-            if self.stop.is_some() {
-                break;
-            }
-            // Only a link's deadline (a reply's turnaround, a timer) is
-            // worth spinning for: a plant tick a few tens of microseconds
-            // late computes the same step, and spinning before each one
-            // cost an idle class of 35 modules 1.6 cores.
-            let (deadline, spin) = match next {
-                Some(d) if d < aimed => (d, true),
-                _ => (aimed, false),
-            };
-            // A sketch followed between the ticks: its loop period is
-            // 100 µs or so, and a few tens of µs late it computes the same.
-            let (deadline, spin) = match follow {
-                Some(f) if f < deadline => (f, false),
-                _ => (deadline, spin),
-            };
-            if let Some(message) = self.wait(inbound, deadline, spin) {
-                // The plant catches up first: a newcomer's first request,
-                // or a command, meets the plant of now, not of a batch ago;
-                // a request that found it behind, the plant of its arrival.
-                let mut message = Some(message);
-                let mut first = true;
-                while let Some(m) = message.take() {
-                    let wall = self.clock.now();
-                    // How far to tick, and how late the ticks come for what
-                    // needed them: the wait's aim, or the request's arrival
-                    // (the lateness of a polled module's batches).
-                    let to = match m {
-                        Inbound::CatchUp { at, .. } => {
-                            Some((at.min(wall), Some(wall.saturating_since(at))))
-                        }
-                        _ => first
-                            .then(|| (wall, (wall >= aimed).then(|| wall.saturating_since(aimed)))),
-                    };
-                    if let Some((to, late)) = to
-                        && to >= next_tick
-                    {
-                        self.tick_through(to, late, &mut next_tick, &front);
-                    }
-                    self.handle(m, &front);
-                    first = false;
-                    // Everything already queued is handled before the next wait.
-                    message = inbound.try_recv().ok();
-                }
+            self.plant_step,
+            self.record_period,
+            self.sink.clone(),
+        );
+        let shared = Arc::new(SharedEngine(Mutex::new(std::mem::replace(self, stand_in))));
+        let front = {
+            let engine = shared.lock();
+            FrontHandle::new(
+                Front::new(engine.sink.clone(), engine.clock.clone(), &engine.links),
+                Some(shared.clone()),
+            )
+        };
+        let summary = SharedEngine::run(&shared, &front, inbound, end);
+        std::mem::swap(self, &mut *shared.lock());
+        summary
+    }
+
+    /// The ticks a request that came `at` needs, if the plant is behind it
+    /// (a carrier's catch-up, while the engine sleeps through a batch):
+    /// they come late by the time since the request's arrival.
+    fn catch_up(&mut self, at: SimTime, front: &FrontHandle) {
+        let wall = self.clock.now();
+        let to = at.min(wall);
+        if to >= self.next_tick {
+            self.tick_through(to, Some(wall.saturating_since(at)), front);
+        }
+    }
+
+    /// The loop's plan after a pass: ticks due by now, the sketches
+    /// followed, the links' timers serviced; then when to wake next, and
+    /// whether to spin for it. `aimed` is the tick the last wait was for.
+    fn pass(
+        &mut self,
+        front: &FrontHandle,
+        end: Option<SimTime>,
+        aimed: &mut SimTime,
+        batches: (SimDuration, SimDuration),
+    ) -> (SimTime, bool) {
+        let now = self.clock.now();
+        // Through a batch the ticks wait for its last (or a message):
+        // a request caught up to its arrival is answered from there.
+        if now >= self.next_tick && now >= *aimed {
+            let late = now.saturating_since(*aimed);
+            self.tick_through(now, Some(late), front);
+            // On the session's clock, which may have slipped.
+            if end.is_some_and(|e| self.clock.now() >= e) && self.stop.is_none() {
+                self.stop = Some("duration reached".into());
             }
         }
+        self.follow(front);
+        let next_tick = self.next_tick;
+        // With no one connected nothing reads the plant between ticks,
+        // so they run in batches: the same ticks in the same order, on
+        // a hundredth of the wake-ups (a class of idle modules paid for
+        // 1000 a second each), never past the session's end. Clients
+        // that are answered from the image when their bytes come, with
+        // no deadline pending, read the plant only then: the engine
+        // batches for them too, and a request that finds the plant
+        // behind has it caught up first (`After::Behind`), so a polled
+        // module costs its requests, not a thousand wake-ups a second.
+        // Requests faster than `BUSY_GAP` keep it ticking every
+        // millisecond, where that is cheaper than catching up for each.
+        let (next, follow) = {
+            let mut shared = front.lock();
+            let now = self.clock.now();
+            shared.service_timers(now);
+            shared.ship_frames();
+            let next = shared.next_deadline();
+            let unread =
+                shared.conns.is_empty() || (shared.answers_at_once() && !shared.requests_busy(now));
+            *aimed = if unread && next.is_none() {
+                let (idle_batch, polled_batch) = batches;
+                let batch = if shared.conns.is_empty() {
+                    idle_batch
+                } else {
+                    polled_batch
+                };
+                let last = next_tick + SimDuration(batch.0 - self.tick.0);
+                end.map_or(last, |e| last.min(e.max(next_tick)))
+            } else {
+                next_tick
+            };
+            shared.batching = *aimed > next_tick;
+            // The clock slips when the wake is late for the tick it
+            // waited for, not for the batch's length.
+            shared.ticked_to = *aimed;
+            (next, shared.next_follow())
+        };
+        // Only a link's deadline (a reply's turnaround, a timer) is
+        // worth spinning for: a plant tick a few tens of microseconds
+        // late computes the same step, and spinning before each one
+        // cost an idle class of 35 modules 1.6 cores.
+        let (deadline, spin) = match next {
+            Some(d) if d < *aimed => (d, true),
+            _ => (*aimed, false),
+        };
+        // A sketch followed between the ticks: its loop period is
+        // 100 µs or so, and a few tens of µs late it computes the same.
+        match follow {
+            Some(f) if f < deadline => (f, false),
+            _ => (deadline, spin),
+        }
+    }
+
+    /// `message`, and everything already queued behind it. The plant
+    /// catches up first: a newcomer's first request, or a command, meets
+    /// the plant of now, not of a batch ago.
+    fn handle_all(
+        &mut self,
+        message: Inbound,
+        inbound: &Receiver<Inbound>,
+        front: &FrontHandle,
+        aimed: SimTime,
+    ) {
+        let wall = self.clock.now();
+        if wall >= self.next_tick {
+            // How late the ticks come for what needed them: the wait's aim.
+            let late = (wall >= aimed).then(|| wall.saturating_since(aimed));
+            self.tick_through(wall, late, front);
+        }
+        let mut message = Some(message);
+        while let Some(m) = message.take() {
+            self.handle(m, front);
+            message = inbound.try_recv().ok();
+        }
+    }
+
+    /// The session's end: every connection closed, the last lateness
+    /// sent, the summary.
+    fn finish(&mut self, front: &FrontHandle) -> RtSummary {
         let waited_for_recording = {
             let mut shared = front.lock();
             shared.close_all();
@@ -454,47 +485,6 @@ impl RtEngine {
             counters: self.counters,
             stopped_by: self.stop.take().unwrap_or_default(),
             waited_for_recording,
-        }
-    }
-
-    /// Blocks until a message arrives or `deadline` passes: sleeps on the
-    /// channel until the spin before it, then spins (with `spin`), or
-    /// sleeps to the deadline itself.
-    fn wait(
-        &mut self,
-        inbound: &Receiver<Inbound>,
-        deadline: SimTime,
-        spin: bool,
-    ) -> Option<Inbound> {
-        let wake = self.clock.instant(deadline);
-        let ahead = if spin { self.spin.0 } else { 0 };
-        let sleep_until = self
-            .clock
-            .instant(SimTime(deadline.0.saturating_sub(ahead)));
-        let now = Instant::now();
-        if sleep_until > now {
-            match inbound.recv_timeout(sleep_until - now) {
-                Ok(message) => return Some(message),
-                Err(RecvTimeoutError::Timeout) => {}
-                Err(RecvTimeoutError::Disconnected) => {
-                    self.stop.get_or_insert_with(|| "all links closed".into());
-                    return None;
-                }
-            }
-        }
-        loop {
-            match inbound.try_recv() {
-                Ok(message) => return Some(message),
-                Err(TryRecvError::Empty) => {}
-                Err(TryRecvError::Disconnected) => {
-                    self.stop.get_or_insert_with(|| "all links closed".into());
-                    return None;
-                }
-            }
-            if Instant::now() >= wake {
-                return None;
-            }
-            std::hint::spin_loop();
         }
     }
 
@@ -518,11 +508,6 @@ impl RtEngine {
             }
             // The loop looks at the connections' deadlines again.
             Inbound::Wake => {}
-            // The plant has been caught up before this was handled: the
-            // carrier hands its bytes again.
-            Inbound::CatchUp { conn, .. } => {
-                front.lock().caught_up(conn);
-            }
             Inbound::Stop(why) => {
                 self.stop.get_or_insert(why);
             }
@@ -566,14 +551,14 @@ impl RtEngine {
     /// sketch writes mid-tick leaves then, not at the next tick. The plant
     /// advances to each loop tick as in a tick (lazily, in its own steps),
     /// never beyond `next_tick`, which the engine's tick runs.
-    fn follow(&mut self, next_tick: SimTime, front: &FrontHandle) {
-        let now = self.clock.now().min(next_tick);
+    fn follow(&mut self, front: &FrontHandle) {
+        let now = self.clock.now().min(self.next_tick);
         if front.lock().next_follow().is_some_and(|due| due <= now) {
             self.with_front(front, |engine| engine.firmware_loops(now));
         }
     }
 
-    /// The ticks due at `now` from `next_tick` on, every one in order.
+    /// The ticks due at `now` from the next one on, every one in order.
     /// `late`: how late they come for what needed them (the tick the wait
     /// was for, or the request that found the plant behind), if anything
     /// did. A wake more than `CATCH_UP` behind (a stopped process, a
@@ -581,13 +566,7 @@ impl RtEngine {
     /// rather than skip ticks: the plant and every node, a sketch's pins
     /// included, step through the whole interval at their own resolution, a
     /// little late, and never compute from a jump in their inputs.
-    fn tick_through(
-        &mut self,
-        now: SimTime,
-        late: Option<SimDuration>,
-        next_tick: &mut SimTime,
-        front: &FrontHandle,
-    ) {
+    fn tick_through(&mut self, now: SimTime, late: Option<SimDuration>, front: &FrontHandle) {
         if let Some(late) = late {
             let ns = late.0 / TICKS_PER_NANO;
             self.lateness.record(ns);
@@ -607,13 +586,13 @@ impl RtEngine {
             self.window.slipped(slips.count, slips.ns);
             now
         };
-        while *next_tick <= now {
-            self.plant_tick(*next_tick, front);
-            *next_tick += self.tick;
+        while self.next_tick <= now {
+            self.plant_tick(self.next_tick, front);
+            self.next_tick += self.tick;
         }
         let mut shared = front.lock();
-        shared.ticked_to = *next_tick;
-        shared.plant_to = *next_tick;
+        shared.ticked_to = self.next_tick;
+        shared.plant_to = self.next_tick;
     }
 
     fn plant_tick(&mut self, t: SimTime, front: &FrontHandle) {
@@ -869,12 +848,6 @@ pub enum Inbound {
     /// A connection now waits for a timer (a turnaround, pacing, the RTU
     /// silence): the engine looks at the deadlines again.
     Wake,
-    /// A request on connection `conn` that arrived `at` found the plant
-    /// behind while the engine slept through a batch
-    /// ([`crate::front::After::Behind`]): the engine ticks the plant up to
-    /// `at` (not beyond: the reply reads the plant of its arrival) and wakes
-    /// the carrier.
-    CatchUp { conn: ConnId, at: SimTime },
     /// Run this on the engine's thread (console commands, other front ends).
     Command(Box<dyn FnOnce(&mut RtEngine) + Send>),
     /// Link `link` is full and has a newcomer: `answer` says whether a
@@ -898,8 +871,119 @@ impl std::fmt::Debug for Inbound {
             Inbound::Command(_) => write!(f, "Command"),
             Inbound::Room { link, .. } => write!(f, "Room({link})"),
             Inbound::Wake => write!(f, "Wake"),
-            Inbound::CatchUp { conn, .. } => write!(f, "CatchUp({conn})"),
             Inbound::Stop(why) => write!(f, "Stop({why})"),
         }
+    }
+}
+
+/// The engine while it runs: its thread holds it except while it waits,
+/// and a carrier whose request finds the plant behind a batch holds it to
+/// tick the plant up to the request's arrival ([`CatchUp`]). Before, the
+/// carrier asked the engine over its channel and waited for its signal:
+/// two thread switches more per request, about 45 µs of CPU each
+/// (35 modules polled at 100 Hz, release build).
+struct SharedEngine(Mutex<RtEngine>);
+
+impl SharedEngine {
+    /// The engine. A carrier that panicked holding it left whole ticks
+    /// behind (a tick is run whole or not begun), so poisoning is ignored.
+    fn lock(&self) -> MutexGuard<'_, RtEngine> {
+        self.0.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    fn run(
+        shared: &Arc<Self>,
+        front: &FrontHandle,
+        inbound: &Receiver<Inbound>,
+        end: Option<SimTime>,
+    ) -> RtSummary {
+        let (clock, spin, batches) = {
+            let mut engine = shared.lock();
+            engine.swap_front(&mut front.lock());
+            front.lock().catch_up = engine.catch_up;
+            engine.next_tick = SimTime::ZERO;
+            let idle_batch = batch_from_env("TWIN_RT_BATCH_MS", IDLE_BATCH).max(engine.tick);
+            let polled_batch =
+                batch_from_env("TWIN_RT_POLLED_BATCH_MS", POLLED_BATCH).max(engine.tick);
+            (
+                engine.clock.clone(),
+                engine.spin,
+                (idle_batch, polled_batch),
+            )
+        };
+        // The tick the last wait was for: the next one, or the last of a
+        // batch while nothing reads the plant between ticks.
+        let mut aimed = SimTime::ZERO;
+        loop {
+            let (deadline, spin_to) = {
+                let mut engine = shared.lock();
+                let plan = engine.pass(front, end, &mut aimed, batches);
+                if engine.stop.is_some() {
+                    break;
+                }
+                plan
+            };
+            match wait(&clock, spin, inbound, deadline, spin_to) {
+                Waited::Deadline => {}
+                Waited::Message(message) => {
+                    shared.lock().handle_all(message, inbound, front, aimed);
+                }
+                Waited::Closed => {
+                    shared
+                        .lock()
+                        .stop
+                        .get_or_insert_with(|| "all links closed".into());
+                }
+            }
+        }
+        shared.lock().finish(front)
+    }
+}
+
+impl CatchUp for SharedEngine {
+    fn catch_up(&self, at: SimTime, front: &FrontHandle) {
+        self.lock().catch_up(at, front);
+    }
+}
+
+/// What a wait ended with.
+enum Waited {
+    Deadline,
+    Message(Inbound),
+    /// Every sender is gone.
+    Closed,
+}
+
+/// Blocks until a message arrives or `deadline` passes: sleeps on the
+/// channel until `spin` before it, then spins (with `spin_to`), or sleeps
+/// to the deadline itself.
+fn wait(
+    clock: &RtClock,
+    spin: SimDuration,
+    inbound: &Receiver<Inbound>,
+    deadline: SimTime,
+    spin_to: bool,
+) -> Waited {
+    let wake = clock.instant(deadline);
+    let ahead = if spin_to { spin.0 } else { 0 };
+    let sleep_until = clock.instant(SimTime(deadline.0.saturating_sub(ahead)));
+    let now = Instant::now();
+    if sleep_until > now {
+        match inbound.recv_timeout(sleep_until - now) {
+            Ok(message) => return Waited::Message(message),
+            Err(RecvTimeoutError::Timeout) => {}
+            Err(RecvTimeoutError::Disconnected) => return Waited::Closed,
+        }
+    }
+    loop {
+        match inbound.try_recv() {
+            Ok(message) => return Waited::Message(message),
+            Err(TryRecvError::Empty) => {}
+            Err(TryRecvError::Disconnected) => return Waited::Closed,
+        }
+        if Instant::now() >= wake {
+            return Waited::Deadline;
+        }
+        std::hint::spin_loop();
     }
 }

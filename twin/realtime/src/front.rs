@@ -189,10 +189,9 @@ pub enum After {
     Closed,
     /// Nothing was taken: the engine sleeps through a batch of ticks and
     /// the plant is more than a tick behind the bytes' arrival. The carrier
-    /// sends [`crate::engine::Inbound::CatchUp`], waits for the engine's
-    /// signal and hands the same bytes, with the same arrival, again, so
-    /// the request is answered from the plant of its arrival, never from a
-    /// batch ago.
+    /// ticks it up to that arrival itself ([`FrontHandle::catch_up`]) and
+    /// hands the same bytes, with the same arrival, again, so the request
+    /// is answered from the plant of its arrival, never from a batch ago.
     Behind,
 }
 
@@ -243,9 +242,22 @@ impl After {
     }
 }
 
-/// A link task's handle on the front (sent to it when its connection opens).
+/// A link task's handle on the front (sent to it when its connection
+/// opens), and on the engine's plant for a request that finds it behind.
 #[derive(Clone)]
-pub struct FrontHandle(pub(super) Arc<Mutex<Front>>);
+pub struct FrontHandle {
+    front: Arc<Mutex<Front>>,
+    plant: Option<Arc<dyn CatchUp>>,
+}
+
+/// The engine's plant, ticked up to a request's arrival on its carrier's
+/// thread ([`After::Behind`]). The engine is locked before the front
+/// whenever both are: a carrier holds neither when it asks.
+pub(super) trait CatchUp: Send + Sync {
+    /// Ticks the plant and the firmware up to `at` (not beyond: the reply
+    /// reads the plant of its arrival), if it is behind.
+    fn catch_up(&self, at: SimTime, front: &FrontHandle);
+}
 
 impl std::fmt::Debug for Front {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -281,10 +293,19 @@ impl Conn {
 }
 
 impl FrontHandle {
+    /// A handle on `front`, whose requests that find the plant behind
+    /// catch it up through `plant`.
+    pub(super) fn new(front: Front, plant: Option<Arc<dyn CatchUp>>) -> Self {
+        Self {
+            front: Arc::new(Mutex::new(front)),
+            plant,
+        }
+    }
+
     /// The front, locked. A task that panicked holding it left whole state
     /// (every update is a few field writes), so poisoning is ignored.
     pub(super) fn lock(&self) -> MutexGuard<'_, Front> {
-        self.0.lock().unwrap_or_else(|e| e.into_inner())
+        self.front.lock().unwrap_or_else(|e| e.into_inner())
     }
 
     /// Bytes read at `at` on connection `conn`, answered on the caller's
@@ -312,6 +333,15 @@ impl FrontHandle {
         front.last_request = at;
         front.receive(conn, at, bytes);
         front.take_due(conn, out)
+    }
+
+    /// Ticks the plant up to `at`, the arrival of a request that found it
+    /// behind ([`After::Behind`]); the caller hands its bytes again. Must
+    /// not be called holding the front.
+    pub fn catch_up(&self, at: SimTime) {
+        if let Some(plant) = &self.plant {
+            plant.catch_up(at, self);
+        }
     }
 
     /// Adds the frames the engine's timers made due on `conn` to `out`.
@@ -382,14 +412,6 @@ impl Front {
                 && !c.endpoint.answers_later()
                 && c.endpoint.follow(&self.devices).is_none()
         })
-    }
-
-    /// The plant has been caught up for a request on `conn` that found it
-    /// behind: its carrier is woken to hand the bytes again.
-    pub(super) fn caught_up(&self, conn: ConnId) {
-        if let Some(c) = self.conns.get(&conn) {
-            c.task.frames_due();
-        }
     }
 
     /// Whether requests come faster than [`BUSY_GAP`] (the last two closer
@@ -1106,7 +1128,7 @@ mod tests {
         // The engine ticked up to 0.7 s, then stood still until now (1 s).
         let ticked_to = SimTime::ZERO + ms(700);
         front.ticked_to = ticked_to;
-        let front = FrontHandle(Arc::new(Mutex::new(front)));
+        let front = FrontHandle::new(front, None);
 
         let read_before_the_slip = clock.now();
         front.lock().service_timers(read_before_the_slip);

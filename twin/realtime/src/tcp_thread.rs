@@ -43,13 +43,6 @@ use super::wake::{ThreadWake, Wake};
 /// any frame, so a frame rarely splits.
 pub(super) const READ_CHUNK: usize = 4096;
 
-/// How long a carrier waits for the engine to catch the plant up before it
-/// looks again whether it still must.
-const CATCH_UP_LOOK: rustix::event::Timespec = rustix::event::Timespec {
-    tv_sec: 0,
-    tv_nsec: 100_000_000,
-};
-
 /// A client that has not taken a reply for this long is dropped, so that
 /// the thread does not wait on it forever.
 pub const WRITE_STALL: Duration = Duration::from_secs(10);
@@ -179,22 +172,12 @@ impl Carrier {
             let bytes = buf.get(..n).unwrap_or_default();
             after = front.receive(self.conn, at, bytes, true, &mut self.due);
             // The engine sleeps through a batch of ticks and the plant is
-            // behind these bytes: it catches up to their arrival, then they
-            // are handed again, so the reply reads the plant of then.
-            while after == After::Behind {
-                if engine
-                    .send(Inbound::CatchUp {
-                        conn: self.conn,
-                        at,
-                    })
-                    .is_err()
-                {
-                    return Ending::Peer("server stopping".into());
-                }
-                if let Err(why) = self.wait_engine() {
-                    return Ending::Peer(why);
-                }
-                after = front.receive(self.conn, at, bytes, true, &mut self.due);
+            // behind these bytes: this thread ticks it up to their arrival,
+            // then hands them again, so the reply reads the plant of then.
+            if after == After::Behind {
+                front.catch_up(at);
+                // Caught up: answered from the plant as it stands now.
+                after = front.receive(self.conn, at, bytes, false, &mut self.due);
             }
             if matches!(after, After::Timers | After::Owing) && engine.send(Inbound::Wake).is_err()
             {
@@ -230,22 +213,6 @@ impl Carrier {
         }
         let socket = !fds[0].revents().is_empty();
         Ok(socket || fds[1].revents().is_empty())
-    }
-
-    /// Waits for the engine's signal that it caught the plant up, or
-    /// [`CATCH_UP_LOOK`] (then the caller looks again: a connection the
-    /// twin closed meanwhile is never signalled).
-    fn wait_engine(&self) -> Result<(), String> {
-        let mut fds = [PollFd::new(&self.wake.frames, PollFlags::IN)];
-        loop {
-            match poll(&mut fds, Some(&CATCH_UP_LOOK)) {
-                Ok(_) => break,
-                Err(rustix::io::Errno::INTR) => continue,
-                Err(e) => return Err(format!("poll failed: {e}")),
-            }
-        }
-        self.wake.clear();
-        Ok(())
     }
 
     /// Writes each due frame in one write.
