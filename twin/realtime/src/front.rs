@@ -133,6 +133,9 @@ pub struct Front {
     /// up to (its next tick), and the clock's slips since it last took them.
     pub(super) ticked_to: SimTime,
     pub(super) slips: Slips,
+    /// The time the clock was held at when it last slipped: a slip before
+    /// the ticks have caught up to it is the same stall, seen again.
+    last_slip: Option<SimTime>,
     /// How far ahead of `ticked_to` a time may be before the clock slips
     /// (see [`crate::RtEngine::set_catch_up`]).
     pub(super) catch_up: SimDuration,
@@ -425,8 +428,7 @@ impl Front {
     /// Whether requests come faster than [`BUSY_GAP`] (the last two closer
     /// than it, the last less than it before `now`).
     pub(super) fn requests_busy(&self, now: SimTime) -> bool {
-        self.request_gap < self.busy_gap
-            && now.saturating_since(self.last_request) < self.busy_gap
+        self.request_gap < self.busy_gap && now.saturating_since(self.last_request) < self.busy_gap
     }
 
     fn take_due(&mut self, conn: ConnId, out: &mut Outgoing) -> After {
@@ -467,9 +469,17 @@ impl Front {
         }
         let slip = SimDuration(ahead.0 - self.catch_up.0);
         clock.slip(slip);
-        self.slips.count += 1;
+        let held = SimTime(at.0 - slip.0);
+        // While the engine still runs the ticks up to the last slip, every
+        // look at the clock (a carrier's bytes, a timer) finds it ahead by
+        // the microseconds since: the same stall, not another (one stall
+        // of 300 ms was counted as several slips).
+        if self.last_slip.is_none_or(|last| self.plant_to > last) {
+            self.slips.count += 1;
+        }
+        self.last_slip = Some(held);
         self.slips.ns += slip.0 / (protocols::time::TICKS_PER_SECOND / 1_000_000_000);
-        SimTime(at.0 - slip.0)
+        held
     }
 
     fn now(&self) -> SimTime {
@@ -1084,6 +1094,35 @@ mod tests {
             .get_mut(0)
             .and_then(|d| d.node.supervisor_mut())
             .and_then(|s| s.poll_timeout())
+    }
+
+    /// One stall is one slip, however many look at the clock before the
+    /// engine has caught up to it; the next stall is another.
+    #[test]
+    fn a_stall_is_one_slip_until_the_ticks_catch_up() {
+        let clock = RtClock::started_ago(std::time::Duration::from_secs(1));
+        let (sink, _sink) = std::sync::mpsc::channel();
+        let mut front = Front::new(sink, clock.clone(), &[]);
+        front.catch_up = ms(5);
+        // The engine ticked up to 0.7 s, then stood still until now (1 s).
+        front.ticked_to = SimTime::ZERO + ms(700);
+        front.plant_to = front.ticked_to;
+        let held = front.hold_clock(clock.now());
+        assert_eq!(held, SimTime::ZERO + ms(705));
+        assert_eq!(front.slips.count, 1);
+        let lost = front.slips.ns;
+        assert!(lost >= 295_000_000, "{lost} ns lost");
+        // A carrier's bytes while the engine runs its burst of ticks.
+        std::thread::sleep(std::time::Duration::from_millis(1));
+        front.hold_clock(clock.now());
+        assert_eq!(front.slips.count, 1, "the same stall counted twice");
+        assert!(front.slips.ns > lost, "the clock was held again");
+        // The engine caught up; then it stands still again for 20 ms.
+        front.ticked_to = clock.now();
+        front.plant_to = front.ticked_to + ms(1);
+        std::thread::sleep(std::time::Duration::from_millis(20));
+        front.hold_clock(clock.now());
+        assert_eq!(front.slips.count, 2);
     }
 
     /// A supervisor's bus when the engine's thread was stopped for 300 ms
