@@ -35,6 +35,12 @@
  *   fast PWM a write that changes the high byte alone was never applied
  *   (OCR1A from 0x000 to 0x200, VEL 2048 on a 10-bit PWM, left the pin at
  *   the old duty);
+ * - a pin a timer drives (OC1A on D9 with COM1A set, and the other compare
+ *   outputs) keeps the timer's level when the firmware writes its port:
+ *   simavr 1.6 drives every output pin of a port from PORTx at each write
+ *   to PORTx, DDRx or PINx, so `digitalWrite(8, ...)` at every pass of
+ *   loop() cut each PWM pulse on D9 short (half duty read as 3.6 %), where
+ *   the chip's waveform generator overrides PORTx on that pin;
  * - simavr's GDB stub is started only when asked (its run loop polls the
  *   debugger's socket at every instruction), with the core stopped until
  *   the debugger says continue, as `simavr -g` does.
@@ -62,6 +68,8 @@
 #define PORTS 3 /* B, C, D */
 #define EDGE_RING 16384
 #define WIDE_OCRS 8
+#define PORT_HOOKS (PORTS * 3) /* PORTx, DDRx and PINx of each port */
+#define COMPARE_PINS 8
 
 /* A 16-bit compare register: its high byte waits in TEMP for the low
  * byte's write, which simavr's timer handles. */
@@ -72,6 +80,21 @@ typedef struct wide_ocr {
 	avr_io_write_t timer_write;
 	void *timer_param;
 } wide_ocr_t;
+
+/* A port register's write, wrapped so that the pins a timer drives keep
+ * the timer's level. */
+typedef struct port_hook {
+	struct twin_avr *t;
+	int port; /* 0 = B, 1 = C, 2 = D */
+	avr_io_write_t write;
+	void *param;
+} port_hook_t;
+
+/* A timer's compare output: its COMnx bits, and the pin they drive. */
+typedef struct compare_pin {
+	avr_regbit_t com;
+	int index; /* pin index, port B from 0 */
+} compare_pin_t;
 
 typedef struct twin_avr {
 	avr_t *avr;
@@ -101,6 +124,12 @@ typedef struct twin_avr {
 	uint32_t edge_head, edge_tail;
 	uint32_t edge_dropped;
 	wide_ocr_t wide_ocr[WIDE_OCRS];
+	port_hook_t port_hook[PORT_HOOKS];
+	compare_pin_t compare_pin[COMPARE_PINS];
+	int compare_pins;
+	/* Pins (bit per index) a timer drives, during a write to their port:
+	 * what the port makes of them then is not their level. */
+	uint32_t held;
 } twin_avr_t;
 
 /* simavr's messages ("Loaded 1638 .text", a crash's reason) would go to
@@ -187,7 +216,7 @@ static void pin_changed(struct avr_irq_t *irq, uint32_t value, void *param) {
 	twin_avr_t *t = r->t;
 	uint8_t v = value ? 1 : 0;
 	int i = r->index;
-	if (v == t->level[i])
+	if (v == t->level[i] || (t->held >> i & 1))
 		return;
 	uint64_t now = t->avr->cycle;
 	if (t->level[i])
@@ -333,6 +362,78 @@ static void hook_wide_ocrs(twin_avr_t *t) {
 	}
 }
 
+/* The pins of port `port` a timer's compare output drives now (COMnx set). */
+static uint32_t timer_driven(twin_avr_t *t, int port) {
+	uint32_t pins = 0;
+	for (int i = 0; i < t->compare_pins; i++) {
+		compare_pin_t *c = &t->compare_pin[i];
+		if (c->index / 8 == port && avr_regbit_get(t->avr, c->com))
+			pins |= 1u << c->index;
+	}
+	return pins;
+}
+
+/* A write to PORTx, DDRx or PINx: simavr's, then the pins a timer drives
+ * are put back at the timer's level, unseen (the chip never left it). */
+static void port_write(avr_t *avr, avr_io_addr_t addr, uint8_t v, void *param) {
+	port_hook_t *h = param;
+	twin_avr_t *t = h->t;
+	uint32_t held = timer_driven(t, h->port);
+	t->held = held;
+	h->write(avr, addr, v, h->param);
+	for (int i = 0; held; i++, held >>= 1)
+		if ((held & 1) && t->pin_in[i])
+			avr_raise_irq(t->pin_in[i], t->level[i]);
+	t->held = 0;
+}
+
+static int port_index(char name) {
+	return name == 'B' ? 0 : name == 'C' ? 1 : name == 'D' ? 2 : -1;
+}
+
+/* Wraps the port registers' writes and finds the timers' compare outputs
+ * (after the pins' irqs are known). */
+static void hook_ports(twin_avr_t *t) {
+	avr_t *avr = t->avr;
+	int n = 0;
+	for (avr_io_t *io = avr->io_port; io; io = io->next) {
+		if (!io->kind || strcmp(io->kind, "port") != 0)
+			continue;
+		avr_ioport_t *port = (avr_ioport_t *)io;
+		int p = port_index(port->name);
+		if (p < 0)
+			continue;
+		avr_io_addr_t regs[3] = {port->r_port, port->r_ddr, port->r_pin};
+		for (int r = 0; r < 3 && n < PORT_HOOKS; r++) {
+			int i = AVR_DATA_TO_IO(regs[r]);
+			if (!regs[r] || !avr->io[i].w.c)
+				continue;
+			port_hook_t *h = &t->port_hook[n++];
+			*h = (port_hook_t){t, p, avr->io[i].w.c, avr->io[i].w.param};
+			avr->io[i].w.c = port_write;
+			avr->io[i].w.param = h;
+		}
+	}
+	for (avr_io_t *io = avr->io_port; io; io = io->next) {
+		if (!io->kind || strcmp(io->kind, "timer") != 0)
+			continue;
+		avr_timer_t *timer = (avr_timer_t *)io;
+		for (int c = 0; c < AVR_TIMER_COMP_COUNT && t->compare_pins < COMPARE_PINS; c++) {
+			avr_regbit_t com = timer->comp[c].com, pin = timer->comp[c].com_pin;
+			if (!com.reg || !pin.reg)
+				continue;
+			for (avr_io_t *q = avr->io_port; q; q = q->next) {
+				if (!q->kind || strcmp(q->kind, "port") != 0)
+					continue;
+				avr_ioport_t *port = (avr_ioport_t *)q;
+				int p = port_index(port->name);
+				if (p >= 0 && port->r_port == pin.reg)
+					t->compare_pin[t->compare_pins++] = (compare_pin_t){com, p * 8 + pin.bit};
+			}
+		}
+	}
+}
+
 twin_avr_t *twin_avr_start(void *firmware, const char *mcu, uint32_t frequency) {
 	elf_firmware_t *fw = firmware;
 	avr_t *avr = avr_make_mcu_by_name(mcu);
@@ -378,6 +479,7 @@ twin_avr_t *twin_avr_start(void *firmware, const char *mcu, uint32_t frequency) 
 				avr_irq_register_notify(irq, pin_changed, &refs[p * 8 + b]);
 		}
 	}
+	hook_ports(t);
 	return t;
 }
 
