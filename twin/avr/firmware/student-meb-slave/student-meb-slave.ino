@@ -55,10 +55,10 @@ unsigned int sd[SD_SIZE] = {0x1F, 0x01};
 unsigned int va[VA_SIZE] = {1933, 100};
 unsigned int vd[VD_SIZE] = {1};
 unsigned int errorCount = 0;
-// Set by a write: loop() drives the pins only then. (In simavr a write to
-// port B cuts the PWM's pulse on D9 short, which the chip does not: a
-// sketch that drove its pins at every pass would turn the motor slower in
-// the twin than on the bench.)
+// Set by a write: loop() drives the pins only then. (A sketch that drives
+// them at every pass works as well: the chip's Timer1 keeps D9's pulse
+// whatever port B is written, and twin-avr corrects simavr 1.6, which did
+// not.)
 bool written = false;
 
 // Hall edges counted in loop(), turned into rpm every half second.

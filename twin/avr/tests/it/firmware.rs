@@ -166,6 +166,39 @@ fn the_adc_sketch_reads_v1_within_one_count_of_the_plant() {
     );
 }
 
+/// A sketch that writes port B at every pass of `loop()` (digitalWrite on
+/// D8, a whole-port write, a pinMode) while Timer1 drives D9 at half duty:
+/// the module's VEL input reads half of 5 V, as on the bench. simavr drove
+/// D9 from PORTB at each of those writes, cutting every pulse short: VEL
+/// read 0.18 V (a duty of 3.6 %), and a student's motor turned slower in
+/// the twin alone.
+#[test]
+fn writes_to_port_b_leave_d9_s_pwm_alone() {
+    let sensors = Sensors::default();
+    let mut node = start(
+        &firmware("pwm-port-writes"),
+        "[pwm]\nD9 = \"vel\"\n[board]\ntick_us = 100\npwm_filter_ms = 1.0\n",
+        115_200,
+    );
+    let mut t = SimTime::ZERO;
+    let mut vel = Vec::new();
+    while t < ms(200) {
+        t += node.loop_period();
+        let actuators = node.loop_tick(t, &sensors);
+        if t >= ms(100) {
+            vel.push(actuators.vel_volts);
+        }
+    }
+    let (low, high) = vel
+        .iter()
+        .fold((f64::MAX, f64::MIN), |(l, h), &v| (l.min(v), h.max(v)));
+    // OCR1A = 512 of 1024: 2.5 V, the RC's ripple aside.
+    assert!(
+        (2.4..=2.6).contains(&low) && (2.4..=2.6).contains(&high),
+        "VEL between {low:.3} and {high:.3} V over the last 100 ms"
+    );
+}
+
 #[test]
 fn the_ev_sketch_answers_the_meb_slave_vectors() {
     let vectors =

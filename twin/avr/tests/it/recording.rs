@@ -169,9 +169,11 @@ fn a_firmware_run_stores_its_elf_uart_pins_adc_and_cycles_the_same_way_twice() {
         v1_counts.iter().all(|c| (820..=840).contains(c)),
         "{v1_counts:?}"
     );
-    // One simulated second is exactly 16 M cycles.
+    // One simulated second is 16 M cycles, to the instruction: a run stops
+    // after the instruction that reaches its target, an interrupt's entry
+    // (4 cycles) and the jump at its vector (3) included.
     for (t, c) in cycles {
-        assert!((c as f64 - t * 16e6).abs() <= 2.0, "{c} cycles at {t} s");
+        assert!((c as f64 - t * 16e6).abs() <= 7.0, "{c} cycles at {t} s");
     }
 }
 
