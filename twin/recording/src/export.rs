@@ -12,7 +12,7 @@ use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
 use super::Recording;
-use super::read::{ReadError, Reader};
+use super::read::{Encoding, ReadError, Reader};
 use super::signals::leaves;
 
 /// One CSV file written.
@@ -24,6 +24,41 @@ pub struct Written {
     pub rows: usize,
     /// Columns, `time_s` included.
     pub columns: usize,
+}
+
+/// A channel left out: its messages are in an encoding the twin does not
+/// read (another tool's channel beside the twin's, a schema that does not
+/// parse). The other channels are written all the same.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Skipped {
+    pub topic: String,
+    /// Why, in words.
+    pub why: String,
+}
+
+/// What an export wrote, and what it left out.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Exported {
+    pub recording: Recording,
+    pub written: Vec<Written>,
+    pub skipped: Vec<Skipped>,
+}
+
+/// Why the messages of a channel in `encoding` cannot be read, if they
+/// cannot: the reader's own words.
+fn unreadable(topic: &str, encoding: &Encoding) -> Option<String> {
+    let error = match encoding {
+        Encoding::Json | Encoding::Protobuf(_) => return None,
+        Encoding::BadSchema(why) => ReadError::BadSchema {
+            topic: topic.to_string(),
+            why: why.clone(),
+        },
+        Encoding::Other(name) => ReadError::OtherEncoding {
+            topic: topic.to_string(),
+            encoding: name.clone(),
+        },
+    };
+    Some(error.to_string())
 }
 
 /// The file name of a topic: `/plant/ev1/sensors` → `plant_ev1_sensors.csv`.
@@ -96,6 +131,10 @@ pub enum ExportError {
     /// short stops: [`Recording::holds_no_messages`]).
     #[error("{why}: no CSV file was written")]
     NoMessages { why: String },
+    /// No channel is in an encoding the twin reads: `why`, for the first,
+    /// and how many others there are.
+    #[error("{why}: no CSV file was written")]
+    NothingReadable { why: String },
     #[error("cannot create folder {}", path.display())]
     CreateFolder {
         path: PathBuf,
@@ -111,8 +150,10 @@ pub enum ExportError {
 }
 
 /// Write every channel of the recording at `path` into `dir` (created if
-/// needed). Two passes, streamed: the columns of every channel, then the rows.
-pub fn to_csv(path: &Path, dir: &Path) -> Result<(Recording, Vec<Written>), ExportError> {
+/// needed), but those whose messages the twin does not read (said in
+/// [`Exported::skipped`]). Two passes, streamed: the columns of every
+/// channel, then the rows.
+pub fn to_csv(path: &Path, dir: &Path) -> Result<Exported, ExportError> {
     let cannot_write = |path: &Path| {
         let path = path.to_path_buf();
         move |source| ExportError::Write { path, source }
@@ -120,6 +161,9 @@ pub fn to_csv(path: &Path, dir: &Path) -> Result<(Recording, Vec<Written>), Expo
     let mut columns: Vec<Columns> = Vec::new();
     let mut buf = String::new();
     let recording = Recording::scan(path, |m| {
+        if unreadable(m.topic, m.encoding).is_some() {
+            return Ok(());
+        }
         let value: Value = m.json()?;
         if columns.len() <= m.channel {
             columns.resize_with(m.channel + 1, Columns::default);
@@ -148,15 +192,40 @@ pub fn to_csv(path: &Path, dir: &Path) -> Result<(Recording, Vec<Written>), Expo
         });
     }
     columns.resize_with(recording.channels.len(), Columns::default);
+    let skipped: Vec<Skipped> = recording
+        .channels
+        .iter()
+        .filter_map(|c| {
+            let why = unreadable(&c.topic, &c.encoding)?;
+            Some(Skipped {
+                topic: c.topic.clone(),
+                why,
+            })
+        })
+        .collect();
+    if let Some(first) = skipped.first()
+        && skipped.len() == recording.channels.len()
+    {
+        let why = match skipped.len() - 1 {
+            0 => first.why.clone(),
+            1 => format!("{}, nor does it read the other channel", first.why),
+            n => format!("{}, nor does it read the other {n} channels", first.why),
+        };
+        return Err(ExportError::NothingReadable { why });
+    }
     std::fs::create_dir_all(dir).map_err(|source| ExportError::CreateFolder {
         path: dir.to_path_buf(),
         source,
     })?;
     let mut sheets = Vec::with_capacity(recording.channels.len());
     for (channel, c) in recording.channels.iter().zip(&columns) {
+        if unreadable(&channel.topic, &channel.encoding).is_some() {
+            sheets.push(None);
+            continue;
+        }
         let file = dir.join(file_name(&channel.topic));
         let sheet = header(&file, c, channel.message_count).map_err(cannot_write(&file))?;
-        sheets.push(sheet);
+        sheets.push(Some(sheet));
     }
     // The second pass stops where the first did, should the file have
     // grown since (a session still recording).
@@ -165,7 +234,8 @@ pub fn to_csv(path: &Path, dir: &Path) -> Result<(Recording, Vec<Written>), Expo
         let Some(m) = item.message()? else {
             continue;
         };
-        let (Some(sheet), Some(c)) = (sheets.get_mut(m.channel), columns.get(m.channel)) else {
+        let (Some(Some(sheet)), Some(c)) = (sheets.get_mut(m.channel), columns.get(m.channel))
+        else {
             continue;
         };
         if sheet.rows_left == 0 {
@@ -183,7 +253,10 @@ pub fn to_csv(path: &Path, dir: &Path) -> Result<(Recording, Vec<Written>), Expo
         row(sheet, m.log_time_ns).map_err(cannot_write(&sheet.path))?;
     }
     let mut written = Vec::with_capacity(sheets.len());
-    for ((channel, c), mut sheet) in recording.channels.iter().zip(&columns).zip(sheets) {
+    for ((channel, c), sheet) in recording.channels.iter().zip(&columns).zip(sheets) {
+        let Some(mut sheet) = sheet else {
+            continue;
+        };
         sheet.out.flush().map_err(cannot_write(&sheet.path))?;
         written.push(Written {
             topic: channel.topic.clone(),
@@ -192,7 +265,11 @@ pub fn to_csv(path: &Path, dir: &Path) -> Result<(Recording, Vec<Written>), Expo
             columns: c.names.len() + 1,
         });
     }
-    Ok((recording, written))
+    Ok(Exported {
+        recording,
+        written,
+        skipped,
+    })
 }
 
 /// Create a channel's file and write its header line.

@@ -11,8 +11,9 @@ use twin_recording::export;
 /// `plant_ev1_sensors.csv`): a `time_s` column (simulated seconds) and one column
 /// per field, nested fields flattened with dots (`energy.battery_out`,
 /// `loops.0.measured_rpm`). Booleans are 1 and 0. A recording cut short is
-/// exported up to its last complete chunk. Files of the same name in DIR are
-/// replaced, and the listing says which.
+/// exported up to its last complete chunk; a channel in an encoding the twin
+/// does not read (another tool's) is left out, and the listing says so. Files
+/// of the same name in DIR are replaced, and the listing says which.
 #[derive(Debug, Args)]
 pub struct ExportArgs {
     /// The recording.
@@ -27,7 +28,11 @@ pub fn execute(args: &ExportArgs) -> Result<()> {
     let existed: Vec<PathBuf> = std::fs::read_dir(&args.csv)
         .map(|entries| entries.filter_map(|e| Some(e.ok()?.path())).collect())
         .unwrap_or_default();
-    let (recording, written) = export::to_csv(&args.recording, &args.csv)?;
+    let export::Exported {
+        recording,
+        written,
+        skipped,
+    } = export::to_csv(&args.recording, &args.csv)?;
     if let Some(why) = &recording.truncated {
         println!("note: {}: {why}", args.recording.display());
     }
@@ -50,6 +55,9 @@ pub fn execute(args: &ExportArgs) -> Result<()> {
                 ""
             }
         );
+    }
+    for s in &skipped {
+        println!("  {:<28} left out: {}", s.topic, s.why);
     }
     Ok(())
 }

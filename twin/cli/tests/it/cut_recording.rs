@@ -241,3 +241,62 @@ fn a_file_another_writer_made_is_recovered_with_all_it_holds() {
     assert!(o.status.success(), "{}", text(&o));
     assert!(text(&o).contains("/point"), "{}", text(&o));
 }
+
+/// A file holding another tool's binary channel beside a JSON one: `twin
+/// export` writes the JSON channel's CSV and says it left the other out;
+/// a file of binary channels alone is refused in words, nothing written.
+/// (The whole export was refused for the one channel it could not read.)
+#[test]
+fn export_leaves_out_a_channel_it_does_not_read_and_writes_the_rest() {
+    let mixed = scratch("cut-recording", "with-binary.mcap");
+    let binary = scratch("cut-recording", "binary-only.mcap");
+    let o = Command::new("python3")
+        .arg("-c")
+        .arg(
+            "import json, sys\n\
+             from mcap.writer import Writer\n\
+             for path, with_json in ((sys.argv[1], True), (sys.argv[2], False)):\n\
+             \x20   with open(path, 'wb') as f:\n\
+             \x20       w = Writer(f)\n\
+             \x20       w.start()\n\
+             \x20       camera = w.register_channel('/camera', 'application/octet-stream', 0)\n\
+             \x20       point = with_json and w.register_channel('/point', 'json', 0)\n\
+             \x20       for i in range(10):\n\
+             \x20           t = i * 1_000_000\n\
+             \x20           w.add_message(camera, log_time=t, data=bytes([i]) * 64, publish_time=t)\n\
+             \x20           if with_json:\n\
+             \x20               w.add_message(point, log_time=t, data=json.dumps({'x': i}).encode(), publish_time=t)\n\
+             \x20       w.finish()\n",
+        )
+        .arg(&mixed)
+        .arg(&binary)
+        .output()
+        .expect("python3 runs");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+
+    let csv = scratch("cut-recording", "with-binary-csv");
+    let o = twin(&["export", s(&mixed), "--csv", s(&csv)]);
+    let said = text(&o);
+    assert!(o.status.success(), "{said}");
+    assert!(
+        said.contains("/camera")
+            && said.contains("left out: the messages on /camera are `application/octet-stream`"),
+        "{said}"
+    );
+    let point = std::fs::read_to_string(csv.join("point.csv")).expect("point.csv");
+    assert_eq!(point.lines().count(), 1 + 10, "{point}");
+    assert_eq!(point.lines().nth(3), Some("0.002000000,2"));
+    assert!(!csv.join("camera.csv").exists());
+
+    let csv = scratch("cut-recording", "binary-only-csv");
+    let o = twin(&["export", s(&binary), "--csv", s(&csv)]);
+    let said = text(&o);
+    assert!(!o.status.success(), "{said}");
+    assert!(
+        said.contains(
+            "the messages on /camera are `application/octet-stream`, which the twin does not read"
+        ) && said.contains("no CSV file was written"),
+        "{said}"
+    );
+    assert!(!csv.exists());
+}

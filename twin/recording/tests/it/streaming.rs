@@ -88,8 +88,13 @@ fn export_writes_a_sheet_per_channel() {
     let path = scratch("export.mcap");
     write(&path, f64::from, 3);
     let dir = scratch("csv");
-    let (recording, written) = export::to_csv(&path, &dir).unwrap();
+    let export::Exported {
+        recording,
+        written,
+        skipped,
+    } = export::to_csv(&path, &dir).unwrap();
     assert_eq!(recording.truncated, None);
+    assert_eq!(skipped, []);
     let shape: Vec<(&str, usize, usize)> = written
         .iter()
         .map(|w| (w.topic.as_str(), w.rows, w.columns))
