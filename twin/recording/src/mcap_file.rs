@@ -302,6 +302,12 @@ fn too_many(what: &str) -> io::Error {
     io::Error::other(format!("too many {what} for one MCAP file"))
 }
 
+/// A declaration a copied file got wrong (its ids are kept): the input's
+/// fault, not the writing's, told apart by its kind ([`io::ErrorKind::InvalidData`]).
+fn declaration_fault(why: String) -> io::Error {
+    io::Error::new(io::ErrorKind::InvalidData, why)
+}
+
 impl<W: Write + Seek> McapFile<W> {
     /// Start the file: magic and header (and a provisional end, so that a
     /// run killed before its first chunk leaves an MCAP file of no message).
@@ -373,13 +379,13 @@ impl<W: Write + Seek> McapFile<W> {
         data: &[u8],
     ) -> io::Result<()> {
         if id == 0 {
-            return Err(io::Error::other(format!(
+            return Err(declaration_fault(format!(
                 "schema `{name}` has the id 0, which MCAP reserves for \"no schema\""
             )));
         }
         match self.schemas.get(&id) {
             Some(s) if s.name == name && s.encoding == encoding && s.data == data => Ok(()),
-            Some(s) => Err(io::Error::other(format!(
+            Some(s) => Err(declaration_fault(format!(
                 "schema {id} is declared twice, differently (`{}`, then `{name}`)",
                 s.name
             ))),
@@ -431,7 +437,7 @@ impl<W: Write + Seek> McapFile<W> {
         let body = channel_body(id, schema_id, topic, message_encoding, metadata);
         match self.channels.get(&id) {
             Some(known) if *known == body => Ok(()),
-            Some(_) => Err(io::Error::other(format!(
+            Some(_) => Err(declaration_fault(format!(
                 "channel {id} is declared twice, differently (the second time as `{topic}`)"
             ))),
             None => self.declare_channel(id, schema_id, topic, body),
@@ -446,7 +452,7 @@ impl<W: Write + Seek> McapFile<W> {
         body: Vec<u8>,
     ) -> io::Result<()> {
         if schema_id != 0 && !self.schemas.contains_key(&schema_id) {
-            return Err(io::Error::other(format!(
+            return Err(declaration_fault(format!(
                 "channel `{topic}` uses schema {schema_id}, which the file never declared"
             )));
         }

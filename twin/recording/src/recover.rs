@@ -112,7 +112,7 @@ pub fn recover(damaged: &Path, out: &Path) -> Result<Recovered> {
     let mut reader = LinearReader::new_with_options(options);
     let mut copy = Copy::default();
     let mut writer = None;
-    loop {
+    'copy: loop {
         let record = match next_record(&mut reader, &mut source) {
             Ok(Some(record)) => record,
             Ok(None) => {
@@ -153,12 +153,20 @@ pub fn recover(damaged: &Path, out: &Path) -> Result<Recovered> {
                 }
                 break;
             }
-            Outer::Record(other) => copy.take(writer, other).map_err(cannot_write)?,
-            Outer::Chunk(Ok(records)) => {
-                copy.found.chunks += 1;
-                for r in records {
-                    copy.take(writer, r).map_err(cannot_write)?;
+            Outer::Record(other) => {
+                if let Err(e) = copy.take(writer, other) {
+                    copy.stop_at_fault(e).map_err(cannot_write)?;
+                    break 'copy;
                 }
+            }
+            Outer::Chunk(Ok(records)) => {
+                for r in records {
+                    if let Err(e) = copy.take(writer, r) {
+                        copy.stop_at_fault(e).map_err(cannot_write)?;
+                        break 'copy;
+                    }
+                }
+                copy.found.chunks += 1;
                 // Where the recording closed a chunk (a simulated second's
                 // end, a full chunk), so does the copy.
                 writer.flush().map_err(cannot_write)?;
@@ -212,6 +220,20 @@ struct Copy {
 }
 
 impl Copy {
+    /// A declaration the file got wrong (a channel or schema declared twice,
+    /// differently) ends the copy there, as a damaged record does: what
+    /// came before it is kept. Any other error is the copy's own.
+    fn stop_at_fault(&mut self, e: std::io::Error) -> std::io::Result<()> {
+        if e.kind() != std::io::ErrorKind::InvalidData {
+            return Err(e);
+        }
+        self.found.stopped = Some(format!(
+            "after {} complete chunk(s), {e}",
+            self.found.chunks
+        ));
+        Ok(())
+    }
+
     /// Write `record` into the copy, if it is data (the summary and the
     /// indexes are the writer's to rebuild).
     fn take(&mut self, writer: &mut FileWriter, record: Record<'_>) -> std::io::Result<()> {
@@ -475,5 +497,67 @@ mod tests {
         let events = r.events().unwrap();
         let times: Vec<f64> = events.iter().map(|e| e.time_s).collect();
         assert_eq!(times, [0.5, 2.5]);
+    }
+
+    /// A file that declares channel 1 a second time as another topic (its
+    /// channel 2's record, its id overwritten): the copy stops there, says
+    /// why in the file's terms, and keeps the messages before it. It was
+    /// refused as "cannot write" the copy, whose fault it was not.
+    #[test]
+    fn a_channel_declared_twice_differently_ends_the_copy_there() {
+        let mut w = mcap::WriteOptions::new()
+            .use_chunks(false)
+            .emit_summary_records(false)
+            .create(std::io::Cursor::new(Vec::new()))
+            .unwrap();
+        let none = BTreeMap::new();
+        w.add_channel_with_id(1, 0, "/nine", "json", &none).unwrap();
+        for i in 0..5u64 {
+            w.write_to_known_channel(
+                &mcap::records::MessageHeader {
+                    channel_id: 1,
+                    sequence: 0,
+                    log_time: i,
+                    publish_time: i,
+                },
+                b"{}",
+            )
+            .unwrap();
+        }
+        w.add_channel_with_id(2, 0, "/ten!", "json", &none).unwrap();
+        w.write_to_known_channel(
+            &mcap::records::MessageHeader {
+                channel_id: 2,
+                sequence: 0,
+                log_time: 9,
+                publish_time: 9,
+            },
+            b"{}",
+        )
+        .unwrap();
+        w.finish().unwrap();
+        let mut bytes = w.into_inner().into_inner();
+        // The second channel record: its id (after the opcode and the
+        // length) becomes 1.
+        let topic = b"\x05\x00\x00\x00/ten!";
+        let at = bytes
+            .windows(topic.len())
+            .position(|w| w == topic)
+            .expect("the second channel");
+        bytes[at - 4] = 1;
+        let path = scratch("declared-twice.mcap");
+        std::fs::write(&path, &bytes).unwrap();
+
+        let out = scratch("declared-twice-copy.mcap");
+        let found = recover(&path, &out).unwrap();
+        let stopped = found.stopped.unwrap_or_default();
+        assert!(
+            stopped
+                .contains("channel 1 is declared twice, differently (the second time as `/ten!`)"),
+            "{stopped}"
+        );
+        assert_eq!((found.messages, found.channels), (5, 1));
+        let copied = std::fs::read(&out).unwrap();
+        assert_eq!(messages(&copied).len(), 5);
     }
 }
