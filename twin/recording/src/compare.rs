@@ -277,11 +277,11 @@ pub fn compare(run: &Signals, baseline: &Signals, tolerances: &Tolerances) -> Co
     let mut compared_until_s = f64::INFINITY;
     let mut span_note = None;
     let mut span_mismatch = None;
-    if run.truncated.is_some() || baseline.truncated.is_some() {
+    if run.ends_early() || baseline.ends_early() {
         compared_until_s = run_end.min(base_end);
         let which: Vec<&str> = [(run, "the run"), (baseline, "the baseline")]
             .iter()
-            .filter(|(r, _)| r.truncated.is_some())
+            .filter(|(r, _)| r.ends_early())
             .map(|(_, n)| *n)
             .collect();
         span_note = Some(format!(

@@ -130,7 +130,7 @@ pub fn first_departure(recorded: &Recording, replayed: &Recording) -> Result<Opt
             lane.matched += 1;
         }
     }
-    let cut_short = recorded.truncated.is_some();
+    let cut_short = recorded.ends_early();
     let [mut topics, replayed_order] = order;
     for t in replayed_order {
         if !topics.contains(&t) {

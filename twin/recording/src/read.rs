@@ -706,6 +706,21 @@ impl Recording {
             .map(String::as_str)
     }
 
+    /// Where and why the run stopped, if this file is `twin recover`'s copy
+    /// of a run cut short (complete as a file, but not as a run).
+    pub fn recovered_from_cut(&self) -> Option<&str> {
+        self.metadata
+            .get(topics::RECOVERED_METADATA)
+            .and_then(|m| m.get("stopped"))
+            .map(String::as_str)
+    }
+
+    /// Whether the run ends before it would have: the file is cut short,
+    /// or was recovered from one that was. Only what it holds is compared.
+    pub fn ends_early(&self) -> bool {
+        self.truncated.is_some() || self.recovered_from_cut().is_some()
+    }
+
     /// Why a recording holds no message, for an error that says so: `PATH
     /// holds no messages…`, with where a file cut short stops.
     pub fn holds_no_messages(&self) -> String {

@@ -14,7 +14,7 @@
 
 use mcap::records::Record;
 use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader, LinearReaderOptions};
-use std::collections::BTreeSet;
+use std::collections::{BTreeMap, BTreeSet};
 use std::fs::File;
 use std::io::Read;
 use std::path::{Path, PathBuf};
@@ -22,6 +22,7 @@ use std::path::{Path, PathBuf};
 use crate::chunk::{chunk_records, in_words};
 use crate::mcap_file::McapFile;
 use crate::record::{CHUNK_SIZE, ZSTD_LEVEL};
+use crate::topics;
 
 /// Why a recovery could not be made.
 #[derive(Debug, thiserror::Error)]
@@ -179,7 +180,7 @@ pub fn recover(damaged: &Path, out: &Path) -> Result<Recovered> {
             }
         }
     }
-    let writer = match writer {
+    let mut writer = match writer {
         Some(w) => w,
         None => {
             return Err(RecoverError::Empty {
@@ -187,6 +188,18 @@ pub fn recover(damaged: &Path, out: &Path) -> Result<Recovered> {
             });
         }
     };
+    // The copy of a run cut short says so, so that a replay or a comparison
+    // reads it as the cut run it is (up to its end), not as a whole run
+    // whose messages stop early.
+    if let Some(why) = &copy.found.stopped {
+        let fields = BTreeMap::from([("stopped".to_string(), why.clone())]);
+        writer
+            .write_metadata(topics::RECOVERED_METADATA, &fields)
+            .map_err(|source| RecoverError::Write {
+                path: out.to_path_buf(),
+                source,
+            })?;
+    }
     writer.finish().map_err(|source| RecoverError::Finish {
         path: out.to_path_buf(),
         source,
@@ -419,12 +432,25 @@ mod tests {
             let copied = std::fs::read(&out).unwrap();
             let footer = mcap::read::footer(&copied).unwrap();
             let data_end = usize::try_from(footer.summary_start).unwrap() - 13;
-            assert!(copied[..data_end] == full[..data_end], "cut at {at}");
+            let summary = mcap::Summary::read(&copied).unwrap().unwrap();
+            // Then the copy's one record of its own, saying where the run
+            // stops, right before the data end.
+            let said = summary
+                .metadata_indexes
+                .iter()
+                .find(|m| m.name == topics::RECOVERED_METADATA)
+                .expect("the copy says the run was cut");
+            let own = usize::try_from(said.offset).unwrap();
+            assert_eq!(own + usize::try_from(said.length).unwrap(), data_end);
+            assert!(copied[..own] == full[..own], "cut at {at}");
+            let stopped = Recording::read(&out).unwrap();
+            assert_eq!(stopped.truncated, None, "cut at {at}");
+            assert_eq!(stopped.recovered_from_cut(), found.stopped.as_deref());
+            assert!(stopped.ends_early(), "cut at {at}");
             let got = messages(&copied);
             assert_eq!(got[..], all[..got.len()], "cut at {at}");
             assert_eq!(got.len() as u64, found.messages);
             counts.insert(got.len());
-            let summary = mcap::Summary::read(&copied).unwrap().unwrap();
             assert_eq!(summary.stats.unwrap().message_count, found.messages);
             let mut ids: Vec<_> = summary
                 .channels

@@ -38,6 +38,7 @@
 //! | [`firmware_metadata`] `twin.firmware.<node>` | a virtual run with compiled firmware | before any message | `node`, `file` (as the scenario names it), `attachment` (the MCAP attachment holding the file's bytes), `sha256`, `bytes`, `mcu`, `clock_hz`, `wiring` (the map's name or file) and `wiring_toml` (its text) |
 //! | [`CHECK_METADATA`] `twin.check` | `twin check` | after the checks | `score`, `points`, `checks`, `checks_passed`, `seconds`, and `hung_up` or `error` when the program hung up or could not be reached; the whole run as JSON is the attachment [`CHECK_RUN_ATTACHMENT`] |
 //! | [`PART_METADATA`] `twin.part` | a real-time session's file that another follows (rotation) | when it is closed | `part` (from 1), `ended_by` (`SIGHUP`, `--rotate-every 1h`, …), `next` (the next file's name); the next file's `twin.run` has `part` and `previous` |
+//! | [`RECOVERED_METADATA`] `twin.recovered` | `twin recover`'s copy of a run cut short | last, before the summary | `stopped`: where and why the original stops (`after 2 complete chunk(s), its last record is cut off`); replays and comparisons read the copy as the cut run it is |
 
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
@@ -55,6 +56,8 @@ pub const RUN_METADATA: &str = "twin.run";
 pub const REALTIME_METADATA: &str = "twin.realtime";
 /// Why a session's file ended and which file goes on (rotation).
 pub const PART_METADATA: &str = "twin.part";
+/// Where the run a `twin recover` copy was made of stops (it was cut short).
+pub const RECOVERED_METADATA: &str = "twin.recovered";
 
 /// A `twin check` run's score and how it ended.
 pub const CHECK_METADATA: &str = "twin.check";

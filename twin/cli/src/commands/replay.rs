@@ -91,6 +91,11 @@ pub fn execute(args: &ReplayArgs) -> Result<()> {
     }
     if let Some(why) = &recorded.truncated {
         println!("  note: the recording is cut short ({why}); only what it holds is compared");
+    } else if let Some(why) = recorded.recovered_from_cut() {
+        println!(
+            "  note: the recording was recovered from a run cut short ({why}); only what it \
+             holds is compared"
+        );
     }
     let rerun = match args.overrides.is_empty() {
         true => as_recorded,
@@ -155,7 +160,7 @@ pub fn execute(args: &ReplayArgs) -> Result<()> {
                 d.signal
             );
         }
-        None if recorded.truncated.is_some() => {
+        None if recorded.ends_early() => {
             println!(
                 "  every message the cut-short recording holds matches the replay ({} messages)",
                 recorded.message_count()
