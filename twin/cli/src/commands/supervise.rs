@@ -395,6 +395,8 @@ pub fn execute(args: &SuperviseArgs, matches: &ArgMatches) -> Result<()> {
             if let Some(panel) = &panel
                 && let Err(e) = panel.start(engine)
             {
+                // With its cause (a thiserror type alone prints without).
+                let e = anyhow::Error::from(e);
                 eprintln!("--web: {e:#}; going on without the panel");
             }
         },

@@ -192,6 +192,8 @@ fn run(
                             if let Some(panel) = &panels[n]
                                 && let Err(e) = panel.start(engine.clone())
                             {
+                                // With its cause, as main prints an error.
+                                let e = anyhow::Error::from(e);
                                 eprintln!(
                                     "module {name}: --web: {e:#}; going on without its panel"
                                 );

@@ -469,6 +469,8 @@ fn serve_one(args: &ServeArgs, options: &ServeOptions) -> Result<()> {
             if let Some(panel) = &panel
                 && let Err(e) = panel.start(engine.clone())
             {
+                // With its cause (a thiserror type alone prints without).
+                let e = anyhow::Error::from(e);
                 eprintln!("--web: {e:#}; going on without the panel");
             }
             console::spawn_stdin(engine);
