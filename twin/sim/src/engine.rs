@@ -287,6 +287,10 @@ pub struct NodeSlot {
     stirred: bool,
     /// Hands its bytes over one by one ([`SimNode::poll_stream`]).
     streams: bool,
+    /// Could compute ahead of the engine when added ([`SimNode::can_run_ahead`],
+    /// which only a failure turns off later): the others are not asked at
+    /// every event.
+    may_run_ahead: bool,
     /// In the middle of a streamed frame.
     stream_open: bool,
 }
@@ -532,6 +536,7 @@ impl Engine {
     ) -> usize {
         let next_tick = node.firmware().map(|_| SimTime::ZERO);
         let streams = matches!(self.buses[bus].bus, Medium::Serial(_)) && node.start_streaming();
+        let may_run_ahead = node.can_run_ahead();
         let index = self.nodes.len();
         self.nodes.push(NodeSlot {
             name: name.into(),
@@ -542,6 +547,7 @@ impl Engine {
             next_tick,
             stirred: true,
             streams,
+            may_run_ahead,
             stream_open: false,
         });
         let owners = &mut self.buses[bus].owners;
@@ -661,7 +667,7 @@ impl Engine {
         let now = self.now;
         for n in 0..self.nodes.len() {
             let slot = &self.nodes[n];
-            if !slot.node.can_run_ahead() {
+            if !slot.may_run_ahead || !slot.node.can_run_ahead() {
                 continue;
             }
             let Some(tick) = slot.next_tick else { continue };
