@@ -395,6 +395,7 @@ static int port_index(char name) {
  * (after the pins' irqs are known). */
 static void hook_ports(twin_avr_t *t) {
 	avr_t *avr = t->avr;
+	avr_io_addr_t port_reg[PORTS] = {0}; /* PORTB, PORTC, PORTD */
 	int n = 0;
 	for (avr_io_t *io = avr->io_port; io; io = io->next) {
 		if (!io->kind || strcmp(io->kind, "port") != 0)
@@ -403,6 +404,7 @@ static void hook_ports(twin_avr_t *t) {
 		int p = port_index(port->name);
 		if (p < 0)
 			continue;
+		port_reg[p] = port->r_port;
 		avr_io_addr_t regs[3] = {port->r_port, port->r_ddr, port->r_pin};
 		for (int r = 0; r < 3 && n < PORT_HOOKS; r++) {
 			int i = AVR_DATA_TO_IO(regs[r]);
@@ -422,14 +424,9 @@ static void hook_ports(twin_avr_t *t) {
 			avr_regbit_t com = timer->comp[c].com, pin = timer->comp[c].com_pin;
 			if (!com.reg || !pin.reg)
 				continue;
-			for (avr_io_t *q = avr->io_port; q; q = q->next) {
-				if (!q->kind || strcmp(q->kind, "port") != 0)
-					continue;
-				avr_ioport_t *port = (avr_ioport_t *)q;
-				int p = port_index(port->name);
-				if (p >= 0 && port->r_port == pin.reg)
+			for (int p = 0; p < PORTS; p++)
+				if (port_reg[p] == pin.reg)
 					t->compare_pin[t->compare_pins++] = (compare_pin_t){com, p * 8 + pin.bit};
-			}
 		}
 	}
 }

@@ -44,6 +44,12 @@ pub struct Exported {
     pub skipped: Vec<Skipped>,
 }
 
+/// Whether the twin reads messages in `encoding` (asked per message: no
+/// words built).
+fn reads(encoding: &Encoding) -> bool {
+    matches!(encoding, Encoding::Json | Encoding::Protobuf(_))
+}
+
 /// Why the messages of a channel in `encoding` cannot be read, if they
 /// cannot: the reader's own words.
 fn unreadable(topic: &str, encoding: &Encoding) -> Option<String> {
@@ -161,7 +167,7 @@ pub fn to_csv(path: &Path, dir: &Path) -> Result<Exported, ExportError> {
     let mut columns: Vec<Columns> = Vec::new();
     let mut buf = String::new();
     let recording = Recording::scan(path, |m| {
-        if unreadable(m.topic, m.encoding).is_some() {
+        if !reads(m.encoding) {
             return Ok(());
         }
         let value: Value = m.json()?;
@@ -219,7 +225,7 @@ pub fn to_csv(path: &Path, dir: &Path) -> Result<Exported, ExportError> {
     })?;
     let mut sheets = Vec::with_capacity(recording.channels.len());
     for (channel, c) in recording.channels.iter().zip(&columns) {
-        if unreadable(&channel.topic, &channel.encoding).is_some() {
+        if !reads(&channel.encoding) {
             sheets.push(None);
             continue;
         }

@@ -170,8 +170,8 @@ fn the_adc_sketch_reads_v1_within_one_count_of_the_plant() {
 /// D8, a whole-port write, a pinMode) while Timer1 drives D9 at half duty:
 /// the module's VEL input reads half of 5 V, as on the bench. simavr drove
 /// D9 from PORTB at each of those writes, cutting every pulse short: VEL
-/// read 0.18 V (a duty of 3.6 %), and a student's motor turned slower in
-/// the twin alone.
+/// read 0.09-0.22 V (a duty of 3.6 % in a VCD trace), and a student's
+/// motor turned slower in the twin alone.
 #[test]
 fn writes_to_port_b_leave_d9_s_pwm_alone() {
     let sensors = Sensors::default();
